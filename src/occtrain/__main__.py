@@ -1,0 +1,3 @@
+from occtrain.cli import main
+
+raise SystemExit(main())

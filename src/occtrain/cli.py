@@ -1,0 +1,140 @@
+"""The ``occtrain`` command: argument parsing only; the work happens in the library."""
+
+from __future__ import annotations
+
+import argparse
+import re
+import sys
+from pathlib import Path
+
+from occtrain.errors import OcctrainError
+
+
+def _cmd_config_show(args: argparse.Namespace) -> int:
+    from occtrain.config import load_config, schema_for, to_yaml
+
+    cfg = load_config(schema_for(args.file, args.group), args.file, args.overrides)
+    print(to_yaml(cfg), end="")
+    return 0
+
+
+def _cmd_data_synth(args: argparse.Namespace) -> int:
+    from occtrain.config import SynthConfig
+    from occtrain.data.synthesize import synthesize
+
+    cfg = SynthConfig(train_scenes=args.scenes, val_scenes=args.val_scenes, frames_per_scene=args.frames, seed=args.seed)
+    synthesize(args.out, cfg)
+    return 0
+
+
+def _cmd_data_shards(args: argparse.Namespace) -> int:
+    from occtrain.data.shards import write_shards
+    from occtrain.progress import console
+
+    kinds = [k.strip() for k in args.kinds.split(",") if k.strip()]
+    index = write_shards(args.dataset, args.out, args.samples_per_shard, args.history, args.future, kinds)
+    for kind, splits in index["kinds"].items():
+        for split, entries in splits.items():
+            n = sum(e["samples"] for e in entries)
+            console.print(f"{kind:6s} {split:5s}: {n:5d} samples in {len(entries)} shards")
+    console.print(f"shards -> {args.out}")
+    return 0
+
+
+def _cmd_data_show(args: argparse.Namespace) -> int:
+    from occtrain.data.show import show
+
+    out = show(args.path, args.out, scene=args.scene, index=args.index, frames=args.frames, scale=args.scale)
+    print(out)
+    return 0
+
+
+def _cmd_data_check(args: argparse.Namespace) -> int:
+    from occtrain.data.check import check_dataset, check_shards, looks_like_shards
+
+    problems = check_shards(args.path) if looks_like_shards(args.path) else check_dataset(args.path)
+    for p in problems:
+        print(p)
+    what = "shards" if looks_like_shards(args.path) else "dataset"
+    if problems:
+        print(f"{len(problems)} problem(s) in {what} {args.path}", file=sys.stderr)
+        return 1
+    print(f"{what} {args.path}: ok")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="occtrain", description=__doc__)
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    config = sub.add_parser("config", help="inspect configs").add_subparsers(dest="action", required=True)
+    show = config.add_parser("show", help="print a config file resolved with overrides")
+    show.add_argument("file")
+    show.add_argument("overrides", nargs="*", help="key=value overrides, e.g. trainer.max_steps=10")
+    show.add_argument("--group", help="config group of FILE (default: its directory name)")
+    show.set_defaults(func=_cmd_config_show)
+
+    data = sub.add_parser("data", help="synthesize, shard, show and check datasets").add_subparsers(dest="action", required=True)
+    p = data.add_parser("synth", help="write the synthetic driving world in the Occ3D layout")
+    p.add_argument("--out", required=True, help="dataset directory to create")
+    p.add_argument("--scenes", type=int, default=4, help="train scenes (default 4)")
+    p.add_argument("--val-scenes", type=int, default=2, help="val scenes (default 2)")
+    p.add_argument("--frames", type=int, default=40, help="frames per scene at 2 Hz (default 40)")
+    p.add_argument("--seed", type=int, default=0)
+    p.set_defaults(func=_cmd_data_synth)
+
+    p = data.add_parser("shards", help="write webdataset shards from a dataset")
+    p.add_argument("dataset")
+    p.add_argument("--out", required=True)
+    p.add_argument("--samples-per-shard", type=int, default=64)
+    p.add_argument("--kinds", default="frames,clips", help="comma-separated: frames, clips")
+    p.add_argument("--history", type=int, default=4, help="history frames per clip")
+    p.add_argument("--future", type=int, default=6, help="future frames per clip")
+    p.set_defaults(func=_cmd_data_shards)
+
+    p = data.add_parser("show", help="bird's-eye picture of a frame (or a strip of frames)")
+    p.add_argument("path", help="dataset root or a labels.npz file")
+    p.add_argument("--out", default="bev.png")
+    p.add_argument("--scene", help="scene name (default: the first scene)")
+    p.add_argument("--index", type=int, default=0, help="frame index in the scene")
+    p.add_argument("--frames", type=int, default=1, help="consecutive frames to draw side by side")
+    p.add_argument("--scale", type=int, default=3, help="pixels per voxel")
+    p.set_defaults(func=_cmd_data_show)
+
+    p = data.add_parser("check", help="validate a dataset or shard directory")
+    p.add_argument("path")
+    p.set_defaults(func=_cmd_data_check)
+
+    from occtrain.scoring import register as register_score
+
+    register_score(sub)
+    return parser
+
+
+_WORKER_ERROR = re.compile(r"^occtrain\.errors\.\w+Error: (.*)$", re.MULTILINE)
+
+
+def _one_line(err: OcctrainError) -> str:
+    """The user-facing line of an error, also when it crossed a DataLoader worker."""
+    text = str(err)
+    found = _WORKER_ERROR.findall(text)
+    return found[-1] if found else text.splitlines()[0] if text else type(err).__name__
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except OcctrainError as err:
+        print(f"error: {_one_line(err)}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+    except BrokenPipeError:
+        return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main(sys.argv[1:]))

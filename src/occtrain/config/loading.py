@@ -1,0 +1,151 @@
+"""Load YAML onto structured configs, apply dotlist overrides, and explain mistakes in one line.
+
+A YAML value may name another YAML file (``data: configs/data/quickstart.yaml``) where the
+schema expects a section: that file's contents are merged in at that place, so recipes
+compose the pieces under ``configs/``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import typing
+from pathlib import Path
+from typing import Any, TypeVar
+
+import yaml
+from omegaconf import DictConfig, ListConfig, OmegaConf
+from omegaconf.errors import OmegaConfBaseException
+
+from occtrain.errors import ConfigError
+
+T = TypeVar("T")
+
+
+def _dataclass_fields(cls: type) -> dict[str, Any]:
+    hints = typing.get_type_hints(cls)
+    return {f.name: hints[f.name] for f in dataclasses.fields(cls)}
+
+
+def _section_type(tp: Any) -> type | None:
+    """The dataclass a field holds, or the element dataclass of a list field."""
+    if dataclasses.is_dataclass(tp):
+        return tp
+    origin = typing.get_origin(tp)
+    if origin in (list, tuple):
+        args = typing.get_args(tp)
+        if args and dataclasses.is_dataclass(args[0]):
+            return args[0]
+    return None
+
+
+def _suggest(key: str, valid: list[str]) -> str:
+    close = difflib.get_close_matches(key, valid, n=1, cutoff=0.6)
+    return f"; did you mean '{close[0]}'?" if close else f"; valid keys: {', '.join(sorted(valid))}"
+
+
+def read_yaml(path: Path) -> dict:
+    """Read one YAML mapping; a missing file or bad YAML is a one-line ConfigError."""
+    if not path.is_file():
+        raise ConfigError(f"config file not found: {path}")
+    try:
+        data = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as err:
+        mark = getattr(err, "problem_mark", None)
+        where = f" line {mark.line + 1}" if mark is not None else ""
+        raise ConfigError(f"{path}{where}: not valid YAML ({getattr(err, 'problem', err)})") from None
+    if data is None:
+        return {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: expected a mapping of keys at the top level")
+    return data
+
+
+def _resolve_includes(raw: Any, cls: type, source: Path, prefix: str) -> Any:
+    """Check keys against the schema and inline ``key: some/file.yaml`` sections."""
+    if not isinstance(raw, dict):
+        return raw
+    fields = _dataclass_fields(cls)
+    out = {}
+    for key, value in raw.items():
+        full = f"{prefix}{key}"
+        if key not in fields:
+            raise ConfigError(f"unknown key '{full}' in {source}{_suggest(str(key), list(fields))}")
+        sub = _section_type(fields[key])
+        if sub is not None and isinstance(value, str) and value.endswith((".yaml", ".yml")):
+            include = _find_include(value, source)
+            value = _resolve_includes(read_yaml(include), sub, include, f"{full}.")
+        elif sub is not None and isinstance(value, list):
+            value = [_resolve_includes(v, sub, source, f"{full}[{i}].") for i, v in enumerate(value)]
+        elif sub is not None:
+            value = _resolve_includes(value, sub, source, f"{full}.")
+        out[key] = value
+    return out
+
+
+def _find_include(name: str, source: Path) -> Path:
+    """Includes resolve against the current directory, then the including file's directory."""
+    for candidate in (Path(name), source.parent / name):
+        if candidate.is_file():
+            return candidate
+    raise ConfigError(f"{source}: included config file not found: {name}")
+
+
+def _merge(base: DictConfig, update: Any, source: str) -> DictConfig:
+    try:
+        return OmegaConf.merge(base, update)
+    except OmegaConfBaseException as err:
+        key = getattr(err, "full_key", None) or "?"
+        msg = str(err).splitlines()[0]
+        raise ConfigError(f"invalid value for '{key}' in {source}: {msg}") from None
+
+
+def _check_override_key(cls: type, dotted: str, source: str) -> None:
+    cur: type | None = cls
+    parts = dotted.split(".")
+    for depth, part in enumerate(parts):
+        if cur is None:
+            return  # inside a free-form mapping
+        name = part.split("[")[0]
+        fields = _dataclass_fields(cur)
+        if name not in fields:
+            where = ".".join(parts[:depth])
+            key = f"{where}.{name}" if where else name
+            raise ConfigError(f"unknown key '{key}' in {source}{_suggest(name, list(fields))}")
+        cur = _section_type(fields[name])
+
+
+def load_config(schema: type[T], path: str | Path | None = None, overrides: list[str] | None = None) -> T:
+    """Build ``schema`` from its defaults, a YAML file and ``key=value`` overrides.
+
+    Returns a validated, read-only omegaconf object typed as ``schema``.
+    """
+    cfg = OmegaConf.structured(schema)
+    if path is not None:
+        path = Path(path)
+        raw = _resolve_includes(read_yaml(path), schema, path, "")
+        cfg = _merge(cfg, raw, str(path))
+    for item in overrides or []:
+        if "=" not in item:
+            raise ConfigError(f"override '{item}' must look like key=value (e.g. trainer.max_steps=10)")
+        key = item.split("=", 1)[0].strip()
+        _check_override_key(schema, key, f"override '{item}'")
+        try:
+            dot = OmegaConf.from_dotlist([item])
+        except OmegaConfBaseException as err:
+            raise ConfigError(f"override '{item}': {str(err).splitlines()[0]}") from None
+        cfg = _merge(cfg, dot, f"override '{item}'")
+    OmegaConf.set_readonly(cfg, True)
+    return cfg  # type: ignore[return-value]
+
+
+def to_yaml(cfg: Any) -> str:
+    """The resolved config as YAML text."""
+    if isinstance(cfg, (DictConfig, ListConfig)):
+        return OmegaConf.to_yaml(cfg, resolve=True)
+    return yaml.safe_dump(cfg, sort_keys=False)
+
+
+def to_container(cfg: Any) -> dict:
+    """A plain dict of a config (for hashing and JSON)."""
+    return OmegaConf.to_container(cfg, resolve=True)  # type: ignore[return-value]

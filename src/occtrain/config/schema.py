@@ -1,0 +1,63 @@
+"""Structured-config dataclasses shared by every command: data and trainer groups."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+
+@dataclass
+class SynthConfig:
+    """Size and seed of the embedded synthetic world."""
+
+    train_scenes: int = 4
+    val_scenes: int = 2
+    frames_per_scene: int = 40
+    seed: int = 0
+
+
+@dataclass
+class DataConfig:
+    """Where a dataset lives and how training reads it."""
+
+    #: Dataset root in the Occ3D layout (annotations.json + gts/). Synthesized if absent.
+    root: str = "data/synth"
+    #: Webdataset shards made from ``root``; empty means ``<root>/shards``.
+    shards: str = ""
+    synth: SynthConfig = field(default_factory=SynthConfig)
+    samples_per_shard: int = 64
+    #: History and future frames of a world-model clip (paper: 4 history, 6 future at 2 Hz).
+    history: int = 4
+    future: int = 6
+    batch_size: int = 2
+    num_workers: int = 0
+    shuffle_buffer: int = 128
+    seed: int = 0
+
+
+@dataclass
+class TrainerConfig:
+    """The subset of ``lightning.Trainer`` arguments a recipe sets."""
+
+    accelerator: str = "cpu"
+    devices: int = 1
+    num_nodes: int = 1
+    strategy: str = "auto"
+    precision: str = "32-true"
+    max_steps: int = 100
+    max_epochs: int = -1
+    val_check_interval: int = 50
+    limit_val_batches: int = 8
+    log_every_n_steps: int = 10
+    #: Save ``last.ckpt`` every this many optimizer steps so a kill loses little.
+    ckpt_every_n_steps: int = 25
+    gradient_clip_val: float = 1.0
+    accumulate_grad_batches: int = 1
+    deterministic: bool = False
+    seed: int = 0
+
+
+@dataclass
+class DatasetFile:
+    """A file that configures a dataset alone (e.g. ``configs/data/*.yaml``) under ``data:``."""
+
+    data: DataConfig = field(default_factory=DataConfig)

@@ -1,0 +1,90 @@
+"""Shared fixtures: tiny hand-built Occ3D datasets and a small synthesized world."""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from occtrain.data.layout import DatasetWriter
+from occtrain.occ3d import FRAME_DT, FREE, GRID_SHAPE
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def hand_labels(seed: int) -> dict[str, np.ndarray]:
+    """A plausible label volume: ground, a box of class 4, masks hiding one corner."""
+    rng = np.random.default_rng(seed)
+    sem = np.full(GRID_SHAPE, FREE, np.uint8)
+    sem[:, :, 1] = 11
+    x, y = rng.integers(20, 170, size=2)
+    sem[x : x + 10, y : y + 5, 2:5] = 4
+    cam = np.ones(GRID_SHAPE, np.uint8)
+    cam[:50, :50] = 0
+    return {"semantics": sem, "mask_lidar": cam.copy(), "mask_camera": cam}
+
+
+def hand_frames(scene: str, n: int, seed: int) -> list[dict]:
+    """Minimal FrameAnnotations of an ego driving straight along +x at 5 m/s."""
+    frames = []
+    for i in range(n):
+        token = hashlib.md5(f"{scene}-{seed}-{i}".encode()).hexdigest()
+        fut = [[5.0 * FRAME_DT * (k + 1), 0.0] for k in range(6)]
+        mask = [1 if i + k + 1 < n else 0 for k in range(6)]
+        frames.append(
+            {
+                "scene": scene, "token": token, "index": i, "timestamp": int(1e6 * (100 + i * FRAME_DT)),
+                "ego_pose": {"translation": [5.0 * FRAME_DT * i, 0.0, 0.0], "yaw": 0.0},
+                "ego_speed": 5.0, "ego_accel": 0.0, "ego_yaw_rate": 0.0,
+                "command": "go straight", "meta_action": {"speed": "maintain", "direction": "straight"},
+                "ego_future": fut, "ego_future_mask": mask,
+                "ego_past": [[-5.0 * FRAME_DT * (4 - k), 0.0] for k in range(4)],
+                "ego_past_mask": [1 if i - (4 - k) >= 0 else 0 for k in range(4)],
+                "boxes": [], "agent_futures": [], "agent_future_mask": [],
+                "caption": f"caption {i}", "narration": f"narration {i}",
+            }
+        )
+    return frames
+
+
+def write_hand_dataset(root: Path, train: int = 2, val: int = 1, frames: int = 12) -> Path:
+    writer = DatasetWriter(root, {"generator": "tests", "train": train, "val": val, "frames": frames})
+    qs = {"train": [], "val": []}
+    for s in range(train + val):
+        scene, split = f"scene-{s:04d}", "train" if s < train else "val"
+        fr = hand_frames(scene, frames, s)
+        for f in fr:
+            writer.write_labels(scene, f["token"], hand_labels(hash(f["token"]) % 1000))
+            qs[split].append({"question": "Are there any cars?", "answer": "yes", "sample_token": f["token"], "template_type": "exist", "num_hop": 0})
+        writer.write_scene(scene, split, fr)
+    writer.finalize(qs)
+    return root
+
+
+@pytest.fixture(scope="session")
+def hand_dataset(tmp_path_factory) -> Path:
+    return write_hand_dataset(tmp_path_factory.mktemp("hand") / "ds")
+
+
+@pytest.fixture(scope="session")
+def synth_dataset(tmp_path_factory) -> Path:
+    """A small synthesized world (2 train + 1 val scenes of 12 frames), shared by the session."""
+    from occtrain.config import SynthConfig
+    from occtrain.data.synthesize import synthesize
+
+    root = tmp_path_factory.mktemp("synth") / "world"
+    synthesize(root, SynthConfig(train_scenes=2, val_scenes=1, frames_per_scene=12, seed=3), verbose=False)
+    return root
+
+
+def run_cli(*args: str, cwd: Path | None = None, timeout: float = 300) -> subprocess.CompletedProcess:
+    """Run the real ``occtrain`` CLI in a subprocess."""
+    env = dict(os.environ, PYTHONWARNINGS="ignore")
+    return subprocess.run(
+        [sys.executable, "-m", "occtrain", *args], cwd=cwd or REPO, env=env, capture_output=True, text=True, timeout=timeout
+    )

@@ -1,0 +1,67 @@
+from pathlib import Path
+
+import pytest
+
+from occtrain.config import DataConfig, DatasetFile, TrainerConfig, load_config
+from occtrain.errors import ConfigError
+
+
+def write(tmp_path: Path, name: str, text: str) -> Path:
+    path = tmp_path / name
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(text)
+    return path
+
+
+def test_yaml_and_overrides_merge_onto_defaults(tmp_path):
+    f = write(tmp_path, "trainer/cpu.yaml", "max_steps: 7\ndevices: 2\n")
+    cfg = load_config(TrainerConfig, f, ["max_steps=11", "strategy=ddp"])
+    assert (cfg.max_steps, cfg.devices, cfg.strategy, cfg.accelerator) == (11, 2, "ddp", "cpu")
+
+
+def test_unknown_key_in_file_names_file_and_suggests(tmp_path):
+    f = write(tmp_path, "trainer/cpu.yaml", "max_step: 7\n")
+    with pytest.raises(ConfigError) as err:
+        load_config(TrainerConfig, f)
+    assert str(err.value) == f"unknown key 'max_step' in {f}; did you mean 'max_steps'?"
+
+
+def test_unknown_nested_override_key_suggests(tmp_path):
+    with pytest.raises(ConfigError) as err:
+        load_config(DatasetFile, None, ["data.synth.train_scene=3"])
+    assert "unknown key 'data.synth.train_scene'" in str(err.value)
+    assert "did you mean 'train_scenes'?" in str(err.value)
+
+
+def test_wrong_type_names_key_and_source(tmp_path):
+    f = write(tmp_path, "data/x.yaml", "batch_size: lots\n")
+    with pytest.raises(ConfigError) as err:
+        load_config(DataConfig, f)
+    msg = str(err.value)
+    assert "batch_size" in msg and str(f) in msg and "\n" not in msg
+    with pytest.raises(ConfigError) as err:
+        load_config(TrainerConfig, None, ["max_steps=abc"])
+    assert "max_steps" in str(err.value) and "override 'max_steps=abc'" in str(err.value)
+
+
+def test_section_may_name_another_yaml_file(tmp_path):
+    data = write(tmp_path, "configs/data/tiny.yaml", "root: somewhere\nsynth:\n  train_scenes: 1\n")
+    top = write(tmp_path, "recipe.yaml", f"data: {data}\n")
+    cfg = load_config(DatasetFile, top, ["data.batch_size=5"])
+    assert (cfg.data.root, cfg.data.synth.train_scenes, cfg.data.batch_size) == ("somewhere", 1, 5)
+
+
+def test_bad_yaml_and_missing_file_are_one_line(tmp_path):
+    f = write(tmp_path, "trainer/bad.yaml", "max_steps: [1,\n")
+    with pytest.raises(ConfigError, match=r"not valid YAML"):
+        load_config(TrainerConfig, f)
+    with pytest.raises(ConfigError, match="config file not found"):
+        load_config(TrainerConfig, tmp_path / "nope.yaml")
+    with pytest.raises(ConfigError, match="must look like key=value"):
+        load_config(TrainerConfig, None, ["max_steps"])
+
+
+def test_result_is_read_only():
+    cfg = load_config(TrainerConfig)
+    with pytest.raises(Exception):
+        cfg.max_steps = 3
