@@ -1,0 +1,163 @@
+"""Shards: round trip through a DataLoader, the allow-list decoder, corrupt input."""
+
+import io
+import json
+import pickle
+import tarfile
+
+import numpy as np
+import pytest
+import torch
+
+from conftest import hand_labels
+from occtrain.config import DataConfig
+from occtrain.data.check import check_shards
+from occtrain.data.datamodule import ShardDataModule
+from occtrain.data.layout import DatasetIndex
+from occtrain.data.shards import decode_sample, make_pipeline, read_index, shard_urls, write_shards
+from occtrain.errors import DataError
+from occtrain.occ3d import GRID_SHAPE
+
+
+@pytest.fixture(scope="module")
+def shards(hand_dataset, tmp_path_factory):
+    out = tmp_path_factory.mktemp("shards") / "s"
+    write_shards(hand_dataset, out, samples_per_shard=5, history=2, future=3)
+    return out
+
+
+def test_index_counts(hand_dataset, shards):
+    idx = read_index(shards)
+    # 2 train scenes x 12 frames; clips need 2 history + 3 future: 12 - 5 = 7 anchors per scene.
+    assert sum(e["samples"] for e in idx["kinds"]["frames"]["train"]) == 24
+    assert sum(e["samples"] for e in idx["kinds"]["clips"]["train"]) == 14
+    assert sum(e["samples"] for e in idx["kinds"]["clips"]["val"]) == 7
+    assert [e["samples"] for e in idx["kinds"]["frames"]["train"]] == [5, 5, 5, 5, 4]
+    assert check_shards(shards) == []
+
+
+def test_frames_round_trip_through_dataloader_with_two_workers(hand_dataset, shards):
+    ds = DatasetIndex.open(hand_dataset)
+    cfg = DataConfig(root=str(hand_dataset), shards=str(shards), batch_size=4, num_workers=2)
+    dm = ShardDataModule(cfg, "frames")
+    seen = {}
+    for batch in dm.val_dataloader():
+        assert batch["semantics"].dtype == torch.uint8 and batch["semantics"].shape[1:] == GRID_SHAPE
+        for i, tok in enumerate(batch["token"]):
+            seen[tok] = (batch["semantics"][i].numpy(), batch["mask_camera"][i].numpy())
+    val_tokens = [t for _, t in ds.samples("val")]
+    assert sorted(seen) == sorted(val_tokens)  # every val sample exactly once across workers
+    for scene, tok in ds.samples("val"):
+        want = ds.labels(scene, tok)
+        assert np.array_equal(seen[tok][0], want["semantics"])
+        assert np.array_equal(seen[tok][1], want["mask_camera"].astype(bool))
+
+
+def test_clip_content_matches_the_dataset(hand_dataset, shards):
+    ds = DatasetIndex.open(hand_dataset)
+    urls, total = shard_urls(shards, "clips", "val")
+    samples = list(make_pipeline(urls, train=False, total=total))
+    assert len(samples) == total == 7
+    first = samples[0]
+    scene = ds.splits["val"][0]
+    tokens = ds.scenes[scene]
+    assert first["__key__"] == tokens[2]
+    assert first["ann.json"]["tokens"] == tokens[0:6]
+    sem = first["occ.npz"]["semantics"]
+    assert sem.shape == (6, *GRID_SHAPE)
+    assert np.array_equal(sem[4], ds.labels(scene, tokens[4])["semantics"])
+    assert first["caption.txt"] == "caption 2" and first["qa.json"][0]["answer"] == "yes"
+
+
+def test_train_pipeline_streams_forever_and_shuffles(hand_dataset, shards):
+    urls, _ = shard_urls(shards, "frames", "train")
+    it = iter(make_pipeline(urls, train=True, shuffle_buffer=8, seed=1))
+    keys = [next(it)["__key__"] for _ in range(60)]  # more than the 24 train frames
+    assert len(set(keys)) > 12
+
+
+def test_validation_is_split_evenly_over_ranks(monkeypatch, shards):
+    import occtrain.data.shards as sh
+
+    urls, total = shard_urls(shards, "frames", "val")
+    keys = []
+    for rank in (0, 1):
+        monkeypatch.setattr(sh, "_rank_world", lambda r=rank: (r, 2))
+        keys.append([s["__key__"] for s in make_pipeline(urls, train=False, total=total)])
+    assert len(keys[0]) == len(keys[1]) == total // 2
+    assert not set(keys[0]) & set(keys[1])
+
+
+def _tar_with(tmp_path, entries: dict[str, bytes]) -> str:
+    path = tmp_path / "evil-000000.tar"
+    with tarfile.open(path, "w") as tar:
+        for name, data in entries.items():
+            info = tarfile.TarInfo(name)
+            info.size = len(data)
+            tar.addfile(info, io.BytesIO(data))
+    return str(path)
+
+
+class Boom:
+    def __reduce__(self):
+        return (print, ("pickle was executed",))
+
+
+def test_pickled_payload_is_refused(tmp_path, capsys):
+    url = _tar_with(tmp_path, {"k1.meta.json": b"{}", "k1.payload.pyd": pickle.dumps(Boom())})
+    with pytest.raises(DataError, match="'payload.pyd' is not an allowed format"):
+        list(make_pipeline([url], train=False))
+    assert "pickle was executed" not in capsys.readouterr().out
+
+
+def test_object_npy_is_refused(tmp_path):
+    buf = io.BytesIO()
+    np.save(buf, np.array([Boom()], dtype=object), allow_pickle=True)
+    url = _tar_with(tmp_path, {"k1.arr.npy": buf.getvalue()})
+    with pytest.raises(DataError, match="pickled object array"):
+        list(make_pipeline([url], train=False))
+
+
+def test_wrong_shape_in_shard(tmp_path):
+    buf = io.BytesIO()
+    np.savez(buf, semantics=np.zeros((10, 10, 16), np.uint8))
+    url = _tar_with(tmp_path, {"k1.occ.npz": buf.getvalue()})
+    with pytest.raises(DataError, match="semantics has shape"):
+        list(make_pipeline([url], train=False))
+
+
+def test_truncated_shard(tmp_path, shards):
+    src = shards / "frames" / "train-000000.tar"
+    bad = tmp_path / "train-000000.tar"
+    bad.write_bytes(src.read_bytes()[: src.stat().st_size // 3])
+    with pytest.raises(DataError) as err:
+        list(make_pipeline([str(bad)], train=False))
+    assert "train-000000.tar" in str(err.value)
+
+
+def test_check_lists_corrupt_shards(tmp_path, shards):
+    import shutil
+
+    copy = tmp_path / "copy"
+    shutil.copytree(shards, copy)
+    victim = copy / "clips" / "val-000000.tar"
+    victim.write_bytes(victim.read_bytes()[:5000])
+    problems = check_shards(copy)
+    assert problems and all("val-000000.tar" in p for p in problems)
+
+
+def test_shards_refuse_to_overwrite_different_shards(hand_dataset, shards):
+    before = (shards / "index.json").read_text()
+    assert write_shards(hand_dataset, shards, samples_per_shard=5, history=2, future=3)["source"]["history"] == 2
+    with pytest.raises(DataError, match="different dataset or layout"):
+        write_shards(hand_dataset, shards, samples_per_shard=7, history=2, future=3)
+    assert (shards / "index.json").read_text() == before
+    assert json.loads(before)["source"]["samples_per_shard"] == 5
+
+
+def test_decode_sample_unpacks_masks():
+    mask = (np.arange(np.prod(GRID_SHAPE)).reshape(GRID_SHAPE) % 3 == 0).astype(np.uint8)
+    buf = io.BytesIO()
+    np.savez(buf, semantics=hand_labels(1)["semantics"], mask_camera=np.packbits(mask, axis=-1))
+    out = decode_sample({"__key__": "k", "occ.npz": buf.getvalue()})
+    assert np.array_equal(out["occ.npz"]["mask_camera"], mask)
