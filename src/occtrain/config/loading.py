@@ -39,6 +39,13 @@ def _section_type(tp: Any) -> type | None:
     return None
 
 
+def _is_mapping(tp: Any) -> bool:
+    """True for ``dict[...]`` and ``Optional[dict[...]]`` fields."""
+    if typing.get_origin(tp) is dict or tp is dict:
+        return True
+    return any(typing.get_origin(a) is dict for a in typing.get_args(tp))
+
+
 def _suggest(key: str, valid: list[str]) -> str:
     close = difflib.get_close_matches(key, valid, n=1, cutoff=0.6)
     return f"; did you mean '{close[0]}'?" if close else f"; valid keys: {', '.join(sorted(valid))}"
@@ -72,7 +79,9 @@ def _resolve_includes(raw: Any, cls: type, source: Path, prefix: str) -> Any:
         if key not in fields:
             raise ConfigError(f"unknown key '{full}' in {source}{_suggest(str(key), list(fields))}")
         sub = _section_type(fields[key])
-        if sub is not None and isinstance(value, str) and value.endswith((".yaml", ".yml")):
+        if sub is None and _is_mapping(fields[key]) and isinstance(value, str) and value.endswith((".yaml", ".yml")):
+            value = read_yaml(_find_include(value, source))  # a free-form section kept in its own file
+        elif sub is not None and isinstance(value, str) and value.endswith((".yaml", ".yml")):
             include = _find_include(value, source)
             value = _resolve_includes(read_yaml(include), sub, include, f"{full}.")
         elif sub is not None and isinstance(value, list):

@@ -1,0 +1,55 @@
+"""Recipe schema: a run's name, its data, default trainer settings and ordered stages."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Optional
+
+from omegaconf import MISSING
+
+from occtrain.config.schema import DataConfig, TrainerConfig
+
+STAGE_KINDS = ("tokenizer", "pretrain", "instruct", "planner", "distill")
+
+
+@dataclass
+class OptimConfig:
+    """AdamW with linear warm-up then cosine (or constant) decay."""
+
+    lr: float = 1e-3
+    weight_decay: float = 0.01
+    betas: list[float] = field(default_factory=lambda: [0.9, 0.95])
+    warmup_steps: int = 0
+    schedule: str = "cosine"  # cosine | constant
+    min_lr_ratio: float = 0.1
+
+
+@dataclass
+class StageSpec:
+    """One stage of a recipe.
+
+    ``model`` is validated against the schema of the stage's kind (see occtrain.stages);
+    ``trainer`` holds only the keys this stage changes from the recipe's trainer.
+    """
+
+    name: str = MISSING
+    kind: str = MISSING
+    #: Earlier stages whose ``export/`` this stage reads (never their checkpoints).
+    consumes: list[str] = field(default_factory=list)
+    #: Parameter-name prefixes kept frozen.
+    freeze: list[str] = field(default_factory=list)
+    model: Optional[dict[str, Any]] = None
+    optim: OptimConfig = field(default_factory=OptimConfig)
+    trainer: Optional[dict[str, Any]] = None
+
+
+@dataclass
+class RecipeConfig:
+    """What ``occtrain run`` reads."""
+
+    name: str = MISSING
+    data: DataConfig = field(default_factory=DataConfig)
+    trainer: TrainerConfig = field(default_factory=TrainerConfig)
+    stages: list[StageSpec] = field(default_factory=list)
+    #: Where runs go; the run directory is ``<runs_root>/<name>`` unless --run-dir is given.
+    runs_root: str = "runs"

@@ -1,0 +1,107 @@
+"""``manifest.json``: the story of a run, one entry per stage, rewritten atomically."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+from occtrain import __version__
+from occtrain.errors import OcctrainError
+from occtrain.io import atomic_write_json
+
+MANIFEST_FILE = "manifest.json"
+STATUSES = ("pending", "running", "done", "failed")
+
+
+def code_version() -> str:
+    """occtrain's version, plus the git commit when running from a checkout."""
+    try:
+        sha = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], cwd=Path(__file__).parent, capture_output=True, text=True, timeout=5
+        ).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        sha = ""
+    return f"{__version__}+{sha}" if sha else __version__
+
+
+@dataclass
+class StageEntry:
+    """A stage's record in the manifest."""
+
+    kind: str
+    status: str = "pending"
+    attempts: int = 0
+    config_hash: str = ""
+    started: float | None = None
+    ended: float | None = None
+    wall_time_s: float = 0.0
+    metrics: dict[str, Any] = field(default_factory=dict)
+    artifacts: dict[str, str] = field(default_factory=dict)
+    error: str = ""
+    code_version: str = ""
+    #: The resolved stage config the hash was taken of, to explain a change key by key.
+    config: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass
+class Manifest:
+    """All stages of a run, in recipe order."""
+
+    path: Path
+    name: str = ""
+    stages: dict[str, StageEntry] = field(default_factory=dict)
+    #: False in DDP worker processes: only rank zero writes.
+    writable: bool = True
+
+    @classmethod
+    def load(cls, run_dir: Path, writable: bool = True) -> Manifest:
+        path = Path(run_dir) / MANIFEST_FILE
+        if not path.is_file():
+            return cls(path=path, writable=writable)
+        try:
+            raw = json.loads(path.read_text())
+            stages = {name: StageEntry(**entry) for name, entry in raw["stages"].items()}
+        except (json.JSONDecodeError, KeyError, TypeError) as err:
+            raise OcctrainError(f"{path}: unreadable manifest ({err}); move it aside to start the run afresh") from None
+        return cls(path=path, name=raw.get("name", ""), stages=stages, writable=writable)
+
+    def save(self) -> None:
+        if not self.writable:
+            return
+        atomic_write_json(
+            self.path,
+            {"name": self.name, "updated": time.time(), "stages": {n: asdict(e) for n, e in self.stages.items()}},
+        )
+
+    def entry(self, name: str, kind: str) -> StageEntry:
+        if name not in self.stages:
+            self.stages[name] = StageEntry(kind=kind)
+        return self.stages[name]
+
+    def mark_running(self, name: str, config_hash: str, config: dict) -> StageEntry:
+        e = self.stages[name]
+        e.status, e.attempts, e.started, e.ended, e.error = "running", e.attempts + 1, time.time(), None, ""
+        e.config_hash, e.config, e.code_version = config_hash, config, code_version()
+        self.save()
+        return e
+
+    def mark_done(self, name: str, metrics: dict, artifacts: dict[str, str], wall_time_s: float) -> None:
+        e = self.stages[name]
+        e.status, e.ended, e.metrics, e.artifacts = "done", time.time(), metrics, artifacts
+        e.wall_time_s += wall_time_s
+        self.save()
+
+    def mark_failed(self, name: str, error: str, wall_time_s: float) -> None:
+        e = self.stages[name]
+        e.status, e.ended, e.error = "failed", time.time(), error
+        e.wall_time_s += wall_time_s
+        self.save()
+
+    def reset(self, name: str) -> None:
+        kind = self.stages[name].kind
+        self.stages[name] = StageEntry(kind=kind)
+        self.save()

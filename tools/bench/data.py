@@ -1,0 +1,80 @@
+"""Data throughput: world synthesis frames/s (one core) and shard reading samples/s.
+
+    python tools/bench/data.py [--frames 40] [--read-seconds 8]
+
+Everything is measured in one run, side by side, on the same machine state:
+synthesis (render + annotate + text, no disk), synthesis including the labels.npz writes,
+and reading single-frame shards with decoding through a DataLoader at num_workers 0 and 2.
+Goals from the foundation issue: synthesis >= 20 frames/s, reading >= 200 samples/s.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import tempfile
+import time
+from pathlib import Path
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+import torch  # noqa: E402
+
+from occtrain.config import DataConfig, SynthConfig  # noqa: E402
+from occtrain.data.datamodule import ShardDataModule  # noqa: E402
+from occtrain.data.shards import write_shards  # noqa: E402
+from occtrain.data.synth import generate_scene  # noqa: E402
+from occtrain.data.synth.text import caption_for_frame, narration_for_frame  # noqa: E402
+from occtrain.data.synthesize import synthesize  # noqa: E402
+
+
+def bench_synthesis(frames: int) -> float:
+    start = time.perf_counter()
+    scene = generate_scene(name="scene-bench", seed=11, num_frames=frames)
+    for i, frame in enumerate(scene.frames):
+        frame["caption"] = caption_for_frame(frame)
+        frame["narration"] = narration_for_frame(frame)
+        scene.render(i)
+    return frames / (time.perf_counter() - start)
+
+
+def bench_read(cfg: DataConfig, workers: int, seconds: float) -> float:
+    cfg.num_workers = workers
+    loader = ShardDataModule(cfg, "frames").train_dataloader()
+    it = iter(loader)
+    next(it)  # worker start-up is not throughput
+    n, start = 0, time.perf_counter()
+    while time.perf_counter() - start < seconds:
+        n += len(next(it)["token"])
+    rate = n / (time.perf_counter() - start)
+    del it
+    return rate
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--frames", type=int, default=40)
+    ap.add_argument("--read-seconds", type=float, default=8.0)
+    args = ap.parse_args()
+    torch.set_num_threads(1)
+
+    synth_fps = bench_synthesis(args.frames)
+    with tempfile.TemporaryDirectory() as tmp:
+        root = Path(tmp) / "world"
+        cfg = SynthConfig(train_scenes=2, val_scenes=1, frames_per_scene=args.frames, seed=5)
+        start = time.perf_counter()
+        synthesize(root, cfg, verbose=False)
+        disk_fps = 3 * args.frames / (time.perf_counter() - start)
+        write_shards(root, Path(tmp) / "shards", kinds=["frames"])
+        data = DataConfig(root=str(root), shards=str(Path(tmp) / "shards"), batch_size=8, shuffle_buffer=64)
+        read0 = bench_read(data, 0, args.read_seconds)
+        read2 = bench_read(data, 2, args.read_seconds)
+
+    print(f"synthesis, in memory      : {synth_fps:7.1f} frames/s   (goal >= 20)")
+    print(f"synthesis, written to disk: {disk_fps:7.1f} frames/s")
+    print(f"shard read, num_workers=0 : {read0:7.1f} samples/s  (goal >= 200)")
+    print(f"shard read, num_workers=2 : {read2:7.1f} samples/s  ({read2 / read0:.2f}x workers=0)")
+
+
+if __name__ == "__main__":
+    main()
