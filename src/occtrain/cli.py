@@ -18,6 +18,15 @@ def _cmd_config_show(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_run(args: argparse.Namespace) -> int:
+    from occtrain.runner import is_rank_zero, run
+
+    run_dir = run(args.recipe, args.overrides, run_dir=args.run_dir, only=args.only, restart=args.restart)
+    if is_rank_zero():
+        print(f"run directory: {run_dir}")
+    return 0
+
+
 def _cmd_data_synth(args: argparse.Namespace) -> int:
     from occtrain.config import SynthConfig
     from occtrain.data.synthesize import synthesize
@@ -66,6 +75,14 @@ def _cmd_data_check(args: argparse.Namespace) -> int:
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="occtrain", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    p = sub.add_parser("run", help="run a recipe's stages in order (skips done stages, resumes cut-off ones)")
+    p.add_argument("recipe", help="recipe YAML, e.g. stages/quickstart.yaml")
+    p.add_argument("overrides", nargs="*", help="key=value overrides, e.g. trainer.max_steps=10 trainer.devices=2")
+    p.add_argument("--run-dir", help="run directory (default: runs/<recipe name>)")
+    p.add_argument("--only", metavar="STAGE", help="run just this stage (its inputs must be done)")
+    p.add_argument("--restart", metavar="STAGE", help="retrain this stage and every stage after it")
+    p.set_defaults(func=_cmd_run)
 
     config = sub.add_parser("config", help="inspect configs").add_subparsers(dest="action", required=True)
     show = config.add_parser("show", help="print a config file resolved with overrides")

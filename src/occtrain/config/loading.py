@@ -158,3 +158,18 @@ def to_yaml(cfg: Any) -> str:
 def to_container(cfg: Any) -> dict:
     """A plain dict of a config (for hashing and JSON)."""
     return OmegaConf.to_container(cfg, resolve=True)  # type: ignore[return-value]
+
+
+def validate_section(schema: type[T], raw: Any, prefix: str, source: str | Path) -> T:
+    """Validate a free-form section (e.g. a stage's ``model``) against ``schema``.
+
+    Errors name the full key path (``stages[0].model.codebook_size``) and the source file.
+    """
+    if isinstance(raw, (DictConfig, ListConfig)):
+        raw = OmegaConf.to_container(raw, resolve=True)
+    if not isinstance(raw, dict):
+        raise ConfigError(f"'{prefix}' in {source} must be a mapping of keys")
+    checked = _resolve_includes(raw, schema, Path(str(source)), f"{prefix}.")
+    cfg = _merge(OmegaConf.structured(schema), checked, str(source))
+    OmegaConf.set_readonly(cfg, True)
+    return cfg  # type: ignore[return-value]

@@ -1,0 +1,55 @@
+"""Stage kinds: each a LightningModule plus how to build, feed and export it.
+
+A kind registers a :class:`StageKind`; the runner looks kinds up by name. Kinds whose
+module is not implemented yet are reported as such when a recipe names them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+import lightning as L
+
+from occtrain.config.recipe import StageSpec
+from occtrain.config.schema import DataConfig, TrainerConfig
+
+
+@dataclass
+class StageContext:
+    """Everything a stage kind needs to build its module."""
+
+    spec: StageSpec
+    model_cfg: Any  # the kind's validated model config (an omegaconf structured object)
+    data: DataConfig
+    trainer: TrainerConfig
+    stage_dir: Path
+    #: Export directories of the consumed stages, by stage name.
+    inputs: dict[str, Path]
+
+
+@dataclass(frozen=True)
+class StageKind:
+    name: str
+    model_schema: type
+    data_kind: str  # "frames" or "clips"
+    build: Callable[[StageContext], L.LightningModule]
+    #: Validation metric that picks ``best.ckpt``, and whether higher is better.
+    monitor: str | None = None
+    mode: str = "max"
+
+
+_KINDS: dict[str, StageKind] = {}
+
+
+def register(kind: StageKind) -> StageKind:
+    _KINDS[kind.name] = kind
+    return kind
+
+
+def get_kind(name: str) -> StageKind | None:
+    """The registered kind, importing the built-in kinds on first use."""
+    if not _KINDS:
+        from occtrain.stages import tokenizer  # noqa: F401  (registers itself)
+    return _KINDS.get(name)
