@@ -1,0 +1,137 @@
+"""LightningDataModules over webdataset shards: one per data kind (frames, clips)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Callable, Iterator
+
+import lightning as L
+import numpy as np
+import torch
+from torch.utils.data import DataLoader
+
+from occtrain.config.schema import DataConfig
+from occtrain.data.layout import ANNOTATIONS_FILE
+from occtrain.data.shards import INDEX_FILE, KINDS, SkipSamples, make_pipeline, shard_urls, write_shards
+from occtrain.errors import DataError
+
+
+def shards_dir(cfg: DataConfig) -> Path:
+    return Path(cfg.shards) if cfg.shards else Path(cfg.root) / "shards"
+
+
+def ensure_data(cfg: DataConfig, verbose: bool = True) -> Path:
+    """Synthesize the dataset if ``cfg.root`` is absent, write its shards if absent; return the shard dir."""
+    from occtrain.data.synthesize import synthesize  # the synthetic world is only needed here
+
+    root = Path(cfg.root)
+    if not (root / ANNOTATIONS_FILE).is_file():
+        synthesize(root, cfg.synth, verbose=verbose)
+    out = shards_dir(cfg)
+    if not (out / INDEX_FILE).is_file():
+        write_shards(root, out, cfg.samples_per_shard, cfg.history, cfg.future)
+    return out
+
+
+def collate_frames(samples: list[dict]) -> dict[str, Any]:
+    """Stack single-frame samples: uint8 semantics (B,X,Y,Z), bool masks, token and meta lists."""
+    occ = [s["occ.npz"] for s in samples]
+    return {
+        "semantics": torch.from_numpy(np.stack([o["semantics"] for o in occ])),
+        "mask_camera": torch.from_numpy(np.stack([o["mask_camera"] for o in occ]).astype(bool)),
+        "mask_lidar": torch.from_numpy(np.stack([o["mask_lidar"] for o in occ]).astype(bool)),
+        "token": [s["__key__"] for s in samples],
+        "meta": [s["meta.json"] for s in samples],
+    }
+
+
+def collate_clips(samples: list[dict]) -> dict[str, Any]:
+    """Stack clip samples: semantics (B,T,X,Y,Z), camera masks, and per-sample annotations/text."""
+    occ = [s["occ.npz"] for s in samples]
+    return {
+        "semantics": torch.from_numpy(np.stack([o["semantics"] for o in occ])),
+        "mask_camera": torch.from_numpy(np.stack([o["mask_camera"] for o in occ]).astype(bool)),
+        "token": [s["__key__"] for s in samples],
+        "ann": [s["ann.json"] for s in samples],
+        "qa": [s["qa.json"] for s in samples],
+        "caption": [s["caption.txt"] for s in samples],
+        "narration": [s["narration.txt"] for s in samples],
+    }
+
+
+class ResumableLoader(DataLoader):
+    """A training DataLoader whose position survives a checkpoint.
+
+    Lightning stores ``state_dict()`` of stateful train loaders in its checkpoints. The
+    position is the number of batches the optimizer has consumed (set through
+    ``consumed``), not the number fetched, because Lightning prefetches a batch ahead. On
+    resume, ``__iter__`` skips that many batches, so with ``num_workers=0`` training
+    continues on exactly the batches an uninterrupted run would have seen; with workers the
+    skip is split over them (each worker's stream is deterministic) and the position is
+    exact up to the round-robin order of the first batches.
+    """
+
+    def __init__(self, *args: Any, skip_fn: Callable[[int], None] | None = None, **kwargs: Any):
+        super().__init__(*args, **kwargs)
+        self.consumed: Callable[[], int] = lambda: 0
+        self._skip_batches = 0
+        self._skip_fn = skip_fn
+
+    def state_dict(self) -> dict[str, int]:
+        return {"batches": int(self.consumed())}
+
+    def load_state_dict(self, state: dict[str, int]) -> None:
+        self._skip_batches = int(state.get("batches", 0))
+
+    def __iter__(self) -> Iterator[Any]:
+        skip, self._skip_batches = self._skip_batches, 0
+        if skip and self._skip_fn is not None:
+            # Skip raw samples inside the pipeline, before decoding: cheap.
+            self._skip_fn(skip * (self.batch_size or 1))
+            yield from super().__iter__()
+            return
+        it = super().__iter__()
+        for _ in range(skip):
+            next(it)
+        yield from it
+
+
+COLLATE: dict[str, Callable[[list[dict]], dict]] = {"frames": collate_frames, "clips": collate_clips}
+
+
+class ShardDataModule(L.LightningDataModule):
+    """Feeds one kind of shard (``frames`` or ``clips``) to a stage.
+
+    ``prepare_data`` (rank zero) synthesizes and shards the embedded world when the
+    configured dataset is absent. Training streams resampled shards forever (set
+    ``max_steps``); validation reads each val sample exactly once across DDP ranks.
+    """
+
+    def __init__(self, cfg: DataConfig, kind: str, transform: Callable[[dict], dict] | None = None):
+        super().__init__()
+        if kind not in KINDS:
+            raise DataError(f"unknown data kind '{kind}'; choose from {', '.join(KINDS)}")
+        self.cfg, self.kind, self.transform = cfg, kind, transform
+
+    def prepare_data(self) -> None:
+        ensure_data(self.cfg)
+
+    def _loader(self, split: str, train: bool) -> DataLoader:
+        urls, total = shard_urls(shards_dir(self.cfg), self.kind, split)
+        if not urls:
+            raise DataError(f"{shards_dir(self.cfg)}: no {split} {self.kind} shards; synthesize more {split} scenes")
+        skip = SkipSamples() if train else None
+        pipeline = make_pipeline(
+            urls, train=train, total=total, shuffle_buffer=self.cfg.shuffle_buffer, seed=self.cfg.seed,
+            transform=self.transform, skip=skip,
+        )
+        kwargs = dict(batch_size=self.cfg.batch_size, num_workers=self.cfg.num_workers, collate_fn=COLLATE[self.kind])
+        if not train:
+            return DataLoader(pipeline, **kwargs)
+        return ResumableLoader(pipeline, skip_fn=lambda n: setattr(skip, "n", n), **kwargs)
+
+    def train_dataloader(self) -> DataLoader:
+        return self._loader("train", train=True)
+
+    def val_dataloader(self) -> DataLoader:
+        return self._loader("val", train=False)

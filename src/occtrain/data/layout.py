@@ -1,0 +1,320 @@
+"""The Occ3D-nuScenes directory layout: reading it, validating it, and writing it.
+
+```
+ROOT/
+  annotations.json                    Occ3D: train_split, val_split, scene_infos (ordered samples, ego poses)
+  gts/<scene>/<sample_token>/labels.npz   semantics, mask_lidar, mask_camera (uint8, 200x200x16)
+  occtrain/dataset.json               what generated the directory (its fingerprint)          [sidecar]
+  occtrain/frames/<scene>.json        FrameAnnotation list: trajectories, boxes, text, ...     [sidecar]
+  nuscenes_qa/NuScenes_<split>_questions.json   NuScenes-QA format                           [sidecar]
+```
+
+A real Occ3D-nuScenes download has the first two; the sidecars are occtrain's own. The
+synthetic world is written through :class:`DatasetWriter` and read back through
+:class:`DatasetIndex`, exactly like real data.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import zipfile
+from functools import cached_property
+from pathlib import Path
+from typing import Any, Iterator
+
+import numpy as np
+
+from occtrain.data.schema import FrameAnnotation, QAQuestion
+from occtrain.errors import DataError
+from occtrain.io import atomic_write_json, atomic_write_npz
+from occtrain.occ3d import GRID_SHAPE, NUM_CLASSES
+
+ANNOTATIONS_FILE = "annotations.json"
+GTS_DIR = "gts"
+LABELS_FILE = "labels.npz"
+SIDECAR_DIR = "occtrain"
+DATASET_FILE = f"{SIDECAR_DIR}/dataset.json"
+FRAMES_DIR = f"{SIDECAR_DIR}/frames"
+QA_DIR = "nuscenes_qa"
+SPLITS = ("train", "val")
+LABEL_KEYS = ("semantics", "mask_lidar", "mask_camera")
+
+
+def qa_file(split: str) -> str:
+    """Relative path of a split's NuScenes-QA question file."""
+    return f"{QA_DIR}/NuScenes_{split}_questions.json"
+
+
+# ----------------------------------------------------------------------------- labels
+
+
+def validate_labels(arrays: dict[str, np.ndarray], source: str, require_masks: bool = True) -> None:
+    """Raise DataError naming ``source`` if an Occ3D label set has a wrong key, shape, dtype or value."""
+    keys = LABEL_KEYS if require_masks else LABEL_KEYS[:1]
+    for key in keys:
+        if key not in arrays:
+            raise DataError(f"{source}: missing array '{key}' (expected {', '.join(keys)})")
+        arr = arrays[key]
+        if arr.shape != GRID_SHAPE:
+            raise DataError(f"{source}: '{key}' has shape {arr.shape}, expected {GRID_SHAPE}")
+        if key == "semantics":
+            if arr.dtype != np.uint8:
+                raise DataError(f"{source}: 'semantics' has dtype {arr.dtype}, expected uint8")
+            top = int(arr.max())
+            if top >= NUM_CLASSES:
+                raise DataError(f"{source}: 'semantics' holds class {top}; Occ3D classes are 0..{NUM_CLASSES - 1}")
+        else:
+            if arr.dtype not in (np.uint8, np.bool_):
+                raise DataError(f"{source}: '{key}' has dtype {arr.dtype}, expected uint8 or bool")
+            if arr.dtype == np.uint8 and int(arr.max()) > 1:
+                raise DataError(f"{source}: '{key}' holds values other than 0/1")
+
+
+def read_npz(path: Path) -> dict[str, np.ndarray]:
+    """Load every array of an ``.npz`` without unpickling; corrupt or pickled files raise DataError."""
+    if not path.is_file():
+        raise DataError(f"{path}: file not found")
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            return {key: npz[key] for key in npz.files}
+    except ValueError as err:
+        if "allow_pickle" in str(err):
+            raise DataError(f"{path}: holds an object (pickled) array; refusing to load it — re-save with plain arrays") from None
+        raise DataError(f"{path}: not a readable .npz ({err})") from None
+    except (zipfile.BadZipFile, OSError, EOFError) as err:
+        raise DataError(f"{path}: corrupt or truncated .npz ({err}); re-create it") from None
+
+
+def load_labels(path: str | Path, require_masks: bool = True) -> dict[str, np.ndarray]:
+    """Load and validate one Occ3D ``labels.npz``; masks come back as uint8 0/1."""
+    path = Path(path)
+    arrays = read_npz(path)
+    validate_labels(arrays, str(path), require_masks)
+    out = {"semantics": arrays["semantics"]}
+    for key in LABEL_KEYS[1:]:
+        if key in arrays:
+            out[key] = arrays[key].astype(np.uint8, copy=False)
+    return out
+
+
+# ----------------------------------------------------------------------------- reading
+
+
+def yaw_from_quaternion(q: list[float]) -> float:
+    """Heading of a (w, x, y, z) quaternion, as nuScenes stores rotations."""
+    w, x, y, z = q
+    return math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+
+
+def quaternion_from_yaw(yaw: float) -> list[float]:
+    return [math.cos(yaw / 2.0), 0.0, 0.0, math.sin(yaw / 2.0)]
+
+
+def _read_json(path: Path, what: str) -> Any:
+    if not path.is_file():
+        raise DataError(f"{path}: {what} not found")
+    try:
+        return json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as err:
+        raise DataError(f"{path}: not valid JSON ({err}); re-create the file") from None
+
+
+def _order_samples(scene: str, infos: dict[str, dict], source: Path) -> list[str]:
+    """Samples of a scene in time order: by their prev/next links, else by timestamp."""
+    tokens = list(infos)
+    firsts = [t for t in tokens if not infos[t].get("prev")]
+    if len(firsts) == 1 and all("next" in infos[t] for t in tokens):
+        order, cur, seen = [], firsts[0], set()
+        while cur and cur in infos and cur not in seen:
+            order.append(cur)
+            seen.add(cur)
+            cur = infos[cur].get("next", "")
+        if len(order) == len(tokens):
+            return order
+    try:
+        return sorted(tokens, key=lambda t: infos[t]["timestamp"])
+    except KeyError:
+        raise DataError(f"{source}: scene '{scene}' has samples without 'timestamp' or prev/next links") from None
+
+
+class DatasetIndex:
+    """An Occ3D-layout dataset on disk: scene order, splits, labels and the optional sidecars."""
+
+    def __init__(self, root: Path, annotations: dict):
+        self.root = root
+        src = root / ANNOTATIONS_FILE
+        if not isinstance(annotations, dict) or "scene_infos" not in annotations:
+            raise DataError(f"{src}: no 'scene_infos' key; is this an Occ3D annotations file?")
+        self.scene_infos: dict[str, dict[str, dict]] = annotations["scene_infos"]
+        self.scenes: dict[str, list[str]] = {
+            scene: _order_samples(scene, infos, src) for scene, infos in self.scene_infos.items()
+        }
+        self.splits: dict[str, list[str]] = {}
+        for split in SPLITS:
+            names = annotations.get(f"{split}_split", [])
+            unknown = [n for n in names if n not in self.scenes]
+            if unknown:
+                raise DataError(f"{src}: {split}_split names scene '{unknown[0]}' that has no scene_infos entry")
+            self.splits[split] = list(names)
+        self._scene_of = {tok: scene for scene, toks in self.scenes.items() for tok in toks}
+
+    @classmethod
+    def open(cls, path: str | Path) -> DatasetIndex:
+        """Open a dataset root (or its ``gts/`` directory)."""
+        path = Path(path)
+        if path.name == GTS_DIR and not (path / ANNOTATIONS_FILE).exists():
+            path = path.parent
+        if not path.is_dir():
+            raise DataError(f"{path}: dataset directory not found; run `occtrain data synth --out {path}` or point at an Occ3D-nuScenes root")
+        ann = path / ANNOTATIONS_FILE
+        if not ann.is_file():
+            raise DataError(f"{ann}: annotations file not found; an Occ3D root holds annotations.json and gts/")
+        return cls(path, _read_json(ann, "annotations file"))
+
+    # -- structure
+    def scene_of(self, token: str) -> str:
+        return self._scene_of[token]
+
+    def samples(self, split: str | None = None) -> Iterator[tuple[str, str]]:
+        """(scene, token) pairs in scene order, for one split or all scenes."""
+        scenes = self.splits.get(split, []) if split else list(self.scenes)
+        for scene in scenes:
+            for token in self.scenes[scene]:
+                yield scene, token
+
+    def labels_path(self, scene: str, token: str) -> Path:
+        rel = self.scene_infos[scene][token].get("gt_path") or f"{GTS_DIR}/{scene}/{token}/{LABELS_FILE}"
+        return self.root / rel
+
+    def labels(self, scene: str, token: str) -> dict[str, np.ndarray]:
+        return load_labels(self.labels_path(scene, token))
+
+    def ego_pose(self, scene: str, token: str) -> tuple[float, float, float]:
+        """Global (x, y, yaw) of the ego at a sample."""
+        pose = self.scene_infos[scene][token]["ego_pose"]
+        x, y = pose["translation"][:2]
+        return float(x), float(y), yaw_from_quaternion(pose["rotation"])
+
+    # -- sidecars
+    @cached_property
+    def generator(self) -> dict | None:
+        """occtrain's record of what generated this directory, if any."""
+        path = self.root / DATASET_FILE
+        return _read_json(path, "dataset record") if path.is_file() else None
+
+    def has_frame_annotations(self, scene: str) -> bool:
+        return (self.root / FRAMES_DIR / f"{scene}.json").is_file()
+
+    def frames(self, scene: str) -> list[FrameAnnotation]:
+        """The scene's FrameAnnotation sidecar, ordered like its samples."""
+        path = self.root / FRAMES_DIR / f"{scene}.json"
+        if not path.is_file():
+            raise DataError(f"{path}: no frame annotations for scene '{scene}' (trajectories, boxes, text are occtrain sidecars)")
+        frames = _read_json(path, "frame annotations")
+        if not isinstance(frames, list) or [f.get("token") for f in frames] != self.scenes[scene]:
+            raise DataError(f"{path}: frame tokens do not match the scene's samples in {ANNOTATIONS_FILE}")
+        return frames
+
+    def questions(self, split: str) -> list[QAQuestion] | None:
+        """A split's NuScenes-QA questions, or None when the sidecar is absent."""
+        path = self.root / qa_file(split)
+        if not path.is_file():
+            return None
+        data = _read_json(path, "NuScenes-QA file")
+        qs = data.get("questions") if isinstance(data, dict) else None
+        if not isinstance(qs, list):
+            raise DataError(f"{path}: expected {{\"questions\": [...]}} in NuScenes-QA format")
+        for i, q in enumerate(qs):
+            missing = [k for k in ("question", "answer", "sample_token", "template_type", "num_hop") if k not in q]
+            if missing:
+                raise DataError(f"{path}: question {i} lacks {', '.join(missing)}")
+        return qs
+
+    def available_tasks(self) -> dict[str, str]:
+        """Which training tasks this dataset supports; a reason for each one it does not."""
+        scenes = list(self.scenes)
+        has_frames = bool(scenes) and all(self.has_frame_annotations(s) for s in scenes)
+        has_qa = all((self.root / qa_file(s)).is_file() for s in SPLITS if self.splits.get(s))
+        sidecar = f"needs the {FRAMES_DIR}/<scene>.json sidecar, which this dataset lacks"
+        tasks = {"reconstruction": "", "forecasting": "", "planning": ""}
+        for task in ("detection", "counting", "prediction", "chain_of_thought", "meta_action"):
+            tasks[task] = "" if has_frames else sidecar
+        tasks["qa"] = "" if has_qa else f"needs {QA_DIR}/NuScenes_<split>_questions.json, which this dataset lacks"
+        return tasks
+
+
+# ----------------------------------------------------------------------------- writing
+
+
+class DatasetWriter:
+    """Writes a dataset in the Occ3D layout; refuses to mix into a different dataset.
+
+    Scene by scene: labels first, then the scene's sidecar (which marks the scene
+    complete), and ``annotations.json`` last (which marks the dataset complete), so an
+    interrupted write resumes where it stopped and never leaves a readable half-dataset.
+    """
+
+    def __init__(self, root: str | Path, fingerprint: dict):
+        self.root = Path(root)
+        self.fingerprint = fingerprint
+        record = self.root / DATASET_FILE
+        if record.is_file():
+            existing = _read_json(record, "dataset record")
+            if existing != fingerprint:
+                diff = sorted(k for k in set(existing) | set(fingerprint) if existing.get(k) != fingerprint.get(k))
+                raise DataError(
+                    f"{self.root}: already holds a different dataset (differs in {', '.join(diff)}); "
+                    "choose another --out or delete that directory"
+                )
+        elif self.root.exists() and any(self.root.iterdir()):
+            raise DataError(f"{self.root}: exists and is not an occtrain dataset; choose an empty or new --out directory")
+        atomic_write_json(record, fingerprint)
+        self._scene_infos: dict[str, dict] = {}
+        self._splits: dict[str, list[str]] = {s: [] for s in SPLITS}
+
+    @property
+    def complete(self) -> bool:
+        return (self.root / ANNOTATIONS_FILE).is_file()
+
+    def scene_done(self, scene: str) -> bool:
+        return (self.root / FRAMES_DIR / f"{scene}.json").is_file()
+
+    def write_labels(self, scene: str, token: str, arrays: dict[str, np.ndarray]) -> None:
+        """Validate and atomically write one frame's ``labels.npz``."""
+        path = self.root / GTS_DIR / scene / token / LABELS_FILE
+        validate_labels(arrays, str(path))
+        atomic_write_npz(path, arrays)
+
+    def write_scene(self, scene: str, split: str, frames: list[FrameAnnotation]) -> None:
+        """Write the scene's frame sidecar (after its labels): the scene is then complete."""
+        atomic_write_json(self.root / FRAMES_DIR / f"{scene}.json", frames, indent=None)
+        self.add_scene_info(scene, split, frames)
+
+    def read_scene(self, scene: str) -> list[FrameAnnotation]:
+        """A completed scene's frames, for resuming an interrupted write."""
+        return _read_json(self.root / FRAMES_DIR / f"{scene}.json", "frame annotations")
+
+    def add_scene_info(self, scene: str, split: str, frames: list[FrameAnnotation]) -> None:
+        infos = {}
+        for i, f in enumerate(frames):
+            x, y = f["ego_pose"]["translation"][:2]
+            infos[f["token"]] = {
+                "timestamp": f["timestamp"],
+                "ego_pose": {"translation": [x, y, 0.0], "rotation": quaternion_from_yaw(f["ego_pose"]["yaw"])},
+                "gt_path": f"{GTS_DIR}/{scene}/{f['token']}/{LABELS_FILE}",
+                "prev": frames[i - 1]["token"] if i > 0 else "",
+                "next": frames[i + 1]["token"] if i + 1 < len(frames) else "",
+            }
+        self._scene_infos[scene] = infos
+        self._splits[split].append(scene)
+
+    def finalize(self, questions: dict[str, list[QAQuestion]]) -> None:
+        """Write the QA files and, last, annotations.json."""
+        for split, qs in questions.items():
+            atomic_write_json(self.root / qa_file(split), {"info": {"generator": "occtrain.synth", "split": split}, "questions": qs})
+        atomic_write_json(
+            self.root / ANNOTATIONS_FILE,
+            {f"{s}_split": names for s, names in self._splits.items()} | {"scene_infos": self._scene_infos},
+            indent=None,
+        )

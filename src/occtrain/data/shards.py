@@ -1,0 +1,401 @@
+"""Webdataset tar shards made from an Occ3D-layout dataset, and their safe reading.
+
+Two kinds of sample, each in its own shard set under ``SHARDS/<kind>/<split>-NNNNNN.tar``:
+
+``frames`` (tokenizer stages): one frame.
+    ``__key__``  sample token
+    ``occ.npz``  ``semantics`` uint8 (200,200,16); ``mask_lidar``, ``mask_camera`` bit-packed uint8
+    ``meta.json`` ``{"scene", "token", "index", "split"}``
+
+``clips`` (world-model stages): ``history`` past frames, the anchor frame and ``future`` frames.
+    ``__key__``  anchor sample token
+    ``occ.npz``  ``semantics`` uint8 (T,200,200,16); ``mask_camera`` bit-packed, T = history+1+future
+    ``ann.json`` ``{"anchor": FrameAnnotation, "tokens": [...], "ego_poses": [[x, y, yaw], ...],
+                   "history": h, "future": f, "split"}``
+    ``qa.json``  the anchor's NuScenes-QA questions (a list, possibly empty)
+    ``caption.txt``, ``narration.txt``  the anchor's text
+
+``SHARDS/index.json`` lists the shards and their sample counts and is written last, so a
+shard set without it is incomplete. Reading decodes only an allow-list of formats
+(npy/npz without pickle, json, txt, png); anything else in a shard is refused.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import tarfile
+from pathlib import Path
+from typing import Any, Callable, Iterable, Iterator
+
+import numpy as np
+import webdataset as wds
+
+from occtrain.data.layout import DatasetIndex, read_npz
+from occtrain.errors import DataError
+from occtrain.io import atomic_write_json, npz_bytes
+from occtrain.occ3d import GRID_SHAPE
+
+INDEX_FILE = "index.json"
+KINDS = ("frames", "clips")
+#: The only entry formats a shard may hold; anything else is refused, never unpickled.
+ALLOWED_EXTENSIONS = ("npy", "npz", "json", "txt", "png")
+PACKED_MASKS = ("mask_lidar", "mask_camera")
+
+
+# ----------------------------------------------------------------------------- writing
+
+
+def _pack(mask: np.ndarray) -> np.ndarray:
+    return np.packbits(mask.astype(bool), axis=-1)
+
+
+def unpack_mask(packed: np.ndarray) -> np.ndarray:
+    """Inverse of the bit-packing applied to masks in shards: uint8 0/1 of grid shape."""
+    return np.unpackbits(packed, axis=-1, count=GRID_SHAPE[-1])
+
+
+def dataset_fingerprint(index: DatasetIndex) -> str:
+    """A hash of the dataset's annotations (and generator record), for shard staleness checks."""
+    h = hashlib.sha256((index.root / "annotations.json").read_bytes())
+    if index.generator:
+        h.update(json.dumps(index.generator, sort_keys=True).encode())
+    return h.hexdigest()[:16]
+
+
+class _ShardSink:
+    """Writes numbered tar shards atomically (temp name, renamed when closed)."""
+
+    def __init__(self, out_dir: Path, prefix: str, per_shard: int):
+        self.out_dir, self.prefix, self.per_shard = out_dir, prefix, per_shard
+        self.shards: list[dict] = []
+        self._writer: wds.TarWriter | None = None
+        self._count = 0
+
+    def write(self, sample: dict) -> None:
+        if self._writer is None or self._count >= self.per_shard:
+            self._close()
+            name = f"{self.prefix}-{len(self.shards):06d}.tar"
+            self._tmp = self.out_dir / f".{name}.tmp"
+            self._writer = wds.TarWriter(str(self._tmp))
+            self.shards.append({"file": name, "samples": 0})
+            self._count = 0
+        self._writer.write(sample)
+        self._count += 1
+        self.shards[-1]["samples"] += 1
+
+    def _close(self) -> None:
+        if self._writer is not None:
+            self._writer.close()
+            self._tmp.replace(self.out_dir / self.shards[-1]["file"])
+            self._writer = None
+
+    def close(self) -> list[dict]:
+        self._close()
+        return self.shards
+
+
+def _frame_sample(index: DatasetIndex, scene: str, token: str, position: int, split: str) -> dict:
+    labels = index.labels(scene, token)
+    arrays = {"semantics": labels["semantics"]}
+    arrays.update({k: _pack(labels[k]) for k in PACKED_MASKS})
+    meta = {"scene": scene, "token": token, "index": position, "split": split}
+    return {"__key__": token, "occ.npz": npz_bytes(arrays), "meta.json": json.dumps(meta).encode()}
+
+
+def _clip_samples(index: DatasetIndex, scene: str, split: str, history: int, future: int, qa: dict) -> Iterator[dict]:
+    tokens = index.scenes[scene]
+    frames = index.frames(scene) if index.has_frame_annotations(scene) else None
+    cache: dict[str, dict[str, np.ndarray]] = {}
+    for anchor in range(history, len(tokens) - future):
+        window = tokens[anchor - history : anchor + future + 1]
+        for tok in list(cache):
+            if tok not in window:
+                del cache[tok]
+        for tok in window:
+            if tok not in cache:
+                cache[tok] = index.labels(scene, tok)
+        sem = np.stack([cache[t]["semantics"] for t in window])
+        cam = np.stack([_pack(cache[t]["mask_camera"]) for t in window])
+        anchor_ann = frames[anchor] if frames else {"scene": scene, "token": tokens[anchor], "index": anchor}
+        ann = {
+            "anchor": anchor_ann,
+            "tokens": window,
+            "ego_poses": [list(index.ego_pose(scene, t)) for t in window],
+            "history": history,
+            "future": future,
+            "split": split,
+        }
+        yield {
+            "__key__": tokens[anchor],
+            "occ.npz": npz_bytes({"semantics": sem, "mask_camera": cam}),
+            "ann.json": json.dumps(ann).encode(),
+            "qa.json": json.dumps(qa.get(tokens[anchor], [])).encode(),
+            "caption.txt": anchor_ann.get("caption", "").encode(),
+            "narration.txt": anchor_ann.get("narration", "").encode(),
+        }
+
+
+def write_shards(
+    dataset: str | Path,
+    out: str | Path,
+    samples_per_shard: int = 64,
+    history: int = 4,
+    future: int = 6,
+    kinds: Iterable[str] = KINDS,
+    progress: Callable[[int], None] | None = None,
+) -> dict:
+    """Write frame and/or clip shards for both splits; returns the index written to ``out/index.json``.
+
+    An ``out`` that already holds shards of a different dataset or layout is refused;
+    one that holds exactly these shards is left as it is.
+    """
+    index = DatasetIndex.open(dataset)
+    out = Path(out)
+    kinds = list(kinds)
+    unknown = [k for k in kinds if k not in KINDS]
+    if unknown:
+        raise DataError(f"unknown shard kind '{unknown[0]}'; choose from {', '.join(KINDS)}")
+    source = {
+        "dataset": str(index.root.resolve()),
+        "fingerprint": dataset_fingerprint(index),
+        "samples_per_shard": samples_per_shard,
+        "history": history,
+        "future": future,
+        "kinds": sorted(kinds),
+    }
+    existing = out / INDEX_FILE
+    if existing.is_file():
+        old = read_index(out)
+        if old.get("source") == source:
+            return old
+        raise DataError(f"{out}: already holds shards of a different dataset or layout; choose another --out or delete it")
+    if out.exists() and any(p.suffix == ".tar" for p in out.rglob("*.tar")):
+        raise DataError(f"{out}: holds shards without an {INDEX_FILE} (an interrupted write?); delete it and write again")
+
+    result: dict[str, Any] = {"source": source, "kinds": {}}
+    for kind in kinds:
+        (out / kind).mkdir(parents=True, exist_ok=True)
+        result["kinds"][kind] = {}
+        for split in ("train", "val"):
+            sink = _ShardSink(out / kind, split, samples_per_shard)
+            if kind == "frames":
+                for position, (scene, token) in enumerate(index.samples(split)):
+                    sink.write(_frame_sample(index, scene, token, index.scenes[scene].index(token), split))
+                    if progress:
+                        progress(1)
+            else:
+                qa: dict[str, list] = {}
+                for q in index.questions(split) or []:
+                    qa.setdefault(q["sample_token"], []).append(q)
+                for scene in index.splits[split]:
+                    for sample in _clip_samples(index, scene, split, history, future, qa):
+                        sink.write(sample)
+                    if progress:
+                        progress(len(index.scenes[scene]))
+            result["kinds"][kind][split] = sink.close()
+    atomic_write_json(out / INDEX_FILE, result)
+    return result
+
+
+def read_index(shards: str | Path) -> dict:
+    """The index of a shard directory; a missing or bad one is a one-line DataError."""
+    path = Path(shards) / INDEX_FILE
+    if not path.is_file():
+        raise DataError(f"{path}: not found; write shards with `occtrain data shards DATASET --out {Path(shards)}`")
+    try:
+        return json.loads(path.read_text())
+    except json.JSONDecodeError as err:
+        raise DataError(f"{path}: not valid JSON ({err}); write the shards again") from None
+
+
+def shard_urls(shards: str | Path, kind: str, split: str) -> tuple[list[str], int]:
+    """Paths of one kind/split's shards and their total sample count."""
+    idx = read_index(shards)
+    if kind not in idx["kinds"]:
+        raise DataError(f"{Path(shards) / INDEX_FILE}: has no '{kind}' shards; write them with --kinds {kind}")
+    entries = idx["kinds"][kind].get(split, [])
+    return [str(Path(shards) / kind / e["file"]) for e in entries], sum(e["samples"] for e in entries)
+
+
+# ----------------------------------------------------------------------------- reading
+
+
+def _decode_entry(name: str, data: bytes, where: str) -> Any:
+    ext = name.rsplit(".", 1)[-1].lower()
+    if ext not in ALLOWED_EXTENSIONS:
+        raise DataError(
+            f"{where}: entry '{name}' is not an allowed format ({', '.join(ALLOWED_EXTENSIONS)}); "
+            "refusing to decode it (pickled payloads are never loaded)"
+        )
+    try:
+        if ext == "npy":
+            return np.load(io.BytesIO(data), allow_pickle=False)
+        if ext == "npz":
+            with np.load(io.BytesIO(data), allow_pickle=False) as npz:
+                return {k: npz[k] for k in npz.files}
+        if ext == "json":
+            return json.loads(data)
+        if ext == "txt":
+            return data.decode("utf-8")
+        from PIL import Image
+
+        return np.asarray(Image.open(io.BytesIO(data)))
+    except ValueError as err:
+        if "allow_pickle" in str(err):
+            raise DataError(f"{where}: entry '{name}' holds a pickled object array; refusing to load it") from None
+        raise DataError(f"{where}: entry '{name}' cannot be decoded ({err})") from None
+    except Exception as err:  # zlib, zip, unicode and image errors all mean a corrupt entry
+        raise DataError(f"{where}: entry '{name}' is corrupt ({type(err).__name__}: {err})") from None
+
+
+def decode_sample(sample: dict) -> dict:
+    """Decode one raw webdataset sample through the allow-list; masks are unpacked."""
+    where = f"{sample.get('__url__', '?')} sample '{sample.get('__key__', '?')}'"
+    out: dict[str, Any] = {"__key__": sample.get("__key__")}
+    for name, value in sample.items():
+        if name.startswith("__"):
+            continue
+        out[name] = _decode_entry(name, value, where)
+    occ = out.get("occ.npz")
+    if isinstance(occ, dict):
+        for key in PACKED_MASKS:
+            if key in occ:
+                occ[key] = unpack_mask(occ[key])
+        sem = occ.get("semantics")
+        if sem is None or sem.shape[-3:] != GRID_SHAPE or sem.dtype != np.uint8:
+            shape = None if sem is None else sem.shape
+            raise DataError(f"{where}: 'occ.npz' semantics has shape {shape}, expected (..., {GRID_SHAPE}) uint8")
+    return out
+
+
+def _raise_shard_error(exn: Exception) -> bool:
+    """webdataset error handler: turn tar/IO failures into one-line DataErrors naming the shard."""
+    if isinstance(exn, DataError):
+        raise exn
+    url = next((a for a in exn.args[1:] if isinstance(a, str)), None) if exn.args else None
+    where = url or "shard"
+    if isinstance(exn, (tarfile.TarError, EOFError, OSError, ValueError)):
+        raise DataError(f"{where}: corrupt or truncated shard ({type(exn).__name__}: {exn.args[0] if exn.args else exn}); write the shards again") from None
+    raise exn
+
+
+def _strided(world: int, rank: int, per_rank: int) -> Callable[[Iterable[dict]], Iterator[dict]]:
+    """Keep every ``world``-th sample starting at ``rank``, at most ``per_rank`` of them.
+
+    Validation reads every shard on every rank and strides over samples, so each sample is
+    scored exactly once and every rank sees the same number of batches (DDP-safe).
+    """
+
+    def stage(src: Iterable[dict]) -> Iterator[dict]:
+        kept = 0
+        for i, sample in enumerate(src):
+            if kept >= per_rank:
+                return
+            if i % world == rank:
+                kept += 1
+                yield sample
+
+    return stage
+
+
+def _worker_strided(src: Iterable[dict]) -> Iterator[dict]:
+    import torch.utils.data
+
+    info = torch.utils.data.get_worker_info()
+    if info is None:
+        yield from src
+        return
+    for i, sample in enumerate(src):
+        if i % info.num_workers == info.id:
+            yield sample
+
+
+def _rank_world() -> tuple[int, int]:
+    import torch.distributed as dist
+
+    if dist.is_available() and dist.is_initialized():
+        return dist.get_rank(), dist.get_world_size()
+    return 0, 1
+
+
+class SkipSamples:
+    """A pipeline stage that drops the first ``n`` raw samples (set before iterating).
+
+    Used to resume training at a data position without decoding what is skipped. In
+    DataLoader workers each worker drops its share of ``n``.
+    """
+
+    def __init__(self) -> None:
+        self.n = 0
+
+    def __call__(self, src: Iterable[dict]) -> Iterator[dict]:
+        import torch.utils.data
+
+        n, info = self.n, torch.utils.data.get_worker_info()
+        if info is not None:
+            n = n // info.num_workers + (1 if info.id < n % info.num_workers else 0)
+        for i, sample in enumerate(src):
+            if i >= n:
+                yield sample
+
+
+def make_pipeline(
+    urls: list[str],
+    train: bool,
+    total: int | None = None,
+    shuffle_buffer: int = 128,
+    seed: int = 0,
+    transform: Callable[[dict], Any] | None = None,
+    skip: SkipSamples | None = None,
+) -> wds.DataPipeline:
+    """A webdataset pipeline over shards.
+
+    ``train=True``: shards resampled forever (each rank and worker draws its own order, the
+    usual way to feed DDP with ``max_steps``), a shuffle buffer. ``train=False``: every
+    sample once, in order, strided over ranks (see :func:`_strided`) and workers.
+    """
+    if not urls:
+        raise DataError("no shards to read; write them with `occtrain data shards`")
+    stages: list[Any]
+    if train:
+        stages = [
+            wds.ResampledShards(urls, seed=seed, deterministic=True),
+            wds.tarfile_to_samples(handler=_raise_shard_error),
+        ]
+        if shuffle_buffer > 1:
+            stages.append(wds.shuffle(shuffle_buffer, initial=min(shuffle_buffer, 64), seed=seed))
+        if skip is not None:
+            stages.append(skip)
+    else:
+        rank, world = _rank_world()
+        per_rank = (total // world) if total is not None else 10**12
+        stages = [
+            wds.SimpleShardList(urls),
+            wds.tarfile_to_samples(handler=_raise_shard_error),
+            _strided(world, rank, per_rank),
+            _worker_strided,
+        ]
+    stages.append(wds.map(decode_sample, handler=_raise_shard_error))
+    if transform is not None:
+        stages.append(wds.map(transform, handler=_raise_shard_error))
+    return wds.DataPipeline(*stages)
+
+
+def iter_raw(url: str) -> Iterator[dict]:
+    """Raw samples of one shard (for checking), errors as DataError."""
+    yield from wds.DataPipeline(wds.SimpleShardList([url]), wds.tarfile_to_samples(handler=_raise_shard_error))
+
+
+__all__ = [
+    "ALLOWED_EXTENSIONS",
+    "KINDS",
+    "decode_sample",
+    "make_pipeline",
+    "read_index",
+    "read_npz",
+    "shard_urls",
+    "unpack_mask",
+    "write_shards",
+]

@@ -1,0 +1,60 @@
+"""``occtrain data show``: a bird's-eye picture of a dataset frame (or several) as PNG."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from occtrain.data.layout import DatasetIndex, load_labels
+from occtrain.data.render import render_bev, strip
+from occtrain.errors import DataError
+from occtrain.occ3d import FRAME_DT, FREE
+
+
+def show(
+    path: str | Path, out: str | Path, scene: str | None = None, index: int = 0, frames: int = 1, scale: int = 3
+) -> Path:
+    """Render ``frames`` consecutive frames starting at ``index`` of ``scene``; returns the PNG path.
+
+    ``path`` is a dataset root (the ego's future trajectory is drawn when the sidecar has it)
+    or a single ``labels.npz``.
+    """
+    path, out = Path(path), Path(out)
+    if path.suffix == ".npz":
+        labels = load_labels(path, require_masks=False)
+        pictures = [render_bev(labels["semantics"], labels.get("mask_camera"), scale=scale, title=path.parent.name)]
+        classes = np.unique(labels["semantics"])
+    else:
+        ds = DatasetIndex.open(path)
+        if not ds.scenes:
+            raise DataError(f"{path}: the dataset has no scenes")
+        scene = scene or next(iter(ds.splits["val"] or ds.scenes))
+        if scene not in ds.scenes:
+            raise DataError(f"{path}: no scene '{scene}'; scenes are {', '.join(list(ds.scenes)[:8])}...")
+        tokens = ds.scenes[scene]
+        if not 0 <= index < len(tokens):
+            raise DataError(f"{path}: scene '{scene}' has frames 0..{len(tokens) - 1}, not {index}")
+        annotated = ds.frames(scene) if ds.has_frame_annotations(scene) else None
+        pictures, seen = [], set()
+        for i in range(index, min(index + max(frames, 1), len(tokens))):
+            labels = ds.labels(scene, tokens[i])
+            ann = annotated[i] if annotated else None
+            pictures.append(
+                render_bev(
+                    labels["semantics"],
+                    labels["mask_camera"],
+                    trajectory=ann["ego_future"] if ann else None,
+                    trajectory_mask=ann["ego_future_mask"] if ann else None,
+                    scale=scale,
+                    title=f"{scene} #{i}  t={i * FRAME_DT:.1f}s" + (f"  {ann['command']}" if ann else ""),
+                )
+            )
+            seen.update(np.unique(labels["semantics"]).tolist())
+        classes = sorted(seen)
+    image = strip(pictures, [int(c) for c in classes if c != FREE])
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(f".{out.name}.tmp.png")
+    image.save(tmp)
+    tmp.replace(out)
+    return out
