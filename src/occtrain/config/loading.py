@@ -139,11 +139,16 @@ def load_config(schema: type[T], path: str | Path | None = None, overrides: list
             raise ConfigError(f"override '{item}' must look like key=value (e.g. trainer.max_steps=10)")
         key = item.split("=", 1)[0].strip()
         _check_override_key(schema, key, f"override '{item}'")
+        raw_value = item.split("=", 1)[1]
         try:
-            dot = OmegaConf.from_dotlist([item])
-        except OmegaConfBaseException as err:
-            raise ConfigError(f"override '{item}': {str(err).splitlines()[0]}") from None
-        cfg = _merge(cfg, dot, f"override '{item}'")
+            value = yaml.safe_load(raw_value) if raw_value.strip() else ""
+        except yaml.YAMLError:
+            value = raw_value  # not YAML: take the text as a string
+        try:
+            OmegaConf.update(cfg, key, value, merge=True)
+        except (OmegaConfBaseException, ValueError, TypeError, IndexError, KeyError) as err:
+            full = getattr(err, "full_key", None) or key
+            raise ConfigError(f"invalid value for '{full}' in override '{item}': {str(err).splitlines()[0]}") from None
     OmegaConf.set_readonly(cfg, True)
     return cfg  # type: ignore[return-value]
 

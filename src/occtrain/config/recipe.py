@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, Optional
+from typing import Any
 
 from omegaconf import MISSING
 
@@ -38,9 +38,9 @@ class StageSpec:
     consumes: list[str] = field(default_factory=list)
     #: Parameter-name prefixes kept frozen.
     freeze: list[str] = field(default_factory=list)
-    model: Optional[dict[str, Any]] = None
+    model: dict[str, Any] = field(default_factory=dict)
     optim: OptimConfig = field(default_factory=OptimConfig)
-    trainer: Optional[dict[str, Any]] = None
+    trainer: dict[str, Any] = field(default_factory=dict)
 
 
 @dataclass

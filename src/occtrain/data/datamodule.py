@@ -22,10 +22,10 @@ def shards_dir(cfg: DataConfig) -> Path:
 
 def ensure_data(cfg: DataConfig, verbose: bool = True) -> Path:
     """Synthesize the dataset if ``cfg.root`` is absent, write its shards if absent; return the shard dir."""
-    from occtrain.data.synthesize import synthesize  # the synthetic world is only needed here
-
     root = Path(cfg.root)
     if not (root / ANNOTATIONS_FILE).is_file():
+        from occtrain.data.synthesize import synthesize  # the world generator loads only when needed
+
         synthesize(root, cfg.synth, verbose=verbose)
     out = shards_dir(cfg)
     if not (out / INDEX_FILE).is_file():

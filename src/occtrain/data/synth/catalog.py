@@ -29,22 +29,19 @@ class Kind:
 #: Roughly nuScenes-sized objects. Cycles "with rider" include the rider in their box, as
 #: nuScenes does, so they are taller.
 KINDS: dict[str, Kind] = {
-    k.category if k.category not in ("bicycle", "motorcycle", "truck") else key: k
-    for key, k in {
-        "car": Kind("car", (3.9, 1.75, 1.45), (5.0, 2.0, 1.9)),
-        "truck": Kind("truck", (6.0, 2.3, 2.7), (9.5, 2.6, 3.6)),
-        "tractor": Kind("truck", (5.5, 2.4, 3.2), (6.5, 2.6, 3.6)),
-        "bus": Kind("bus", (10.5, 2.8, 3.1), (12.5, 3.0, 3.5)),
-        "trailer": Kind("trailer", (7.5, 2.45, 3.2), (12.0, 2.6, 3.8)),
-        "construction_vehicle": Kind("construction_vehicle", (5.5, 2.5, 2.8), (7.5, 3.0, 3.6)),
-        "bicycle": Kind("bicycle", (1.6, 0.5, 1.0), (1.85, 0.7, 1.2)),
-        "cyclist": Kind("bicycle", (1.6, 0.55, 1.6), (1.85, 0.7, 1.85)),
-        "motorcycle": Kind("motorcycle", (1.9, 0.7, 1.1), (2.3, 0.9, 1.3)),
-        "motorcyclist": Kind("motorcycle", (1.9, 0.75, 1.45), (2.3, 0.9, 1.7)),
-        "pedestrian": Kind("pedestrian", (0.5, 0.5, 1.55), (0.85, 0.75, 1.9)),
-        "traffic_cone": Kind("traffic_cone", (0.35, 0.35, 0.6), (0.5, 0.5, 0.9)),
-        "barrier": Kind("barrier", (1.8, 0.4, 0.8), (2.6, 0.6, 1.1)),
-    }.items()
+    "car": Kind("car", (3.9, 1.75, 1.45), (5.0, 2.0, 1.9)),
+    "truck": Kind("truck", (6.0, 2.3, 2.7), (9.5, 2.6, 3.6)),
+    "tractor": Kind("truck", (5.5, 2.4, 3.2), (6.5, 2.6, 3.6)),
+    "bus": Kind("bus", (10.5, 2.8, 3.1), (12.5, 3.0, 3.5)),
+    "trailer": Kind("trailer", (7.5, 2.45, 3.2), (12.0, 2.6, 3.8)),
+    "construction_vehicle": Kind("construction_vehicle", (5.5, 2.5, 2.8), (7.5, 3.0, 3.6)),
+    "bicycle": Kind("bicycle", (1.6, 0.5, 1.0), (1.85, 0.7, 1.2)),
+    "cyclist": Kind("bicycle", (1.6, 0.55, 1.6), (1.85, 0.7, 1.85)),
+    "motorcycle": Kind("motorcycle", (1.9, 0.7, 1.1), (2.3, 0.9, 1.3)),
+    "motorcyclist": Kind("motorcycle", (1.9, 0.75, 1.45), (2.3, 0.9, 1.7)),
+    "pedestrian": Kind("pedestrian", (0.5, 0.5, 1.55), (0.85, 0.75, 1.9)),
+    "traffic_cone": Kind("traffic_cone", (0.35, 0.35, 0.6), (0.5, 0.5, 0.9)),
+    "barrier": Kind("barrier", (1.8, 0.4, 0.8), (2.6, 0.6, 1.1)),
 }
 
 VEHICLE_CLASSES = frozenset(CLASS_INDEX[c] for c in ("car", "truck", "bus", "trailer", "construction_vehicle"))

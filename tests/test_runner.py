@@ -1,0 +1,181 @@
+"""Runner mechanics with a tiny test-only stage kind: skip, config change, restart, failure, handoff."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import lightning as L
+import pytest
+import torch
+from torch import nn
+
+import occtrain.stages as stages_pkg
+from occtrain.errors import ConfigError
+from occtrain.runner import StageFailed, run
+from occtrain.stages import StageContext, StageKind
+from occtrain.stages.common import configure_adamw, read_export, write_export
+
+from conftest import write_hand_dataset
+
+
+@dataclass
+class ProbeConfig:
+    width: int = 4
+    fail: bool = False
+
+
+class Probe(L.LightningModule):
+    """Per-voxel class embedding -> 1x1x1 classifier: learns the identity map of labels."""
+
+    def __init__(self, ctx: StageContext):
+        super().__init__()
+        self.ctx = ctx
+        self.embed = nn.Embedding(18, ctx.model_cfg.width)
+        self.head = nn.Linear(ctx.model_cfg.width, 18)
+        self.loaded_from = ""
+        if ctx.inputs:  # handoff: start from the consumed stage's export
+            state, config = read_export(next(iter(ctx.inputs.values())))
+            self.load_state_dict(state)
+            self.loaded_from = config["stage"]
+
+    def training_step(self, batch, _):
+        if self.ctx.model_cfg.fail:
+            raise RuntimeError("probe exploded\nsecond line")
+        sem = batch["semantics"].long()[:, ::8, ::8]
+        loss = nn.functional.cross_entropy(self.head(self.embed(sem)).flatten(0, -2), sem.flatten())
+        self.log("train/loss", loss)
+        return loss
+
+    def validation_step(self, batch, _):
+        sem = batch["semantics"].long()[:, ::8, ::8]
+        acc = (self.head(self.embed(sem)).argmax(-1) == sem).float().mean()
+        self.log("val/acc", acc, sync_dist=True)
+
+    def configure_optimizers(self):
+        return configure_adamw(self.parameters(), self.ctx.spec.optim, self.ctx.trainer.max_steps)
+
+    def export(self, path: Path) -> Path:
+        return write_export(path, self.state_dict(), {"stage": self.ctx.spec.name, "init_from": self.loaded_from})
+
+    def summary(self) -> str:
+        return "probe"
+
+
+@pytest.fixture
+def probe_kind(monkeypatch):
+    kind = StageKind(name="tokenizer", model_schema=ProbeConfig, data_kind="frames", build=Probe, monitor="val/acc")
+    monkeypatch.setattr(stages_pkg, "_KINDS", {"tokenizer": kind, "pretrain": kind})
+    return kind
+
+
+@pytest.fixture
+def recipe(tmp_path):
+    data = write_hand_dataset(tmp_path / "ds", train=1, val=1, frames=6)
+    text = f"""
+name: probe
+runs_root: {tmp_path / 'runs'}
+data:
+  root: {data}
+  batch_size: 2
+  samples_per_shard: 4
+  history: 1
+  future: 1
+trainer:
+  max_steps: 6
+  val_check_interval: 3
+  limit_val_batches: 2
+  ckpt_every_n_steps: 2
+  log_every_n_steps: 1
+stages:
+  - name: first
+    kind: tokenizer
+    model: {{width: 4}}
+    optim: {{lr: 0.05}}
+  - name: second
+    kind: pretrain
+    consumes: [first]
+    model: {{width: 4}}
+    trainer: {{max_steps: 4}}
+"""
+    path = tmp_path / "probe.yaml"
+    path.write_text(text)
+    return path
+
+
+def test_runs_skips_and_hands_off(probe_kind, recipe, tmp_path, capsys):
+    run_dir = run(recipe)
+    assert run_dir == tmp_path / "runs" / "probe"
+    manifest = json.loads((run_dir / "manifest.json").read_text())
+    for name in ("first", "second"):
+        entry = manifest["stages"][name]
+        assert entry["status"] == "done" and entry["attempts"] == 1
+        assert (run_dir / name / "export" / "model.safetensors").is_file()
+        assert (run_dir / name / "checkpoints" / "last.ckpt").is_file()
+        assert (run_dir / name / "logs" / "csv" / "metrics.csv").is_file()
+        assert json.loads((run_dir / name / "metrics.json").read_text())["val/acc"] == entry["metrics"]["val/acc"]
+    assert 0.0 <= manifest["stages"]["first"]["metrics"]["val/acc"] <= 1.0
+    assert read_export(run_dir / "second" / "export")[1]["init_from"] == "first"  # handoff through export/
+    assert (run_dir / "pipeline.yaml").read_text().startswith("name: probe")
+    stamp = (run_dir / "first" / "export" / "model.safetensors").stat().st_mtime_ns
+    capsys.readouterr()
+    run(recipe)
+    out = capsys.readouterr().err
+    assert "first" in out and "skipped" in out
+    assert (run_dir / "first" / "export" / "model.safetensors").stat().st_mtime_ns == stamp
+    assert json.loads((run_dir / "manifest.json").read_text())["stages"]["second"]["attempts"] == 1
+
+
+def test_changed_config_is_refused_then_restart_retrains(probe_kind, recipe):
+    run_dir = run(recipe)
+    with pytest.raises(ConfigError) as err:
+        run(recipe, ["stages[0].optim.lr=0.01"])
+    assert str(err.value) == "stage 'first' is done but its config changed (optim.lr); `--restart first` retrains it and the stages after it"
+    run(recipe, ["stages[0].optim.lr=0.01"], restart="first")
+    manifest = json.loads((run_dir / "manifest.json").read_text())
+    assert manifest["stages"]["first"]["config"]["optim"]["lr"] == 0.01
+    assert manifest["stages"]["second"]["attempts"] == 1  # reset and retrained after 'first'
+
+
+def test_failure_is_recorded_in_one_line(probe_kind, recipe):
+    with pytest.raises(StageFailed) as err:
+        run(recipe, ["stages[1].model.fail=true"])
+    assert str(err.value).startswith("stage 'second' failed: RuntimeError: probe exploded (traceback in ")
+    manifest = json.loads((recipe.parent / "runs/probe/manifest.json").read_text())
+    assert manifest["stages"]["first"]["status"] == "done"
+    assert manifest["stages"]["second"]["status"] == "failed"
+    assert manifest["stages"]["second"]["error"] == "RuntimeError: probe exploded"
+
+
+@pytest.mark.parametrize(
+    "override, message",
+    [
+        ("stages[1].kind=pretrian", "unknown stage kind 'pretrian'"),
+        ("stages[0].consumes=[second]", "consumes 'second', which is not an earlier stage (it runs later)"),
+        ("stages[0].model.widht=3", "unknown key 'stages[0].model.widht' in"),
+        ("stages[0].trainer.max_step=3", "did you mean 'max_steps'?"),
+    ],
+)
+def test_bad_recipes_are_one_line(probe_kind, recipe, override, message):
+    with pytest.raises(ConfigError) as err:
+        run(recipe, [override])
+    assert message in str(err.value) and "\n" not in str(err.value)
+
+
+def test_only_needs_its_inputs(probe_kind, recipe):
+    with pytest.raises(ConfigError, match="consumes the export of 'first', which is not done"):
+        run(recipe, only="second")
+    run(recipe, only="first")
+    manifest = json.loads((recipe.parent / "runs/probe/manifest.json").read_text())
+    assert manifest["stages"]["first"]["status"] == "done" and manifest["stages"]["second"]["status"] == "pending"
+
+
+def test_export_is_safetensors_and_json(tmp_path):
+    state = {"w": torch.arange(6.0).reshape(2, 3)}
+    write_export(tmp_path / "export", state, {"k": 1})
+    write_export(tmp_path / "export", {"w": torch.zeros(1)}, {"k": 2})  # replaced whole
+    got, cfg = read_export(tmp_path / "export")
+    assert cfg == {"k": 2} and torch.equal(got["w"], torch.zeros(1))
+    assert sorted(p.name for p in (tmp_path / "export").iterdir()) == ["config.json", "model.safetensors"]
+    assert [p.name for p in tmp_path.iterdir()] == ["export"]  # no temp leftovers
