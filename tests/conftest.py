@@ -84,7 +84,9 @@ def synth_dataset(tmp_path_factory) -> Path:
 
 def run_cli(*args: str, cwd: Path | None = None, timeout: float = 300) -> subprocess.CompletedProcess:
     """Run the real ``occtrain`` CLI in a subprocess."""
-    env = dict(os.environ, PYTHONWARNINGS="ignore")
+    # tests/ on the path so recipes can load test-only plugins (tests/plugins/).
+    path = os.pathsep.join(filter(None, [str(REPO / "tests"), os.environ.get("PYTHONPATH", "")]))
+    env = dict(os.environ, PYTHONWARNINGS="ignore", PYTHONPATH=path)
     return subprocess.run(
         [sys.executable, "-m", "occtrain", *args], cwd=cwd or REPO, env=env, capture_output=True, text=True, timeout=timeout
     )

@@ -3,71 +3,19 @@
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
-from pathlib import Path
-
-import lightning as L
 import pytest
 import torch
-from torch import nn
-
-import occtrain.stages as stages_pkg
-from occtrain.errors import ConfigError
-from occtrain.runner import StageFailed, run
-from occtrain.stages import StageContext, StageKind
-from occtrain.stages.common import configure_adamw, read_export, write_export
 
 from conftest import write_hand_dataset
-
-
-@dataclass
-class ProbeConfig:
-    width: int = 4
-    fail: bool = False
-
-
-class Probe(L.LightningModule):
-    """Per-voxel class embedding -> 1x1x1 classifier: learns the identity map of labels."""
-
-    def __init__(self, ctx: StageContext):
-        super().__init__()
-        self.ctx = ctx
-        self.embed = nn.Embedding(18, ctx.model_cfg.width)
-        self.head = nn.Linear(ctx.model_cfg.width, 18)
-        self.loaded_from = ""
-        if ctx.inputs:  # handoff: start from the consumed stage's export
-            state, config = read_export(next(iter(ctx.inputs.values())))
-            self.load_state_dict(state)
-            self.loaded_from = config["stage"]
-
-    def training_step(self, batch, _):
-        if self.ctx.model_cfg.fail:
-            raise RuntimeError("probe exploded\nsecond line")
-        sem = batch["semantics"].long()[:, ::8, ::8]
-        loss = nn.functional.cross_entropy(self.head(self.embed(sem)).flatten(0, -2), sem.flatten())
-        self.log("train/loss", loss)
-        return loss
-
-    def validation_step(self, batch, _):
-        sem = batch["semantics"].long()[:, ::8, ::8]
-        acc = (self.head(self.embed(sem)).argmax(-1) == sem).float().mean()
-        self.log("val/acc", acc, sync_dist=True)
-
-    def configure_optimizers(self):
-        return configure_adamw(self.parameters(), self.ctx.spec.optim, self.ctx.trainer.max_steps)
-
-    def export(self, path: Path) -> Path:
-        return write_export(path, self.state_dict(), {"stage": self.ctx.spec.name, "init_from": self.loaded_from})
-
-    def summary(self) -> str:
-        return "probe"
+from occtrain.errors import ConfigError
+from occtrain.runner import StageFailed, run
+from occtrain.stages.common import read_export, write_export
+from plugins.probe_stage import PROBE
 
 
 @pytest.fixture
-def probe_kind(monkeypatch):
-    kind = StageKind(name="tokenizer", model_schema=ProbeConfig, data_kind="frames", build=Probe, monitor="val/acc")
-    monkeypatch.setattr(stages_pkg, "_KINDS", {"tokenizer": kind, "pretrain": kind})
-    return kind
+def probe_kind():
+    return PROBE
 
 
 @pytest.fixture
@@ -75,6 +23,7 @@ def recipe(tmp_path):
     data = write_hand_dataset(tmp_path / "ds", train=1, val=1, frames=6)
     text = f"""
 name: probe
+plugins: [plugins.probe_stage]
 runs_root: {tmp_path / 'runs'}
 data:
   root: {data}
@@ -90,11 +39,11 @@ trainer:
   log_every_n_steps: 1
 stages:
   - name: first
-    kind: tokenizer
+    kind: probe
     model: {{width: 4}}
     optim: {{lr: 0.05}}
   - name: second
-    kind: pretrain
+    kind: probe
     consumes: [first]
     model: {{width: 4}}
     trainer: {{max_steps: 4}}
@@ -151,7 +100,7 @@ def test_failure_is_recorded_in_one_line(probe_kind, recipe):
 @pytest.mark.parametrize(
     "override, message",
     [
-        ("stages[1].kind=pretrian", "unknown stage kind 'pretrian'"),
+        ("stages[1].kind=prbe", "unknown stage kind 'prbe'"),
         ("stages[0].consumes=[second]", "consumes 'second', which is not an earlier stage (it runs later)"),
         ("stages[0].model.widht=3", "unknown key 'stages[0].model.widht' in"),
         ("stages[0].trainer.max_step=3", "did you mean 'max_steps'?"),

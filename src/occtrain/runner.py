@@ -9,6 +9,7 @@ the same plan from the same manifest snapshot, and only rank zero writes.
 from __future__ import annotations
 
 import hashlib
+import importlib
 import json
 import os
 import shutil
@@ -28,7 +29,7 @@ from occtrain.errors import ConfigError, OcctrainError
 from occtrain.io import atomic_write_json, atomic_write_text
 from occtrain.manifest import Manifest
 from occtrain.progress import console
-from occtrain.stages import StageContext, StageKind, get_kind
+from occtrain.stages import StageContext, StageKind, get_kind, kind_names
 
 #: Trainer keys that change how often things are written, not what is learned.
 OPERATIONAL_KEYS = ("log_every_n_steps", "ckpt_every_n_steps")
@@ -74,11 +75,11 @@ def plan_stages(recipe: RecipeConfig, source: str) -> list[PlannedStage]:
     data = to_container(recipe.data)
     for i, spec in enumerate(recipe.stages):
         where = f"stages[{i}] ('{spec.name}') in {source}"
-        if spec.kind not in STAGE_KINDS:
-            raise ConfigError(f"unknown stage kind '{spec.kind}' for {where}; kinds are {', '.join(STAGE_KINDS)}")
         kind = get_kind(spec.kind)
         if kind is None:
-            raise ConfigError(f"stage kind '{spec.kind}' of {where} is not implemented in this version of occtrain")
+            if spec.kind in STAGE_KINDS:
+                raise ConfigError(f"stage kind '{spec.kind}' of {where} is not implemented in this version of occtrain")
+            raise ConfigError(f"unknown stage kind '{spec.kind}' for {where}; kinds are {', '.join(kind_names())}")
         if spec.name in names:
             raise ConfigError(f"stage name '{spec.name}' is used twice in {source}")
         for dep in spec.consumes:
@@ -105,8 +106,18 @@ def plan_stages(recipe: RecipeConfig, source: str) -> list[PlannedStage]:
     return planned
 
 
+def load_plugins(modules: list[str], source: str) -> None:
+    """Import the recipe's plugin modules, which register their stage kinds."""
+    for name in modules:
+        try:
+            importlib.import_module(name)
+        except ImportError as err:
+            raise ConfigError(f"plugin '{name}' in {source} cannot be imported ({err}); is it installed or on PYTHONPATH?") from None
+
+
 def load_recipe(path: str | Path, overrides: list[str] | None = None) -> tuple[RecipeConfig, list[PlannedStage]]:
     recipe = load_config(RecipeConfig, path, overrides)
+    load_plugins(list(recipe.plugins), str(path))
     return recipe, plan_stages(recipe, str(path))
 
 

@@ -53,3 +53,5 @@ class RecipeConfig:
     stages: list[StageSpec] = field(default_factory=list)
     #: Where runs go; the run directory is ``<runs_root>/<name>`` unless --run-dir is given.
     runs_root: str = "runs"
+    #: Importable modules that register extra stage kinds (``occtrain.stages.register``).
+    plugins: list[str] = field(default_factory=list)

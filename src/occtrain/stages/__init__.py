@@ -48,8 +48,24 @@ def register(kind: StageKind) -> StageKind:
     return kind
 
 
+_BUILTINS_LOADED = False
+
+
+def _load_builtins() -> None:
+    global _BUILTINS_LOADED
+    if not _BUILTINS_LOADED:
+        _BUILTINS_LOADED = True
+        import importlib.util
+        if importlib.util.find_spec("occtrain.stages.tokenizer"):
+            from occtrain.stages import tokenizer  # noqa: F401  (registers itself)
+
+
 def get_kind(name: str) -> StageKind | None:
     """The registered kind, importing the built-in kinds on first use."""
-    if not _KINDS:
-        from occtrain.stages import tokenizer  # noqa: F401  (registers itself)
+    _load_builtins()
     return _KINDS.get(name)
+
+
+def kind_names() -> list[str]:
+    _load_builtins()
+    return sorted(_KINDS)

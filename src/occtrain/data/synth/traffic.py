@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from occtrain.data.synth.catalog import KINDS, TrackSet
-from occtrain.data.synth.roads import HEADINGS, PATH_DS, Path, RoadNetwork, green_left
+from occtrain.data.synth.roads import PATH_DS, Path, green_left
 
 #: Simulation step (s); frames are every FRAME_DT, a whole number of steps.
 SIM_DT = 0.1
@@ -52,7 +52,7 @@ class Mover:
     b_comf: float = 2.5
     headway: float = 1.5
     rider: int = -1
-    host: int = -1
+    host: int = -1  # index of the towing tractor in the scene's mover list
     host_gap: float = 0.0
 
 
@@ -80,6 +80,12 @@ class MotionResult:
     xy: np.ndarray  # (N, steps, 2)
     yaw: np.ndarray  # (N, steps)
     curvature: np.ndarray  # (N, steps)
+
+    def subset(self, keep: list[int]) -> MotionResult:
+        return MotionResult(
+            [self.movers[i] for i in keep], self.s[keep], self.v[keep], self.a[keep],
+            self.xy[keep], self.yaw[keep], self.curvature[keep],
+        )
 
 
 class _PathBank:
@@ -130,8 +136,11 @@ def _stop_table(movers: list[Mover]) -> tuple[np.ndarray, np.ndarray, np.ndarray
     return s, light, axis
 
 
-def simulate_movers(movers: list[Mover], steps: int) -> MotionResult:
-    """Run the IDM traffic for ``steps`` steps of SIM_DT from t = 0."""
+def simulate_movers(movers: list[Mover], steps: int, host: np.ndarray) -> MotionResult:
+    """Run the IDM traffic for ``steps`` steps of SIM_DT from t = 0.
+
+    ``host[i]`` is the index (in ``movers``) of the tractor towing mover i, or -1.
+    """
     n = len(movers)
     bank = _PathBank([m.path for m in movers])
     size = np.array([m.size for m in movers])
@@ -141,7 +150,6 @@ def simulate_movers(movers: list[Mover], steps: int) -> MotionResult:
     b_comf = np.array([m.b_comf for m in movers])
     headway = np.array([m.headway for m in movers])
     v_des = np.stack([m.v_des[:steps] for m in movers])
-    host = np.array([m.host for m in movers])
     host_gap = np.array([m.host_gap for m in movers])
     towed = host >= 0
     free = ~towed
@@ -201,8 +209,9 @@ def simulate_walkers(walkers: list[Walker], steps: int) -> tuple[np.ndarray, np.
     if p == 0:
         return np.zeros((0, steps, 2)), np.zeros((0, steps)), np.zeros((0, steps))
     k = max(1, max(len(w.crossings) for w in walkers))
-    c_from = np.full((p, k), np.inf)
-    c_to = np.full((p, k), np.inf)
+    # Padding crossings lie far beyond any walk.
+    c_from = np.full((p, k), 1e9)
+    c_to = np.full((p, k), 1e9)
     c_light = np.zeros((p, k, 6))
     c_light[..., 0] = 1.0
     c_axis = np.zeros((p, k), np.int64)
@@ -237,83 +246,78 @@ def simulate_walkers(walkers: list[Walker], steps: int) -> tuple[np.ndarray, np.
     return xy, yaw, v_hist
 
 
-def _circles(xy: np.ndarray, yaw: np.ndarray, size: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Cover each box by 3 discs along its length: centres (N, T, 3, 2) and radius (N,)."""
-    offs = np.array([-1.0, 0.0, 1.0])[None, :] * np.maximum(size[:, 0] / 2 - size[:, 1] / 2, 0.0)[:, None]
+#: Discs per footprint in the collision test (enough that adjacent lanes never touch).
+COLLISION_DISCS = 7
+
+
+def _discs(xy: np.ndarray, yaw: np.ndarray, size: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Discs covering each box footprint: centres (N, T, D, 2) and radius (N,)."""
+    step = np.maximum(size[:, 0] - size[:, 1], 0.0) / (COLLISION_DISCS - 1)
+    offs = (np.arange(COLLISION_DISCS) - (COLLISION_DISCS - 1) / 2)[None, :] * step[:, None]
     u = np.stack([np.cos(yaw), np.sin(yaw)], axis=-1)
     centres = xy[:, :, None, :] + offs[:, None, :, None] * u[:, :, None, :]
-    radius = np.hypot(size[:, 1] / 2, np.minimum(size[:, 0], size[:, 1]) / 2 * 0.0 + 0.0) + 0.0
-    return centres, np.maximum(radius, size[:, 1] / 2)
+    return centres, np.hypot(size[:, 1] / 2, step / 2)
 
 
 def colliding_pairs(xy: np.ndarray, yaw: np.ndarray, size: np.ndarray, ignore: set[tuple[int, int]]) -> list[tuple[int, int]]:
-    """Index pairs (i < j) of agents whose footprints overlap at some sampled time."""
-    n = len(xy)
+    """Index pairs (i < j) of agents whose footprints overlap at some sampled time.
+
+    ``xy`` (N, T, 2), ``yaw`` (N, T), ``size`` (N, 3); pairs in ``ignore`` never count.
+    """
     reach = np.hypot(size[:, 0], size[:, 1]) / 2
     d = np.linalg.norm(xy[:, None] - xy[None, :], axis=-1)  # (N, N, T)
     near = (d < (reach[:, None] + reach[None, :])[..., None]).any(-1)
     ii, jj = np.nonzero(np.triu(near, 1))
     if len(ii) == 0:
         return []
-    centres, radius = _circles(xy, yaw, size)
+    centres, radius = _discs(xy, yaw, size)
     gap = np.linalg.norm(centres[ii][:, :, :, None, :] - centres[jj][:, :, None, :, :], axis=-1)
     hit = (gap < (radius[ii] + radius[jj])[:, None, None, None]).any(axis=(1, 2, 3))
-    out = [(int(a), int(b)) for a, b, h in zip(ii, jj, hit) if h and (int(a), int(b)) not in ignore]
-    return out if n else []
+    return [(int(a), int(b)) for a, b, h in zip(ii, jj, hit) if h and (int(a), int(b)) not in ignore]
 
 
-def settle_traffic(movers: list[Mover], walkers: list[Walker], steps: int) -> tuple[MotionResult, list[Walker], tuple]:
-    """Simulate, then remove colliding agents (lowest priority first) until none collide.
+def settle_traffic(
+    movers: list[Mover], walkers: list[Walker], steps: int
+) -> tuple[MotionResult, list[Walker], tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Simulate, then remove colliding agents (lowest priority first) and simulate again.
 
-    ``movers[0]`` is the ego and is never removed. Returns the movers' motion, the
-    surviving walkers and their (xy, yaw, speed) histories.
+    ``movers[0]`` is the ego and is never removed; a tractor and its trailer go together.
+    After PRUNE_ROUNDS re-simulations every agent still in a collision is dropped without
+    another run. Returns the movers' motion, the surviving walkers and their (xy, yaw,
+    speed) histories.
     """
-    w_xy, w_yaw, w_v = simulate_walkers(walkers, steps)
+    w_hist = simulate_walkers(walkers, steps)
     active = list(range(len(movers)))
     for round_ in range(PRUNE_ROUNDS + 1):
         sub = [movers[i] for i in active]
-        remap = {old: new for new, old in enumerate(active)}
-        for m in sub:
-            m.host = remap.get(m.host, -1) if m.host >= 0 else -1
-        motion = simulate_movers(sub, steps)
-        # Restore original host indices for the next round's remap.
-        for m, old in zip(sub, active):
-            m.host = active[m.host] if m.host >= 0 else -1
-        tows = {(min(i, m.host_index), max(i, m.host_index)) for i, m in enumerate(sub) if False}
-        del tows
-        sl = slice(None, None, COLLISION_STRIDE)
+        pos = {old: new for new, old in enumerate(active)}
+        host = np.array([pos[m.host] if m.host >= 0 else -1 for m in sub], dtype=np.int64)
+        motion = simulate_movers(sub, steps, host)
         nm = len(sub)
-        xy = np.concatenate([motion.xy[:, sl], w_xy[:, sl]])
-        yaw = np.concatenate([motion.yaw[:, sl], w_yaw[:, sl]])
-        size = np.array([m.size for m in sub] + [w.size for w in walkers]).reshape(-1, 3)
-        ignore = {
-            (min(i, active.index(m.host)), max(i, active.index(m.host))) for i, m in enumerate(sub) if m.host >= 0
-        }
-        pairs = colliding_pairs(xy, yaw, size, ignore)
+        sl = slice(None, None, COLLISION_STRIDE)
+        pairs = colliding_pairs(
+            np.concatenate([motion.xy[:, sl], w_hist[0][:, sl]]),
+            np.concatenate([motion.yaw[:, sl], w_hist[1][:, sl]]),
+            np.array([m.size for m in sub] + [w.size for w in walkers]).reshape(-1, 3),
+            {(int(min(i, h)), int(max(i, h))) for i, h in enumerate(host) if h >= 0},
+        )
         if not pairs:
             break
         prio = [m.priority for m in sub] + [w.priority for w in walkers]
-        drop_m: set[int] = set()
-        drop_w: set[int] = set()
-        for i, j in pairs:
-            loser = i if prio[i] < prio[j] else j
-            (drop_m if loser < nm else drop_w).add(loser if loser < nm else loser - nm)
-        drop_m.discard(0)
-        # A tractor and its trailer go together.
-        for i, m in enumerate(sub):
-            if m.host >= 0:
-                hi = active.index(m.host)
-                if i in drop_m or hi in drop_m:
-                    drop_m |= {i, hi}
-        if round_ == PRUNE_ROUNDS:
-            drop_w |= {j - nm for i, j in pairs if j >= nm} | {i - nm for i, j in pairs if i >= nm}
-        keep_w = [k for k in range(len(walkers)) if k not in drop_w]
+        final = round_ == PRUNE_ROUNDS
+        losers = {x for pair in pairs for x in pair} if final else {i if prio[i] < prio[j] else j for i, j in pairs}
+        losers.discard(0)
+        drop_m = {x for x in losers if x < nm}
+        for i, h in enumerate(host):
+            if h >= 0 and (i in drop_m or h in drop_m):
+                drop_m |= {i, int(h)}
+        keep_w = [k for k in range(len(walkers)) if k + nm not in losers]
         walkers = [walkers[k] for k in keep_w]
-        w_xy, w_yaw, w_v = w_xy[keep_w], w_yaw[keep_w], w_v[keep_w]
+        w_hist = tuple(a[keep_w] for a in w_hist)
+        if final:
+            motion = motion.subset([i for i in range(nm) if i not in drop_m])
         active = [a for i, a in enumerate(active) if i not in drop_m]
-        if not drop_m and not drop_w:
-            break
-    return motion, walkers, (w_xy, w_yaw, w_v)
+    return motion, walkers, w_hist
 
 
 def mover_tracks(motion: MotionResult, frame_stride: int) -> TrackSet:
@@ -344,10 +348,3 @@ def walker_tracks(walkers: list[Walker], hist: tuple, frame_stride: int) -> Trac
         parked=np.zeros(len(walkers), bool),
         rider=np.full(len(walkers), -1, dtype=np.int64),
     )
-
-
-def heading_vector(heading: int) -> np.ndarray:
-    return HEADINGS[heading]
-
-
-__all__ = ["Mover", "Walker", "MotionResult", "RoadNetwork", "settle_traffic", "mover_tracks", "walker_tracks"]

@@ -1,0 +1,522 @@
+"""The static city around a route: a global column raster plus the static boxed objects.
+
+Every block between roads is a rounded rectangle ringed by sidewalk. Blocks hold
+buildings set back behind grass, plazas or hedges, street trees, bins and bike racks, and
+sometimes a parking lot or a fenced construction site at their frontage; some blocks are
+parks. Roads get medians (other_flat, with hedges, trees or jersey barriers) and parking
+strips with parked vehicles. The raster stores, per 0.2 m cell, the ground class and one
+vertical segment (class, layer range) of whatever stands there; boxed objects (vehicles,
+cycles, cones, barriers, standing pedestrians) are kept as tracks and drawn per frame.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from occtrain.data.synth.catalog import KINDS, TrackSet
+from occtrain.data.synth.grid import layer_span
+from occtrain.data.synth.roads import CURB_RADIUS, MEDIAN_END, LaneState, Road, RoadNetwork, right_of, HEADINGS
+from occtrain.occ3d import CLASS_INDEX, FREE
+
+#: Cell size (m) of the global static raster; finer than a voxel so rotated sampling is clean.
+RASTER_RES = 0.2
+
+DRIVEABLE = CLASS_INDEX["driveable_surface"]
+OTHER_FLAT = CLASS_INDEX["other_flat"]
+SIDEWALK = CLASS_INDEX["sidewalk"]
+TERRAIN = CLASS_INDEX["terrain"]
+MANMADE = CLASS_INDEX["manmade"]
+VEGETATION = CLASS_INDEX["vegetation"]
+OTHERS = CLASS_INDEX["others"]
+
+#: Parked vehicles in parking strips (kind, weight).
+STRIP_PARKING = (("car", 0.82), ("truck", 0.06), ("motorcycle", 0.07), ("trailer", 0.05))
+#: Vehicles in a parking lot's stalls and along its back row.
+LOT_STALLS = (("car", 0.92), ("motorcycle", 0.08))
+LOT_LONG = (("truck", 0.4), ("trailer", 0.35), ("bus", 0.25))
+
+
+@dataclass
+class StaticMap:
+    """Global column raster: ground class and one standing segment per cell.
+
+    ``cls`` is FREE where nothing stands; otherwise layers [lo, hi) of the column hold it.
+    """
+
+    origin: np.ndarray  # (2,) global xy of the raster's lower corner
+    ground: np.ndarray  # (NX, NY) uint8
+    cls: np.ndarray
+    lo: np.ndarray
+    hi: np.ndarray
+
+    def cells(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Nearest raster cell (clipped to the raster) of global points ``xy`` (..., 2)."""
+        idx = np.floor((xy - self.origin) / RASTER_RES).astype(np.int64)
+        return np.clip(idx[..., 0], 0, self.ground.shape[0] - 1), np.clip(idx[..., 1], 0, self.ground.shape[1] - 1)
+
+
+@dataclass
+class _Placed:
+    kind: str
+    xy: np.ndarray
+    yaw: float
+    size: np.ndarray
+    parked: bool
+    rider: int
+
+
+def _pick(rng: np.random.Generator, table: tuple[tuple[str, float], ...]) -> str:
+    names, w = zip(*table)
+    return names[int(rng.choice(len(names), p=np.array(w) / sum(w)))]
+
+
+class CityPainter:
+    """Paints the static city of one scene inside a rectangular region of the global plane."""
+
+    def __init__(self, net: RoadNetwork, lo: np.ndarray, hi: np.ndarray, rng: np.random.Generator):
+        self.net = net
+        self.rng = rng
+        origin = np.floor(lo / RASTER_RES) * RASTER_RES
+        shape = tuple(np.ceil((hi - origin) / RASTER_RES).astype(int))
+        self.map = StaticMap(
+            origin,
+            np.full(shape, DRIVEABLE, np.uint8),
+            np.full(shape, FREE, np.uint8),
+            np.zeros(shape, np.uint8),
+            np.zeros(shape, np.uint8),
+        )
+        self.lo, self.hi = origin, origin + np.array(shape) * RASTER_RES
+        self.objects: list[_Placed] = []
+
+    # ------------------------------------------------------------ primitives
+
+    def _window(self, x0: float, x1: float, y0: float, y1: float):
+        i0, j0 = np.floor((np.array([x0, y0]) - self.lo) / RASTER_RES).astype(int)
+        i1, j1 = np.ceil((np.array([x1, y1]) - self.lo) / RASTER_RES).astype(int)
+        nx, ny = self.map.ground.shape
+        i0, i1, j0, j1 = max(i0, 0), min(i1, nx), max(j0, 0), min(j1, ny)
+        if i0 >= i1 or j0 >= j1:
+            return None
+        xs = self.lo[0] + (np.arange(i0, i1) + 0.5) * RASTER_RES
+        ys = self.lo[1] + (np.arange(j0, j1) + 0.5) * RASTER_RES
+        return (slice(i0, i1), slice(j0, j1)), xs[:, None], ys[None, :]
+
+    def _paint(self, win, mask: np.ndarray | None, ground: int | None, solid: tuple[int, float, float] | None):
+        sl = win[0]
+        m = np.ones(self.map.ground[sl].shape, bool) if mask is None else mask
+        if ground is not None:
+            self.map.ground[sl][m] = ground
+        if solid is not None:
+            cls, bottom, top = solid
+            lo, hi = layer_span(bottom, top)
+            self.map.cls[sl][m] = cls
+            self.map.lo[sl][m] = lo
+            self.map.hi[sl][m] = hi
+
+    def rect(self, x0, x1, y0, y1, ground: int | None = None, solid: tuple[int, float, float] | None = None):
+        """Fill an axis-aligned rectangle (global metres)."""
+        win = self._window(min(x0, x1), max(x0, x1), min(y0, y1), max(y0, y1))
+        if win is not None:
+            self._paint(win, None, ground, solid)
+
+    def clear(self, x0, x1, y0, y1, ground: int):
+        """Remove whatever stands in a rectangle and give it a new ground."""
+        win = self._window(min(x0, x1), max(x0, x1), min(y0, y1), max(y0, y1))
+        if win is not None:
+            self.map.ground[win[0]] = ground
+            self.map.cls[win[0]] = FREE
+
+    def disc(self, cx, cy, r, ground: int | None = None, solid: tuple[int, float, float] | None = None):
+        win = self._window(cx - r, cx + r, cy - r, cy + r)
+        if win is not None:
+            self._paint(win, (win[1] - cx) ** 2 + (win[2] - cy) ** 2 <= r * r, ground, solid)
+
+    def tree(self, x: float, y: float):
+        r = self.rng.uniform(1.4, 3.2)
+        base = self.rng.uniform(1.8, 3.0)
+        self.disc(x, y, r, solid=(VEGETATION, base, base + self.rng.uniform(2.5, 6.0)))
+        t = self.rng.uniform(0.2, 0.3)
+        self.rect(x - t, x + t, y - t, y + t, solid=(VEGETATION, 0.0, base + 0.4))
+
+    def place(self, kind: str, xy, yaw: float, parked: bool = True, rider: int = -1) -> None:
+        """Add a static boxed object (drawn per frame, annotated with a box)."""
+        if np.all(xy >= self.lo) and np.all(xy <= self.hi):
+            size = KINDS[kind].sample_size(self.rng)
+            self.objects.append(_Placed(kind, np.asarray(xy, float), float(yaw), size, parked, rider))
+
+    def tracks(self, frames: int) -> TrackSet:
+        """The placed objects as motionless tracks over ``frames`` frames."""
+        n = len(self.objects)
+        xy = np.array([o.xy for o in self.objects]).reshape(n, 1, 2)
+        yaw = np.array([o.yaw for o in self.objects]).reshape(n, 1)
+        return TrackSet(
+            cls=np.array([KINDS[o.kind].cls for o in self.objects], dtype=np.int64),
+            size=np.array([o.size for o in self.objects]).reshape(n, 3),
+            xy=np.repeat(xy, frames, axis=1),
+            yaw=np.repeat(yaw, frames, axis=1),
+            speed=np.zeros((n, frames)),
+            parked=np.array([o.parked for o in self.objects], bool),
+            rider=np.array([o.rider for o in self.objects], dtype=np.int64),
+        )
+
+    # ------------------------------------------------------------ blocks
+
+    def blocks(self) -> list[tuple[int, int, np.ndarray]]:
+        """(x-road index, y-road index, [x0, x1, y0, y1]) of the blocks touching the region.
+
+        Block (j, i) lies between x-roads j, j+1 and y-roads i, i+1.
+        """
+        xr, yr = self.net.roads
+        out = []
+        for i in range(len(yr) - 1):
+            x0, x1 = yr[i].centre + yr[i].half_width, yr[i + 1].centre - yr[i + 1].half_width
+            if x1 < self.lo[0] or x0 > self.hi[0]:
+                continue
+            for j in range(len(xr) - 1):
+                y0, y1 = xr[j].centre + xr[j].half_width, xr[j + 1].centre - xr[j + 1].half_width
+                if y1 < self.lo[1] or y0 > self.hi[1]:
+                    continue
+                out.append((j, i, np.array([x0, x1, y0, y1])))
+        return out
+
+    def block_ground(self, box: np.ndarray, interior: int) -> None:
+        """Rounded-corner block: sidewalk ring of the network's width around ``interior`` ground."""
+        x0, x1, y0, y1 = box
+        win = self._window(x0, x1, y0, y1)
+        if win is None:
+            return
+        _, xs, ys = win
+        cx, cy, hx, hy = (x0 + x1) / 2, (y0 + y1) / 2, (x1 - x0) / 2, (y1 - y0) / 2
+        qx = np.abs(xs - cx) - (hx - CURB_RADIUS)
+        qy = np.abs(ys - cy) - (hy - CURB_RADIUS)
+        sdf = np.hypot(np.maximum(qx, 0), np.maximum(qy, 0)) + np.minimum(np.maximum(qx, qy), 0) - CURB_RADIUS
+        self._paint(win, sdf <= -self.net.sidewalk, interior, None)
+        self._paint(win, (sdf <= 0) & (sdf > -self.net.sidewalk), SIDEWALK, None)
+
+    def building_block(self, box: np.ndarray) -> None:
+        """Buildings behind a setback strip, street trees, hedges, bins and bike racks."""
+        rng, w = self.rng, self.net.sidewalk
+        x0, x1, y0, y1 = box + np.array([w, -w, w, -w])
+        strip = int(rng.choice([TERRAIN, OTHER_FLAT, SIDEWALK], p=[0.6, 0.25, 0.15]))
+        setback = rng.uniform(2.0, 6.0)
+        self.rect(x0, x1, y0, y1, ground=strip)
+        bx0, bx1, by0, by1 = x0 + setback, x1 - setback, y0 + setback, y1 - setback
+        if bx1 - bx0 < 6 or by1 - by0 < 6:
+            return
+        self.rect(bx0, bx1, by0, by1, ground=TERRAIN)
+        depth = rng.uniform(9.0, 16.0)
+        # A ring of buildings; the courtyard keeps a few trees.
+        for side in range(4):
+            horizontal = side < 2
+            a0, a1 = (bx0, bx1) if horizontal else (by0 + depth, by1 - depth)
+            a = a0
+            while a < a1 - 4:
+                ln = min(rng.uniform(10.0, 28.0), a1 - a)
+                h = rng.uniform(6.0, 30.0)
+                if horizontal:
+                    yy = (by0, min(by0 + depth, by1)) if side == 0 else (max(by1 - depth, by0), by1)
+                    self.rect(a, a + ln, *yy, ground=OTHER_FLAT, solid=(MANMADE, 0.0, h))
+                else:
+                    xx = (bx0, min(bx0 + depth, bx1)) if side == 2 else (max(bx1 - depth, bx0), bx1)
+                    self.rect(*xx, a, a + ln, ground=OTHER_FLAT, solid=(MANMADE, 0.0, h))
+                a += ln + (rng.uniform(2.0, 5.0) if rng.random() < 0.4 else 0.0)
+        if bx1 - bx0 > 2 * depth + 8 and by1 - by0 > 2 * depth + 8:
+            for _ in range(int(rng.integers(0, 4))):
+                self.tree(rng.uniform(bx0 + depth + 3, bx1 - depth - 3), rng.uniform(by0 + depth + 3, by1 - depth - 3))
+        hedge = rng.random() < 0.35
+        for side in range(4):
+            self._frontage(box, side, setback, strip, hedge)
+
+    def _frontage(self, box: np.ndarray, side: int, setback: float, strip: int, hedge: bool) -> None:
+        """Street trees at the kerb, hedges, bins and bike racks along one side of a block."""
+        rng, w = self.rng, self.net.sidewalk
+        x0, x1, y0, y1 = box
+        # Side 0: south (y0), 1: north (y1), 2: west (x0), 3: east (x1); "out" points to the road.
+        a0, a1 = (x0, x1) if side < 2 else (y0, y1)
+        edge = (y0, y1, x0, x1)[side]
+        out = -1.0 if side in (0, 2) else 1.0
+
+        def at(a: float, depth: float) -> np.ndarray:
+            """Point ``depth`` metres inside the block from the road edge, at along-side ``a``."""
+            p = edge - out * depth
+            return np.array([a, p]) if side < 2 else np.array([p, a])
+
+        a = a0 + CURB_RADIUS + rng.uniform(2, 8)
+        while a < a1 - CURB_RADIUS - 2:
+            x, y = at(a, 0.55)
+            self.tree(x, y)
+            a += rng.uniform(8.0, 14.0)
+        if hedge:
+            p0, p1 = at(a0 + w + 1, w + 0.2), at(a1 - w - 1, w + 1.0)
+            self.rect(p0[0], p1[0], p0[1], p1[1], solid=(VEGETATION, 0.0, rng.uniform(0.9, 1.6)))
+        for a in rng.uniform(a0 + 8, a1 - 8, size=int(rng.integers(0, 3))):
+            c = at(a, 0.5)
+            self.rect(c[0] - 0.3, c[0] + 0.3, c[1] - 0.3, c[1] + 0.3, solid=(OTHERS, 0.0, rng.uniform(0.9, 1.3)))
+        if setback > 2.5 and not hedge and rng.random() < 0.5:
+            self.bike_rack(side, at(rng.uniform(a0 + 12, a1 - 12), w + 1.2))
+
+    def bike_rack(self, side: int, centre: np.ndarray) -> None:
+        """A rack (others) along the sidewalk with bicycles without rider parked across it."""
+        along = np.array([1.0, 0.0]) if side < 2 else np.array([0.0, 1.0])
+        across = np.array([along[1], along[0]])
+        half = 1.2 * along + 0.3 * across
+        lo, hi = centre - np.abs(half), centre + np.abs(half)
+        self.rect(lo[0], hi[0], lo[1], hi[1], solid=(OTHERS, 0.0, 0.9))
+        yaw = float(np.arctan2(across[1], across[0]))
+        for k in range(int(self.rng.integers(1, 4))):
+            self.place("bicycle", centre + along * (-0.8 + 0.8 * k) + across * 1.2, yaw, rider=0)
+
+    def park_block(self, box: np.ndarray) -> None:
+        """Grass, trees, hedges around, footpaths across, benches and bins."""
+        rng, w = self.rng, self.net.sidewalk
+        x0, x1, y0, y1 = box + np.array([w, -w, w, -w])
+        if x1 - x0 < 8 or y1 - y0 < 8:
+            return
+        self.rect(x0 + 0.3, x0 + 1.3, y0 + 6, y1 - 6, solid=(VEGETATION, 0.0, 1.1))
+        self.rect(x1 - 1.3, x1 - 0.3, y0 + 6, y1 - 6, solid=(VEGETATION, 0.0, 1.1))
+        cx, cy = rng.uniform(x0 + 10, x1 - 10), rng.uniform(y0 + 10, y1 - 10)
+        self.rect(x0, x1, cy - 1.25, cy + 1.25, ground=SIDEWALK)
+        self.rect(cx - 1.25, cx + 1.25, y0, y1, ground=SIDEWALK)
+        n = int((x1 - x0) * (y1 - y0) / 180)
+        for x, y in zip(rng.uniform(x0 + 3, x1 - 3, n), rng.uniform(y0 + 3, y1 - 3, n)):
+            if abs(x - cx) > 3.5 and abs(y - cy) > 3.5:
+                self.tree(x, y)
+        for k in range(int(rng.integers(1, 4))):
+            x = rng.uniform(x0 + 4, x1 - 4)
+            self.rect(x - 0.9, x + 0.9, cy + 1.5, cy + 2.1, solid=(MANMADE, 0.0, 0.8))
+            self.rect(x + 1.2, x + 1.8, cy + 1.5, cy + 2.1, solid=(OTHERS, 0.0, 1.0))
+
+    def frontage_rect(self, box: np.ndarray, side: int, a_mid: float, length: float, depth: float) -> np.ndarray:
+        """[x0, x1, y0, y1] of a site just inside the sidewalk of one side, centred at ``a_mid``."""
+        w = self.net.sidewalk
+        x0, x1, y0, y1 = box
+        lim = (x0, x1) if side < 2 else (y0, y1)
+        half = min(length, lim[1] - lim[0] - 2 * w - 4) / 2
+        a_mid = float(np.clip(a_mid, lim[0] + w + 2 + half, lim[1] - w - 2 - half))
+        if side == 0:
+            return np.array([a_mid - half, a_mid + half, y0 + w, y0 + w + depth])
+        if side == 1:
+            return np.array([a_mid - half, a_mid + half, y1 - w - depth, y1 - w])
+        if side == 2:
+            return np.array([x0 + w, x0 + w + depth, a_mid - half, a_mid + half])
+        return np.array([x1 - w - depth, x1 - w, a_mid - half, a_mid + half])
+
+    def parking_lot(self, site: np.ndarray, side: int) -> None:
+        """Stalls in rows perpendicular to the road side, long vehicles along the back."""
+        rng = self.rng
+        x0, x1, y0, y1 = site
+        self.clear(x0, x1, y0, y1, OTHER_FLAT)
+        horizontal = side < 2  # rows run along x
+        a0, a1, b0, b1 = (x0, x1, y0, y1) if horizontal else (y0, y1, x0, x1)
+        # Back row for long vehicles, then stall rows of 5.5 m with 7 m aisles.
+        back_at_b1 = side in (0, 2)
+        b_back = b1 - 1.6 if back_at_b1 else b0 + 1.6
+        along_yaw = 0.0 if horizontal else np.pi / 2
+        a = a0 + 2
+        while a < a1 - 13:
+            if rng.random() < 0.6:
+                kind = _pick(rng, LOT_LONG)
+                ln = KINDS[kind].size_hi[0]
+                self.place(kind, self._xy(horizontal, a + ln / 2, b_back), along_yaw)
+                a += ln + 1.5
+            else:
+                a += 6.0
+        stall_yaw = np.pi / 2 if horizontal else 0.0
+        row = b0 + 3.5 if back_at_b1 else b1 - 3.5
+        step = 12.5 if back_at_b1 else -12.5
+        while (row < b1 - 6.5) if back_at_b1 else (row > b0 + 6.5):
+            for a in np.arange(a0 + 2.5, a1 - 2.5, 2.7):
+                if rng.random() < 0.7:
+                    self.place(_pick(rng, LOT_STALLS), self._xy(horizontal, a, row), stall_yaw + np.pi * rng.integers(0, 2))
+            row += step
+        for a in np.arange(a0 + 6, a1 - 3, 18.0):
+            p = self._xy(horizontal, a, b0 + 0.6 if back_at_b1 else b1 - 0.6)
+            self.rect(p[0] - 0.25, p[0] + 0.25, p[1] - 0.25, p[1] + 0.25, solid=(MANMADE, 0.0, 7.0))
+
+    @staticmethod
+    def _xy(horizontal: bool, a: float, b: float) -> np.ndarray:
+        return np.array([a, b]) if horizontal else np.array([b, a])
+
+    def construction_site(self, site: np.ndarray, side: int) -> None:
+        """A fenced site (barriers) with an entrance marked by cones, a construction vehicle,
+        debris and material piles (others) and an unfinished structure (manmade)."""
+        rng = self.rng
+        x0, x1, y0, y1 = site
+        self.clear(x0, x1, y0, y1, int(rng.choice([TERRAIN, OTHER_FLAT])))
+        horizontal = side < 2
+        a0, a1, b0, b1 = (x0, x1, y0, y1) if horizontal else (y0, y1, x0, x1)
+        front = b0 if side in (0, 2) else b1
+        back = b1 if side in (0, 2) else b0
+        gate = rng.uniform(a0 + 6, a1 - 10)
+        # Fence: front side with a gate, then the two ends.
+        for a in np.arange(a0 + 1.3, a1 - 1.0, 2.7):
+            if not gate - 1 < a < gate + 9:
+                self.place("barrier", self._xy(horizontal, a, front + 0.4 * np.sign(back - front)), 0.0 if horizontal else np.pi / 2)
+        for b in np.arange(min(b0, b1) + 1.5, max(b0, b1) - 1.0, 2.7):
+            for a in (a0 + 0.4, a1 - 0.4):
+                self.place("barrier", self._xy(horizontal, a, b), np.pi / 2 if horizontal else 0.0)
+        for k in range(int(rng.integers(3, 7))):
+            a = gate - 0.5 + rng.uniform(0, 9)
+            self.place("traffic_cone", self._xy(horizontal, a, front - 0.9 * np.sign(back - front) * 0), 0.0)
+        inward = np.sign(back - front)
+        mid_b = front + inward * rng.uniform(6, max(7, abs(back - front) - 6))
+        self.place("construction_vehicle", self._xy(horizontal, gate + 4, mid_b), rng.uniform(-np.pi, np.pi))
+        for _ in range(int(rng.integers(1, 4))):
+            a, b = rng.uniform(a0 + 3, a1 - 3), front + inward * rng.uniform(3, abs(back - front) - 2)
+            r = rng.uniform(1.0, 2.0)
+            p = self._xy(horizontal, a, b)
+            if abs(a - (gate + 4)) > 6:
+                self.disc(p[0], p[1], r, solid=(OTHERS, 0.0, rng.uniform(0.8, 2.2)))
+        bb = back - inward * rng.uniform(5, 9)
+        p0, p1 = self._xy(horizontal, a1 - rng.uniform(12, 20), bb), self._xy(horizontal, a1 - 2, back - inward * 1.5)
+        self.rect(min(p0[0], p1[0]), max(p0[0], p1[0]), min(p0[1], p1[1]), max(p0[1], p1[1]), solid=(MANMADE, 0.0, 12.0))
+
+    # ------------------------------------------------------------ roads
+
+    def median(self, road: Road, a0: float, a1: float) -> None:
+        """The central strip between two intersections (along-road coordinates a0 < a1)."""
+        rng = self.rng
+        hm = road.median / 2
+        c = road.centre
+        box = (a0, a1, c - hm, c + hm) if road.axis == 0 else (c - hm, c + hm, a0, a1)
+        self.rect(*box, ground=OTHER_FLAT)
+        style = rng.choice(["plain", "hedge", "trees", "barriers"], p=[0.3, 0.3, 0.2, 0.2])
+        if style == "hedge":
+            inner = (a0 + 2, a1 - 2, c - hm + 0.4, c + hm - 0.4)
+            self.rect(*(inner if road.axis == 0 else (inner[2], inner[3], inner[0], inner[1])), solid=(VEGETATION, 0.0, 1.0))
+        elif style == "trees":
+            for a in np.arange(a0 + 4, a1 - 4, rng.uniform(9, 15)):
+                self.tree(*((a, c) if road.axis == 0 else (c, a)))
+        elif style == "barriers":
+            yaw = 0.0 if road.axis == 0 else np.pi / 2
+            for a in np.arange(a0 + 6, a1 - 6, 2.7):
+                self.place("barrier", np.array([a, c]) if road.axis == 0 else np.array([c, a]), yaw)
+
+    def parking_strip(self, road: Road, side: int, a0: float, a1: float, reserved: list[tuple[float, float]]) -> None:
+        """Parked vehicles along one kerb (side +1: left of +axis travel, -1: right), avoiding ``reserved``."""
+        rng = self.rng
+        lateral = road.centre + side * (road.half_width - road.parking / 2)
+        yaw = 0.0 if road.axis == 0 else np.pi / 2
+        a = a0 + rng.uniform(0, 4)
+        while a < a1:
+            kind = _pick(rng, STRIP_PARKING)
+            ln = KINDS[kind].size_hi[0]
+            if rng.random() < 0.7 and not any(r0 - 1 < a + ln and a < r1 + 1 for r0, r1 in reserved) and a + ln < a1:
+                p = np.array([a + ln / 2, lateral]) if road.axis == 0 else np.array([lateral, a + ln / 2])
+                self.place(kind, p, yaw + np.pi * rng.integers(0, 2), rider=0 if kind == "motorcycle" else -1)
+            a += ln + rng.uniform(0.8, 5.0)
+
+    def stretches(self, road: Road) -> list[tuple[float, float]]:
+        """Along-road intervals between the kerbs of consecutive crossing roads, inside the region."""
+        cross = self.net.roads[1 - road.axis]
+        k = 0 if road.axis == 0 else 1
+        out = []
+        for c0, c1 in zip(cross[:-1], cross[1:]):
+            a0, a1 = c0.centre + c0.half_width, c1.centre - c1.half_width
+            if a1 > self.lo[k] and a0 < self.hi[k]:
+                out.append((a0, a1))
+        return out
+
+    def roads_in_region(self) -> list[Road]:
+        return [
+            r for r in self.net.roads[0] + self.net.roads[1]
+            if self.lo[1 - r.axis] - r.half_width < r.centre < self.hi[1 - r.axis] + r.half_width
+        ]
+
+
+def paint_city(
+    net: RoadNetwork, lo: np.ndarray, hi: np.ndarray, ego: LaneState, rng: np.random.Generator, frames: int
+) -> tuple[StaticMap, TrackSet]:
+    """Paint the region [lo, hi] (global metres) and place its static objects.
+
+    The road the ego starts on always gets, just ahead of the ego: a bus stopped at a bus
+    stop with people waiting on one side; a construction site with the parked vehicles of
+    every kind in the parking strip on the other side. So every scene shows every class.
+    """
+    painter = CityPainter(net, lo, hi, rng)
+    ego_road = net.roads[ego.axis][ego.road]
+    u = HEADINGS[ego.heading]
+    sign_u = float(u @ (np.array([1.0, 0.0]) if ego.axis == 0 else np.array([0.0, 1.0])))
+    feature_a = ego.along + rng.uniform(12.0, 30.0)  # along-travel coordinate of the features
+    axis_a = sign_u * feature_a  # the same, as a global coordinate along the road
+    right = right_of(u)
+    bus_side = int(rng.choice([-1, 1]))  # +1: the ego's right-hand side
+    # Global side (+1 = larger cross coordinate) of the bus stop and of the construction site.
+    cross_sign = float(right @ ego_road.normal)
+    bus_g, site_g = bus_side * cross_sign, -bus_side * cross_sign
+    point = (lambda a, off: np.array([a, off])) if ego.axis == 0 else (lambda a, off: np.array([off, a]))
+
+    forced: dict[tuple[int, int], tuple[str, int]] = {}
+    for j, i, box in painter.blocks():
+        centre = np.array([(box[0] + box[1]) / 2, (box[2] + box[3]) / 2])
+        probe = point(axis_a, ego_road.centre + site_g * (ego_road.half_width + 10))
+        probe_bus = point(axis_a, ego_road.centre + bus_g * (ego_road.half_width + 10))
+        inside = lambda p: box[0] <= p[0] <= box[1] and box[2] <= p[1] <= box[3]  # noqa: E731
+        side_toward_road = int(np.argmin(np.abs(np.array([box[2], box[3], box[0], box[1]]) - (ego_road.centre + (site_g if inside(probe) else bus_g) * ego_road.half_width))))
+        if inside(probe):
+            forced[(j, i)] = ("site", side_toward_road)
+        elif inside(probe_bus):
+            forced[(j, i)] = ("bus", side_toward_road)
+        del centre
+
+    for j, i, box in painter.blocks():
+        kind = forced.get((j, i), (None, 0))[0]
+        park = kind is None and rng.random() < 0.2
+        painter.block_ground(box, TERRAIN)
+        if park:
+            painter.park_block(box)
+            continue
+        painter.building_block(box)
+        if kind == "site":
+            side = forced[(j, i)][1]
+            site = painter.frontage_rect(box, side, axis_a, rng.uniform(28, 45), rng.uniform(16, 24))
+            painter.construction_site(site, side)
+        elif kind == "bus":
+            side = forced[(j, i)][1]
+            shelter = painter.frontage_rect(box, side, axis_a, 4.0, 1.6)
+            painter.clear(*shelter, ground=SIDEWALK)
+            painter.rect(*shelter, solid=(MANMADE, 0.0, 2.6))
+            inward = -1.0 if side in (1, 3) else 1.0
+            for k in range(int(rng.integers(2, 4))):
+                c = np.array([(shelter[0] + shelter[1]) / 2, (shelter[2] + shelter[3]) / 2])
+                off = np.array([0.0, inward * 2.3]) if side < 2 else np.array([inward * 2.3, 0.0])
+                along = np.array([1.0, 0.0]) if side < 2 else np.array([0.0, 1.0])
+                painter.place("pedestrian", c + off + along * (k * 1.1 - 1.1), rng.uniform(-np.pi, np.pi), parked=False)
+        elif rng.random() < 0.35:
+            side = int(rng.integers(0, 4))
+            lim = (box[0], box[1]) if side < 2 else (box[2], box[3])
+            lot = painter.frontage_rect(box, side, rng.uniform(*lim), rng.uniform(25, 50), rng.uniform(18, 30))
+            if rng.random() < 0.75:
+                painter.parking_lot(lot, side)
+            else:
+                painter.construction_site(lot, side)
+
+    bus_len = KINDS["bus"].size_hi[0]
+    reserved_bus = [(axis_a - bus_len / 2 - 2, axis_a + bus_len / 2 + 2)]
+    site_strip = [(axis_a - 25, axis_a + 25)]
+    for road in painter.roads_in_region():
+        for a0, a1 in painter.stretches(road):
+            if road.median > 0 and a1 - a0 > 2 * MEDIAN_END + 10:
+                painter.median(road, a0 + MEDIAN_END, a1 - MEDIAN_END)
+            if road.parking > 0:
+                for side in (-1, 1):
+                    reserved = []
+                    if road is ego_road and a0 < axis_a < a1:
+                        reserved = reserved_bus if side == bus_g else site_strip
+                    painter.parking_strip(road, side, a0 + 8.0, a1 - 8.0, reserved)
+
+    # The features in the ego road's parking strips.
+    lat_bus = ego_road.centre + bus_g * (ego_road.half_width - ego_road.parking / 2 - 0.2)
+    painter.place("bus", point(axis_a, lat_bus), float(np.arctan2(u[1], u[0])) + (0 if bus_side == 1 else np.pi), parked=False)
+    lat_site = ego_road.centre + site_g * (ego_road.half_width - ego_road.parking / 2)
+    yaw_road = 0.0 if ego.axis == 0 else np.pi / 2
+    a = axis_a - 24.0
+    for kind in ("truck", "motorcycle", "motorcycle", "trailer"):
+        ln = KINDS[kind].size_hi[0]
+        painter.place(kind, point(a + ln / 2, lat_site), yaw_road, rider=0 if kind == "motorcycle" else -1)
+        a += ln + 1.0
+    for k in range(5):
+        painter.place("traffic_cone", point(a + 1.0 + 2.0 * k, lat_site - site_g * 0.2 * k), 0.0)
+    return painter.map, painter.tracks(frames)

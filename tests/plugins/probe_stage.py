@@ -1,0 +1,69 @@
+"""A tiny stage kind for runner tests, loaded through a recipe's ``plugins:`` list.
+
+A per-voxel class embedding and a linear classifier on a subsampled grid: small enough
+that a stage takes a second, deterministic enough that resumed and uninterrupted runs
+can be compared weight for weight.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import lightning as L
+from torch import nn
+
+from occtrain.stages import StageContext, StageKind, register
+from occtrain.stages.common import configure_adamw, read_export, write_export
+
+
+@dataclass
+class ProbeConfig:
+    width: int = 4
+    fail: bool = False
+    step_delay: float = 0.0
+
+
+class Probe(L.LightningModule):
+    """Per-voxel class embedding -> 1x1x1 classifier: learns the identity map of labels."""
+
+    def __init__(self, ctx: StageContext):
+        super().__init__()
+        self.ctx = ctx
+        self.embed = nn.Embedding(18, ctx.model_cfg.width)
+        self.head = nn.Linear(ctx.model_cfg.width, 18)
+        self.loaded_from = ""
+        if ctx.inputs:  # handoff: start from the consumed stage's export
+            state, config = read_export(next(iter(ctx.inputs.values())))
+            self.load_state_dict(state)
+            self.loaded_from = config["stage"]
+
+    def training_step(self, batch, _):
+        if self.ctx.model_cfg.step_delay:
+            time.sleep(self.ctx.model_cfg.step_delay)  # lets a test kill the process mid-stage
+        if self.ctx.model_cfg.fail:
+            raise RuntimeError("probe exploded\nsecond line")
+        sem = batch["semantics"].long()[:, ::8, ::8]
+        loss = nn.functional.cross_entropy(self.head(self.embed(sem)).flatten(0, -2), sem.flatten())
+        self.log("train/loss", loss)
+        return loss
+
+    def validation_step(self, batch, _):
+        sem = batch["semantics"].long()[:, ::8, ::8]
+        acc = (self.head(self.embed(sem)).argmax(-1) == sem).float().mean()
+        self.log("val/acc", acc, sync_dist=True)
+
+    def configure_optimizers(self):
+        return configure_adamw(self.parameters(), self.ctx.spec.optim, self.ctx.trainer.max_steps)
+
+    def export(self, path: Path) -> Path:
+        return write_export(path, self.state_dict(), {"stage": self.ctx.spec.name, "init_from": self.loaded_from})
+
+    def summary(self) -> str:
+        return "probe"
+
+
+
+PROBE = register(StageKind(name="probe", model_schema=ProbeConfig, data_kind="frames", build=Probe, monitor="val/acc"))
