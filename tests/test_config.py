@@ -65,3 +65,14 @@ def test_result_is_read_only():
     cfg = load_config(TrainerConfig)
     with pytest.raises(Exception):
         cfg.max_steps = 3
+
+
+def test_override_may_name_a_section_file(tmp_path):
+    from occtrain.config.recipe import RecipeConfig
+
+    gpu = write(tmp_path, "configs/trainer/gpu.yaml", "accelerator: gpu\ndevices: 4\n")
+    cfg = load_config(RecipeConfig, None, ["name=x", f"trainer={gpu}", "trainer.devices=2"])
+    assert (cfg.trainer.accelerator, cfg.trainer.devices, cfg.trainer.max_steps) == ("gpu", 2, 100)
+    bad = write(tmp_path, "configs/trainer/bad.yaml", "acelerator: gpu\n")
+    with pytest.raises(ConfigError, match=r"unknown key 'trainer.acelerator' in .*bad.yaml; did you mean 'accelerator'\?"):
+        load_config(RecipeConfig, None, ["name=x", f"trainer={bad}"])

@@ -109,12 +109,13 @@ def _merge(base: DictConfig, update: Any, source: str) -> DictConfig:
         raise ConfigError(f"invalid value for '{key}' in {source}: {msg}") from None
 
 
-def _check_override_key(cls: type, dotted: str, source: str) -> None:
+def _check_override_key(cls: type, dotted: str, source: str) -> type | None:
+    """Check each part of a dotted key against the schema; return the section type it names."""
     cur: type | None = cls
     parts = dotted.split(".")
     for depth, part in enumerate(parts):
         if cur is None:
-            return  # inside a free-form mapping
+            return None  # inside a free-form mapping
         name = part.split("[")[0]
         fields = _dataclass_fields(cur)
         if name not in fields:
@@ -122,6 +123,7 @@ def _check_override_key(cls: type, dotted: str, source: str) -> None:
             key = f"{where}.{name}" if where else name
             raise ConfigError(f"unknown key '{key}' in {source}{_suggest(name, list(fields))}")
         cur = _section_type(fields[name])
+    return cur
 
 
 def load_config(schema: type[T], path: str | Path | None = None, overrides: list[str] | None = None) -> T:
@@ -138,12 +140,15 @@ def load_config(schema: type[T], path: str | Path | None = None, overrides: list
         if "=" not in item:
             raise ConfigError(f"override '{item}' must look like key=value (e.g. trainer.max_steps=10)")
         key = item.split("=", 1)[0].strip()
-        _check_override_key(schema, key, f"override '{item}'")
+        section = _check_override_key(schema, key, f"override '{item}'")
         raw_value = item.split("=", 1)[1]
         try:
             value = yaml.safe_load(raw_value) if raw_value.strip() else ""
         except yaml.YAMLError:
             value = raw_value  # not YAML: take the text as a string
+        if section is not None and isinstance(value, str) and value.endswith((".yaml", ".yml")):
+            include = _find_include(value, Path(f"override '{item}'"))
+            value = _resolve_includes(read_yaml(include), section, include, f"{key}.")
         try:
             OmegaConf.update(cfg, key, value, merge=True)
         except (OmegaConfBaseException, ValueError, TypeError, IndexError, KeyError) as err:
