@@ -12,12 +12,13 @@ cycles, cones, barriers, standing pedestrians) are kept as tracks and drawn per 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
-from occtrain.data.synth.catalog import KINDS, TrackSet
+from occtrain.data.synth.catalog import CYCLE_CLASSES, KINDS, TrackSet, pick
 from occtrain.data.synth.grid import layer_span
-from occtrain.data.synth.roads import CURB_RADIUS, MEDIAN_END, LaneState, Road, RoadNetwork, right_of, HEADINGS
+from occtrain.data.synth.roads import CURB_RADIUS, HEADINGS, MEDIAN_END, LaneState, Road, RoadNetwork, right_of
 from occtrain.occ3d import CLASS_INDEX, FREE
 
 #: Cell size (m) of the global static raster; finer than a voxel so rotated sampling is clean.
@@ -38,6 +39,30 @@ LOT_STALLS = (("car", 0.92), ("motorcycle", 0.08))
 LOT_LONG = (("truck", 0.4), ("trailer", 0.35), ("bus", 0.25))
 
 
+#: Number of distinct layer bounds (0..16) in a column code.
+_BOUNDS = 17
+
+
+def column_key(ground, cls, lo, hi) -> np.ndarray:
+    """One integer per column from its ground class, standing class and layer range."""
+    g, c = np.asarray(ground, np.int32), np.asarray(cls, np.int32)
+    return ((g * (FREE + 1) + c) * _BOUNDS + np.asarray(lo, np.int32)) * _BOUNDS + np.asarray(hi, np.int32)
+
+
+def column_table(layers: int, ground_layers: int) -> np.ndarray:
+    """(codes, layers) uint8: the voxel column of every possible column code."""
+    code = np.arange((FREE + 1) ** 2 * _BOUNDS**2)
+    hi = code % _BOUNDS
+    lo = code // _BOUNDS % _BOUNDS
+    cls = code // _BOUNDS**2 % (FREE + 1)
+    ground = code // (_BOUNDS**2 * (FREE + 1))
+    k = np.arange(layers)
+    solid = (k >= lo[:, None]) & (k < hi[:, None])
+    table = np.where(solid, cls[:, None], FREE).astype(np.uint8)
+    table[:, :ground_layers] = ground[:, None]
+    return table
+
+
 @dataclass
 class StaticMap:
     """Global column raster: ground class and one standing segment per cell.
@@ -51,6 +76,11 @@ class StaticMap:
     lo: np.ndarray
     hi: np.ndarray
 
+    @cached_property
+    def column_key(self) -> np.ndarray:
+        """(NX, NY) int32 code of each cell's whole column; see :func:`column_key`."""
+        return column_key(self.ground, self.cls, self.lo, self.hi)
+
     def cells(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Nearest raster cell (clipped to the raster) of global points ``xy`` (..., 2)."""
         idx = np.floor((xy - self.origin) / RASTER_RES).astype(np.int64)
@@ -59,6 +89,8 @@ class StaticMap:
 
 @dataclass
 class _Placed:
+    """A static boxed object before it becomes a track."""
+
     kind: str
     xy: np.ndarray
     yaw: float
@@ -67,9 +99,9 @@ class _Placed:
     rider: int
 
 
-def _pick(rng: np.random.Generator, table: tuple[tuple[str, float], ...]) -> str:
-    names, w = zip(*table)
-    return names[int(rng.choice(len(names), p=np.array(w) / sum(w)))]
+def _inward(side: int) -> np.ndarray:
+    """Unit vector into a block from its side (0 south, 1 north, 2 west, 3 east)."""
+    return np.array([[0.0, 1.0], [0.0, -1.0], [1.0, 0.0], [-1.0, 0.0]])[side]
 
 
 class CityPainter:
@@ -122,11 +154,13 @@ class CityPainter:
             self._paint(win, None, ground, solid)
 
     def clear(self, x0, x1, y0, y1, ground: int):
-        """Remove whatever stands in a rectangle and give it a new ground."""
-        win = self._window(min(x0, x1), max(x0, x1), min(y0, y1), max(y0, y1))
+        """Remove whatever stands in a rectangle (raster and placed objects), give it a new ground."""
+        x0, x1, y0, y1 = min(x0, x1), max(x0, x1), min(y0, y1), max(y0, y1)
+        win = self._window(x0, x1, y0, y1)
         if win is not None:
             self.map.ground[win[0]] = ground
             self.map.cls[win[0]] = FREE
+        self.objects = [o for o in self.objects if not (x0 <= o.xy[0] <= x1 and y0 <= o.xy[1] <= y1)]
 
     def disc(self, cx, cy, r, ground: int | None = None, solid: tuple[int, float, float] | None = None):
         win = self._window(cx - r, cx + r, cy - r, cy + r)
@@ -134,16 +168,18 @@ class CityPainter:
             self._paint(win, (win[1] - cx) ** 2 + (win[2] - cy) ** 2 <= r * r, ground, solid)
 
     def tree(self, x: float, y: float):
+        """A trunk with a round canopy starting 1.8-3 m up."""
         r = self.rng.uniform(1.4, 3.2)
         base = self.rng.uniform(1.8, 3.0)
         self.disc(x, y, r, solid=(VEGETATION, base, base + self.rng.uniform(2.5, 6.0)))
         t = self.rng.uniform(0.2, 0.3)
         self.rect(x - t, x + t, y - t, y + t, solid=(VEGETATION, 0.0, base + 0.4))
 
-    def place(self, kind: str, xy, yaw: float, parked: bool = True, rider: int = -1) -> None:
-        """Add a static boxed object (drawn per frame, annotated with a box)."""
+    def place(self, kind: str, xy, yaw: float, parked: bool = True) -> None:
+        """Add a static boxed object (drawn per frame, annotated with a box); static cycles have no rider."""
         if np.all(xy >= self.lo) and np.all(xy <= self.hi):
             size = KINDS[kind].sample_size(self.rng)
+            rider = 0 if KINDS[kind].cls in CYCLE_CLASSES else -1
             self.objects.append(_Placed(kind, np.asarray(xy, float), float(yaw), size, parked, rider))
 
     def tracks(self, frames: int) -> TrackSet:
@@ -163,11 +199,8 @@ class CityPainter:
 
     # ------------------------------------------------------------ blocks
 
-    def blocks(self) -> list[tuple[int, int, np.ndarray]]:
-        """(x-road index, y-road index, [x0, x1, y0, y1]) of the blocks touching the region.
-
-        Block (j, i) lies between x-roads j, j+1 and y-roads i, i+1.
-        """
+    def blocks(self) -> list[np.ndarray]:
+        """[x0, x1, y0, y1] of every block (the land between neighbouring roads) touching the region."""
         xr, yr = self.net.roads
         out = []
         for i in range(len(yr) - 1):
@@ -178,7 +211,7 @@ class CityPainter:
                 y0, y1 = xr[j].centre + xr[j].half_width, xr[j + 1].centre - xr[j + 1].half_width
                 if y1 < self.lo[1] or y0 > self.hi[1]:
                     continue
-                out.append((j, i, np.array([x0, x1, y0, y1])))
+                out.append(np.array([x0, x1, y0, y1]))
         return out
 
     def block_ground(self, box: np.ndarray, interior: int) -> None:
@@ -195,12 +228,15 @@ class CityPainter:
         self._paint(win, sdf <= -self.net.sidewalk, interior, None)
         self._paint(win, (sdf <= 0) & (sdf > -self.net.sidewalk), SIDEWALK, None)
 
-    def building_block(self, box: np.ndarray) -> None:
-        """Buildings behind a setback strip, street trees, hedges, bins and bike racks."""
+    def building_block(self, box: np.ndarray, bus_stop: bool = False) -> None:
+        """Buildings behind a setback strip, street trees, hedges, bins and bike racks.
+
+        A block with a bus stop keeps a deep setback free of hedges and racks for the shelter.
+        """
         rng, w = self.rng, self.net.sidewalk
         x0, x1, y0, y1 = box + np.array([w, -w, w, -w])
         strip = int(rng.choice([TERRAIN, OTHER_FLAT, SIDEWALK], p=[0.6, 0.25, 0.15]))
-        setback = rng.uniform(2.0, 6.0)
+        setback = rng.uniform(4.5, 6.0) if bus_stop else rng.uniform(2.0, 6.0)
         self.rect(x0, x1, y0, y1, ground=strip)
         bx0, bx1, by0, by1 = x0 + setback, x1 - setback, y0 + setback, y1 - setback
         if bx1 - bx0 < 6 or by1 - by0 < 6:
@@ -227,10 +263,11 @@ class CityPainter:
                 self.tree(rng.uniform(bx0 + depth + 3, bx1 - depth - 3), rng.uniform(by0 + depth + 3, by1 - depth - 3))
         hedge = rng.random() < 0.35
         for side in range(4):
-            self._frontage(box, side, setback, strip, hedge)
+            self._frontage(box, side, furnished=not bus_stop and setback > 3.0, hedge=hedge and not bus_stop)
 
-    def _frontage(self, box: np.ndarray, side: int, setback: float, strip: int, hedge: bool) -> None:
-        """Street trees at the kerb, hedges, bins and bike racks along one side of a block."""
+    def _frontage(self, box: np.ndarray, side: int, furnished: bool, hedge: bool) -> None:
+        """Street trees and bins at the kerb along one side of a block, maybe a hedge behind the
+        sidewalk, and (``furnished``: the setback has room) maybe a bike rack."""
         rng, w = self.rng, self.net.sidewalk
         x0, x1, y0, y1 = box
         # Side 0: south (y0), 1: north (y1), 2: west (x0), 3: east (x1); "out" points to the road.
@@ -254,19 +291,29 @@ class CityPainter:
         for a in rng.uniform(a0 + 8, a1 - 8, size=int(rng.integers(0, 3))):
             c = at(a, 0.5)
             self.rect(c[0] - 0.3, c[0] + 0.3, c[1] - 0.3, c[1] + 0.3, solid=(OTHERS, 0.0, rng.uniform(0.9, 1.3)))
-        if setback > 2.5 and not hedge and rng.random() < 0.5:
-            self.bike_rack(side, at(rng.uniform(a0 + 12, a1 - 12), w + 1.2))
+        if furnished and not hedge and rng.random() < 0.5:
+            self.bike_rack(side, at(rng.uniform(a0 + 12, a1 - 12), w + 0.6))
 
     def bike_rack(self, side: int, centre: np.ndarray) -> None:
-        """A rack (others) along the sidewalk with bicycles without rider parked across it."""
+        """A rack (others) inside the sidewalk with bicycles without rider parked across it."""
         along = np.array([1.0, 0.0]) if side < 2 else np.array([0.0, 1.0])
-        across = np.array([along[1], along[0]])
-        half = 1.2 * along + 0.3 * across
-        lo, hi = centre - np.abs(half), centre + np.abs(half)
+        inward = _inward(side)
+        lo, hi = centre - 1.2 * along - 0.3 * np.abs(inward), centre + 1.2 * along + 0.3 * np.abs(inward)
         self.rect(lo[0], hi[0], lo[1], hi[1], solid=(OTHERS, 0.0, 0.9))
-        yaw = float(np.arctan2(across[1], across[0]))
+        yaw = float(np.arctan2(inward[1], inward[0]))
         for k in range(int(self.rng.integers(1, 4))):
-            self.place("bicycle", centre + along * (-0.8 + 0.8 * k) + across * 1.2, yaw, rider=0)
+            self.place("bicycle", centre + along * (-0.8 + 0.8 * k) + inward * 1.2, yaw)
+
+    def bus_stop(self, box: np.ndarray, side: int, a_mid: float) -> None:
+        """A shelter just inside the sidewalk with two or three people standing by it."""
+        shelter = self.frontage_rect(box, side, a_mid, 4.0, 1.6)
+        self.clear(*shelter, ground=SIDEWALK)
+        self.rect(*shelter, solid=(MANMADE, 0.0, 2.6))
+        centre = np.array([(shelter[0] + shelter[1]) / 2, (shelter[2] + shelter[3]) / 2])
+        along = np.array([1.0, 0.0]) if side < 2 else np.array([0.0, 1.0])
+        for k in range(int(self.rng.integers(2, 4))):
+            spot = centre + _inward(side) * 1.5 + along * (1.1 * k - 1.1)
+            self.place("pedestrian", spot, self.rng.uniform(-np.pi, np.pi), parked=False)
 
     def park_block(self, box: np.ndarray) -> None:
         """Grass, trees, hedges around, footpaths across, benches and bins."""
@@ -283,7 +330,7 @@ class CityPainter:
         for x, y in zip(rng.uniform(x0 + 3, x1 - 3, n), rng.uniform(y0 + 3, y1 - 3, n)):
             if abs(x - cx) > 3.5 and abs(y - cy) > 3.5:
                 self.tree(x, y)
-        for k in range(int(rng.integers(1, 4))):
+        for _ in range(int(rng.integers(1, 4))):
             x = rng.uniform(x0 + 4, x1 - 4)
             self.rect(x - 0.9, x + 0.9, cy + 1.5, cy + 2.1, solid=(MANMADE, 0.0, 0.8))
             self.rect(x + 1.2, x + 1.8, cy + 1.5, cy + 2.1, solid=(OTHERS, 0.0, 1.0))
@@ -317,7 +364,7 @@ class CityPainter:
         a = a0 + 2
         while a < a1 - 13:
             if rng.random() < 0.6:
-                kind = _pick(rng, LOT_LONG)
+                kind = pick(rng, LOT_LONG)
                 ln = KINDS[kind].size_hi[0]
                 self.place(kind, self._xy(horizontal, a + ln / 2, b_back), along_yaw)
                 a += ln + 1.5
@@ -329,7 +376,7 @@ class CityPainter:
         while (row < b1 - 6.5) if back_at_b1 else (row > b0 + 6.5):
             for a in np.arange(a0 + 2.5, a1 - 2.5, 2.7):
                 if rng.random() < 0.7:
-                    self.place(_pick(rng, LOT_STALLS), self._xy(horizontal, a, row), stall_yaw + np.pi * rng.integers(0, 2))
+                    self.place(pick(rng, LOT_STALLS), self._xy(horizontal, a, row), stall_yaw + np.pi * rng.integers(0, 2))
             row += step
         for a in np.arange(a0 + 6, a1 - 3, 18.0):
             p = self._xy(horizontal, a, b0 + 0.6 if back_at_b1 else b1 - 0.6)
@@ -340,38 +387,41 @@ class CityPainter:
         return np.array([a, b]) if horizontal else np.array([b, a])
 
     def construction_site(self, site: np.ndarray, side: int) -> None:
-        """A fenced site (barriers) with an entrance marked by cones, a construction vehicle,
-        debris and material piles (others) and an unfinished structure (manmade)."""
+        """A fenced site (barriers) with a gate marked by cones, a construction vehicle, debris
+        and material piles (others) and an unfinished structure (manmade) at the back."""
         rng = self.rng
         x0, x1, y0, y1 = site
         self.clear(x0, x1, y0, y1, int(rng.choice([TERRAIN, OTHER_FLAT])))
         horizontal = side < 2
         a0, a1, b0, b1 = (x0, x1, y0, y1) if horizontal else (y0, y1, x0, x1)
-        front = b0 if side in (0, 2) else b1
-        back = b1 if side in (0, 2) else b0
-        gate = rng.uniform(a0 + 6, a1 - 10)
-        # Fence: front side with a gate, then the two ends.
+        inward = 1.0 if side in (0, 2) else -1.0
+        front, back = (b0, b1) if inward > 0 else (b1, b0)
+        depth = b1 - b0
+        along_yaw, across_yaw = (0.0, np.pi / 2) if horizontal else (np.pi / 2, 0.0)
+        gate = rng.uniform(a0 + 6, a1 - 12)
         for a in np.arange(a0 + 1.3, a1 - 1.0, 2.7):
             if not gate - 1 < a < gate + 9:
-                self.place("barrier", self._xy(horizontal, a, front + 0.4 * np.sign(back - front)), 0.0 if horizontal else np.pi / 2)
-        for b in np.arange(min(b0, b1) + 1.5, max(b0, b1) - 1.0, 2.7):
+                self.place("barrier", self._xy(horizontal, a, front + inward * 0.4), along_yaw)
+        for b in np.arange(b0 + 1.5, b1 - 1.0, 2.7):
             for a in (a0 + 0.4, a1 - 0.4):
-                self.place("barrier", self._xy(horizontal, a, b), np.pi / 2 if horizontal else 0.0)
-        for k in range(int(rng.integers(3, 7))):
-            a = gate - 0.5 + rng.uniform(0, 9)
-            self.place("traffic_cone", self._xy(horizontal, a, front - 0.9 * np.sign(back - front) * 0), 0.0)
-        inward = np.sign(back - front)
-        mid_b = front + inward * rng.uniform(6, max(7, abs(back - front) - 6))
-        self.place("construction_vehicle", self._xy(horizontal, gate + 4, mid_b), rng.uniform(-np.pi, np.pi))
+                self.place("barrier", self._xy(horizontal, a, b), across_yaw)
+        n = int(rng.integers(3, 6))
+        for k in range(n):
+            self.place("traffic_cone", self._xy(horizontal, gate + 8.0 * k / (n - 1), front + inward * 0.4), 0.0)
+        vehicle_a = gate + 4.0
+        self.place(
+            "construction_vehicle",
+            self._xy(horizontal, vehicle_a, front + inward * rng.uniform(6, max(6.5, depth - 10))),
+            rng.uniform(-np.pi, np.pi),
+        )
         for _ in range(int(rng.integers(1, 4))):
-            a, b = rng.uniform(a0 + 3, a1 - 3), front + inward * rng.uniform(3, abs(back - front) - 2)
-            r = rng.uniform(1.0, 2.0)
-            p = self._xy(horizontal, a, b)
-            if abs(a - (gate + 4)) > 6:
-                self.disc(p[0], p[1], r, solid=(OTHERS, 0.0, rng.uniform(0.8, 2.2)))
-        bb = back - inward * rng.uniform(5, 9)
-        p0, p1 = self._xy(horizontal, a1 - rng.uniform(12, 20), bb), self._xy(horizontal, a1 - 2, back - inward * 1.5)
-        self.rect(min(p0[0], p1[0]), max(p0[0], p1[0]), min(p0[1], p1[1]), max(p0[1], p1[1]), solid=(MANMADE, 0.0, 12.0))
+            a = rng.uniform(a0 + 3, a1 - 3)
+            if abs(a - vehicle_a) > 6:
+                p = self._xy(horizontal, a, front + inward * rng.uniform(3, depth - 6))
+                self.disc(p[0], p[1], rng.uniform(1.0, 2.0), solid=(OTHERS, 0.0, rng.uniform(0.8, 2.2)))
+        p0 = self._xy(horizontal, a1 - rng.uniform(12, 18), back - inward * rng.uniform(4, 6))
+        p1 = self._xy(horizontal, a1 - 2, back - inward * 1.5)
+        self.rect(p0[0], p1[0], p0[1], p1[1], solid=(MANMADE, 0.0, 12.0))
 
     # ------------------------------------------------------------ roads
 
@@ -394,18 +444,19 @@ class CityPainter:
             for a in np.arange(a0 + 6, a1 - 6, 2.7):
                 self.place("barrier", np.array([a, c]) if road.axis == 0 else np.array([c, a]), yaw)
 
-    def parking_strip(self, road: Road, side: int, a0: float, a1: float, reserved: list[tuple[float, float]]) -> None:
-        """Parked vehicles along one kerb (side +1: left of +axis travel, -1: right), avoiding ``reserved``."""
+    def parking_strip(self, road: Road, side: float, a0: float, a1: float, reserved: list[tuple[float, float]]) -> None:
+        """Parked vehicles along one kerb (``side`` +1: the larger cross coordinate), facing the
+        traffic of their side, avoiding the along-road intervals ``reserved``."""
         rng = self.rng
         lateral = road.centre + side * (road.half_width - road.parking / 2)
-        yaw = 0.0 if road.axis == 0 else np.pi / 2
+        yaw = _kerb_yaw(road, side)
         a = a0 + rng.uniform(0, 4)
         while a < a1:
-            kind = _pick(rng, STRIP_PARKING)
+            kind = pick(rng, STRIP_PARKING)
             ln = KINDS[kind].size_hi[0]
             if rng.random() < 0.7 and not any(r0 - 1 < a + ln and a < r1 + 1 for r0, r1 in reserved) and a + ln < a1:
                 p = np.array([a + ln / 2, lateral]) if road.axis == 0 else np.array([lateral, a + ln / 2])
-                self.place(kind, p, yaw + np.pi * rng.integers(0, 2), rider=0 if kind == "motorcycle" else -1)
+                self.place(kind, p, yaw)
             a += ln + rng.uniform(0.8, 5.0)
 
     def stretches(self, road: Road) -> list[tuple[float, float]]:
@@ -426,64 +477,69 @@ class CityPainter:
         ]
 
 
-def paint_city(
-    net: RoadNetwork, lo: np.ndarray, hi: np.ndarray, ego: LaneState, rng: np.random.Generator, frames: int
-) -> tuple[StaticMap, TrackSet]:
-    """Paint the region [lo, hi] (global metres) and place its static objects.
+def _kerb_yaw(road: Road, side: float) -> float:
+    """Heading of right-hand traffic next to the kerb on global side ``side`` (+1/-1) of ``road``."""
+    if road.axis == 0:
+        return np.pi if side > 0 else 0.0
+    return np.pi / 2 if side > 0 else -np.pi / 2
 
-    The road the ego starts on always gets, just ahead of the ego: a bus stopped at a bus
-    stop with people waiting on one side; a construction site with the parked vehicles of
-    every kind in the parking strip on the other side. So every scene shows every class.
+
+def _facing_side(road: Road, g: float) -> int:
+    """Side index (0 south, 1 north, 2 west, 3 east) of a block on global side ``g`` of ``road``."""
+    if road.axis == 0:
+        return 0 if g > 0 else 1
+    return 2 if g > 0 else 3
+
+
+def paint_city(
+    net: RoadNetwork,
+    lo: np.ndarray,
+    hi: np.ndarray,
+    ego: LaneState,
+    feature_along: float,
+    rng: np.random.Generator,
+    frames: int,
+) -> tuple[StaticMap, TrackSet]:
+    """Paint the region [lo, hi] (global metres) and place its static objects over ``frames``.
+
+    The road the ego starts on (which must have parking strips) always gets, around
+    ``feature_along`` (along the ego's travel direction): a bus stopped at a bus stop
+    with people waiting on one side; a construction site behind a parking strip holding
+    a truck, motorcycles, a trailer and cones on the other. So every scene shows every
+    class early on.
     """
     painter = CityPainter(net, lo, hi, rng)
-    ego_road = net.roads[ego.axis][ego.road]
+    road = net.roads[ego.axis][ego.road]
     u = HEADINGS[ego.heading]
-    sign_u = float(u @ (np.array([1.0, 0.0]) if ego.axis == 0 else np.array([0.0, 1.0])))
-    feature_a = ego.along + rng.uniform(12.0, 30.0)  # along-travel coordinate of the features
-    axis_a = sign_u * feature_a  # the same, as a global coordinate along the road
-    right = right_of(u)
-    bus_side = int(rng.choice([-1, 1]))  # +1: the ego's right-hand side
-    # Global side (+1 = larger cross coordinate) of the bus stop and of the construction site.
-    cross_sign = float(right @ ego_road.normal)
-    bus_g, site_g = bus_side * cross_sign, -bus_side * cross_sign
-    point = (lambda a, off: np.array([a, off])) if ego.axis == 0 else (lambda a, off: np.array([off, a]))
+    along_axis = np.array([1.0, 0.0]) if ego.axis == 0 else np.array([0.0, 1.0])
+    axis_a = float(u @ along_axis) * feature_along  # the features' global coordinate along the road
 
-    forced: dict[tuple[int, int], tuple[str, int]] = {}
-    for j, i, box in painter.blocks():
-        centre = np.array([(box[0] + box[1]) / 2, (box[2] + box[3]) / 2])
-        probe = point(axis_a, ego_road.centre + site_g * (ego_road.half_width + 10))
-        probe_bus = point(axis_a, ego_road.centre + bus_g * (ego_road.half_width + 10))
-        inside = lambda p: box[0] <= p[0] <= box[1] and box[2] <= p[1] <= box[3]  # noqa: E731
-        side_toward_road = int(np.argmin(np.abs(np.array([box[2], box[3], box[0], box[1]]) - (ego_road.centre + (site_g if inside(probe) else bus_g) * ego_road.half_width))))
-        if inside(probe):
-            forced[(j, i)] = ("site", side_toward_road)
-        elif inside(probe_bus):
-            forced[(j, i)] = ("bus", side_toward_road)
-        del centre
+    def point(a: float, cross: float) -> np.ndarray:
+        return np.array([a, cross]) if ego.axis == 0 else np.array([cross, a])
 
-    for j, i, box in painter.blocks():
-        kind = forced.get((j, i), (None, 0))[0]
-        park = kind is None and rng.random() < 0.2
+    bus_side = int(rng.choice([-1, 1]))  # +1: on the ego's right
+    bus_g = bus_side * float(right_of(u) @ road.normal)  # +1: the larger cross coordinate
+    site_g = -bus_g
+    probes = {
+        "site": point(axis_a, road.centre + site_g * (road.half_width + 10)),
+        "bus": point(axis_a, road.centre + bus_g * (road.half_width + 10)),
+    }
+
+    for box in painter.blocks():
+        forced = next(
+            (k for k, p in probes.items() if box[0] <= p[0] <= box[1] and box[2] <= p[1] <= box[3]), None
+        )
         painter.block_ground(box, TERRAIN)
-        if park:
+        if forced is None and rng.random() < 0.2:
             painter.park_block(box)
             continue
-        painter.building_block(box)
-        if kind == "site":
-            side = forced[(j, i)][1]
+        painter.building_block(box, bus_stop=forced == "bus")
+        if forced == "site":
+            side = _facing_side(road, site_g)
             site = painter.frontage_rect(box, side, axis_a, rng.uniform(28, 45), rng.uniform(16, 24))
             painter.construction_site(site, side)
-        elif kind == "bus":
-            side = forced[(j, i)][1]
-            shelter = painter.frontage_rect(box, side, axis_a, 4.0, 1.6)
-            painter.clear(*shelter, ground=SIDEWALK)
-            painter.rect(*shelter, solid=(MANMADE, 0.0, 2.6))
-            inward = -1.0 if side in (1, 3) else 1.0
-            for k in range(int(rng.integers(2, 4))):
-                c = np.array([(shelter[0] + shelter[1]) / 2, (shelter[2] + shelter[3]) / 2])
-                off = np.array([0.0, inward * 2.3]) if side < 2 else np.array([inward * 2.3, 0.0])
-                along = np.array([1.0, 0.0]) if side < 2 else np.array([0.0, 1.0])
-                painter.place("pedestrian", c + off + along * (k * 1.1 - 1.1), rng.uniform(-np.pi, np.pi), parked=False)
+        elif forced == "bus":
+            painter.bus_stop(box, _facing_side(road, bus_g), axis_a)
         elif rng.random() < 0.35:
             side = int(rng.integers(0, 4))
             lim = (box[0], box[1]) if side < 2 else (box[2], box[3])
@@ -493,30 +549,23 @@ def paint_city(
             else:
                 painter.construction_site(lot, side)
 
-    bus_len = KINDS["bus"].size_hi[0]
-    reserved_bus = [(axis_a - bus_len / 2 - 2, axis_a + bus_len / 2 + 2)]
-    site_strip = [(axis_a - 25, axis_a + 25)]
-    for road in painter.roads_in_region():
-        for a0, a1 in painter.stretches(road):
-            if road.median > 0 and a1 - a0 > 2 * MEDIAN_END + 10:
-                painter.median(road, a0 + MEDIAN_END, a1 - MEDIAN_END)
-            if road.parking > 0:
-                for side in (-1, 1):
-                    reserved = []
-                    if road is ego_road and a0 < axis_a < a1:
-                        reserved = reserved_bus if side == bus_g else site_strip
-                    painter.parking_strip(road, side, a0 + 8.0, a1 - 8.0, reserved)
+    reserved = {bus_g: [(axis_a - 9.0, axis_a + 9.0)], site_g: [(axis_a - 17.0, axis_a + 27.0)]}
+    for r in painter.roads_in_region():
+        for a0, a1 in painter.stretches(r):
+            if r.median > 0 and a1 - a0 > 2 * MEDIAN_END + 10:
+                painter.median(r, a0 + MEDIAN_END, a1 - MEDIAN_END)
+            if r.parking > 0:
+                for g in (-1.0, 1.0):
+                    busy = reserved[g] if r is road and a0 < axis_a < a1 else []
+                    painter.parking_strip(r, g, a0 + 8.0, a1 - 8.0, busy)
 
-    # The features in the ego road's parking strips.
-    lat_bus = ego_road.centre + bus_g * (ego_road.half_width - ego_road.parking / 2 - 0.2)
-    painter.place("bus", point(axis_a, lat_bus), float(np.arctan2(u[1], u[0])) + (0 if bus_side == 1 else np.pi), parked=False)
-    lat_site = ego_road.centre + site_g * (ego_road.half_width - ego_road.parking / 2)
-    yaw_road = 0.0 if ego.axis == 0 else np.pi / 2
-    a = axis_a - 24.0
+    strip = road.half_width - road.parking / 2
+    painter.place("bus", point(axis_a, road.centre + bus_g * (strip - 0.2)), _kerb_yaw(road, bus_g), parked=False)
+    a = axis_a - 16.0
     for kind in ("truck", "motorcycle", "motorcycle", "trailer"):
         ln = KINDS[kind].size_hi[0]
-        painter.place(kind, point(a + ln / 2, lat_site), yaw_road, rider=0 if kind == "motorcycle" else -1)
+        painter.place(kind, point(a + ln / 2, road.centre + site_g * strip), _kerb_yaw(road, site_g))
         a += ln + 1.0
     for k in range(5):
-        painter.place("traffic_cone", point(a + 1.0 + 2.0 * k, lat_site - site_g * 0.2 * k), 0.0)
+        painter.place("traffic_cone", point(a + 1.0 + 2.0 * k, road.centre + site_g * (strip - 0.2 * k)), 0.0)
     return painter.map, painter.tracks(frames)

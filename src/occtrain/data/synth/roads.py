@@ -3,8 +3,8 @@
 Roads run along global x or y (a Manhattan grid with uneven blocks), traffic keeps right.
 A route is a lane-level path through the grid: straight stretches, lane changes with a
 smooth lateral blend, and quarter-circle turns at intersections from the proper lane
-(right turns from the curb lane around the rounded kerb, left turns from the lane next to
-the centre). Paths are resampled at a fixed arc-length step so many of them can be
+(right turns from the kerb lane around the rounded kerb corner, left turns from the lane
+next to the centre into the crossing road's lane next to its centre). Paths are resampled at a fixed arc-length step so many of them can be
 interpolated at once.
 """
 
@@ -248,7 +248,8 @@ def build_route(
             road.normal * road.centre + right_of(u) * road.lane_offset(k)
         )
         if maneuver == LEFT:
-            radius = max(road.half_width + road.lane_offset(k), cross.half_width + cross.lane_offset(k2))
+            # The arc starts at the crossing road's near kerb line, past the stop line.
+            radius = cross.half_width + cross.lane_offset(k2)
         else:
             kerb_gap = (road.half_width - road.lane_offset(k)) + (cross.half_width - cross.lane_offset(k2))
             radius = CURB_RADIUS + kerb_gap / 2

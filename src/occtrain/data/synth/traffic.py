@@ -251,29 +251,36 @@ COLLISION_DISCS = 7
 
 
 def _discs(xy: np.ndarray, yaw: np.ndarray, size: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Discs covering each box footprint: centres (N, T, D, 2) and radius (N,)."""
+    """Discs covering box footprints: centres (E, D, 2) and radius (E,) for E poses."""
     step = np.maximum(size[:, 0] - size[:, 1], 0.0) / (COLLISION_DISCS - 1)
     offs = (np.arange(COLLISION_DISCS) - (COLLISION_DISCS - 1) / 2)[None, :] * step[:, None]
     u = np.stack([np.cos(yaw), np.sin(yaw)], axis=-1)
-    centres = xy[:, :, None, :] + offs[:, None, :, None] * u[:, :, None, :]
-    return centres, np.hypot(size[:, 1] / 2, step / 2)
+    return xy[:, None, :] + offs[:, :, None] * u[:, None, :], np.hypot(size[:, 1] / 2, step / 2)
 
 
 def colliding_pairs(xy: np.ndarray, yaw: np.ndarray, size: np.ndarray, ignore: set[tuple[int, int]]) -> list[tuple[int, int]]:
     """Index pairs (i < j) of agents whose footprints overlap at some sampled time.
 
     ``xy`` (N, T, 2), ``yaw`` (N, T), ``size`` (N, 3); pairs in ``ignore`` never count.
+    Pairs are narrowed down by trajectory bounding boxes, then by centre distance per
+    time, before the footprints' discs are compared.
     """
     reach = np.hypot(size[:, 0], size[:, 1]) / 2
-    d = np.linalg.norm(xy[:, None] - xy[None, :], axis=-1)  # (N, N, T)
-    near = (d < (reach[:, None] + reach[None, :])[..., None]).any(-1)
-    ii, jj = np.nonzero(np.triu(near, 1))
-    if len(ii) == 0:
+    lo = xy.min(axis=1) - reach[:, None]
+    hi = xy.max(axis=1) + reach[:, None]
+    overlap = np.all((lo[:, None] <= hi[None, :]) & (lo[None, :] <= hi[:, None]), axis=-1)
+    ii, jj = np.nonzero(np.triu(overlap, 1))
+    d2 = np.sum((xy[ii] - xy[jj]) ** 2, axis=-1)  # (P, T)
+    pair, t = np.nonzero(d2 < ((reach[ii] + reach[jj]) ** 2)[:, None])
+    if len(pair) == 0:
         return []
-    centres, radius = _discs(xy, yaw, size)
-    gap = np.linalg.norm(centres[ii][:, :, :, None, :] - centres[jj][:, :, None, :, :], axis=-1)
-    hit = (gap < (radius[ii] + radius[jj])[:, None, None, None]).any(axis=(1, 2, 3))
-    return [(int(a), int(b)) for a, b, h in zip(ii, jj, hit) if h and (int(a), int(b)) not in ignore]
+    a, b = ii[pair], jj[pair]
+    ca, ra = _discs(xy[a, t], yaw[a, t], size[a])
+    cb, rb = _discs(xy[b, t], yaw[b, t], size[b])
+    gap2 = np.sum((ca[:, :, None, :] - cb[:, None, :, :]) ** 2, axis=-1)
+    hit = np.any(gap2 < ((ra + rb) ** 2)[:, None, None], axis=(1, 2))
+    found = sorted({(int(i), int(j)) for i, j in zip(a[hit], b[hit])})
+    return [p for p in found if p not in ignore]
 
 
 def settle_traffic(

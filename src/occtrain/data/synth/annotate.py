@@ -1,0 +1,166 @@
+"""Per-frame FrameAnnotation of a synthetic scene: ego state, plan labels, boxes, futures.
+
+Trajectory conventions: ``ego_future[k]`` is the ego's position k+1 frames ahead in the
+current ego frame and ``ego_past`` the last PAST_STEPS positions, oldest first. A waypoint
+that falls outside the scene (before its first or after its last frame) has mask 0 and
+is filled with [0, 0]; agent futures follow the same rule. The command comes from the
+last valid future waypoint (schema.COMMAND_LATERAL_THRESHOLD; "go straight" when none).
+
+The meta action looks at the ego's simulated motion, which runs FUTURE_STEPS frames past
+the scene's end, so the last frames get labels too:
+
+- speed: mean longitudinal acceleration over the next SPEED_WINDOW_S seconds against
+  schema.META_ACCEL_THRESHOLD (accelerate / decelerate / maintain);
+- direction: "stop" if the speed stays at or below schema.STOP_SPEED over the next
+  SPEED_WINDOW_S seconds; otherwise over the next DIRECTION_WINDOW_S seconds a heading
+  change above TURN_HEADING_DEG is "left"/"right", a heading change above
+  BEAR_HEADING_DEG or a lateral offset of the end point above BEAR_LATERAL_M is
+  "bear left"/"bear right" (lane changes, gentle curves), anything else "straight".
+
+Box velocities are the objects' own velocities expressed in the ego frame's axes (the
+ego's motion is not subtracted), as in nuScenes.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass
+
+import numpy as np
+
+from occtrain.data.schema import (
+    COMMAND_LATERAL_THRESHOLD,
+    META_ACCEL_THRESHOLD,
+    STOP_SPEED,
+    Box,
+    FrameAnnotation,
+    MetaAction,
+)
+from occtrain.data.synth.catalog import TrackSet
+from occtrain.data.synth.grid import GROUND_TOP_Z
+from occtrain.data.synth.raster import global_to_ego
+from occtrain.occ3d import CLASS_NAMES, FRAME_DT, FUTURE_STEPS, PAST_STEPS, RANGE_MAX
+
+SPEED_WINDOW_S = 1.0
+DIRECTION_WINDOW_S = 3.0
+TURN_HEADING_DEG = 30.0
+BEAR_HEADING_DEG = 8.0
+BEAR_LATERAL_M = 1.0
+#: Scene start times are spread by seed so timestamps of different scenes do not overlap.
+EPOCH_US = 1_600_000_000_000_000
+SCENE_SLOT_US = 100_000_000
+
+
+@dataclass
+class EgoMotion:
+    """The ego's global state at every frame of the scene and FUTURE_STEPS frames past its end."""
+
+    xy: np.ndarray  # (T, 2)
+    yaw: np.ndarray  # (T,) unwrapped
+    speed: np.ndarray
+    accel: np.ndarray  # longitudinal
+    yaw_rate: np.ndarray
+
+
+def sample_token(seed: int, index: int) -> str:
+    """32 lowercase hex characters, a function of the scene seed and the frame index."""
+    return hashlib.md5(f"occtrain-synth/{seed}/{index}".encode()).hexdigest()
+
+
+def _r(x, nd: int = 4) -> list:
+    """Rounded plain-Python (nested) list of an array, for compact deterministic JSON."""
+    return np.round(np.asarray(x, dtype=np.float64), nd).tolist()
+
+
+def command(future: np.ndarray, mask: np.ndarray) -> str:
+    """Driving command from the lateral offset of the last valid future waypoint."""
+    valid = np.flatnonzero(mask)
+    if len(valid) == 0:
+        return "go straight"
+    y = future[valid[-1], 1]
+    if y > COMMAND_LATERAL_THRESHOLD:
+        return "turn left"
+    if y < -COMMAND_LATERAL_THRESHOLD:
+        return "turn right"
+    return "go straight"
+
+
+def meta_action(ego: EgoMotion, i: int) -> MetaAction:
+    """OccVLA meta action of frame ``i`` (thresholds in the module docstring)."""
+    n1 = int(round(SPEED_WINDOW_S / FRAME_DT))
+    n3 = int(round(DIRECTION_WINDOW_S / FRAME_DT))
+    accel = (ego.speed[i + n1] - ego.speed[i]) / SPEED_WINDOW_S
+    speed = "maintain" if abs(accel) < META_ACCEL_THRESHOLD else ("accelerate" if accel > 0 else "decelerate")
+    if np.all(ego.speed[i : i + n1 + 1] <= STOP_SPEED):
+        return {"speed": speed, "direction": "stop"}
+    turn = np.rad2deg(ego.yaw[i + n3] - ego.yaw[i])
+    lateral = global_to_ego(ego.xy[i + n3], ego.xy[i], ego.yaw[i])[1]
+    if abs(turn) > TURN_HEADING_DEG:
+        direction = "left" if turn > 0 else "right"
+    elif abs(lateral) > BEAR_LATERAL_M:
+        direction = "bear left" if lateral > 0 else "bear right"
+    elif abs(turn) > BEAR_HEADING_DEG:
+        direction = "bear left" if turn > 0 else "bear right"
+    else:
+        direction = "straight"
+    return {"speed": speed, "direction": direction}
+
+
+def _relative(xy: np.ndarray, i: int, num_frames: int, pose_xy: np.ndarray, pose_yaw: float, offsets: range):
+    """Points xy[i + k] (k in offsets) in the frame-i ego frame, [0, 0] and mask 0 outside the scene."""
+    idx = np.array([i + k for k in offsets])
+    valid = (idx >= 0) & (idx < num_frames)
+    pts = np.zeros(xy.shape[:-2] + (len(idx), 2))
+    if valid.any():
+        pts[..., valid, :] = global_to_ego(xy[..., idx[valid], :], pose_xy, pose_yaw)
+    return pts, valid.astype(int)
+
+
+def frame_annotation(scene: str, seed: int, i: int, num_frames: int, ego: EgoMotion, tracks: TrackSet) -> FrameAnnotation:
+    """The FrameAnnotation of frame ``i`` (caption and narration left empty for the text module)."""
+    pxy, pyaw = ego.xy[i], float(ego.yaw[i])
+    future, fmask = _relative(ego.xy, i, num_frames, pxy, pyaw, range(1, FUTURE_STEPS + 1))
+    past, pmask = _relative(ego.xy, i, num_frames, pxy, pyaw, range(-PAST_STEPS, 0))
+
+    centre = global_to_ego(tracks.xy[:, i], pxy, pyaw)
+    inside = np.flatnonzero(np.all(np.abs(centre) < RANGE_MAX[:2], axis=1))
+    c, s = np.cos(pyaw), np.sin(pyaw)
+    vel = tracks.velocity[inside, i]
+    vel_ego = np.stack([c * vel[:, 0] + s * vel[:, 1], -s * vel[:, 0] + c * vel[:, 1]], axis=-1)
+    yaw_ego = np.angle(np.exp(1j * (tracks.yaw[inside, i] - pyaw)))
+    boxes: list[Box] = []
+    for row, n in enumerate(inside):
+        size = tracks.size[n]
+        boxes.append(
+            {
+                "track_id": int(n),
+                "category": CLASS_NAMES[int(tracks.cls[n])],
+                "center": _r([centre[n, 0], centre[n, 1], GROUND_TOP_Z + size[2] / 2]),
+                "size": _r(size),
+                "yaw": round(float(yaw_ego[row]), 5),
+                "velocity": _r(vel_ego[row]),
+                "attribute": tracks.attribute(int(n), i),
+            }
+        )
+    agent_future, amask = _relative(tracks.xy[inside], i, num_frames, pxy, pyaw, range(1, FUTURE_STEPS + 1))
+    return {
+        "scene": scene,
+        "token": sample_token(seed, i),
+        "index": i,
+        "timestamp": EPOCH_US + (seed % 10**6) * SCENE_SLOT_US + int(round(i * FRAME_DT * 1e6)),
+        "ego_pose": {"translation": _r([pxy[0], pxy[1], 0.0]), "yaw": round(float(np.angle(np.exp(1j * pyaw))), 6)},
+        "ego_speed": round(float(ego.speed[i]), 4),
+        "ego_accel": round(float(ego.accel[i]), 4),
+        "ego_yaw_rate": round(float(ego.yaw_rate[i]), 5),
+        "command": command(future, fmask),
+        "meta_action": meta_action(ego, i),
+        "ego_future": _r(future),
+        "ego_future_mask": [int(m) for m in fmask],
+        "ego_past": _r(past),
+        "ego_past_mask": [int(m) for m in pmask],
+        "boxes": boxes,
+        "agent_futures": _r(agent_future),
+        "agent_future_mask": [[int(m) for m in amask] for _ in inside],
+        "caption": "",
+        "narration": "",
+    }

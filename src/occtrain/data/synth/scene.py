@@ -1,0 +1,90 @@
+"""One synthetic scene: build the world, run the traffic, then render and annotate frames."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from occtrain.data.schema import FrameAnnotation
+from occtrain.data.synth.annotate import EgoMotion, frame_annotation
+from occtrain.data.synth.catalog import TrackSet
+from occtrain.data.synth.citymap import StaticMap, paint_city
+from occtrain.data.synth.population import ego_mover, ego_start, spawn_traffic, spawn_walkers
+from occtrain.data.synth.raster import frame_semantics, masks
+from occtrain.data.synth.roads import PATH_DS, RoadNetwork
+from occtrain.data.synth.traffic import SIM_DT, mover_tracks, settle_traffic, walker_tracks
+from occtrain.occ3d import FRAME_DT, FUTURE_STEPS, RANGE_MAX
+
+#: Margin (m) around the ego's possible route within which traffic is spawned.
+SPAWN_MARGIN = 90.0
+#: Margin around the ego's frames within which the city is painted: the grid's half
+#: diagonal plus a little, so every frame's grid lies inside the painted region.
+PAINT_MARGIN = float(np.hypot(*RANGE_MAX[:2])) + 3.0
+
+
+@dataclass
+class SyntheticScene:
+    """A generated scene: its frames' annotations and what is needed to render each frame."""
+
+    name: str
+    seed: int
+    frames: list[FrameAnnotation]
+    static: StaticMap
+    tracks: TrackSet
+    ego: EgoMotion
+
+    def render(self, i: int) -> dict[str, np.ndarray]:
+        """Occ3D labels of frame ``i``: semantics, mask_lidar, mask_camera ((200, 200, 16) uint8)."""
+        if not 0 <= i < len(self.frames):
+            raise IndexError(f"scene {self.name} has {len(self.frames)} frames, asked for frame {i}")
+        sem = frame_semantics(self.static, self.tracks, i, self.ego.xy[i], float(self.ego.yaw[i]))
+        lidar, camera = masks(sem)
+        return {"semantics": sem, "mask_lidar": lidar, "mask_camera": camera}
+
+
+def generate_scene(name: str, seed: int, num_frames: int = 40) -> SyntheticScene:
+    """Build scene ``name`` deterministically from ``seed`` (the name only labels it).
+
+    Frames are FRAME_DT apart; the world is simulated FUTURE_STEPS frames past the last
+    one so futures and meta actions near the end exist.
+    """
+    if num_frames < 1:
+        raise ValueError(f"num_frames must be at least 1, got {num_frames}")
+    seed = int(seed)  # numpy integer seeds would overflow in the timestamp arithmetic
+    stride = int(round(FRAME_DT / SIM_DT))
+    total_frames = num_frames + FUTURE_STEPS
+    steps = (total_frames - 1) * stride + 1
+
+    net = RoadNetwork.random(np.random.default_rng([seed, 0]), seed)
+    route_rng = np.random.default_rng([seed, 1])
+    net, plan = ego_start(net, route_rng)
+    ego = ego_mover(net, plan, route_rng, steps, SIM_DT)
+
+    reach = ego.path.xy[: int(ego.v_des.max() * steps * SIM_DT / PATH_DS) + 1]
+    lo, hi = reach.min(0) - SPAWN_MARGIN, reach.max(0) + SPAWN_MARGIN
+    traffic_rng = np.random.default_rng([seed, 2])
+    movers = spawn_traffic(net, plan, ego, lo, hi, traffic_rng, steps, SIM_DT)
+    walkers = spawn_walkers(net, lo, hi, traffic_rng)
+    motion, walkers, walk_hist = settle_traffic(movers, walkers, steps)
+
+    sl = slice(None, None, stride)
+    ego_motion = EgoMotion(
+        xy=motion.xy[0, sl],
+        yaw=motion.yaw[0, sl],
+        speed=motion.v[0, sl],
+        accel=motion.a[0, sl],
+        yaw_rate=motion.v[0, sl] * motion.curvature[0, sl],
+    )
+    static, placed = paint_city(
+        net,
+        ego_motion.xy.min(0) - PAINT_MARGIN,
+        ego_motion.xy.max(0) + PAINT_MARGIN,
+        plan.start,
+        plan.feature_along,
+        np.random.default_rng([seed, 3]),
+        total_frames,
+    )
+    tracks = TrackSet.concat([mover_tracks(motion, stride), walker_tracks(walkers, walk_hist, stride), placed])
+    frames = [frame_annotation(name, seed, i, num_frames, ego_motion, tracks) for i in range(num_frames)]
+    return SyntheticScene(name, seed, frames, static, tracks, ego_motion)
