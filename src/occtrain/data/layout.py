@@ -75,6 +75,10 @@ def read_npz(path: Path) -> dict[str, np.ndarray]:
     """Load every array of an ``.npz`` without unpickling; corrupt or pickled files raise DataError."""
     if not path.is_file():
         raise DataError(f"{path}: file not found")
+    with open(path, "rb") as fh:
+        magic = fh.read(4)
+    if magic != b"PK\x03\x04":  # np.load would take any other bytes for a pickle
+        raise DataError(f"{path}: corrupt or truncated .npz (not a zip archive); re-create it")
     try:
         with np.load(path, allow_pickle=False) as npz:
             return {key: npz[key] for key in npz.files}
