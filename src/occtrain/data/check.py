@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
+from occtrain.data.geometry import global_to_ego
 from occtrain.data.layout import ANNOTATIONS_FILE, FRAMES_DIR, DatasetIndex, load_labels, qa_file
 from occtrain.data.schema import TEMPLATE_TYPES, FrameAnnotation
 from occtrain.data.shards import INDEX_FILE, decode_sample, iter_raw, read_index
@@ -13,13 +14,6 @@ from occtrain.errors import DataError
 from occtrain.occ3d import FRAME_DT
 
 POSE_TOLERANCE = 0.05  # metres between a sidecar waypoint and the pose it should equal
-
-
-def _ego_frame(xy: np.ndarray, pose: tuple[float, float, float]) -> np.ndarray:
-    x0, y0, yaw = pose
-    c, s = np.cos(yaw), np.sin(yaw)
-    d = np.asarray(xy, dtype=np.float64) - [x0, y0]
-    return np.stack([c * d[..., 0] + s * d[..., 1], -s * d[..., 0] + c * d[..., 1]], axis=-1)
 
 
 def _check_frames(index: DatasetIndex, scene: str, frames: list[FrameAnnotation], problems: list[str]) -> None:
@@ -31,7 +25,7 @@ def _check_frames(index: DatasetIndex, scene: str, frames: list[FrameAnnotation]
         fut, mask = np.asarray(frame.get("ego_future", [])), frame.get("ego_future_mask", [])
         for k, valid in enumerate(mask):
             if valid and i + k + 1 < len(poses):
-                want = _ego_frame(np.asarray(poses[i + k + 1][:2]), poses[i])
+                want = global_to_ego(np.asarray(poses[i + k + 1][:2]), np.asarray(poses[i][:2]), poses[i][2])
                 if np.abs(fut[k] - want).max() > POSE_TOLERANCE:
                     problems.append(f"{where}: ego_future[{k}] {fut[k].round(2).tolist()} disagrees with the ego poses ({want.round(2).tolist()})")
                     break

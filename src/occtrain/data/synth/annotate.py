@@ -38,8 +38,8 @@ from occtrain.data.schema import (
 )
 from occtrain.data.synth.catalog import TrackSet
 from occtrain.data.synth.grid import GROUND_TOP_Z
-from occtrain.data.synth.raster import global_to_ego
 from occtrain.occ3d import CLASS_NAMES, FRAME_DT, FUTURE_STEPS, PAST_STEPS, RANGE_MAX
+from occtrain.data.geometry import driving_command, global_to_ego, rotate_to_ego
 
 SPEED_WINDOW_S = 1.0
 DIRECTION_WINDOW_S = 3.0
@@ -70,19 +70,6 @@ def sample_token(seed: int, index: int) -> str:
 def _r(x, nd: int = 4) -> list:
     """Rounded plain-Python (nested) list of an array, for compact deterministic JSON."""
     return np.round(np.asarray(x, dtype=np.float64), nd).tolist()
-
-
-def command(future: np.ndarray, mask: np.ndarray) -> str:
-    """Driving command from the lateral offset of the last valid future waypoint."""
-    valid = np.flatnonzero(mask)
-    if len(valid) == 0:
-        return "go straight"
-    y = future[valid[-1], 1]
-    if y > COMMAND_LATERAL_THRESHOLD:
-        return "turn left"
-    if y < -COMMAND_LATERAL_THRESHOLD:
-        return "turn right"
-    return "go straight"
 
 
 def meta_action(ego: EgoMotion, i: int) -> MetaAction:
@@ -124,9 +111,7 @@ def frame_annotation(scene: str, seed: int, i: int, num_frames: int, ego: EgoMot
 
     centre = global_to_ego(tracks.xy[:, i], pxy, pyaw)
     inside = np.flatnonzero(np.all(np.abs(centre) < RANGE_MAX[:2], axis=1))
-    c, s = np.cos(pyaw), np.sin(pyaw)
-    vel = tracks.velocity[inside, i]
-    vel_ego = np.stack([c * vel[:, 0] + s * vel[:, 1], -s * vel[:, 0] + c * vel[:, 1]], axis=-1)
+    vel_ego = rotate_to_ego(tracks.velocity[inside, i], pyaw)
     yaw_ego = np.angle(np.exp(1j * (tracks.yaw[inside, i] - pyaw)))
     boxes: list[Box] = []
     for row, n in enumerate(inside):
@@ -152,7 +137,7 @@ def frame_annotation(scene: str, seed: int, i: int, num_frames: int, ego: EgoMot
         "ego_speed": round(float(ego.speed[i]), 4),
         "ego_accel": round(float(ego.accel[i]), 4),
         "ego_yaw_rate": round(float(ego.yaw_rate[i]), 5),
-        "command": command(future, fmask),
+        "command": driving_command(future, fmask),
         "meta_action": meta_action(ego, i),
         "ego_future": _r(future),
         "ego_future_mask": [int(m) for m in fmask],

@@ -25,6 +25,7 @@ from occtrain.data.synth.catalog import TrackSet
 from occtrain.data.synth.citymap import StaticMap, column_table
 from occtrain.data.synth.grid import EGO_HEIGHT, GROUND_LAYERS, GROUND_TOP_Z, column_centres, layer_span
 from occtrain.occ3d import EGO_LENGTH, EGO_WIDTH, FREE, GRID_SHAPE, RANGE_MIN, VOXEL_SIZE, voxel_centers_1d
+from occtrain.data.geometry import ego_to_global, global_to_ego
 
 #: Angular size of a z-buffer bin (both azimuth and elevation).
 BIN_DEG = 0.5
@@ -170,19 +171,6 @@ def masks(semantics: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     lidar = visibility(semantics, LIDAR, free_nb)
     camera = visibility(semantics, CAMERA, free_nb) & lidar
     return lidar.astype(np.uint8), camera.astype(np.uint8)
-
-
-def ego_to_global(xy: np.ndarray, pose_xy: np.ndarray, pose_yaw: float) -> np.ndarray:
-    """Ego-frame points (..., 2) of an ego at global ``pose_xy``/``pose_yaw`` -> global points."""
-    c, s = np.cos(pose_yaw), np.sin(pose_yaw)
-    return np.stack([c * xy[..., 0] - s * xy[..., 1], s * xy[..., 0] + c * xy[..., 1]], axis=-1) + pose_xy
-
-
-def global_to_ego(xy: np.ndarray, pose_xy: np.ndarray, pose_yaw: float) -> np.ndarray:
-    """Global points (..., 2) -> the ego frame of an ego at ``pose_xy``/``pose_yaw``."""
-    d = np.asarray(xy) - pose_xy
-    c, s = np.cos(pose_yaw), np.sin(pose_yaw)
-    return np.stack([c * d[..., 0] + s * d[..., 1], -s * d[..., 0] + c * d[..., 1]], axis=-1)
 
 
 @lru_cache(maxsize=1)
