@@ -6,6 +6,7 @@ module is not implemented yet are reported as such when a recipe names them.
 
 from __future__ import annotations
 
+import importlib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
@@ -48,24 +49,23 @@ def register(kind: StageKind) -> StageKind:
     return kind
 
 
-_BUILTINS_LOADED = False
-
-
-def _load_builtins() -> None:
-    global _BUILTINS_LOADED
-    if not _BUILTINS_LOADED:
-        _BUILTINS_LOADED = True
-        import importlib.util
-        if importlib.util.find_spec("occtrain.stages.tokenizer"):
-            from occtrain.stages import tokenizer  # noqa: F401  (registers itself)
+#: Built-in kinds and the module that registers each. Imported on first use, so a recipe
+#: of tokenizer stages never pays for importing transformers.
+BUILTIN_KINDS = {
+    "tokenizer": "occtrain.stages.tokenizer",
+    "pretrain": "occtrain.stages.world_model",
+    "instruct": "occtrain.stages.world_model",
+    "planner": "occtrain.stages.planner",
+    "distill": "occtrain.stages.distill",
+}
 
 
 def get_kind(name: str) -> StageKind | None:
-    """The registered kind, importing the built-in kinds on first use."""
-    _load_builtins()
+    """The registered kind, importing a built-in kind's module on first use."""
+    if name not in _KINDS and name in BUILTIN_KINDS:
+        importlib.import_module(BUILTIN_KINDS[name])
     return _KINDS.get(name)
 
 
 def kind_names() -> list[str]:
-    _load_builtins()
-    return sorted(_KINDS)
+    return sorted(set(_KINDS) | set(BUILTIN_KINDS))

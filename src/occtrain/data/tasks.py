@@ -1,0 +1,249 @@
+"""Prompt-answer pairs for the world-model stages, built from one clip.
+
+A task turns a clip (history frames, the anchor frame, future frames and the anchor's
+annotation) into a list of parts: text, an occupancy scene (by its frame index in the
+clip) or action waypoints, each marked as supervised (the answer) or not (the prompt).
+The parts know nothing of token ids; ``occtrain.models.world_model`` lays them out in the
+joint vocabulary. Pretraining tasks follow OccLLaMA (detection, counting, prediction,
+planning, forecasting); instruction tasks are NuScenes-QA and chain-of-thought planning.
+"""
+
+from __future__ import annotations
+
+import zlib
+from dataclasses import dataclass, field
+from typing import Callable, Union
+
+import numpy as np
+
+from occtrain.data.geometry import global_to_ego
+from occtrain.data.synth.text import format_meta_action
+from occtrain.errors import ConfigError
+from occtrain.occ3d import FUTURE_STEPS
+
+PRETRAIN_TASKS = ("detection", "counting", "prediction", "planning", "forecasting")
+INSTRUCT_TASKS = ("qa", "cot_planning")
+#: Box categories the detection and counting tasks talk about (movable objects).
+OBJECT_CLASSES = ("car", "truck", "bus", "trailer", "construction_vehicle", "pedestrian", "motorcycle", "bicycle", "barrier", "traffic_cone")
+
+
+@dataclass(frozen=True)
+class Text:
+    text: str
+    supervise: bool = False
+
+
+@dataclass(frozen=True)
+class Scene:
+    """The occupancy scene of clip frame ``frame`` (0 = oldest history frame)."""
+
+    frame: int
+    supervise: bool = False
+
+
+@dataclass(frozen=True)
+class Actions:
+    """Waypoints in metres, ego frame of the anchor, shape (N, 2)."""
+
+    xy: tuple[tuple[float, float], ...]
+    supervise: bool = False
+
+
+Part = Union[Text, Scene, Actions]
+
+
+@dataclass
+class TaskConfig:
+    """Which tasks a world-model stage trains on, and how their prompts look."""
+
+    #: Task name -> sampling weight; a task missing here is not used.
+    weights: dict[str, float] = field(default_factory=lambda: {t: 1.0 for t in PRETRAIN_TASKS})
+    #: History scenes in the prompt (paper: 4), besides the anchor scene.
+    context_frames: int = 4
+    #: Future scenes the forecasting task alternates with waypoints (paper: 6 = 3 s).
+    forecast_frames: int = 6
+    #: At most this many objects in a detection answer (nearest first).
+    max_objects: int = 6
+
+
+@dataclass
+class Clip:
+    """One clip sample as the stages receive it (see ``collate_clips``)."""
+
+    ann: dict
+    qa: list[dict]
+    narration: str
+
+    @property
+    def anchor(self) -> dict:
+        return self.ann["anchor"]
+
+    @property
+    def anchor_index(self) -> int:
+        return int(self.ann["history"])
+
+    def ego_steps(self) -> np.ndarray:
+        """(T-1, 2): the ego's move from each clip frame to the next, in that frame's ego axes."""
+        poses = np.asarray(self.ann["ego_poses"], dtype=np.float64)  # (T, 3): x, y, yaw (global)
+        steps = [global_to_ego(poses[i + 1, :2], poses[i, :2], poses[i, 2]) for i in range(len(poses) - 1)]
+        return np.asarray(steps).reshape(-1, 2)
+
+
+def _xy(points) -> tuple[tuple[float, float], ...]:
+    return tuple((float(x), float(y)) for x, y in np.asarray(points, dtype=np.float64).reshape(-1, 2))
+
+
+def _context(clip: Clip, cfg: TaskConfig) -> list[Part]:
+    """History scenes with the ego's moves between them, the anchor scene, command and ego past."""
+    a = clip.anchor_index
+    first = max(0, a - cfg.context_frames)
+    steps = clip.ego_steps()
+    parts: list[Part] = []
+    for f in range(first, a):
+        parts += [Scene(f), Actions(_xy(steps[f]))]
+    parts.append(Scene(a))
+    anchor = clip.anchor
+    past = np.asarray(anchor.get("ego_past", []), dtype=np.float64).reshape(-1, 2)
+    past_mask = np.asarray(anchor.get("ego_past_mask", []), dtype=bool)
+    parts.append(Text(f"Command: {anchor.get('command', 'go straight')}. Ego speed {anchor.get('ego_speed', 0.0):.1f} m/s."))
+    if past_mask.any():
+        parts += [Text("Ego past:"), Actions(_xy(past[past_mask]))]
+    return parts
+
+
+def _objects(anchor: dict) -> list[dict]:
+    boxes = [b for b in anchor.get("boxes", []) if b["category"] in OBJECT_CLASSES]
+    return sorted(boxes, key=lambda b: float(np.hypot(*b["center"][:2])))
+
+
+def detection(clip: Clip, cfg: TaskConfig, rng: np.random.Generator) -> list[Part] | None:
+    """Categories in language, positions as action bins, nearest objects first."""
+    boxes = _objects(clip.anchor)[: cfg.max_objects]
+    answer: list[Part] = []
+    for b in boxes:
+        answer += [Text(b["category"].replace("_", " "), True), Actions(_xy(b["center"][:2]), True)]
+    if not answer:
+        answer = [Text("no objects", True)]
+    return [*_context(clip, cfg), Text("Task: detect the nearest objects.")] + answer
+
+
+def counting(clip: Clip, cfg: TaskConfig, rng: np.random.Generator) -> list[Part] | None:
+    """How many objects of one category (present or not) are in the scene."""
+    category = OBJECT_CLASSES[int(rng.integers(len(OBJECT_CLASSES)))]
+    n = sum(b["category"] == category for b in clip.anchor.get("boxes", []))
+    noun = category.replace("_", " ")
+    return [*_context(clip, cfg), Text(f"Task: count the {noun} objects."), Text(str(n), True)]
+
+
+def prediction(clip: Clip, cfg: TaskConfig, rng: np.random.Generator) -> list[Part] | None:
+    """The 3 s future of one moving object whose whole future is known."""
+    anchor = clip.anchor
+    masks = anchor.get("agent_future_mask", [])
+    candidates = [
+        i for i, b in enumerate(anchor.get("boxes", []))
+        if b.get("attribute") == "moving" and i < len(masks) and all(masks[i])
+    ]
+    if not candidates:
+        return None
+    i = candidates[int(rng.integers(len(candidates)))]
+    box = anchor["boxes"][i]
+    return [
+        *_context(clip, cfg),
+        Text(f"Task: predict the future of the {box['category'].replace('_', ' ')} at"),
+        Actions(_xy(box["center"][:2])),
+        Actions(_xy(anchor["agent_futures"][i]), True),
+    ]
+
+
+def _ego_future(clip: Clip) -> np.ndarray | None:
+    future = np.asarray(clip.anchor.get("ego_future", []), dtype=np.float64).reshape(-1, 2)
+    mask = np.asarray(clip.anchor.get("ego_future_mask", []), dtype=bool)
+    if len(future) != FUTURE_STEPS or not mask.all():
+        return None
+    return future
+
+
+def planning(clip: Clip, cfg: TaskConfig, rng: np.random.Generator) -> list[Part] | None:
+    """The ego's 3 s trajectory (6 waypoints, anchor ego frame) as action tokens."""
+    future = _ego_future(clip)
+    if future is None:
+        return None
+    return [*_context(clip, cfg), Text("Task: plan the ego trajectory."), Actions(_xy(future), True)]
+
+
+def forecasting(clip: Clip, cfg: TaskConfig, rng: np.random.Generator) -> list[Part] | None:
+    """Alternate the next waypoint and the next scene, ``forecast_frames`` times."""
+    a = clip.anchor_index
+    n = min(cfg.forecast_frames, int(clip.ann["future"]))
+    future = _ego_future(clip)
+    if future is None or n == 0:
+        return None
+    parts: list[Part] = [*_context(clip, cfg), Text("Task: forecast the scene.")]
+    for k in range(n):
+        parts += [Actions(_xy(future[k]), True), Scene(a + 1 + k, True)]
+    return parts
+
+
+def qa(clip: Clip, cfg: TaskConfig, rng: np.random.Generator) -> list[Part] | None:
+    """One NuScenes-QA question about the anchor frame."""
+    if not clip.qa:
+        return None
+    q = clip.qa[int(rng.integers(len(clip.qa)))]
+    return [*_context(clip, cfg), Text(f"Question: {q['question']} Answer:"), Text(q["answer"], True)]
+
+
+def cot_planning(clip: Clip, cfg: TaskConfig, rng: np.random.Generator) -> list[Part] | None:
+    """Chain of thought: narration, then the meta action, then the trajectory."""
+    future = _ego_future(clip)
+    if future is None or not clip.narration:
+        return None
+    meta = format_meta_action(clip.anchor["meta_action"])
+    return [
+        *_context(clip, cfg),
+        Text("Task: describe the scene, then plan."),
+        Text(f"{clip.narration} Meta action: {meta}.", True),
+        Actions(_xy(future), True),
+    ]
+
+
+TASKS: dict[str, Callable[[Clip, TaskConfig, np.random.Generator], list[Part] | None]] = {
+    "detection": detection,
+    "counting": counting,
+    "prediction": prediction,
+    "planning": planning,
+    "forecasting": forecasting,
+    "qa": qa,
+    "cot_planning": cot_planning,
+}
+
+
+def validate_tasks(cfg: TaskConfig, key: str) -> None:
+    """One line naming ``key`` when a task name or weight is wrong."""
+    for name, weight in cfg.weights.items():
+        if name not in TASKS:
+            raise ConfigError(f"{key}.weights: unknown task '{name}'; tasks are {', '.join(TASKS)}")
+        if weight < 0:
+            raise ConfigError(f"{key}.weights.{name}: weight {weight} is negative")
+    if not any(w > 0 for w in cfg.weights.values()):
+        raise ConfigError(f"{key}.weights: no task has a positive weight")
+
+
+def sample_task(clip: Clip, cfg: TaskConfig, seed: int, token: str) -> tuple[str, list[Part]]:
+    """Draw a task by weight (deterministic in ``seed`` and the sample token) and build it.
+
+    A task that does not apply to the clip (e.g. no moving object to predict) gives way to
+    the next draw, so every clip yields some task.
+    """
+    rng = np.random.default_rng([seed, zlib.crc32(token.encode())])
+    names = [n for n, w in cfg.weights.items() if w > 0]
+    p = np.asarray([cfg.weights[n] for n in names], dtype=np.float64)
+    for name in rng.choice(names, size=len(names), replace=False, p=p / p.sum()):
+        parts = TASKS[str(name)](clip, cfg, rng)
+        if parts is not None:
+            return str(name), parts
+    return "caption", [*_context(clip, cfg), Text("Task: describe the scene."), Text(clip.anchor.get("caption", "") or "a street", True)]
+
+
+def clips_from_batch(batch: dict) -> list[Clip]:
+    """The per-sample clip records of a collated clip batch."""
+    return [Clip(ann, qa, narr) for ann, qa, narr in zip(batch["ann"], batch["qa"], batch["narration"])]

@@ -1,0 +1,93 @@
+"""World-model task builders on clips of a synthesized world."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from occtrain.data.geometry import global_to_ego
+from occtrain.data.shards import decode_sample, iter_raw, shard_urls, write_shards
+from occtrain.data.tasks import (
+    OBJECT_CLASSES, TASKS, Actions, Clip, Scene, TaskConfig, Text, sample_task, validate_tasks,
+)
+from occtrain.errors import ConfigError
+from occtrain.occ3d import CLASS_INDEX
+
+
+@pytest.fixture(scope="module")
+def clips(synth_dataset, tmp_path_factory) -> list[Clip]:
+    out = tmp_path_factory.mktemp("shards")
+    write_shards(synth_dataset, out, 64, history=2, future=6, kinds=("clips",))
+    urls, _ = shard_urls(out, "clips", "train")
+    samples = [decode_sample(s) for s in iter_raw(urls[0])]
+    return [Clip(s["ann.json"], s["qa.json"], s["narration.txt"]) for s in samples]
+
+
+def test_object_classes_are_occ3d_names():
+    assert all(c in CLASS_INDEX for c in OBJECT_CLASSES)
+
+
+def test_ego_steps_recover_the_pose_differences(clips):
+    clip = clips[0]
+    poses = np.asarray(clip.ann["ego_poses"])
+    steps = clip.ego_steps()
+    assert steps.shape == (len(poses) - 1, 2)
+    np.testing.assert_allclose(steps[1], global_to_ego(poses[2, :2], poses[1, :2], poses[1, 2]))
+    # The ego drives forwards: each step's x is non-negative and at most a fast car's 0.5 s.
+    assert (steps[:, 0] > -0.05).all() and (steps[:, 0] < 12).all()
+
+
+def test_every_task_builds_prompt_then_answer(clips):
+    cfg = TaskConfig(context_frames=2, forecast_frames=3)
+    rng = np.random.default_rng(0)
+    built = {name: [p for c in clips if (p := fn(c, cfg, rng)) is not None] for name, fn in TASKS.items()}
+    for name, outputs in built.items():
+        assert outputs, f"task {name} never applies to the synthetic clips"
+        for parts in outputs:
+            first_answer = next(i for i, p in enumerate(parts) if p.supervise)
+            # The prompt starts with the context scenes and ends before the first answer part.
+            assert isinstance(parts[0], Scene) and not parts[0].supervise
+            assert first_answer > 0
+
+
+def test_forecasting_alternates_waypoints_and_future_scenes(clips):
+    clip = clips[0]
+    parts = TASKS["forecasting"](clip, TaskConfig(context_frames=2, forecast_frames=3), np.random.default_rng(0))
+    answer = [p for p in parts if p.supervise]
+    assert [type(p) for p in answer] == [Actions, Scene] * 3
+    assert [p.frame for p in answer if isinstance(p, Scene)] == [3, 4, 5]  # anchor is clip frame 2
+    np.testing.assert_allclose(answer[0].xy, [clip.anchor["ego_future"][0]])
+    context_scenes = [p.frame for p in parts if isinstance(p, Scene) and not p.supervise]
+    assert context_scenes == [0, 1, 2]
+
+
+def test_counting_answer_matches_the_boxes(clips):
+    clip = clips[0]
+    parts = TASKS["counting"](clip, TaskConfig(), np.random.default_rng(1))
+    question, answer = parts[-2].text, parts[-1].text
+    noun = question.removeprefix("Task: count the ").removesuffix(" objects.").replace(" ", "_")
+    assert int(answer) == sum(b["category"] == noun for b in clip.anchor["boxes"])
+
+
+def test_sampling_is_deterministic_and_follows_weights(clips):
+    cfg = TaskConfig(weights={"planning": 1.0, "qa": 0.0})
+    names = {sample_task(c, cfg, 0, c.anchor["token"])[0] for c in clips}
+    assert names == {"planning"}
+    cfg = TaskConfig(weights={"counting": 1.0, "detection": 1.0})
+    a = [sample_task(c, cfg, 7, c.anchor["token"])[0] for c in clips]
+    b = [sample_task(c, cfg, 7, c.anchor["token"])[0] for c in clips]
+    assert a == b and set(a) == {"counting", "detection"}
+
+
+def test_cot_answer_ends_with_the_meta_action_then_trajectory(clips):
+    parts = TASKS["cot_planning"](clips[0], TaskConfig(), np.random.default_rng(0))
+    text, traj = parts[-2], parts[-1]
+    assert isinstance(text, Text) and "Meta action:" in text.text and text.supervise
+    assert isinstance(traj, Actions) and len(traj.xy) == 6
+
+
+def test_bad_task_names_are_one_line_errors():
+    with pytest.raises(ConfigError, match="unknown task 'planing'"):
+        validate_tasks(TaskConfig(weights={"planing": 1.0}), "stages[1].model.tasks")
+    with pytest.raises(ConfigError, match="no task has a positive weight"):
+        validate_tasks(TaskConfig(weights={"planning": 0.0}), "stages[1].model.tasks")
