@@ -10,6 +10,7 @@ from occtrain.data.shards import decode_sample, iter_raw, shard_urls, write_shar
 from occtrain.data.tasks import (
     OBJECT_CLASSES, TASKS, Actions, Clip, Scene, TaskConfig, Text, sample_task, validate_tasks,
 )
+from occtrain.data.synth.text import parse_meta_action
 from occtrain.errors import ConfigError
 from occtrain.occ3d import CLASS_INDEX
 
@@ -82,7 +83,8 @@ def test_sampling_is_deterministic_and_follows_weights(clips):
 def test_cot_answer_ends_with_the_meta_action_then_trajectory(clips):
     parts = TASKS["cot_planning"](clips[0], TaskConfig(), np.random.default_rng(0))
     text, traj = parts[-2], parts[-1]
-    assert isinstance(text, Text) and "Meta action:" in text.text and text.supervise
+    assert isinstance(text, Text) and text.supervise
+    assert parse_meta_action(text.text) == clips[0].anchor["meta_action"]
     assert isinstance(traj, Actions) and len(traj.xy) == 6
 
 

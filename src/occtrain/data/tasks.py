@@ -17,7 +17,7 @@ from typing import Callable, Union
 import numpy as np
 
 from occtrain.data.geometry import global_to_ego
-from occtrain.data.synth.text import format_meta_action
+from occtrain.data.synth.text import format_meta_action, parse_meta_action
 from occtrain.errors import ConfigError
 from occtrain.occ3d import FUTURE_STEPS
 
@@ -197,11 +197,14 @@ def cot_planning(clip: Clip, cfg: TaskConfig, rng: np.random.Generator) -> list[
     future = _ego_future(clip)
     if future is None or not clip.narration:
         return None
-    meta = format_meta_action(clip.anchor["meta_action"])
+    # The narration ends with the meta action; older sidecars may lack it.
+    text = clip.narration
+    if parse_meta_action(text) is None:
+        text = f"{text} {format_meta_action(clip.anchor['meta_action'])}"
     return [
         *_context(clip, cfg),
         Text("Task: describe the scene, then plan."),
-        Text(f"{clip.narration} Meta action: {meta}.", True),
+        Text(text, True),
         Actions(_xy(future), True),
     ]
 
