@@ -130,7 +130,7 @@ def _execute(stage: PlannedStage, recipe: RecipeConfig, stage_dir: Path, inputs:
     L.seed_everything(stage.trainer.seed, workers=True, verbose=False)
     ctx = StageContext(stage.spec, stage.model_cfg, recipe.data, stage.trainer, stage_dir, inputs)
     module = stage.kind.build(ctx)
-    datamodule = ShardDataModule(recipe.data, stage.kind.data_kind, transform=getattr(module, "sample_transform", None))
+    datamodule = ShardDataModule(recipe.data, stage.kind.data_kind, transform=getattr(module, "sample_transform", None), entries=getattr(module, "entries", None))
     trainer = build_trainer(stage.trainer, stage_dir, stage.kind.monitor, stage.kind.mode)
     ckpt = last_checkpoint(stage_dir)
     if ckpt is not None and is_rank_zero():
@@ -143,6 +143,12 @@ def _execute(stage: PlannedStage, recipe: RecipeConfig, stage_dir: Path, inputs:
     if trainer.is_global_zero:
         export_dir = module.export(stage_dir / "export")
         atomic_write_json(stage_dir / "metrics.json", metrics)
+        texts = getattr(module, "samples", lambda: [])()
+        images = getattr(module, "sample_images", lambda: [])()
+        if texts or images:
+            from occtrain.dashboard import write_samples
+
+            write_samples(stage_dir, images, texts)
         artifacts = {
             "export": str(export_dir),
             "metrics": str(stage_dir / "metrics.json"),
@@ -183,6 +189,26 @@ def run(
 
         ensure_data(recipe.data)
 
+    try:
+        _run_stages(planned, manifest, run_dir, recipe, only, rank_zero)
+    finally:
+        if rank_zero:
+            _write_dashboard(run_dir)
+    return run_dir
+
+
+def _write_dashboard(run_dir: Path) -> None:
+    """The run's page, after success or failure alike; a page problem never fails a run."""
+    from occtrain.dashboard import write_dashboard
+
+    try:
+        out = write_dashboard(run_dir)
+        console.print(f"dashboard -> {out}")
+    except OcctrainError as err:
+        console.print(f"[yellow]dashboard not written[/]: {err}")
+
+
+def _run_stages(planned: list[PlannedStage], manifest: Manifest, run_dir: Path, recipe: RecipeConfig, only: str | None, rank_zero: bool) -> None:
     exports: dict[str, Path] = {}
     for p in planned:
         name, entry, stage_dir = p.spec.name, manifest.stages[p.spec.name], run_dir / p.spec.name
@@ -229,4 +255,3 @@ def run(
         if rank_zero:
             shown = ", ".join(f"{k}={v:.3g}" for k, v in list(result["metrics"].items())[:6])
             console.print(f"[green]done[/]    {name:14s} {wall:6.0f}s  {result['summary']}  {shown}")
-    return run_dir

@@ -46,17 +46,19 @@ def collate_frames(samples: list[dict]) -> dict[str, Any]:
 
 
 def collate_clips(samples: list[dict]) -> dict[str, Any]:
-    """Stack clip samples: semantics (B,T,X,Y,Z), camera masks, and per-sample annotations/text."""
-    occ = [s["occ.npz"] for s in samples]
-    return {
-        "semantics": torch.from_numpy(np.stack([o["semantics"] for o in occ])),
-        "mask_camera": torch.from_numpy(np.stack([o["mask_camera"] for o in occ]).astype(bool)),
-        "token": [s["__key__"] for s in samples],
-        "ann": [s["ann.json"] for s in samples],
-        "qa": [s["qa.json"] for s in samples],
-        "caption": [s["caption.txt"] for s in samples],
-        "narration": [s["narration.txt"] for s in samples],
-    }
+    """Stack clip samples: semantics (B,T,X,Y,Z), camera masks, and per-sample annotations/text.
+
+    Entries a stage chose not to read (see ``StageKind.entries``) are left out of the batch.
+    """
+    batch: dict[str, Any] = {"token": [s["__key__"] for s in samples]}
+    if "occ.npz" in samples[0]:
+        occ = [s["occ.npz"] for s in samples]
+        batch["semantics"] = torch.from_numpy(np.stack([o["semantics"] for o in occ]))
+        batch["mask_camera"] = torch.from_numpy(np.stack([o["mask_camera"] for o in occ]).astype(bool))
+    for key, entry in (("ann", "ann.json"), ("qa", "qa.json"), ("caption", "caption.txt"), ("narration", "narration.txt")):
+        if entry in samples[0]:
+            batch[key] = [s[entry] for s in samples]
+    return batch
 
 
 class ResumableLoader(DataLoader):
@@ -107,23 +109,25 @@ class ShardDataModule(L.LightningDataModule):
     ``max_steps``); validation reads each val sample exactly once across DDP ranks.
     """
 
-    def __init__(self, cfg: DataConfig, kind: str, transform: Callable[[dict], dict] | None = None):
+    def __init__(
+        self, cfg: DataConfig, kind: str, transform: Callable[[dict], dict] | None = None, entries: dict[str, tuple[str, ...] | None] | None = None,
+    ):
         super().__init__()
         if kind not in KINDS:
             raise DataError(f"unknown data kind '{kind}'; choose from {', '.join(KINDS)}")
-        self.cfg, self.kind, self.transform = cfg, kind, transform
+        self.cfg, self.kind, self.transform, self.entries = cfg, kind, transform, entries or {}
 
     def prepare_data(self) -> None:
         ensure_data(self.cfg)
 
-    def _loader(self, split: str, train: bool) -> DataLoader:
+    def loader(self, split: str, train: bool) -> DataLoader:
         urls, total = shard_urls(shards_dir(self.cfg), self.kind, split)
         if not urls:
             raise DataError(f"{shards_dir(self.cfg)}: no {split} {self.kind} shards; synthesize more {split} scenes")
         skip = SkipSamples() if train else None
         pipeline = make_pipeline(
             urls, train=train, total=total, shuffle_buffer=self.cfg.shuffle_buffer, seed=self.cfg.seed,
-            transform=self.transform, skip=skip,
+            transform=self.transform, skip=skip, entries=self.entries.get(split),
         )
         kwargs = dict(batch_size=self.cfg.batch_size, num_workers=self.cfg.num_workers, collate_fn=COLLATE[self.kind])
         if not train:
@@ -131,7 +135,7 @@ class ShardDataModule(L.LightningDataModule):
         return ResumableLoader(pipeline, skip_fn=lambda n: setattr(skip, "n", n), **kwargs)
 
     def train_dataloader(self) -> DataLoader:
-        return self._loader("train", train=True)
+        return self.loader("train", train=True)
 
     def val_dataloader(self) -> DataLoader:
-        return self._loader("val", train=False)
+        return self.loader("val", train=False)

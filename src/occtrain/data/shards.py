@@ -349,12 +349,15 @@ def make_pipeline(
     seed: int = 0,
     transform: Callable[[dict], Any] | None = None,
     skip: SkipSamples | None = None,
+    entries: Iterable[str] | None = None,
 ) -> wds.DataPipeline:
     """A webdataset pipeline over shards.
 
     ``train=True``: shards resampled forever (each rank and worker draws its own order, the
     usual way to feed DDP with ``max_steps``), a shuffle buffer. ``train=False``: every
     sample once, in order, strided over ranks (see :func:`_strided`) and workers.
+    ``entries`` keeps only those entries of each sample, dropped before decoding (a stage
+    that needs only annotations never inflates the occupancy arrays).
     """
     if not urls:
         raise DataError("no shards to read; write them with `occtrain data shards`")
@@ -377,6 +380,9 @@ def make_pipeline(
             _strided(world, rank, per_rank),
             _worker_strided,
         ]
+    if entries is not None:
+        keep = frozenset(entries)
+        stages.append(wds.map(lambda s: {k: v for k, v in s.items() if k.startswith("__") or k in keep}))
     stages.append(wds.map(decode_sample, handler=_raise_shard_error))
     if transform is not None:
         stages.append(wds.map(transform, handler=_raise_shard_error))

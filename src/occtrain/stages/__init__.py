@@ -35,6 +35,9 @@ class StageKind:
     name: str
     model_schema: type
     data_kind: str  # "frames" or "clips"
+    #: Builds the stage's LightningModule. The module may define ``entries``: per split
+    #: ("train", "val"), the shard entries it reads (None: all), so that e.g. a stage that
+    #: trains on annotations alone never decodes occupancy.
     build: Callable[[StageContext], L.LightningModule]
     #: Validation metric that picks ``best.ckpt``, and whether higher is better.
     monitor: str | None = None

@@ -175,3 +175,21 @@ def read_export(export_dir: Path) -> tuple[dict[str, torch.Tensor], dict]:
         return load_file(str(weights)), json.loads(config.read_text())
     except Exception as err:  # safetensors raises its own error types on a corrupt header
         raise OcctrainError(f"{export_dir}: unreadable export ({type(err).__name__}: {err}); re-run the stage that wrote it") from None
+
+
+# ----------------------------------------------------------------------------- metrics
+
+
+def flatten_metrics(prefix: str, result: dict[str, Any]) -> dict[str, float]:
+    """``("val/plan", {"L2_stp3": {"1s": .5}})`` -> ``{"val/plan_L2_stp3_1s": .5}``.
+
+    Non-numeric values (the convention labels) are left out: the names carry them.
+    """
+    flat: dict[str, float] = {}
+    for key, value in result.items():
+        name = f"{prefix}_{key}"
+        if isinstance(value, dict):
+            flat.update(flatten_metrics(name, value))
+        elif isinstance(value, (int, float)) or (torch.is_tensor(value) and value.numel() == 1):
+            flat[name] = float(value)
+    return flat

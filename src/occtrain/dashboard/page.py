@@ -1,0 +1,200 @@
+"""The dashboard as one self-contained HTML page: inline CSS, inline SVG charts, PNGs as data URIs."""
+
+from __future__ import annotations
+
+import base64
+import time
+from html import escape
+
+from occtrain.dashboard.paper_figures import REAL_DATA, figures_for, metric_words
+from occtrain.dashboard.run_view import RunView, StageView
+from occtrain.dashboard.svg import line_chart
+
+STATUS_COLOURS = {"done": "#2e7d32", "running": "#1565c0", "failed": "#c62828", "pending": "#757575"}
+#: Metric conventions, in the order their tables appear, with what each one means.
+CONVENTIONS = (
+    ("occ3d", "Occ3D convention: voxels seen by the camera only; mIoU over the 17 semantic classes, IoU occupied vs free (%)"),
+    ("occworld", "OccWorld convention: every voxel, no mask; mIoU over the 17 semantic classes, IoU occupied vs free (%)"),
+    ("stp3", "ST-P3 convention: the value at t is the mean over all waypoints up to t"),
+    ("uniad", "UniAD convention: the value at exactly t"),
+)
+OTHER = "Other metrics (no convention in the name)"
+
+CSS = """
+body{font-family:"DejaVu Sans",Arial,sans-serif;margin:0;background:#f4f5f7;color:#1d1f23;font-size:14px}
+header{background:#1d2733;color:#fff;padding:18px 28px}
+header h1{margin:0 0 6px;font-size:22px} header .meta{color:#c9d1da;font-size:13px}
+main{padding:12px 28px 40px;max-width:1240px}
+section.stage{background:#fff;border-radius:8px;padding:14px 20px;margin:18px 0;box-shadow:0 1px 3px rgba(0,0,0,.12)}
+h2{font-size:18px;margin:6px 0 10px} h3{font-size:15px;margin:16px 0 8px;color:#333}
+table{border-collapse:collapse;margin:6px 0 10px} th,td{padding:5px 10px;border-bottom:1px solid #e3e5e8;text-align:left;vertical-align:top}
+th{background:#eef0f3;font-weight:600;white-space:nowrap} td.num{text-align:right;font-variant-numeric:tabular-nums}
+.badge{display:inline-block;color:#fff;border-radius:10px;padding:1px 10px;font-size:12px;font-weight:600}
+.paper{color:#6a4c00;font-size:12px} .paper b{color:#3d2c00}
+.tag{background:#fff3cd;border:1px solid #e6c96b;color:#6a4c00;border-radius:4px;padding:0 5px;font-size:11px;white-space:nowrap}
+.note{color:#555;font-size:12px;margin:2px 0 6px} .problem{color:#b00020}
+.charts{display:flex;flex-wrap:wrap;gap:10px}
+svg.chart{background:#fff;border:1px solid #e3e5e8;border-radius:4px;font-size:11px}
+svg .ct{text-anchor:middle;font-size:13px;font-weight:600;fill:#222} svg .xt{text-anchor:middle;fill:#444}
+svg .yt{text-anchor:end;fill:#444} svg .xl,svg .yl{text-anchor:middle;fill:#222}
+svg .lg{fill:#222} svg .empty{text-anchor:middle;fill:#888} svg .pa{fill:#fbfbfc}
+svg .grid{stroke:#e2e4e8;stroke-width:1} svg .axis{stroke:#555;stroke-width:1}
+figure{margin:8px 0} figure img{max-width:100%;border:1px solid #ddd} figcaption{font-size:12px;color:#444}
+td.ok{color:#2e7d32;font-weight:700} td.bad{color:#c62828;font-weight:700}
+pre{background:#f6f8fa;padding:10px;overflow:auto;font-size:12px}
+"""
+
+
+def _when(t: float | None) -> str:
+    return time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(t)) if t else "-"
+
+
+def _duration(seconds: float) -> str:
+    s = int(round(seconds))
+    return f"{s // 3600}h {s % 3600 // 60:02d}m {s % 60:02d}s" if s >= 3600 else f"{s // 60}m {s % 60:02d}s" if s >= 60 else f"{seconds:.1f}s"
+
+
+def _num(v: float) -> str:
+    if abs(v) >= 1e5:
+        return f"{v:,.0f}" if v == int(v) else f"{v:.4e}"
+    return f"{v:.4g}"
+
+
+def _badge(status: str) -> str:
+    return f'<span class="badge" style="background:{STATUS_COLOURS.get(status, "#555")}">{escape(status)}</span>'
+
+
+def _summary(stage: StageView) -> str:
+    e = stage.entry
+    if e.status == "failed":
+        return f'<span class="problem">{escape(e.error or "failed")}</span>'
+    if e.status == "pending":
+        return "not run yet"
+    if e.status == "running":
+        return f"running since {_when(e.started)} (or cut off; `occtrain run` resumes it)"
+    shown = [(k, v) for k, v in stage.metrics.items() if k != "params"][:3]
+    return escape(", ".join(f"{k} = {_num(v)}" for k, v in shown))
+
+
+def stage_table(run: RunView) -> str:
+    rows = "".join(
+        f'<tr><td><a href="#stage-{escape(s.name)}">{escape(s.name)}</a></td><td>{escape(s.entry.kind)}</td>'
+        f'<td>{_badge(s.entry.status)}</td><td class="num">{s.entry.attempts}</td>'
+        f'<td class="num">{_duration(s.entry.wall_time_s) if s.entry.wall_time_s else "-"}</td><td>{_summary(s)}</td></tr>'
+        for s in run.stages
+    )
+    return f"<table><tr><th>stage</th><th>kind</th><th>status</th><th>attempts</th><th>wall time</th><th>summary</th></tr>{rows}</table>"
+
+
+def _convention(metric: str) -> str:
+    words = metric_words(metric)
+    return next((c for c, _ in CONVENTIONS if c in words), OTHER)
+
+
+def _paper_cell(metric: str) -> str:
+    figs = figures_for(metric)
+    if not figs:
+        return ""
+    lines = [
+        f'<div class="paper"><span class="tag">{REAL_DATA}</span> <b>{escape(f.paper)} {_num(f.value)}</b> '
+        f'({escape(f.where)}; {escape(f.setting)}; {escape(f.convention)})</div>'
+        for f in figs
+    ]
+    return "".join(lines)
+
+
+def metrics_tables(metrics: dict[str, float]) -> str:
+    """Final metrics grouped by the convention their names carry, the papers' figures beside them."""
+    groups: dict[str, list[str]] = {}
+    for name in metrics:
+        groups.setdefault(_convention(name), []).append(name)
+    out = []
+    for key, meaning in (*CONVENTIONS, (OTHER, OTHER)):
+        names = groups.get(key)
+        if not names:
+            continue
+        rows = "".join(
+            f'<tr><td>{escape(n)}</td><td class="num">{_num(metrics[n])}</td><td>{_paper_cell(n)}</td></tr>' for n in names
+        )
+        out.append(
+            f'<h3>{escape(meaning if key != OTHER else OTHER)}</h3>'
+            f"<table><tr><th>metric</th><th>this run</th><th>published figures (papers, real nuScenes data; not this run)</th></tr>{rows}</table>"
+        )
+    return "".join(out)
+
+
+def _images(images: list[tuple[str, bytes]]) -> str:
+    return "".join(
+        f'<figure><img alt="{escape(cap)}" src="data:image/png;base64,{base64.b64encode(png).decode()}">'
+        f"<figcaption>{escape(cap)}</figcaption></figure>"
+        for cap, png in images
+    )
+
+
+def _texts(texts: list[dict[str, str]]) -> str:
+    rows = []
+    for t in texts:
+        same = t["prediction"].strip().lower() == t["reference"].strip().lower()
+        mark = '<td class="ok">=</td>' if same else '<td class="bad">&ne;</td>'
+        rows.append(
+            f"<tr><td>{escape(t['task'])}</td><td>{escape(t['prompt'])}</td><td>{escape(t['prediction'])}</td>"
+            f"{mark}<td>{escape(t['reference'])}</td></tr>"
+        )
+    return (
+        "<table><tr><th>task</th><th>prompt</th><th>prediction</th><th></th><th>reference</th></tr>" + "".join(rows) + "</table>"
+    )
+
+
+def stage_section(stage: StageView) -> str:
+    e = stage.entry
+    parts = [
+        f'<section class="stage" id="stage-{escape(stage.name)}"><h2>{escape(stage.name)} '
+        f'<span class="note">({escape(e.kind)})</span> {_badge(e.status)}</h2>',
+        f'<div class="note">attempts {e.attempts}; started {_when(e.started)}; ended {_when(e.ended)}; '
+        f"wall time {_duration(e.wall_time_s) if e.attempts else '-'}; config {escape(e.config_hash or '-')}; code {escape(e.code_version or '-')}</div>",
+    ]
+    if e.status == "failed":
+        parts.append(f'<p class="problem">failed: {escape(e.error or "no error recorded")}</p>')
+    parts.extend(f'<p class="problem">{escape(p)}</p>' for p in stage.problems)
+    if stage.charts:
+        parts.append('<h3>Curves</h3><div class="charts">')
+        parts.extend(line_chart(c.series, c.title, "step", c.ylabel) for c in stage.charts)
+        parts.append("</div>")
+    elif e.status != "pending":
+        parts.append('<p class="note">no training log (logs/csv/metrics.csv) for this stage.</p>')
+    if stage.metrics:
+        parts.append("<h3>Final metrics</h3>" + metrics_tables(stage.metrics))
+    elif e.status == "done":
+        parts.append('<p class="note">the stage recorded no final metrics.</p>')
+    if stage.images:
+        parts.append("<h3>Bird's-eye views (validation)</h3>" + _images(stage.images))
+    if stage.texts:
+        parts.append("<h3>Generated text vs reference (validation)</h3>" + _texts(stage.texts))
+    if e.status == "pending":
+        parts.append('<p class="note">pending: this stage has not run yet.</p>')
+    parts.append("</section>")
+    return "".join(parts)
+
+
+def render_page(run: RunView, generated: float | None = None) -> str:
+    """The whole page as one HTML string."""
+    versions = sorted({s.entry.code_version for s in run.stages if s.entry.code_version})
+    pipeline = (
+        f"<section class=\"stage\"><details><summary>pipeline.yaml</summary><pre>{escape(run.pipeline_yaml)}</pre></details></section>"
+        if run.pipeline_yaml
+        else ""
+    )
+    return (
+        '<!DOCTYPE html><html lang="en"><head><meta charset="utf-8">'
+        f"<title>occtrain run {escape(run.name)}</title><style>{CSS}</style></head><body>"
+        f"<header><h1>occtrain run: {escape(run.name)}</h1><div class=\"meta\">{escape(str(run.run_dir))} &middot; "
+        f"manifest updated {_when(run.updated)} &middot; page written {_when(generated or time.time())} &middot; "
+        f"code {escape(', '.join(versions) or '-')}</div></header><main>"
+        f'<section class="stage"><h2>Stages</h2>{stage_table(run)}'
+        f'<p class="note">Figures tagged <span class="tag">{REAL_DATA}</span> are the papers\' published numbers on real '
+        "nuScenes / Occ3D-nuScenes data with full-size models, shown for orientation; this run trains on the data "
+        "in pipeline.yaml.</p></section>"
+        + "".join(stage_section(s) for s in run.stages)
+        + pipeline
+        + "</main></body></html>\n"
+    )

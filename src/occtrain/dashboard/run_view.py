@@ -1,0 +1,153 @@
+"""Read a run directory into what the page shows: stage entries, curves, final metrics, samples.
+
+A missing run or manifest is an :class:`OcctrainError`; a stage's unreadable log, metrics file or
+samples are recorded as that stage's problems and the page shows them instead.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from collections import defaultdict
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from occtrain.dashboard.samples import read_samples
+from occtrain.dashboard.svg import Series
+from occtrain.errors import OcctrainError
+from occtrain.manifest import MANIFEST_FILE, Manifest, StageEntry
+
+METRICS_CSV = Path("logs") / "csv" / "metrics.csv"
+MAX_POINTS = 600  # per series; longer curves are thinned evenly to keep the page light
+
+
+@dataclass
+class Chart:
+    title: str
+    ylabel: str
+    series: list[Series]
+
+
+@dataclass
+class StageView:
+    name: str
+    entry: StageEntry
+    charts: list[Chart] = field(default_factory=list)
+    metrics: dict[str, float] = field(default_factory=dict)
+    images: list[tuple[str, bytes]] = field(default_factory=list)
+    texts: list[dict[str, str]] = field(default_factory=list)
+    problems: list[str] = field(default_factory=list)
+
+
+@dataclass
+class RunView:
+    run_dir: Path
+    name: str
+    updated: float | None
+    pipeline_yaml: str
+    stages: list[StageView]
+
+
+def read_metrics_csv(path: Path) -> dict[str, list[tuple[float, float]]]:
+    """Lightning CSVLogger columns -> [(step, value)] for the rows where the column is set."""
+    curves: dict[str, list[tuple[float, float]]] = defaultdict(list)
+    with open(path, newline="") as fh:
+        for row in csv.DictReader(fh):
+            try:
+                step = float(row.get("step") or "nan")
+            except ValueError:  # a header repeated when a resumed logger appends
+                continue
+            if math.isnan(step):
+                continue
+            for key, text in row.items():
+                if key in (None, "step", "epoch") or not text:
+                    continue
+                try:
+                    value = float(text)
+                except (TypeError, ValueError):
+                    continue
+                if math.isfinite(value):
+                    curves[key].append((step, value))
+    return {k: sorted(v) for k, v in curves.items()}
+
+
+def _series(label: str, points: list[tuple[float, float]]) -> Series:
+    stride = max(1, math.ceil(len(points) / MAX_POINTS))
+    kept = points[::stride]
+    if kept[-1] != points[-1]:
+        kept.append(points[-1])
+    return Series(label, [p[0] for p in kept], [p[1] for p in kept])
+
+
+def _family(name: str) -> tuple[str, str]:
+    """('val/forecast/occworld_mIoU', '1s') for 'val/forecast/occworld_mIoU_1s': one chart per family."""
+    head, _, leaf = name.rpartition("/")
+    if "_" in leaf:
+        fam, _, label = leaf.rpartition("_")
+        return f"{head}/{fam}" if head else fam, label
+    return head or leaf, leaf
+
+
+def charts_from_curves(curves: dict[str, list[tuple[float, float]]]) -> list[Chart]:
+    """Training losses, validation losses, learning rate, then one chart per metric family."""
+    fixed = {"train loss": [], "validation loss": [], "learning rate": []}
+    families: dict[str, list[tuple[str, Series]]] = defaultdict(list)
+    for name, points in curves.items():
+        if name.startswith("lr-"):
+            fixed["learning rate"].append(_series(name.removeprefix("lr-"), points))
+        elif "loss" in name and name.startswith(("train/", "val/")):
+            title = "train loss" if name.startswith("train/") else "validation loss"
+            fixed[title].append(_series(name.split("/", 1)[1], points))
+        else:
+            fam, label = _family(name)
+            families[fam].append((name, _series(label, points)))
+    charts = [Chart(t, "loss" if "loss" in t else "lr", s) for t, s in fixed.items() if s]
+    for fam, members in sorted(families.items()):
+        if len(members) == 1:  # a family of one is titled by the metric's full name
+            name, s = members[0]
+            charts.append(Chart(name, "", [Series(name, s.xs, s.ys)]))
+        else:
+            charts.append(Chart(fam, "", [s for _, s in members]))
+    return charts
+
+
+def _read_stage(run_dir: Path, name: str, entry: StageEntry) -> StageView:
+    view = StageView(name, entry, metrics=dict(entry.metrics))
+    stage_dir = run_dir / name
+    csv_path = stage_dir / METRICS_CSV
+    if csv_path.is_file():
+        try:
+            view.charts = charts_from_curves(read_metrics_csv(csv_path))
+        except (OSError, csv.Error, UnicodeDecodeError) as err:
+            view.problems.append(f"{csv_path}: unreadable training log ({err})")
+    metrics_path = stage_dir / "metrics.json"
+    if metrics_path.is_file():
+        try:
+            raw = json.loads(metrics_path.read_text())
+            view.metrics = {str(k): float(v) for k, v in raw.items()}
+        except (json.JSONDecodeError, AttributeError, TypeError, ValueError, UnicodeDecodeError) as err:
+            view.problems.append(f"{metrics_path}: unreadable final metrics ({err}); showing the manifest's copy")
+    try:
+        view.images, view.texts = read_samples(stage_dir)
+    except OcctrainError as err:
+        view.problems.append(str(err))
+    return view
+
+
+def load_run(run_dir: Path) -> RunView:
+    """Everything the dashboard shows of ``run_dir``; raises OcctrainError when it is no run directory."""
+    run_dir = Path(run_dir)
+    if not run_dir.is_dir():
+        raise OcctrainError(f"{run_dir}: no such run directory; pass runs/<name> as written by `occtrain run`")
+    if not (run_dir / MANIFEST_FILE).is_file():
+        raise OcctrainError(f"{run_dir}: no {MANIFEST_FILE}, so not a run directory; pass runs/<name> as written by `occtrain run`")
+    manifest = Manifest.load(run_dir, writable=False)
+    try:
+        updated = json.loads(manifest.path.read_text()).get("updated")
+    except (OSError, json.JSONDecodeError, AttributeError):
+        updated = None
+    pipeline = run_dir / "pipeline.yaml"
+    pipeline_yaml = pipeline.read_text(errors="replace") if pipeline.is_file() else ""
+    stages = [_read_stage(run_dir, name, entry) for name, entry in manifest.stages.items()]
+    return RunView(run_dir, manifest.name or run_dir.name, updated if isinstance(updated, (int, float)) else None, pipeline_yaml, stages)
