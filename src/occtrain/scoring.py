@@ -1,0 +1,373 @@
+"""``occtrain score``: score anyone's predictions with the papers' metric conventions.
+
+Each subcommand reads prediction and ground-truth files, feeds them through the same
+:mod:`occtrain.metrics` classes that training validates with, prints one JSON object on
+stdout and, with ``--out FILE``, writes it atomically. Numbers that are undefined (a
+class absent from both sides under Occ3D rules) come out as ``null``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from functools import lru_cache
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from occtrain.data.layout import ANNOTATIONS_FILE, GTS_DIR, LABELS_FILE, DatasetIndex, load_labels, read_npz
+from occtrain.data.schema import TEMPLATE_TYPES
+from occtrain.errors import DataError
+from occtrain.io import atomic_write_json
+from occtrain.metrics import CONVENTIONS, ForecastMetric, OccupancyMetric, PlanningMetric, QAMetric, coco_caption_scores
+from occtrain.metrics.occupancy import horizon_label
+from occtrain.occ3d import FUTURE_STEPS, GRID_SHAPE, NUM_CLASSES
+
+FORECAST_FILE = "forecast.npz"
+FORECAST_HORIZONS = (1, 3, 5)
+
+
+# ----------------------------------------------------------------------------- output
+
+
+def to_json(value: Any) -> Any:
+    """Tensors and numpy scalars -> Python numbers, NaN -> None, recursively."""
+    if isinstance(value, dict):
+        return {k: to_json(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [to_json(v) for v in value]
+    if isinstance(value, (torch.Tensor, np.generic)):
+        value = value.item()
+    if isinstance(value, float) and math.isnan(value):
+        return None
+    return value
+
+
+def emit(result: dict[str, Any], out: str | None) -> None:
+    """Print the result as one JSON object; also write it to ``out`` atomically."""
+    obj = to_json(result)
+    print(json.dumps(obj, indent=2))
+    if out:
+        atomic_write_json(out, obj)
+
+
+# ----------------------------------------------------------------------------- reading
+
+
+def read_json(path: str | Path, what: str) -> Any:
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(f"{path}: {what} not found")
+    try:
+        return json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as err:
+        raise DataError(f"{path}: {what} is not valid JSON ({err})") from None
+
+
+def _has_annotations(gt: Path) -> bool:
+    return (gt / ANNOTATIONS_FILE).is_file() or (gt.name == GTS_DIR and (gt.parent / ANNOTATIONS_FILE).is_file())
+
+
+def gt_samples(gt: Path, split: str | None) -> list[tuple[str, str, Path]]:
+    """(scene, token, labels path) of a dataset root, or of a plain ``<scene>/<token>/labels.npz`` tree."""
+    if not gt.is_dir():
+        raise DataError(f"{gt}: ground-truth directory not found")
+    if _has_annotations(gt):
+        index = DatasetIndex.open(gt)
+        if split and split not in index.splits:
+            raise DataError(f"{gt}: no split '{split}'")
+        found = [(s, t, index.labels_path(s, t)) for s, t in index.samples(split)]
+    else:
+        if split:
+            raise DataError(f"{gt}: --split needs a dataset root with {ANNOTATIONS_FILE}; this is a plain labels tree")
+        found = [(p.parent.parent.name, p.parent.name, p) for p in sorted(gt.glob(f"*/*/{LABELS_FILE}"))]
+    if not found:
+        raise DataError(f"{gt}: no samples found (expected <scene>/<token>/{LABELS_FILE} or a dataset root)")
+    return found
+
+
+def _missing_error(kind: str, missing: list[str], where: Path | str) -> DataError:
+    more = f" and {len(missing) - 1} more" if len(missing) > 1 else ""
+    return DataError(f"{where}: no {kind} for sample {missing[0]}{more}; predict every sample or pass --allow-missing")
+
+
+# ----------------------------------------------------------------------------- occupancy
+
+
+def score_occupancy(pred_dir: Path, gt: Path, convention: str = "occ3d", use_mask: bool = True,
+                    split: str | None = None, allow_missing: bool = False) -> dict[str, Any]:
+    """Score ``<pred_dir>/<scene>/<token>/labels.npz`` against the ground truth's labels."""
+    if not pred_dir.is_dir():
+        raise DataError(f"{pred_dir}: prediction directory not found")
+    samples = gt_samples(gt, split)
+    present = [(s, t, p) for s, t, p in samples if (pred_dir / s / t / LABELS_FILE).is_file()]
+    missing = [f"{s}/{t}" for s, t, _ in samples if not (pred_dir / s / t / LABELS_FILE).is_file()]
+    if missing and not allow_missing:
+        raise _missing_error(f"{LABELS_FILE} prediction", missing, pred_dir)
+    if not present:
+        raise DataError(f"{pred_dir}: holds no prediction for any ground-truth sample of {gt}")
+    masked = use_mask and convention == "occ3d"
+    metric = OccupancyMetric(convention=convention, use_mask=masked)
+    for scene, token, gt_path in present:
+        truth = load_labels(gt_path, require_masks=masked)
+        pred = load_labels(pred_dir / scene / token / LABELS_FILE, require_masks=False)["semantics"]
+        mask = torch.from_numpy(truth["mask_camera"])[None] if masked else None
+        metric.update(torch.from_numpy(pred)[None], torch.from_numpy(truth["semantics"])[None], mask)
+    result = metric.compute()
+    result["mask"] = "mask_camera" if masked else "none"
+    return result
+
+
+# ----------------------------------------------------------------------------- forecasting
+
+
+def load_forecast(path: Path) -> np.ndarray:
+    """A forecast's ``semantics`` (T, 200, 200, 16), validated."""
+    arrays = read_npz(path)
+    sem = arrays.get("semantics")
+    if sem is None:
+        raise DataError(f"{path}: missing array 'semantics'")
+    if sem.ndim != 4 or sem.shape[1:] != GRID_SHAPE:
+        raise DataError(f"{path}: 'semantics' has shape {sem.shape}, expected (T, {', '.join(map(str, GRID_SHAPE))})")
+    if sem.shape[0] <= max(FORECAST_HORIZONS):
+        raise DataError(f"{path}: holds {sem.shape[0]} future frames; the 1 s/2 s/3 s horizons need {max(FORECAST_HORIZONS) + 1}")
+    if sem.size and int(sem.max()) >= NUM_CLASSES:
+        raise DataError(f"{path}: 'semantics' holds class {int(sem.max())}; Occ3D classes are 0..{NUM_CLASSES - 1}")
+    return sem.astype(np.uint8, copy=False)
+
+
+def score_forecast(pred_dir: Path, gt: Path) -> dict[str, Any]:
+    """Score every ``<pred_dir>/<scene>/<token>/forecast.npz`` against the scene's following frames.
+
+    Future frames past the end of a scene are not counted; ``frames`` reports how many were.
+    """
+    if not pred_dir.is_dir():
+        raise DataError(f"{pred_dir}: prediction directory not found")
+    if not _has_annotations(gt):
+        raise DataError(f"{gt}: forecasting needs a dataset root with {ANNOTATIONS_FILE} (it gives the scenes' frame order)")
+    index = DatasetIndex.open(gt)
+    files = sorted(pred_dir.glob(f"*/*/{FORECAST_FILE}"))
+    if not files:
+        raise DataError(f"{pred_dir}: no <scene>/<token>/{FORECAST_FILE} files found")
+    placed = []
+    for path in files:
+        scene, token = path.parent.parent.name, path.parent.name
+        order = index.scenes.get(scene)
+        if order is None or token not in order:
+            raise DataError(f"{path}: sample {scene}/{token} is not in the ground truth {gt}")
+        placed.append((scene, order.index(token), path))
+    placed.sort()
+
+    @lru_cache(maxsize=2 * FUTURE_STEPS)
+    def frame(scene: str, position: int) -> np.ndarray:
+        return index.labels(scene, index.scenes[scene][position])["semantics"]
+
+    metric = ForecastMetric(horizons=FORECAST_HORIZONS)
+    for scene, position, path in placed:
+        pred = load_forecast(path)
+        steps = pred.shape[0]
+        target = np.zeros_like(pred)
+        valid = np.zeros(steps, dtype=bool)
+        for k in range(steps):
+            if position + 1 + k < len(index.scenes[scene]):
+                target[k] = frame(scene, position + 1 + k)
+                valid[k] = True
+        metric.update(torch.from_numpy(pred)[None], torch.from_numpy(target)[None], torch.from_numpy(valid)[None])
+    result = metric.compute()
+    result["samples"] = len(placed)
+    return result
+
+
+# ----------------------------------------------------------------------------- planning
+
+
+def _waypoints(value: Any, where: str) -> np.ndarray:
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        arr = np.zeros(0)
+    if arr.shape != (FUTURE_STEPS, 2):
+        raise DataError(f"{where}: expected {FUTURE_STEPS} waypoints [[x, y], ...], got shape {arr.shape}")
+    return arr
+
+
+def _agents(value: Any, where: str) -> list[np.ndarray]:
+    if not isinstance(value, list) or len(value) != FUTURE_STEPS:
+        raise DataError(f"{where}: 'agents' must be a list of {FUTURE_STEPS} steps, each a list of [x, y, length, width, yaw]")
+    steps = []
+    for t, boxes in enumerate(value):
+        try:
+            arr = np.asarray(boxes, dtype=np.float64) if boxes else np.zeros((0, 5))
+        except (TypeError, ValueError):
+            arr = np.zeros(0)
+        if arr.ndim != 2 or arr.shape[1] != 5:
+            raise DataError(f"{where}: agents at step {t} are not lists of 5 numbers [x, y, length, width, yaw]")
+        steps.append(arr)
+    return steps
+
+
+def score_planning(pred_file: Path, gt_file: Path, allow_missing: bool = False) -> dict[str, Any]:
+    """Score ``{token: [[x, y] x 6]}`` against ``{token: {"traj", "mask", "agents"?}}``."""
+    preds = read_json(pred_file, "planning predictions")
+    gts = read_json(gt_file, "planning ground truth")
+    for obj, path in ((preds, pred_file), (gts, gt_file)):
+        if not isinstance(obj, dict) or not obj:
+            raise DataError(f"{path}: expected a non-empty JSON object keyed by sample token")
+    extra = [t for t in preds if t not in gts]
+    if extra:
+        raise DataError(f"{pred_file}: sample {extra[0]} is not in the ground truth {gt_file}")
+    missing = [t for t in gts if t not in preds]
+    if missing and not allow_missing:
+        raise _missing_error("planned trajectory", missing, pred_file)
+    metric = PlanningMetric()
+    with_agents: dict[bool, list] = {True: [], False: []}
+    for token, entry in gts.items():
+        if token not in preds:
+            continue
+        where = f"{gt_file}: sample {token}"
+        if not isinstance(entry, dict) or "traj" not in entry:
+            raise DataError(f"{where}: expected an object with 'traj', 'mask' and optionally 'agents'")
+        mask = np.asarray(entry.get("mask", [1] * FUTURE_STEPS))
+        if mask.shape != (FUTURE_STEPS,):
+            raise DataError(f"{where}: 'mask' must be {FUTURE_STEPS} values 0/1")
+        row = (_waypoints(preds[token], f"{pred_file}: sample {token}"), _waypoints(entry["traj"], where), mask.astype(bool))
+        agents = _agents(entry["agents"], where) if "agents" in entry else None
+        with_agents[agents is not None].append((row, agents))
+    for has_agents, rows in with_agents.items():
+        if rows:
+            pred, gt, mask = (torch.from_numpy(np.stack(col)) for col in zip(*(r for r, _ in rows)))
+            metric.update(pred, gt, mask, [a for _, a in rows] if has_agents else None)
+    return metric.compute()
+
+
+# ----------------------------------------------------------------------------- text
+
+
+def score_captions(pred_file: Path, ref_file: Path, allow_missing: bool = False) -> dict[str, Any]:
+    """Score ``{id: "caption"}`` against ``{id: ["reference", ...]}`` with pycocoevalcap."""
+    preds = read_json(pred_file, "caption predictions")
+    refs = read_json(ref_file, "caption references")
+    if not isinstance(preds, dict) or not all(isinstance(v, str) for v in preds.values()):
+        raise DataError(f"{pred_file}: expected a JSON object {{id: \"caption\"}}")
+    if not isinstance(refs, dict) or not refs:
+        raise DataError(f"{ref_file}: expected a non-empty JSON object {{id: [\"reference\", ...]}}")
+    refs = {k: [v] if isinstance(v, str) else v for k, v in refs.items()}
+    for k, v in refs.items():
+        if not isinstance(v, list) or not v or not all(isinstance(r, str) for r in v):
+            raise DataError(f"{ref_file}: id {k} needs a non-empty list of reference strings")
+    extra = [k for k in preds if k not in refs]
+    if extra:
+        raise DataError(f"{pred_file}: id {extra[0]} has no references in {ref_file}")
+    missing = [k for k in refs if k not in preds]
+    if missing and not allow_missing:
+        raise _missing_error("caption", missing, pred_file)
+    scored = {k: v for k, v in refs.items() if k in preds}
+    if not scored:
+        raise DataError(f"{pred_file}: no caption for any id of {ref_file}")
+    result: dict[str, Any] = coco_caption_scores({k: preds[k] for k in scored}, scored)
+    result["samples"] = len(scored)
+    return result
+
+
+def score_qa(pred_file: Path, questions_file: Path) -> dict[str, Any]:
+    """Score a JSON list of answers against a NuScenes-QA question file, in order."""
+    preds = read_json(pred_file, "QA predictions")
+    data = read_json(questions_file, "NuScenes-QA questions")
+    questions = data.get("questions") if isinstance(data, dict) else None
+    if not isinstance(questions, list):
+        raise DataError(f"{questions_file}: expected {{\"questions\": [...]}} in NuScenes-QA format")
+    if not isinstance(preds, list):
+        raise DataError(f"{pred_file}: expected a JSON list of answer strings, in the order of {questions_file}")
+    if len(preds) != len(questions):
+        raise DataError(f"{pred_file}: holds {len(preds)} answers but {questions_file} asks {len(questions)} questions")
+    for i, p in enumerate(preds):
+        if not isinstance(p, (str, int)) or isinstance(p, bool):
+            raise DataError(f"{pred_file}: answer {i} is {type(p).__name__}, expected a string")
+    for i, q in enumerate(questions):
+        lacking = [k for k in ("answer", "template_type", "num_hop") if not isinstance(q, dict) or k not in q]
+        if lacking:
+            raise DataError(f"{questions_file}: question {i} lacks {', '.join(lacking)}")
+        if q["template_type"] not in TEMPLATE_TYPES or q["num_hop"] not in (0, 1):
+            raise DataError(f"{questions_file}: question {i} has template_type '{q['template_type']}' / num_hop {q['num_hop']}; "
+                            f"expected one of {', '.join(TEMPLATE_TYPES)} and 0/1")
+    metric = QAMetric()
+    metric.update([str(p) for p in preds], [q["answer"] for q in questions],
+                  [q["template_type"] for q in questions], [q["num_hop"] for q in questions])
+    return metric.compute()
+
+
+# ----------------------------------------------------------------------------- CLI
+
+
+def _cmd_occupancy(args: argparse.Namespace) -> int:
+    emit(score_occupancy(Path(args.pred), Path(args.gt), args.convention, not args.no_mask, args.split, args.allow_missing), args.out)
+    return 0
+
+
+def _cmd_forecast(args: argparse.Namespace) -> int:
+    emit(score_forecast(Path(args.pred), Path(args.gt)), args.out)
+    return 0
+
+
+def _cmd_planning(args: argparse.Namespace) -> int:
+    emit(score_planning(Path(args.pred), Path(args.gt), args.allow_missing), args.out)
+    return 0
+
+
+def _cmd_captions(args: argparse.Namespace) -> int:
+    emit(score_captions(Path(args.pred), Path(args.ref), args.allow_missing), args.out)
+    return 0
+
+
+def _cmd_qa(args: argparse.Namespace) -> int:
+    emit(score_qa(Path(args.pred), Path(args.questions)), args.out)
+    return 0
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    """Add ``occtrain score {occupancy,forecast,planning,captions,qa}``."""
+    score = subparsers.add_parser("score", help="score your own predictions with the papers' metric conventions")
+    sub = score.add_subparsers(dest="what", required=True, metavar="WHAT")
+
+    def add(name: str, summary: str, func: Any, pred_help: str) -> argparse.ArgumentParser:
+        p = sub.add_parser(name, help=summary)
+        p.add_argument("--pred", required=True, help=pred_help)
+        p.set_defaults(func=func)
+        return p
+
+    def out(p: argparse.ArgumentParser) -> None:
+        p.add_argument("--out", metavar="FILE", help="also write the JSON result to FILE (atomically)")
+
+    p = add("occupancy", "semantic occupancy mIoU/IoU (Occ3D convention by default)", _cmd_occupancy,
+            "directory of <scene>/<token>/labels.npz with 'semantics'")
+    p.add_argument("--gt", required=True, help="dataset root (annotations.json + gts/) or a plain <scene>/<token>/labels.npz tree")
+    p.add_argument("--split", choices=("train", "val"), help="score one split of a dataset root (default: every sample)")
+    p.add_argument("--convention", choices=CONVENTIONS, default="occ3d", help="occ3d (default) or occworld (all voxels, absent class = 100)")
+    p.add_argument("--no-mask", action="store_true", help="occ3d: count every voxel, not only mask_camera ones")
+    p.add_argument("--allow-missing", action="store_true", help="score the samples that have a prediction, skip the rest")
+    out(p)
+
+    p = add("forecast", f"occupancy forecasting mIoU/IoU at {', '.join(horizon_label(h) for h in FORECAST_HORIZONS)} (OccWorld convention)",
+            _cmd_forecast, f"directory of <scene>/<token>/{FORECAST_FILE} with 'semantics' (T, 200, 200, 16)")
+    p.add_argument("--gt", required=True, help="dataset root: its scene order gives the future frames")
+    out(p)
+
+    p = add("planning", "planning L2 and collision rate, ST-P3 and UniAD conventions", _cmd_planning,
+            'JSON {sample_token: [[x, y] x 6]}')
+    p.add_argument("--gt", required=True, help='JSON {sample_token: {"traj": [[x, y] x 6], "mask": [0/1 x 6], "agents": [[[x, y, l, w, yaw], ...] x 6]}}')
+    p.add_argument("--allow-missing", action="store_true", help="score the samples that have a prediction, skip the rest")
+    out(p)
+
+    p = add("captions", "BLEU-1..4, METEOR, ROUGE-L, CIDEr-D (pycocoevalcap; needs Java)", _cmd_captions,
+            'JSON {id: "caption"}')
+    p.add_argument("--ref", required=True, help='JSON {id: ["reference", ...]}')
+    p.add_argument("--allow-missing", action="store_true", help="score the ids that have a caption, skip the rest")
+    out(p)
+
+    p = add("qa", "NuScenes-QA exact-match accuracy, by type and by hop", _cmd_qa,
+            "JSON list of answer strings, in the order of the questions file")
+    p.add_argument("--questions", required=True, help='NuScenes-QA JSON {"questions": [...]}')
+    out(p)
