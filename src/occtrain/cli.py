@@ -27,6 +27,16 @@ def _cmd_run(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_eval(args: argparse.Namespace) -> int:
+    from occtrain.evaluate import evaluate, print_metrics
+
+    tasks = [t.strip() for t in args.tasks.split(",") if t.strip()] if args.tasks else None
+    metrics = evaluate(args.stage_dir, args.split, tasks, args.save_predictions, args.limit_batches)
+    print_metrics(metrics, f"{args.stage_dir} on {args.split}")
+    print(f"metrics -> {Path(args.stage_dir) / 'eval' / args.split / 'metrics.json'}")
+    return 0
+
+
 def _cmd_data_synth(args: argparse.Namespace) -> int:
     from occtrain.config import SynthConfig
     from occtrain.data.synthesize import synthesize
@@ -84,6 +94,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--restart", metavar="STAGE", help="retrain this stage and every stage after it")
     p.set_defaults(func=_cmd_run)
 
+    p = sub.add_parser("eval", help="score a world-model stage's export on a split (generation + the papers' metrics)")
+    p.add_argument("stage_dir", help="RUN_DIR/STAGE")
+    p.add_argument("--split", default="val")
+    p.add_argument("--tasks", default="", help="comma-separated: forecasting, planning, qa, cot_planning (default: the stage's)")
+    p.add_argument("--save-predictions", metavar="DIR", help="also write predictions in the formats `occtrain score` reads")
+    p.add_argument("--limit-batches", type=int, default=None, help="score only the first N batches")
+    p.set_defaults(func=_cmd_eval)
+
     config = sub.add_parser("config", help="inspect configs").add_subparsers(dest="action", required=True)
     show = config.add_parser("show", help="print a config file resolved with overrides")
     show.add_argument("file")
@@ -122,12 +140,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("path")
     p.set_defaults(func=_cmd_data_check)
 
-    import importlib.util  # TEMP until scoring lands
+    from occtrain.dashboard import register as register_dashboard
+    from occtrain.scoring import register as register_score
 
-    if importlib.util.find_spec("occtrain.scoring"):
-        from occtrain.scoring import register as register_score
-
-        register_score(sub)
+    register_score(sub)
+    register_dashboard(sub)
     return parser
 
 
@@ -143,7 +160,13 @@ def _one_line(err: OcctrainError) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    # Overrides may come after options too (`run R --only x a.b=1`): argparse's positional
+    # list stops at the first option, so the rest arrive as extras.
+    args, extra = parser.parse_known_args(argv)
+    if extra:
+        if not hasattr(args, "overrides") or any(e.startswith("-") for e in extra):
+            parser.error(f"unrecognized arguments: {' '.join(extra)}")
+        args.overrides = [*(args.overrides or []), *extra]
     try:
         return int(args.func(args) or 0)
     except OcctrainError as err:

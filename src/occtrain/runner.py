@@ -143,12 +143,13 @@ def _execute(stage: PlannedStage, recipe: RecipeConfig, stage_dir: Path, inputs:
     if trainer.is_global_zero:
         export_dir = module.export(stage_dir / "export")
         atomic_write_json(stage_dir / "metrics.json", metrics)
+        # Stages hand over raw scenes and texts; pictures are drawn here, not in the stages.
         texts = getattr(module, "samples", lambda: [])()
-        images = getattr(module, "sample_images", lambda: [])()
-        if texts or images:
-            from occtrain.dashboard import write_samples
+        scenes = getattr(module, "sample_scenes", lambda: [])()
+        if texts or scenes:
+            from occtrain.dashboard import bev_comparison, write_samples
 
-            write_samples(stage_dir, images, texts)
+            write_samples(stage_dir, [(caption, bev_comparison(rows)) for caption, rows in scenes], texts)
         artifacts = {
             "export": str(export_dir),
             "metrics": str(stage_dir / "metrics.json"),

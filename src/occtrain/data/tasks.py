@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import zlib
 from dataclasses import dataclass, field
-from typing import Callable, Union
+from typing import Callable, Iterator, Union
 
 import numpy as np
 
@@ -156,11 +156,42 @@ def prediction(clip: Clip, cfg: TaskConfig, rng: np.random.Generator) -> list[Pa
 
 
 def _ego_future(clip: Clip) -> np.ndarray | None:
-    future = np.asarray(clip.anchor.get("ego_future", []), dtype=np.float64).reshape(-1, 2)
-    mask = np.asarray(clip.anchor.get("ego_future_mask", []), dtype=bool)
-    if len(future) != FUTURE_STEPS or not mask.all():
-        return None
-    return future
+    future, mask = ego_future(clip.anchor)
+    return future if mask.all() else None
+
+
+def ego_future(anchor: dict) -> tuple[np.ndarray, np.ndarray]:
+    """The anchor's ego future (FUTURE_STEPS, 2) and its validity mask (zeros where unknown)."""
+    future = np.zeros((FUTURE_STEPS, 2))
+    mask = np.zeros(FUTURE_STEPS, dtype=bool)
+    given = np.asarray(anchor.get("ego_future", []), dtype=np.float64).reshape(-1, 2)[:FUTURE_STEPS]
+    future[: len(given)] = given
+    mask[: len(given)] = np.asarray(anchor.get("ego_future_mask", [1] * len(given)), dtype=bool)[: len(given)]
+    return future, mask
+
+
+def future_agent_boxes(anchor: dict) -> list[np.ndarray]:
+    """Per future step, the agents' boxes (N, 5: x, y, length, width, yaw) for the collision metric.
+
+    Positions come from the annotated agent futures; the yaw stays the anchor's (the
+    annotation carries no future headings). Static objects keep their place.
+    """
+    boxes = anchor.get("boxes", [])
+    futures = anchor.get("agent_futures", [])
+    masks = anchor.get("agent_future_mask", [])
+    steps: list[np.ndarray] = []
+    for t in range(FUTURE_STEPS):
+        rows = []
+        for i, b in enumerate(boxes):
+            if i < len(futures) and masks[i][t]:
+                x, y = futures[i][t]
+            elif b.get("attribute", "") in ("", "parked"):
+                x, y = b["center"][:2]
+            else:
+                continue  # a mover whose future is unknown at this step
+            rows.append((x, y, b["size"][0], b["size"][1], b["yaw"]))
+        steps.append(np.asarray(rows, dtype=np.float32).reshape(-1, 5))
+    return steps
 
 
 def planning(clip: Clip, cfg: TaskConfig, rng: np.random.Generator) -> list[Part] | None:
@@ -250,3 +281,26 @@ def sample_task(clip: Clip, cfg: TaskConfig, seed: int, token: str) -> tuple[str
 def clips_from_batch(batch: dict) -> list[Clip]:
     """The per-sample clip records of a collated clip batch."""
     return [Clip(ann, qa, narr) for ann, qa, narr in zip(batch["ann"], batch["qa"], batch["narration"])]
+
+
+def corpus_texts(index) -> Iterator[str]:
+    """The text a world model's BPE tokenizer trains on: the train split's captions,
+    narrations, questions and answers, and the task prompts' fixed words."""
+    for scene in index.splits.get("train", []):
+        if not index.has_frame_annotations(scene):
+            continue
+        for frame in index.frames(scene):
+            yield frame.get("caption", "")
+            yield frame.get("narration", "")
+    for q in index.questions("train") or []:
+        yield f"Question: {q['question']} Answer: {q['answer']}"
+    yield from PROMPT_WORDS
+
+
+#: Fixed words of the prompts above, so the tokenizer knows them even without sidecar text.
+PROMPT_WORDS = (
+    "Task: detect the nearest objects.", "Task: count the objects.", "Task: predict the future of the",
+    "Task: plan the ego trajectory.", "Task: forecast the scene.", "Task: describe the scene, then plan.",
+    "Task: describe the scene.", "Command: turn left. turn right. go straight. Ego speed 0.0 m/s.", "Ego past:",
+    "no objects", " ".join(c.replace("_", " ") for c in OBJECT_CLASSES), "0 1 2 3 4 5 6 7 8 9 10",
+)

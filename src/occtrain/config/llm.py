@@ -1,0 +1,67 @@
+"""Structured configs of the world model's language model: the LLM, the joint vocabulary's
+action bins and the scene-prediction mode, and the LoRA adapter."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+SCENE_PREDICTION_MODES = ("next_scene", "next_token")
+
+
+@dataclass
+class LLMConfig:
+    """The causal LM behind the world model.
+
+    With ``path`` empty a tiny Llama is built from the size keys below (no download) and
+    the text tokenizer is a byte-level BPE trained on the dataset's text; with ``path`` set
+    the model and its tokenizer load from that local Hugging Face directory and the size
+    keys are ignored.
+    """
+
+    #: A local Hugging Face model directory (config.json, weights, tokenizer); empty = tiny Llama.
+    path: str = ""
+    hidden_size: int = 128
+    num_layers: int = 2
+    num_heads: int = 4
+    intermediate_size: int = 344
+    max_position_embeddings: int = 4096
+    #: Size of the BPE vocabulary trained on the dataset's text (tiny Llama only).
+    text_vocab_size: int = 2048
+    #: Attention kernel; both "sdpa" and "eager" honour the spatial-temporal 4D mask.
+    attn_implementation: str = "sdpa"
+    #: "next_scene": a scene's tokens come from the query tokens in one pass (OccLLaMA
+    #: Algorithm 1, bidirectional inside a scene); "next_token": token by token, causal
+    #: everywhere (the paper's "w/o spatial attention" ablation).
+    scene_prediction: str = "next_scene"
+    #: Waypoint quantisation: bins per axis (paper: 256) over [low, high] metres per axis.
+    action_bins: int = 256
+    #: [[x_low, x_high], [y_low, y_high]] in metres, ego frame (x forward, y left). The
+    #: default covers the whole 80 m Occ3D grid (detections, ego past) and the ego's 3 s
+    #: future at the synthetic world's top speed (13.5 m/s -> 40.5 m): bins of 0.39 m in
+    #: x and 0.31 m in y.
+    action_range: list[list[float]] = field(default_factory=lambda: [[-40.0, 60.0], [-40.0, 40.0]])
+
+
+@dataclass
+class LoRAConfig:
+    """A peft LoRA adapter over the LLM's attention projections."""
+
+    r: int = 16
+    alpha: int = 32
+    dropout: float = 0.05
+    target_modules: list[str] = field(default_factory=lambda: ["q_proj", "v_proj"])
+
+
+def validate_llm_config(cfg: LLMConfig, key: str = "llm") -> None:
+    """One line naming the key when a value of ``cfg`` cannot work."""
+    from occtrain.errors import ConfigError
+
+    if cfg.scene_prediction not in SCENE_PREDICTION_MODES:
+        raise ConfigError(f"{key}.scene_prediction: '{cfg.scene_prediction}' is not one of {', '.join(SCENE_PREDICTION_MODES)}")
+    if cfg.action_bins < 2:
+        raise ConfigError(f"{key}.action_bins: {cfg.action_bins} bins cannot encode a waypoint; use at least 2 (paper: 256)")
+    rng = [list(r) for r in cfg.action_range]
+    if len(rng) != 2 or any(len(r) != 2 or not r[0] < r[1] for r in rng):
+        raise ConfigError(f"{key}.action_range: {rng} must be [[x_low, x_high], [y_low, y_high]] with low < high")
+    if cfg.attn_implementation not in ("sdpa", "eager"):
+        raise ConfigError(f"{key}.attn_implementation: '{cfg.attn_implementation}' does not take the 4D spatial-temporal mask; use sdpa or eager")

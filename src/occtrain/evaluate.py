@@ -1,0 +1,111 @@
+"""``occtrain eval RUN_DIR/STAGE``: score a world-model stage's export on a split.
+
+The export (scene tokenizer + LLM + adapter) is loaded exactly as a later stage would load
+it, its answers are generated on every clip of the split, and the papers' metrics are
+written to ``<stage>/eval/<split>/metrics.json``. ``--save-predictions DIR`` also writes
+the predictions in the formats ``occtrain score`` reads, so both paths give one number.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from occtrain.config import load_config
+from occtrain.config.recipe import RecipeConfig
+from occtrain.errors import ConfigError
+from occtrain.io import atomic_write_json, atomic_write_npz
+from occtrain.progress import console, progress_bar
+
+#: Evaluation tasks per stage kind, when ``--tasks`` is not given.
+DEFAULT_TASKS = {
+    "pretrain": ("forecasting", "planning"),
+    "instruct": ("qa", "cot_planning"),
+    "distill": ("qa", "cot_planning"),
+}
+
+
+def evaluate(
+    stage_dir: str | Path,
+    split: str = "val",
+    tasks: list[str] | None = None,
+    save_predictions: str | Path | None = None,
+    limit_batches: int | None = None,
+) -> dict[str, float]:
+    """Metrics of ``stage_dir``'s export on ``split`` (see the module docstring)."""
+    from occtrain.data.datamodule import ShardDataModule, shards_dir
+    from occtrain.data.shards import shard_urls
+    from occtrain.data.tasks import TaskConfig, clips_from_batch
+    from occtrain.stages.world_model import Evaluator, load_world_model
+
+    stage_dir = Path(stage_dir)
+    pipeline = stage_dir.parent / "pipeline.yaml"
+    if not pipeline.is_file():
+        raise ConfigError(f"{stage_dir}: not a stage of a run directory (no {pipeline}); pass RUN_DIR/STAGE")
+    recipe = load_config(RecipeConfig, pipeline)
+    spec = next((s for s in recipe.stages if s.name == stage_dir.name), None)
+    if spec is None:
+        raise ConfigError(f"{pipeline} has no stage '{stage_dir.name}'; stages are {', '.join(s.name for s in recipe.stages)}")
+    if spec.kind not in DEFAULT_TASKS:
+        raise ConfigError(f"occtrain eval scores world-model stages ({', '.join(DEFAULT_TASKS)}); '{spec.name}' is a {spec.kind} stage")
+    engine = load_world_model(stage_dir / "export").eval()
+    stage_tasks = dict((spec.model or {}).get("tasks", {}) or {})
+    names = tasks or list(DEFAULT_TASKS[spec.kind])
+    task_cfg = TaskConfig(
+        weights={t: 1.0 for t in names},
+        **{k: v for k, v in stage_tasks.items() if k in ("context_frames", "forecast_frames", "max_objects")},
+    )
+    evaluator = Evaluator(task_cfg, int((spec.model or {}).get("max_new_text_tokens", 96)), record=save_predictions is not None)
+    data = ShardDataModule(recipe.data, "clips")
+    data.prepare_data()
+    loader = data.loader(split, train=False)
+    _, samples = shard_urls(shards_dir(recipe.data), "clips", split)
+    batches = math.ceil(samples / recipe.data.batch_size)
+    if limit_batches is not None:
+        batches = min(batches, limit_batches)
+    torch.manual_seed(0)
+    with progress_bar(batches, f"evaluating {stage_dir.name} on {split}") as advance:
+        for i, batch in enumerate(loader):
+            if limit_batches is not None and i >= limit_batches:
+                break
+            evaluator.update(engine, clips_from_batch(batch), batch)
+            advance(1)
+    metrics = {k.removeprefix(f"{split}/"): v for k, v in evaluator.compute(split).items()}
+    out_dir = stage_dir / "eval" / split
+    atomic_write_json(out_dir / "metrics.json", metrics)
+    if save_predictions is not None:
+        write_predictions(Path(save_predictions), evaluator.predictions)
+    return metrics
+
+
+def write_predictions(out: Path, predictions: dict[str, dict]) -> None:
+    """The evaluator's recorded predictions in ``occtrain score``'s input formats."""
+    out.mkdir(parents=True, exist_ok=True)
+    if predictions["planning"]:
+        atomic_write_json(out / "planning_pred.json", predictions["planning"])
+        atomic_write_json(out / "planning_gt.json", predictions["planning_gt"])
+    for token, (scene, semantics) in predictions["forecast"].items():
+        atomic_write_npz(out / "forecast" / scene / token / "forecast.npz", {"semantics": np.asarray(semantics, dtype=np.uint8)})
+    if predictions["qa"]:
+        # NuScenes-QA's format: answers in the order of a questions file, written beside them.
+        questions, answers = zip(*predictions["qa"].values())
+        atomic_write_json(out / "qa_questions.json", {"questions": list(questions)})
+        atomic_write_json(out / "qa_pred.json", list(answers))
+    if predictions["captions"]:
+        atomic_write_json(out / "captions_pred.json", predictions["captions"])
+        atomic_write_json(out / "captions_ref.json", predictions["captions_gt"])
+
+
+def print_metrics(metrics: dict[str, float], title: str) -> None:
+    """A two-column table of the metrics, grouped by their prefix."""
+    from rich.table import Table
+
+    table = Table(title=title)
+    table.add_column("metric")
+    table.add_column("value", justify="right")
+    for name in sorted(metrics):
+        table.add_row(name, f"{metrics[name]:.4g}")
+    console.print(table)

@@ -1,0 +1,33 @@
+"""Waypoint quantisation into action-token bins: the one place of the action-bin quantizer."""
+
+from __future__ import annotations
+
+import torch
+
+
+class ActionQuantizer:
+    """Uniform bins per axis over ``[low, high]`` (OccLLaMA / DriveLM: 256 bins).
+
+    ``encode`` maps metres to bin indices, ``decode`` maps indices to bin centres, so a
+    value inside the range comes back within half a bin width. Values outside the range
+    are clamped into the first or last bin (they decode to that bin's centre).
+    """
+
+    def __init__(self, bins: int, low: tuple[float, float], high: tuple[float, float]):
+        self.bins = int(bins)
+        self.low = torch.tensor(low, dtype=torch.float64)
+        self.high = torch.tensor(high, dtype=torch.float64)
+        self.width = (self.high - self.low) / self.bins
+
+    def encode(self, xy: torch.Tensor) -> torch.Tensor:
+        """Float[..., 2] metres -> Long[..., 2] bin indices in [0, bins)."""
+        idx = torch.floor((xy.double() - self.low.to(xy.device)) / self.width.to(xy.device))
+        return idx.clamp(0, self.bins - 1).long()
+
+    def decode(self, ids: torch.Tensor) -> torch.Tensor:
+        """Long[..., 2] bin indices -> Float[..., 2] bin centres in metres."""
+        centre = self.low.to(ids.device) + (ids.double() + 0.5) * self.width.to(ids.device)
+        return centre.float()
+
+    def to_json(self) -> dict:
+        return {"bins": self.bins, "low": self.low.tolist(), "high": self.high.tolist()}

@@ -1,0 +1,73 @@
+"""What every scene tokenizer shares: its output record, the codebook API, input checking."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+from occtrain.errors import DataError
+from occtrain.models.tokenizers.quantizer import VectorQuantizer
+from occtrain.occ3d import GRID_SHAPE, NUM_CLASSES
+
+
+@dataclass
+class TokenizerOutput:
+    """One forward pass of a tokenizer.
+
+    logits: (B, 18, 200, 200, 16) class scores whose argmax is the reconstruction;
+    losses: ``loss`` (the total that is optimised) and its weighted-in parts;
+    stats: scalar tensors to log (codebook usage fraction, perplexity);
+    codes: (B, h, w) token ids.
+    """
+
+    logits: torch.Tensor
+    losses: dict[str, torch.Tensor]
+    stats: dict[str, torch.Tensor]
+    codes: torch.Tensor
+
+
+class SceneTokenizer(nn.Module):
+    """Base of the tokenizers: ``encode`` scenes to codes, ``decode`` codes to class logits.
+
+    Subclasses provide ``encode_latent`` (semantics -> continuous latent (B, D, h, w)),
+    ``decode_logits`` (quantized latent -> logits) and ``forward``.
+    """
+
+    quantizer: VectorQuantizer
+    latent_hw: tuple[int, int]
+
+    @property
+    def num_codes(self) -> int:
+        return self.quantizer.num_codes
+
+    @property
+    def codebook(self) -> torch.Tensor:
+        """(K, code_dim) current code vectors, e.g. to initialise occupancy-token embeddings."""
+        return self.quantizer.codebook
+
+    def encode_latent(self, semantics: torch.Tensor) -> torch.Tensor:
+        raise NotImplementedError
+
+    def decode_logits(self, z_q: torch.Tensor) -> torch.Tensor:
+        raise NotImplementedError
+
+    def encode(self, semantics: torch.Tensor) -> torch.Tensor:
+        """Token ids (B, h, w) of label volumes (B, 200, 200, 16); never updates the codebook."""
+        return self.quantizer.nearest(self.encode_latent(check_semantics(semantics)))
+
+    def decode(self, codes: torch.Tensor) -> torch.Tensor:
+        """Class logits (B, 18, 200, 200, 16) of token ids (B, h, w)."""
+        if tuple(codes.shape[1:]) != tuple(self.latent_hw):
+            raise DataError(f"codes of shape {tuple(codes.shape)}: this tokenizer decodes (B, {self.latent_hw[0]}, {self.latent_hw[1]}) grids")
+        return self.decode_logits(self.quantizer.lookup(codes.long()))
+
+
+def check_semantics(semantics: torch.Tensor) -> torch.Tensor:
+    """The label volume as long, after checking its (B, 200, 200, 16) shape and integer dtype."""
+    if semantics.dim() != 4 or tuple(semantics.shape[1:]) != GRID_SHAPE:
+        raise DataError(f"semantics of shape {tuple(semantics.shape)}: tokenizers take (B, {', '.join(map(str, GRID_SHAPE))}) Occ3D label volumes")
+    if semantics.is_floating_point():
+        raise DataError(f"semantics of dtype {semantics.dtype}: pass integer class labels in [0, {NUM_CLASSES})")
+    return semantics.long()

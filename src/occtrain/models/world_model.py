@@ -1,0 +1,416 @@
+"""OccLLaMA's unified world model: a causal LM over the joint vocabulary with
+spatial-temporal attention and next-token-or-scene prediction (Sec. III-B, Algorithm 1).
+
+Sequence layout. A sequence starts with ``bos``; then parts, each laid out as
+
+- text: its tokens, then ``eos`` (every text part ends with it, so generated text, which
+  stops at ``eos``, re-encodes to the same tokens when it becomes context);
+- actions: ``<act> x_1 y_1 ... x_N y_N </act>`` (an x bin then a y bin per waypoint);
+- a context scene: ``<occ> c_1 ... c_S </occ>`` with its S = h*w code tokens forming one
+  bidirectional segment ("next_scene" mode) or plain causal tokens ("next_token" mode);
+- a supervised scene in "next_scene" mode: ``<occ> q_1 ... q_S c_1 ... c_S </occ>``. The
+  query block q (the learnable ``<scene_q_j>`` tokens) is bidirectional, sees everything
+  before it, is seen by nothing after it, and its output at ``q_j`` is trained to give code
+  ``c_j``: all of the scene from one forward pass. The code block c repeats the scene's
+  real codes at the same positions (RoPE) as the queries, and is what later tokens attend
+  to. This is Algorithm 1 at training time: there, the queries are appended after
+  ``<occ>``, their outputs become the scene, and the scene then replaces the queries in
+  the context. Generation does exactly that with the KV cache (the query keys are cropped
+  off and the chosen codes fed instead).
+
+Labels. ``labels[t]`` is the target of the output at position ``t`` (already shifted;
+-100 where none): the next kept token when that token is supervised, and for a query
+token its scene code. The model computes its own loss, so the HF ``labels`` convention is
+never used. Every token of a supervised part is supervised except the code block behind a
+query block (the queries predict it).
+
+Occupancy inputs. The input embedding of ``<occ_k>`` is ``occ_proj(codebook[k])``, a
+LayerNorm + two-layer GELU MLP (LLaVA-style projector) of the frozen scene tokenizer's
+codebook vector, instead of the embedding-table row; the lm-head keeps one row per code.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from occtrain.config.llm import SCENE_PREDICTION_MODES
+from occtrain.models.attention import additive, allowed_pairs, chunk_allowed, scene_segments
+from occtrain.models.vocab import JointVocab
+
+IGNORE = -100
+
+
+@dataclass
+class TokenSequence:
+    """One laid-out sequence (all Long[L] except ``scene_target`` Bool[L])."""
+
+    input_ids: torch.Tensor
+    labels: torch.Tensor
+    segment_ids: torch.Tensor
+    position_ids: torch.Tensor
+    scene_target: torch.Tensor
+
+    def __len__(self) -> int:
+        return int(self.input_ids.shape[0])
+
+
+class SequenceBuilder:
+    """Lays parts out in the joint vocabulary (see the module docstring).
+
+    ``scene_prediction`` must be the model's (``OccWorldModel.builder()`` gets it right).
+    """
+
+    def __init__(self, vocab: JointVocab, scene_prediction: str = "next_scene"):
+        if scene_prediction not in SCENE_PREDICTION_MODES:
+            raise ValueError(f"scene_prediction must be one of {SCENE_PREDICTION_MODES}")
+        self.vocab = vocab
+        self.next_scene = scene_prediction == "next_scene"
+        self._ids: list[torch.Tensor] = []
+        self._sup: list[torch.Tensor] = []
+        self._seg: list[torch.Tensor] = []
+        self._query_target: list[torch.Tensor] = []
+        self._pos: list[torch.Tensor] = []
+        self._kept = 0  # tokens laid out so far, query blocks not counted
+        self._scenes = 0
+        self._add(torch.tensor([vocab.bos_id]), False)
+
+    def _add(self, ids: torch.Tensor, supervise: bool, seg: int = 0, query_target: torch.Tensor | None = None) -> None:
+        n = ids.shape[0]
+        self._ids.append(ids.long())
+        self._sup.append(torch.full((n,), bool(supervise)))
+        self._seg.append(torch.full((n,), seg, dtype=torch.long))
+        self._query_target.append(query_target if query_target is not None else torch.full((n,), IGNORE, dtype=torch.long))
+        # A query block takes the positions of the code block that follows it (and replaces it in generation).
+        self._pos.append(torch.arange(self._kept, self._kept + n))
+        if seg >= 0:
+            self._kept += n
+
+    def text(self, text: str, supervise: bool = False) -> SequenceBuilder:
+        self._add(torch.tensor(self.vocab.text_ids(text) + [self.vocab.eos_id]), supervise)
+        return self
+
+    def actions(self, xy: torch.Tensor, supervise: bool = False) -> SequenceBuilder:
+        v = self.vocab
+        ids = torch.cat([torch.tensor([v.act_open_id]), v.action_ids(torch.as_tensor(xy, dtype=torch.float32).cpu()), torch.tensor([v.act_close_id])])
+        self._add(ids, supervise)
+        return self
+
+    def scene(self, codes: torch.Tensor, supervise: bool = False) -> SequenceBuilder:
+        v = self.vocab
+        codes = torch.as_tensor(codes).reshape(-1).long().cpu()
+        if codes.numel() != v.scene_len:
+            raise ValueError(f"a scene has {v.scene_len} codes (latent {v.scene_hw}), got {codes.numel()}")
+        code_ids = v.occ_ids(codes)
+        self._add(torch.tensor([v.occ_open_id]), supervise)
+        if not self.next_scene:
+            self._add(code_ids, supervise)
+        else:
+            self._scenes += 1
+            if supervise:
+                self._add(v.query_ids(), False, seg=-self._scenes, query_target=code_ids)
+            self._add(code_ids, False, seg=self._scenes)
+        self._add(torch.tensor([v.occ_close_id]), supervise)
+        return self
+
+    def build(self) -> TokenSequence:
+        ids, sup, seg = torch.cat(self._ids), torch.cat(self._sup), torch.cat(self._seg)
+        query_target = torch.cat(self._query_target)
+        is_query = seg < 0
+        kept = (~is_query).nonzero().squeeze(1)
+        labels = query_target.clone()
+        labels[kept[:-1]] = torch.where(sup[kept[1:]], ids[kept[1:]], IGNORE)
+        return TokenSequence(ids, labels, seg, torch.cat(self._pos), self.vocab.is_occ(labels))
+
+
+def collate(seqs: list[TokenSequence], pad_id: int) -> dict[str, torch.Tensor]:
+    """Right-pad sequences into a batch.
+
+    Returns ``input_ids``, ``labels`` (shifted targets, -100 on padding), ``segment_ids``,
+    ``position_ids``, ``pad_mask`` (True on real tokens), ``scene_target_mask`` and
+    ``attention_mask``: Bool[B, 1, L, L], True where attention is allowed (the model turns
+    it into what its attention implementation takes).
+    """
+    L = max(len(s) for s in seqs)
+
+    def pad(name: str, value) -> torch.Tensor:
+        return torch.stack([F.pad(getattr(s, name), (0, L - len(s)), value=value) for s in seqs])
+
+    pad_mask = torch.stack([torch.arange(L) < len(s) for s in seqs])
+    segment_ids = pad("segment_ids", 0)
+    return {
+        "input_ids": pad("input_ids", pad_id),
+        "labels": pad("labels", IGNORE),
+        "segment_ids": segment_ids,
+        "position_ids": pad("position_ids", 0),
+        "pad_mask": pad_mask,
+        "scene_target_mask": pad("scene_target", False),
+        "attention_mask": allowed_pairs(segment_ids, pad_mask)[:, None],
+    }
+
+
+@dataclass
+class WorldModelOutput:
+    loss: torch.Tensor
+    text_loss: torch.Tensor
+    scene_loss: torch.Tensor
+    logits: torch.Tensor
+    #: Last-layer hidden states (B, L, hidden), when asked for (feature distillation).
+    hidden: torch.Tensor | None = None
+
+
+class OccWorldModel(nn.Module):
+    """The LLM, the joint vocabulary and the occupancy input projection.
+
+    ``codebook`` Float[K, code_dim] is the frozen scene tokenizer's codebook; it is a
+    non-persistent buffer (the tokenizer's export owns it), the projection is trained.
+    """
+
+    def __init__(self, llm: nn.Module, vocab: JointVocab, codebook: torch.Tensor, scene_prediction: str = "next_scene"):
+        super().__init__()
+        if scene_prediction not in SCENE_PREDICTION_MODES:
+            raise ValueError(f"scene_prediction must be one of {SCENE_PREDICTION_MODES}")
+        if codebook.shape[0] != vocab.num_codes:
+            raise ValueError(f"codebook has {codebook.shape[0]} codes, the vocabulary {vocab.num_codes}")
+        self.llm = llm
+        self.vocab = vocab
+        self.scene_prediction = scene_prediction
+        self.register_buffer("codebook", codebook.detach().float().clone(), persistent=False)
+        hidden = llm.get_input_embeddings().embedding_dim
+        dim = codebook.shape[1]
+        self.occ_proj = nn.Sequential(nn.LayerNorm(dim), nn.Linear(dim, hidden), nn.GELU(), nn.Linear(hidden, hidden))
+
+    # -- building blocks
+    def builder(self) -> SequenceBuilder:
+        return SequenceBuilder(self.vocab, self.scene_prediction)
+
+    def embed(self, input_ids: torch.Tensor) -> torch.Tensor:
+        """Input embeddings; occupancy tokens through the codebook projection."""
+        emb = self.llm.get_input_embeddings()(input_ids)
+        table = self.occ_proj(self.codebook).to(emb.dtype)
+        codes = (input_ids - self.vocab.occ_start).clamp(0, self.vocab.num_codes - 1)
+        return torch.where(self.vocab.is_occ(input_ids)[..., None], table[codes], emb)
+
+    def _mask(self, allowed: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
+        """Bool[B, 1, Lq, Lk] -> what the attention implementation takes: torch SDPA takes
+        the boolean mask for any compute dtype (bf16 autocast included); eager adds a float one."""
+        impl = getattr(self.llm.config, "_attn_implementation", "sdpa")
+        return allowed if impl == "sdpa" else additive(allowed[:, 0], dtype)
+
+    def _run(self, input_ids, attention_mask, position_ids, past_key_values=None, use_cache=False, hidden=False):
+        emb = self.embed(input_ids)
+        return self.llm(
+            inputs_embeds=emb,
+            attention_mask=self._mask(attention_mask, emb.dtype),
+            position_ids=position_ids,
+            past_key_values=past_key_values,
+            use_cache=use_cache,
+            output_hidden_states=hidden,
+        )
+
+    def logits(self, input_ids, attention_mask, position_ids, past_key_values=None, use_cache=False):
+        """The LLM's output for ``input_ids`` under a boolean 4D mask; ``(logits, cache)``."""
+        out = self._run(input_ids, attention_mask, position_ids, past_key_values, use_cache)
+        return out.logits, out.past_key_values
+
+    def forward(self, batch: dict[str, torch.Tensor], output_hidden_states: bool = False) -> WorldModelOutput:
+        """Cross-entropy over all targets (one uniform loss, as in the paper); the text
+        (text + action + marker) and scene parts are reported apart."""
+        out = self._run(batch["input_ids"], batch["attention_mask"], batch["position_ids"], hidden=output_hidden_states)
+        logits = out.logits
+        labels = batch["labels"]
+        ce = F.cross_entropy(logits.flatten(0, 1).float(), labels.flatten(), ignore_index=IGNORE, reduction="none").view_as(labels)
+        valid = labels != IGNORE
+        scene = batch["scene_target_mask"] & valid
+        text = valid & ~scene
+
+        def mean(sel: torch.Tensor) -> torch.Tensor:
+            return (ce * sel).sum() / sel.sum().clamp(min=1)
+
+        hidden = out.hidden_states[-1] if output_hidden_states else None
+        return WorldModelOutput(mean(valid), mean(text), mean(scene), logits, hidden)
+
+    @staticmethod
+    def token_accuracy(logits: torch.Tensor, labels: torch.Tensor, select: torch.Tensor | None = None) -> torch.Tensor:
+        """Fraction of targets (``labels`` != -100, and ``select``) whose argmax is right."""
+        valid = labels != IGNORE
+        if select is not None:
+            valid = valid & select
+        hits = (logits.argmax(-1) == labels) & valid
+        return hits.sum().float() / valid.sum().clamp(min=1)
+
+    # -- generation
+    def decoder(self, prefix_ids: torch.Tensor, use_cache: bool = True) -> GreedyDecoder:
+        return GreedyDecoder(self, prefix_ids, use_cache)
+
+    @torch.no_grad()
+    def generate_text(self, prefix_ids: torch.Tensor, max_new_tokens: int = 64, eos: int | None = None) -> str:
+        """Greedy text after ``prefix_ids`` (Long[L]), up to ``eos``."""
+        return self.vocab.decode_text(self.decoder(prefix_ids).text(max_new_tokens, eos))
+
+    @torch.no_grad()
+    def generate_actions(self, prefix_ids: torch.Tensor, steps: int = 6) -> torch.Tensor:
+        """Greedy ``<act>`` block after ``prefix_ids``: Float[steps, 2] waypoints (metres)."""
+        return self.decoder(prefix_ids).actions(steps)
+
+    @torch.no_grad()
+    def generate_scene(self, prefix_ids: torch.Tensor) -> torch.Tensor:
+        """Greedy ``<occ>`` scene after ``prefix_ids``: Long[h*w] codes."""
+        return self.decoder(prefix_ids).scene()
+
+    @property
+    def hidden_size(self) -> int:
+        return self.llm.get_input_embeddings().embedding_dim
+
+    # -- export
+    def _base_llm(self) -> nn.Module:
+        return self.llm.get_base_model() if hasattr(self.llm, "get_base_model") else self.llm
+
+    def export_config(self) -> dict:
+        """JSON-able description from which ``from_export`` rebuilds the architecture."""
+        base = self._base_llm()
+        return {
+            "llm_config": json.loads(base.config.to_json_string()),
+            "attn_implementation": getattr(base.config, "_attn_implementation", "sdpa"),
+            "scene_prediction": self.scene_prediction,
+            "code_dim": int(self.codebook.shape[1]),
+        }
+
+    @classmethod
+    def from_export(cls, data: dict, vocab: JointVocab, codebook: torch.Tensor) -> OccWorldModel:
+        """An untrained model of the exported architecture; load its state dict next."""
+        from transformers import AutoConfig, AutoModelForCausalLM
+
+        cfg = dict(data["llm_config"])
+        config = AutoConfig.for_model(cfg.pop("model_type"), **cfg)
+        llm = AutoModelForCausalLM.from_config(config, attn_implementation=data["attn_implementation"])
+        return cls(llm, vocab, codebook, data["scene_prediction"])
+
+
+class GreedyDecoder:
+    """Greedy decoding of one sequence with the KV cache, part after part.
+
+    The prefix's scenes are found as runs of code tokens. Chosen tokens are fed lazily, with
+    the next forward, so a part costs: text one forward per token; actions two per
+    waypoint; a scene one forward in "next_scene" mode (``<occ>`` + the query block; the
+    query keys are then cropped off the cache and the chosen codes fed with the next call)
+    and h*w in "next_token" mode. Every choice is restricted to the id range of its kind.
+    ``use_cache=False`` recomputes the whole sequence at each forward (for testing).
+    """
+
+    def __init__(self, world: OccWorldModel, prefix_ids: torch.Tensor, use_cache: bool = True):
+        self.world = world
+        self.vocab = world.vocab
+        self.use_cache = use_cache
+        self.device = world.codebook.device
+        prefix = prefix_ids.reshape(-1).long().to(self.device)
+        seg = scene_segments(self.vocab.is_occ(prefix)) if world.scene_prediction == "next_scene" else torch.zeros_like(prefix)
+        self.ids = prefix[:0]
+        self.seg = seg[:0]
+        self.pending_ids, self.pending_seg = prefix, seg
+        self.next_segment = int(seg.max()) + 1 if seg.numel() else 1
+        self.cache = None
+        self.last_logits: torch.Tensor | None = None
+
+    def _queue(self, ids: list[int] | torch.Tensor, seg: int | torch.Tensor = 0) -> None:
+        ids = torch.as_tensor(ids, dtype=torch.long, device=self.device).reshape(-1)
+        seg = seg if torch.is_tensor(seg) else torch.full_like(ids, seg)
+        self.pending_ids = torch.cat([self.pending_ids, ids])
+        self.pending_seg = torch.cat([self.pending_seg, seg.to(self.device)])
+
+    def _last_id(self) -> int:
+        seq = self.pending_ids if self.pending_ids.numel() else self.ids
+        return int(seq[-1]) if seq.numel() else -1
+
+    def _advance(self, transient: torch.Tensor | None = None, transient_seg: int = -1) -> torch.Tensor:
+        """Feed the pending tokens, then ``transient`` ones that are not kept; logits of all fed."""
+        ids, seg = self.pending_ids, self.pending_seg
+        keep = ids.shape[0]
+        if transient is not None:
+            ids = torch.cat([ids, transient.to(self.device)])
+            seg = torch.cat([seg, torch.full_like(transient, transient_seg).to(self.device)])
+        past = self.ids.shape[0]
+        n = ids.shape[0]
+        positions = torch.arange(past, past + n, device=self.device)[None]
+        if self.use_cache:
+            logits, self.cache = self.world.logits(ids[None], chunk_allowed(seg, past)[:, None], positions, self.cache, use_cache=True)
+            if n > keep:
+                self.cache.crop(-(n - keep))
+        else:
+            all_ids, all_seg = torch.cat([self.ids, ids]), torch.cat([self.seg, seg])
+            allowed = allowed_pairs(all_seg[None], torch.ones_like(all_seg[None], dtype=torch.bool))
+            full = torch.arange(past + n, device=self.device)[None]
+            logits, _ = self.world.logits(all_ids[None], allowed[:, None], full)
+            logits = logits[:, past:]
+        logits = logits[0]
+        self.ids, self.seg = torch.cat([self.ids, ids[:keep]]), torch.cat([self.seg, seg[:keep]])
+        self.pending_ids, self.pending_seg = ids[:0], seg[:0]
+        if keep:
+            self.last_logits = logits[keep - 1]
+        return logits
+
+    def flush(self) -> torch.Tensor:
+        """Feed what is queued; the whole token stream so far, Long[n]."""
+        if self.pending_ids.numel():
+            self._advance()
+        return self.ids
+
+    def _pick(self, lo_hi: tuple[int, int], logits: torch.Tensor | None = None) -> torch.Tensor:
+        if logits is None:
+            if self.pending_ids.numel() or self.last_logits is None:
+                self._advance()
+            logits = self.last_logits
+        lo, hi = lo_hi
+        return logits[..., lo:hi].argmax(-1) + lo
+
+    @torch.no_grad()
+    def text(self, max_new_tokens: int = 64, eos: int | None = None) -> list[int]:
+        """Text token ids up to ``eos`` (excluded); ``eos`` is queued after them either way."""
+        eos = self.vocab.eos_id if eos is None else eos
+        out: list[int] = []
+        for _ in range(max_new_tokens):
+            tok = int(self._pick(self.vocab.text_range))
+            if tok == eos:
+                break
+            out.append(tok)
+            self._queue([tok])
+        self._queue([eos])
+        return out
+
+    @torch.no_grad()
+    def actions(self, steps: int = 6) -> torch.Tensor:
+        """``<act>`` (unless the sequence ends with it), ``steps`` x/y bin pairs, ``</act>``."""
+        v = self.vocab
+        if self._last_id() != v.act_open_id:
+            self._queue([v.act_open_id])
+        ids = []
+        for _ in range(steps):
+            for rng in (v.act_x_range, v.act_y_range):
+                ids.append(int(self._pick(rng)))
+                self._queue(ids[-1:])
+        self._queue([v.act_close_id])
+        return v.actions_from_ids(torch.tensor(ids, dtype=torch.long)).reshape(steps, 2)
+
+    @torch.no_grad()
+    def scene(self) -> torch.Tensor:
+        """``<occ>`` (unless the sequence ends with it), one scene's h*w codes, ``</occ>``."""
+        v = self.vocab
+        if self._last_id() != v.occ_open_id:
+            self._queue([v.occ_open_id])
+        if self.world.scene_prediction == "next_scene":
+            logits = self._advance(v.query_ids(), transient_seg=-1)
+            code_ids = self._pick(v.occ_range, logits[-v.scene_len :])
+            self._queue(code_ids, torch.full_like(code_ids, self.next_segment))
+            self.next_segment += 1
+        else:
+            picked = []
+            for _ in range(v.scene_len):
+                picked.append(self._pick(v.occ_range))
+                self._queue(picked[-1:])
+            code_ids = torch.stack(picked)
+        self._queue([v.occ_close_id])
+        return v.codes_from_ids(code_ids).cpu()

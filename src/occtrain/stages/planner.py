@@ -1,0 +1,192 @@
+"""Stage kind ``planner``: OccVLA's MLP planning head on meta action and ego state.
+
+The head maps the meta action (speed x direction), the ego state (speed, acceleration,
+yaw rate, driving command) and optionally the ego's past waypoints to the 6 future
+waypoints. It trains on ground-truth meta actions; validation reports it with the
+ground-truth meta action and, when the stage consumes an instruct stage, with the meta
+action that model generates in its chain of thought, beside that model's own action-token
+plan and the constant-velocity baseline, all on the same samples.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import lightning as L
+import numpy as np
+import torch
+
+from occtrain.data.schema import COMMANDS, META_DIRECTIONS, META_SPEEDS
+from occtrain.data.tasks import clips_from_batch, ego_future, future_agent_boxes
+from occtrain.errors import ConfigError
+from occtrain.metrics import PlanningMetric
+from occtrain.models.planner import PlanningHead, constant_velocity_plan
+from occtrain.occ3d import FUTURE_STEPS
+from occtrain.stages import StageContext, StageKind, register
+from occtrain.stages.common import configure_adamw, flatten_metrics, read_export, write_export
+
+META_SOURCES = ("ground_truth", "generated")
+
+
+@dataclass
+class PlannerModelConfig:
+    """``model:`` of a planner stage."""
+
+    hidden: int = 256
+    layers: int = 3
+    dropout: float = 0.1
+    #: Feed the ego's past waypoints too (not in OccVLA; an option for ablations).
+    use_past: bool = False
+    loss: str = "mse"  # mse | l1
+    #: Where validation takes the meta action from: the annotation, or the consumed
+    #: instruct stage's generated chain of thought (both are always reported when possible).
+    meta_source: str = "generated"
+    #: Validation batches that run the instruct model's generation (it is the slow part).
+    generate_batches: int = 4
+
+
+def ego_features(anchor: dict, meta: dict, use_past: bool) -> np.ndarray:
+    """The head's input vector: one-hot meta speed and direction, ego state, command, past."""
+    speed = np.eye(len(META_SPEEDS))[META_SPEEDS.index(meta["speed"])]
+    direction = np.eye(len(META_DIRECTIONS))[META_DIRECTIONS.index(meta["direction"])]
+    command = np.eye(len(COMMANDS))[COMMANDS.index(anchor["command"])]
+    state = np.array([anchor["ego_speed"] / 10.0, anchor["ego_accel"] / 3.0, anchor["ego_yaw_rate"]])
+    parts = [speed, direction, state, command]
+    if use_past:
+        past = np.asarray(anchor["ego_past"], dtype=np.float64).reshape(-1) / 10.0
+        parts.append(past * np.repeat(np.asarray(anchor["ego_past_mask"], dtype=np.float64), 2))
+    return np.concatenate(parts).astype(np.float32)
+
+
+def feature_size(use_past: bool) -> int:
+    from occtrain.occ3d import PAST_STEPS
+
+    return len(META_SPEEDS) + len(META_DIRECTIONS) + 3 + len(COMMANDS) + (2 * PAST_STEPS if use_past else 0)
+
+
+class PlannerStage(L.LightningModule):
+    """Trains the planning head; validates it against the baselines with both L2 conventions."""
+
+    def __init__(self, ctx: StageContext):
+        super().__init__()
+        cfg = ctx.model_cfg
+        if cfg.loss not in ("mse", "l1"):
+            raise ConfigError(f"stages '{ctx.spec.name}': model.loss '{cfg.loss}' is not one of mse, l1")
+        if cfg.meta_source not in META_SOURCES:
+            raise ConfigError(f"stages '{ctx.spec.name}': model.meta_source '{cfg.meta_source}' is not one of {', '.join(META_SOURCES)}")
+        self.ctx = ctx
+        self.head = PlanningHead(feature_size(cfg.use_past), cfg.hidden, cfg.layers, FUTURE_STEPS, cfg.dropout)
+        self.teacher = None
+        if cfg.meta_source == "generated":
+            if not ctx.inputs:
+                raise ConfigError(
+                    f"stages '{ctx.spec.name}': model.meta_source 'generated' needs an instruct stage in consumes; "
+                    "or set model.meta_source=ground_truth"
+                )
+            from occtrain.stages.world_model import load_world_model
+
+            self.teacher = load_world_model(next(iter(ctx.inputs.values())))
+            self.teacher.requires_grad_(False).eval()
+        # Training reads annotations only; validation also feeds the instruct model its scenes.
+        self.entries = {"train": ("ann.json",), "val": None if self.teacher is not None else ("ann.json",)}
+        self.metrics = torch.nn.ModuleDict({
+            name: PlanningMetric() for name in ("head_gt_meta", "head_generated_meta", "llm_action_tokens", "constant_velocity")
+        })
+
+    # -- data
+    def _inputs(self, anchors: list[dict], metas: list[dict]) -> torch.Tensor:
+        feats = [ego_features(a, m, self.ctx.model_cfg.use_past) for a, m in zip(anchors, metas)]
+        return torch.from_numpy(np.stack(feats)).to(self.device)
+
+    def _targets(self, anchors: list[dict]) -> tuple[torch.Tensor, torch.Tensor]:
+        futures, masks = zip(*(ego_future(a) for a in anchors))
+        return (torch.from_numpy(np.stack(futures)).float().to(self.device), torch.from_numpy(np.stack(masks)).to(self.device))
+
+    # -- training
+    def training_step(self, batch: dict[str, Any], batch_idx: int) -> torch.Tensor:
+        anchors = [ann["anchor"] for ann in batch["ann"]]
+        pred = self.head(self._inputs(anchors, [a["meta_action"] for a in anchors]))
+        target, mask = self._targets(anchors)
+        err = pred - target
+        per_point = err.pow(2).sum(-1) if self.ctx.model_cfg.loss == "mse" else err.abs().sum(-1)
+        loss = (per_point * mask).sum() / mask.sum().clamp(min=1)
+        self.log("train/loss", loss, prog_bar=True, batch_size=len(anchors))
+        return loss
+
+    # -- validation
+    def validation_step(self, batch: dict[str, Any], batch_idx: int) -> None:
+        anchors = [ann["anchor"] for ann in batch["ann"]]
+        target, mask = self._targets(anchors)
+        agents = [future_agent_boxes(a) for a in anchors]
+
+        def record(name: str, pred: torch.Tensor, rows: list[int] | None = None) -> None:
+            rows = list(range(len(anchors))) if rows is None else rows
+            self.metrics[name].update(pred[rows], target[rows], mask[rows], [agents[i] for i in rows])
+
+        record("head_gt_meta", self.head(self._inputs(anchors, [a["meta_action"] for a in anchors])))
+        speeds = torch.tensor([a["ego_speed"] for a in anchors], device=self.device)
+        record("constant_velocity", constant_velocity_plan(speeds, FUTURE_STEPS))
+        if self.teacher is not None and batch_idx < self.ctx.model_cfg.generate_batches:
+            from occtrain.data.synth.text import parse_meta_action
+
+            outputs = self.teacher.chain_of_thought(clips_from_batch(batch), batch)
+            metas = [parse_meta_action(o.text) for o in outputs]
+            rows = [i for i, m in enumerate(metas) if m is not None]
+            if rows:
+                pred = self.head(self._inputs([anchors[i] for i in rows], [metas[i] for i in rows]))
+                full = torch.zeros_like(target)
+                full[rows] = pred
+                record("head_generated_meta", full, rows)
+            record("llm_action_tokens", torch.stack([torch.as_tensor(o.waypoints, dtype=torch.float32) for o in outputs]).to(self.device))
+            self.log("val/meta_parsed_fraction", len(rows) / len(anchors), batch_size=len(anchors))
+
+    def on_validation_epoch_end(self) -> None:
+        for name, metric in self.metrics.items():
+            if metric.update_count == 0:
+                continue
+            self.log_dict(flatten_metrics(f"val/{name}", metric.compute()))
+            metric.reset()
+
+    def configure_optimizers(self) -> dict:
+        return configure_adamw(self.head.parameters(), self.ctx.spec.optim, self.ctx.trainer.max_steps)
+
+    def state_dict(self, *args: Any, **kwargs: Any) -> dict[str, Any]:
+        # The instruct model is read-only here: checkpoints hold the head alone.
+        return {k: v for k, v in super().state_dict(*args, **kwargs).items() if not k.startswith("teacher.")}
+
+    def load_state_dict(self, state_dict: dict[str, Any], strict: bool = True, **kwargs: Any) -> Any:
+        return super().load_state_dict(state_dict, strict=False)
+
+    # -- reporting and export
+    def summary(self) -> str:
+        return f"planning head {sum(p.numel() for p in self.head.parameters()) / 1e3:.1f}K params"
+
+    def export(self, path: Path) -> Path:
+        cfg = self.ctx.model_cfg
+        config = {
+            "stage_kind": "planner",
+            "features": feature_size(cfg.use_past),
+            "hidden": cfg.hidden,
+            "layers": cfg.layers,
+            "use_past": cfg.use_past,
+            "steps": FUTURE_STEPS,
+        }
+        return write_export(path, self.head.state_dict(), config)
+
+
+def load_planner(export_dir: Path) -> PlanningHead:
+    """The planning head of a planner stage's export, in eval mode."""
+    state, config = read_export(export_dir)
+    head = PlanningHead(config["features"], config["hidden"], config["layers"], config["steps"], 0.0)
+    head.load_state_dict(state)
+    return head.eval()
+
+
+PLANNER = register(
+    StageKind(
+        name="planner", model_schema=PlannerModelConfig, data_kind="clips", build=PlannerStage,
+        monitor="val/head_gt_meta_L2_stp3_avg", mode="min",
+    )
+)

@@ -1,0 +1,192 @@
+"""OccLLaMA's world model: sequence layout, losses, training/generation agreement, KV cache."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+import torch.nn.functional as F
+
+from occtrain.config.llm import LLMConfig
+from occtrain.models.llm import build_llm
+from occtrain.models.text_tokenizer import train_text_tokenizer
+from occtrain.models.vocab import JointVocab
+from occtrain.models.world_model import IGNORE, OccWorldModel, SequenceBuilder, collate
+
+TEXTS = ["go straight", "plan the route", "turn left then stop", "the car turns left"] * 10
+CFG = LLMConfig(hidden_size=64, num_layers=2, num_heads=4, intermediate_size=128, action_bins=16,
+                action_range=[[-8.0, 8.0], [-8.0, 8.0]])
+CTX = torch.tensor([1, 2, 3, 4, 5, 6, 7, 8, 9])
+TARGET = torch.tensor([9, 9, 0, 15, 4, 4, 12, 1, 3])
+XY = torch.tensor([[1.5, -0.5], [3.5, 2.5]])  # bin centres (1 m bins from -8)
+
+
+@pytest.fixture(scope="module")
+def vocab():
+    return JointVocab(train_text_tokenizer(TEXTS, 300), num_codes=16, scene_hw=(3, 3), llm_cfg=CFG)
+
+
+def make_world(vocab, mode: str, seed: int = 0) -> OccWorldModel:
+    torch.manual_seed(seed)
+    return OccWorldModel(build_llm(CFG, len(vocab)), vocab, torch.randn(16, 8), mode)
+
+
+def prompt(b: SequenceBuilder) -> SequenceBuilder:
+    return b.text("go straight").scene(CTX).text("plan the route")
+
+
+def full_sequence(b: SequenceBuilder):
+    return prompt(b).actions(XY, True).scene(TARGET, True).text("turn left then stop", True).build()
+
+
+def test_next_scene_layout(vocab):
+    v = vocab
+    seq = SequenceBuilder(v, "next_scene").scene(CTX).actions(XY[:1], True).scene(TARGET, True).build()
+    ctx_ids, tgt_ids = (v.occ_ids(CTX).tolist(), v.occ_ids(TARGET).tolist())
+    act = v.action_ids(XY[:1]).tolist()
+    queries = v.query_ids().tolist()
+    O, C, A, E = v.occ_open_id, v.occ_close_id, v.act_open_id, v.act_close_id
+    assert seq.input_ids.tolist() == [v.bos_id, O, *ctx_ids, C, A, *act, E, O, *queries, *tgt_ids, C]
+    assert seq.segment_ids.tolist() == [0, 0] + [1] * 9 + [0] * 6 + [-2] * 9 + [2] * 9 + [0]
+    # Queries take the positions of the codes they stand for.
+    assert seq.position_ids.tolist() == list(range(17)) + list(range(17, 26)) + list(range(17, 26)) + [26]
+    # Targets: the context scene predicts nothing; </occ> predicts <act> and on through the
+    # action block to the target's <occ>; the queries predict the codes; the copied codes
+    # predict only </occ>.
+    want = [IGNORE] * 11 + [A, *act, E, O, IGNORE] + tgt_ids + [IGNORE] * 8 + [C, IGNORE]
+    assert seq.labels.tolist() == want
+    assert seq.scene_target.tolist() == [False] * 17 + [True] * 9 + [False] * 10
+
+
+def test_next_token_layout(vocab):
+    v = vocab
+    seq = SequenceBuilder(v, "next_token").text("go straight").scene(TARGET, True).build()
+    text = v.text_ids("go straight")
+    tgt = v.occ_ids(TARGET).tolist()
+    assert seq.input_ids.tolist() == [v.bos_id, *text, v.eos_id, v.occ_open_id, *tgt, v.occ_close_id]
+    assert seq.segment_ids.abs().sum() == 0  # causal everywhere
+    n = len(text) + 2
+    # eos (the last prompt token) predicts <occ>, <occ> the first code, the last code </occ>.
+    assert seq.labels.tolist() == [IGNORE] * (n - 1) + [v.occ_open_id, *tgt, v.occ_close_id, IGNORE]
+    assert seq.scene_target.tolist() == [False] * n + [True] * 9 + [False] * 2
+    with pytest.raises(ValueError, match="9 codes"):
+        SequenceBuilder(v).scene(torch.arange(4))
+
+
+def test_collate_pads_right(vocab):
+    a = SequenceBuilder(vocab).text("go straight", True).build()
+    b = SequenceBuilder(vocab).scene(CTX).build()
+    batch = collate([a, b], vocab.pad_id)
+    L = max(len(a), len(b))
+    assert batch["input_ids"].shape == (2, L) and batch["attention_mask"].shape == (2, 1, L, L)
+    assert batch["input_ids"][0, len(a):].eq(vocab.pad_id).all() and batch["labels"][0, len(a):].eq(IGNORE).all()
+    assert batch["pad_mask"].sum(1).tolist() == [len(a), len(b)]
+    # No real token attends to padding.
+    assert not batch["attention_mask"][0, 0, : len(a), len(a):].any()
+
+
+def test_losses_split_text_and_scene(vocab):
+    world = make_world(vocab, "next_scene")
+    batch = collate([full_sequence(world.builder()), prompt(world.builder()).build()], vocab.pad_id)
+    out = world(batch)
+    labels, scene = batch["labels"], batch["scene_target_mask"]
+    ce = F.cross_entropy(out.logits[scene], labels[scene])
+    text = (labels != IGNORE) & ~scene
+    assert torch.allclose(out.scene_loss, ce, atol=1e-5)
+    assert torch.allclose(out.text_loss, F.cross_entropy(out.logits[text], labels[text]), atol=1e-5)
+    assert torch.allclose(out.loss, F.cross_entropy(out.logits[labels != IGNORE], labels[labels != IGNORE]), atol=1e-5)
+    assert int(scene.sum()) == 9 and int(text.sum()) > 9
+
+
+def test_token_accuracy_by_hand():
+    logits = torch.tensor([[[0.0, 1.0], [2.0, 0.0], [0.0, 3.0], [1.0, 0.0]]])
+    labels = torch.tensor([[1, 1, IGNORE, 0]])
+    assert float(OccWorldModel.token_accuracy(logits, labels)) == pytest.approx(2 / 3)
+    assert float(OccWorldModel.token_accuracy(logits, labels, torch.tensor([[False, True, True, False]]))) == 0.0
+
+
+@pytest.mark.parametrize("mode", ["next_scene", "next_token"])
+def test_overfit_then_generate(vocab, mode):
+    """Training and generation agree: a model that memorised one sequence regenerates its
+    answers greedily from the prompt (actions, then the scene, then the text)."""
+    world = make_world(vocab, mode)
+    batch = collate([full_sequence(world.builder())], vocab.pad_id)
+    opt = torch.optim.Adam(world.parameters(), lr=3e-3)
+    first = None
+    for _ in range(150):
+        out = world(batch)
+        first = first if first is not None else float(out.loss.detach())
+        opt.zero_grad()
+        out.loss.backward()
+        opt.step()
+    world.eval()
+    with torch.no_grad():
+        final = world(batch)
+    assert float(final.loss) < 0.02 * first
+    assert float(world.token_accuracy(final.logits, batch["labels"])) == 1.0
+
+    decoder = world.decoder(prompt(world.builder()).build().input_ids)
+    assert torch.equal(decoder.actions(2), XY)
+    assert torch.equal(decoder.scene(), TARGET)
+    assert vocab.decode_text(decoder.text(20)) == "turn left then stop"
+    # The generated stream is the training sequence with the queries replaced by the codes.
+    want = full_sequence(world.builder()).input_ids
+    want = want[~vocab.is_query(want)]
+    assert torch.equal(decoder.flush(), want)
+
+
+@pytest.mark.parametrize("mode", ["next_scene", "next_token"])
+def test_kv_cache_matches_recompute(vocab, mode):
+    world = make_world(vocab, mode, seed=1).eval()
+    prefix = prompt(world.builder()).build().input_ids
+    outs = []
+    for use_cache in (True, False):
+        d = world.decoder(prefix, use_cache=use_cache)
+        text, actions, scene, more = d.text(4), d.actions(2), d.scene(), d.text(3)
+        d.flush()
+        outs.append((text, actions, scene, more, d.last_logits))
+    (t1, a1, s1, u1, l1), (t2, a2, s2, u2, l2) = outs
+    assert t1 == t2 and torch.equal(a1, a2) and torch.equal(s1, s2) and u1 == u2
+    assert torch.allclose(l1, l2, atol=1e-4)
+
+
+@pytest.mark.parametrize("mode,forwards", [("next_scene", 1), ("next_token", 9)])
+def test_scene_generation_cost_and_tokens(vocab, mode, forwards):
+    """A scene costs one forward by next-scene prediction, h*w token by token, and
+    exactly one scene's codes land between <occ> and </occ>."""
+    world = make_world(vocab, mode).eval()
+    calls = []
+    world.llm.register_forward_hook(lambda *a: calls.append(1))
+    prefix = prompt(world.builder()).build().input_ids
+    d = world.decoder(prefix)
+    codes = d.scene()
+    assert len(calls) == forwards and codes.shape == (9,)
+    tail = d.flush()[len(prefix):]
+    assert tail.tolist() == [vocab.occ_open_id, *vocab.occ_ids(codes).tolist(), vocab.occ_close_id]
+
+
+def test_export_round_trip(vocab):
+    world = make_world(vocab, "next_scene").eval()
+    batch = collate([full_sequence(world.builder())], vocab.pad_id)
+    again = OccWorldModel.from_export(world.export_config(), vocab, world.codebook).eval()
+    again.load_state_dict(world.state_dict())
+    assert "codebook" not in world.state_dict()
+    assert torch.allclose(world(batch).logits, again(batch).logits, atol=1e-6)
+    assert again.scene_prediction == "next_scene"
+
+
+def test_generation_sees_what_training_sees(vocab):
+    """Untrained, exact: the query block's logits in generation equal the training forward's
+    at the query positions, and after the real codes are fed, so do the next token's."""
+    world = make_world(vocab, "next_scene", seed=2).eval()
+    seq = full_sequence(world.builder())
+    train_logits = world(collate([seq], vocab.pad_id)).logits[0]
+    prefix = prompt(world.builder()).actions(XY).build().input_ids
+    d = world.decoder(prefix)
+    d._queue([vocab.occ_open_id])
+    gen = d._advance(vocab.query_ids())[-9:]
+    assert torch.allclose(gen, train_logits[seq.scene_target], atol=1e-4)
+    d._queue(vocab.occ_ids(TARGET), torch.full((9,), 9))
+    d._queue([vocab.occ_close_id])
+    d.flush()
+    close = int((seq.input_ids == vocab.occ_close_id).nonzero()[-1])
+    assert torch.allclose(d.last_logits, train_logits[close], atol=1e-4)
