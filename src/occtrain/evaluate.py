@@ -39,7 +39,7 @@ def evaluate(
     from occtrain.data.datamodule import ShardDataModule, shards_dir
     from occtrain.data.shards import shard_urls
     from occtrain.data.tasks import TaskConfig, clips_from_batch
-    from occtrain.stages.world_model import Evaluator, load_world_model
+    from occtrain.stages.world_model import Evaluator, load_world_model, qa_prior
 
     stage_dir = Path(stage_dir)
     pipeline = stage_dir.parent / "pipeline.yaml"
@@ -58,7 +58,10 @@ def evaluate(
         weights={t: 1.0 for t in names},
         **{k: v for k, v in stage_tasks.items() if k in ("context_frames", "forecast_frames", "max_objects")},
     )
-    evaluator = Evaluator(task_cfg, int((spec.model or {}).get("max_new_text_tokens", 96)), record=save_predictions is not None)
+    evaluator = Evaluator(
+        task_cfg, int((spec.model or {}).get("max_new_text_tokens", 96)), record=save_predictions is not None,
+        qa_prior=qa_prior(recipe.data.root),
+    )
     data = ShardDataModule(recipe.data, "clips")
     data.prepare_data()
     loader = data.loader(split, train=False)

@@ -52,3 +52,11 @@ def npz_bytes(arrays: dict[str, np.ndarray], compress: bool = True) -> bytes:
 
 def atomic_write_npz(path: str | Path, arrays: dict[str, np.ndarray], compress: bool = True) -> Path:
     return atomic_write_bytes(path, npz_bytes(arrays, compress))
+
+
+def is_rank_zero() -> bool:
+    """Whether this process writes shared files (manifests, exports, caches) under DDP.
+
+    Read from the launcher's environment, so it holds before any process group exists.
+    """
+    return os.environ.get("LOCAL_RANK", "0") == "0" and os.environ.get("NODE_RANK", "0") == "0"

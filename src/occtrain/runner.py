@@ -11,7 +11,6 @@ from __future__ import annotations
 import hashlib
 import importlib
 import json
-import os
 import shutil
 import time
 import traceback
@@ -26,7 +25,7 @@ from occtrain.config.loading import validate_section
 from occtrain.config.recipe import STAGE_KINDS, RecipeConfig, StageSpec
 from occtrain.config.schema import TrainerConfig
 from occtrain.errors import ConfigError, OcctrainError
-from occtrain.io import atomic_write_json, atomic_write_text
+from occtrain.io import atomic_write_json, atomic_write_text, is_rank_zero
 from occtrain.manifest import Manifest
 from occtrain.progress import console
 from occtrain.stages import StageContext, StageKind, get_kind, kind_names
@@ -47,10 +46,6 @@ class PlannedStage:
     trainer: TrainerConfig
     config: dict  # resolved, hashed
     config_hash: str
-
-
-def is_rank_zero() -> bool:
-    return os.environ.get("LOCAL_RANK", "0") == "0" and os.environ.get("NODE_RANK", "0") == "0"
 
 
 def _flatten(d: Any, prefix: str = "") -> dict[str, Any]:

@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import json
+import logging
 import math
 import os
 import shutil
 import tempfile
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -52,8 +54,20 @@ class _RngState(Callback):
 # ----------------------------------------------------------------------------- trainer
 
 
+def quiet_lightning() -> None:
+    """Keep a run's log readable: Lightning's device banners, tips and a deprecation notice
+    of its own internals say nothing a user can act on."""
+    logging.getLogger("lightning.pytorch.utilities.rank_zero").setLevel(logging.WARNING)
+    logging.getLogger("lightning.pytorch.accelerators.cuda").setLevel(logging.WARNING)
+    warnings.filterwarnings("ignore", message=r".*LeafSpec.*")
+    warnings.filterwarnings("ignore", message=r".*is_gradient_checkpointing.*")
+    # Frozen sub-models (the scene tokenizer, a teacher) are in eval mode on purpose.
+    warnings.filterwarnings("ignore", message=r".*module\(s\) in eval mode.*")
+
+
 def build_trainer(cfg: TrainerConfig, stage_dir: Path, monitor: str | None, mode: str = "max") -> L.Trainer:
     """A Trainer writing ``checkpoints/`` (last.ckpt every N steps, best by ``monitor``) and ``logs/``."""
+    quiet_lightning()
     ckpt_dir = stage_dir / "checkpoints"
     callbacks: list[Callback] = [
         ModelCheckpoint(

@@ -27,7 +27,7 @@ from occtrain.models.llm import build_llm
 from occtrain.models.world_model import OccWorldModel
 from occtrain.stages import StageContext, StageKind, register
 from occtrain.stages.common import configure_adamw
-from occtrain.stages.world_model import Evaluator, WorldModelEngine, _to, export_engine, load_world_model
+from occtrain.stages.world_model import CODE_CACHE, TEXT_ENTRIES, Evaluator, WorldModelEngine, _to, export_engine, load_world_model, qa_prior
 
 
 def _student_llm() -> LLMConfig:
@@ -50,6 +50,7 @@ class DistillModelConfig:
     max_new_text_tokens: int = 96
     #: New tokens timed for the generation-speed comparison.
     speed_tokens: int = 32
+    cache_codes: bool = True
 
 
 class FeatureProjector(torch.nn.Module):
@@ -97,9 +98,14 @@ class DistillStage(L.LightningModule):
                               scene_prediction=teacher.world.scene_prediction)
         self.student = WorldModelEngine(teacher.scene_tokenizer, world, teacher.text_tokenizer)
         self.projector = FeatureProjector(world.hidden_size, teacher.world.hidden_size)
-        self.evaluator = Evaluator(cfg.tasks, cfg.max_new_text_tokens)
-        self.teacher_evaluator = Evaluator(cfg.tasks, cfg.max_new_text_tokens)
+        prior = qa_prior(ctx.data.root)
+        self.evaluator = Evaluator(cfg.tasks, cfg.max_new_text_tokens, qa_prior=prior)
+        self.teacher_evaluator = Evaluator(cfg.tasks, cfg.max_new_text_tokens, qa_prior=prior)
         self._teacher_scores: dict[str, float] | None = None
+        if cfg.cache_codes:  # one cache, shared: teacher and student read the same scenes
+            self.teacher.build_code_cache(ctx.data.root, ctx.stage_dir / "cache" / CODE_CACHE)
+            self.student.code_cache = self.teacher.code_cache
+            self.entries = {"train": TEXT_ENTRIES, "val": None}
         self._speed: dict[str, float] = {}
 
     def train(self, mode: bool = True) -> DistillStage:
@@ -111,7 +117,7 @@ class DistillStage(L.LightningModule):
         cfg = self.ctx.model_cfg
         clips = clips_from_batch(batch)
         seed = self.ctx.data.seed * 1_000_003 + self.global_step
-        model_batch, _ = self.student.task_batch(clips, batch["semantics"], cfg.tasks, seed)
+        model_batch, _ = self.student.task_batch(clips, batch, cfg.tasks, seed)
         model_batch = _to(model_batch, self.device)
         with torch.no_grad():
             t_out = self.teacher.world(model_batch, output_hidden_states=True)
@@ -129,7 +135,7 @@ class DistillStage(L.LightningModule):
     def validation_step(self, batch: dict[str, Any], batch_idx: int) -> None:
         cfg = self.ctx.model_cfg
         clips = clips_from_batch(batch)
-        model_batch, _ = self.student.task_batch(clips, batch["semantics"], cfg.tasks, seed=batch_idx)
+        model_batch, _ = self.student.task_batch(clips, batch, cfg.tasks, seed=batch_idx)
         model_batch = _to(model_batch, self.device)
         out = self.student.world(model_batch)
         acc = self.student.world.token_accuracy(out.logits, model_batch["labels"])

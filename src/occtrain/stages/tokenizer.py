@@ -17,10 +17,11 @@ import torch
 from omegaconf import OmegaConf
 
 from occtrain.config import to_container
+from occtrain.config.tokenizer import OccLLaMATokenizerConfig, OccWorldVQVAEConfig, validate_tokenizer_config
 from occtrain.errors import ConfigError
-from occtrain.config.tokenizer import OccLLaMATokenizerConfig, OccWorldVQVAEConfig
 from occtrain.metrics import OccupancyMetric
 from occtrain.models import build_tokenizer, count_parameters
+from occtrain.occ3d import FREE
 from occtrain.stages import StageContext, StageKind, register
 from occtrain.stages.common import configure_adamw, freeze_prefixes, read_export, write_export
 
@@ -44,12 +45,15 @@ class TokenizerStage(L.LightningModule):
         cfg = ctx.model_cfg
         if cfg.arch not in ARCHS:
             raise ConfigError(f"stages '{ctx.spec.name}': model.arch '{cfg.arch}' is not one of {', '.join(ARCHS)}")
+        validate_tokenizer_config(cfg[cfg.arch], f"stages '{ctx.spec.name}'.model.{cfg.arch}")
         self.ctx = ctx
         self.arch_cfg = to_container(cfg[cfg.arch])
         self.model = build_tokenizer(cfg.arch, cfg[cfg.arch])
         freeze_prefixes(self.model, list(ctx.spec.freeze))
         self.recon_occworld = OccupancyMetric(convention="occworld")
         self.recon_occ3d = OccupancyMetric(convention="occ3d")
+        #: The trivial baseline: an empty (all free) scene.
+        self.baseline_free = OccupancyMetric(convention="occworld")
         self._pictures: list[tuple] = []
 
     # -- training
@@ -70,11 +74,14 @@ class TokenizerStage(L.LightningModule):
         if batch_idx == 0:  # kept for the dashboard's ground truth vs reconstruction pictures
             self._pictures = [(sem[i].to(torch.uint8).cpu().numpy(), pred[i].to(torch.uint8).cpu().numpy()) for i in range(min(2, len(sem)))]
         self.recon_occworld.update(pred, sem)
+        self.baseline_free.update(torch.full_like(sem, FREE), sem)
         self.recon_occ3d.update(pred, sem, batch["mask_camera"])
         self.log("val/loss", out.losses["loss"], batch_size=sem.shape[0], sync_dist=True)
 
     def on_validation_epoch_end(self) -> None:
-        for prefix, metric in (("val/occworld", self.recon_occworld), ("val/occ3d", self.recon_occ3d)):
+        for prefix, metric in (
+            ("val/occworld", self.recon_occworld), ("val/occ3d", self.recon_occ3d), ("val/baseline_free_occworld", self.baseline_free),
+        ):
             result = metric.compute()
             self.log(f"{prefix}_mIoU", result["mIoU"])
             self.log(f"{prefix}_IoU", result["IoU"])

@@ -31,9 +31,12 @@ from occtrain.data.tasks import (
     clips_from_batch, corpus_texts, ego_future, future_agent_boxes, sample_task, validate_tasks,
 )
 from occtrain.errors import ConfigError
+from occtrain.io import is_rank_zero
+from occtrain.progress import progress_bar
 from occtrain.occ3d import FREE, FUTURE_STEPS
 from occtrain.metrics import CaptionMetric, ForecastMetric, PlanningMetric, QAMetric
 from occtrain.models.llm import apply_lora, build_llm
+from occtrain.models.planner import constant_velocity_plan
 from occtrain.models.text_tokenizer import train_text_tokenizer
 from occtrain.models.vocab import JointVocab
 from occtrain.models.world_model import OccWorldModel, collate
@@ -44,6 +47,9 @@ from occtrain.stages.tokenizer import load_tokenizer
 TEXT_TOKENIZER_DIR = "text_tokenizer"
 SCENE_TOKENIZER_DIR = "scene_tokenizer"
 ADAPTER_DIR = "adapter"
+CODE_CACHE = "scene_codes.safetensors"
+#: The shard entries a world-model stage trains on when scenes come from the code cache.
+TEXT_ENTRIES = ("ann.json", "qa.json", "narration.txt")
 
 
 @dataclass
@@ -59,6 +65,9 @@ class PretrainModelConfig:
     merge_export: bool = False
     #: Val batches that also run generation (it dominates validation time).
     generate_batches: int = 2
+    #: Encode the whole dataset with the frozen tokenizer once, before training, instead of
+    #: every clip at every step (measured in tools/bench/world_model.py).
+    cache_codes: bool = True
     max_new_text_tokens: int = 96
 
 
@@ -90,6 +99,8 @@ class WorldModelEngine(torch.nn.Module):
         self.scene_tokenizer = scene_tokenizer.eval().requires_grad_(False)
         self.world = world
         self.text_tokenizer = text_tokenizer
+        #: Sample token -> codes, when the dataset was encoded ahead (see build_code_cache).
+        self.code_cache: dict[str, torch.Tensor] | None = None
 
     @property
     def vocab(self) -> JointVocab:
@@ -102,14 +113,44 @@ class WorldModelEngine(torch.nn.Module):
 
     # -- scenes
     @torch.no_grad()
-    def scene_codes(self, semantics: torch.Tensor, needed: list[set[int]]) -> dict[tuple[int, int], torch.Tensor]:
-        """Codes (h*w,) of the clip frames each sample needs, encoded in one tokenizer batch."""
+    def scene_codes(self, batch: dict, needed: list[set[int]]) -> dict[tuple[int, int], torch.Tensor]:
+        """Codes (h*w,) of the clip frames each sample needs: from the code cache when one is
+        set (then the batch needs no occupancy at all), else encoded in one tokenizer batch."""
         keys = [(b, f) for b, frames in enumerate(needed) for f in sorted(frames)]
         if not keys:
             return {}
-        frames = torch.stack([semantics[b, f] for b, f in keys]).long()
+        if self.code_cache is not None:
+            return {(b, f): self.code_cache[batch["ann"][b]["tokens"][f]] for b, f in keys}
+        frames = torch.stack([batch["semantics"][b, f] for b, f in keys]).long()
         codes = self.scene_tokenizer.encode(frames).flatten(1)
         return dict(zip(keys, codes))
+
+    @torch.no_grad()
+    def build_code_cache(self, data_root: str | Path, cache_file: Path, batch_size: int = 8) -> None:
+        """Encode every frame of the dataset once (the tokenizer is frozen), kept in
+        ``cache_file`` (safetensors, written atomically) so a resumed stage reuses it."""
+        from safetensors.torch import load_file, save_file
+
+        if cache_file.is_file():
+            self.code_cache = load_file(str(cache_file))
+            return
+        index = DatasetIndex.open(data_root)
+        samples = [(scene, token) for scene, tokens in index.scenes.items() for token in tokens]
+        cache: dict[str, torch.Tensor] = {}
+        device = self.scene_tokenizer.codebook.device
+        with progress_bar(len(samples), "encoding scenes with the frozen tokenizer") as advance:
+            for i in range(0, len(samples), batch_size):
+                chunk = samples[i : i + batch_size]
+                sem = torch.from_numpy(np.stack([index.labels(s, t)["semantics"] for s, t in chunk])).long().to(device)
+                for (_, token), codes in zip(chunk, self.scene_tokenizer.encode(sem).flatten(1).cpu()):
+                    cache[token] = codes.to(torch.int32).contiguous()
+                advance(len(chunk))
+        if is_rank_zero():
+            cache_file.parent.mkdir(parents=True, exist_ok=True)
+            tmp = cache_file.with_suffix(".tmp")
+            save_file(cache, str(tmp))
+            tmp.replace(cache_file)
+        self.code_cache = cache
 
     @torch.no_grad()
     def decode_scenes(self, codes: torch.Tensor) -> torch.Tensor:
@@ -130,11 +171,11 @@ class WorldModelEngine(torch.nn.Module):
                 builder.actions(torch.tensor(part.xy, dtype=torch.float32), part.supervise)
         return builder.build()
 
-    def task_batch(self, clips: list[Clip], semantics: torch.Tensor, tasks: TaskConfig, seed: int) -> tuple[dict, list[str]]:
+    def task_batch(self, clips: list[Clip], batch: dict, tasks: TaskConfig, seed: int) -> tuple[dict, list[str]]:
         """Draw a task per clip and collate the sequences into a model batch."""
         drawn = [sample_task(c, tasks, seed, c.anchor["token"]) for c in clips]
         needed = [{p.frame for p in parts if isinstance(p, Scene)} for _, parts in drawn]
-        codes = self.scene_codes(semantics, needed)
+        codes = self.scene_codes(batch, needed)
         seqs = [
             self.encode_parts(parts, {f: codes[(b, f)] for f in needed[b]}) for b, (_, parts) in enumerate(drawn)
         ]
@@ -174,7 +215,7 @@ class WorldModelEngine(torch.nn.Module):
         cfg = TaskConfig(weights={"cot_planning": 1.0})
         parts_per_clip = [TASKS["cot_planning"](c, cfg, np.random.default_rng(0)) for c in clips]
         needed = [{p.frame for p in ps if isinstance(p, Scene)} if ps else set() for ps in parts_per_clip]
-        codes = self.scene_codes(batch["semantics"], needed)
+        codes = self.scene_codes(batch, needed)
         for b, parts in enumerate(parts_per_clip):
             if parts is None:
                 outputs.append(CotOutput("", np.zeros((6, 2))))
@@ -194,12 +235,20 @@ class Evaluator(torch.nn.Module):
 
     TASKS = ("forecasting", "planning", "qa", "cot_planning")
 
-    def __init__(self, tasks: TaskConfig, max_new_text_tokens: int, record: bool = False):
+    def __init__(
+        self, tasks: TaskConfig, max_new_text_tokens: int, record: bool = False, qa_prior: dict[str, str] | None = None
+    ):
         super().__init__()
         self.tasks = tasks
         self.max_new_text_tokens = max_new_text_tokens
+        #: Trivial baselines scored on the same samples: copy the current scene forward,
+        #: drive on at constant velocity, answer the commonest training answer of the type.
+        self.qa_prior = qa_prior or {}
         self.metrics = torch.nn.ModuleDict({
             "forecast_occworld": ForecastMetric(),
+            "baseline_copy_forecast_occworld": ForecastMetric(),
+            "baseline_constant_velocity": PlanningMetric(),
+            "baseline_prior_qa": QAMetric(),
             "plan_direct": PlanningMetric(),
             "plan_alternate": PlanningMetric(),
             "plan_cot": PlanningMetric(),
@@ -221,7 +270,7 @@ class Evaluator(torch.nn.Module):
                 continue
             built = [TASKS[task](c, self.tasks, rng) for c in clips]
             needed = [{p.frame for p in ps if isinstance(p, Scene) and not p.supervise} if ps else set() for ps in built]
-            codes = engine.scene_codes(batch["semantics"], needed)
+            codes = engine.scene_codes(batch, needed)
             for b, parts in enumerate(built):
                 if parts is not None:
                     generated, all_codes = engine.rollout(parts, {f: codes[(b, f)] for f in needed[b]}, self.max_new_text_tokens)
@@ -243,6 +292,9 @@ class Evaluator(torch.nn.Module):
             plan_mask[0, len(xy):] = False
             name = {"planning": "plan_direct", "forecasting": "plan_alternate", "cot_planning": "plan_cot"}[task]
             self.metrics[name].update(pred, gt_xy, plan_mask, agents)
+            if task == "planning":
+                speed = torch.tensor([float(anchor.get("ego_speed", 0.0))], device=dev)
+                self.metrics["baseline_constant_velocity"].update(constant_velocity_plan(speed, FUTURE_STEPS), gt_xy, gt_mask, agents)
             if self.record and task == "planning":
                 self.predictions["planning"][token] = pred[0].tolist()
                 self.predictions["planning_gt"][token] = {
@@ -261,6 +313,8 @@ class Evaluator(torch.nn.Module):
             target[0, :n] = semantics[a + 1 : a + 1 + n].long()
             valid[0, :n] = True
             self.metrics["forecast_occworld"].update(pred.to(dev), target.to(dev), valid.to(dev))
+            copy = semantics[a].long()[None, None].expand_as(pred)
+            self.metrics["baseline_copy_forecast_occworld"].update(copy.to(dev), target.to(dev), valid.to(dev))
             if self.record:
                 self.predictions["forecast"][token] = (anchor["scene"], decoded[:n].numpy().astype(np.uint8))
         if task == "qa":
@@ -268,6 +322,8 @@ class Evaluator(torch.nn.Module):
             q = next(q for q in clip.qa if q["question"] == question)
             answer = generated[0].text.strip()
             self.metrics["qa"].update([answer], [q["answer"]], [q["template_type"]], [q["num_hop"]])
+            prior = self.qa_prior.get(q["template_type"], "")
+            self.metrics["baseline_prior_qa"].update([prior], [q["answer"]], [q["template_type"]], [q["num_hop"]])
             self._keep_text("qa", parts[-2].text, answer, q["answer"])
             if self.record:
                 self.predictions["qa"][f"{token}|{question}"] = (q, answer)
@@ -301,6 +357,17 @@ class Evaluator(torch.nn.Module):
 
 
 # ----------------------------------------------------------------------------- building
+
+
+def qa_prior(data_root: str | Path) -> dict[str, str]:
+    """The commonest training answer of each NuScenes-QA template type (the QA baseline)."""
+    from collections import Counter
+
+    questions = DatasetIndex.open(data_root).questions("train") or []
+    by_type: dict[str, Counter] = {}
+    for q in questions:
+        by_type.setdefault(q["template_type"], Counter())[q["answer"]] += 1
+    return {t: c.most_common(1)[0][0] for t, c in by_type.items()}
 
 
 def _consumed(ctx: StageContext) -> tuple[Path, dict]:
@@ -382,13 +449,17 @@ class WorldModelStage(L.LightningModule):
         from occtrain.stages.common import freeze_prefixes
 
         freeze_prefixes(world, list(ctx.spec.freeze))
-        self.evaluator = Evaluator(cfg.tasks, cfg.max_new_text_tokens)
+        self.evaluator = Evaluator(cfg.tasks, cfg.max_new_text_tokens, qa_prior=qa_prior(ctx.data.root))
+        if cfg.cache_codes:
+            self.engine.build_code_cache(ctx.data.root, ctx.stage_dir / "cache" / CODE_CACHE)
+            # Training then reads no occupancy; validation still scores forecasts against it.
+            self.entries = {"train": TEXT_ENTRIES, "val": None}
 
     # -- training
     def training_step(self, batch: dict[str, Any], batch_idx: int) -> torch.Tensor:
         clips = clips_from_batch(batch)
         seed = self.ctx.data.seed * 1_000_003 + self.global_step
-        model_batch, names = self.engine.task_batch(clips, batch["semantics"], self.ctx.model_cfg.tasks, seed)
+        model_batch, names = self.engine.task_batch(clips, batch, self.ctx.model_cfg.tasks, seed)
         out = self.engine.world(_to(model_batch, self.device))
         bs = len(clips)
         self.log("train/loss", out.loss, prog_bar=True, batch_size=bs)
@@ -400,7 +471,7 @@ class WorldModelStage(L.LightningModule):
     def validation_step(self, batch: dict[str, Any], batch_idx: int) -> None:
         clips = clips_from_batch(batch)
         cfg = self.ctx.model_cfg
-        model_batch, _ = self.engine.task_batch(clips, batch["semantics"], cfg.tasks, seed=batch_idx)
+        model_batch, _ = self.engine.task_batch(clips, batch, cfg.tasks, seed=batch_idx)
         out = self.engine.world(_to(model_batch, self.device))
         bs = len(clips)
         self.log("val/loss", out.loss, batch_size=bs, sync_dist=True)

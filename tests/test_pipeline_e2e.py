@@ -1,0 +1,109 @@
+"""The five-stage quickstart recipe through the real CLI, shrunk to seconds per stage.
+
+One session-scoped run feeds several checks: every stage done and exported, ``occtrain
+eval`` agreeing with ``occtrain score`` on the saved predictions, and the dashboard. The
+fault test kills the pipeline during its third stage and resumes it.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from conftest import REPO, run_cli
+
+pytestmark = pytest.mark.slow
+
+STAGES = ("tokenizer", "pretrain", "instruct", "planner", "distill")
+
+
+def tiny_overrides(data: Path, steps: int = 3) -> list[str]:
+    """The quickstart recipe at test size: a 3-scene world, a few steps per stage."""
+    out = [
+        f"data.root={data}",
+        "data.synth.train_scenes=2", "data.synth.val_scenes=1", "data.synth.frames_per_scene=13",
+        "data.samples_per_shard=8", "data.shuffle_buffer=4",
+        "trainer.ckpt_every_n_steps=1",
+    ]
+    for i in range(len(STAGES)):
+        out += [
+            f"stages[{i}].trainer.max_steps={steps}", f"stages[{i}].trainer.val_check_interval={steps}",
+            f"stages[{i}].trainer.limit_val_batches=1",
+        ]
+    out += ["stages[1].model.generate_batches=1", "stages[2].model.generate_batches=1", "stages[4].model.generate_batches=1"]
+    out += ["stages[1].model.tasks.forecast_frames=2", "stages[1].model.llm.text_vocab_size=400"]
+    return out
+
+
+@pytest.fixture(scope="module")
+def pipeline(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("pipeline")
+    run_dir = root / "run"
+    res = run_cli("run", "stages/quickstart.yaml", *tiny_overrides(root / "data"), "--run-dir", str(run_dir), timeout=900)
+    assert res.returncode == 0, res.stderr[-3000:]
+    return run_dir
+
+
+def test_every_stage_is_done_and_exported(pipeline):
+    manifest = json.loads((pipeline / "manifest.json").read_text())
+    assert [s for s in manifest["stages"]] == list(STAGES)
+    for name in STAGES:
+        entry = manifest["stages"][name]
+        assert entry["status"] == "done" and entry["attempts"] == 1
+        assert (pipeline / name / "export" / "model.safetensors").is_file()
+        assert json.loads((pipeline / name / "metrics.json").read_text()) == pytest.approx(entry["metrics"], nan_ok=True)
+    # LoRA: the instruct export is the base weights plus a peft adapter directory.
+    assert (pipeline / "instruct" / "export" / "adapter" / "adapter_config.json").is_file()
+    distill = manifest["stages"]["distill"]["metrics"]
+    assert distill["student_params"] < distill["teacher_params"]
+    assert "val/teacher_tokens_per_s" in distill and "val/student_tokens_per_s" in distill
+    planner = manifest["stages"]["planner"]["metrics"]
+    assert "val/constant_velocity_L2_uniad_avg" in planner and "val/head_gt_meta_L2_uniad_avg" in planner
+    assert (pipeline / "dashboard.html").stat().st_size > 10_000
+
+
+def test_eval_and_score_agree(pipeline, tmp_path):
+    preds = tmp_path / "preds"
+    res = run_cli("eval", str(pipeline / "instruct"), "--tasks", "planning,qa,cot_planning", "--save-predictions", str(preds))
+    assert res.returncode == 0, res.stderr[-3000:]
+    metrics = json.loads((pipeline / "instruct" / "eval" / "val" / "metrics.json").read_text())
+
+    planning = run_cli("score", "planning", "--pred", str(preds / "planning_pred.json"), "--gt", str(preds / "planning_gt.json"))
+    assert planning.returncode == 0, planning.stderr
+    scored = json.loads(planning.stdout)
+    for conv in ("stp3", "uniad"):
+        for h in ("1s", "2s", "3s", "avg"):
+            assert scored[f"L2_{conv}"][h] == pytest.approx(metrics[f"plan_direct_L2_{conv}_{h}"], rel=1e-6, nan_ok=True)
+
+    qa = run_cli("score", "qa", "--pred", str(preds / "qa_pred.json"), "--questions", str(preds / "qa_questions.json"))
+    assert qa.returncode == 0, qa.stderr
+    assert json.loads(qa.stdout)["overall"] == pytest.approx(metrics["qa_overall"])
+
+
+def test_resumes_after_kill_9_in_the_third_stage(tmp_path):
+    run_dir = tmp_path / "run"
+    args = ["run", "stages/quickstart.yaml", *tiny_overrides(tmp_path / "data", steps=6), "--run-dir", str(run_dir)]
+    env = dict(os.environ, PYTHONWARNINGS="ignore")
+    proc = subprocess.Popen([sys.executable, "-m", "occtrain", *args], cwd=REPO, env=env,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    ckpt = run_dir / "instruct" / "checkpoints" / "last.ckpt"
+    deadline = time.time() + 600
+    while not ckpt.exists() and proc.poll() is None and time.time() < deadline:
+        time.sleep(0.2)
+    assert ckpt.exists(), "the instruct stage never wrote a checkpoint"
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+
+    res = run_cli(*args, timeout=900)
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert "skipped" in res.stderr and "resuming" in res.stderr
+    stages = json.loads((run_dir / "manifest.json").read_text())["stages"]
+    assert [stages[s]["attempts"] for s in STAGES] == [1, 1, 2, 1, 1]
+    assert all(stages[s]["status"] == "done" for s in STAGES)
