@@ -200,8 +200,9 @@ def _write_dashboard(run_dir: Path) -> None:
     try:
         out = write_dashboard(run_dir)
         console.print(f"dashboard -> {out}")
-    except OcctrainError as err:
-        console.print(f"[yellow]dashboard not written[/]: {err}")
+    except Exception as err:  # noqa: BLE001 - the run's results are safe; the page is a view of them
+        line = str(err).splitlines()[0] if str(err) else type(err).__name__
+        console.print(f"[yellow]dashboard not written[/]: {type(err).__name__}: {line}")
 
 
 def _run_stages(planned: list[PlannedStage], manifest: Manifest, run_dir: Path, recipe: RecipeConfig, only: str | None, rank_zero: bool) -> None:

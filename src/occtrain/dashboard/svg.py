@@ -53,7 +53,8 @@ def nice_ticks(lo: float, hi: float, target: int = 5) -> list[float]:
     mag = 10.0 ** math.floor(math.log10(raw))
     step = next(m * mag for m in (1, 2, 2.5, 5, 10) if m * mag >= raw * (1 - 1e-9))
     first, last = math.floor(lo / step + 1e-9), math.ceil(hi / step - 1e-9)
-    return [round(k * step, 12) for k in range(first, last + 1)]
+    # 12 significant digits, not decimals: tiny ranges (a learning rate near 0) keep distinct ticks.
+    return [float(f"{k * step:.12g}") for k in range(first, last + 1)]
 
 
 def tick_labels(ticks: Sequence[float]) -> list[str]:

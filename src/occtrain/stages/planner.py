@@ -45,6 +45,7 @@ class PlannerModelConfig:
     meta_source: str = "generated"
     #: Validation batches that run the instruct model's generation (it is the slow part).
     generate_batches: int = 4
+    max_new_text_tokens: int = 200
 
 
 def ego_features(anchor: dict, meta: dict, use_past: bool) -> np.ndarray:
@@ -92,7 +93,8 @@ class PlannerStage(L.LightningModule):
         # Training reads annotations only; validation also feeds the instruct model its scenes.
         self.entries = {"train": ("ann.json",), "val": None if self.teacher is not None else ("ann.json",)}
         self.metrics = torch.nn.ModuleDict({
-            name: PlanningMetric() for name in ("head_gt_meta", "head_generated_meta", "llm_action_tokens", "constant_velocity")
+            name: PlanningMetric()
+            for name in ("head_gt_meta", "head_generated_meta", "llm_action_tokens", "constant_velocity", "baseline_stationary")
         })
 
     # -- data
@@ -128,10 +130,11 @@ class PlannerStage(L.LightningModule):
         record("head_gt_meta", self.head(self._inputs(anchors, [a["meta_action"] for a in anchors])))
         speeds = torch.tensor([a["ego_speed"] for a in anchors], device=self.device)
         record("constant_velocity", constant_velocity_plan(speeds, FUTURE_STEPS))
+        record("baseline_stationary", torch.zeros_like(target))
         if self.teacher is not None and batch_idx < self.ctx.model_cfg.generate_batches:
             from occtrain.data.synth.text import parse_meta_action
 
-            outputs = self.teacher.chain_of_thought(clips_from_batch(batch), batch)
+            outputs = self.teacher.chain_of_thought(clips_from_batch(batch), batch, self.ctx.model_cfg.max_new_text_tokens)
             metas = [parse_meta_action(o.text) for o in outputs]
             rows = [i for i, m in enumerate(metas) if m is not None]
             if rows:

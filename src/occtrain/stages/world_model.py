@@ -241,13 +241,14 @@ class Evaluator(torch.nn.Module):
         super().__init__()
         self.tasks = tasks
         self.max_new_text_tokens = max_new_text_tokens
-        #: Trivial baselines scored on the same samples: copy the current scene forward,
+        #: Baselines scored on the same samples: copy the current scene forward, stand still,
         #: drive on at constant velocity, answer the commonest training answer of the type.
         self.qa_prior = qa_prior or {}
         self.metrics = torch.nn.ModuleDict({
             "forecast_occworld": ForecastMetric(),
             "baseline_copy_forecast_occworld": ForecastMetric(),
             "baseline_constant_velocity": PlanningMetric(),
+            "baseline_stationary": PlanningMetric(),
             "baseline_prior_qa": QAMetric(),
             "plan_direct": PlanningMetric(),
             "plan_alternate": PlanningMetric(),
@@ -275,6 +276,19 @@ class Evaluator(torch.nn.Module):
                 if parts is not None:
                     generated, all_codes = engine.rollout(parts, {f: codes[(b, f)] for f in needed[b]}, self.max_new_text_tokens)
                     self._score(engine, task, clips[b], parts, generated, all_codes, batch["semantics"][b])
+        if any(self.tasks.weights.get(t, 0) > 0 for t in ("planning", "forecasting", "cot_planning")):
+            for clip in clips:
+                self._score_plan_baselines(clip.anchor)
+
+    def _score_plan_baselines(self, anchor: dict) -> None:
+        """Standing still and constant velocity, on every clip a plan is scored on."""
+        dev = self.metrics["plan_direct"].device
+        future, mask = ego_future(anchor)
+        gt_xy, gt_mask = torch.tensor(future, dtype=torch.float32, device=dev)[None], torch.tensor(mask, device=dev)[None]
+        agents = [future_agent_boxes(anchor)]
+        speed = torch.tensor([float(anchor.get("ego_speed", 0.0))], device=dev)
+        self.metrics["baseline_constant_velocity"].update(constant_velocity_plan(speed, FUTURE_STEPS), gt_xy, gt_mask, agents)
+        self.metrics["baseline_stationary"].update(torch.zeros_like(gt_xy), gt_xy, gt_mask, agents)
 
     def _score(self, engine, task, clip, parts, generated, codes, semantics) -> None:
         anchor, token = clip.anchor, clip.anchor["token"]
@@ -292,9 +306,6 @@ class Evaluator(torch.nn.Module):
             plan_mask[0, len(xy):] = False
             name = {"planning": "plan_direct", "forecasting": "plan_alternate", "cot_planning": "plan_cot"}[task]
             self.metrics[name].update(pred, gt_xy, plan_mask, agents)
-            if task == "planning":
-                speed = torch.tensor([float(anchor.get("ego_speed", 0.0))], device=dev)
-                self.metrics["baseline_constant_velocity"].update(constant_velocity_plan(speed, FUTURE_STEPS), gt_xy, gt_mask, agents)
             if self.record and task == "planning":
                 self.predictions["planning"][token] = pred[0].tolist()
                 self.predictions["planning_gt"][token] = {

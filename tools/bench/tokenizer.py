@@ -1,0 +1,76 @@
+"""The two scene tokenizers side by side: step time and peak memory at paper size, and
+reconstruction quality after the same training budget.
+
+    python tools/bench/tokenizer.py [--steps 120] [--skip-training]
+
+1. For each tokenizer at its paper-size default config (OccWorld VQ-VAE: 14.17 M params,
+   50x50 latent; OccLLaMA: K=2048, 50x50x256), one forward + backward at 200x200x16, batch
+   1, in a fresh process each: wall time and peak resident memory (goal <= 4 GB).
+2. Unless ``--skip-training``: ``stages/ablations/tokenizer_decoupled_vs_vqvae.yaml`` with
+   ``--steps`` steps per tokenizer, and the reconstruction mIoU/IoU (OccWorld convention)
+   each reaches on the val split.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[2]
+
+PROBE = """
+import resource, time, torch
+from omegaconf import OmegaConf
+from occtrain.config.tokenizer import OccLLaMATokenizerConfig, OccWorldVQVAEConfig
+from occtrain.models import build_tokenizer, count_parameters
+torch.set_num_threads(2)
+arch = "{arch}"
+cfg = OmegaConf.structured(OccWorldVQVAEConfig if arch == "occworld_vqvae" else OccLLaMATokenizerConfig)
+model = build_tokenizer(arch, cfg)
+x = torch.randint(0, 18, (1, 200, 200, 16))
+model(x).losses["loss"].backward()  # warm-up
+start = time.perf_counter()
+model(x).losses["loss"].backward()
+took = time.perf_counter() - start
+print(count_parameters(model), took, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20)
+"""
+
+
+def probe(arch: str) -> tuple[int, float, float]:
+    out = subprocess.run([sys.executable, "-c", PROBE.format(arch=arch)], capture_output=True, text=True, check=True)
+    params, seconds, gib = out.stdout.split()
+    return int(params), float(seconds), float(gib)
+
+
+def train(steps: int) -> dict[str, dict]:
+    with tempfile.TemporaryDirectory() as tmp:
+        overrides = []
+        for i in range(2):
+            overrides += [f"stages[{i}].trainer.max_steps={steps}", f"stages[{i}].trainer.val_check_interval={steps}"]
+        cmd = [sys.executable, "-m", "occtrain", "run", "stages/ablations/tokenizer_decoupled_vs_vqvae.yaml",
+               *overrides, "--run-dir", tmp]
+        subprocess.run(cmd, cwd=REPO, check=True, capture_output=True)
+        manifest = json.loads((Path(tmp) / "manifest.json").read_text())
+        return {name: {**entry["metrics"], "wall_s": entry["wall_time_s"]} for name, entry in manifest["stages"].items()}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--steps", type=int, default=120)
+    parser.add_argument("--skip-training", action="store_true")
+    args = parser.parse_args()
+    for arch in ("occworld_vqvae", "occllama_tokenizer"):
+        params, seconds, gib = probe(arch)
+        print(f"{arch:20s} paper size: {params / 1e6:6.2f} M params, fwd+bwd batch 1 {seconds:5.2f} s, peak RSS {gib:.2f} GiB")
+    if not args.skip_training:
+        for name, m in train(args.steps).items():
+            print(f"{name:20s} after {args.steps} steps ({m['wall_s']:.0f} s): val occworld mIoU {m['val/occworld_mIoU']:.1f}, "
+                  f"IoU {m['val/occworld_IoU']:.1f}; occ3d mIoU {m['val/occ3d_mIoU']:.1f}")
+
+
+if __name__ == "__main__":
+    main()
