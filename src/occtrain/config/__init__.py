@@ -1,6 +1,7 @@
 """Typed configuration: dataclass schemas, YAML loading, overrides and validation."""
 
 from occtrain.config.loading import load_config, read_yaml, to_container, to_yaml
+from occtrain.config.recipe import RecipeConfig
 from occtrain.config.schema import DataConfig, DatasetFile, SynthConfig, TrainerConfig
 
 __all__ = [
@@ -15,7 +16,11 @@ __all__ = [
 ]
 
 #: Which schema a file under ``configs/<group>/`` follows.
-GROUP_SCHEMAS: dict[str, type] = {"data": DataConfig, "trainer": TrainerConfig, "dataset": DatasetFile}
+GROUP_SCHEMAS: dict[str, type] = {
+    "data": DataConfig, "trainer": TrainerConfig, "dataset": DatasetFile,
+    # recipes live in top-level stages/ (and stages/ablations/)
+    "recipe": RecipeConfig, "stages": RecipeConfig, "ablations": RecipeConfig,
+}
 
 
 def schema_for(path: str, group: str | None = None) -> type:
