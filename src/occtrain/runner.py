@@ -250,5 +250,7 @@ def _run_stages(planned: list[PlannedStage], manifest: Manifest, run_dir: Path, 
         manifest.mark_done(name, result["metrics"], result["artifacts"], wall)
         exports[name] = stage_dir / "export"
         if rank_zero:
-            shown = ", ".join(f"{k}={v:.3g}" for k, v in list(result["metrics"].items())[:6])
+            # The model's own numbers first; baselines and teacher figures are in metrics.json.
+            own = [(k, v) for k, v in result["metrics"].items() if "baseline" not in k and "teacher" not in k and "_samples" not in k]
+            shown = ", ".join(f"{k}={v:.3g}" for k, v in own[:6])
             console.print(f"[green]done[/]    {name:14s} {wall:6.0f}s  {result['summary']}  {shown}")

@@ -365,6 +365,7 @@ class Evaluator(torch.nn.Module):
         for metric in self.metrics.values():
             metric.reset()
         self.meta_hits = self.meta_total = 0
+        self.texts = []  # the dashboard shows the last validation's outputs, as the metrics do
 
 
 # ----------------------------------------------------------------------------- building
