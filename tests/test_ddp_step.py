@@ -19,8 +19,8 @@ from omegaconf import OmegaConf
 from torch.nn.parallel import DistributedDataParallel
 
 from occtrain.config.recipe import OptimConfig
-from occtrain.config.tokenizer import OccWorldVQVAEConfig
-from occtrain.models import build_tokenizer
+from occtrain.families.occworld import OccWorldVQVAEConfig
+from occtrain.families import build_tokenizer
 from occtrain.stages.common import configure_adamw
 
 CFG = dict(

@@ -11,7 +11,7 @@ from occtrain.errors import ConfigError
 from occtrain.models.llm import apply_lora, build_llm, load_text_tokenizer
 from occtrain.models.text_tokenizer import train_text_tokenizer
 from occtrain.models.vocab import JointVocab
-from occtrain.models.world_model import OccWorldModel, collate
+from occtrain.families.occllama.world_model import OccWorldModel, collate
 
 TEXTS = ["the car turns left", "how many cars are there"] * 10
 
@@ -83,7 +83,7 @@ def test_lora_trains_only_the_adapter():
     seq = world.builder().scene(torch.tensor([0, 1, 2, 3])).text("turns left", True).build()
     world(collate([seq], vocab.pad_id)).loss.backward()
     assert all(p.grad is not None for n, p in peft_model.named_parameters() if p.requires_grad)
-    assert world.export_config()["llm_config"]["model_type"] == "llama"
+    assert world.export_config()["attn_implementation"] == "sdpa"
     with pytest.raises(ConfigError, match="lora.target_modules"):
         apply_lora(build_llm(LLMConfig(hidden_size=32, num_layers=1, num_heads=2, intermediate_size=64), 50),
                    LoRAConfig(target_modules=["nope_proj"]))

@@ -24,20 +24,21 @@ pytestmark = pytest.mark.slow
 STAGES = ("tokenizer", "pretrain", "instruct", "planner", "distill")
 
 
-def tiny_overrides(data: Path, steps: int = 3) -> list[str]:
-    """The quickstart recipe at test size: a 3-scene world, a few steps per stage."""
+def tiny_overrides(data: Path, steps: int = 3, stages: int = len(STAGES)) -> list[str]:
+    """The quickstart recipe (or another whose first stages are tokenizer, pretrain,
+    instruct) at test size: a 3-scene world, a few steps per stage."""
     out = [
         f"data.root={data}",
         "data.synth.train_scenes=2", "data.synth.val_scenes=1", "data.synth.frames_per_scene=13",
         "data.samples_per_shard=8", "data.shuffle_buffer=4",
         "trainer.ckpt_every_n_steps=1",
     ]
-    for i in range(len(STAGES)):
+    for i in range(stages):
         out += [
             f"stages[{i}].trainer.max_steps={steps}", f"stages[{i}].trainer.val_check_interval={steps}",
             f"stages[{i}].trainer.limit_val_batches=1",
         ]
-    out += ["stages[1].model.generate_batches=1", "stages[2].model.generate_batches=1", "stages[4].model.generate_batches=1"]
+    out += [f"stages[{i}].model.generate_batches=1" for i in (1, 2, 4) if i < stages]
     out += ["stages[1].model.tasks.forecast_frames=2", "stages[1].model.llm.text_vocab_size=400"]
     return out
 
@@ -59,14 +60,32 @@ def test_every_stage_is_done_and_exported(pipeline):
         assert entry["status"] == "done" and entry["attempts"] == 1
         assert (pipeline / name / "export" / "model.safetensors").is_file()
         assert json.loads((pipeline / name / "metrics.json").read_text()) == pytest.approx(entry["metrics"], nan_ok=True)
-    # LoRA: the instruct export is the base weights plus a peft adapter directory.
-    assert (pipeline / "instruct" / "export" / "adapter" / "adapter_config.json").is_file()
+    # World-model exports hold a Hugging Face directory; LoRA adds a peft adapter inside it.
+    for name in ("pretrain", "instruct", "distill"):
+        llm = pipeline / name / "export" / "llm"
+        assert json.loads((llm / "config.json").read_text())["model_type"] == "llama"
+        assert (llm / "generation_config.json").is_file() and (llm / "tokenizer.json").is_file()
+    assert (pipeline / "instruct" / "export" / "llm" / "adapter" / "adapter_config.json").is_file()
+    assert not (pipeline / "pretrain" / "export" / "llm" / "adapter").exists()
     distill = manifest["stages"]["distill"]["metrics"]
     assert distill["student_params"] < distill["teacher_params"]
     assert "val/teacher_tokens_per_s" in distill and "val/student_tokens_per_s" in distill
     planner = manifest["stages"]["planner"]["metrics"]
     assert "val/constant_velocity_L2_uniad_avg" in planner and "val/head_gt_meta_L2_uniad_avg" in planner
+    from occtrain.models.planner import load_planning_head
+
+    assert load_planning_head(pipeline / "planner" / "export").steps == 6
     assert (pipeline / "dashboard.html").stat().st_size > 10_000
+
+
+def test_the_occllama_recipe_runs(tmp_path):
+    """stages/occllama.yaml (tokenizer -> pretrain -> instruct) end to end, shrunk."""
+    run_dir = tmp_path / "run"
+    res = run_cli("run", "stages/occllama.yaml", *tiny_overrides(tmp_path / "data", stages=3), "--run-dir", str(run_dir), timeout=900)
+    assert res.returncode == 0, res.stderr[-3000:]
+    stages = json.loads((run_dir / "manifest.json").read_text())["stages"]
+    assert list(stages) == ["tokenizer", "pretrain", "instruct"] and all(s["status"] == "done" for s in stages.values())
+    assert "val/qa_overall" in stages["instruct"]["metrics"]
 
 
 def test_eval_and_score_agree(pipeline, tmp_path):

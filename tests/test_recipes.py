@@ -13,7 +13,7 @@ RECIPES = sorted((REPO / "stages").rglob("*.yaml"))
 
 
 def test_there_are_recipes():
-    assert {p.name for p in RECIPES} >= {"quickstart.yaml", "tokenizer.yaml", "occllama_multitask.yaml"}
+    assert {p.name for p in RECIPES} >= {"quickstart.yaml", "occllama.yaml", "tokenizer.yaml", "occllama_multitask.yaml"}
 
 
 @pytest.mark.parametrize("path", RECIPES, ids=lambda p: str(p.relative_to(REPO)))

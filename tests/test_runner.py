@@ -7,9 +7,9 @@ import pytest
 import torch
 
 from conftest import write_hand_dataset
-from occtrain.errors import ConfigError
+from occtrain.errors import ConfigError, OcctrainError
 from occtrain.runner import StageFailed, run
-from occtrain.stages.common import read_export, write_export
+from occtrain.exports import read_export, write_export
 from plugins.probe_stage import PROBE
 
 
@@ -128,3 +128,69 @@ def test_export_is_safetensors_and_json(tmp_path):
     assert cfg == {"k": 2} and torch.equal(got["w"], torch.zeros(1))
     assert sorted(p.name for p in (tmp_path / "export").iterdir()) == ["config.json", "model.safetensors"]
     assert [p.name for p in tmp_path.iterdir()] == ["export"]  # no temp leftovers
+
+
+# ----------------------------------------------------------------------------- the Stage interface
+
+
+def test_a_kind_that_is_not_a_stage_is_refused_before_training(recipe, tmp_path):
+    """A registered kind whose module is a plain LightningModule, or a Stage without
+    ``export``, is refused when the recipe is planned: nothing is trained or written."""
+    import lightning as L
+
+    from occtrain.stages import Stage, StageKind, register
+    from plugins.probe_stage import ProbeConfig
+
+    class NotAStage(L.LightningModule):
+        pass
+
+    class NoExport(Stage):
+        pass
+
+    for name, module in (("plain_module", NotAStage), ("no_export", NoExport)):
+        register(StageKind(name=name, model_schema=ProbeConfig, data_kind="frames", module=module))
+        text = recipe.read_text().replace("kind: probe\n    model: {width: 4}\n    optim", f"kind: {name}\n    model: {{width: 4}}\n    optim", 1)
+        (tmp_path / f"{name}.yaml").write_text(text)
+        with pytest.raises(ConfigError, match=f"stage kind '{name}' .* not a concrete occtrain.stages.Stage"):
+            run(tmp_path / f"{name}.yaml")
+        assert not (tmp_path / "runs" / "probe" / "first").exists()
+
+
+def plan_text(tmp_path, stages: str):
+    from occtrain.config import load_config
+    from occtrain.config.recipe import RecipeConfig
+    from occtrain.runner import plan_stages
+
+    (tmp_path / "r.yaml").write_text(f"name: r\nstages:\n{stages}")
+    return plan_stages(load_config(RecipeConfig, tmp_path / "r.yaml"), "r.yaml")
+
+
+def test_consumes_are_checked_when_planning(probe_kind, tmp_path):
+    stages = "  - {name: a, kind: probe}\n  - {name: b, kind: probe}\n  - {name: c, kind: probe, consumes: [a, b]}\n"
+    with pytest.raises(ConfigError, match=r"stages\[2\] \('c'\).*: a probe stage consumes 0 to 1 earlier stage\(s\) \(probe\), got 2"):
+        plan_text(tmp_path, stages)
+
+
+def test_a_world_model_stage_reads_only_its_kind_of_export(tmp_path):
+    with pytest.raises(ConfigError, match="an? instruct stage cannot consume 'tok', a tokenizer stage; it reads pretrain or instruct or distill"):
+        plan_text(tmp_path, "  - {name: tok, kind: tokenizer}\n  - {name: tune, kind: instruct, consumes: [tok]}\n")
+    with pytest.raises(ConfigError, match="a pretrain stage consumes exactly 1 earlier stage"):
+        plan_text(tmp_path, "  - {name: lm, kind: pretrain}\n")
+
+
+def test_checkpoints_load_strictly_by_key(recipe, tmp_path):
+    """A checkpoint whose weights do not match the stage is an error naming the key."""
+    from occtrain.config.recipe import StageSpec
+    from occtrain.config.schema import DataConfig, TrainerConfig
+    from occtrain.stages import StageContext
+    from plugins.probe_stage import Probe, ProbeConfig
+
+    ctx = StageContext(StageSpec(name="first", kind="probe"), ProbeConfig(), DataConfig(), TrainerConfig(), tmp_path, {})
+    stage = Probe(ctx)
+    state = stage.state_dict()
+    Probe(ctx).load_state_dict(state)  # the stage's own checkpoint loads
+    with pytest.raises(OcctrainError, match="missing key 'head.bias'.*--restart first"):
+        Probe(ctx).load_state_dict({k: v for k, v in state.items() if k != "head.bias"})
+    with pytest.raises(OcctrainError, match="unexpected key 'extra.weight'"):
+        Probe(ctx).load_state_dict({**state, "extra.weight": torch.zeros(1)})
+    assert stage.step_seed(5) == stage.step_seed(5) != stage.step_seed(6)

@@ -10,10 +10,10 @@ import torch
 
 from occtrain.data.schema import COMMANDS, META_DIRECTIONS, META_SPEEDS
 from occtrain.models.planner import PlanningHead, constant_velocity_plan
-from occtrain.stages.common import flatten_metrics
-from occtrain.stages.distill import distillation_losses
+from occtrain.metrics import flatten_metrics
+from occtrain.models.distill import distillation_losses
 from occtrain.stages.planner import ego_features, feature_size
-from occtrain.stages.world_model import _base_names
+from occtrain.engine.export import _base_names
 
 
 def test_constant_velocity_drives_straight_at_the_current_speed():

@@ -22,12 +22,11 @@ from occtrain.data.synth.text import (
     RELATIONS,
     TEMPLATE_TYPES,
     caption_for_frame,
-    format_meta_action,
     narration_for_frame,
-    parse_meta_action,
     questions_for_frame,
     spatial_relation,
 )
+from occtrain.data.text_formats import format_meta_action, parse_meta_action
 from occtrain.errors import DataError
 
 # ---------------------------------------------------------------- hand-built frames

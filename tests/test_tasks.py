@@ -1,4 +1,4 @@
-"""World-model task builders on clips of a synthesized world."""
+"""OccLLaMA's task builders on clips of a synthesized world."""
 
 from __future__ import annotations
 
@@ -7,10 +7,9 @@ import pytest
 
 from occtrain.data.geometry import global_to_ego
 from occtrain.data.shards import decode_sample, iter_raw, shard_urls, write_shards
-from occtrain.data.tasks import (
-    OBJECT_CLASSES, TASKS, Actions, Clip, Scene, TaskConfig, Text, sample_task, validate_tasks,
-)
-from occtrain.data.synth.text import parse_meta_action
+from occtrain.data.clips import Actions, Clip, Scene, Text
+from occtrain.families.occllama.tasks import OBJECT_CLASSES, TASKS, TaskConfig, sample_task, validate_tasks
+from occtrain.data.text_formats import parse_meta_action
 from occtrain.errors import ConfigError
 from occtrain.occ3d import CLASS_INDEX
 

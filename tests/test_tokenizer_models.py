@@ -10,11 +10,14 @@ import torch.distributed as dist
 import torch.multiprocessing as mp
 from omegaconf import OmegaConf
 
-from occtrain.config.tokenizer import OccLLaMATokenizerConfig, OccWorldVQVAEConfig, latent_hw
+from occtrain.config.tokenizer import latent_hw
 from occtrain.errors import ConfigError, DataError
-from occtrain.models import build_tokenizer, count_parameters
+from occtrain.families import build_tokenizer
+from occtrain.families.occllama import OccLLaMATokenizerConfig
+from occtrain.families.occllama.tokenizer import PillarEncoder, combine_decoupled
+from occtrain.families.occworld import OccWorldVQVAEConfig
+from occtrain.models import count_parameters
 from occtrain.models.tokenizers.losses import lovasz_softmax
-from occtrain.models.tokenizers.occllama import PillarEncoder, combine_decoupled
 from occtrain.models.tokenizers.quantizer import VectorQuantizer
 from occtrain.models.tokenizers.swin import shifted_window_mask
 from occtrain.occ3d import FREE, GRID_SHAPE, NUM_CLASSES

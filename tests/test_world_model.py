@@ -10,7 +10,7 @@ from occtrain.config.llm import LLMConfig
 from occtrain.models.llm import build_llm
 from occtrain.models.text_tokenizer import train_text_tokenizer
 from occtrain.models.vocab import JointVocab
-from occtrain.models.world_model import IGNORE, OccWorldModel, SequenceBuilder, collate
+from occtrain.families.occllama.world_model import IGNORE, OccWorldModel, SequenceBuilder, collate
 
 TEXTS = ["go straight", "plan the route", "turn left then stop", "the car turns left"] * 10
 CFG = LLMConfig(hidden_size=64, num_layers=2, num_heads=4, intermediate_size=128, action_bins=16,
@@ -167,7 +167,10 @@ def test_scene_generation_cost_and_tokens(vocab, mode, forwards):
 def test_export_round_trip(vocab):
     world = make_world(vocab, "next_scene").eval()
     batch = collate([full_sequence(world.builder())], vocab.pad_id)
-    again = OccWorldModel.from_export(world.export_config(), vocab, world.codebook).eval()
+    from transformers import AutoModelForCausalLM
+
+    llm = AutoModelForCausalLM.from_config(world.llm.config)
+    again = OccWorldModel.from_export(world.export_config(), llm, vocab, world.codebook).eval()
     again.load_state_dict(world.state_dict())
     assert "codebook" not in world.state_dict()
     assert torch.allclose(world(batch).logits, again(batch).logits, atol=1e-6)

@@ -20,12 +20,9 @@ from occtrain.errors import ConfigError
 from occtrain.io import atomic_write_json, atomic_write_npz
 from occtrain.progress import console, progress_bar
 
-#: Evaluation tasks per stage kind, when ``--tasks`` is not given.
-DEFAULT_TASKS = {
-    "pretrain": ("forecasting", "planning"),
-    "instruct": ("qa", "cot_planning"),
-    "distill": ("qa", "cot_planning"),
-}
+#: World-model stage kinds, and whether ``--tasks`` defaults to the scorable tasks of
+#: pretraining (forecasting, planning) or of instruction tuning (QA, chain of thought).
+EVAL_KINDS = {"pretrain": "pretrain", "instruct": "instruct", "distill": "instruct"}
 
 
 def evaluate(
@@ -36,10 +33,11 @@ def evaluate(
     limit_batches: int | None = None,
 ) -> dict[str, float]:
     """Metrics of ``stage_dir``'s export on ``split`` (see the module docstring)."""
+    from occtrain.data.clips import clips_from_batch
     from occtrain.data.datamodule import ShardDataModule, shards_dir
     from occtrain.data.shards import shard_urls
-    from occtrain.data.tasks import TaskConfig, clips_from_batch
-    from occtrain.stages.world_model import Evaluator, load_world_model, qa_prior
+    from occtrain.engine import Evaluator, load_world_model, qa_prior
+    from occtrain.families.occllama.tasks import INSTRUCT_TASKS, PRETRAIN_TASKS
 
     stage_dir = Path(stage_dir)
     pipeline = stage_dir.parent / "pipeline.yaml"
@@ -49,19 +47,12 @@ def evaluate(
     spec = next((s for s in recipe.stages if s.name == stage_dir.name), None)
     if spec is None:
         raise ConfigError(f"{pipeline} has no stage '{stage_dir.name}'; stages are {', '.join(s.name for s in recipe.stages)}")
-    if spec.kind not in DEFAULT_TASKS:
-        raise ConfigError(f"occtrain eval scores world-model stages ({', '.join(DEFAULT_TASKS)}); '{spec.name}' is a {spec.kind} stage")
+    if spec.kind not in EVAL_KINDS:
+        raise ConfigError(f"occtrain eval scores world-model stages ({', '.join(EVAL_KINDS)}); '{spec.name}' is a {spec.kind} stage")
+    # Prompts and generation length come from the export: exactly what the model trained with.
     engine = load_world_model(stage_dir / "export").eval()
-    stage_tasks = dict((spec.model or {}).get("tasks", {}) or {})
-    names = tasks or list(DEFAULT_TASKS[spec.kind])
-    task_cfg = TaskConfig(
-        weights={t: 1.0 for t in names},
-        **{k: v for k, v in stage_tasks.items() if k in ("context_frames", "forecast_frames", "max_objects")},
-    )
-    evaluator = Evaluator(
-        task_cfg, int((spec.model or {}).get("max_new_text_tokens", 96)), record=save_predictions is not None,
-        qa_prior=qa_prior(recipe.data.root),
-    )
+    group = PRETRAIN_TASKS if EVAL_KINDS[spec.kind] == "pretrain" else INSTRUCT_TASKS
+    evaluator = Evaluator(tasks or [t for t in Evaluator.TASKS if t in group], record=save_predictions is not None, qa_prior=qa_prior(recipe.data.root))
     data = ShardDataModule(recipe.data, "clips")
     data.prepare_data()
     loader = data.loader(split, train=False)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import hashlib
 import importlib
+import inspect
 import json
 import shutil
 import time
@@ -18,17 +19,16 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from omegaconf import OmegaConf
 
 from occtrain.config import load_config, to_container, to_yaml
 from occtrain.config.loading import validate_section
-from occtrain.config.recipe import STAGE_KINDS, RecipeConfig, StageSpec
+from occtrain.config.recipe import RecipeConfig, StageSpec
 from occtrain.config.schema import TrainerConfig
 from occtrain.errors import ConfigError, OcctrainError
 from occtrain.io import atomic_write_json, atomic_write_text, is_rank_zero
 from occtrain.manifest import Manifest
 from occtrain.progress import console
-from occtrain.stages import StageContext, StageKind, get_kind, kind_names
+from occtrain.stages import Stage, StageContext, StageKind, get_kind, kind_names
 
 #: Trainer keys that change how often things are written, not what is learned.
 OPERATIONAL_KEYS = ("log_every_n_steps", "ckpt_every_n_steps")
@@ -72,15 +72,19 @@ def plan_stages(recipe: RecipeConfig, source: str) -> list[PlannedStage]:
         where = f"stages[{i}] ('{spec.name}') in {source}"
         kind = get_kind(spec.kind)
         if kind is None:
-            if spec.kind in STAGE_KINDS:
-                raise ConfigError(f"stage kind '{spec.kind}' of {where} is not implemented in this version of occtrain")
             raise ConfigError(f"unknown stage kind '{spec.kind}' for {where}; kinds are {', '.join(kind_names())}")
+        if not (inspect.isclass(kind.module) and issubclass(kind.module, Stage)) or inspect.isabstract(kind.module):
+            raise ConfigError(
+                f"stage kind '{spec.kind}' of {where} is registered with {kind.module!r}, "
+                "which is not a concrete occtrain.stages.Stage (it must subclass Stage and implement export)"
+            )
         if spec.name in names:
             raise ConfigError(f"stage name '{spec.name}' is used twice in {source}")
         for dep in spec.consumes:
             if dep not in names:
                 later = " (it runs later)" if any(s.name == dep for s in recipe.stages) else ""
                 raise ConfigError(f"{where} consumes '{dep}', which is not an earlier stage{later}")
+        kind.module.check_consumes(spec.kind, {dep: planned[names.index(dep)].spec.kind for dep in spec.consumes}, where)
         model_cfg = validate_section(kind.model_schema, spec.model or {}, f"stages[{i}].model", source)
         trainer = validate_section(TrainerConfig, {**to_container(recipe.trainer), **(spec.trainer or {})}, f"stages[{i}].trainer", source)
         trainer_dict = {k: v for k, v in to_container(trainer).items() if k not in OPERATIONAL_KEYS}
@@ -125,7 +129,8 @@ def _execute(stage: PlannedStage, recipe: RecipeConfig, stage_dir: Path, inputs:
     L.seed_everything(stage.trainer.seed, workers=True, verbose=False)
     ctx = StageContext(stage.spec, stage.model_cfg, recipe.data, stage.trainer, stage_dir, inputs)
     module = stage.kind.build(ctx)
-    datamodule = ShardDataModule(recipe.data, stage.kind.data_kind, transform=getattr(module, "sample_transform", None), entries=getattr(module, "entries", None))
+    entries = {split: module.entries(split) for split in ("train", "val")}
+    datamodule = ShardDataModule(recipe.data, stage.kind.data_kind, entries=entries)
     trainer = build_trainer(stage.trainer, stage_dir, stage.kind.monitor, stage.kind.mode)
     ckpt = last_checkpoint(stage_dir)
     if ckpt is not None and is_rank_zero():
@@ -133,25 +138,24 @@ def _execute(stage: PlannedStage, recipe: RecipeConfig, stage_dir: Path, inputs:
     trainer.fit(module, datamodule=datamodule, ckpt_path=ckpt, weights_only=True)
     results = trainer.validate(module, datamodule=datamodule, verbose=False)
     metrics = {k: float(v) for k, v in (results[0] if results else {}).items()}
-    metrics.update(getattr(module, "summary_metrics", lambda: {})())
+    report = module.report()
+    metrics.update(report.metrics)
     artifacts: dict[str, str] = {}
     if trainer.is_global_zero:
         export_dir = module.export(stage_dir / "export")
         atomic_write_json(stage_dir / "metrics.json", metrics)
         # Stages hand over raw scenes and texts; pictures are drawn here, not in the stages.
-        texts = getattr(module, "samples", lambda: [])()
-        scenes = getattr(module, "sample_scenes", lambda: [])()
-        if texts or scenes:
+        if report.texts or report.scenes:
             from occtrain.dashboard import bev_comparison, write_samples
 
-            write_samples(stage_dir, [(caption, bev_comparison(rows)) for caption, rows in scenes], texts)
+            write_samples(stage_dir, [(caption, bev_comparison(rows)) for caption, rows in report.scenes], report.texts)
         artifacts = {
             "export": str(export_dir),
             "metrics": str(stage_dir / "metrics.json"),
             "checkpoints": str(stage_dir / "checkpoints"),
             "logs": str(stage_dir / "logs"),
         }
-    return {"metrics": metrics, "artifacts": artifacts, "summary": getattr(module, "summary", lambda: "")()}
+    return {"metrics": metrics, "artifacts": artifacts, "summary": report.summary}
 
 
 def run(

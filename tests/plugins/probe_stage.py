@@ -12,11 +12,11 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-import lightning as L
 from torch import nn
 
-from occtrain.stages import StageContext, StageKind, register
-from occtrain.stages.common import configure_adamw, read_export, write_export
+from occtrain.exports import read_export, write_export
+from occtrain.stages import Stage, StageContext, StageKind, StageReport, register
+from occtrain.stages.common import configure_adamw
 
 
 @dataclass
@@ -26,12 +26,14 @@ class ProbeConfig:
     step_delay: float = 0.0
 
 
-class Probe(L.LightningModule):
+class Probe(Stage):
     """Per-voxel class embedding -> 1x1x1 classifier: learns the identity map of labels."""
 
+    consumes_kinds = ("probe",)
+    consumes_count = (0, 1)
+
     def __init__(self, ctx: StageContext):
-        super().__init__()
-        self.ctx = ctx
+        super().__init__(ctx)
         self.embed = nn.Embedding(18, ctx.model_cfg.width)
         self.head = nn.Linear(ctx.model_cfg.width, 18)
         self.loaded_from = ""
@@ -61,9 +63,8 @@ class Probe(L.LightningModule):
     def export(self, path: Path) -> Path:
         return write_export(path, self.state_dict(), {"stage": self.ctx.spec.name, "init_from": self.loaded_from})
 
-    def summary(self) -> str:
-        return "probe"
+    def report(self) -> StageReport:
+        return StageReport("probe")
 
 
-
-PROBE = register(StageKind(name="probe", model_schema=ProbeConfig, data_kind="frames", build=Probe, monitor="val/acc"))
+PROBE = register(StageKind(name="probe", model_schema=ProbeConfig, data_kind="frames", module=Probe, monitor="val/acc"))

@@ -25,8 +25,10 @@ REPO = Path(__file__).resolve().parents[2]
 PROBE = """
 import resource, time, torch
 from omegaconf import OmegaConf
-from occtrain.config.tokenizer import OccLLaMATokenizerConfig, OccWorldVQVAEConfig
-from occtrain.models import build_tokenizer, count_parameters
+from occtrain.families import build_tokenizer
+from occtrain.families.occllama import OccLLaMATokenizerConfig
+from occtrain.families.occworld import OccWorldVQVAEConfig
+from occtrain.models import count_parameters
 torch.set_num_threads(2)
 arch = "{arch}"
 cfg = OmegaConf.structured(OccWorldVQVAEConfig if arch == "occworld_vqvae" else OccLLaMATokenizerConfig)

@@ -24,15 +24,14 @@ from omegaconf import OmegaConf  # noqa: E402
 
 from occtrain.config import DataConfig, load_config  # noqa: E402
 from occtrain.config.llm import LLMConfig  # noqa: E402
-from occtrain.config.tokenizer import OccLLaMATokenizerConfig  # noqa: E402
+from occtrain.data.clips import clips_from_batch  # noqa: E402
 from occtrain.data.datamodule import ShardDataModule, ensure_data  # noqa: E402
-from occtrain.data.tasks import TaskConfig, clips_from_batch  # noqa: E402
-from occtrain.models import build_tokenizer  # noqa: E402
+from occtrain.engine import TEXT_ENTRIES, WorldModelEngine  # noqa: E402
+from occtrain.families import build_tokenizer  # noqa: E402
+from occtrain.families.occllama import OccLLaMATokenizerConfig, OccWorldModel, TaskConfig  # noqa: E402
 from occtrain.models.llm import build_llm  # noqa: E402
 from occtrain.models.text_tokenizer import train_text_tokenizer  # noqa: E402
 from occtrain.models.vocab import JointVocab  # noqa: E402
-from occtrain.models.world_model import OccWorldModel  # noqa: E402
-from occtrain.stages.world_model import TEXT_ENTRIES, WorldModelEngine  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -42,19 +41,18 @@ def engine_for(mode: str, tokenizer: torch.nn.Module) -> WorldModelEngine:
     llm_cfg = LLMConfig(scene_prediction=mode)
     vocab = JointVocab(text, num_codes=tokenizer.num_codes, scene_hw=tuple(tokenizer.latent_hw), llm_cfg=llm_cfg)
     world = OccWorldModel(build_llm(llm_cfg, len(vocab)), vocab, tokenizer.codebook, mode)
-    return WorldModelEngine(tokenizer, world.eval(), text)
+    return WorldModelEngine(tokenizer, world.eval(), text, TaskConfig(context_frames=2, forecast_frames=6))
 
 
 def time_batches(engine: WorldModelEngine, data: DataConfig, entries, steps: int) -> float:
     """Seconds per training batch: read + decode the shard sample, scene codes, build the sequences."""
     dm = ShardDataModule(data, "clips", entries={"train": entries})
     it = iter(dm.train_dataloader())
-    tasks = TaskConfig(context_frames=2, forecast_frames=6)
-    engine.task_batch(clips_from_batch(b := next(it)), b, tasks, 0)  # warm-up
+    engine.task_batch(clips_from_batch(b := next(it)), b, 0)  # warm-up
     start = time.perf_counter()
     for step in range(steps):
         batch = next(it)
-        engine.task_batch(clips_from_batch(batch), batch, tasks, step)
+        engine.task_batch(clips_from_batch(batch), batch, step)
     return (time.perf_counter() - start) / steps
 
 

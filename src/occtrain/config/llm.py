@@ -6,6 +6,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 SCENE_PREDICTION_MODES = ("next_scene", "next_token")
+#: Text tokens a generated answer may take before it is cut off, unless a stage says otherwise.
+MAX_NEW_TEXT_TOKENS = 96
 
 
 @dataclass

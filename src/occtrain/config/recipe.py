@@ -9,8 +9,6 @@ from omegaconf import MISSING
 
 from occtrain.config.schema import DataConfig, TrainerConfig
 
-STAGE_KINDS = ("tokenizer", "pretrain", "instruct", "planner", "distill")
-
 
 @dataclass
 class OptimConfig:

@@ -1,14 +1,15 @@
-"""Structured configs of the two scene tokenizers; the defaults are the published sizes.
+"""What every scene tokenizer's config shares: the codebook fields, the latent grid, validation.
 
-Both tokenizers shrink the 200 x 200 BEV plane by a list of per-stage strides, so the
-latent side is ``200 / prod(strides)`` (paper: 50, quickstart: 10). Use
-:func:`latent_hw` on a dataclass or an omegaconf DictConfig alike.
+Each architecture's own config lives in its family (``occtrain.families.<family>``) and
+derives from :class:`QuantizerFields`. Tokenizers shrink the 200 x 200 BEV plane by a list
+of per-stage strides, so the latent side is ``200 / prod(strides)`` (paper: 50,
+quickstart: 10). Use :func:`latent_hw` on a dataclass or an omegaconf DictConfig alike.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 from occtrain.errors import ConfigError
@@ -35,71 +36,13 @@ class QuantizerFields:
     #: CPU recipe samples, since the exact loss sorts every voxel for every class).
     lovasz_voxels: int = 0
 
-
-@dataclass
-class OccWorldVQVAEConfig(QuantizerFields):
-    """OccWorld's VQ-VAE: class embedding, height folded into channels, 2D ResNet encoder/decoder.
-
-    Defaults match the released model (embedding 8, channels 64 x (1, 2, 4), two ResNet blocks per
-    level, attention at the 50 x 50 latent, 512 codes of dimension 128): about 14.2 M parameters.
-    """
-
-    class_embed_dim: int = 8
-    base_channels: int = 64
-    #: Channel multiplier of each resolution level; one more entry than ``strides``.
-    channel_mult: list[int] = field(default_factory=lambda: [1, 2, 4])
-    #: Downsampling stride between consecutive levels; their product must divide 200.
-    strides: list[int] = field(default_factory=lambda: [2, 2])
-    num_res_blocks: int = 2
-    #: Self-attention blocks at the latent resolution (OccWorld: yes, at 50 x 50).
-    latent_attention: bool = True
-    #: Channels of the encoder output before the 1x1 projection to ``code_dim``.
-    z_channels: int = 128
-    ce_weight: float = 10.0
-    lovasz_weight: float = 1.0
-    vq_weight: float = 1.0
-
     @property
     def latent_hw(self) -> tuple[int, int]:
         return latent_hw(self)
 
-
-@dataclass
-class OccLLaMATokenizerConfig(QuantizerFields):
-    """OccLLaMA's tokenizer: sparse pillar encoder + swin block, VQ, decoupled status/semantics decoder.
-
-    Defaults follow the paper's ``50 x 256 x 2048`` (latent side, feature dimension, codebook
-    size) and its loss weights lambda1 = lambda2 = 2, lambda3 = 0.5 (Eq. 9-10).
-    """
-
-    num_codes: int = 2048
-    code_dim: int = 256
-    #: Dimension of the per-point (height, label) embedding inside a pillar.
-    class_embed_dim: int = 64
-    base_channels: int = 64
-    channel_mult: list[int] = field(default_factory=lambda: [1, 2, 4])
-    strides: list[int] = field(default_factory=lambda: [2, 2])
-    #: ResNet blocks per level of the decoder (it follows OccWorld's decoder).
-    num_res_blocks: int = 2
-    #: Swin blocks at the latent; they alternate regular and shifted windows.
-    swin_depth: int = 2
-    swin_heads: int = 8
-    #: Side of a square attention window; clipped to the latent side.
-    window_size: int = 5
-    mlp_ratio: float = 4.0
-    #: Per-voxel feature dimension C of the decoded volume, input of the heads h_a and h_n.
-    voxel_feature_dim: int = 16
-    #: Eq. 9: weight of the semantics reconstruction loss.
-    lambda1: float = 2.0
-    #: Eq. 9: weight of the occupancy-status reconstruction loss.
-    lambda2: float = 2.0
-    #: Eq. 10: weight of Lovasz-softmax inside each reconstruction loss.
-    lambda3: float = 0.5
-    vq_weight: float = 1.0
-
-    @property
-    def latent_hw(self) -> tuple[int, int]:
-        return latent_hw(self)
+    def validate(self, where: str) -> None:
+        """Raise a one-line ConfigError naming ``<where>.<key>``; subclasses add their checks."""
+        validate_common(self, where)
 
 
 def latent_hw(cfg: Any) -> tuple[int, int]:
@@ -108,8 +51,8 @@ def latent_hw(cfg: Any) -> tuple[int, int]:
     return GRID_SHAPE[0] // r, GRID_SHAPE[1] // r
 
 
-def validate_tokenizer_config(cfg: OccWorldVQVAEConfig | OccLLaMATokenizerConfig, where: str) -> None:
-    """Raise a one-line ConfigError naming ``<where>.<key>`` for settings no model can be built from."""
+def validate_common(cfg: Any, where: str) -> None:
+    """Checks every convolutional tokenizer needs (strides, channel multipliers, codebook)."""
     strides = list(cfg.strides)
     if not strides or any(s < 1 for s in strides):
         raise ConfigError(f"{where}.strides: {strides} must be a non-empty list of positive integers")
@@ -127,10 +70,3 @@ def validate_tokenizer_config(cfg: OccWorldVQVAEConfig | OccLLaMATokenizerConfig
         raise ConfigError(f"{where}.ema_decay: {cfg.ema_decay} must be in [0, 1) (0 turns EMA off)")
     if not 0.0 < cfg.usage_decay < 1.0:
         raise ConfigError(f"{where}.usage_decay: {cfg.usage_decay} must be in (0, 1)")
-    if isinstance(cfg, OccLLaMATokenizerConfig):
-        dim = cfg.base_channels * cfg.channel_mult[-1]
-        if dim % cfg.swin_heads:
-            raise ConfigError(f"{where}.swin_heads: {cfg.swin_heads} must divide the latent channels {dim}")
-        window = min(cfg.window_size, *latent_hw(cfg))
-        if any(side % window for side in latent_hw(cfg)):
-            raise ConfigError(f"{where}.window_size: {cfg.window_size} must divide the latent side {latent_hw(cfg)[0]}")

@@ -48,7 +48,7 @@ def collate_frames(samples: list[dict]) -> dict[str, Any]:
 def collate_clips(samples: list[dict]) -> dict[str, Any]:
     """Stack clip samples: semantics (B,T,X,Y,Z), camera masks, and per-sample annotations/text.
 
-    Entries a stage chose not to read (see ``StageKind.entries``) are left out of the batch.
+    Entries a stage chose not to read (see ``Stage.entries``) are left out of the batch.
     """
     batch: dict[str, Any] = {"token": [s["__key__"] for s in samples]}
     if "occ.npz" in samples[0]:

@@ -10,6 +10,8 @@ from __future__ import annotations
 
 from typing import TypedDict
 
+from occtrain.nuscenes_qa import TEMPLATE_TYPES  # noqa: F401 - re-exported: question records use it
+
 #: High-level driving command, as in ST-P3 / UniAD (decided from the future
 #: trajectory's lateral offset at the last waypoint; see COMMAND_LATERAL_THRESHOLD).
 COMMANDS: tuple[str, ...] = ("turn right", "turn left", "go straight")
@@ -34,8 +36,6 @@ STATUS_VALUES: tuple[str, ...] = (
 )
 
 
-#: NuScenes-QA question template types.
-TEMPLATE_TYPES: tuple[str, ...] = ("exist", "count", "object", "status", "comparison")
 
 
 class EgoPose(TypedDict):

@@ -15,9 +15,7 @@ from typing import Any, Sequence
 import torch
 from torchmetrics import Metric
 
-from occtrain.data.schema import TEMPLATE_TYPES
-
-HOPS = (0, 1)
+from occtrain.nuscenes_qa import HOPS, TEMPLATE_TYPES
 
 
 def answer_text(answer: Any) -> str:

@@ -1,15 +1,14 @@
-"""nn.Modules of the papers (no Lightning here): scene tokenizers, and the pieces of later stages."""
+"""Blocks the families share (no Lightning here): LLM loading and LoRA, the joint vocabulary,
+the action quantizer, attention masks, the VQ codebook and tokenizer blocks, planning heads."""
 
 from __future__ import annotations
 
 from torch import nn
 
-from occtrain.models.tokenizers import SceneTokenizer, TokenizerOutput, build_tokenizer
+
+def count_parameters(module: nn.Module, trainable: bool = False) -> int:
+    """Number of parameters of ``module`` (buffers excluded); only trainable ones with ``trainable``."""
+    return sum(p.numel() for p in module.parameters() if p.requires_grad or not trainable)
 
 
-def count_parameters(module: nn.Module) -> int:
-    """Number of parameters of ``module``, trainable and frozen alike (buffers excluded)."""
-    return sum(p.numel() for p in module.parameters())
-
-
-__all__ = ["SceneTokenizer", "TokenizerOutput", "build_tokenizer", "count_parameters"]
+__all__ = ["count_parameters"]

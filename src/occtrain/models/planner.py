@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import torch
 from torch import nn
 
+from occtrain.errors import OcctrainError
+from occtrain.exports import load_state_strict, read_export
 from occtrain.occ3d import FRAME_DT
 
 
@@ -35,3 +39,13 @@ def constant_velocity_plan(speed: torch.Tensor, steps: int) -> torch.Tensor:
     t = torch.arange(1, steps + 1, device=speed.device, dtype=torch.float32) * FRAME_DT
     x = speed.float()[:, None] * t
     return torch.stack([x, torch.zeros_like(x)], dim=-1)
+
+
+def load_planning_head(export_dir: Path) -> PlanningHead:
+    """The planning head of a planner stage's export, in eval mode."""
+    state, config = read_export(export_dir)
+    if config.get("stage_kind") != "planner":
+        raise OcctrainError(f"{export_dir}: not a planner export (stage kind '{config.get('stage_kind')}')")
+    head = PlanningHead(config["features"], config["hidden"], config["layers"], config["steps"], 0.0)
+    load_state_strict(head, state, (), str(export_dir))
+    return head.eval()

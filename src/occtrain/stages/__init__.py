@@ -1,47 +1,41 @@
-"""Stage kinds: each a LightningModule plus how to build, feed and export it.
+"""Stage kinds: each a :class:`~occtrain.stages.base.Stage` (a LightningModule) registered by name.
 
-A kind registers a :class:`StageKind`; the runner looks kinds up by name. Kinds whose
-module is not implemented yet are reported as such when a recipe names them.
+``BUILTIN_KINDS`` is the one list of the kinds occtrain ships; each imports its module on
+first use, so a recipe of tokenizer stages never pays for importing transformers. Plugins
+register more with :func:`register`.
 """
 
 from __future__ import annotations
 
 import importlib
 from dataclasses import dataclass
-from pathlib import Path
-from typing import Any, Callable
 
-import lightning as L
+from occtrain.stages.base import Stage, StageContext, StageReport
 
-from occtrain.config.recipe import StageSpec
-from occtrain.config.schema import DataConfig, TrainerConfig
-
-
-@dataclass
-class StageContext:
-    """Everything a stage kind needs to build its module."""
-
-    spec: StageSpec
-    model_cfg: Any  # the kind's validated model config (an omegaconf structured object)
-    data: DataConfig
-    trainer: TrainerConfig
-    stage_dir: Path
-    #: Export directories of the consumed stages, by stage name.
-    inputs: dict[str, Path]
+#: Built-in kinds and the module that registers each.
+BUILTIN_KINDS = {
+    "tokenizer": "occtrain.stages.tokenizer",
+    "pretrain": "occtrain.stages.world_model",
+    "instruct": "occtrain.stages.world_model",
+    "planner": "occtrain.stages.planner",
+    "distill": "occtrain.stages.distill",
+}
 
 
 @dataclass(frozen=True)
 class StageKind:
+    """A registered kind: its name, the schema of its ``model:`` section and its Stage class."""
+
     name: str
     model_schema: type
     data_kind: str  # "frames" or "clips"
-    #: Builds the stage's LightningModule. The module may define ``entries``: per split
-    #: ("train", "val"), the shard entries it reads (None: all), so that e.g. a stage that
-    #: trains on annotations alone never decodes occupancy.
-    build: Callable[[StageContext], L.LightningModule]
+    module: type
     #: Validation metric that picks ``best.ckpt``, and whether higher is better.
     monitor: str | None = None
     mode: str = "max"
+
+    def build(self, ctx: StageContext) -> Stage:
+        return self.module(ctx)
 
 
 _KINDS: dict[str, StageKind] = {}
@@ -50,17 +44,6 @@ _KINDS: dict[str, StageKind] = {}
 def register(kind: StageKind) -> StageKind:
     _KINDS[kind.name] = kind
     return kind
-
-
-#: Built-in kinds and the module that registers each. Imported on first use, so a recipe
-#: of tokenizer stages never pays for importing transformers.
-BUILTIN_KINDS = {
-    "tokenizer": "occtrain.stages.tokenizer",
-    "pretrain": "occtrain.stages.world_model",
-    "instruct": "occtrain.stages.world_model",
-    "planner": "occtrain.stages.planner",
-    "distill": "occtrain.stages.distill",
-}
 
 
 def get_kind(name: str) -> StageKind | None:
@@ -72,3 +55,6 @@ def get_kind(name: str) -> StageKind | None:
 
 def kind_names() -> list[str]:
     return sorted(set(_KINDS) | set(BUILTIN_KINDS))
+
+
+__all__ = ["BUILTIN_KINDS", "Stage", "StageContext", "StageKind", "StageReport", "get_kind", "kind_names", "register"]

@@ -1,13 +1,9 @@
-"""What every stage kind shares: the Trainer, the resumable data position, exports, optimizers."""
+"""What every stage kind shares: the Trainer, the resumable data position, optimizers, metric names."""
 
 from __future__ import annotations
 
-import json
 import logging
 import math
-import os
-import shutil
-import tempfile
 import warnings
 from pathlib import Path
 from typing import Any
@@ -16,15 +12,12 @@ import lightning as L
 import torch
 from lightning.pytorch.callbacks import Callback, LearningRateMonitor, ModelCheckpoint, RichProgressBar
 from lightning.pytorch.loggers import CSVLogger, TensorBoardLogger
-from safetensors.torch import load_file, save_file
 
 from occtrain.config.recipe import OptimConfig
 from occtrain.config.schema import TrainerConfig
 from occtrain.data.datamodule import ResumableLoader
 from occtrain.errors import OcctrainError
 
-EXPORT_WEIGHTS = "model.safetensors"
-EXPORT_CONFIG = "config.json"
 LAST_CKPT = "last.ckpt"
 
 
@@ -147,63 +140,3 @@ def freeze_prefixes(module: torch.nn.Module, prefixes: list[str]) -> int:
     if prefixes and n == 0:
         raise OcctrainError(f"freeze: no parameter name starts with {', '.join(prefixes)}")
     return n
-
-
-# ----------------------------------------------------------------------------- export
-
-
-def write_export(export_dir: Path, state_dict: dict[str, torch.Tensor], config: dict, extra: dict[str, Path] | None = None) -> Path:
-    """Write ``model.safetensors`` + ``config.json`` (+ extra files/dirs) as one atomic directory swap."""
-    export_dir = Path(export_dir)
-    export_dir.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(dir=export_dir.parent, prefix=".export."))
-    try:
-        tensors = {k: v.detach().cpu().contiguous() for k, v in state_dict.items()}
-        save_file(tensors, str(tmp / EXPORT_WEIGHTS))
-        (tmp / EXPORT_CONFIG).write_text(json.dumps(config, indent=2) + "\n")
-        for name, src in (extra or {}).items():
-            (shutil.copytree if Path(src).is_dir() else shutil.copy2)(src, tmp / name)
-        for f in tmp.rglob("*"):
-            if f.is_file():
-                with open(f, "rb") as fh:
-                    os.fsync(fh.fileno())
-        old = export_dir.with_name(f".{export_dir.name}.old")
-        if export_dir.exists():
-            shutil.rmtree(old, ignore_errors=True)
-            export_dir.rename(old)
-        tmp.rename(export_dir)
-        shutil.rmtree(old, ignore_errors=True)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    return export_dir
-
-
-def read_export(export_dir: Path) -> tuple[dict[str, torch.Tensor], dict]:
-    """Load an export's weights and config (safetensors + JSON: nothing is unpickled)."""
-    export_dir = Path(export_dir)
-    weights, config = export_dir / EXPORT_WEIGHTS, export_dir / EXPORT_CONFIG
-    if not weights.is_file() or not config.is_file():
-        raise OcctrainError(f"{export_dir}: no exported model ({EXPORT_WEIGHTS} + {EXPORT_CONFIG}); run the stage that produces it first")
-    try:
-        return load_file(str(weights)), json.loads(config.read_text())
-    except Exception as err:  # safetensors raises its own error types on a corrupt header
-        raise OcctrainError(f"{export_dir}: unreadable export ({type(err).__name__}: {err}); re-run the stage that wrote it") from None
-
-
-# ----------------------------------------------------------------------------- metrics
-
-
-def flatten_metrics(prefix: str, result: dict[str, Any]) -> dict[str, float]:
-    """``("val/plan", {"L2_stp3": {"1s": .5}})`` -> ``{"val/plan_L2_stp3_1s": .5}``.
-
-    Non-numeric values (the convention labels) are left out: the names carry them.
-    """
-    flat: dict[str, float] = {}
-    for key, value in result.items():
-        name = f"{prefix}_{key}"
-        if isinstance(value, dict):
-            flat.update(flatten_metrics(name, value))
-        elif isinstance(value, (int, float)) or (torch.is_tensor(value) and value.numel() == 1):
-            flat[name] = float(value)
-    return flat

@@ -16,18 +16,22 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import lightning as L
 import torch
-import torch.nn.functional as F
+from omegaconf import OmegaConf
 
-from occtrain.config.llm import LLMConfig
-from occtrain.data.tasks import INSTRUCT_TASKS, TaskConfig, clips_from_batch, validate_tasks
-from occtrain.errors import ConfigError
+from occtrain.config.llm import MAX_NEW_TEXT_TOKENS, LLMConfig
+from occtrain.data.clips import clips_from_batch
+from occtrain.engine import (
+    CODE_CACHE, TEXT_ENTRIES, Evaluator, WorldModelEngine, export_engine, load_world_model, move_batch, qa_prior,
+)
+from occtrain.families import get_family
+from occtrain.families.occllama.tasks import INSTRUCT_TASKS, TaskConfig, validate_tasks
+from occtrain.models import count_parameters
+from occtrain.models.distill import FeatureProjector, distillation_losses
 from occtrain.models.llm import build_llm
-from occtrain.models.world_model import OccWorldModel
-from occtrain.stages import StageContext, StageKind, register
+from occtrain.stages import StageKind, register
+from occtrain.stages.base import Stage, StageContext, StageReport
 from occtrain.stages.common import configure_adamw
-from occtrain.stages.world_model import CODE_CACHE, TEXT_ENTRIES, Evaluator, WorldModelEngine, _to, export_engine, load_world_model, qa_prior
 
 
 def _student_llm() -> LLMConfig:
@@ -47,66 +51,49 @@ class DistillModelConfig:
     ce_weight: float = 0.5
     feature_weight: float = 1.0
     generate_batches: int = 2
-    max_new_text_tokens: int = 96
+    max_new_text_tokens: int = MAX_NEW_TEXT_TOKENS
     #: New tokens timed for the generation-speed comparison.
     speed_tokens: int = 32
     cache_codes: bool = True
 
 
-class FeatureProjector(torch.nn.Module):
-    """Student hidden states -> the teacher's width, then LayerNorm (SparseOccVLA's distillation head)."""
-
-    def __init__(self, student_dim: int, teacher_dim: int):
-        super().__init__()
-        self.proj = torch.nn.Linear(student_dim, teacher_dim)
-        self.norm = torch.nn.LayerNorm(teacher_dim)
-
-    def forward(self, hidden: torch.Tensor) -> torch.Tensor:
-        return self.norm(self.proj(hidden))
-
-
-def distillation_losses(
-    student_logits: torch.Tensor, teacher_logits: torch.Tensor, student_feat: torch.Tensor, teacher_hidden: torch.Tensor,
-    valid: torch.Tensor, temperature: float,
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """KL(teacher || student) at temperature T (times T^2) and 1 - cosine of the features,
-    both averaged over the ``valid`` (non-padding) positions."""
-    t = temperature
-    log_p_s = F.log_softmax(student_logits[valid].float() / t, dim=-1)
-    log_p_t = F.log_softmax(teacher_logits[valid].float() / t, dim=-1)
-    kl = F.kl_div(log_p_s, log_p_t, log_target=True, reduction="batchmean") * t * t
-    target = F.layer_norm(teacher_hidden[valid].float(), teacher_hidden.shape[-1:])
-    cos = 1.0 - F.cosine_similarity(student_feat[valid].float(), target, dim=-1).mean()
-    return kl, cos
-
-
-class DistillStage(L.LightningModule):
+class DistillStage(Stage):
     """Trains the student against the frozen teacher; validates both with the same evaluator."""
 
+    consumes_kinds = ("pretrain", "instruct", "distill")
+    consumes_count = (1, 1)
+    # Teacher and scene tokenizer come from their exports; checkpoints carry what trains.
+    frozen_prefixes = ("teacher.", "student.scene_tokenizer.")
+
     def __init__(self, ctx: StageContext):
-        super().__init__()
+        super().__init__(ctx)
         cfg = ctx.model_cfg
         validate_tasks(cfg.tasks, f"stages '{ctx.spec.name}'.model.tasks")
-        if len(ctx.inputs) != 1:
-            raise ConfigError(f"stages '{ctx.spec.name}': a distill stage consumes exactly one instruct (or pretrain) stage")
-        self.ctx = ctx
+        tasks = OmegaConf.to_object(cfg.tasks) if OmegaConf.is_config(cfg.tasks) else cfg.tasks
         teacher = load_world_model(next(iter(ctx.inputs.values())))
-        self.teacher = teacher.requires_grad_(False).eval()
+        teacher.tasks = tasks
+        self.teacher = teacher.with_generation_length(cfg.max_new_text_tokens).requires_grad_(False).eval()
         vocab = teacher.vocab
         student_llm = build_llm(cfg.student, len(vocab))
-        world = OccWorldModel(student_llm, vocab, codebook=teacher.scene_tokenizer.codebook,
-                              scene_prediction=teacher.world.scene_prediction)
-        self.student = WorldModelEngine(teacher.scene_tokenizer, world, teacher.text_tokenizer)
+        world = get_family(teacher.family).world_model(
+            student_llm, vocab, codebook=teacher.scene_tokenizer.codebook, scene_prediction=teacher.world.scene_prediction,
+        )
+        self.student = WorldModelEngine(teacher.scene_tokenizer, world, teacher.text_tokenizer, tasks, cfg.max_new_text_tokens, teacher.family)
         self.projector = FeatureProjector(world.hidden_size, teacher.world.hidden_size)
         prior = qa_prior(ctx.data.root)
-        self.evaluator = Evaluator(cfg.tasks, cfg.max_new_text_tokens, qa_prior=prior)
-        self.teacher_evaluator = Evaluator(cfg.tasks, cfg.max_new_text_tokens, qa_prior=prior)
+        names = Evaluator.scorable(tasks.weights)
+        self.evaluator = Evaluator(names, qa_prior=prior)
+        self.teacher_evaluator = Evaluator(names, qa_prior=prior)
         self._teacher_scores: dict[str, float] | None = None
+        self._entries: dict[str, tuple[str, ...] | None] = {}
         if cfg.cache_codes:  # one cache, shared: teacher and student read the same scenes
             self.teacher.build_code_cache(ctx.data.root, ctx.stage_dir / "cache" / CODE_CACHE)
             self.student.code_cache = self.teacher.code_cache
-            self.entries = {"train": TEXT_ENTRIES, "val": None}
+            self._entries = {"train": TEXT_ENTRIES}
         self._speed: dict[str, float] = {}
+
+    def entries(self, split: str) -> tuple[str, ...] | None:
+        return self._entries.get(split)
 
     def train(self, mode: bool = True) -> DistillStage:
         super().train(mode)
@@ -116,9 +103,8 @@ class DistillStage(L.LightningModule):
     def training_step(self, batch: dict[str, Any], batch_idx: int) -> torch.Tensor:
         cfg = self.ctx.model_cfg
         clips = clips_from_batch(batch)
-        seed = self.ctx.data.seed * 1_000_003 + self.global_step
-        model_batch, _ = self.student.task_batch(clips, batch, cfg.tasks, seed)
-        model_batch = _to(model_batch, self.device)
+        model_batch, _ = self.student.task_batch(clips, batch, self.step_seed(self.global_step))
+        model_batch = move_batch(model_batch, self.device)
         with torch.no_grad():
             t_out = self.teacher.world(model_batch, output_hidden_states=True)
         s_out = self.student.world(model_batch, output_hidden_states=True)
@@ -135,8 +121,8 @@ class DistillStage(L.LightningModule):
     def validation_step(self, batch: dict[str, Any], batch_idx: int) -> None:
         cfg = self.ctx.model_cfg
         clips = clips_from_batch(batch)
-        model_batch, _ = self.student.task_batch(clips, batch, cfg.tasks, seed=batch_idx)
-        model_batch = _to(model_batch, self.device)
+        model_batch, _ = self.student.task_batch(clips, batch, seed=batch_idx)
+        model_batch = move_batch(model_batch, self.device)
         out = self.student.world(model_batch)
         acc = self.student.world.token_accuracy(out.logits, model_batch["labels"])
         self.log("val/loss", out.loss, batch_size=len(clips), sync_dist=True)
@@ -176,34 +162,18 @@ class DistillStage(L.LightningModule):
         params = [p for p in self.student.world.parameters() if p.requires_grad] + list(self.projector.parameters())
         return configure_adamw(params, self.ctx.spec.optim, self.ctx.trainer.max_steps)
 
-    def state_dict(self, *args: Any, **kwargs: Any) -> dict[str, Any]:
-        # Teacher and scene tokenizer come from their exports; checkpoints carry what trains.
-        return {
-            k: v for k, v in super().state_dict(*args, **kwargs).items()
-            if not k.startswith(("teacher.", "student.scene_tokenizer."))
-        }
-
-    def load_state_dict(self, state_dict: dict[str, Any], strict: bool = True, **kwargs: Any) -> Any:
-        return super().load_state_dict(state_dict, strict=False)
-
-    def _params(self, engine: WorldModelEngine) -> int:
-        return sum(p.numel() for p in engine.world.parameters())
-
-    def summary(self) -> str:
-        s, t = self._params(self.student), self._params(self.teacher)
-        return f"student {s / 1e6:.2f}M params vs teacher {t / 1e6:.2f}M ({s / t:.2f}x)"
-
-    def summary_metrics(self) -> dict[str, float]:
-        s, t = self._params(self.student), self._params(self.teacher)
-        return {"student_params": float(s), "teacher_params": float(t), "param_ratio": s / t}
-
-    def samples(self) -> list[dict]:
-        return list(self.evaluator.texts)
+    def report(self) -> StageReport:
+        s, t = count_parameters(self.student.world), count_parameters(self.teacher.world)
+        return StageReport(
+            f"student {s / 1e6:.2f}M params vs teacher {t / 1e6:.2f}M ({s / t:.2f}x)",
+            {"student_params": float(s), "teacher_params": float(t), "param_ratio": s / t},
+            texts=list(self.evaluator.texts),
+        )
 
     def export(self, path: Path) -> Path:
-        return export_engine(self.student, path, merge=False, stage=self.ctx.spec.name)
+        return export_engine(self.student, path, stage=self.ctx.spec.name)
 
 
 DISTILL = register(
-    StageKind(name="distill", model_schema=DistillModelConfig, data_kind="clips", build=DistillStage, monitor="val/token_acc")
+    StageKind(name="distill", model_schema=DistillModelConfig, data_kind="clips", module=DistillStage, monitor="val/token_acc")
 )

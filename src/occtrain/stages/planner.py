@@ -14,18 +14,23 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import lightning as L
 import numpy as np
 import torch
 
+from occtrain.config.llm import MAX_NEW_TEXT_TOKENS
+from occtrain.data.clips import clips_from_batch, plan_target
 from occtrain.data.schema import COMMANDS, META_DIRECTIONS, META_SPEEDS
-from occtrain.data.tasks import clips_from_batch, ego_future, future_agent_boxes
+from occtrain.data.text_formats import parse_meta_action
+from occtrain.engine import load_world_model
 from occtrain.errors import ConfigError
-from occtrain.metrics import PlanningMetric
+from occtrain.exports import write_export
+from occtrain.metrics import PlanningMetric, flatten_metrics
+from occtrain.models import count_parameters
 from occtrain.models.planner import PlanningHead, constant_velocity_plan
-from occtrain.occ3d import FUTURE_STEPS
-from occtrain.stages import StageContext, StageKind, register
-from occtrain.stages.common import configure_adamw, flatten_metrics, read_export, write_export
+from occtrain.occ3d import FUTURE_STEPS, PAST_STEPS
+from occtrain.stages import StageKind, register
+from occtrain.stages.base import Stage, StageContext, StageReport
+from occtrain.stages.common import configure_adamw
 
 META_SOURCES = ("ground_truth", "generated")
 
@@ -45,7 +50,7 @@ class PlannerModelConfig:
     meta_source: str = "generated"
     #: Validation batches that run the instruct model's generation (it is the slow part).
     generate_batches: int = 4
-    max_new_text_tokens: int = 200
+    max_new_text_tokens: int = MAX_NEW_TEXT_TOKENS
 
 
 def ego_features(anchor: dict, meta: dict, use_past: bool) -> np.ndarray:
@@ -62,22 +67,23 @@ def ego_features(anchor: dict, meta: dict, use_past: bool) -> np.ndarray:
 
 
 def feature_size(use_past: bool) -> int:
-    from occtrain.occ3d import PAST_STEPS
-
     return len(META_SPEEDS) + len(META_DIRECTIONS) + 3 + len(COMMANDS) + (2 * PAST_STEPS if use_past else 0)
 
 
-class PlannerStage(L.LightningModule):
+class PlannerStage(Stage):
     """Trains the planning head; validates it against the baselines with both L2 conventions."""
 
+    consumes_kinds = ("pretrain", "instruct", "distill")
+    consumes_count = (0, 1)
+    frozen_prefixes = ("teacher.",)  # the world model is read-only here: checkpoints hold the head
+
     def __init__(self, ctx: StageContext):
-        super().__init__()
+        super().__init__(ctx)
         cfg = ctx.model_cfg
         if cfg.loss not in ("mse", "l1"):
             raise ConfigError(f"stages '{ctx.spec.name}': model.loss '{cfg.loss}' is not one of mse, l1")
         if cfg.meta_source not in META_SOURCES:
             raise ConfigError(f"stages '{ctx.spec.name}': model.meta_source '{cfg.meta_source}' is not one of {', '.join(META_SOURCES)}")
-        self.ctx = ctx
         self.head = PlanningHead(feature_size(cfg.use_past), cfg.hidden, cfg.layers, FUTURE_STEPS, cfg.dropout)
         self.teacher = None
         if cfg.meta_source == "generated":
@@ -86,31 +92,28 @@ class PlannerStage(L.LightningModule):
                     f"stages '{ctx.spec.name}': model.meta_source 'generated' needs an instruct stage in consumes; "
                     "or set model.meta_source=ground_truth"
                 )
-            from occtrain.stages.world_model import load_world_model
-
-            self.teacher = load_world_model(next(iter(ctx.inputs.values())))
+            self.teacher = load_world_model(next(iter(ctx.inputs.values()))).with_generation_length(cfg.max_new_text_tokens)
             self.teacher.requires_grad_(False).eval()
-        # Training reads annotations only; validation also feeds the instruct model its scenes.
-        self.entries = {"train": ("ann.json",), "val": None if self.teacher is not None else ("ann.json",)}
         self.metrics = torch.nn.ModuleDict({
             name: PlanningMetric()
             for name in ("head_gt_meta", "head_generated_meta", "llm_action_tokens", "constant_velocity", "baseline_stationary")
         })
+
+    def entries(self, split: str) -> tuple[str, ...] | None:
+        # Training reads annotations only; validation also feeds the instruct model its scenes.
+        return None if split == "val" and self.teacher is not None else ("ann.json",)
 
     # -- data
     def _inputs(self, anchors: list[dict], metas: list[dict]) -> torch.Tensor:
         feats = [ego_features(a, m, self.ctx.model_cfg.use_past) for a, m in zip(anchors, metas)]
         return torch.from_numpy(np.stack(feats)).to(self.device)
 
-    def _targets(self, anchors: list[dict]) -> tuple[torch.Tensor, torch.Tensor]:
-        futures, masks = zip(*(ego_future(a) for a in anchors))
-        return (torch.from_numpy(np.stack(futures)).float().to(self.device), torch.from_numpy(np.stack(masks)).to(self.device))
-
     # -- training
     def training_step(self, batch: dict[str, Any], batch_idx: int) -> torch.Tensor:
         anchors = [ann["anchor"] for ann in batch["ann"]]
         pred = self.head(self._inputs(anchors, [a["meta_action"] for a in anchors]))
-        target, mask = self._targets(anchors)
+        gt = plan_target(anchors, self.device)
+        target, mask = gt.traj, gt.mask
         err = pred - target
         per_point = err.pow(2).sum(-1) if self.ctx.model_cfg.loss == "mse" else err.abs().sum(-1)
         loss = (per_point * mask).sum() / mask.sum().clamp(min=1)
@@ -120,30 +123,33 @@ class PlannerStage(L.LightningModule):
     # -- validation
     def validation_step(self, batch: dict[str, Any], batch_idx: int) -> None:
         anchors = [ann["anchor"] for ann in batch["ann"]]
-        target, mask = self._targets(anchors)
-        agents = [future_agent_boxes(a) for a in anchors]
+        gt = plan_target(anchors, self.device)
 
         def record(name: str, pred: torch.Tensor, rows: list[int] | None = None) -> None:
             rows = list(range(len(anchors))) if rows is None else rows
-            self.metrics[name].update(pred[rows], target[rows], mask[rows], [agents[i] for i in rows])
+            sub = gt.rows(rows)
+            self.metrics[name].update(pred[rows], sub.traj, sub.mask, sub.agents)
 
         record("head_gt_meta", self.head(self._inputs(anchors, [a["meta_action"] for a in anchors])))
         speeds = torch.tensor([a["ego_speed"] for a in anchors], device=self.device)
         record("constant_velocity", constant_velocity_plan(speeds, FUTURE_STEPS))
-        record("baseline_stationary", torch.zeros_like(target))
+        record("baseline_stationary", torch.zeros_like(gt.traj))
         if self.teacher is not None and batch_idx < self.ctx.model_cfg.generate_batches:
-            from occtrain.data.synth.text import parse_meta_action
-
-            outputs = self.teacher.chain_of_thought(clips_from_batch(batch), batch, self.ctx.model_cfg.max_new_text_tokens)
-            metas = [parse_meta_action(o.text) for o in outputs]
-            rows = [i for i, m in enumerate(metas) if m is not None]
+            outputs = self.teacher.chain_of_thought(clips_from_batch(batch), batch)
+            # Clips the chain of thought does not apply to are skipped, not scored as a zero plan.
+            generated = [i for i, o in enumerate(outputs) if o is not None]
+            metas = {i: parse_meta_action(outputs[i].text) for i in generated}
+            rows = [i for i in generated if metas[i] is not None]
             if rows:
                 pred = self.head(self._inputs([anchors[i] for i in rows], [metas[i] for i in rows]))
-                full = torch.zeros_like(target)
+                full = torch.zeros_like(gt.traj)
                 full[rows] = pred
                 record("head_generated_meta", full, rows)
-            record("llm_action_tokens", torch.stack([torch.as_tensor(o.waypoints, dtype=torch.float32) for o in outputs]).to(self.device))
-            self.log("val/meta_parsed_fraction", len(rows) / len(anchors), batch_size=len(anchors))
+            if generated:
+                tokens = torch.zeros_like(gt.traj)
+                tokens[generated] = torch.stack([torch.as_tensor(outputs[i].waypoints, dtype=torch.float32) for i in generated]).to(self.device)
+                record("llm_action_tokens", tokens, generated)
+                self.log("val/meta_parsed_fraction", len(rows) / len(generated), batch_size=len(generated))
 
     def on_validation_epoch_end(self) -> None:
         for name, metric in self.metrics.items():
@@ -155,16 +161,10 @@ class PlannerStage(L.LightningModule):
     def configure_optimizers(self) -> dict:
         return configure_adamw(self.head.parameters(), self.ctx.spec.optim, self.ctx.trainer.max_steps)
 
-    def state_dict(self, *args: Any, **kwargs: Any) -> dict[str, Any]:
-        # The instruct model is read-only here: checkpoints hold the head alone.
-        return {k: v for k, v in super().state_dict(*args, **kwargs).items() if not k.startswith("teacher.")}
-
-    def load_state_dict(self, state_dict: dict[str, Any], strict: bool = True, **kwargs: Any) -> Any:
-        return super().load_state_dict(state_dict, strict=False)
-
     # -- reporting and export
-    def summary(self) -> str:
-        return f"planning head {sum(p.numel() for p in self.head.parameters()) / 1e3:.1f}K params"
+    def report(self) -> StageReport:
+        n = count_parameters(self.head)
+        return StageReport(f"planning head {n / 1e3:.1f}K params", {"params": float(n)})
 
     def export(self, path: Path) -> Path:
         cfg = self.ctx.model_cfg
@@ -179,17 +179,9 @@ class PlannerStage(L.LightningModule):
         return write_export(path, self.head.state_dict(), config)
 
 
-def load_planner(export_dir: Path) -> PlanningHead:
-    """The planning head of a planner stage's export, in eval mode."""
-    state, config = read_export(export_dir)
-    head = PlanningHead(config["features"], config["hidden"], config["layers"], config["steps"], 0.0)
-    head.load_state_dict(state)
-    return head.eval()
-
-
 PLANNER = register(
     StageKind(
-        name="planner", model_schema=PlannerModelConfig, data_kind="clips", build=PlannerStage,
+        name="planner", model_schema=PlannerModelConfig, data_kind="clips", module=PlannerStage,
         monitor="val/head_gt_meta_L2_stp3_avg", mode="min",
     )
 )

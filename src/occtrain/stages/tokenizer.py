@@ -1,54 +1,55 @@
-"""Stage kind ``tokenizer``: train a scene tokenizer (OccWorld VQ-VAE or OccLLaMA's) on single frames.
+"""Stage kind ``tokenizer``: train a scene tokenizer of any registered architecture on single frames.
 
-Validation reports reconstruction mIoU/IoU in both conventions, labelled: OccWorld (what
-tokenizer tables report: all voxels) and Occ3D (camera-visible voxels only). The export
-holds the weights, the model config and the codebook size, which the pretraining stage
+The architectures (OccWorld's VQ-VAE, OccLLaMA's tokenizer, ...) come from the families'
+registrations; ``model.arch`` picks one and ``model.<arch>`` holds its settings. Validation
+reports reconstruction mIoU/IoU in both conventions, labelled: OccWorld (what tokenizer
+tables report: all voxels) and Occ3D (camera-visible voxels only). The export holds the
+weights, the architecture's config and the codebook size, which the pretraining stage
 needs to lay out its joint vocabulary.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import field, make_dataclass
 from pathlib import Path
 from typing import Any
 
-import lightning as L
 import torch
-from omegaconf import OmegaConf
 
 from occtrain.config import to_container
-from occtrain.config.tokenizer import OccLLaMATokenizerConfig, OccWorldVQVAEConfig, validate_tokenizer_config
 from occtrain.errors import ConfigError
+from occtrain.families import save_tokenizer, tokenizer_archs, tokenizer_config
 from occtrain.metrics import OccupancyMetric
-from occtrain.models import build_tokenizer, count_parameters
+from occtrain.models import count_parameters
 from occtrain.occ3d import FREE
-from occtrain.stages import StageContext, StageKind, register
-from occtrain.stages.common import configure_adamw, freeze_prefixes, read_export, write_export
-
-ARCHS = ("occworld_vqvae", "occllama_tokenizer")
-
-
-@dataclass
-class TokenizerModelConfig:
-    """``model:`` of a tokenizer stage: which architecture, and the settings of each."""
-
-    arch: str = "occworld_vqvae"
-    occworld_vqvae: OccWorldVQVAEConfig = field(default_factory=OccWorldVQVAEConfig)
-    occllama_tokenizer: OccLLaMATokenizerConfig = field(default_factory=OccLLaMATokenizerConfig)
+from occtrain.stages import StageKind, register
+from occtrain.stages.base import Stage, StageContext, StageReport
+from occtrain.stages.common import configure_adamw, freeze_prefixes
 
 
-class TokenizerStage(L.LightningModule):
+def tokenizer_model_schema() -> type:
+    """``model:`` of a tokenizer stage: ``arch`` plus one section per registered architecture."""
+    archs = tokenizer_archs()
+    fields = [("arch", str, field(default="occworld_vqvae"))]
+    fields += [(name, arch.config, field(default_factory=arch.config)) for name, arch in archs.items()]
+    return make_dataclass("TokenizerModelConfig", fields)
+
+
+TokenizerModelConfig = tokenizer_model_schema()
+
+
+class TokenizerStage(Stage):
     """Trains a scene tokenizer with its own losses; validates reconstruction IoU."""
 
     def __init__(self, ctx: StageContext):
-        super().__init__()
+        super().__init__(ctx)
         cfg = ctx.model_cfg
-        if cfg.arch not in ARCHS:
-            raise ConfigError(f"stages '{ctx.spec.name}': model.arch '{cfg.arch}' is not one of {', '.join(ARCHS)}")
-        validate_tokenizer_config(cfg[cfg.arch], f"stages '{ctx.spec.name}'.model.{cfg.arch}")
-        self.ctx = ctx
+        archs = tokenizer_archs()
+        if cfg.arch not in archs:
+            raise ConfigError(f"stages '{ctx.spec.name}': model.arch '{cfg.arch}' is not one of {', '.join(archs)}")
+        arch_cfg = tokenizer_config(cfg.arch, cfg[cfg.arch], f"stages '{ctx.spec.name}'.model.{cfg.arch}")
         self.arch_cfg = to_container(cfg[cfg.arch])
-        self.model = build_tokenizer(cfg.arch, cfg[cfg.arch])
+        self.model = archs[cfg.arch].model(arch_cfg)
         freeze_prefixes(self.model, list(ctx.spec.freeze))
         self.recon_occworld = OccupancyMetric(convention="occworld")
         self.recon_occ3d = OccupancyMetric(convention="occ3d")
@@ -92,43 +93,16 @@ class TokenizerStage(L.LightningModule):
         return configure_adamw(params, self.ctx.spec.optim, self.ctx.trainer.max_steps)
 
     # -- reporting and export
-    def summary(self) -> str:
-        return f"{self.ctx.model_cfg.arch} {count_parameters(self.model) / 1e6:.2f}M params"
-
-    def sample_scenes(self) -> list[tuple[str, list[tuple[str, Any]]]]:
-        """(caption, [(panel label, semantics)]) for the dashboard's bird's-eye pictures."""
-        return [
+    def report(self) -> StageReport:
+        n = count_parameters(self.model)
+        scenes = [
             (f"val sample {i}: ground truth vs reconstruction", [("ground truth", gt), ("reconstruction", rec)])
             for i, (gt, rec) in enumerate(self._pictures)
         ]
-
-    def summary_metrics(self) -> dict[str, float]:
-        return {"params": float(count_parameters(self.model))}
+        return StageReport(f"{self.ctx.model_cfg.arch} {n / 1e6:.2f}M params", {"params": float(n)}, scenes=scenes)
 
     def export(self, path: Path) -> Path:
-        config = {
-            "stage_kind": "tokenizer",
-            "arch": self.ctx.model_cfg.arch,
-            "config": self.arch_cfg,
-            "num_codes": int(self.model.num_codes),
-            "latent_hw": list(self.model.latent_hw),
-            "params": count_parameters(self.model),
-            "label_convention": "occ3d",
-        }
-        return write_export(path, self.model.state_dict(), config)
-
-
-def load_tokenizer(export_dir: Path) -> torch.nn.Module:
-    """Rebuild a tokenizer from a tokenizer stage's export (frozen, eval mode)."""
-    state, config = read_export(export_dir)
-    if config.get("stage_kind") != "tokenizer":
-        raise ConfigError(f"{export_dir}: not a tokenizer export (stage kind '{config.get('stage_kind')}'); consume the tokenizer stage")
-    schema = {"occworld_vqvae": OccWorldVQVAEConfig, "occllama_tokenizer": OccLLaMATokenizerConfig}[config["arch"]]
-    cfg = OmegaConf.merge(OmegaConf.structured(schema), config["config"])
-    model = build_tokenizer(config["arch"], cfg)
-    model.load_state_dict(state)
-    model.export_dir = Path(export_dir)  # a world-model export copies it from here
-    return model.eval().requires_grad_(False)
+        return save_tokenizer(self.model, self.ctx.model_cfg.arch, self.arch_cfg, path)
 
 
 TOKENIZER = register(
@@ -136,7 +110,7 @@ TOKENIZER = register(
         name="tokenizer",
         model_schema=TokenizerModelConfig,
         data_kind="frames",
-        build=TokenizerStage,
+        module=TokenizerStage,
         monitor="val/occworld_mIoU",
         mode="max",
     )

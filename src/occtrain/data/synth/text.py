@@ -6,7 +6,7 @@ Three products per frame:
   with its five template types, zero- and one-hop questions and answer vocabulary;
 - a one- or two-sentence caption (:func:`caption_for_frame`);
 - an OccVLA-style chain-of-thought narration (:func:`narration_for_frame`) whose last
-  line is the meta action in a fixed form that :func:`parse_meta_action` inverts.
+  line is the meta action in the fixed form of ``occtrain.data.text_formats``.
 
 Only the ten nuScenes detection classes take part in questions: boxes of Occ3D's
 ``others`` class have no NuScenes-QA name, so they are neither asked about nor used to
@@ -15,7 +15,6 @@ decide whether a description ("the moving thing") is unique.
 
 from __future__ import annotations
 
-import re
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -29,9 +28,9 @@ from occtrain.data.schema import (
     STOP_SPEED,
     TEMPLATE_TYPES,
     FrameAnnotation,
-    MetaAction,
     QAQuestion,
 )
+from occtrain.data.text_formats import format_meta_action
 from occtrain.errors import DataError
 from occtrain.occ3d import CLASS_NAMES, FRAME_DT
 
@@ -87,21 +86,6 @@ VEHICLE_CLASSES = ("car", "truck", "bus", "trailer", "construction_vehicle")
 _NOUNS: dict[str, str] = {**QA_CLASS_NAMES, "others": "unidentified object"}
 # Statuses that read after the noun ("a bicycle with a rider"): (singular, plural).
 _POST_NOMINAL = {"with rider": ("with a rider", "with riders"), "without rider": ("without a rider", "without riders")}
-
-_META_SPEED_WORDS = {"accelerate": "accelerate", "decelerate": "decelerate", "maintain": "maintain speed"}
-_META_DIRECTION_WORDS = {
-    "straight": "go straight",
-    "left": "turn left",
-    "right": "turn right",
-    "bear left": "bear left",
-    "bear right": "bear right",
-    "stop": "stop",
-}
-_META_RE = re.compile(
-    r"meta action:\s*(%s)\s*,\s*(%s)\b"
-    % ("|".join(_META_SPEED_WORDS.values()), "|".join(_META_DIRECTION_WORDS.values())),
-    re.IGNORECASE,
-)
 
 # Eight 45-degree sectors, counter-clockwise from ahead: where an object is ...
 _POSITION_WORDS = (
@@ -524,25 +508,6 @@ def caption_for_frame(frame: FrameAnnotation) -> str:
 # ---------------------------------------------------------------- narration
 
 
-def format_meta_action(meta: MetaAction) -> str:
-    """The fixed, parseable last line of a narration: 'Meta action: decelerate, turn left.'"""
-    return f"Meta action: {_META_SPEED_WORDS[meta['speed']]}, {_META_DIRECTION_WORDS[meta['direction']]}."
-
-
-def parse_meta_action(text: str) -> MetaAction | None:
-    """The last meta action written in :func:`format_meta_action`'s form in ``text``, or None.
-
-    Case and spacing are free and the final period optional, since generated text varies.
-    """
-    matches = list(_META_RE.finditer(text))
-    if not matches:
-        return None
-    speed_word, direction_word = (g.lower() for g in matches[-1].groups())
-    speed = next(k for k, v in _META_SPEED_WORDS.items() if v == speed_word)
-    direction = next(k for k, v in _META_DIRECTION_WORDS.items() if v == direction_word)
-    return MetaAction(speed=speed, direction=direction)
-
-
 def _surroundings(frame: FrameAnnotation) -> str:
     boxes = sorted(frame["boxes"], key=lambda b: float(np.hypot(*b["center"][:2])))
     if not boxes:
@@ -634,9 +599,7 @@ __all__ = [
     "RELATIONS",
     "TEMPLATE_TYPES",
     "caption_for_frame",
-    "format_meta_action",
     "narration_for_frame",
-    "parse_meta_action",
     "questions_for_frame",
     "spatial_relation",
 ]

@@ -1,55 +1,29 @@
-"""Prompt-answer pairs for the world-model stages, built from one clip.
+"""OccLLaMA's tasks and prompt formats: prompt-answer parts built from one clip.
 
-A task turns a clip (history frames, the anchor frame, future frames and the anchor's
-annotation) into a list of parts: text, an occupancy scene (by its frame index in the
-clip) or action waypoints, each marked as supervised (the answer) or not (the prompt).
-The parts know nothing of token ids; ``occtrain.models.world_model`` lays them out in the
-joint vocabulary. Pretraining tasks follow OccLLaMA (detection, counting, prediction,
-planning, forecasting); instruction tasks are NuScenes-QA and chain-of-thought planning.
+A task turns a clip (``occtrain.data.clips``) into a list of parts: text, an occupancy
+scene (by its frame index in the clip) or action waypoints, each marked as supervised (the
+answer) or not (the prompt). ``occllama.world_model`` lays them out in the joint
+vocabulary. Pretraining tasks follow OccLLaMA Sec. III-C (detection, counting,
+prediction, planning, forecasting); instruction tasks are NuScenes-QA and
+chain-of-thought planning.
 """
 
 from __future__ import annotations
 
 import zlib
 from dataclasses import dataclass, field
-from typing import Callable, Iterator, Union
+from typing import Callable, Iterator
 
 import numpy as np
 
-from occtrain.data.geometry import global_to_ego
-from occtrain.data.synth.text import format_meta_action, parse_meta_action
+from occtrain.data.clips import Actions, Clip, Part, Scene, Text, ego_future
+from occtrain.data.text_formats import format_meta_action, parse_meta_action
 from occtrain.errors import ConfigError
-from occtrain.occ3d import FUTURE_STEPS
 
 PRETRAIN_TASKS = ("detection", "counting", "prediction", "planning", "forecasting")
 INSTRUCT_TASKS = ("qa", "cot_planning")
 #: Box categories the detection and counting tasks talk about (movable objects).
 OBJECT_CLASSES = ("car", "truck", "bus", "trailer", "construction_vehicle", "pedestrian", "motorcycle", "bicycle", "barrier", "traffic_cone")
-
-
-@dataclass(frozen=True)
-class Text:
-    text: str
-    supervise: bool = False
-
-
-@dataclass(frozen=True)
-class Scene:
-    """The occupancy scene of clip frame ``frame`` (0 = oldest history frame)."""
-
-    frame: int
-    supervise: bool = False
-
-
-@dataclass(frozen=True)
-class Actions:
-    """Waypoints in metres, ego frame of the anchor, shape (N, 2)."""
-
-    xy: tuple[tuple[float, float], ...]
-    supervise: bool = False
-
-
-Part = Union[Text, Scene, Actions]
 
 
 @dataclass
@@ -64,29 +38,6 @@ class TaskConfig:
     forecast_frames: int = 6
     #: At most this many objects in a detection answer (nearest first).
     max_objects: int = 6
-
-
-@dataclass
-class Clip:
-    """One clip sample as the stages receive it (see ``collate_clips``)."""
-
-    ann: dict
-    qa: list[dict]
-    narration: str
-
-    @property
-    def anchor(self) -> dict:
-        return self.ann["anchor"]
-
-    @property
-    def anchor_index(self) -> int:
-        return int(self.ann["history"])
-
-    def ego_steps(self) -> np.ndarray:
-        """(T-1, 2): the ego's move from each clip frame to the next, in that frame's ego axes."""
-        poses = np.asarray(self.ann["ego_poses"], dtype=np.float64)  # (T, 3): x, y, yaw (global)
-        steps = [global_to_ego(poses[i + 1, :2], poses[i, :2], poses[i, 2]) for i in range(len(poses) - 1)]
-        return np.asarray(steps).reshape(-1, 2)
 
 
 def _xy(points) -> tuple[tuple[float, float], ...]:
@@ -158,40 +109,6 @@ def prediction(clip: Clip, cfg: TaskConfig, rng: np.random.Generator) -> list[Pa
 def _ego_future(clip: Clip) -> np.ndarray | None:
     future, mask = ego_future(clip.anchor)
     return future if mask.all() else None
-
-
-def ego_future(anchor: dict) -> tuple[np.ndarray, np.ndarray]:
-    """The anchor's ego future (FUTURE_STEPS, 2) and its validity mask (zeros where unknown)."""
-    future = np.zeros((FUTURE_STEPS, 2))
-    mask = np.zeros(FUTURE_STEPS, dtype=bool)
-    given = np.asarray(anchor.get("ego_future", []), dtype=np.float64).reshape(-1, 2)[:FUTURE_STEPS]
-    future[: len(given)] = given
-    mask[: len(given)] = np.asarray(anchor.get("ego_future_mask", [1] * len(given)), dtype=bool)[: len(given)]
-    return future, mask
-
-
-def future_agent_boxes(anchor: dict) -> list[np.ndarray]:
-    """Per future step, the agents' boxes (N, 5: x, y, length, width, yaw) for the collision metric.
-
-    Positions come from the annotated agent futures; the yaw stays the anchor's (the
-    annotation carries no future headings). Static objects keep their place.
-    """
-    boxes = anchor.get("boxes", [])
-    futures = anchor.get("agent_futures", [])
-    masks = anchor.get("agent_future_mask", [])
-    steps: list[np.ndarray] = []
-    for t in range(FUTURE_STEPS):
-        rows = []
-        for i, b in enumerate(boxes):
-            if i < len(futures) and masks[i][t]:
-                x, y = futures[i][t]
-            elif b.get("attribute", "") in ("", "parked"):
-                x, y = b["center"][:2]
-            else:
-                continue  # a mover whose future is unknown at this step
-            rows.append((x, y, b["size"][0], b["size"][1], b["yaw"]))
-        steps.append(np.asarray(rows, dtype=np.float32).reshape(-1, 5))
-    return steps
 
 
 def planning(clip: Clip, cfg: TaskConfig, rng: np.random.Generator) -> list[Part] | None:
@@ -276,11 +193,6 @@ def sample_task(clip: Clip, cfg: TaskConfig, seed: int, token: str) -> tuple[str
         if parts is not None:
             return str(name), parts
     return "caption", [*_context(clip, cfg), Text("Task: describe the scene."), Text(clip.anchor.get("caption", "") or "a street", True)]
-
-
-def clips_from_batch(batch: dict) -> list[Clip]:
-    """The per-sample clip records of a collated clip batch."""
-    return [Clip(ann, qa, narr) for ann, qa, narr in zip(batch["ann"], batch["qa"], batch["narration"])]
 
 
 def corpus_texts(index) -> Iterator[str]:

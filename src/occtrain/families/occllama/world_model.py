@@ -31,7 +31,6 @@ codebook vector, instead of the embedding-table row; the lm-head keeps one row p
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 
 import torch
@@ -271,23 +270,18 @@ class OccWorldModel(nn.Module):
         return self.llm.get_base_model() if hasattr(self.llm, "get_base_model") else self.llm
 
     def export_config(self) -> dict:
-        """JSON-able description from which ``from_export`` rebuilds the architecture."""
+        """JSON-able settings from which ``from_export`` rebuilds the model around its LLM."""
         base = self._base_llm()
         return {
-            "llm_config": json.loads(base.config.to_json_string()),
             "attn_implementation": getattr(base.config, "_attn_implementation", "sdpa"),
             "scene_prediction": self.scene_prediction,
             "code_dim": int(self.codebook.shape[1]),
         }
 
     @classmethod
-    def from_export(cls, data: dict, vocab: JointVocab, codebook: torch.Tensor) -> OccWorldModel:
-        """An untrained model of the exported architecture; load its state dict next."""
-        from transformers import AutoConfig, AutoModelForCausalLM
-
-        cfg = dict(data["llm_config"])
-        config = AutoConfig.for_model(cfg.pop("model_type"), **cfg)
-        llm = AutoModelForCausalLM.from_config(config, attn_implementation=data["attn_implementation"])
+    def from_export(cls, data: dict, llm: nn.Module, vocab: JointVocab, codebook: torch.Tensor) -> OccWorldModel:
+        """The exported architecture around ``llm`` (loaded from the export's Hugging Face
+        directory); load the export's own weights next."""
         return cls(llm, vocab, codebook, data["scene_prediction"])
 
 

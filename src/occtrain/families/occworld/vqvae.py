@@ -5,7 +5,8 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from occtrain.config.tokenizer import OccWorldVQVAEConfig, latent_hw
+from occtrain.config.tokenizer import latent_hw
+from occtrain.families.occworld.config import OccWorldVQVAEConfig
 from occtrain.models.tokenizers.base import SceneTokenizer, TokenizerOutput, check_semantics
 from occtrain.models.tokenizers.conv import ConvDecoder, ConvEncoder
 from occtrain.models.tokenizers.losses import ce_lovasz

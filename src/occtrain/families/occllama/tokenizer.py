@@ -16,7 +16,8 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from occtrain.config.tokenizer import OccLLaMATokenizerConfig, latent_hw
+from occtrain.config.tokenizer import latent_hw
+from occtrain.families.occllama.config import OccLLaMATokenizerConfig
 from occtrain.models.tokenizers.base import SceneTokenizer, TokenizerOutput, check_semantics
 from occtrain.models.tokenizers.conv import ConvDecoder, ResnetBlock
 from occtrain.models.tokenizers.losses import ce_lovasz

@@ -1,0 +1,130 @@
+"""A clip sample as stages see it, the parts a prompt is made of, and the planning targets.
+
+A clip is history frames, the anchor frame and future frames with the anchor's annotation,
+its NuScenes-QA questions and its narration. A family's tasks turn a clip into parts
+(text, an occupancy scene by clip frame, waypoints), each marked as the answer or not; the
+parts know nothing of token ids. The planning target (the ego's future with its validity
+mask and the agents' future boxes for the collision check) is built here, once, for every
+stage and evaluator that scores a plan.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Union
+
+import numpy as np
+import torch
+
+from occtrain.data.geometry import global_to_ego
+from occtrain.occ3d import FUTURE_STEPS
+
+
+@dataclass(frozen=True)
+class Text:
+    text: str
+    supervise: bool = False
+
+
+@dataclass(frozen=True)
+class Scene:
+    """The occupancy scene of clip frame ``frame`` (0 = oldest history frame)."""
+
+    frame: int
+    supervise: bool = False
+
+
+@dataclass(frozen=True)
+class Actions:
+    """Waypoints in metres, ego frame of the anchor, shape (N, 2)."""
+
+    xy: tuple[tuple[float, float], ...]
+    supervise: bool = False
+
+
+Part = Union[Text, Scene, Actions]
+
+
+@dataclass
+class Clip:
+    """One clip sample as the stages receive it (see ``collate_clips``)."""
+
+    ann: dict
+    qa: list[dict]
+    narration: str
+
+    @property
+    def anchor(self) -> dict:
+        return self.ann["anchor"]
+
+    @property
+    def anchor_index(self) -> int:
+        return int(self.ann["history"])
+
+    def ego_steps(self) -> np.ndarray:
+        """(T-1, 2): the ego's move from each clip frame to the next, in that frame's ego axes."""
+        poses = np.asarray(self.ann["ego_poses"], dtype=np.float64)  # (T, 3): x, y, yaw (global)
+        steps = [global_to_ego(poses[i + 1, :2], poses[i, :2], poses[i, 2]) for i in range(len(poses) - 1)]
+        return np.asarray(steps).reshape(-1, 2)
+
+
+def clips_from_batch(batch: dict) -> list[Clip]:
+    """The per-sample clip records of a collated clip batch."""
+    return [Clip(ann, qa, narr) for ann, qa, narr in zip(batch["ann"], batch["qa"], batch["narration"])]
+
+
+def ego_future(anchor: dict) -> tuple[np.ndarray, np.ndarray]:
+    """The anchor's ego future (FUTURE_STEPS, 2) and its validity mask (zeros where unknown)."""
+    future = np.zeros((FUTURE_STEPS, 2))
+    mask = np.zeros(FUTURE_STEPS, dtype=bool)
+    given = np.asarray(anchor.get("ego_future", []), dtype=np.float64).reshape(-1, 2)[:FUTURE_STEPS]
+    future[: len(given)] = given
+    mask[: len(given)] = np.asarray(anchor.get("ego_future_mask", [1] * len(given)), dtype=bool)[: len(given)]
+    return future, mask
+
+
+def future_agent_boxes(anchor: dict) -> list[np.ndarray]:
+    """Per future step, the agents' boxes (N, 5: x, y, length, width, yaw) for the collision metric.
+
+    Positions come from the annotated agent futures; the yaw stays the anchor's (the
+    annotation carries no future headings). Static objects keep their place.
+    """
+    boxes = anchor.get("boxes", [])
+    futures = anchor.get("agent_futures", [])
+    masks = anchor.get("agent_future_mask", [])
+    steps: list[np.ndarray] = []
+    for t in range(FUTURE_STEPS):
+        rows = []
+        for i, b in enumerate(boxes):
+            if i < len(futures) and masks[i][t]:
+                x, y = futures[i][t]
+            elif b.get("attribute", "") in ("", "parked"):
+                x, y = b["center"][:2]
+            else:
+                continue  # a mover whose future is unknown at this step
+            rows.append((x, y, b["size"][0], b["size"][1], b["yaw"]))
+        steps.append(np.asarray(rows, dtype=np.float32).reshape(-1, 5))
+    return steps
+
+
+@dataclass
+class PlanTarget:
+    """What a plan is scored against, for a batch of anchors: ``traj`` Float[B, 6, 2],
+    ``mask`` Bool[B, 6] and per anchor the agents' future boxes (``future_agent_boxes``)."""
+
+    traj: torch.Tensor
+    mask: torch.Tensor
+    agents: list[list[np.ndarray]]
+
+    def rows(self, rows: list[int]) -> PlanTarget:
+        return PlanTarget(self.traj[rows], self.mask[rows], [self.agents[i] for i in rows])
+
+
+def plan_target(anchors: list[dict], device: torch.device | str = "cpu") -> PlanTarget:
+    """The planning ground truth of ``anchors``, on ``device``."""
+    futures, masks = zip(*(ego_future(a) for a in anchors))
+    return PlanTarget(
+        torch.from_numpy(np.stack(futures)).float().to(device),
+        torch.from_numpy(np.stack(masks)).to(device),
+        [future_agent_boxes(a) for a in anchors],
+    )

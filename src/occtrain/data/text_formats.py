@@ -1,0 +1,47 @@
+"""Text forms that training, evaluation and the synthetic world agree on.
+
+The meta action (OccVLA: speed x direction) is written in one fixed sentence at the end of
+a chain of thought, so a generated one can be parsed back and scored. The synthetic
+generator writes it, real-data sidecars may carry it, and models generate it: it lives
+here, beside the annotation schema, not in the generator.
+"""
+
+from __future__ import annotations
+
+import re
+
+from occtrain.data.schema import MetaAction
+
+META_SPEED_WORDS = {"accelerate": "accelerate", "decelerate": "decelerate", "maintain": "maintain speed"}
+META_DIRECTION_WORDS = {
+    "straight": "go straight",
+    "left": "turn left",
+    "right": "turn right",
+    "bear left": "bear left",
+    "bear right": "bear right",
+    "stop": "stop",
+}
+_META_RE = re.compile(
+    r"meta action:\s*(%s)\s*,\s*(%s)\b"
+    % ("|".join(META_SPEED_WORDS.values()), "|".join(META_DIRECTION_WORDS.values())),
+    re.IGNORECASE,
+)
+
+
+def format_meta_action(meta: MetaAction) -> str:
+    """The fixed, parseable last line of a narration: 'Meta action: decelerate, turn left.'"""
+    return f"Meta action: {META_SPEED_WORDS[meta['speed']]}, {META_DIRECTION_WORDS[meta['direction']]}."
+
+
+def parse_meta_action(text: str) -> MetaAction | None:
+    """The last meta action written in :func:`format_meta_action`'s form in ``text``, or None.
+
+    Case and spacing are free and the final period optional, since generated text varies.
+    """
+    matches = list(_META_RE.finditer(text))
+    if not matches:
+        return None
+    speed_word, direction_word = (g.lower() for g in matches[-1].groups())
+    speed = next(k for k, v in META_SPEED_WORDS.items() if v == speed_word)
+    direction = next(k for k, v in META_DIRECTION_WORDS.items() if v == direction_word)
+    return MetaAction(speed=speed, direction=direction)

@@ -1,0 +1,181 @@
+"""World-model exports: a standard Hugging Face LLM directory beside occtrain's own parts.
+
+::
+
+    export/
+      config.json          occtrain's: stage kind, family, joint vocabulary, world-model
+                           settings, the task/prompt config and generation length it trained with
+      model.safetensors    occtrain's own weights (the occupancy projection), not the LLM's
+      llm/                 a Hugging Face directory: config.json (model_type), model.safetensors
+                           under HF names, generation_config.json, the tokenizer with the
+                           joint-vocabulary tokens
+      llm/adapter/         the peft adapter, when the stage trained one and did not merge it
+      scene_tokenizer/     the tokenizer stage's export, copied
+
+``AutoModelForCausalLM.from_pretrained("export/llm")`` then
+``PeftModel.from_pretrained(model, "export/llm/adapter")`` gives occtrain's logits on text
+and action tokens. Occupancy tokens enter occtrain's model through a projection of the
+scene codebook; their embedding rows in ``llm/`` hold that projection (unless the LLM ties
+its embeddings to its head), so plain transformers reads them too where attention is causal.
+"""
+
+from __future__ import annotations
+
+import copy
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import torch
+from omegaconf import OmegaConf
+from safetensors.torch import save_file
+
+from occtrain.config import to_container
+from occtrain.config.llm import MAX_NEW_TEXT_TOKENS, LLMConfig
+from occtrain.data.layout import DatasetIndex
+from occtrain.engine.world_model import WorldModelEngine
+from occtrain.errors import ConfigError
+from occtrain.exports import load_state_strict, read_export, read_export_config, write_export
+from occtrain.families import get_family, load_tokenizer, tokenizer_family
+from occtrain.families.occllama.tasks import TaskConfig, corpus_texts
+from occtrain.models.llm import build_llm, load_text_tokenizer
+from occtrain.models.text_tokenizer import train_text_tokenizer
+from occtrain.models.vocab import JointVocab
+
+LLM_DIR = "llm"
+ADAPTER_DIR = "adapter"
+SCENE_TOKENIZER_DIR = "scene_tokenizer"
+WORLD_MODEL = "world_model"
+
+
+def new_world_model(
+    tokenizer_export: Path, llm_cfg: LLMConfig, tasks: TaskConfig, data_root: str | Path,
+    max_new_text_tokens: int = MAX_NEW_TEXT_TOKENS,
+) -> WorldModelEngine:
+    """A freshly initialised world model over a tokenizer stage's export (what pretraining starts from).
+
+    The text tokenizer is the LLM's own when ``llm_cfg.path`` is set, else a BPE trained on
+    the dataset's text; training is deterministic, so every DDP rank and a resumed run build
+    the same one. The LLM is initialised under the current torch seed.
+    """
+    scene_tok = load_tokenizer(tokenizer_export)
+    family = get_family(tokenizer_family(read_export_config(tokenizer_export)["arch"]))
+    if family.world_model is None:  # a tokenizer-only family (OccWorld) feeds OccLLaMA's world model
+        family = get_family("occllama")
+    if llm_cfg.path:
+        text_tok = load_text_tokenizer(llm_cfg.path)
+    else:
+        text_tok = train_text_tokenizer(corpus_texts(DatasetIndex.open(data_root)), llm_cfg.text_vocab_size)
+    vocab = JointVocab(text_tok, num_codes=scene_tok.num_codes, scene_hw=tuple(scene_tok.latent_hw), llm_cfg=llm_cfg)
+    llm = build_llm(llm_cfg, len(vocab))
+    world = family.world_model(llm, vocab, codebook=scene_tok.codebook, scene_prediction=llm_cfg.scene_prediction)
+    return WorldModelEngine(scene_tok, world, text_tok, tasks, max_new_text_tokens, family.name)
+
+
+def export_engine(engine: WorldModelEngine, path: Path, stage: str, merge: bool = False) -> Path:
+    """Write a world-model export (see the module docstring). With a LoRA adapter,
+    ``llm/`` holds the base weights and ``llm/adapter/`` the adapter; ``merge`` folds the
+    adapter into ``llm/`` instead. The engine itself is left as it was."""
+    from peft import PeftModel
+
+    world = engine.world
+    wrapped = isinstance(world.llm, PeftModel)
+    with tempfile.TemporaryDirectory() as tmp:
+        llm_dir = Path(tmp) / LLM_DIR
+        if wrapped and merge:
+            base = copy.deepcopy(world.llm).merge_and_unload()
+            state = base.state_dict()
+        elif wrapped:
+            base = world.llm.get_base_model()
+            state = _base_names(world.llm.state_dict())
+            world.llm.save_pretrained(str(llm_dir / ADAPTER_DIR))
+        else:
+            base = world.llm
+            state = base.state_dict()
+        _save_hf_llm(llm_dir, base, state, world, engine)
+        own = {k: v for k, v in world.state_dict().items() if not k.startswith("llm.")}
+        config = {
+            "stage_kind": WORLD_MODEL,
+            "stage": stage,
+            "family": engine.family,
+            "vocab": engine.vocab.to_json(),
+            "world": world.export_config(),
+            "tasks": to_container(OmegaConf.structured(engine.tasks)),
+            "max_new_text_tokens": engine.max_new_text_tokens,
+        }
+        extra = {LLM_DIR: llm_dir, SCENE_TOKENIZER_DIR: Path(engine.scene_tokenizer.export_dir)}
+        return write_export(path, own, config, extra)
+
+
+def _save_hf_llm(llm_dir: Path, base: Any, state: dict[str, torch.Tensor], world: Any, engine: WorldModelEngine) -> None:
+    """A plain Hugging Face directory: config, weights (safetensors, HF names), generation
+    config and tokenizer."""
+    from transformers import GenerationConfig
+
+    llm_dir.mkdir(parents=True, exist_ok=True)
+    state = {k: v.detach().cpu().clone().contiguous() for k, v in state.items()}
+    embed_key = next((k for k in state if k.endswith("embed_tokens.weight")), None)
+    if embed_key is not None and not base.config.get_text_config().tie_word_embeddings:
+        with torch.no_grad():
+            lo, hi = engine.vocab.occ_range
+            state[embed_key][lo:hi] = world.occ_proj(world.codebook).to(state[embed_key].dtype).cpu()
+    seen: dict[tuple, str] = {}
+    for key in list(state):  # tied tensors are stored once; transformers ties them again on load
+        ident = (state[key].data_ptr(), tuple(state[key].shape))
+        if ident in seen and state[key].data_ptr() != 0:
+            del state[key]
+        else:
+            seen[ident] = key
+    save_file(state, str(llm_dir / "model.safetensors"), metadata={"format": "pt"})
+    base.config.save_pretrained(str(llm_dir))
+    vocab = engine.vocab
+    GenerationConfig(
+        bos_token_id=vocab.bos_id, eos_token_id=vocab.eos_id, pad_token_id=vocab.pad_id,
+        max_new_tokens=engine.max_new_text_tokens, do_sample=False,
+    ).save_pretrained(str(llm_dir))
+    engine.text_tokenizer.save_pretrained(str(llm_dir))
+
+
+def _base_names(state: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    """peft's wrapped names (``base_model.model.``, ``.base_layer.``) back to the plain model's; LoRA weights dropped."""
+    out = {}
+    for name, value in state.items():
+        if ".lora_" in name:
+            continue
+        out[name.replace("base_model.model.", "", 1).replace(".base_layer.", ".")] = value
+    return out
+
+
+def load_world_model(export_dir: Path) -> WorldModelEngine:
+    """Rebuild the engine from a world-model export: the LLM from its Hugging Face directory
+    (and adapter), occtrain's parts, both tokenizers and the saved task settings."""
+    from transformers import AutoModelForCausalLM
+    from transformers.utils import logging as hf_logging
+
+    export_dir = Path(export_dir)
+    state, config = read_export(export_dir)
+    if config.get("stage_kind") != WORLD_MODEL:
+        raise ConfigError(f"{export_dir}: not a world-model export (stage kind '{config.get('stage_kind')}')")
+    family = get_family(config.get("family", "occllama"))
+    llm_dir = export_dir / LLM_DIR
+    scene_tok = load_tokenizer(export_dir / SCENE_TOKENIZER_DIR)
+    text_tok = load_text_tokenizer(llm_dir)
+    vocab = JointVocab.from_json(config["vocab"], text_tok)
+    world_cfg = config["world"]
+    hf_logging.disable_progress_bar()  # a bar per load says nothing in a run's log
+    try:
+        llm = AutoModelForCausalLM.from_pretrained(
+            str(llm_dir), local_files_only=True, attn_implementation=world_cfg["attn_implementation"], dtype=torch.float32,
+        )
+    except (OSError, ValueError) as err:
+        raise ConfigError(f"{llm_dir}: cannot load the exported LLM ({str(err).splitlines()[0]}); re-run the stage that wrote it") from None
+    finally:
+        hf_logging.enable_progress_bar()
+    world = family.world_model.from_export(world_cfg, llm, vocab, codebook=scene_tok.codebook)
+    load_state_strict(world, state, ignore=("llm.",), source=str(export_dir))
+    if (llm_dir / ADAPTER_DIR).is_dir():
+        from peft import PeftModel
+
+        world.llm = PeftModel.from_pretrained(world.llm, str(llm_dir / ADAPTER_DIR), is_trainable=False)
+    tasks = family.task_config(**config["tasks"])  # as saved: a merge onto the defaults would add task weights
+    return WorldModelEngine(scene_tok, world, text_tok, tasks, config.get("max_new_text_tokens", MAX_NEW_TEXT_TOKENS), family.name)

@@ -1,0 +1,201 @@
+"""The world-model engine: the frozen scene tokenizer, the world model and the text
+tokenizer used as one, with the task settings the model is trained with.
+
+It encodes scenes (once per dataset, through the code cache), turns clips into token
+sequences through a family's tasks, and rolls answers out by generation. Training stages,
+``occtrain eval``, the planner, distillation and the benchmarks all use it; nothing here
+imports Lightning.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Iterator
+
+import numpy as np
+import torch
+
+from occtrain.config.llm import MAX_NEW_TEXT_TOKENS
+from occtrain.data.clips import Actions, Clip, Part, Scene, Text
+from occtrain.data.layout import DatasetIndex
+from occtrain.families.occllama.tasks import TASKS, TaskConfig, sample_task
+from occtrain.families.occllama.world_model import OccWorldModel, collate
+from occtrain.io import is_rank_zero
+from occtrain.models.vocab import JointVocab
+from occtrain.progress import progress_bar
+
+#: The file of the scene-code cache inside a stage directory's ``cache/``.
+CODE_CACHE = "scene_codes.safetensors"
+#: The shard entries a world-model stage trains on when scenes come from the code cache.
+TEXT_ENTRIES = ("ann.json", "qa.json", "narration.txt")
+
+
+def move_batch(batch: dict, device: torch.device) -> dict:
+    """The batch's tensors on ``device`` (other values as they are)."""
+    return {k: v.to(device) if torch.is_tensor(v) else v for k, v in batch.items()}
+
+
+@dataclass
+class CotOutput:
+    """A generated chain of thought: its text and the trajectory that follows it."""
+
+    text: str
+    waypoints: np.ndarray  # (6, 2)
+
+
+class WorldModelEngine(torch.nn.Module):
+    """The scene tokenizer (frozen), the world model and the text tokenizer, used as one.
+
+    Turns clips and task parts into token sequences, and rolls answers out by generation.
+    Stages, ``occtrain eval``, the planner and distillation all go through this class.
+    """
+
+    def __init__(
+        self, scene_tokenizer: torch.nn.Module, world: OccWorldModel, text_tokenizer: Any, tasks: TaskConfig,
+        max_new_text_tokens: int = MAX_NEW_TEXT_TOKENS, family: str = "occllama",
+    ):
+        super().__init__()
+        self.scene_tokenizer = scene_tokenizer.eval().requires_grad_(False)
+        self.world = world
+        self.text_tokenizer = text_tokenizer
+        #: The task/prompt settings the model trains (or was trained) with: every prompt
+        #: built through this engine, in training, evaluation or a later stage, uses them.
+        self.tasks = tasks
+        self.max_new_text_tokens = int(max_new_text_tokens)
+        self.family = family
+        #: Sample token -> codes, when the dataset was encoded ahead (see build_code_cache).
+        self.code_cache: dict[str, torch.Tensor] | None = None
+
+    @property
+    def vocab(self) -> JointVocab:
+        return self.world.vocab
+
+    def train(self, mode: bool = True) -> WorldModelEngine:
+        super().train(mode)
+        self.scene_tokenizer.eval()  # frozen: no dropout, no codebook updates
+        return self
+
+    # -- scenes
+    @torch.no_grad()
+    def scene_codes(self, batch: dict, needed: list[set[int]]) -> dict[tuple[int, int], torch.Tensor]:
+        """Codes (h*w,) of the clip frames each sample needs: from the code cache when one is
+        set (then the batch needs no occupancy at all), else encoded in one tokenizer batch."""
+        keys = [(b, f) for b, frames in enumerate(needed) for f in sorted(frames)]
+        if not keys:
+            return {}
+        if self.code_cache is not None:
+            return {(b, f): self.code_cache[batch["ann"][b]["tokens"][f]] for b, f in keys}
+        frames = torch.stack([batch["semantics"][b, f] for b, f in keys]).long()
+        codes = self.scene_tokenizer.encode(frames).flatten(1)
+        return dict(zip(keys, codes))
+
+    @torch.no_grad()
+    def build_code_cache(self, data_root: str | Path, cache_file: Path, batch_size: int = 8) -> None:
+        """Encode every frame of the dataset once (the tokenizer is frozen), kept in
+        ``cache_file`` (safetensors, written atomically) so a resumed stage reuses it."""
+        from safetensors.torch import load_file, save_file
+
+        if cache_file.is_file():
+            self.code_cache = load_file(str(cache_file))
+            return
+        index = DatasetIndex.open(data_root)
+        samples = [(scene, token) for scene, tokens in index.scenes.items() for token in tokens]
+        cache: dict[str, torch.Tensor] = {}
+        device = self.scene_tokenizer.codebook.device
+        with progress_bar(len(samples), "encoding scenes with the frozen tokenizer") as advance:
+            for i in range(0, len(samples), batch_size):
+                chunk = samples[i : i + batch_size]
+                sem = torch.from_numpy(np.stack([index.labels(s, t)["semantics"] for s, t in chunk])).long().to(device)
+                for (_, token), codes in zip(chunk, self.scene_tokenizer.encode(sem).flatten(1).cpu()):
+                    cache[token] = codes.to(torch.int32).contiguous()
+                advance(len(chunk))
+        if is_rank_zero():
+            cache_file.parent.mkdir(parents=True, exist_ok=True)
+            tmp = cache_file.with_suffix(".tmp")
+            save_file(cache, str(tmp))
+            tmp.replace(cache_file)
+        self.code_cache = cache
+
+    @torch.no_grad()
+    def decode_scenes(self, codes: torch.Tensor) -> torch.Tensor:
+        """(N, h*w) codes -> (N, X, Y, Z) class labels through the tokenizer's decoder."""
+        h, w = self.scene_tokenizer.latent_hw
+        return self.scene_tokenizer.decode(codes.view(-1, h, w)).argmax(1)
+
+    # -- sequences
+    def encode_parts(self, parts: list[Part], codes: dict[int, torch.Tensor]):
+        """One task's parts -> a TokenSequence, scenes looked up by clip frame in ``codes``."""
+        builder = self.world.builder()
+        for part in parts:
+            if isinstance(part, Text):
+                builder.text(part.text, part.supervise)
+            elif isinstance(part, Scene):
+                builder.scene(codes[part.frame], part.supervise)
+            else:
+                builder.actions(torch.tensor(part.xy, dtype=torch.float32), part.supervise)
+        return builder.build()
+
+    def task_batch(self, clips: list[Clip], batch: dict, seed: int) -> tuple[dict, list[str]]:
+        """Draw a task per clip (by the engine's task weights) and collate the sequences into a model batch."""
+        drawn = [sample_task(c, self.tasks, seed, c.anchor["token"]) for c in clips]
+        needed = [{p.frame for p in parts if isinstance(p, Scene)} for _, parts in drawn]
+        codes = self.scene_codes(batch, needed)
+        seqs = [
+            self.encode_parts(parts, {f: codes[(b, f)] for f in needed[b]}) for b, (_, parts) in enumerate(drawn)
+        ]
+        return collate(seqs, pad_id=self.vocab.pad_id), [name for name, _ in drawn]
+
+    # -- generation
+    @torch.no_grad()
+    def rollout(self, parts: list[Part], codes: dict[int, torch.Tensor]) -> tuple[list[Part], dict[int, torch.Tensor]]:
+        """Generate the answer parts of a task one after the other, each conditioned on the
+        ones generated before it (not on the ground truth): the prompt is the parts before
+        the first supervised one; a text answer is generated up to the end-of-text token, an
+        action answer as many waypoints as the reference has, a scene by one next-scene pass.
+        Returns the generated parts and the codes of every scene, generated ones included.
+        """
+        first = next(i for i, p in enumerate(parts) if p.supervise)
+        codes = dict(codes)
+        decoder = self.world.decoder(self.encode_parts(parts[:first], codes).input_ids)
+        generated: list[Part] = []
+        next_frame = max(codes) + 1 if codes else 0
+        for target in parts[first:]:  # the answer parts are contiguous: one decoder, one KV cache
+            if isinstance(target, Text):
+                generated.append(Text(self.vocab.decode_text(decoder.text(self.max_new_text_tokens)), True))
+            elif isinstance(target, Actions):
+                xy = decoder.actions(steps=len(target.xy))
+                generated.append(Actions(tuple(map(tuple, xy.tolist())), True))
+            else:
+                codes[next_frame] = decoder.scene()
+                generated.append(Scene(next_frame, True))
+                next_frame += 1
+        return generated, codes
+
+    def rollouts(
+        self, task: str, clips: list[Clip], batch: dict, rng: np.random.Generator
+    ) -> Iterator[tuple[int, list[Part], list[Part], dict[int, torch.Tensor]]]:
+        """Build ``task`` for every clip (with the engine's prompt settings) and roll its
+        answer out: (sample index, parts, generated parts, scene codes) for each clip the
+        task applies to."""
+        built = [TASKS[task](c, self.tasks, rng) for c in clips]
+        needed = [{p.frame for p in ps if isinstance(p, Scene) and not p.supervise} if ps else set() for ps in built]
+        codes = self.scene_codes(batch, needed)
+        for b, parts in enumerate(built):
+            if parts is not None:
+                generated, all_codes = self.rollout(parts, {f: codes[(b, f)] for f in needed[b]})
+                yield b, parts, generated, all_codes
+
+    def chain_of_thought(self, clips: list[Clip], batch: dict) -> list[CotOutput | None]:
+        """Narration, meta action and trajectory generated for each clip (OccLLaMA's CoT
+        planning), built with the prompt settings the model was trained with; None for a
+        clip the task does not apply to (no known future or no narration)."""
+        outputs: list[CotOutput | None] = [None] * len(clips)
+        for b, _, (text, traj), _ in self.rollouts("cot_planning", clips, batch, np.random.default_rng(0)):
+            outputs[b] = CotOutput(text.text, np.asarray(traj.xy))
+        return outputs
+
+    def with_generation_length(self, max_new_text_tokens: int) -> WorldModelEngine:
+        """Let generated texts run up to ``max_new_text_tokens`` (a stage's setting); returns self."""
+        self.max_new_text_tokens = int(max_new_text_tokens)
+        return self

@@ -1,0 +1,95 @@
+"""The handoff between stages: an export directory of safetensors weights + JSON config.
+
+``model.safetensors`` + ``config.json`` (+ extra files or directories) are written as one
+atomic directory swap, so a reader sees the old export or the new one, never half of
+either. Nothing here imports Lightning: models, families and the engine load exports too.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+from pathlib import Path
+
+import torch
+from safetensors.torch import load_file, save_file
+
+from occtrain.errors import OcctrainError
+
+EXPORT_WEIGHTS = "model.safetensors"
+EXPORT_CONFIG = "config.json"
+
+
+def write_export(export_dir: Path, state_dict: dict[str, torch.Tensor], config: dict, extra: dict[str, Path] | None = None) -> Path:
+    """Write ``model.safetensors`` + ``config.json`` (+ extra files/dirs) as one atomic directory swap."""
+    export_dir = Path(export_dir)
+    export_dir.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(dir=export_dir.parent, prefix=".export."))
+    try:
+        tensors = {k: v.detach().cpu().contiguous() for k, v in state_dict.items()}
+        save_file(tensors, str(tmp / EXPORT_WEIGHTS))
+        (tmp / EXPORT_CONFIG).write_text(json.dumps(config, indent=2) + "\n")
+        for name, src in (extra or {}).items():
+            (shutil.copytree if Path(src).is_dir() else shutil.copy2)(src, tmp / name)
+        for f in tmp.rglob("*"):
+            if f.is_file():
+                with open(f, "rb") as fh:
+                    os.fsync(fh.fileno())
+        old = export_dir.with_name(f".{export_dir.name}.old")
+        if export_dir.exists():
+            shutil.rmtree(old, ignore_errors=True)
+            export_dir.rename(old)
+        tmp.rename(export_dir)
+        shutil.rmtree(old, ignore_errors=True)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return export_dir
+
+
+def _export_files(export_dir: Path) -> tuple[Path, Path]:
+    weights, config = export_dir / EXPORT_WEIGHTS, export_dir / EXPORT_CONFIG
+    if not weights.is_file() or not config.is_file():
+        raise OcctrainError(f"{export_dir}: no exported model ({EXPORT_WEIGHTS} + {EXPORT_CONFIG}); run the stage that produces it first")
+    return weights, config
+
+
+def read_export_config(export_dir: Path) -> dict:
+    """An export's ``config.json`` alone (what kind of model it is), without loading weights."""
+    export_dir = Path(export_dir)
+    _, config = _export_files(export_dir)
+    try:
+        return json.loads(config.read_text())
+    except ValueError as err:
+        raise OcctrainError(f"{config}: unreadable export config ({err}); re-run the stage that wrote it") from None
+
+
+def read_export(export_dir: Path) -> tuple[dict[str, torch.Tensor], dict]:
+    """Load an export's weights and config (safetensors + JSON: nothing is unpickled)."""
+    export_dir = Path(export_dir)
+    weights, config = _export_files(export_dir)
+    try:
+        return load_file(str(weights)), json.loads(config.read_text())
+    except Exception as err:  # safetensors raises its own error types on a corrupt header
+        raise OcctrainError(f"{export_dir}: unreadable export ({type(err).__name__}: {err}); re-run the stage that wrote it") from None
+
+
+def load_state_strict(
+    module: torch.nn.Module, state: dict[str, torch.Tensor], ignore: tuple[str, ...], source: str,
+    hint: str = "re-run the stage that wrote them",
+) -> None:
+    """Load ``state`` into ``module``; every key outside the ``ignore`` prefixes must match
+    both ways, else a one-line error names the first key that does not."""
+    missing, unexpected = module.load_state_dict(state, strict=False)
+    check_loaded_keys(missing, unexpected, ignore, source, hint)
+
+
+def check_loaded_keys(missing: list[str], unexpected: list[str], ignore: tuple[str, ...], source: str, hint: str) -> None:
+    """The strict half of ``load_state_dict(strict=False)``: keys under ``ignore`` may be
+    missing (frozen parts that come from another export); nothing else may be."""
+    missing = [k for k in missing if not k.startswith(ignore)]
+    if missing or unexpected:
+        key, what = (missing[0], "missing") if missing else (unexpected[0], "unexpected")
+        raise OcctrainError(f"{source}: weights do not match the model ({what} key '{key}'); {hint}")

@@ -1,0 +1,111 @@
+"""The stage interface: everything the runner may call on a stage, declared once.
+
+A stage kind is a :class:`Stage` subclass (a LightningModule) registered with a name and
+a model-config schema. The runner builds it from a :class:`StageContext`, feeds it the
+shard entries it declares, trains and validates it with Lightning, asks it for a
+:class:`StageReport` and has it :meth:`~Stage.export` what later stages consume; it calls
+nothing else.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, ClassVar
+
+import lightning as L
+
+from occtrain.config.recipe import StageSpec
+from occtrain.config.schema import DataConfig, TrainerConfig
+from occtrain.errors import ConfigError
+from occtrain.exports import check_loaded_keys
+from occtrain.models import count_parameters
+
+
+@dataclass
+class StageContext:
+    """Everything a stage kind needs to build its module."""
+
+    spec: StageSpec
+    model_cfg: Any  # the kind's validated model config (an omegaconf structured object)
+    data: DataConfig
+    trainer: TrainerConfig
+    stage_dir: Path
+    #: Export directories of the consumed stages, by stage name.
+    inputs: dict[str, Path]
+
+
+@dataclass
+class StageReport:
+    """What a finished stage tells the run: its one-line summary, metrics to add to the
+    validation ones (parameter counts, ...), sample texts and scenes for the dashboard."""
+
+    summary: str = ""
+    metrics: dict[str, float] = field(default_factory=dict)
+    #: ``{"task", "prompt", "prediction", "reference"}`` records.
+    texts: list[dict] = field(default_factory=list)
+    #: ``(caption, [(panel label, semantics (200, 200, 16) uint8)])``: the runner draws them.
+    scenes: list[tuple[str, list[tuple[str, Any]]]] = field(default_factory=list)
+
+
+class Stage(L.LightningModule, ABC):
+    """Base of every stage kind (built-in or plugin).
+
+    Subclasses set the class attributes below, build their models in ``__init__(ctx)``,
+    implement Lightning's training/validation hooks and :meth:`export`.
+    """
+
+    #: Stage kinds whose export this kind may consume (recipe ``consumes:``).
+    consumes_kinds: ClassVar[tuple[str, ...]] = ()
+    #: How many stages it consumes, (least, most).
+    consumes_count: ClassVar[tuple[int, int]] = (0, 0)
+    #: Parameter-name prefixes of sub-models that come, frozen, from another stage's export:
+    #: checkpoints leave them out and loading does not expect them back.
+    frozen_prefixes: ClassVar[tuple[str, ...]] = ()
+
+    def __init__(self, ctx: StageContext):
+        super().__init__()
+        self.ctx = ctx
+
+    # -- what the runner calls
+    @classmethod
+    def check_consumes(cls, kind: str, consumed: dict[str, str], where: str) -> None:
+        """Refuse a recipe whose ``consumes:`` (stage name -> kind) this kind cannot read."""
+        lo, hi = cls.consumes_count
+        if not lo <= len(consumed) <= hi:
+            n = f"exactly {lo}" if lo == hi else f"{lo} to {hi}"
+            what = f" ({' or '.join(cls.consumes_kinds)})" if cls.consumes_kinds else ""
+            raise ConfigError(f"{where}: a {kind} stage consumes {n} earlier stage(s){what}, got {len(consumed)}")
+        for name, other in consumed.items():
+            if other not in cls.consumes_kinds:
+                raise ConfigError(f"{where}: a {kind} stage cannot consume '{name}', a {other} stage; it reads {' or '.join(cls.consumes_kinds)}")
+
+    def entries(self, split: str) -> tuple[str, ...] | None:
+        """The shard entries this stage reads on ``split`` ("train", "val"); None: all of them."""
+        return None
+
+    def report(self) -> StageReport:
+        """Summary, extra metrics and samples, asked for after the final validation."""
+        return StageReport(summary=f"{count_parameters(self) / 1e6:.2f}M params")
+
+    @abstractmethod
+    def export(self, path: Path) -> Path:
+        """Write what later stages consume to ``path`` (safetensors + JSON); returns it."""
+
+    # -- shared behaviour
+    def step_seed(self, step: int) -> int:
+        """The seed of training step ``step``: the same on every rank and after a resume."""
+        return self.ctx.data.seed * 1_000_003 + step
+
+    def state_dict(self, *args: Any, **kwargs: Any) -> dict[str, Any]:
+        state = super().state_dict(*args, **kwargs)
+        return {k: v for k, v in state.items() if not k.startswith(self.frozen_prefixes)} if self.frozen_prefixes else state
+
+    def load_state_dict(self, state_dict: dict[str, Any], strict: bool = True, **kwargs: Any) -> Any:
+        """Strict except for :attr:`frozen_prefixes`: a missing or unexpected key is an error naming it."""
+        missing, unexpected = super().load_state_dict(state_dict, strict=False)
+        check_loaded_keys(
+            missing, unexpected, self.frozen_prefixes, f"checkpoint of stage '{self.ctx.spec.name}'",
+            f"run with --restart {self.ctx.spec.name}",
+        )

@@ -1,0 +1,127 @@
+"""The package's import arrows, read from the source with ``ast``.
+
+Layers, top to bottom: cli -> runner (and the other commands) -> stages -> engine ->
+families -> models / metrics / data -> config and the base modules. A module may import
+its own layer or lower ones, never a higher one; on top of that:
+
+- nothing in ``models/``, ``families/`` or ``engine/`` imports Lightning;
+- no stage module imports another stage module (they share ``stages/base``, ``stages/common``);
+- ``metrics/`` never imports ``data/`` (metrics score anyone's predictions);
+- only the generator's entry point (``data/synthesize.py``) imports ``data/synth``.
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+from conftest import REPO
+
+SRC = REPO / "src" / "occtrain"
+
+#: Layer of each top-level module or package of occtrain (higher imports lower).
+LAYERS = {
+    "cli": 6, "__main__": 6,
+    "runner": 5, "evaluate": 5, "scoring": 5, "dashboard": 5, "manifest": 5,
+    "stages": 4,
+    "engine": 3,
+    "families": 2,
+    "models": 1, "metrics": 1, "data": 1,
+    "config": 0, "errors": 0, "io": 0, "exports": 0, "progress": 0, "occ3d": 0, "nuscenes_qa": 0, "__init__": 0,
+}
+#: Modules of ``stages/`` that are infrastructure, not a stage kind.
+STAGE_INFRA = {"occtrain.stages", "occtrain.stages.base", "occtrain.stages.common"}
+LIGHTNING_FREE = ("models", "families", "engine")
+
+
+def module_name(path: Path) -> str:
+    parts = path.relative_to(SRC.parent).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def imports(me: str, is_package: bool, source: str) -> list[tuple[int, str]]:
+    """(line, absolute module name) of every import in ``source``, function-level ones included."""
+    out: list[tuple[int, str]] = []
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.Import):
+            out += [(node.lineno, alias.name) for alias in node.names]
+        elif isinstance(node, ast.ImportFrom) and node.module:
+            if node.level:  # relative: resolve against the importing package
+                base = me.split(".")
+                base = base[: len(base) - node.level + is_package]
+                out.append((node.lineno, ".".join([*base, node.module])))
+            else:
+                out.append((node.lineno, node.module))
+    return out
+
+
+def top(module: str) -> str:
+    parts = module.split(".")
+    return parts[1] if len(parts) > 1 else "__init__"
+
+
+def check_module(me: str, where: str, source: str, is_package: bool = False) -> list[str]:
+    """Every rule the module ``me`` (its ``source``) breaks, one line each."""
+    found = []
+    mine = top(me)
+    for line, target in imports(me, is_package, source):
+        if target.split(".")[0] in ("lightning", "pytorch_lightning") and mine in LIGHTNING_FREE:
+            found.append(f"{where}:{line} imports {target}: {mine}/ must not depend on Lightning")
+        if not target.startswith("occtrain."):
+            continue
+        theirs = top(target)
+        if theirs not in LAYERS:
+            continue
+        if LAYERS[theirs] > LAYERS[mine]:
+            found.append(f"{where}:{line} imports {target}: {mine} (layer {LAYERS[mine]}) points up at {theirs} (layer {LAYERS[theirs]})")
+        if mine == "stages" and me not in STAGE_INFRA and target.startswith("occtrain.stages."):
+            stage = ".".join(target.split(".")[:3])
+            if stage not in STAGE_INFRA and stage != me:
+                found.append(f"{where}:{line} imports {target}: a stage imports another stage")
+        if mine == "metrics" and theirs == "data":
+            found.append(f"{where}:{line} imports {target}: metrics/ must not import data/")
+        if target.startswith("occtrain.data.synth") and not target.startswith("occtrain.data.synthesize"):
+            if not (me.startswith("occtrain.data.synth.") or me in ("occtrain.data.synth", "occtrain.data.synthesize")):
+                found.append(f"{where}:{line} imports {target}: only data/synthesize.py may import the generator")
+    return found
+
+
+def violations() -> list[str]:
+    found = []
+    for path in sorted(SRC.rglob("*.py")):
+        found += check_module(module_name(path), str(path.relative_to(REPO)), path.read_text(), path.name == "__init__.py")
+    return found
+
+
+def test_every_module_has_a_layer():
+    tops = {top(module_name(p)) for p in SRC.rglob("*.py")}
+    assert tops <= set(LAYERS), f"give these a layer in LAYERS: {sorted(tops - set(LAYERS))}"
+
+
+def test_imports_point_down():
+    assert violations() == []
+
+
+@pytest.mark.parametrize(
+    "module, source, expected",
+    [
+        ("models/bad.py", "import lightning as L\n", "must not depend on Lightning"),
+        ("engine/bad.py", "def f():\n    from lightning.pytorch import Trainer\n", "must not depend on Lightning"),
+        ("stages/bad.py", "from occtrain.stages.world_model import WorldModelStage\n", "a stage imports another stage"),
+        ("metrics/bad.py", "from occtrain.data.schema import COMMANDS\n", "metrics/ must not import data/"),
+        ("families/bad.py", "from occtrain.engine import Evaluator\n", "points up"),
+        ("data/bad.py", "from occtrain.data.synth.text import caption_for_frame\n", "only data/synthesize.py"),
+    ],
+)
+def test_the_checker_catches(module, source, expected):
+    """Each rule fails on a planted violation (a checker that cannot fail proves nothing)."""
+    me = "occtrain." + module.removesuffix(".py").replace("/", ".")
+    found = check_module(me, module, source)
+    assert any(expected in v for v in found), found
+
+
+def test_the_checker_passes_allowed_imports():
+    assert check_module("occtrain.stages.planner", "stages/planner.py", "from occtrain.stages.base import Stage\nfrom occtrain.engine import Evaluator\n") == []
+    assert check_module("occtrain.data.synthesize", "data/synthesize.py", "from occtrain.data.synth.text import caption_for_frame\n") == []
