@@ -31,7 +31,7 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     from occtrain.evaluate import evaluate, print_metrics
 
     tasks = [t.strip() for t in args.tasks.split(",") if t.strip()] if args.tasks else None
-    metrics = evaluate(args.stage_dir, args.split, tasks, args.save_predictions, args.limit_batches)
+    metrics = evaluate(args.stage_dir, args.split, tasks, args.save_predictions, args.limit_batches, args.batch_size)
     print_metrics(metrics, f"{args.stage_dir} on {args.split}")
     print(f"metrics -> {Path(args.stage_dir) / 'eval' / args.split / 'metrics.json'}")
     return 0
@@ -100,6 +100,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--tasks", default="", help="comma-separated: forecasting, planning, qa, cot_planning (default: the stage's)")
     p.add_argument("--save-predictions", metavar="DIR", help="also write predictions in the formats `occtrain score` reads")
     p.add_argument("--limit-batches", type=int, default=None, help="score only the first N batches")
+    p.add_argument("--batch-size", type=int, default=16, help="clips generated together in one batch (default 16)")
     p.set_defaults(func=_cmd_eval)
 
     config = sub.add_parser("config", help="inspect configs").add_subparsers(dest="action", required=True)

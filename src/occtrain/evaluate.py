@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from omegaconf import OmegaConf
 
 from occtrain.config import load_config
 from occtrain.config.recipe import RecipeConfig
@@ -31,12 +32,13 @@ def evaluate(
     tasks: list[str] | None = None,
     save_predictions: str | Path | None = None,
     limit_batches: int | None = None,
+    batch_size: int = 16,
 ) -> dict[str, float]:
     """Metrics of ``stage_dir``'s export on ``split`` (see the module docstring)."""
     from occtrain.data.clips import clips_from_batch
     from occtrain.data.datamodule import ShardDataModule, shards_dir
     from occtrain.data.shards import shard_urls
-    from occtrain.engine import Evaluator, load_world_model, qa_prior
+    from occtrain.engine import CODE_CACHE, Evaluator, load_world_model, qa_prior
     from occtrain.families.occllama.tasks import INSTRUCT_TASKS, PRETRAIN_TASKS
 
     stage_dir = Path(stage_dir)
@@ -51,13 +53,20 @@ def evaluate(
         raise ConfigError(f"occtrain eval scores world-model stages ({', '.join(EVAL_KINDS)}); '{spec.name}' is a {spec.kind} stage")
     # Prompts and generation length come from the export: exactly what the model trained with.
     engine = load_world_model(stage_dir / "export").eval()
+    # Scenes are looked up in the stage's code cache (made by the same frozen tokenizer;
+    # built here if the stage trained without one) instead of being encoded per clip.
+    engine.build_code_cache(recipe.data.root, stage_dir / "cache" / CODE_CACHE)
     group = PRETRAIN_TASKS if EVAL_KINDS[spec.kind] == "pretrain" else INSTRUCT_TASKS
     evaluator = Evaluator(tasks or [t for t in Evaluator.TASKS if t in group], record=save_predictions is not None, qa_prior=qa_prior(recipe.data.root))
-    data = ShardDataModule(recipe.data, "clips")
+    if batch_size < 1:
+        raise ConfigError(f"--batch-size {batch_size}: must be at least 1")
+    # Clips of a batch generate together (one forward per step for all of them).
+    data_cfg = OmegaConf.merge(recipe.data, {"batch_size": batch_size})
+    data = ShardDataModule(data_cfg, "clips")
     data.prepare_data()
     loader = data.loader(split, train=False)
     _, samples = shard_urls(shards_dir(recipe.data), "clips", split)
-    batches = math.ceil(samples / recipe.data.batch_size)
+    batches = math.ceil(samples / batch_size)
     if limit_batches is not None:
         batches = min(batches, limit_batches)
     torch.manual_seed(0)

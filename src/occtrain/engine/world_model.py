@@ -19,6 +19,7 @@ import torch
 from occtrain.config.llm import MAX_NEW_TEXT_TOKENS
 from occtrain.data.clips import Actions, Clip, Part, Scene, Text
 from occtrain.data.layout import DatasetIndex
+from occtrain.families.occllama.batch_decoding import ActionAnswer, Answer, SceneAnswer, TextAnswer
 from occtrain.families.occllama.tasks import TASKS, TaskConfig, sample_task
 from occtrain.families.occllama.world_model import OccWorldModel, collate
 from occtrain.io import is_rank_zero
@@ -173,18 +174,52 @@ class WorldModelEngine(torch.nn.Module):
         return generated, codes
 
     def rollouts(
-        self, task: str, clips: list[Clip], batch: dict, rng: np.random.Generator
+        self, task: str, clips: list[Clip], batch: dict, rng: np.random.Generator, batched: bool = True
     ) -> Iterator[tuple[int, list[Part], list[Part], dict[int, torch.Tensor]]]:
         """Build ``task`` for every clip (with the engine's prompt settings) and roll its
         answer out: (sample index, parts, generated parts, scene codes) for each clip the
-        task applies to."""
+        task applies to. The clips generate together (one batched forward per step);
+        ``batched=False`` rolls them out one after the other (the reference)."""
         built = [TASKS[task](c, self.tasks, rng) for c in clips]
         needed = [{p.frame for p in ps if isinstance(p, Scene) and not p.supervise} if ps else set() for ps in built]
         codes = self.scene_codes(batch, needed)
-        for b, parts in enumerate(built):
-            if parts is not None:
-                generated, all_codes = self.rollout(parts, {f: codes[(b, f)] for f in needed[b]})
+        todo = [(b, parts, {f: codes[(b, f)] for f in needed[b]}) for b, parts in enumerate(built) if parts is not None]
+        if not batched:
+            for b, parts, context in todo:
+                generated, all_codes = self.rollout(parts, context)
                 yield b, parts, generated, all_codes
+            return
+        prefixes, plans = [], []
+        for _, parts, context in todo:
+            first = next(i for i, p in enumerate(parts) if p.supervise)
+            prefixes.append(self.encode_parts(parts[:first], context).input_ids)
+            plans.append([self._answer(p) for p in parts[first:]])
+        outputs = self.world.generate_batch(prefixes, plans) if todo else []
+        for (b, parts, context), out in zip(todo, outputs):
+            yield (b, parts, *self._as_parts(out, context))
+
+    def _answer(self, target: Part) -> Answer:
+        if isinstance(target, Text):
+            return TextAnswer(self.max_new_text_tokens)
+        if isinstance(target, Actions):
+            return ActionAnswer(len(target.xy))
+        return SceneAnswer()
+
+    def _as_parts(self, out: list, codes: dict[int, torch.Tensor]) -> tuple[list[Part], dict[int, torch.Tensor]]:
+        """Decoded answers -> generated parts, and the scene codes with the generated scenes added."""
+        codes = dict(codes)
+        next_frame = max(codes) + 1 if codes else 0
+        generated: list[Part] = []
+        for value in out:
+            if isinstance(value, list):
+                generated.append(Text(self.vocab.decode_text(value), True))
+            elif value.dtype.is_floating_point:
+                generated.append(Actions(tuple(map(tuple, value.tolist())), True))
+            else:
+                codes[next_frame] = value
+                generated.append(Scene(next_frame, True))
+                next_frame += 1
+        return generated, codes
 
     def chain_of_thought(self, clips: list[Clip], batch: dict) -> list[CotOutput | None]:
         """Narration, meta action and trajectory generated for each clip (OccLLaMA's CoT

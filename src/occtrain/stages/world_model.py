@@ -74,13 +74,17 @@ class WorldModelStage(Stage):
     # -- training
     def training_step(self, batch: dict[str, Any], batch_idx: int) -> torch.Tensor:
         clips = clips_from_batch(batch)
-        model_batch, _ = self.engine.task_batch(clips, batch, self.step_seed(self.global_step))
+        model_batch, names = self.engine.task_batch(clips, batch, self.step_seed(self.global_step))
         out = self.engine.world(move_batch(model_batch, self.device))
+        loss = out.loss
         bs = len(clips)
-        self.log("train/loss", out.loss, prog_bar=True, batch_size=bs)
+        self.log("train/loss", loss, prog_bar=True, batch_size=bs)
         self.log("train/text_loss", out.text_loss, batch_size=bs)
         self.log("train/scene_loss", out.scene_loss, batch_size=bs)
-        return out.loss
+        for task in sorted(set(names)):  # which task is learning, which is not
+            rows = [i for i, n in enumerate(names) if n == task]
+            self.log(f"train/loss_{task}", out.sample_loss[rows].mean(), batch_size=len(rows))
+        return loss
 
     # -- validation
     def validation_step(self, batch: dict[str, Any], batch_idx: int) -> None:

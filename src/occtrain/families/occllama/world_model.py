@@ -160,6 +160,8 @@ class WorldModelOutput:
     logits: torch.Tensor
     #: Last-layer hidden states (B, L, hidden), when asked for (feature distillation).
     hidden: torch.Tensor | None = None
+    #: Mean cross-entropy of each sequence over its own targets, (B,).
+    sample_loss: torch.Tensor | None = None
 
 
 class OccWorldModel(nn.Module):
@@ -231,7 +233,8 @@ class OccWorldModel(nn.Module):
             return (ce * sel).sum() / sel.sum().clamp(min=1)
 
         hidden = out.hidden_states[-1] if output_hidden_states else None
-        return WorldModelOutput(mean(valid), mean(text), mean(scene), logits, hidden)
+        per_sample = (ce * valid).sum(1) / valid.sum(1).clamp(min=1)
+        return WorldModelOutput(mean(valid), mean(text), mean(scene), logits, hidden, per_sample)
 
     @staticmethod
     def token_accuracy(logits: torch.Tensor, labels: torch.Tensor, select: torch.Tensor | None = None) -> torch.Tensor:
@@ -245,6 +248,13 @@ class OccWorldModel(nn.Module):
     # -- generation
     def decoder(self, prefix_ids: torch.Tensor, use_cache: bool = True) -> GreedyDecoder:
         return GreedyDecoder(self, prefix_ids, use_cache)
+
+    @torch.no_grad()
+    def generate_batch(self, prefixes: list[torch.Tensor], answers: list[list]) -> list[list]:
+        """Greedy answers for a batch of prompts at once (see ``batch_decoding``)."""
+        from occtrain.families.occllama.batch_decoding import decode_batch
+
+        return decode_batch(self, prefixes, answers)
 
     @torch.no_grad()
     def generate_text(self, prefix_ids: torch.Tensor, max_new_tokens: int = 64, eos: int | None = None) -> str:

@@ -1,0 +1,190 @@
+"""Greedy decoding of a whole batch at once, with the KV cache and the spatial-temporal mask.
+
+Each sequence runs its own small program (a generator): it asks for tokens to be fed and
+picks its next token from the logits it gets back, exactly as :class:`GreedyDecoder`
+does for one sequence (tokens are queued and fed lazily with the next forward, a scene
+in "next_scene" mode is one forward over the query block). :func:`decode_batch` steps all
+programs in lockstep, one batched forward per step.
+
+Sequences differ in length and in what they feed at a step (one text token here, a query
+block of h*w tokens there), so every forward is padded on the right and the padding is
+masked out rather than shifted: a boolean ``alive`` row per sequence marks the cache
+slots later tokens may attend to (real, kept tokens), and each sequence carries its own
+position ids. Padding slots and the transient query blocks are never alive, which is
+what cropping them off the cache does for a single sequence. A sequence that is done
+leaves the batch (its cache rows are dropped), so long answers do not drag short ones.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Generator, Union
+
+import torch
+
+from occtrain.models.attention import allowed_pairs, scene_segments
+
+
+@dataclass(frozen=True)
+class TextAnswer:
+    """Text up to end-of-text, at most ``max_new_tokens`` tokens."""
+
+    max_new_tokens: int
+
+
+@dataclass(frozen=True)
+class ActionAnswer:
+    """An ``<act>`` block of ``steps`` waypoints."""
+
+    steps: int
+
+
+@dataclass(frozen=True)
+class SceneAnswer:
+    """One ``<occ>`` scene."""
+
+
+Answer = Union[TextAnswer, ActionAnswer, SceneAnswer]
+
+
+@dataclass
+class _Feed:
+    """Tokens a program asks to feed; the last ``transient`` of them are not kept."""
+
+    ids: torch.Tensor
+    seg: torch.Tensor
+    transient: int = 0
+
+
+Program = Generator[_Feed, torch.Tensor, list]
+
+
+def _program(world, prefix: torch.Tensor, answers: list[Answer]) -> Program:
+    """One sequence's greedy decoding (mirrors ``GreedyDecoder``); returns its answers:
+    text ids (list[int]), waypoints Float[steps, 2] or scene codes Long[h*w]."""
+    v = world.vocab
+    device = prefix.device
+    next_scene = world.scene_prediction == "next_scene"
+    seg = scene_segments(v.is_occ(prefix)) if next_scene else torch.zeros_like(prefix)
+    queue_ids, queue_seg = [prefix], [seg]
+    next_segment = int(seg.max()) + 1 if seg.numel() else 1
+    last_id = int(prefix[-1]) if prefix.numel() else -1
+    last_logits: torch.Tensor | None = None
+
+    def queue(ids, segment: int = 0) -> None:
+        nonlocal last_id
+        ids = torch.as_tensor(ids, dtype=torch.long, device=device).reshape(-1)
+        queue_ids.append(ids)
+        queue_seg.append(torch.full_like(ids, segment))
+        last_id = int(ids[-1])
+
+    def take() -> tuple[torch.Tensor, torch.Tensor]:
+        ids, segs = torch.cat(queue_ids), torch.cat(queue_seg)
+        queue_ids.clear()
+        queue_seg.clear()
+        return ids, segs
+
+    results: list = []
+    for answer in answers:
+        if isinstance(answer, TextAnswer):
+            out: list[int] = []
+            for _ in range(answer.max_new_tokens):
+                if queue_ids or last_logits is None:
+                    last_logits = (yield _Feed(*take()))[-1]
+                lo, hi = v.text_range
+                tok = int(last_logits[lo:hi].argmax()) + lo
+                if tok == v.eos_id:
+                    break
+                out.append(tok)
+                queue([tok])
+            queue([v.eos_id])
+            results.append(out)
+        elif isinstance(answer, ActionAnswer):
+            if last_id != v.act_open_id:
+                queue([v.act_open_id])
+            ids = []
+            for _ in range(answer.steps):
+                for lo, hi in (v.act_x_range, v.act_y_range):
+                    if queue_ids or last_logits is None:
+                        last_logits = (yield _Feed(*take()))[-1]
+                    ids.append(int(last_logits[lo:hi].argmax()) + lo)
+                    queue(ids[-1:])
+            queue([v.act_close_id])
+            results.append(v.actions_from_ids(torch.tensor(ids, dtype=torch.long)).reshape(answer.steps, 2))
+        else:
+            if last_id != v.occ_open_id:
+                queue([v.occ_open_id])
+            lo, hi = v.occ_range
+            if next_scene:
+                ids, segs = take()
+                queries = v.query_ids().to(device)
+                logits = yield _Feed(torch.cat([ids, queries]), torch.cat([segs, torch.full_like(queries, -1)]), len(queries))
+                code_ids = logits[-len(queries):, lo:hi].argmax(-1) + lo
+                queue(code_ids, next_segment)
+                next_segment += 1
+            else:
+                picked = []
+                for _ in range(v.scene_len):
+                    if queue_ids or last_logits is None:
+                        last_logits = (yield _Feed(*take()))[-1]
+                    picked.append(int(last_logits[lo:hi].argmax()) + lo)
+                    queue(picked[-1:])
+                code_ids = torch.tensor(picked, device=device)
+            queue([v.occ_close_id])
+            last_logits = None  # the next pick needs the codes fed first
+            results.append(v.codes_from_ids(code_ids).cpu())
+    return results
+
+
+@torch.no_grad()
+def decode_batch(world, prefixes: list[torch.Tensor], answers: list[list[Answer]]) -> list[list]:
+    """Greedy answers for every sequence of the batch: ``prefixes[b]`` Long[L_b] is its
+    prompt, ``answers[b]`` what to generate after it, in order. Returns, per sequence, a
+    list with one entry per answer (see ``_program``)."""
+    device = world.codebook.device
+    programs = [_program(world, p.reshape(-1).long().to(device), a) for p, a in zip(prefixes, answers)]
+    feeds: list[_Feed | None] = []
+    results: list[list | None] = [None] * len(programs)
+    for b, prog in enumerate(programs):
+        try:
+            feeds.append(next(prog))
+        except StopIteration as stop:  # nothing to generate
+            feeds.append(None)
+            results[b] = stop.value
+    #: The programs still running, by row of the cache; finished ones leave the batch.
+    rows = [b for b, f in enumerate(feeds) if f is not None]
+    feeds = [feeds[b] for b in rows]
+    B = len(rows)
+    kept = torch.zeros(B, dtype=torch.long, device=device)  # tokens kept so far: the next position
+    alive = torch.zeros(B, 0, dtype=torch.bool, device=device)
+    cache = None
+    pad = world.vocab.pad_id
+    while rows:
+        n = max(len(f.ids) for f in feeds)
+        ids = torch.full((B, n), pad, dtype=torch.long, device=device)
+        seg = torch.zeros(B, n, dtype=torch.long, device=device)
+        real = torch.zeros(B, n, dtype=torch.bool, device=device)
+        keep = torch.zeros(B, n, dtype=torch.bool, device=device)
+        for i, f in enumerate(feeds):
+            m = len(f.ids)
+            ids[i, :m], seg[i, :m], real[i, :m] = f.ids, f.seg, True
+            keep[i, : m - f.transient] = True
+        positions = kept[:, None] + torch.arange(n, device=device)[None]
+        inner = allowed_pairs(seg, real)
+        mask = torch.cat([alive[:, None, :].expand(B, n, alive.shape[1]) & real[:, :, None], inner], dim=2)
+        logits, cache = world.logits(ids, mask[:, None], positions, cache, use_cache=True)
+        alive = torch.cat([alive, keep], dim=1)
+        kept += keep.sum(1)
+        for i, f in enumerate(feeds):
+            try:
+                feeds[i] = programs[rows[i]].send(logits[i, : len(f.ids)])
+            except StopIteration as stop:
+                feeds[i] = None
+                results[rows[i]] = stop.value
+        running = [i for i, f in enumerate(feeds) if f is not None]
+        if len(running) < B and running:  # drop finished sequences from the cache
+            index = torch.tensor(running, device=device)
+            cache.batch_select_indices(index)
+            alive, kept = alive[index], kept[index]
+        rows, feeds, B = [rows[i] for i in running], [feeds[i] for i in running], len(running)
+    return results
