@@ -105,6 +105,13 @@ def test_eval_and_score_agree(pipeline, tmp_path):
     assert qa.returncode == 0, qa.stderr
     assert json.loads(qa.stdout)["overall"] == pytest.approx(metrics["qa_overall"])
 
+    # A later eval of one task keeps what the earlier one wrote for the others.
+    again = run_cli("eval", str(pipeline / "instruct"), "--tasks", "qa", "--batch-size", "1")
+    assert again.returncode == 0, again.stderr[-3000:]
+    merged = json.loads((pipeline / "instruct" / "eval" / "val" / "metrics.json").read_text())
+    assert merged["plan_direct_L2_stp3_avg"] == metrics["plan_direct_L2_stp3_avg"]
+    assert merged["qa_overall"] == pytest.approx(metrics["qa_overall"])  # batch size does not change answers
+
 
 def test_resumes_after_kill_9_in_the_third_stage(tmp_path):
     run_dir = tmp_path / "run"

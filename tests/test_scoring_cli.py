@@ -268,3 +268,11 @@ def test_qa_bad_input(capsys, tmp_path):
     assert "expected a JSON list" in one_line_error(capsys, "qa", "--pred", tmp_path / "p.json", "--questions", q)
     (tmp_path / "q2.json").write_text(json.dumps([]))
     assert "NuScenes-QA format" in one_line_error(capsys, "qa", "--pred", tmp_path / "p.json", "--questions", tmp_path / "q2.json")
+
+
+def test_version(capsys):
+    from occtrain import __version__
+
+    with pytest.raises(SystemExit) as exit_:
+        main(["--version"])
+    assert exit_.value.code == 0 and capsys.readouterr().out.strip() == f"occtrain {__version__}"

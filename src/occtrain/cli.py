@@ -7,6 +7,7 @@ import re
 import sys
 from pathlib import Path
 
+from occtrain import __version__
 from occtrain.errors import OcctrainError
 
 
@@ -84,6 +85,7 @@ def _cmd_data_check(args: argparse.Namespace) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="occtrain", description=__doc__)
+    parser.add_argument("--version", action="version", version=f"occtrain {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     p = sub.add_parser("run", help="run a recipe's stages in order (skips done stages, resumes cut-off ones)")

@@ -8,6 +8,7 @@ the predictions in the formats ``occtrain score`` reads, so both paths give one 
 
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 
@@ -77,8 +78,13 @@ def evaluate(
             evaluator.update(engine, clips_from_batch(batch), batch)
             advance(1)
     metrics = {k.removeprefix(f"{split}/"): v for k, v in evaluator.compute(split).items()}
-    out_dir = stage_dir / "eval" / split
-    atomic_write_json(out_dir / "metrics.json", metrics)
+    out_file = stage_dir / "eval" / split / "metrics.json"
+    # An eval of some tasks keeps the numbers an earlier eval wrote for the others.
+    try:
+        earlier = json.loads(out_file.read_text()) if out_file.is_file() else {}
+    except ValueError:
+        raise ConfigError(f"{out_file}: not readable JSON; move it away to start the stage's eval afresh") from None
+    atomic_write_json(out_file, {**earlier, **metrics})
     if save_predictions is not None:
         write_predictions(Path(save_predictions), evaluator.predictions)
     return metrics

@@ -16,7 +16,6 @@ from pathlib import Path
 
 os.environ.setdefault("OMP_NUM_THREADS", "2")
 
-import numpy as np  # noqa: E402
 import torch  # noqa: E402
 from omegaconf import OmegaConf  # noqa: E402
 
@@ -31,8 +30,7 @@ def timed(engine, task, batches, batched: bool) -> tuple[float, list]:
     outputs = []
     start = time.perf_counter()
     for batch in batches:
-        rng = np.random.default_rng(0)
-        for _, _, generated, _ in engine.rollouts(task, clips_from_batch(batch), batch, rng, batched=batched):
+        for _, _, generated, _ in engine.rollouts(task, clips_from_batch(batch), batch, batched=batched):
             outputs.append(generated)
     return time.perf_counter() - start, outputs
 

@@ -10,6 +10,7 @@ stage and evaluator that scores a plan.
 
 from __future__ import annotations
 
+import zlib
 from dataclasses import dataclass
 from typing import Union
 
@@ -66,6 +67,12 @@ class Clip:
         poses = np.asarray(self.ann["ego_poses"], dtype=np.float64)  # (T, 3): x, y, yaw (global)
         steps = [global_to_ego(poses[i + 1, :2], poses[i, :2], poses[i, 2]) for i in range(len(poses) - 1)]
         return np.asarray(steps).reshape(-1, 2)
+
+
+def clip_rng(seed: int, token: str) -> np.random.Generator:
+    """The random draws of one clip (which task, which question, ...): fixed by the seed and
+    the clip's sample token, so they do not depend on batch size, order or DDP rank."""
+    return np.random.default_rng([seed, zlib.crc32(token.encode())])
 
 
 def clips_from_batch(batch: dict) -> list[Clip]:

@@ -72,9 +72,8 @@ class Evaluator(torch.nn.Module):
 
     @torch.no_grad()
     def update(self, engine: WorldModelEngine, clips: list[Clip], batch: dict) -> None:
-        rng = np.random.default_rng(0)
         for task in self.tasks:
-            for b, parts, generated, codes in engine.rollouts(task, clips, batch, rng):
+            for b, parts, generated, codes in engine.rollouts(task, clips, batch):
                 self._score(engine, task, clips[b], parts, generated, codes, batch["semantics"][b])
         if any(t in self.tasks for t in ("planning", "forecasting", "cot_planning")):
             for clip in clips:

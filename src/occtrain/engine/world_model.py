@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from occtrain.config.llm import MAX_NEW_TEXT_TOKENS
-from occtrain.data.clips import Actions, Clip, Part, Scene, Text
+from occtrain.data.clips import Actions, Clip, Part, Scene, Text, clip_rng
 from occtrain.data.layout import DatasetIndex
 from occtrain.families.occllama.batch_decoding import ActionAnswer, Answer, SceneAnswer, TextAnswer
 from occtrain.families.occllama.tasks import TASKS, TaskConfig, sample_task
@@ -174,13 +174,14 @@ class WorldModelEngine(torch.nn.Module):
         return generated, codes
 
     def rollouts(
-        self, task: str, clips: list[Clip], batch: dict, rng: np.random.Generator, batched: bool = True
+        self, task: str, clips: list[Clip], batch: dict, seed: int = 0, batched: bool = True
     ) -> Iterator[tuple[int, list[Part], list[Part], dict[int, torch.Tensor]]]:
         """Build ``task`` for every clip (with the engine's prompt settings) and roll its
         answer out: (sample index, parts, generated parts, scene codes) for each clip the
-        task applies to. The clips generate together (one batched forward per step);
+        task applies to; each clip's random draws (e.g. its question) come from ``seed`` and
+        its sample token alone. The clips generate together (one batched forward per step);
         ``batched=False`` rolls them out one after the other (the reference)."""
-        built = [TASKS[task](c, self.tasks, rng) for c in clips]
+        built = [TASKS[task](c, self.tasks, clip_rng(seed, c.anchor["token"])) for c in clips]
         needed = [{p.frame for p in ps if isinstance(p, Scene) and not p.supervise} if ps else set() for ps in built]
         codes = self.scene_codes(batch, needed)
         todo = [(b, parts, {f: codes[(b, f)] for f in needed[b]}) for b, parts in enumerate(built) if parts is not None]
@@ -226,7 +227,7 @@ class WorldModelEngine(torch.nn.Module):
         planning), built with the prompt settings the model was trained with; None for a
         clip the task does not apply to (no known future or no narration)."""
         outputs: list[CotOutput | None] = [None] * len(clips)
-        for b, _, (text, traj), _ in self.rollouts("cot_planning", clips, batch, np.random.default_rng(0)):
+        for b, _, (text, traj), _ in self.rollouts("cot_planning", clips, batch):
             outputs[b] = CotOutput(text.text, np.asarray(traj.xy))
         return outputs
 

@@ -10,13 +10,12 @@ chain-of-thought planning.
 
 from __future__ import annotations
 
-import zlib
 from dataclasses import dataclass, field
 from typing import Callable, Iterator
 
 import numpy as np
 
-from occtrain.data.clips import Actions, Clip, Part, Scene, Text, ego_future
+from occtrain.data.clips import Actions, Clip, Part, Scene, Text, clip_rng, ego_future
 from occtrain.data.text_formats import format_meta_action, parse_meta_action
 from occtrain.errors import ConfigError
 
@@ -185,7 +184,7 @@ def sample_task(clip: Clip, cfg: TaskConfig, seed: int, token: str) -> tuple[str
     A task that does not apply to the clip (e.g. no moving object to predict) gives way to
     the next draw, so every clip yields some task.
     """
-    rng = np.random.default_rng([seed, zlib.crc32(token.encode())])
+    rng = clip_rng(seed, token)
     names = [n for n, w in cfg.weights.items() if w > 0]
     p = np.asarray([cfg.weights[n] for n in names], dtype=np.float64)
     for name in rng.choice(names, size=len(names), replace=False, p=p / p.sum()):
