@@ -7,7 +7,7 @@ import pytest
 
 from occtrain.data.geometry import global_to_ego
 from occtrain.data.shards import decode_sample, iter_raw, shard_urls, write_shards
-from occtrain.data.clips import Actions, Clip, Scene, Text
+from occtrain.data.clips import Actions, Clip, Scene, Text, ego_future
 from occtrain.families.occllama.tasks import OBJECT_CLASSES, TASKS, TaskConfig, sample_task, validate_tasks
 from occtrain.data.text_formats import parse_meta_action
 from occtrain.errors import ConfigError
@@ -71,8 +71,10 @@ def test_counting_answer_matches_the_boxes(clips):
 
 def test_sampling_is_deterministic_and_follows_weights(clips):
     cfg = TaskConfig(weights={"planning": 1.0, "qa": 0.0})
-    names = {sample_task(c, cfg, 0, c.anchor["token"])[0] for c in clips}
-    assert names == {"planning"}
+    drawn = [sample_task(c, cfg, 0, c.anchor["token"]) for c in clips]
+    assert {d[0] for d in drawn if d} == {"planning"}
+    # A clip no configured task applies to is skipped (None), never given a made-up task.
+    assert [d is None for d in drawn] == [not ego_future(c.anchor)[1].all() for c in clips]
     cfg = TaskConfig(weights={"counting": 1.0, "detection": 1.0})
     a = [sample_task(c, cfg, 7, c.anchor["token"])[0] for c in clips]
     b = [sample_task(c, cfg, 7, c.anchor["token"])[0] for c in clips]
@@ -92,3 +94,15 @@ def test_bad_task_names_are_one_line_errors():
         validate_tasks(TaskConfig(weights={"planing": 1.0}), "stages[1].model.tasks")
     with pytest.raises(ConfigError, match="no task has a positive weight"):
         validate_tasks(TaskConfig(weights={"planning": 0.0}), "stages[1].model.tasks")
+
+
+def test_missing_sidecar_fields_are_left_out_of_the_prompt(clips):
+    """Real Occ3D data without occtrain's sidecar has no command or speed: the prompt says
+    nothing about them instead of inventing "go straight" at 0 m/s."""
+    cfg = TaskConfig(context_frames=2)
+    anchor = {k: v for k, v in clips[0].anchor.items() if k not in ("command", "ego_speed")}
+    bare = Clip({**clips[0].ann, "anchor": anchor}, clips[0].qa, clips[0].narration)
+    texts = [p.text for p in TASKS["planning"](bare, cfg, np.random.default_rng(0)) if isinstance(p, Text)]
+    assert not any("Command" in t or "Ego speed" in t for t in texts)
+    full = [p.text for p in TASKS["planning"](clips[0], cfg, np.random.default_rng(0)) if isinstance(p, Text)]
+    assert any(t.startswith(f"Command: {clips[0].anchor['command']}. Ego speed") for t in full)

@@ -137,15 +137,19 @@ class WorldModelEngine(torch.nn.Module):
                 builder.actions(torch.tensor(part.xy, dtype=torch.float32), part.supervise)
         return builder.build()
 
-    def task_batch(self, clips: list[Clip], batch: dict, seed: int) -> tuple[dict, list[str]]:
-        """Draw a task per clip (by the engine's task weights) and collate the sequences into a model batch."""
+    def task_batch(self, clips: list[Clip], batch: dict, seed: int) -> tuple[dict | None, list[str | None]]:
+        """Draw a task per clip (by the engine's task weights) and collate the sequences into
+        a model batch. Returns the batch (None when no clip has a task) and per clip the task
+        drawn, None for a clip that no configured task applies to: it is left out, not
+        given a made-up answer."""
         drawn = [sample_task(c, self.tasks, seed, c.anchor["token"]) for c in clips]
-        needed = [{p.frame for p in parts if isinstance(p, Scene)} for _, parts in drawn]
+        needed = [{p.frame for p in d[1] if isinstance(p, Scene)} if d else set() for d in drawn]
         codes = self.scene_codes(batch, needed)
         seqs = [
-            self.encode_parts(parts, {f: codes[(b, f)] for f in needed[b]}) for b, (_, parts) in enumerate(drawn)
+            self.encode_parts(d[1], {f: codes[(b, f)] for f in needed[b]}) for b, d in enumerate(drawn) if d is not None
         ]
-        return collate(seqs, pad_id=self.vocab.pad_id), [name for name, _ in drawn]
+        names = [d[0] if d else None for d in drawn]
+        return (collate(seqs, pad_id=self.vocab.pad_id) if seqs else None), names
 
     # -- generation
     @torch.no_grad()

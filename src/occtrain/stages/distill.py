@@ -103,7 +103,10 @@ class DistillStage(Stage):
     def training_step(self, batch: dict[str, Any], batch_idx: int) -> torch.Tensor:
         cfg = self.ctx.model_cfg
         clips = clips_from_batch(batch)
-        model_batch, _ = self.student.task_batch(clips, batch, self.step_seed(self.global_step))
+        model_batch, names = self.student.task_batch(clips, batch, self.step_seed(self.global_step))
+        self.log("train/skipped_clips", float(names.count(None)), reduce_fx="sum", batch_size=len(clips))
+        if model_batch is None:
+            return None  # no clip of the batch has a configured task: no step
         model_batch = move_batch(model_batch, self.device)
         with torch.no_grad():
             t_out = self.teacher.world(model_batch, output_hidden_states=True)
@@ -111,7 +114,7 @@ class DistillStage(Stage):
         valid = model_batch["input_ids"] != self.student.vocab.pad_id
         kl, cos = distillation_losses(s_out.logits, t_out.logits, self.projector(s_out.hidden), t_out.hidden, valid, cfg.temperature)
         loss = cfg.kl_weight * kl + cfg.ce_weight * s_out.loss + cfg.feature_weight * cos
-        bs = len(clips)
+        bs = len(names) - names.count(None)
         self.log("train/loss", loss, prog_bar=True, batch_size=bs)
         self.log("train/kl", kl, batch_size=bs)
         self.log("train/feature_cos", cos, batch_size=bs)
@@ -121,17 +124,19 @@ class DistillStage(Stage):
     def validation_step(self, batch: dict[str, Any], batch_idx: int) -> None:
         cfg = self.ctx.model_cfg
         clips = clips_from_batch(batch)
-        model_batch, _ = self.student.task_batch(clips, batch, seed=batch_idx)
-        model_batch = move_batch(model_batch, self.device)
-        out = self.student.world(model_batch)
-        acc = self.student.world.token_accuracy(out.logits, model_batch["labels"])
-        self.log("val/loss", out.loss, batch_size=len(clips), sync_dist=True)
-        self.log("val/token_acc", acc, batch_size=len(clips), sync_dist=True)
+        model_batch, names = self.student.task_batch(clips, batch, seed=batch_idx)
+        if model_batch is not None:
+            model_batch = move_batch(model_batch, self.device)
+            out = self.student.world(model_batch)
+            acc = self.student.world.token_accuracy(out.logits, model_batch["labels"])
+            bs = len(names) - names.count(None)
+            self.log("val/loss", out.loss, batch_size=bs, sync_dist=True)
+            self.log("val/token_acc", acc, batch_size=bs, sync_dist=True)
         if batch_idx < cfg.generate_batches:
             self.evaluator.update(self.student, clips, batch)
             if self._teacher_scores is None:  # the teacher is frozen: score it once
                 self.teacher_evaluator.update(self.teacher, clips, batch)
-            if batch_idx == 0:
+            if batch_idx == 0 and model_batch is not None:
                 self._time_generation(model_batch)
 
     @torch.no_grad()

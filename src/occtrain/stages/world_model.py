@@ -75,26 +75,31 @@ class WorldModelStage(Stage):
     def training_step(self, batch: dict[str, Any], batch_idx: int) -> torch.Tensor:
         clips = clips_from_batch(batch)
         model_batch, names = self.engine.task_batch(clips, batch, self.step_seed(self.global_step))
+        self.log("train/skipped_clips", float(names.count(None)), reduce_fx="sum", batch_size=len(clips))
+        if model_batch is None:
+            return None  # no clip of the batch has a configured task: no step
         out = self.engine.world(move_batch(model_batch, self.device))
         loss = out.loss
-        bs = len(clips)
+        bs = len(names) - names.count(None)
         self.log("train/loss", loss, prog_bar=True, batch_size=bs)
         self.log("train/text_loss", out.text_loss, batch_size=bs)
         self.log("train/scene_loss", out.scene_loss, batch_size=bs)
-        for task in sorted(set(names)):  # which task is learning, which is not
-            rows = [i for i, n in enumerate(names) if n == task]
+        kept = [n for n in names if n is not None]
+        for task in sorted(set(kept)):  # which task is learning, which is not
+            rows = [i for i, n in enumerate(kept) if n == task]
             self.log(f"train/loss_{task}", out.sample_loss[rows].mean(), batch_size=len(rows))
         return loss
 
     # -- validation
     def validation_step(self, batch: dict[str, Any], batch_idx: int) -> None:
         clips = clips_from_batch(batch)
-        model_batch, _ = self.engine.task_batch(clips, batch, seed=batch_idx)
-        out = self.engine.world(move_batch(model_batch, self.device))
-        bs = len(clips)
-        self.log("val/loss", out.loss, batch_size=bs, sync_dist=True)
-        acc = self.engine.world.token_accuracy(out.logits, model_batch["labels"].to(self.device))
-        self.log("val/token_acc", acc, batch_size=bs, sync_dist=True)
+        model_batch, names = self.engine.task_batch(clips, batch, seed=batch_idx)
+        if model_batch is not None:
+            out = self.engine.world(move_batch(model_batch, self.device))
+            bs = len(names) - names.count(None)
+            self.log("val/loss", out.loss, batch_size=bs, sync_dist=True)
+            acc = self.engine.world.token_accuracy(out.logits, model_batch["labels"].to(self.device))
+            self.log("val/token_acc", acc, batch_size=bs, sync_dist=True)
         if batch_idx < self.ctx.model_cfg.generate_batches:
             self.evaluator.update(self.engine, clips, batch)
 

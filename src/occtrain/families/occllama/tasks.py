@@ -55,7 +55,15 @@ def _context(clip: Clip, cfg: TaskConfig) -> list[Part]:
     anchor = clip.anchor
     past = np.asarray(anchor.get("ego_past", []), dtype=np.float64).reshape(-1, 2)
     past_mask = np.asarray(anchor.get("ego_past_mask", []), dtype=bool)
-    parts.append(Text(f"Command: {anchor.get('command', 'go straight')}. Ego speed {anchor.get('ego_speed', 0.0):.1f} m/s."))
+    # Real data without occtrain's sidecar has no command or speed: say nothing rather
+    # than a made-up "go straight" at 0 m/s.
+    state = []
+    if "command" in anchor:
+        state.append(f"Command: {anchor['command']}.")
+    if "ego_speed" in anchor:
+        state.append(f"Ego speed {anchor['ego_speed']:.1f} m/s.")
+    if state:
+        parts.append(Text(" ".join(state)))
     if past_mask.any():
         parts += [Text("Ego past:"), Actions(_xy(past[past_mask]))]
     return parts
@@ -178,11 +186,12 @@ def validate_tasks(cfg: TaskConfig, key: str) -> None:
         raise ConfigError(f"{key}.weights: no task has a positive weight")
 
 
-def sample_task(clip: Clip, cfg: TaskConfig, seed: int, token: str) -> tuple[str, list[Part]]:
+def sample_task(clip: Clip, cfg: TaskConfig, seed: int, token: str) -> tuple[str, list[Part]] | None:
     """Draw a task by weight (deterministic in ``seed`` and the sample token) and build it.
 
     A task that does not apply to the clip (e.g. no moving object to predict) gives way to
-    the next draw, so every clip yields some task.
+    the next draw; None when none of the configured tasks applies (the caller skips and
+    counts the clip).
     """
     rng = clip_rng(seed, token)
     names = [n for n, w in cfg.weights.items() if w > 0]
@@ -191,7 +200,7 @@ def sample_task(clip: Clip, cfg: TaskConfig, seed: int, token: str) -> tuple[str
         parts = TASKS[str(name)](clip, cfg, rng)
         if parts is not None:
             return str(name), parts
-    return "caption", [*_context(clip, cfg), Text("Task: describe the scene."), Text(clip.anchor.get("caption", "") or "a street", True)]
+    return None
 
 
 def corpus_texts(index) -> Iterator[str]:
@@ -212,6 +221,6 @@ def corpus_texts(index) -> Iterator[str]:
 PROMPT_WORDS = (
     "Task: detect the nearest objects.", "Task: count the objects.", "Task: predict the future of the",
     "Task: plan the ego trajectory.", "Task: forecast the scene.", "Task: describe the scene, then plan.",
-    "Task: describe the scene.", "Command: turn left. turn right. go straight. Ego speed 0.0 m/s.", "Ego past:",
+    "Command: turn left. turn right. go straight. Ego speed 0.0 m/s.", "Ego past:",
     "no objects", " ".join(c.replace("_", " ") for c in OBJECT_CLASSES), "0 1 2 3 4 5 6 7 8 9 10",
 )
