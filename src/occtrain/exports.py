@@ -49,27 +49,12 @@ def write_export(export_dir: Path, state_dict: dict[str, torch.Tensor], config: 
     return export_dir
 
 
-def _export_files(export_dir: Path) -> tuple[Path, Path]:
-    weights, config = export_dir / EXPORT_WEIGHTS, export_dir / EXPORT_CONFIG
-    if not weights.is_file() or not config.is_file():
-        raise OcctrainError(f"{export_dir}: no exported model ({EXPORT_WEIGHTS} + {EXPORT_CONFIG}); run the stage that produces it first")
-    return weights, config
-
-
-def read_export_config(export_dir: Path) -> dict:
-    """An export's ``config.json`` alone (what kind of model it is), without loading weights."""
-    export_dir = Path(export_dir)
-    _, config = _export_files(export_dir)
-    try:
-        return json.loads(config.read_text())
-    except ValueError as err:
-        raise OcctrainError(f"{config}: unreadable export config ({err}); re-run the stage that wrote it") from None
-
-
 def read_export(export_dir: Path) -> tuple[dict[str, torch.Tensor], dict]:
     """Load an export's weights and config (safetensors + JSON: nothing is unpickled)."""
     export_dir = Path(export_dir)
-    weights, config = _export_files(export_dir)
+    weights, config = export_dir / EXPORT_WEIGHTS, export_dir / EXPORT_CONFIG
+    if not weights.is_file() or not config.is_file():
+        raise OcctrainError(f"{export_dir}: no exported model ({EXPORT_WEIGHTS} + {EXPORT_CONFIG}); run the stage that produces it first")
     try:
         return load_file(str(weights)), json.loads(config.read_text())
     except Exception as err:  # safetensors raises its own error types on a corrupt header

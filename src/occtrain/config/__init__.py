@@ -1,6 +1,6 @@
 """Typed configuration: dataclass schemas, YAML loading, overrides and validation."""
 
-from occtrain.config.loading import load_config, read_yaml, to_container, to_yaml
+from occtrain.config.loading import load_config, read_yaml, to_container, to_object, to_yaml
 from occtrain.config.recipe import RecipeConfig
 from occtrain.config.schema import DataConfig, DatasetFile, SynthConfig, TrainerConfig
 
@@ -12,6 +12,7 @@ __all__ = [
     "load_config",
     "read_yaml",
     "to_container",
+    "to_object",
     "to_yaml",
 ]
 

@@ -170,6 +170,11 @@ def to_container(cfg: Any) -> dict:
     return OmegaConf.to_container(cfg, resolve=True)  # type: ignore[return-value]
 
 
+def to_object(cfg: Any) -> Any:
+    """The dataclass instance behind a structured config; anything else as it is."""
+    return OmegaConf.to_object(cfg) if OmegaConf.is_config(cfg) else cfg
+
+
 def validate_section(schema: type[T], raw: Any, prefix: str, source: str | Path) -> T:
     """Validate a free-form section (e.g. a stage's ``model``) against ``schema``.
 

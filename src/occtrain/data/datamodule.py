@@ -110,12 +110,12 @@ class ShardDataModule(L.LightningDataModule):
     """
 
     def __init__(
-        self, cfg: DataConfig, kind: str, transform: Callable[[dict], dict] | None = None, entries: dict[str, tuple[str, ...] | None] | None = None,
+        self, cfg: DataConfig, kind: str, entries: dict[str, tuple[str, ...] | None] | None = None,
     ):
         super().__init__()
         if kind not in KINDS:
             raise DataError(f"unknown data kind '{kind}'; choose from {', '.join(KINDS)}")
-        self.cfg, self.kind, self.transform, self.entries = cfg, kind, transform, entries or {}
+        self.cfg, self.kind, self.entries = cfg, kind, entries or {}
 
     def prepare_data(self) -> None:
         ensure_data(self.cfg)
@@ -127,7 +127,7 @@ class ShardDataModule(L.LightningDataModule):
         skip = SkipSamples() if train else None
         pipeline = make_pipeline(
             urls, train=train, total=total, shuffle_buffer=self.cfg.shuffle_buffer, seed=self.cfg.seed,
-            transform=self.transform, skip=skip, entries=self.entries.get(split),
+            skip=skip, entries=self.entries.get(split),
         )
         kwargs = dict(batch_size=self.cfg.batch_size, num_workers=self.cfg.num_workers, collate_fn=COLLATE[self.kind])
         if not train:

@@ -9,7 +9,7 @@ from typing import Iterable
 import numpy as np
 import torch
 
-from occtrain.data.clips import Actions, Clip, Scene, plan_target
+from occtrain.data.clips import Actions, Clip, PlanTarget, Scene, plan_target
 from occtrain.data.layout import DatasetIndex
 from occtrain.data.text_formats import parse_meta_action
 from occtrain.engine.world_model import WorldModelEngine
@@ -72,12 +72,14 @@ class Evaluator(torch.nn.Module):
 
     @torch.no_grad()
     def update(self, engine: WorldModelEngine, clips: list[Clip], batch: dict) -> None:
+        # The planning ground truth of each clip, built once for every plan scored on it.
+        targets = [plan_target([c.anchor], self.device) for c in clips]
         for task in self.tasks:
             for b, parts, generated, codes in engine.rollouts(task, clips, batch):
-                self._score(engine, task, clips[b], parts, generated, codes, batch["semantics"][b])
+                self._score(engine, task, clips[b], parts, generated, codes, batch["semantics"][b], targets[b])
         if any(t in self.tasks for t in ("planning", "forecasting", "cot_planning")):
-            for clip in clips:
-                self._score_plan_baselines(clip.anchor)
+            for clip, target in zip(clips, targets):
+                self._score_plan_baselines(clip.anchor, target)
 
     @classmethod
     def scorable(cls, weights: dict[str, float]) -> list[str]:
@@ -88,18 +90,16 @@ class Evaluator(torch.nn.Module):
     def device(self) -> torch.device:
         return self.metrics["plan_direct"].device  # metrics follow the module onto the accelerator
 
-    def _score_plan_baselines(self, anchor: dict) -> None:
+    def _score_plan_baselines(self, anchor: dict, target: PlanTarget) -> None:
         """Standing still and constant velocity, on every clip a plan is scored on."""
-        target = plan_target([anchor], self.device)
         speed = torch.tensor([float(anchor.get("ego_speed", 0.0))], device=self.device)
         self.metrics["baseline_constant_velocity"].update(constant_velocity_plan(speed, FUTURE_STEPS), target.traj, target.mask, target.agents)
         self.metrics["baseline_stationary"].update(torch.zeros_like(target.traj), target.traj, target.mask, target.agents)
 
-    def _score(self, engine, task, clip, parts, generated, codes, semantics) -> None:
+    def _score(self, engine, task, clip, parts, generated, codes, semantics, plan: PlanTarget) -> None:
         anchor, token = clip.anchor, clip.anchor["token"]
         dev = self.device
-        target = plan_target([anchor], dev)
-        gt_xy, gt_mask, agents = target.traj, target.mask, target.agents
+        gt_xy, gt_mask, agents = plan.traj, plan.mask, plan.agents
         actions = [p for p in generated if isinstance(p, Actions)]
         if task in ("planning", "forecasting", "cot_planning") and actions:
             # The forecasting rollout yields one waypoint per scene; together they are its plan.

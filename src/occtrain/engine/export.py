@@ -35,7 +35,7 @@ from occtrain.config.llm import MAX_NEW_TEXT_TOKENS, LLMConfig
 from occtrain.data.layout import DatasetIndex
 from occtrain.engine.world_model import WorldModelEngine
 from occtrain.errors import ConfigError
-from occtrain.exports import load_state_strict, read_export, read_export_config, write_export
+from occtrain.exports import load_state_strict, read_export, write_export
 from occtrain.families import get_family, load_tokenizer, tokenizer_family
 from occtrain.families.occllama.tasks import TaskConfig, corpus_texts
 from occtrain.models.llm import build_llm, load_text_tokenizer
@@ -59,7 +59,7 @@ def new_world_model(
     the same one. The LLM is initialised under the current torch seed.
     """
     scene_tok = load_tokenizer(tokenizer_export)
-    family = get_family(tokenizer_family(read_export_config(tokenizer_export)["arch"]))
+    family = get_family(tokenizer_family(scene_tok.arch))
     if family.world_model is None:  # a tokenizer-only family (OccWorld) feeds OccLLaMA's world model
         family = get_family("occllama")
     if llm_cfg.path:
@@ -113,19 +113,13 @@ def _save_hf_llm(llm_dir: Path, base: Any, state: dict[str, torch.Tensor], world
     from transformers import GenerationConfig
 
     llm_dir.mkdir(parents=True, exist_ok=True)
+    # Copies: the occupancy rows are written below, and tied tensors must not share storage.
     state = {k: v.detach().cpu().clone().contiguous() for k, v in state.items()}
     embed_key = next((k for k in state if k.endswith("embed_tokens.weight")), None)
     if embed_key is not None and not base.config.get_text_config().tie_word_embeddings:
         with torch.no_grad():
             lo, hi = engine.vocab.occ_range
             state[embed_key][lo:hi] = world.occ_proj(world.codebook).to(state[embed_key].dtype).cpu()
-    seen: dict[tuple, str] = {}
-    for key in list(state):  # tied tensors are stored once; transformers ties them again on load
-        ident = (state[key].data_ptr(), tuple(state[key].shape))
-        if ident in seen and state[key].data_ptr() != 0:
-            del state[key]
-        else:
-            seen[ident] = key
     save_file(state, str(llm_dir / "model.safetensors"), metadata={"format": "pt"})
     base.config.save_pretrained(str(llm_dir))
     vocab = engine.vocab

@@ -152,30 +152,25 @@ class WorldModelEngine(torch.nn.Module):
         return (collate(seqs, pad_id=self.vocab.pad_id) if seqs else None), names
 
     # -- generation
+    def _prompt_and_plan(self, parts: list[Part], codes: dict[int, torch.Tensor]) -> tuple[torch.Tensor, list[Answer]]:
+        """The prompt (the parts before the first supervised one) as ids, and what to generate
+        after it: text up to end-of-text, as many waypoints as the reference, a scene."""
+        first = next(i for i, p in enumerate(parts) if p.supervise)
+        plan: list[Answer] = [
+            TextAnswer(self.max_new_text_tokens) if isinstance(p, Text)
+            else ActionAnswer(len(p.xy)) if isinstance(p, Actions) else SceneAnswer()
+            for p in parts[first:]
+        ]
+        return self.encode_parts(parts[:first], codes).input_ids, plan
+
     @torch.no_grad()
     def rollout(self, parts: list[Part], codes: dict[int, torch.Tensor]) -> tuple[list[Part], dict[int, torch.Tensor]]:
-        """Generate the answer parts of a task one after the other, each conditioned on the
-        ones generated before it (not on the ground truth): the prompt is the parts before
-        the first supervised one; a text answer is generated up to the end-of-text token, an
-        action answer as many waypoints as the reference has, a scene by one next-scene pass.
-        Returns the generated parts and the codes of every scene, generated ones included.
-        """
-        first = next(i for i, p in enumerate(parts) if p.supervise)
-        codes = dict(codes)
-        decoder = self.world.decoder(self.encode_parts(parts[:first], codes).input_ids)
-        generated: list[Part] = []
-        next_frame = max(codes) + 1 if codes else 0
-        for target in parts[first:]:  # the answer parts are contiguous: one decoder, one KV cache
-            if isinstance(target, Text):
-                generated.append(Text(self.vocab.decode_text(decoder.text(self.max_new_text_tokens)), True))
-            elif isinstance(target, Actions):
-                xy = decoder.actions(steps=len(target.xy))
-                generated.append(Actions(tuple(map(tuple, xy.tolist())), True))
-            else:
-                codes[next_frame] = decoder.scene()
-                generated.append(Scene(next_frame, True))
-                next_frame += 1
-        return generated, codes
+        """Generate the answer parts of a task one after the other with one decoder, each
+        conditioned on the ones generated before it (not on the ground truth). Returns the
+        generated parts and the codes of every scene, generated ones included."""
+        prefix, plan = self._prompt_and_plan(parts, codes)
+        decoder = self.world.decoder(prefix)
+        return self._as_parts([decoder.answer(a) for a in plan], codes)
 
     def rollouts(
         self, task: str, clips: list[Clip], batch: dict, seed: int = 0, batched: bool = True
@@ -191,24 +186,12 @@ class WorldModelEngine(torch.nn.Module):
         todo = [(b, parts, {f: codes[(b, f)] for f in needed[b]}) for b, parts in enumerate(built) if parts is not None]
         if not batched:
             for b, parts, context in todo:
-                generated, all_codes = self.rollout(parts, context)
-                yield b, parts, generated, all_codes
+                yield (b, parts, *self.rollout(parts, context))
             return
-        prefixes, plans = [], []
-        for _, parts, context in todo:
-            first = next(i for i, p in enumerate(parts) if p.supervise)
-            prefixes.append(self.encode_parts(parts[:first], context).input_ids)
-            plans.append([self._answer(p) for p in parts[first:]])
-        outputs = self.world.generate_batch(prefixes, plans) if todo else []
+        prompts = [self._prompt_and_plan(parts, context) for _, parts, context in todo]
+        outputs = self.world.generate_batch(*map(list, zip(*prompts))) if todo else []
         for (b, parts, context), out in zip(todo, outputs):
             yield (b, parts, *self._as_parts(out, context))
-
-    def _answer(self, target: Part) -> Answer:
-        if isinstance(target, Text):
-            return TextAnswer(self.max_new_text_tokens)
-        if isinstance(target, Actions):
-            return ActionAnswer(len(target.xy))
-        return SceneAnswer()
 
     def _as_parts(self, out: list, codes: dict[int, torch.Tensor]) -> tuple[list[Part], dict[int, torch.Tensor]]:
         """Decoded answers -> generated parts, and the scene codes with the generated scenes added."""
@@ -235,7 +218,10 @@ class WorldModelEngine(torch.nn.Module):
             outputs[b] = CotOutput(text.text, np.asarray(traj.xy))
         return outputs
 
-    def with_generation_length(self, max_new_text_tokens: int) -> WorldModelEngine:
-        """Let generated texts run up to ``max_new_text_tokens`` (a stage's setting); returns self."""
-        self.max_new_text_tokens = int(max_new_text_tokens)
+    def with_settings(self, tasks: TaskConfig | None = None, max_new_text_tokens: int | None = None) -> WorldModelEngine:
+        """A stage's own task settings and generation length in place of the saved ones; returns self."""
+        if tasks is not None:
+            self.tasks = tasks
+        if max_new_text_tokens is not None:
+            self.max_new_text_tokens = int(max_new_text_tokens)
         return self

@@ -141,4 +141,5 @@ def load_tokenizer(export_dir: Path) -> Any:
     model = build_tokenizer(config["arch"], config["config"])
     model.load_state_dict(state)
     model.export_dir = Path(export_dir)  # a world-model export copies it from here
+    model.arch = config["arch"]
     return model.eval().requires_grad_(False)

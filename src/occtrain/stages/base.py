@@ -99,8 +99,7 @@ class Stage(L.LightningModule, ABC):
         return self.ctx.data.seed * 1_000_003 + step
 
     def state_dict(self, *args: Any, **kwargs: Any) -> dict[str, Any]:
-        state = super().state_dict(*args, **kwargs)
-        return {k: v for k, v in state.items() if not k.startswith(self.frozen_prefixes)} if self.frozen_prefixes else state
+        return {k: v for k, v in super().state_dict(*args, **kwargs).items() if not k.startswith(self.frozen_prefixes)}
 
     def load_state_dict(self, state_dict: dict[str, Any], strict: bool = True, **kwargs: Any) -> Any:
         """Strict except for :attr:`frozen_prefixes`: a missing or unexpected key is an error naming it."""

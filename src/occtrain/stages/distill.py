@@ -17,8 +17,8 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from omegaconf import OmegaConf
 
+from occtrain.config import to_object
 from occtrain.config.llm import MAX_NEW_TEXT_TOKENS, LLMConfig
 from occtrain.data.clips import clips_from_batch
 from occtrain.engine import (
@@ -69,10 +69,9 @@ class DistillStage(Stage):
         super().__init__(ctx)
         cfg = ctx.model_cfg
         validate_tasks(cfg.tasks, f"stages '{ctx.spec.name}'.model.tasks")
-        tasks = OmegaConf.to_object(cfg.tasks) if OmegaConf.is_config(cfg.tasks) else cfg.tasks
-        teacher = load_world_model(next(iter(ctx.inputs.values())))
-        teacher.tasks = tasks
-        self.teacher = teacher.with_generation_length(cfg.max_new_text_tokens).requires_grad_(False).eval()
+        tasks = to_object(cfg.tasks)
+        teacher = load_world_model(next(iter(ctx.inputs.values()))).with_settings(tasks, cfg.max_new_text_tokens)
+        self.teacher = teacher.requires_grad_(False).eval()
         vocab = teacher.vocab
         student_llm = build_llm(cfg.student, len(vocab))
         world = get_family(teacher.family).world_model(

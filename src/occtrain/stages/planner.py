@@ -92,7 +92,7 @@ class PlannerStage(Stage):
                     f"stages '{ctx.spec.name}': model.meta_source 'generated' needs an instruct stage in consumes; "
                     "or set model.meta_source=ground_truth"
                 )
-            self.teacher = load_world_model(next(iter(ctx.inputs.values()))).with_generation_length(cfg.max_new_text_tokens)
+            self.teacher = load_world_model(next(iter(ctx.inputs.values()))).with_settings(max_new_text_tokens=cfg.max_new_text_tokens)
             self.teacher.requires_grad_(False).eval()
         self.metrics = torch.nn.ModuleDict({
             name: PlanningMetric()

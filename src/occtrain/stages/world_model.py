@@ -18,6 +18,7 @@ from typing import Any
 
 import torch
 
+from occtrain.config import to_object
 from occtrain.data.clips import clips_from_batch
 from occtrain.engine import CODE_CACHE, TEXT_ENTRIES, Evaluator, export_engine, load_world_model, move_batch, new_world_model, qa_prior
 from occtrain.families.occllama import InstructModelConfig, PretrainModelConfig
@@ -41,14 +42,12 @@ class WorldModelStage(Stage):
         super().__init__(ctx)
         cfg = ctx.model_cfg
         validate_tasks(cfg.tasks, f"stages '{ctx.spec.name}'.model.tasks")
-        tasks = self._task_config(cfg)
+        tasks = to_object(cfg.tasks)
         export = next(iter(ctx.inputs.values()))
         if ctx.spec.kind == "pretrain":
             self.engine = new_world_model(export, cfg.llm, tasks, ctx.data.root, cfg.max_new_text_tokens)
         else:
-            self.engine = load_world_model(export)
-            self.engine.tasks = tasks
-            self.engine.with_generation_length(cfg.max_new_text_tokens)
+            self.engine = load_world_model(export).with_settings(tasks, cfg.max_new_text_tokens)
         world = self.engine.world
         if cfg.use_lora:
             world.llm.requires_grad_(False)
@@ -61,12 +60,6 @@ class WorldModelStage(Stage):
             self.engine.build_code_cache(ctx.data.root, ctx.stage_dir / "cache" / CODE_CACHE)
             # Training then reads no occupancy; validation still scores forecasts against it.
             self._entries = {"train": TEXT_ENTRIES}
-
-    @staticmethod
-    def _task_config(cfg: Any) -> Any:
-        from omegaconf import OmegaConf
-
-        return OmegaConf.to_object(cfg.tasks) if OmegaConf.is_config(cfg.tasks) else cfg.tasks
 
     def entries(self, split: str) -> tuple[str, ...] | None:
         return self._entries.get(split)

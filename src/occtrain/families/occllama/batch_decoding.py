@@ -84,15 +84,20 @@ def _program(world, prefix: torch.Tensor, answers: list[Answer]) -> Program:
         queue_seg.clear()
         return ids, segs
 
+    def pick(id_range: tuple[int, int]) -> Generator[_Feed, torch.Tensor, int]:
+        """The greedy next id within ``id_range``, feeding what is queued first."""
+        nonlocal last_logits
+        if queue_ids or last_logits is None:
+            last_logits = (yield _Feed(*take()))[-1]
+        lo, hi = id_range
+        return int(last_logits[lo:hi].argmax()) + lo
+
     results: list = []
     for answer in answers:
         if isinstance(answer, TextAnswer):
             out: list[int] = []
             for _ in range(answer.max_new_tokens):
-                if queue_ids or last_logits is None:
-                    last_logits = (yield _Feed(*take()))[-1]
-                lo, hi = v.text_range
-                tok = int(last_logits[lo:hi].argmax()) + lo
+                tok = yield from pick(v.text_range)
                 if tok == v.eos_id:
                     break
                 out.append(tok)
@@ -104,34 +109,29 @@ def _program(world, prefix: torch.Tensor, answers: list[Answer]) -> Program:
                 queue([v.act_open_id])
             ids = []
             for _ in range(answer.steps):
-                for lo, hi in (v.act_x_range, v.act_y_range):
-                    if queue_ids or last_logits is None:
-                        last_logits = (yield _Feed(*take()))[-1]
-                    ids.append(int(last_logits[lo:hi].argmax()) + lo)
+                for id_range in (v.act_x_range, v.act_y_range):
+                    ids.append((yield from pick(id_range)))
                     queue(ids[-1:])
             queue([v.act_close_id])
             results.append(v.actions_from_ids(torch.tensor(ids, dtype=torch.long)).reshape(answer.steps, 2))
         else:
             if last_id != v.occ_open_id:
                 queue([v.occ_open_id])
-            lo, hi = v.occ_range
             if next_scene:
                 ids, segs = take()
                 queries = v.query_ids().to(device)
                 logits = yield _Feed(torch.cat([ids, queries]), torch.cat([segs, torch.full_like(queries, -1)]), len(queries))
+                lo, hi = v.occ_range
                 code_ids = logits[-len(queries):, lo:hi].argmax(-1) + lo
                 queue(code_ids, next_segment)
                 next_segment += 1
             else:
                 picked = []
                 for _ in range(v.scene_len):
-                    if queue_ids or last_logits is None:
-                        last_logits = (yield _Feed(*take()))[-1]
-                    picked.append(int(last_logits[lo:hi].argmax()) + lo)
+                    picked.append((yield from pick(v.occ_range)))
                     queue(picked[-1:])
                 code_ids = torch.tensor(picked, device=device)
             queue([v.occ_close_id])
-            last_logits = None  # the next pick needs the codes fed first
             results.append(v.codes_from_ids(code_ids).cpu())
     return results
 

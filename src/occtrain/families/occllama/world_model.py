@@ -38,6 +38,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from occtrain.config.llm import SCENE_PREDICTION_MODES
+from occtrain.families.occllama.batch_decoding import ActionAnswer, Answer, TextAnswer, decode_batch
 from occtrain.models.attention import additive, allowed_pairs, chunk_allowed, scene_segments
 from occtrain.models.vocab import JointVocab
 
@@ -252,8 +253,6 @@ class OccWorldModel(nn.Module):
     @torch.no_grad()
     def generate_batch(self, prefixes: list[torch.Tensor], answers: list[list]) -> list[list]:
         """Greedy answers for a batch of prompts at once (see ``batch_decoding``)."""
-        from occtrain.families.occllama.batch_decoding import decode_batch
-
         return decode_batch(self, prefixes, answers)
 
     @torch.no_grad()
@@ -370,6 +369,14 @@ class GreedyDecoder:
             logits = self.last_logits
         lo, hi = lo_hi
         return logits[..., lo:hi].argmax(-1) + lo
+
+    def answer(self, answer: Answer) -> list[int] | torch.Tensor:
+        """One answer of a task: text ids, waypoints Float[steps, 2] or scene codes Long[h*w]."""
+        if isinstance(answer, TextAnswer):
+            return self.text(answer.max_new_tokens)
+        if isinstance(answer, ActionAnswer):
+            return self.actions(answer.steps)
+        return self.scene()
 
     @torch.no_grad()
     def text(self, max_new_tokens: int = 64, eos: int | None = None) -> list[int]:
