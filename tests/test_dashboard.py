@@ -124,12 +124,12 @@ def test_page_has_every_stage_and_charts_drawn_from_the_csv(run_dir: Path):
     # train/loss (0,1.0) (10,0.6) (20,0.2): x ticks 0..20 over 480 px from x=64; y ticks 0.2..1.0
     # over 206 px up from y=236: 0.6 is half way -> 236 - 103 = 133.
     assert "64.0,30.0 304.0,133.0 544.0,236.0" in _polylines(html)["loss"]
-    # val/occworld_mIoU (10, 20) (20, 41.5) and IoU (10, 30) (20, 55.25) share a chart: y ticks 20..60
+    # val/occworld_mIoU (10, 20) (20, 41.5) and IoU (10, 30) (20, 55.25) share the reconstruction chart: y ticks 20..60
     # (range 35.25/5 = 7.05 -> step 10); x ticks 10..20 (step 2). 41.5 -> 236 - 21.5/40*206 = 125.3
     lines = _polylines(html)
-    assert lines["mIoU"] == ["64.0,236.0 544.0,125.3"]
+    assert lines["occworld mIoU"] == ["64.0,236.0 544.0,125.3"]
     # 30 -> 236 - 10/40*206 = 184.5; 55.25 -> 236 - 35.25/40*206 = 236 - 181.54 = 54.46
-    assert lines["IoU"] == ["64.0,184.5 544.0,54.5"]
+    assert lines["occworld IoU"] == ["64.0,184.5 544.0,54.5"]
     assert "learning rate" in html and "validation loss" in html
 
 

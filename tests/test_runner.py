@@ -194,3 +194,11 @@ def test_checkpoints_load_strictly_by_key(recipe, tmp_path):
     with pytest.raises(OcctrainError, match="unexpected key 'extra.weight'"):
         Probe(ctx).load_state_dict({**state, "extra.weight": torch.zeros(1)})
     assert stage.step_seed(5) == stage.step_seed(5) != stage.step_seed(6)
+
+
+def test_a_stage_sets_its_own_batch_size_but_not_the_dataset(probe_kind, tmp_path):
+    a, b = plan_text(tmp_path, "  - {name: a, kind: probe}\n  - {name: b, kind: probe, data: {batch_size: 8}}\n")
+    assert (a.data.batch_size, b.data.batch_size) == (2, 8)
+    assert a.config["data"]["batch_size"] == 2 and b.config["data"]["batch_size"] == 8  # part of its config hash
+    with pytest.raises(ConfigError, match=r"stages\[0\].data.root in r.yaml: a stage sets only batch_size"):
+        plan_text(tmp_path, "  - {name: a, kind: probe, data: {root: elsewhere}}\n")

@@ -106,3 +106,44 @@ def test_missing_sidecar_fields_are_left_out_of_the_prompt(clips):
     assert not any("Command" in t or "Ego speed" in t for t in texts)
     full = [p.text for p in TASKS["planning"](clips[0], cfg, np.random.default_rng(0)) if isinstance(p, Text)]
     assert any(t.startswith(f"Command: {clips[0].anchor['command']}. Ego speed") for t in full)
+
+
+def test_packed_questions_are_branches_of_distinct_questions(clips):
+    from occtrain.data.clips import Branch, clip_rng
+    from occtrain.families.occllama.tasks import every_question, qa
+
+    clip = next(c for c in clips if len(c.qa) >= 3)
+    parts = qa(clip, TaskConfig(questions_per_sample=3), clip_rng(0, clip.anchor["token"]))
+    first = parts.index(Branch())
+    assert not any(p.supervise for p in parts[:first])  # the shared context is prompt only
+    branches = [parts[i + 1 : i + 3] for i, p in enumerate(parts) if isinstance(p, Branch)]
+    assert len(branches) == 3 and len({b[0].text for b in branches}) == 3
+    asked = {q["question"]: q["answer"] for q in clip.qa}
+    for question, answer in branches:
+        assert asked[question.text.removeprefix("Question: ").removesuffix(" Answer:")] == answer.text and answer.supervise
+    # One question per sample (the paper's setting) has no branch; evaluation asks them all.
+    assert not any(isinstance(p, Branch) for p in qa(clip, TaskConfig(), clip_rng(0, "x")))
+    every = every_question(clip, TaskConfig())
+    assert [p[-1].text for p in every] == [q["answer"] for q in clip.qa]
+    with pytest.raises(ConfigError, match="questions_per_sample"):
+        validate_tasks(TaskConfig(weights={"qa": 1}, questions_per_sample=0), "stages 'x'.model.tasks")
+
+
+def test_frame_clips_cover_every_frame_with_its_questions(synth_dataset):
+    from occtrain.data.clips import frame_clips
+    from occtrain.data.layout import DatasetIndex
+    from occtrain.engine.evaluator import evaluation_clips, fixed_subset
+
+    index = DatasetIndex.open(synth_dataset)
+    clips = list(frame_clips(index, "val", history=2))
+    tokens = [t for _, t in index.samples("val")]
+    assert [c.anchor["token"] for c in clips] == tokens
+    assert [c.anchor_index for c in clips[:4]] == [0, 1, 2, 2]  # shorter history at the scene's start
+    assert sum(len(c.qa) for c in clips) == len(index.questions("val"))
+    # Plans and chains of thought: every frame with a whole 3 s future.
+    planned = evaluation_clips(index, "val", "planning", 2)
+    assert [c.anchor["token"] for c in planned] == tokens[2 : len(tokens) - 6]
+    keys = [f"k{i}" for i in range(100)]
+    chosen = fixed_subset(keys, 10, seed=0)
+    assert len(chosen) == 10 and chosen == fixed_subset(list(reversed(keys)), 10, seed=0)
+    assert chosen != fixed_subset(keys, 10, seed=1) and fixed_subset(keys, -1) == set(keys)

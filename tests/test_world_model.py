@@ -229,3 +229,30 @@ def test_batched_generation_equals_one_at_a_time(vocab, mode):
             assert (g == w) if isinstance(w, list) else torch.equal(g, w)
     # A batch of one is the single decoder too; an empty plan generates nothing.
     assert decode_batch(world, prefixes[2:], [[]]) == [[]]
+
+
+def test_branches_train_each_answer_exactly_as_alone(vocab):
+    """Packed questions (branches over one context) give each answer the logits and loss it
+    would get in its own sequence: branches neither see each other nor shift positions."""
+    world = make_world(vocab, "next_scene").eval()
+    questions = [("go straight", "turn left then stop"), ("plan the route", "the car turns left")]
+    packed = prompt(world.builder())
+    for q, a in questions:
+        packed.branch().text(q).text(a, True)
+    packed = packed.build()
+    assert packed.branch_ids.max().item() == 2
+    with torch.no_grad():
+        out = world(collate([packed], vocab.pad_id))
+        alone = [world(collate([prompt(world.builder()).text(q).text(a, True).build()], vocab.pad_id)) for q, a in questions]
+    sup = packed.labels != IGNORE
+    got = out.logits[0][sup]
+    want = torch.cat([o.logits[0][b["labels"][0] != IGNORE] for o, b in zip(
+        alone, [collate([prompt(world.builder()).text(q).text(a, True).build()], vocab.pad_id) for q, a in questions])])
+    assert torch.allclose(got, want, atol=1e-5)
+    # Targets: each branch's answer tokens only; the trunk's last token predicts no branch.
+    assert sup.sum().item() == sum(len(vocab.text_ids(a)) + 1 for _, a in questions)
+
+
+def test_a_branch_cannot_start_with_an_answer(vocab):
+    with pytest.raises(ValueError, match="branch must start"):
+        prompt(SequenceBuilder(vocab)).branch().text("go straight", True)

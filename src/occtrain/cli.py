@@ -29,12 +29,12 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
 
 def _cmd_eval(args: argparse.Namespace) -> int:
-    from occtrain.evaluate import evaluate, print_metrics
+    from occtrain.evaluate import eval_metrics_file, evaluate, print_metrics
 
     tasks = [t.strip() for t in args.tasks.split(",") if t.strip()] if args.tasks else None
-    metrics = evaluate(args.stage_dir, args.split, tasks, args.save_predictions, args.limit_batches, args.batch_size)
-    print_metrics(metrics, f"{args.stage_dir} on {args.split}")
-    print(f"metrics -> {Path(args.stage_dir) / 'eval' / args.split / 'metrics.json'}")
+    metrics = evaluate(args.stage_dir, args.split, tasks, args.save_predictions, args.samples, args.batch_size, args.data)
+    print_metrics(metrics, f"{args.stage_dir} on {args.split}" + (f" of {args.data}" if args.data else ""))
+    print(f"metrics -> {eval_metrics_file(args.stage_dir, args.split, args.data)}")
     return 0
 
 
@@ -101,8 +101,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--split", default="val")
     p.add_argument("--tasks", default="", help="comma-separated: forecasting, planning, qa, cot_planning (default: the stage's)")
     p.add_argument("--save-predictions", metavar="DIR", help="also write predictions in the formats `occtrain score` reads")
-    p.add_argument("--limit-batches", type=int, default=None, help="score only the first N batches")
+    p.add_argument(
+        "--samples", type=int, default=-1,
+        help="score a fixed seeded subset of N items per task (default -1: every question, chain of thought and plan)",
+    )
     p.add_argument("--batch-size", type=int, default=16, help="clips generated together in one batch (default 16)")
+    p.add_argument("--data", metavar="DIR", help="score on this dataset instead of the run's (e.g. a world from another seed)")
     p.set_defaults(func=_cmd_eval)
 
     config = sub.add_parser("config", help="inspect configs").add_subparsers(dest="action", required=True)

@@ -9,12 +9,10 @@ the predictions in the formats ``occtrain score`` reads, so both paths give one 
 from __future__ import annotations
 
 import json
-import math
 from pathlib import Path
 
 import numpy as np
 import torch
-from omegaconf import OmegaConf
 
 from occtrain.config import load_config
 from occtrain.config.recipe import RecipeConfig
@@ -27,19 +25,26 @@ from occtrain.progress import console, progress_bar
 EVAL_KINDS = {"pretrain": "pretrain", "instruct": "instruct", "distill": "instruct"}
 
 
+def eval_metrics_file(stage_dir: str | Path, split: str = "val", data_root: str | Path | None = None) -> Path:
+    """Where ``evaluate`` writes its metrics."""
+    out = Path(stage_dir) / "eval"
+    return (out / Path(data_root).resolve().name if data_root is not None else out) / split / "metrics.json"
+
+
 def evaluate(
     stage_dir: str | Path,
     split: str = "val",
     tasks: list[str] | None = None,
     save_predictions: str | Path | None = None,
-    limit_batches: int | None = None,
+    samples: int = -1,
     batch_size: int = 16,
+    data_root: str | Path | None = None,
 ) -> dict[str, float]:
-    """Metrics of ``stage_dir``'s export on ``split`` (see the module docstring)."""
-    from occtrain.data.clips import clips_from_batch
-    from occtrain.data.datamodule import ShardDataModule, shards_dir
-    from occtrain.data.shards import shard_urls
-    from occtrain.engine import CODE_CACHE, Evaluator, load_world_model, qa_prior
+    """Metrics of ``stage_dir``'s export on ``split`` (see the module docstring) of the run's
+    dataset, or of ``data_root`` (e.g. a world synthesized from another seed): then the
+    metrics go to ``eval/<its directory name>/<split>/`` and its baselines come from its
+    own train split."""
+    from occtrain.engine import CODE_CACHE, Evaluator, Priors, load_world_model
     from occtrain.families.occllama.tasks import INSTRUCT_TASKS, PRETRAIN_TASKS
 
     stage_dir = Path(stage_dir)
@@ -52,33 +57,32 @@ def evaluate(
         raise ConfigError(f"{pipeline} has no stage '{stage_dir.name}'; stages are {', '.join(s.name for s in recipe.stages)}")
     if spec.kind not in EVAL_KINDS:
         raise ConfigError(f"occtrain eval scores world-model stages ({', '.join(EVAL_KINDS)}); '{spec.name}' is a {spec.kind} stage")
+    if batch_size < 1:
+        raise ConfigError(f"--batch-size {batch_size}: must be at least 1")
     # Prompts and generation length come from the export: exactly what the model trained with.
     engine = load_world_model(stage_dir / "export").eval()
     # Scenes are looked up in the stage's code cache (made by the same frozen tokenizer;
     # built here if the stage trained without one) instead of being encoded per clip.
-    engine.build_code_cache(recipe.data.root, stage_dir / "cache" / CODE_CACHE)
+    out_dir = stage_dir / "eval"
+    cache = stage_dir / "cache" / CODE_CACHE
+    root = recipe.data.root
+    if data_root is not None:
+        root = str(data_root)
+        out_dir = out_dir / Path(root).resolve().name
+        cache = out_dir / "cache" / CODE_CACHE  # another dataset's scenes: never the stage's cache
+    engine.build_code_cache(root, cache)
     group = PRETRAIN_TASKS if EVAL_KINDS[spec.kind] == "pretrain" else INSTRUCT_TASKS
-    evaluator = Evaluator(tasks or [t for t in Evaluator.TASKS if t in group], record=save_predictions is not None, qa_prior=qa_prior(recipe.data.root))
-    if batch_size < 1:
-        raise ConfigError(f"--batch-size {batch_size}: must be at least 1")
-    # Clips of a batch generate together (one forward per step for all of them).
-    data_cfg = OmegaConf.merge(recipe.data, {"batch_size": batch_size})
-    data = ShardDataModule(data_cfg, "clips")
-    data.prepare_data()
-    loader = data.loader(split, train=False)
-    _, samples = shard_urls(shards_dir(recipe.data), "clips", split)
-    batches = math.ceil(samples / batch_size)
-    if limit_batches is not None:
-        batches = min(batches, limit_batches)
+    evaluator = Evaluator(
+        tasks or [t for t in Evaluator.TASKS if t in group], record=save_predictions is not None, priors=Priors.of(root),
+    )
     torch.manual_seed(0)
-    with progress_bar(batches, f"evaluating {stage_dir.name} on {split}") as advance:
-        for i, batch in enumerate(loader):
-            if limit_batches is not None and i >= limit_batches:
-                break
-            evaluator.update(engine, clips_from_batch(batch), batch)
-            advance(1)
+    total = evaluator.total(engine, root, split, samples)
+    with progress_bar(total, f"evaluating {stage_dir.name} on {split} ({', '.join(evaluator.tasks)})") as advance:
+        evaluator.run(engine, root, split, batch_size, samples=samples, advance=advance)
     metrics = {k.removeprefix(f"{split}/"): v for k, v in evaluator.compute(split).items()}
-    out_file = stage_dir / "eval" / split / "metrics.json"
+    if spec.kind == "distill":
+        metrics.update(_speedup(stage_dir.parent / spec.consumes[0] / "export", engine, root, split))
+    out_file = eval_metrics_file(stage_dir, split, data_root)
     # An eval of some tasks keeps the numbers an earlier eval wrote for the others.
     try:
         earlier = json.loads(out_file.read_text()) if out_file.is_file() else {}
@@ -88,6 +92,19 @@ def evaluate(
     if save_predictions is not None:
         write_predictions(Path(save_predictions), evaluator.predictions)
     return metrics
+
+
+def _speedup(teacher_export: Path, student, data_root: str, split: str) -> dict[str, float]:
+    """The distilled student's generation speed against its teacher's, by the protocol the
+    distill stage's validation uses (``engine.speed``)."""
+    from occtrain.engine import compare_generation_speed, load_world_model, speed_prompt
+
+    if not (teacher_export / "config.json").is_file():
+        raise ConfigError(f"{teacher_export}: the distill stage's teacher export is missing; its speedup needs it")
+    teacher = load_world_model(teacher_export).eval()
+    teacher.code_cache = student.code_cache  # one frozen scene tokenizer: the same codes
+    speed = compare_generation_speed({"teacher": teacher, "student": student}, speed_prompt(student, data_root, split))
+    return {"student_tokens_per_s": speed["student"], "teacher_tokens_per_s": speed["teacher"], "speedup": speed["student"] / speed["teacher"]}
 
 
 def write_predictions(out: Path, predictions: dict[str, dict]) -> None:
@@ -108,13 +125,31 @@ def write_predictions(out: Path, predictions: dict[str, dict]) -> None:
         atomic_write_json(out / "captions_ref.json", predictions["captions_gt"])
 
 
+def sample_count(name: str, metrics: dict[str, float]) -> float | None:
+    """How many samples ``name`` was computed on: the ``<family>_samples`` (or
+    ``_questions``) entry of the longest family prefix of ``name`` that has one."""
+    if name.startswith(("meta_", "baseline_prior_meta_")):
+        return metrics.get("meta_action_samples")
+    parts = name.split("_")
+    for n in range(len(parts), 0, -1):
+        prefix = "_".join(parts[:n])
+        for suffix in ("_samples", "_questions", f"_frames_{parts[-1]}", "_frames_avg"):
+            if prefix + suffix in metrics:
+                return metrics[prefix + suffix]
+    return None
+
+
 def print_metrics(metrics: dict[str, float], title: str) -> None:
-    """A two-column table of the metrics, grouped by their prefix."""
+    """A table of the metrics with the sample count each was computed on."""
     from rich.table import Table
 
     table = Table(title=title)
     table.add_column("metric")
     table.add_column("value", justify="right")
+    table.add_column("samples", justify="right")
     for name in sorted(metrics):
-        table.add_row(name, f"{metrics[name]:.4g}")
+        if name.endswith(("_samples", "_questions")) or "_frames_" in name:
+            continue  # shown in the samples column
+        n = sample_count(name, metrics)
+        table.add_row(name, f"{metrics[name]:.4g}", "" if n is None else f"{n:.0f}")
     console.print(table)

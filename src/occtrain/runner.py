@@ -22,8 +22,8 @@ from typing import Any
 
 from occtrain.config import load_config, to_container, to_yaml
 from occtrain.config.loading import validate_section
-from occtrain.config.recipe import RecipeConfig, StageSpec
-from occtrain.config.schema import TrainerConfig
+from occtrain.config.recipe import STAGE_DATA_KEYS, RecipeConfig, StageSpec
+from occtrain.config.schema import DataConfig, TrainerConfig
 from occtrain.errors import ConfigError, OcctrainError
 from occtrain.io import atomic_write_json, atomic_write_text, is_rank_zero
 from occtrain.manifest import Manifest
@@ -46,6 +46,7 @@ class PlannedStage:
     trainer: TrainerConfig
     config: dict  # resolved, hashed
     config_hash: str
+    data: Any = None  # the recipe's DataConfig with the stage's loader keys applied
 
 
 def _flatten(d: Any, prefix: str = "") -> dict[str, Any]:
@@ -86,6 +87,10 @@ def plan_stages(recipe: RecipeConfig, source: str) -> list[PlannedStage]:
                 raise ConfigError(f"{where} consumes '{dep}', which is not an earlier stage{later}")
         kind.module.check_consumes(spec.kind, {dep: planned[names.index(dep)].spec.kind for dep in spec.consumes}, where)
         model_cfg = validate_section(kind.model_schema, spec.model or {}, f"stages[{i}].model", source)
+        wrong = sorted(set(spec.data or {}) - set(STAGE_DATA_KEYS))
+        if wrong:
+            raise ConfigError(f"stages[{i}].data.{wrong[0]} in {source}: a stage sets only {', '.join(STAGE_DATA_KEYS)}; the dataset is the recipe's")
+        stage_data = validate_section(DataConfig, {**data, **(spec.data or {})}, f"stages[{i}].data", source)
         trainer = validate_section(TrainerConfig, {**to_container(recipe.trainer), **(spec.trainer or {})}, f"stages[{i}].trainer", source)
         trainer_dict = {k: v for k, v in to_container(trainer).items() if k not in OPERATIONAL_KEYS}
         config = {
@@ -95,10 +100,10 @@ def plan_stages(recipe: RecipeConfig, source: str) -> list[PlannedStage]:
             "model": to_container(model_cfg),
             "optim": to_container(spec.optim),
             "trainer": trainer_dict,
-            "data": data,
+            "data": to_container(stage_data),
         }
         digest = hashlib.sha256(json.dumps(config, sort_keys=True).encode()).hexdigest()[:16]
-        planned.append(PlannedStage(spec, kind, model_cfg, trainer, config, digest))
+        planned.append(PlannedStage(spec, kind, model_cfg, trainer, config, digest, stage_data))
         names.append(spec.name)
     if not planned:
         raise ConfigError(f"{source} has no stages")
@@ -127,16 +132,20 @@ def _execute(stage: PlannedStage, recipe: RecipeConfig, stage_dir: Path, inputs:
     from occtrain.stages.common import build_trainer, last_checkpoint
 
     L.seed_everything(stage.trainer.seed, workers=True, verbose=False)
-    ctx = StageContext(stage.spec, stage.model_cfg, recipe.data, stage.trainer, stage_dir, inputs)
+    ctx = StageContext(stage.spec, stage.model_cfg, stage.data, stage.trainer, stage_dir, inputs)
     module = stage.kind.build(ctx)
     entries = {split: module.entries(split) for split in ("train", "val")}
-    datamodule = ShardDataModule(recipe.data, stage.kind.data_kind, entries=entries)
+    datamodule = ShardDataModule(stage.data, stage.kind.data_kind, entries=entries)
     trainer = build_trainer(stage.trainer, stage_dir, stage.kind.monitor, stage.kind.mode)
     ckpt = last_checkpoint(stage_dir)
     if ckpt is not None and is_rank_zero():
         console.print(f"[yellow]resuming[/] {stage.spec.name} from {ckpt}")
     trainer.fit(module, datamodule=datamodule, ckpt_path=ckpt, weights_only=True)
-    results = trainer.validate(module, datamodule=datamodule, verbose=False)
+    if module.validated_at == trainer.global_step and trainer.global_step > 0:
+        # fit validated the final weights already (generation makes validation costly).
+        results = [{k: v for k, v in trainer.callback_metrics.items() if k.startswith("val/")}]
+    else:
+        results = trainer.validate(module, datamodule=datamodule, verbose=False)
     metrics = {k: float(v) for k, v in (results[0] if results else {}).items()}
     report = module.report()
     metrics.update(report.metrics)

@@ -39,6 +39,13 @@ class StageSpec:
     model: dict[str, Any] = field(default_factory=dict)
     optim: OptimConfig = field(default_factory=OptimConfig)
     trainer: dict[str, Any] = field(default_factory=dict)
+    #: How this stage reads the recipe's data: only the loader keys (``STAGE_DATA_KEYS``),
+    #: e.g. a larger batch for a cheap stage; the dataset itself is the recipe's.
+    data: dict[str, Any] = field(default_factory=dict)
+
+
+#: The ``data:`` keys a stage may set for itself.
+STAGE_DATA_KEYS = ("batch_size", "num_workers", "shuffle_buffer")
 
 
 @dataclass

@@ -46,6 +46,7 @@ class TrainerConfig:
     max_steps: int = 100
     max_epochs: int = -1
     val_check_interval: int = 50
+    #: Val batches per validation (teacher-forced scores); -1: the whole val split.
     limit_val_batches: int = 8
     log_every_n_steps: int = 10
     #: Save ``last.ckpt`` every this many optimizer steps so a kill loses little.

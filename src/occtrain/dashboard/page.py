@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import base64
+import re
 import time
 from html import escape
 
@@ -39,7 +40,7 @@ svg .ct{text-anchor:middle;font-size:13px;font-weight:600;fill:#222} svg .xt{tex
 svg .yt{text-anchor:end;fill:#444} svg .xl,svg .yl{text-anchor:middle;fill:#222}
 svg .lg{fill:#222} svg .empty{text-anchor:middle;fill:#888} svg .pa{fill:#fbfbfc}
 svg .grid{stroke:#e2e4e8;stroke-width:1} svg .axis{stroke:#555;stroke-width:1}
-figure{margin:8px 0} figure img{max-width:100%;border:1px solid #ddd} figcaption{font-size:12px;color:#444}
+.figs{display:flex;flex-wrap:wrap;gap:12px;align-items:flex-start} figure{margin:8px 0;max-width:100%} figure img{max-width:100%;border:1px solid #ddd} figcaption{font-size:12px;color:#444}
 td.ok{color:#2e7d32;font-weight:700} td.bad{color:#c62828;font-weight:700}
 pre{background:#f6f8fa;padding:10px;overflow:auto;font-size:12px}
 """
@@ -72,8 +73,27 @@ def _summary(stage: StageView) -> str:
         return "not run yet"
     if e.status == "running":
         return f"running since {_when(e.started)} (or cut off; `occtrain run` resumes it)"
-    shown = [(k, v) for k, v in stage.metrics.items() if k != "params"][:3]
+    shown = [(k, stage.metrics[k]) for k in headline(stage.metrics)[:3]]
     return escape(", ".join(f"{k} = {_num(v)}" for k, v in shown))
+
+
+#: What a stage is judged by, most telling first: a stage table row leads with the first
+#: of these its metrics have, then the next ones; baselines never lead.
+HEADLINE = (
+    "val/qa_overall", "val/meta_action_acc", "val/forecast_occworld_mIoU_avg", "val/plan_direct_L2_stp3_avg",
+    "val/plan_cot_L2_stp3_avg", "val/head_generated_meta_L2_stp3_avg", "val/head_gt_meta_L2_stp3_avg",
+    "val/occworld_mIoU", "val/occ3d_mIoU", "val/speedup", "val/token_acc",
+)
+#: Per-horizon, per-type and count entries: in the final table, folded away.
+DETAIL = re.compile(r"(_[123]s$|_by_type_|_samples|_questions$|_frames_|Bleu_[123]$)")
+
+
+def headline(metrics: dict[str, float]) -> list[str]:
+    """The stage's metrics in the order a reader wants them: HEADLINE ones, then the rest of
+    the model's own (no baselines, no details)."""
+    first = [k for k in HEADLINE if k in metrics]
+    rest = [k for k in metrics if k not in first and k != "params" and "baseline" not in k and not DETAIL.search(k)]
+    return first + rest
 
 
 def stage_table(run: RunView) -> str:
@@ -104,9 +124,23 @@ def _paper_cell(metric: str) -> str:
 
 
 def metrics_tables(metrics: dict[str, float]) -> str:
-    """Final metrics grouped by the convention their names carry, the papers' figures beside them."""
+    """Final metrics grouped by the convention their names carry, the papers' figures beside
+    them; per-horizon, per-type and count entries in a folded table below."""
+    main = [n for n in headline(metrics) + [k for k in metrics if "baseline" in k] if not DETAIL.search(n)]
+    main = list(dict.fromkeys(main))
+    details = [n for n in metrics if n not in main and n != "params"]
+    out = _grouped_tables(metrics, main)
+    if details:
+        out += (
+            f"<details><summary>{len(details)} more: per horizon, per question type, sample counts</summary>"
+            f"{_grouped_tables(metrics, details)}</details>"
+        )
+    return out
+
+
+def _grouped_tables(metrics: dict[str, float], names: list[str]) -> str:
     groups: dict[str, list[str]] = {}
-    for name in metrics:
+    for name in names:
         groups.setdefault(_convention(name), []).append(name)
     out = []
     for key, meaning in (*CONVENTIONS, (OTHER, OTHER)):
@@ -124,11 +158,11 @@ def metrics_tables(metrics: dict[str, float]) -> str:
 
 
 def _images(images: list[tuple[str, bytes]]) -> str:
-    return "".join(
+    return '<div class="figs">' + "".join(
         f'<figure><img alt="{escape(cap)}" src="data:image/png;base64,{base64.b64encode(png).decode()}">'
         f"<figcaption>{escape(cap)}</figcaption></figure>"
         for cap, png in images
-    )
+    ) + "</div>"
 
 
 def _texts(texts: list[dict[str, str]]) -> str:

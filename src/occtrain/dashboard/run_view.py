@@ -9,6 +9,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+import re
 from collections import defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -80,35 +81,58 @@ def _series(label: str, points: list[tuple[float, float]]) -> Series:
     return Series(label, [p[0] for p in kept], [p[1] for p in kept])
 
 
-def _family(name: str) -> tuple[str, str]:
-    """('val/forecast/occworld_mIoU', '1s') for 'val/forecast/occworld_mIoU_1s': one chart per family."""
-    head, _, leaf = name.rpartition("/")
-    if "_" in leaf:
-        fam, _, label = leaf.rpartition("_")
-        return f"{head}/{fam}" if head else fam, label
-    return head or leaf, leaf
+#: Validation charts: one per measure, one line per model or baseline scored with it. A
+#: metric name (without ``val/``) matching a pattern joins that chart as series ``s``;
+#: per-horizon, per-type and count details are left to the final-metrics table.
+MEASURES = (
+    (re.compile(r"^(?P<s>.*?)_?qa_overall$"), "QA accuracy (%)"),
+    (re.compile(r"^(?P<s>.*?)_?meta_action_acc$"), "meta-action accuracy (%)"),
+    (re.compile(r"^(?P<s>meta_parsed_fraction)$"), "meta action parsed (%)"),
+    (re.compile(r"^(?P<s>.+)_L2_stp3_avg$"), "planning L2, ST-P3 avg (m)"),
+    (re.compile(r"^(?P<s>.+)_L2_uniad_avg$"), "planning L2, UniAD avg (m)"),
+    (re.compile(r"^(?P<s>.+)_collision_stp3_avg$"), "collision rate, ST-P3 avg (%)"),
+    (re.compile(r"^(?P<s>.+)_occworld_mIoU_avg$"), "forecast mIoU, OccWorld avg (%)"),
+    (re.compile(r"^(?P<s>.+)_occworld_IoU_avg$"), "forecast IoU, OccWorld avg (%)"),
+    (re.compile(r"^(?P<s>.*?)_?(?P<m>mIoU|IoU)$"), "reconstruction IoU and mIoU (%)"),
+    (re.compile(r"^(?P<s>.*cot_caption)_(?P<m>CIDEr|Bleu_4|METEOR|ROUGE_L)$"), "chain-of-thought text vs reference"),
+    (re.compile(r"^(?P<s>.*token_acc)$"), "token accuracy"),
+    (re.compile(r"^(?P<s>.*(speedup|tokens_per_s))$"), "generation speed"),
+)
+
+
+def _measure(name: str) -> tuple[str, str] | None:
+    """(chart title, series label) of a validation metric, None for the details."""
+    split, _, leaf = name.partition("/")
+    for pattern, title in MEASURES:
+        m = pattern.match(leaf)
+        if m:
+            groups = m.groupdict()
+            series = " ".join(v for v in (groups.get("s"), groups.get("m")) if v)
+            return title, series or "model"
+    return None
 
 
 def charts_from_curves(curves: dict[str, list[tuple[float, float]]]) -> list[Chart]:
-    """Training losses, validation losses, learning rate, then one chart per metric family."""
-    fixed = {"train loss": [], "validation loss": [], "learning rate": []}
-    families: dict[str, list[tuple[str, Series]]] = defaultdict(list)
-    for name, points in curves.items():
+    """Training losses, validation losses, learning rate, then one chart per measure with a
+    line per model and baseline (``MEASURES``); details stay in the final table."""
+    fixed = {"train loss": [], "validation loss": [], "learning rate": [], "train, other": []}
+    measures: dict[str, list[Series]] = defaultdict(list)
+    for name, points in sorted(curves.items()):
         if name.startswith("lr-"):
             fixed["learning rate"].append(_series(name.removeprefix("lr-"), points))
         elif "loss" in name and name.startswith(("train/", "val/")):
             title = "train loss" if name.startswith("train/") else "validation loss"
             fixed[title].append(_series(name.split("/", 1)[1], points))
-        else:
-            fam, label = _family(name)
-            families[fam].append((name, _series(label, points)))
-    charts = [Chart(t, "loss" if "loss" in t else "lr", s) for t, s in fixed.items() if s]
-    for fam, members in sorted(families.items()):
-        if len(members) == 1:  # a family of one is titled by the metric's full name
-            name, s = members[0]
-            charts.append(Chart(name, "", [Series(name, s.xs, s.ys)]))
-        else:
-            charts.append(Chart(fam, "", [s for _, s in members]))
+        elif name.startswith("train/"):
+            fixed["train, other"].append(_series(name.split("/", 1)[1], points))
+        elif name.startswith("val/"):
+            found = _measure(name)
+            if found:
+                measures[found[0]].append(_series(found[1], points))
+    charts = [Chart(t, "loss" if "loss" in t else "lr" if "rate" in t else "", s) for t, s in fixed.items() if s]
+    order = [title for _, title in MEASURES]
+    for title in sorted(measures, key=order.index):
+        charts.append(Chart(title, "", measures[title]))
     return charts
 
 

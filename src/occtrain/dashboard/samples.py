@@ -93,20 +93,24 @@ def read_samples(stage_dir: Path) -> tuple[list[tuple[str, bytes]], list[dict[st
     return images, texts
 
 
-def bev_comparison(rows: Sequence[tuple[str, np.ndarray]], scale: int = 2) -> np.ndarray:
+def bev_comparison(rows: Sequence[tuple], scale: int | None = None) -> np.ndarray:
     """Labelled bird's-eye panels side by side (e.g. ground truth, reconstruction, forecast).
 
-    ``rows``: (label, semantics (200, 200, 16) class ids) pairs; returns an (H, W, 3) uint8 picture
-    with a legend of the classes that appear.
+    ``rows``: (label, semantics (200, 200, 16) class ids) pairs, or (label, semantics,
+    {"truth": (N, 2), "plan": (M, 2)}) to draw trajectories (ego frame, metres); returns an
+    (H, W, 3) uint8 picture with a legend of the classes that appear. Panels are drawn at
+    2 px per voxel, 1 px when there are more than three (the picture stays page-wide).
     """
     if not rows:
         raise ValueError("bev_comparison needs at least one (label, semantics) panel")
+    scale = scale or (2 if len(rows) <= 3 else 1)
     panels, present = [], set()
-    for label, sem in rows:
+    for label, sem, *extra in rows:
         sem = np.asarray(sem)
         if sem.shape != GRID_SHAPE:
             raise ValueError(f"panel '{label}': semantics shape {sem.shape}, expected {GRID_SHAPE}")
-        panels.append(render_bev(sem, scale=scale, title=label))
+        paths = extra[0] if extra else {}
+        panels.append(render_bev(sem, scale=scale, title=label, trajectory=paths.get("truth"), plan=paths.get("plan")))
         present.update(np.unique(sem).tolist())
     classes = sorted(c for c in present if c != FREE)
     return np.asarray(strip(panels, classes or None))

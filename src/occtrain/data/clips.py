@@ -12,12 +12,13 @@ from __future__ import annotations
 
 import zlib
 from dataclasses import dataclass
-from typing import Union
+from typing import Iterator, Union
 
 import numpy as np
 import torch
 
 from occtrain.data.geometry import global_to_ego
+from occtrain.data.layout import DatasetIndex
 from occtrain.occ3d import FUTURE_STEPS
 
 
@@ -43,7 +44,16 @@ class Actions:
     supervise: bool = False
 
 
-Part = Union[Text, Scene, Actions]
+@dataclass(frozen=True)
+class Branch:
+    """The parts after it, up to the next Branch, form one branch: they see the parts before
+    the first Branch (the shared context) and themselves only. Several answers about one
+    context then train in one sequence exactly as each would in its own."""
+
+    supervise: bool = False  # never: a marker, not an answer
+
+
+Part = Union[Text, Scene, Actions, Branch]
 
 
 @dataclass
@@ -78,6 +88,37 @@ def clip_rng(seed: int, token: str) -> np.random.Generator:
 def clips_from_batch(batch: dict) -> list[Clip]:
     """The per-sample clip records of a collated clip batch."""
     return [Clip(ann, qa, narr) for ann, qa, narr in zip(batch["ann"], batch["qa"], batch["narration"])]
+
+
+def clip_annotation(index: DatasetIndex, scene: str, anchor: int, history: int, future: int, split: str, frames: list | None) -> dict:
+    """The ``ann.json`` of the clip of ``scene`` anchored at sample ``anchor`` with ``history``
+    frames before it and ``future`` after (the caller keeps both inside the scene)."""
+    tokens = index.scenes[scene]
+    window = tokens[anchor - history : anchor + future + 1]
+    return {
+        "anchor": frames[anchor] if frames else {"scene": scene, "token": tokens[anchor], "index": anchor},
+        "tokens": window,
+        "ego_poses": [list(index.ego_pose(scene, t)) for t in window],
+        "history": history,
+        "future": future,
+        "split": split,
+    }
+
+
+def frame_clips(index: DatasetIndex, split: str, history: int) -> Iterator[Clip]:
+    """A clip anchored at every frame of ``split`` with up to ``history`` frames before it
+    (fewer at a scene's start) and no future: what a question about the frame needs. The
+    clips carry no occupancy; their scenes come from a code cache by sample token."""
+    by_token: dict[str, list[dict]] = {}
+    for q in index.questions(split) or []:
+        by_token.setdefault(q["sample_token"], []).append(q)
+    for scene in index.splits.get(split, []):
+        frames = index.frames(scene) if index.has_frame_annotations(scene) else None
+        tokens = index.scenes[scene]
+        for a, token in enumerate(tokens):
+            ann = clip_annotation(index, scene, a, min(history, a), 0, split, frames)
+            anchor = ann["anchor"]
+            yield Clip(ann, by_token.get(token, []), anchor.get("narration", ""))
 
 
 def ego_future(anchor: dict) -> tuple[np.ndarray, np.ndarray]:

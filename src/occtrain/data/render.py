@@ -35,8 +35,10 @@ def render_bev(
     trajectory_mask: Sequence[int] | None = None,
     scale: int = 3,
     title: str | None = None,
+    plan: Sequence[Sequence[float]] | None = None,
 ) -> Image.Image:
-    """One frame as a top-down RGB picture; ``mask`` (X,Y,Z) darkens columns the camera never sees."""
+    """One frame as a top-down RGB picture; ``mask`` (X,Y,Z) darkens columns the camera never
+    sees; ``trajectory`` (the true future, green) and ``plan`` (a model's, red) are drawn on it."""
     rgb = CLASS_COLORS[top_down_classes(semantics)].astype(np.float32)
     if mask is not None:
         seen = mask.astype(bool).any(-1)
@@ -48,15 +50,19 @@ def render_bev(
     draw = ImageDraw.Draw(img)
     corners = np.array([[1, 1], [1, -1], [-1, -1], [-1, 1]]) * [EGO_LENGTH / 2, EGO_WIDTH / 2]
     draw.polygon([tuple(p) for p in _ego_to_pixel(corners, scale)], fill=(30, 30, 30), outline=(255, 255, 255))
-    if trajectory is not None:
-        pts = np.asarray(trajectory, dtype=np.float64)
-        keep = np.ones(len(pts), bool) if trajectory_mask is None else np.asarray(trajectory_mask, bool)
+    for points, mask_, (line, dot) in (
+        (trajectory, trajectory_mask, ((0, 200, 80), (0, 110, 40))), (plan, None, ((230, 40, 40), (150, 0, 0))),
+    ):
+        if points is None:
+            continue
+        pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+        keep = np.ones(len(pts), bool) if mask_ is None else np.asarray(mask_, bool)
         px = _ego_to_pixel(np.vstack([[0.0, 0.0], pts[keep]]), scale)
         if len(px) > 1:
-            draw.line([tuple(p) for p in px], fill=(0, 200, 80), width=max(2, scale))
+            draw.line([tuple(p) for p in px], fill=line, width=max(2, scale))
         for p in px[1:]:
             r = 1.5 * scale
-            draw.ellipse([p[0] - r, p[1] - r, p[0] + r, p[1] + r], fill=(0, 110, 40))
+            draw.ellipse([p[0] - r, p[1] - r, p[0] + r, p[1] + r], fill=dot)
     if title:
         draw.rectangle([0, 0, img.width, 14 + scale], fill=(0, 0, 0))
         draw.text((4, 2), title, fill=(255, 255, 255))

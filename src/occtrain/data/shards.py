@@ -32,6 +32,7 @@ from typing import Any, Callable, Iterable, Iterator
 import numpy as np
 import webdataset as wds
 
+from occtrain.data.clips import clip_annotation
 from occtrain.data.layout import DatasetIndex, read_npz
 from occtrain.errors import DataError
 from occtrain.io import atomic_write_json, npz_bytes
@@ -109,7 +110,8 @@ def _clip_samples(index: DatasetIndex, scene: str, split: str, history: int, fut
     frames = index.frames(scene) if index.has_frame_annotations(scene) else None
     cache: dict[str, dict[str, np.ndarray]] = {}
     for anchor in range(history, len(tokens) - future):
-        window = tokens[anchor - history : anchor + future + 1]
+        ann = clip_annotation(index, scene, anchor, history, future, split, frames)
+        window = ann["tokens"]
         for tok in list(cache):
             if tok not in window:
                 del cache[tok]
@@ -118,22 +120,13 @@ def _clip_samples(index: DatasetIndex, scene: str, split: str, history: int, fut
                 cache[tok] = index.labels(scene, tok)
         sem = np.stack([cache[t]["semantics"] for t in window])
         cam = np.stack([_pack(cache[t]["mask_camera"]) for t in window])
-        anchor_ann = frames[anchor] if frames else {"scene": scene, "token": tokens[anchor], "index": anchor}
-        ann = {
-            "anchor": anchor_ann,
-            "tokens": window,
-            "ego_poses": [list(index.ego_pose(scene, t)) for t in window],
-            "history": history,
-            "future": future,
-            "split": split,
-        }
         yield {
             "__key__": tokens[anchor],
             "occ.npz": npz_bytes({"semantics": sem, "mask_camera": cam}),
             "ann.json": json.dumps(ann).encode(),
             "qa.json": json.dumps(qa.get(tokens[anchor], [])).encode(),
-            "caption.txt": anchor_ann.get("caption", "").encode(),
-            "narration.txt": anchor_ann.get("narration", "").encode(),
+            "caption.txt": ann["anchor"].get("caption", "").encode(),
+            "narration.txt": ann["anchor"].get("narration", "").encode(),
         }
 
 

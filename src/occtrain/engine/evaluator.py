@@ -2,31 +2,106 @@
 
 from __future__ import annotations
 
+import zlib
 from collections import Counter
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterable
+from typing import Callable, Iterable
 
 import numpy as np
 import torch
+from torchmetrics import MeanMetric
 
-from occtrain.data.clips import Actions, Clip, PlanTarget, Scene, plan_target
+from occtrain.data.clips import Actions, Clip, Part, PlanTarget, Scene, clip_annotation, frame_clips, plan_target
 from occtrain.data.layout import DatasetIndex
-from occtrain.data.text_formats import parse_meta_action
+from occtrain.data.text_formats import format_meta_action, parse_meta_action
 from occtrain.engine.world_model import WorldModelEngine
 from occtrain.errors import ConfigError
 from occtrain.families.occllama.tasks import TASKS
 from occtrain.metrics import CaptionMetric, ForecastMetric, PlanningMetric, QAMetric, flatten_metrics
 from occtrain.models.planner import constant_velocity_plan
-from occtrain.occ3d import FREE, FUTURE_STEPS
+from occtrain.occ3d import FRAME_DT, FREE, FUTURE_STEPS
 
 
-def qa_prior(data_root: str | Path) -> dict[str, str]:
-    """The commonest training answer of each NuScenes-QA template type (the QA baseline)."""
-    questions = DatasetIndex.open(data_root).questions("train") or []
-    by_type: dict[str, Counter] = {}
-    for q in questions:
-        by_type.setdefault(q["template_type"], Counter())[q["answer"]] += 1
-    return {t: c.most_common(1)[0][0] for t, c in by_type.items()}
+@dataclass
+class Priors:
+    """The commonest training answers: the baselines a model must beat by learning."""
+
+    #: NuScenes-QA template type -> its commonest answer.
+    qa: dict[str, str] = field(default_factory=dict)
+    #: The commonest meta action ({"speed", "direction"}), None without frame sidecars.
+    meta_action: dict | None = None
+
+    @classmethod
+    def of(cls, data_root: str | Path) -> Priors:
+        index = DatasetIndex.open(data_root)
+        by_type: dict[str, Counter] = {}
+        for q in index.questions("train") or []:
+            by_type.setdefault(q["template_type"], Counter())[q["answer"]] += 1
+        metas = Counter(
+            (f["meta_action"]["speed"], f["meta_action"]["direction"])
+            for scene in index.splits.get("train", []) if index.has_frame_annotations(scene)
+            for f in index.frames(scene) if "meta_action" in f
+        )
+        meta = None
+        if metas:
+            speed, direction = metas.most_common(1)[0][0]
+            meta = {"speed": speed, "direction": direction}
+        return cls({t: c.most_common(1)[0][0] for t, c in by_type.items()}, meta)
+
+
+def item_key(task: str, clip: Clip, parts: list[Part]) -> str:
+    """What identifies one scored item: the clip's sample token, and for QA its question."""
+    token = clip.anchor["token"]
+    if task == "qa":
+        return f"{token}|{question_of(parts)}"
+    return token
+
+
+def question_of(parts: list[Part]) -> str:
+    """The question of a single-question QA prompt."""
+    return parts[-2].text.removeprefix("Question: ").removesuffix(" Answer:")
+
+
+def fixed_subset(keys: Iterable[str], size: int, seed: int = 0) -> set[str]:
+    """``size`` of ``keys`` chosen by a seeded hash (the same whatever their order), or all
+    of them when ``size`` is -1 or at least their number."""
+    keys = sorted(set(keys))
+    if size < 0 or size >= len(keys):
+        return set(keys)
+    return set(sorted(keys, key=lambda k: zlib.crc32(f"{seed}|{k}".encode()))[:size])
+
+
+def evaluation_clips(index: DatasetIndex, split: str, task: str, context: int) -> list[Clip]:
+    """The clips ``task`` is scored on, from the dataset index (no shards, no occupancy):
+    for QA a clip at every frame of the split (a shorter history at a scene's start); for
+    the others every frame with ``context`` history frames and a whole 3 s future."""
+    if task == "qa":
+        return [c for c in frame_clips(index, split, context) if c.qa]
+    by_token: dict[str, list[dict]] = {}
+    for q in index.questions(split) or []:
+        by_token.setdefault(q["sample_token"], []).append(q)
+    clips = []
+    for scene in index.splits.get(split, []):
+        frames = index.frames(scene) if index.has_frame_annotations(scene) else None
+        tokens = index.scenes[scene]
+        for a in range(context, len(tokens) - FUTURE_STEPS):
+            ann = clip_annotation(index, scene, a, context, FUTURE_STEPS, split, frames)
+            clips.append(Clip(ann, by_token.get(tokens[a], []), ann["anchor"].get("narration", "")))
+    return clips
+
+
+def _rank_world() -> tuple[int, int]:
+    import torch.distributed as dist
+
+    if dist.is_available() and dist.is_initialized():
+        return dist.get_rank(), dist.get_world_size()
+    return 0, 1
+
+
+#: Dashboard samples kept per validation: texts per task, pictures per kind.
+TEXTS_PER_TASK = 4
+PICTURES_PER_KIND = 2
 
 
 class Evaluator(torch.nn.Module):
@@ -39,9 +114,14 @@ class Evaluator(torch.nn.Module):
 
     TASKS = ("forecasting", "planning", "qa", "cot_planning")
 
-    def __init__(self, tasks: Iterable[str], record: bool = False, qa_prior: dict[str, str] | None = None):
+    def __init__(
+        self, tasks: Iterable[str], record: bool = False, priors: Priors | None = None,
+        subset: dict[str, set[str]] | None = None,
+    ):
         """``tasks``: the evaluation tasks to run (those of :attr:`TASKS` that are named);
-        their prompts are built with the engine's own task settings."""
+        their prompts are built with the engine's own task settings. Every item is scored
+        (every question of a frame for QA) unless ``subset`` names, per task, the item
+        keys (``item_key``) to score."""
         super().__init__()
         unknown = sorted(set(tasks) - set(self.TASKS))
         if unknown:
@@ -50,7 +130,8 @@ class Evaluator(torch.nn.Module):
         self.tasks = tuple(t for t in self.TASKS if t in set(tasks))
         #: Baselines scored on the same samples: copy the current scene forward, stand still,
         #: drive on at constant velocity, answer the commonest training answer of the type.
-        self.qa_prior = qa_prior or {}
+        self.priors = priors or Priors()
+        self.subset = subset
         self.metrics = torch.nn.ModuleDict({
             "forecast_occworld": ForecastMetric(),
             "baseline_copy_forecast_occworld": ForecastMetric(),
@@ -62,24 +143,93 @@ class Evaluator(torch.nn.Module):
             "plan_cot": PlanningMetric(),
             "qa": QAMetric(),
             "cot_caption": CaptionMetric(),
+            "meta_action_acc": MeanMetric(),
+            "meta_parsed_fraction": MeanMetric(),
+            "baseline_prior_meta_action_acc": MeanMetric(),
         })
-        self.meta_hits = 0
-        self.meta_total = 0
+        self._clip_cache: dict[tuple, list[Clip]] = {}
+        #: How often each QA answer string was generated (a model stuck on one shows here).
+        self.answers: Counter = Counter()
         self.texts: list[dict] = []
+        #: A few pictures for the dashboard: (caption, [(label, semantics, trajectories)]).
+        self.scenes: list[tuple[str, list[tuple]]] = []
+        self._index: DatasetIndex | None = None  # set by run(): anchor scenes for the pictures
         #: With ``record``, every prediction in the formats ``occtrain score`` reads.
         self.record = record
         self.predictions: dict[str, dict] = {"planning": {}, "planning_gt": {}, "forecast": {}, "qa": {}, "captions": {}, "captions_gt": {}}
 
     @torch.no_grad()
-    def update(self, engine: WorldModelEngine, clips: list[Clip], batch: dict) -> None:
+    def update(self, engine: WorldModelEngine, clips: list[Clip], batch: dict, tasks: Iterable[str] | None = None) -> None:
+        """Generate and score the evaluator's tasks (or those of ``tasks``) on ``clips``."""
+        tasks = self.tasks if tasks is None else [t for t in self.tasks if t in set(tasks)]
         # The planning ground truth of each clip, built once for every plan scored on it.
         targets = [plan_target([c.anchor], self.device) for c in clips]
+        planned: set[int] = set()
+        for task in tasks:
+            for b, parts, generated, codes in engine.rollouts(task, clips, batch, every=True, select=self._selector(task)):
+                semantics = batch["semantics"][b] if task == "forecasting" else None
+                self._score(engine, task, clips[b], parts, generated, codes, semantics, targets[b])
+                if task in ("planning", "forecasting", "cot_planning"):
+                    planned.add(b)
+        for b in sorted(planned):  # baselines on exactly the clips a plan was scored on
+            self._score_plan_baselines(clips[b].anchor, targets[b])
+
+    def _selector(self, task: str):
+        if self.subset is None:
+            return None
+        keys = self.subset.get(task, set())
+        return lambda clip, parts: item_key(task, clip, parts) in keys
+
+    def run(
+        self, engine: WorldModelEngine, data_root: str | Path, split: str, batch_size: int = 16,
+        samples: int = -1, seed: int = 0, advance: Callable[[int], None] | None = None,
+    ) -> None:
+        """Generate and score every task on ``split`` (clips from ``evaluation_clips``):
+        every item, or with ``samples`` >= 0 a fixed seeded subset of that many items per
+        task (the same at every call). Under DDP each process takes every world-th clip
+        (no clip twice: no padding duplicates); metrics sum across processes. Each run
+        starts afresh: ``compute``, the texts and the pictures then describe this run."""
+        self.reset()
+        index = DatasetIndex.open(data_root)
+        self._index = index
+        rank, world = _rank_world()
         for task in self.tasks:
-            for b, parts, generated, codes in engine.rollouts(task, clips, batch):
-                self._score(engine, task, clips[b], parts, generated, codes, batch["semantics"][b], targets[b])
-        if any(t in self.tasks for t in ("planning", "forecasting", "cot_planning")):
-            for clip, target in zip(clips, targets):
-                self._score_plan_baselines(clip.anchor, target)
+            clips = self._task_clips(engine, index, split, task, samples, seed)[rank::world]
+            for i in range(0, len(clips), batch_size):
+                chunk = clips[i : i + batch_size]
+                self.update(engine, chunk, self._batch(engine, index, chunk, task), tasks=[task])
+                if advance is not None:
+                    advance(len(chunk))
+
+    def _task_clips(self, engine, index, split, task, samples, seed) -> list[Clip]:
+        key = (split, task, samples, seed, engine.tasks.context_frames)
+        if key not in self._clip_cache:
+            clips = evaluation_clips(index, split, task, engine.tasks.context_frames)
+            if samples >= 0:
+                keys = {c.anchor["token"]: [item_key(task, c, p) for p in engine.task_items(task, c, every=True)] for c in clips}
+                chosen = fixed_subset([k for ks in keys.values() for k in ks], samples, seed)
+                self.subset = {**(self.subset or {}), task: chosen}
+                clips = [c for c in clips if chosen.intersection(keys[c.anchor["token"]])]
+            self._clip_cache[key] = clips
+        return self._clip_cache[key]
+
+    @staticmethod
+    def _batch(engine: WorldModelEngine, index: DatasetIndex, clips: list[Clip], task: str) -> dict:
+        """What ``update`` reads besides the clips: the annotations, and the clips' occupancy
+        when scenes must be encoded (no code cache) or forecasts scored."""
+        batch: dict = {"ann": [c.ann for c in clips]}
+        if engine.code_cache is None or task == "forecasting":
+            # One (T, X, Y, Z) tensor per clip: QA clips at a scene's start have shorter windows.
+            batch["semantics"] = [
+                torch.from_numpy(np.stack([index.labels(index.scene_of(t), t)["semantics"] for t in c.ann["tokens"]])) for c in clips
+            ]
+        return batch
+
+    def total(self, engine: WorldModelEngine, data_root: str | Path, split: str, samples: int = -1, seed: int = 0) -> int:
+        """How many clips ``run`` visits (for a progress bar)."""
+        index = DatasetIndex.open(data_root)
+        rank, world = _rank_world()
+        return sum(len(self._task_clips(engine, index, split, t, samples, seed)[rank::world]) for t in self.tasks)
 
     @classmethod
     def scorable(cls, weights: dict[str, float]) -> list[str]:
@@ -110,6 +260,7 @@ class Evaluator(torch.nn.Module):
             plan_mask[0, len(xy):] = False
             name = {"planning": "plan_direct", "forecasting": "plan_alternate", "cot_planning": "plan_cot"}[task]
             self.metrics[name].update(pred, gt_xy, plan_mask, agents)
+            self._keep_plan_picture(name, anchor, np.asarray(xy), gt_xy[0][gt_mask[0]].cpu().numpy())
             if self.record and task == "planning":
                 self.predictions["planning"][token] = pred[0].tolist()
                 self.predictions["planning_gt"][token] = {
@@ -130,14 +281,16 @@ class Evaluator(torch.nn.Module):
             self.metrics["forecast_occworld"].update(pred.to(dev), target.to(dev), valid.to(dev))
             copy = semantics[a].long()[None, None].expand_as(pred)
             self.metrics["baseline_copy_forecast_occworld"].update(copy.to(dev), target.to(dev), valid.to(dev))
+            self._keep_forecast_picture(token, pred[0].numpy(), target[0].numpy(), n)
             if self.record:
                 self.predictions["forecast"][token] = (anchor["scene"], decoded[:n].numpy().astype(np.uint8))
         if task == "qa":
-            question = parts[-2].text.removeprefix("Question: ").removesuffix(" Answer:")
+            question = question_of(parts)
             q = next(q for q in clip.qa if q["question"] == question)
             answer = generated[0].text.strip()
+            self.answers[answer] += 1
             self.metrics["qa"].update([answer], [q["answer"]], [q["template_type"]], [q["num_hop"]])
-            prior = self.qa_prior.get(q["template_type"], "")
+            prior = self.priors.qa.get(q["template_type"], "")
             self.metrics["baseline_prior_qa"].update([prior], [q["answer"]], [q["template_type"]], [q["num_hop"]])
             self._keep_text("qa", parts[-2].text, answer, q["answer"])
             if self.record:
@@ -145,29 +298,58 @@ class Evaluator(torch.nn.Module):
         if task == "cot_planning":
             text, reference = generated[0].text, parts[-2].text
             self.metrics["cot_caption"].update([text], [[reference]], ids=[token])
-            self._keep_text("cot", "Task: describe the scene, then plan.", text, reference)
-            self.meta_total += 1
-            self.meta_hits += int(parse_meta_action(text) == anchor["meta_action"])
+            parsed = parse_meta_action(text)
+            said = format_meta_action(parsed) if parsed is not None else "none parsed"
+            self._keep_text("cot", "Task: describe the scene, then plan.", f"{text}  [meta action read: {said}]", reference)
+            self.metrics["meta_parsed_fraction"].update(100.0 * (parsed is not None))
+            self.metrics["meta_action_acc"].update(100.0 * (parsed == anchor["meta_action"]))
+            if self.priors.meta_action is not None:
+                self.metrics["baseline_prior_meta_action_acc"].update(100.0 * (self.priors.meta_action == anchor["meta_action"]))
             if self.record:
                 self.predictions["captions"][token] = text
                 self.predictions["captions_gt"][token] = [reference]
 
     def _keep_text(self, task: str, prompt: str, prediction: str, reference: str) -> None:
-        if len(self.texts) < 12:
+        if sum(t["task"] == task for t in self.texts) < TEXTS_PER_TASK:
             self.texts.append({"task": task, "prompt": prompt, "prediction": prediction, "reference": reference})
+
+    def _keep_forecast_picture(self, token: str, pred: np.ndarray, target: np.ndarray, n: int) -> None:
+        """Ground truth above the forecast at 1, 2 and 3 s (future steps 2, 4, 6)."""
+        if sum(c.startswith("forecast") for c, _ in self.scenes) >= PICTURES_PER_KIND:
+            return
+        steps = [k for k in (1, 3, 5) if k < n]
+        rows = [(f"truth {(k + 1) * FRAME_DT:g} s", target[k]) for k in steps]
+        rows += [(f"forecast {(k + 1) * FRAME_DT:g} s", pred[k]) for k in steps]
+        self.scenes.append((f"forecast of sample {token[:8]}: truth (left) and forecast (right) at 1, 2, 3 s", rows))
+
+    def _keep_plan_picture(self, name: str, anchor: dict, plan: np.ndarray, truth: np.ndarray) -> None:
+        """The plan (red) beside the true future (green) on the anchor's bird's-eye view."""
+        if self._index is None or sum(c.startswith(name) for c, _ in self.scenes) >= PICTURES_PER_KIND:
+            return
+        token = anchor["token"]
+        semantics = self._index.labels(self._index.scene_of(token), token)["semantics"]
+        self.scenes.append((f"{name} of sample {token[:8]}: true future green, plan red", [("plan vs truth", semantics, {"truth": truth, "plan": plan})]))
 
     def compute(self, prefix: str) -> dict[str, float]:
         """Every metric that saw samples, flattened under ``prefix`` (e.g. ``val/qa_overall``)."""
         out: dict[str, float] = {}
         for name, metric in self.metrics.items():
             if metric.update_count:
-                out.update(flatten_metrics(f"{prefix}/{name}", metric.compute()))
-        if self.meta_total:
-            out[f"{prefix}/meta_action_acc"] = 100.0 * self.meta_hits / self.meta_total
+                value = metric.compute()
+                if isinstance(value, dict):
+                    out.update(flatten_metrics(f"{prefix}/{name}", value))
+                else:  # a plain mean (meta-action accuracy and parse rate)
+                    out[f"{prefix}/{name}"] = float(value)
+        if self.metrics["meta_action_acc"].update_count:
+            out[f"{prefix}/meta_action_samples"] = float(self.metrics["meta_action_acc"].update_count)
+        if self.answers:
+            # Of this process's answers (the share is a diagnostic, not a paper metric).
+            out[f"{prefix}/qa_top_answer_share"] = 100.0 * self.answers.most_common(1)[0][1] / sum(self.answers.values())
         return out
 
     def reset(self) -> None:
         for metric in self.metrics.values():
             metric.reset()
-        self.meta_hits = self.meta_total = 0
-        self.texts = []  # the dashboard shows the last validation's outputs, as the metrics do
+        self.answers = Counter()
+        self.scenes = []
+        self.texts = []

@@ -11,16 +11,16 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, Callable, Iterator
 
 import numpy as np
 import torch
 
 from occtrain.config.llm import MAX_NEW_TEXT_TOKENS
-from occtrain.data.clips import Actions, Clip, Part, Scene, Text, clip_rng
+from occtrain.data.clips import Actions, Branch, Clip, Part, Scene, Text, clip_rng
 from occtrain.data.layout import DatasetIndex
 from occtrain.families.occllama.batch_decoding import ActionAnswer, Answer, SceneAnswer, TextAnswer
-from occtrain.families.occllama.tasks import TASKS, TaskConfig, sample_task
+from occtrain.families.occllama.tasks import EVERY_ITEM, TASKS, TaskConfig, sample_task
 from occtrain.families.occllama.world_model import OccWorldModel, collate
 from occtrain.io import is_rank_zero
 from occtrain.models.vocab import JointVocab
@@ -87,7 +87,7 @@ class WorldModelEngine(torch.nn.Module):
             return {}
         if self.code_cache is not None:
             return {(b, f): self.code_cache[batch["ann"][b]["tokens"][f]] for b, f in keys}
-        frames = torch.stack([batch["semantics"][b, f] for b, f in keys]).long()
+        frames = torch.stack([batch["semantics"][b][f] for b, f in keys]).long()
         codes = self.scene_tokenizer.encode(frames).flatten(1)
         return dict(zip(keys, codes))
 
@@ -133,6 +133,8 @@ class WorldModelEngine(torch.nn.Module):
                 builder.text(part.text, part.supervise)
             elif isinstance(part, Scene):
                 builder.scene(codes[part.frame], part.supervise)
+            elif isinstance(part, Branch):
+                builder.branch()
             else:
                 builder.actions(torch.tensor(part.xy, dtype=torch.float32), part.supervise)
         return builder.build()
@@ -152,7 +154,7 @@ class WorldModelEngine(torch.nn.Module):
         return (collate(seqs, pad_id=self.vocab.pad_id) if seqs else None), names
 
     # -- generation
-    def _prompt_and_plan(self, parts: list[Part], codes: dict[int, torch.Tensor]) -> tuple[torch.Tensor, list[Answer]]:
+    def prompt_and_plan(self, parts: list[Part], codes: dict[int, torch.Tensor]) -> tuple[torch.Tensor, list[Answer]]:
         """The prompt (the parts before the first supervised one) as ids, and what to generate
         after it: text up to end-of-text, as many waypoints as the reference, a scene."""
         first = next(i for i, p in enumerate(parts) if p.supervise)
@@ -168,27 +170,39 @@ class WorldModelEngine(torch.nn.Module):
         """Generate the answer parts of a task one after the other with one decoder, each
         conditioned on the ones generated before it (not on the ground truth). Returns the
         generated parts and the codes of every scene, generated ones included."""
-        prefix, plan = self._prompt_and_plan(parts, codes)
+        prefix, plan = self.prompt_and_plan(parts, codes)
         decoder = self.world.decoder(prefix)
         return self._as_parts([decoder.answer(a) for a in plan], codes)
 
+    def task_items(self, task: str, clip: Clip, seed: int = 0, every: bool = False) -> list[list[Part]]:
+        """The prompts of ``task`` on ``clip``: its one training draw (from ``seed`` and the
+        clip's token), or with ``every`` each item evaluation asks (every question of the
+        frame for QA); empty when the task does not apply."""
+        if every and task in EVERY_ITEM:
+            return EVERY_ITEM[task](clip, self.tasks)
+        parts = TASKS[task](clip, self.tasks, clip_rng(seed, clip.anchor["token"]))
+        return [parts] if parts is not None else []
+
     def rollouts(
-        self, task: str, clips: list[Clip], batch: dict, seed: int = 0, batched: bool = True
+        self, task: str, clips: list[Clip], batch: dict, seed: int = 0, batched: bool = True,
+        every: bool = False, select: Callable[[Clip, list[Part]], bool] | None = None,
     ) -> Iterator[tuple[int, list[Part], list[Part], dict[int, torch.Tensor]]]:
-        """Build ``task`` for every clip (with the engine's prompt settings) and roll its
-        answer out: (sample index, parts, generated parts, scene codes) for each clip the
-        task applies to; each clip's random draws (e.g. its question) come from ``seed`` and
-        its sample token alone. The clips generate together (one batched forward per step);
-        ``batched=False`` rolls them out one after the other (the reference)."""
-        built = [TASKS[task](c, self.tasks, clip_rng(seed, c.anchor["token"])) for c in clips]
-        needed = [{p.frame for p in ps if isinstance(p, Scene) and not p.supervise} if ps else set() for ps in built]
+        """Build ``task``'s prompts for every clip (``task_items``, with the engine's prompt
+        settings; ``select`` keeps some) and roll their answers out: (sample index, parts,
+        generated parts, scene codes) per prompt. The prompts generate together (one
+        batched forward per step); ``batched=False`` rolls them out one after the other (the
+        reference)."""
+        built = [
+            [parts for parts in self.task_items(task, c, seed, every) if select is None or select(c, parts)] for c in clips
+        ]
+        needed = [{p.frame for ps in items for p in ps if isinstance(p, Scene) and not p.supervise} for items in built]
         codes = self.scene_codes(batch, needed)
-        todo = [(b, parts, {f: codes[(b, f)] for f in needed[b]}) for b, parts in enumerate(built) if parts is not None]
+        todo = [(b, parts, {f: codes[(b, f)] for f in needed[b]}) for b, items in enumerate(built) for parts in items]
         if not batched:
             for b, parts, context in todo:
                 yield (b, parts, *self.rollout(parts, context))
             return
-        prompts = [self._prompt_and_plan(parts, context) for _, parts, context in todo]
+        prompts = [self.prompt_and_plan(parts, context) for _, parts, context in todo]
         outputs = self.world.generate_batch(*map(list, zip(*prompts))) if todo else []
         for (b, parts, context), out in zip(todo, outputs):
             yield (b, parts, *self._as_parts(out, context))

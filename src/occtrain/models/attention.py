@@ -10,6 +10,10 @@ A sequence carries one segment id per token:
   every token outside its block, so the rest of the sequence attends to the scene's real
   codes only (exactly what generation sees after the queries are replaced by codes).
 
+Optionally a branch id per token (packing): ``0`` is the shared trunk, ``k > 0`` branch k.
+A branch sees the trunk and itself, never another branch, so several answers about one
+context train in one sequence exactly as each would alone.
+
 Transformers 5.x passes a 4D mask ``[B, 1, Lq, Lk]`` to the attention kernel unchanged.
 "sdpa" takes it boolean (True = attend) or additive float; "eager" adds it to the scores,
 so it must be the additive float (``build_4d_mask``). ``tests/test_attention_mask.py``
@@ -22,8 +26,9 @@ from __future__ import annotations
 import torch
 
 
-def allowed_pairs(segment_ids: torch.Tensor, pad_mask: torch.Tensor) -> torch.Tensor:
-    """Bool[B, L, L]: may query i attend to key j? ``pad_mask`` is True on real tokens.
+def allowed_pairs(segment_ids: torch.Tensor, pad_mask: torch.Tensor, branch_ids: torch.Tensor | None = None) -> torch.Tensor:
+    """Bool[B, L, L]: may query i attend to key j? ``pad_mask`` is True on real tokens;
+    ``branch_ids`` Long[B, L] (optional) keeps branches apart (see the module docstring).
 
     Every token may attend to itself, so a padding row is never empty (no NaN).
     """
@@ -34,6 +39,9 @@ def allowed_pairs(segment_ids: torch.Tensor, pad_mask: torch.Tensor) -> torch.Te
     same_block = (seg_q == seg_k) & (seg_k != 0)
     visible_key = (seg_k >= 0) & pad_mask[:, None, :]
     allowed = (causal[None] & visible_key) | (same_block & pad_mask[:, None, :])
+    if branch_ids is not None:
+        br_q, br_k = branch_ids[:, :, None], branch_ids[:, None, :]
+        allowed = allowed & ((br_k == 0) | (br_k == br_q))
     return allowed | torch.eye(L, dtype=torch.bool, device=segment_ids.device)[None]
 
 

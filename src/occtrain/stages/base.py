@@ -67,6 +67,13 @@ class Stage(L.LightningModule, ABC):
     def __init__(self, ctx: StageContext):
         super().__init__()
         self.ctx = ctx
+        #: The optimizer step of the last full validation in this process (None: none yet),
+        #: so the runner need not validate again what fit validated at its last step.
+        self.validated_at: int | None = None
+
+    def on_validation_end(self) -> None:
+        if not self.trainer.sanity_checking:
+            self.validated_at = self.trainer.global_step
 
     # -- what the runner calls
     @classmethod

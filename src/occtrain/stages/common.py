@@ -91,7 +91,7 @@ def build_trainer(cfg: TrainerConfig, stage_dir: Path, monitor: str | None, mode
         max_epochs=cfg.max_epochs,
         val_check_interval=cfg.val_check_interval,
         check_val_every_n_epoch=None,
-        limit_val_batches=cfg.limit_val_batches,
+        limit_val_batches=1.0 if cfg.limit_val_batches < 0 else cfg.limit_val_batches,
         log_every_n_steps=cfg.log_every_n_steps,
         gradient_clip_val=cfg.gradient_clip_val or None,
         accumulate_grad_batches=cfg.accumulate_grad_batches,

@@ -11,7 +11,6 @@ eval`` and later stages read it like the teacher.
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -22,7 +21,8 @@ from occtrain.config import to_object
 from occtrain.config.llm import MAX_NEW_TEXT_TOKENS, LLMConfig
 from occtrain.data.clips import clips_from_batch
 from occtrain.engine import (
-    CODE_CACHE, TEXT_ENTRIES, Evaluator, WorldModelEngine, export_engine, load_world_model, move_batch, qa_prior,
+    CODE_CACHE, TEXT_ENTRIES, Evaluator, Priors, WorldModelEngine, compare_generation_speed, export_engine, load_world_model,
+    move_batch, speed_prompt,
 )
 from occtrain.families import get_family
 from occtrain.families.occllama.tasks import INSTRUCT_TASKS, TaskConfig, validate_tasks
@@ -50,10 +50,10 @@ class DistillModelConfig:
     kl_weight: float = 1.0
     ce_weight: float = 0.5
     feature_weight: float = 1.0
-    generate_batches: int = 2
+    #: Validation generation: items per task (fixed seeded subset, -1: all) and prompts per batch.
+    val_samples: int = 64
+    val_batch_size: int = 16
     max_new_text_tokens: int = MAX_NEW_TEXT_TOKENS
-    #: New tokens timed for the generation-speed comparison.
-    speed_tokens: int = 32
     cache_codes: bool = True
 
 
@@ -79,10 +79,10 @@ class DistillStage(Stage):
         )
         self.student = WorldModelEngine(teacher.scene_tokenizer, world, teacher.text_tokenizer, tasks, cfg.max_new_text_tokens, teacher.family)
         self.projector = FeatureProjector(world.hidden_size, teacher.world.hidden_size)
-        prior = qa_prior(ctx.data.root)
+        priors = Priors.of(ctx.data.root)
         names = Evaluator.scorable(tasks.weights)
-        self.evaluator = Evaluator(names, qa_prior=prior)
-        self.teacher_evaluator = Evaluator(names, qa_prior=prior)
+        self.evaluator = Evaluator(names, priors=priors)
+        self.teacher_evaluator = Evaluator(names, priors=priors)
         self._teacher_scores: dict[str, float] | None = None
         self._entries: dict[str, tuple[str, ...] | None] = {}
         if cfg.cache_codes:  # one cache, shared: teacher and student read the same scenes
@@ -121,7 +121,6 @@ class DistillStage(Stage):
         return loss
 
     def validation_step(self, batch: dict[str, Any], batch_idx: int) -> None:
-        cfg = self.ctx.model_cfg
         clips = clips_from_batch(batch)
         model_batch, names = self.student.task_batch(clips, batch, seed=batch_idx)
         if model_batch is not None:
@@ -131,30 +130,17 @@ class DistillStage(Stage):
             bs = len(names) - names.count(None)
             self.log("val/loss", out.loss, batch_size=bs, sync_dist=True)
             self.log("val/token_acc", acc, batch_size=bs, sync_dist=True)
-        if batch_idx < cfg.generate_batches:
-            self.evaluator.update(self.student, clips, batch)
-            if self._teacher_scores is None:  # the teacher is frozen: score it once
-                self.teacher_evaluator.update(self.teacher, clips, batch)
-            if batch_idx == 0 and model_batch is not None:
-                self._time_generation(model_batch)
-
-    @torch.no_grad()
-    def _time_generation(self, model_batch: dict) -> None:
-        """Tokens per second of greedy text generation, teacher and student on the same prompt."""
-        prompt = model_batch["input_ids"][0][model_batch["input_ids"][0] != self.student.vocab.pad_id][:64].cpu()
-        n = self.ctx.model_cfg.speed_tokens
-        for name, engine in (("teacher", self.teacher), ("student", self.student)):
-            engine.world.generate_text(prompt, 2)  # warm-up
-            start = time.perf_counter()
-            engine.world.generate_text(prompt, n, eos=-1)  # never stops early: n tokens exactly
-            self._speed[name] = n / (time.perf_counter() - start)
 
     def on_validation_epoch_end(self) -> None:
-        scores = self.evaluator.compute("val")
-        self.evaluator.reset()
-        if self._teacher_scores is None:
+        cfg = self.ctx.model_cfg
+        root = self.ctx.data.root
+        self.evaluator.run(self.student, root, "val", cfg.val_batch_size, samples=cfg.val_samples)
+        scores = self.evaluator.compute("val")  # texts and pictures stay for report()
+        if self._teacher_scores is None:  # the teacher is frozen: score it once
+            self.teacher_evaluator.run(self.teacher, root, "val", cfg.val_batch_size, samples=cfg.val_samples)
             self._teacher_scores = {k.replace("val/", "val/teacher_", 1): v for k, v in self.teacher_evaluator.compute("val").items()}
-            self.teacher_evaluator.reset()
+        # The protocol occtrain eval uses too (engine.speed), so both report one speedup.
+        self._speed = compare_generation_speed({"teacher": self.teacher, "student": self.student}, speed_prompt(self.student, root))
         scores.update(self._teacher_scores)
         if self._speed:
             scores["val/student_tokens_per_s"] = self._speed["student"]
@@ -171,7 +157,7 @@ class DistillStage(Stage):
         return StageReport(
             f"student {s / 1e6:.2f}M params vs teacher {t / 1e6:.2f}M ({s / t:.2f}x)",
             {"student_params": float(s), "teacher_params": float(t), "param_ratio": s / t},
-            texts=list(self.evaluator.texts),
+            texts=list(self.evaluator.texts), scenes=list(self.evaluator.scenes),
         )
 
     def export(self, path: Path) -> Path:

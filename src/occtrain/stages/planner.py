@@ -21,7 +21,7 @@ from occtrain.config.llm import MAX_NEW_TEXT_TOKENS
 from occtrain.data.clips import clips_from_batch, plan_target
 from occtrain.data.schema import COMMANDS, META_DIRECTIONS, META_SPEEDS
 from occtrain.data.text_formats import parse_meta_action
-from occtrain.engine import load_world_model
+from occtrain.engine import CODE_CACHE, TEXT_ENTRIES, CotOutput, load_world_model
 from occtrain.errors import ConfigError
 from occtrain.exports import write_export
 from occtrain.metrics import PlanningMetric, flatten_metrics
@@ -48,8 +48,9 @@ class PlannerModelConfig:
     #: Where validation takes the meta action from: the annotation, or the consumed
     #: instruct stage's generated chain of thought (both are always reported when possible).
     meta_source: str = "generated"
-    #: Validation batches that run the instruct model's generation (it is the slow part).
-    generate_batches: int = 4
+    #: Validation batches that run the instruct model's generation (-1: all of them). The
+    #: model is frozen, so each clip's chain of thought is generated once and reused.
+    generate_batches: int = -1
     max_new_text_tokens: int = MAX_NEW_TEXT_TOKENS
 
 
@@ -94,14 +95,17 @@ class PlannerStage(Stage):
                 )
             self.teacher = load_world_model(next(iter(ctx.inputs.values()))).with_settings(max_new_text_tokens=cfg.max_new_text_tokens)
             self.teacher.requires_grad_(False).eval()
+            self.teacher.build_code_cache(ctx.data.root, ctx.stage_dir / "cache" / CODE_CACHE)
+        self._cot: dict[str, CotOutput | None] = {}  # sample token -> the frozen model's chain of thought
         self.metrics = torch.nn.ModuleDict({
             name: PlanningMetric()
             for name in ("head_gt_meta", "head_generated_meta", "llm_action_tokens", "constant_velocity", "baseline_stationary")
         })
 
     def entries(self, split: str) -> tuple[str, ...] | None:
-        # Training reads annotations only; validation also feeds the instruct model its scenes.
-        return None if split == "val" and self.teacher is not None else ("ann.json",)
+        # Training reads annotations only; validation also prompts the instruct model, whose
+        # scenes come from the code cache.
+        return TEXT_ENTRIES if split == "val" and self.teacher is not None else ("ann.json",)
 
     # -- data
     def _inputs(self, anchors: list[dict], metas: list[dict]) -> torch.Tensor:
@@ -134,8 +138,9 @@ class PlannerStage(Stage):
         speeds = torch.tensor([a["ego_speed"] for a in anchors], device=self.device)
         record("constant_velocity", constant_velocity_plan(speeds, FUTURE_STEPS))
         record("baseline_stationary", torch.zeros_like(gt.traj))
-        if self.teacher is not None and batch_idx < self.ctx.model_cfg.generate_batches:
-            outputs = self.teacher.chain_of_thought(clips_from_batch(batch), batch)
+        limit = self.ctx.model_cfg.generate_batches
+        if self.teacher is not None and (limit < 0 or batch_idx < limit):
+            outputs = self._chain_of_thought(clips_from_batch(batch), batch)
             # Clips the chain of thought does not apply to are skipped, not scored as a zero plan.
             generated = [i for i, o in enumerate(outputs) if o is not None]
             metas = {i: parse_meta_action(outputs[i].text) for i in generated}
@@ -150,6 +155,15 @@ class PlannerStage(Stage):
                 tokens[generated] = torch.stack([torch.as_tensor(outputs[i].waypoints, dtype=torch.float32) for i in generated]).to(self.device)
                 record("llm_action_tokens", tokens, generated)
                 self.log("val/meta_parsed_fraction", len(rows) / len(generated), batch_size=len(generated))
+
+    def _chain_of_thought(self, clips: list, batch: dict) -> list[CotOutput | None]:
+        todo = [c for c in clips if c.anchor["token"] not in self._cot]
+        if todo:
+            rows = [i for i, c in enumerate(clips) if c.anchor["token"] not in self._cot]
+            sub = {"ann": [batch["ann"][i] for i in rows]}
+            for clip, out in zip(todo, self.teacher.chain_of_thought(todo, sub)):
+                self._cot[clip.anchor["token"]] = out
+        return [self._cot[c.anchor["token"]] for c in clips]
 
     def on_validation_epoch_end(self) -> None:
         for name, metric in self.metrics.items():

@@ -5,9 +5,9 @@ dataset's text (or takes ``llm.path``'s), lays out the joint vocabulary and trai
 on OccLLaMA's five tasks. ``instruct`` consumes a world-model export and tunes it on
 NuScenes-QA and chain-of-thought planning through a peft LoRA adapter, the base frozen.
 
-Both validate by teacher-forced loss and token accuracy on every val batch, and by
-generation on the first ``generate_batches`` val batches, scored by the engine's
-evaluator. The model, its prompts, generation and export are the engine's
+Both validate by teacher-forced loss and token accuracy on the val batches, and by
+generation on a fixed seeded subset of ``val_samples`` val items per task, scored by the
+engine's evaluator. The model, its prompts, generation and export are the engine's
 (``occtrain.engine``); this module only wires them into Lightning.
 """
 
@@ -20,7 +20,7 @@ import torch
 
 from occtrain.config import to_object
 from occtrain.data.clips import clips_from_batch
-from occtrain.engine import CODE_CACHE, TEXT_ENTRIES, Evaluator, export_engine, load_world_model, move_batch, new_world_model, qa_prior
+from occtrain.engine import CODE_CACHE, TEXT_ENTRIES, Evaluator, export_engine, load_world_model, Priors, move_batch, new_world_model
 from occtrain.families.occllama import InstructModelConfig, PretrainModelConfig
 from occtrain.families.occllama.tasks import validate_tasks
 from occtrain.models import count_parameters
@@ -54,7 +54,7 @@ class WorldModelStage(Stage):
             world.requires_grad_(False)
             world.llm = apply_lora(world.llm, cfg.lora)
         freeze_prefixes(world, list(ctx.spec.freeze))
-        self.evaluator = Evaluator(Evaluator.scorable(tasks.weights), qa_prior=qa_prior(ctx.data.root))
+        self.evaluator = Evaluator(Evaluator.scorable(tasks.weights), priors=Priors.of(ctx.data.root))
         self._entries: dict[str, tuple[str, ...] | None] = {}
         if cfg.cache_codes:
             self.engine.build_code_cache(ctx.data.root, ctx.stage_dir / "cache" / CODE_CACHE)
@@ -93,12 +93,11 @@ class WorldModelStage(Stage):
             self.log("val/loss", out.loss, batch_size=bs, sync_dist=True)
             acc = self.engine.world.token_accuracy(out.logits, model_batch["labels"].to(self.device))
             self.log("val/token_acc", acc, batch_size=bs, sync_dist=True)
-        if batch_idx < self.ctx.model_cfg.generate_batches:
-            self.evaluator.update(self.engine, clips, batch)
 
     def on_validation_epoch_end(self) -> None:
-        self.log_dict(self.evaluator.compute("val"))
-        self.evaluator.reset()
+        cfg = self.ctx.model_cfg
+        self.evaluator.run(self.engine, self.ctx.data.root, "val", cfg.val_batch_size, samples=cfg.val_samples)
+        self.log_dict(self.evaluator.compute("val"))  # texts and pictures stay for report()
 
     def configure_optimizers(self) -> dict:
         params = [p for p in self.engine.world.parameters() if p.requires_grad]
@@ -109,7 +108,7 @@ class WorldModelStage(Stage):
         world = self.engine.world
         total, trained = count_parameters(world), count_parameters(world, trainable=True)
         summary = f"world model {total / 1e6:.2f}M params ({trained / 1e6:.2f}M trained), vocab {len(self.engine.vocab)}"
-        return StageReport(summary, {"params": float(total)}, texts=list(self.evaluator.texts))
+        return StageReport(summary, {"params": float(total)}, texts=list(self.evaluator.texts), scenes=list(self.evaluator.scenes))
 
     def export(self, path: Path) -> Path:
         return export_engine(self.engine, path, stage=self.ctx.spec.name, merge=self.ctx.model_cfg.merge_export)

@@ -64,8 +64,11 @@ class PretrainModelConfig:
     use_lora: bool = False
     #: Fold the adapter into the exported weights instead of exporting it as a peft dir.
     merge_export: bool = False
-    #: Val batches that also run generation (it dominates validation time).
-    generate_batches: int = 2
+    #: Validation generates answers for this many items per task (a fixed seeded subset
+    #: of the val split, the same at every validation; -1: all of them) and scores them.
+    val_samples: int = 64
+    #: Prompts generated together in validation.
+    val_batch_size: int = 16
     #: Encode the whole dataset with the frozen tokenizer once, before training, instead of
     #: every clip at every step (measured in tools/bench/world_model.py).
     cache_codes: bool = True

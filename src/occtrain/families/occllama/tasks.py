@@ -15,7 +15,7 @@ from typing import Callable, Iterator
 
 import numpy as np
 
-from occtrain.data.clips import Actions, Clip, Part, Scene, Text, clip_rng, ego_future
+from occtrain.data.clips import Actions, Branch, Clip, Part, Scene, Text, clip_rng, ego_future
 from occtrain.data.text_formats import format_meta_action, parse_meta_action
 from occtrain.errors import ConfigError
 
@@ -37,6 +37,10 @@ class TaskConfig:
     forecast_frames: int = 6
     #: At most this many objects in a detection answer (nearest first).
     max_objects: int = 6
+    #: NuScenes-QA questions about one frame per training sequence (paper: 1). Above 1 they
+    #: are packed as branches that share the frame's context and do not see each other, so
+    #: each is learned exactly as alone, for a fraction of the compute.
+    questions_per_sample: int = 1
 
 
 def _xy(points) -> tuple[tuple[float, float], ...]:
@@ -139,12 +143,25 @@ def forecasting(clip: Clip, cfg: TaskConfig, rng: np.random.Generator) -> list[P
     return parts
 
 
+def _question(q: dict) -> list[Part]:
+    return [Text(f"Question: {q['question']} Answer:"), Text(q["answer"], True)]
+
+
 def qa(clip: Clip, cfg: TaskConfig, rng: np.random.Generator) -> list[Part] | None:
-    """One NuScenes-QA question about the anchor frame."""
+    """NuScenes-QA questions about the anchor frame: one, or ``questions_per_sample`` packed."""
     if not clip.qa:
         return None
-    q = clip.qa[int(rng.integers(len(clip.qa)))]
-    return [*_context(clip, cfg), Text(f"Question: {q['question']} Answer:"), Text(q["answer"], True)]
+    k = min(cfg.questions_per_sample, len(clip.qa))
+    picked = [clip.qa[int(i)] for i in rng.choice(len(clip.qa), size=k, replace=False)]
+    if k == 1:
+        return [*_context(clip, cfg), *_question(picked[0])]
+    return [*_context(clip, cfg)] + [p for q in picked for p in (Branch(), *_question(q))]
+
+
+def every_question(clip: Clip, cfg: TaskConfig) -> list[list[Part]]:
+    """One prompt per NuScenes-QA question of the anchor frame (evaluation asks them all)."""
+    context = _context(clip, cfg)
+    return [[*context, *_question(q)] for q in clip.qa]
 
 
 def cot_planning(clip: Clip, cfg: TaskConfig, rng: np.random.Generator) -> list[Part] | None:
@@ -174,6 +191,9 @@ TASKS: dict[str, Callable[[Clip, TaskConfig, np.random.Generator], list[Part] | 
     "cot_planning": cot_planning,
 }
 
+#: Tasks whose evaluation asks more than the one training draw: every item of the clip.
+EVERY_ITEM: dict[str, Callable[[Clip, TaskConfig], list[list[Part]]]] = {"qa": every_question}
+
 
 def validate_tasks(cfg: TaskConfig, key: str) -> None:
     """One line naming ``key`` when a task name or weight is wrong."""
@@ -184,6 +204,8 @@ def validate_tasks(cfg: TaskConfig, key: str) -> None:
             raise ConfigError(f"{key}.weights.{name}: weight {weight} is negative")
     if not any(w > 0 for w in cfg.weights.values()):
         raise ConfigError(f"{key}.weights: no task has a positive weight")
+    if cfg.questions_per_sample < 1:
+        raise ConfigError(f"{key}.questions_per_sample: {cfg.questions_per_sample} must be at least 1")
 
 
 def sample_task(clip: Clip, cfg: TaskConfig, seed: int, token: str) -> tuple[str, list[Part]] | None:

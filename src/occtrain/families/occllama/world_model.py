@@ -54,6 +54,8 @@ class TokenSequence:
     segment_ids: torch.Tensor
     position_ids: torch.Tensor
     scene_target: torch.Tensor
+    #: Long[L]: 0 on the shared trunk, k on branch k (see ``SequenceBuilder.branch``).
+    branch_ids: torch.Tensor
 
     def __len__(self) -> int:
         return int(self.input_ids.shape[0])
@@ -75,12 +77,21 @@ class SequenceBuilder:
         self._seg: list[torch.Tensor] = []
         self._query_target: list[torch.Tensor] = []
         self._pos: list[torch.Tensor] = []
+        self._branch: list[torch.Tensor] = []
         self._kept = 0  # tokens laid out so far, query blocks not counted
         self._scenes = 0
+        self._branches = 0
+        self._trunk_end: int | None = None  # the position where every branch starts
+        self._branch_open = False  # the current branch has no token yet
         self._add(torch.tensor([vocab.bos_id]), False)
 
     def _add(self, ids: torch.Tensor, supervise: bool, seg: int = 0, query_target: torch.Tensor | None = None) -> None:
         n = ids.shape[0]
+        if self._branch_open and supervise:
+            # The trunk's last token cannot predict the first token of every branch at once.
+            raise ValueError("a branch must start with a prompt part, not a supervised one")
+        self._branch_open = False
+        self._branch.append(torch.full((n,), self._branches, dtype=torch.long))
         self._ids.append(ids.long())
         self._sup.append(torch.full((n,), bool(supervise)))
         self._seg.append(torch.full((n,), seg, dtype=torch.long))
@@ -89,6 +100,17 @@ class SequenceBuilder:
         self._pos.append(torch.arange(self._kept, self._kept + n))
         if seg >= 0:
             self._kept += n
+
+    def branch(self) -> SequenceBuilder:
+        """Start a branch: the parts after it (up to the next branch) see what came before
+        the first branch and themselves, not other branches, and their positions start
+        where the trunk ends. Packs several prompts about one context into one sequence."""
+        if self._trunk_end is None:
+            self._trunk_end = self._kept
+        self._kept = self._trunk_end
+        self._branches += 1
+        self._branch_open = True
+        return self
 
     def text(self, text: str, supervise: bool = False) -> SequenceBuilder:
         self._add(torch.tensor(self.vocab.text_ids(text) + [self.vocab.eos_id]), supervise)
@@ -119,12 +141,16 @@ class SequenceBuilder:
 
     def build(self) -> TokenSequence:
         ids, sup, seg = torch.cat(self._ids), torch.cat(self._sup), torch.cat(self._seg)
+        branch = torch.cat(self._branch)
         query_target = torch.cat(self._query_target)
         is_query = seg < 0
         kept = (~is_query).nonzero().squeeze(1)
         labels = query_target.clone()
-        labels[kept[:-1]] = torch.where(sup[kept[1:]], ids[kept[1:]], IGNORE)
-        return TokenSequence(ids, labels, seg, torch.cat(self._pos), self.vocab.is_occ(labels))
+        # Each token predicts the next one of its own branch: the last token of a branch
+        # has no target (its successor is another branch's first, unsupervised, token).
+        same = branch[kept[1:]] == branch[kept[:-1]]
+        labels[kept[:-1]] = torch.where(sup[kept[1:]] & same, ids[kept[1:]], IGNORE)
+        return TokenSequence(ids, labels, seg, torch.cat(self._pos), self.vocab.is_occ(labels), branch)
 
 
 def collate(seqs: list[TokenSequence], pad_id: int) -> dict[str, torch.Tensor]:
@@ -142,6 +168,7 @@ def collate(seqs: list[TokenSequence], pad_id: int) -> dict[str, torch.Tensor]:
 
     pad_mask = torch.stack([torch.arange(L) < len(s) for s in seqs])
     segment_ids = pad("segment_ids", 0)
+    branch_ids = pad("branch_ids", 0)
     return {
         "input_ids": pad("input_ids", pad_id),
         "labels": pad("labels", IGNORE),
@@ -149,7 +176,7 @@ def collate(seqs: list[TokenSequence], pad_id: int) -> dict[str, torch.Tensor]:
         "position_ids": pad("position_ids", 0),
         "pad_mask": pad_mask,
         "scene_target_mask": pad("scene_target", False),
-        "attention_mask": allowed_pairs(segment_ids, pad_mask)[:, None],
+        "attention_mask": allowed_pairs(segment_ids, pad_mask, branch_ids)[:, None],
     }
 
 
