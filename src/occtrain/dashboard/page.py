@@ -34,14 +34,15 @@ th{background:#eef0f3;font-weight:600;white-space:nowrap} td.num{text-align:righ
 .paper{color:#6a4c00;font-size:12px} .paper b{color:#3d2c00}
 .tag{background:#fff3cd;border:1px solid #e6c96b;color:#6a4c00;border-radius:4px;padding:0 5px;font-size:11px;white-space:nowrap}
 .note{color:#555;font-size:12px;margin:2px 0 6px} .problem{color:#b00020}
-.charts{display:flex;flex-wrap:wrap;gap:10px}
-svg.chart{background:#fff;border:1px solid #e3e5e8;border-radius:4px;font-size:11px}
+.charts{display:flex;flex-wrap:wrap;gap:10px} .charts svg.chart{flex:0 0 360px}
+svg.chart{background:#fff;border:1px solid #e3e5e8;border-radius:4px;font-size:11px;width:360px;height:auto}
 svg .ct{text-anchor:middle;font-size:13px;font-weight:600;fill:#222} svg .xt{text-anchor:middle;fill:#444}
 svg .yt{text-anchor:end;fill:#444} svg .xl,svg .yl{text-anchor:middle;fill:#222}
 svg .lg{fill:#222} svg .empty{text-anchor:middle;fill:#888} svg .pa{fill:#fbfbfc}
 svg .grid{stroke:#e2e4e8;stroke-width:1} svg .axis{stroke:#555;stroke-width:1}
-.figs{display:flex;flex-wrap:wrap;gap:12px;align-items:flex-start} figure{margin:8px 0;max-width:100%} figure img{max-width:100%;border:1px solid #ddd} figcaption{font-size:12px;color:#444}
+.figs{display:flex;flex-wrap:wrap;gap:12px;align-items:flex-start} figure{margin:8px 0;max-width:100%} figure img{max-width:100%;max-height:340px;border:1px solid #ddd} figcaption{font-size:12px;color:#444}
 td.ok{color:#2e7d32;font-weight:700} td.bad{color:#c62828;font-weight:700}
+table.texts{table-layout:fixed;width:100%;font-size:12px}
 pre{background:#f6f8fa;padding:10px;overflow:auto;font-size:12px}
 """
 
@@ -84,6 +85,8 @@ HEADLINE = (
     "val/plan_cot_L2_stp3_avg", "val/head_generated_meta_L2_stp3_avg", "val/head_gt_meta_L2_stp3_avg",
     "val/occworld_mIoU", "val/occ3d_mIoU", "val/speedup", "val/token_acc",
 )
+#: Baselines shown unfolded: those of the headline measures.
+BASELINE_SHOWN = re.compile(r"(L2_stp3_avg|qa_overall|meta_action_acc|mIoU_avg|IoU_avg|occworld_mIoU|occworld_IoU)$")
 #: Per-horizon, per-type and count entries: in the final table, folded away.
 DETAIL = re.compile(r"(_[123]s$|_by_type_|_samples|_questions$|_frames_|Bleu_[123]$)")
 
@@ -92,7 +95,11 @@ def headline(metrics: dict[str, float]) -> list[str]:
     """The stage's metrics in the order a reader wants them: HEADLINE ones, then the rest of
     the model's own (no baselines, no details)."""
     first = [k for k in HEADLINE if k in metrics]
-    rest = [k for k in metrics if k not in first and k != "params" and "baseline" not in k and not DETAIL.search(k)]
+    rest = [
+        k for k in metrics
+        if k not in first and k != "params" and "baseline" not in k and not DETAIL.search(k)
+        and (not k.startswith("val/teacher_") or BASELINE_SHOWN.search(k))  # the teacher beside the student
+    ]
     return first + rest
 
 
@@ -112,22 +119,23 @@ def _convention(metric: str) -> str:
 
 
 def _paper_cell(metric: str) -> str:
+    """The papers' figures for ``metric`` on one line; where and under which setting each
+    was published shows on hover (and in ``occtrain.dashboard.paper_figures``)."""
     figs = figures_for(metric)
     if not figs:
         return ""
-    lines = [
-        f'<div class="paper"><span class="tag">{REAL_DATA}</span> <b>{escape(f.paper)} {_num(f.value)}</b> '
-        f'({escape(f.where)}; {escape(f.setting)}; {escape(f.convention)})</div>'
-        for f in figs
-    ]
-    return "".join(lines)
+    items = ", ".join(
+        f'<b title="{escape(f"{f.where}; {f.setting}; {f.convention}")}">{escape(f.paper)} {_num(f.value)}</b>' for f in figs
+    )
+    return f'<div class="paper"><span class="tag">{REAL_DATA}</span> {items}</div>'
 
 
 def metrics_tables(metrics: dict[str, float]) -> str:
     """Final metrics grouped by the convention their names carry, the papers' figures beside
     them; per-horizon, per-type and count entries in a folded table below."""
-    main = [n for n in headline(metrics) + [k for k in metrics if "baseline" in k] if not DETAIL.search(n)]
-    main = list(dict.fromkeys(main))
+    # Baselines beside the model on the headline measures only; the rest fold away.
+    baselines = [k for k in metrics if "baseline" in k and not k.startswith("val/teacher_") and BASELINE_SHOWN.search(k)]
+    main = list(dict.fromkeys(n for n in headline(metrics) + baselines if not DETAIL.search(n)))
     details = [n for n in metrics if n not in main and n != "params"]
     out = _grouped_tables(metrics, main)
     if details:
@@ -175,7 +183,9 @@ def _texts(texts: list[dict[str, str]]) -> str:
             f"{mark}<td>{escape(t['reference'])}</td></tr>"
         )
     return (
-        "<table><tr><th>task</th><th>prompt</th><th>prediction</th><th></th><th>reference</th></tr>" + "".join(rows) + "</table>"
+        '<table class="texts"><colgroup><col style="width:5%"><col style="width:27%"><col style="width:36%">'
+        '<col style="width:3%"><col style="width:29%"></colgroup>'
+        "<tr><th>task</th><th>prompt</th><th>prediction</th><th></th><th>reference</th></tr>" + "".join(rows) + "</table>"
     )
 
 

@@ -129,10 +129,15 @@ def charts_from_curves(curves: dict[str, list[tuple[float, float]]]) -> list[Cha
             found = _measure(name)
             if found:
                 measures[found[0]].append(_series(found[1], points))
+    fixed["train, other"] = [s for s in fixed["train, other"] if len(set(s.ys)) > 1]  # a constant says nothing
+    if all(len(s.xs) < 2 for s in fixed["validation loss"]):
+        fixed["validation loss"] = []  # one validation is a dot: the final table has the number
     charts = [Chart(t, "loss" if "loss" in t else "lr" if "rate" in t else "", s) for t, s in fixed.items() if s]
     order = [title for _, title in MEASURES]
     for title in sorted(measures, key=order.index):
-        charts.append(Chart(title, "", measures[title]))
+        # A validation run once is a dot: the final table says it better.
+        if max(len(s.xs) for s in measures[title]) >= 2:
+            charts.append(Chart(title, "", measures[title]))
     return charts
 
 

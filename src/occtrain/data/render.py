@@ -58,11 +58,12 @@ def render_bev(
         pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
         keep = np.ones(len(pts), bool) if mask_ is None else np.asarray(mask_, bool)
         px = _ego_to_pixel(np.vstack([[0.0, 0.0], pts[keep]]), scale)
-        if len(px) > 1:
+        if len(px) > 1:  # a white casing keeps the line visible on any class colour
+            draw.line([tuple(p) for p in px], fill=(255, 255, 255), width=max(2, scale) + 2)
             draw.line([tuple(p) for p in px], fill=line, width=max(2, scale))
         for p in px[1:]:
-            r = 1.5 * scale
-            draw.ellipse([p[0] - r, p[1] - r, p[0] + r, p[1] + r], fill=dot)
+            r = 1.5 * scale + 1
+            draw.ellipse([p[0] - r, p[1] - r, p[0] + r, p[1] + r], fill=dot, outline=(255, 255, 255))
     if title:
         draw.rectangle([0, 0, img.width, 14 + scale], fill=(0, 0, 0))
         draw.text((4, 2), title, fill=(255, 255, 255))

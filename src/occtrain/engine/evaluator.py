@@ -99,9 +99,10 @@ def _rank_world() -> tuple[int, int]:
     return 0, 1
 
 
-#: Dashboard samples kept per validation: texts per task, pictures per kind.
-TEXTS_PER_TASK = 4
-PICTURES_PER_KIND = 2
+#: Dashboard samples kept per validation: texts per task (chains of thought are long),
+#: pictures per kind.
+TEXTS_PER_TASK = {"qa": 4, "cot": 2}
+PICTURES_PER_KIND = 1
 
 
 class Evaluator(torch.nn.Module):
@@ -299,8 +300,8 @@ class Evaluator(torch.nn.Module):
             text, reference = generated[0].text, parts[-2].text
             self.metrics["cot_caption"].update([text], [[reference]], ids=[token])
             parsed = parse_meta_action(text)
-            said = format_meta_action(parsed) if parsed is not None else "none parsed"
-            self._keep_text("cot", "Task: describe the scene, then plan.", f"{text}  [meta action read: {said}]", reference)
+            said = format_meta_action(parsed).removeprefix("Meta action: ") if parsed is not None else "none"
+            self._keep_text("cot", "Task: describe the scene, then plan.", f"{text}  [parsed meta action: {said}]", reference)
             self.metrics["meta_parsed_fraction"].update(100.0 * (parsed is not None))
             self.metrics["meta_action_acc"].update(100.0 * (parsed == anchor["meta_action"]))
             if self.priors.meta_action is not None:
@@ -310,7 +311,7 @@ class Evaluator(torch.nn.Module):
                 self.predictions["captions_gt"][token] = [reference]
 
     def _keep_text(self, task: str, prompt: str, prediction: str, reference: str) -> None:
-        if sum(t["task"] == task for t in self.texts) < TEXTS_PER_TASK:
+        if sum(t["task"] == task for t in self.texts) < TEXTS_PER_TASK.get(task, 2):
             self.texts.append({"task": task, "prompt": prompt, "prediction": prediction, "reference": reference})
 
     def _keep_forecast_picture(self, token: str, pred: np.ndarray, target: np.ndarray, n: int) -> None:
