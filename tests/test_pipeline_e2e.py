@@ -96,6 +96,8 @@ def test_eval_and_score_agree(pipeline, tmp_path):
     res = run_cli("eval", str(pipeline / "instruct"), "--tasks", "planning,qa,cot_planning", "--save-predictions", str(preds))
     assert res.returncode == 0, res.stderr[-3000:]
     metrics = json.loads((pipeline / "instruct" / "eval" / "val" / "metrics.json").read_text())
+    # Two tasks plan on every clip; the baselines still count each clip once.
+    assert metrics["baseline_constant_velocity_samples"] == metrics["plan_direct_samples"] == metrics["plan_cot_samples"]
 
     planning = run_cli("score", "planning", "--pred", str(preds / "planning_pred.json"), "--gt", str(preds / "planning_gt.json"))
     assert planning.returncode == 0, planning.stderr

@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 import re
 import sys
-from pathlib import Path
 
 from occtrain import __version__
 from occtrain.errors import OcctrainError

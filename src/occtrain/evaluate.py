@@ -133,7 +133,8 @@ def sample_count(name: str, metrics: dict[str, float]) -> float | None:
     parts = name.split("_")
     for n in range(len(parts), 0, -1):
         prefix = "_".join(parts[:n])
-        for suffix in ("_samples", "_questions", f"_frames_{parts[-1]}", "_frames_avg"):
+        # A forecast's average is over its horizons; each horizon counts its own frames.
+        for suffix in ("_samples", "_questions", f"_frames_{parts[-1]}", "_frames_1s"):
             if prefix + suffix in metrics:
                 return metrics[prefix + suffix]
     return None

@@ -263,7 +263,9 @@ def _run_stages(planned: list[PlannedStage], manifest: Manifest, run_dir: Path, 
         manifest.mark_done(name, result["metrics"], result["artifacts"], wall)
         exports[name] = stage_dir / "export"
         if rank_zero:
-            # The model's own numbers first; baselines and teacher figures are in metrics.json.
-            own = [(k, v) for k, v in result["metrics"].items() if "baseline" not in k and "teacher" not in k and "_samples" not in k]
-            shown = ", ".join(f"{k}={v:.3g}" for k, v in own[:6])
+            from occtrain.dashboard.page import headline
+
+            # The model's main numbers first (as the dashboard's stage table); the rest,
+            # baselines and teacher figures are in metrics.json.
+            shown = ", ".join(f"{k}={result['metrics'][k]:.3g}" for k in headline(result["metrics"])[:5])
             console.print(f"[green]done[/]    {name:14s} {wall:6.0f}s  {result['summary']}  {shown}")

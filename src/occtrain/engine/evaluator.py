@@ -149,6 +149,7 @@ class Evaluator(torch.nn.Module):
             "baseline_prior_meta_action_acc": MeanMetric(),
         })
         self._clip_cache: dict[tuple, list[Clip]] = {}
+        self._baselined: set[str] = set()  # clips whose plan baselines are scored
         #: How often each QA answer string was generated (a model stuck on one shows here).
         self.answers: Counter = Counter()
         self.texts: list[dict] = []
@@ -172,8 +173,11 @@ class Evaluator(torch.nn.Module):
                 self._score(engine, task, clips[b], parts, generated, codes, semantics, targets[b])
                 if task in ("planning", "forecasting", "cot_planning"):
                     planned.add(b)
-        for b in sorted(planned):  # baselines on exactly the clips a plan was scored on
-            self._score_plan_baselines(clips[b].anchor, targets[b])
+        for b in sorted(planned):  # baselines once on each clip a plan was scored on
+            token = clips[b].anchor["token"]
+            if token not in self._baselined:
+                self._baselined.add(token)
+                self._score_plan_baselines(clips[b].anchor, targets[b])
 
     def _selector(self, task: str):
         if self.subset is None:
@@ -352,5 +356,6 @@ class Evaluator(torch.nn.Module):
         for metric in self.metrics.values():
             metric.reset()
         self.answers = Counter()
+        self._baselined = set()
         self.scenes = []
         self.texts = []
