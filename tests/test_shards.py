@@ -161,3 +161,17 @@ def test_decode_sample_unpacks_masks():
     np.savez(buf, semantics=hand_labels(1)["semantics"], mask_camera=np.packbits(mask, axis=-1))
     out = decode_sample({"__key__": "k", "occ.npz": buf.getvalue()})
     assert np.array_equal(out["occ.npz"]["mask_camera"], mask)
+
+
+def test_a_world_synthesized_with_other_settings_is_refused(synth_dataset, tmp_path):
+    from occtrain.config import SynthConfig
+    from occtrain.config.schema import DataConfig
+    from occtrain.data.datamodule import ensure_data
+    from occtrain.errors import DataError
+
+    same = SynthConfig(train_scenes=2, val_scenes=1, frames_per_scene=12, seed=3)
+    cfg = DataConfig(root=str(synth_dataset), shards=str(tmp_path / "shards"), synth=same)
+    assert (ensure_data(cfg, verbose=False) / "index.json").is_file()
+    cfg.synth.train_scenes = 4
+    with pytest.raises(DataError, match=r"synthesized with train_scenes=2 \(recipe: 4\)"):
+        ensure_data(cfg, verbose=False)

@@ -11,7 +11,7 @@ import torch
 from torch.utils.data import DataLoader
 
 from occtrain.config.schema import DataConfig
-from occtrain.data.layout import ANNOTATIONS_FILE
+from occtrain.data.layout import ANNOTATIONS_FILE, DatasetIndex
 from occtrain.data.shards import INDEX_FILE, KINDS, SkipSamples, make_pipeline, shard_urls, write_shards
 from occtrain.errors import DataError
 
@@ -27,10 +27,27 @@ def ensure_data(cfg: DataConfig, verbose: bool = True) -> Path:
         from occtrain.data.synthesize import synthesize  # the world generator loads only when needed
 
         synthesize(root, cfg.synth, verbose=verbose)
+    else:
+        _check_synth_record(root, cfg)
     out = shards_dir(cfg)
     if not (out / INDEX_FILE).is_file():
         write_shards(root, out, cfg.samples_per_shard, cfg.history, cfg.future)
     return out
+
+
+def _check_synth_record(root: Path, cfg: DataConfig) -> None:
+    """A world occtrain synthesized with other settings than the recipe's ``data.synth`` is
+    refused (it would silently train on another dataset); real data has no such record."""
+    record = DatasetIndex.open(root).generator
+    if not record or record.get("generator") != "occtrain.synth":
+        return
+    wanted = {k: getattr(cfg.synth, k) for k in ("seed", "train_scenes", "val_scenes", "frames_per_scene")}
+    differ = [f"{k}={record.get(k)} (recipe: {v})" for k, v in wanted.items() if record.get(k) != v]
+    if differ:
+        raise DataError(
+            f"{root} was synthesized with {', '.join(differ)}; move it away to synthesize the recipe's world, "
+            "or set data.synth to match it"
+        )
 
 
 def collate_frames(samples: list[dict]) -> dict[str, Any]:
