@@ -82,7 +82,7 @@ def test_validation_is_split_evenly_over_ranks(monkeypatch, shards):
     urls, total = shard_urls(shards, "frames", "val")
     keys = []
     for rank in (0, 1):
-        monkeypatch.setattr(sh, "_rank_world", lambda r=rank: (r, 2))
+        monkeypatch.setattr(sh, "rank_world", lambda r=rank: (r, 2))
         keys.append([s["__key__"] for s in make_pipeline(urls, train=False, total=total)])
     assert len(keys[0]) == len(keys[1]) == total // 2
     assert not set(keys[0]) & set(keys[1])

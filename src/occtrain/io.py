@@ -54,6 +54,15 @@ def atomic_write_npz(path: str | Path, arrays: dict[str, np.ndarray], compress: 
     return atomic_write_bytes(path, npz_bytes(arrays, compress))
 
 
+def rank_world() -> tuple[int, int]:
+    """This process's rank and the world size of the initialized process group; (0, 1) without one."""
+    import torch.distributed as dist
+
+    if dist.is_available() and dist.is_initialized():
+        return dist.get_rank(), dist.get_world_size()
+    return 0, 1
+
+
 def is_rank_zero() -> bool:
     """Whether this process writes shared files (manifests, exports, caches) under DDP.
 

@@ -105,20 +105,18 @@ def clip_annotation(index: DatasetIndex, scene: str, anchor: int, history: int, 
     }
 
 
-def frame_clips(index: DatasetIndex, split: str, history: int) -> Iterator[Clip]:
-    """A clip anchored at every frame of ``split`` with up to ``history`` frames before it
-    (fewer at a scene's start) and no future: what a question about the frame needs. The
-    clips carry no occupancy; their scenes come from a code cache by sample token."""
-    by_token: dict[str, list[dict]] = {}
-    for q in index.questions(split) or []:
-        by_token.setdefault(q["sample_token"], []).append(q)
+def frame_clips(index: DatasetIndex, split: str, history: int, future: int = 0, partial_history: bool = True) -> Iterator[Clip]:
+    """A clip anchored at every frame of ``split`` that has ``future`` frames after it, with
+    ``history`` frames before it; with ``partial_history`` also the frames at a scene's
+    start, with fewer (what a question about the frame needs). The clips carry no
+    occupancy; their scenes come from a code cache by sample token."""
+    questions = index.questions_by_sample(split)
     for scene in index.splits.get(split, []):
         frames = index.frames(scene) if index.has_frame_annotations(scene) else None
         tokens = index.scenes[scene]
-        for a, token in enumerate(tokens):
-            ann = clip_annotation(index, scene, a, min(history, a), 0, split, frames)
-            anchor = ann["anchor"]
-            yield Clip(ann, by_token.get(token, []), anchor.get("narration", ""))
+        for a in range(0 if partial_history else history, len(tokens) - future):
+            ann = clip_annotation(index, scene, a, min(history, a), future, split, frames)
+            yield Clip(ann, questions.get(tokens[a], []), ann["anchor"].get("narration", ""))
 
 
 def ego_future(anchor: dict) -> tuple[np.ndarray, np.ndarray]:

@@ -235,6 +235,13 @@ class DatasetIndex:
                 raise DataError(f"{path}: question {i} lacks {', '.join(missing)}")
         return qs
 
+    def questions_by_sample(self, split: str) -> dict[str, list[QAQuestion]]:
+        """A split's NuScenes-QA questions grouped by sample token (empty without the sidecar)."""
+        grouped: dict[str, list[QAQuestion]] = {}
+        for q in self.questions(split) or []:
+            grouped.setdefault(q["sample_token"], []).append(q)
+        return grouped
+
     def available_tasks(self) -> dict[str, str]:
         """Which training tasks this dataset supports; a reason for each one it does not."""
         scenes = list(self.scenes)

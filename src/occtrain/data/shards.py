@@ -35,7 +35,7 @@ import webdataset as wds
 from occtrain.data.clips import clip_annotation
 from occtrain.data.layout import DatasetIndex, read_npz
 from occtrain.errors import DataError
-from occtrain.io import atomic_write_json, npz_bytes
+from occtrain.io import atomic_write_json, npz_bytes, rank_world
 from occtrain.occ3d import GRID_SHAPE
 
 INDEX_FILE = "index.json"
@@ -179,9 +179,7 @@ def write_shards(
                     if progress:
                         progress(1)
             else:
-                qa: dict[str, list] = {}
-                for q in index.questions(split) or []:
-                    qa.setdefault(q["sample_token"], []).append(q)
+                qa = index.questions_by_sample(split)
                 for scene in index.splits[split]:
                     for sample in _clip_samples(index, scene, split, history, future, qa):
                         sink.write(sample)
@@ -305,14 +303,6 @@ def _worker_strided(src: Iterable[dict]) -> Iterator[dict]:
             yield sample
 
 
-def _rank_world() -> tuple[int, int]:
-    import torch.distributed as dist
-
-    if dist.is_available() and dist.is_initialized():
-        return dist.get_rank(), dist.get_world_size()
-    return 0, 1
-
-
 class SkipSamples:
     """A pipeline stage that drops the first ``n`` raw samples (set before iterating).
 
@@ -365,7 +355,7 @@ def make_pipeline(
         if skip is not None:
             stages.append(skip)
     else:
-        rank, world = _rank_world()
+        rank, world = rank_world()
         per_rank = (total // world) if total is not None else 10**12
         stages = [
             wds.SimpleShardList(urls),

@@ -12,11 +12,12 @@ import numpy as np
 import torch
 from torchmetrics import MeanMetric
 
-from occtrain.data.clips import Actions, Clip, Part, PlanTarget, Scene, clip_annotation, frame_clips, plan_target
+from occtrain.data.clips import Actions, Clip, Part, PlanTarget, Scene, frame_clips, plan_target
 from occtrain.data.layout import DatasetIndex
 from occtrain.data.text_formats import format_meta_action, parse_meta_action
 from occtrain.engine.world_model import WorldModelEngine
 from occtrain.errors import ConfigError
+from occtrain.io import rank_world
 from occtrain.families.occllama.tasks import TASKS
 from occtrain.metrics import CaptionMetric, ForecastMetric, PlanningMetric, QAMetric, flatten_metrics
 from occtrain.models.planner import constant_velocity_plan
@@ -78,25 +79,7 @@ def evaluation_clips(index: DatasetIndex, split: str, task: str, context: int) -
     the others every frame with ``context`` history frames and a whole 3 s future."""
     if task == "qa":
         return [c for c in frame_clips(index, split, context) if c.qa]
-    by_token: dict[str, list[dict]] = {}
-    for q in index.questions(split) or []:
-        by_token.setdefault(q["sample_token"], []).append(q)
-    clips = []
-    for scene in index.splits.get(split, []):
-        frames = index.frames(scene) if index.has_frame_annotations(scene) else None
-        tokens = index.scenes[scene]
-        for a in range(context, len(tokens) - FUTURE_STEPS):
-            ann = clip_annotation(index, scene, a, context, FUTURE_STEPS, split, frames)
-            clips.append(Clip(ann, by_token.get(tokens[a], []), ann["anchor"].get("narration", "")))
-    return clips
-
-
-def _rank_world() -> tuple[int, int]:
-    import torch.distributed as dist
-
-    if dist.is_available() and dist.is_initialized():
-        return dist.get_rank(), dist.get_world_size()
-    return 0, 1
+    return list(frame_clips(index, split, context, FUTURE_STEPS, partial_history=False))
 
 
 #: Dashboard samples kept per validation: texts per task (chains of thought are long),
@@ -197,7 +180,7 @@ class Evaluator(torch.nn.Module):
         self.reset()
         index = DatasetIndex.open(data_root)
         self._index = index
-        rank, world = _rank_world()
+        rank, world = rank_world()
         for task in self.tasks:
             clips = self._task_clips(engine, index, split, task, samples, seed)[rank::world]
             for i in range(0, len(clips), batch_size):
@@ -233,7 +216,7 @@ class Evaluator(torch.nn.Module):
     def total(self, engine: WorldModelEngine, data_root: str | Path, split: str, samples: int = -1, seed: int = 0) -> int:
         """How many clips ``run`` visits (for a progress bar)."""
         index = DatasetIndex.open(data_root)
-        rank, world = _rank_world()
+        rank, world = rank_world()
         return sum(len(self._task_clips(engine, index, split, t, samples, seed)[rank::world]) for t in self.tasks)
 
     @classmethod
