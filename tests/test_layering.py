@@ -29,7 +29,7 @@ LAYERS = {
     "engine": 3,
     "families": 2,
     "models": 1, "metrics": 1, "data": 1,
-    "config": 0, "errors": 0, "io": 0, "exports": 0, "progress": 0, "occ3d": 0, "nuscenes_qa": 0, "__init__": 0,
+    "config": 0, "errors": 0, "io": 0, "run_control": 0, "exports": 0, "progress": 0, "occ3d": 0, "nuscenes_qa": 0, "__init__": 0,
 }
 #: Modules of ``stages/`` that are infrastructure, not a stage kind.
 STAGE_INFRA = {"occtrain.stages", "occtrain.stages.base", "occtrain.stages.common"}

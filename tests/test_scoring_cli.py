@@ -195,12 +195,12 @@ def test_planning_bad_input(capsys, tmp_path):
     assert code == 0 and r["samples"] == 1
     short = tmp_path / "short.json"
     short.write_text(json.dumps(preds | {"tok-a": straight()[:5]}))
-    assert "expected 6 waypoints" in one_line_error(capsys, "planning", "--pred", short, "--gt", g)
+    assert "tok-a holds 5 items, expected a list of 6 lists of 2 numbers" in one_line_error(capsys, "planning", "--pred", short, "--gt", g)
     gts = json.loads(g.read_text())
     gts["tok-a"]["agents"][1] = [[5.0, 3.0, 2.0, 1.0]] * 5  # 4 numbers per box
     bad_agents = tmp_path / "bad_agents.json"
     bad_agents.write_text(json.dumps(gts))
-    assert "agents at step 1 are not lists of 5 numbers" in one_line_error(capsys, "planning", "--pred", p, "--gt", bad_agents)
+    assert "tok-a.agents[1][0] holds 4 items, expected a list of 5 numbers" in one_line_error(capsys, "planning", "--pred", p, "--gt", bad_agents)
     broken = tmp_path / "broken.json"
     broken.write_text("{not json")
     assert "is not valid JSON" in one_line_error(capsys, "planning", "--pred", broken, "--gt", g)

@@ -173,8 +173,13 @@ def main(argv: list[str] | None = None) -> int:
         if not hasattr(args, "overrides") or any(e.startswith("-") for e in extra):
             parser.error(f"unrecognized arguments: {' '.join(extra)}")
         args.overrides = [*(args.overrides or []), *extra]
+    from occtrain.run_control import Interrupted
+
     try:
         return int(args.func(args) or 0)
+    except Interrupted as stop:
+        print(f"interrupted: {stop}", file=sys.stderr)
+        return stop.exit_code
     except OcctrainError as err:
         print(f"error: {_one_line(err)}", file=sys.stderr)
         return 2

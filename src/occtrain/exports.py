@@ -56,9 +56,20 @@ def read_export(export_dir: Path) -> tuple[dict[str, torch.Tensor], dict]:
     if not weights.is_file() or not config.is_file():
         raise OcctrainError(f"{export_dir}: no exported model ({EXPORT_WEIGHTS} + {EXPORT_CONFIG}); run the stage that produces it first")
     try:
-        return load_file(str(weights)), json.loads(config.read_text())
-    except Exception as err:  # safetensors raises its own error types on a corrupt header
-        raise OcctrainError(f"{export_dir}: unreadable export ({type(err).__name__}: {err}); re-run the stage that wrote it") from None
+        cfg = json.loads(config.read_text())
+    except (ValueError, OSError) as err:  # JSONDecodeError and UnicodeDecodeError are ValueErrors
+        raise OcctrainError(f"{config}: unreadable export config ({_first_line(err)}); re-run the stage that wrote it") from None
+    if not isinstance(cfg, dict):
+        raise OcctrainError(f"{config}: is not a JSON object (found a {type(cfg).__name__}); re-run the stage that wrote it")
+    try:
+        state = load_file(str(weights))
+    except Exception as err:  # safetensors raises its own error types on a corrupt or truncated file
+        raise OcctrainError(f"{weights}: unreadable weights ({type(err).__name__}: {_first_line(err)}); re-run the stage that wrote it") from None
+    return state, cfg
+
+
+def _first_line(err: BaseException) -> str:
+    return str(err).splitlines()[0] if str(err) else type(err).__name__
 
 
 def load_state_strict(

@@ -5,39 +5,106 @@ A reader (or a crash) never sees a half-written manifest, export, metrics file o
 
 from __future__ import annotations
 
+import errno
 import io
 import json
+import math
 import os
 import tempfile
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Any
+from typing import IO, Any, Iterator
 
 import numpy as np
+
+from occtrain.errors import OcctrainError
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+#: What a plain ``open(path, "w")`` gives a new file; temp files start at 0600.
+FILE_MODE = 0o666 & ~_umask()
+
+#: Write failures that are the machine's, not the program's: one line each, naming the path.
+_WRITE_ERRORS = {
+    errno.ENOSPC: "the disk is full; free space and rerun (a run resumes where it stopped)",
+    errno.EDQUOT: "the disk quota is exhausted; free space and rerun (a run resumes where it stopped)",
+    errno.EROFS: "the file system is read-only; point the run (--run-dir) or --out at a writable place",
+    errno.EACCES: "permission denied; make the directory writable or choose another one",
+    errno.EPERM: "permission denied; make the directory writable or choose another one",
+}
+
+
+class WriteError(OcctrainError):
+    """A file could not be written for a reason outside occtrain (disk full, read-only, permissions)."""
+
+
+def write_error(path: str | Path, err: OSError) -> OSError | WriteError:
+    """The one-line error for a failed write of ``path``, or ``err`` itself when it is a bug."""
+    what = _WRITE_ERRORS.get(err.errno or 0)
+    return WriteError(f"cannot write {path}: {what}") if what else err
+
+
+@contextmanager
+def atomic_open(path: str | Path) -> Iterator[IO[bytes]]:
+    """A binary file handle whose contents replace ``path`` atomically when the block ends.
+
+    On any error the temp file is removed and ``path`` keeps its old contents; disk-full,
+    read-only and permission errors become a one-line :class:`WriteError`.
+    """
+    path = Path(path)
+    tmp: str | None = None
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+        with os.fdopen(fd, "wb") as fh:
+            yield fh
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.chmod(tmp, FILE_MODE)
+        os.replace(tmp, path)
+        tmp = None
+    except OSError as err:
+        raise write_error(path, err) from None
+    finally:
+        if tmp is not None:
+            Path(tmp).unlink(missing_ok=True)
 
 
 def atomic_write_bytes(path: str | Path, data: bytes) -> Path:
     """Write ``data`` to ``path`` atomically; parent directories are created."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
+    with atomic_open(path) as fh:
+        fh.write(data)
+    return Path(path)
 
 
 def atomic_write_text(path: str | Path, text: str) -> Path:
     return atomic_write_bytes(path, text.encode("utf-8"))
 
 
+def finite_or_null(obj: Any) -> Any:
+    """``obj`` with every NaN or infinite float replaced by None, recursively.
+
+    Python's json writes them as ``NaN`` / ``Infinity``, which standard JSON readers refuse;
+    an undefined number is ``null`` in every file occtrain writes.
+    """
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: finite_or_null(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [finite_or_null(v) for v in obj]
+    return obj
+
+
 def atomic_write_json(path: str | Path, obj: Any, indent: int | None = 2) -> Path:
-    return atomic_write_text(path, json.dumps(obj, indent=indent, sort_keys=False) + "\n")
+    """Standard JSON (non-finite numbers as null), written atomically."""
+    text = json.dumps(finite_or_null(obj), indent=indent, sort_keys=False, allow_nan=False)
+    return atomic_write_text(path, text + "\n")
 
 
 def npz_bytes(arrays: dict[str, np.ndarray], compress: bool = True) -> bytes:
@@ -66,6 +133,12 @@ def rank_world() -> tuple[int, int]:
 def is_rank_zero() -> bool:
     """Whether this process writes shared files (manifests, exports, caches) under DDP.
 
-    Read from the launcher's environment, so it holds before any process group exists.
+    Read from the launcher's environment, so it holds before any process group exists:
+    torchrun sets ``RANK`` (the global rank); Lightning's own launcher sets ``LOCAL_RANK``
+    and ``NODE_RANK`` in the processes it starts.
     """
-    return os.environ.get("LOCAL_RANK", "0") == "0" and os.environ.get("NODE_RANK", "0") == "0"
+    env = os.environ
+    if "RANK" in env:
+        return env["RANK"] == "0"
+    node = env.get("NODE_RANK", env.get("GROUP_RANK", "0"))
+    return env.get("LOCAL_RANK", "0") == "0" and node == "0"

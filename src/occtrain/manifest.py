@@ -14,7 +14,9 @@ from occtrain.errors import OcctrainError
 from occtrain.io import atomic_write_json
 
 MANIFEST_FILE = "manifest.json"
-STATUSES = ("pending", "running", "done", "failed")
+STATUSES = ("pending", "running", "done", "failed", "interrupted")
+#: A stage in one of these states has a checkpoint to resume from (or none yet).
+RESUMABLE = ("running", "failed", "interrupted")
 
 
 def code_version() -> str:
@@ -56,6 +58,8 @@ class Manifest:
     stages: dict[str, StageEntry] = field(default_factory=dict)
     #: False in DDP worker processes: only rank zero writes.
     writable: bool = True
+    #: Wall time of the running stage's earlier attempts.
+    _attempt_base: float = 0.0
 
     @classmethod
     def load(cls, run_dir: Path, writable: bool = True) -> Manifest:
@@ -86,20 +90,26 @@ class Manifest:
         e = self.stages[name]
         e.status, e.attempts, e.started, e.ended, e.error = "running", e.attempts + 1, time.time(), None, ""
         e.config_hash, e.config, e.code_version = config_hash, config, code_version()
+        self._attempt_base = e.wall_time_s
         self.save()
         return e
 
-    def mark_done(self, name: str, metrics: dict, artifacts: dict[str, str], wall_time_s: float) -> None:
+    def record_time(self, name: str, attempt_s: float) -> None:
+        """This attempt has run ``attempt_s`` seconds so far: ``wall_time_s`` is the sum over
+        attempts, a kill -9 loses at most the time since the last record."""
         e = self.stages[name]
-        e.status, e.ended, e.metrics, e.artifacts = "done", time.time(), metrics, artifacts
-        e.wall_time_s += wall_time_s
+        e.wall_time_s = self._attempt_base + attempt_s
         self.save()
 
-    def mark_failed(self, name: str, error: str, wall_time_s: float) -> None:
+    def mark_done(self, name: str, metrics: dict, artifacts: dict[str, str], attempt_s: float) -> None:
         e = self.stages[name]
-        e.status, e.ended, e.error = "failed", time.time(), error
-        e.wall_time_s += wall_time_s
-        self.save()
+        e.status, e.ended, e.metrics, e.artifacts = "done", time.time(), metrics, artifacts
+        self.record_time(name, attempt_s)
+
+    def mark_failed(self, name: str, error: str, attempt_s: float, status: str = "failed") -> None:
+        e = self.stages[name]
+        e.status, e.ended, e.error = status, time.time(), error
+        self.record_time(name, attempt_s)
 
     def reset(self, name: str) -> None:
         kind = self.stages[name].kind

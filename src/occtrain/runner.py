@@ -8,6 +8,7 @@ the same plan from the same manifest snapshot, and only rank zero writes.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import importlib
 import inspect
@@ -17,17 +18,20 @@ import time
 import traceback
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
+
+from omegaconf import OmegaConf
 
 from occtrain.config import load_config, to_container, to_yaml
-from occtrain.config.loading import validate_section
+from occtrain.config.loading import read_yaml, validate_section
 from occtrain.config.recipe import STAGE_DATA_KEYS, RecipeConfig, StageSpec
 from occtrain.config.schema import DataConfig, TrainerConfig
 from occtrain.errors import ConfigError, OcctrainError
 from occtrain.io import atomic_write_json, atomic_write_text, is_rank_zero
-from occtrain.manifest import Manifest
+from occtrain.manifest import RESUMABLE, Manifest
 from occtrain.progress import console
+from occtrain.run_control import Interrupted, run_lock, stop_on_signals
 from occtrain.stages import Stage, StageContext, StageKind, get_kind, kind_names
 
 #: Trainer keys that change how often things are written, not what is learned.
@@ -70,6 +74,9 @@ def plan_stages(recipe: RecipeConfig, source: str) -> list[PlannedStage]:
     names: list[str] = []
     data = to_container(recipe.data)
     for i, spec in enumerate(recipe.stages):
+        for key in ("name", "kind"):
+            if OmegaConf.is_missing(spec, key):
+                raise ConfigError(f"stages[{i}] in {source} has no '{key}:'; every stage needs a name and a kind ({', '.join(kind_names())})")
         where = f"stages[{i}] ('{spec.name}') in {source}"
         kind = get_kind(spec.kind)
         if kind is None:
@@ -92,6 +99,12 @@ def plan_stages(recipe: RecipeConfig, source: str) -> list[PlannedStage]:
             raise ConfigError(f"stages[{i}].data.{wrong[0]} in {source}: a stage sets only {', '.join(STAGE_DATA_KEYS)}; the dataset is the recipe's")
         stage_data = validate_section(DataConfig, {**data, **(spec.data or {})}, f"stages[{i}].data", source)
         trainer = validate_section(TrainerConfig, {**to_container(recipe.trainer), **(spec.trainer or {})}, f"stages[{i}].trainer", source)
+        if trainer.max_steps <= 0:
+            key = f"stages.{spec.name}.trainer.max_steps" if "max_steps" in (spec.trainer or {}) else "trainer.max_steps"
+            raise ConfigError(
+                f"{key} is {trainer.max_steps} in {source}: a stage trains for a positive number of optimizer steps "
+                "(training streams data without end, so there is no 'until the data runs out')"
+            )
         trainer_dict = {k: v for k, v in to_container(trainer).items() if k not in OPERATIONAL_KEYS}
         config = {
             "kind": spec.kind,
@@ -119,27 +132,81 @@ def load_plugins(modules: list[str], source: str) -> None:
             raise ConfigError(f"plugin '{name}' in {source} cannot be imported ({err}); is it installed or on PYTHONPATH?") from None
 
 
+def _stage_names(path: str | Path) -> list[str]:
+    """Stage names of a recipe file as written (for addressing stages in overrides)."""
+    stages = read_yaml(Path(path)).get("stages") or []
+    return [str(s.get("name")) for s in stages if isinstance(s, dict)] if isinstance(stages, list) else []
+
+
+def stage_override(item: str, names: list[str], source: str) -> str:
+    """``stages.<name>.key=v`` and ``stages.<i>.key=v`` -> ``stages[<i>].key=v``; others unchanged."""
+    key = item.split("=", 1)[0].strip()
+    parts = key.split(".")
+    if parts[0] != "stages" or len(parts) < 3:
+        return item
+    ref = parts[1]
+    if ref.isdigit() and int(ref) < len(names):
+        index = int(ref)
+    elif ref in names:
+        index = names.index(ref)
+    else:
+        forms = "stages.<name>.<key>=, stages.<index>.<key>= or stages[<index>].<key>="
+        raise ConfigError(
+            f"override '{item}': {source} has no stage '{ref}' (stages: {', '.join(names) or 'none'}); address one as {forms}"
+        )
+    return f"stages[{index}].{'.'.join(parts[2:])}={item.split('=', 1)[1]}" if "=" in item else item
+
+
+def shadowed_overrides(recipe: RecipeConfig, overrides: list[str]) -> list[str]:
+    """One note per command-line ``trainer.<key>=`` that some stage's own ``trainer:`` overrides."""
+    notes = []
+    for item in overrides:
+        key = item.split("=", 1)[0].strip()
+        if not key.startswith("trainer.") or "=" not in item:
+            continue
+        sub = key.split(".", 1)[1]
+        own = [s.name for s in recipe.stages if sub in (s.trainer or {})]
+        if own:
+            notes.append(
+                f"{key}={item.split('=', 1)[1]} applies to every stage except {', '.join(own)}, which set their own "
+                f"(override one with stages.{own[0]}.trainer.{sub}=...)"
+            )
+    return notes
+
+
 def load_recipe(path: str | Path, overrides: list[str] | None = None) -> tuple[RecipeConfig, list[PlannedStage]]:
+    """The recipe with its overrides, and its stages planned and validated."""
+    overrides = list(overrides or [])
+    if any(o.startswith("stages.") for o in overrides):
+        names = _stage_names(path)
+        overrides = [stage_override(o, names, str(path)) for o in overrides]
     recipe = load_config(RecipeConfig, path, overrides)
+    if OmegaConf.is_missing(recipe, "name"):
+        raise ConfigError(f"{path} has no 'name:'; a recipe names its run (the run directory is <runs_root>/<name>)")
     load_plugins(list(recipe.plugins), str(path))
     return recipe, plan_stages(recipe, str(path))
 
 
-def _execute(stage: PlannedStage, recipe: RecipeConfig, stage_dir: Path, inputs: dict[str, Path]) -> dict:
+def _execute(
+    stage: PlannedStage, recipe: RecipeConfig, stage_dir: Path, inputs: dict[str, Path],
+    record_time: Callable[[float], None] | None = None,
+) -> dict:
     import lightning as L
 
     from occtrain.data.datamodule import ShardDataModule
-    from occtrain.stages.common import build_trainer, last_checkpoint
+    from occtrain.stages.common import build_trainer, checkpoint_step, last_checkpoint
 
     L.seed_everything(stage.trainer.seed, workers=True, verbose=False)
     ctx = StageContext(stage.spec, stage.model_cfg, stage.data, stage.trainer, stage_dir, inputs)
     module = stage.kind.build(ctx)
     entries = {split: module.entries(split) for split in ("train", "val")}
     datamodule = ShardDataModule(stage.data, stage.kind.data_kind, entries=entries)
-    trainer = build_trainer(stage.trainer, stage_dir, stage.kind.monitor, stage.kind.mode)
-    ckpt = last_checkpoint(stage_dir)
-    if ckpt is not None and is_rank_zero():
-        console.print(f"[yellow]resuming[/] {stage.spec.name} from {ckpt}")
+    say = console.print if is_rank_zero() else (lambda line: None)
+    ckpt = last_checkpoint(stage_dir, say=lambda line: say(f"[yellow]note[/]: {line}"))
+    resume_step = checkpoint_step(ckpt) if ckpt is not None else None
+    trainer = build_trainer(stage.trainer, stage_dir, stage.kind.monitor, stage.kind.mode, resume_step, record_time)
+    if ckpt is not None:
+        say(f"[yellow]resuming[/] {stage.spec.name} from {ckpt} (step {resume_step})")
     trainer.fit(module, datamodule=datamodule, ckpt_path=ckpt, weights_only=True)
     if module.validated_at == trainer.global_step and trainer.global_step > 0:
         # fit validated the final weights already (generation makes validation costly).
@@ -174,7 +241,13 @@ def run(
     only: str | None = None,
     restart: str | None = None,
 ) -> Path:
-    """Run (or continue) a recipe; returns the run directory. Raises OcctrainError on failure."""
+    """Run (or continue) a recipe; returns the run directory.
+
+    Raises OcctrainError on bad input or a failed stage, :class:`Interrupted` on SIGTERM /
+    SIGINT (the running stage is then recorded as ``interrupted``). A refused run (a done
+    stage whose config changed, ...) writes nothing. Rank zero holds the run directory's
+    lock for the whole run.
+    """
     recipe, planned = load_recipe(recipe_path, overrides)
     names = [p.spec.name for p in planned]
     for flag, value in (("--only", only), ("--restart", restart)):
@@ -182,28 +255,69 @@ def run(
             raise ConfigError(f"{flag} names stage '{value}', but {recipe_path} has stages {', '.join(names)}")
     run_dir = Path(run_dir) if run_dir else Path(recipe.runs_root) / recipe.name
     rank_zero = is_rank_zero()
-    manifest = Manifest.load(run_dir, writable=rank_zero)
-    manifest.name = recipe.name
-    for p in planned:
-        manifest.entry(p.spec.name, p.spec.kind)
+    restarted = set(names[names.index(restart) :]) if restart is not None else set()
+    refuse_changed(planned, Manifest.load(run_dir, writable=False), restarted, only)
     if rank_zero:
-        run_dir.mkdir(parents=True, exist_ok=True)
-        atomic_write_text(run_dir / "pipeline.yaml", to_yaml(recipe))
-        if restart is not None:
-            for p in planned[names.index(restart) :]:
-                shutil.rmtree(run_dir / p.spec.name, ignore_errors=True)
-                manifest.reset(p.spec.name)
-        manifest.save()
-        from occtrain.data.datamodule import ensure_data
+        for note in shadowed_overrides(recipe, list(overrides or [])):
+            console.print(f"[yellow]note[/]: {note}")
+    with stop_on_signals(), (run_lock(run_dir) if rank_zero else _nothing()):
+        # Read again under the lock: the manifest this run writes is the one it checked.
+        manifest = Manifest.load(run_dir, writable=rank_zero)
+        refuse_changed(planned, manifest, restarted, only)
+        manifest.name = recipe.name
+        for p in planned:
+            manifest.entry(p.spec.name, p.spec.kind)
+        try:
+            if rank_zero:
+                atomic_write_text(run_dir / "pipeline.yaml", to_yaml(recipe))
+                for name in restarted:
+                    shutil.rmtree(run_dir / name, ignore_errors=True)
+                    manifest.reset(name)
+                manifest.save()
+                from occtrain.data.datamodule import ensure_data
 
-        ensure_data(recipe.data)
-
-    try:
-        _run_stages(planned, manifest, run_dir, recipe, only, rank_zero)
-    finally:
-        if rank_zero:
-            _write_dashboard(run_dir)
+                ensure_data(recipe.data)
+            try:
+                _run_stages(planned, manifest, run_dir, recipe, only, rank_zero)
+            finally:
+                if rank_zero:
+                    _write_dashboard(run_dir)
+        except Interrupted as stop:
+            if not str(stop).startswith("stage "):
+                stop = stop.with_message(f"{stop} before any stage trained; run the same command again to continue")
+            raise stop from None
     return run_dir
+
+
+@contextlib.contextmanager
+def _nothing():
+    yield
+
+
+def refuse_changed(planned: list[PlannedStage], manifest: Manifest, restarted: set[str], only: str | None) -> None:
+    """Raise (before anything is written) when a done stage's config changed, or a cut-off
+    stage that would resume has a checkpoint from another config."""
+    for p in planned:
+        name, entry = p.spec.name, manifest.stages.get(p.spec.name)
+        if entry is None or name in restarted or not entry.config_hash or entry.config_hash == p.config_hash:
+            continue
+        keys = ", ".join(changed_keys(entry.config, p.config)[:6]) or "inputs"
+        if entry.status == "done":
+            raise ConfigError(
+                f"stage '{name}' is done but its config changed ({keys}); `--restart {name}` retrains it and the stages after it"
+            )
+        resumes = only is None or only == name
+        if resumes and entry.status in RESUMABLE and (manifest.path.parent / name / "checkpoints").exists():
+            raise ConfigError(f"stage '{name}' was cut off under a different config ({keys}); `--restart {name}` starts it afresh")
+
+
+def _record_failure(manifest: Manifest, name: str, summary: str, seconds: float, status: str) -> None:
+    """Record a stopped stage; when even that write fails (a full disk), the manifest keeps
+    its last good state (``running``: a rerun resumes) and the original error is reported."""
+    try:
+        manifest.mark_failed(name, summary, seconds, status=status)
+    except OcctrainError:
+        pass
 
 
 def _write_dashboard(run_dir: Path) -> None:
@@ -223,41 +337,36 @@ def _run_stages(planned: list[PlannedStage], manifest: Manifest, run_dir: Path, 
     for p in planned:
         name, entry, stage_dir = p.spec.name, manifest.stages[p.spec.name], run_dir / p.spec.name
         if entry.status == "done":
-            if entry.config_hash != p.config_hash:
-                keys = changed_keys(entry.config, p.config)
-                raise ConfigError(
-                    f"stage '{name}' is done but its config changed ({', '.join(keys[:6]) or 'inputs'}); "
-                    f"`--restart {name}` retrains it and the stages after it"
-                )
             exports[name] = stage_dir / "export"
             if rank_zero:
                 console.print(f"[green]done[/]    {name:14s} skipped (finished earlier; {entry.wall_time_s:.0f}s)")
             continue
         if only is not None and name != only:
             continue
-        if entry.status in ("running", "failed") and entry.config_hash and entry.config_hash != p.config_hash and (stage_dir / "checkpoints").exists():
-            keys = changed_keys(entry.config, p.config)
-            raise ConfigError(
-                f"stage '{name}' was cut off under a different config ({', '.join(keys[:6])}); "
-                f"`--restart {name}` starts it afresh"
-            )
         missing = [d for d in p.spec.consumes if d not in exports]
         if missing:
             raise ConfigError(f"stage '{name}' consumes the export of '{missing[0]}', which is not done; run it first (drop --only)")
         manifest.mark_running(name, p.config_hash, p.config)
         started = time.time()
         try:
-            result = _execute(p, recipe, stage_dir, {d: exports[d] for d in p.spec.consumes})
-        except KeyboardInterrupt:
-            manifest.mark_failed(name, "interrupted", time.time() - started)
-            raise
+            result = _execute(
+                p, recipe, stage_dir, {d: exports[d] for d in p.spec.consumes},
+                record_time=lambda seconds, name=name: manifest.record_time(name, seconds),
+            )
+        except Interrupted as stop:
+            _record_failure(manifest, name, f"{stop}", time.time() - started, "interrupted")
+            resume = f"rerun the same command to resume it from {stage_dir / 'checkpoints'}"
+            raise stop.with_message(f"stage '{name}' of {run_dir} {stop}; {resume}") from None
         except Exception as err:
             line = str(err).splitlines()[0] if str(err) else type(err).__name__
             summary = line if isinstance(err, OcctrainError) else f"{type(err).__name__}: {line}"
-            manifest.mark_failed(name, summary, time.time() - started)
+            _record_failure(manifest, name, summary, time.time() - started, "failed")
             if rank_zero and not isinstance(err, OcctrainError):
-                atomic_write_text(stage_dir / "logs" / "traceback.txt", traceback.format_exc())
-                summary += f" (traceback in {stage_dir / 'logs' / 'traceback.txt'})"
+                try:
+                    atomic_write_text(stage_dir / "logs" / "traceback.txt", traceback.format_exc())
+                    summary += f" (traceback in {stage_dir / 'logs' / 'traceback.txt'})"
+                except OcctrainError:
+                    pass
             raise StageFailed(f"stage '{name}' failed: {summary}") from err
         wall = time.time() - started
         manifest.mark_done(name, result["metrics"], result["artifacts"], wall)

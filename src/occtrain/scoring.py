@@ -13,13 +13,14 @@ import json
 import math
 from functools import lru_cache
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any, Literal, NotRequired, TypedDict, Union
 
 import numpy as np
 import torch
 
 from occtrain.data.layout import ANNOTATIONS_FILE, GTS_DIR, LABELS_FILE, DatasetIndex, load_labels, read_npz
-from occtrain.data.schema import TEMPLATE_TYPES
+from occtrain.data.schema import QAFile, Vec2
+from occtrain.data.validate import Len, first_problem
 from occtrain.errors import DataError
 from occtrain.io import atomic_write_json
 from occtrain.metrics import CONVENTIONS, ForecastMetric, OccupancyMetric, PlanningMetric, QAMetric, coco_caption_scores
@@ -29,29 +30,48 @@ from occtrain.occ3d import FUTURE_STEPS, GRID_SHAPE, NUM_CLASSES
 FORECAST_FILE = "forecast.npz"
 FORECAST_HORIZONS = (1, 3, 5)
 
+# The JSON inputs, declared; occtrain.data.validate names the key of the first mismatch.
+Waypoints = Annotated[list[Vec2], Len(FUTURE_STEPS)]  # [x, y] per 0.5 s step, ego frame
+AgentBox = Annotated[list[float], Len(5)]  # x, y, length, width, yaw
+
+
+class PlanningTruth(TypedDict):
+    traj: Waypoints
+    mask: NotRequired[Annotated[list[Literal[0, 1, True, False]], Len(FUTURE_STEPS)]]  # default: all valid
+    agents: NotRequired[Annotated[list[list[AgentBox]], Len(FUTURE_STEPS)]]  # per step, for the collision rate
+
+
+PlanningPredictions = dict[str, Waypoints]
+CaptionPredictions = dict[str, str]
+CaptionReferences = dict[str, Union[str, list[str]]]
+QAPredictions = list[Union[str, int]]
+
 
 # ----------------------------------------------------------------------------- output
 
 
 def to_json(value: Any) -> Any:
-    """Tensors and numpy scalars -> Python numbers, NaN -> None, recursively."""
+    """Tensors and numpy scalars -> Python numbers, NaN (an undefined metric) -> None, recursively."""
     if isinstance(value, dict):
         return {k: to_json(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
         return [to_json(v) for v in value]
     if isinstance(value, (torch.Tensor, np.generic)):
         value = value.item()
-    if isinstance(value, float) and math.isnan(value):
-        return None
+    if isinstance(value, float) and not math.isfinite(value):
+        return None  # standard JSON has no NaN or Infinity
     return value
 
 
 def emit(result: dict[str, Any], out: str | None) -> None:
-    """Print the result as one JSON object; also write it to ``out`` atomically."""
+    """Print the result as one standard JSON object; first write it to ``out`` atomically."""
     obj = to_json(result)
-    print(json.dumps(obj, indent=2))
+    text = json.dumps(obj, indent=2, allow_nan=False)
     if out:
+        if Path(out).is_dir():
+            raise DataError(f"{out}: is a directory; --out takes a file name")
         atomic_write_json(out, obj)
+    print(text)
 
 
 # ----------------------------------------------------------------------------- reading
@@ -62,9 +82,18 @@ def read_json(path: str | Path, what: str) -> Any:
     if not path.is_file():
         raise DataError(f"{path}: {what} not found")
     try:
-        return json.loads(path.read_text())
+        return json.loads(path.read_text())  # NaN/Infinity parse here; the declared types refuse them by key
     except (json.JSONDecodeError, UnicodeDecodeError) as err:
         raise DataError(f"{path}: {what} is not valid JSON ({err})") from None
+    except OSError as err:
+        raise DataError(f"{path}: cannot read the {what} ({err.strerror})") from None
+
+
+def check_json(data: Any, schema: Any, path: Path, hint: str) -> None:
+    """Raise the first way ``data`` (read from ``path``) differs from ``schema`` as one DataError line."""
+    problem = first_problem(data, schema)
+    if problem:
+        raise DataError(f"{path}: {problem}; {hint}")
 
 
 def _has_annotations(gt: Path) -> bool:
@@ -134,9 +163,12 @@ def load_forecast(path: Path) -> np.ndarray:
         raise DataError(f"{path}: 'semantics' has shape {sem.shape}, expected (T, {', '.join(map(str, GRID_SHAPE))})")
     if sem.shape[0] <= max(FORECAST_HORIZONS):
         raise DataError(f"{path}: holds {sem.shape[0]} future frames; the 1 s/2 s/3 s horizons need {max(FORECAST_HORIZONS) + 1}")
-    if sem.size and int(sem.max()) >= NUM_CLASSES:
-        raise DataError(f"{path}: 'semantics' holds class {int(sem.max())}; Occ3D classes are 0..{NUM_CLASSES - 1}")
-    return sem.astype(np.uint8, copy=False)
+    if sem.dtype.kind not in "ui":  # floats (NaN, 3.7) and bools are not class labels: never cast them
+        raise DataError(f"{path}: 'semantics' has dtype {sem.dtype}; save class indices 0..{NUM_CLASSES - 1} as uint8")
+    low, high = int(sem.min()), int(sem.max())
+    if low < 0 or high >= NUM_CLASSES:
+        raise DataError(f"{path}: 'semantics' holds class {low if low < 0 else high}; Occ3D classes are 0..{NUM_CLASSES - 1}")
+    return sem.astype(np.uint8, copy=False)  # lossless: every value is 0..17
 
 
 def score_forecast(pred_dir: Path, gt: Path) -> dict[str, Any]:
@@ -184,31 +216,6 @@ def score_forecast(pred_dir: Path, gt: Path) -> dict[str, Any]:
 # ----------------------------------------------------------------------------- planning
 
 
-def _waypoints(value: Any, where: str) -> np.ndarray:
-    try:
-        arr = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError):
-        arr = np.zeros(0)
-    if arr.shape != (FUTURE_STEPS, 2):
-        raise DataError(f"{where}: expected {FUTURE_STEPS} waypoints [[x, y], ...], got shape {arr.shape}")
-    return arr
-
-
-def _agents(value: Any, where: str) -> list[np.ndarray]:
-    if not isinstance(value, list) or len(value) != FUTURE_STEPS:
-        raise DataError(f"{where}: 'agents' must be a list of {FUTURE_STEPS} steps, each a list of [x, y, length, width, yaw]")
-    steps = []
-    for t, boxes in enumerate(value):
-        try:
-            arr = np.asarray(boxes, dtype=np.float64) if boxes else np.zeros((0, 5))
-        except (TypeError, ValueError):
-            arr = np.zeros(0)
-        if arr.ndim != 2 or arr.shape[1] != 5:
-            raise DataError(f"{where}: agents at step {t} are not lists of 5 numbers [x, y, length, width, yaw]")
-        steps.append(arr)
-    return steps
-
-
 def score_planning(pred_file: Path, gt_file: Path, allow_missing: bool = False) -> dict[str, Any]:
     """Score ``{token: [[x, y] x 6]}`` against ``{token: {"traj", "mask", "agents"?}}``."""
     preds = read_json(pred_file, "planning predictions")
@@ -216,6 +223,9 @@ def score_planning(pred_file: Path, gt_file: Path, allow_missing: bool = False) 
     for obj, path in ((preds, pred_file), (gts, gt_file)):
         if not isinstance(obj, dict) or not obj:
             raise DataError(f"{path}: expected a non-empty JSON object keyed by sample token")
+    check_json(preds, PlanningPredictions, pred_file, f"each sample needs {FUTURE_STEPS} waypoints [[x, y], ...]")
+    check_json(gts, dict[str, PlanningTruth], gt_file,
+               'each sample needs {"traj": [[x, y] x 6], "mask": [0/1 x 6], "agents": [[[x, y, length, width, yaw], ...] x 6]}')
     extra = [t for t in preds if t not in gts]
     if extra:
         raise DataError(f"{pred_file}: sample {extra[0]} is not in the ground truth {gt_file}")
@@ -227,14 +237,9 @@ def score_planning(pred_file: Path, gt_file: Path, allow_missing: bool = False) 
     for token, entry in gts.items():
         if token not in preds:
             continue
-        where = f"{gt_file}: sample {token}"
-        if not isinstance(entry, dict) or "traj" not in entry:
-            raise DataError(f"{where}: expected an object with 'traj', 'mask' and optionally 'agents'")
-        mask = np.asarray(entry.get("mask", [1] * FUTURE_STEPS))
-        if mask.shape != (FUTURE_STEPS,):
-            raise DataError(f"{where}: 'mask' must be {FUTURE_STEPS} values 0/1")
-        row = (_waypoints(preds[token], f"{pred_file}: sample {token}"), _waypoints(entry["traj"], where), mask.astype(bool))
-        agents = _agents(entry["agents"], where) if "agents" in entry else None
+        mask = np.asarray(entry.get("mask", [1] * FUTURE_STEPS), dtype=bool)  # 0/1 or true/false: checked above
+        row = (np.asarray(preds[token], dtype=np.float64), np.asarray(entry["traj"], dtype=np.float64), mask)
+        agents = [np.asarray(boxes, dtype=np.float64).reshape(-1, 5) for boxes in entry["agents"]] if "agents" in entry else None
         with_agents[agents is not None].append((row, agents))
     for has_agents, rows in with_agents.items():
         if rows:
@@ -250,13 +255,13 @@ def score_captions(pred_file: Path, ref_file: Path, allow_missing: bool = False)
     """Score ``{id: "caption"}`` against ``{id: ["reference", ...]}`` with pycocoevalcap."""
     preds = read_json(pred_file, "caption predictions")
     refs = read_json(ref_file, "caption references")
-    if not isinstance(preds, dict) or not all(isinstance(v, str) for v in preds.values()):
-        raise DataError(f"{pred_file}: expected a JSON object {{id: \"caption\"}}")
+    check_json(preds, CaptionPredictions, pred_file, 'expected a JSON object {id: "caption"}')
     if not isinstance(refs, dict) or not refs:
         raise DataError(f"{ref_file}: expected a non-empty JSON object {{id: [\"reference\", ...]}}")
+    check_json(refs, CaptionReferences, ref_file, 'expected a JSON object {id: ["reference", ...]}')
     refs = {k: [v] if isinstance(v, str) else v for k, v in refs.items()}
     for k, v in refs.items():
-        if not isinstance(v, list) or not v or not all(isinstance(r, str) for r in v):
+        if not v:
             raise DataError(f"{ref_file}: id {k} needs a non-empty list of reference strings")
     extra = [k for k in preds if k not in refs]
     if extra:
@@ -276,23 +281,13 @@ def score_qa(pred_file: Path, questions_file: Path) -> dict[str, Any]:
     """Score a JSON list of answers against a NuScenes-QA question file, in order."""
     preds = read_json(pred_file, "QA predictions")
     data = read_json(questions_file, "NuScenes-QA questions")
-    questions = data.get("questions") if isinstance(data, dict) else None
-    if not isinstance(questions, list):
-        raise DataError(f"{questions_file}: expected {{\"questions\": [...]}} in NuScenes-QA format")
+    check_json(data, QAFile, questions_file, 'expected {"questions": [...]} in NuScenes-QA format')
+    questions = data["questions"]
     if not isinstance(preds, list):
         raise DataError(f"{pred_file}: expected a JSON list of answer strings, in the order of {questions_file}")
+    check_json(preds, QAPredictions, pred_file, f"expected a JSON list of answer strings, in the order of {questions_file}")
     if len(preds) != len(questions):
         raise DataError(f"{pred_file}: holds {len(preds)} answers but {questions_file} asks {len(questions)} questions")
-    for i, p in enumerate(preds):
-        if not isinstance(p, (str, int)) or isinstance(p, bool):
-            raise DataError(f"{pred_file}: answer {i} is {type(p).__name__}, expected a string")
-    for i, q in enumerate(questions):
-        lacking = [k for k in ("answer", "template_type", "num_hop") if not isinstance(q, dict) or k not in q]
-        if lacking:
-            raise DataError(f"{questions_file}: question {i} lacks {', '.join(lacking)}")
-        if q["template_type"] not in TEMPLATE_TYPES or q["num_hop"] not in (0, 1):
-            raise DataError(f"{questions_file}: question {i} has template_type '{q['template_type']}' / num_hop {q['num_hop']}; "
-                            f"expected one of {', '.join(TEMPLATE_TYPES)} and 0/1")
     metric = QAMetric()
     metric.update([str(p) for p in preds], [q["answer"] for q in questions],
                   [q["template_type"] for q in questions], [q["num_hop"] for q in questions])

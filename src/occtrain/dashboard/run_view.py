@@ -141,8 +141,13 @@ def charts_from_curves(curves: dict[str, list[tuple[float, float]]]) -> list[Cha
     return charts
 
 
+def _numbers(raw: dict) -> dict[str, float]:
+    """Metrics as floats; ``null`` (how JSON files hold an undefined number) is NaN."""
+    return {str(k): float("nan") if v is None else float(v) for k, v in raw.items()}
+
+
 def _read_stage(run_dir: Path, name: str, entry: StageEntry) -> StageView:
-    view = StageView(name, entry, metrics=dict(entry.metrics))
+    view = StageView(name, entry, metrics=_numbers(entry.metrics))
     stage_dir = run_dir / name
     csv_path = stage_dir / METRICS_CSV
     if csv_path.is_file():
@@ -154,7 +159,7 @@ def _read_stage(run_dir: Path, name: str, entry: StageEntry) -> StageView:
     if metrics_path.is_file():
         try:
             raw = json.loads(metrics_path.read_text())
-            view.metrics = {str(k): float(v) for k, v in raw.items()}
+            view.metrics = _numbers(raw)
         except (json.JSONDecodeError, AttributeError, TypeError, ValueError, UnicodeDecodeError) as err:
             view.problems.append(f"{metrics_path}: unreadable final metrics ({err}); showing the manifest's copy")
     try:

@@ -1,99 +1,205 @@
-"""Validate a dataset directory or a shard directory, listing every problem with its file."""
+"""Validate a dataset directory or a shard directory, listing every problem with its file.
+
+Neither check raises: whatever goes wrong becomes a problem line (the command prints them
+all and exits 1). Facts that are not problems, such as the tasks a real Occ3D download
+cannot train for want of occtrain's sidecars, go to ``note``.
+"""
 
 from __future__ import annotations
 
+import json
+import math
 from pathlib import Path
+from typing import Any, Callable
 
 import numpy as np
 
 from occtrain.data.geometry import global_to_ego
-from occtrain.data.layout import ANNOTATIONS_FILE, FRAMES_DIR, DatasetIndex, load_labels, qa_file
-from occtrain.data.schema import TEMPLATE_TYPES, FrameAnnotation
+from occtrain.data.layout import (
+    ANNOTATIONS_FILE, FRAMES_DIR, SPLITS, DatasetIndex, dataset_root, load_labels, qa_file,
+)
+from occtrain.data.schema import FrameAnnotation, Occ3DAnnotations, QAFile
 from occtrain.data.shards import INDEX_FILE, decode_sample, iter_raw, read_index
-from occtrain.errors import DataError
+from occtrain.data.validate import problems as schema_problems
+from occtrain.errors import OcctrainError
 from occtrain.occ3d import FRAME_DT
 
 POSE_TOLERANCE = 0.05  # metres between a sidecar waypoint and the pose it should equal
+# nuScenes keyframes are picked from 20 Hz lidar sweeps, so real gaps are 0.45 or 0.55 s
+# as often as 0.5 s; a dropped keyframe (1 s) or another rate (0.1 s) is what this catches.
+GAP_TOLERANCE = 0.2 * FRAME_DT
+QUATERNION_TOLERANCE = 1e-3  # |norm - 1| of an ego rotation
+#: Problems listed per file before the rest are summed up in one line.
+MAX_PER_FILE = 20
+
+
+def _guarded(run: Callable[[list[str]], None], where: str | Path) -> list[str]:
+    """Run a check that appends to a list; anything it raises ends the list as one more line."""
+    found: list[str] = []
+    try:
+        run(found)
+    except OcctrainError as err:
+        found.append(str(err).splitlines()[0])
+    except Exception as err:  # an input no reader foresaw: still a line, never a traceback
+        found.append(f"{where}: check stopped on {type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''}")
+    return found
+
+
+def _file_problems(path: Path, schema: Any) -> tuple[Any, list[str]]:
+    """A JSON file's content and every way it differs from ``schema`` (capped at MAX_PER_FILE)."""
+    try:
+        data = json.loads(path.read_text())
+    except (ValueError, OSError) as err:  # JSONDecodeError and UnicodeDecodeError are ValueErrors
+        return None, [f"{path}: not valid JSON ({err}); re-create the file"]
+    found = schema_problems(data, schema, limit=MAX_PER_FILE + 1)
+    lines = [f"{path}: {p}" for p in found[:MAX_PER_FILE]]
+    if len(found) > MAX_PER_FILE:
+        lines.append(f"{path}: more problems than the {MAX_PER_FILE} listed; fix these and check again")
+    return data, lines
+
+
+# ----------------------------------------------------------------------------- datasets
+
+
+def check_dataset(root: str | Path, note: Callable[[str], None] = print) -> list[str]:
+    """Every problem of an Occ3D-layout dataset, each naming its file; empty when it is sound.
+
+    ``note`` receives informational lines (the tasks that missing sidecars disable).
+    """
+    return _guarded(lambda found: _check_dataset(dataset_root(root), found, note), root)
+
+
+def _check_dataset(root: Path, problems: list[str], note: Callable[[str], None]) -> None:
+    ann = root / ANNOTATIONS_FILE
+    try:
+        index = DatasetIndex.open(root)
+    except OcctrainError as err:
+        # A schema problem: list them all, not just the first that stopped the reader.
+        listed = _file_problems(ann, Occ3DAnnotations)[1] if ann.is_file() else []
+        problems.extend(listed or [str(err)])
+        return
+    for task_line in _disabled_tasks(index):
+        note(task_line)
+    train, val = set(index.splits["train"]), set(index.splits["val"])
+    for scene in sorted(train & val):
+        problems.append(f"{ann}: scene '{scene}' is in both train_split and val_split")
+    owner: dict[str, str] = {}
+    no_truth = 0
+    for scene, tokens in index.scenes.items():
+        problems.extend(_timing_problems(index, scene, tokens))
+        for token in tokens:
+            if token in owner:
+                problems.append(f"{ann}: sample token {token} is in both scene_infos.{owner[token]} and scene_infos.{scene}")
+            owner[token] = scene
+            rotation = index.info(scene, token)["ego_pose"]["rotation"]
+            if abs(math.sqrt(sum(q * q for q in rotation)) - 1.0) > QUATERNION_TOLERANCE:
+                problems.append(f"{ann}: scene_infos.{scene}.{token}.ego_pose.rotation is not a unit quaternion (w, x, y, z)")
+            path = index.labels_path(scene, token)
+            if "gt_path" not in index.info(scene, token) and not path.exists():
+                no_truth += 1  # a test split: Occ3D gives it no gt_path and no labels
+                continue
+            problems.extend(_guarded(lambda found: _check_labels(path, found), path))
+    if no_truth:
+        note(f"note: {no_truth} samples have no gt_path and no labels (a test split?); they cannot be trained or scored")
+    problems.extend(_sidecar_problems(index))
+    for split in SPLITS:
+        problems.extend(_guarded(lambda found: _check_questions(index, split, found), root / qa_file(split)))
+
+
+def _disabled_tasks(index: DatasetIndex) -> list[str]:
+    """One note per reason, naming the tasks it disables."""
+    by_reason: dict[str, list[str]] = {}
+    for task, reason in index.available_tasks().items():
+        if reason:
+            by_reason.setdefault(reason, []).append(task)
+    return [f"note: {index.root}: no {', '.join(tasks)} training: {reason}" for reason, tasks in by_reason.items()]
+
+
+def _timing_problems(index: DatasetIndex, scene: str, tokens: list[str]) -> list[str]:
+    stamps = [index.timestamp(scene, t) for t in tokens]
+    if len(stamps) < 2 or any(s is None for s in stamps):
+        return []  # Occ3D allows a token for a timestamp; the prev/next links gave the order
+    ann = index.root / ANNOTATIONS_FILE
+    gaps = np.diff(np.asarray(stamps, dtype=np.int64)) / 1e6
+    if (gaps <= 0).any():
+        return [f"{ann}: scene '{scene}' timestamps do not increase along its prev/next links"]
+    if np.abs(gaps - FRAME_DT).max() > GAP_TOLERANCE:
+        return [f"{ann}: scene '{scene}' frames are not {FRAME_DT} s apart (found {gaps.min():.3f}..{gaps.max():.3f} s)"]
+    return []
+
+
+def _check_labels(path: Path, problems: list[str]) -> None:
+    labels = load_labels(path)
+    if labels["mask_camera"].all():
+        problems.append(f"{path}: mask_camera is all ones; Occ3D masks mark what the cameras see")
+
+
+def _sidecar_problems(index: DatasetIndex) -> list[str]:
+    scenes = list(index.scenes)
+    present = [s for s in scenes if index.has_frame_annotations(s)]
+    problems: list[str] = []
+    if present and len(present) < len(scenes):
+        # Clips of those scenes would lack the fields the sidecar tasks train on.
+        for scene in scenes:
+            if scene not in present:
+                problems.append(
+                    f"{index.root / FRAMES_DIR / f'{scene}.json'}: missing while {len(present)} other scenes have their "
+                    "frame sidecar; write it or delete them all"
+                )
+    for scene in present:
+        path = index.root / FRAMES_DIR / f"{scene}.json"
+        listed = _file_problems(path, list[FrameAnnotation])[1]
+        problems.extend(listed or _guarded(lambda found: _check_frames(index, scene, index.frames(scene), found), path))
+    return problems
 
 
 def _check_frames(index: DatasetIndex, scene: str, frames: list[FrameAnnotation], problems: list[str]) -> None:
+    """What the schema cannot say: a sidecar agrees with its scene and with the ego poses."""
     path = index.root / FRAMES_DIR / f"{scene}.json"
     tokens = index.scenes[scene]
     poses = [index.ego_pose(scene, t) for t in tokens]
     for i, frame in enumerate(frames):
-        where = f"{path} frame {i}"
-        fut, mask = np.asarray(frame.get("ego_future", [])), frame.get("ego_future_mask", [])
+        where = f"{path}: [{i}]"
+        if frame["scene"] != scene or frame["index"] != i:
+            problems.append(f"{where} says scene '{frame['scene']}' index {frame['index']}, but it is frame {i} of '{scene}'")
+        fut, mask = np.asarray(frame["ego_future"]), frame["ego_future_mask"]
         for k, valid in enumerate(mask):
             if valid and i + k + 1 < len(poses):
                 want = global_to_ego(np.asarray(poses[i + k + 1][:2]), np.asarray(poses[i][:2]), poses[i][2])
                 if np.abs(fut[k] - want).max() > POSE_TOLERANCE:
-                    problems.append(f"{where}: ego_future[{k}] {fut[k].round(2).tolist()} disagrees with the ego poses ({want.round(2).tolist()})")
+                    problems.append(f"{where}.ego_future[{k}] {fut[k].round(2).tolist()} disagrees with the ego poses ({want.round(2).tolist()})")
                     break
-        if len(frame.get("agent_futures", [])) != len(frame.get("boxes", [])):
-            problems.append(f"{where}: agent_futures has {len(frame.get('agent_futures', []))} entries for {len(frame.get('boxes', []))} boxes")
+        boxes = len(frame["boxes"])
+        for key in ("agent_futures", "agent_future_mask"):
+            if len(frame[key]) != boxes:
+                problems.append(f"{where}.{key} has {len(frame[key])} entries for {boxes} boxes")
 
 
-def check_dataset(root: str | Path) -> list[str]:
-    """Every problem of an Occ3D-layout dataset, each naming its file; empty when it is sound."""
-    try:
-        index = DatasetIndex.open(root)
-    except DataError as err:
-        return [str(err)]
-    problems: list[str] = []
-    ann = index.root / ANNOTATIONS_FILE
-    train, val = set(index.splits["train"]), set(index.splits["val"])
-    for scene in sorted(train & val):
-        problems.append(f"{ann}: scene '{scene}' is in both train_split and val_split")
-    for scene, tokens in index.scenes.items():
-        stamps = [index.scene_infos[scene][t].get("timestamp", 0) for t in tokens]
-        gaps = np.diff(stamps) / 1e6
-        if len(gaps) and (gaps <= 0).any():
-            problems.append(f"{ann}: scene '{scene}' timestamps do not increase")
-        elif len(gaps) and np.abs(gaps - FRAME_DT).max() > 0.1 * FRAME_DT:
-            problems.append(f"{ann}: scene '{scene}' frames are not {FRAME_DT} s apart (found {gaps.min():.3f}..{gaps.max():.3f} s)")
-        for token in tokens:
-            path = index.labels_path(scene, token)
-            try:
-                labels = load_labels(path)
-            except DataError as err:
-                problems.append(str(err))
-                continue
-            if labels["mask_camera"].all():
-                problems.append(f"{path}: mask_camera is all ones; Occ3D masks mark what the cameras see")
-        if index.has_frame_annotations(scene):
-            try:
-                _check_frames(index, scene, index.frames(scene), problems)
-            except DataError as err:
-                problems.append(str(err))
-    for split in ("train", "val"):
-        try:
-            qs = index.questions(split)
-        except DataError as err:
-            problems.append(str(err))
-            continue
-        if qs is None:
-            continue
-        allowed = {t for s in index.splits[split] for t in index.scenes[s]}
-        qpath = index.root / qa_file(split)
-        for i, q in enumerate(qs):
-            if q["sample_token"] not in allowed:
-                problems.append(f"{qpath}: question {i} names sample '{q['sample_token']}' outside the {split} split")
-            if q["template_type"] not in TEMPLATE_TYPES:
-                problems.append(f"{qpath}: question {i} has template_type '{q['template_type']}' (expected one of {', '.join(TEMPLATE_TYPES)})")
-            if q["num_hop"] not in (0, 1):
-                problems.append(f"{qpath}: question {i} has num_hop {q['num_hop']} (expected 0 or 1)")
-    return problems
+def _check_questions(index: DatasetIndex, split: str, problems: list[str]) -> None:
+    path = index.root / qa_file(split)
+    if not path.is_file():
+        return  # a missing QA file is a note (available_tasks), not a problem
+    data, listed = _file_problems(path, QAFile)
+    if listed:
+        problems.extend(listed)
+        return
+    allowed = {t for s in index.splits[split] for t in index.scenes[s]}
+    for i, q in enumerate(data["questions"]):
+        if q["sample_token"] not in allowed:
+            problems.append(f"{path}: questions[{i}].sample_token '{q['sample_token']}' is not a sample of the {split} split")
+
+
+# ----------------------------------------------------------------------------- shards
 
 
 def check_shards(shards: str | Path) -> list[str]:
     """Every problem of a shard directory: missing or corrupt shards, bad entries, wrong counts."""
-    shards = Path(shards)
-    try:
-        idx = read_index(shards)
-    except DataError as err:
-        return [str(err)]
-    problems: list[str] = []
-    for kind, splits in idx.get("kinds", {}).items():
+    return _guarded(lambda found: _check_shards(Path(shards), found), shards)
+
+
+def _check_shards(shards: Path, problems: list[str]) -> None:
+    idx = read_index(shards)
+    for kind, splits in idx["kinds"].items():
         for split, entries in splits.items():
             for entry in entries:
                 url = shards / kind / entry["file"]
@@ -101,16 +207,17 @@ def check_shards(shards: str | Path) -> list[str]:
                     problems.append(f"{url}: listed in {INDEX_FILE} but missing")
                     continue
                 count = 0
-                try:
+
+                def read(found: list[str]) -> None:
+                    nonlocal count
                     for raw in iter_raw(str(url)):
                         decode_sample(raw)
                         count += 1
-                except DataError as err:
-                    problems.append(str(err))
-                    continue
-                if count != entry["samples"]:
+
+                failed = _guarded(read, url)
+                problems.extend(failed)
+                if not failed and count != entry["samples"]:
                     problems.append(f"{url}: holds {count} samples, {INDEX_FILE} says {entry['samples']}")
-    return problems
 
 
 def looks_like_shards(path: str | Path) -> bool:

@@ -12,7 +12,7 @@ from torch.utils.data import DataLoader
 
 from occtrain.config.schema import DataConfig
 from occtrain.data.layout import ANNOTATIONS_FILE, DatasetIndex
-from occtrain.data.shards import INDEX_FILE, KINDS, SkipSamples, make_pipeline, shard_urls, write_shards
+from occtrain.data.shards import INDEX_FILE, KINDS, PAD_KEY, SkipSamples, make_pipeline, shard_urls, write_shards
 from occtrain.errors import DataError
 
 
@@ -48,6 +48,18 @@ def _check_synth_record(root: Path, cfg: DataConfig) -> None:
             f"{root} was synthesized with {', '.join(differ)}; move it away to synthesize the recipe's world, "
             "or set data.synth to match it"
         )
+
+
+def _unpadded(collate: Callable[[list[dict]], dict]) -> Callable[[list[dict]], dict]:
+    """Drop the samples that only even out DDP ranks' validation batches (see ``PAD_KEY``)."""
+
+    def wrapped(samples: list[dict]) -> dict:
+        real = [s for s in samples if not s.get(PAD_KEY)]
+        # A batch of padding alone (batch size 1) still goes through the model, so every
+        # rank runs the same collectives; it then holds a single sample marked as padding.
+        return collate(real) if real else {**collate(samples[:1]), PAD_KEY: True}
+
+    return wrapped
 
 
 def collate_frames(samples: list[dict]) -> dict[str, Any]:
@@ -115,7 +127,7 @@ class ResumableLoader(DataLoader):
         yield from it
 
 
-COLLATE: dict[str, Callable[[list[dict]], dict]] = {"frames": collate_frames, "clips": collate_clips}
+COLLATE: dict[str, Callable[[list[dict]], dict]] = {"frames": _unpadded(collate_frames), "clips": _unpadded(collate_clips)}
 
 
 class ShardDataModule(L.LightningDataModule):
@@ -144,7 +156,7 @@ class ShardDataModule(L.LightningDataModule):
         skip = SkipSamples() if train else None
         pipeline = make_pipeline(
             urls, train=train, total=total, shuffle_buffer=self.cfg.shuffle_buffer, seed=self.cfg.seed,
-            skip=skip, entries=self.entries.get(split),
+            skip=skip, entries=self.entries.get(split), batch_size=self.cfg.batch_size,
         )
         kwargs = dict(batch_size=self.cfg.batch_size, num_workers=self.cfg.num_workers, collate_fn=COLLATE[self.kind])
         if not train:

@@ -18,14 +18,14 @@ from __future__ import annotations
 
 import json
 import math
-import zipfile
 from functools import cached_property
 from pathlib import Path
 from typing import Any, Iterator
 
 import numpy as np
 
-from occtrain.data.schema import FrameAnnotation, QAQuestion
+from occtrain.data.schema import FrameAnnotation, Occ3DAnnotations, QAFile, QAQuestion
+from occtrain.data.validate import first_problem
 from occtrain.errors import DataError
 from occtrain.io import atomic_write_json, atomic_write_npz
 from occtrain.occ3d import GRID_SHAPE, NUM_CLASSES
@@ -39,6 +39,12 @@ FRAMES_DIR = f"{SIDECAR_DIR}/frames"
 QA_DIR = "nuscenes_qa"
 SPLITS = ("train", "val")
 LABEL_KEYS = ("semantics", "mask_lidar", "mask_camera")
+
+
+#: What to do about a bad file, after its one-line problem.
+ANNOTATIONS_HINT = "fix that key, or re-download (Occ3D-nuScenes) or re-create (occtrain data synth) the dataset"
+FRAMES_HINT = "re-create the sidecar with `occtrain data synth`, or delete it to train without the tasks it feeds"
+QA_HINT = "NuScenes-QA format is {\"questions\": [...]}; fix the file, or delete it to train without QA"
 
 
 def qa_file(split: str) -> str:
@@ -80,14 +86,26 @@ def read_npz(path: Path) -> dict[str, np.ndarray]:
     if magic != b"PK\x03\x04":  # np.load would take any other bytes for a pickle
         raise DataError(f"{path}: corrupt or truncated .npz (not a zip archive); re-create it")
     try:
+        # Members are inflated here, inside the try: a corrupt deflate stream raises
+        # zlib.error only when an array is read, not when the archive is opened.
         with np.load(path, allow_pickle=False) as npz:
             return {key: npz[key] for key in npz.files}
     except ValueError as err:
         if "allow_pickle" in str(err):
             raise DataError(f"{path}: holds an object (pickled) array; refusing to load it — re-save with plain arrays") from None
-        raise DataError(f"{path}: not a readable .npz ({err})") from None
-    except (zipfile.BadZipFile, OSError, EOFError) as err:
-        raise DataError(f"{path}: corrupt or truncated .npz ({err}); re-create it") from None
+        raise DataError(f"{path}: not a readable .npz ({_first_line(err)}); re-create it") from None
+    except Exception as err:  # zlib.error, BadZipFile, EOFError, OSError, ...: all mean a damaged file
+        raise DataError(f"{path}: corrupt or truncated .npz ({_error_name(err)}: {_first_line(err)}); re-create it") from None
+
+
+def _first_line(err: BaseException) -> str:
+    return str(err).splitlines()[0] if str(err) else type(err).__name__
+
+
+def _error_name(err: BaseException) -> str:
+    """``zlib.error``, ``BadZipFile``: qualified where the bare name says nothing."""
+    kind = type(err)
+    return kind.__name__ if kind.__module__ in ("builtins", "zipfile") else f"{kind.__module__}.{kind.__name__}"
 
 
 def load_labels(path: str | Path, require_masks: bool = True) -> dict[str, np.ndarray]:
@@ -115,31 +133,60 @@ def quaternion_from_yaw(yaw: float) -> list[float]:
     return [math.cos(yaw / 2.0), 0.0, 0.0, math.sin(yaw / 2.0)]
 
 
-def _read_json(path: Path, what: str) -> Any:
+def _read_json(path: Path, what: str, schema: Any = None, hint: str = "re-create the file") -> Any:
+    """A JSON file, checked against ``schema`` when given; the first problem is one DataError line."""
     if not path.is_file():
         raise DataError(f"{path}: {what} not found")
     try:
-        return json.loads(path.read_text())
+        data = json.loads(path.read_text())  # NaN/Infinity parse; the schema names the key that holds one
     except (json.JSONDecodeError, UnicodeDecodeError) as err:
-        raise DataError(f"{path}: not valid JSON ({err}); re-create the file") from None
+        raise DataError(f"{path}: not valid JSON ({err}); {hint}") from None
+    except OSError as err:
+        raise DataError(f"{path}: cannot read it ({err.strerror})") from None
+    if schema is not None:
+        problem = first_problem(data, schema)
+        if problem:
+            raise DataError(f"{path}: {problem}; {hint}")
+    return data
+
+
+def sample_time(info: dict) -> int | None:
+    """A sample's timestamp in microseconds: an int, or a string of digits (as Occ3D stores
+    it); None for a timestamp that is not a number (Occ3D allows "timestamp (or token)")."""
+    stamp = info.get("timestamp")
+    if type(stamp) is int:
+        return stamp
+    if isinstance(stamp, str) and stamp.isascii() and stamp.isdigit():
+        return int(stamp)
+    return None
 
 
 def _order_samples(scene: str, infos: dict[str, dict], source: Path) -> list[str]:
     """Samples of a scene in time order: by their prev/next links, else by timestamp."""
     tokens = list(infos)
     firsts = [t for t in tokens if not infos[t].get("prev")]
-    if len(firsts) == 1 and all("next" in infos[t] for t in tokens):
+    if len(firsts) == 1:
         order, cur, seen = [], firsts[0], set()
-        while cur and cur in infos and cur not in seen:
+        while cur and cur in infos and cur not in seen:  # a missing "next" ends the chain, as "" does
             order.append(cur)
             seen.add(cur)
             cur = infos[cur].get("next", "")
         if len(order) == len(tokens):
             return order
-    try:
-        return sorted(tokens, key=lambda t: infos[t]["timestamp"])
-    except KeyError:
-        raise DataError(f"{source}: scene '{scene}' has samples without 'timestamp' or prev/next links") from None
+    stamps = {t: sample_time(infos[t]) for t in tokens}
+    odd = next((t for t in tokens if stamps[t] is None), None)
+    if odd is not None:
+        raise DataError(
+            f"{source}: scene_infos.{scene}.{odd}.timestamp is not a number of microseconds and the scene's "
+            "prev/next links do not chain its samples, so their order is unknown; fix the links or the timestamps"
+        )
+    return sorted(tokens, key=lambda t: stamps[t])
+
+
+def dataset_root(path: str | Path) -> Path:
+    """The dataset root that ``path`` names: itself, or the parent of its ``gts/`` directory."""
+    path = Path(path)
+    return path.parent if path.name == GTS_DIR and not (path / ANNOTATIONS_FILE).exists() else path
 
 
 class DatasetIndex:
@@ -150,6 +197,9 @@ class DatasetIndex:
         src = root / ANNOTATIONS_FILE
         if not isinstance(annotations, dict) or "scene_infos" not in annotations:
             raise DataError(f"{src}: no 'scene_infos' key; is this an Occ3D annotations file?")
+        problem = first_problem(annotations, Occ3DAnnotations)
+        if problem:
+            raise DataError(f"{src}: {problem}; {ANNOTATIONS_HINT}")
         self.scene_infos: dict[str, dict[str, dict]] = annotations["scene_infos"]
         self.scenes: dict[str, list[str]] = {
             scene: _order_samples(scene, infos, src) for scene, infos in self.scene_infos.items()
@@ -159,16 +209,14 @@ class DatasetIndex:
             names = annotations.get(f"{split}_split", [])
             unknown = [n for n in names if n not in self.scenes]
             if unknown:
-                raise DataError(f"{src}: {split}_split names scene '{unknown[0]}' that has no scene_infos entry")
+                raise DataError(f"{src}: {split}_split names scene '{unknown[0]}' that has no scene_infos entry; {ANNOTATIONS_HINT}")
             self.splits[split] = list(names)
         self._scene_of = {tok: scene for scene, toks in self.scenes.items() for tok in toks}
 
     @classmethod
     def open(cls, path: str | Path) -> DatasetIndex:
         """Open a dataset root (or its ``gts/`` directory)."""
-        path = Path(path)
-        if path.name == GTS_DIR and not (path / ANNOTATIONS_FILE).exists():
-            path = path.parent
+        path = dataset_root(path)
         if not path.is_dir():
             raise DataError(f"{path}: dataset directory not found; run `occtrain data synth --out {path}` or point at an Occ3D-nuScenes root")
         ann = path / ANNOTATIONS_FILE
@@ -188,15 +236,26 @@ class DatasetIndex:
                 yield scene, token
 
     def labels_path(self, scene: str, token: str) -> Path:
-        rel = self.scene_infos[scene][token].get("gt_path") or f"{GTS_DIR}/{scene}/{token}/{LABELS_FILE}"
+        rel = self.info(scene, token).get("gt_path") or f"{GTS_DIR}/{scene}/{token}/{LABELS_FILE}"
         return self.root / rel
 
     def labels(self, scene: str, token: str) -> dict[str, np.ndarray]:
         return load_labels(self.labels_path(scene, token))
 
+    def info(self, scene: str, token: str) -> dict:
+        """The annotations.json record of a sample (checked against Occ3DSample on opening)."""
+        try:
+            return self.scene_infos[scene][token]
+        except KeyError:
+            raise DataError(f"{self.root / ANNOTATIONS_FILE}: no sample scene_infos.{scene}.{token}") from None
+
+    def timestamp(self, scene: str, token: str) -> int | None:
+        """Microseconds, or None where the annotations give a timestamp that is not a number."""
+        return sample_time(self.info(scene, token))
+
     def ego_pose(self, scene: str, token: str) -> tuple[float, float, float]:
         """Global (x, y, yaw) of the ego at a sample."""
-        pose = self.scene_infos[scene][token]["ego_pose"]
+        pose = self.info(scene, token)["ego_pose"]  # its shape was checked on opening
         x, y = pose["translation"][:2]
         return float(x), float(y), yaw_from_quaternion(pose["rotation"])
 
@@ -205,19 +264,20 @@ class DatasetIndex:
     def generator(self) -> dict | None:
         """occtrain's record of what generated this directory, if any."""
         path = self.root / DATASET_FILE
-        return _read_json(path, "dataset record") if path.is_file() else None
+        return _read_json(path, "dataset record", dict[str, Any]) if path.is_file() else None
 
     def has_frame_annotations(self, scene: str) -> bool:
         return (self.root / FRAMES_DIR / f"{scene}.json").is_file()
 
     def frames(self, scene: str) -> list[FrameAnnotation]:
-        """The scene's FrameAnnotation sidecar, ordered like its samples."""
+        """The scene's FrameAnnotation sidecar, ordered like its samples; its first problem is a DataError."""
         path = self.root / FRAMES_DIR / f"{scene}.json"
         if not path.is_file():
             raise DataError(f"{path}: no frame annotations for scene '{scene}' (trajectories, boxes, text are occtrain sidecars)")
-        frames = _read_json(path, "frame annotations")
-        if not isinstance(frames, list) or [f.get("token") for f in frames] != self.scenes[scene]:
-            raise DataError(f"{path}: frame tokens do not match the scene's samples in {ANNOTATIONS_FILE}")
+        frames = _read_json(path, "frame annotations", list[FrameAnnotation], FRAMES_HINT)
+        tokens = [f["token"] for f in frames]
+        if tokens != self.scenes.get(scene):
+            raise DataError(f"{path}: frame tokens do not match the samples of scene_infos.{scene} in {ANNOTATIONS_FILE}; {FRAMES_HINT}")
         return frames
 
     def questions(self, split: str) -> list[QAQuestion] | None:
@@ -225,15 +285,7 @@ class DatasetIndex:
         path = self.root / qa_file(split)
         if not path.is_file():
             return None
-        data = _read_json(path, "NuScenes-QA file")
-        qs = data.get("questions") if isinstance(data, dict) else None
-        if not isinstance(qs, list):
-            raise DataError(f"{path}: expected {{\"questions\": [...]}} in NuScenes-QA format")
-        for i, q in enumerate(qs):
-            missing = [k for k in ("question", "answer", "sample_token", "template_type", "num_hop") if k not in q]
-            if missing:
-                raise DataError(f"{path}: question {i} lacks {', '.join(missing)}")
-        return qs
+        return _read_json(path, "NuScenes-QA file", QAFile, QA_HINT)["questions"]
 
     def questions_by_sample(self, split: str) -> dict[str, list[QAQuestion]]:
         """A split's NuScenes-QA questions grouped by sample token (empty without the sidecar)."""
@@ -245,9 +297,11 @@ class DatasetIndex:
     def available_tasks(self) -> dict[str, str]:
         """Which training tasks this dataset supports; a reason for each one it does not."""
         scenes = list(self.scenes)
-        has_frames = bool(scenes) and all(self.has_frame_annotations(s) for s in scenes)
+        lacking = [s for s in scenes if not self.has_frame_annotations(s)]
+        has_frames = bool(scenes) and not lacking
         has_qa = all((self.root / qa_file(s)).is_file() for s in SPLITS if self.splits.get(s))
-        sidecar = f"needs the {FRAMES_DIR}/<scene>.json sidecar, which this dataset lacks"
+        who = f"{len(lacking)} of {len(scenes)} scenes lack (first: {lacking[0]})" if 0 < len(lacking) < len(scenes) else "this dataset lacks"
+        sidecar = f"needs the {FRAMES_DIR}/<scene>.json sidecar, which {who}"
         tasks = {"reconstruction": "", "forecasting": "", "planning": ""}
         for task in ("detection", "counting", "prediction", "chain_of_thought", "meta_action"):
             tasks[task] = "" if has_frames else sidecar
@@ -271,7 +325,7 @@ class DatasetWriter:
         self.fingerprint = fingerprint
         record = self.root / DATASET_FILE
         if record.is_file():
-            existing = _read_json(record, "dataset record")
+            existing = _read_json(record, "dataset record", dict[str, Any], "delete that directory or choose another --out")
             if existing != fingerprint:
                 diff = sorted(k for k in set(existing) | set(fingerprint) if existing.get(k) != fingerprint.get(k))
                 raise DataError(
@@ -304,7 +358,7 @@ class DatasetWriter:
 
     def read_scene(self, scene: str) -> list[FrameAnnotation]:
         """A completed scene's frames, for resuming an interrupted write."""
-        return _read_json(self.root / FRAMES_DIR / f"{scene}.json", "frame annotations")
+        return _read_json(self.root / FRAMES_DIR / f"{scene}.json", "frame annotations", list[FrameAnnotation], FRAMES_HINT)
 
     def add_scene_info(self, scene: str, split: str, frames: list[FrameAnnotation]) -> None:
         infos = {}

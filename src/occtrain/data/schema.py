@@ -1,6 +1,7 @@
-"""The per-frame annotation record that the synthetic world writes and every reader returns.
+"""The declared types of the dataset's JSON files, checked on reading by :mod:`occtrain.data.validate`.
 
-A real Occ3D-nuScenes directory supplies the occupancy and ego poses; everything else
+FrameAnnotation is the per-frame record that the synthetic world writes and every reader
+returns; QAQuestion is NuScenes-QA's; Occ3DAnnotations is Occ3D's ``annotations.json``. A real Occ3D-nuScenes directory supplies the occupancy and ego poses; everything else
 here comes from occtrain's sidecar files (``occtrain/<scene>.json``), which real data
 may lack. All coordinates are metres in the *current* ego frame (x forward, y left)
 unless a field says "global". Yaw is in radians, counter-clockwise from +x.
@@ -8,54 +9,68 @@ unless a field says "global". Yaw is in radians, counter-clockwise from +x.
 
 from __future__ import annotations
 
-from typing import TypedDict
+from typing import Annotated, Literal, NotRequired, TypedDict, Union, get_args
 
-from occtrain.nuscenes_qa import TEMPLATE_TYPES  # noqa: F401 - re-exported: question records use it
+from occtrain.data.validate import Len
+from occtrain.nuscenes_qa import TemplateType
+from occtrain.occ3d import CLASS_NAMES, FUTURE_STEPS, PAST_STEPS
+
+# Each closed vocabulary is a Literal (the schema checks it) and a tuple of its values (code iterates it).
 
 #: High-level driving command, as in ST-P3 / UniAD (decided from the future
 #: trajectory's lateral offset at the last waypoint; see COMMAND_LATERAL_THRESHOLD).
-COMMANDS: tuple[str, ...] = ("turn right", "turn left", "go straight")
+Command = Literal["turn right", "turn left", "go straight"]
+COMMANDS: tuple[str, ...] = get_args(Command)
 COMMAND_LATERAL_THRESHOLD = 2.0  # metres of lateral offset at +3 s
 
 #: OccVLA meta actions: a speed part and a direction part.
-META_SPEEDS: tuple[str, ...] = ("accelerate", "decelerate", "maintain")
-META_DIRECTIONS: tuple[str, ...] = ("straight", "left", "right", "bear left", "bear right", "stop")
+MetaSpeed = Literal["accelerate", "decelerate", "maintain"]
+MetaDirection = Literal["straight", "left", "right", "bear left", "bear right", "stop"]
+META_SPEEDS: tuple[str, ...] = get_args(MetaSpeed)
+META_DIRECTIONS: tuple[str, ...] = get_args(MetaDirection)
 #: |longitudinal acceleration| below this (m/s^2, averaged over the next 1 s) is "maintain".
 META_ACCEL_THRESHOLD = 0.5
 #: Ego speed (m/s) at or below which the ego is "stopped".
 STOP_SPEED = 0.3
 
 #: NuScenes-QA status answers (nuScenes attribute names without their prefix).
-STATUS_VALUES: tuple[str, ...] = (
-    "moving",
-    "parked",
-    "stopped",
-    "standing",
-    "with rider",
-    "without rider",
-)
+Status = Literal["moving", "parked", "stopped", "standing", "with rider", "without rider"]
+STATUS_VALUES: tuple[str, ...] = get_args(Status)
+
+#: NuScenes-QA question template types (the vocabulary lives in occtrain.nuscenes_qa).
+TEMPLATE_TYPES: tuple[str, ...] = get_args(TemplateType)
+
+#: Box categories: the Occ3D object classes (CLASS_NAMES[0:11]), built from occ3d's list
+#: so the two cannot drift (a static type checker cannot see through this one).
+Category = Literal[CLASS_NAMES[:11]]  # type: ignore[valid-type]
+
+Vec2 = Annotated[list[float], Len(2)]
+Vec3 = Annotated[list[float], Len(3)]
+Quaternion = Annotated[list[float], Len(4)]  # w, x, y, z, as nuScenes stores rotations
+Flag = Literal[0, 1]
 
 
+# ----------------------------------------------------------------------------- occtrain's sidecar
 
 
 class EgoPose(TypedDict):
-    translation: list[float]  # global [x, y, z]
+    translation: Vec3  # global [x, y, z]
     yaw: float  # global heading
 
 
 class MetaAction(TypedDict):
-    speed: str  # one of META_SPEEDS
-    direction: str  # one of META_DIRECTIONS
+    speed: MetaSpeed
+    direction: MetaDirection
 
 
 class Box(TypedDict):
     track_id: int  # stable across the frames of a scene
-    category: str  # an Occ3D class name (CLASS_NAMES[0:11])
-    center: list[float]  # [x, y, z], ego frame
-    size: list[float]  # [length, width, height]
+    category: Category
+    center: Vec3  # [x, y, z], ego frame
+    size: Vec3  # [length, width, height]
     yaw: float  # ego frame
-    velocity: list[float]  # [vx, vy] m/s, ego frame
-    attribute: str  # one of STATUS_VALUES, or "" for static objects (barrier, cone)
+    velocity: Vec2  # [vx, vy] m/s, ego frame
+    attribute: Union[Status, Literal[""]]  # "" for static objects (barrier, cone)
 
 
 class FrameAnnotation(TypedDict):
@@ -67,15 +82,15 @@ class FrameAnnotation(TypedDict):
     ego_speed: float  # m/s
     ego_accel: float  # m/s^2, longitudinal
     ego_yaw_rate: float  # rad/s
-    command: str  # one of COMMANDS
+    command: Command
     meta_action: MetaAction
-    ego_future: list[list[float]]  # FUTURE_STEPS x [x, y]
-    ego_future_mask: list[int]  # 1 where the waypoint exists (scene end cuts it)
-    ego_past: list[list[float]]  # PAST_STEPS x [x, y], oldest first
-    ego_past_mask: list[int]
+    ego_future: Annotated[list[Vec2], Len(FUTURE_STEPS)]  # [x, y] per step
+    ego_future_mask: Annotated[list[Flag], Len(FUTURE_STEPS)]  # 1 where the waypoint exists (scene end cuts it)
+    ego_past: Annotated[list[Vec2], Len(PAST_STEPS)]  # oldest first
+    ego_past_mask: Annotated[list[Flag], Len(PAST_STEPS)]
     boxes: list[Box]  # agents and objects inside the grid's x-y range
-    agent_futures: list[list[list[float]]]  # per box: FUTURE_STEPS x [x, y], current ego frame
-    agent_future_mask: list[list[int]]  # per box: FUTURE_STEPS x 0/1
+    agent_futures: list[Annotated[list[Vec2], Len(FUTURE_STEPS)]]  # per box, current ego frame
+    agent_future_mask: list[Annotated[list[Flag], Len(FUTURE_STEPS)]]  # per box
     caption: str
     narration: str  # chain-of-thought: surroundings -> movers -> ego plan -> meta action
 
@@ -86,5 +101,45 @@ class QAQuestion(TypedDict):
     question: str
     answer: str
     sample_token: str
-    template_type: str  # one of TEMPLATE_TYPES
-    num_hop: int  # 0 or 1
+    template_type: TemplateType
+    num_hop: Literal[0, 1]
+
+
+class QAFile(TypedDict):
+    """``nuscenes_qa/NuScenes_<split>_questions.json`` (NuScenes-QA also stores an ``info`` object)."""
+
+    questions: list[QAQuestion]
+
+
+# ----------------------------------------------------------------------------- Occ3D's annotations.json
+# As the Occ3D-nuScenes release documents it; occtrain reads the samples' order, ego poses
+# and ground-truth paths. Camera records are checked when present but never needed.
+
+
+class Occ3DPose(TypedDict):
+    translation: Vec3
+    rotation: Quaternion
+
+
+class Occ3DCamera(TypedDict):
+    img_path: str
+    intrinsic: Annotated[list[Vec3], Len(3)]
+    extrinsic: Occ3DPose
+    ego_pose: Occ3DPose
+
+
+class Occ3DSample(TypedDict):
+    # Documented as "timestamp (or token), unique by sample": a string, of digits in the
+    # release; occtrain's writer stores an int. Numeric ones are microseconds.
+    timestamp: Union[int, str]
+    ego_pose: Occ3DPose
+    camera_sensor: NotRequired[dict[str, Occ3DCamera]]
+    gt_path: NotRequired[str]  # relative to the root; the test split has none
+    prev: NotRequired[str]  # "" (or absent) at the scene's ends
+    next: NotRequired[str]
+
+
+class Occ3DAnnotations(TypedDict):
+    train_split: NotRequired[list[str]]
+    val_split: NotRequired[list[str]]
+    scene_infos: dict[str, dict[str, Occ3DSample]]  # scene name -> sample token -> sample

@@ -27,13 +27,14 @@ import io
 import json
 import tarfile
 from pathlib import Path
-from typing import Any, Callable, Iterable, Iterator
+from typing import Any, Callable, Iterable, Iterator, TypedDict
 
 import numpy as np
 import webdataset as wds
 
 from occtrain.data.clips import clip_annotation
-from occtrain.data.layout import DatasetIndex, read_npz
+from occtrain.data.layout import FRAMES_DIR, SPLITS, DatasetIndex, read_npz
+from occtrain.data.validate import first_problem
 from occtrain.errors import DataError
 from occtrain.io import atomic_write_json, npz_bytes, rank_world
 from occtrain.occ3d import GRID_SHAPE
@@ -63,6 +64,18 @@ def dataset_fingerprint(index: DatasetIndex) -> str:
     if index.generator:
         h.update(json.dumps(index.generator, sort_keys=True).encode())
     return h.hexdigest()[:16]
+
+
+class ShardEntry(TypedDict):
+    file: str  # a file name inside SHARDS/<kind>/
+    samples: int
+
+
+class ShardIndex(TypedDict):
+    """``SHARDS/index.json``: what the shards were made from, and the shards of each kind and split."""
+
+    source: dict[str, Any]
+    kinds: dict[str, dict[str, list[ShardEntry]]]
 
 
 class _ShardSink:
@@ -95,6 +108,18 @@ class _ShardSink:
     def close(self) -> list[dict]:
         self._close()
         return self.shards
+
+    def discard(self) -> None:
+        """Remove every file this sink wrote (a failed write leaves nothing behind)."""
+        if self._writer is not None:
+            try:
+                self._writer.close()
+            except Exception:
+                pass  # the write already failed; the temp file goes below either way
+            self._writer = None
+            self._tmp.unlink(missing_ok=True)
+        for shard in self.shards:
+            (self.out_dir / shard["file"]).unlink(missing_ok=True)
 
 
 def _frame_sample(index: DatasetIndex, scene: str, token: str, position: int, split: str) -> dict:
@@ -150,6 +175,11 @@ def write_shards(
     unknown = [k for k in kinds if k not in KINDS]
     if unknown:
         raise DataError(f"unknown shard kind '{unknown[0]}'; choose from {', '.join(KINDS)}")
+    for name, value, least in (("samples_per_shard", samples_per_shard, 1), ("history", history, 0), ("future", future, 0)):
+        if not isinstance(value, int) or isinstance(value, bool) or value < least:
+            raise DataError(f"{name} is {value!r}; it must be a whole number of at least {least}")
+    if "clips" in kinds:
+        _check_sidecars(index)
     source = {
         "dataset": str(index.root.resolve()),
         "fingerprint": dataset_fingerprint(index),
@@ -168,26 +198,55 @@ def write_shards(
         raise DataError(f"{out}: holds shards without an {INDEX_FILE} (an interrupted write?); delete it and write again")
 
     result: dict[str, Any] = {"source": source, "kinds": {}}
-    for kind in kinds:
-        (out / kind).mkdir(parents=True, exist_ok=True)
-        result["kinds"][kind] = {}
-        for split in ("train", "val"):
-            sink = _ShardSink(out / kind, split, samples_per_shard)
-            if kind == "frames":
-                for position, (scene, token) in enumerate(index.samples(split)):
-                    sink.write(_frame_sample(index, scene, token, index.scenes[scene].index(token), split))
-                    if progress:
-                        progress(1)
-            else:
-                qa = index.questions_by_sample(split)
-                for scene in index.splits[split]:
-                    for sample in _clip_samples(index, scene, split, history, future, qa):
-                        sink.write(sample)
-                    if progress:
-                        progress(len(index.scenes[scene]))
-            result["kinds"][kind][split] = sink.close()
+    new_dirs = [d for d in (out, *(out / k for k in kinds)) if not d.exists()]
+    sinks: list[_ShardSink] = []
+    try:
+        for kind in kinds:
+            (out / kind).mkdir(parents=True, exist_ok=True)
+            result["kinds"][kind] = {}
+            for split in SPLITS:
+                sink = _ShardSink(out / kind, split, samples_per_shard)
+                sinks.append(sink)
+                if kind == "frames":
+                    for scene, token in index.samples(split):
+                        sink.write(_frame_sample(index, scene, token, index.scenes[scene].index(token), split))
+                        if progress:
+                            progress(1)
+                else:
+                    qa = index.questions_by_sample(split)
+                    for scene in index.splits[split]:
+                        for sample in _clip_samples(index, scene, split, history, future, qa):
+                            sink.write(sample)
+                        if progress:
+                            progress(len(index.scenes[scene]))
+                result["kinds"][kind][split] = sink.close()
+    except BaseException:
+        # A bad label (or ^C) halfway: remove what this call wrote, so the next call does
+        # not find shards without an index. `out` held no shards before (checked above).
+        for sink in sinks:
+            sink.discard()
+        for d in reversed(new_dirs):
+            if d.is_dir() and not any(d.iterdir()):
+                d.rmdir()
+        raise
     atomic_write_json(out / INDEX_FILE, result)
     return result
+
+
+def _check_sidecars(index: DatasetIndex) -> None:
+    """Read every sidecar a clip is made from before the first shard is written: a problem
+    (or a scene without a frame sidecar among scenes with one) is a DataError now, not a
+    KeyError in training."""
+    scenes = [s for split in SPLITS for s in index.splits[split]]
+    present = [s for s in scenes if index.has_frame_annotations(s)]
+    if present and len(present) < len(scenes):
+        lacking = next(s for s in scenes if s not in present)
+        path = index.root / FRAMES_DIR / f"{lacking}.json"
+        raise DataError(f"{path}: missing while {len(present)} other scenes have their frame sidecar; write it or delete them all")
+    for scene in present:
+        index.frames(scene)
+    for split in SPLITS:
+        index.questions(split)
 
 
 def read_index(shards: str | Path) -> dict:
@@ -196,9 +255,19 @@ def read_index(shards: str | Path) -> dict:
     if not path.is_file():
         raise DataError(f"{path}: not found; write shards with `occtrain data shards DATASET --out {Path(shards)}`")
     try:
-        return json.loads(path.read_text())
-    except json.JSONDecodeError as err:
+        idx = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as err:
         raise DataError(f"{path}: not valid JSON ({err}); write the shards again") from None
+    problem = first_problem(idx, ShardIndex)
+    if problem:
+        raise DataError(f"{path}: {problem}; write the shards again")
+    for kind, splits in idx["kinds"].items():
+        for split, entries in splits.items():
+            for i, entry in enumerate(entries):
+                name = entry["file"]
+                if Path(name).name != name or name in ("", ".", ".."):  # a shard never lies outside its kind's directory
+                    raise DataError(f"{path}: kinds.{kind}.{split}[{i}].file '{name}' is not a file name; write the shards again")
+    return idx
 
 
 def shard_urls(shards: str | Path, kind: str, split: str) -> tuple[list[str], int]:
@@ -245,6 +314,8 @@ def decode_sample(sample: dict) -> dict:
     """Decode one raw webdataset sample through the allow-list; masks are unpacked."""
     where = f"{sample.get('__url__', '?')} sample '{sample.get('__key__', '?')}'"
     out: dict[str, Any] = {"__key__": sample.get("__key__")}
+    if sample.get(PAD_KEY):
+        out[PAD_KEY] = True
     for name, value in sample.items():
         if name.startswith("__"):
             continue
@@ -272,20 +343,48 @@ def _raise_shard_error(exn: Exception) -> bool:
     raise exn
 
 
-def _strided(world: int, rank: int, per_rank: int) -> Callable[[Iterable[dict]], Iterator[dict]]:
-    """Keep every ``world``-th sample starting at ``rank``, at most ``per_rank`` of them.
+#: Marks a sample that only evens out the batch count of a DDP rank; collate drops it.
+PAD_KEY = "__pad__"
 
-    Validation reads every shard on every rank and strides over samples, so each sample is
-    scored exactly once and every rank sees the same number of batches (DDP-safe).
+
+def _strided(world: int, rank: int, total: int | None) -> Callable[[Iterable[dict]], Iterator[dict]]:
+    """Keep every ``world``-th sample starting at ``rank``: each val sample is scored once.
+
+    DDP needs every rank to run the same number of validation batches (each forward is a
+    collective), so a rank with one sample fewer than the others starts with a padding
+    sample (a copy of its first, marked :data:`PAD_KEY`) that collate drops: metrics see
+    each sample exactly once, as in one process, and no batch gets a duplicate.
     """
+    mine = len(range(rank, total, world)) if total is not None else None
+    most = -(-total // world) if total is not None else None
 
     def stage(src: Iterable[dict]) -> Iterator[dict]:
-        kept = 0
+        first = True
         for i, sample in enumerate(src):
-            if kept >= per_rank:
-                return
-            if i % world == rank:
-                kept += 1
+            if i % world != rank:
+                continue
+            if first and mine is not None and most is not None and mine < most:
+                yield {**sample, PAD_KEY: True}
+            first = False
+            yield sample
+
+    return stage
+
+
+def _worker_id() -> int:
+    import torch.utils.data
+
+    info = torch.utils.data.get_worker_info()
+    return info.id if info is not None else 0
+
+
+def _rank_batches(world: int, rank: int, batch_size: int) -> Callable[[Iterable[dict]], Iterator[dict]]:
+    """Of a stream shared by all ranks, keep the samples of every ``world``-th batch of
+    ``batch_size`` starting at batch ``rank``. Raw samples are dropped before decoding."""
+
+    def stage(src: Iterable[dict]) -> Iterator[dict]:
+        for i, sample in enumerate(src):
+            if (i // batch_size) % world == rank:
                 yield sample
 
     return stage
@@ -333,6 +432,7 @@ def make_pipeline(
     transform: Callable[[dict], Any] | None = None,
     skip: SkipSamples | None = None,
     entries: Iterable[str] | None = None,
+    batch_size: int = 1,
 ) -> wds.DataPipeline:
     """A webdataset pipeline over shards.
 
@@ -347,20 +447,26 @@ def make_pipeline(
     stages: list[Any]
     if train:
         stages = [
-            wds.ResampledShards(urls, seed=seed, deterministic=True),
+            # One stream for all ranks (seeded by the worker alone, not the rank): rank r
+            # takes every world-th batch of it, so the global batch of N ranks x B samples
+            # is the batch of one process with N x B, and training does not depend on how
+            # many processes share it.
+            wds.ResampledShards(urls, seed=seed, deterministic=True, worker_seed=_worker_id),
             wds.tarfile_to_samples(handler=_raise_shard_error),
         ]
         if shuffle_buffer > 1:
             stages.append(wds.shuffle(shuffle_buffer, initial=min(shuffle_buffer, 64), seed=seed))
+        rank, world = rank_world()
+        if world > 1:
+            stages.append(_rank_batches(world, rank, batch_size))
         if skip is not None:
             stages.append(skip)
     else:
         rank, world = rank_world()
-        per_rank = (total // world) if total is not None else 10**12
         stages = [
             wds.SimpleShardList(urls),
             wds.tarfile_to_samples(handler=_raise_shard_error),
-            _strided(world, rank, per_rank),
+            _strided(world, rank, total),
             _worker_strided,
         ]
     if entries is not None:

@@ -21,6 +21,10 @@ def show(
     or a single ``labels.npz``.
     """
     path, out = Path(path), Path(out)
+    if scale < 1:
+        raise DataError(f"--scale {scale}: must be at least 1 pixel per voxel")
+    if out.is_dir():
+        raise DataError(f"{out}: is a directory; --out takes a .png file name")
     if path.suffix == ".npz":
         labels = load_labels(path, require_masks=False)
         pictures = [render_bev(labels["semantics"], labels.get("mask_camera"), scale=scale, title=path.parent.name)]
@@ -53,8 +57,13 @@ def show(
             seen.update(np.unique(labels["semantics"]).tolist())
         classes = sorted(seen)
     image = strip(pictures, [int(c) for c in classes if c != FREE])
-    out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_name(f".{out.name}.tmp.png")
-    image.save(tmp)
-    tmp.replace(out)
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        image.save(tmp)
+        tmp.replace(out)
+    except OSError as err:
+        if tmp.parent.is_dir():  # a parent that is a file is why it failed; nothing to clean then
+            tmp.unlink(missing_ok=True)
+        raise DataError(f"{out}: cannot write the picture ({err.strerror or err}); choose another --out") from None
     return out

@@ -12,6 +12,7 @@ from occtrain.data.layout import DatasetIndex, DatasetWriter
 from occtrain.data.schema import QAQuestion
 from occtrain.data.synth import generate_scene
 from occtrain.data.synth.text import caption_for_frame, narration_for_frame, questions_for_frame
+from occtrain.errors import ConfigError
 from occtrain.progress import console, progress_bar
 
 FORMAT_VERSION = 1
@@ -45,7 +46,10 @@ def synthesize(out: str | Path, cfg: SynthConfig, verbose: bool = True) -> Datas
     holding a different dataset is refused (DatasetWriter), never overwritten.
     """
     if cfg.train_scenes < 1 or cfg.val_scenes < 0 or cfg.frames_per_scene < 1:
-        raise ValueError("synth needs at least one train scene and one frame per scene")
+        raise ConfigError(
+            f"synth needs at least one train scene and one frame per scene (got train_scenes={cfg.train_scenes}, "
+            f"val_scenes={cfg.val_scenes}, frames_per_scene={cfg.frames_per_scene}); set --scenes/--frames (or a recipe's data.synth) to at least 1"
+        )
     writer = DatasetWriter(out, _fingerprint(cfg))
     if writer.complete:
         if verbose:

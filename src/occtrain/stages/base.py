@@ -9,15 +9,17 @@ nothing else.
 
 from __future__ import annotations
 
+import functools
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import Any, Callable, ClassVar
 
 import lightning as L
 
 from occtrain.config.recipe import StageSpec
 from occtrain.config.schema import DataConfig, TrainerConfig
+from occtrain.data.shards import PAD_KEY
 from occtrain.errors import ConfigError
 from occtrain.exports import check_loaded_keys
 from occtrain.models import count_parameters
@@ -49,6 +51,18 @@ class StageReport:
     scenes: list[tuple[str, list[tuple[str, Any]]]] = field(default_factory=list)
 
 
+def _skipping_padding(step: Callable[..., Any]) -> Callable[..., Any]:
+    """A validation step that ignores a batch made only of DDP padding (see ``PAD_KEY``)."""
+
+    @functools.wraps(step)
+    def wrapped(self: Stage, batch: Any, *args: Any, **kwargs: Any) -> Any:
+        if isinstance(batch, dict) and batch.get(PAD_KEY):
+            return None
+        return step(self, batch, *args, **kwargs)
+
+    return wrapped
+
+
 class Stage(L.LightningModule, ABC):
     """Base of every stage kind (built-in or plugin).
 
@@ -63,6 +77,12 @@ class Stage(L.LightningModule, ABC):
     #: Parameter-name prefixes of sub-models that come, frozen, from another stage's export:
     #: checkpoints leave them out and loading does not expect them back.
     frozen_prefixes: ClassVar[tuple[str, ...]] = ()
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        step = cls.__dict__.get("validation_step")
+        if step is not None:
+            cls.validation_step = _skipping_padding(step)  # type: ignore[method-assign]
 
     def __init__(self, ctx: StageContext):
         super().__init__()

@@ -2,23 +2,150 @@
 
 from __future__ import annotations
 
+import csv
+import io
 import logging
 import math
+import os
+import time
 import warnings
+import zipfile
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import lightning as L
 import torch
+from lightning.fabric.loggers.csv_logs import _ExperimentWriter
 from lightning.pytorch.callbacks import Callback, LearningRateMonitor, ModelCheckpoint, RichProgressBar
 from lightning.pytorch.loggers import CSVLogger, TensorBoardLogger
+from lightning.pytorch.plugins.io import TorchCheckpointIO
+from torchmetrics import MeanMetric
 
 from occtrain.config.recipe import OptimConfig
 from occtrain.config.schema import TrainerConfig
 from occtrain.data.datamodule import ResumableLoader
 from occtrain.errors import OcctrainError
+from occtrain.io import atomic_open
 
 LAST_CKPT = "last.ckpt"
+#: The checkpoint ``last.ckpt`` replaced, kept so a damaged ``last.ckpt`` still resumes.
+PREVIOUS_CKPT = "previous.ckpt"
+
+
+# ----------------------------------------------------------------------------- checkpoints
+
+
+class AtomicCheckpointIO(TorchCheckpointIO):
+    """Checkpoints written to a temp name, fsynced and renamed: a kill, a full disk or a
+    read-only directory never leaves a partial ``last.ckpt`` or ``best.ckpt``. The
+    ``last.ckpt`` being replaced stays as ``previous.ckpt`` (a hard link: no copy)."""
+
+    def save_checkpoint(self, checkpoint: dict[str, Any], path: Any, storage_options: Any = None) -> None:
+        path = Path(path)
+        # Serialized in memory first, so a failing write is an OSError of ours to explain,
+        # not one torch's zip writer wraps in a RuntimeError.
+        buf = io.BytesIO()
+        torch.save(checkpoint, buf)
+        with atomic_open(path) as fh:
+            fh.write(buf.getbuffer())
+            if path.name == LAST_CKPT and path.is_file():
+                previous = path.with_name(PREVIOUS_CKPT)
+                previous.unlink(missing_ok=True)
+                os.link(path, previous)
+
+
+def readable_checkpoint(path: Path) -> str:
+    """Why ``path`` cannot be a checkpoint to resume from ("" when it can).
+
+    torch writes a zip archive; its central directory and per-entry CRCs catch truncation
+    and damaged bytes without unpickling anything."""
+    try:
+        with zipfile.ZipFile(path) as zf:
+            bad = zf.testzip()
+        return f"damaged entry {bad}" if bad else ""
+    except (zipfile.BadZipFile, OSError, EOFError) as err:
+        return str(err) or type(err).__name__
+
+
+def last_checkpoint(stage_dir: Path, say: Callable[[str], None] = lambda line: None) -> Path | None:
+    """The checkpoint a cut-off stage resumes from: ``last.ckpt``, else the one before it
+    when ``last.ckpt`` is unreadable (``say`` gets one line about it), else None."""
+    ckpt_dir = stage_dir / "checkpoints"
+    last, previous = ckpt_dir / LAST_CKPT, ckpt_dir / PREVIOUS_CKPT
+    if not last.is_file():
+        return None
+    problem = readable_checkpoint(last)
+    if not problem:
+        return last
+    if previous.is_file() and not readable_checkpoint(previous):
+        say(f"{last} is unreadable ({problem}); resuming from the checkpoint before it, {previous}")
+        return previous
+    say(f"{last} is unreadable ({problem}) and no earlier checkpoint is; the stage starts afresh")
+    return None
+
+
+def checkpoint_step(path: Path) -> int:
+    """The optimizer step a checkpoint was saved at (weights-only load: nothing unpickled)."""
+    return int(torch.load(path, map_location="cpu", weights_only=True, mmap=True).get("global_step", 0))
+
+
+# ----------------------------------------------------------------------------- logs
+
+
+class _AppendingWriter(_ExperimentWriter):
+    """Lightning's CSV writer deletes ``metrics.csv`` when it starts; a resumed stage keeps
+    the rows logged before the checkpoint it resumes from instead (later rows are logged
+    again by the resumed run)."""
+
+    def __init__(self, log_dir: str, keep_before_step: int | None) -> None:
+        path = Path(log_dir) / self.NAME_METRICS_FILE
+        kept: list[dict] = []
+        keys: list[str] = []
+        if keep_before_step is not None and path.is_file():
+            with open(path, newline="") as fh:
+                reader = csv.DictReader(fh)
+                keys = list(reader.fieldnames or [])
+                kept = [row for row in reader if _row_step(row) < keep_before_step]
+        path.unlink(missing_ok=True)
+        super().__init__(log_dir)
+        if kept:
+            with atomic_open(path) as fh:
+                text = _csv_text(keys, kept)
+                fh.write(text.encode())
+            self.metrics_keys = sorted(keys)
+
+    def _check_log_dir_exists(self) -> None:
+        """The base class deletes earlier logs here (and warns that it will)."""
+
+
+def _row_step(row: dict) -> float:
+    try:
+        return float(row.get("step") or 0)
+    except ValueError:
+        return 0.0
+
+
+def _csv_text(keys: list[str], rows: list[dict]) -> str:
+    buf = io.StringIO()
+    writer = csv.DictWriter(buf, fieldnames=sorted(keys))
+    writer.writeheader()
+    writer.writerows(rows)
+    return buf.getvalue()
+
+
+class AppendingCSVLogger(CSVLogger):
+    """A CSVLogger whose ``metrics.csv`` survives a resume (see :class:`_AppendingWriter`)."""
+
+    def __init__(self, *args: Any, resume_step: int | None = None, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self._resume_step = resume_step
+
+    @property
+    def experiment(self) -> _ExperimentWriter:
+        if self._experiment is None:
+            self._fs.makedirs(self.root_dir, exist_ok=True)
+            self._experiment = _AppendingWriter(self.log_dir, self._resume_step)
+        return self._experiment
 
 
 # ----------------------------------------------------------------------------- callbacks
@@ -34,14 +161,68 @@ class _TrackConsumed(Callback):
             loader.consumed = lambda: trainer.global_step * acc
 
 
-class _RngState(Callback):
-    """Saves and restores torch's RNG in checkpoints (Lightning does not)."""
+class _StepSeed(Callback):
+    """Seeds torch before every training batch from the optimizer step, the micro-batch
+    within it and the rank: dropout, sampled loss terms and codebook restarts then draw the
+    same numbers in a resumed run as in an uninterrupted one, wherever the checkpoint fell
+    and whatever validation or a loader drew in between."""
 
-    def state_dict(self) -> dict[str, Any]:
-        return {"torch": torch.get_rng_state()}
+    def __init__(self, base_seed: int):
+        self.base_seed = base_seed
 
-    def load_state_dict(self, state: dict[str, Any]) -> None:
-        torch.set_rng_state(state["torch"])
+    def on_train_batch_start(self, trainer: L.Trainer, pl_module: L.LightningModule, batch: Any, batch_idx: int) -> None:
+        acc = trainer.accumulate_grad_batches
+        micro = trainer.global_step * acc + batch_idx % acc
+        torch.manual_seed((self.base_seed * 1_000_003 + micro) * 1024 + trainer.global_rank)
+
+
+class _Heartbeat(Callback):
+    """Calls ``record(seconds since the attempt began)`` at most every ``every_s`` seconds
+    and at each checkpoint, so a run killed with -9 keeps the wall time it spent."""
+
+    def __init__(self, record: Callable[[float], None], every_s: float = 30.0):
+        self.record, self.every_s = record, every_s
+        self.started = self.last = time.time()
+
+    def on_train_batch_end(self, trainer: L.Trainer, *args: Any) -> None:
+        now = time.time()
+        if now - self.last >= self.every_s and trainer.is_global_zero:
+            self.last = now
+            self.record(now - self.started)
+
+    def on_save_checkpoint(self, trainer: L.Trainer, *args: Any) -> None:
+        if trainer.is_global_zero:
+            self.last = time.time()
+            self.record(self.last - self.started)
+
+
+# ----------------------------------------------------------------------------- validation
+
+
+class ValidationMeans(torch.nn.Module):
+    """Validation means weighted by sample count, each a torchmetrics ``MeanMetric``.
+
+    Under DDP the sums and counts of every rank are gathered before dividing, so a split
+    spread unevenly over ranks averages exactly as in one process (Lightning's own
+    ``sync_dist`` reduction of a logged value does not promise that).
+    """
+
+    def __init__(self, *names: str):
+        super().__init__()
+        self.names = names
+        self.means = torch.nn.ModuleList(MeanMetric() for _ in names)
+
+    def update(self, name: str, value: torch.Tensor | float, weight: int) -> None:
+        self.means[self.names.index(name)].update(torch.as_tensor(value, dtype=torch.float32).detach(), weight)
+
+    def pop(self) -> dict[str, float]:
+        """The means of this validation (all ranks must call it), then reset."""
+        out = {}
+        for name, mean in zip(self.names, self.means):
+            if mean.update_count:
+                out[name] = float(mean.compute())
+            mean.reset()
+        return out
 
 
 # ----------------------------------------------------------------------------- trainer
@@ -52,14 +233,26 @@ def quiet_lightning() -> None:
     of its own internals say nothing a user can act on."""
     logging.getLogger("lightning.pytorch.utilities.rank_zero").setLevel(logging.WARNING)
     logging.getLogger("lightning.pytorch.accelerators.cuda").setLevel(logging.WARNING)
+    # "Received SIGTERM": the runner says what a stop means and how to resume, in one line.
+    logging.getLogger("lightning.pytorch.trainer.connectors.signal_connector").setLevel(logging.WARNING)
     warnings.filterwarnings("ignore", message=r".*LeafSpec.*")
     warnings.filterwarnings("ignore", message=r".*is_gradient_checkpointing.*")
+    # Every epoch-level value a stage logs is already gathered over ranks (torchmetrics
+    # metrics, ValidationMeans), so Lightning's advice to sync it again does not apply.
+    warnings.filterwarnings("ignore", message=r".*sync_dist=True.*when logging on epoch level.*")
     # Frozen sub-models (the scene tokenizer, a teacher) are in eval mode on purpose.
     warnings.filterwarnings("ignore", message=r".*module\(s\) in eval mode.*")
 
 
-def build_trainer(cfg: TrainerConfig, stage_dir: Path, monitor: str | None, mode: str = "max") -> L.Trainer:
-    """A Trainer writing ``checkpoints/`` (last.ckpt every N steps, best by ``monitor``) and ``logs/``."""
+def build_trainer(
+    cfg: TrainerConfig, stage_dir: Path, monitor: str | None, mode: str = "max",
+    resume_step: int | None = None, record_time: Callable[[float], None] | None = None,
+) -> L.Trainer:
+    """A Trainer writing ``checkpoints/`` (last.ckpt every N steps, best by ``monitor``) and ``logs/``.
+
+    ``resume_step``: the step of the checkpoint the stage resumes from (its CSV log keeps
+    the rows before it); ``record_time`` gets the attempt's elapsed seconds now and then.
+    """
     quiet_lightning()
     ckpt_dir = stage_dir / "checkpoints"
     callbacks: list[Callback] = [
@@ -68,10 +261,12 @@ def build_trainer(cfg: TrainerConfig, stage_dir: Path, monitor: str | None, mode
             save_last=True, save_top_k=0, auto_insert_metric_name=False, enable_version_counter=False,
         ),
         _TrackConsumed(),
-        _RngState(),
+        _StepSeed(cfg.seed),
         LearningRateMonitor(logging_interval="step"),
         RichProgressBar(leave=True),
     ]
+    if record_time is not None:
+        callbacks.append(_Heartbeat(record_time))
     if monitor:
         callbacks.append(
             ModelCheckpoint(
@@ -80,7 +275,10 @@ def build_trainer(cfg: TrainerConfig, stage_dir: Path, monitor: str | None, mode
             )
         )
     logs = stage_dir / "logs"
-    loggers = [CSVLogger(logs, name="", version="csv"), TensorBoardLogger(logs, name="", version="tensorboard")]
+    loggers = [
+        AppendingCSVLogger(logs, name="", version="csv", resume_step=resume_step),
+        TensorBoardLogger(logs, name="", version="tensorboard"),
+    ]
     return L.Trainer(
         accelerator=cfg.accelerator,
         devices=cfg.devices,
@@ -101,12 +299,8 @@ def build_trainer(cfg: TrainerConfig, stage_dir: Path, monitor: str | None, mode
         default_root_dir=stage_dir,
         enable_model_summary=False,
         num_sanity_val_steps=0,
+        plugins=[AtomicCheckpointIO()],
     )
-
-
-def last_checkpoint(stage_dir: Path) -> Path | None:
-    path = stage_dir / "checkpoints" / LAST_CKPT
-    return path if path.is_file() else None
 
 
 # ----------------------------------------------------------------------------- optimizer

@@ -31,7 +31,7 @@ from occtrain.models.distill import FeatureProjector, distillation_losses
 from occtrain.models.llm import build_llm
 from occtrain.stages import StageKind, register
 from occtrain.stages.base import Stage, StageContext, StageReport
-from occtrain.stages.common import configure_adamw
+from occtrain.stages.common import ValidationMeans, configure_adamw
 
 
 def _student_llm() -> LLMConfig:
@@ -83,6 +83,7 @@ class DistillStage(Stage):
         names = Evaluator.scorable(tasks.weights)
         self.evaluator = Evaluator(names, priors=priors)
         self.teacher_evaluator = Evaluator(names, priors=priors)
+        self.val_means = ValidationMeans("val/loss", "val/token_acc")
         self._teacher_scores: dict[str, float] | None = None
         self._entries: dict[str, tuple[str, ...] | None] = {}
         if cfg.cache_codes:  # one cache, shared: teacher and student read the same scenes
@@ -122,14 +123,14 @@ class DistillStage(Stage):
 
     def validation_step(self, batch: dict[str, Any], batch_idx: int) -> None:
         clips = clips_from_batch(batch)
-        model_batch, names = self.student.task_batch(clips, batch, seed=batch_idx)
+        model_batch, names = self.student.task_batch(clips, batch, seed=self.ctx.data.seed)  # by clip, as in pretrain
         if model_batch is not None:
             model_batch = move_batch(model_batch, self.device)
             out = self.student.world(model_batch)
             acc = self.student.world.token_accuracy(out.logits, model_batch["labels"])
             bs = len(names) - names.count(None)
-            self.log("val/loss", out.loss, batch_size=bs, sync_dist=True)
-            self.log("val/token_acc", acc, batch_size=bs, sync_dist=True)
+            self.val_means.update("val/loss", out.loss, bs)
+            self.val_means.update("val/token_acc", acc, bs)
 
     def on_validation_epoch_end(self) -> None:
         cfg = self.ctx.model_cfg
@@ -146,6 +147,7 @@ class DistillStage(Stage):
             scores["val/student_tokens_per_s"] = self._speed["student"]
             scores["val/teacher_tokens_per_s"] = self._speed["teacher"]
             scores["val/speedup"] = self._speed["student"] / self._speed["teacher"]
+        scores.update(self.val_means.pop())
         self.log_dict(scores)
 
     def configure_optimizers(self) -> dict:

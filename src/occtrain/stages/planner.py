@@ -30,7 +30,7 @@ from occtrain.models.planner import PlanningHead, constant_velocity_plan
 from occtrain.occ3d import FUTURE_STEPS, PAST_STEPS
 from occtrain.stages import StageKind, register
 from occtrain.stages.base import Stage, StageContext, StageReport
-from occtrain.stages.common import configure_adamw
+from occtrain.stages.common import ValidationMeans, configure_adamw
 
 META_SOURCES = ("ground_truth", "generated")
 
@@ -97,6 +97,7 @@ class PlannerStage(Stage):
             self.teacher.requires_grad_(False).eval()
             self.teacher.build_code_cache(ctx.data.root, ctx.stage_dir / "cache" / CODE_CACHE)
         self._cot: dict[str, CotOutput | None] = {}  # sample token -> the frozen model's chain of thought
+        self.val_means = ValidationMeans("val/meta_parsed_fraction")
         self.metrics = torch.nn.ModuleDict({
             name: PlanningMetric()
             for name in ("head_gt_meta", "head_generated_meta", "llm_action_tokens", "constant_velocity", "baseline_stationary")
@@ -154,7 +155,7 @@ class PlannerStage(Stage):
                 tokens = torch.zeros_like(gt.traj)
                 tokens[generated] = torch.stack([torch.as_tensor(outputs[i].waypoints, dtype=torch.float32) for i in generated]).to(self.device)
                 record("llm_action_tokens", tokens, generated)
-                self.log("val/meta_parsed_fraction", len(rows) / len(generated), batch_size=len(generated))
+                self.val_means.update("val/meta_parsed_fraction", len(rows) / len(generated), len(generated))
 
     def _chain_of_thought(self, clips: list, batch: dict) -> list[CotOutput | None]:
         todo = [c for c in clips if c.anchor["token"] not in self._cot]
@@ -171,6 +172,7 @@ class PlannerStage(Stage):
                 continue
             self.log_dict(flatten_metrics(f"val/{name}", metric.compute()))
             metric.reset()
+        self.log_dict(self.val_means.pop())
 
     def configure_optimizers(self) -> dict:
         return configure_adamw(self.head.parameters(), self.ctx.spec.optim, self.ctx.trainer.max_steps)

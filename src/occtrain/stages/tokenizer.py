@@ -24,7 +24,7 @@ from occtrain.models import count_parameters
 from occtrain.occ3d import FREE
 from occtrain.stages import StageKind, register
 from occtrain.stages.base import Stage, StageContext, StageReport
-from occtrain.stages.common import configure_adamw, freeze_prefixes
+from occtrain.stages.common import ValidationMeans, configure_adamw, freeze_prefixes
 
 
 def tokenizer_model_schema() -> type:
@@ -55,6 +55,7 @@ class TokenizerStage(Stage):
         self.recon_occ3d = OccupancyMetric(convention="occ3d")
         #: The trivial baseline: an empty (all free) scene.
         self.baseline_free = OccupancyMetric(convention="occworld")
+        self.val_means = ValidationMeans("val/loss")
         self._pictures: list[tuple] = []
 
     # -- training
@@ -77,7 +78,7 @@ class TokenizerStage(Stage):
         self.recon_occworld.update(pred, sem)
         self.baseline_free.update(torch.full_like(sem, FREE), sem)
         self.recon_occ3d.update(pred, sem, batch["mask_camera"])
-        self.log("val/loss", out.losses["loss"], batch_size=sem.shape[0], sync_dist=True)
+        self.val_means.update("val/loss", out.losses["loss"], sem.shape[0])
 
     def on_validation_epoch_end(self) -> None:
         for prefix, metric in (
@@ -87,6 +88,7 @@ class TokenizerStage(Stage):
             self.log(f"{prefix}_mIoU", result["mIoU"])
             self.log(f"{prefix}_IoU", result["IoU"])
             metric.reset()
+        self.log_dict(self.val_means.pop())
 
     def configure_optimizers(self) -> dict:
         params = [p for p in self.model.parameters() if p.requires_grad]

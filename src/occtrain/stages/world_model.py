@@ -27,7 +27,7 @@ from occtrain.models import count_parameters
 from occtrain.models.llm import apply_lora
 from occtrain.stages import StageKind, register
 from occtrain.stages.base import Stage, StageContext, StageReport
-from occtrain.stages.common import configure_adamw, freeze_prefixes
+from occtrain.stages.common import ValidationMeans, configure_adamw, freeze_prefixes
 
 WORLD_MODEL_KINDS = ("pretrain", "instruct", "distill")
 
@@ -55,6 +55,7 @@ class WorldModelStage(Stage):
             world.llm = apply_lora(world.llm, cfg.lora)
         freeze_prefixes(world, list(ctx.spec.freeze))
         self.evaluator = Evaluator(Evaluator.scorable(tasks.weights), priors=Priors.of(ctx.data.root))
+        self.val_means = ValidationMeans("val/loss", "val/token_acc")
         self._entries: dict[str, tuple[str, ...] | None] = {}
         if cfg.cache_codes:
             self.engine.build_code_cache(ctx.data.root, ctx.stage_dir / "cache" / CODE_CACHE)
@@ -86,17 +87,20 @@ class WorldModelStage(Stage):
     # -- validation
     def validation_step(self, batch: dict[str, Any], batch_idx: int) -> None:
         clips = clips_from_batch(batch)
-        model_batch, names = self.engine.task_batch(clips, batch, seed=batch_idx)
+        # Tasks drawn by clip alone (not by batch position): every validation, and any
+        # split of the clips over DDP ranks, scores each clip on the same task.
+        model_batch, names = self.engine.task_batch(clips, batch, seed=self.ctx.data.seed)
         if model_batch is not None:
             out = self.engine.world(move_batch(model_batch, self.device))
             bs = len(names) - names.count(None)
-            self.log("val/loss", out.loss, batch_size=bs, sync_dist=True)
+            self.val_means.update("val/loss", out.loss, bs)
             acc = self.engine.world.token_accuracy(out.logits, model_batch["labels"].to(self.device))
-            self.log("val/token_acc", acc, batch_size=bs, sync_dist=True)
+            self.val_means.update("val/token_acc", acc, bs)
 
     def on_validation_epoch_end(self) -> None:
         cfg = self.ctx.model_cfg
         self.evaluator.run(self.engine, self.ctx.data.root, "val", cfg.val_batch_size, samples=cfg.val_samples)
+        self.log_dict(self.val_means.pop())
         self.log_dict(self.evaluator.compute("val"))  # texts and pictures stay for report()
 
     def configure_optimizers(self) -> dict:

@@ -29,7 +29,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from occtrain.data.schema import (
-    COMMAND_LATERAL_THRESHOLD,
     META_ACCEL_THRESHOLD,
     STOP_SPEED,
     Box,

@@ -1,0 +1,95 @@
+"""What keeps one run directory sane: a lock for the run's life, and signals turned into
+a clean stop.
+
+A scheduler stops a job with SIGTERM, a person with Ctrl-C (SIGINT). Either one raises
+:class:`Interrupted` in the main thread wherever it is; Lightning tears the trainer down
+on it like on any exception, the runner records the stage as ``interrupted`` and the CLI
+exits 128 + the signal's number (143, 130). ``last.ckpt`` is left as it is: a rerun resumes.
+"""
+
+from __future__ import annotations
+
+import errno
+import fcntl
+import os
+import signal
+import socket
+from contextlib import contextmanager
+from pathlib import Path
+from typing import IO, Iterator
+
+from occtrain.errors import OcctrainError
+from occtrain.io import write_error
+
+LOCK_FILE = ".lock"
+STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT)
+
+
+class Interrupted(BaseException):
+    """A stop signal arrived. A BaseException, so no ``except Exception`` swallows it."""
+
+    def __init__(self, signum: int, message: str = ""):
+        super().__init__(message or f"interrupted by {signal.Signals(signum).name}")
+        self.signum = signum
+
+    @property
+    def exit_code(self) -> int:
+        return 128 + self.signum
+
+    def with_message(self, message: str) -> Interrupted:
+        return Interrupted(self.signum, message)
+
+
+@contextmanager
+def stop_on_signals() -> Iterator[None]:
+    """Turn the first SIGTERM or SIGINT into :class:`Interrupted`; later ones are ignored
+    while the run records where it stopped (a second Ctrl-C must not cut that short)."""
+
+    def handler(signum: int, frame: object) -> None:
+        for s in STOP_SIGNALS:
+            signal.signal(s, signal.SIG_IGN)
+        raise Interrupted(signum)
+
+    previous = {s: signal.signal(s, handler) for s in STOP_SIGNALS}
+    try:
+        yield
+    finally:
+        for s, h in previous.items():
+            signal.signal(s, h)
+
+
+class RunLocked(OcctrainError):
+    """Another process holds the run directory."""
+
+
+@contextmanager
+def run_lock(run_dir: Path) -> Iterator[None]:
+    """Hold an exclusive OS lock on ``run_dir/.lock`` for the block's life.
+
+    The kernel drops a ``flock`` when its holder exits in any way, kill -9 included, so a
+    stale lock file never blocks a later run; the pid written in it only names the holder.
+    """
+    path = Path(run_dir) / LOCK_FILE
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fh: IO[str] = open(path, "a+")
+    except OSError as err:
+        raise write_error(path, err) from None
+    try:
+        try:
+            fcntl.flock(fh.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as err:
+            if err.errno not in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+                raise
+            fh.seek(0)
+            holder = fh.read().strip() or "an unknown process"
+            raise RunLocked(
+                f"{run_dir} is in use by {holder}; wait for it to finish, stop it, or choose another --run-dir"
+            ) from None
+        fh.seek(0)
+        fh.truncate()
+        fh.write(f"pid {os.getpid()} on {socket.gethostname()}\n")
+        fh.flush()
+        yield
+    finally:
+        fh.close()  # releases the lock

@@ -1,0 +1,603 @@
+"""Bad input at every boundary, table-driven: each case breaks one thing in a copy of a tiny
+valid world and runs the CLI in-process.
+
+Every case ends in one line on stderr: ``error: ...`` naming the file or key (exit 2), or
+for ``data check`` the summary line, with the problems themselves on stdout (exit 1). No
+traceback anywhere, and no file that existed before the command is changed or removed
+(nor, since every case fails, anything created).
+
+A case is ``Case(id, setup, argv, code, says)``: ``setup(tmp)`` breaks the copy at ``tmp``;
+``argv`` and ``says`` may use ``{tmp}``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import shutil
+import struct
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Annotated, Any, Callable, Literal, NotRequired, Optional, TypedDict
+
+import numpy as np
+import pytest
+import torch
+from safetensors.torch import save_file
+
+from conftest import REPO, hand_frames, hand_labels, write_hand_dataset
+from occtrain.cli import main
+from occtrain.data.layout import DatasetIndex, quaternion_from_yaw
+from occtrain.data.validate import Len, problems
+from occtrain.occ3d import GRID_SHAPE
+from test_scoring_cli import planning_files, qa_questions
+
+FRAMES = 8
+SCENES = ("scene-0000", "scene-0001")  # train, val
+#: Sample tokens of the tiny world, by scene (write_hand_dataset seeds scene s with s).
+TOKENS = {scene: [f["token"] for f in hand_frames(scene, FRAMES, s)] for s, scene in enumerate(SCENES)}
+T0, T1 = TOKENS[SCENES[0]], TOKENS[SCENES[1]]
+
+DS = "{tmp}/ds"
+ANN = "{tmp}/ds/annotations.json"
+SIDECAR = "{tmp}/ds/occtrain/frames/scene-0000.json"
+QA_VAL = "{tmp}/ds/nuscenes_qa/NuScenes_val_questions.json"
+
+
+@dataclass(frozen=True)
+class Case:
+    id: str
+    setup: Callable[[Path], None]
+    argv: list[str]
+    code: int
+    says: str
+
+
+# ----------------------------------------------------------------------------- the tiny world
+
+
+@pytest.fixture(scope="module")
+def world(tmp_path_factory) -> Path:
+    """A valid world: 2 scenes of 8 frames with every sidecar, frame shards of it, and a run
+    directory whose pretrain stage has a (tiny, valid) export. Each case copies it."""
+    from occtrain.config import load_config, to_yaml
+    from occtrain.config.recipe import RecipeConfig
+    from occtrain.data.shards import write_shards
+
+    root = tmp_path_factory.mktemp("world")
+    write_hand_dataset(root / "ds", train=1, val=1, frames=FRAMES)
+    write_shards(root / "ds", root / "shards", samples_per_shard=4, kinds=["frames"])
+    export = root / "run" / "pretrain" / "export"
+    export.mkdir(parents=True)
+    (root / "run" / "pipeline.yaml").write_text(to_yaml(load_config(RecipeConfig, REPO / "stages" / "quickstart.yaml")))
+    save_file({"w": torch.zeros(4)}, str(export / "model.safetensors"))
+    (export / "config.json").write_text(json.dumps({"stage_kind": "world_model"}))
+    return root
+
+
+def snapshot(root: Path) -> dict[str, str]:
+    """sha256 of every file under ``root`` (directories as "dir"), by relative path."""
+    return {
+        str(p.relative_to(root)): "dir" if p.is_dir() else hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(root.rglob("*"))
+    }
+
+
+# ----------------------------------------------------------------------------- breaking things
+
+
+def edit_json(path: Path, change: Callable[[Any], Any]) -> None:
+    """Rewrite a JSON file after ``change(data)`` mutated it in place (its return value is ignored)."""
+    data = json.loads(path.read_text())
+    change(data)
+    path.write_text(json.dumps(data))  # Python's json writes NaN/Infinity as given, as a careless writer would
+
+
+def edit_ann(change: Callable[[dict], Any]) -> Callable[[Path], None]:
+    return lambda tmp: edit_json(tmp / "ds" / "annotations.json", change)
+
+
+def edit_sample(scene: int, i: int, change: Callable[[dict], Any]) -> Callable[[Path], None]:
+    """Change sample ``i`` of scene ``scene`` in annotations.json."""
+    name = SCENES[scene]
+    return edit_ann(lambda a: change(a["scene_infos"][name][TOKENS[name][i]]))
+
+
+def edit_frame(i: int, change: Callable[[dict], Any], scene: int = 0) -> Callable[[Path], None]:
+    """Change frame ``i`` of a scene's FrameAnnotation sidecar."""
+    return lambda tmp: edit_json(tmp / "ds" / "occtrain" / "frames" / f"{SCENES[scene]}.json", lambda fs: change(fs[i]))
+
+
+def edit_qa(change: Callable[[list], Any], split: str = "val") -> Callable[[Path], None]:
+    return lambda tmp: edit_json(tmp / "ds" / "nuscenes_qa" / f"NuScenes_{split}_questions.json", lambda d: change(d["questions"]))
+
+
+def write_text(rel: str, text: str) -> Callable[[Path], None]:
+    return lambda tmp: (tmp / rel).write_text(text)
+
+
+def labels_file(tmp: Path, scene: int = 0, i: int = 1) -> Path:
+    return tmp / "ds" / "gts" / SCENES[scene] / TOKENS[SCENES[scene]][i] / "labels.npz"
+
+
+LABELS = "{tmp}/ds/gts/scene-0000/" + T0[1] + "/labels.npz"
+
+
+def save_labels(**change: Any) -> Callable[[Path], None]:
+    """Overwrite frame 1's labels.npz with valid arrays, some replaced (None drops one)."""
+
+    def setup(tmp: Path) -> None:
+        arrays = {k: v for k, v in (hand_labels(1) | change).items() if v is not None}
+        np.savez_compressed(labels_file(tmp), **arrays)
+
+    return setup
+
+
+def corrupt_deflate(path: Path) -> None:
+    """Break the first member's deflate stream (reserved block type) but keep the zip intact:
+    the archive opens, and the damage shows only when the array is inflated."""
+    data = bytearray(path.read_bytes())
+    with zipfile.ZipFile(path) as z:
+        offset = z.infolist()[0].header_offset
+    name_len, extra_len = struct.unpack("<HH", data[offset + 26 : offset + 30])
+    data[offset + 30 + name_len + extra_len] = 0xFF
+    path.write_bytes(bytes(data))
+
+
+def truncate(rel: str, keep: int) -> Callable[[Path], None]:
+    def setup(tmp: Path) -> None:
+        path = tmp / rel
+        path.write_bytes(path.read_bytes()[:keep])
+
+    return setup
+
+
+def both(*setups: Callable[[Path], None]) -> Callable[[Path], None]:
+    def setup(tmp: Path) -> None:
+        for s in setups:
+            s(tmp)
+
+    return setup
+
+
+def nothing(tmp: Path) -> None:
+    pass
+
+
+# -- occtrain score inputs
+
+
+def forecast(semantics: np.ndarray) -> Callable[[Path], None]:
+    """A forecast of the val scene's first sample."""
+
+    def setup(tmp: Path) -> None:
+        path = tmp / "fc" / SCENES[1] / T1[0] / "forecast.npz"
+        path.parent.mkdir(parents=True)
+        np.savez_compressed(path, semantics=semantics)
+
+    return setup
+
+
+def bad_forecast_deflate(tmp: Path) -> None:
+    forecast(np.zeros((6, *GRID_SHAPE), np.uint8))(tmp)
+    corrupt_deflate(tmp / "fc" / SCENES[1] / T1[0] / "forecast.npz")
+
+
+def planning(change: Callable[[dict, dict], Any]) -> Callable[[Path], None]:
+    """test_scoring_cli's planning files (tok-a, tok-b), changed by ``change(preds, gts)``."""
+
+    def setup(tmp: Path) -> None:
+        p, g = planning_files(tmp)
+        preds, gts = json.loads(p.read_text()), json.loads(g.read_text())
+        change(preds, gts)
+        p.write_text(json.dumps(preds))
+        g.write_text(json.dumps(gts))
+
+    return setup
+
+
+def occupancy_prediction(tmp: Path) -> None:
+    path = tmp / "occ" / SCENES[1] / T1[0] / "labels.npz"
+    path.parent.mkdir(parents=True)
+    np.savez_compressed(path, semantics=np.zeros(GRID_SHAPE, np.float32))
+
+
+def captions(preds: Any, refs: Any) -> Callable[[Path], None]:
+    def setup(tmp: Path) -> None:
+        (tmp / "cap.json").write_text(json.dumps(preds))
+        (tmp / "ref.json").write_text(json.dumps(refs))
+
+    return setup
+
+
+def qa_answers(answers: Any, change: Callable[[list], Any] | None = None) -> Callable[[Path], None]:
+    """test_scoring_cli's 4 questions, changed by ``change(questions)``, and ``answers``."""
+
+    def setup(tmp: Path) -> None:
+        q = qa_questions(tmp / "q.json")
+        if change:
+            edit_json(q, lambda d: change(d["questions"]))
+        (tmp / "a.json").write_text(json.dumps(answers))
+
+    return setup
+
+
+def export_file(name: str, content: bytes | None = None, keep: int | None = None) -> Callable[[Path], None]:
+    def setup(tmp: Path) -> None:
+        path = tmp / "run" / "pretrain" / "export" / name
+        path.write_bytes(path.read_bytes()[:keep] if content is None else content)
+
+    return setup
+
+
+def shard_index(change: Callable[[dict], Any]) -> Callable[[Path], None]:
+    return lambda tmp: edit_json(tmp / "shards" / "index.json", change)
+
+
+def other_shards(tmp: Path) -> None:
+    (tmp / "out").mkdir()
+    (tmp / "out" / "index.json").write_text(json.dumps({"source": {"dataset": "elsewhere"}, "kinds": {}}))
+
+
+def stray_tar(tmp: Path) -> None:
+    (tmp / "out" / "frames").mkdir(parents=True)
+    (tmp / "out" / "frames" / "train-000000.tar").write_bytes(b"half a shard")
+
+
+def drop_key(d: dict, key: str) -> None:
+    del d[key]
+
+
+def duplicate_token(a: dict) -> None:
+    """Scene 1 also claims scene 0's last sample."""
+    a["scene_infos"][SCENES[1]][T0[-1]] = dict(a["scene_infos"][SCENES[0]][T0[-1]], prev="", next="")
+
+
+def swap_timestamps(a: dict) -> None:
+    infos = a["scene_infos"][SCENES[0]]
+    infos[T0[2]]["timestamp"], infos[T0[3]]["timestamp"] = infos[T0[3]]["timestamp"], infos[T0[2]]["timestamp"]
+
+
+def unlinked_token_timestamps(a: dict) -> None:
+    """Neither links nor numeric timestamps order scene 0."""
+    for info in a["scene_infos"][SCENES[0]].values():
+        info.pop("prev"), info.pop("next")
+        info["timestamp"] = "tok-" + info["gt_path"][-30:-12]
+
+
+def camera(intrinsic: Any) -> dict:
+    pose = {"translation": [1.0, 0.0, 1.5], "rotation": [1.0, 0.0, 0.0, 0.0]}
+    return {"CAM_FRONT_tok": {"img_path": "imgs/CAM_FRONT/x.jpg", "intrinsic": intrinsic, "extrinsic": pose, "ego_pose": pose}}
+
+
+# -- shorthands for argv
+SHARDS_FRAMES = ["data", "shards", DS, "--out", "{tmp}/out", "--kinds", "frames", "--samples-per-shard", "4"]
+SHARDS_CLIPS = ["data", "shards", DS, "--out", "{tmp}/out", "--kinds", "clips", "--history", "2", "--future", "3"]
+CHECK = ["data", "check", DS]
+CHECK_SHARDS = ["data", "check", "{tmp}/shards"]
+FORECAST = ["score", "forecast", "--pred", "{tmp}/fc", "--gt", DS]
+PLANNING = ["score", "planning", "--pred", "{tmp}/p.json", "--gt", "{tmp}/g.json"]
+QA = ["score", "qa", "--pred", "{tmp}/a.json", "--questions", "{tmp}/q.json"]
+CAPTIONS = ["score", "captions", "--pred", "{tmp}/cap.json", "--ref", "{tmp}/ref.json"]
+EVAL = ["eval", "{tmp}/run/pretrain"]
+EXPORT = "{tmp}/run/pretrain/export/"
+S0 = f"scene_infos.scene-0000.{T0[0]}"
+
+CASES: list[Case] = [
+    # ------------------------------------------------------------------ annotations.json
+    Case("ann-not-json", write_text("ds/annotations.json", "{not json"), SHARDS_FRAMES, 2, f"{ANN}: not valid JSON"),
+    Case("ann-not-an-object", write_text("ds/annotations.json", "[]"), SHARDS_FRAMES, 2, f"{ANN}: no 'scene_infos' key"),
+    Case("ann-translation-string", edit_sample(0, 0, lambda s: s["ego_pose"].update(translation="1,2,0")), SHARDS_FRAMES, 2,
+         f'{ANN}: {S0}.ego_pose.translation is the string "1,2,0", expected a list of 3 numbers'),
+    Case("ann-rotation-three-numbers", edit_sample(0, 0, lambda s: s["ego_pose"].update(rotation=[1.0, 0.0, 0.0])), SHARDS_FRAMES, 2,
+         f"{ANN}: {S0}.ego_pose.rotation holds 3 items, expected a list of 4 numbers"),
+    Case("ann-translation-nan", edit_sample(0, 0, lambda s: s["ego_pose"]["translation"].__setitem__(0, float("nan"))),
+         SHARDS_FRAMES, 2, f"{ANN}: {S0}.ego_pose.translation[0] is NaN, expected a number"),
+    Case("ann-rotation-bool", edit_sample(0, 0, lambda s: s["ego_pose"]["rotation"].__setitem__(0, True)), ["data", "show", DS, "--out", "{tmp}/b.png"],
+         2, f"{ANN}: {S0}.ego_pose.rotation[0] is true, expected a number"),
+    Case("ann-no-ego-pose", edit_sample(0, 0, lambda s: drop_key(s, "ego_pose")), SHARDS_FRAMES, 2, f"{ANN}: {S0}.ego_pose is missing, expected an object"),
+    Case("ann-timestamp-float", edit_sample(0, 0, lambda s: s.update(timestamp=1.5e14)), SHARDS_FRAMES, 2,
+         f"{ANN}: {S0}.timestamp is the number 1.5e+14, expected an integer or a string"),
+    Case("ann-prev-is-a-number", edit_sample(0, 0, lambda s: s.update(prev=0)), SHARDS_FRAMES, 2, f"{ANN}: {S0}.prev is the integer 0, expected a string"),
+    Case("ann-gt-path-list", edit_sample(0, 0, lambda s: s.update(gt_path=["gts"])), SHARDS_FRAMES, 2, f"{ANN}: {S0}.gt_path is a list of 1 item, expected a string"),
+    Case("ann-camera-intrinsic-2x3", edit_sample(0, 0, lambda s: s.update(camera_sensor=camera([[1.0, 0.0, 0.5]] * 2))), SHARDS_FRAMES, 2,
+         f"{ANN}: {S0}.camera_sensor.CAM_FRONT_tok.intrinsic holds 2 items, expected a list of 3 lists of 3 numbers"),
+    Case("ann-scene-is-a-list", edit_ann(lambda a: a["scene_infos"].update({SCENES[0]: []})), SHARDS_FRAMES, 2,
+         f"{ANN}: scene_infos.scene-0000 is a list of 0 items, expected an object"),
+    Case("ann-split-is-a-string", edit_ann(lambda a: a.update(train_split="scene-0000")), SHARDS_FRAMES, 2,
+         f'{ANN}: train_split is the string "scene-0000", expected a list of strings'),
+    Case("ann-split-names-unknown-scene", edit_ann(lambda a: a.update(val_split=["scene-9999"])), SHARDS_FRAMES, 2,
+         f"{ANN}: val_split names scene 'scene-9999' that has no scene_infos entry"),
+    Case("ann-no-order", edit_ann(unlinked_token_timestamps), SHARDS_FRAMES, 2,
+         f"{ANN}: scene_infos.scene-0000.{T0[0]}.timestamp is not a number of microseconds"),
+    Case("ann-as-score-ground-truth", edit_sample(1, 0, lambda s: s["ego_pose"].update(translation=None)),
+         ["score", "occupancy", "--pred", "{tmp}/ds/gts", "--gt", DS], 2,
+         f"{ANN}: scene_infos.scene-0001.{T1[0]}.ego_pose.translation is null, expected a list of 3 numbers"),
+    Case("check-ann-lists-every-problem",
+         edit_ann(lambda a: [a["scene_infos"][SCENES[0]][T0[0]].update(prev=1), a["scene_infos"][SCENES[1]][T1[4]].update(timestamp=None)]),
+         CHECK, 1, f"{ANN}: scene_infos.scene-0001.{T1[4]}.timestamp is null, expected an integer or a string"),
+    Case("check-timestamps-decrease", edit_ann(swap_timestamps), CHECK, 1, f"{ANN}: scene 'scene-0000' timestamps do not increase"),
+    Case("check-duplicate-token", edit_ann(duplicate_token), CHECK, 1, f"{ANN}: sample token {T0[-1]} is in both scene_infos.scene-0000 and scene_infos.scene-0001"),
+    Case("check-not-a-unit-quaternion", edit_sample(0, 3, lambda s: s["ego_pose"].update(rotation=[0.0, 0.0, 0.0, 0.0])), CHECK, 1,
+         f"{ANN}: scene_infos.scene-0000.{T0[3]}.ego_pose.rotation is not a unit quaternion"),
+    # ------------------------------------------------------------------ labels.npz
+    Case("labels-garbage", lambda tmp: labels_file(tmp).write_bytes(b"garbage"), SHARDS_FRAMES, 2, f"{LABELS}: corrupt or truncated .npz (not a zip archive)"),
+    Case("labels-truncated", lambda tmp: labels_file(tmp).write_bytes(labels_file(tmp).read_bytes()[:300]), SHARDS_FRAMES, 2,
+         f"{LABELS}: corrupt or truncated .npz"),
+    Case("labels-corrupt-deflate", lambda tmp: corrupt_deflate(labels_file(tmp)), SHARDS_FRAMES, 2,
+         f"{LABELS}: corrupt or truncated .npz (zlib.error: Error -3 while decompressing data"),
+    Case("labels-corrupt-deflate-check", lambda tmp: corrupt_deflate(labels_file(tmp)), CHECK, 1, f"{LABELS}: corrupt or truncated .npz (zlib.error"),
+    Case("labels-pickled", save_labels(semantics=np.array([{"evil": 1}], dtype=object)), SHARDS_FRAMES, 2,
+         f"{LABELS}: holds an object (pickled) array; refusing to load it"),
+    Case("labels-wrong-shape", save_labels(semantics=np.zeros((200, 200, 8), np.uint8)), SHARDS_FRAMES, 2, f"{LABELS}: 'semantics' has shape (200, 200, 8)"),
+    Case("labels-float", save_labels(semantics=np.zeros(GRID_SHAPE, np.float32)), SHARDS_FRAMES, 2, f"{LABELS}: 'semantics' has dtype float32, expected uint8"),
+    Case("labels-class-18", save_labels(semantics=np.full(GRID_SHAPE, 18, np.uint8)), SHARDS_FRAMES, 2, f"{LABELS}: 'semantics' holds class 18"),
+    Case("labels-no-camera-mask", save_labels(mask_camera=None), SHARDS_FRAMES, 2, f"{LABELS}: missing array 'mask_camera'"),
+    Case("labels-mask-of-twos", save_labels(mask_lidar=np.full(GRID_SHAPE, 2, np.uint8)), SHARDS_FRAMES, 2, f"{LABELS}: 'mask_lidar' holds values other than 0/1"),
+    Case("labels-missing", lambda tmp: labels_file(tmp).unlink(), SHARDS_FRAMES, 2, f"{LABELS}: file not found"),
+    Case("check-labels-all-visible", save_labels(mask_camera=np.ones(GRID_SHAPE, np.uint8)), CHECK, 1, f"{LABELS}: mask_camera is all ones"),
+    # ------------------------------------------------------------------ frame sidecars
+    Case("frames-no-ego-future", edit_frame(2, lambda f: drop_key(f, "ego_future")), SHARDS_CLIPS, 2,
+         f"{SIDECAR}: [2].ego_future is missing, expected a list of 6 lists of 2 numbers"),
+    Case("frames-translation-string", edit_frame(3, lambda f: f["ego_pose"].update(translation="7.5, 0")), SHARDS_CLIPS, 2,
+         f'{SIDECAR}: [3].ego_pose.translation is the string "7.5, 0", expected a list of 3 numbers'),
+    Case("frames-not-json", write_text("ds/occtrain/frames/scene-0000.json", "[{"), SHARDS_CLIPS, 2, f"{SIDECAR}: not valid JSON"),
+    Case("frames-not-a-list", write_text("ds/occtrain/frames/scene-0000.json", "{}"), SHARDS_CLIPS, 2,
+         f"{SIDECAR}: the top level is an object, expected a list of objects"),
+    Case("frames-unknown-command", edit_frame(0, lambda f: f.update(command="fly")), SHARDS_CLIPS, 2,
+         f'{SIDECAR}: [0].command is the string "fly", expected one of "turn right", "turn left", "go straight"'),
+    Case("frames-mask-of-two", edit_frame(0, lambda f: f["ego_future_mask"].__setitem__(1, 2)), SHARDS_CLIPS, 2,
+         f"{SIDECAR}: [0].ego_future_mask[1] is the integer 2, expected one of 0, 1"),
+    Case("frames-short-future", edit_frame(1, lambda f: f["ego_future"].pop()), SHARDS_CLIPS, 2,
+         f"{SIDECAR}: [1].ego_future holds 5 items, expected a list of 6 lists of 2 numbers"),
+    Case("frames-box-category", edit_frame(4, lambda f: f["boxes"].append(
+        {"track_id": 1, "category": "spaceship", "center": [1.0, 2.0, 0.5], "size": [4.0, 2.0, 1.5], "yaw": 0.0, "velocity": [0.0, 0.0], "attribute": ""})),
+        SHARDS_CLIPS, 2, f'{SIDECAR}: [4].boxes[0].category is the string "spaceship", expected one of "others"'),
+    Case("frames-speed-infinite", edit_frame(5, lambda f: f.update(ego_speed=float("inf"))), ["data", "show", DS, "--scene", "scene-0000", "--out", "{tmp}/b.png"],
+         2, f"{SIDECAR}: [5].ego_speed is Infinity, expected a number"),
+    Case("frames-token-mismatch", edit_frame(0, lambda f: f.update(token="not-a-sample")), SHARDS_CLIPS, 2,
+         f"{SIDECAR}: frame tokens do not match the samples of scene_infos.scene-0000"),
+    Case("frames-one-scene-lacks-its-sidecar", lambda tmp: (tmp / "ds/occtrain/frames/scene-0001.json").unlink(), SHARDS_CLIPS, 2,
+         "{tmp}/ds/occtrain/frames/scene-0001.json: missing while 1 other scenes have their frame sidecar"),
+    Case("check-frames-lists-every-problem", both(edit_frame(2, lambda f: drop_key(f, "ego_future")), edit_frame(6, lambda f: f.update(index="6"))),
+         CHECK, 1, f'{SIDECAR}: [6].index is the string "6", expected an integer'),
+    Case("check-frames-disagree-with-poses", edit_frame(1, lambda f: f["ego_future"].__setitem__(0, [9.0, 9.0])), CHECK, 1,
+         f"{SIDECAR}: [1].ego_future[0] [9.0, 9.0] disagrees with the ego poses"),
+    Case("check-frames-box-count", edit_frame(1, lambda f: f["agent_futures"].append([[0.0, 0.0]] * 6)), CHECK, 1,
+         f"{SIDECAR}: [1].agent_futures has 1 entries for 0 boxes"),
+    # ------------------------------------------------------------------ NuScenes-QA sidecars
+    Case("qa-not-json", write_text("ds/nuscenes_qa/NuScenes_val_questions.json", '{"questions": ['), SHARDS_CLIPS, 2, f"{QA_VAL}: not valid JSON"),
+    Case("qa-top-level-list", write_text("ds/nuscenes_qa/NuScenes_val_questions.json", "[]"), SHARDS_CLIPS, 2,
+         f"{QA_VAL}: the top level is a list of 0 items, expected an object; NuScenes-QA format is"),
+    Case("qa-entry-not-an-object", edit_qa(lambda qs: qs.__setitem__(0, "Are there any cars?")), SHARDS_CLIPS, 2,
+         f'{QA_VAL}: questions[0] is the string "Are there any cars?", expected an object'),
+    Case("qa-sample-token-list", edit_qa(lambda qs: qs[1].update(sample_token=[T1[1]])), SHARDS_CLIPS, 2,
+         f"{QA_VAL}: questions[1].sample_token is a list of 1 item, expected a string"),
+    Case("qa-unknown-template", edit_qa(lambda qs: qs[2].update(template_type="why")), SHARDS_CLIPS, 2,
+         f'{QA_VAL}: questions[2].template_type is the string "why", expected one of "exist", "count"'),
+    Case("qa-num-hop-2", edit_qa(lambda qs: qs[3].update(num_hop=2)), SHARDS_CLIPS, 2, f"{QA_VAL}: questions[3].num_hop is the integer 2, expected one of 0, 1"),
+    Case("qa-no-answer", edit_qa(lambda qs: drop_key(qs[0], "answer"), split="train"), SHARDS_CLIPS, 2,
+         "{tmp}/ds/nuscenes_qa/NuScenes_train_questions.json: questions[0].answer is missing, expected a string"),
+    Case("check-qa-outside-split", edit_qa(lambda qs: qs[0].update(sample_token=T0[0])), CHECK, 1,
+         f"{QA_VAL}: questions[0].sample_token '{T0[0]}' is not a sample of the val split"),
+    Case("check-qa-lists-every-problem", edit_qa(lambda qs: [qs[0].update(num_hop=True), qs[5].update(answer=5)]), CHECK, 1,
+         f"{QA_VAL}: questions[5].answer is the integer 5, expected a string"),
+    # ------------------------------------------------------------------ shards
+    Case("shards-out-holds-other-shards", other_shards, SHARDS_FRAMES, 2, "{tmp}/out: already holds shards of a different dataset or layout"),
+    Case("shards-out-index-not-json", both(other_shards, write_text("out/index.json", "{")), SHARDS_FRAMES, 2, "{tmp}/out/index.json: not valid JSON"),
+    Case("shards-out-holds-a-stray-tar", stray_tar, SHARDS_FRAMES, 2, "{tmp}/out: holds shards without an index.json"),
+    Case("shards-zero-per-shard", nothing, ["data", "shards", DS, "--out", "{tmp}/out", "--samples-per-shard", "0"], 2,
+         "samples_per_shard is 0; it must be a whole number of at least 1"),
+    Case("check-shards-index-escapes", shard_index(lambda i: i["kinds"]["frames"]["train"][0].update(file="../../ds/annotations.json")),
+         CHECK_SHARDS, 1, "{tmp}/shards/index.json: kinds.frames.train[0].file '../../ds/annotations.json' is not a file name"),
+    Case("check-shards-index-count-string", shard_index(lambda i: i["kinds"]["frames"]["val"][1].update(samples="4")), CHECK_SHARDS, 1,
+         '{tmp}/shards/index.json: kinds.frames.val[1].samples is the string "4", expected an integer'),
+    Case("check-shards-index-is-a-list", write_text("shards/index.json", "[]"), CHECK_SHARDS, 1,
+         "{tmp}/shards/index.json: the top level is a list of 0 items, expected an object"),
+    Case("check-shards-truncated", truncate("shards/frames/train-000001.tar", 3000), CHECK_SHARDS, 1, "{tmp}/shards/frames/train-000001.tar"),
+    Case("check-shards-missing", lambda tmp: (tmp / "shards/frames/val-000000.tar").unlink(), CHECK_SHARDS, 1,
+         "{tmp}/shards/frames/val-000000.tar: listed in index.json but missing"),
+    Case("check-shards-wrong-count", shard_index(lambda i: i["kinds"]["frames"]["val"][1].update(samples=9)), CHECK_SHARDS, 1,
+         "{tmp}/shards/frames/val-000001.tar: holds 4 samples, index.json says 9"),
+    # ------------------------------------------------------------------ occtrain score
+    Case("forecast-float-labels", forecast(np.full((6, *GRID_SHAPE), 4.0, np.float32)), FORECAST, 2,
+         f"{{tmp}}/fc/scene-0001/{T1[0]}/forecast.npz: 'semantics' has dtype float32; save class indices 0..17 as uint8"),
+    Case("forecast-nan-labels", forecast(np.full((6, *GRID_SHAPE), np.nan, np.float16)), FORECAST, 2,
+         f"{{tmp}}/fc/scene-0001/{T1[0]}/forecast.npz: 'semantics' has dtype float16"),
+    Case("forecast-negative-labels", forecast(np.full((6, *GRID_SHAPE), -1, np.int8)), FORECAST, 2,
+         f"{{tmp}}/fc/scene-0001/{T1[0]}/forecast.npz: 'semantics' holds class -1; Occ3D classes are 0..17"),
+    Case("forecast-bool-labels", forecast(np.zeros((6, *GRID_SHAPE), bool)), FORECAST, 2,
+         f"{{tmp}}/fc/scene-0001/{T1[0]}/forecast.npz: 'semantics' has dtype bool"),
+    Case("forecast-corrupt-deflate", bad_forecast_deflate, FORECAST, 2, f"{{tmp}}/fc/scene-0001/{T1[0]}/forecast.npz: corrupt or truncated .npz"),
+    Case("forecast-pickled", forecast(np.array([{"evil": 1}], dtype=object)), FORECAST, 2,
+         f"{{tmp}}/fc/scene-0001/{T1[0]}/forecast.npz: holds an object (pickled) array"),
+    Case("occupancy-float-prediction", occupancy_prediction,
+         ["score", "occupancy", "--pred", "{tmp}/occ", "--gt", DS, "--split", "val", "--allow-missing"], 2,
+         f"{{tmp}}/occ/scene-0001/{T1[0]}/labels.npz: 'semantics' has dtype float32, expected uint8"),
+    Case("planning-mask-of-strings", planning(lambda p, g: g["tok-b"].update(mask=["1", "1", "1", "1", "1", "0"])), PLANNING, 2,
+         '{tmp}/g.json: tok-b.mask[0] is the string "1", expected one of 0, 1, true, false'),
+    Case("planning-mask-of-twos", planning(lambda p, g: g["tok-a"].update(mask=[1, 1, 2, 1, 1, 1])), PLANNING, 2,
+         "{tmp}/g.json: tok-a.mask[2] is the integer 2, expected one of 0, 1, true, false"),
+    Case("planning-nan-prediction", planning(lambda p, g: p["tok-b"][3].__setitem__(0, float("nan"))), PLANNING, 2,
+         "{tmp}/p.json: tok-b[3][0] is NaN, expected a number"),
+    Case("planning-infinite-truth", planning(lambda p, g: g["tok-a"]["traj"][0].__setitem__(1, float("-inf"))), PLANNING, 2,
+         "{tmp}/g.json: tok-a.traj[0][1] is -Infinity, expected a number"),
+    Case("planning-numbers-as-strings", planning(lambda p, g: p.update({"tok-a": [["2.5", "0"]] * 6})), PLANNING, 2,
+         '{tmp}/p.json: tok-a[0][0] is the string "2.5", expected a number'),
+    Case("planning-agents-not-boxes", planning(lambda p, g: g["tok-a"]["agents"].__setitem__(2, "none")), PLANNING, 2,
+         '{tmp}/g.json: tok-a.agents[2] is the string "none", expected a list of lists of 5 numbers'),
+    Case("planning-out-is-a-directory", planning(lambda p, g: None), [*PLANNING, "--out", "{tmp}/ds"], 2, "{tmp}/ds: is a directory; --out takes a file name"),
+    Case("captions-number", captions({"a": 3}, {"a": ["x"]}), CAPTIONS, 2, "{tmp}/cap.json: a is the integer 3, expected a string"),
+    Case("captions-reference-numbers", captions({"a": "x"}, {"a": ["x", 2]}), CAPTIONS, 2,
+         "{tmp}/ref.json: a is a list of 2 items, expected a string or a list of strings"),
+    Case("qa-answer-bool", qa_answers(["yes", True, "1", "car"]), QA, 2, "{tmp}/a.json: [1] is true, expected a string or an integer"),
+    Case("qa-questions-without-answer", qa_answers(["yes", "2", "1", "car"], lambda qs: drop_key(qs[1], "answer")), QA, 2,
+         "{tmp}/q.json: questions[1].answer is missing, expected a string"),
+    Case("qa-questions-hop-string", qa_answers(["yes", "2", "1", "car"], lambda qs: qs[2].update(num_hop="1")), QA, 2,
+         '{tmp}/q.json: questions[2].num_hop is the string "1", expected one of 0, 1'),
+    # ------------------------------------------------------------------ exports
+    Case("export-config-not-json", export_file("config.json", b"{\"stage_kind\": "), EVAL, 2,
+         EXPORT + "config.json: unreadable export config"),
+    Case("export-config-a-list", export_file("config.json", b"[]"), EVAL, 2, EXPORT + "config.json: is not a JSON object (found a list); re-run the stage that wrote it"),
+    Case("export-weights-truncated", export_file("model.safetensors", keep=40), EVAL, 2,
+         EXPORT + "model.safetensors: unreadable weights"),
+    Case("export-weights-garbage", export_file("model.safetensors", b"\x00" * 3), EVAL, 2, EXPORT + "model.safetensors: unreadable weights"),
+    # ------------------------------------------------------------------ data synth / show
+    Case("synth-into-another-dataset", nothing, ["data", "synth", "--out", DS, "--scenes", "1", "--val-scenes", "1", "--frames", "8"], 2,
+         "{tmp}/ds: already holds a different dataset"),
+    Case("synth-into-a-foreign-directory", nothing, ["data", "synth", "--out", "{tmp}/ds/gts", "--scenes", "1", "--frames", "8"], 2,
+         "{tmp}/ds/gts: exists and is not an occtrain dataset"),
+    Case("synth-no-frames", nothing, ["data", "synth", "--out", "{tmp}/new", "--frames", "0"], 2, "synth needs at least one train scene and one frame per scene"),
+    Case("show-unknown-scene", nothing, ["data", "show", DS, "--scene", "scene-9999", "--out", "{tmp}/b.png"], 2, "{tmp}/ds: no scene 'scene-9999'"),
+    Case("show-out-under-a-file", nothing, ["data", "show", DS, "--out", "{tmp}/ds/annotations.json/b.png"], 2,
+         "{tmp}/ds/annotations.json/b.png: cannot write the picture"),
+    Case("show-zero-scale", nothing, ["data", "show", DS, "--scale", "0", "--out", "{tmp}/b.png"], 2, "--scale 0: must be at least 1"),
+]
+
+
+def run_cli(argv: list[str]) -> int:
+    try:
+        return main(argv)
+    except SystemExit as exit_:  # argparse
+        return int(exit_.code or 0)
+
+
+@pytest.mark.parametrize("case", CASES, ids=[c.id for c in CASES])
+def test_bad_input_is_one_line_and_changes_nothing(case: Case, world: Path, tmp_path: Path, capsys) -> None:
+    shutil.copytree(world, tmp_path, dirs_exist_ok=True)
+    case.setup(tmp_path)
+    before = snapshot(tmp_path)
+    code = run_cli([a.format(tmp=tmp_path) for a in case.argv])
+    out, err = capsys.readouterr()
+    says = case.says.format(tmp=tmp_path)
+    assert "Traceback" not in out + err
+    assert code == case.code, out + err
+    assert err.endswith("\n") and err.count("\n") == 1, f"stderr must be one line:\n{err}"
+    if code == 2:
+        assert err.startswith("error: ") and says in err, err
+        assert out == ""
+    else:  # data check: the problems on stdout, each naming its file; a summary on stderr
+        assert "problem(s) in" in err
+        assert says in out, out
+        assert all(str(tmp_path) in line for line in out.splitlines()), out
+    assert snapshot(tmp_path) == before
+
+
+def test_the_table_is_big_and_its_ids_unique() -> None:
+    assert len(CASES) >= 45
+    assert len({c.id for c in CASES}) == len(CASES)
+
+
+# ----------------------------------------------------------------------------- a real Occ3D release
+
+
+def make_release(root: Path) -> Path:
+    """What an Occ3D-nuScenes download holds: annotations.json as the release writes it
+    (timestamps as strings of digits, camera_sensor records, prev/next links, samples not
+    in time order) and gts/<scene>/<token>/labels.npz; no occtrain sidecars, no NuScenes-QA.
+
+    Scene B has no prev/next links at all: its order comes from the timestamps, compared
+    as numbers ("999500000" < "1000000000" although not as strings)."""
+    scenes = {"scene-0061": ["a0", "a1", "a2", "a3"], "scene-0103": ["b0", "b1", "b2"]}
+    start = {"scene-0061": 1_532_402_927_647_951, "scene-0103": 999_500_000}
+    infos: dict[str, dict] = {}
+    for scene, order in scenes.items():
+        infos[scene] = {}
+        for i in reversed(range(len(order))):
+            token = order[i]
+            pose = {"translation": [600.0 + 2.5 * i, 1600.0, 0.0], "rotation": quaternion_from_yaw(0.1 * i)}
+            infos[scene][token] = {
+                "timestamp": str(start[scene] + 500_000 * i),
+                "camera_sensor": {
+                    f"{token}-cam{c}": {
+                        "img_path": f"imgs/CAM_{c}/{token}.jpg",
+                        "intrinsic": [[1266.4, 0.0, 816.3], [0.0, 1266.4, 491.5], [0.0, 0.0, 1.0]],
+                        "extrinsic": {"translation": [1.7, 0.0, 1.5], "rotation": [0.5, -0.5, 0.5, -0.5]},
+                        "ego_pose": pose,
+                    }
+                    for c in ("FRONT", "BACK")
+                },
+                "ego_pose": pose,
+                "gt_path": f"gts/{scene}/{token}/labels.npz",
+            }
+            if scene == "scene-0061":
+                infos[scene][token] |= {"prev": order[i - 1] if i else "", "next": order[i + 1] if i + 1 < len(order) else ""}
+            path = root / "gts" / scene / token / "labels.npz"
+            path.parent.mkdir(parents=True)
+            np.savez_compressed(path, **hand_labels(i))
+    (root / "annotations.json").write_text(json.dumps({"train_split": ["scene-0061"], "val_split": ["scene-0103"], "scene_infos": infos}))
+    return root
+
+
+def test_a_real_release_reads_unchanged_and_checks_ok(tmp_path: Path, capsys) -> None:
+    root = make_release(tmp_path / "occ3d")
+    before = snapshot(root)
+    ds = DatasetIndex.open(root)
+    assert ds.scenes == {"scene-0061": ["a0", "a1", "a2", "a3"], "scene-0103": ["b0", "b1", "b2"]}
+    assert ds.timestamp("scene-0103", "b0") == 999_500_000 and ds.timestamp("scene-0103", "b1") == 1_000_000_000
+    x, y, yaw = ds.ego_pose("scene-0061", "a2")
+    assert (x, y) == (605.0, 1600.0) and yaw == pytest.approx(0.2)
+    assert ds.labels("scene-0103", "b2")["semantics"].shape == GRID_SHAPE
+    assert ds.questions("val") is None and ds.questions_by_sample("train") == {}
+
+    assert run_cli(["data", "check", str(root)]) == 0
+    out, err = capsys.readouterr()
+    assert err == "" and out.splitlines()[-1] == f"dataset {root}: ok"
+    notes = out.splitlines()[:-1]
+    assert len(notes) == 2 and all(n.startswith(f"note: {root}: no ") for n in notes)
+    assert "detection, counting, prediction, chain_of_thought, meta_action training" in notes[0] and "occtrain/frames/<scene>.json" in notes[0]
+    assert "no qa training" in notes[1] and "NuScenes_<split>_questions.json" in notes[1]
+
+    out_dir = tmp_path / "shards"
+    assert run_cli(["data", "shards", str(root), "--out", str(out_dir), "--history", "1", "--future", "1"]) == 0
+    capsys.readouterr()
+    assert json.loads((out_dir / "index.json").read_text())["kinds"]["clips"]["train"][0]["samples"] == 2
+    assert snapshot(root) == before  # read, never written
+
+
+def _strict_json(text: str) -> Any:
+    def refuse(name: str) -> None:
+        raise AssertionError(f"non-standard JSON constant {name}")
+
+    return json.loads(text, parse_constant=refuse)
+
+
+def test_score_output_is_standard_json(world: Path, tmp_path: Path, capsys) -> None:
+    """Classes absent on both sides are undefined (NaN inside): null on stdout and in --out."""
+    out = tmp_path / "occ.json"
+    # the ground truth scored against itself: its labels tree is a prediction directory too
+    code = run_cli(["score", "occupancy", "--pred", str(world / "ds" / "gts"), "--gt", str(world / "ds"), "--split", "val", "--out", str(out)])
+    printed = capsys.readouterr().out
+    assert code == 0
+    for result in (_strict_json(printed), _strict_json(out.read_text())):
+        assert result["per_class"]["bus"] is None and result["mIoU"] == pytest.approx(100.0)
+
+
+# ----------------------------------------------------------------------------- the checker itself
+
+
+class Inner(TypedDict):
+    xy: Annotated[list[float], Len(2)]
+    tag: NotRequired[Literal["a", "b"]]
+
+
+@pytest.mark.parametrize(
+    "value, tp, found",
+    [
+        (3, int, []),
+        (True, int, ["x is true, expected an integer"]),
+        (3, float, []),
+        (float("nan"), float, ["x is NaN, expected a number"]),
+        (False, float, ["x is false, expected a number"]),
+        (None, Optional[int], []),
+        ("3", Optional[int], ['x is the string "3", expected an integer']),
+        ({"xy": [1, 2.5], "extra": "kept"}, Inner, []),
+        ({"xy": [1], "tag": "c"}, Inner, ["x.xy holds 1 item, expected a list of 2 numbers", 'x.tag is the string "c", expected one of "a", "b"']),
+        ({}, Inner, ["x.xy is missing, expected a list of 2 numbers"]),
+        ({"k": [{"xy": "no"}]}, dict[str, list[Inner]], ['x.k[0].xy is the string "no", expected a list of 2 numbers']),
+        (1.0, Literal[1], ["x is the number 1, expected 1"]),
+    ],
+)
+def test_problems_words_each_mismatch_by_its_key(value: Any, tp: Any, found: list[str]) -> None:
+    assert problems(value, tp, "x") == found

@@ -1,0 +1,138 @@
+"""Several processes through the real CLI: DDP validation of an odd-sized split equals one
+process exactly, and two torchrun nodes train like one process with the same global batch."""
+
+from __future__ import annotations
+
+import json
+import os
+import socket
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+from safetensors.torch import load_file
+
+from conftest import REPO, run_cli, write_hand_dataset
+
+pytestmark = pytest.mark.slow
+
+#: OccWorld's VQ-VAE at test size; nothing that depends on the per-rank batch (no EMA
+#: statistics, code restarts or sampled Lovasz), so DDP and one process compute one loss.
+RECIPE = """
+name: dist
+runs_root: {runs}
+data: {{root: {data}, batch_size: 2, samples_per_shard: 4, history: 1, future: 1, shuffle_buffer: 8}}
+trainer: {{max_steps: 4, val_check_interval: 4, limit_val_batches: -1, ckpt_every_n_steps: 2, log_every_n_steps: 1}}
+stages:
+  - name: tokenizer
+    kind: tokenizer
+    model:
+      arch: occworld_vqvae
+      occworld_vqvae: {{num_codes: 16, code_dim: 8, class_embed_dim: 4, base_channels: 8, channel_mult: [1, 1, 1],
+                        strides: [4, 5], num_res_blocks: 1, latent_attention: false, z_channels: 8, lovasz_weight: 0.0}}
+    optim: {{lr: {lr}, weight_decay: 0.0}}
+"""
+
+
+@pytest.fixture(scope="module")
+def world(tmp_path_factory) -> Path:
+    # 9 val frames: an odd split, which two ranks cannot halve.
+    return write_hand_dataset(tmp_path_factory.mktemp("dist") / "ds", train=2, val=1, frames=9)
+
+
+def _recipe(tmp_path: Path, world: Path, lr: float) -> Path:
+    path = tmp_path / "dist.yaml"
+    path.write_text(RECIPE.format(runs=tmp_path / "runs", data=world, lr=lr))
+    return path
+
+
+def _port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _torchrun(args: list[str], nodes: int, per_node: int, port: int) -> list[subprocess.Popen]:
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [str(REPO / "tests"), os.environ.get("PYTHONPATH", "")])))
+    procs = []
+    for node in range(nodes):
+        cmd = [
+            sys.executable, "-m", "torch.distributed.run", f"--nnodes={nodes}", f"--nproc-per-node={per_node}",
+            f"--node-rank={node}", "--master-addr=127.0.0.1", f"--master-port={port}",
+            "-m", "occtrain", *args,
+        ]
+        procs.append(subprocess.Popen(cmd, cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True))
+    return procs
+
+
+def _finish(procs: list[subprocess.Popen]) -> list[tuple[int, str]]:
+    out = []
+    for p in procs:
+        _, err = p.communicate(timeout=600)
+        out.append((p.returncode, err))
+    return out
+
+
+@pytest.fixture(autouse=True)
+def one_thread(monkeypatch):
+    # Lightning gives each of 2 DDP processes one of the 2 cores; one process would use
+    # both, and a convolution summed in another order can flip a near-tie argmax of an
+    # untrained model. One thread everywhere: every sample meets the very same arithmetic.
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")
+
+
+def test_ddp_validation_of_an_odd_split_equals_one_process(tmp_path, world):
+    # lr 0: both runs validate the very same weights, in batches of one sample (a batch
+    # of two rounds differently from two of one). Rank 1 holds 4 of the 9 frames: its
+    # first batch is padding alone, which must count for nothing.
+    recipe = _recipe(tmp_path, world, lr=0.0)
+    one = run_cli("run", str(recipe), "data.batch_size=1", "--run-dir", str(tmp_path / "one"))
+    assert one.returncode == 0, one.stderr[-3000:]
+    two = run_cli(
+        "run", str(recipe), "data.batch_size=1", "trainer.devices=2", "trainer.strategy=ddp", "--run-dir", str(tmp_path / "two"),
+        timeout=600,
+    )
+    assert two.returncode == 0, two.stderr[-3000:]
+    single = json.loads((tmp_path / "one" / "tokenizer" / "metrics.json").read_text())
+    ddp = json.loads((tmp_path / "two" / "tokenizer" / "metrics.json").read_text())
+    assert single.keys() == ddp.keys()
+    for key in single:
+        if "IoU" in key:  # from integer counts, gathered across ranks: exactly equal
+            assert ddp[key] == single[key], key
+        else:  # float sums, added in another order
+            assert ddp[key] == pytest.approx(single[key], rel=1e-6), key
+    assert "sync_dist" not in two.stderr
+
+
+def test_two_torchrun_nodes_train_like_one_process(tmp_path, world):
+    recipe = _recipe(tmp_path, world, lr=0.01)
+    one = run_cli("run", str(recipe), "--run-dir", str(tmp_path / "one"))
+    assert one.returncode == 0, one.stderr[-3000:]
+
+    # Two node ranks of one process each, batch 1 per rank: the same global batch of 2.
+    args = ["run", str(recipe), "trainer.num_nodes=2", "trainer.strategy=ddp", "data.batch_size=1", "--run-dir", str(tmp_path / "two")]
+    results = _finish(_torchrun(args, nodes=2, per_node=1, port=_port()))
+    for code, err in results:
+        assert code == 0, err[-3000:]
+    manifest = json.loads((tmp_path / "two" / "manifest.json").read_text())
+    assert manifest["stages"]["tokenizer"]["attempts"] == 1 and manifest["stages"]["tokenizer"]["status"] == "done"
+    for _, err in results:
+        assert "sync_dist" not in err and "Warning" not in err, err[-3000:]
+    assert sum(err.count("done    tokenizer") for _, err in results) == 1  # one process reports
+
+    # Equal up to the order floats are summed in (gradients averaged over ranks vs over
+    # one batch), which AdamW amplifies a little on tiny gradients: far below one step's
+    # update (lr 1e-2). A run that saw other batches (one sample a step) is far off.
+    def weights(run: str) -> dict[str, torch.Tensor]:
+        return load_file(tmp_path / run / "tokenizer" / "export" / "model.safetensors")
+
+    def gap(a: dict, b: dict) -> float:
+        assert a.keys() == b.keys()
+        return max(float((a[k] - b[k]).abs().max()) for k in a)
+
+    assert gap(weights("two"), weights("one")) < 2e-4
+    other = run_cli("run", str(recipe), "data.batch_size=1", "--run-dir", str(tmp_path / "other"))
+    assert other.returncode == 0, other.stderr[-3000:]
+    assert gap(weights("other"), weights("one")) > 5e-3
