@@ -284,6 +284,73 @@ EVAL = ["eval", "{tmp}/run/pretrain"]
 EXPORT = "{tmp}/run/pretrain/export/"
 S0 = f"scene_infos.scene-0000.{T0[0]}"
 
+# ----------------------------------------------------------------------------- recipes and runs
+
+RECIPE = """name: tiny
+runs_root: {tmp}/runs
+data: {{root: {tmp}/ds, batch_size: 2, samples_per_shard: 4, history: 1, future: 1}}
+trainer: {{max_steps: 2, val_check_interval: 2, limit_val_batches: 1}}
+stages:
+  - name: tokenizer
+    kind: tokenizer
+    model: {{arch: occworld_vqvae, occworld_vqvae: {{num_codes: 8, code_dim: 4, base_channels: 4, channel_mult: [1, 1, 1], strides: [4, 5], num_res_blocks: 1, latent_attention: false, z_channels: 4}}}}
+    trainer: {{max_steps: 3}}
+  - name: pretrain
+    kind: pretrain
+    consumes: [tokenizer]
+"""
+RUN = ["run", "{tmp}/r.yaml", "--run-dir", "{tmp}/run2"]
+RECIPE_FILE = "{tmp}/r.yaml"
+
+
+def recipe(change: Callable[[str], str] = lambda text: text) -> Callable[[Path], None]:
+    """Write the tiny recipe (optionally edited) to ``tmp/r.yaml``."""
+
+    def setup(tmp: Path) -> None:
+        (tmp / "r.yaml").write_text(change(RECIPE.format(tmp=tmp)))
+
+    return setup
+
+
+_HELD: list = []
+
+
+def locked_run_dir(tmp: Path) -> None:
+    """The run directory held by another ``occtrain run`` (a lock on its own open file)."""
+    import fcntl
+
+    recipe()(tmp)
+    (tmp / "run2").mkdir()
+    fh = open(tmp / "run2" / ".lock", "a+")
+    fcntl.flock(fh.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+    fh.write("pid 4242 on elsewhere\n")
+    fh.flush()
+    _HELD.append(fh)  # released when the test process ends
+
+
+def manifest(entry: dict) -> Callable[[Path], None]:
+    """A run directory whose manifest holds the tokenizer stage as ``entry``."""
+
+    def setup(tmp: Path) -> None:
+        recipe()(tmp)
+        (tmp / "run2").mkdir()
+        text = json.dumps({"name": "tiny", "stages": {"tokenizer": {"kind": "tokenizer", **entry}}})
+        (tmp / "run2" / "manifest.json").write_text(text)
+        (tmp / "run2" / "pipeline.yaml").write_text("name: tiny\n")
+
+    return setup
+
+
+DONE_OTHER_CONFIG = {"status": "done", "config_hash": "0123456789abcdef", "config": {"optim": {"lr": 0.5}}}
+CUT_OTHER_CONFIG = {"status": "interrupted", "config_hash": "0123456789abcdef", "config": {"optim": {"lr": 0.5}}}
+
+
+def cut_off_under_other_config(tmp: Path) -> None:
+    manifest(CUT_OTHER_CONFIG)(tmp)
+    (tmp / "run2" / "tokenizer" / "checkpoints").mkdir(parents=True)
+    (tmp / "run2" / "tokenizer" / "checkpoints" / "last.ckpt").write_bytes(b"PK")
+
+
 CASES: list[Case] = [
     # ------------------------------------------------------------------ annotations.json
     Case("ann-not-json", write_text("ds/annotations.json", "{not json"), SHARDS_FRAMES, 2, f"{ANN}: not valid JSON"),
@@ -453,6 +520,41 @@ CASES: list[Case] = [
     Case("show-out-under-a-file", nothing, ["data", "show", DS, "--out", "{tmp}/ds/annotations.json/b.png"], 2,
          "{tmp}/ds/annotations.json/b.png: cannot write the picture"),
     Case("show-zero-scale", nothing, ["data", "show", DS, "--scale", "0", "--out", "{tmp}/b.png"], 2, "--scale 0: must be at least 1"),
+    # ------------------------------------------------------------------ recipes, overrides, run directories
+    Case("recipe-without-name", recipe(lambda t: t.replace("name: tiny\n", "")), RUN, 2, RECIPE_FILE + " has no 'name:'"),
+    Case("stage-without-kind", recipe(lambda t: t.replace("    kind: tokenizer\n", "")), RUN, 2,
+         "stages[0] in " + RECIPE_FILE + " has no 'kind:'"),
+    Case("stage-without-name", recipe(lambda t: t.replace("  - name: tokenizer\n    kind", "  - kind")), RUN, 2,
+         "stages[0] in " + RECIPE_FILE + " has no 'name:'"),
+    Case("recipe-unknown-key", recipe(lambda t: t + "trainr: {}\n"), RUN, 2, "unknown key 'trainr' in " + RECIPE_FILE + "; did you mean 'trainer'?"),
+    Case("recipe-not-yaml", recipe(lambda t: t + "stages: [\n"), RUN, 2, RECIPE_FILE + " line"),
+    Case("recipe-missing", nothing, ["run", "{tmp}/none.yaml"], 2, "config file not found: {tmp}/none.yaml"),
+    Case("recipe-stages-not-a-list", recipe(lambda t: t[: t.index("stages:")] + "stages: 3\n"), RUN, 2, "invalid value for 'stages' in " + RECIPE_FILE),
+    Case("stage-kind-unknown", recipe(lambda t: t.replace("kind: pretrain", "kind: pretrian")), RUN, 2, "unknown stage kind 'pretrian'"),
+    Case("stage-consumes-later", recipe(lambda t: t.replace("    kind: tokenizer\n", "    kind: tokenizer\n    consumes: [pretrain]\n", 1)), RUN, 2,
+         "consumes 'pretrain', which is not an earlier stage (it runs later)"),
+    Case("stage-names-twice", recipe(lambda t: t.replace("name: pretrain", "name: tokenizer")), RUN, 2, "stage name 'tokenizer' is used twice"),
+    Case("stage-model-typo", recipe(lambda t: t.replace("num_codes: 8", "num_code: 8")), RUN, 2, "unknown key 'stages[0].model.occworld_vqvae.num_code' in " + RECIPE_FILE + "; did you mean 'num_codes'?"),
+    Case("stage-data-root", recipe(lambda t: t.replace("    trainer: {max_steps: 3}", "    trainer: {max_steps: 3}\n    data: {root: x}")), RUN, 2,
+         "stages[0].data.root in " + RECIPE_FILE + ": a stage sets only batch_size, num_workers, shuffle_buffer"),
+    Case("plugin-missing", recipe(lambda t: t + "plugins: [no_such_plugin_module]\n"), RUN, 2, "plugin 'no_such_plugin_module'"),
+    Case("override-typo", recipe(), [*RUN, "trainer.max_step=3"], 2, "unknown key 'trainer.max_step' in override 'trainer.max_step=3'; did you mean 'max_steps'?"),
+    Case("override-no-equals", recipe(), [*RUN, "trainer.max_steps"], 2, "override 'trainer.max_steps' must look like key=value"),
+    Case("override-wrong-type", recipe(), [*RUN, "trainer.max_steps=many"], 2, "invalid value for 'trainer.max_steps'"),
+    Case("override-unknown-stage-name", recipe(), [*RUN, "stages.tokeniser.optim.lr=1"], 2,
+         "has no stage 'tokeniser' (stages: tokenizer, pretrain); address one as stages.<name>.<key>="),
+    Case("override-stage-index-out-of-range", recipe(), [*RUN, "stages.7.optim.lr=1"], 2, "has no stage '7'"),
+    Case("override-stage-key-typo", recipe(), [*RUN, "stages.tokenizer.optim.lrr=1"], 2, "unknown key 'stages[0].optim.lrr'"),
+    Case("max-steps-zero", recipe(lambda t: t.replace("    trainer: {max_steps: 3}\n", "")), [*RUN, "trainer.max_steps=0"], 2,
+         "trainer.max_steps is 0 in " + RECIPE_FILE + ": a stage trains for a positive number of optimizer steps"),
+    Case("max-steps-minus-one", recipe(), [*RUN, "stages.tokenizer.trainer.max_steps=-1"], 2, "stages.tokenizer.trainer.max_steps is -1"),
+    Case("only-unknown-stage", recipe(), [*RUN, "--only", "planner"], 2, "--only names stage 'planner', but " + RECIPE_FILE + " has stages tokenizer, pretrain"),
+    Case("restart-unknown-stage", recipe(), [*RUN, "--restart", "planner"], 2, "--restart names stage 'planner'"),
+    Case("run-dir-locked", locked_run_dir, RUN, 2, "{tmp}/run2 is in use by pid 4242 on elsewhere; wait for it to finish, stop it, or choose another --run-dir"),
+    Case("done-stage-config-changed", manifest(DONE_OTHER_CONFIG), RUN, 2, "stage 'tokenizer' is done but its config changed"),
+    Case("cut-off-under-other-config", cut_off_under_other_config, RUN, 2, "stage 'tokenizer' was cut off under a different config"),
+    Case("manifest-unreadable", both(manifest({}), write_text("run2/manifest.json", "{")), RUN, 2, "{tmp}/run2/manifest.json: unreadable manifest"),
+    Case("eval-not-a-stage-dir", nothing, ["eval", "{tmp}/nowhere"], 2, "{tmp}/nowhere"),
 ]
 
 
@@ -485,7 +587,7 @@ def test_bad_input_is_one_line_and_changes_nothing(case: Case, world: Path, tmp_
 
 
 def test_the_table_is_big_and_its_ids_unique() -> None:
-    assert len(CASES) >= 45
+    assert len(CASES) >= 60
     assert len({c.id for c in CASES}) == len(CASES)
 
 

@@ -33,7 +33,7 @@ def tiny_overrides(data: Path, steps: int = 3, stages: int = len(STAGES)) -> lis
         f"data.root={data}",
         "data.synth.train_scenes=2", "data.synth.val_scenes=1", "data.synth.frames_per_scene=13",
         "data.samples_per_shard=8", "data.shuffle_buffer=4",
-        "trainer.ckpt_every_n_steps=1",
+        "trainer.ckpt_every_n_steps=1", "trainer.log_every_n_steps=1",
     ]
     for i in range(stages):
         out += [
@@ -120,7 +120,7 @@ def test_eval_and_score_agree(pipeline, tmp_path):
     assert merged["qa_overall"] == pytest.approx(metrics["qa_overall"])  # batch size does not change answers
 
 
-def _export_tensors(stage_dir: Path) -> dict[str, "torch.Tensor"]:
+def _export_tensors(stage_dir: Path) -> dict:
     from safetensors.torch import load_file
 
     out = {}

@@ -202,3 +202,117 @@ def test_a_stage_sets_its_own_batch_size_but_not_the_dataset(probe_kind, tmp_pat
     assert a.config["data"]["batch_size"] == 2 and b.config["data"]["batch_size"] == 8  # part of its config hash
     with pytest.raises(ConfigError, match=r"stages\[0\].data.root in r.yaml: a stage sets only batch_size"):
         plan_text(tmp_path, "  - {name: a, kind: probe, data: {root: elsewhere}}\n")
+
+
+# ----------------------------------------------------------------------------- write faults and files
+
+
+def _hashes(root) -> dict[str, bytes]:
+    import hashlib
+
+    return {str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).digest() for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+def test_disk_full_at_a_checkpoint_is_one_line_and_leaves_the_run_consistent(probe_kind, recipe, monkeypatch):
+    import errno
+    import os
+
+    import occtrain.io
+
+    real_replace = os.replace
+
+    def full(src, dst):
+        if str(dst).endswith(".ckpt"):
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real_replace(src, dst)
+
+    monkeypatch.setattr(occtrain.io.os, "replace", full)
+    with pytest.raises(StageFailed) as err:
+        run(recipe)
+    run_dir = recipe.parent / "runs" / "probe"
+    ckpt_dir = run_dir / "first" / "checkpoints"
+    assert str(err.value) == (
+        f"stage 'first' failed: cannot write {ckpt_dir / 'last.ckpt'}: the disk is full; free space and rerun "
+        "(a run resumes where it stopped)"
+    )
+    assert list(ckpt_dir.iterdir()) == [] if ckpt_dir.exists() else True  # no partial checkpoint, no temp file
+    stage = json.loads((run_dir / "manifest.json").read_text())["stages"]["first"]
+    assert stage["status"] == "failed" and stage["error"].startswith("cannot write")
+
+    monkeypatch.setattr(occtrain.io.os, "replace", real_replace)  # space freed: the rerun finishes
+    run(recipe)
+    assert json.loads((run_dir / "manifest.json").read_text())["stages"]["first"]["status"] == "done"
+
+
+def test_a_read_only_run_directory_is_one_line_and_writes_nothing(probe_kind, recipe, monkeypatch):
+    import errno
+
+    import occtrain.io
+
+    run(recipe)
+    run_dir = recipe.parent / "runs" / "probe"
+    before = _hashes(run_dir)
+
+    def read_only(*args, **kwargs):
+        raise OSError(errno.EROFS, "Read-only file system")
+
+    monkeypatch.setattr(occtrain.io.tempfile, "mkstemp", read_only)
+    with pytest.raises(OcctrainError) as err:
+        run(recipe, ["stages[1].optim.lr=0.5"], restart="second")
+    assert str(err.value) == (
+        f"cannot write {run_dir / 'pipeline.yaml'}: the file system is read-only; "
+        "point the run (--run-dir) or --out at a writable place"
+    )
+    assert _hashes(run_dir) == before
+
+
+def test_written_files_have_the_permissions_of_a_plain_write(probe_kind, recipe):
+    import os
+
+    umask = os.umask(0)
+    os.umask(umask)
+    run_dir = run(recipe)
+    for path in (run_dir / "manifest.json", run_dir / "dashboard.html", run_dir / "pipeline.yaml", run_dir / "first" / "metrics.json",
+                 run_dir / "first" / "checkpoints" / "last.ckpt"):
+        assert path.stat().st_mode & 0o777 == 0o666 & ~umask, path
+
+
+def test_an_unreadable_last_checkpoint_falls_back_to_the_one_before(tmp_path, capsys):
+    from occtrain.stages.common import PREVIOUS_CKPT, last_checkpoint
+
+    ckpt = tmp_path / "checkpoints"
+    ckpt.mkdir()
+    torch.save({"global_step": 2}, ckpt / PREVIOUS_CKPT)
+    (ckpt / "last.ckpt").write_bytes(b"PK\x03\x04 truncated")
+    said: list[str] = []
+    assert last_checkpoint(tmp_path, said.append) == ckpt / PREVIOUS_CKPT
+    assert len(said) == 1 and said[0].startswith(f"{ckpt / 'last.ckpt'} is unreadable (")
+    (ckpt / PREVIOUS_CKPT).write_bytes(b"")
+    assert last_checkpoint(tmp_path, said.append) is None and "starts afresh" in said[-1]
+
+
+# ----------------------------------------------------------------------------- overrides and notes
+
+
+def test_stages_are_addressed_by_name_or_index(probe_kind, recipe):
+    from occtrain.runner import load_recipe
+
+    for key in ("stages.second.optim.lr=0.125", "stages.1.optim.lr=0.125", "stages[1].optim.lr=0.125"):
+        cfg, _ = load_recipe(recipe, [key])
+        assert cfg.stages[1].optim.lr == 0.125 and cfg.stages[0].optim.lr == 0.05
+
+
+def test_a_shadowed_trainer_override_is_said_once(probe_kind, recipe, capsys):
+    run_dir = run(recipe, ["trainer.max_steps=2"])
+    err = capsys.readouterr().err
+    assert err.count("note") == 1 and "trainer.max_steps=2 applies to every stage except second, which set their own" in err
+    manifest = json.loads((run_dir / "manifest.json").read_text())["stages"]
+    assert manifest["first"]["config"]["trainer"]["max_steps"] == 2 and manifest["second"]["config"]["trainer"]["max_steps"] == 4
+
+
+def test_a_refused_run_writes_nothing(probe_kind, recipe):
+    run_dir = run(recipe)
+    before = _hashes(run_dir)
+    with pytest.raises(ConfigError):
+        run(recipe, ["stages.first.optim.lr=0.5", "trainer.log_every_n_steps=3"])
+    assert _hashes(run_dir) == before

@@ -5,10 +5,10 @@ from __future__ import annotations
 import json
 import os
 import signal
+import socket
 import subprocess
 import sys
 import time
-from pathlib import Path
 
 import pytest
 import torch
@@ -78,16 +78,61 @@ def test_kill_9_then_resume_gives_the_uninterrupted_weights(recipe, tmp_path):
     manifest = json.loads((run_dir / "manifest.json").read_text())
     assert manifest["stages"]["only"]["status"] == "running" and manifest["stages"]["only"]["attempts"] == 1
 
+    # The killed process's lock file stays behind; the kernel dropped its lock with it.
+    assert (run_dir / ".lock").read_text().startswith(f"pid {proc.pid} ")
+    # And a damaged last.ckpt (a disk error after the fact): the one before it resumes.
+    (run_dir / "only" / "checkpoints" / "last.ckpt").write_bytes(b"PK\x03\x04 damaged")
     res = run_cli("run", str(recipe), "stages[0].model.step_delay=0.25", "--run-dir", str(run_dir))
     assert res.returncode == 0, res.stderr[-2000:]
-    assert "resuming only" in res.stderr
+    assert "last.ckpt is unreadable" in res.stderr and "resuming only from" in res.stderr and "previous.ckpt" in res.stderr
     manifest = json.loads((run_dir / "manifest.json").read_text())
     assert manifest["stages"]["only"]["status"] == "done" and manifest["stages"]["only"]["attempts"] == 2
+    # Wall time sums the attempts: 16 steps of at least 0.25 s, some before the kill.
+    assert manifest["stages"]["only"]["wall_time_s"] >= 16 * 0.25
     assert torch.load(last, weights_only=True, map_location="cpu")["global_step"] == 16
     resumed = load_file(run_dir / "only" / "export" / "model.safetensors")
     assert resumed.keys() == reference.keys()
     for key in reference:
         assert torch.equal(resumed[key], reference[key]), key
+
+
+@pytest.mark.parametrize("sig, code", [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
+def test_a_stop_signal_interrupts_in_one_line_and_a_rerun_resumes(recipe, tmp_path, sig, code):
+    run_dir = tmp_path / "run"
+    args = [str(recipe), "stages.only.model.step_delay=0.25", "--run-dir", str(run_dir)]
+    proc = subprocess.Popen([sys.executable, "-m", "occtrain", "run", *args], cwd=REPO, env=_env(),
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    last = run_dir / "only" / "checkpoints" / "last.ckpt"
+    deadline = time.time() + 120
+    while not last.is_file() and proc.poll() is None and time.time() < deadline:
+        time.sleep(0.05)
+    assert proc.poll() is None, "the stage finished before the signal"
+
+    # A second run on the same directory is refused while the first holds it.
+    second = run_cli("run", *args)
+    assert second.returncode == 2
+    assert second.stderr.strip() == (
+        f"error: {run_dir} is in use by pid {proc.pid} on {socket.gethostname()}; wait for it to finish, stop it, or choose another --run-dir"
+    )
+
+    proc.send_signal(sig)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == code, err[-2000:]
+    name = signal.Signals(sig).name
+    assert err.splitlines()[-1] == (
+        f"interrupted: stage 'only' of {run_dir} interrupted by {name}; rerun the same command to resume it from {run_dir / 'only' / 'checkpoints'}"
+    )
+    assert sum(name in line for line in err.splitlines()) == 1  # and nothing else about it (Lightning's "Received SIGTERM")
+    assert "Traceback" not in err
+    entry = json.loads((run_dir / "manifest.json").read_text())["stages"]["only"]
+    assert entry["status"] == "interrupted" and entry["error"] == f"interrupted by {name}" and entry["wall_time_s"] > 0
+    assert last.is_file()
+
+    res = run_cli("run", *args)
+    assert res.returncode == 0, res.stderr[-2000:]
+    assert "resuming only" in res.stderr
+    entry = json.loads((run_dir / "manifest.json").read_text())["stages"]["only"]
+    assert entry["status"] == "done" and entry["attempts"] == 2
 
 
 def test_cpu_ddp_two_processes(recipe, tmp_path):

@@ -9,7 +9,9 @@ from typing import Callable, Iterator
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
-console = Console(stderr=True)
+#: Lines are never hard-wrapped (a terminal wraps them for the eye; a log file or a grep
+#: needs each message on one line).
+console = Console(stderr=True, soft_wrap=True)
 
 
 @contextmanager

@@ -7,7 +7,6 @@ can be compared weight for weight.
 
 from __future__ import annotations
 
-import os
 import time
 from dataclasses import dataclass
 from pathlib import Path

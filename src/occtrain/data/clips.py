@@ -19,7 +19,7 @@ import torch
 
 from occtrain.data.geometry import global_to_ego
 from occtrain.data.layout import DatasetIndex
-from occtrain.occ3d import FUTURE_STEPS
+from occtrain.occ3d import FUTURE_STEPS, PAST_STEPS
 
 
 @dataclass(frozen=True)
@@ -96,12 +96,39 @@ def clip_annotation(index: DatasetIndex, scene: str, anchor: int, history: int, 
     tokens = index.scenes[scene]
     window = tokens[anchor - history : anchor + future + 1]
     return {
-        "anchor": frames[anchor] if frames else {"scene": scene, "token": tokens[anchor], "index": anchor},
+        "anchor": frames[anchor] if frames else pose_anchor(index, scene, anchor),
         "tokens": window,
         "ego_poses": [list(index.ego_pose(scene, t)) for t in window],
         "history": history,
         "future": future,
         "split": split,
+    }
+
+
+def pose_anchor(index: DatasetIndex, scene: str, anchor: int) -> dict:
+    """The anchor record of a scene without occtrain's sidecar: what the ego poses give
+    (past and future waypoints in the anchor's ego frame, masked where the scene ends), so
+    planning and its metrics work on a plain Occ3D release. Boxes, text and the driving
+    command need the sidecar and stay absent."""
+    tokens = index.scenes[scene]
+    x, y, yaw = index.ego_pose(scene, tokens[anchor])
+
+    def waypoints(positions: range, steps: int) -> tuple[list[list[float]], list[int]]:
+        xy = [list(index.ego_pose(scene, tokens[i]))[:2] for i in positions if 0 <= i < len(tokens)]
+        local = global_to_ego(np.asarray(xy).reshape(-1, 2), np.array([x, y]), yaw).tolist()
+        mask = [1] * len(local) + [0] * (steps - len(local))
+        return local + [[0.0, 0.0]] * (steps - len(local)), mask
+
+    future, future_mask = waypoints(range(anchor + 1, anchor + FUTURE_STEPS + 1), FUTURE_STEPS)
+    past_positions = range(anchor - PAST_STEPS, anchor)
+    past_xy = [i for i in past_positions if i >= 0]
+    past, _ = waypoints(range(past_xy[0], anchor) if past_xy else range(0), PAST_STEPS)
+    missing = PAST_STEPS - len(past_xy)  # oldest first: the missing ones lead
+    past = [[0.0, 0.0]] * missing + past[: len(past_xy)]
+    return {
+        "scene": scene, "token": tokens[anchor], "index": anchor,
+        "ego_future": future, "ego_future_mask": future_mask,
+        "ego_past": past, "ego_past_mask": [0] * missing + [1] * len(past_xy),
     }
 
 

@@ -13,7 +13,7 @@ import functools
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, ClassVar
+from typing import Any, Callable, ClassVar, Iterable
 
 import lightning as L
 
@@ -49,6 +49,10 @@ class StageReport:
     texts: list[dict] = field(default_factory=list)
     #: ``(caption, [(panel label, semantics (200, 200, 16) uint8)])``: the runner draws them.
     scenes: list[tuple[str, list[tuple[str, Any]]]] = field(default_factory=list)
+
+
+#: What a task needs, in the dataset's terms (``DatasetIndex.available_tasks``), where the names differ.
+TASK_NEEDS = {"cot_planning": "chain_of_thought", "meta_action_planning": "meta_action"}
 
 
 def _skipping_padding(step: Callable[..., Any]) -> Callable[..., Any]:
@@ -107,6 +111,19 @@ class Stage(L.LightningModule, ABC):
         for name, other in consumed.items():
             if other not in cls.consumes_kinds:
                 raise ConfigError(f"{where}: a {kind} stage cannot consume '{name}', a {other} stage; it reads {' or '.join(cls.consumes_kinds)}")
+
+    def require_tasks(self, tasks: Iterable[str], instead: str = "") -> None:
+        """Refuse, before any training, a stage whose tasks need sidecar files the dataset
+        lacks (a plain Occ3D release has occupancy and ego poses only). ``instead``: what
+        else the user can do (default: drop the task by its weight)."""
+        from occtrain.data.layout import DatasetIndex
+
+        available = DatasetIndex.open(self.ctx.data.root).available_tasks()
+        for task in tasks:
+            why = available.get(TASK_NEEDS.get(task, task), "")
+            if why:
+                instead = instead or f"set stages.{self.ctx.spec.name}.model.tasks.weights.{task}=0"
+                raise ConfigError(f"task {task} {why} ({self.ctx.data.root}); add the sidecar or {instead}")
 
     def entries(self, split: str) -> tuple[str, ...] | None:
         """The shard entries this stage reads on ``split`` ("train", "val"); None: all of them."""

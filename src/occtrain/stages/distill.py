@@ -70,6 +70,7 @@ class DistillStage(Stage):
         cfg = ctx.model_cfg
         validate_tasks(cfg.tasks, f"stages '{ctx.spec.name}'.model.tasks")
         tasks = to_object(cfg.tasks)
+        self.require_tasks(t for t, w in tasks.weights.items() if w > 0)
         teacher = load_world_model(next(iter(ctx.inputs.values()))).with_settings(tasks, cfg.max_new_text_tokens)
         self.teacher = teacher.requires_grad_(False).eval()
         vocab = teacher.vocab

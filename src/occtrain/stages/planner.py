@@ -85,6 +85,8 @@ class PlannerStage(Stage):
             raise ConfigError(f"stages '{ctx.spec.name}': model.loss '{cfg.loss}' is not one of mse, l1")
         if cfg.meta_source not in META_SOURCES:
             raise ConfigError(f"stages '{ctx.spec.name}': model.meta_source '{cfg.meta_source}' is not one of {', '.join(META_SOURCES)}")
+        # The head reads the meta action (and the teacher's chain of thought ends in one).
+        self.require_tasks(["meta_action"], instead="leave the planner stage out of the recipe")
         self.head = PlanningHead(feature_size(cfg.use_past), cfg.hidden, cfg.layers, FUTURE_STEPS, cfg.dropout)
         self.teacher = None
         if cfg.meta_source == "generated":

@@ -43,6 +43,7 @@ class WorldModelStage(Stage):
         cfg = ctx.model_cfg
         validate_tasks(cfg.tasks, f"stages '{ctx.spec.name}'.model.tasks")
         tasks = to_object(cfg.tasks)
+        self.require_tasks(t for t, w in tasks.weights.items() if w > 0)
         export = next(iter(ctx.inputs.values()))
         if ctx.spec.kind == "pretrain":
             self.engine = new_world_model(export, cfg.llm, tasks, ctx.data.root, cfg.max_new_text_tokens)

@@ -222,7 +222,10 @@ class OccWorldModel(nn.Module):
         emb = self.llm.get_input_embeddings()(input_ids)
         table = self.occ_proj(self.codebook).to(emb.dtype)
         codes = (input_ids - self.vocab.occ_start).clamp(0, self.vocab.num_codes - 1)
-        return torch.where(self.vocab.is_occ(input_ids)[..., None], table[codes], emb)
+        # F.embedding, not table[codes]: indexing's backward accumulates rows with
+        # index_put_, whose order across CPU threads varies run to run, so a resumed run
+        # would drift from an uninterrupted one in the last bits.
+        return torch.where(self.vocab.is_occ(input_ids)[..., None], F.embedding(codes, table), emb)
 
     def _mask(self, allowed: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
         """Bool[B, 1, Lq, Lk] -> what the attention implementation takes: torch SDPA takes
