@@ -55,14 +55,16 @@ def _env() -> dict:
     return dict(os.environ, PYTHONPATH=path, PYTHONWARNINGS="ignore")
 
 
-def test_kill_9_then_resume_gives_the_uninterrupted_weights(recipe, tmp_path):
+@pytest.mark.parametrize("accumulate", [1, 2])
+def test_kill_9_then_resume_gives_the_uninterrupted_weights(recipe, tmp_path, accumulate):
     # Reference: one uninterrupted run (the delay changes timing only, not the maths).
-    res = run_cli("run", str(recipe), "stages[0].model.step_delay=0.25", "--run-dir", str(tmp_path / "ref"))
+    acc = f"trainer.accumulate_grad_batches={accumulate}"
+    res = run_cli("run", str(recipe), "stages[0].model.step_delay=0.25", acc, "--run-dir", str(tmp_path / "ref"))
     assert res.returncode == 0, res.stderr[-2000:]
     reference = load_file(tmp_path / "ref" / "only" / "export" / "model.safetensors")
 
     run_dir = tmp_path / "cut"
-    cmd = [sys.executable, "-m", "occtrain", "run", str(recipe), "stages[0].model.step_delay=0.25", "--run-dir", str(run_dir)]
+    cmd = [sys.executable, "-m", "occtrain", "run", str(recipe), "stages[0].model.step_delay=0.25", acc, "--run-dir", str(run_dir)]
     proc = subprocess.Popen(cmd, cwd=REPO, env=_env(), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     last = run_dir / "only" / "checkpoints" / "last.ckpt"
     deadline = time.time() + 120
@@ -82,7 +84,7 @@ def test_kill_9_then_resume_gives_the_uninterrupted_weights(recipe, tmp_path):
     assert (run_dir / ".lock").read_text().startswith(f"pid {proc.pid} ")
     # And a damaged last.ckpt (a disk error after the fact): the one before it resumes.
     (run_dir / "only" / "checkpoints" / "last.ckpt").write_bytes(b"PK\x03\x04 damaged")
-    res = run_cli("run", str(recipe), "stages[0].model.step_delay=0.25", "--run-dir", str(run_dir))
+    res = run_cli("run", str(recipe), "stages[0].model.step_delay=0.25", acc, "--run-dir", str(run_dir))
     assert res.returncode == 0, res.stderr[-2000:]
     assert "last.ckpt is unreadable" in res.stderr and "resuming only from" in res.stderr and "previous.ckpt" in res.stderr
     manifest = json.loads((run_dir / "manifest.json").read_text())
