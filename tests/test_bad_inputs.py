@@ -315,6 +315,11 @@ def recipe(change: Callable[[str], str] = lambda text: text) -> Callable[[Path],
 _HELD: list = []
 
 
+def VISION_ONLY(text: str) -> str:  # noqa: N802 - reads as a constant in the table
+    """The tiny recipe with one camera stage instead of its two."""
+    return text[: text.index("  - name: tokenizer")] + "  - {name: vision, kind: vision}\n"
+
+
 def locked_run_dir(tmp: Path) -> None:
     """The run directory held by another ``occtrain run`` (a lock on its own open file)."""
     import fcntl
@@ -554,6 +559,10 @@ CASES: list[Case] = [
     Case("done-stage-config-changed", manifest(DONE_OTHER_CONFIG), RUN, 2, "stage 'tokenizer' is done but its config changed"),
     Case("cut-off-under-other-config", cut_off_under_other_config, RUN, 2, "stage 'tokenizer' was cut off under a different config"),
     Case("manifest-unreadable", both(manifest({}), write_text("run2/manifest.json", "{")), RUN, 2, "{tmp}/run2/manifest.json: unreadable manifest"),
+    Case("vision-without-cameras", recipe(VISION_ONLY), RUN, 2,
+         "stage 'vision' reads camera images, and {tmp}/ds has none (no camera_sensor records or no imgs/)"),
+    Case("vision-synth-without-cameras", recipe(VISION_ONLY), [*RUN, "data.root={tmp}/none", "data.synth.camera_height=0"], 2,
+         "stage 'vision' reads camera images; data.synth.camera_height=0 synthesizes none"),
     Case("eval-not-a-stage-dir", nothing, ["eval", "{tmp}/nowhere"], 2, "{tmp}/nowhere"),
 ]
 
@@ -647,9 +656,10 @@ def test_a_real_release_reads_unchanged_and_checks_ok(tmp_path: Path, capsys) ->
     out, err = capsys.readouterr()
     assert err == "" and out.splitlines()[-1] == f"dataset {root}: ok"
     notes = out.splitlines()[:-1]
-    assert len(notes) == 2 and all(n.startswith(f"note: {root}: no ") for n in notes)
+    assert len(notes) == 3 and all(n.startswith(f"note: {root}: no ") for n in notes)
     assert "detection, counting, prediction, chain_of_thought, meta_action training" in notes[0] and "occtrain/frames/<scene>.json" in notes[0]
     assert "no qa training" in notes[1] and "NuScenes_<split>_questions.json" in notes[1]
+    assert notes[2] == f"note: {root}: no imgs/ camera images; stages that read cameras (vision) need them"
 
     out_dir = tmp_path / "shards"
     assert run_cli(["data", "shards", str(root), "--out", str(out_dir), "--history", "1", "--future", "1"]) == 0

@@ -117,6 +117,19 @@ def npz_bytes(arrays: dict[str, np.ndarray], compress: bool = True) -> bytes:
     return buf.getvalue()
 
 
+def png_bytes(image: np.ndarray, optimize: bool = False) -> bytes:
+    """Encode an image as PNG: (H, W, 3) uint8 RGB, (H, W) uint8 grey or (H, W) uint16."""
+    from PIL import Image
+
+    image = np.asarray(image)
+    kinds = {(3, "uint8"), (2, "uint8"), (2, "uint16")}
+    if (image.ndim, image.dtype.name) not in kinds or (image.ndim == 3 and image.shape[2] != 3):
+        raise ValueError(f"a PNG is (H, W, 3) uint8, (H, W) uint8 or (H, W) uint16, got {image.shape} {image.dtype}")
+    buf = io.BytesIO()
+    Image.fromarray(image).save(buf, format="PNG", optimize=optimize)  # mode from the dtype and shape
+    return buf.getvalue()
+
+
 def atomic_write_npz(path: str | Path, arrays: dict[str, np.ndarray], compress: bool = True) -> Path:
     return atomic_write_bytes(path, npz_bytes(arrays, compress))
 

@@ -200,7 +200,7 @@ def _execute(
     ctx = StageContext(stage.spec, stage.model_cfg, stage.data, stage.trainer, stage_dir, inputs)
     module = stage.kind.build(ctx)
     entries = {split: module.entries(split) for split in ("train", "val")}
-    datamodule = ShardDataModule(stage.data, stage.kind.data_kind, entries=entries)
+    datamodule = ShardDataModule(stage.data, stage.kind.data_kind, entries=entries, cameras=stage.kind.module.reads_cameras)
     say = console.print if is_rank_zero() else (lambda line: None)
     ckpt = last_checkpoint(stage_dir, say=lambda line: say(f"[yellow]note[/]: {line}"))
     resume_step = checkpoint_step(ckpt) if ckpt is not None else None
@@ -257,6 +257,7 @@ def run(
     rank_zero = is_rank_zero()
     restarted = set(names[names.index(restart) :]) if restart is not None else set()
     refuse_changed(planned, Manifest.load(run_dir, writable=False), restarted, only)
+    refuse_without_cameras(planned, recipe.data)
     if rank_zero:
         for note in shadowed_overrides(recipe, list(overrides or [])):
             console.print(f"[yellow]note[/]: {note}")
@@ -292,6 +293,24 @@ def run(
 @contextlib.contextmanager
 def _nothing():
     yield
+
+
+def refuse_without_cameras(planned: list[PlannedStage], data: DataConfig) -> None:
+    """Raise (before anything is written) when a stage reads camera images the dataset lacks."""
+    readers = [p.spec.name for p in planned if p.kind.module.reads_cameras]
+    if not readers:
+        return
+    from occtrain.data.layout import ANNOTATIONS_FILE, DatasetIndex
+
+    root = Path(data.root)
+    if (root / ANNOTATIONS_FILE).is_file():
+        if not DatasetIndex.open(root).has_cameras:
+            raise ConfigError(
+                f"stage '{readers[0]}' reads camera images, and {root} has none (no camera_sensor records or no imgs/); "
+                "point data.root at a dataset with cameras, or move this one away to synthesize one"
+            )
+    elif data.synth.camera_height <= 0:
+        raise ConfigError(f"stage '{readers[0]}' reads camera images; data.synth.camera_height=0 synthesizes none")
 
 
 def refuse_changed(planned: list[PlannedStage], manifest: Manifest, restarted: set[str], only: str | None) -> None:

@@ -13,6 +13,10 @@ class SynthConfig:
     val_scenes: int = 2
     frames_per_scene: int = 40
     seed: int = 0
+    #: Size of the six camera images: nuScenes' 900 x 1600 scaled by 0.08, which keeps a
+    #: ViT patch grid (8 px: 9 x 16) and the rendering cheap on a CPU; 0 renders no cameras.
+    camera_height: int = 72
+    camera_width: int = 128
 
 
 @dataclass

@@ -10,34 +10,23 @@ Layout (written by :func:`write_samples`, read by :func:`read_samples`)::
 
 from __future__ import annotations
 
-import io
 import json
 import re
 from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
-from PIL import Image
+
 
 from occtrain.data.render import render_bev, strip
 from occtrain.errors import DataError
-from occtrain.io import atomic_write_bytes, atomic_write_json
+from occtrain.io import atomic_write_bytes, atomic_write_json, png_bytes
 from occtrain.occ3d import FREE, GRID_SHAPE
 
 SAMPLES_DIR = "samples"
 INDEX_FILE = "index.json"
 TEXT_KEYS = ("task", "prompt", "prediction", "reference")
 _SAFE_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*\.png$")
-
-
-def png_bytes(image: np.ndarray) -> bytes:
-    """Encode an (H, W, 3) uint8 array as PNG."""
-    image = np.asarray(image)
-    if image.dtype != np.uint8 or image.ndim != 3 or image.shape[2] != 3:
-        raise ValueError(f"a sample image must be (H, W, 3) uint8, got {image.shape} {image.dtype}")
-    buf = io.BytesIO()
-    Image.fromarray(image, "RGB").save(buf, format="PNG", optimize=True)
-    return buf.getvalue()
 
 
 def write_samples(stage_dir: Path, images: Sequence[tuple[str, np.ndarray]], texts: Sequence[dict[str, Any]]) -> Path:
@@ -51,7 +40,9 @@ def write_samples(stage_dir: Path, images: Sequence[tuple[str, np.ndarray]], tex
     entries, clean_texts = [], []
     for i, (caption, image) in enumerate(images):
         name = f"sample_{i}.png"
-        atomic_write_bytes(out / name, png_bytes(image))
+        if np.asarray(image).ndim != 3:
+            raise ValueError(f"a sample image must be (H, W, 3) uint8, got {np.asarray(image).shape}")
+        atomic_write_bytes(out / name, png_bytes(image, optimize=True))
         entries.append({"file": name, "caption": str(caption)})
     for i, t in enumerate(texts):
         missing = [k for k in TEXT_KEYS if k not in t]

@@ -16,7 +16,7 @@ import numpy as np
 
 from occtrain.data.geometry import global_to_ego
 from occtrain.data.layout import (
-    ANNOTATIONS_FILE, FRAMES_DIR, SPLITS, DatasetIndex, dataset_root, load_labels, qa_file,
+    ANNOTATIONS_FILE, FRAMES_DIR, IMGS_DIR, SPLITS, DatasetIndex, dataset_root, load_labels, qa_file, read_image,
 )
 from occtrain.data.schema import FrameAnnotation, Occ3DAnnotations, QAFile
 from occtrain.data.shards import INDEX_FILE, decode_sample, iter_raw, read_index
@@ -80,6 +80,9 @@ def _check_dataset(root: Path, problems: list[str], note: Callable[[str], None])
         return
     for task_line in _disabled_tasks(index):
         note(task_line)
+    checks_images = (root / IMGS_DIR).is_dir()
+    if not checks_images:
+        note(f"note: {root}: no {IMGS_DIR}/ camera images; stages that read cameras (vision) need them")
     train, val = set(index.splits["train"]), set(index.splits["val"])
     for scene in sorted(train & val):
         problems.append(f"{ann}: scene '{scene}' is in both train_split and val_split")
@@ -94,6 +97,8 @@ def _check_dataset(root: Path, problems: list[str], note: Callable[[str], None])
             rotation = index.info(scene, token)["ego_pose"]["rotation"]
             if abs(math.sqrt(sum(q * q for q in rotation)) - 1.0) > QUATERNION_TOLERANCE:
                 problems.append(f"{ann}: scene_infos.{scene}.{token}.ego_pose.rotation is not a unit quaternion (w, x, y, z)")
+            if checks_images:
+                problems.extend(_guarded(lambda found: _check_cameras(index, scene, token, found), ann))
             path = index.labels_path(scene, token)
             if "gt_path" not in index.info(scene, token) and not path.exists():
                 no_truth += 1  # a test split: Occ3D gives it no gt_path and no labels
@@ -104,6 +109,37 @@ def _check_dataset(root: Path, problems: list[str], note: Callable[[str], None])
     problems.extend(_sidecar_problems(index))
     for split in SPLITS:
         problems.extend(_guarded(lambda found: _check_questions(index, split, found), root / qa_file(split)))
+
+
+def _check_cameras(index: DatasetIndex, scene: str, token: str, problems: list[str]) -> None:
+    """A sample's six cameras: records for each, readable RGB images of one size, and a
+    calibration that fits them (positive focal lengths, principal point in the image,
+    unit rotation)."""
+    where = f"{index.root / ANNOTATIONS_FILE}: scene_infos.{scene}.{token}.camera_sensor"
+    try:
+        records = index.cameras(scene, token)
+    except OcctrainError as err:
+        problems.append(str(err))
+        return
+    sizes = set()
+    for r in records:
+        try:
+            image = read_image(r.image)
+        except OcctrainError as err:
+            problems.append(str(err))
+            continue
+        if image.ndim != 3 or image.shape[2] != 3:
+            problems.append(f"{r.image}: expected an RGB image, found shape {image.shape}")
+            continue
+        height, width = image.shape[:2]
+        sizes.add((height, width))
+        k = r.intrinsic
+        if not (k[0, 0] > 0 and k[1, 1] > 0 and 0 <= k[0, 2] <= width and 0 <= k[1, 2] <= height):
+            problems.append(f"{where} ({r.name}): intrinsic {k.round(2).tolist()} does not fit its {width}x{height} image")
+        if abs(np.linalg.det(r.cam_to_ego[:3, :3]) - 1.0) > QUATERNION_TOLERANCE:
+            problems.append(f"{where} ({r.name}): extrinsic rotation is not a unit quaternion (w, x, y, z)")
+    if len(sizes) > 1:
+        problems.append(f"{where}: the six images differ in size ({', '.join(f'{w}x{h}' for h, w in sorted(sizes))})")
 
 
 def _disabled_tasks(index: DatasetIndex) -> list[str]:

@@ -11,7 +11,8 @@ import torch
 from torch.utils.data import DataLoader
 
 from occtrain.config.schema import DataConfig
-from occtrain.data.layout import ANNOTATIONS_FILE, DatasetIndex
+from occtrain.data.cameras import CAMERA_NAMES
+from occtrain.data.layout import ANNOTATIONS_FILE, DEPTH_SCALE, DatasetIndex
 from occtrain.data.shards import INDEX_FILE, KINDS, PAD_KEY, SkipSamples, make_pipeline, shard_urls, write_shards
 from occtrain.errors import DataError
 
@@ -41,7 +42,14 @@ def _check_synth_record(root: Path, cfg: DataConfig) -> None:
     record = DatasetIndex.open(root).generator
     if not record or record.get("generator") != "occtrain.synth":
         return
-    wanted = {k: getattr(cfg.synth, k) for k in ("seed", "train_scenes", "val_scenes", "frames_per_scene")}
+    from occtrain.data.synthesize import FORMAT_VERSION
+
+    if record.get("format_version") != FORMAT_VERSION:
+        raise DataError(
+            f"{root} holds the synthetic world of an older occtrain (format {record.get('format_version')}, now {FORMAT_VERSION}: "
+            "cameras, signal poles); move it away and the run synthesizes it again"
+        )
+    wanted = {k: getattr(cfg.synth, k) for k in ("seed", "train_scenes", "val_scenes", "frames_per_scene", "camera_height", "camera_width")}
     differ = [f"{k}={record.get(k)} (recipe: {v})" for k, v in wanted.items() if record.get(k) != v]
     if differ:
         raise DataError(
@@ -63,7 +71,8 @@ def _unpadded(collate: Callable[[list[dict]], dict]) -> Callable[[list[dict]], d
 
 
 def collate_frames(samples: list[dict]) -> dict[str, Any]:
-    """Stack single-frame samples: uint8 semantics (B,X,Y,Z), bool masks, token and meta lists."""
+    """Stack single-frame samples: uint8 semantics (B,X,Y,Z), bool masks, token and meta lists,
+    and the cameras when the stage reads them (see :func:`collate_cameras`)."""
     occ = [s["occ.npz"] for s in samples]
     return {
         "semantics": torch.from_numpy(np.stack([o["semantics"] for o in occ])),
@@ -71,7 +80,31 @@ def collate_frames(samples: list[dict]) -> dict[str, Any]:
         "mask_lidar": torch.from_numpy(np.stack([o["mask_lidar"] for o in occ]).astype(bool)),
         "token": [s["__key__"] for s in samples],
         "meta": [s["meta.json"] for s in samples],
+        **collate_cameras(samples),
     }
+
+
+def collate_cameras(samples: list[dict]) -> dict[str, Any]:
+    """The six views of each sample, stacked in CAMERA_NAMES order: ``images`` uint8
+    (B, 6, H, W, 3), ``intrinsics`` (B, 6, 3, 3), ``cam_to_ego`` (B, 6, 4, 4), and where
+    the renderer wrote them ``cam_class`` uint8 (B, 6, H, W) and ``cam_depth`` metres."""
+    if "cams.json" not in samples[0]:
+        return {}
+    names = [n.lower() for n in CAMERA_NAMES]
+
+    def image(s: dict, stem: str) -> np.ndarray:
+        return s.get(f"{stem}.png", s.get(f"{stem}.jpg"))
+
+    out: dict[str, Any] = {
+        "images": torch.from_numpy(np.stack([np.stack([image(s, n) for n in names]) for s in samples])),
+        "intrinsics": torch.tensor([s["cams.json"]["intrinsic"] for s in samples], dtype=torch.float32),
+        "cam_to_ego": torch.tensor([s["cams.json"]["cam_to_ego"] for s in samples], dtype=torch.float32),
+    }
+    if all(f"{n}.class.png" in s for s in samples for n in names):
+        out["cam_class"] = torch.from_numpy(np.stack([np.stack([s[f"{n}.class.png"] for n in names]) for s in samples]))
+        depth = np.stack([np.stack([s[f"{n}.depth.png"] for n in names]) for s in samples]).astype(np.float32)
+        out["cam_depth"] = torch.from_numpy(depth / DEPTH_SCALE)
+    return out
 
 
 def collate_clips(samples: list[dict]) -> dict[str, Any]:
@@ -87,6 +120,7 @@ def collate_clips(samples: list[dict]) -> dict[str, Any]:
     for key, entry in (("ann", "ann.json"), ("qa", "qa.json"), ("caption", "caption.txt"), ("narration", "narration.txt")):
         if entry in samples[0]:
             batch[key] = [s[entry] for s in samples]
+    batch.update(collate_cameras(samples))
     return batch
 
 
@@ -139,12 +173,12 @@ class ShardDataModule(L.LightningDataModule):
     """
 
     def __init__(
-        self, cfg: DataConfig, kind: str, entries: dict[str, tuple[str, ...] | None] | None = None,
+        self, cfg: DataConfig, kind: str, entries: dict[str, tuple[str, ...] | None] | None = None, cameras: bool = False,
     ):
         super().__init__()
         if kind not in KINDS:
             raise DataError(f"unknown data kind '{kind}'; choose from {', '.join(KINDS)}")
-        self.cfg, self.kind, self.entries = cfg, kind, entries or {}
+        self.cfg, self.kind, self.entries, self.cameras = cfg, kind, entries or {}, cameras
 
     def prepare_data(self) -> None:
         ensure_data(self.cfg)
@@ -156,7 +190,7 @@ class ShardDataModule(L.LightningDataModule):
         skip = SkipSamples() if train else None
         pipeline = make_pipeline(
             urls, train=train, total=total, shuffle_buffer=self.cfg.shuffle_buffer, seed=self.cfg.seed,
-            skip=skip, entries=self.entries.get(split), batch_size=self.cfg.batch_size,
+            skip=skip, entries=self.entries.get(split), batch_size=self.cfg.batch_size, cameras=self.cameras,
         )
         kwargs = dict(batch_size=self.cfg.batch_size, num_workers=self.cfg.num_workers, collate_fn=COLLATE[self.kind])
         if not train:

@@ -16,18 +16,21 @@ synthetic world is written through :class:`DatasetWriter` and read back through
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
+from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
 from typing import Any, Iterator
 
 import numpy as np
 
+from occtrain.data.cameras import CAMERA_NAMES, Camera, matrix_to_quaternion, transform
 from occtrain.data.schema import FrameAnnotation, Occ3DAnnotations, QAFile, QAQuestion
 from occtrain.data.validate import first_problem
 from occtrain.errors import DataError
-from occtrain.io import atomic_write_json, atomic_write_npz
+from occtrain.io import atomic_write_bytes, atomic_write_json, atomic_write_npz, png_bytes
 from occtrain.occ3d import GRID_SHAPE, NUM_CLASSES
 
 ANNOTATIONS_FILE = "annotations.json"
@@ -38,6 +41,11 @@ DATASET_FILE = f"{SIDECAR_DIR}/dataset.json"
 FRAMES_DIR = f"{SIDECAR_DIR}/frames"
 QA_DIR = "nuscenes_qa"
 SPLITS = ("train", "val")
+IMGS_DIR = "imgs"
+#: Beside each synthetic image: per-pixel class (uint8, FREE for sky) and camera-z depth
+#: (uint16 centimetres, 0 for sky), e.g. imgs/CAM_FRONT/<token>.png and <token>_class.png.
+CLASS_SUFFIX, DEPTH_SUFFIX = "_class", "_depth"
+DEPTH_SCALE = 100.0
 LABEL_KEYS = ("semantics", "mask_lidar", "mask_camera")
 
 
@@ -121,6 +129,10 @@ def load_labels(path: str | Path, require_masks: bool = True) -> dict[str, np.nd
 
 
 # ----------------------------------------------------------------------------- reading
+
+
+def _pose_matrix(pose: dict) -> np.ndarray:
+    return transform(np.asarray(pose["rotation"], np.float64), np.asarray(pose["translation"], np.float64))
 
 
 def yaw_from_quaternion(q: list[float]) -> float:
@@ -249,6 +261,52 @@ class DatasetIndex:
         except KeyError:
             raise DataError(f"{self.root / ANNOTATIONS_FILE}: no sample scene_infos.{scene}.{token}") from None
 
+    @cached_property
+    def has_cameras(self) -> bool:
+        """Whether samples carry ``camera_sensor`` records and the images they name exist."""
+        for scene, token in self.samples():
+            records = self.info(scene, token).get("camera_sensor")
+            return bool(records) and all((self.root / r["img_path"]).is_file() for r in records.values())
+        return False
+
+    def cameras(self, scene: str, token: str) -> list[CameraRecord]:
+        """The sample's six cameras in CAMERA_NAMES order (each named by its image's folder)."""
+        info = self.info(scene, token)
+        records = info.get("camera_sensor")
+        src = self.root / ANNOTATIONS_FILE
+        if not records:
+            raise DataError(f"{src}: sample scene_infos.{scene}.{token} has no camera_sensor; stages that read images (vision) need the cameras")
+        ego = _pose_matrix(info["ego_pose"])
+        by_name = {}
+        for key, r in records.items():
+            name = Path(r["img_path"]).parent.name
+            by_name[name] = CameraRecord(name, self.root / r["img_path"], np.asarray(r["intrinsic"], np.float64), _pose_matrix(r["extrinsic"]), _pose_matrix(r.get("ego_pose", info["ego_pose"])) if r.get("ego_pose") else ego)
+        missing = [n for n in CAMERA_NAMES if n not in by_name]
+        if missing:
+            raise DataError(f"{src}: sample scene_infos.{scene}.{token} has no {missing[0]} camera (img_path folders: {', '.join(sorted(by_name))})")
+        return [by_name[n] for n in CAMERA_NAMES]
+
+    def images(self, scene: str, token: str) -> np.ndarray:
+        """(6, H, W, 3) uint8: the sample's camera images in CAMERA_NAMES order."""
+        imgs = [read_image(r.image) for r in self.cameras(scene, token)]
+        shapes = {i.shape for i in imgs}
+        if len(shapes) != 1 or len(imgs[0].shape) != 3:
+            raise DataError(f"{self.root}: sample {token}'s camera images differ in size or are not RGB ({sorted(shapes)})")
+        return np.stack(imgs)
+
+    def camera_targets(self, scene: str, token: str) -> tuple[np.ndarray, np.ndarray] | None:
+        """(classes (6, H, W) uint8, depth (6, H, W) float32 metres) written beside synthetic
+        images; None for real data, which has neither."""
+        out_cls, out_depth = [], []
+        for r in self.cameras(scene, token):
+            cls_path = r.image.with_name(f"{r.image.stem}{CLASS_SUFFIX}.png")
+            depth_path = r.image.with_name(f"{r.image.stem}{DEPTH_SUFFIX}.png")
+            if not cls_path.is_file() or not depth_path.is_file():
+                return None
+            out_cls.append(read_image(cls_path))
+            out_depth.append(read_image(depth_path).astype(np.float32) / DEPTH_SCALE)
+        return np.stack(out_cls), np.stack(out_depth)
+
     def timestamp(self, scene: str, token: str) -> int | None:
         """Microseconds, or None where the annotations give a timestamp that is not a number."""
         return sample_time(self.info(scene, token))
@@ -309,6 +367,52 @@ class DatasetIndex:
         return tasks
 
 
+# ----------------------------------------------------------------------------- cameras
+
+
+def camera_token(sample_token: str, camera: str) -> str:
+    """A stable 32-hex token for one camera of one sample (the release keys records by token)."""
+    return hashlib.md5(f"{sample_token}/{camera}".encode()).hexdigest()
+
+
+def camera_record(cam: Camera, img_path: str, ego_pose: dict) -> dict:
+    """A ``camera_sensor`` record as the Occ3D release writes it."""
+    return {
+        "img_path": img_path,
+        "intrinsic": cam.intrinsic.tolist(),
+        "extrinsic": {"translation": cam.cam_to_ego[:3, 3].tolist(), "rotation": matrix_to_quaternion(cam.cam_to_ego[:3, :3]).tolist()},
+        "ego_pose": ego_pose,
+    }
+
+
+@dataclass(frozen=True)
+class CameraRecord:
+    """One camera of one sample, read back: its image file and its calibration."""
+
+    name: str  # CAM_FRONT, ... (the folder of its image)
+    image: Path
+    intrinsic: np.ndarray  # (3, 3)
+    cam_to_ego: np.ndarray  # (4, 4)
+    ego_to_global: np.ndarray  # (4, 4)
+
+    def camera(self, height: int, width: int) -> Camera:
+        return Camera(self.name, height, width, self.intrinsic, self.cam_to_ego)
+
+
+def read_image(path: Path) -> np.ndarray:
+    """An image file as uint8 (H, W, 3), or a single-channel PNG as its own dtype (H, W)."""
+    from PIL import Image, UnidentifiedImageError
+
+    if not path.is_file():
+        raise DataError(f"{path}: image not found; the dataset's camera_sensor records name it")
+    try:
+        with Image.open(path) as img:
+            arr = np.asarray(img.convert("RGB") if img.mode in ("P", "RGBA", "CMYK", "YCbCr", "LA") else img)
+    except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as err:
+        raise DataError(f"{path}: not a readable image ({err}); re-create it") from None
+    return arr
+
+
 # ----------------------------------------------------------------------------- writing
 
 
@@ -351,26 +455,42 @@ class DatasetWriter:
         validate_labels(arrays, str(path))
         atomic_write_npz(path, arrays)
 
-    def write_scene(self, scene: str, split: str, frames: list[FrameAnnotation]) -> None:
+    def write_images(self, token: str, views: list[tuple[str, np.ndarray, np.ndarray, np.ndarray]]) -> None:
+        """Write one frame's camera images (name, image (H, W, 3) uint8, classes (H, W) uint8,
+        depth (H, W) metres) as PNGs under ``imgs/<name>/``, before the frame's scene completes."""
+        for name, image, classes, depth in views:
+            folder = self.root / IMGS_DIR / name
+            atomic_write_bytes(folder / f"{token}.png", png_bytes(image))
+            atomic_write_bytes(folder / f"{token}{CLASS_SUFFIX}.png", png_bytes(classes))
+            centimetres = np.clip(np.round(depth * DEPTH_SCALE), 0, 65535).astype(np.uint16)
+            atomic_write_bytes(folder / f"{token}{DEPTH_SUFFIX}.png", png_bytes(centimetres))
+
+    def write_scene(self, scene: str, split: str, frames: list[FrameAnnotation], cameras: list[Camera] | None = None) -> None:
         """Write the scene's frame sidecar (after its labels): the scene is then complete."""
         atomic_write_json(self.root / FRAMES_DIR / f"{scene}.json", frames, indent=None)
-        self.add_scene_info(scene, split, frames)
+        self.add_scene_info(scene, split, frames, cameras)
 
     def read_scene(self, scene: str) -> list[FrameAnnotation]:
         """A completed scene's frames, for resuming an interrupted write."""
         return _read_json(self.root / FRAMES_DIR / f"{scene}.json", "frame annotations", list[FrameAnnotation], FRAMES_HINT)
 
-    def add_scene_info(self, scene: str, split: str, frames: list[FrameAnnotation]) -> None:
+    def add_scene_info(self, scene: str, split: str, frames: list[FrameAnnotation], cameras: list[Camera] | None = None) -> None:
         infos = {}
         for i, f in enumerate(frames):
             x, y = f["ego_pose"]["translation"][:2]
+            pose = {"translation": [x, y, 0.0], "rotation": quaternion_from_yaw(f["ego_pose"]["yaw"])}
             infos[f["token"]] = {
                 "timestamp": f["timestamp"],
-                "ego_pose": {"translation": [x, y, 0.0], "rotation": quaternion_from_yaw(f["ego_pose"]["yaw"])},
+                "ego_pose": pose,
                 "gt_path": f"{GTS_DIR}/{scene}/{f['token']}/{LABELS_FILE}",
                 "prev": frames[i - 1]["token"] if i > 0 else "",
                 "next": frames[i + 1]["token"] if i + 1 < len(frames) else "",
             }
+            if cameras:
+                infos[f["token"]]["camera_sensor"] = {
+                    camera_token(f["token"], cam.name): camera_record(cam, f"{IMGS_DIR}/{cam.name}/{f['token']}.png", pose)
+                    for cam in cameras
+                }
         self._scene_infos[scene] = infos
         self._splits[split].append(scene)
 

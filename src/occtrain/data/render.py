@@ -83,6 +83,31 @@ def legend(classes: Sequence[int], width: int) -> Image.Image:
     return img
 
 
+#: Where each camera sits around the bird's-eye view: the front three above, the back three
+#: below, each row as a driver would turn to see it (left to right).
+SURROUND_ROWS = (("CAM_FRONT_LEFT", "CAM_FRONT", "CAM_FRONT_RIGHT"), ("CAM_BACK_LEFT", "CAM_BACK", "CAM_BACK_RIGHT"))
+
+
+def surround(views: dict[str, np.ndarray], bev: Image.Image, gap: int = 4) -> Image.Image:
+    """The six camera images (name -> (H, W, 3) uint8) around a bird's-eye picture; the
+    views are scaled so each row spans at least the picture's width."""
+    h, w = next(iter(views.values())).shape[:2]
+    scale = max(1, int(np.ceil((bev.width - 2 * gap) / (3 * w))))
+    tiles = {name: Image.fromarray(img).resize((w * scale, h * scale), Image.NEAREST) for name, img in views.items()}
+    row_w = 3 * w * scale + 2 * gap
+    width = max(row_w, bev.width)
+    out = Image.new("RGB", (width, 2 * h * scale + bev.height + 2 * gap), (255, 255, 255))
+    draw = ImageDraw.Draw(out)
+    for r, (names, top) in enumerate(zip(SURROUND_ROWS, (0, h * scale + bev.height + 2 * gap))):
+        x = (width - row_w) // 2
+        for name in names:
+            out.paste(tiles[name], (x, top))
+            draw.text((x + 3, top + 2), name, fill=(255, 255, 255))
+            x += w * scale + gap
+    out.paste(bev, ((width - bev.width) // 2, h * scale + gap))
+    return out
+
+
 def strip(images: Sequence[Image.Image], classes: Sequence[int] | None = None, gap: int = 4) -> Image.Image:
     """Pictures side by side, with an optional colour legend underneath."""
     w = sum(i.width for i in images) + gap * (len(images) - 1)

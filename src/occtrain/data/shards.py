@@ -15,6 +15,12 @@ Two kinds of sample, each in its own shard set under ``SHARDS/<kind>/<split>-NNN
     ``qa.json``  the anchor's NuScenes-QA questions (a list, possibly empty)
     ``caption.txt``, ``narration.txt``  the anchor's text
 
+Both kinds carry the (anchor) frame's six camera views when the dataset has them:
+    ``cam_front.png`` ... (or ``.jpg``, the release's files as they are), ``cam_front.class.png``
+    and ``cam_front.depth.png`` beside synthetic images, and ``cams.json`` ``{"intrinsic":
+    [6 x 3 x 3], "cam_to_ego": [6 x 4 x 4]}``. A stage that does not read cameras drops
+    these entries before anything is decoded.
+
 ``SHARDS/index.json`` lists the shards and their sample counts and is written last, so a
 shard set without it is incomplete. Reading decodes only an allow-list of formats
 (npy/npz without pickle, json, txt, png); anything else in a shard is refused.
@@ -33,7 +39,7 @@ import numpy as np
 import webdataset as wds
 
 from occtrain.data.clips import clip_annotation
-from occtrain.data.layout import FRAMES_DIR, SPLITS, DatasetIndex, read_npz
+from occtrain.data.layout import CLASS_SUFFIX, DEPTH_SUFFIX, FRAMES_DIR, SPLITS, DatasetIndex, read_npz
 from occtrain.data.validate import first_problem
 from occtrain.errors import DataError
 from occtrain.io import atomic_write_json, npz_bytes, rank_world
@@ -42,7 +48,9 @@ from occtrain.occ3d import GRID_SHAPE
 INDEX_FILE = "index.json"
 KINDS = ("frames", "clips")
 #: The only entry formats a shard may hold; anything else is refused, never unpickled.
-ALLOWED_EXTENSIONS = ("npy", "npz", "json", "txt", "png")
+ALLOWED_EXTENSIONS = ("npy", "npz", "json", "txt", "png", "jpg")
+#: Entries holding camera data start with this (``cam_front.png``, ``cams.json``).
+CAMERA_ENTRY_PREFIX = "cam"
 PACKED_MASKS = ("mask_lidar", "mask_camera")
 
 
@@ -122,12 +130,39 @@ class _ShardSink:
             (self.out_dir / shard["file"]).unlink(missing_ok=True)
 
 
+def _camera_entries(index: DatasetIndex, scene: str, token: str) -> dict[str, bytes]:
+    """A sample's camera files, byte for byte, and its calibration; {} without cameras."""
+    if not index.has_cameras:
+        return {}
+    out: dict[str, bytes] = {}
+    records = index.cameras(scene, token)
+    for r in records:
+        stem, ext = r.name.lower(), r.image.suffix.lower().lstrip(".")
+        if ext not in ("png", "jpg", "jpeg"):
+            raise DataError(f"{r.image}: camera images must be PNG or JPEG")
+        out[f"{stem}.{'jpg' if ext == 'jpeg' else ext}"] = _read_bytes(r.image)
+        for part, suffix in (("class", CLASS_SUFFIX), ("depth", DEPTH_SUFFIX)):
+            extra = r.image.with_name(f"{r.image.stem}{suffix}.png")
+            if extra.is_file():
+                out[f"{stem}.{part}.png"] = _read_bytes(extra)
+    calib = {"intrinsic": [r.intrinsic.tolist() for r in records], "cam_to_ego": [r.cam_to_ego.tolist() for r in records]}
+    out["cams.json"] = json.dumps(calib).encode()
+    return out
+
+
+def _read_bytes(path: Path) -> bytes:
+    try:
+        return path.read_bytes()
+    except OSError as err:
+        raise DataError(f"{path}: cannot read it ({err.strerror}); the dataset's camera_sensor records name it") from None
+
+
 def _frame_sample(index: DatasetIndex, scene: str, token: str, position: int, split: str) -> dict:
     labels = index.labels(scene, token)
     arrays = {"semantics": labels["semantics"]}
     arrays.update({k: _pack(labels[k]) for k in PACKED_MASKS})
     meta = {"scene": scene, "token": token, "index": position, "split": split}
-    return {"__key__": token, "occ.npz": npz_bytes(arrays), "meta.json": json.dumps(meta).encode()}
+    return {"__key__": token, "occ.npz": npz_bytes(arrays), "meta.json": json.dumps(meta).encode(), **_camera_entries(index, scene, token)}
 
 
 def _clip_samples(index: DatasetIndex, scene: str, split: str, history: int, future: int, qa: dict) -> Iterator[dict]:
@@ -152,6 +187,7 @@ def _clip_samples(index: DatasetIndex, scene: str, split: str, history: int, fut
             "qa.json": json.dumps(qa.get(tokens[anchor], [])).encode(),
             "caption.txt": ann["anchor"].get("caption", "").encode(),
             "narration.txt": ann["anchor"].get("narration", "").encode(),
+            **_camera_entries(index, scene, tokens[anchor]),
         }
 
 
@@ -433,6 +469,7 @@ def make_pipeline(
     skip: SkipSamples | None = None,
     entries: Iterable[str] | None = None,
     batch_size: int = 1,
+    cameras: bool = False,
 ) -> wds.DataPipeline:
     """A webdataset pipeline over shards.
 
@@ -440,7 +477,8 @@ def make_pipeline(
     usual way to feed DDP with ``max_steps``), a shuffle buffer. ``train=False``: every
     sample once, in order, strided over ranks (see :func:`_strided`) and workers.
     ``entries`` keeps only those entries of each sample, dropped before decoding (a stage
-    that needs only annotations never inflates the occupancy arrays).
+    that needs only annotations never inflates the occupancy arrays); camera entries are
+    kept only with ``cameras`` (a stage that does not read images never decodes one).
     """
     if not urls:
         raise DataError("no shards to read; write them with `occtrain data shards`")
@@ -469,9 +507,16 @@ def make_pipeline(
             _strided(world, rank, total),
             _worker_strided,
         ]
-    if entries is not None:
-        keep = frozenset(entries)
-        stages.append(wds.map(lambda s: {k: v for k, v in s.items() if k.startswith("__") or k in keep}))
+    keep = frozenset(entries) if entries is not None else None
+    if keep is not None or not cameras:
+        def wanted(name: str) -> bool:
+            if name.startswith("__"):
+                return True
+            if name.startswith(CAMERA_ENTRY_PREFIX):
+                return cameras
+            return keep is None or name in keep
+
+        stages.append(wds.map(lambda s: {k: v for k, v in s.items() if wanted(k)}))
     stages.append(wds.map(decode_sample, handler=_raise_shard_error))
     if transform is not None:
         stages.append(wds.map(transform, handler=_raise_shard_error))

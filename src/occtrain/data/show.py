@@ -6,8 +6,10 @@ from pathlib import Path
 
 import numpy as np
 
+from occtrain.data.cameras import CAMERA_NAMES
+from occtrain.data.clips import pose_anchor
 from occtrain.data.layout import DatasetIndex, load_labels
-from occtrain.data.render import render_bev, strip
+from occtrain.data.render import render_bev, strip, surround
 from occtrain.errors import DataError
 from occtrain.occ3d import FRAME_DT, FREE
 
@@ -17,8 +19,8 @@ def show(
 ) -> Path:
     """Render ``frames`` consecutive frames starting at ``index`` of ``scene``; returns the PNG path.
 
-    ``path`` is a dataset root (the ego's future trajectory is drawn when the sidecar has it)
-    or a single ``labels.npz``.
+    ``path`` is a dataset root (the ego's future trajectory is drawn when the sidecar has it,
+    the six camera views around each frame when the dataset has them) or a single ``labels.npz``.
     """
     path, out = Path(path), Path(out)
     if scale < 1:
@@ -40,20 +42,23 @@ def show(
         if not 0 <= index < len(tokens):
             raise DataError(f"{path}: scene '{scene}' has frames 0..{len(tokens) - 1}, not {index}")
         annotated = ds.frames(scene) if ds.has_frame_annotations(scene) else None
+        future = None if annotated else [pose_anchor(ds, scene, i) for i in range(len(tokens))]
         pictures, seen = [], set()
         for i in range(index, min(index + max(frames, 1), len(tokens))):
             labels = ds.labels(scene, tokens[i])
-            ann = annotated[i] if annotated else None
-            pictures.append(
-                render_bev(
-                    labels["semantics"],
-                    labels["mask_camera"],
-                    trajectory=ann["ego_future"] if ann else None,
-                    trajectory_mask=ann["ego_future_mask"] if ann else None,
-                    scale=scale,
-                    title=f"{scene} #{i}  t={i * FRAME_DT:.1f}s" + (f"  {ann['command']}" if ann else ""),
-                )
+            ann = annotated[i] if annotated else future[i]  # without the sidecar the poses give the path
+            bev = render_bev(
+                labels["semantics"],
+                labels["mask_camera"],
+                trajectory=ann["ego_future"],
+                trajectory_mask=ann["ego_future_mask"],
+                scale=scale,
+                title=f"{scene} #{i}  t={i * FRAME_DT:.1f}s" + (f"  {ann['command']}" if "command" in ann else ""),
             )
+            if ds.has_cameras:
+                views = dict(zip(CAMERA_NAMES, ds.images(scene, tokens[i])))
+                bev = surround(views, bev)
+            pictures.append(bev)
             seen.update(np.unique(labels["semantics"]).tolist())
         classes = sorted(seen)
     image = strip(pictures, [int(c) for c in classes if c != FREE])

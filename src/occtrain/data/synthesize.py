@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from occtrain.config.schema import SynthConfig
+from occtrain.data.cameras import nuscenes_rig
 from occtrain.data.layout import DatasetIndex, DatasetWriter
 from occtrain.data.schema import QAQuestion
 from occtrain.data.synth import generate_scene
@@ -15,7 +16,9 @@ from occtrain.data.synth.text import caption_for_frame, narration_for_frame, que
 from occtrain.errors import ConfigError
 from occtrain.progress import console, progress_bar
 
-FORMAT_VERSION = 1
+#: 2: six cameras (images, per-pixel class and depth, camera_sensor records), signal poles at
+#: crossings, mask_camera cast from the camera rays.
+FORMAT_VERSION = 2
 
 
 def scene_plan(cfg: SynthConfig) -> list[tuple[str, str, int]]:
@@ -36,6 +39,8 @@ def _fingerprint(cfg: SynthConfig) -> dict:
         "train_scenes": cfg.train_scenes,
         "val_scenes": cfg.val_scenes,
         "frames_per_scene": cfg.frames_per_scene,
+        "camera_height": cfg.camera_height,
+        "camera_width": cfg.camera_width,
     }
 
 
@@ -55,6 +60,11 @@ def synthesize(out: str | Path, cfg: SynthConfig, verbose: bool = True) -> Datas
         if verbose:
             console.print(f"[green]dataset already complete[/] at {out}")
         return DatasetIndex.open(out)
+    if (cfg.camera_height > 0) != (cfg.camera_width > 0) or min(cfg.camera_height, cfg.camera_width) < 0:
+        raise ConfigError(
+            f"synth.camera_height={cfg.camera_height}, synth.camera_width={cfg.camera_width}: both positive, or both 0 for no cameras"
+        )
+    cameras = nuscenes_rig(cfg.camera_height, cfg.camera_width) if cfg.camera_height else None
     plan = scene_plan(cfg)
     questions: dict[str, list[QAQuestion]] = {"train": [], "val": []}
     start = time.perf_counter()
@@ -70,10 +80,14 @@ def synthesize(out: str | Path, cfg: SynthConfig, verbose: bool = True) -> Datas
                 for i, frame in enumerate(frames):
                     frame["caption"] = caption_for_frame(frame)
                     frame["narration"] = narration_for_frame(frame)
-                    writer.write_labels(name, frame["token"], scene.render(i))
+                    labels = scene.render(i)
+                    writer.write_labels(name, frame["token"], labels)
+                    if cameras:
+                        views = scene.cameras(i, labels["semantics"], cfg.camera_height, cfg.camera_width)
+                        writer.write_images(frame["token"], [(c.name, v.image, v.classes, v.depth) for c, v in zip(cameras, views)])
                     rendered += 1
                     advance(1)
-            writer.write_scene(name, split, frames)
+            writer.write_scene(name, split, frames, cameras)
             # Questions depend only on the frames and a per-scene seed, so a resumed run
             # regenerates exactly the questions an uninterrupted one would have written.
             rng = np.random.default_rng([cfg.seed, scene_idx, 7])

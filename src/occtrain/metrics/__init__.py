@@ -12,6 +12,7 @@ import torch
 
 from occtrain.metrics.captions import CAPTION_KEYS, CaptionMetric, coco_caption_scores
 from occtrain.metrics.occupancy import CONVENTIONS, ForecastMetric, OccupancyMetric, confusion_matrix, horizon_label
+from occtrain.metrics.pixels import DepthAbsRelMetric, PixelSegmentationMetric
 from occtrain.metrics.planning import PlanningMetric
 from occtrain.metrics.qa import QAMetric
 
@@ -19,8 +20,10 @@ __all__ = [
     "CAPTION_KEYS",
     "CONVENTIONS",
     "CaptionMetric",
+    "DepthAbsRelMetric",
     "ForecastMetric",
     "OccupancyMetric",
+    "PixelSegmentationMetric",
     "PlanningMetric",
     "QAMetric",
     "coco_caption_scores",

@@ -19,6 +19,7 @@ BUILTIN_KINDS = {
     "instruct": "occtrain.stages.world_model",
     "planner": "occtrain.stages.planner",
     "distill": "occtrain.stages.distill",
+    "vision": "occtrain.stages.vision",
 }
 
 

@@ -81,6 +81,8 @@ class Stage(L.LightningModule, ABC):
     #: Parameter-name prefixes of sub-models that come, frozen, from another stage's export:
     #: checkpoints leave them out and loading does not expect them back.
     frozen_prefixes: ClassVar[tuple[str, ...]] = ()
+    #: Whether its frames batches carry the camera images and their dense targets (``images``, ``cam_class``, ...).
+    reads_cameras: ClassVar[bool] = False
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)

@@ -11,7 +11,7 @@ cycles, cones, barriers, standing pedestrians) are kept as tracks and drawn per 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import cached_property
 
 import numpy as np
@@ -23,6 +23,8 @@ from occtrain.occ3d import CLASS_INDEX, FREE
 
 #: Cell size (m) of the global static raster; finer than a voxel so rotated sampling is clean.
 RASTER_RES = 0.2
+#: Height of the signal poles at crossings (m); cameras light their top.
+SIGNAL_POLE_M = 5.0
 
 DRIVEABLE = CLASS_INDEX["driveable_surface"]
 OTHER_FLAT = CLASS_INDEX["other_flat"]
@@ -75,6 +77,9 @@ class StaticMap:
     cls: np.ndarray
     lo: np.ndarray
     hi: np.ndarray
+    #: Signal poles at crossings: (K, 9) rows of global x, y, the axis of the traffic the
+    #: head faces, and that crossing's light parameters (``RoadNetwork.light``).
+    signals: np.ndarray = field(default_factory=lambda: np.zeros((0, 9)))
 
     @cached_property
     def column_key(self) -> np.ndarray:
@@ -213,6 +218,22 @@ class CityPainter:
                     continue
                 out.append(np.array([x0, x1, y0, y1]))
         return out
+
+    def signal_poles(self, box: np.ndarray) -> None:
+        """A signal pole (manmade) on the sidewalk at each corner of a block, where two roads
+        cross; the heads at its top face traffic along x at two opposite corners, along y at
+        the other two. Cameras show the light's colour; occupancy shows only the pole."""
+        x0, x1, y0, y1 = box
+        w = self.net.sidewalk
+        inset = CURB_RADIUS - (CURB_RADIUS - w / 2) / np.sqrt(2)  # the middle of the rounded corner's sidewalk
+        rows = []
+        for sx, cx in ((1, x0), (-1, x1)):
+            for sy, cy in ((1, y0), (-1, y1)):
+                x, y = cx + sx * inset, cy + sy * inset
+                light = self.net.light(self.net.nearest_road(0, cy - sy), self.net.nearest_road(1, cx - sx))
+                self.rect(x - 0.2, x + 0.2, y - 0.2, y + 0.2, solid=(MANMADE, 0.0, SIGNAL_POLE_M))
+                rows.append([x, y, 0.0 if sx == sy else 1.0, *light])
+        self.map.signals = np.concatenate([self.map.signals, np.array(rows)])
 
     def block_ground(self, box: np.ndarray, interior: int) -> None:
         """Rounded-corner block: sidewalk ring of the network's width around ``interior`` ground."""
@@ -558,6 +579,9 @@ def paint_city(
                 for g in (-1.0, 1.0):
                     busy = reserved[g] if r is road and a0 < axis_a < a1 else []
                     painter.parking_strip(r, g, a0 + 8.0, a1 - 8.0, busy)
+
+    for box in painter.blocks():  # last, so nothing paints over them
+        painter.signal_poles(box)
 
     strip = road.half_width - road.parking / 2
     painter.place("bus", point(axis_a, road.centre + bus_g * (strip - 0.2)), _kerb_yaw(road, bus_g), parked=False)

@@ -4,8 +4,8 @@ Semantics: the static raster is sampled at the grid columns' global positions (n
 cell), expanded to the 16 layers, then every box whose footprint reaches the grid is drawn
 as an oriented prism standing on the ground. The ego's own box stays free.
 
-Visibility is a z-buffer over (azimuth, elevation) bins around a sensor origin fixed in
-the ego frame. Every occupied surface voxel above the ground writes its range into all
+Lidar visibility is a z-buffer over (azimuth, elevation) bins around a sensor origin fixed in
+the ego frame (camera visibility is ray cast: see ``camera_render``). Every occupied surface voxel above the ground writes its range into all
 bins its cube covers; a voxel is visible when it lies inside the sensor's field of view
 and is no farther than its bin's first hit plus half a voxel: the first occupied voxel
 hit and the free voxels before it are visible, everything behind is not. The ground is a
@@ -42,9 +42,6 @@ class Sensor:
 
 #: nuScenes roof lidar: 1.84 m up, about -30..+10 degrees vertically, all around.
 LIDAR = Sensor(1.84, -30.0, 10.0)
-#: The six nuScenes cameras (70-degree views around the car, 110 at the back) together see all
-#: around; they sit lower than the lidar and see about +-25 degrees vertically.
-CAMERA = Sensor(1.5, -25.0, 25.0)
 
 
 @dataclass(frozen=True)
@@ -166,11 +163,13 @@ def visibility(semantics: np.ndarray, sensor: Sensor, free_nb=None) -> np.ndarra
 
 
 def masks(semantics: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(mask_lidar, mask_camera) as uint8 0/1; the camera mask is limited to lidar-observed voxels."""
-    free_nb = _facing_free(semantics != FREE)
-    lidar = visibility(semantics, LIDAR, free_nb)
-    camera = visibility(semantics, CAMERA, free_nb) & lidar
-    return lidar.astype(np.uint8), camera.astype(np.uint8)
+    """(mask_lidar, mask_camera) as uint8 0/1: what the roof lidar sees (the z-buffer
+    above), and what the six cameras' rays cross up to the first occupied voxel
+    (``camera_render.camera_mask``, as Occ3D casts camera rays)."""
+    from occtrain.data.synth.camera_render import camera_mask
+
+    lidar = visibility(semantics, LIDAR)
+    return lidar.astype(np.uint8), camera_mask(semantics).astype(np.uint8)
 
 
 @lru_cache(maxsize=1)

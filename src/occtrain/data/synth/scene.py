@@ -33,14 +33,26 @@ class SyntheticScene:
     static: StaticMap
     tracks: TrackSet
     ego: EgoMotion
+    net: RoadNetwork
 
     def render(self, i: int) -> dict[str, np.ndarray]:
         """Occ3D labels of frame ``i``: semantics, mask_lidar, mask_camera ((200, 200, 16) uint8)."""
         if not 0 <= i < len(self.frames):
             raise IndexError(f"scene {self.name} has {len(self.frames)} frames, asked for frame {i}")
-        sem = frame_semantics(self.static, self.tracks, i, self.ego.xy[i], float(self.ego.yaw[i]))
+        sem = self.semantics(i)
         lidar, camera = masks(sem)
         return {"semantics": sem, "mask_lidar": lidar, "mask_camera": camera}
+
+    def semantics(self, i: int) -> np.ndarray:
+        """(200, 200, 16) uint8 Occ3D classes of frame ``i``."""
+        return frame_semantics(self.static, self.tracks, i, self.ego.xy[i], float(self.ego.yaw[i]))
+
+    def cameras(self, i: int, semantics: np.ndarray, height: int, width: int) -> list:
+        """The six camera views of frame ``i`` (``camera_render.CameraView``, CAMERA_NAMES order)."""
+        from occtrain.data.synth.camera_render import FrameWorld, render_cameras
+
+        world = FrameWorld(self.static, self.net, self.ego.xy[i], float(self.ego.yaw[i]), i * FRAME_DT)
+        return render_cameras(semantics, world, height, width)
 
 
 def generate_scene(name: str, seed: int, num_frames: int = 40) -> SyntheticScene:
@@ -87,4 +99,4 @@ def generate_scene(name: str, seed: int, num_frames: int = 40) -> SyntheticScene
     )
     tracks = TrackSet.concat([mover_tracks(motion, stride), walker_tracks(walkers, walk_hist, stride), placed])
     frames = [frame_annotation(name, seed, i, num_frames, ego_motion, tracks) for i in range(num_frames)]
-    return SyntheticScene(name, seed, frames, static, tracks, ego_motion)
+    return SyntheticScene(name, seed, frames, static, tracks, ego_motion, net)
