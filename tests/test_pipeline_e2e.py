@@ -217,3 +217,30 @@ def test_eval_asks_every_question_and_scores_another_world(pipeline, tmp_path):
     distilled = json.loads((pipeline / "distill" / "eval" / "val" / "metrics.json").read_text())
     trained = json.loads((pipeline / "distill" / "metrics.json").read_text())
     assert distilled["speedup"] > 0 and trained["val/speedup"] > 0
+
+
+def test_the_vision_recipe_runs_and_hands_over_a_hugging_face_tower(tmp_path):
+    """stages/vision.yaml on a tiny world with cameras: trained, scored beside the prior,
+    and exported as a directory plain transformers loads."""
+    import torch
+    from transformers import SiglipVisionModel
+
+    from occtrain.models.vision import load_vision_encoder
+
+    run_dir = tmp_path / "run"
+    res = run_cli(
+        "run", "stages/vision.yaml", f"data.root={tmp_path / 'data'}",
+        "data.synth.train_scenes=1", "data.synth.val_scenes=1", "data.synth.frames_per_scene=4",
+        "data.samples_per_shard=4", "data.history=1", "data.future=1",
+        "stages.vision.trainer.max_steps=6", "stages.vision.trainer.val_check_interval=6", "stages.vision.model.prior_batches=2",
+        "--run-dir", str(run_dir), timeout=900,
+    )
+    assert res.returncode == 0, res.stderr[-3000:]
+    metrics = json.loads((run_dir / "vision" / "metrics.json").read_text())
+    for key in ("val/pixel_mIoU", "val/baseline_prior_pixel_mIoU", "val/depth_absrel", "val/baseline_prior_depth_absrel"):
+        assert metrics[key] is not None and metrics[key] >= 0, key
+    tower = SiglipVisionModel.from_pretrained(run_dir / "vision" / "export" / "vision")
+    encoder = load_vision_encoder(run_dir / "vision" / "export")
+    images = torch.randint(0, 255, (1, 6, 72, 128, 3), dtype=torch.uint8)
+    tokens, grid = encoder(images)
+    assert grid == (9, 16) and tokens.shape == (1, 6 * 9 * 16, tower.config.hidden_size)

@@ -253,14 +253,16 @@ class DenseHead(nn.Module):
 
 class PixelPrior(nn.Module):
     """The trivial baseline of dense camera targets: at each pixel of each camera, the most
-    frequent class and the mean depth seen in training frames (sums kept for DDP reduction)."""
+    frequent class and the geometric mean depth seen in training frames (sums kept for DDP
+    reduction). Geometric, not arithmetic: a pixel near the horizon sees the road 30 m away
+    in one frame and 300 m in the next, and a plain mean would make the baseline a straw man."""
 
     def __init__(self, num_cameras: int, height: int, width: int, num_classes: int = NUM_CLASSES):
         super().__init__()
         self.num_classes = num_classes
         shape = (num_cameras, height, width)
         self.register_buffer("class_counts", torch.zeros(*shape, num_classes, dtype=torch.long), persistent=False)
-        self.register_buffer("depth_sum", torch.zeros(shape, dtype=torch.float64), persistent=False)
+        self.register_buffer("log_depth_sum", torch.zeros(shape, dtype=torch.float64), persistent=False)
         self.register_buffer("depth_pixels", torch.zeros(shape, dtype=torch.long), persistent=False)
 
     @property
@@ -277,8 +279,9 @@ class PixelPrior(nn.Module):
         dev = self.class_counts.device
         cam_class, cam_depth = cam_class.to(dev).long(), cam_depth.to(dev).double()
         self.class_counts += F.one_hot(cam_class, self.num_classes).sum(0)
-        self.depth_sum += cam_depth.clamp(min=0).sum(0)
-        self.depth_pixels += (cam_depth > 0).sum(0)
+        has = cam_depth > 0
+        self.log_depth_sum += torch.where(has, cam_depth.clamp(min=1e-6).log(), 0.0).sum(0)
+        self.depth_pixels += has.sum(0)
 
     def reduce(self, sum_fn: Callable[[Tensor], Tensor]) -> None:
         """Replace the sums by ``sum_fn`` of them (a sum over DDP ranks)."""
@@ -288,8 +291,8 @@ class PixelPrior(nn.Module):
     def predict(self, batch_size: int) -> tuple[Tensor, Tensor]:
         """Classes (B, N, H, W) and depths (B, N, H, W); a pixel never seen with depth gets the mean over all."""
         classes = self.class_counts.argmax(-1)
-        overall = self.depth_sum.sum() / self.depth_pixels.sum().clamp(min=1)
-        depth = torch.where(self.depth_pixels > 0, self.depth_sum / self.depth_pixels.clamp(min=1), overall).float()
+        overall = self.log_depth_sum.sum() / self.depth_pixels.sum().clamp(min=1)
+        depth = torch.where(self.depth_pixels > 0, self.log_depth_sum / self.depth_pixels.clamp(min=1), overall).exp().float()
         return classes.expand(batch_size, *classes.shape), depth.expand(batch_size, *depth.shape)
 
 

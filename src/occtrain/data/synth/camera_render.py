@@ -81,6 +81,7 @@ class _Rays:
     t: np.ndarray  # (E,) float32 distance at which the ray enters the voxel
     axis: np.ndarray  # (E,) int8 axis of the face it enters through (-1: the starting voxel)
     ray: np.ndarray  # (E,) int32 the ray of each entry (non-decreasing)
+    starts: np.ndarray  # (R,) index of each ray's first entry
     ends_in_ground: np.ndarray  # (R,) bool: its last voxel is a ground layer (always occupied)
 
 
@@ -126,6 +127,7 @@ def _traverse(origin: np.ndarray, dirs: np.ndarray, cos: np.ndarray) -> _Rays:
         origin=origin, dirs=dirs, cos=cos, voxel=np.concatenate([p[1] for p in parts])[order].astype(np.int32),
         t=np.concatenate([p[2] for p in parts])[order].astype(np.float32),
         axis=np.concatenate([p[3] for p in parts])[order].astype(np.int8), ray=ray[order], ends_in_ground=ground,
+        starts=np.searchsorted(ray[order], np.arange(rays)).astype(np.int64),
     )
 
 
@@ -271,10 +273,11 @@ def signal_colours(static: StaticMap, xy: np.ndarray, time_s: float) -> np.ndarr
     return np.where(on_pole, state, -1)
 
 
-#: Image size of the rays that decide ``mask_camera``: twice the default camera resolution
-#: each way (a ray every ~0.25 degrees, under a voxel apart across the whole grid), fixed so
-#: the labels do not depend on the resolution images are rendered at.
-MASK_RAYS = (144, 256)
+#: Image size of the rays that decide ``mask_camera``: the default camera resolution (a ray
+#: every ~0.5 degrees: under a voxel apart up to 45 m), fixed so the labels do not depend on
+#: the resolution images are rendered at; surfaces met at a grazing angle are completed by
+#: :func:`_with_faces_in_view`.
+MASK_RAYS = (72, 128)
 
 
 def camera_mask(semantics: np.ndarray) -> np.ndarray:
@@ -282,11 +285,11 @@ def camera_mask(semantics: np.ndarray) -> np.ndarray:
     flat = semantics.reshape(-1) != FREE
     seen = np.zeros(flat.shape, bool)
     for _, rays in camera_rays(*MASK_RAYS):
-        hit = np.flatnonzero(flat[rays.voxel])
-        first = hit[np.r_[True, rays.ray[hit][1:] != rays.ray[hit][:-1]]] if len(hit) else hit
-        stop = np.full(len(rays.dirs), len(rays.voxel), np.int64)  # rays without a hit: all they cross
-        stop[rays.ray[first]] = first
-        seen[rays.voxel[np.arange(len(rays.voxel)) <= stop[rays.ray]]] = True
+        hit = flat[rays.voxel]
+        hits_so_far = np.cumsum(hit, dtype=np.int32)
+        # An entry is crossed when no occupied voxel comes before it on its ray.
+        at_ray_start = (hits_so_far - hit)[rays.starts][rays.ray]
+        seen[rays.voxel[hits_so_far - hit == at_ray_start]] = True
     return _with_faces_in_view(seen.reshape(semantics.shape), semantics != FREE)
 
 
