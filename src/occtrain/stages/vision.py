@@ -4,7 +4,7 @@ The multi-view encoder (a SigLIP/CLIP vision tower + per-camera embeddings) and 
 head predict each pixel's class (the 18 Occ3D labels, 17 = sky/no surface) and depth.
 Losses: cross-entropy over all pixels and L1 on log depth over pixels with a surface.
 Validation scores the whole val split against a trivial baseline fitted on the train split
-at the start of fit: each camera pixel's most frequent class and mean depth. The export is
+at the start of fit: each camera pixel's most frequent class and geometric mean depth. The export is
 the tower as a standard Hugging Face directory plus occtrain's parts, which later stages
 load with :func:`occtrain.models.vision.load_vision_encoder`, frozen or fine-tuned.
 """
