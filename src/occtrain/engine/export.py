@@ -59,8 +59,14 @@ def new_world_model(
     the same one. The LLM is initialised under the current torch seed.
     """
     scene_tok = load_tokenizer(tokenizer_export)
+    if getattr(scene_tok, "num_codebooks", 1) > 1:
+        arch = scene_tok.arch
+        raise ConfigError(
+            f"{tokenizer_export}: a '{arch}' tokenizer has {scene_tok.num_codebooks} codebooks and the world models here "
+            f"read one; train it with model.{arch}.motion_separation=false, or use it as a tokenizer alone"
+        )
     family = get_family(tokenizer_family(scene_tok.arch))
-    if family.world_model is None:  # a tokenizer-only family (OccWorld) feeds OccLLaMA's world model
+    if family.world_model is None:  # a tokenizer-only family (OccWorld, Occ-LLM for now) feeds OccLLaMA's world model
         family = get_family("occllama")
     if llm_cfg.path:
         text_tok = load_text_tokenizer(llm_cfg.path)

@@ -20,7 +20,7 @@ from occtrain.exports import read_export, write_export
 from occtrain.models import count_parameters
 
 #: The families that ship with occtrain, imported on first look-up.
-BUILTIN_FAMILIES = ("occtrain.families.occworld", "occtrain.families.occllama")
+BUILTIN_FAMILIES = ("occtrain.families.occworld", "occtrain.families.occllama", "occtrain.families.occllm")
 
 
 @dataclass(frozen=True)

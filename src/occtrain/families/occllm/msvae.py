@@ -1,0 +1,112 @@
+"""Occ-LLM's Motion-Separation VAE: one encoder and decoder, two codebooks.
+
+Eq. 5-7 of the paper, as implemented here: the movable grid keeps the movable voxels and
+sets every other voxel free (Eq. 5 as printed has the indicator inverted; read as a typo),
+the static grid keeps the rest with the movable voxels set free. Both go through the
+shared encoder; the movable latent is quantized by the motion codebook, the static one by
+the static codebook; the shared decoder decodes each, and the reconstruction takes the
+motion branch wherever it predicts a non-free class, the static branch elsewhere (Eq. 7).
+Loss (Eq. 8, whose printed sign is a slip: the negative log-likelihood is minimised):
+cross-entropy (+ Lovasz, as OccWorld's) of each separated grid plus each codebook's
+commitment term.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from occtrain.families.occllm.config import MSVAEConfig
+from occtrain.families.occworld.vqvae import OccWorldVQVAE
+from occtrain.models.tokenizers.base import TokenizerOutput, check_semantics
+from occtrain.models.tokenizers.losses import ce_lovasz
+from occtrain.models.tokenizers.quantizer import VectorQuantizer
+from occtrain.occ3d import CLASS_INDEX, FREE, GRID_SHAPE
+
+
+def separate(semantics: torch.Tensor, movable: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(movable grid, static grid) of label volumes: each keeps its own voxels, the rest free."""
+    is_movable = movable[semantics]
+    free = torch.full_like(semantics, FREE)
+    return torch.where(is_movable, semantics, free), torch.where(is_movable, free, semantics)
+
+
+def merge(logits_motion: torch.Tensor, logits_static: torch.Tensor) -> torch.Tensor:
+    """Logits (B, 18, X, Y, Z) taking the motion branch where it predicts non-free (Eq. 7)."""
+    take = (logits_motion.argmax(1) != FREE).unsqueeze(1)
+    return torch.where(take, logits_motion, logits_static)
+
+
+class MSVAE(OccWorldVQVAE):
+    """OccWorld's VQ-VAE plus a 3D convolution on each side and motion separation.
+
+    Without motion separation it is a one-codebook VAE (Table III's baselines); codes then
+    have one grid per scene, else two: (B, 2, h, w), motion first.
+    """
+
+    def __init__(self, cfg: MSVAEConfig):
+        super().__init__(cfg)
+        e = cfg.class_embed_dim
+        # Light: one 3x3x3 convolution at the class-embedding width on each side.
+        self.pre3d = nn.Conv3d(e, e, 3, padding=1) if cfg.conv3d else None
+        self.post3d = nn.Conv3d(e, e, 3, padding=1) if cfg.conv3d else None
+        self.quantizer_motion = (
+            VectorQuantizer(cfg.num_codes_motion, cfg.code_dim, cfg.beta, cfg.ema_decay, cfg.restart_threshold, cfg.usage_decay)
+            if cfg.motion_separation else None
+        )
+        movable = torch.zeros(FREE + 1, dtype=torch.bool)
+        movable[[CLASS_INDEX[c] for c in cfg.movable_classes]] = True
+        self.register_buffer("movable", movable, persistent=False)
+
+    @property
+    def num_codebooks(self) -> int:
+        return 2 if self.quantizer_motion is not None else 1
+
+    def encode_latent(self, semantics: torch.Tensor) -> torch.Tensor:
+        b, x, y, z = semantics.shape
+        emb = self.class_embed(semantics)  # (B, X, Y, Z, E)
+        if self.pre3d is not None:
+            emb = self.pre3d(emb.permute(0, 4, 1, 2, 3)).permute(0, 2, 3, 4, 1)
+        bev = emb.reshape(b, x, y, z * self.cfg.class_embed_dim).permute(0, 3, 1, 2)
+        return self.quant_proj(self.encoder(bev))
+
+    def decode_logits(self, z_q: torch.Tensor) -> torch.Tensor:
+        feats = self.decoder(self.post_quant_proj(z_q))  # (B, Z * E, X, Y)
+        b, _, x, y = feats.shape
+        feats = feats.view(b, GRID_SHAPE[2], self.cfg.class_embed_dim, x, y)
+        if self.post3d is not None:
+            feats = self.post3d(feats.permute(0, 2, 3, 4, 1)).permute(0, 4, 1, 2, 3)  # (B, Z, E, X, Y)
+        return torch.einsum("bzexy,ce->bxyzc", feats, self.class_embed.weight).permute(0, 4, 1, 2, 3)
+
+    def forward(self, semantics: torch.Tensor) -> TokenizerOutput:
+        """Reconstruct (B, 200, 200, 16) labels; losses and per-codebook usage statistics."""
+        semantics = check_semantics(semantics)
+        cfg = self.cfg
+        if self.quantizer_motion is None:
+            return super().forward(semantics)
+        moving, static = separate(semantics, self.movable)
+        vq_m = self.quantizer_motion(self.encode_latent(moving))
+        vq_s = self.quantizer(self.encode_latent(static))
+        logits_m, logits_s = self.decode_logits(vq_m.z_q), self.decode_logits(vq_s.z_q)
+        ce_m, lov_m = ce_lovasz(logits_m, moving, lovasz_voxels=cfg.lovasz_voxels)
+        ce_s, lov_s = ce_lovasz(logits_s, static, lovasz_voxels=cfg.lovasz_voxels)
+        total = cfg.ce_weight * (ce_m + ce_s) + cfg.lovasz_weight * (lov_m + lov_s) + cfg.vq_weight * (vq_m.loss + vq_s.loss)
+        losses = {"loss": total, "ce_motion": ce_m, "ce_static": ce_s, "lovasz_motion": lov_m, "lovasz_static": lov_s,
+                  "vq_motion": vq_m.loss, "vq_static": vq_s.loss}  # fmt: skip
+        stats = {f"motion_{k}": v for k, v in vq_m.stats.items()} | {f"static_{k}": v for k, v in vq_s.stats.items()}
+        return TokenizerOutput(merge(logits_m, logits_s), losses, stats, torch.stack([vq_m.codes, vq_s.codes], 1))
+
+    def encode(self, semantics: torch.Tensor) -> torch.Tensor:
+        """Token ids: (B, h, w) with one codebook, (B, 2, h, w) (motion, static) with two."""
+        semantics = check_semantics(semantics)
+        if self.quantizer_motion is None:
+            return super().encode(semantics)
+        moving, static = separate(semantics, self.movable)
+        return torch.stack([self.quantizer_motion.nearest(self.encode_latent(moving)), self.quantizer.nearest(self.encode_latent(static))], 1)
+
+    def decode(self, codes: torch.Tensor) -> torch.Tensor:
+        """Merged class logits (B, 18, 200, 200, 16) of ``encode``'s codes."""
+        if self.quantizer_motion is None:
+            return super().decode(codes)
+        codes = codes.long()
+        return merge(self.decode_logits(self.quantizer_motion.lookup(codes[:, 0])), self.decode_logits(self.quantizer.lookup(codes[:, 1])))
