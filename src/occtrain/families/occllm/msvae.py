@@ -21,7 +21,7 @@ from occtrain.families.occworld.vqvae import OccWorldVQVAE
 from occtrain.models.tokenizers.base import TokenizerOutput, check_semantics
 from occtrain.models.tokenizers.losses import ce_lovasz
 from occtrain.models.tokenizers.quantizer import VectorQuantizer
-from occtrain.occ3d import CLASS_INDEX, FREE, GRID_SHAPE
+from occtrain.occ3d import CLASS_INDEX, FREE
 
 
 def separate(semantics: torch.Tensor, movable: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -62,21 +62,15 @@ class MSVAE(OccWorldVQVAE):
     def num_codebooks(self) -> int:
         return 2 if self.quantizer_motion is not None else 1
 
-    def encode_latent(self, semantics: torch.Tensor) -> torch.Tensor:
-        b, x, y, z = semantics.shape
-        emb = self.class_embed(semantics)  # (B, X, Y, Z, E)
-        if self.pre3d is not None:
-            emb = self.pre3d(emb.permute(0, 4, 1, 2, 3)).permute(0, 2, 3, 4, 1)
-        bev = emb.reshape(b, x, y, z * self.cfg.class_embed_dim).permute(0, 3, 1, 2)
-        return self.quant_proj(self.encoder(bev))
+    def voxel_input(self, emb: torch.Tensor) -> torch.Tensor:
+        if self.pre3d is None:
+            return emb
+        return self.pre3d(emb.permute(0, 4, 1, 2, 3)).permute(0, 2, 3, 4, 1)
 
-    def decode_logits(self, z_q: torch.Tensor) -> torch.Tensor:
-        feats = self.decoder(self.post_quant_proj(z_q))  # (B, Z * E, X, Y)
-        b, _, x, y = feats.shape
-        feats = feats.view(b, GRID_SHAPE[2], self.cfg.class_embed_dim, x, y)
-        if self.post3d is not None:
-            feats = self.post3d(feats.permute(0, 2, 3, 4, 1)).permute(0, 4, 1, 2, 3)  # (B, Z, E, X, Y)
-        return torch.einsum("bzexy,ce->bxyzc", feats, self.class_embed.weight).permute(0, 4, 1, 2, 3)
+    def voxel_output(self, feats: torch.Tensor) -> torch.Tensor:
+        if self.post3d is None:
+            return feats
+        return self.post3d(feats.permute(0, 2, 3, 4, 1)).permute(0, 4, 1, 2, 3)  # (B, Z, E, X, Y) <-> (B, E, X, Y, Z)
 
     def forward(self, semantics: torch.Tensor) -> TokenizerOutput:
         """Reconstruct (B, 200, 200, 16) labels; losses and per-codebook usage statistics."""

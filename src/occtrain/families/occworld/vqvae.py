@@ -38,16 +38,24 @@ class OccWorldVQVAE(SceneTokenizer):
 
     def encode_latent(self, semantics: torch.Tensor) -> torch.Tensor:
         b, x, y, z = semantics.shape
-        emb = self.class_embed(semantics)  # (B, X, Y, Z, E)
+        emb = self.voxel_input(self.class_embed(semantics))  # (B, X, Y, Z, E)
         bev = emb.reshape(b, x, y, z * self.cfg.class_embed_dim).permute(0, 3, 1, 2)
         return self.quant_proj(self.encoder(bev))
 
     def decode_logits(self, z_q: torch.Tensor) -> torch.Tensor:
         feats = self.decoder(self.post_quant_proj(z_q))  # (B, Z * E, X, Y)
         b, _, x, y = feats.shape
-        feats = feats.view(b, GRID_SHAPE[2], self.cfg.class_embed_dim, x, y)
+        feats = self.voxel_output(feats.view(b, GRID_SHAPE[2], self.cfg.class_embed_dim, x, y))
         # Channels-last in memory, (B, 18, X, Y, Z) as a view: the losses read it per voxel.
         return torch.einsum("bzexy,ce->bxyzc", feats, self.class_embed.weight).permute(0, 4, 1, 2, 3)
+
+    def voxel_input(self, emb: torch.Tensor) -> torch.Tensor:
+        """Per-voxel embeddings (B, X, Y, Z, E) before the height is folded; a hook for variants."""
+        return emb
+
+    def voxel_output(self, feats: torch.Tensor) -> torch.Tensor:
+        """Decoded per-voxel features (B, Z, E, X, Y) before the class dot products; a hook for variants."""
+        return feats
 
     def forward(self, semantics: torch.Tensor) -> TokenizerOutput:
         """Reconstruct (B, 200, 200, 16) labels through the codebook; losses and codebook stats."""
