@@ -106,3 +106,51 @@ stages:
     from occtrain.families import load_tokenizer
 
     assert isinstance(load_tokenizer(tmp_path / "runs" / "msvae" / "tokenizer" / "export"), MSVAE)
+
+
+# ----------------------------------------------------------------------------- patches and pre-fusion
+
+
+@pytest.mark.parametrize("patch", [1, 5, 10, 25])
+def test_patchify_round_trips_and_orders_cells_within_a_patch(patch):
+    from occtrain.families.occllm.patches import patchify, unpatchify
+
+    latents = torch.randn(2, 3, 50, 50)
+    tokens = patchify(latents, patch)
+    assert tokens.shape == (2, (50 // patch) ** 2, patch * patch * 3)
+    assert torch.equal(unpatchify(tokens, patch, (50, 50)), latents)
+    # Token 1 is the second patch of the first row; its first cell is latent cell (0, patch).
+    if patch < 50:
+        assert torch.equal(tokens[0, 1, :3], latents[0, :, 0, patch])
+
+
+def test_a_patch_size_must_divide_the_grid():
+    from occtrain.families.occllm.patches import patchify
+
+    with pytest.raises(ConfigError, match="patch size 7 must divide the latent grid 50 x 50"):
+        patchify(torch.zeros(1, 1, 50, 50), 7)
+
+
+def test_the_patch_head_scores_every_cell_in_each_codebook():
+    from occtrain.families.occllm.patches import PatchEmbedding, PatchHead, patchify
+
+    latents = torch.randn(2, 4, 10, 10)
+    tokens = PatchEmbedding(4, 5, 32)(patchify(latents, 5))
+    assert tokens.shape == (2, 4, 32)
+    motion, static = PatchHead(32, 5, [8, 16])(tokens)
+    assert motion.shape == (2, 4, 25, 8) and static.shape == (2, 4, 25, 16)
+
+
+def test_pre_fusion_starts_as_the_identity_and_learns_a_per_channel_gate():
+    from occtrain.families.occllm.patches import PreFusion
+
+    fuse = PreFusion(action_dim=2, channels=4)
+    latents, action = torch.randn(3, 4, 10, 10), torch.randn(3, 2)
+    assert torch.equal(fuse(latents, action), latents)  # gate 1 before training
+    loss = fuse(latents, action).pow(2).mean()
+    loss.backward()
+    assert fuse.mlp[-1].weight.grad.abs().sum() > 0  # the action reaches the gate
+    with torch.no_grad():
+        fuse.mlp[-1].bias.copy_(torch.tensor([10.0, -10.0, 0.0, 0.0]))
+    gated = fuse(latents, action)
+    assert torch.allclose(gated[:, 0], 2 * latents[:, 0], atol=1e-3) and torch.allclose(gated[:, 1], 0 * latents[:, 1], atol=1e-3)
