@@ -20,6 +20,8 @@ class OptimConfig:
     warmup_steps: int = 0
     schedule: str = "cosine"  # cosine | constant
     min_lr_ratio: float = 0.1
+    #: AdamW's epsilon: it bounds the step of a parameter whose gradient is near zero.
+    eps: float = 1e-8
 
 
 @dataclass

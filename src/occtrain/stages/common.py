@@ -308,7 +308,7 @@ def build_trainer(
 
 def configure_adamw(params: Any, cfg: OptimConfig, max_steps: int) -> dict:
     """AdamW with linear warm-up and cosine decay to ``min_lr_ratio`` (or constant), per step."""
-    opt = torch.optim.AdamW(params, lr=cfg.lr, weight_decay=cfg.weight_decay, betas=tuple(cfg.betas))
+    opt = torch.optim.AdamW(params, lr=cfg.lr, weight_decay=cfg.weight_decay, betas=tuple(cfg.betas), eps=cfg.eps)
     if cfg.schedule not in ("cosine", "constant"):
         raise OcctrainError(f"optim.schedule '{cfg.schedule}' is not one of cosine, constant")
 
