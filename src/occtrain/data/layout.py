@@ -264,10 +264,9 @@ class DatasetIndex:
     @cached_property
     def has_cameras(self) -> bool:
         """Whether samples carry ``camera_sensor`` records and the images they name exist."""
-        for scene, token in self.samples():
-            records = self.info(scene, token).get("camera_sensor")
-            return bool(records) and all((self.root / r["img_path"]).is_file() for r in records.values())
-        return False
+        first = next(self.samples(), None)
+        records = self.info(*first).get("camera_sensor") if first else None
+        return bool(records) and all((self.root / r["img_path"]).is_file() for r in records.values())
 
     def cameras(self, scene: str, token: str) -> list[CameraRecord]:
         """The sample's six cameras in CAMERA_NAMES order (each named by its image's folder)."""
@@ -276,11 +275,13 @@ class DatasetIndex:
         src = self.root / ANNOTATIONS_FILE
         if not records:
             raise DataError(f"{src}: sample scene_infos.{scene}.{token} has no camera_sensor; stages that read images (vision) need the cameras")
-        ego = _pose_matrix(info["ego_pose"])
         by_name = {}
-        for key, r in records.items():
+        for r in records.values():  # the schema checked every record's keys on opening
             name = Path(r["img_path"]).parent.name
-            by_name[name] = CameraRecord(name, self.root / r["img_path"], np.asarray(r["intrinsic"], np.float64), _pose_matrix(r["extrinsic"]), _pose_matrix(r.get("ego_pose", info["ego_pose"])) if r.get("ego_pose") else ego)
+            by_name[name] = CameraRecord(
+                name, self.root / r["img_path"], np.asarray(r["intrinsic"], np.float64),
+                _pose_matrix(r["extrinsic"]), _pose_matrix(r["ego_pose"]),
+            )
         missing = [n for n in CAMERA_NAMES if n not in by_name]
         if missing:
             raise DataError(f"{src}: sample scene_infos.{scene}.{token} has no {missing[0]} camera (img_path folders: {', '.join(sorted(by_name))})")

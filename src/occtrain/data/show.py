@@ -42,11 +42,10 @@ def show(
         if not 0 <= index < len(tokens):
             raise DataError(f"{path}: scene '{scene}' has frames 0..{len(tokens) - 1}, not {index}")
         annotated = ds.frames(scene) if ds.has_frame_annotations(scene) else None
-        future = None if annotated else [pose_anchor(ds, scene, i) for i in range(len(tokens))]
         pictures, seen = [], set()
         for i in range(index, min(index + max(frames, 1), len(tokens))):
             labels = ds.labels(scene, tokens[i])
-            ann = annotated[i] if annotated else future[i]  # without the sidecar the poses give the path
+            ann = annotated[i] if annotated else pose_anchor(ds, scene, i)  # without the sidecar the poses give the path
             bev = render_bev(
                 labels["semantics"],
                 labels["mask_camera"],

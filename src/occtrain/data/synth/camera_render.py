@@ -82,7 +82,6 @@ class _Rays:
     axis: np.ndarray  # (E,) int8 axis of the face it enters through (-1: the starting voxel)
     ray: np.ndarray  # (E,) int32 the ray of each entry (non-decreasing)
     starts: np.ndarray  # (R,) index of each ray's first entry
-    ends_in_ground: np.ndarray  # (R,) bool: its last voxel is a ground layer (always occupied)
 
 
 def _traverse(origin: np.ndarray, dirs: np.ndarray, cos: np.ndarray) -> _Rays:
@@ -100,15 +99,11 @@ def _traverse(origin: np.ndarray, dirs: np.ndarray, cos: np.ndarray) -> _Rays:
     axis_now = np.full(rays, -1, np.int64)
     live = np.arange(rays)
     parts: list[tuple[np.ndarray, ...]] = []
-    ground = np.zeros(rays, bool)
     while len(live):
         i = idx[live]
         flat = (i[:, 0] * n[1] + i[:, 1]) * n[2] + i[:, 2]
         parts.append((live, flat, t_now[live], axis_now[live]))
-        in_ground = i[:, 2] < GROUND_LAYERS
-        ground[live[in_ground]] = True
-        keep = ~in_ground
-        live = live[keep]
+        live = live[i[:, 2] >= GROUND_LAYERS]  # a ground layer is always occupied: the ray ends there
         if not len(live):
             break
         tm = t_max[live]
@@ -126,7 +121,7 @@ def _traverse(origin: np.ndarray, dirs: np.ndarray, cos: np.ndarray) -> _Rays:
     return _Rays(
         origin=origin, dirs=dirs, cos=cos, voxel=np.concatenate([p[1] for p in parts])[order].astype(np.int32),
         t=np.concatenate([p[2] for p in parts])[order].astype(np.float32),
-        axis=np.concatenate([p[3] for p in parts])[order].astype(np.int8), ray=ray[order], ends_in_ground=ground,
+        axis=np.concatenate([p[3] for p in parts])[order].astype(np.int8), ray=ray[order],
         starts=np.searchsorted(ray[order], np.arange(rays)).astype(np.int64),
     )
 
