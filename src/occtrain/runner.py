@@ -261,7 +261,7 @@ def run(
     if rank_zero:
         for note in shadowed_overrides(recipe, list(overrides or [])):
             console.print(f"[yellow]note[/]: {note}")
-    with stop_on_signals(), (run_lock(run_dir) if rank_zero else _nothing()):
+    with stop_on_signals(), (run_lock(run_dir) if rank_zero else contextlib.nullcontext()):
         # Read again under the lock: the manifest this run writes is the one it checked.
         manifest = Manifest.load(run_dir, writable=rank_zero)
         refuse_changed(planned, manifest, restarted, only)
@@ -288,11 +288,6 @@ def run(
                 stop = stop.with_message(f"{stop} before any stage trained; run the same command again to continue")
             raise stop from None
     return run_dir
-
-
-@contextlib.contextmanager
-def _nothing():
-    yield
 
 
 def refuse_without_cameras(planned: list[PlannedStage], data: DataConfig) -> None:

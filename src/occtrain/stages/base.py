@@ -52,7 +52,7 @@ class StageReport:
 
 
 #: What a task needs, in the dataset's terms (``DatasetIndex.available_tasks``), where the names differ.
-TASK_NEEDS = {"cot_planning": "chain_of_thought", "meta_action_planning": "meta_action"}
+TASK_NEEDS = {"cot_planning": "chain_of_thought"}
 
 
 def _skipping_padding(step: Callable[..., Any]) -> Callable[..., Any]:
