@@ -197,6 +197,8 @@ def test_the_release_layout_reads_back(world):
         np.testing.assert_allclose(r.cam_to_ego, rig[r.name].cam_to_ego, atol=1e-9)
         x, y, yaw = index.ego_pose(scene, token)
         np.testing.assert_allclose(r.ego_to_global[:2, 3], [x, y])
+        point = np.array([[10.0, 2.0, 1.0]])  # the record projects as the rig's camera does
+        np.testing.assert_allclose(r.camera(H, W).project(point)[0], rig[r.name].project(point)[0])
     images = index.images(scene, token)
     classes, depth = index.camera_targets(scene, token)
     assert images.shape == (6, H, W, 3) and classes.shape == depth.shape == (6, H, W)

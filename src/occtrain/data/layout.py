@@ -300,8 +300,7 @@ class DatasetIndex:
         images; None for real data, which has neither."""
         out_cls, out_depth = [], []
         for r in self.cameras(scene, token):
-            cls_path = r.image.with_name(f"{r.image.stem}{CLASS_SUFFIX}.png")
-            depth_path = r.image.with_name(f"{r.image.stem}{DEPTH_SUFFIX}.png")
+            cls_path, depth_path = r.maps
             if not cls_path.is_file() or not depth_path.is_file():
                 return None
             out_cls.append(read_image(cls_path))
@@ -395,6 +394,11 @@ class CameraRecord:
     intrinsic: np.ndarray  # (3, 3)
     cam_to_ego: np.ndarray  # (4, 4)
     ego_to_global: np.ndarray  # (4, 4)
+
+    @property
+    def maps(self) -> tuple[Path, Path]:
+        """Where the renderer's per-pixel class and depth maps of this image lie (synthetic data)."""
+        return (self.image.with_name(f"{self.image.stem}{CLASS_SUFFIX}.png"), self.image.with_name(f"{self.image.stem}{DEPTH_SUFFIX}.png"))
 
     def camera(self, height: int, width: int) -> Camera:
         return Camera(self.name, height, width, self.intrinsic, self.cam_to_ego)

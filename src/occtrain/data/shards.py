@@ -39,7 +39,7 @@ import numpy as np
 import webdataset as wds
 
 from occtrain.data.clips import clip_annotation
-from occtrain.data.layout import CLASS_SUFFIX, DEPTH_SUFFIX, FRAMES_DIR, SPLITS, DatasetIndex, read_npz
+from occtrain.data.layout import FRAMES_DIR, SPLITS, DatasetIndex, read_npz
 from occtrain.data.validate import first_problem
 from occtrain.errors import DataError
 from occtrain.io import atomic_write_json, npz_bytes, rank_world
@@ -141,8 +141,7 @@ def _camera_entries(index: DatasetIndex, scene: str, token: str) -> dict[str, by
         if ext not in ("png", "jpg", "jpeg"):
             raise DataError(f"{r.image}: camera images must be PNG or JPEG")
         out[f"{stem}.{'jpg' if ext == 'jpeg' else ext}"] = _read_bytes(r.image)
-        for part, suffix in (("class", CLASS_SUFFIX), ("depth", DEPTH_SUFFIX)):
-            extra = r.image.with_name(f"{r.image.stem}{suffix}.png")
+        for part, extra in zip(("class", "depth"), r.maps):
             if extra.is_file():
                 out[f"{stem}.{part}.png"] = _read_bytes(extra)
     calib = {"intrinsic": [r.intrinsic.tolist() for r in records], "cam_to_ego": [r.cam_to_ego.tolist() for r in records]}
