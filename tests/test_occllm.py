@@ -113,7 +113,7 @@ stages:
 
 @pytest.mark.parametrize("patch", [1, 5, 10, 25])
 def test_patchify_round_trips_and_orders_cells_within_a_patch(patch):
-    from occtrain.families.occllm.patches import patchify, unpatchify
+    from occtrain.models.patches import patchify, unpatchify
 
     latents = torch.randn(2, 3, 50, 50)
     tokens = patchify(latents, patch)
@@ -125,14 +125,15 @@ def test_patchify_round_trips_and_orders_cells_within_a_patch(patch):
 
 
 def test_a_patch_size_must_divide_the_grid():
-    from occtrain.families.occllm.patches import patchify
+    from occtrain.models.patches import patchify
 
     with pytest.raises(ConfigError, match="patch size 7 must divide the latent grid 50 x 50"):
         patchify(torch.zeros(1, 1, 50, 50), 7)
 
 
 def test_the_patch_head_scores_every_cell_in_each_codebook():
-    from occtrain.families.occllm.patches import PatchEmbedding, PatchHead, patchify
+    from occtrain.families.occllm.patches import PatchEmbedding, PatchHead
+    from occtrain.models.patches import patchify
 
     latents = torch.randn(2, 4, 10, 10)
     tokens = PatchEmbedding(4, 5, 32)(patchify(latents, 5))

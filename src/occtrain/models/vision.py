@@ -24,6 +24,7 @@ from torch import Tensor, nn
 
 from occtrain.errors import ConfigError, DataError
 from occtrain.exports import load_state_strict, read_export, write_export
+from occtrain.models.patches import unpatchify
 from occtrain.occ3d import NUM_CLASSES
 
 #: The export's Hugging Face vision-model directory.
@@ -241,13 +242,13 @@ class DenseHead(nn.Module):
 
     def forward(self, tokens: Tensor, grid: tuple[int, int], num_cameras: int, image_hw: tuple[int, int]) -> tuple[Tensor, Tensor]:
         """(B, N*P, D) -> class logits (B, N, C, H, W) and log-depth (B, N, H, W)."""
-        b, p, c1 = tokens.shape[0], self.patch_size, self.num_classes + 1
+        b, p = tokens.shape[0], self.patch_size
         gh, gw = grid
-        x = self.proj(tokens).view(b * num_cameras, gh, gw, p, p, c1)
-        x = x.permute(0, 5, 1, 3, 2, 4).reshape(b * num_cameras, c1, gh * p, gw * p)
+        x = self.proj(tokens).view(b * num_cameras, gh * gw, -1)
+        x = unpatchify(x, p, (gh * p, gw * p))  # (B*N, classes + 1, H', W')
         if (gh * p, gw * p) != tuple(image_hw):
             x = F.interpolate(x, size=tuple(image_hw), mode="bilinear", align_corners=False)
-        x = x.view(b, num_cameras, c1, *image_hw)
+        x = x.view(b, num_cameras, self.num_classes + 1, *image_hw)
         return x[:, :, :-1], x[:, :, -1]
 
 

@@ -1,6 +1,6 @@
 """Occ-LLM's scene tokens (Sec. III-B): latent patches, and pre-fusion of the ego action.
 
-A scene's latent grid (C, h, w) is cut into p x p patches, each one LLM token (p = 10 gives
+A scene's latent grid (C, h, w) is cut into p x p patches (``occtrain.models.patches``), each one LLM token (p = 10 gives
 25 tokens per 50 x 50 frame). The paper does not say how the LLM emits a patch; here each
 patch token's hidden state goes through one linear head to every cell's code in each
 codebook (a cross-entropy per cell and codebook). Pre-fusion (Table V): the ego action
@@ -11,33 +11,6 @@ from __future__ import annotations
 
 import torch
 from torch import nn
-
-from occtrain.errors import ConfigError
-
-
-def check_patch(hw: tuple[int, int], patch: int) -> None:
-    """A one-line error unless ``patch`` divides both sides of the latent grid."""
-    if patch < 1 or hw[0] % patch or hw[1] % patch:
-        raise ConfigError(f"patch size {patch} must divide the latent grid {hw[0]} x {hw[1]} (e.g. 10 for 50 x 50)")
-
-
-def patchify(latents: torch.Tensor, patch: int) -> torch.Tensor:
-    """(B, C, h, w) -> (B, N, p * p * C) with N = (h / p) * (w / p) patches in row-major order;
-    each patch's cells in row-major order, channels innermost."""
-    b, c, h, w = latents.shape
-    check_patch((h, w), patch)
-    x = latents.reshape(b, c, h // patch, patch, w // patch, patch)
-    return x.permute(0, 2, 4, 3, 5, 1).reshape(b, (h // patch) * (w // patch), patch * patch * c)
-
-
-def unpatchify(tokens: torch.Tensor, patch: int, hw: tuple[int, int]) -> torch.Tensor:
-    """Inverse of :func:`patchify`: (B, N, p * p * C) -> (B, C, h, w)."""
-    h, w = hw
-    check_patch(hw, patch)
-    b, n, d = tokens.shape
-    c = d // (patch * patch)
-    x = tokens.reshape(b, h // patch, w // patch, patch, patch, c)
-    return x.permute(0, 5, 1, 3, 2, 4).reshape(b, c, h, w)
 
 
 class PatchEmbedding(nn.Module):
