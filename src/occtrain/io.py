@@ -87,11 +87,14 @@ def atomic_write_text(path: str | Path, text: str) -> Path:
 
 
 def finite_or_null(obj: Any) -> Any:
-    """``obj`` with every NaN or infinite float replaced by None, recursively.
+    """``obj`` ready for standard JSON, recursively: numpy and torch scalars as Python
+    numbers, and every NaN or infinite float as None.
 
     Python's json writes them as ``NaN`` / ``Infinity``, which standard JSON readers refuse;
     an undefined number is ``null`` in every file occtrain writes.
     """
+    if getattr(obj, "ndim", None) == 0 and hasattr(obj, "item"):  # a numpy or torch scalar
+        obj = obj.item()
     if isinstance(obj, float):
         return obj if math.isfinite(obj) else None
     if isinstance(obj, dict):

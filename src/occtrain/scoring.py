@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 from functools import lru_cache
 from pathlib import Path
 from typing import Annotated, Any, Literal, NotRequired, TypedDict, Union
@@ -22,7 +21,7 @@ from occtrain.data.layout import ANNOTATIONS_FILE, GTS_DIR, LABELS_FILE, Dataset
 from occtrain.data.schema import QAFile, Vec2
 from occtrain.data.validate import Len, first_problem
 from occtrain.errors import DataError
-from occtrain.io import atomic_write_json
+from occtrain.io import atomic_write_json, finite_or_null
 from occtrain.metrics import CONVENTIONS, ForecastMetric, OccupancyMetric, PlanningMetric, QAMetric, coco_caption_scores
 from occtrain.metrics.occupancy import horizon_label
 from occtrain.occ3d import FUTURE_STEPS, GRID_SHAPE, NUM_CLASSES
@@ -50,17 +49,8 @@ QAPredictions = list[Union[str, int]]
 # ----------------------------------------------------------------------------- output
 
 
-def to_json(value: Any) -> Any:
-    """Tensors and numpy scalars -> Python numbers, NaN (an undefined metric) -> None, recursively."""
-    if isinstance(value, dict):
-        return {k: to_json(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [to_json(v) for v in value]
-    if isinstance(value, (torch.Tensor, np.generic)):
-        value = value.item()
-    if isinstance(value, float) and not math.isfinite(value):
-        return None  # standard JSON has no NaN or Infinity
-    return value
+#: Metric results (tensors, NaN for an undefined metric) as standard JSON values.
+to_json = finite_or_null
 
 
 def emit(result: dict[str, Any], out: str | None) -> None:
