@@ -24,7 +24,7 @@ SRC = REPO / "src" / "occtrain"
 #: Layer of each top-level module or package of occtrain (higher imports lower).
 LAYERS = {
     "cli": 6, "__main__": 6,
-    "runner": 5, "evaluate": 5, "scoring": 5, "dashboard": 5, "manifest": 5,
+    "comparison": 5, "runner": 5, "evaluate": 5, "scoring": 5, "dashboard": 5, "manifest": 5,
     "stages": 4,
     "engine": 3,
     "families": 2,

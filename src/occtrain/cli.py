@@ -37,6 +37,18 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_table(args: argparse.Namespace) -> int:
+    from occtrain.comparison import load_run_table, show_table
+    from occtrain.progress import console
+
+    table, manifest = load_run_table(args.run_dir)
+    pending = [r.stage for r in table.rows if r.stage not in manifest.stages or manifest.stages[r.stage].status != "done"]
+    if pending:
+        console.print(f"[yellow]note[/]: not done yet, shown as –: {', '.join(dict.fromkeys(pending))}")
+    console.print(f"table -> {show_table(args.run_dir, table, manifest)}")
+    return 0
+
+
 def _cmd_data_synth(args: argparse.Namespace) -> int:
     from occtrain.config import SynthConfig
     from occtrain.data.synthesize import synthesize
@@ -95,7 +107,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--restart", metavar="STAGE", help="retrain this stage and every stage after it")
     p.set_defaults(func=_cmd_run)
 
-    p = sub.add_parser("eval", help="score a world-model stage's export on a split (generation + the papers' metrics)")
+    p = sub.add_parser("eval", help="score a stage's export on a split: a tokenizer's reconstruction, a world model's generations (the papers' metrics)")
     p.add_argument("stage_dir", help="RUN_DIR/STAGE")
     p.add_argument("--split", default="val")
     p.add_argument("--tasks", default="", help="comma-separated: forecasting, planning, qa, cot_planning (default: the stage's)")
@@ -107,6 +119,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--batch-size", type=int, default=16, help="clips generated together in one batch (default 16)")
     p.add_argument("--data", metavar="DIR", help="score on this dataset instead of the run's (e.g. a world from another seed)")
     p.set_defaults(func=_cmd_eval)
+
+    p = sub.add_parser("table", help="print a run's comparison table (the recipe's table:) and rewrite RUN_DIR/table.md")
+    p.add_argument("run_dir", metavar="RUN_DIR", help="a run directory, e.g. runs/tokenizer_ablation")
+    p.set_defaults(func=_cmd_table)
 
     config = sub.add_parser("config", help="inspect configs").add_subparsers(dest="action", required=True)
     show = config.add_parser("show", help="print a config file resolved with overrides")

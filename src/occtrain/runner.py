@@ -23,6 +23,7 @@ from typing import Any, Callable
 
 from omegaconf import OmegaConf
 
+from occtrain.comparison import TABLE_FILE, check_table, show_table
 from occtrain.config import load_config, to_container, to_yaml
 from occtrain.config.loading import read_yaml, validate_section
 from occtrain.config.recipe import STAGE_DATA_KEYS, RecipeConfig, StageSpec
@@ -184,7 +185,9 @@ def load_recipe(path: str | Path, overrides: list[str] | None = None) -> tuple[R
     if OmegaConf.is_missing(recipe, "name"):
         raise ConfigError(f"{path} has no 'name:'; a recipe names its run (the run directory is <runs_root>/<name>)")
     load_plugins(list(recipe.plugins), str(path))
-    return recipe, plan_stages(recipe, str(path))
+    planned = plan_stages(recipe, str(path))
+    check_table(recipe.table, [p.spec.name for p in planned], str(path))
+    return recipe, planned
 
 
 def _execute(
@@ -194,7 +197,7 @@ def _execute(
     import lightning as L
 
     from occtrain.data.datamodule import ShardDataModule
-    from occtrain.stages.common import build_trainer, checkpoint_step, last_checkpoint
+    from occtrain.stages.common import StepTimer, build_trainer, checkpoint_step, last_checkpoint
 
     L.seed_everything(stage.trainer.seed, workers=True, verbose=False)
     ctx = StageContext(stage.spec, stage.model_cfg, stage.data, stage.trainer, stage_dir, inputs)
@@ -216,6 +219,9 @@ def _execute(
     metrics = {k: float(v) for k, v in (results[0] if results else {}).items()}
     report = module.report()
     metrics.update(report.metrics)
+    timer = next(c for c in trainer.callbacks if isinstance(c, StepTimer))
+    if timer.mean_s is not None:  # of this attempt: a measurement, not a result
+        metrics["train_step_s"] = timer.mean_s
     artifacts: dict[str, str] = {}
     if trainer.is_global_zero:
         export_dir = module.export(stage_dir / "export")
@@ -282,7 +288,8 @@ def run(
                 _run_stages(planned, manifest, run_dir, recipe, only, rank_zero)
             finally:
                 if rank_zero:
-                    _write_dashboard(run_dir)
+                    _write_table(run_dir, recipe, manifest)
+                    _write_dashboard(run_dir)  # after the table: the page shows it
         except Interrupted as stop:
             if not str(stop).startswith("stage "):
                 stop = stop.with_message(f"{stop} before any stage trained; run the same command again to continue")
@@ -344,6 +351,20 @@ def _write_dashboard(run_dir: Path) -> None:
     except Exception as err:  # noqa: BLE001 - the run's results are safe; the page is a view of them
         line = str(err).splitlines()[0] if str(err) else type(err).__name__
         console.print(f"[yellow]dashboard not written[/]: {type(err).__name__}: {line}")
+
+
+def _write_table(run_dir: Path, recipe: RecipeConfig, manifest: Manifest) -> None:
+    """Print the recipe's table and write ``table.md`` once every stage is done; until then
+    there is none (a stale one would show a retrained stage's old figures). Like the page, a
+    problem with it never fails a run."""
+    try:
+        if recipe.table is not None and all(manifest.stages[s.name].status == "done" for s in recipe.stages):
+            console.print(f"table -> {show_table(run_dir, recipe.table, manifest)}")
+        else:
+            (run_dir / TABLE_FILE).unlink(missing_ok=True)
+    except (OcctrainError, OSError) as err:
+        line = str(err).splitlines()[0] if str(err) else type(err).__name__
+        console.print(f"[yellow]table not written[/]: {line}")
 
 
 def _run_stages(planned: list[PlannedStage], manifest: Manifest, run_dir: Path, recipe: RecipeConfig, only: str | None, rank_zero: bool) -> None:

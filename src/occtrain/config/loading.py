@@ -28,10 +28,13 @@ def _dataclass_fields(cls: type) -> dict[str, Any]:
 
 
 def _section_type(tp: Any) -> type | None:
-    """The dataclass a field holds, or the element dataclass of a list field."""
+    """The dataclass a field holds (``Optional`` too), or the element dataclass of a list field."""
     if dataclasses.is_dataclass(tp):
         return tp
     origin = typing.get_origin(tp)
+    if origin is typing.Union:
+        held = [a for a in typing.get_args(tp) if a is not type(None)]
+        return _section_type(held[0]) if len(held) == 1 else None
     if origin in (list, tuple):
         args = typing.get_args(tp)
         if args and dataclasses.is_dataclass(args[0]):

@@ -1,9 +1,10 @@
-"""Recipe schema: a run's name, its data, default trainer settings and ordered stages."""
+"""Recipe schema: a run's name, its data, default trainer settings, ordered stages, and an
+optional table of its results beside a paper's figures."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Optional
 
 from omegaconf import MISSING
 
@@ -51,6 +52,42 @@ STAGE_DATA_KEYS = ("batch_size", "num_workers", "shuffle_buffer")
 
 
 @dataclass
+class TableColumn:
+    """One measure of a comparison table, read from each row's stage's final metrics."""
+
+    #: The header, e.g. ``IoU``; a row's ``paper:`` figures are keyed by it.
+    name: str = MISSING
+    #: A key of the stage's final metrics (manifest.json -> stages -> <stage> -> metrics).
+    metric: str = MISSING
+    #: Our value is multiplied by it before it is shown (1e-6: parameters in millions);
+    #: paper figures are written in the shown unit already.
+    scale: float = 1.0
+    digits: int = 2
+
+
+@dataclass
+class TableRow:
+    """One variant: a stage of the recipe, and the paper's figures for it."""
+
+    stage: str = MISSING
+    #: Defaults to the stage's name.
+    label: str = ""
+    #: Column name -> the paper's figure; a column left out (or null) was not reported.
+    paper: dict[str, Optional[float]] = field(default_factory=dict)
+
+
+@dataclass
+class ComparisonTable:
+    """What a run prints and writes to ``RUN_DIR/table.md`` once every stage is done."""
+
+    title: str = ""
+    #: One paragraph under the table (which convention, what differs from the paper).
+    note: str = ""
+    columns: list[TableColumn] = field(default_factory=list)
+    rows: list[TableRow] = field(default_factory=list)
+
+
+@dataclass
 class RecipeConfig:
     """What ``occtrain run`` reads."""
 
@@ -62,3 +99,5 @@ class RecipeConfig:
     runs_root: str = "runs"
     #: Importable modules that register extra stage kinds (``occtrain.stages.register``).
     plugins: list[str] = field(default_factory=list)
+    #: Our figures beside the paper's, one row per stage (see occtrain.comparison).
+    table: Optional[ComparisonTable] = None

@@ -7,6 +7,7 @@ import re
 import time
 from html import escape
 
+from occtrain.comparison import TABLE_FILE
 from occtrain.dashboard.paper_figures import REAL_DATA, figures_for, metric_words
 from occtrain.dashboard.run_view import RunView, StageView
 from occtrain.dashboard.svg import line_chart
@@ -220,6 +221,15 @@ def stage_section(stage: StageView) -> str:
     return "".join(parts)
 
 
+def comparison_section(run: RunView) -> str:
+    """The recipe's comparison table (``table.md``, written once every stage is done), as written."""
+    path = run.run_dir / TABLE_FILE
+    if not path.is_file():
+        return ""
+    text = path.read_text(errors="replace")
+    return f'<section class="stage"><h2>Comparison with the paper</h2><pre>{escape(text)}</pre></section>'
+
+
 def render_page(run: RunView, generated: float | None = None) -> str:
     """The whole page as one HTML string."""
     versions = sorted({s.entry.code_version for s in run.stages if s.entry.code_version})
@@ -238,6 +248,7 @@ def render_page(run: RunView, generated: float | None = None) -> str:
         f'<p class="note">Figures tagged <span class="tag">{REAL_DATA}</span> are the papers\' published numbers on real '
         "nuScenes / Occ3D-nuScenes data with full-size models, shown for orientation; this run trains on the data "
         "in pipeline.yaml.</p></section>"
+        + comparison_section(run)
         + "".join(stage_section(s) for s in run.stages)
         + pipeline
         + "</main></body></html>\n"

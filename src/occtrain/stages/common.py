@@ -196,6 +196,33 @@ class _Heartbeat(Callback):
             self.record(self.last - self.started)
 
 
+class StepTimer(Callback):
+    """Mean wall time of a training step, loading its batch included: the time from one
+    batch's start to the next one's, the first ``warmup`` steps of an attempt and the
+    intervals that hold a validation or a checkpoint left out."""
+
+    def __init__(self, warmup: int = 2):
+        self.warmup = warmup
+        self.times: list[float] = []
+        self._last: float | None = None
+
+    def on_train_batch_start(self, *args: Any) -> None:
+        now = time.perf_counter()
+        if self._last is not None:
+            self.times.append(now - self._last)
+        self._last = now
+
+    def _skip(self, *args: Any) -> None:
+        self._last = None
+
+    on_validation_start = on_save_checkpoint = on_train_end = _skip
+
+    @property
+    def mean_s(self) -> float | None:
+        kept = self.times[self.warmup :] or self.times
+        return sum(kept) / len(kept) if kept else None
+
+
 # ----------------------------------------------------------------------------- validation
 
 
@@ -264,6 +291,7 @@ def build_trainer(
         _StepSeed(cfg.seed),
         LearningRateMonitor(logging_interval="step"),
         RichProgressBar(leave=True),
+        StepTimer(),
     ]
     if record_time is not None:
         callbacks.append(_Heartbeat(record_time))
