@@ -55,7 +55,7 @@ def occtrain_logits(engine, ids: torch.Tensor) -> torch.Tensor:
     seg = torch.zeros_like(ids)[None]
     allowed = allowed_pairs(seg, torch.ones_like(seg, dtype=torch.bool))[:, None]
     with torch.no_grad():
-        logits, _ = engine.world.logits(ids[None], allowed, torch.arange(len(ids))[None])
+        logits = engine.world.step(ids[None], allowed, torch.arange(len(ids))[None]).logits
     return logits[0]
 
 

@@ -45,7 +45,7 @@ def test_from_pretrained_directory(saved_llm):
     tok = load_text_tokenizer(path)
     assert tok.pad_token_id == tok.eos_token_id  # padding falls back to eos
     T = len(tok)
-    vocab = JointVocab(tok, num_codes=8, scene_hw=(2, 2))
+    vocab = JointVocab(tok, 8, scene_hw=(2, 2))
     llm = build_llm(LLMConfig(path=str(path)), len(vocab))
     emb = llm.get_input_embeddings().weight
     assert emb.shape == (len(vocab), 32) and llm.get_output_embeddings().weight.shape[0] == len(vocab)
@@ -72,7 +72,7 @@ def test_bad_path_is_one_line_config_error(tmp_path):
 
 def test_lora_trains_only_the_adapter():
     tok = train_text_tokenizer(TEXTS, 300)
-    vocab = JointVocab(tok, num_codes=8, scene_hw=(2, 2))
+    vocab = JointVocab(tok, 8, scene_hw=(2, 2))
     torch.manual_seed(0)
     llm = build_llm(LLMConfig(hidden_size=32, num_layers=1, num_heads=2, intermediate_size=64), len(vocab))
     peft_model = apply_lora(llm, LoRAConfig(r=4, alpha=8, dropout=0.0))

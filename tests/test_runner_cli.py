@@ -101,7 +101,9 @@ def test_kill_9_then_resume_gives_the_uninterrupted_weights(recipe, tmp_path, ac
 @pytest.mark.parametrize("sig, code", [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
 def test_a_stop_signal_interrupts_in_one_line_and_a_rerun_resumes(recipe, tmp_path, sig, code):
     run_dir = tmp_path / "run"
-    args = [str(recipe), "stages.only.model.step_delay=0.25", "--run-dir", str(run_dir)]
+    # 16 steps of 1 s: the stage must still be training after the second run below has
+    # started Python and been refused, which takes seconds on a loaded machine.
+    args = [str(recipe), "stages.only.model.step_delay=1.0", "--run-dir", str(run_dir)]
     proc = subprocess.Popen([sys.executable, "-m", "occtrain", "run", *args], cwd=REPO, env=_env(),
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     last = run_dir / "only" / "checkpoints" / "last.ckpt"
@@ -117,6 +119,7 @@ def test_a_stop_signal_interrupts_in_one_line_and_a_rerun_resumes(recipe, tmp_pa
         f"error: {run_dir} is in use by pid {proc.pid} on {socket.gethostname()}; wait for it to finish, stop it, or choose another --run-dir"
     )
 
+    assert proc.poll() is None, "the stage finished before the signal"
     proc.send_signal(sig)
     _, err = proc.communicate(timeout=120)
     assert proc.returncode == code, err[-2000:]

@@ -35,7 +35,7 @@ def test_text_tokenizer_specials_and_round_trip(tok):
 
 def test_layout(tok):
     T = len(tok)
-    v = JointVocab(tok, num_codes=16, scene_hw=(2, 3), llm_cfg=small_cfg())
+    v = JointVocab(tok, 16, scene_hw=(2, 3), llm_cfg=small_cfg())
     assert v.text_range == (0, T)
     assert v.occ_range == (T, T + 16)
     assert v.act_x_range == (T + 16, T + 24)
@@ -49,7 +49,7 @@ def test_layout(tok):
 
 
 def test_masks_and_code_round_trip(tok):
-    v = JointVocab(tok, num_codes=16, scene_hw=(2, 2), llm_cfg=small_cfg())
+    v = JointVocab(tok, 16, scene_hw=(2, 2), llm_cfg=small_cfg())
     T = v.text_size
     ids = torch.tensor([5, T, T + 15, T + 16, T + 31, T + 32, T + 36])
     assert v.is_text(ids).tolist() == [True, False, False, False, False, False, False]
@@ -57,8 +57,8 @@ def test_masks_and_code_round_trip(tok):
     assert v.is_action(ids).tolist() == [False, False, False, True, True, False, False]
     assert v.is_query(ids).tolist() == [False] * 6 + [True]
     codes = torch.tensor([[0, 7], [15, 3]])
-    assert torch.equal(v.occ_ids(codes), codes + T)
-    assert torch.equal(v.codes_from_ids(v.occ_ids(codes)), codes)
+    assert torch.equal(v.occ_ids(codes), codes.reshape(-1) + T)  # a scene's codes, flat
+    assert torch.equal(v.codes_from_ids(v.occ_ids(codes)), codes.reshape(-1))
     with pytest.raises(ValueError):
         v.occ_ids(torch.tensor([16]))
     with pytest.raises(ValueError):
@@ -66,7 +66,7 @@ def test_masks_and_code_round_trip(tok):
 
 
 def test_action_ids_by_hand(tok):
-    v = JointVocab(tok, num_codes=16, scene_hw=(2, 2), llm_cfg=small_cfg())
+    v = JointVocab(tok, 16, scene_hw=(2, 2), llm_cfg=small_cfg())
     xs, ys = v.act_x_start, v.act_y_start
     xy = torch.tensor([[-35.0, 3.5], [12.0, 0.2], [39.9, 7.99]])
     # x bins of 10 m from -40: -35 -> 0, 12 -> 5, 39.9 -> 7; y bins of 1 m from 0: 3.5 -> 3, 0.2 -> 0, 7.99 -> 7
@@ -92,14 +92,14 @@ def test_quantizer_round_trip_within_half_a_bin():
 
 
 def test_decode_text_hides_joint_tokens(tok):
-    v = JointVocab(tok, num_codes=4, scene_hw=(1, 2), llm_cfg=small_cfg())
+    v = JointVocab(tok, 4, scene_hw=(1, 2), llm_cfg=small_cfg())
     ids = v.text_ids("the car") + [v.occ_start, v.act_open_id, v.eos_id] + v.text_ids(" turns")
     assert v.decode_text(ids) == "the car turns"
     assert "<occ_0><act>" in tok.decode(ids)
 
 
 def test_json_round_trip_with_saved_tokenizer(tok, tmp_path):
-    v = JointVocab(tok, num_codes=16, scene_hw=(3, 3), llm_cfg=small_cfg())
+    v = JointVocab(tok, 16, scene_hw=(3, 3), llm_cfg=small_cfg())
     tok.save_pretrained(str(tmp_path))
     loaded = PreTrainedTokenizerFast.from_pretrained(str(tmp_path), local_files_only=True)
     w = JointVocab.from_json(v.to_json(), loaded)
@@ -109,7 +109,7 @@ def test_json_round_trip_with_saved_tokenizer(tok, tmp_path):
     xy = torch.tensor([[-12.3, 4.4]])
     assert torch.equal(w.action_ids(xy), v.action_ids(xy))
     # A tokenizer of another layout is refused with one line naming it.
-    other = JointVocab(train_text_tokenizer(TEXTS, 300), num_codes=8, scene_hw=(3, 3), llm_cfg=small_cfg())
+    other = JointVocab(train_text_tokenizer(TEXTS, 300), 8, scene_hw=(3, 3), llm_cfg=small_cfg())
     with pytest.raises(ConfigError, match="text tokenizer"):
         JointVocab.from_json(v.to_json(), other.tokenizer)
 

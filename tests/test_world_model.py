@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import pytest
+from types import SimpleNamespace
+
 import torch
 import torch.nn.functional as F
 
@@ -22,7 +24,7 @@ XY = torch.tensor([[1.5, -0.5], [3.5, 2.5]])  # bin centres (1 m bins from -8)
 
 @pytest.fixture(scope="module")
 def vocab():
-    return JointVocab(train_text_tokenizer(TEXTS, 300), num_codes=16, scene_hw=(3, 3), llm_cfg=CFG)
+    return JointVocab(train_text_tokenizer(TEXTS, 300), 16, scene_hw=(3, 3), llm_cfg=CFG)
 
 
 def make_world(vocab, mode: str, seed: int = 0) -> OccWorldModel:
@@ -143,7 +145,7 @@ def test_kv_cache_matches_recompute(vocab, mode):
         d = world.decoder(prefix, use_cache=use_cache)
         text, actions, scene, more = d.text(4), d.actions(2), d.scene(), d.text(3)
         d.flush()
-        outs.append((text, actions, scene, more, d.last_logits))
+        outs.append((text, actions, scene, more, d.last.logits))
     (t1, a1, s1, u1, l1), (t2, a2, s2, u2, l2) = outs
     assert t1 == t2 and torch.equal(a1, a2) and torch.equal(s1, s2) and u1 == u2
     assert torch.allclose(l1, l2, atol=1e-4)
@@ -170,7 +172,7 @@ def test_export_round_trip(vocab):
     from transformers import AutoModelForCausalLM
 
     llm = AutoModelForCausalLM.from_config(world.llm.config)
-    again = OccWorldModel.from_export(world.export_config(), llm, vocab, world.codebook).eval()
+    again = OccWorldModel.from_export(world.export_config(), llm, vocab, SimpleNamespace(codebooks=[world.codebook])).eval()
     again.load_state_dict(world.state_dict())
     assert "codebook" not in world.state_dict()
     assert torch.allclose(world(batch).logits, again(batch).logits, atol=1e-6)
@@ -186,13 +188,13 @@ def test_generation_sees_what_training_sees(vocab):
     prefix = prompt(world.builder()).actions(XY).build().input_ids
     d = world.decoder(prefix)
     d._queue([vocab.occ_open_id])
-    gen = d._advance(vocab.query_ids())[-9:]
+    gen = d._advance(vocab.query_ids()).logits[-9:]
     assert torch.allclose(gen, train_logits[seq.scene_target], atol=1e-4)
     d._queue(vocab.occ_ids(TARGET), torch.full((9,), 9))
     d._queue([vocab.occ_close_id])
     d.flush()
     close = int((seq.input_ids == vocab.occ_close_id).nonzero()[-1])
-    assert torch.allclose(d.last_logits, train_logits[close], atol=1e-4)
+    assert torch.allclose(d.last.logits, train_logits[close], atol=1e-4)
 
 
 @pytest.mark.parametrize("mode", ["next_scene", "next_token"])

@@ -1,8 +1,9 @@
-"""``occtrain eval RUN_DIR/STAGE``: score a world-model stage's export on a split.
+"""``occtrain eval RUN_DIR/STAGE``: score a stage's export on a split.
 
-The export (scene tokenizer + LLM + adapter) is loaded exactly as a later stage would load
-it, its answers are generated on every clip of the split, and the papers' metrics are
-written to ``<stage>/eval/<split>/metrics.json``. ``--save-predictions DIR`` also writes
+A world-model export (scene tokenizer + LLM + adapter) is loaded exactly as a later stage
+would load it, its answers are generated on every clip of the split, and the papers'
+metrics are written to ``<stage>/eval/<split>/metrics.json``. A tokenizer export
+reconstructs every frame of the split (IoU/mIoU in both conventions, code use per codebook). ``--save-predictions DIR`` also writes
 the predictions in the formats ``occtrain score`` reads, so both paths give one number.
 """
 
@@ -45,7 +46,6 @@ def evaluate(
     metrics go to ``eval/<its directory name>/<split>/`` and its baselines come from its
     own train split."""
     from occtrain.engine import CODE_CACHE, Evaluator, Priors, load_world_model
-    from occtrain.families.occllama.tasks import INSTRUCT_TASKS, PRETRAIN_TASKS
 
     stage_dir = Path(stage_dir)
     pipeline = stage_dir.parent / "pipeline.yaml"
@@ -55,10 +55,14 @@ def evaluate(
     spec = next((s for s in recipe.stages if s.name == stage_dir.name), None)
     if spec is None:
         raise ConfigError(f"{pipeline} has no stage '{stage_dir.name}'; stages are {', '.join(s.name for s in recipe.stages)}")
-    if spec.kind not in EVAL_KINDS:
-        raise ConfigError(f"occtrain eval scores world-model stages ({', '.join(EVAL_KINDS)}); '{spec.name}' is a {spec.kind} stage")
+    if spec.kind not in EVAL_KINDS and spec.kind != "tokenizer":
+        raise ConfigError(f"occtrain eval scores tokenizer and world-model stages ({', '.join(EVAL_KINDS)}); '{spec.name}' is a {spec.kind} stage")
     if batch_size < 1:
         raise ConfigError(f"--batch-size {batch_size}: must be at least 1")
+    if spec.kind == "tokenizer":
+        root = str(data_root) if data_root is not None else recipe.data.root
+        metrics = reconstruction_metrics(stage_dir / "export", root, split, batch_size, samples)
+        return _save(eval_metrics_file(stage_dir, split, data_root), metrics)
     # Prompts and generation length come from the export: exactly what the model trained with.
     engine = load_world_model(stage_dir / "export").eval()
     # Scenes are looked up in the stage's code cache (made by the same frozen tokenizer;
@@ -71,10 +75,8 @@ def evaluate(
         out_dir = out_dir / Path(root).resolve().name
         cache = out_dir / "cache" / CODE_CACHE  # another dataset's scenes: never the stage's cache
     engine.build_code_cache(root, cache)
-    group = PRETRAIN_TASKS if EVAL_KINDS[spec.kind] == "pretrain" else INSTRUCT_TASKS
-    evaluator = Evaluator(
-        tasks or [t for t in Evaluator.TASKS if t in group], record=save_predictions is not None, priors=Priors.of(root),
-    )
+    # By default the tasks the stage trained on (saved with the export), as its validation scored them.
+    evaluator = Evaluator(tasks or Evaluator.scorable(engine.tasks.weights), record=save_predictions is not None, priors=Priors.of(root))
     torch.manual_seed(0)
     total = evaluator.total(engine, root, split, samples)
     with progress_bar(total, f"evaluating {stage_dir.name} on {split} ({', '.join(evaluator.tasks)})") as advance:
@@ -82,16 +84,60 @@ def evaluate(
     metrics = {k.removeprefix(f"{split}/"): v for k, v in evaluator.compute(split).items()}
     if spec.kind == "distill":
         metrics.update(_speedup(stage_dir.parent / spec.consumes[0] / "export", engine, root, split))
-    out_file = eval_metrics_file(stage_dir, split, data_root)
-    # An eval of some tasks keeps the numbers an earlier eval wrote for the others.
+    _save(eval_metrics_file(stage_dir, split, data_root), metrics)
+    if save_predictions is not None:
+        write_predictions(Path(save_predictions), evaluator.predictions)
+    return metrics
+
+
+def _save(out_file: Path, metrics: dict[str, float]) -> dict[str, float]:
+    """Write ``metrics``, keeping what an earlier eval wrote for other tasks; returns them."""
     try:
         earlier = json.loads(out_file.read_text()) if out_file.is_file() else {}
     except ValueError:
         raise ConfigError(f"{out_file}: not readable JSON; move it away to start the stage's eval afresh") from None
     atomic_write_json(out_file, {**earlier, **metrics})
-    if save_predictions is not None:
-        write_predictions(Path(save_predictions), evaluator.predictions)
     return metrics
+
+
+@torch.no_grad()
+def reconstruction_metrics(export: Path, data_root: str, split: str, batch_size: int = 16, samples: int = -1) -> dict[str, float]:
+    """A tokenizer export's reconstruction of every frame of ``split`` (or the first
+    ``samples``): IoU/mIoU in the ``occworld`` and ``occ3d`` conventions, beside an empty
+    scene, and each codebook's usage and perplexity over the split."""
+    from occtrain.data.layout import DatasetIndex
+    from occtrain.families import load_tokenizer
+    from occtrain.metrics import CodebookUsage, OccupancyMetric, flatten_metrics
+    from occtrain.occ3d import FREE
+
+    model = load_tokenizer(export)
+    index = DatasetIndex.open(data_root)
+    frames = [(scene, token) for scene in index.splits.get(split, []) for token in index.scenes[scene]]
+    frames = frames if samples < 0 else frames[:samples]
+    scores = {"occworld": OccupancyMetric(convention="occworld"), "occ3d": OccupancyMetric(convention="occ3d"),
+              "baseline_free_occworld": OccupancyMetric(convention="occworld")}  # fmt: skip
+    usage = {name: CodebookUsage(size) for name, size in zip(model.codebook_names, model.codebook_sizes)}
+    with progress_bar(len(frames), f"reconstructing {len(frames)} {split} frames") as advance:
+        for i in range(0, len(frames), batch_size):
+            labels = [index.labels(scene, token) for scene, token in frames[i : i + batch_size]]
+            sem = torch.from_numpy(np.stack([x["semantics"] for x in labels])).long()
+            mask = torch.from_numpy(np.stack([x["mask_camera"] for x in labels])).bool()
+            codes = model.encode(sem)
+            pred = model.decode(codes).argmax(1)
+            scores["occworld"].update(pred, sem)
+            scores["occ3d"].update(pred, sem, mask)
+            scores["baseline_free_occworld"].update(torch.full_like(sem, FREE), sem)
+            grids = codes if codes.dim() == 4 else codes[:, None]
+            for j, metric in enumerate(usage.values()):
+                metric.update(grids[:, j])
+            advance(len(labels))
+    out: dict[str, float] = {"frames": float(len(frames))}
+    for name, metric in scores.items():
+        result = metric.compute()
+        out |= {f"{name}_mIoU": float(result["mIoU"]), f"{name}_IoU": float(result["IoU"])}
+    for name, metric in usage.items():
+        out |= flatten_metrics(name, metric.compute())
+    return out
 
 
 def _speedup(teacher_export: Path, student, data_root: str, split: str) -> dict[str, float]:

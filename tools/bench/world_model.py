@@ -39,7 +39,7 @@ REPO = Path(__file__).resolve().parents[2]
 def engine_for(mode: str, tokenizer: torch.nn.Module) -> WorldModelEngine:
     text = train_text_tokenizer(["a car is parked", "turn left", "go straight"] * 20, 300)
     llm_cfg = LLMConfig(scene_prediction=mode)
-    vocab = JointVocab(text, num_codes=tokenizer.num_codes, scene_hw=tuple(tokenizer.latent_hw), llm_cfg=llm_cfg)
+    vocab = JointVocab(text, tokenizer.codebook_sizes, tuple(tokenizer.latent_hw), llm_cfg)
     world = OccWorldModel(build_llm(llm_cfg, len(vocab)), vocab, tokenizer.codebook, mode)
     return WorldModelEngine(tokenizer, world.eval(), text, TaskConfig(context_frames=2, forecast_frames=6))
 

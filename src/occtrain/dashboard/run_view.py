@@ -96,6 +96,8 @@ MEASURES = (
     (re.compile(r"^(?P<s>.*?)_?(?P<m>mIoU|IoU)$"), "reconstruction IoU and mIoU (%)"),
     (re.compile(r"^(?P<s>.*cot_caption)_(?P<m>CIDEr|Bleu_4|METEOR|ROUGE_L)$"), "chain-of-thought text vs reference"),
     (re.compile(r"^(?P<s>.*token_acc)$"), "token accuracy"),
+    (re.compile(r"^(?P<s>.+)_usage$"), "codebook usage over the val split (% of codes)"),
+    (re.compile(r"^(?P<s>.+)_perplexity$"), "codebook perplexity over the val split"),
     (re.compile(r"^(?P<s>.*(speedup|tokens_per_s))$"), "generation speed"),
 )
 
@@ -115,7 +117,8 @@ def _measure(name: str) -> tuple[str, str] | None:
 def charts_from_curves(curves: dict[str, list[tuple[float, float]]]) -> list[Chart]:
     """Training losses, validation losses, learning rate, then one chart per measure with a
     line per model and baseline (``MEASURES``); details stay in the final table."""
-    fixed = {"train loss": [], "validation loss": [], "learning rate": [], "train, other": []}
+    fixed = {"train loss": [], "validation loss": [], "learning rate": [], "codebook usage per train batch": [],
+             "codebook perplexity per train batch": [], "train, other": []}  # fmt: skip
     measures: dict[str, list[Series]] = defaultdict(list)
     for name, points in sorted(curves.items()):
         if name.startswith("lr-"):
@@ -123,6 +126,10 @@ def charts_from_curves(curves: dict[str, list[tuple[float, float]]]) -> list[Cha
         elif "loss" in name and name.startswith(("train/", "val/")):
             title = "train loss" if name.startswith("train/") else "validation loss"
             fixed[title].append(_series(name.split("/", 1)[1], points))
+        elif name.startswith("train/") and name.endswith(("codebook_usage", "perplexity")):
+            kind = "usage" if name.endswith("usage") else "perplexity"
+            label = name.split("/", 1)[1].removesuffix("codebook_usage").removesuffix("perplexity").strip("_") or "codebook"
+            fixed[f"codebook {kind} per train batch"].append(_series(label, points))
         elif name.startswith("train/"):
             fixed["train, other"].append(_series(name.split("/", 1)[1], points))
         elif name.startswith("val/"):

@@ -78,6 +78,12 @@ class Clip:
         steps = [global_to_ego(poses[i + 1, :2], poses[i, :2], poses[i, 2]) for i in range(len(poses) - 1)]
         return np.asarray(steps).reshape(-1, 2)
 
+    def ego_positions(self) -> np.ndarray:
+        """(T, 2): the ego's position at each clip frame, in the anchor's ego axes."""
+        poses = np.asarray(self.ann["ego_poses"], dtype=np.float64)
+        a = self.anchor_index
+        return np.asarray(global_to_ego(poses[:, :2], poses[a, :2], poses[a, 2])).reshape(-1, 2)
+
 
 def clip_rng(seed: int, token: str) -> np.random.Generator:
     """The random draws of one clip (which task, which question, ...): fixed by the seed and

@@ -37,6 +37,7 @@ from occtrain.engine.world_model import WorldModelEngine
 from occtrain.errors import ConfigError
 from occtrain.exports import load_state_strict, read_export, write_export
 from occtrain.families import get_family, load_tokenizer, tokenizer_family
+from occtrain.families.registry import FamilySpec, families
 from occtrain.families.occllama.tasks import TaskConfig, corpus_texts
 from occtrain.models.llm import build_llm, load_text_tokenizer
 from occtrain.models.text_tokenizer import train_text_tokenizer
@@ -48,34 +49,42 @@ SCENE_TOKENIZER_DIR = "scene_tokenizer"
 WORLD_MODEL = "world_model"
 
 
+def world_family(tokenizer_arch: str, requested: str = "") -> FamilySpec:
+    """The family whose world model a pretrain stage builds: ``requested`` when given, else
+    the tokenizer's own family, else OccLLaMA's (a tokenizer-only family, e.g. OccWorld)."""
+    family = get_family(requested or tokenizer_family(tokenizer_arch))
+    if family.world_model is None:
+        if requested:
+            raise ConfigError(f"model.family: '{requested}' has no world model; use one of {', '.join(n for n, f in families().items() if f.world_model)}")
+        family = get_family("occllama")
+    return family
+
+
 def new_world_model(
     tokenizer_export: Path, llm_cfg: LLMConfig, tasks: TaskConfig, data_root: str | Path,
-    max_new_text_tokens: int = MAX_NEW_TEXT_TOKENS,
+    max_new_text_tokens: int = MAX_NEW_TEXT_TOKENS, family: str = "", world_cfg: Any = None, where: str = "model",
 ) -> WorldModelEngine:
     """A freshly initialised world model over a tokenizer stage's export (what pretraining starts from).
 
+    ``family`` picks the world model (see ``world_family``), ``world_cfg`` its own settings
+    (checked against the tokenizer's latent grid, errors naming ``<where>.<family>.<key>``).
     The text tokenizer is the LLM's own when ``llm_cfg.path`` is set, else a BPE trained on
     the dataset's text; training is deterministic, so every DDP rank and a resumed run build
     the same one. The LLM is initialised under the current torch seed.
     """
     scene_tok = load_tokenizer(tokenizer_export)
-    if getattr(scene_tok, "num_codebooks", 1) > 1:
-        arch = scene_tok.arch
-        raise ConfigError(
-            f"{tokenizer_export}: a '{arch}' tokenizer has {scene_tok.num_codebooks} codebooks and the world models here "
-            f"read one; train it with model.{arch}.motion_separation=false, or use it as a tokenizer alone"
-        )
-    family = get_family(tokenizer_family(scene_tok.arch))
-    if family.world_model is None:  # a tokenizer-only family (OccWorld, Occ-LLM for now) feeds OccLLaMA's world model
-        family = get_family("occllama")
+    spec = world_family(scene_tok.arch, family)
+    if world_cfg is not None:
+        world_cfg.validate(f"{where}.{spec.name}", tuple(scene_tok.latent_hw))
     if llm_cfg.path:
         text_tok = load_text_tokenizer(llm_cfg.path)
     else:
-        text_tok = train_text_tokenizer(corpus_texts(DatasetIndex.open(data_root)), llm_cfg.text_vocab_size)
-    vocab = JointVocab(text_tok, num_codes=scene_tok.num_codes, scene_hw=tuple(scene_tok.latent_hw), llm_cfg=llm_cfg)
+        text_tok = train_text_tokenizer(corpus_texts(DatasetIndex.open(data_root), spec.prompt_words), llm_cfg.text_vocab_size)
+    patch = spec.world_model.vocab_patch(world_cfg)
+    vocab = JointVocab(text_tok, scene_tok.codebook_sizes, tuple(scene_tok.latent_hw), llm_cfg, patch=patch)
     llm = build_llm(llm_cfg, len(vocab))
-    world = family.world_model(llm, vocab, codebook=scene_tok.codebook, scene_prediction=llm_cfg.scene_prediction)
-    return WorldModelEngine(scene_tok, world, text_tok, tasks, max_new_text_tokens, family.name)
+    world = spec.world_model.create(llm, vocab, scene_tok, llm_cfg.scene_prediction, world_cfg)
+    return WorldModelEngine(scene_tok, world, text_tok, tasks, max_new_text_tokens, spec.name)
 
 
 def export_engine(engine: WorldModelEngine, path: Path, stage: str, merge: bool = False) -> Path:
@@ -94,7 +103,8 @@ def export_engine(engine: WorldModelEngine, path: Path, stage: str, merge: bool 
         elif wrapped:
             base = world.llm.get_base_model()
             state = _base_names(world.llm.state_dict())
-            world.llm.save_pretrained(str(llm_dir / ADAPTER_DIR))
+            # The base embedding table is in llm/ already; the adapter keeps its own LoRA weights only.
+            world.llm.save_pretrained(str(llm_dir / ADAPTER_DIR), save_embedding_layers=False)
         else:
             base = world.llm
             state = base.state_dict()
@@ -122,10 +132,11 @@ def _save_hf_llm(llm_dir: Path, base: Any, state: dict[str, torch.Tensor], world
     # Copies: the occupancy rows are written below, and tied tensors must not share storage.
     state = {k: v.detach().cpu().clone().contiguous() for k, v in state.items()}
     embed_key = next((k for k in state if k.endswith("embed_tokens.weight")), None)
-    if embed_key is not None and not base.config.get_text_config().tie_word_embeddings:
+    rows = world.scene_token_rows()
+    if embed_key is not None and rows is not None and not base.config.get_text_config().tie_word_embeddings:
         with torch.no_grad():
             lo, hi = engine.vocab.occ_range
-            state[embed_key][lo:hi] = world.occ_proj(world.codebook).to(state[embed_key].dtype).cpu()
+            state[embed_key][lo:hi] = rows.to(state[embed_key].dtype).cpu()
     save_file(state, str(llm_dir / "model.safetensors"), metadata={"format": "pt"})
     base.config.save_pretrained(str(llm_dir))
     vocab = engine.vocab
@@ -171,7 +182,7 @@ def load_world_model(export_dir: Path) -> WorldModelEngine:
         raise ConfigError(f"{llm_dir}: cannot load the exported LLM ({str(err).splitlines()[0]}); re-run the stage that wrote it") from None
     finally:
         hf_logging.enable_progress_bar()
-    world = family.world_model.from_export(world_cfg, llm, vocab, codebook=scene_tok.codebook)
+    world = family.world_model.from_export(world_cfg, llm, vocab, scene_tok)
     load_state_strict(world, state, ignore=("llm.",), source=str(export_dir))
     if (llm_dir / ADAPTER_DIR).is_dir():
         from peft import PeftModel

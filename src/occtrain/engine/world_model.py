@@ -20,8 +20,10 @@ from occtrain.config.llm import MAX_NEW_TEXT_TOKENS
 from occtrain.data.clips import Actions, Branch, Clip, Part, Scene, Text, clip_rng
 from occtrain.data.layout import DatasetIndex
 from occtrain.families.occllama.batch_decoding import ActionAnswer, Answer, SceneAnswer, TextAnswer
-from occtrain.families.occllama.tasks import EVERY_ITEM, TASKS, TaskConfig, sample_task
+from occtrain.families.occllama.tasks import TaskConfig, sample_task
+from occtrain.families.occllama.tokens import TokenSequence
 from occtrain.families.occllama.world_model import OccWorldModel, collate
+from occtrain.families.registry import get_family
 from occtrain.io import is_rank_zero
 from occtrain.models.vocab import JointVocab
 from occtrain.progress import progress_bar
@@ -65,6 +67,11 @@ class WorldModelEngine(torch.nn.Module):
         self.tasks = tasks
         self.max_new_text_tokens = int(max_new_text_tokens)
         self.family = family
+        spec = get_family(family)
+        #: The family's task builders: its prompts, by task name.
+        self.task_builders = dict(spec.tasks)
+        self.every_item = dict(spec.every_item)
+        self._default_tasks = {kind: dict(weights) for kind, weights in spec.default_tasks.items()}
         #: Sample token -> codes, when the dataset was encoded ahead (see build_code_cache).
         self.code_cache: dict[str, torch.Tensor] | None = None
 
@@ -120,9 +127,11 @@ class WorldModelEngine(torch.nn.Module):
 
     @torch.no_grad()
     def decode_scenes(self, codes: torch.Tensor) -> torch.Tensor:
-        """(N, h*w) codes -> (N, X, Y, Z) class labels through the tokenizer's decoder."""
+        """(N, codebooks * h*w) codes -> (N, X, Y, Z) class labels through the tokenizer's decoder."""
         h, w = self.scene_tokenizer.latent_hw
-        return self.scene_tokenizer.decode(codes.view(-1, h, w)).argmax(1)
+        k = self.scene_tokenizer.num_codebooks
+        grids = codes.view(-1, h, w) if k == 1 else codes.view(-1, k, h, w)
+        return self.scene_tokenizer.decode(grids).argmax(1)
 
     # -- sequences
     def encode_parts(self, parts: list[Part], codes: dict[int, torch.Tensor]):
@@ -144,7 +153,7 @@ class WorldModelEngine(torch.nn.Module):
         a model batch. Returns the batch (None when no clip has a task) and per clip the task
         drawn, None for a clip that no configured task applies to: it is left out, not
         given a made-up answer."""
-        drawn = [sample_task(c, self.tasks, seed, c.anchor["token"]) for c in clips]
+        drawn = [sample_task(c, self.tasks, seed, c.anchor["token"], self.task_builders) for c in clips]
         needed = [{p.frame for p in d[1] if isinstance(p, Scene)} if d else set() for d in drawn]
         codes = self.scene_codes(batch, needed)
         seqs = [
@@ -154,16 +163,16 @@ class WorldModelEngine(torch.nn.Module):
         return (collate(seqs, pad_id=self.vocab.pad_id) if seqs else None), names
 
     # -- generation
-    def prompt_and_plan(self, parts: list[Part], codes: dict[int, torch.Tensor]) -> tuple[torch.Tensor, list[Answer]]:
-        """The prompt (the parts before the first supervised one) as ids, and what to generate
-        after it: text up to end-of-text, as many waypoints as the reference, a scene."""
+    def prompt_and_plan(self, parts: list[Part], codes: dict[int, torch.Tensor]) -> tuple[TokenSequence, list[Answer]]:
+        """The prompt (the parts before the first supervised one) laid out, and what to
+        generate after it: text up to end-of-text, as many waypoints as the reference, a scene."""
         first = next(i for i, p in enumerate(parts) if p.supervise)
         plan: list[Answer] = [
             TextAnswer(self.max_new_text_tokens) if isinstance(p, Text)
             else ActionAnswer(len(p.xy)) if isinstance(p, Actions) else SceneAnswer()
             for p in parts[first:]
         ]
-        return self.encode_parts(parts[:first], codes).input_ids, plan
+        return self.encode_parts(parts[:first], codes), plan
 
     @torch.no_grad()
     def rollout(self, parts: list[Part], codes: dict[int, torch.Tensor]) -> tuple[list[Part], dict[int, torch.Tensor]]:
@@ -178,9 +187,9 @@ class WorldModelEngine(torch.nn.Module):
         """The prompts of ``task`` on ``clip``: its one training draw (from ``seed`` and the
         clip's token), or with ``every`` each item evaluation asks (every question of the
         frame for QA); empty when the task does not apply."""
-        if every and task in EVERY_ITEM:
-            return EVERY_ITEM[task](clip, self.tasks)
-        parts = TASKS[task](clip, self.tasks, clip_rng(seed, clip.anchor["token"]))
+        if every and task in self.every_item:
+            return self.every_item[task](clip, self.tasks)
+        parts = self.task_builders[task](clip, self.tasks, clip_rng(seed, clip.anchor["token"]))
         return [parts] if parts is not None else []
 
     def rollouts(
@@ -231,6 +240,13 @@ class WorldModelEngine(torch.nn.Module):
         for b, _, (text, traj), _ in self.rollouts("cot_planning", clips, batch):
             outputs[b] = CotOutput(text.text, np.asarray(traj.xy))
         return outputs
+
+    def default_tasks(self, kind: str) -> WorldModelEngine:
+        """Give the engine's task settings the family's default tasks for stage ``kind``
+        ("pretrain" or "instruct") when they name none; returns self."""
+        if not self.tasks.weights:
+            self.tasks.weights = dict(self._default_tasks.get(kind, {}))
+        return self
 
     def with_settings(self, tasks: TaskConfig | None = None, max_new_text_tokens: int | None = None) -> WorldModelEngine:
         """A stage's own task settings and generation length in place of the saved ones; returns self."""

@@ -44,8 +44,16 @@ class FamilySpec:
     world_model: type | None = None
     #: Task name -> builder ``(clip, task_config, rng) -> parts | None``.
     tasks: Mapping[str, Callable[..., Any]] = field(default_factory=dict)
+    #: Tasks whose evaluation asks every item of a clip: name -> ``(clip, task_config) -> [parts]``.
+    every_item: Mapping[str, Callable[..., Any]] = field(default_factory=dict)
     #: The dataclass of the task/prompt settings its world-model exports carry.
     task_config: type | None = None
+    #: The dataclass of its world model's own settings (``model.<family>`` of a world-model stage).
+    world_config: type | None = None
+    #: Stage kind ("pretrain", "instruct") -> the task weights a stage that names none trains.
+    default_tasks: Mapping[str, Mapping[str, float]] = field(default_factory=dict)
+    #: Fixed words of its prompts, added to the text a world model's BPE tokenizer trains on.
+    prompt_words: tuple[str, ...] = ()
 
 
 _FAMILIES: dict[str, FamilySpec] = {}
@@ -126,6 +134,7 @@ def save_tokenizer(model: Any, arch: str, cfg: dict, export_dir: Path) -> Path:
         "arch": arch,
         "config": cfg,
         "num_codes": int(model.num_codes),
+        "codebook_sizes": model.codebook_sizes,
         "latent_hw": list(model.latent_hw),
         "params": count_parameters(model),
         "label_convention": "occ3d",

@@ -11,6 +11,7 @@ from typing import Any
 import torch
 
 from occtrain.metrics.captions import CAPTION_KEYS, CaptionMetric, coco_caption_scores
+from occtrain.metrics.codebook import CodebookUsage
 from occtrain.metrics.occupancy import CONVENTIONS, ForecastMetric, OccupancyMetric, confusion_matrix, horizon_label
 from occtrain.metrics.pixels import DepthAbsRelMetric, PixelSegmentationMetric
 from occtrain.metrics.planning import PlanningMetric
@@ -20,6 +21,7 @@ __all__ = [
     "CAPTION_KEYS",
     "CONVENTIONS",
     "CaptionMetric",
+    "CodebookUsage",
     "DepthAbsRelMetric",
     "ForecastMetric",
     "OccupancyMetric",

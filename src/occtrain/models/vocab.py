@@ -4,11 +4,18 @@ the id layout.
 Ids, in order::
 
     [0, T)                 the text tokenizer's own tokens (T = its size, specials included)
-    [T, T+K)               <occ_0> ... <occ_{K-1}>: codebook index k of the scene tokenizer
+    [T, T+S)               the scene tokens (see below)
     [.., +B)               <bin_x_0> ... : action bins of the x axis (forward)
     [.., +B)               <bin_y_0> ... : action bins of the y axis (left)
     4 specials             <occ> </occ> <act> </act>
-    [.., +Q)               <scene_q_0> ...: learnable scene queries, Q = h*w latent cells
+    [.., +Q)               <scene_q_0> ...: learnable scene queries, one per scene token
+
+Scene tokens come in two layouts. Codes (OccLLaMA, ``patch=0``): one token per latent cell
+and codebook, ``<occ_k>`` for code k of the first codebook, ``<occ{i}_k>`` for codebook i
+(Occ-LLM's MS-VAE has two), so S = the codebooks' sizes summed and a scene is
+``num_codebooks * h * w`` tokens, codebook-major. Patches (Occ-LLM, ``patch=p``): one
+token ``<patch_j>`` per p x p patch of the latent grid, S = Q = (h/p)(w/p); the codes of a
+patch ride beside the ids (the world model embeds them), so the id only says which patch.
 
 Occupancy tokens are numbered from 0 like the codebook rows (the paper counts from 1).
 Separate x and y bin ranges let generation alternate the two axes by id range alone. All
@@ -18,7 +25,7 @@ ids, so ``decode`` shows them and ``skip_special_tokens`` hides them.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Sequence
 
 import torch
 
@@ -35,19 +42,35 @@ class JointVocab:
     def __init__(
         self,
         text_tokenizer: Any,
-        num_codes: int,
+        codebook_sizes: int | Sequence[int],
         scene_hw: tuple[int, int],
         llm_cfg: LLMConfig | None = None,
         text_size: int | None = None,
+        patch: int = 0,
     ):
-        """``text_size`` is T of the layout; by default the tokenizer's size before any of
+        """``codebook_sizes``: the scene tokenizer's codebooks (an int for one); ``patch``: 0
+        for the codes layout, else the patch side of the patches layout (module docstring).
+        ``text_size`` is T of the layout; by default the tokenizer's size before any of
         the joint tokens are added (give it when the tokenizer already holds them)."""
         cfg = llm_cfg or LLMConfig()
         validate_llm_config(cfg)
         self.tokenizer = text_tokenizer
-        self.num_codes = int(num_codes)
+        sizes = [int(codebook_sizes)] if isinstance(codebook_sizes, int) else [int(k) for k in codebook_sizes]
+        self.codebook_sizes = sizes
+        self.num_codebooks = len(sizes)
         self.scene_hw = (int(scene_hw[0]), int(scene_hw[1]))
-        self.scene_len = self.scene_hw[0] * self.scene_hw[1]
+        self.cells = self.scene_hw[0] * self.scene_hw[1]
+        self.patch = int(patch)
+        if self.patch and (self.scene_hw[0] % self.patch or self.scene_hw[1] % self.patch):
+            raise ConfigError(f"patch size {self.patch} must divide the latent grid {self.scene_hw[0]}x{self.scene_hw[1]}")
+        if self.patch:
+            self.scene_len = (self.scene_hw[0] // self.patch) * (self.scene_hw[1] // self.patch)
+            self.num_codes = self.scene_len  # the <patch_j> tokens
+        else:
+            self.scene_len = self.num_codebooks * self.cells
+            self.num_codes = sum(sizes)
+        #: Where each codebook's tokens start inside the scene-token range (codes layout).
+        self.codebook_starts = [sum(sizes[:i]) for i in range(len(sizes))]
         self.bins = int(cfg.action_bins)
         (xl, xh), (yl, yh) = cfg.action_range
         self.quantizer = ActionQuantizer(self.bins, (float(xl), float(yl)), (float(xh), float(yh)))
@@ -69,9 +92,14 @@ class JointVocab:
         pad = text_tokenizer.pad_token_id
         self.pad_id = int(pad if pad is not None else self.eos_id)
 
+    def _scene_token_names(self) -> list[str]:
+        if self.patch:
+            return [f"<patch_{j}>" for j in range(self.scene_len)]
+        return [f"<occ{i or ''}_{k}>" for i, size in enumerate(self.codebook_sizes) for k in range(size)]
+
     def _register_tokens(self) -> None:
         names = (
-            [f"<occ_{k}>" for k in range(self.num_codes)]
+            self._scene_token_names()
             + [f"<bin_x_{b}>" for b in range(self.bins)]
             + [f"<bin_y_{b}>" for b in range(self.bins)]
             + [OCC_OPEN, OCC_CLOSE, ACT_OPEN, ACT_CLOSE]
@@ -120,17 +148,46 @@ class JointVocab:
         ids = ids.tolist() if torch.is_tensor(ids) else list(ids)
         return self.tokenizer.decode(ids, skip_special_tokens=True)
 
+    def scene_token_range(self, j: int) -> tuple[int, int]:
+        """[low, high) of the ids scene token ``j`` may take: its codebook's range (codes
+        layout) or its own ``<patch_j>`` (patches layout)."""
+        if self.patch:
+            return self.occ_start + j, self.occ_start + j + 1
+        i = j // self.cells
+        lo = self.occ_start + self.codebook_starts[i]
+        return lo, lo + self.codebook_sizes[i]
+
+    def _offsets(self, device: torch.device | None = None) -> torch.Tensor:
+        """Long[scene_len]: the id of code 0 at each position of a scene (codes layout)."""
+        starts = torch.tensor(self.codebook_starts, dtype=torch.long, device=device)
+        return self.occ_start + starts.repeat_interleave(self.cells)
+
     def occ_ids(self, codes: torch.Tensor) -> torch.Tensor:
-        """Codebook indices (any shape) -> occupancy token ids."""
-        if codes.numel() and (codes.min() < 0 or codes.max() >= self.num_codes):
-            raise ValueError(f"scene codes must lie in [0, {self.num_codes})")
-        return codes.long() + self.occ_start
+        """A scene's codes, flat and codebook-major (``scene_len``,) -> its token ids."""
+        codes = codes.reshape(-1).long()
+        if codes.numel() != self.scene_len or self.patch:
+            raise ValueError(f"occ_ids takes the {self.scene_len} codes of one scene in the codes layout, got {codes.numel()}")
+        sizes = torch.tensor(self.codebook_sizes, device=codes.device).repeat_interleave(self.cells)
+        if bool(((codes < 0) | (codes >= sizes)).any()):
+            raise ValueError(f"scene codes must lie in [0, K) of their codebook (sizes {self.codebook_sizes})")
+        return codes + self._offsets(codes.device)
 
     def codes_from_ids(self, ids: torch.Tensor) -> torch.Tensor:
-        """Occupancy token ids -> codebook indices."""
-        if not bool(self.is_occ(ids).all()):
-            raise ValueError("codes_from_ids got ids outside the occupancy range")
-        return ids.long() - self.occ_start
+        """A scene's token ids (``scene_len``,) -> its codes, flat and codebook-major."""
+        ids = ids.reshape(-1).long()
+        if not bool(self.is_occ(ids).all()) or ids.numel() != self.scene_len:
+            raise ValueError("codes_from_ids takes the token ids of one whole scene")
+        return ids - self._offsets(ids.device)
+
+    def pick_scene(self, logits: torch.Tensor) -> torch.Tensor:
+        """The greedy scene token ids from the query outputs Float[scene_len, V], each
+        position choosing within its own codebook's range (codes layout)."""
+        picks = []
+        for i, size in enumerate(self.codebook_sizes):
+            lo = self.occ_start + self.codebook_starts[i]
+            rows = logits[i * self.cells : (i + 1) * self.cells, lo : lo + size]
+            picks.append(rows.argmax(-1) + lo)
+        return torch.cat(picks)
 
     def action_ids(self, xy: torch.Tensor) -> torch.Tensor:
         """Waypoints Float[N, 2] (metres) -> Long[2N] ids, x bin then y bin per waypoint.
@@ -170,7 +227,8 @@ class JointVocab:
         """What ``from_json`` needs besides the (saved) text tokenizer."""
         return {
             "text_size": self.text_size,
-            "num_codes": self.num_codes,
+            "codebook_sizes": list(self.codebook_sizes),
+            "patch": self.patch,
             "scene_hw": list(self.scene_hw),
             "action_bins": self.bins,
             "action_range": [[float(lo), float(hi)] for lo, hi in zip(self.quantizer.low.tolist(), self.quantizer.high.tolist())],
@@ -180,4 +238,5 @@ class JointVocab:
     def from_json(cls, data: dict, text_tokenizer: Any) -> JointVocab:
         """Rebuild from ``to_json`` and a text tokenizer, with or without the joint tokens."""
         cfg = LLMConfig(action_bins=int(data["action_bins"]), action_range=[list(r) for r in data["action_range"]])
-        return cls(text_tokenizer, data["num_codes"], tuple(data["scene_hw"]), cfg, text_size=data["text_size"])
+        sizes = data.get("codebook_sizes", [data.get("num_codes", 0)])  # exports before multi-codebook vocabularies
+        return cls(text_tokenizer, sizes, tuple(data["scene_hw"]), cfg, text_size=data["text_size"], patch=int(data.get("patch", 0)))

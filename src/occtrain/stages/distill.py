@@ -25,7 +25,7 @@ from occtrain.engine import (
     move_batch, speed_prompt,
 )
 from occtrain.families import get_family
-from occtrain.families.occllama.tasks import INSTRUCT_TASKS, TaskConfig, validate_tasks
+from occtrain.families.occllama.tasks import TaskConfig, validate_tasks
 from occtrain.models import count_parameters
 from occtrain.models.distill import FeatureProjector, distillation_losses
 from occtrain.models.llm import build_llm
@@ -44,7 +44,7 @@ class DistillModelConfig:
 
     #: The student's LLM (fewer layers / narrower than the teacher's).
     student: LLMConfig = field(default_factory=_student_llm)
-    tasks: TaskConfig = field(default_factory=lambda: TaskConfig(weights={t: 1.0 for t in INSTRUCT_TASKS}))
+    tasks: TaskConfig = field(default_factory=TaskConfig)
     temperature: float = 2.0
     #: Loss weights: KL on logits, student cross-entropy on the labels, hidden-state cosine.
     kl_weight: float = 1.0
@@ -68,15 +68,17 @@ class DistillStage(Stage):
     def __init__(self, ctx: StageContext):
         super().__init__(ctx)
         cfg = ctx.model_cfg
-        validate_tasks(cfg.tasks, f"stages '{ctx.spec.name}'.model.tasks")
         tasks = to_object(cfg.tasks)
-        self.require_tasks(t for t, w in tasks.weights.items() if w > 0)
         teacher = load_world_model(next(iter(ctx.inputs.values()))).with_settings(tasks, cfg.max_new_text_tokens)
+        teacher.default_tasks("instruct")
+        validate_tasks(tasks, f"stages '{ctx.spec.name}'.model.tasks", teacher.task_builders)
+        self.require_tasks(t for t, w in tasks.weights.items() if w > 0)
         self.teacher = teacher.requires_grad_(False).eval()
         vocab = teacher.vocab
         student_llm = build_llm(cfg.student, len(vocab))
-        world = get_family(teacher.family).world_model(
-            student_llm, vocab, codebook=teacher.scene_tokenizer.codebook, scene_prediction=teacher.world.scene_prediction,
+        # The teacher's architecture around the student's LLM.
+        world = get_family(teacher.family).world_model.from_export(
+            teacher.world.export_config(), student_llm, vocab, teacher.scene_tokenizer,
         )
         self.student = WorldModelEngine(teacher.scene_tokenizer, world, teacher.text_tokenizer, tasks, cfg.max_new_text_tokens, teacher.family)
         self.projector = FeatureProjector(world.hidden_size, teacher.world.hidden_size)

@@ -19,7 +19,7 @@ import torch
 from occtrain.config import to_container
 from occtrain.errors import ConfigError
 from occtrain.families import save_tokenizer, tokenizer_archs, tokenizer_config
-from occtrain.metrics import OccupancyMetric
+from occtrain.metrics import CodebookUsage, OccupancyMetric
 from occtrain.models import count_parameters
 from occtrain.occ3d import FREE
 from occtrain.stages import StageKind, register
@@ -56,6 +56,10 @@ class TokenizerStage(Stage):
         #: The trivial baseline: an empty (all free) scene.
         self.baseline_free = OccupancyMetric(convention="occworld")
         self.val_means = ValidationMeans("val/loss")
+        #: Code use over the whole val split, per codebook (motion and static for the MS-VAE).
+        self.code_usage = torch.nn.ModuleDict(
+            {name: CodebookUsage(size) for name, size in zip(self.model.codebook_names, self.model.codebook_sizes)}
+        )
         self._pictures: list[tuple] = []
 
     # -- training
@@ -78,6 +82,9 @@ class TokenizerStage(Stage):
         self.recon_occworld.update(pred, sem)
         self.baseline_free.update(torch.full_like(sem, FREE), sem)
         self.recon_occ3d.update(pred, sem, batch["mask_camera"])
+        codes = out.codes if len(self.code_usage) > 1 else out.codes[:, None]  # (B, codebooks, h, w)
+        for i, usage in enumerate(self.code_usage.values()):
+            usage.update(codes[:, i])
         self.val_means.update("val/loss", out.losses["loss"], sem.shape[0])
 
     def on_validation_epoch_end(self) -> None:
@@ -88,6 +95,11 @@ class TokenizerStage(Stage):
             self.log(f"{prefix}_mIoU", result["mIoU"])
             self.log(f"{prefix}_IoU", result["IoU"])
             metric.reset()
+        for name, usage in self.code_usage.items():
+            result = usage.compute()
+            self.log(f"val/{name}_usage", result["usage"])
+            self.log(f"val/{name}_perplexity", result["perplexity"])
+            usage.reset()
         self.log_dict(self.val_means.pop())
 
     def configure_optimizers(self) -> dict:

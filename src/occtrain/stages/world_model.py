@@ -13,6 +13,7 @@ engine's evaluator. The model, its prompts, generation and export are the engine
 
 from __future__ import annotations
 
+from dataclasses import field, make_dataclass
 from pathlib import Path
 from typing import Any
 
@@ -21,6 +22,7 @@ import torch
 from occtrain.config import to_object
 from occtrain.data.clips import clips_from_batch
 from occtrain.engine import CODE_CACHE, TEXT_ENTRIES, Evaluator, export_engine, load_world_model, Priors, move_batch, new_world_model
+from occtrain.families import families
 from occtrain.families.occllama import InstructModelConfig, PretrainModelConfig
 from occtrain.families.occllama.tasks import validate_tasks
 from occtrain.models import count_parameters
@@ -41,14 +43,21 @@ class WorldModelStage(Stage):
     def __init__(self, ctx: StageContext):
         super().__init__(ctx)
         cfg = ctx.model_cfg
-        validate_tasks(cfg.tasks, f"stages '{ctx.spec.name}'.model.tasks")
+        where = f"stages '{ctx.spec.name}'.model"
         tasks = to_object(cfg.tasks)
-        self.require_tasks(t for t, w in tasks.weights.items() if w > 0)
         export = next(iter(ctx.inputs.values()))
         if ctx.spec.kind == "pretrain":
-            self.engine = new_world_model(export, cfg.llm, tasks, ctx.data.root, cfg.max_new_text_tokens)
+            section = cfg.family or None
+            world_cfg = to_object(cfg[section]) if section and section in cfg else None
+            self.engine = new_world_model(
+                export, cfg.llm, tasks, ctx.data.root, cfg.max_new_text_tokens, cfg.family, world_cfg, where,
+            )
         else:
             self.engine = load_world_model(export).with_settings(tasks, cfg.max_new_text_tokens)
+        # The family's own tasks: known once the engine says which family it is.
+        self.engine.default_tasks("pretrain" if ctx.spec.kind == "pretrain" else "instruct")
+        validate_tasks(tasks, f"{where}.tasks", self.engine.task_builders)
+        self.require_tasks(t for t, w in tasks.weights.items() if w > 0)
         world = self.engine.world
         if cfg.use_lora:
             world.llm.requires_grad_(False)
@@ -113,7 +122,9 @@ class WorldModelStage(Stage):
         world = self.engine.world
         total, trained = count_parameters(world), count_parameters(world, trainable=True)
         summary = f"world model {total / 1e6:.2f}M params ({trained / 1e6:.2f}M trained), vocab {len(self.engine.vocab)}"
-        return StageReport(summary, {"params": float(total)}, texts=list(self.evaluator.texts), scenes=list(self.evaluator.scenes))
+        # Scene tokens per frame: Occ-LLM's patch-size table reads it beside the step time.
+        metrics = {"params": float(total), "scene_tokens": float(self.engine.vocab.scene_len)}
+        return StageReport(summary, metrics, texts=list(self.evaluator.texts), scenes=list(self.evaluator.scenes))
 
     def export(self, path: Path) -> Path:
         return export_engine(self.engine, path, stage=self.ctx.spec.name, merge=self.ctx.model_cfg.merge_export)
@@ -127,8 +138,16 @@ class InstructStage(WorldModelStage):
     consumes_kinds = WORLD_MODEL_KINDS
 
 
+def pretrain_model_schema() -> type:
+    """``model:`` of a pretrain stage: OccLLaMA's settings, ``family`` (whose world model;
+    empty: the tokenizer's family, else OccLLaMA's) and a section per family with world settings."""
+    sections = [(name, spec.world_config) for name, spec in families().items() if spec.world_config is not None]
+    extra = [("family", str, field(default=""))] + [(name, cfg, field(default_factory=cfg)) for name, cfg in sections]
+    return make_dataclass("PretrainModelConfig", extra, bases=(PretrainModelConfig,))
+
+
 PRETRAIN = register(
-    StageKind(name="pretrain", model_schema=PretrainModelConfig, data_kind="clips", module=PretrainStage, monitor="val/token_acc")
+    StageKind(name="pretrain", model_schema=pretrain_model_schema(), data_kind="clips", module=PretrainStage, monitor="val/token_acc")
 )
 INSTRUCT = register(
     StageKind(name="instruct", model_schema=InstructModelConfig, data_kind="clips", module=InstructStage, monitor="val/token_acc")

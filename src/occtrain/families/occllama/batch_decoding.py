@@ -22,6 +22,7 @@ from typing import Generator, Union
 
 import torch
 
+from occtrain.families.occllama.tokens import Step, cat_payload, empty_payload, prompt_of
 from occtrain.models.attention import allowed_pairs, scene_segments
 
 
@@ -49,48 +50,54 @@ Answer = Union[TextAnswer, ActionAnswer, SceneAnswer]
 
 @dataclass
 class _Feed:
-    """Tokens a program asks to feed; the last ``transient`` of them are not kept."""
+    """Tokens a program asks to feed (with their payload); the last ``transient`` are not kept."""
 
     ids: torch.Tensor
     seg: torch.Tensor
+    payload: dict[str, torch.Tensor]
     transient: int = 0
 
 
-Program = Generator[_Feed, torch.Tensor, list]
+Program = Generator[_Feed, Step, list]
 
 
-def _program(world, prefix: torch.Tensor, answers: list[Answer]) -> Program:
+def _program(world, prefix, answers: list[Answer], device: torch.device) -> Program:
     """One sequence's greedy decoding (mirrors ``GreedyDecoder``); returns its answers:
-    text ids (list[int]), waypoints Float[steps, 2] or scene codes Long[h*w]."""
+    text ids (list[int]), waypoints Float[steps, 2] or scene codes (flat)."""
     v = world.vocab
-    device = prefix.device
+    spec = world.payload_spec
+    prefix, payload = prompt_of(spec, prefix)
+    prefix = prefix.to(device)
     next_scene = world.scene_prediction == "next_scene"
     seg = scene_segments(v.is_occ(prefix)) if next_scene else torch.zeros_like(prefix)
-    queue_ids, queue_seg = [prefix], [seg]
+    queued: list[tuple[torch.Tensor, torch.Tensor, dict]] = [(prefix, seg, {k: t.to(device) for k, t in payload.items()})]
     next_segment = int(seg.max()) + 1 if seg.numel() else 1
-    last_id = int(prefix[-1]) if prefix.numel() else -1
-    last_logits: torch.Tensor | None = None
+    recent = prefix[-3:]
+    last: Step | None = None
 
-    def queue(ids, segment: int = 0) -> None:
-        nonlocal last_id
+    def queue(ids, segment: int = 0, extra: dict | None = None) -> None:
+        nonlocal recent
         ids = torch.as_tensor(ids, dtype=torch.long, device=device).reshape(-1)
-        queue_ids.append(ids)
-        queue_seg.append(torch.full_like(ids, segment))
-        last_id = int(ids[-1])
+        queued.append((ids, torch.full_like(ids, segment), extra or empty_payload(spec, ids.numel(), device)))
+        recent = torch.cat([recent, ids])[-3:]
 
-    def take() -> tuple[torch.Tensor, torch.Tensor]:
-        ids, segs = torch.cat(queue_ids), torch.cat(queue_seg)
-        queue_ids.clear()
-        queue_seg.clear()
-        return ids, segs
+    def take() -> tuple[torch.Tensor, torch.Tensor, dict]:
+        ids, segs, extras = zip(*queued)
+        queued.clear()
+        return torch.cat(ids), torch.cat(segs), cat_payload(list(extras))
 
-    def pick(id_range: tuple[int, int]) -> Generator[_Feed, torch.Tensor, int]:
-        """The greedy next id within ``id_range``, feeding what is queued first."""
-        nonlocal last_logits
-        if queue_ids or last_logits is None:
-            last_logits = (yield _Feed(*take()))[-1]
+    def output() -> Generator[_Feed, Step, Step]:
+        """The output at the last token, feeding what is queued first."""
+        nonlocal last
+        if queued or last is None:
+            step = yield _Feed(*take())
+            last = Step(step.logits[-1], None, step.hidden[-1])
+        return last
+
+    def pick(id_range: tuple[int, int]) -> Generator[_Feed, Step, int]:
+        """The greedy next id within ``id_range``."""
         lo, hi = id_range
-        return int(last_logits[lo:hi].argmax()) + lo
+        return int((yield from output()).logits[lo:hi].argmax()) + lo
 
     results: list = []
     for answer in answers:
@@ -105,7 +112,7 @@ def _program(world, prefix: torch.Tensor, answers: list[Answer]) -> Program:
             queue([v.eos_id])
             results.append(out)
         elif isinstance(answer, ActionAnswer):
-            if last_id != v.act_open_id:
+            if int(recent[-1]) != v.act_open_id:
                 queue([v.act_open_id])
             ids = []
             for _ in range(answer.steps):
@@ -115,34 +122,37 @@ def _program(world, prefix: torch.Tensor, answers: list[Answer]) -> Program:
             queue([v.act_close_id])
             results.append(v.actions_from_ids(torch.tensor(ids, dtype=torch.long)).reshape(answer.steps, 2))
         else:
-            if last_id != v.occ_open_id:
+            writer = world.scene_writer(recent)
+            if world.frame_separation and int(recent[-1]) != v.occ_open_id:
                 queue([v.occ_open_id])
             if next_scene:
-                ids, segs = take()
+                ids, segs, extras = take()
                 queries = v.query_ids().to(device)
-                logits = yield _Feed(torch.cat([ids, queries]), torch.cat([segs, torch.full_like(queries, -1)]), len(queries))
-                lo, hi = v.occ_range
-                code_ids = logits[-len(queries):, lo:hi].argmax(-1) + lo
-                queue(code_ids, next_segment)
+                n = len(queries)
+                extras = cat_payload([extras, empty_payload(spec, n, device)])
+                step = yield _Feed(torch.cat([ids, queries]), torch.cat([segs, torch.full_like(queries, -1)]), extras, n)
+                last = None  # the kept tokens' last output is not needed again: a scene follows
+                scene_ids, extra = writer.from_queries(step.logits[-n:], step.hidden[-n:])
+                queue(scene_ids, next_segment, extra)
                 next_segment += 1
             else:
-                picked = []
                 for _ in range(v.scene_len):
-                    picked.append((yield from pick(v.occ_range)))
-                    queue(picked[-1:])
-                code_ids = torch.tensor(picked, device=device)
-            queue([v.occ_close_id])
-            results.append(v.codes_from_ids(code_ids).cpu())
+                    out_step = yield from output()
+                    scene_ids, extra = writer.next_token(out_step.logits, out_step.hidden)
+                    queue(scene_ids, 0, extra)
+            if world.frame_separation:
+                queue([v.occ_close_id])
+            results.append(writer.codes().cpu())
     return results
 
 
 @torch.no_grad()
-def decode_batch(world, prefixes: list[torch.Tensor], answers: list[list[Answer]]) -> list[list]:
-    """Greedy answers for every sequence of the batch: ``prefixes[b]`` Long[L_b] is its
-    prompt, ``answers[b]`` what to generate after it, in order. Returns, per sequence, a
-    list with one entry per answer (see ``_program``)."""
+def decode_batch(world, prefixes: list, answers: list[list[Answer]]) -> list[list]:
+    """Greedy answers for every sequence of the batch: ``prefixes[b]`` (ids Long[L_b], or a
+    laid-out sequence with its payload) is its prompt, ``answers[b]`` what to generate after
+    it, in order. Returns, per sequence, a list with one entry per answer (see ``_program``)."""
     device = world.codebook.device
-    programs = [_program(world, p.reshape(-1).long().to(device), a) for p, a in zip(prefixes, answers)]
+    programs = [_program(world, p, a, device) for p, a in zip(prefixes, answers)]
     feeds: list[_Feed | None] = []
     results: list[list | None] = [None] * len(programs)
     for b, prog in enumerate(programs):
@@ -165,19 +175,23 @@ def decode_batch(world, prefixes: list[torch.Tensor], answers: list[list[Answer]
         seg = torch.zeros(B, n, dtype=torch.long, device=device)
         real = torch.zeros(B, n, dtype=torch.bool, device=device)
         keep = torch.zeros(B, n, dtype=torch.bool, device=device)
+        payload = {k: t.unsqueeze(0).repeat(B, *([1] * t.dim())) for k, t in empty_payload(world.payload_spec, n, device).items()}
         for i, f in enumerate(feeds):
             m = len(f.ids)
             ids[i, :m], seg[i, :m], real[i, :m] = f.ids, f.seg, True
             keep[i, : m - f.transient] = True
+            for k, t in f.payload.items():
+                payload[k][i, :m] = t
         positions = kept[:, None] + torch.arange(n, device=device)[None]
         inner = allowed_pairs(seg, real)
         mask = torch.cat([alive[:, None, :].expand(B, n, alive.shape[1]) & real[:, :, None], inner], dim=2)
-        logits, cache = world.logits(ids, mask[:, None], positions, cache, use_cache=True)
+        step = world.step(ids, mask[:, None], positions, cache, use_cache=True, payload=payload)
+        cache = step.cache
         alive = torch.cat([alive, keep], dim=1)
         kept += keep.sum(1)
         for i, f in enumerate(feeds):
             try:
-                feeds[i] = programs[rows[i]].send(logits[i, : len(f.ids)])
+                feeds[i] = programs[rows[i]].send(Step(step.logits[i, : len(f.ids)], None, step.hidden[i, : len(f.ids)]))
             except StopIteration as stop:
                 feeds[i] = None
                 results[rows[i]] = stop.value

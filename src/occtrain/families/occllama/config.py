@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 from occtrain.config.llm import MAX_NEW_TEXT_TOKENS, LLMConfig, LoRAConfig
 from occtrain.config.tokenizer import QuantizerFields, latent_hw
 from occtrain.errors import ConfigError
-from occtrain.families.occllama.tasks import INSTRUCT_TASKS, TaskConfig
+from occtrain.families.occllama.tasks import TaskConfig
 
 
 @dataclass
@@ -79,5 +79,4 @@ class PretrainModelConfig:
 class InstructModelConfig(PretrainModelConfig):
     """``model:`` of an instruct stage: QA and chain-of-thought planning through LoRA."""
 
-    tasks: TaskConfig = field(default_factory=lambda: TaskConfig(weights={t: 1.0 for t in INSTRUCT_TASKS}))
     use_lora: bool = True

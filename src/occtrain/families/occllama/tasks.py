@@ -29,8 +29,10 @@ OBJECT_CLASSES = ("car", "truck", "bus", "trailer", "construction_vehicle", "ped
 class TaskConfig:
     """Which tasks a world-model stage trains on, and how their prompts look."""
 
-    #: Task name -> sampling weight; a task missing here is not used.
-    weights: dict[str, float] = field(default_factory=lambda: {t: 1.0 for t in PRETRAIN_TASKS})
+    #: Task name -> sampling weight; a task missing here is not used. Empty: the family's
+    #: default tasks for the stage kind (``FamilySpec.default_tasks``). A recipe's mapping
+    #: is the whole set: merged onto a non-empty default it could only add tasks.
+    weights: dict[str, float] = field(default_factory=dict)
     #: History scenes in the prompt (paper: 4), besides the anchor scene.
     context_frames: int = 4
     #: Future scenes the forecasting task alternates with waypoints (paper: 6 = 3 s).
@@ -43,7 +45,8 @@ class TaskConfig:
     questions_per_sample: int = 1
 
 
-def _xy(points) -> tuple[tuple[float, float], ...]:
+def as_xy(points) -> tuple[tuple[float, float], ...]:
+    """Waypoints (any (..., 2) array) as the tuples an ``Actions`` part holds."""
     return tuple((float(x), float(y)) for x, y in np.asarray(points, dtype=np.float64).reshape(-1, 2))
 
 
@@ -54,7 +57,7 @@ def _context(clip: Clip, cfg: TaskConfig) -> list[Part]:
     steps = clip.ego_steps()
     parts: list[Part] = []
     for f in range(first, a):
-        parts += [Scene(f), Actions(_xy(steps[f]))]
+        parts += [Scene(f), Actions(as_xy(steps[f]))]
     parts.append(Scene(a))
     anchor = clip.anchor
     past = np.asarray(anchor.get("ego_past", []), dtype=np.float64).reshape(-1, 2)
@@ -69,7 +72,7 @@ def _context(clip: Clip, cfg: TaskConfig) -> list[Part]:
     if state:
         parts.append(Text(" ".join(state)))
     if past_mask.any():
-        parts += [Text("Ego past:"), Actions(_xy(past[past_mask]))]
+        parts += [Text("Ego past:"), Actions(as_xy(past[past_mask]))]
     return parts
 
 
@@ -83,7 +86,7 @@ def detection(clip: Clip, cfg: TaskConfig, rng: np.random.Generator) -> list[Par
     boxes = _objects(clip.anchor)[: cfg.max_objects]
     answer: list[Part] = []
     for b in boxes:
-        answer += [Text(b["category"].replace("_", " "), True), Actions(_xy(b["center"][:2]), True)]
+        answer += [Text(b["category"].replace("_", " "), True), Actions(as_xy(b["center"][:2]), True)]
     if not answer:
         answer = [Text("no objects", True)]
     return [*_context(clip, cfg), Text("Task: detect the nearest objects.")] + answer
@@ -112,61 +115,74 @@ def prediction(clip: Clip, cfg: TaskConfig, rng: np.random.Generator) -> list[Pa
     return [
         *_context(clip, cfg),
         Text(f"Task: predict the future of the {box['category'].replace('_', ' ')} at"),
-        Actions(_xy(box["center"][:2])),
-        Actions(_xy(anchor["agent_futures"][i]), True),
+        Actions(as_xy(box["center"][:2])),
+        Actions(as_xy(anchor["agent_futures"][i]), True),
     ]
 
 
-def _ego_future(clip: Clip) -> np.ndarray | None:
+def known_future(clip: Clip) -> np.ndarray | None:
+    """The anchor's 3 s ego future (6, 2), or None unless all of it is known."""
     future, mask = ego_future(clip.anchor)
     return future if mask.all() else None
 
 
 def planning(clip: Clip, cfg: TaskConfig, rng: np.random.Generator) -> list[Part] | None:
     """The ego's 3 s trajectory (6 waypoints, anchor ego frame) as action tokens."""
-    future = _ego_future(clip)
+    future = known_future(clip)
     if future is None:
         return None
-    return [*_context(clip, cfg), Text("Task: plan the ego trajectory."), Actions(_xy(future), True)]
+    return [*_context(clip, cfg), Text("Task: plan the ego trajectory."), Actions(as_xy(future), True)]
+
+
+def forecast_after(prompt: list[Part], clip: Clip, cfg: TaskConfig) -> list[Part] | None:
+    """``prompt``, then the next waypoint and the next scene alternating, ``forecast_frames``
+    times; None unless the clip's future is known."""
+    a = clip.anchor_index
+    n = min(cfg.forecast_frames, int(clip.ann["future"]))
+    future = known_future(clip)
+    if future is None or n == 0:
+        return None
+    parts = list(prompt)
+    for k in range(n):
+        parts += [Actions(as_xy(future[k]), True), Scene(a + 1 + k, True)]
+    return parts
 
 
 def forecasting(clip: Clip, cfg: TaskConfig, rng: np.random.Generator) -> list[Part] | None:
     """Alternate the next waypoint and the next scene, ``forecast_frames`` times."""
-    a = clip.anchor_index
-    n = min(cfg.forecast_frames, int(clip.ann["future"]))
-    future = _ego_future(clip)
-    if future is None or n == 0:
-        return None
-    parts: list[Part] = [*_context(clip, cfg), Text("Task: forecast the scene.")]
-    for k in range(n):
-        parts += [Actions(_xy(future[k]), True), Scene(a + 1 + k, True)]
-    return parts
+    return forecast_after([*_context(clip, cfg), Text("Task: forecast the scene.")], clip, cfg)
 
 
-def _question(q: dict) -> list[Part]:
+def question_parts(q: dict) -> list[Part]:
     return [Text(f"Question: {q['question']} Answer:"), Text(q["answer"], True)]
 
 
-def qa(clip: Clip, cfg: TaskConfig, rng: np.random.Generator) -> list[Part] | None:
-    """NuScenes-QA questions about the anchor frame: one, or ``questions_per_sample`` packed."""
+def questions_after(context: list[Part], clip: Clip, cfg: TaskConfig, rng: np.random.Generator) -> list[Part] | None:
+    """NuScenes-QA questions about the anchor frame after ``context``: one, or
+    ``questions_per_sample`` packed as branches; None when the frame has none."""
     if not clip.qa:
         return None
     k = min(cfg.questions_per_sample, len(clip.qa))
     picked = [clip.qa[int(i)] for i in rng.choice(len(clip.qa), size=k, replace=False)]
     if k == 1:
-        return [*_context(clip, cfg), *_question(picked[0])]
-    return [*_context(clip, cfg)] + [p for q in picked for p in (Branch(), *_question(q))]
+        return [*context, *question_parts(picked[0])]
+    return [*context] + [p for q in picked for p in (Branch(), *question_parts(q))]
+
+
+def qa(clip: Clip, cfg: TaskConfig, rng: np.random.Generator) -> list[Part] | None:
+    """NuScenes-QA questions about the anchor frame: one, or ``questions_per_sample`` packed."""
+    return questions_after(_context(clip, cfg), clip, cfg, rng)
 
 
 def every_question(clip: Clip, cfg: TaskConfig) -> list[list[Part]]:
     """One prompt per NuScenes-QA question of the anchor frame (evaluation asks them all)."""
     context = _context(clip, cfg)
-    return [[*context, *_question(q)] for q in clip.qa]
+    return [[*context, *question_parts(q)] for q in clip.qa]
 
 
 def cot_planning(clip: Clip, cfg: TaskConfig, rng: np.random.Generator) -> list[Part] | None:
     """Chain of thought: narration, then the meta action, then the trajectory."""
-    future = _ego_future(clip)
+    future = known_future(clip)
     if future is None or not clip.narration:
         return None
     # The narration ends with the meta action; older sidecars may lack it.
@@ -177,7 +193,7 @@ def cot_planning(clip: Clip, cfg: TaskConfig, rng: np.random.Generator) -> list[
         *_context(clip, cfg),
         Text("Task: describe the scene, then plan."),
         Text(text, True),
-        Actions(_xy(future), True),
+        Actions(as_xy(future), True),
     ]
 
 
@@ -195,23 +211,25 @@ TASKS: dict[str, Callable[[Clip, TaskConfig, np.random.Generator], list[Part] | 
 EVERY_ITEM: dict[str, Callable[[Clip, TaskConfig], list[list[Part]]]] = {"qa": every_question}
 
 
-def validate_tasks(cfg: TaskConfig, key: str) -> None:
-    """One line naming ``key`` when a task name or weight is wrong."""
+def validate_tasks(cfg: TaskConfig, key: str, builders: dict | None = None) -> None:
+    """One line naming ``key`` when a task name or weight is wrong (tasks: ``builders``,
+    the family's; OccLLaMA's by default)."""
+    builders = builders or TASKS
     for name, weight in cfg.weights.items():
-        if name not in TASKS:
-            raise ConfigError(f"{key}.weights: unknown task '{name}'; tasks are {', '.join(TASKS)}")
+        if name not in builders:
+            raise ConfigError(f"{key}.weights: unknown task '{name}'; tasks are {', '.join(builders)}")
         if weight < 0:
             raise ConfigError(f"{key}.weights.{name}: weight {weight} is negative")
-    if not any(w > 0 for w in cfg.weights.values()):
+    if cfg.weights and not any(w > 0 for w in cfg.weights.values()):
         raise ConfigError(f"{key}.weights: no task has a positive weight")
     if cfg.questions_per_sample < 1:
         raise ConfigError(f"{key}.questions_per_sample: {cfg.questions_per_sample} must be at least 1")
 
 
-def sample_task(clip: Clip, cfg: TaskConfig, seed: int, token: str) -> tuple[str, list[Part]] | None:
+def sample_task(clip: Clip, cfg: TaskConfig, seed: int, token: str, builders: dict | None = None) -> tuple[str, list[Part]] | None:
     """Draw a task by weight (deterministic in ``seed`` and the sample token) and build it.
 
-    A task that does not apply to the clip (e.g. no moving object to predict) gives way to
+    ``builders`` are the family's tasks (OccLLaMA's by default). A task that does not apply to the clip (e.g. no moving object to predict) gives way to
     the next draw; None when none of the configured tasks applies (the caller skips and
     counts the clip).
     """
@@ -219,15 +237,16 @@ def sample_task(clip: Clip, cfg: TaskConfig, seed: int, token: str) -> tuple[str
     names = [n for n, w in cfg.weights.items() if w > 0]
     p = np.asarray([cfg.weights[n] for n in names], dtype=np.float64)
     for name in rng.choice(names, size=len(names), replace=False, p=p / p.sum()):
-        parts = TASKS[str(name)](clip, cfg, rng)
+        parts = (builders or TASKS)[str(name)](clip, cfg, rng)
         if parts is not None:
             return str(name), parts
     return None
 
 
-def corpus_texts(index) -> Iterator[str]:
+def corpus_texts(index, prompt_words: tuple[str, ...] = ()) -> Iterator[str]:
     """The text a world model's BPE tokenizer trains on: the train split's captions,
-    narrations, questions and answers, and the task prompts' fixed words."""
+    narrations, questions and answers, and the task prompts' fixed words (these and a
+    family's own ``prompt_words``)."""
     for scene in index.splits.get("train", []):
         if not index.has_frame_annotations(scene):
             continue
@@ -237,6 +256,7 @@ def corpus_texts(index) -> Iterator[str]:
     for q in index.questions("train") or []:
         yield f"Question: {q['question']} Answer: {q['answer']}"
     yield from PROMPT_WORDS
+    yield from prompt_words
 
 
 #: Fixed words of the prompts above, so the tokenizer knows them even without sidecar text.

@@ -40,38 +40,23 @@ from torch import nn
 from occtrain.config.llm import SCENE_PREDICTION_MODES
 from occtrain.families.occllama.batch_decoding import ActionAnswer, Answer, TextAnswer, decode_batch
 from occtrain.models.attention import additive, allowed_pairs, chunk_allowed, scene_segments
+from occtrain.families.occllama.tokens import IGNORE, PayloadSpec, Step, TokenSequence, cat_payload, empty_payload, prompt_of
 from occtrain.models.vocab import JointVocab
-
-IGNORE = -100
-
-
-@dataclass
-class TokenSequence:
-    """One laid-out sequence (all Long[L] except ``scene_target`` Bool[L])."""
-
-    input_ids: torch.Tensor
-    labels: torch.Tensor
-    segment_ids: torch.Tensor
-    position_ids: torch.Tensor
-    scene_target: torch.Tensor
-    #: Long[L]: 0 on the shared trunk, k on branch k (see ``SequenceBuilder.branch``).
-    branch_ids: torch.Tensor
-
-    def __len__(self) -> int:
-        return int(self.input_ids.shape[0])
-
 
 class SequenceBuilder:
     """Lays parts out in the joint vocabulary (see the module docstring).
 
-    ``scene_prediction`` must be the model's (``OccWorldModel.builder()`` gets it right).
+    ``scene_prediction`` and ``payload_spec`` must be the model's (``world.builder()``
+    gets them right).
     """
 
-    def __init__(self, vocab: JointVocab, scene_prediction: str = "next_scene"):
+    def __init__(self, vocab: JointVocab, scene_prediction: str = "next_scene", payload_spec: PayloadSpec | None = None):
         if scene_prediction not in SCENE_PREDICTION_MODES:
             raise ValueError(f"scene_prediction must be one of {SCENE_PREDICTION_MODES}")
         self.vocab = vocab
         self.next_scene = scene_prediction == "next_scene"
+        self.payload_spec = payload_spec or {}
+        self._payload: list[dict[str, torch.Tensor]] = []
         self._ids: list[torch.Tensor] = []
         self._sup: list[torch.Tensor] = []
         self._seg: list[torch.Tensor] = []
@@ -85,8 +70,12 @@ class SequenceBuilder:
         self._branch_open = False  # the current branch has no token yet
         self._add(torch.tensor([vocab.bos_id]), False)
 
-    def _add(self, ids: torch.Tensor, supervise: bool, seg: int = 0, query_target: torch.Tensor | None = None) -> None:
+    def _add(
+        self, ids: torch.Tensor, supervise: bool, seg: int = 0, query_target: torch.Tensor | None = None,
+        payload: dict[str, torch.Tensor] | None = None,
+    ) -> None:
         n = ids.shape[0]
+        self._payload.append(payload if payload is not None else empty_payload(self.payload_spec, n))
         if self._branch_open and supervise:
             # The trunk's last token cannot predict the first token of every branch at once.
             raise ValueError("a branch must start with a prompt part, not a supervised one")
@@ -150,7 +139,12 @@ class SequenceBuilder:
         # has no target (its successor is another branch's first, unsupervised, token).
         same = branch[kept[1:]] == branch[kept[:-1]]
         labels[kept[:-1]] = torch.where(sup[kept[1:]] & same, ids[kept[1:]], IGNORE)
-        return TokenSequence(ids, labels, seg, torch.cat(self._pos), self.vocab.is_occ(labels), branch)
+        return TokenSequence(ids, labels, seg, torch.cat(self._pos), self.vocab.is_occ(labels), branch, cat_payload(self._payload))
+
+
+def batch_payload(batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    """The payload fields of a collated batch, by name."""
+    return {k.removeprefix("payload_"): v for k, v in batch.items() if k.startswith("payload_")}
 
 
 def collate(seqs: list[TokenSequence], pad_id: int) -> dict[str, torch.Tensor]:
@@ -169,7 +163,14 @@ def collate(seqs: list[TokenSequence], pad_id: int) -> dict[str, torch.Tensor]:
     pad_mask = torch.stack([torch.arange(L) < len(s) for s in seqs])
     segment_ids = pad("segment_ids", 0)
     branch_ids = pad("branch_ids", 0)
+    payload = {}
+    for name in seqs[0].payload:  # padding rows are zeros: pad_mask keeps them out of every loss
+        rows = torch.zeros((len(seqs), L, *seqs[0].payload[name].shape[1:]), dtype=seqs[0].payload[name].dtype)
+        for b, s in enumerate(seqs):
+            rows[b, : len(s)] = s.payload[name]
+        payload[f"payload_{name}"] = rows
     return {
+        **payload,
         "input_ids": pad("input_ids", pad_id),
         "labels": pad("labels", IGNORE),
         "segment_ids": segment_ids,
@@ -178,6 +179,30 @@ def collate(seqs: list[TokenSequence], pad_id: int) -> dict[str, torch.Tensor]:
         "scene_target_mask": pad("scene_target", False),
         "attention_mask": allowed_pairs(segment_ids, pad_mask, branch_ids)[:, None],
     }
+
+
+class CodeScene:
+    """How a generated scene is written in the codes layout: each position's code chosen
+    within its codebook's id range, from the query block at once or token by token."""
+
+    def __init__(self, vocab: JointVocab):
+        self.vocab = vocab
+        self.picked: list[torch.Tensor] = []
+
+    def from_queries(self, logits: torch.Tensor, hidden: torch.Tensor) -> tuple[torch.Tensor, dict]:
+        """The scene's ids (and payload) from the outputs at its Q query tokens."""
+        self.picked = [self.vocab.pick_scene(logits)]
+        return self.picked[0], {}
+
+    def next_token(self, logits: torch.Tensor, hidden: torch.Tensor) -> tuple[torch.Tensor, dict]:
+        """The next scene token (and its payload) from the output before it."""
+        lo, hi = self.vocab.scene_token_range(sum(len(p) for p in self.picked))
+        self.picked.append((logits[lo:hi].argmax(-1) + lo).reshape(1))
+        return self.picked[-1], {}
+
+    def codes(self) -> torch.Tensor:
+        """The chosen scene's codes, flat and codebook-major."""
+        return self.vocab.codes_from_ids(torch.cat(self.picked))
 
 
 @dataclass
@@ -195,9 +220,14 @@ class WorldModelOutput:
 class OccWorldModel(nn.Module):
     """The LLM, the joint vocabulary and the occupancy input projection.
 
-    ``codebook`` Float[K, code_dim] is the frozen scene tokenizer's codebook; it is a
-    non-persistent buffer (the tokenizer's export owns it), the projection is trained.
+    ``codebook`` Float[K, code_dim] is the frozen scene tokenizer's codebook (its codebooks
+    stacked, in the vocabulary's order, when it has several); it is a non-persistent buffer (the tokenizer's export owns it), the projection is trained.
     """
+
+    #: Per-token extras beside the ids (see ``PayloadSpec``): none here.
+    payload_spec: PayloadSpec = {}
+    #: Scenes are wrapped in ``<occ>`` ... ``</occ>`` (Occ-LLM's frame separation can drop them).
+    frame_separation = True
 
     def __init__(self, llm: nn.Module, vocab: JointVocab, codebook: torch.Tensor, scene_prediction: str = "next_scene"):
         super().__init__()
@@ -215,10 +245,15 @@ class OccWorldModel(nn.Module):
 
     # -- building blocks
     def builder(self) -> SequenceBuilder:
-        return SequenceBuilder(self.vocab, self.scene_prediction)
+        return SequenceBuilder(self.vocab, self.scene_prediction, self.payload_spec)
 
-    def embed(self, input_ids: torch.Tensor) -> torch.Tensor:
-        """Input embeddings; occupancy tokens through the codebook projection."""
+    def scene_writer(self, recent: torch.Tensor) -> CodeScene:
+        """What writes the next generated scene; ``recent`` are the last ids before it."""
+        return CodeScene(self.vocab)
+
+    def embed(self, input_ids: torch.Tensor, payload: dict[str, torch.Tensor] | None = None) -> torch.Tensor:
+        """Input embeddings; occupancy tokens through the codebook projection (the codebooks
+        stacked in the vocabulary's order, so a token's offset is its row)."""
         emb = self.llm.get_input_embeddings()(input_ids)
         table = self.occ_proj(self.codebook).to(emb.dtype)
         codes = (input_ids - self.vocab.occ_start).clamp(0, self.vocab.num_codes - 1)
@@ -233,8 +268,8 @@ class OccWorldModel(nn.Module):
         impl = getattr(self.llm.config, "_attn_implementation", "sdpa")
         return allowed if impl == "sdpa" else additive(allowed[:, 0], dtype)
 
-    def _run(self, input_ids, attention_mask, position_ids, past_key_values=None, use_cache=False, hidden=False):
-        emb = self.embed(input_ids)
+    def _run(self, input_ids, attention_mask, position_ids, past_key_values=None, use_cache=False, hidden=False, payload=None):
+        emb = self.embed(input_ids, payload)
         return self.llm(
             inputs_embeds=emb,
             attention_mask=self._mask(attention_mask, emb.dtype),
@@ -244,15 +279,15 @@ class OccWorldModel(nn.Module):
             output_hidden_states=hidden,
         )
 
-    def logits(self, input_ids, attention_mask, position_ids, past_key_values=None, use_cache=False):
-        """The LLM's output for ``input_ids`` under a boolean 4D mask; ``(logits, cache)``."""
-        out = self._run(input_ids, attention_mask, position_ids, past_key_values, use_cache)
-        return out.logits, out.past_key_values
+    def step(self, input_ids, attention_mask, position_ids, past_key_values=None, use_cache=False, payload=None) -> Step:
+        """The LLM's output for ``input_ids`` (and their payload) under a boolean 4D mask."""
+        out = self._run(input_ids, attention_mask, position_ids, past_key_values, use_cache, hidden=True, payload=payload)
+        return Step(out.logits, out.past_key_values, out.hidden_states[-1])
 
     def forward(self, batch: dict[str, torch.Tensor], output_hidden_states: bool = False) -> WorldModelOutput:
         """Cross-entropy over all targets (one uniform loss, as in the paper); the text
         (text + action + marker) and scene parts are reported apart."""
-        out = self._run(batch["input_ids"], batch["attention_mask"], batch["position_ids"], hidden=output_hidden_states)
+        out = self._run(batch["input_ids"], batch["attention_mask"], batch["position_ids"], hidden=output_hidden_states, payload=batch_payload(batch))
         logits = out.logits
         labels = batch["labels"]
         ce = F.cross_entropy(logits.flatten(0, 1).float(), labels.flatten(), ignore_index=IGNORE, reduction="none").view_as(labels)
@@ -277,11 +312,12 @@ class OccWorldModel(nn.Module):
         return hits.sum().float() / valid.sum().clamp(min=1)
 
     # -- generation
-    def decoder(self, prefix_ids: torch.Tensor, use_cache: bool = True) -> GreedyDecoder:
-        return GreedyDecoder(self, prefix_ids, use_cache)
+    def decoder(self, prefix: torch.Tensor | TokenSequence, use_cache: bool = True) -> GreedyDecoder:
+        """A greedy decoder after ``prefix``: ids, or a laid-out sequence with its payload."""
+        return GreedyDecoder(self, prefix, use_cache)
 
     @torch.no_grad()
-    def generate_batch(self, prefixes: list[torch.Tensor], answers: list[list]) -> list[list]:
+    def generate_batch(self, prefixes: list[torch.Tensor | TokenSequence], answers: list[list]) -> list[list]:
         """Greedy answers for a batch of prompts at once (see ``batch_decoding``)."""
         return decode_batch(self, prefixes, answers)
 
@@ -318,73 +354,98 @@ class OccWorldModel(nn.Module):
         }
 
     @classmethod
-    def from_export(cls, data: dict, llm: nn.Module, vocab: JointVocab, codebook: torch.Tensor) -> OccWorldModel:
+    def create(cls, llm: nn.Module, vocab: JointVocab, scene_tokenizer: nn.Module, scene_prediction: str, world_cfg=None) -> OccWorldModel:
+        """A fresh model around ``llm`` over a frozen scene tokenizer (pretraining's start)."""
+        return cls(llm, vocab, torch.cat(scene_tokenizer.codebooks), scene_prediction)
+
+    @staticmethod
+    def vocab_patch(world_cfg=None) -> int:
+        """The vocabulary's patch side: 0, one token per latent cell and codebook."""
+        return 0
+
+    @classmethod
+    def from_export(cls, data: dict, llm: nn.Module, vocab: JointVocab, scene_tokenizer: nn.Module) -> OccWorldModel:
         """The exported architecture around ``llm`` (loaded from the export's Hugging Face
         directory); load the export's own weights next."""
-        return cls(llm, vocab, codebook, data["scene_prediction"])
+        return cls(llm, vocab, torch.cat(scene_tokenizer.codebooks), data["scene_prediction"])
+
+    def scene_token_rows(self) -> torch.Tensor:
+        """What the scene tokens' input embeddings are (their rows of an exported LLM's
+        embedding table, so plain transformers reads them too)."""
+        return self.occ_proj(self.codebook)
 
 
 class GreedyDecoder:
     """Greedy decoding of one sequence with the KV cache, part after part.
 
-    The prefix's scenes are found as runs of code tokens. Chosen tokens are fed lazily, with
-    the next forward, so a part costs: text one forward per token; actions two per
+    The prefix's scenes are found as runs of scene tokens. Chosen tokens are fed lazily,
+    with the next forward, so a part costs: text one forward per token; actions two per
     waypoint; a scene one forward in "next_scene" mode (``<occ>`` + the query block; the
-    query keys are then cropped off the cache and the chosen codes fed with the next call)
-    and h*w in "next_token" mode. Every choice is restricted to the id range of its kind.
-    ``use_cache=False`` recomputes the whole sequence at each forward (for testing).
+    query keys are then cropped off the cache and the chosen tokens fed with the next call)
+    and one per scene token in "next_token" mode. Every choice is restricted to the id
+    range of its kind; the world model's scene writer chooses scene tokens (and their
+    payload). ``use_cache=False`` recomputes the whole sequence at each forward (for testing).
     """
 
-    def __init__(self, world: OccWorldModel, prefix_ids: torch.Tensor, use_cache: bool = True):
+    def __init__(self, world: OccWorldModel, prefix: torch.Tensor | TokenSequence, use_cache: bool = True):
         self.world = world
         self.vocab = world.vocab
         self.use_cache = use_cache
         self.device = world.codebook.device
-        prefix = prefix_ids.reshape(-1).long().to(self.device)
+        prefix, payload = prompt_of(world.payload_spec, prefix)
+        prefix = prefix.to(self.device)
         seg = scene_segments(self.vocab.is_occ(prefix)) if world.scene_prediction == "next_scene" else torch.zeros_like(prefix)
-        self.ids = prefix[:0]
-        self.seg = seg[:0]
+        self.ids, self.seg, self.payload = prefix[:0], seg[:0], {k: v[:0].to(self.device) for k, v in payload.items()}
         self.pending_ids, self.pending_seg = prefix, seg
+        self.pending_payload = {k: v.to(self.device) for k, v in payload.items()}
         self.next_segment = int(seg.max()) + 1 if seg.numel() else 1
         self.cache = None
-        self.last_logits: torch.Tensor | None = None
+        self.last: Step | None = None  # the output at the last kept token
 
-    def _queue(self, ids: list[int] | torch.Tensor, seg: int | torch.Tensor = 0) -> None:
+    def _queue(self, ids: list[int] | torch.Tensor, seg: int | torch.Tensor = 0, payload: dict | None = None) -> None:
         ids = torch.as_tensor(ids, dtype=torch.long, device=self.device).reshape(-1)
         seg = seg if torch.is_tensor(seg) else torch.full_like(ids, seg)
         self.pending_ids = torch.cat([self.pending_ids, ids])
         self.pending_seg = torch.cat([self.pending_seg, seg.to(self.device)])
+        extra = payload or empty_payload(self.world.payload_spec, ids.numel(), self.device)
+        self.pending_payload = cat_payload([self.pending_payload, {k: v.to(self.device) for k, v in extra.items()}])
 
-    def _last_id(self) -> int:
-        seq = self.pending_ids if self.pending_ids.numel() else self.ids
-        return int(seq[-1]) if seq.numel() else -1
+    def _recent(self) -> torch.Tensor:
+        return torch.cat([self.ids, self.pending_ids])[-3:]
 
-    def _advance(self, transient: torch.Tensor | None = None, transient_seg: int = -1) -> torch.Tensor:
-        """Feed the pending tokens, then ``transient`` ones that are not kept; logits of all fed."""
-        ids, seg = self.pending_ids, self.pending_seg
+    def _advance(self, transient: torch.Tensor | None = None, transient_seg: int = -1) -> Step:
+        """Feed the pending tokens, then ``transient`` ones that are not kept; outputs of all fed."""
+        ids, seg, payload = self.pending_ids, self.pending_seg, self.pending_payload
         keep = ids.shape[0]
         if transient is not None:
-            ids = torch.cat([ids, transient.to(self.device)])
-            seg = torch.cat([seg, torch.full_like(transient, transient_seg).to(self.device)])
+            transient = transient.to(self.device)
+            ids = torch.cat([ids, transient])
+            seg = torch.cat([seg, torch.full_like(transient, transient_seg)])
+            payload = cat_payload([payload, empty_payload(self.world.payload_spec, transient.numel(), self.device)])
         past = self.ids.shape[0]
         n = ids.shape[0]
         positions = torch.arange(past, past + n, device=self.device)[None]
+        batch_payload = {k: v[None] for k, v in payload.items()}
         if self.use_cache:
-            logits, self.cache = self.world.logits(ids[None], chunk_allowed(seg, past)[:, None], positions, self.cache, use_cache=True)
+            step = self.world.step(ids[None], chunk_allowed(seg, past)[:, None], positions, self.cache, True, batch_payload)
+            self.cache = step.cache
             if n > keep:
                 self.cache.crop(-(n - keep))
         else:
             all_ids, all_seg = torch.cat([self.ids, ids]), torch.cat([self.seg, seg])
+            full_payload = {k: torch.cat([self.payload[k], v])[None] for k, v in payload.items()}
             allowed = allowed_pairs(all_seg[None], torch.ones_like(all_seg[None], dtype=torch.bool))
             full = torch.arange(past + n, device=self.device)[None]
-            logits, _ = self.world.logits(all_ids[None], allowed[:, None], full)
-            logits = logits[:, past:]
-        logits = logits[0]
+            step = self.world.step(all_ids[None], allowed[:, None], full, payload=full_payload)
+            step = Step(step.logits[:, past:], None, step.hidden[:, past:])
+        step = Step(step.logits[0], step.cache, step.hidden[0])
         self.ids, self.seg = torch.cat([self.ids, ids[:keep]]), torch.cat([self.seg, seg[:keep]])
+        self.payload = cat_payload([self.payload, {k: v[:keep] for k, v in payload.items()}])
         self.pending_ids, self.pending_seg = ids[:0], seg[:0]
+        self.pending_payload = {k: v[:0] for k, v in payload.items()}
         if keep:
-            self.last_logits = logits[keep - 1]
-        return logits
+            self.last = Step(step.logits[keep - 1], None, step.hidden[keep - 1])
+        return step
 
     def flush(self) -> torch.Tensor:
         """Feed what is queued; the whole token stream so far, Long[n]."""
@@ -392,16 +453,18 @@ class GreedyDecoder:
             self._advance()
         return self.ids
 
-    def _pick(self, lo_hi: tuple[int, int], logits: torch.Tensor | None = None) -> torch.Tensor:
-        if logits is None:
-            if self.pending_ids.numel() or self.last_logits is None:
-                self._advance()
-            logits = self.last_logits
+    def _output(self) -> Step:
+        """The output at the last token, feeding what is queued first."""
+        if self.pending_ids.numel() or self.last is None:
+            self._advance()
+        return self.last
+
+    def _pick(self, lo_hi: tuple[int, int]) -> torch.Tensor:
         lo, hi = lo_hi
-        return logits[..., lo:hi].argmax(-1) + lo
+        return self._output().logits[lo:hi].argmax(-1) + lo
 
     def answer(self, answer: Answer) -> list[int] | torch.Tensor:
-        """One answer of a task: text ids, waypoints Float[steps, 2] or scene codes Long[h*w]."""
+        """One answer of a task: text ids, waypoints Float[steps, 2] or scene codes (flat)."""
         if isinstance(answer, TextAnswer):
             return self.text(answer.max_new_tokens)
         if isinstance(answer, ActionAnswer):
@@ -426,7 +489,7 @@ class GreedyDecoder:
     def actions(self, steps: int = 6) -> torch.Tensor:
         """``<act>`` (unless the sequence ends with it), ``steps`` x/y bin pairs, ``</act>``."""
         v = self.vocab
-        if self._last_id() != v.act_open_id:
+        if int(self._recent()[-1]) != v.act_open_id:
             self._queue([v.act_open_id])
         ids = []
         for _ in range(steps):
@@ -438,20 +501,24 @@ class GreedyDecoder:
 
     @torch.no_grad()
     def scene(self) -> torch.Tensor:
-        """``<occ>`` (unless the sequence ends with it), one scene's h*w codes, ``</occ>``."""
+        """``<occ>`` (unless the sequence ends with it), one scene, ``</occ>`` (markers only
+        with frame separation); the scene's codes, flat and codebook-major."""
         v = self.vocab
-        if self._last_id() != v.occ_open_id:
+        writer = self.world.scene_writer(self._recent())
+        separate = self.world.frame_separation
+        if separate and int(self._recent()[-1]) != v.occ_open_id:
             self._queue([v.occ_open_id])
         if self.world.scene_prediction == "next_scene":
-            logits = self._advance(v.query_ids(), transient_seg=-1)
-            code_ids = self._pick(v.occ_range, logits[-v.scene_len :])
-            self._queue(code_ids, torch.full_like(code_ids, self.next_segment))
+            queries = v.query_ids()
+            step = self._advance(queries, transient_seg=-1)
+            ids, payload = writer.from_queries(step.logits[-len(queries):], step.hidden[-len(queries):])
+            self._queue(ids, torch.full_like(ids, self.next_segment), payload)
             self.next_segment += 1
         else:
-            picked = []
             for _ in range(v.scene_len):
-                picked.append(self._pick(v.occ_range))
-                self._queue(picked[-1:])
-            code_ids = torch.stack(picked)
-        self._queue([v.occ_close_id])
-        return v.codes_from_ids(code_ids).cpu()
+                out = self._output()
+                ids, payload = writer.next_token(out.logits, out.hidden)
+                self._queue(ids, 0, payload)
+        if separate:
+            self._queue([v.occ_close_id])
+        return writer.codes().cpu()

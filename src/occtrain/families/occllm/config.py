@@ -37,3 +37,29 @@ class MSVAEConfig(OccWorldVQVAEConfig):
             raise ConfigError(f"{where}.movable_classes: '{unknown[0]}' is not an Occ3D class (0..{NUM_CLASSES - 2} by name)")
         if self.num_codes_motion < 1:
             raise ConfigError(f"{where}.num_codes_motion: must be >= 1, got {self.num_codes_motion}")
+
+
+@dataclass
+class OccLLMWorldConfig:
+    """``model.occllm`` of a world-model stage: Occ-LLM's scene tokens (Sec. III-B), each
+    switch one of its ablations (Table IV, Table V, frame separation)."""
+
+    #: p: one LLM token per p x p patch of the latent grid (paper: 10 of 50 -> 25 tokens).
+    patch_size: int = 2
+    #: ``<occ>`` ... ``</occ>`` around every frame (paper: on; off drifts, its Fig. 3).
+    frame_separation: bool = True
+    #: The ego action gates the latent channels before patchify (Table V).
+    pre_fusion: bool = True
+    #: Hidden width of the pre-fusion MLP.
+    fusion_hidden: int = 64
+    #: Per-cell feature width of the patch head (see ``PatchHead``).
+    cell_dim: int = 64
+
+    def validate(self, where: str, latent: tuple[int, int]) -> None:
+        if self.patch_size < 1 or latent[0] % self.patch_size or latent[1] % self.patch_size:
+            raise ConfigError(
+                f"{where}.patch_size: {self.patch_size} must divide the tokenizer's latent grid {latent[0]} x {latent[1]}"
+            )
+        for key in ("fusion_hidden", "cell_dim"):
+            if getattr(self, key) < 1:
+                raise ConfigError(f"{where}.{key}: must be >= 1, got {getattr(self, key)}")

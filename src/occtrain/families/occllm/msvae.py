@@ -59,8 +59,15 @@ class MSVAE(OccWorldVQVAE):
         self.register_buffer("movable", movable, persistent=False)
 
     @property
-    def num_codebooks(self) -> int:
-        return 2 if self.quantizer_motion is not None else 1
+    def codebook_names(self) -> list[str]:
+        return ["motion", "static"] if self.quantizer_motion is not None else ["codebook"]
+
+    @property
+    def codebooks(self) -> list[torch.Tensor]:
+        """(motion, static) with motion separation, else the one codebook."""
+        if self.quantizer_motion is None:
+            return [self.codebook]
+        return [self.quantizer_motion.codebook, self.codebook]
 
     def voxel_input(self, emb: torch.Tensor) -> torch.Tensor:
         if self.pre3d is None:
@@ -79,9 +86,10 @@ class MSVAE(OccWorldVQVAE):
         if self.quantizer_motion is None:
             return super().forward(semantics)
         moving, static = separate(semantics, self.movable)
-        vq_m = self.quantizer_motion(self.encode_latent(moving))
-        vq_s = self.quantizer(self.encode_latent(static))
-        logits_m, logits_s = self.decode_logits(vq_m.z_q), self.decode_logits(vq_s.z_q)
+        # One pass of the shared encoder and decoder over both grids, stacked on the batch axis.
+        latent_m, latent_s = self.encode_latent(torch.cat([moving, static])).chunk(2)
+        vq_m, vq_s = self.quantizer_motion(latent_m), self.quantizer(latent_s)
+        logits_m, logits_s = self.decode_logits(torch.cat([vq_m.z_q, vq_s.z_q])).chunk(2)
         ce_m, lov_m = ce_lovasz(logits_m, moving, lovasz_voxels=cfg.lovasz_voxels)
         ce_s, lov_s = ce_lovasz(logits_s, static, lovasz_voxels=cfg.lovasz_voxels)
         total = cfg.ce_weight * (ce_m + ce_s) + cfg.lovasz_weight * (lov_m + lov_s) + cfg.vq_weight * (vq_m.loss + vq_s.loss)
@@ -95,12 +103,13 @@ class MSVAE(OccWorldVQVAE):
         semantics = check_semantics(semantics)
         if self.quantizer_motion is None:
             return super().encode(semantics)
-        moving, static = separate(semantics, self.movable)
-        return torch.stack([self.quantizer_motion.nearest(self.encode_latent(moving)), self.quantizer.nearest(self.encode_latent(static))], 1)
+        latent_m, latent_s = self.encode_latent(torch.cat(separate(semantics, self.movable))).chunk(2)
+        return torch.stack([self.quantizer_motion.nearest(latent_m), self.quantizer.nearest(latent_s)], 1)
 
     def decode(self, codes: torch.Tensor) -> torch.Tensor:
         """Merged class logits (B, 18, 200, 200, 16) of ``encode``'s codes."""
         if self.quantizer_motion is None:
             return super().decode(codes)
         codes = codes.long()
-        return merge(self.decode_logits(self.quantizer_motion.lookup(codes[:, 0])), self.decode_logits(self.quantizer.lookup(codes[:, 1])))
+        z_q = torch.cat([self.quantizer_motion.lookup(codes[:, 0]), self.quantizer.lookup(codes[:, 1])])
+        return merge(*self.decode_logits(z_q).chunk(2))

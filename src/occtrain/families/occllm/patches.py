@@ -1,10 +1,11 @@
 """Occ-LLM's scene tokens (Sec. III-B): latent patches, and pre-fusion of the ego action.
 
-A scene's latent grid (C, h, w) is cut into p x p patches (``occtrain.models.patches``), each one LLM token (p = 10 gives
-25 tokens per 50 x 50 frame). The paper does not say how the LLM emits a patch; here each
-patch token's hidden state goes through one linear head to every cell's code in each
-codebook (a cross-entropy per cell and codebook). Pre-fusion (Table V): the ego action
-through an MLP to an SE-style per-channel gate on the latents before they are patchified.
+A scene's latent grid (C, h, w) is cut into p x p patches (``occtrain.models.patches``),
+each one LLM token (p = 10 gives 25 tokens per 50 x 50 frame). The paper does not say how
+the LLM emits a patch; here a patch token's hidden state goes through a head to every
+cell's code in each codebook (a cross-entropy per cell and codebook). Pre-fusion (Table
+V): the ego action through an MLP to an SE-style per-channel gate on the latents before
+they are patchified (a per-channel gate commutes with cutting into patches).
 """
 
 from __future__ import annotations
@@ -26,22 +27,28 @@ class PatchEmbedding(nn.Module):
 
 class PatchHead(nn.Module):
     """A patch token's hidden state (B, N, hidden) -> per-cell code logits of each codebook:
-    a list, one (B, N, p * p, K_i) tensor per codebook."""
+    a list, one (B, N, p * p, K_i) tensor per codebook.
 
-    def __init__(self, hidden: int, patch: int, codebook_sizes: list[int]):
+    Factored: the hidden state becomes a ``cell_dim`` vector per cell (position-specific
+    weights), and one classifier per codebook, shared by the cells, scores it. A direct
+    hidden -> p*p*K layer would need 400 M weights at the paper's p = 10, K = 512 x 2.
+    """
+
+    def __init__(self, hidden: int, patch: int, codebook_sizes: list[int], cell_dim: int = 64):
         super().__init__()
         self.cells = patch * patch
-        self.sizes = list(codebook_sizes)
-        self.proj = nn.Linear(hidden, self.cells * sum(self.sizes))
+        self.cell_dim = cell_dim
+        self.to_cells = nn.Sequential(nn.Linear(hidden, self.cells * cell_dim), nn.GELU())
+        self.norm = nn.LayerNorm(cell_dim)
+        self.classify = nn.ModuleList(nn.Linear(cell_dim, k) for k in codebook_sizes)
 
     def forward(self, hidden: torch.Tensor) -> list[torch.Tensor]:
-        b, n, _ = hidden.shape
-        out = self.proj(hidden).view(b, n, self.cells, sum(self.sizes))
-        return list(out.split(self.sizes, dim=-1))
+        cells = self.norm(self.to_cells(hidden).unflatten(-1, (self.cells, self.cell_dim)))
+        return [classify(cells) for classify in self.classify]
 
 
 class PreFusion(nn.Module):
-    """The ego action (B, A) -> a per-channel gate in (0, 2) applied to latents (B, C, h, w).
+    """The ego action (B, A) -> a per-channel gate in (0, 2) applied to latents (B, C, ...).
 
     SE-style: an MLP to C gate logits, 2 * sigmoid so a zero-initialised last layer starts at
     the identity (gate 1) and training moves away from it only as far as the action helps.
@@ -55,4 +62,4 @@ class PreFusion(nn.Module):
 
     def forward(self, latents: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
         gate = 2.0 * torch.sigmoid(self.mlp(action))  # (B, C)
-        return latents * gate[:, :, None, None]
+        return latents * gate.view(*gate.shape, *([1] * (latents.dim() - 2)))

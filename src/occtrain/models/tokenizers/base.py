@@ -47,6 +47,24 @@ class SceneTokenizer(nn.Module):
         """(K, code_dim) current code vectors, e.g. to initialise occupancy-token embeddings."""
         return self.quantizer.codebook
 
+    @property
+    def codebooks(self) -> list[torch.Tensor]:
+        """Every codebook, in the order of ``encode``'s code grids (one here)."""
+        return [self.codebook]
+
+    @property
+    def codebook_sizes(self) -> list[int]:
+        return [int(c.shape[0]) for c in self.codebooks]
+
+    @property
+    def num_codebooks(self) -> int:
+        return len(self.codebooks)
+
+    @property
+    def codebook_names(self) -> list[str]:
+        """Names of the codebooks in metrics (``val/<name>_usage``)."""
+        return ["codebook"] if self.num_codebooks == 1 else [f"codebook{i}" for i in range(self.num_codebooks)]
+
     def encode_latent(self, semantics: torch.Tensor) -> torch.Tensor:
         raise NotImplementedError
 

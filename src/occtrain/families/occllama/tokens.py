@@ -1,0 +1,76 @@
+"""What a world model's sequences are made of, shared by training and both decoders:
+the laid-out token sequence, the per-token payload beside the ids, one generation step."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import NamedTuple
+
+import torch
+
+from occtrain.models.vocab import JointVocab
+
+IGNORE = -100
+
+#: What a world model carries beside the ids, per token: name -> (shape, dtype, fill).
+#: OccLLaMA's carries nothing (a code token's id is its code); Occ-LLM's patch tokens
+#: carry their cells' codes and the action fused into them.
+PayloadSpec = dict[str, tuple[tuple[int, ...], torch.dtype, float]]
+
+
+def empty_payload(spec: PayloadSpec, n: int, device: torch.device | str | None = None) -> dict[str, torch.Tensor]:
+    """The payload of ``n`` tokens that carry none (every field at its fill value)."""
+    return {k: torch.full((n, *shape), fill, dtype=dtype, device=device) for k, (shape, dtype, fill) in spec.items()}
+
+
+def cat_payload(parts: list[dict[str, torch.Tensor]]) -> dict[str, torch.Tensor]:
+    """Payloads of consecutive token runs, joined along the token axis."""
+    if not parts or not parts[0]:
+        return {}
+    return {k: torch.cat([p[k] for p in parts]) for k in parts[0]}
+
+
+def last_waypoint(vocab: JointVocab, recent: torch.Tensor) -> torch.Tensor | None:
+    """Float[2]: the last waypoint of the action block that ``recent`` ids end with, if they
+    end with one (``... x y </act>``); what Occ-LLM fuses into the scene that follows."""
+    if recent.numel() < 3 or int(recent[-1]) != vocab.act_close_id or not bool(vocab.is_action(recent[-3:-1]).all()):
+        return None
+    return vocab.actions_from_ids(recent[-3:-1].cpu()).reshape(2)
+
+
+@dataclass
+class TokenSequence:
+    """One laid-out sequence (all Long[L] except ``scene_target`` Bool[L]; ``payload``
+    holds the world model's per-token extras, each with L rows)."""
+
+    input_ids: torch.Tensor
+    labels: torch.Tensor
+    segment_ids: torch.Tensor
+    position_ids: torch.Tensor
+    scene_target: torch.Tensor
+    #: Long[L]: 0 on the shared trunk, k on branch k (see ``SequenceBuilder.branch``).
+    branch_ids: torch.Tensor
+    payload: dict[str, torch.Tensor] = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return int(self.input_ids.shape[0])
+
+
+class Step(NamedTuple):
+    """One forward of the LLM during generation: logits, the KV cache and the last hidden
+    states (what a patch head reads)."""
+
+    logits: torch.Tensor
+    cache: object
+    hidden: torch.Tensor
+
+
+def prompt_of(spec: PayloadSpec, prefix: torch.Tensor | TokenSequence) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    """A prompt's ids Long[L] and payload: a laid-out sequence carries its own, bare ids
+    carry none (enough for a world model without payload)."""
+    if isinstance(prefix, TokenSequence):
+        return prefix.input_ids.reshape(-1).long(), prefix.payload
+    ids = torch.as_tensor(prefix).reshape(-1).long()
+    return ids, empty_payload(spec, ids.numel())
+
+

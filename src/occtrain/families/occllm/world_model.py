@@ -1,0 +1,228 @@
+"""Occ-LLM's world model (Sec. III-B): an LLM over patch tokens of the MS-VAE's latents.
+
+A scene is ``N = (h/p)(w/p)`` tokens ``<patch_0> ... <patch_{N-1}>`` (the joint
+vocabulary's patches layout), wrapped in ``<occ>`` ... ``</occ>`` when frame separation is
+on. A patch token's id says which patch it is; its input embedding adds what the patch
+holds: each cell's code vector from every codebook (motion and static with the MS-VAE),
+gated per channel by the ego action when pre-fusion is on, flattened and projected to the
+LLM's width. The action fused into a scene is the last waypoint of the action block right
+before it (the ego's position at that frame, in the anchor's ego frame, in Occ-LLM's
+tasks); in a forecast that is the waypoint the model generated for that step.
+
+The LLM emits a patch through a head on a hidden state: per cell and codebook, a code
+(``PatchHead``). With "next_scene" prediction the hidden states are those of a query
+block (as OccLLaMA's, one pass per scene); with "next_token" the output before a patch
+token emits it, patch after patch. The loss is one cross-entropy averaged over every target:
+text, action and marker tokens through the LM head, and each cell's code in each codebook.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from occtrain.families.occllama.tokens import IGNORE, PayloadSpec, last_waypoint
+from occtrain.families.occllama.world_model import OccWorldModel, SequenceBuilder, WorldModelOutput, batch_payload
+from occtrain.families.occllm.config import OccLLMWorldConfig
+from occtrain.families.occllm.patches import PatchEmbedding, PatchHead, PreFusion
+from occtrain.models.patches import patchify, unpatchify
+from occtrain.models.vocab import JointVocab
+
+#: The pre-fusion action: one waypoint (x, y).
+ACTION_DIM = 2
+
+
+class PatchSequenceBuilder(SequenceBuilder):
+    """Lays scenes out as patch tokens with their cells and fused action as payload."""
+
+    def __init__(self, world: OccLLMWorldModel):
+        super().__init__(world.vocab, world.scene_prediction, world.payload_spec)
+        self.world = world
+        self._fusion: torch.Tensor | None = None  # the waypoint that ended the last part, if it was actions
+
+    def _add(self, ids, supervise, seg=0, query_target=None, payload=None) -> None:
+        super()._add(ids, supervise, seg, query_target, payload)
+        self._fusion = None
+
+    def actions(self, xy: torch.Tensor, supervise: bool = False) -> PatchSequenceBuilder:
+        super().actions(xy, supervise)
+        self._fusion = torch.as_tensor(xy, dtype=torch.float32).reshape(-1, 2)[-1]
+        return self
+
+    def scene(self, codes: torch.Tensor, supervise: bool = False) -> PatchSequenceBuilder:
+        v, world = self.vocab, self.world
+        cells = world.cells_of(torch.as_tensor(codes).reshape(-1).long().cpu())
+        n = v.scene_len
+        fusion = self._fusion if self._fusion is not None else torch.zeros(ACTION_DIM)
+        slots = {"cells": cells, "fusion": fusion.expand(n, ACTION_DIM).clone(), "target": torch.full_like(cells, IGNORE)}
+        slot_ids = torch.arange(v.occ_start, v.occ_start + n)
+        if world.frame_separation:
+            self._add(torch.tensor([v.occ_open_id]), supervise)
+        if self.next_scene:
+            self._scenes += 1
+            if supervise:
+                queries = {"cells": torch.zeros_like(cells), "fusion": torch.zeros(n, ACTION_DIM), "target": cells}
+                self._add(v.query_ids(), False, seg=-self._scenes, payload=queries)
+            self._add(slot_ids, False, seg=self._scenes, payload=slots)
+        else:
+            if supervise:  # the output before each patch token emits that patch
+                self._payload[-1]["target"][-1] = cells[0]
+                slots["target"][:-1] = cells[1:]
+            self._add(slot_ids, False, payload=slots)
+        if world.frame_separation:
+            self._add(torch.tensor([v.occ_close_id]), supervise)
+        return self
+
+
+class PatchScene:
+    """Writes a generated scene patch by patch through the patch head (see ``CodeScene``)."""
+
+    def __init__(self, world: OccLLMWorldModel, fusion: torch.Tensor):
+        self.world = world
+        self.fusion = fusion
+        self.patches: list[torch.Tensor] = []
+
+    def _write(self, hidden: torch.Tensor) -> tuple[torch.Tensor, dict]:
+        cells = torch.stack([logits.argmax(-1) for logits in self.world.head(hidden)], -1)  # (n, p*p, codebooks)
+        first = sum(len(p) for p in self.patches)
+        self.patches.append(cells)
+        n = cells.shape[0]
+        v = self.world.vocab
+        ids = torch.arange(v.occ_start + first, v.occ_start + first + n, device=hidden.device)
+        payload = {
+            "cells": cells, "fusion": self.fusion.to(hidden.device).expand(n, ACTION_DIM),
+            "target": torch.full_like(cells, IGNORE),
+        }
+        return ids, payload
+
+    def from_queries(self, logits: torch.Tensor, hidden: torch.Tensor) -> tuple[torch.Tensor, dict]:
+        return self._write(hidden)
+
+    def next_token(self, logits: torch.Tensor, hidden: torch.Tensor) -> tuple[torch.Tensor, dict]:
+        return self._write(hidden.reshape(1, -1))
+
+    def codes(self) -> torch.Tensor:
+        return self.world.codes_of(torch.cat(self.patches))
+
+
+class OccLLMWorldModel(OccWorldModel):
+    """The LLM, Occ-LLM's patch embedding and head, and pre-fusion (see the module docstring).
+
+    ``codebooks`` are the frozen scene tokenizer's (motion then static for the MS-VAE), kept
+    as non-persistent buffers: the tokenizer's export owns them.
+    """
+
+    def __init__(
+        self, llm: nn.Module, vocab: JointVocab, codebooks: list[torch.Tensor], scene_prediction: str,
+        cfg: OccLLMWorldConfig,
+    ):
+        # Not OccWorldModel.__init__: its occupancy projection embeds one token per code.
+        nn.Module.__init__(self)
+        if vocab.patch != cfg.patch_size:
+            raise ValueError(f"the vocabulary lays out {vocab.patch}-patches, the model {cfg.patch_size}")
+        self.llm, self.vocab, self.scene_prediction, self.cfg = llm, vocab, scene_prediction, cfg
+        self.frame_separation = cfg.frame_separation
+        self.num_codebooks = len(codebooks)
+        for i, book in enumerate(codebooks):
+            self.register_buffer(f"codebook_{i}", book.detach().float().clone(), persistent=False)
+        # ``codebook`` tells the decoders the device, as OccLLaMA's does.
+        self.register_buffer("codebook", self.codebook_0, persistent=False)
+        hidden = llm.get_input_embeddings().embedding_dim
+        channels = sum(int(b.shape[1]) for b in codebooks)
+        p = cfg.patch_size
+        self.fusion = PreFusion(ACTION_DIM, channels, cfg.fusion_hidden) if cfg.pre_fusion else None
+        self.patch_embed = PatchEmbedding(channels, p, hidden)
+        self.head = PatchHead(hidden, p, [int(b.shape[0]) for b in codebooks], cfg.cell_dim)
+        cells = (p * p, self.num_codebooks)
+        self.payload_spec: PayloadSpec = {
+            "cells": (cells, torch.long, 0), "fusion": ((ACTION_DIM,), torch.float32, 0.0), "target": (cells, torch.long, IGNORE),
+        }
+
+    # -- scenes <-> patches
+    def cells_of(self, codes: torch.Tensor) -> torch.Tensor:
+        """A scene's codes (flat, codebook-major) -> Long[N, p*p, codebooks], patch by patch."""
+        h, w = self.vocab.scene_hw
+        grid = codes.reshape(1, self.num_codebooks, h, w)
+        p = self.cfg.patch_size
+        return patchify(grid, p).reshape(-1, p * p, self.num_codebooks)
+
+    def codes_of(self, cells: torch.Tensor) -> torch.Tensor:
+        """Inverse of ``cells_of``."""
+        p = self.cfg.patch_size
+        return unpatchify(cells.reshape(1, cells.shape[0], -1), p, self.vocab.scene_hw).reshape(-1)
+
+    def builder(self) -> PatchSequenceBuilder:
+        return PatchSequenceBuilder(self)
+
+    def scene_writer(self, recent: torch.Tensor) -> PatchScene:
+        fusion = last_waypoint(self.vocab, recent)
+        return PatchScene(self, fusion if fusion is not None else torch.zeros(ACTION_DIM))
+
+    # -- the model
+    def embed(self, input_ids: torch.Tensor, payload: dict[str, torch.Tensor] | None = None) -> torch.Tensor:
+        """Input embeddings: a patch token's own row (which patch) plus what it holds."""
+        emb = self.llm.get_input_embeddings()(input_ids)
+        slots = self.vocab.is_occ(input_ids)
+        if not bool(slots.any()):
+            return emb
+        if not payload:
+            raise ValueError("patch tokens need their cells: pass the laid-out sequence, not bare ids")
+        cells = payload["cells"][slots]  # (M, p*p, codebooks)
+        books = [getattr(self, f"codebook_{i}") for i in range(self.num_codebooks)]
+        latents = torch.cat([F.embedding(cells[..., i], book) for i, book in enumerate(books)], -1)  # (M, p*p, C)
+        if self.fusion is not None:
+            latents = self.fusion(latents.transpose(1, 2), payload["fusion"][slots].float()).transpose(1, 2)
+        tokens = self.patch_embed(latents.flatten(1)).to(emb.dtype)
+        # masked_scatter fills the patch positions in order; its backward is a masked select.
+        return emb.masked_scatter(slots[..., None], tokens)
+
+    def forward(self, batch: dict[str, torch.Tensor], output_hidden_states: bool = False) -> WorldModelOutput:
+        """One cross-entropy over text/action/marker targets (LM head) and cell codes (patch head)."""
+        payload = batch_payload(batch)
+        out = self._run(batch["input_ids"], batch["attention_mask"], batch["position_ids"], hidden=True, payload=payload)
+        logits, hidden = out.logits, out.hidden_states[-1]
+        labels = batch["labels"]
+        ce = F.cross_entropy(logits.flatten(0, 1).float(), labels.flatten(), ignore_index=IGNORE, reduction="none").view_as(labels)
+        valid = labels != IGNORE
+        target = payload["target"]
+        emits = (target[..., 0, 0] != IGNORE) & batch["pad_mask"]
+        cell_ce = torch.zeros(labels.shape, dtype=ce.dtype, device=ce.device)  # summed over a patch's cells and codebooks
+        per_patch = target.shape[2] * target.shape[3]
+        if bool(emits.any()):
+            heads = self.head(hidden[emits])
+            picked = target[emits]
+            sums = sum(
+                F.cross_entropy(h.flatten(0, 1).float(), picked[..., i].flatten(), reduction="none").view(picked.shape[:2]).sum(1)
+                for i, h in enumerate(heads)
+            )
+            cell_ce = cell_ce.masked_scatter(emits, sums)
+        n_text, n_cells = valid.sum(1), emits.sum(1) * per_patch
+        text_sum, cell_sum = (ce * valid).sum(1), cell_ce.sum(1)
+        loss = (text_sum.sum() + cell_sum.sum()) / (n_text.sum() + n_cells.sum()).clamp(min=1)
+        per_sample = (text_sum + cell_sum) / (n_text + n_cells).clamp(min=1)
+        return WorldModelOutput(
+            loss, text_sum.sum() / n_text.sum().clamp(min=1), cell_sum.sum() / n_cells.sum().clamp(min=1), logits,
+            hidden if output_hidden_states else None, per_sample,
+        )
+
+    # -- export
+    def scene_token_rows(self) -> None:
+        """None: a patch token's embedding row is the LLM's own (which patch); what the patch
+        holds comes from its payload, which plain transformers does not read."""
+        return None
+
+    def export_config(self) -> dict:
+        return {**super().export_config(), "occllm": {k: getattr(self.cfg, k) for k in self.cfg.__dataclass_fields__}}
+
+    @classmethod
+    def create(cls, llm, vocab, scene_tokenizer, scene_prediction, world_cfg=None) -> OccLLMWorldModel:
+        return cls(llm, vocab, scene_tokenizer.codebooks, scene_prediction, world_cfg or OccLLMWorldConfig())
+
+    @staticmethod
+    def vocab_patch(world_cfg=None) -> int:
+        return (world_cfg or OccLLMWorldConfig()).patch_size
+
+    @classmethod
+    def from_export(cls, data: dict, llm, vocab, scene_tokenizer) -> OccLLMWorldModel:
+        return cls(llm, vocab, scene_tokenizer.codebooks, data["scene_prediction"], OccLLMWorldConfig(**data["occllm"]))
