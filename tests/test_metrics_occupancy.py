@@ -244,3 +244,20 @@ def test_two_process_ddp_equals_single_process(tmp_path):
     assert ddp["occ"]["samples"] == 5 and ddp["plan"]["samples"] == 5 and ddp["qa"]["questions"] == 5
     assert sorted(ddp["cap"]) == ["s0", "s1", "s2", "s3"]  # the repeated s0 counts once
     assert sorted(ddp["cap_idle"]) == ["s0", "s1", "s2"]
+
+
+def test_the_movable_class_miou_averages_the_classes_that_occur():
+    """Three car voxels, two found and one missed, one free voxel called a car: car IoU 2 / 4.
+    Pedestrians occur on neither side and do not count (OccWorld's mIoU would score them 100)."""
+    from occtrain.occ3d import CLASS_INDEX
+
+    gt = torch.full((1, 2, 2, 2), FREE)
+    gt[0, 0, 0, 0] = gt[0, 0, 0, 1] = gt[0, 0, 1, 0] = CLASS_INDEX["car"]
+    pred = torch.full_like(gt, FREE)
+    pred[0, 0, 0, 0] = pred[0, 0, 0, 1] = pred[0, 1, 1, 1] = CLASS_INDEX["car"]
+    metric = OccupancyMetric("occworld", subsets={"movable": ("car", "pedestrian")})
+    metric.update(pred, gt)
+    assert float(metric.compute()["movable_mIoU"]) == pytest.approx(50.0)
+    empty = OccupancyMetric("occworld", subsets={"movable": ("pedestrian",)})
+    empty.update(pred, gt)
+    assert torch.isnan(empty.compute()["movable_mIoU"])

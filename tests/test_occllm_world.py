@@ -79,7 +79,10 @@ def test_pre_fusion_gates_a_scene_by_the_action_before_it_and_learns_from_the_lo
     seq = w.builder().actions(XY).scene(scene_codes(1)).actions(torch.tensor([[2.0, -1.0]]), True).scene(scene_codes(2), True).build()
     slots = v.is_occ(seq.input_ids)
     fused = seq.payload["fusion"][slots]
-    assert fused[:4].tolist() == [[1.0, 0.5]] * 4 and fused[4:].tolist() == [[2.0, -1.0]] * 4
+    # The waypoint's bin centre: what generation reads back from the bins it chose.
+    centre = lambda xy: v.actions_from_ids(v.action_ids(torch.tensor([xy])))[0].tolist()  # noqa: E731
+    assert fused[:4].tolist() == [centre([1.0, 0.5])] * 4 and fused[4:].tolist() == [centre([2.0, -1.0])] * 4
+    assert centre([1.0, 0.5]) != [1.0, 0.5]  # 1.25 m bins: the raw waypoint is not a centre
     # A scene after text fuses no action.
     assert w.builder().text("go straight").scene(scene_codes(1)).build().payload["fusion"].abs().sum() == 0
     out = w(collate([seq], v.pad_id))
@@ -178,11 +181,11 @@ def test_two_codebook_scenes_round_trip_through_the_code_cache(tmp_path, hand_da
     export = save_tokenizer(tok, "occllm_msvae", tiny, tmp_path / "tok")
     assert json.loads((export / "config.json").read_text())["codebook_sizes"] == [8, 16]
     llm = LLMConfig(hidden_size=32, num_layers=1, num_heads=2, intermediate_size=64, text_vocab_size=300)
-    engine = new_world_model(export, llm, TaskConfig(), hand_dataset, family="occllm", world_cfg=OccLLMWorldConfig(patch_size=5))
+    engine = new_world_model(export, llm, TaskConfig(), hand_dataset, family="occllm", world_cfgs={"occllm": OccLLMWorldConfig(patch_size=5)})
     assert engine.vocab.codebook_sizes == [8, 16] and engine.vocab.scene_len == 4
     cache = tmp_path / "cache" / "codes.safetensors"
     engine.build_code_cache(hand_dataset, cache)
-    again = new_world_model(export, llm, TaskConfig(), hand_dataset, family="occllm", world_cfg=OccLLMWorldConfig(patch_size=5))
+    again = new_world_model(export, llm, TaskConfig(), hand_dataset, family="occllm", world_cfgs={"occllm": OccLLMWorldConfig(patch_size=5)})
     again.build_code_cache(hand_dataset, cache)  # read back from the file
     index = DatasetIndex.open(hand_dataset)
     scene, token = next((s, t) for s, ts in index.scenes.items() for t in ts)
@@ -217,3 +220,15 @@ def test_the_tasks_use_the_papers_prompts_and_alternate_waypoints_with_frames(ha
     questions = every_question(clip, cfg)
     assert len(questions) == len(clip.qa) and questions[0][6] == Text("<question-answering>")
     assert questions[0][-2].text.startswith("Question: ") and questions[0][-1].supervise
+
+
+def test_every_parameter_takes_part_in_a_step_without_scenes():
+    """Under DDP a parameter without a gradient stalls the reduction: a batch of text alone
+    still runs the patch embedding, pre-fusion and patch head (on zero rows)."""
+    w = world().train()
+    out = w(collate([w.builder().text("go straight", True).build()], w.vocab.pad_id))
+    out.loss.backward()
+    missing = [n for n, p in w.named_parameters() if p.requires_grad and p.grad is None]
+    assert missing == []
+    with pytest.raises(ValueError, match="pass the laid-out sequence"):
+        w.decoder(prompt(w).build().input_ids)

@@ -21,9 +21,9 @@ from occtrain.errors import ConfigError
 from occtrain.io import atomic_write_json, atomic_write_npz
 from occtrain.progress import console, progress_bar
 
-#: World-model stage kinds, and whether ``--tasks`` defaults to the scorable tasks of
-#: pretraining (forecasting, planning) or of instruction tuning (QA, chain of thought).
-EVAL_KINDS = {"pretrain": "pretrain", "instruct": "instruct", "distill": "instruct"}
+#: The world-model stage kinds ``occtrain eval`` scores (besides tokenizers); by default the
+#: tasks each trained on, as its validation scored them.
+EVAL_KINDS = ("pretrain", "instruct", "distill")
 
 
 def eval_metrics_file(stage_dir: str | Path, split: str = "val", data_root: str | Path | None = None) -> Path:
@@ -75,6 +75,11 @@ def evaluate(
         out_dir = out_dir / Path(root).resolve().name
         cache = out_dir / "cache" / CODE_CACHE  # another dataset's scenes: never the stage's cache
     engine.build_code_cache(root, cache)
+    unknown = [t for t in tasks or [] if t not in engine.task_builders]
+    if unknown:
+        raise ConfigError(f"--tasks: '{unknown[0]}' is not a task of the '{engine.family}' world model; its tasks are {', '.join(engine.task_builders)}")
+    if not tasks and not Evaluator.scorable(engine.tasks.weights):
+        raise ConfigError(f"{stage_dir}: the stage trained no task with a generated answer to score; name some with --tasks")
     # By default the tasks the stage trained on (saved with the export), as its validation scored them.
     evaluator = Evaluator(tasks or Evaluator.scorable(engine.tasks.weights), record=save_predictions is not None, priors=Priors.of(root))
     torch.manual_seed(0)
@@ -108,13 +113,13 @@ def reconstruction_metrics(export: Path, data_root: str, split: str, batch_size:
     from occtrain.data.layout import DatasetIndex
     from occtrain.families import load_tokenizer
     from occtrain.metrics import CodebookUsage, OccupancyMetric, flatten_metrics
-    from occtrain.occ3d import FREE
+    from occtrain.occ3d import FREE, MOVABLE_CLASSES
 
     model = load_tokenizer(export)
     index = DatasetIndex.open(data_root)
     frames = [(scene, token) for scene in index.splits.get(split, []) for token in index.scenes[scene]]
     frames = frames if samples < 0 else frames[:samples]
-    scores = {"occworld": OccupancyMetric(convention="occworld"), "occ3d": OccupancyMetric(convention="occ3d"),
+    scores = {"occworld": OccupancyMetric(convention="occworld", subsets={"movable": MOVABLE_CLASSES}), "occ3d": OccupancyMetric(convention="occ3d"),
               "baseline_free_occworld": OccupancyMetric(convention="occworld")}  # fmt: skip
     usage = {name: CodebookUsage(size) for name, size in zip(model.codebook_names, model.codebook_sizes)}
     with progress_bar(len(frames), f"reconstructing {len(frames)} {split} frames") as advance:
@@ -134,7 +139,8 @@ def reconstruction_metrics(export: Path, data_root: str, split: str, batch_size:
     out: dict[str, float] = {"frames": float(len(frames))}
     for name, metric in scores.items():
         result = metric.compute()
-        out |= {f"{name}_mIoU": float(result["mIoU"]), f"{name}_IoU": float(result["IoU"])}
+        out |= {f"{name}_{k}": float(v) for k, v in result.items() if k.endswith("IoU")}
+
     for name, metric in usage.items():
         out |= flatten_metrics(name, metric.compute())
     return out

@@ -33,6 +33,11 @@ FREE = 17
 #: Classes that count in mIoU (all but free).
 SEMANTIC_CLASSES = tuple(range(FREE))
 CLASS_INDEX = {name: i for i, name in enumerate(CLASS_NAMES)}
+#: The classes that move: vehicles, cyclists and pedestrians (barriers and cones stand
+#: still). Occ-LLM's motion separation and the movable-class mIoU read this grouping.
+MOVABLE_CLASSES: tuple[str, ...] = (
+    "bicycle", "bus", "car", "construction_vehicle", "motorcycle", "pedestrian", "trailer", "truck",
+)
 
 #: Voxel grid: (X, Y, Z) cells, ego frame with x forward, y left, z up.
 GRID_SHAPE: tuple[int, int, int] = (200, 200, 16)

@@ -41,7 +41,8 @@ def engine_for(mode: str, tokenizer: torch.nn.Module) -> WorldModelEngine:
     llm_cfg = LLMConfig(scene_prediction=mode)
     vocab = JointVocab(text, tokenizer.codebook_sizes, tuple(tokenizer.latent_hw), llm_cfg)
     world = OccWorldModel(build_llm(llm_cfg, len(vocab)), vocab, tokenizer.codebook, mode)
-    return WorldModelEngine(tokenizer, world.eval(), text, TaskConfig(context_frames=2, forecast_frames=6))
+    engine = WorldModelEngine(tokenizer, world.eval(), text, TaskConfig(context_frames=2, forecast_frames=6))
+    return engine.default_tasks("pretrain")
 
 
 def time_batches(engine: WorldModelEngine, data: DataConfig, entries, steps: int) -> float:

@@ -5,7 +5,8 @@
     export/
       config.json          occtrain's: stage kind, family, joint vocabulary, world-model
                            settings, the task/prompt config and generation length it trained with
-      model.safetensors    occtrain's own weights (the occupancy projection), not the LLM's
+      model.safetensors    occtrain's own weights, not the LLM's (OccLLaMA: the occupancy
+                           projection; Occ-LLM: patch embedding, patch head, pre-fusion)
       llm/                 a Hugging Face directory: config.json (model_type), model.safetensors
                            under HF names, generation_config.json, the tokenizer with the
                            joint-vocabulary tokens
@@ -14,9 +15,10 @@
 
 ``AutoModelForCausalLM.from_pretrained("export/llm")`` then
 ``PeftModel.from_pretrained(model, "export/llm/adapter")`` gives occtrain's logits on text
-and action tokens. Occupancy tokens enter occtrain's model through a projection of the
-scene codebook; their embedding rows in ``llm/`` hold that projection (unless the LLM ties
-its embeddings to its head), so plain transformers reads them too where attention is causal.
+and action tokens. OccLLaMA's occupancy tokens enter occtrain's model through a projection
+of the scene codebook; their embedding rows in ``llm/`` hold that projection (unless the LLM
+ties its embeddings to its head), so plain transformers reads them too where attention is
+causal. Occ-LLM's patch tokens carry their cells beside the ids, which only occtrain reads.
 """
 
 from __future__ import annotations
@@ -24,7 +26,7 @@ from __future__ import annotations
 import copy
 import tempfile
 from pathlib import Path
-from typing import Any
+from typing import Any, Mapping
 
 import torch
 from omegaconf import OmegaConf
@@ -62,18 +64,23 @@ def world_family(tokenizer_arch: str, requested: str = "") -> FamilySpec:
 
 def new_world_model(
     tokenizer_export: Path, llm_cfg: LLMConfig, tasks: TaskConfig, data_root: str | Path,
-    max_new_text_tokens: int = MAX_NEW_TEXT_TOKENS, family: str = "", world_cfg: Any = None, where: str = "model",
+    max_new_text_tokens: int = MAX_NEW_TEXT_TOKENS, family: str = "", world_cfgs: Mapping[str, Any] | None = None,
+    where: str = "model",
 ) -> WorldModelEngine:
     """A freshly initialised world model over a tokenizer stage's export (what pretraining starts from).
 
-    ``family`` picks the world model (see ``world_family``), ``world_cfg`` its own settings
-    (checked against the tokenizer's latent grid, errors naming ``<where>.<family>.<key>``).
+    ``family`` picks the world model (see ``world_family``); ``world_cfgs`` holds world
+    settings by family, of which the picked family's are used (checked against the
+    tokenizer's latent grid, errors naming ``<where>.<family>.<key>``; absent: its defaults).
     The text tokenizer is the LLM's own when ``llm_cfg.path`` is set, else a BPE trained on
     the dataset's text; training is deterministic, so every DDP rank and a resumed run build
     the same one. The LLM is initialised under the current torch seed.
     """
     scene_tok = load_tokenizer(tokenizer_export)
     spec = world_family(scene_tok.arch, family)
+    world_cfg = (world_cfgs or {}).get(spec.name)
+    if world_cfg is None and spec.world_config is not None:
+        world_cfg = spec.world_config()
     if world_cfg is not None:
         world_cfg.validate(f"{where}.{spec.name}", tuple(scene_tok.latent_hw))
     if llm_cfg.path:

@@ -87,7 +87,7 @@ class WorldModelEngine(torch.nn.Module):
     # -- scenes
     @torch.no_grad()
     def scene_codes(self, batch: dict, needed: list[set[int]]) -> dict[tuple[int, int], torch.Tensor]:
-        """Codes (h*w,) of the clip frames each sample needs: from the code cache when one is
+        """Codes (codebooks * h*w,) of the clip frames each sample needs: from the code cache when one is
         set (then the batch needs no occupancy at all), else encoded in one tokenizer batch."""
         keys = [(b, f) for b, frames in enumerate(needed) for f in sorted(frames)]
         if not keys:

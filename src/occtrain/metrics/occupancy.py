@@ -85,6 +85,16 @@ def scores_from_confmat(confmat: Tensor, convention: str) -> dict[str, Any]:
     }
 
 
+def subset_miou(confmat: Tensor, classes: tuple[str, ...]) -> Tensor:
+    """Mean IoU (percent) over ``classes`` that occur in the ground truth: e.g. the movable
+    classes, where a motion-separated tokenizer should gain. NaN when none occurs."""
+    cm = confmat.double()
+    idx = torch.tensor([CLASS_NAMES.index(c) for c in classes], device=cm.device)
+    tp, gt, pred = cm.diagonal()[idx], cm.sum(1)[idx], cm.sum(0)[idx]
+    present = gt > 0
+    return 100.0 * (tp[present] / (gt + pred - tp)[present]).mean() if bool(present.any()) else torch.tensor(float("nan"))
+
+
 class OccupancyMetric(Metric):
     """Semantic occupancy mIoU / IoU over a dataset, in the ``occ3d`` or ``occworld`` convention.
 
@@ -92,15 +102,18 @@ class OccupancyMetric(Metric):
     ``mask`` is ``mask_camera`` and is required by ``occ3d`` with ``use_mask=True``, refused
     by ``occworld`` (which counts every voxel). ``compute()`` returns ``convention``,
     ``mIoU``, ``IoU`` (percent, 0-dim float64 tensors), ``per_class`` (class name -> IoU %)
-    and ``samples``. See the module docstring for the two conventions' rules.
+    and ``samples``; with ``subsets`` (name -> class names) also ``<name>_mIoU`` over the
+    classes of each that occur (``subset_miou``). See the module docstring for the two
+    conventions' rules.
     """
 
     is_differentiable = False
     higher_is_better = True
     full_state_update = False
 
-    def __init__(self, convention: str = "occ3d", use_mask: bool = True, **kwargs: Any):
+    def __init__(self, convention: str = "occ3d", use_mask: bool = True, subsets: dict[str, tuple[str, ...]] | None = None, **kwargs: Any):
         super().__init__(**kwargs)
+        self.subsets = dict(subsets or {})
         if convention not in CONVENTIONS:
             raise ValueError(f"unknown convention '{convention}'; expected one of {', '.join(CONVENTIONS)}")
         self.convention = convention
@@ -118,7 +131,9 @@ class OccupancyMetric(Metric):
 
     def compute(self) -> dict[str, Any]:
         result = scores_from_confmat(self.confmat, self.convention)
-        return {"convention": self.convention, **result, "samples": self.samples.clone()}
+        # Here the state is the one summed over every process (torchmetrics syncs it for compute).
+        subsets = {f"{name}_mIoU": subset_miou(self.confmat, classes) for name, classes in self.subsets.items()}
+        return {"convention": self.convention, **result, **subsets, "samples": self.samples.clone()}
 
 
 def horizon_label(index: int) -> str:

@@ -206,7 +206,7 @@ class JointVocab:
         return self.quantizer.decode(bins)
 
     def query_ids(self) -> torch.Tensor:
-        """The Q scene-query ids, one per latent cell in row-major order."""
+        """The Q scene-query ids, one per scene token (latent cell and codebook, or patch), in order."""
         return torch.arange(self.query_start, self.size)
 
     # -- masks

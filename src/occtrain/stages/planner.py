@@ -96,6 +96,11 @@ class PlannerStage(Stage):
                     "or set model.meta_source=ground_truth"
                 )
             self.teacher = load_world_model(next(iter(ctx.inputs.values()))).with_settings(max_new_text_tokens=cfg.max_new_text_tokens)
+            if "cot_planning" not in self.teacher.task_builders:
+                raise ConfigError(
+                    f"stages '{ctx.spec.name}': model.meta_source 'generated' reads a chain of thought, which the "
+                    f"'{self.teacher.family}' world model has no task for; set model.meta_source=ground_truth"
+                )
             self.teacher.requires_grad_(False).eval()
             self.teacher.build_code_cache(ctx.data.root, ctx.stage_dir / "cache" / CODE_CACHE)
         self._cot: dict[str, CotOutput | None] = {}  # sample token -> the frozen model's chain of thought

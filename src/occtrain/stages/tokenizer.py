@@ -21,7 +21,7 @@ from occtrain.errors import ConfigError
 from occtrain.families import save_tokenizer, tokenizer_archs, tokenizer_config
 from occtrain.metrics import CodebookUsage, OccupancyMetric
 from occtrain.models import count_parameters
-from occtrain.occ3d import FREE
+from occtrain.occ3d import FREE, MOVABLE_CLASSES
 from occtrain.stages import StageKind, register
 from occtrain.stages.base import Stage, StageContext, StageReport
 from occtrain.stages.common import ValidationMeans, configure_adamw, freeze_prefixes
@@ -51,7 +51,7 @@ class TokenizerStage(Stage):
         self.arch_cfg = to_container(cfg[cfg.arch])
         self.model = archs[cfg.arch].model(arch_cfg)
         freeze_prefixes(self.model, list(ctx.spec.freeze))
-        self.recon_occworld = OccupancyMetric(convention="occworld")
+        self.recon_occworld = OccupancyMetric(convention="occworld", subsets={"movable": MOVABLE_CLASSES})
         self.recon_occ3d = OccupancyMetric(convention="occ3d")
         #: The trivial baseline: an empty (all free) scene.
         self.baseline_free = OccupancyMetric(convention="occworld")
@@ -94,6 +94,8 @@ class TokenizerStage(Stage):
             result = metric.compute()
             self.log(f"{prefix}_mIoU", result["mIoU"])
             self.log(f"{prefix}_IoU", result["IoU"])
+            if "movable_mIoU" in result:  # where motion separation should show
+                self.log(f"{prefix}_movable_mIoU", result["movable_mIoU"].float())
             metric.reset()
         for name, usage in self.code_usage.items():
             result = usage.compute()

@@ -47,10 +47,10 @@ class WorldModelStage(Stage):
         tasks = to_object(cfg.tasks)
         export = next(iter(ctx.inputs.values()))
         if ctx.spec.kind == "pretrain":
-            section = cfg.family or None
-            world_cfg = to_object(cfg[section]) if section and section in cfg else None
+            # Every family's section: the one of the family the tokenizer picks is used.
+            sections = {name: to_object(cfg[name]) for name, spec in families().items() if spec.world_config is not None}
             self.engine = new_world_model(
-                export, cfg.llm, tasks, ctx.data.root, cfg.max_new_text_tokens, cfg.family, world_cfg, where,
+                export, cfg.llm, tasks, ctx.data.root, cfg.max_new_text_tokens, cfg.family, sections, where,
             )
         else:
             self.engine = load_world_model(export).with_settings(tasks, cfg.max_new_text_tokens)

@@ -4,10 +4,11 @@ Each sequence runs its own small program (a generator): it asks for tokens to be
 picks its next token from the logits it gets back, exactly as :class:`GreedyDecoder`
 does for one sequence (tokens are queued and fed lazily with the next forward, a scene
 in "next_scene" mode is one forward over the query block). :func:`decode_batch` steps all
-programs in lockstep, one batched forward per step.
+programs in lockstep, one batched forward per step. Tokens carry the world model's per-token payload
+(``tokens.PayloadSpec``; none for OccLLaMA) beside their ids, padded like them.
 
 Sequences differ in length and in what they feed at a step (one text token here, a query
-block of h*w tokens there), so every forward is padded on the right and the padding is
+block of a whole scene's tokens there), so every forward is padded on the right and the padding is
 masked out rather than shifted: a boolean ``alive`` row per sequence marks the cache
 slots later tokens may attend to (real, kept tokens), and each sequence carries its own
 position ids. Padding slots and the transient query blocks are never alive, which is
@@ -23,6 +24,7 @@ from typing import Generator, Union
 import torch
 
 from occtrain.families.occllama.tokens import Step, cat_payload, empty_payload, prompt_of
+from occtrain.families.occllama.tokens import rows as hidden_rows  # `rows` names the cache rows below
 from occtrain.models.attention import allowed_pairs, scene_segments
 
 
@@ -91,7 +93,7 @@ def _program(world, prefix, answers: list[Answer], device: torch.device) -> Prog
         nonlocal last
         if queued or last is None:
             step = yield _Feed(*take())
-            last = Step(step.logits[-1], None, step.hidden[-1])
+            last = Step(step.logits[-1], None, hidden_rows(step.hidden, -1))
         return last
 
     def pick(id_range: tuple[int, int]) -> Generator[_Feed, Step, int]:
@@ -132,7 +134,7 @@ def _program(world, prefix, answers: list[Answer], device: torch.device) -> Prog
                 extras = cat_payload([extras, empty_payload(spec, n, device)])
                 step = yield _Feed(torch.cat([ids, queries]), torch.cat([segs, torch.full_like(queries, -1)]), extras, n)
                 last = None  # the kept tokens' last output is not needed again: a scene follows
-                scene_ids, extra = writer.from_queries(step.logits[-n:], step.hidden[-n:])
+                scene_ids, extra = writer.from_queries(step.logits[-n:], hidden_rows(step.hidden, slice(-n, None)))
                 queue(scene_ids, next_segment, extra)
                 next_segment += 1
             else:
@@ -191,7 +193,7 @@ def decode_batch(world, prefixes: list, answers: list[list[Answer]]) -> list[lis
         kept += keep.sum(1)
         for i, f in enumerate(feeds):
             try:
-                feeds[i] = programs[rows[i]].send(Step(step.logits[i, : len(f.ids)], None, step.hidden[i, : len(f.ids)]))
+                feeds[i] = programs[rows[i]].send(Step(step.logits[i, : len(f.ids)], None, hidden_rows(step.hidden, i, slice(None, len(f.ids)))))
             except StopIteration as stop:
                 feeds[i] = None
                 results[rows[i]] = stop.value

@@ -220,7 +220,7 @@ def validate_tasks(cfg: TaskConfig, key: str, builders: dict | None = None) -> N
             raise ConfigError(f"{key}.weights: unknown task '{name}'; tasks are {', '.join(builders)}")
         if weight < 0:
             raise ConfigError(f"{key}.weights.{name}: weight {weight} is negative")
-    if cfg.weights and not any(w > 0 for w in cfg.weights.values()):
+    if not any(w > 0 for w in cfg.weights.values()):
         raise ConfigError(f"{key}.weights: no task has a positive weight")
     if cfg.questions_per_sample < 1:
         raise ConfigError(f"{key}.questions_per_sample: {cfg.questions_per_sample} must be at least 1")
@@ -235,6 +235,8 @@ def sample_task(clip: Clip, cfg: TaskConfig, seed: int, token: str, builders: di
     """
     rng = clip_rng(seed, token)
     names = [n for n, w in cfg.weights.items() if w > 0]
+    if not names:
+        raise ValueError("no task has a positive weight: give the task settings weights (engine.default_tasks fills a family's)")
     p = np.asarray([cfg.weights[n] for n in names], dtype=np.float64)
     for name in rng.choice(names, size=len(names), replace=False, p=p / p.sum()):
         parts = (builders or TASKS)[str(name)](clip, cfg, rng)

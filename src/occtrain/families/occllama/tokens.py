@@ -58,11 +58,16 @@ class TokenSequence:
 
 class Step(NamedTuple):
     """One forward of the LLM during generation: logits, the KV cache and the last hidden
-    states (what a patch head reads)."""
+    states (what a patch head reads; None for a model that does not read them)."""
 
     logits: torch.Tensor
     cache: object
-    hidden: torch.Tensor
+    hidden: torch.Tensor | None
+
+
+def rows(hidden: torch.Tensor | None, *index) -> torch.Tensor | None:
+    """``hidden[index]``, or None when there are no hidden states."""
+    return None if hidden is None else hidden[index]
 
 
 def prompt_of(spec: PayloadSpec, prefix: torch.Tensor | TokenSequence) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:

@@ -40,7 +40,7 @@ from torch import nn
 from occtrain.config.llm import SCENE_PREDICTION_MODES
 from occtrain.families.occllama.batch_decoding import ActionAnswer, Answer, TextAnswer, decode_batch
 from occtrain.models.attention import additive, allowed_pairs, chunk_allowed, scene_segments
-from occtrain.families.occllama.tokens import IGNORE, PayloadSpec, Step, TokenSequence, cat_payload, empty_payload, prompt_of
+from occtrain.families.occllama.tokens import IGNORE, PayloadSpec, Step, TokenSequence, cat_payload, empty_payload, prompt_of, rows
 from occtrain.models.vocab import JointVocab
 
 class SequenceBuilder:
@@ -281,8 +281,10 @@ class OccWorldModel(nn.Module):
 
     def step(self, input_ids, attention_mask, position_ids, past_key_values=None, use_cache=False, payload=None) -> Step:
         """The LLM's output for ``input_ids`` (and their payload) under a boolean 4D mask."""
-        out = self._run(input_ids, attention_mask, position_ids, past_key_values, use_cache, hidden=True, payload=payload)
-        return Step(out.logits, out.past_key_values, out.hidden_states[-1])
+        # Only a model with a payload emits scenes from hidden states: the others skip keeping every layer's.
+        hidden = bool(self.payload_spec)
+        out = self._run(input_ids, attention_mask, position_ids, past_key_values, use_cache, hidden=hidden, payload=payload)
+        return Step(out.logits, out.past_key_values, out.hidden_states[-1] if hidden else None)
 
     def forward(self, batch: dict[str, torch.Tensor], output_hidden_states: bool = False) -> WorldModelOutput:
         """Cross-entropy over all targets (one uniform loss, as in the paper); the text
@@ -333,7 +335,7 @@ class OccWorldModel(nn.Module):
 
     @torch.no_grad()
     def generate_scene(self, prefix_ids: torch.Tensor) -> torch.Tensor:
-        """Greedy ``<occ>`` scene after ``prefix_ids``: Long[h*w] codes."""
+        """Greedy ``<occ>`` scene after ``prefix_ids``: its codes, flat and codebook-major."""
         return self.decoder(prefix_ids).scene()
 
     @property
@@ -437,14 +439,14 @@ class GreedyDecoder:
             allowed = allowed_pairs(all_seg[None], torch.ones_like(all_seg[None], dtype=torch.bool))
             full = torch.arange(past + n, device=self.device)[None]
             step = self.world.step(all_ids[None], allowed[:, None], full, payload=full_payload)
-            step = Step(step.logits[:, past:], None, step.hidden[:, past:])
-        step = Step(step.logits[0], step.cache, step.hidden[0])
+            step = Step(step.logits[:, past:], None, rows(step.hidden, slice(None), slice(past, None)))
+        step = Step(step.logits[0], step.cache, rows(step.hidden, 0))
         self.ids, self.seg = torch.cat([self.ids, ids[:keep]]), torch.cat([self.seg, seg[:keep]])
         self.payload = cat_payload([self.payload, {k: v[:keep] for k, v in payload.items()}])
         self.pending_ids, self.pending_seg = ids[:0], seg[:0]
         self.pending_payload = {k: v[:0] for k, v in payload.items()}
         if keep:
-            self.last = Step(step.logits[keep - 1], None, step.hidden[keep - 1])
+            self.last = Step(step.logits[keep - 1], None, rows(step.hidden, keep - 1))
         return step
 
     def flush(self) -> torch.Tensor:
@@ -511,7 +513,7 @@ class GreedyDecoder:
         if self.world.scene_prediction == "next_scene":
             queries = v.query_ids()
             step = self._advance(queries, transient_seg=-1)
-            ids, payload = writer.from_queries(step.logits[-len(queries):], step.hidden[-len(queries):])
+            ids, payload = writer.from_queries(step.logits[-len(queries):], rows(step.hidden, slice(-len(queries), None)))
             self._queue(ids, torch.full_like(ids, self.next_segment), payload)
             self.next_segment += 1
         else:

@@ -6,13 +6,8 @@ from dataclasses import dataclass, field
 
 from occtrain.errors import ConfigError
 from occtrain.families.occworld.config import OccWorldVQVAEConfig
-from occtrain.occ3d import CLASS_INDEX, FREE, NUM_CLASSES
+from occtrain.occ3d import CLASS_INDEX, FREE, MOVABLE_CLASSES, NUM_CLASSES
 
-#: The paper does not list its movable classes; these are Occ3D's vehicles, cyclists and
-#: pedestrians (barriers and cones stand still).
-MOVABLE_CLASSES: tuple[str, ...] = (
-    "bicycle", "bus", "car", "construction_vehicle", "motorcycle", "pedestrian", "trailer", "truck",
-)
 
 
 @dataclass
@@ -26,6 +21,7 @@ class MSVAEConfig(OccWorldVQVAEConfig):
     """
 
     conv3d: bool = True
+    # The paper does not list its movable classes: Occ3D's vehicles, cyclists and pedestrians.
     motion_separation: bool = True
     num_codes_motion: int = 512
     movable_classes: list[str] = field(default_factory=lambda: list(MOVABLE_CLASSES))

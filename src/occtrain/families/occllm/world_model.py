@@ -22,7 +22,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from occtrain.families.occllama.tokens import IGNORE, PayloadSpec, last_waypoint
+from occtrain.families.occllama.tokens import IGNORE, PayloadSpec, TokenSequence, last_waypoint
 from occtrain.families.occllama.world_model import OccWorldModel, SequenceBuilder, WorldModelOutput, batch_payload
 from occtrain.families.occllm.config import OccLLMWorldConfig
 from occtrain.families.occllm.patches import PatchEmbedding, PatchHead, PreFusion
@@ -47,7 +47,14 @@ class PatchSequenceBuilder(SequenceBuilder):
 
     def actions(self, xy: torch.Tensor, supervise: bool = False) -> PatchSequenceBuilder:
         super().actions(xy, supervise)
-        self._fusion = torch.as_tensor(xy, dtype=torch.float32).reshape(-1, 2)[-1]
+        # The bin centre, not the raw waypoint: generation fuses what it reads back from its bins.
+        xy = torch.as_tensor(xy, dtype=torch.float32).reshape(-1, 2)
+        self._fusion = self.vocab.actions_from_ids(self.vocab.action_ids(xy))[-1]
+        return self
+
+    def branch(self) -> PatchSequenceBuilder:
+        super().branch()
+        self._fusion = None
         return self
 
     def scene(self, codes: torch.Tensor, supervise: bool = False) -> PatchSequenceBuilder:
@@ -155,6 +162,18 @@ class OccLLMWorldModel(OccWorldModel):
     def builder(self) -> PatchSequenceBuilder:
         return PatchSequenceBuilder(self)
 
+    def decoder(self, prefix: TokenSequence, use_cache: bool = True):
+        """A greedy decoder after a laid-out prompt (patch tokens need their payload)."""
+        return super().decoder(self._laid_out(prefix), use_cache)
+
+    def generate_batch(self, prefixes: list[TokenSequence], answers: list[list]) -> list[list]:
+        return super().generate_batch([self._laid_out(p) for p in prefixes], answers)
+
+    def _laid_out(self, prefix):
+        if not isinstance(prefix, TokenSequence) and bool(self.vocab.is_occ(torch.as_tensor(prefix)).any()):
+            raise ValueError("a prompt with patch tokens needs their cells: pass the laid-out sequence (builder().build()), not bare ids")
+        return prefix
+
     def scene_writer(self, recent: torch.Tensor) -> PatchScene:
         fusion = last_waypoint(self.vocab, recent)
         return PatchScene(self, fusion if fusion is not None else torch.zeros(ACTION_DIM))
@@ -164,10 +183,12 @@ class OccLLMWorldModel(OccWorldModel):
         """Input embeddings: a patch token's own row (which patch) plus what it holds."""
         emb = self.llm.get_input_embeddings()(input_ids)
         slots = self.vocab.is_occ(input_ids)
-        if not bool(slots.any()):
-            return emb
         if not payload:
-            raise ValueError("patch tokens need their cells: pass the laid-out sequence, not bare ids")
+            if bool(slots.any()):
+                raise ValueError("patch tokens need their cells: pass the laid-out sequence, not bare ids")
+            return emb
+        # No early return when a batch has no patch: under DDP every parameter must take
+        # part in every step (zero rows give zero gradients).
         cells = payload["cells"][slots]  # (M, p*p, codebooks)
         books = [getattr(self, f"codebook_{i}") for i in range(self.num_codebooks)]
         latents = torch.cat([F.embedding(cells[..., i], book) for i, book in enumerate(books)], -1)  # (M, p*p, C)
@@ -187,16 +208,16 @@ class OccLLMWorldModel(OccWorldModel):
         valid = labels != IGNORE
         target = payload["target"]
         emits = (target[..., 0, 0] != IGNORE) & batch["pad_mask"]
-        cell_ce = torch.zeros(labels.shape, dtype=ce.dtype, device=ce.device)  # summed over a patch's cells and codebooks
         per_patch = target.shape[2] * target.shape[3]
-        if bool(emits.any()):
-            heads = self.head(hidden[emits])
-            picked = target[emits]
-            sums = sum(
-                F.cross_entropy(h.flatten(0, 1).float(), picked[..., i].flatten(), reduction="none").view(picked.shape[:2]).sum(1)
-                for i, h in enumerate(heads)
-            )
-            cell_ce = cell_ce.masked_scatter(emits, sums)
+        # The head runs even on zero rows: under DDP every parameter takes part in every step.
+        heads = self.head(hidden[emits])
+        picked = target[emits]
+        sums = sum(
+            F.cross_entropy(h.flatten(0, 1).float(), picked[..., i].flatten(), reduction="none").view(picked.shape[:2]).sum(1)
+            for i, h in enumerate(heads)
+        )
+        # Summed over a patch's cells and codebooks, at the position that emits the patch.
+        cell_ce = torch.zeros(labels.shape, dtype=ce.dtype, device=ce.device).masked_scatter(emits, sums)
         n_text, n_cells = valid.sum(1), emits.sum(1) * per_patch
         text_sum, cell_sum = (ce * valid).sum(1), cell_ce.sum(1)
         loss = (text_sum.sum() + cell_sum.sum()) / (n_text.sum() + n_cells.sum()).clamp(min=1)
