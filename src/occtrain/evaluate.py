@@ -112,38 +112,22 @@ def reconstruction_metrics(export: Path, data_root: str, split: str, batch_size:
     scene, and each codebook's usage and perplexity over the split."""
     from occtrain.data.layout import DatasetIndex
     from occtrain.families import load_tokenizer
-    from occtrain.metrics import CodebookUsage, OccupancyMetric, flatten_metrics
-    from occtrain.occ3d import FREE, MOVABLE_CLASSES
+    from occtrain.metrics.reconstruction import ReconstructionMetrics
 
     model = load_tokenizer(export)
     index = DatasetIndex.open(data_root)
     frames = [(scene, token) for scene in index.splits.get(split, []) for token in index.scenes[scene]]
     frames = frames if samples < 0 else frames[:samples]
-    scores = {"occworld": OccupancyMetric(convention="occworld", subsets={"movable": MOVABLE_CLASSES}), "occ3d": OccupancyMetric(convention="occ3d"),
-              "baseline_free_occworld": OccupancyMetric(convention="occworld")}  # fmt: skip
-    usage = {name: CodebookUsage(size) for name, size in zip(model.codebook_names, model.codebook_sizes)}
+    recon = ReconstructionMetrics(dict(zip(model.codebook_names, model.codebook_sizes)))
     with progress_bar(len(frames), f"reconstructing {len(frames)} {split} frames") as advance:
         for i in range(0, len(frames), batch_size):
             labels = [index.labels(scene, token) for scene, token in frames[i : i + batch_size]]
             sem = torch.from_numpy(np.stack([x["semantics"] for x in labels])).long()
             mask = torch.from_numpy(np.stack([x["mask_camera"] for x in labels])).bool()
             codes = model.encode(sem)
-            pred = model.decode(codes).argmax(1)
-            scores["occworld"].update(pred, sem)
-            scores["occ3d"].update(pred, sem, mask)
-            scores["baseline_free_occworld"].update(torch.full_like(sem, FREE), sem)
-            grids = codes if codes.dim() == 4 else codes[:, None]
-            for j, metric in enumerate(usage.values()):
-                metric.update(grids[:, j])
+            recon.update(model.decode(codes).argmax(1), sem, mask, codes)
             advance(len(labels))
-    out: dict[str, float] = {"frames": float(len(frames))}
-    for name, metric in scores.items():
-        result = metric.compute()
-        out |= {f"{name}_{k}": float(v) for k, v in result.items() if k.endswith("IoU")}
-
-    for name, metric in usage.items():
-        out |= flatten_metrics(name, metric.compute())
-    return out
+    return {"frames": float(len(frames)), **recon.compute()}
 
 
 def _speedup(teacher_export: Path, student, data_root: str, split: str) -> dict[str, float]:

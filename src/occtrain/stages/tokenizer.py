@@ -19,9 +19,8 @@ import torch
 from occtrain.config import to_container
 from occtrain.errors import ConfigError
 from occtrain.families import save_tokenizer, tokenizer_archs, tokenizer_config
-from occtrain.metrics import CodebookUsage, OccupancyMetric
+from occtrain.metrics.reconstruction import ReconstructionMetrics
 from occtrain.models import count_parameters
-from occtrain.occ3d import FREE, MOVABLE_CLASSES
 from occtrain.stages import StageKind, register
 from occtrain.stages.base import Stage, StageContext, StageReport
 from occtrain.stages.common import ValidationMeans, configure_adamw, freeze_prefixes
@@ -51,15 +50,9 @@ class TokenizerStage(Stage):
         self.arch_cfg = to_container(cfg[cfg.arch])
         self.model = archs[cfg.arch].model(arch_cfg)
         freeze_prefixes(self.model, list(ctx.spec.freeze))
-        self.recon_occworld = OccupancyMetric(convention="occworld", subsets={"movable": MOVABLE_CLASSES})
-        self.recon_occ3d = OccupancyMetric(convention="occ3d")
-        #: The trivial baseline: an empty (all free) scene.
-        self.baseline_free = OccupancyMetric(convention="occworld")
+        #: Both conventions, an empty scene as the baseline, code use per codebook (motion and static for the MS-VAE).
+        self.recon = ReconstructionMetrics(dict(zip(self.model.codebook_names, self.model.codebook_sizes)))
         self.val_means = ValidationMeans("val/loss")
-        #: Code use over the whole val split, per codebook (motion and static for the MS-VAE).
-        self.code_usage = torch.nn.ModuleDict(
-            {name: CodebookUsage(size) for name, size in zip(self.model.codebook_names, self.model.codebook_sizes)}
-        )
         self._pictures: list[tuple] = []
 
     # -- training
@@ -79,29 +72,12 @@ class TokenizerStage(Stage):
         pred = out.logits.argmax(1)
         if batch_idx == 0:  # kept for the dashboard's ground truth vs reconstruction pictures
             self._pictures = [(sem[i].to(torch.uint8).cpu().numpy(), pred[i].to(torch.uint8).cpu().numpy()) for i in range(min(2, len(sem)))]
-        self.recon_occworld.update(pred, sem)
-        self.baseline_free.update(torch.full_like(sem, FREE), sem)
-        self.recon_occ3d.update(pred, sem, batch["mask_camera"])
-        codes = out.codes if len(self.code_usage) > 1 else out.codes[:, None]  # (B, codebooks, h, w)
-        for i, usage in enumerate(self.code_usage.values()):
-            usage.update(codes[:, i])
+        self.recon.update(pred, sem, batch["mask_camera"], out.codes)
         self.val_means.update("val/loss", out.losses["loss"], sem.shape[0])
 
     def on_validation_epoch_end(self) -> None:
-        for prefix, metric in (
-            ("val/occworld", self.recon_occworld), ("val/occ3d", self.recon_occ3d), ("val/baseline_free_occworld", self.baseline_free),
-        ):
-            result = metric.compute()
-            self.log(f"{prefix}_mIoU", result["mIoU"])
-            self.log(f"{prefix}_IoU", result["IoU"])
-            if "movable_mIoU" in result:  # where motion separation should show
-                self.log(f"{prefix}_movable_mIoU", result["movable_mIoU"].float())
-            metric.reset()
-        for name, usage in self.code_usage.items():
-            result = usage.compute()
-            self.log(f"val/{name}_usage", result["usage"])
-            self.log(f"val/{name}_perplexity", result["perplexity"])
-            usage.reset()
+        self.log_dict({f"val/{k}": v for k, v in self.recon.compute().items()})
+        self.recon.reset()
         self.log_dict(self.val_means.pop())
 
     def configure_optimizers(self) -> dict:

@@ -133,8 +133,6 @@ class OccLLMWorldModel(OccWorldModel):
         self.num_codebooks = len(codebooks)
         for i, book in enumerate(codebooks):
             self.register_buffer(f"codebook_{i}", book.detach().float().clone(), persistent=False)
-        # ``codebook`` tells the decoders the device, as OccLLaMA's does.
-        self.register_buffer("codebook", self.codebook_0, persistent=False)
         hidden = llm.get_input_embeddings().embedding_dim
         channels = sum(int(b.shape[1]) for b in codebooks)
         p = cfg.patch_size
@@ -145,6 +143,11 @@ class OccLLMWorldModel(OccWorldModel):
         self.payload_spec: PayloadSpec = {
             "cells": (cells, torch.long, 0), "fusion": ((ACTION_DIM,), torch.float32, 0.0), "target": (cells, torch.long, IGNORE),
         }
+
+    @property
+    def codebook(self) -> torch.Tensor:
+        """The first codebook: it tells the decoders the device, as OccLLaMA's buffer does."""
+        return self.codebook_0
 
     # -- scenes <-> patches
     def cells_of(self, codes: torch.Tensor) -> torch.Tensor:

@@ -1,0 +1,49 @@
+"""A scene tokenizer's reconstruction over a split: what its stage validates and
+``occtrain eval`` reports, in one place."""
+
+from __future__ import annotations
+
+import torch
+
+from occtrain.metrics.codebook import CodebookUsage
+from occtrain.metrics.occupancy import OccupancyMetric
+from occtrain.occ3d import FREE, MOVABLE_CLASSES
+
+
+class ReconstructionMetrics(torch.nn.Module):
+    """IoU/mIoU in the ``occworld`` convention (with the movable classes' mIoU, where motion
+    separation should show) and the ``occ3d`` one, an empty scene as the trivial baseline,
+    and each codebook's usage and perplexity. ``codebooks``: name -> size, in the order of
+    the tokenizer's code grids."""
+
+    def __init__(self, codebooks: dict[str, int]):
+        super().__init__()
+        self.scores = torch.nn.ModuleDict({
+            "occworld": OccupancyMetric(convention="occworld", subsets={"movable": MOVABLE_CLASSES}),
+            "occ3d": OccupancyMetric(convention="occ3d"),
+            "baseline_free_occworld": OccupancyMetric(convention="occworld"),
+        })
+        self.usage = torch.nn.ModuleDict({name: CodebookUsage(size) for name, size in codebooks.items()})
+
+    def update(self, pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor, codes: torch.Tensor) -> None:
+        """Label volumes (B, X, Y, Z), ``mask_camera``, and the codes: (B, h, w) for one
+        codebook, (B, codebooks, h, w) for several."""
+        self.scores["occworld"].update(pred, target)
+        self.scores["occ3d"].update(pred, target, mask)
+        self.scores["baseline_free_occworld"].update(torch.full_like(target, FREE), target)
+        grids = codes if codes.dim() == 4 else codes[:, None]
+        for i, usage in enumerate(self.usage.values()):
+            usage.update(grids[:, i])
+
+    def compute(self) -> dict[str, float]:
+        """``occworld_mIoU``, ``occworld_movable_mIoU``, ``occ3d_IoU``, ..., ``<codebook>_usage``, ``<codebook>_perplexity``."""
+        out: dict[str, float] = {}
+        for name, metric in self.scores.items():
+            out |= {f"{name}_{k}": float(v) for k, v in metric.compute().items() if k.endswith("IoU")}
+        for name, usage in self.usage.items():
+            out |= {f"{name}_{k}": v for k, v in usage.compute().items()}
+        return out
+
+    def reset(self) -> None:
+        for metric in [*self.scores.values(), *self.usage.values()]:
+            metric.reset()
