@@ -174,7 +174,7 @@ def test_consumes_are_checked_when_planning(probe_kind, tmp_path):
 def test_a_world_model_stage_reads_only_its_kind_of_export(tmp_path):
     with pytest.raises(ConfigError, match="an? instruct stage cannot consume 'tok', a tokenizer stage; it reads pretrain or instruct or distill"):
         plan_text(tmp_path, "  - {name: tok, kind: tokenizer}\n  - {name: tune, kind: instruct, consumes: [tok]}\n")
-    with pytest.raises(ConfigError, match="a pretrain stage consumes exactly 1 earlier stage"):
+    with pytest.raises(ConfigError, match=r"a pretrain stage consumes 1 to 2 earlier stage\(s\) \(tokenizer or vision\), got 0"):
         plan_text(tmp_path, "  - {name: lm, kind: pretrain}\n")
 
 

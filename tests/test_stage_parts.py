@@ -37,8 +37,8 @@ def test_ego_features_one_hot_layout():
     anchor = {"command": "turn left", "ego_speed": 5.0, "ego_accel": -1.5, "ego_yaw_rate": 0.2,
               "ego_past": [[-4, 0], [-3, 0], [-2, 0], [-1, 0]], "ego_past_mask": [0, 1, 1, 1]}
     meta = {"speed": "decelerate", "direction": "left"}
-    f = ego_features(anchor, meta, use_past=True)
-    assert f.shape == (feature_size(True),)
+    f = ego_features(anchor, meta, ["meta_action", "ego_state", "command", "past"])
+    assert f.shape == (feature_size(["meta_action", "ego_state", "command", "past"]),)
     s, d = len(META_SPEEDS), len(META_DIRECTIONS)
     assert f[:s].tolist() == [float(x == "decelerate") for x in META_SPEEDS]
     assert f[s : s + d].tolist() == [float(x == "left") for x in META_DIRECTIONS]

@@ -18,7 +18,7 @@ from occtrain.data.schema import (
     FrameAnnotation,
 )
 from occtrain.data.synth import SyntheticScene, generate_scene
-from occtrain.data.synth.annotate import BEAR_HEADING_DEG, BEAR_LATERAL_M, TURN_HEADING_DEG
+from occtrain.data.synth.annotate import SIDECAR_RULES
 from occtrain.data.synth.grid import GROUND_LAYERS, GROUND_TOP_Z
 from occtrain.data.cameras import nuscenes_rig
 from occtrain.data.synth.raster import masks
@@ -276,11 +276,11 @@ def test_meta_action_follows_the_documented_rule(scene):
         lateral = to_ego(f, frames[i + 6]["ego_pose"]["translation"][:2])[1]
         if max(v) <= STOP_SPEED:
             direction = "stop"
-        elif abs(turn) > TURN_HEADING_DEG:
+        elif abs(turn) > SIDECAR_RULES.turn_heading_deg:
             direction = "left" if turn > 0 else "right"
-        elif abs(lateral) > BEAR_LATERAL_M:
+        elif abs(lateral) > SIDECAR_RULES.bear_lateral_m:
             direction = "bear left" if lateral > 0 else "bear right"
-        elif abs(turn) > BEAR_HEADING_DEG:
+        elif abs(turn) > SIDECAR_RULES.bear_heading_deg:
             direction = "bear left" if turn > 0 else "bear right"
         else:
             direction = "straight"

@@ -68,6 +68,15 @@ def read_export(export_dir: Path) -> tuple[dict[str, torch.Tensor], dict]:
     return state, cfg
 
 
+def export_kind(export_dir: Path) -> str:
+    """The stage kind an export was written by (its config's ``stage_kind``), weights unread."""
+    config = Path(export_dir) / EXPORT_CONFIG
+    try:
+        return str(json.loads(config.read_text()).get("stage_kind", ""))
+    except (OSError, ValueError, AttributeError) as err:
+        raise OcctrainError(f"{config}: unreadable export config ({_first_line(err)}); re-run the stage that wrote it") from None
+
+
 def _first_line(err: BaseException) -> str:
     return str(err).splitlines()[0] if str(err) else type(err).__name__
 

@@ -13,7 +13,7 @@ and the words in :data:`NEUTRAL_WORDS` are dropped. The canonical names used her
 - planning: ``val/plan/{L2,collision}_{stp3,uniad}_{1s,2s,3s,avg}``; none of the papers names
   its planning convention, so their figures carry no convention word and sit beside both
 - NuScenes-QA accuracy: ``val/qa/overall``, ``val/qa/{H0,H1}``, ``val/qa/<type>``, ``val/qa/<type>_<H0|H1>``
-- meta-action accuracy: ``val/meta_action/{acc,speed_acc,direction_acc}``
+- meta-action accuracy: ``val/meta_action/{acc,speed_acc,direction_acc,mean}`` (``acc`` is "overall")
 
 Left out on purpose: caption figures (OccLLaMA's Nu-X, Occ-LLM's DriveLM, SparseOccVLA's
 OmniDrive), whose benchmarks are different text tasks from occtrain's chain-of-thought narration.
@@ -124,6 +124,7 @@ def _table() -> list[PaperFigure]:
     f += [
         PaperFigure("val/meta_action/speed_acc", 54.83, where="Table 4, with occupancy, Speed", **meta),
         PaperFigure("val/meta_action/direction_acc", 77.95, where="Table 4, with occupancy, 'Trajectory' (directional action)", **meta),
+        PaperFigure("val/meta_action/mean", 66.39, where="Table 4, with occupancy, Avg. of speed and trajectory", **meta),
         PaperFigure("val/meta_action/acc", 43.08, where="Table 4, with occupancy, Overall", **meta),
     ]
 

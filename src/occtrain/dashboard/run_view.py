@@ -87,6 +87,7 @@ def _series(label: str, points: list[tuple[float, float]]) -> Series:
 MEASURES = (
     (re.compile(r"^(?P<s>.*?)_?qa_overall$"), "QA accuracy (%)"),
     (re.compile(r"^(?P<s>.*?)_?meta_action_acc$"), "meta-action accuracy (%)"),
+    (re.compile(r"^(?P<s>.*?meta_action)_(?P<m>speed|direction|mean|overall)$"), "meta-action accuracy: speed, direction, their mean, overall (%)"),
     (re.compile(r"^(?P<s>meta_parsed_fraction)$"), "meta action parsed (%)"),
     (re.compile(r"^(?P<s>.+)_L2_stp3_avg$"), "planning L2, ST-P3 avg (m)"),
     (re.compile(r"^(?P<s>.+)_L2_uniad_avg$"), "planning L2, UniAD avg (m)"),

@@ -53,7 +53,26 @@ class Branch:
     supervise: bool = False  # never: a marker, not an answer
 
 
-Part = Union[Text, Scene, Actions, Branch]
+@dataclass(frozen=True)
+class Images:
+    """The camera views of sample ``token`` as image tokens (a vision-language model's input)."""
+
+    token: str
+    supervise: bool = False  # never: an input
+
+
+@dataclass(frozen=True)
+class Occupancy:
+    """Occupancy queries that read the images before them and are trained, with loss
+    weight ``weight``, to give the voxels of sample ``token`` (OccVLA); nothing after them
+    sees them, so a prompt leaves them out at inference."""
+
+    token: str
+    weight: float = 1.0
+    supervise: bool = False  # their loss is their own, not the answer's
+
+
+Part = Union[Text, Scene, Actions, Branch, Images, Occupancy]
 
 
 @dataclass

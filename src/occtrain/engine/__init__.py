@@ -7,9 +7,9 @@ from __future__ import annotations
 from occtrain.engine.evaluator import Evaluator, Priors, evaluation_clips
 from occtrain.engine.export import export_engine, load_world_model, new_world_model
 from occtrain.engine.speed import compare_generation_speed, speed_prompt
-from occtrain.engine.world_model import CODE_CACHE, TEXT_ENTRIES, CotOutput, WorldModelEngine, move_batch
+from occtrain.engine.world_model import CODE_CACHE, IMAGE_CACHE, TEXT_ENTRIES, CotOutput, WorldModelEngine, move_batch
 
 __all__ = [
-    "CODE_CACHE", "TEXT_ENTRIES", "CotOutput", "Evaluator", "WorldModelEngine", "export_engine", "load_world_model",
+    "CODE_CACHE", "IMAGE_CACHE", "TEXT_ENTRIES", "CotOutput", "Evaluator", "WorldModelEngine", "export_engine", "load_world_model",
     "Priors", "compare_generation_speed", "evaluation_clips", "move_batch", "new_world_model", "speed_prompt",
 ]

@@ -19,7 +19,9 @@ from occtrain.engine.world_model import WorldModelEngine
 from occtrain.errors import ConfigError
 from occtrain.io import rank_world
 from occtrain.families.occllama.tasks import TASKS
-from occtrain.metrics import CaptionMetric, ForecastMetric, PlanningMetric, QAMetric, flatten_metrics
+from occtrain.data.clips import Images
+from occtrain.data.meta_actions import commonest
+from occtrain.metrics import CaptionMetric, ForecastMetric, MetaActionAccuracy, OccupancyMetric, PlanningMetric, QAMetric, flatten_metrics
 from occtrain.models.planner import constant_velocity_plan
 from occtrain.occ3d import FRAME_DT, FREE, FUTURE_STEPS
 
@@ -84,7 +86,7 @@ def evaluation_clips(index: DatasetIndex, split: str, task: str, context: int) -
 
 #: Dashboard samples kept per validation: texts per task (chains of thought are long),
 #: pictures per kind.
-TEXTS_PER_TASK = {"qa": 4, "cot": 2}
+TEXTS_PER_TASK = {"qa": 4, "cot": 2, "meta_action": 2}
 PICTURES_PER_KIND = 1
 
 
@@ -96,7 +98,7 @@ class Evaluator(torch.nn.Module):
     rollout, alternating with generated scenes) and ``plan_cot`` (after the chain of thought).
     """
 
-    TASKS = ("forecasting", "planning", "qa", "cot_planning")
+    TASKS = ("forecasting", "planning", "qa", "cot_planning", "meta_action")
 
     def __init__(
         self, tasks: Iterable[str], record: bool = False, priors: Priors | None = None,
@@ -130,7 +132,14 @@ class Evaluator(torch.nn.Module):
             "meta_action_acc": MeanMetric(),
             "meta_parsed_fraction": MeanMetric(),
             "baseline_prior_meta_action_acc": MeanMetric(),
+            # Speed / direction / mean / overall (OccVLA's split), for both chain-of-thought tasks.
+            "meta_action": MetaActionAccuracy(),
+            "baseline_prior_meta_action": MetaActionAccuracy(),
+            # OccVLA's query branch, when the stage trains it.
+            "occupancy_occ3d": OccupancyMetric("occ3d"),
+            "occupancy_occworld": OccupancyMetric("occworld"),
         })
+        self._meta_prior: dict[tuple, dict | None] = {}
         self._clip_cache: dict[tuple, list[Clip]] = {}
         self._baselined: set[str] = set()  # clips whose plan baselines are scored
         #: How often each QA answer string was generated (a model stuck on one shows here).
@@ -180,6 +189,7 @@ class Evaluator(torch.nn.Module):
         self.reset()
         index = DatasetIndex.open(data_root)
         self._index = index
+        engine.prepare_images(data_root)  # a vision-language world model's camera tokens
         rank, world = rank_world()
         for task in self.tasks:
             clips = self._task_clips(engine, index, split, task, samples, seed)[rank::world]
@@ -188,6 +198,16 @@ class Evaluator(torch.nn.Module):
                 self.update(engine, chunk, self._batch(engine, index, chunk, task), tasks=[task])
                 if advance is not None:
                     advance(len(chunk))
+        if self.tasks and self.scores_occupancy(engine):
+            clips = self._task_clips(engine, index, split, self.tasks[0], samples, seed)[rank::world]
+            self.score_occupancy(engine, clips)
+            if advance is not None:
+                advance(len(clips))
+
+    @staticmethod
+    def scores_occupancy(engine: WorldModelEngine) -> bool:
+        """Whether the world model has an occupancy query branch that its tasks train."""
+        return hasattr(engine.world, "predict_occupancy") and engine.tasks.occupancy_weight > 0
 
     def _task_clips(self, engine, index, split, task, samples, seed) -> list[Clip]:
         key = (split, task, samples, seed, engine.tasks.context_frames)
@@ -206,7 +226,8 @@ class Evaluator(torch.nn.Module):
         """What ``update`` reads besides the clips: the annotations, and the clips' occupancy
         when scenes must be encoded (no code cache) or forecasts scored."""
         batch: dict = {"ann": [c.ann for c in clips]}
-        if engine.code_cache is None or task == "forecasting":
+        # A vision-language model's prompts hold no scenes: it reads no occupancy here.
+        if (engine.code_cache is None and engine.vision is None) or task == "forecasting":
             # One (T, X, Y, Z) tensor per clip: QA clips at a scene's start have shorter windows.
             batch["semantics"] = [
                 torch.from_numpy(np.stack([index.labels(index.scene_of(t), t)["semantics"] for t in c.ann["tokens"]])) for c in clips
@@ -217,7 +238,10 @@ class Evaluator(torch.nn.Module):
         """How many clips ``run`` visits (for a progress bar)."""
         index = DatasetIndex.open(data_root)
         rank, world = rank_world()
-        return sum(len(self._task_clips(engine, index, split, t, samples, seed)[rank::world]) for t in self.tasks)
+        total = sum(len(self._task_clips(engine, index, split, t, samples, seed)[rank::world]) for t in self.tasks)
+        if self.tasks and self.scores_occupancy(engine):
+            total += len(self._task_clips(engine, index, split, self.tasks[0], samples, seed)[rank::world])
+        return total
 
     @classmethod
     def scorable(cls, weights: dict[str, float]) -> list[str]:
@@ -283,6 +307,8 @@ class Evaluator(torch.nn.Module):
             self._keep_text("qa", parts[-2].text, answer, q["answer"])
             if self.record:
                 self.predictions["qa"][f"{token}|{question}"] = (q, answer)
+        if task == "meta_action":
+            self._score_meta_action(engine, clip, parts, generated)
         if task == "cot_planning":
             text, reference = generated[0].text, parts[-2].text
             self.metrics["cot_caption"].update([text], [[reference]], ids=[token])
@@ -293,9 +319,47 @@ class Evaluator(torch.nn.Module):
             self.metrics["meta_action_acc"].update(100.0 * (parsed == anchor["meta_action"]))
             if self.priors.meta_action is not None:
                 self.metrics["baseline_prior_meta_action_acc"].update(100.0 * (self.priors.meta_action == anchor["meta_action"]))
+            self.metrics["meta_action"].update([parsed], [anchor["meta_action"]])
+            if self.priors.meta_action is not None:
+                self.metrics["baseline_prior_meta_action"].update([self.priors.meta_action], [anchor["meta_action"]])
             if self.record:
                 self.predictions["captions"][token] = text
                 self.predictions["captions_gt"][token] = [reference]
+
+    def _score_meta_action(self, engine: WorldModelEngine, clip: Clip, parts: list[Part], generated: list[Part]) -> None:
+        """OccVLA's chain of thought: the meta action it ends with against the one the
+        prompt's answer holds (labelled from the poses), beside the commonest training one."""
+        text, reference = generated[0].text, parts[-1].text
+        truth = parse_meta_action(reference)
+        parsed = parse_meta_action(text)
+        self.metrics["meta_action"].update([parsed], [truth])
+        self.metrics["meta_parsed_fraction"].update(100.0 * (parsed is not None))
+        cfg = engine.tasks.meta_actions
+        key = tuple(sorted(vars(cfg).items()))
+        if key not in self._meta_prior and self._index is not None:
+            self._meta_prior[key] = commonest(self._index, "train", cfg)
+        prior = self._meta_prior.get(key)
+        if prior is not None:
+            self.metrics["baseline_prior_meta_action"].update([prior], [truth])
+        said = format_meta_action(parsed).removeprefix("Meta action: ") if parsed is not None else "none"
+        self._keep_text("meta_action", parts[-2].text, f"{text}  [parsed: {said}]", reference)
+
+    @torch.no_grad()
+    def score_occupancy(self, engine: WorldModelEngine, clips: list[Clip]) -> None:
+        """The occupancy query branch (OccVLA) on each clip's anchor: one forward of the
+        images and the queries, decoded, scored in both conventions."""
+        index = self._index
+        for clip in clips:
+            token = clip.anchor["token"]
+            prefix = engine.encode_parts([Images(token)], {})
+            pred = engine.world.predict_occupancy(prefix).argmax(1).cpu()
+            labels = index.labels(index.scene_of(token), token)
+            target = torch.from_numpy(labels["semantics"]).long()[None]
+            mask = torch.from_numpy(labels["mask_camera"].astype(bool))[None]
+            self.metrics["occupancy_occ3d"].update(pred.to(self.device), target.to(self.device), mask.to(self.device))
+            self.metrics["occupancy_occworld"].update(pred.to(self.device), target.to(self.device))
+            if not any(c.startswith("occupancy") for c, _ in self.scenes):
+                self.scenes.append((f"occupancy from the queries, sample {token[:8]}: truth and prediction", [("truth", target[0].numpy()), ("queries", pred[0].numpy())]))
 
     def _keep_text(self, task: str, prompt: str, prediction: str, reference: str) -> None:
         if sum(t["task"] == task for t in self.texts) < TEXTS_PER_TASK.get(task, 2):

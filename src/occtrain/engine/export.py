@@ -11,7 +11,9 @@
                            under HF names, generation_config.json, the tokenizer with the
                            joint-vocabulary tokens
       llm/adapter/         the peft adapter, when the stage trained one and did not merge it
+      llm/bottleneck_adapter/  bottleneck adapters (OccVLA): adapter.safetensors + adapter_config.json
       scene_tokenizer/     the tokenizer stage's export, copied
+      vision_encoder/      the vision stage's export, copied (a world model that reads cameras)
 
 ``AutoModelForCausalLM.from_pretrained("export/llm")`` then
 ``PeftModel.from_pretrained(model, "export/llm/adapter")`` gives occtrain's logits on text
@@ -41,13 +43,17 @@ from occtrain.exports import load_state_strict, read_export, write_export
 from occtrain.families import get_family, load_tokenizer, tokenizer_family
 from occtrain.families.registry import FamilySpec, families
 from occtrain.families.occllama.tasks import TaskConfig, corpus_texts
+from occtrain.models.adapters import has_adapters, load_adapters, save_adapters, without_adapters
 from occtrain.models.llm import build_llm, load_text_tokenizer
+from occtrain.models.vision import load_vision_encoder
 from occtrain.models.text_tokenizer import train_text_tokenizer
 from occtrain.models.vocab import JointVocab
 
 LLM_DIR = "llm"
 ADAPTER_DIR = "adapter"
 SCENE_TOKENIZER_DIR = "scene_tokenizer"
+VISION_DIR = "vision_encoder"
+BOTTLENECK_DIR = "bottleneck_adapter"
 WORLD_MODEL = "world_model"
 
 
@@ -65,14 +71,15 @@ def world_family(tokenizer_arch: str, requested: str = "") -> FamilySpec:
 def new_world_model(
     tokenizer_export: Path, llm_cfg: LLMConfig, tasks: TaskConfig, data_root: str | Path,
     max_new_text_tokens: int = MAX_NEW_TEXT_TOKENS, family: str = "", world_cfgs: Mapping[str, Any] | None = None,
-    where: str = "model",
+    where: str = "model", vision_export: Path | None = None,
 ) -> WorldModelEngine:
     """A freshly initialised world model over a tokenizer stage's export (what pretraining starts from).
 
     ``family`` picks the world model (see ``world_family``); ``world_cfgs`` holds world
     settings by family, of which the picked family's are used (checked against the
     tokenizer's latent grid, errors naming ``<where>.<family>.<key>``; absent: its defaults).
-    The text tokenizer is the LLM's own when ``llm_cfg.path`` is set, else a BPE trained on
+    A family whose world model reads the cameras takes its frozen encoder from
+    ``vision_export`` (a vision stage's). The text tokenizer is the LLM's own when ``llm_cfg.path`` is set, else a BPE trained on
     the dataset's text; training is deterministic, so every DDP rank and a resumed run build
     the same one. The LLM is initialised under the current torch seed.
     """
@@ -87,11 +94,17 @@ def new_world_model(
         text_tok = load_text_tokenizer(llm_cfg.path)
     else:
         text_tok = train_text_tokenizer(corpus_texts(DatasetIndex.open(data_root), spec.prompt_words), llm_cfg.text_vocab_size)
+    vision = None
+    if spec.reads_cameras:
+        if vision_export is None:
+            raise ConfigError(f"{where}: the '{spec.name}' world model reads the cameras; add a vision stage to the stage's consumes")
+        vision = load_vision_encoder(vision_export)
     patch = spec.world_model.vocab_patch(world_cfg)
-    vocab = JointVocab(text_tok, scene_tok.codebook_sizes, tuple(scene_tok.latent_hw), llm_cfg, patch=patch)
+    vocab = JointVocab(text_tok, scene_tok.codebook_sizes, tuple(scene_tok.latent_hw), llm_cfg, patch=patch, image=spec.reads_cameras)
     llm = build_llm(llm_cfg, len(vocab))
-    world = spec.world_model.create(llm, vocab, scene_tok, llm_cfg.scene_prediction, world_cfg)
-    return WorldModelEngine(scene_tok, world, text_tok, tasks, max_new_text_tokens, spec.name)
+    extra = {"vision": vision} if vision is not None else {}
+    world = spec.world_model.create(llm, vocab, scene_tok, llm_cfg.scene_prediction, world_cfg, **extra)
+    return WorldModelEngine(scene_tok, world, text_tok, tasks, max_new_text_tokens, spec.name, vision)
 
 
 def export_engine(engine: WorldModelEngine, path: Path, stage: str, merge: bool = False) -> Path:
@@ -115,6 +128,10 @@ def export_engine(engine: WorldModelEngine, path: Path, stage: str, merge: bool 
         else:
             base = world.llm
             state = base.state_dict()
+        if has_adapters(base):
+            # The Hugging Face directory holds the LM's own weights; the adapters sit beside them.
+            state = without_adapters(state)
+            save_adapters(base, llm_dir / BOTTLENECK_DIR)
         _save_hf_llm(llm_dir, base, state, world, engine)
         own = {k: v for k, v in world.state_dict().items() if not k.startswith("llm.")}
         config = {
@@ -127,6 +144,8 @@ def export_engine(engine: WorldModelEngine, path: Path, stage: str, merge: bool 
             "max_new_text_tokens": engine.max_new_text_tokens,
         }
         extra = {LLM_DIR: llm_dir, SCENE_TOKENIZER_DIR: Path(engine.scene_tokenizer.export_dir)}
+        if engine.vision is not None:
+            extra[VISION_DIR] = Path(engine.vision.export_dir)
         return write_export(path, own, config, extra)
 
 
@@ -189,6 +208,9 @@ def load_world_model(export_dir: Path) -> WorldModelEngine:
         raise ConfigError(f"{llm_dir}: cannot load the exported LLM ({str(err).splitlines()[0]}); re-run the stage that wrote it") from None
     finally:
         hf_logging.enable_progress_bar()
+    if (llm_dir / BOTTLENECK_DIR).is_dir():
+        load_adapters(llm, llm_dir / BOTTLENECK_DIR)
+    vision = load_vision_encoder(export_dir / VISION_DIR) if (export_dir / VISION_DIR).is_dir() else None
     world = family.world_model.from_export(world_cfg, llm, vocab, scene_tok)
     load_state_strict(world, state, ignore=("llm.",), source=str(export_dir))
     if (llm_dir / ADAPTER_DIR).is_dir():
@@ -196,4 +218,4 @@ def load_world_model(export_dir: Path) -> WorldModelEngine:
 
         world.llm = PeftModel.from_pretrained(world.llm, str(llm_dir / ADAPTER_DIR), is_trainable=False)
     tasks = family.task_config(**config["tasks"])  # as saved: a merge onto the defaults would add task weights
-    return WorldModelEngine(scene_tok, world, text_tok, tasks, config.get("max_new_text_tokens", MAX_NEW_TEXT_TOKENS), family.name)
+    return WorldModelEngine(scene_tok, world, text_tok, tasks, config.get("max_new_text_tokens", MAX_NEW_TEXT_TOKENS), family.name, vision)

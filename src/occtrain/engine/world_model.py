@@ -17,19 +17,23 @@ import numpy as np
 import torch
 
 from occtrain.config.llm import MAX_NEW_TEXT_TOKENS
-from occtrain.data.clips import Actions, Branch, Clip, Part, Scene, Text, clip_rng
+from occtrain.data.clips import Actions, Branch, Clip, Images, Occupancy, Part, Scene, Text, clip_rng
 from occtrain.data.layout import DatasetIndex
+from occtrain.data.text_formats import parse_meta_action
 from occtrain.families.occllama.batch_decoding import ActionAnswer, Answer, SceneAnswer, TextAnswer
 from occtrain.families.occllama.tasks import TaskConfig, sample_task
 from occtrain.families.occllama.tokens import TokenSequence
 from occtrain.families.occllama.world_model import OccWorldModel, collate
 from occtrain.families.registry import get_family
+from occtrain.errors import DataError
 from occtrain.io import is_rank_zero
 from occtrain.models.vocab import JointVocab
 from occtrain.progress import progress_bar
 
 #: The file of the scene-code cache inside a stage directory's ``cache/``.
 CODE_CACHE = "scene_codes.safetensors"
+#: The file of the image-token cache (a vision-language world model's frozen camera features).
+IMAGE_CACHE = "image_tokens.safetensors"
 #: The shard entries a world-model stage trains on when scenes come from the code cache.
 TEXT_ENTRIES = ("ann.json", "qa.json", "narration.txt")
 
@@ -56,10 +60,12 @@ class WorldModelEngine(torch.nn.Module):
 
     def __init__(
         self, scene_tokenizer: torch.nn.Module, world: OccWorldModel, text_tokenizer: Any, tasks: TaskConfig,
-        max_new_text_tokens: int = MAX_NEW_TEXT_TOKENS, family: str = "occllama",
+        max_new_text_tokens: int = MAX_NEW_TEXT_TOKENS, family: str = "occllama", vision: torch.nn.Module | None = None,
     ):
         super().__init__()
         self.scene_tokenizer = scene_tokenizer.eval().requires_grad_(False)
+        #: The frozen camera encoder of a vision-language world model (OccVLA), else None.
+        self.vision = vision.eval().requires_grad_(False) if vision is not None else None
         self.world = world
         self.text_tokenizer = text_tokenizer
         #: The task/prompt settings the model trains (or was trained) with: every prompt
@@ -74,6 +80,10 @@ class WorldModelEngine(torch.nn.Module):
         self._default_tasks = {kind: dict(weights) for kind, weights in spec.default_tasks.items()}
         #: Sample token -> codes, when the dataset was encoded ahead (see build_code_cache).
         self.code_cache: dict[str, torch.Tensor] | None = None
+        #: Sample token -> pooled image tokens (see prepare_images), and the dataset they
+        #: and the occupancy targets are read from.
+        self.image_cache: dict[str, torch.Tensor] | None = None
+        self.data_index: DatasetIndex | None = None
 
     @property
     def vocab(self) -> JointVocab:
@@ -82,6 +92,8 @@ class WorldModelEngine(torch.nn.Module):
     def train(self, mode: bool = True) -> WorldModelEngine:
         super().train(mode)
         self.scene_tokenizer.eval()  # frozen: no dropout, no codebook updates
+        if self.vision is not None:
+            self.vision.eval()
         return self
 
     # -- scenes
@@ -125,6 +137,62 @@ class WorldModelEngine(torch.nn.Module):
             tmp.replace(cache_file)
         self.code_cache = cache
 
+    # -- cameras (vision-language world models)
+    @torch.no_grad()
+    def encode_images(self, images: torch.Tensor) -> torch.Tensor:
+        """uint8 views (B, N, H, W, 3) -> the world model's image tokens (B, N * rows * cols, D):
+        the frozen encoder's patch tokens, average-pooled per camera."""
+        from occtrain.models.vision import pool_views
+
+        tokens, grid = self.vision(images.to(self.vision.camera_embed.device))
+        return pool_views(tokens, grid, images.shape[1], tuple(self.world.cfg.image_tokens)).float()
+
+    @torch.no_grad()
+    def prepare_images(self, data_root: str | Path, cache_file: Path | None = None, batch_size: int = 8) -> None:
+        """Encode every frame's cameras once (the encoder is frozen), kept in ``cache_file``
+        (safetensors, written atomically; in memory only without one), and remember the
+        dataset for the occupancy targets. A no-op for a world model without cameras."""
+        from safetensors.torch import load_file, save_file
+
+        if self.vision is None:
+            return
+        self.data_index = index = DatasetIndex.open(data_root)
+        if self.image_cache is not None:
+            return
+        if cache_file is not None and cache_file.is_file():
+            self.image_cache = load_file(str(cache_file))
+            return
+        if not index.has_cameras:
+            raise DataError(f"{data_root}: the dataset has no camera images, which the '{self.family}' world model reads")
+        samples = list(index.samples())
+        cache: dict[str, torch.Tensor] = {}
+        with progress_bar(len(samples), "encoding the cameras with the frozen vision encoder") as advance:
+            for i in range(0, len(samples), batch_size):
+                chunk = samples[i : i + batch_size]
+                images = torch.from_numpy(np.stack([index.images(s, t) for s, t in chunk]))
+                for (_, token), feats in zip(chunk, self.encode_images(images).cpu()):
+                    cache[token] = feats.contiguous()
+                advance(len(chunk))
+        if cache_file is not None and is_rank_zero():
+            cache_file.parent.mkdir(parents=True, exist_ok=True)
+            tmp = cache_file.with_suffix(".tmp")
+            save_file(cache, str(tmp))
+            tmp.replace(cache_file)
+        self.image_cache = cache
+
+    def image_tokens(self, token: str) -> torch.Tensor:
+        """The pooled image tokens of sample ``token`` (``prepare_images`` first)."""
+        if self.image_cache is None:
+            raise RuntimeError("prepare_images(data_root) before laying out images")
+        return self.image_cache[token]
+
+    def voxels(self, token: str) -> torch.Tensor:
+        """The occupancy labels uint8 (X, Y, Z) of sample ``token``, from the dataset."""
+        if self.data_index is None:
+            raise RuntimeError("prepare_images(data_root) before laying out occupancy queries")
+        index = self.data_index
+        return torch.from_numpy(index.labels(index.scene_of(token), token)["semantics"])
+
     @torch.no_grad()
     def decode_scenes(self, codes: torch.Tensor) -> torch.Tensor:
         """(N, codebooks * h*w) codes -> (N, X, Y, Z) class labels through the tokenizer's decoder."""
@@ -144,6 +212,10 @@ class WorldModelEngine(torch.nn.Module):
                 builder.scene(codes[part.frame], part.supervise)
             elif isinstance(part, Branch):
                 builder.branch()
+            elif isinstance(part, Images):
+                builder.images(self.image_tokens(part.token))
+            elif isinstance(part, Occupancy):
+                builder.occupancy(self.voxels(part.token), part.weight)
             else:
                 builder.actions(torch.tensor(part.xy, dtype=torch.float32), part.supervise)
         return builder.build()
@@ -167,12 +239,14 @@ class WorldModelEngine(torch.nn.Module):
         """The prompt (the parts before the first supervised one) laid out, and what to
         generate after it: text up to end-of-text, as many waypoints as the reference, a scene."""
         first = next(i for i, p in enumerate(parts) if p.supervise)
+        # Occupancy queries are seen by nothing after them: a prompt skips them (OccVLA's Setting 2).
+        prompt = [p for p in parts[:first] if not isinstance(p, Occupancy)]
         plan: list[Answer] = [
             TextAnswer(self.max_new_text_tokens) if isinstance(p, Text)
             else ActionAnswer(len(p.xy)) if isinstance(p, Actions) else SceneAnswer()
             for p in parts[first:]
         ]
-        return self.encode_parts(parts[:first], codes), plan
+        return self.encode_parts(prompt, codes), plan
 
     @torch.no_grad()
     def rollout(self, parts: list[Part], codes: dict[int, torch.Tensor]) -> tuple[list[Part], dict[int, torch.Tensor]]:
@@ -240,6 +314,38 @@ class WorldModelEngine(torch.nn.Module):
         for b, _, (text, traj), _ in self.rollouts("cot_planning", clips, batch):
             outputs[b] = CotOutput(text.text, np.asarray(traj.xy))
         return outputs
+
+    # -- what a planning head reads from a trained world model
+    def reference_meta_action(self, clip: Clip) -> dict | None:
+        """The clip's meta action as the family's tasks define it: OccVLA's labelled from the
+        poses with the task settings' rules (the answer its ``meta_action`` task trains on),
+        else the frame sidecar's."""
+        if "meta_action" in self.task_builders:
+            items = self.task_items("meta_action", clip)
+            return parse_meta_action(items[0][-1].text) if items else None
+        return clip.anchor.get("meta_action")
+
+    def generated_meta_actions(self, clips: list[Clip]) -> list[tuple[dict | None, np.ndarray | None] | None]:
+        """Per clip, the meta action parsed from the model's chain of thought (None when it
+        cannot be parsed) and the trajectory it generated after it (None for a model that
+        generates none); None for a clip the chain of thought does not apply to."""
+        if "meta_action" in self.task_builders:
+            out: list = [None] * len(clips)
+            for b, _, generated, _ in self.rollouts("meta_action", clips, {"ann": [c.ann for c in clips]}):
+                out[b] = (parse_meta_action(generated[0].text), None)
+            return out
+        cot = self.chain_of_thought(clips, {"ann": [c.ann for c in clips]})
+        return [None if o is None else (parse_meta_action(o.text), o.waypoints) for o in cot]
+
+    @torch.no_grad()
+    def visual_summary(self, clips: list[Clip]) -> torch.Tensor:
+        """(B, hidden): the world model's last-layer outputs at each anchor's image tokens,
+        averaged (what OccVLA's planning head reads of the scene)."""
+        seqs = [self.encode_parts([Images(c.anchor["token"])], {}) for c in clips]
+        batch = move_batch(collate(seqs, self.vocab.pad_id), self.world.codebook.device)
+        hidden = self.world(batch, output_hidden_states=True).hidden.float()
+        images = self.vocab.is_image(batch["input_ids"]).float()[..., None]
+        return (hidden * images).sum(1) / images.sum(1).clamp(min=1)
 
     def default_tasks(self, kind: str) -> WorldModelEngine:
         """Give the engine's task settings the family's default tasks for stage ``kind``

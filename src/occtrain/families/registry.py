@@ -20,7 +20,7 @@ from occtrain.exports import read_export, write_export
 from occtrain.models import count_parameters
 
 #: The families that ship with occtrain, imported on first look-up.
-BUILTIN_FAMILIES = ("occtrain.families.occworld", "occtrain.families.occllama", "occtrain.families.occllm")
+BUILTIN_FAMILIES = ("occtrain.families.occworld", "occtrain.families.occllama", "occtrain.families.occllm", "occtrain.families.occvla")
 
 
 @dataclass(frozen=True)
@@ -54,6 +54,8 @@ class FamilySpec:
     default_tasks: Mapping[str, Mapping[str, float]] = field(default_factory=dict)
     #: Fixed words of its prompts, added to the text a world model's BPE tokenizer trains on.
     prompt_words: tuple[str, ...] = ()
+    #: Its world model reads the cameras through a vision stage's encoder (pretraining consumes one).
+    reads_cameras: bool = False
 
 
 _FAMILIES: dict[str, FamilySpec] = {}

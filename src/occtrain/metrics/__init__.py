@@ -12,6 +12,7 @@ import torch
 
 from occtrain.metrics.captions import CAPTION_KEYS, CaptionMetric, coco_caption_scores
 from occtrain.metrics.codebook import CodebookUsage
+from occtrain.metrics.meta_action import MetaActionAccuracy
 from occtrain.metrics.occupancy import CONVENTIONS, ForecastMetric, OccupancyMetric, confusion_matrix, horizon_label
 from occtrain.metrics.pixels import DepthAbsRelMetric, PixelSegmentationMetric
 from occtrain.metrics.planning import PlanningMetric
@@ -24,6 +25,7 @@ __all__ = [
     "CodebookUsage",
     "DepthAbsRelMetric",
     "ForecastMetric",
+    "MetaActionAccuracy",
     "OccupancyMetric",
     "PixelSegmentationMetric",
     "PlanningMetric",

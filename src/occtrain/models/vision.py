@@ -229,6 +229,15 @@ class MultiViewEncoder(nn.Module):
         return tokens.reshape(b, n * self.num_patches, self.hidden_size), self.grid
 
 
+def pool_views(tokens: Tensor, grid: tuple[int, int], num_cameras: int, out_hw: tuple[int, int]) -> Tensor:
+    """Each camera's patch tokens (B, N*P, D) average-pooled over its grid to ``out_hw``:
+    (B, N * rows * cols, D), cameras in order, row-major within each."""
+    b, _, d = tokens.shape
+    x = tokens.reshape(b * num_cameras, grid[0], grid[1], d).permute(0, 3, 1, 2)
+    x = F.adaptive_avg_pool2d(x, tuple(out_hw))
+    return x.permute(0, 2, 3, 1).reshape(b, num_cameras * out_hw[0] * out_hw[1], d)
+
+
 class DenseHead(nn.Module):
     """Per patch token, a linear map to ``patch^2 x (classes + 1)`` values, pixel-shuffled
     back to the image: class logits and log-depth (metres) at every pixel."""
@@ -359,6 +368,7 @@ def load_vision_encoder(export_dir: Path, trainable: bool = False) -> MultiViewE
     encoder = MultiViewEncoder(cfg, tuple(config["image_mean"]), tuple(config["image_std"]))
     own = {k[len("encoder.") :]: v for k, v in state.items() if k.startswith("encoder.")}
     load_state_strict(encoder, own, ("tower.",), str(export_dir))
+    encoder.export_dir = export_dir  # a world-model export copies it from here
     if not trainable:
         encoder.requires_grad_(False).eval()
     return encoder

@@ -9,6 +9,7 @@ Ids, in order::
     [.., +B)               <bin_y_0> ... : action bins of the y axis (left)
     4 specials             <occ> </occ> <act> </act>
     [.., +Q)               <scene_q_0> ...: learnable scene queries, one per scene token
+    (+1)                   <image>: an image token's placeholder (vision-language models only)
 
 Scene tokens come in two layouts. Codes (OccLLaMA, ``patch=0``): one token per latent cell
 and codebook, ``<occ_k>`` for code k of the first codebook, ``<occ{i}_k>`` for codebook i
@@ -34,6 +35,7 @@ from occtrain.errors import ConfigError
 from occtrain.models.actions import ActionQuantizer
 
 OCC_OPEN, OCC_CLOSE, ACT_OPEN, ACT_CLOSE = "<occ>", "</occ>", "<act>", "</act>"
+IMAGE = "<image>"
 
 
 class JointVocab:
@@ -47,11 +49,14 @@ class JointVocab:
         llm_cfg: LLMConfig | None = None,
         text_size: int | None = None,
         patch: int = 0,
+        image: bool = False,
     ):
         """``codebook_sizes``: the scene tokenizer's codebooks (an int for one); ``patch``: 0
         for the codes layout, else the patch side of the patches layout (module docstring).
         ``text_size`` is T of the layout; by default the tokenizer's size before any of
-        the joint tokens are added (give it when the tokenizer already holds them)."""
+        the joint tokens are added (give it when the tokenizer already holds them).
+        ``image``: add one ``<image>`` token last, the placeholder of an image token whose
+        embedding a vision-language model computes from its payload (OccVLA)."""
         cfg = llm_cfg or LLMConfig()
         validate_llm_config(cfg)
         self.tokenizer = text_tokenizer
@@ -84,7 +89,9 @@ class JointVocab:
         self.act_open_id = self.occ_open_id + 2
         self.act_close_id = self.occ_open_id + 3
         self.query_start = self.occ_open_id + 4
-        self.size = self.query_start + self.scene_len
+        self.image = bool(image)
+        self.image_id = self.query_start + self.scene_len if self.image else -1
+        self.size = self.query_start + self.scene_len + int(self.image)
         self._register_tokens()
 
         self.eos_id = int(text_tokenizer.eos_token_id)
@@ -104,6 +111,7 @@ class JointVocab:
             + [f"<bin_y_{b}>" for b in range(self.bins)]
             + [OCC_OPEN, OCC_CLOSE, ACT_OPEN, ACT_CLOSE]
             + [f"<scene_q_{j}>" for j in range(self.scene_len)]
+            + ([IMAGE] if self.image else [])
         )
         if len(self.tokenizer) == self.text_size:
             self.tokenizer.add_tokens(names, special_tokens=True)
@@ -136,7 +144,7 @@ class JointVocab:
 
     @property
     def query_range(self) -> tuple[int, int]:
-        return self.query_start, self.size
+        return self.query_start, self.query_start + self.scene_len
 
     # -- conversions
     def text_ids(self, text: str) -> list[int]:
@@ -207,7 +215,7 @@ class JointVocab:
 
     def query_ids(self) -> torch.Tensor:
         """The Q scene-query ids, one per scene token (latent cell and codebook, or patch), in order."""
-        return torch.arange(self.query_start, self.size)
+        return torch.arange(*self.query_range)
 
     # -- masks
     def is_text(self, ids: torch.Tensor) -> torch.Tensor:
@@ -220,7 +228,10 @@ class JointVocab:
         return (ids >= self.act_x_start) & (ids < self.occ_open_id)
 
     def is_query(self, ids: torch.Tensor) -> torch.Tensor:
-        return ids >= self.query_start
+        return (ids >= self.query_start) & (ids < self.query_start + self.scene_len)
+
+    def is_image(self, ids: torch.Tensor) -> torch.Tensor:
+        return ids == self.image_id
 
     # -- export
     def to_json(self) -> dict:
@@ -229,6 +240,7 @@ class JointVocab:
             "text_size": self.text_size,
             "codebook_sizes": list(self.codebook_sizes),
             "patch": self.patch,
+            "image": self.image,
             "scene_hw": list(self.scene_hw),
             "action_bins": self.bins,
             "action_range": [[float(lo), float(hi)] for lo, hi in zip(self.quantizer.low.tolist(), self.quantizer.high.tolist())],
@@ -239,4 +251,6 @@ class JointVocab:
         """Rebuild from ``to_json`` and a text tokenizer, with or without the joint tokens."""
         cfg = LLMConfig(action_bins=int(data["action_bins"]), action_range=[list(r) for r in data["action_range"]])
         sizes = data.get("codebook_sizes", [data.get("num_codes", 0)])  # exports before multi-codebook vocabularies
-        return cls(text_tokenizer, sizes, tuple(data["scene_hw"]), cfg, text_size=data["text_size"], patch=int(data.get("patch", 0)))
+        return cls(text_tokenizer, sizes, tuple(data["scene_hw"]), cfg, text_size=data["text_size"], patch=int(data.get("patch", 0)),
+            image=bool(data.get("image", False)),
+        )

@@ -1,16 +1,19 @@
-"""Stage kind ``planner``: OccVLA's MLP planning head on meta action and ego state.
+"""Stage kind ``planner``: OccVLA's MLP planning head on the meta action (Sec. 3.3-3.4).
 
-The head maps the meta action (speed x direction), the ego state (speed, acceleration,
-yaw rate, driving command) and optionally the ego's past waypoints to the 6 future
-waypoints. It trains on ground-truth meta actions; validation reports it with the
-ground-truth meta action and, when the stage consumes an instruct stage, with the meta
-action that model generates in its chain of thought, beside that model's own action-token
-plan and the constant-velocity baseline, all on the same samples.
+The head maps the meta action (speed x direction) and the inputs a recipe names
+(``model.inputs``: OccVLA's current velocity, averaged visual tokens of the consumed model
+and past trajectory, with no driving command; the OccLLaMA chain's sidecar ego state and
+command) to the 6 future waypoints, trained with MSE. It trains on the reference meta
+actions or, as in OccVLA's stage 3, on those the consumed model generates for the training
+clips (generated once at the start and cached in the stage directory). Validation reports
+it with the reference and with the generated meta action, beside the consumed model's own
+action-token plan (OccLLaMA) and the constant-velocity baseline, on the same samples.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import json
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -18,21 +21,25 @@ import numpy as np
 import torch
 
 from occtrain.config.llm import MAX_NEW_TEXT_TOKENS
-from occtrain.data.clips import clips_from_batch, plan_target
+from occtrain.data.clips import Clip, clips_from_batch, plan_target
 from occtrain.data.schema import COMMANDS, META_DIRECTIONS, META_SPEEDS
-from occtrain.data.text_formats import parse_meta_action
-from occtrain.engine import CODE_CACHE, TEXT_ENTRIES, CotOutput, load_world_model
+from occtrain.engine import CODE_CACHE, IMAGE_CACHE, TEXT_ENTRIES, load_world_model
 from occtrain.errors import ConfigError
 from occtrain.exports import write_export
 from occtrain.metrics import PlanningMetric, flatten_metrics
 from occtrain.models import count_parameters
 from occtrain.models.planner import PlanningHead, constant_velocity_plan
-from occtrain.occ3d import FUTURE_STEPS, PAST_STEPS
+from occtrain.io import atomic_write_json, is_rank_zero
+from occtrain.occ3d import FRAME_DT, FUTURE_STEPS, PAST_STEPS
 from occtrain.stages import StageKind, register
 from occtrain.stages.base import Stage, StageContext, StageReport
 from occtrain.stages.common import ValidationMeans, configure_adamw
 
 META_SOURCES = ("ground_truth", "generated")
+#: What the head may read, in the order its input vector lays them out.
+HEAD_INPUTS = ("meta_action", "ego_state", "command", "velocity", "past", "visual")
+#: Where the cached teacher outputs live in the stage directory.
+TEACHER_CACHE = "teacher_outputs"
 
 
 @dataclass
@@ -42,11 +49,19 @@ class PlannerModelConfig:
     hidden: int = 256
     layers: int = 3
     dropout: float = 0.1
-    #: Feed the ego's past waypoints too (not in OccVLA; an option for ablations).
-    use_past: bool = False
+    #: What the head reads (``HEAD_INPUTS``): the meta action (one-hot speed and direction),
+    #: the ego state of the frame sidecar (speed, acceleration, yaw rate), the driving
+    #: command, the ego's current velocity from its last move, its past waypoints, and
+    #: ``visual``, the consumed world model's outputs at its image tokens, averaged
+    #: (OccVLA: meta action, velocity, visual tokens and past trajectory; no command).
+    inputs: list[str] = field(default_factory=lambda: ["meta_action", "ego_state", "command"])
     loss: str = "mse"  # mse | l1
+    #: The meta action the head trains on: the reference (``ground_truth``) or the one the
+    #: consumed model generates for each training clip (``generated``, OccVLA's stage 3;
+    #: generated once and cached in the stage directory).
+    train_meta: str = "ground_truth"
     #: Where validation takes the meta action from: the annotation, or the consumed
-    #: instruct stage's generated chain of thought (both are always reported when possible).
+    #: model's generated chain of thought (both are always reported when possible).
     meta_source: str = "generated"
     #: Validation batches that run the instruct model's generation (-1: all of them). The
     #: model is frozen, so each clip's chain of thought is generated once and reused.
@@ -54,21 +69,45 @@ class PlannerModelConfig:
     max_new_text_tokens: int = MAX_NEW_TEXT_TOKENS
 
 
-def ego_features(anchor: dict, meta: dict, use_past: bool) -> np.ndarray:
-    """The head's input vector: one-hot meta speed and direction, ego state, command, past."""
-    speed = np.eye(len(META_SPEEDS))[META_SPEEDS.index(meta["speed"])]
-    direction = np.eye(len(META_DIRECTIONS))[META_DIRECTIONS.index(meta["direction"])]
-    command = np.eye(len(COMMANDS))[COMMANDS.index(anchor["command"])]
-    state = np.array([anchor["ego_speed"] / 10.0, anchor["ego_accel"] / 3.0, anchor["ego_yaw_rate"]])
-    parts = [speed, direction, state, command]
-    if use_past:
-        past = np.asarray(anchor["ego_past"], dtype=np.float64).reshape(-1) / 10.0
-        parts.append(past * np.repeat(np.asarray(anchor["ego_past_mask"], dtype=np.float64), 2))
+def ego_features(anchor: dict, meta: dict, inputs: list[str] | tuple[str, ...], visual: np.ndarray | None = None) -> np.ndarray:
+    """The head's input vector: the ``inputs`` in ``HEAD_INPUTS`` order."""
+    parts = []
+    for name in HEAD_INPUTS:
+        if name not in inputs:
+            continue
+        if name == "meta_action":
+            parts += [np.eye(len(META_SPEEDS))[META_SPEEDS.index(meta["speed"])], np.eye(len(META_DIRECTIONS))[META_DIRECTIONS.index(meta["direction"])]]
+        elif name == "ego_state":
+            parts.append(np.array([anchor["ego_speed"] / 10.0, anchor["ego_accel"] / 3.0, anchor["ego_yaw_rate"]]))
+        elif name == "command":
+            parts.append(np.eye(len(COMMANDS))[COMMANDS.index(anchor["command"])])
+        elif name == "velocity":
+            parts.append(current_velocity(anchor) / 10.0)
+        elif name == "past":
+            past = np.asarray(anchor["ego_past"], dtype=np.float64).reshape(-1) / 10.0
+            parts.append(past * np.repeat(np.asarray(anchor["ego_past_mask"], dtype=np.float64), 2))
+        elif visual is None:
+            raise ValueError("the 'visual' input needs the world model's visual summary")
+        else:
+            parts.append(np.asarray(visual, dtype=np.float64).reshape(-1))
     return np.concatenate(parts).astype(np.float32)
 
 
-def feature_size(use_past: bool) -> int:
-    return len(META_SPEEDS) + len(META_DIRECTIONS) + 3 + len(COMMANDS) + (2 * PAST_STEPS if use_past else 0)
+def current_velocity(anchor: dict) -> np.ndarray:
+    """(2,) m/s in the ego frame: the last move (from the last past waypoint to here) per 0.5 s step."""
+    past = np.asarray(anchor.get("ego_past", []), dtype=np.float64).reshape(-1, 2)
+    mask = np.asarray(anchor.get("ego_past_mask", []), dtype=bool)
+    if not len(past) or not mask[-1]:
+        return np.zeros(2)
+    return -past[-1] / FRAME_DT
+
+
+def feature_size(inputs: list[str] | tuple[str, ...], visual_dim: int = 0) -> int:
+    sizes = {
+        "meta_action": len(META_SPEEDS) + len(META_DIRECTIONS), "ego_state": 3, "command": len(COMMANDS),
+        "velocity": 2, "past": 2 * PAST_STEPS, "visual": visual_dim,
+    }
+    return sum(sizes[n] for n in HEAD_INPUTS if n in inputs)
 
 
 class PlannerStage(Stage):
@@ -81,29 +120,46 @@ class PlannerStage(Stage):
     def __init__(self, ctx: StageContext):
         super().__init__(ctx)
         cfg = ctx.model_cfg
+        where = f"stages '{ctx.spec.name}'"
         if cfg.loss not in ("mse", "l1"):
-            raise ConfigError(f"stages '{ctx.spec.name}': model.loss '{cfg.loss}' is not one of mse, l1")
-        if cfg.meta_source not in META_SOURCES:
-            raise ConfigError(f"stages '{ctx.spec.name}': model.meta_source '{cfg.meta_source}' is not one of {', '.join(META_SOURCES)}")
-        # The head reads the meta action (and the teacher's chain of thought ends in one).
-        self.require_tasks(["meta_action"], instead="leave the planner stage out of the recipe")
-        self.head = PlanningHead(feature_size(cfg.use_past), cfg.hidden, cfg.layers, FUTURE_STEPS, cfg.dropout)
+            raise ConfigError(f"{where}: model.loss '{cfg.loss}' is not one of mse, l1")
+        for key in ("meta_source", "train_meta"):
+            if cfg[key] not in META_SOURCES:
+                raise ConfigError(f"{where}: model.{key} '{cfg[key]}' is not one of {', '.join(META_SOURCES)}")
+        self.inputs = list(cfg.inputs)
+        unknown = [n for n in self.inputs if n not in HEAD_INPUTS]
+        if unknown or not self.inputs:
+            raise ConfigError(f"{where}: model.inputs {self.inputs} must name some of {', '.join(HEAD_INPUTS)}")
+        if "meta_action" not in self.inputs:
+            raise ConfigError(f"{where}: model.inputs must include meta_action: the head plans from it")
         self.teacher = None
-        if cfg.meta_source == "generated":
+        needs_teacher = cfg.meta_source == "generated" or cfg.train_meta == "generated" or "visual" in self.inputs
+        if needs_teacher:
             if not ctx.inputs:
                 raise ConfigError(
-                    f"stages '{ctx.spec.name}': model.meta_source 'generated' needs an instruct stage in consumes; "
-                    "or set model.meta_source=ground_truth"
+                    f"{where}: model.meta_source/train_meta 'generated' and the 'visual' input read a world model; "
+                    "add an instruct stage to consumes, or use ground_truth meta actions without visual input"
                 )
             self.teacher = load_world_model(next(iter(ctx.inputs.values()))).with_settings(max_new_text_tokens=cfg.max_new_text_tokens)
-            if "cot_planning" not in self.teacher.task_builders:
+            if not {"cot_planning", "meta_action"} & set(self.teacher.task_builders):
                 raise ConfigError(
-                    f"stages '{ctx.spec.name}': model.meta_source 'generated' reads a chain of thought, which the "
-                    f"'{self.teacher.family}' world model has no task for; set model.meta_source=ground_truth"
+                    f"{where}: the '{self.teacher.family}' world model generates no meta action; set model.meta_source=ground_truth"
                 )
+            if "visual" in self.inputs and self.teacher.vision is None:
+                raise ConfigError(f"{where}: model.inputs 'visual' reads image tokens, which the '{self.teacher.family}' world model has none of")
             self.teacher.requires_grad_(False).eval()
-            self.teacher.build_code_cache(ctx.data.root, ctx.stage_dir / "cache" / CODE_CACHE)
-        self._cot: dict[str, CotOutput | None] = {}  # sample token -> the frozen model's chain of thought
+            if self.teacher.vision is not None:
+                self.teacher.prepare_images(ctx.data.root, ctx.stage_dir / "cache" / IMAGE_CACHE)
+            else:
+                self.teacher.build_code_cache(ctx.data.root, ctx.stage_dir / "cache" / CODE_CACHE)
+        if self.teacher is None or "meta_action" not in self.teacher.task_builders:
+            # The sidecar's meta action (and ego state); OccVLA labels its own from the poses.
+            self.require_tasks(["meta_action"], instead="leave the planner stage out of the recipe")
+        visual_dim = self.teacher.world.hidden_size if "visual" in self.inputs else 0
+        self.head = PlanningHead(feature_size(self.inputs, visual_dim), cfg.hidden, cfg.layers, FUTURE_STEPS, cfg.dropout)
+        self._teacher_out: dict[str, dict] = {}  # sample token -> the frozen model's outputs
+        self._cache_file = ctx.stage_dir / "cache" / f"{TEACHER_CACHE}.json"
+        self._load_teacher_cache()
         self.val_means = ValidationMeans("val/meta_parsed_fraction")
         self.metrics = torch.nn.ModuleDict({
             name: PlanningMetric()
@@ -111,67 +167,139 @@ class PlannerStage(Stage):
         })
 
     def entries(self, split: str) -> tuple[str, ...] | None:
-        # Training reads annotations only; validation also prompts the instruct model, whose
-        # scenes come from the code cache.
-        return TEXT_ENTRIES if split == "val" and self.teacher is not None else ("ann.json",)
+        # The teacher's prompts read the text entries; its scenes or images come from its caches.
+        return TEXT_ENTRIES if self.teacher is not None else ("ann.json",)
+
+    # -- the teacher's outputs, computed once per clip and kept on disk
+    def _load_teacher_cache(self) -> None:
+        """Per sample token: ``reference`` (meta action), ``generated`` ([meta action or None,
+        waypoints or None], or None where the chain of thought does not apply) and ``visual``."""
+        if self.teacher is None or not self._cache_file.is_file():
+            return
+        from safetensors.torch import load_file
+
+        self._teacher_out = json.loads(self._cache_file.read_text())
+        visual_file = self._cache_file.with_suffix(".safetensors")
+        for token, vis in (load_file(str(visual_file)) if visual_file.is_file() else {}).items():
+            self._teacher_out.setdefault(token, {})["visual"] = vis.numpy()
+
+    def _save_teacher_cache(self) -> None:
+        if self.teacher is None or not is_rank_zero():
+            return
+        from safetensors.torch import save_file
+
+        self._cache_file.parent.mkdir(parents=True, exist_ok=True)
+        visual = {t: torch.as_tensor(o["visual"]).contiguous() for t, o in self._teacher_out.items() if "visual" in o}
+        if visual:
+            tmp = self._cache_file.with_suffix(".tmp")
+            save_file(visual, str(tmp))
+            tmp.replace(self._cache_file.with_suffix(".safetensors"))
+        atomic_write_json(self._cache_file, {t: {k: v for k, v in o.items() if k != "visual"} for t, o in self._teacher_out.items()})
+
+    def teacher_outputs(self, clips: list[Clip], generate: bool) -> list[dict]:
+        """The frozen model's outputs for each clip (the generated meta action only with
+        ``generate``), from the cache or computed now and kept."""
+        outs = [self._teacher_out.setdefault(c.anchor["token"], {}) for c in clips]
+        todo = [i for i, o in enumerate(outs) if "reference" not in o]
+        for i in todo:
+            outs[i]["reference"] = self.teacher.reference_meta_action(clips[i])
+        todo = [i for i, o in enumerate(outs) if "visual" not in o] if "visual" in self.inputs else []
+        if todo:
+            for i, vis in zip(todo, self.teacher.visual_summary([clips[i] for i in todo]).cpu().numpy()):
+                outs[i]["visual"] = vis
+        todo = [i for i, o in enumerate(outs) if "generated" not in o] if generate else []
+        if todo:
+            for i, gen in zip(todo, self.teacher.generated_meta_actions([clips[i] for i in todo])):
+                outs[i]["generated"] = None if gen is None else [gen[0], None if gen[1] is None else np.asarray(gen[1]).tolist()]
+        return outs
+
+    def on_fit_start(self) -> None:
+        """Compute the teacher's outputs for the training clips once, when the head trains on
+        generated meta actions or reads visual tokens (validation's come as its batches do)."""
+        if self.teacher is None:
+            return
+        from occtrain.data.clips import frame_clips
+        from occtrain.data.layout import DatasetIndex
+        from occtrain.progress import progress_bar
+
+        cfg = self.ctx.model_cfg
+        index = DatasetIndex.open(self.ctx.data.root)
+        context = self.teacher.tasks.context_frames
+        jobs = [("train", cfg.train_meta == "generated")] if cfg.train_meta == "generated" or "visual" in self.inputs else []
+        self.teacher.to(self.device)
+        for split, generate in jobs:
+            clips = list(frame_clips(index, split, context, FUTURE_STEPS, partial_history=False))
+            with progress_bar(len(clips), f"the world model's {'meta actions' if generate else 'outputs'} on the {split} split, once") as advance:
+                for i in range(0, len(clips), 16):
+                    self.teacher_outputs(clips[i : i + 16], generate)
+                    advance(len(clips[i : i + 16]))
+        self._save_teacher_cache()
 
     # -- data
-    def _inputs(self, anchors: list[dict], metas: list[dict]) -> torch.Tensor:
-        feats = [ego_features(a, m, self.ctx.model_cfg.use_past) for a, m in zip(anchors, metas)]
-        return torch.from_numpy(np.stack(feats)).to(self.device)
+    def _features(self, clips: list[Clip], source: str) -> tuple[torch.Tensor, list[int]]:
+        """The head's inputs for the clips that have a meta action from ``source``, and their rows."""
+        outs = self.teacher_outputs(clips, source == "generated") if self.teacher is not None else [None] * len(clips)
+        feats, rows = [], []
+        for i, (clip, out) in enumerate(zip(clips, outs)):
+            if out is None:
+                meta = clip.anchor.get("meta_action")
+            elif source == "generated":
+                meta = out["generated"][0] if out["generated"] is not None else None
+            else:
+                meta = out["reference"]
+            if meta is None:
+                continue
+            feats.append(ego_features(clip.anchor, meta, self.inputs, None if out is None else out.get("visual")))
+            rows.append(i)
+        x = torch.from_numpy(np.stack(feats)).to(self.device) if feats else torch.zeros(0, self.head.mlp[0].in_features, device=self.device)
+        return x, rows
 
     # -- training
     def training_step(self, batch: dict[str, Any], batch_idx: int) -> torch.Tensor:
-        anchors = [ann["anchor"] for ann in batch["ann"]]
-        pred = self.head(self._inputs(anchors, [a["meta_action"] for a in anchors]))
-        gt = plan_target(anchors, self.device)
-        target, mask = gt.traj, gt.mask
-        err = pred - target
+        clips = clips_from_batch({"qa": [[]] * len(batch["ann"]), "narration": [""] * len(batch["ann"]), **batch})
+        x, rows = self._features(clips, self.ctx.model_cfg.train_meta)
+        self.log("train/meta_rows", float(len(rows)), reduce_fx="sum", batch_size=len(clips))
+        if not rows:
+            # No clip has a (parsed) meta action: a zero loss through the head keeps DDP's gradients in step.
+            return self.head(x).sum() * 0.0
+        gt = plan_target([clips[i].anchor for i in rows], self.device)
+        err = self.head(x) - gt.traj
         per_point = err.pow(2).sum(-1) if self.ctx.model_cfg.loss == "mse" else err.abs().sum(-1)
-        loss = (per_point * mask).sum() / mask.sum().clamp(min=1)
-        self.log("train/loss", loss, prog_bar=True, batch_size=len(anchors))
+        loss = (per_point * gt.mask).sum() / gt.mask.sum().clamp(min=1)
+        self.log("train/loss", loss, prog_bar=True, batch_size=len(rows))
         return loss
 
     # -- validation
     def validation_step(self, batch: dict[str, Any], batch_idx: int) -> None:
-        anchors = [ann["anchor"] for ann in batch["ann"]]
+        clips = clips_from_batch({"qa": [[]] * len(batch["ann"]), "narration": [""] * len(batch["ann"]), **batch})
+        anchors = [c.anchor for c in clips]
         gt = plan_target(anchors, self.device)
 
-        def record(name: str, pred: torch.Tensor, rows: list[int] | None = None) -> None:
-            rows = list(range(len(anchors))) if rows is None else rows
-            sub = gt.rows(rows)
-            self.metrics[name].update(pred[rows], sub.traj, sub.mask, sub.agents)
-
-        record("head_gt_meta", self.head(self._inputs(anchors, [a["meta_action"] for a in anchors])))
-        speeds = torch.tensor([a["ego_speed"] for a in anchors], device=self.device)
-        record("constant_velocity", constant_velocity_plan(speeds, FUTURE_STEPS))
-        record("baseline_stationary", torch.zeros_like(gt.traj))
-        limit = self.ctx.model_cfg.generate_batches
-        if self.teacher is not None and (limit < 0 or batch_idx < limit):
-            outputs = self._chain_of_thought(clips_from_batch(batch), batch)
-            # Clips the chain of thought does not apply to are skipped, not scored as a zero plan.
-            generated = [i for i, o in enumerate(outputs) if o is not None]
-            metas = {i: parse_meta_action(outputs[i].text) for i in generated}
-            rows = [i for i in generated if metas[i] is not None]
+        def record(name: str, pred: torch.Tensor, rows: list[int]) -> None:
             if rows:
-                pred = self.head(self._inputs([anchors[i] for i in rows], [metas[i] for i in rows]))
-                full = torch.zeros_like(gt.traj)
-                full[rows] = pred
-                record("head_generated_meta", full, rows)
-            if generated:
-                tokens = torch.zeros_like(gt.traj)
-                tokens[generated] = torch.stack([torch.as_tensor(outputs[i].waypoints, dtype=torch.float32) for i in generated]).to(self.device)
-                record("llm_action_tokens", tokens, generated)
-                self.val_means.update("val/meta_parsed_fraction", len(rows) / len(generated), len(generated))
+                sub = gt.rows(rows)
+                self.metrics[name].update(pred, sub.traj, sub.mask, sub.agents)
 
-    def _chain_of_thought(self, clips: list, batch: dict) -> list[CotOutput | None]:
-        todo = [c for c in clips if c.anchor["token"] not in self._cot]
-        if todo:
-            rows = [i for i, c in enumerate(clips) if c.anchor["token"] not in self._cot]
-            sub = {"ann": [batch["ann"][i] for i in rows]}
-            for clip, out in zip(todo, self.teacher.chain_of_thought(todo, sub)):
-                self._cot[clip.anchor["token"]] = out
-        return [self._cot[c.anchor["token"]] for c in clips]
+        x, rows = self._features(clips, "ground_truth")
+        record("head_gt_meta", self.head(x), rows)
+        speeds = torch.tensor([float(np.linalg.norm(current_velocity(a))) if "ego_speed" not in a else a["ego_speed"] for a in anchors], device=self.device)
+        everyone = list(range(len(anchors)))
+        record("constant_velocity", constant_velocity_plan(speeds, FUTURE_STEPS), everyone)
+        record("baseline_stationary", torch.zeros_like(gt.traj), everyone)
+        limit = self.ctx.model_cfg.generate_batches
+        if self.teacher is not None and self.ctx.model_cfg.meta_source == "generated" and (limit < 0 or batch_idx < limit):
+            outs = self.teacher_outputs(clips, generate=True)
+            applies = [i for i, o in enumerate(outs) if o["generated"] is not None]
+            x, rows = self._features(clips, "generated")
+            # Clips the chain of thought does not apply to are skipped, not scored as a zero plan.
+            record("head_generated_meta", self.head(x), rows)
+            tokens = [i for i in applies if outs[i]["generated"][1] is not None]
+            if tokens:
+                plans = torch.stack([torch.as_tensor(outs[i]["generated"][1], dtype=torch.float32) for i in tokens]).to(self.device)
+                record("llm_action_tokens", plans, tokens)
+            if applies:
+                parsed = sum(outs[i]["generated"][0] is not None for i in applies)
+                self.val_means.update("val/meta_parsed_fraction", parsed / len(applies), len(applies))
 
     def on_validation_epoch_end(self) -> None:
         for name, metric in self.metrics.items():
@@ -181,22 +309,26 @@ class PlannerStage(Stage):
             metric.reset()
         self.log_dict(self.val_means.pop())
 
+    def on_train_end(self) -> None:
+        self._save_teacher_cache()  # clips first met in training (a shorter history) join the cache
+
     def configure_optimizers(self) -> dict:
         return configure_adamw(self.head.parameters(), self.ctx.spec.optim, self.ctx.trainer.max_steps)
 
     # -- reporting and export
     def report(self) -> StageReport:
         n = count_parameters(self.head)
-        return StageReport(f"planning head {n / 1e3:.1f}K params", {"params": float(n)})
+        return StageReport(f"planning head {n / 1e3:.1f}K params, inputs {', '.join(self.inputs)}", {"params": float(n)})
 
     def export(self, path: Path) -> Path:
         cfg = self.ctx.model_cfg
         config = {
             "stage_kind": "planner",
-            "features": feature_size(cfg.use_past),
+            "features": self.head.mlp[0].in_features,
             "hidden": cfg.hidden,
             "layers": cfg.layers,
-            "use_past": cfg.use_past,
+            "inputs": self.inputs,
+            "train_meta": cfg.train_meta,
             "steps": FUTURE_STEPS,
         }
         return write_export(path, self.head.state_dict(), config)

@@ -21,11 +21,14 @@ import torch
 
 from occtrain.config import to_object
 from occtrain.data.clips import clips_from_batch
-from occtrain.engine import CODE_CACHE, TEXT_ENTRIES, Evaluator, export_engine, load_world_model, Priors, move_batch, new_world_model
+from occtrain.engine import CODE_CACHE, IMAGE_CACHE, TEXT_ENTRIES, Evaluator, export_engine, load_world_model, Priors, move_batch, new_world_model
 from occtrain.families import families
 from occtrain.families.occllama import InstructModelConfig, PretrainModelConfig
 from occtrain.families.occllama.tasks import validate_tasks
 from occtrain.models import count_parameters
+from occtrain.errors import ConfigError
+from occtrain.exports import export_kind
+from occtrain.models.adapters import adapters_of, add_adapters
 from occtrain.models.llm import apply_lora
 from occtrain.stages import StageKind, register
 from occtrain.stages.base import Stage, StageContext, StageReport
@@ -38,39 +41,71 @@ class WorldModelStage(Stage):
     """Trains the world model on the configured tasks; validates by loss, accuracy and generation."""
 
     consumes_count = (1, 1)
-    frozen_prefixes = ("engine.scene_tokenizer.",)  # it comes from the tokenizer's export
+    # They come from the tokenizer's and the vision stage's exports.
+    frozen_prefixes = ("engine.scene_tokenizer.", "engine.vision.")
 
     def __init__(self, ctx: StageContext):
         super().__init__(ctx)
         cfg = ctx.model_cfg
         where = f"stages '{ctx.spec.name}'.model"
         tasks = to_object(cfg.tasks)
-        export = next(iter(ctx.inputs.values()))
         if ctx.spec.kind == "pretrain":
+            exports = self._exports_by_kind(where)
             # Every family's section: the one of the family the tokenizer picks is used.
             sections = {name: to_object(cfg[name]) for name, spec in families().items() if spec.world_config is not None}
             self.engine = new_world_model(
-                export, cfg.llm, tasks, ctx.data.root, cfg.max_new_text_tokens, cfg.family, sections, where,
+                exports["tokenizer"], cfg.llm, tasks, ctx.data.root, cfg.max_new_text_tokens, cfg.family, sections, where,
+                vision_export=exports.get("vision"),
             )
         else:
-            self.engine = load_world_model(export).with_settings(tasks, cfg.max_new_text_tokens)
+            self.engine = load_world_model(next(iter(ctx.inputs.values()))).with_settings(tasks, cfg.max_new_text_tokens)
         # The family's own tasks: known once the engine says which family it is.
         self.engine.default_tasks("pretrain" if ctx.spec.kind == "pretrain" else "instruct")
         validate_tasks(tasks, f"{where}.tasks", self.engine.task_builders)
         self.require_tasks(t for t, w in tasks.weights.items() if w > 0)
         world = self.engine.world
+        if cfg.use_lora and cfg.use_adapters:
+            raise ConfigError(f"{where}: use_lora and use_adapters are both on; train through one of them")
         if cfg.use_lora:
             world.llm.requires_grad_(False)
             world.requires_grad_(False)
             world.llm = apply_lora(world.llm, cfg.lora)
+        if cfg.use_adapters:
+            # The LM's own weights freeze; its adapters and the model's own parts (image
+            # projector, occupancy queries and projector) train.
+            adapter_cfg = to_object(cfg.adapter)
+            adapter_cfg.validate(f"{where}.adapter")
+            world.llm.requires_grad_(False)
+            for adapter in adapters_of(world.llm) or add_adapters(world.llm, adapter_cfg):
+                adapter.requires_grad_(True)
+        if tasks.occupancy_weight == 0:
+            for p in getattr(world, "occupancy_parameters", list)():
+                p.requires_grad_(False)  # no loss reaches them: DDP must not wait for their gradients
         freeze_prefixes(world, list(ctx.spec.freeze))
         self.evaluator = Evaluator(Evaluator.scorable(tasks.weights), priors=Priors.of(ctx.data.root))
         self.val_means = ValidationMeans("val/loss", "val/token_acc")
         self._entries: dict[str, tuple[str, ...] | None] = {}
-        if cfg.cache_codes:
+        if self.engine.vision is not None:
+            # Image tokens from a cache of the frozen encoder's output, occupancy targets
+            # from the dataset: the shards give the annotations and the text.
+            self.engine.prepare_images(ctx.data.root, ctx.stage_dir / "cache" / IMAGE_CACHE)
+            self._entries = {"train": TEXT_ENTRIES, "val": TEXT_ENTRIES}
+        elif cfg.cache_codes:
             self.engine.build_code_cache(ctx.data.root, ctx.stage_dir / "cache" / CODE_CACHE)
             # Training then reads no occupancy; validation still scores forecasts against it.
             self._entries = {"train": TEXT_ENTRIES}
+
+    def _exports_by_kind(self, where: str) -> dict[str, Path]:
+        """A pretrain stage's inputs by stage kind: one tokenizer, at most one vision stage."""
+        found: dict[str, Path] = {}
+        for name, path in self.ctx.inputs.items():
+            kind = export_kind(Path(path))
+            if kind in found:
+                raise ConfigError(f"{where}: consumes two {kind} stages; a world model reads one")
+            found[kind] = Path(path)
+        if "tokenizer" not in found:
+            raise ConfigError(f"{where}: a pretrain stage consumes a tokenizer stage; add one to consumes")
+        return found
 
     def entries(self, split: str) -> tuple[str, ...] | None:
         return self._entries.get(split)
@@ -131,7 +166,8 @@ class WorldModelStage(Stage):
 
 
 class PretrainStage(WorldModelStage):
-    consumes_kinds = ("tokenizer",)
+    consumes_kinds = ("tokenizer", "vision")
+    consumes_count = (1, 2)  # a tokenizer, and a vision stage for a world model that reads cameras
 
 
 class InstructStage(WorldModelStage):

@@ -13,8 +13,8 @@ the scene's end, so the last frames get labels too:
   schema.META_ACCEL_THRESHOLD (accelerate / decelerate / maintain);
 - direction: "stop" if the speed stays at or below schema.STOP_SPEED over the next
   SPEED_WINDOW_S seconds; otherwise over the next DIRECTION_WINDOW_S seconds a heading
-  change above TURN_HEADING_DEG is "left"/"right", a heading change above
-  BEAR_HEADING_DEG or a lateral offset of the end point above BEAR_LATERAL_M is
+  change above SIDECAR_RULES.turn_heading_deg is "left"/"right", a heading change above
+  bear_heading_deg or a lateral offset of the end point above bear_lateral_m is
   "bear left"/"bear right" (lane changes, gentle curves), anything else "straight".
 
 Box velocities are the objects' own velocities expressed in the ego frame's axes (the
@@ -35,6 +35,7 @@ from occtrain.data.schema import (
     FrameAnnotation,
     MetaAction,
 )
+from occtrain.data.meta_actions import MetaActionConfig, direction_action, speed_action
 from occtrain.data.synth.catalog import TrackSet
 from occtrain.data.synth.grid import GROUND_TOP_Z
 from occtrain.occ3d import CLASS_NAMES, FRAME_DT, FUTURE_STEPS, PAST_STEPS, RANGE_MAX
@@ -42,9 +43,8 @@ from occtrain.data.geometry import driving_command, global_to_ego, rotate_to_ego
 
 SPEED_WINDOW_S = 1.0
 DIRECTION_WINDOW_S = 3.0
-TURN_HEADING_DEG = 30.0
-BEAR_HEADING_DEG = 8.0
-BEAR_LATERAL_M = 1.0
+#: The direction thresholds (turn above 30 degrees, bear above 8 degrees or 1 m sideways).
+SIDECAR_RULES = MetaActionConfig(direction_window_s=DIRECTION_WINDOW_S, turn_heading_deg=30.0, bear_heading_deg=8.0, bear_lateral_m=1.0)
 #: Scene start times are spread by seed so timestamps of different scenes do not overlap.
 EPOCH_US = 1_600_000_000_000_000
 SCENE_SLOT_US = 100_000_000
@@ -72,24 +72,15 @@ def _r(x, nd: int = 4) -> list:
 
 
 def meta_action(ego: EgoMotion, i: int) -> MetaAction:
-    """OccVLA meta action of frame ``i`` (thresholds in the module docstring)."""
+    """OccVLA meta action of frame ``i`` (thresholds in the module docstring), by the
+    shared rules of ``data.meta_actions`` over the simulated motion."""
     n1 = int(round(SPEED_WINDOW_S / FRAME_DT))
     n3 = int(round(DIRECTION_WINDOW_S / FRAME_DT))
     accel = (ego.speed[i + n1] - ego.speed[i]) / SPEED_WINDOW_S
-    speed = "maintain" if abs(accel) < META_ACCEL_THRESHOLD else ("accelerate" if accel > 0 else "decelerate")
-    if np.all(ego.speed[i : i + n1 + 1] <= STOP_SPEED):
-        return {"speed": speed, "direction": "stop"}
-    turn = np.rad2deg(ego.yaw[i + n3] - ego.yaw[i])
-    lateral = global_to_ego(ego.xy[i + n3], ego.xy[i], ego.yaw[i])[1]
-    if abs(turn) > TURN_HEADING_DEG:
-        direction = "left" if turn > 0 else "right"
-    elif abs(lateral) > BEAR_LATERAL_M:
-        direction = "bear left" if lateral > 0 else "bear right"
-    elif abs(turn) > BEAR_HEADING_DEG:
-        direction = "bear left" if turn > 0 else "bear right"
-    else:
-        direction = "straight"
-    return {"speed": speed, "direction": direction}
+    stopped = bool(np.all(ego.speed[i : i + n1 + 1] <= STOP_SPEED))
+    turn = float(np.rad2deg(ego.yaw[i + n3] - ego.yaw[i]))
+    lateral = float(global_to_ego(ego.xy[i + n3], ego.xy[i], ego.yaw[i])[1])
+    return {"speed": speed_action(accel, META_ACCEL_THRESHOLD), "direction": direction_action(turn, lateral, stopped, SIDECAR_RULES)}
 
 
 def _relative(xy: np.ndarray, i: int, num_frames: int, pose_xy: np.ndarray, pose_yaw: float, offsets: range):

@@ -7,6 +7,7 @@ from dataclasses import dataclass, field
 from occtrain.config.llm import MAX_NEW_TEXT_TOKENS, LLMConfig, LoRAConfig
 from occtrain.config.tokenizer import QuantizerFields, latent_hw
 from occtrain.errors import ConfigError
+from occtrain.models.adapters import AdapterConfig
 from occtrain.families.occllama.tasks import TaskConfig
 
 
@@ -64,6 +65,10 @@ class PretrainModelConfig:
     use_lora: bool = False
     #: Fold the adapter into the exported weights instead of exporting it as a peft dir.
     merge_export: bool = False
+    #: Train through bottleneck adapters at the residual connections instead, the base
+    #: frozen (OccVLA's stage 2 and VQA branch); an export that has them trains them on.
+    use_adapters: bool = False
+    adapter: AdapterConfig = field(default_factory=AdapterConfig)
     #: Validation generates answers for this many items per task (a fixed seeded subset
     #: of the val split, the same at every validation; -1: all of them) and scores them.
     val_samples: int = 64

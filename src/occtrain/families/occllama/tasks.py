@@ -15,6 +15,7 @@ from typing import Callable, Iterator
 
 import numpy as np
 
+from occtrain.data.meta_actions import MetaActionConfig
 from occtrain.data.clips import Actions, Branch, Clip, Part, Scene, Text, clip_rng, ego_future
 from occtrain.data.text_formats import format_meta_action, parse_meta_action
 from occtrain.errors import ConfigError
@@ -43,6 +44,19 @@ class TaskConfig:
     #: are packed as branches that share the frame's context and do not see each other, so
     #: each is learned exactly as alone, for a fraction of the compute.
     questions_per_sample: int = 1
+    #: OccVLA's lambda_occ (Eq. 3): the weight of the occupancy-query loss beside the text
+    #: loss in every sequence, for a family with occupancy queries; 0 leaves them out.
+    occupancy_weight: float = 1.0
+    #: OccVLA: the answer reasons (scene, history) before the meta action (Table 7).
+    chain_of_thought: bool = True
+    #: OccVLA: past meta actions in the prompt (t-5 .. t-1; fewer where the clip's history is shorter).
+    past_meta_actions: int = 5
+    #: How OccVLA's meta actions are labelled from the ego poses.
+    meta_actions: MetaActionConfig = field(default_factory=MetaActionConfig)
+
+    def __post_init__(self) -> None:
+        if isinstance(self.meta_actions, dict):  # as an export's config.json holds it
+            self.meta_actions = MetaActionConfig(**self.meta_actions)
 
 
 def as_xy(points) -> tuple[tuple[float, float], ...]:
@@ -224,6 +238,11 @@ def validate_tasks(cfg: TaskConfig, key: str, builders: dict | None = None) -> N
         raise ConfigError(f"{key}.weights: no task has a positive weight")
     if cfg.questions_per_sample < 1:
         raise ConfigError(f"{key}.questions_per_sample: {cfg.questions_per_sample} must be at least 1")
+    if cfg.occupancy_weight < 0:
+        raise ConfigError(f"{key}.occupancy_weight: {cfg.occupancy_weight} is negative (paper: 1; 0 turns the occupancy queries off)")
+    if cfg.past_meta_actions < 0:
+        raise ConfigError(f"{key}.past_meta_actions: {cfg.past_meta_actions} is negative (paper: 5)")
+    cfg.meta_actions.validate(f"{key}.meta_actions")
 
 
 def sample_task(clip: Clip, cfg: TaskConfig, seed: int, token: str, builders: dict | None = None) -> tuple[str, list[Part]] | None:

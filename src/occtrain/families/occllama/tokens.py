@@ -51,6 +51,10 @@ class TokenSequence:
     #: Long[L]: 0 on the shared trunk, k on branch k (see ``SequenceBuilder.branch``).
     branch_ids: torch.Tensor
     payload: dict[str, torch.Tensor] = field(default_factory=dict)
+    #: The voxel labels uint8 (X, Y, Z) its occupancy queries are trained on, and the
+    #: weight of that loss (OccVLA's lambda_occ); None without queries.
+    voxels: torch.Tensor | None = None
+    voxel_weight: float = 0.0
 
     def __len__(self) -> int:
         return int(self.input_ids.shape[0])
@@ -63,6 +67,14 @@ class Step(NamedTuple):
     logits: torch.Tensor
     cache: object
     hidden: torch.Tensor | None
+
+
+def head(seq: TokenSequence, n: int) -> TokenSequence:
+    """The first ``n`` tokens of a laid-out sequence (a prompt's prefix)."""
+    return TokenSequence(
+        seq.input_ids[:n], seq.labels[:n], seq.segment_ids[:n], seq.position_ids[:n], seq.scene_target[:n],
+        seq.branch_ids[:n], {k: v[:n] for k, v in seq.payload.items()},
+    )
 
 
 def rows(hidden: torch.Tensor | None, *index) -> torch.Tensor | None:

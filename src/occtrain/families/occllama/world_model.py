@@ -147,13 +147,27 @@ def batch_payload(batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
     return {k.removeprefix("payload_"): v for k, v in batch.items() if k.startswith("payload_")}
 
 
+def _voxel_targets(seqs: list[TokenSequence]) -> dict[str, torch.Tensor]:
+    """``voxels`` uint8 (B, X, Y, Z) and ``voxel_weight`` (B,), 0 for a sequence without
+    occupancy queries; nothing when no sequence has them."""
+    given = [s.voxels for s in seqs if s.voxels is not None]
+    if not given:
+        return {}
+    zeros = torch.zeros_like(given[0])
+    return {
+        "voxels": torch.stack([s.voxels if s.voxels is not None else zeros for s in seqs]),
+        "voxel_weight": torch.tensor([s.voxel_weight if s.voxels is not None else 0.0 for s in seqs]),
+    }
+
+
 def collate(seqs: list[TokenSequence], pad_id: int) -> dict[str, torch.Tensor]:
     """Right-pad sequences into a batch.
 
     Returns ``input_ids``, ``labels`` (shifted targets, -100 on padding), ``segment_ids``,
     ``position_ids``, ``pad_mask`` (True on real tokens), ``scene_target_mask`` and
     ``attention_mask``: Bool[B, 1, L, L], True where attention is allowed (the model turns
-    it into what its attention implementation takes).
+    it into what its attention implementation takes); ``voxels`` and ``voxel_weight`` when
+    a sequence has occupancy queries (``_voxel_targets``).
     """
     L = max(len(s) for s in seqs)
 
@@ -178,6 +192,7 @@ def collate(seqs: list[TokenSequence], pad_id: int) -> dict[str, torch.Tensor]:
         "pad_mask": pad_mask,
         "scene_target_mask": pad("scene_target", False),
         "attention_mask": allowed_pairs(segment_ids, pad_mask, branch_ids)[:, None],
+        **_voxel_targets(seqs),
     }
 
 
@@ -448,6 +463,15 @@ class GreedyDecoder:
         if keep:
             self.last = Step(step.logits[keep - 1], None, rows(step.hidden, keep - 1))
         return step
+
+    def feed(self, ids: torch.Tensor, payload: dict | None = None) -> None:
+        """Queue more prompt tokens (with their payload), fed with the next forward."""
+        self._queue(ids, 0, payload)
+
+    def side_block(self, ids: torch.Tensor) -> Step:
+        """Feed what is queued, then ``ids`` as a query block (segment -1) that is cropped
+        off the cache afterwards, so nothing fed later sees it; the outputs of all fed."""
+        return self._advance(ids, transient_seg=-1)
 
     def flush(self) -> torch.Tensor:
         """Feed what is queued; the whole token stream so far, Long[n]."""
