@@ -20,7 +20,6 @@ from typing import Any
 import numpy as np
 import torch
 
-from occtrain.config.llm import MAX_NEW_TEXT_TOKENS
 from occtrain.data.clips import Clip, clips_from_batch, plan_target
 from occtrain.data.schema import COMMANDS, META_DIRECTIONS, META_SPEEDS
 from occtrain.engine import CODE_CACHE, IMAGE_CACHE, TEXT_ENTRIES, load_world_model
@@ -66,7 +65,8 @@ class PlannerModelConfig:
     #: Validation batches that run the instruct model's generation (-1: all of them). The
     #: model is frozen, so each clip's chain of thought is generated once and reused.
     generate_batches: int = -1
-    max_new_text_tokens: int = MAX_NEW_TEXT_TOKENS
+    #: The generation length of the chain of thought; 0: what the consumed model trained with.
+    max_new_text_tokens: int = 0
 
 
 def ego_features(anchor: dict, meta: dict, inputs: list[str] | tuple[str, ...], visual: np.ndarray | None = None) -> np.ndarray:
@@ -140,7 +140,9 @@ class PlannerStage(Stage):
                     f"{where}: model.meta_source/train_meta 'generated' and the 'visual' input read a world model; "
                     "add an instruct stage to consumes, or use ground_truth meta actions without visual input"
                 )
-            self.teacher = load_world_model(next(iter(ctx.inputs.values()))).with_settings(max_new_text_tokens=cfg.max_new_text_tokens)
+            self.teacher = load_world_model(next(iter(ctx.inputs.values())))
+            if cfg.max_new_text_tokens > 0:
+                self.teacher.with_settings(max_new_text_tokens=cfg.max_new_text_tokens)
             if not {"cot_planning", "meta_action"} & set(self.teacher.task_builders):
                 raise ConfigError(
                     f"{where}: the '{self.teacher.family}' world model generates no meta action; set model.meta_source=ground_truth"

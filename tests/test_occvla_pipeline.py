@@ -1,0 +1,103 @@
+"""stages/occvla.yaml through the real CLI on a tiny world, a few steps per stage: the camera
+encoder, the OccWorld VQ-VAE, stage 1, stage 2 with adapters and occupancy, the planning
+head on generated meta actions and the VQA branch; ``occtrain eval``; the export reloaded
+and generating the same text with and without its occupancy block."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from conftest import run_cli
+
+pytestmark = pytest.mark.slow
+
+STAGES = ("vision", "tokenizer", "stage1", "stage2", "stage3", "vqa")
+STEPS = 3
+
+
+def overrides(root: Path) -> list[str]:
+    out = [
+        f"data.root={root / 'data'}", f"data.shards={root / 'data' / 'shards_h6'}",
+        "data.synth.train_scenes=2", "data.synth.val_scenes=1", "data.synth.frames_per_scene=16",
+        "data.samples_per_shard=8", "data.shuffle_buffer=4",
+        "stages[0].model.prior_batches=2", "stages[1].data.batch_size=1",
+        "stages[2].model.llm.text_vocab_size=400",
+    ]
+    for i in range(len(STAGES)):
+        out += [f"stages[{i}].trainer.max_steps={STEPS}", f"stages[{i}].trainer.val_check_interval={STEPS}", f"stages[{i}].trainer.limit_val_batches=1"]
+    out += [f"stages[{i}].model.val_samples=3" for i in (2, 3, 5)]
+    return out
+
+
+@pytest.fixture(scope="module")
+def occvla_run(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("occvla")
+    run_dir = root / "run"
+    res = run_cli("run", "stages/occvla.yaml", *overrides(root), "--run-dir", str(run_dir), timeout=900)
+    assert res.returncode == 0, res.stderr[-3000:]
+    return run_dir
+
+
+def test_the_recipe_trains_every_stage_and_reports_the_papers_metrics(occvla_run):
+    stages = json.loads((occvla_run / "manifest.json").read_text())["stages"]
+    assert list(stages) == list(STAGES) and all(s["status"] == "done" for s in stages.values())
+    stage2, stage3, vqa = (stages[s]["metrics"] for s in ("stage2", "stage3", "vqa"))
+    for part in ("speed", "direction", "mean", "overall"):
+        assert f"val/meta_action_{part}" in stage2 and f"val/baseline_prior_meta_action_{part}" in stage2
+    for conv in ("occ3d", "occworld"):  # the query branch, decoded by the frozen OccWorld decoder
+        assert f"val/occupancy_{conv}_mIoU" in stage2 and f"val/occupancy_{conv}_mIoU" in vqa
+    assert "val/occupancy_occ3d_mIoU" not in stages["stage1"]["metrics"]  # stage 1 has no occupancy
+    for conv in ("stp3", "uniad"):
+        assert f"val/head_gt_meta_L2_{conv}_avg" in stage3 and f"val/constant_velocity_L2_{conv}_avg" in stage3
+    assert {"val/qa_overall", "val/baseline_prior_qa_overall"} <= vqa.keys()
+
+
+def test_stage2_exports_its_adapters_beside_the_hugging_face_directory(occvla_run):
+    from transformers import AutoModelForCausalLM
+
+    export = occvla_run / "stage2" / "export"
+    assert {p.name for p in (export / "llm" / "bottleneck_adapter").iterdir()} == {"adapter.safetensors", "adapter_config.json"}
+    assert (export / "vision_encoder" / "vision" / "config.json").is_file()
+    config = json.loads((export / "config.json").read_text())
+    assert config["family"] == "occvla" and config["vocab"]["image"] is True
+    assert config["tasks"]["occupancy_weight"] == 1.0 and config["tasks"]["meta_actions"]["accel_threshold_kmh_s"] == 1.0
+    # The LM's own weights load in plain transformers, no adapter key left over.
+    model = AutoModelForCausalLM.from_pretrained(str(export / "llm"), local_files_only=True)
+    assert not any("bottleneck" in k for k in model.state_dict())
+
+
+def test_the_planning_head_trained_on_cached_generated_meta_actions(occvla_run):
+    export = json.loads((occvla_run / "stage3" / "export" / "config.json").read_text())
+    assert export["inputs"] == ["meta_action", "velocity", "visual", "past"] and export["train_meta"] == "generated"
+    cache = json.loads((occvla_run / "stage3" / "cache" / "teacher_outputs.json").read_text())
+    assert cache and all("reference" in v for v in cache.values())
+    assert any("generated" in v for v in cache.values())
+    assert (occvla_run / "stage3" / "cache" / "teacher_outputs.safetensors").is_file()
+
+
+def test_eval_scores_meta_actions_and_the_query_branch(occvla_run):
+    res = run_cli("eval", str(occvla_run / "stage2"))
+    assert res.returncode == 0, res.stderr[-3000:]
+    metrics = json.loads((occvla_run / "stage2" / "eval" / "val" / "metrics.json").read_text())
+    assert {"meta_action_overall", "baseline_prior_meta_action_overall", "occupancy_occ3d_mIoU", "occupancy_occworld_mIoU"} <= metrics.keys()
+    assert metrics["meta_action_samples"] == metrics["baseline_prior_meta_action_samples"] > 0
+
+
+def test_the_reloaded_model_generates_the_same_text_with_and_without_occupancy(occvla_run):
+    from occtrain.data.clips import frame_clips
+    from occtrain.data.layout import DatasetIndex
+    from occtrain.engine import load_world_model
+    from occtrain.families.occllama.batch_decoding import TextAnswer
+
+    engine = load_world_model(occvla_run / "stage2" / "export").eval()
+    root = occvla_run.parent / "data"
+    engine.prepare_images(root)
+    clip = next(iter(frame_clips(DatasetIndex.open(root), "val", 6, 6, partial_history=False)))
+    parts = engine.task_items("meta_action", clip)[0]
+    prompt, _ = engine.prompt_and_plan(parts, {})
+    skipped, _ = engine.world.generate(prompt, [TextAnswer(20)], occupancy=False)
+    with_occ, logits = engine.world.generate(prompt, [TextAnswer(20)], occupancy=True)
+    assert skipped == with_occ and logits.shape[1] == 18
