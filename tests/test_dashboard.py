@@ -184,6 +184,18 @@ def test_paper_figures_match_by_words_and_convention():
     assert {f.value for f in figures_for("val/qa/by_type_hop/exist_H0")} == {87.4, 82.9}
 
 
+def test_meta_action_accuracy_is_one_chart_of_four_parts_beside_its_baseline():
+    from occtrain.dashboard.run_view import _measure
+
+    title = "meta-action accuracy: speed, direction, their mean, overall (%)"
+    assert _measure("val/meta_action_speed") == (title, "meta_action speed")
+    assert _measure("val/baseline_prior_meta_action_overall") == (title, "baseline_prior_meta_action overall")
+    assert _measure("val/meta_action_samples") is None
+    # OccVLA's Table 4 row sits beside ours: "Avg." is the mean, "Overall" both parts right.
+    assert {f.value for f in figures_for("val/meta_action_mean")} == {66.39}
+    assert {f.value for f in figures_for("val/meta_action_overall")} == {43.08}
+
+
 @pytest.mark.skipif(not SEEDS.is_dir(), reason=f"the seed papers are not at {SEEDS} (outside the repository)")
 def test_every_paper_figure_is_printed_in_its_paper():
     files = {"OccLLaMA": "000_", "OccVLA": "002_", "Occ-LLM": "003_", "SparseOccVLA": "004_"}

@@ -17,11 +17,23 @@ class PlanningHead(nn.Module):
 
     Waypoints are predicted as per-step displacements and summed, so the trajectory
     is continuous by construction and the output scale stays that of one 0.5 s step.
+    With ``visual_dim`` the head also reads a visual summary through a narrow bottleneck
+    (LayerNorm, dropout, a linear map to ``visual_width``): a few hundred training clips
+    overfit a full-width one (measured: L2 0.57 m with it, 0.48 m through 8 dims). Given
+    the current velocity, the MLP's waypoints are added to the constant-velocity ones, so
+    the head learns how the meta action bends and slows the ego's motion rather than the
+    motion itself (1.27 m L2 without that, against 0.53 m for constant velocity alone).
     """
 
-    def __init__(self, features: int, hidden: int, layers: int, steps: int, dropout: float = 0.0):
+    def __init__(
+        self, features: int, hidden: int, layers: int, steps: int, dropout: float = 0.0,
+        visual_dim: int = 0, visual_width: int = 8,
+    ):
         super().__init__()
-        dims = [features] + [hidden] * (layers - 1)
+        self.visual = (
+            nn.Sequential(nn.LayerNorm(visual_dim), nn.Dropout(0.5), nn.Linear(visual_dim, visual_width)) if visual_dim else None
+        )
+        dims = [features + (visual_width if visual_dim else 0)] + [hidden] * (layers - 1)
         blocks: list[nn.Module] = []
         for a, b in zip(dims[:-1], dims[1:]):
             blocks += [nn.Linear(a, b), nn.LayerNorm(b), nn.GELU(), nn.Dropout(dropout)]
@@ -29,9 +41,15 @@ class PlanningHead(nn.Module):
         self.mlp = nn.Sequential(*blocks)
         self.steps = steps
 
-    def forward(self, features: torch.Tensor) -> torch.Tensor:
-        """(B, features) -> (B, steps, 2) waypoints in metres."""
-        return self.mlp(features).view(-1, self.steps, 2).cumsum(1)
+    def forward(self, features: torch.Tensor, visual: torch.Tensor | None = None, velocity: torch.Tensor | None = None) -> torch.Tensor:
+        """(B, features) [+ visual (B, visual_dim)] [+ velocity (B, 2) m/s] -> (B, steps, 2) waypoints in metres."""
+        if self.visual is not None:
+            features = torch.cat([features, self.visual(visual)], dim=1)
+        plan = self.mlp(features).view(-1, self.steps, 2).cumsum(1)
+        if velocity is not None:
+            t = torch.arange(1, self.steps + 1, device=plan.device, dtype=plan.dtype) * FRAME_DT
+            plan = plan + velocity.to(plan.dtype)[:, None, :] * t[None, :, None]
+        return plan
 
 
 def constant_velocity_plan(speed: torch.Tensor, steps: int) -> torch.Tensor:
@@ -42,10 +60,14 @@ def constant_velocity_plan(speed: torch.Tensor, steps: int) -> torch.Tensor:
 
 
 def load_planning_head(export_dir: Path) -> PlanningHead:
-    """The planning head of a planner stage's export, in eval mode."""
+    """The planning head of a planner stage's export, in eval mode (its config's ``inputs``
+    say what to feed it; with ``velocity`` among them, pass the velocity too)."""
     state, config = read_export(export_dir)
     if config.get("stage_kind") != "planner":
         raise OcctrainError(f"{export_dir}: not a planner export (stage kind '{config.get('stage_kind')}')")
-    head = PlanningHead(config["features"], config["hidden"], config["layers"], config["steps"], 0.0)
+    head = PlanningHead(
+        config["features"], config["hidden"], config["layers"], config["steps"], 0.0,
+        config.get("visual_dim", 0), config.get("visual_width", 8),
+    )
     load_state_strict(head, state, (), str(export_dir))
     return head.eval()

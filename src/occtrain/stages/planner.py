@@ -59,6 +59,8 @@ class PlannerModelConfig:
     #: consumed model generates for each training clip (``generated``, OccVLA's stage 3;
     #: generated once and cached in the stage directory).
     train_meta: str = "ground_truth"
+    #: Width of the bottleneck the visual summary passes through (see ``PlanningHead``).
+    visual_width: int = 8
     #: Where validation takes the meta action from: the annotation, or the consumed
     #: model's generated chain of thought (both are always reported when possible).
     meta_source: str = "generated"
@@ -69,8 +71,9 @@ class PlannerModelConfig:
     max_new_text_tokens: int = 0
 
 
-def ego_features(anchor: dict, meta: dict, inputs: list[str] | tuple[str, ...], visual: np.ndarray | None = None) -> np.ndarray:
-    """The head's input vector: the ``inputs`` in ``HEAD_INPUTS`` order."""
+def ego_features(anchor: dict, meta: dict, inputs: list[str] | tuple[str, ...]) -> np.ndarray:
+    """The head's input vector: the ``inputs`` in ``HEAD_INPUTS`` order (the visual summary
+    goes in apart, through the head's bottleneck)."""
     parts = []
     for name in HEAD_INPUTS:
         if name not in inputs:
@@ -86,26 +89,25 @@ def ego_features(anchor: dict, meta: dict, inputs: list[str] | tuple[str, ...], 
         elif name == "past":
             past = np.asarray(anchor["ego_past"], dtype=np.float64).reshape(-1) / 10.0
             parts.append(past * np.repeat(np.asarray(anchor["ego_past_mask"], dtype=np.float64), 2))
-        elif visual is None:
-            raise ValueError("the 'visual' input needs the world model's visual summary")
-        else:
-            parts.append(np.asarray(visual, dtype=np.float64).reshape(-1))
     return np.concatenate(parts).astype(np.float32)
 
 
 def current_velocity(anchor: dict) -> np.ndarray:
-    """(2,) m/s in the ego frame: the last move (from the last past waypoint to here) per 0.5 s step."""
+    """(2,) m/s in the ego frame: the speed (the sidecar's, else the last move's) along the
+    direction of the last move (from the last past waypoint to here; +x without one)."""
     past = np.asarray(anchor.get("ego_past", []), dtype=np.float64).reshape(-1, 2)
     mask = np.asarray(anchor.get("ego_past_mask", []), dtype=bool)
-    if not len(past) or not mask[-1]:
-        return np.zeros(2)
-    return -past[-1] / FRAME_DT
+    move = -past[-1] if len(past) and mask[-1] else np.zeros(2)
+    norm = float(np.linalg.norm(move))
+    speed = float(anchor["ego_speed"]) if "ego_speed" in anchor else norm / FRAME_DT
+    return speed * (move / norm if norm > 1e-3 else np.array([1.0, 0.0]))
 
 
-def feature_size(inputs: list[str] | tuple[str, ...], visual_dim: int = 0) -> int:
+def feature_size(inputs: list[str] | tuple[str, ...]) -> int:
+    """The length of ``ego_features`` (the visual summary apart)."""
     sizes = {
         "meta_action": len(META_SPEEDS) + len(META_DIRECTIONS), "ego_state": 3, "command": len(COMMANDS),
-        "velocity": 2, "past": 2 * PAST_STEPS, "visual": visual_dim,
+        "velocity": 2, "past": 2 * PAST_STEPS, "visual": 0,
     }
     return sum(sizes[n] for n in HEAD_INPUTS if n in inputs)
 
@@ -158,7 +160,7 @@ class PlannerStage(Stage):
             # The sidecar's meta action (and ego state); OccVLA labels its own from the poses.
             self.require_tasks(["meta_action"], instead="leave the planner stage out of the recipe")
         visual_dim = self.teacher.world.hidden_size if "visual" in self.inputs else 0
-        self.head = PlanningHead(feature_size(self.inputs, visual_dim), cfg.hidden, cfg.layers, FUTURE_STEPS, cfg.dropout)
+        self.head = PlanningHead(feature_size(self.inputs), cfg.hidden, cfg.layers, FUTURE_STEPS, cfg.dropout, visual_dim, cfg.visual_width)
         self._teacher_out: dict[str, dict] = {}  # sample token -> the frozen model's outputs
         self._cache_file = ctx.stage_dir / "cache" / f"{TEACHER_CACHE}.json"
         self._load_teacher_cache()
@@ -238,10 +240,11 @@ class PlannerStage(Stage):
         self._save_teacher_cache()
 
     # -- data
-    def _features(self, clips: list[Clip], source: str) -> tuple[torch.Tensor, list[int]]:
-        """The head's inputs for the clips that have a meta action from ``source``, and their rows."""
+    def _features(self, clips: list[Clip], source: str) -> tuple[dict[str, torch.Tensor], list[int]]:
+        """The head's inputs (``features``, and ``visual`` / ``velocity`` where it reads them)
+        for the clips that have a meta action from ``source``, and their rows."""
         outs = self.teacher_outputs(clips, source == "generated") if self.teacher is not None else [None] * len(clips)
-        feats, rows = [], []
+        feats, visual, velocity, rows = [], [], [], []
         for i, (clip, out) in enumerate(zip(clips, outs)):
             if out is None:
                 meta = clip.anchor.get("meta_action")
@@ -251,10 +254,21 @@ class PlannerStage(Stage):
                 meta = out["reference"]
             if meta is None:
                 continue
-            feats.append(ego_features(clip.anchor, meta, self.inputs, None if out is None else out.get("visual")))
+            feats.append(ego_features(clip.anchor, meta, self.inputs))
+            if "visual" in self.inputs:
+                visual.append(np.asarray(out["visual"], dtype=np.float32))
+            velocity.append(current_velocity(clip.anchor).astype(np.float32))
             rows.append(i)
-        x = torch.from_numpy(np.stack(feats)).to(self.device) if feats else torch.zeros(0, self.head.mlp[0].in_features, device=self.device)
-        return x, rows
+
+        def stack(arrays: list[np.ndarray], width: int) -> torch.Tensor:
+            return torch.from_numpy(np.stack(arrays)).to(self.device) if arrays else torch.zeros(0, width, device=self.device)
+
+        inputs = {"features": stack(feats, feature_size(self.inputs))}
+        if "visual" in self.inputs:
+            inputs["visual"] = stack(visual, self.head.visual[0].normalized_shape[0])
+        if "velocity" in self.inputs:
+            inputs["velocity"] = stack(velocity, 2)
+        return inputs, rows
 
     # -- training
     def training_step(self, batch: dict[str, Any], batch_idx: int) -> torch.Tensor:
@@ -263,9 +277,9 @@ class PlannerStage(Stage):
         self.log("train/meta_rows", float(len(rows)), reduce_fx="sum", batch_size=len(clips))
         if not rows:
             # No clip has a (parsed) meta action: a zero loss through the head keeps DDP's gradients in step.
-            return self.head(x).sum() * 0.0
+            return self.head(**x).sum() * 0.0
         gt = plan_target([clips[i].anchor for i in rows], self.device)
-        err = self.head(x) - gt.traj
+        err = self.head(**x) - gt.traj
         per_point = err.pow(2).sum(-1) if self.ctx.model_cfg.loss == "mse" else err.abs().sum(-1)
         loss = (per_point * gt.mask).sum() / gt.mask.sum().clamp(min=1)
         self.log("train/loss", loss, prog_bar=True, batch_size=len(rows))
@@ -283,7 +297,7 @@ class PlannerStage(Stage):
                 self.metrics[name].update(pred, sub.traj, sub.mask, sub.agents)
 
         x, rows = self._features(clips, "ground_truth")
-        record("head_gt_meta", self.head(x), rows)
+        record("head_gt_meta", self.head(**x), rows)
         speeds = torch.tensor([float(np.linalg.norm(current_velocity(a))) if "ego_speed" not in a else a["ego_speed"] for a in anchors], device=self.device)
         everyone = list(range(len(anchors)))
         record("constant_velocity", constant_velocity_plan(speeds, FUTURE_STEPS), everyone)
@@ -294,7 +308,7 @@ class PlannerStage(Stage):
             applies = [i for i, o in enumerate(outs) if o["generated"] is not None]
             x, rows = self._features(clips, "generated")
             # Clips the chain of thought does not apply to are skipped, not scored as a zero plan.
-            record("head_generated_meta", self.head(x), rows)
+            record("head_generated_meta", self.head(**x), rows)
             tokens = [i for i in applies if outs[i]["generated"][1] is not None]
             if tokens:
                 plans = torch.stack([torch.as_tensor(outs[i]["generated"][1], dtype=torch.float32) for i in tokens]).to(self.device)
@@ -326,7 +340,9 @@ class PlannerStage(Stage):
         cfg = self.ctx.model_cfg
         config = {
             "stage_kind": "planner",
-            "features": self.head.mlp[0].in_features,
+            "features": feature_size(self.inputs),
+            "visual_dim": self.head.visual[0].normalized_shape[0] if self.head.visual is not None else 0,
+            "visual_width": cfg.visual_width,
             "hidden": cfg.hidden,
             "layers": cfg.layers,
             "inputs": self.inputs,
