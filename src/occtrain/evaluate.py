@@ -45,7 +45,7 @@ def evaluate(
     dataset, or of ``data_root`` (e.g. a world synthesized from another seed): then the
     metrics go to ``eval/<its directory name>/<split>/`` and its baselines come from its
     own train split."""
-    from occtrain.engine import CODE_CACHE, IMAGE_CACHE, Evaluator, Priors, load_world_model
+    from occtrain.engine import Evaluator, Priors, load_world_model
 
     stage_dir = Path(stage_dir)
     pipeline = stage_dir.parent / "pipeline.yaml"
@@ -65,21 +65,17 @@ def evaluate(
         return _save(eval_metrics_file(stage_dir, split, data_root), metrics)
     # Prompts and generation length come from the export: exactly what the model trained with.
     engine = load_world_model(stage_dir / "export").eval()
-    # Scenes are looked up in the stage's code cache (made by the same frozen tokenizer;
-    # built here if the stage trained without one) instead of being encoded per clip.
-    # A vision-language model's image tokens likewise come from the stage's image cache.
+    # Scenes (or a vision-language model's camera tokens) are looked up in the stage's cache
+    # (made by the same frozen encoder; built here if the stage trained without one)
+    # instead of being encoded per clip.
     out_dir = stage_dir / "eval"
-    cache_name = IMAGE_CACHE if engine.vision is not None else CODE_CACHE
-    cache = stage_dir / "cache" / cache_name
+    cache_dir = stage_dir / "cache"
     root = recipe.data.root
     if data_root is not None:
         root = str(data_root)
         out_dir = out_dir / Path(root).resolve().name
-        cache = out_dir / "cache" / cache_name  # another dataset's scenes: never the stage's cache
-    if engine.vision is not None:
-        engine.prepare_images(root, cache)
-    else:
-        engine.build_code_cache(root, cache)
+        cache_dir = out_dir / "cache"  # another dataset's scenes: never the stage's cache
+    engine.prepare_inputs(root, cache_dir)
     unknown = [t for t in tasks or [] if t not in engine.task_builders]
     if unknown:
         raise ConfigError(f"--tasks: '{unknown[0]}' is not a task of the '{engine.family}' world model; its tasks are {', '.join(engine.task_builders)}")

@@ -137,6 +137,13 @@ def atomic_write_npz(path: str | Path, arrays: dict[str, np.ndarray], compress: 
     return atomic_write_bytes(path, npz_bytes(arrays, compress))
 
 
+def atomic_write_safetensors(path: str | Path, tensors: dict) -> Path:
+    """Write a name -> tensor dict as safetensors, atomically."""
+    from safetensors.torch import save
+
+    return atomic_write_bytes(path, save({k: v.contiguous() for k, v in tensors.items()}))
+
+
 def rank_world() -> tuple[int, int]:
     """This process's rank and the world size of the initialized process group; (0, 1) without one."""
     import torch.distributed as dist

@@ -27,7 +27,7 @@ from occtrain.config import load_config  # noqa: E402
 from occtrain.config.recipe import RecipeConfig  # noqa: E402
 from occtrain.data.clips import frame_clips  # noqa: E402
 from occtrain.data.layout import DatasetIndex  # noqa: E402
-from occtrain.engine import IMAGE_CACHE, load_world_model  # noqa: E402
+from occtrain.engine import load_world_model  # noqa: E402
 from occtrain.metrics import OccupancyMetric  # noqa: E402
 from occtrain.occ3d import FUTURE_STEPS  # noqa: E402
 
@@ -43,7 +43,7 @@ def main() -> None:
     engine = load_world_model(stage / "export").eval()
     if engine.vision is None:
         raise SystemExit(f"{stage}: not an OccVLA stage (its world model reads no cameras)")
-    engine.prepare_images(recipe.data.root, stage / "cache" / IMAGE_CACHE)  # time generation, not camera encoding
+    engine.prepare_inputs(recipe.data.root, stage / "cache")  # time generation, not camera encoding
     index = DatasetIndex.open(recipe.data.root)
     clips = list(frame_clips(index, "val", engine.tasks.context_frames, FUTURE_STEPS, partial_history=False))
     clips = clips if args.samples < 0 else clips[: args.samples]

@@ -12,15 +12,14 @@ import numpy as np
 import torch
 from torchmetrics import MeanMetric
 
-from occtrain.data.clips import Actions, Clip, Part, PlanTarget, Scene, frame_clips, plan_target
+from occtrain.data.clips import Actions, Clip, Images, Part, PlanTarget, Scene, frame_clips, plan_target
 from occtrain.data.layout import DatasetIndex
+from occtrain.data.meta_actions import commonest
 from occtrain.data.text_formats import format_meta_action, parse_meta_action
 from occtrain.engine.world_model import WorldModelEngine
 from occtrain.errors import ConfigError
 from occtrain.io import rank_world
 from occtrain.families.occllama.tasks import TASKS
-from occtrain.data.clips import Images
-from occtrain.data.meta_actions import commonest
 from occtrain.metrics import CaptionMetric, ForecastMetric, MetaActionAccuracy, OccupancyMetric, PlanningMetric, QAMetric, flatten_metrics
 from occtrain.models.planner import constant_velocity_plan
 from occtrain.occ3d import FRAME_DT, FREE, FUTURE_STEPS
@@ -189,7 +188,7 @@ class Evaluator(torch.nn.Module):
         self.reset()
         index = DatasetIndex.open(data_root)
         self._index = index
-        engine.prepare_images(data_root)  # a vision-language world model's camera tokens
+        engine.prepare_inputs(data_root)  # a vision-language world model's camera tokens (in memory)
         rank, world = rank_world()
         for task in self.tasks:
             clips = self._task_clips(engine, index, split, task, samples, seed)[rank::world]
@@ -317,10 +316,9 @@ class Evaluator(torch.nn.Module):
             self._keep_text("cot", "Task: describe the scene, then plan.", f"{text}  [parsed meta action: {said}]", reference)
             self.metrics["meta_parsed_fraction"].update(100.0 * (parsed is not None))
             self.metrics["meta_action_acc"].update(100.0 * (parsed == anchor["meta_action"]))
-            if self.priors.meta_action is not None:
-                self.metrics["baseline_prior_meta_action_acc"].update(100.0 * (self.priors.meta_action == anchor["meta_action"]))
             self.metrics["meta_action"].update([parsed], [anchor["meta_action"]])
             if self.priors.meta_action is not None:
+                self.metrics["baseline_prior_meta_action_acc"].update(100.0 * (self.priors.meta_action == anchor["meta_action"]))
                 self.metrics["baseline_prior_meta_action"].update([self.priors.meta_action], [anchor["meta_action"]])
             if self.record:
                 self.predictions["captions"][token] = text

@@ -26,7 +26,7 @@ from occtrain.families.occllama.tokens import TokenSequence
 from occtrain.families.occllama.world_model import OccWorldModel, collate
 from occtrain.families.registry import get_family
 from occtrain.errors import DataError
-from occtrain.io import is_rank_zero
+from occtrain.io import atomic_write_safetensors, is_rank_zero
 from occtrain.models.vocab import JointVocab
 from occtrain.progress import progress_bar
 
@@ -49,6 +49,31 @@ class CotOutput:
 
     text: str
     waypoints: np.ndarray  # (6, 2)
+
+
+@torch.no_grad()
+def per_sample_cache(
+    index: DatasetIndex, cache_file: Path | None, what: str, encode: Callable[[list[tuple[str, str]]], torch.Tensor],
+    batch_size: int = 8,
+) -> dict[str, torch.Tensor]:
+    """Sample token -> ``encode``'s row for it, over every frame of the dataset in chunks of
+    ``(scene, token)``: read from ``cache_file`` when it exists, else computed (with a
+    progress bar) and written there atomically by rank zero (kept in memory only without one)."""
+    from safetensors.torch import load_file
+
+    if cache_file is not None and cache_file.is_file():
+        return load_file(str(cache_file))
+    samples = list(index.samples())
+    cache: dict[str, torch.Tensor] = {}
+    with progress_bar(len(samples), what) as advance:
+        for i in range(0, len(samples), batch_size):
+            chunk = samples[i : i + batch_size]
+            for (_, token), row in zip(chunk, encode(chunk).cpu()):
+                cache[token] = row.contiguous()
+            advance(len(chunk))
+    if cache_file is not None and is_rank_zero():
+        atomic_write_safetensors(cache_file, cache)
+    return cache
 
 
 class WorldModelEngine(torch.nn.Module):
@@ -114,28 +139,23 @@ class WorldModelEngine(torch.nn.Module):
     def build_code_cache(self, data_root: str | Path, cache_file: Path, batch_size: int = 8) -> None:
         """Encode every frame of the dataset once (the tokenizer is frozen), kept in
         ``cache_file`` (safetensors, written atomically) so a resumed stage reuses it."""
-        from safetensors.torch import load_file, save_file
-
-        if cache_file.is_file():
-            self.code_cache = load_file(str(cache_file))
-            return
         index = DatasetIndex.open(data_root)
-        samples = [(scene, token) for scene, tokens in index.scenes.items() for token in tokens]
-        cache: dict[str, torch.Tensor] = {}
         device = self.scene_tokenizer.codebook.device
-        with progress_bar(len(samples), "encoding scenes with the frozen tokenizer") as advance:
-            for i in range(0, len(samples), batch_size):
-                chunk = samples[i : i + batch_size]
-                sem = torch.from_numpy(np.stack([index.labels(s, t)["semantics"] for s, t in chunk])).long().to(device)
-                for (_, token), codes in zip(chunk, self.scene_tokenizer.encode(sem).flatten(1).cpu()):
-                    cache[token] = codes.to(torch.int32).contiguous()
-                advance(len(chunk))
-        if is_rank_zero():
-            cache_file.parent.mkdir(parents=True, exist_ok=True)
-            tmp = cache_file.with_suffix(".tmp")
-            save_file(cache, str(tmp))
-            tmp.replace(cache_file)
-        self.code_cache = cache
+
+        def encode(chunk: list[tuple[str, str]]) -> torch.Tensor:
+            sem = torch.from_numpy(np.stack([index.labels(s, t)["semantics"] for s, t in chunk])).long().to(device)
+            return self.scene_tokenizer.encode(sem).flatten(1).to(torch.int32)
+
+        self.code_cache = per_sample_cache(index, cache_file, "encoding scenes with the frozen tokenizer", encode, batch_size)
+
+    def prepare_inputs(self, data_root: str | Path, cache_dir: Path | None = None) -> None:
+        """Encode once what the prompts read through a frozen encoder, cached in
+        ``cache_dir`` (in memory only without one): the camera tokens of a model that reads
+        cameras, else the scene codes."""
+        if self.vision is not None:
+            self.prepare_images(data_root, cache_dir / IMAGE_CACHE if cache_dir is not None else None)
+        elif cache_dir is not None:
+            self.build_code_cache(data_root, cache_dir / CODE_CACHE)
 
     # -- cameras (vision-language world models)
     @torch.no_grad()
@@ -147,38 +167,22 @@ class WorldModelEngine(torch.nn.Module):
         tokens, grid = self.vision(images.to(self.vision.camera_embed.device))
         return pool_views(tokens, grid, images.shape[1], tuple(self.world.cfg.image_tokens)).float()
 
-    @torch.no_grad()
     def prepare_images(self, data_root: str | Path, cache_file: Path | None = None, batch_size: int = 8) -> None:
         """Encode every frame's cameras once (the encoder is frozen), kept in ``cache_file``
         (safetensors, written atomically; in memory only without one), and remember the
         dataset for the occupancy targets. A no-op for a world model without cameras."""
-        from safetensors.torch import load_file, save_file
-
         if self.vision is None:
             return
         self.data_index = index = DatasetIndex.open(data_root)
         if self.image_cache is not None:
             return
-        if cache_file is not None and cache_file.is_file():
-            self.image_cache = load_file(str(cache_file))
-            return
-        if not index.has_cameras:
+        if not index.has_cameras and (cache_file is None or not cache_file.is_file()):
             raise DataError(f"{data_root}: the dataset has no camera images, which the '{self.family}' world model reads")
-        samples = list(index.samples())
-        cache: dict[str, torch.Tensor] = {}
-        with progress_bar(len(samples), "encoding the cameras with the frozen vision encoder") as advance:
-            for i in range(0, len(samples), batch_size):
-                chunk = samples[i : i + batch_size]
-                images = torch.from_numpy(np.stack([index.images(s, t) for s, t in chunk]))
-                for (_, token), feats in zip(chunk, self.encode_images(images).cpu()):
-                    cache[token] = feats.contiguous()
-                advance(len(chunk))
-        if cache_file is not None and is_rank_zero():
-            cache_file.parent.mkdir(parents=True, exist_ok=True)
-            tmp = cache_file.with_suffix(".tmp")
-            save_file(cache, str(tmp))
-            tmp.replace(cache_file)
-        self.image_cache = cache
+
+        def encode(chunk: list[tuple[str, str]]) -> torch.Tensor:
+            return self.encode_images(torch.from_numpy(np.stack([index.images(s, t) for s, t in chunk])))
+
+        self.image_cache = per_sample_cache(index, cache_file, "encoding the cameras with the frozen vision encoder", encode, batch_size)
 
     def image_tokens(self, token: str) -> torch.Tensor:
         """The pooled image tokens of sample ``token`` (``prepare_images`` first)."""

@@ -22,13 +22,13 @@ import torch
 
 from occtrain.data.clips import Clip, clips_from_batch, plan_target
 from occtrain.data.schema import COMMANDS, META_DIRECTIONS, META_SPEEDS
-from occtrain.engine import CODE_CACHE, IMAGE_CACHE, TEXT_ENTRIES, load_world_model
+from occtrain.engine import TEXT_ENTRIES, load_world_model
 from occtrain.errors import ConfigError
 from occtrain.exports import write_export
 from occtrain.metrics import PlanningMetric, flatten_metrics
 from occtrain.models import count_parameters
 from occtrain.models.planner import PlanningHead, constant_velocity_plan
-from occtrain.io import atomic_write_json, is_rank_zero
+from occtrain.io import atomic_write_json, atomic_write_safetensors, is_rank_zero
 from occtrain.occ3d import FRAME_DT, FUTURE_STEPS, PAST_STEPS
 from occtrain.stages import StageKind, register
 from occtrain.stages.base import Stage, StageContext, StageReport
@@ -152,10 +152,7 @@ class PlannerStage(Stage):
             if "visual" in self.inputs and self.teacher.vision is None:
                 raise ConfigError(f"{where}: model.inputs 'visual' reads image tokens, which the '{self.teacher.family}' world model has none of")
             self.teacher.requires_grad_(False).eval()
-            if self.teacher.vision is not None:
-                self.teacher.prepare_images(ctx.data.root, ctx.stage_dir / "cache" / IMAGE_CACHE)
-            else:
-                self.teacher.build_code_cache(ctx.data.root, ctx.stage_dir / "cache" / CODE_CACHE)
+            self.teacher.prepare_inputs(ctx.data.root, ctx.stage_dir / "cache")
         if self.teacher is None or "meta_action" not in self.teacher.task_builders:
             # The sidecar's meta action (and ego state); OccVLA labels its own from the poses.
             self.require_tasks(["meta_action"], instead="leave the planner stage out of the recipe")
@@ -190,14 +187,9 @@ class PlannerStage(Stage):
     def _save_teacher_cache(self) -> None:
         if self.teacher is None or not is_rank_zero():
             return
-        from safetensors.torch import save_file
-
-        self._cache_file.parent.mkdir(parents=True, exist_ok=True)
-        visual = {t: torch.as_tensor(o["visual"]).contiguous() for t, o in self._teacher_out.items() if "visual" in o}
+        visual = {t: torch.as_tensor(o["visual"]) for t, o in self._teacher_out.items() if "visual" in o}
         if visual:
-            tmp = self._cache_file.with_suffix(".tmp")
-            save_file(visual, str(tmp))
-            tmp.replace(self._cache_file.with_suffix(".safetensors"))
+            atomic_write_safetensors(self._cache_file.with_suffix(".safetensors"), visual)
         atomic_write_json(self._cache_file, {t: {k: v for k, v in o.items() if k != "visual"} for t, o in self._teacher_out.items()})
 
     def teacher_outputs(self, clips: list[Clip], generate: bool) -> list[dict]:
@@ -226,17 +218,16 @@ class PlannerStage(Stage):
         from occtrain.data.layout import DatasetIndex
         from occtrain.progress import progress_bar
 
-        cfg = self.ctx.model_cfg
+        generate = self.ctx.model_cfg.train_meta == "generated"
+        if not generate and "visual" not in self.inputs:
+            return
         index = DatasetIndex.open(self.ctx.data.root)
-        context = self.teacher.tasks.context_frames
-        jobs = [("train", cfg.train_meta == "generated")] if cfg.train_meta == "generated" or "visual" in self.inputs else []
+        clips = list(frame_clips(index, "train", self.teacher.tasks.context_frames, FUTURE_STEPS, partial_history=False))
         self.teacher.to(self.device)
-        for split, generate in jobs:
-            clips = list(frame_clips(index, split, context, FUTURE_STEPS, partial_history=False))
-            with progress_bar(len(clips), f"the world model's {'meta actions' if generate else 'outputs'} on the {split} split, once") as advance:
-                for i in range(0, len(clips), 16):
-                    self.teacher_outputs(clips[i : i + 16], generate)
-                    advance(len(clips[i : i + 16]))
+        with progress_bar(len(clips), f"the world model's {'meta actions' if generate else 'outputs'} on the train split, once") as advance:
+            for i in range(0, len(clips), 16):
+                self.teacher_outputs(clips[i : i + 16], generate)
+                advance(len(clips[i : i + 16]))
         self._save_teacher_cache()
 
     # -- data

@@ -21,7 +21,7 @@ import torch
 
 from occtrain.config import to_object
 from occtrain.data.clips import clips_from_batch
-from occtrain.engine import CODE_CACHE, IMAGE_CACHE, TEXT_ENTRIES, Evaluator, export_engine, load_world_model, Priors, move_batch, new_world_model
+from occtrain.engine import TEXT_ENTRIES, Evaluator, export_engine, load_world_model, Priors, move_batch, new_world_model
 from occtrain.families import families
 from occtrain.families.occllama import InstructModelConfig, PretrainModelConfig
 from occtrain.families.occllama.tasks import validate_tasks
@@ -85,15 +85,12 @@ class WorldModelStage(Stage):
         self.evaluator = Evaluator(Evaluator.scorable(tasks.weights), priors=Priors.of(ctx.data.root))
         self.val_means = ValidationMeans("val/loss", "val/token_acc")
         self._entries: dict[str, tuple[str, ...] | None] = {}
-        if self.engine.vision is not None:
-            # Image tokens from a cache of the frozen encoder's output, occupancy targets
-            # from the dataset: the shards give the annotations and the text.
-            self.engine.prepare_images(ctx.data.root, ctx.stage_dir / "cache" / IMAGE_CACHE)
-            self._entries = {"train": TEXT_ENTRIES, "val": TEXT_ENTRIES}
-        elif cfg.cache_codes:
-            self.engine.build_code_cache(ctx.data.root, ctx.stage_dir / "cache" / CODE_CACHE)
+        if self.engine.vision is not None or cfg.cache_codes:
+            self.engine.prepare_inputs(ctx.data.root, ctx.stage_dir / "cache")
             # Training then reads no occupancy; validation still scores forecasts against it.
-            self._entries = {"train": TEXT_ENTRIES}
+            # A model that reads cameras takes its occupancy targets from the dataset: its
+            # shards give the annotations and the text alone.
+            self._entries = {"train": TEXT_ENTRIES, "val": TEXT_ENTRIES} if self.engine.vision is not None else {"train": TEXT_ENTRIES}
 
     def _exports_by_kind(self, where: str) -> dict[str, Path]:
         """A pretrain stage's inputs by stage kind: one tokenizer, at most one vision stage."""
