@@ -51,7 +51,8 @@ class Case:
     setup: Callable[[Path], None]
     argv: list[str]
     code: int
-    says: str
+    #: What the output says; a case that breaks several things names each (all must appear).
+    says: str | tuple[str, ...]
 
 
 # ----------------------------------------------------------------------------- the tiny world
@@ -388,7 +389,8 @@ CASES: list[Case] = [
          f"{ANN}: scene_infos.scene-0001.{T1[0]}.ego_pose.translation is null, expected a list of 3 numbers"),
     Case("check-ann-lists-every-problem",
          edit_ann(lambda a: [a["scene_infos"][SCENES[0]][T0[0]].update(prev=1), a["scene_infos"][SCENES[1]][T1[4]].update(timestamp=None)]),
-         CHECK, 1, f"{ANN}: scene_infos.scene-0001.{T1[4]}.timestamp is null, expected an integer or a string"),
+         CHECK, 1, (f"{ANN}: scene_infos.scene-0000.{T0[0]}.prev is the integer 1, expected a string",
+                    f"{ANN}: scene_infos.scene-0001.{T1[4]}.timestamp is null, expected an integer or a string")),
     Case("check-timestamps-decrease", edit_ann(swap_timestamps), CHECK, 1, f"{ANN}: scene 'scene-0000' timestamps do not increase"),
     Case("check-duplicate-token", edit_ann(duplicate_token), CHECK, 1, f"{ANN}: sample token {T0[-1]} is in both scene_infos.scene-0000 and scene_infos.scene-0001"),
     Case("check-not-a-unit-quaternion", edit_sample(0, 3, lambda s: s["ego_pose"].update(rotation=[0.0, 0.0, 0.0, 0.0])), CHECK, 1,
@@ -433,7 +435,8 @@ CASES: list[Case] = [
     Case("frames-one-scene-lacks-its-sidecar", lambda tmp: (tmp / "ds/occtrain/frames/scene-0001.json").unlink(), SHARDS_CLIPS, 2,
          "{tmp}/ds/occtrain/frames/scene-0001.json: missing while 1 other scenes have their frame sidecar"),
     Case("check-frames-lists-every-problem", both(edit_frame(2, lambda f: drop_key(f, "ego_future")), edit_frame(6, lambda f: f.update(index="6"))),
-         CHECK, 1, f'{SIDECAR}: [6].index is the string "6", expected an integer'),
+         CHECK, 1, (f"{SIDECAR}: [2].ego_future is missing, expected a list of 6 lists of 2 numbers",
+                    f'{SIDECAR}: [6].index is the string "6", expected an integer')),
     Case("check-frames-disagree-with-poses", edit_frame(1, lambda f: f["ego_future"].__setitem__(0, [9.0, 9.0])), CHECK, 1,
          f"{SIDECAR}: [1].ego_future[0] [9.0, 9.0] disagrees with the ego poses"),
     Case("check-frames-box-count", edit_frame(1, lambda f: f["agent_futures"].append([[0.0, 0.0]] * 6)), CHECK, 1,
@@ -454,7 +457,8 @@ CASES: list[Case] = [
     Case("check-qa-outside-split", edit_qa(lambda qs: qs[0].update(sample_token=T0[0])), CHECK, 1,
          f"{QA_VAL}: questions[0].sample_token '{T0[0]}' is not a sample of the val split"),
     Case("check-qa-lists-every-problem", edit_qa(lambda qs: [qs[0].update(num_hop=True), qs[5].update(answer=5)]), CHECK, 1,
-         f"{QA_VAL}: questions[5].answer is the integer 5, expected a string"),
+         (f"{QA_VAL}: questions[0].num_hop is true, expected one of 0, 1",
+          f"{QA_VAL}: questions[5].answer is the integer 5, expected a string")),
     # ------------------------------------------------------------------ shards
     Case("shards-out-holds-other-shards", other_shards, SHARDS_FRAMES, 2, "{tmp}/out: already holds shards of a different dataset or layout"),
     Case("shards-out-index-not-json", both(other_shards, write_text("out/index.json", "{")), SHARDS_FRAMES, 2, "{tmp}/out/index.json: not valid JSON"),
@@ -581,16 +585,17 @@ def test_bad_input_is_one_line_and_changes_nothing(case: Case, world: Path, tmp_
     before = snapshot(tmp_path)
     code = run_cli([a.format(tmp=tmp_path) for a in case.argv])
     out, err = capsys.readouterr()
-    says = case.says.format(tmp=tmp_path)
+    says = [s.format(tmp=tmp_path) for s in ((case.says,) if isinstance(case.says, str) else case.says)]
     assert "Traceback" not in out + err
     assert code == case.code, out + err
     assert err.endswith("\n") and err.count("\n") == 1, f"stderr must be one line:\n{err}"
     if code == 2:
-        assert err.startswith("error: ") and says in err, err
+        assert err.startswith("error: ") and all(s in err for s in says), err
         assert out == ""
     else:  # data check: the problems on stdout, each naming its file; a summary on stderr
-        assert "problem(s) in" in err
-        assert says in out, out
+        found = [line for line in out.splitlines() if not line.startswith("note: ")]
+        assert f"{len(found)} problem(s) in" in err, (out, err)
+        assert all(s in out for s in says), out
         assert all(str(tmp_path) in line for line in out.splitlines()), out
     assert snapshot(tmp_path) == before
 

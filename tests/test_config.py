@@ -62,9 +62,13 @@ def test_bad_yaml_and_missing_file_are_one_line(tmp_path):
 
 
 def test_result_is_read_only():
+    from omegaconf.errors import ReadonlyConfigError
+
     cfg = load_config(TrainerConfig)
-    with pytest.raises(Exception):
-        cfg.max_steps = 3
+    before = cfg.max_steps
+    with pytest.raises(ReadonlyConfigError):
+        cfg.max_steps = before + 3
+    assert cfg.max_steps == before
 
 
 def test_override_may_name_a_section_file(tmp_path):

@@ -114,6 +114,11 @@ def test_ddp_validation_of_an_odd_split_equals_one_process(tmp_path, world):
         timeout=600,
     )
     assert two.returncode == 0, two.stderr[-3000:]
+    # Two processes, each validating its own share of the 9 frames (5 and 4), not all of them.
+    (one_attempt,) = json.loads((tmp_path / "one" / "manifest.json").read_text())["stages"]["tokenizer"]["history"]
+    (two_attempt,) = json.loads((tmp_path / "two" / "manifest.json").read_text())["stages"]["tokenizer"]["history"]
+    assert (one_attempt["world_size"], one_attempt["val_samples_per_rank"]) == (1, [9])
+    assert (two_attempt["world_size"], two_attempt["val_samples_per_rank"]) == (2, [5, 4])
     single = json.loads((tmp_path / "one" / "tokenizer" / "metrics.json").read_text())
     ddp = json.loads((tmp_path / "two" / "tokenizer" / "metrics.json").read_text())
     assert single.keys() == ddp.keys()
@@ -140,6 +145,9 @@ def test_two_torchrun_nodes_train_like_one_process(tmp_path, world):
         assert code == 0, err[-3000:]
     manifest = json.loads((tmp_path / "two" / "manifest.json").read_text())
     assert manifest["stages"]["probe"]["attempts"] == 1 and manifest["stages"]["probe"]["status"] == "done"
+    # Two processes (one per node), each training on one sample a step: 6 steps.
+    (attempt,) = manifest["stages"]["probe"]["history"]
+    assert attempt["world_size"] == 2 and attempt["train_samples_per_rank"] == [6, 6]
     for _, err in results:
         assert "sync_dist" not in err and "Warning" not in err, err[-3000:]
     assert sum(err.count("done    probe") for _, err in results) == 1  # one process reports

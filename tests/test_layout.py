@@ -1,6 +1,7 @@
 """The Occ3D layout: a real-format directory built by hand, round trips, and bad input."""
 
 import json
+import math
 
 import numpy as np
 import pytest
@@ -61,6 +62,11 @@ def test_opening_the_gts_dir_finds_the_root(tmp_path):
 def test_quaternion_yaw_round_trip():
     for yaw in (-3.0, -1.0, 0.0, 0.7, 3.1):
         assert yaw_from_quaternion(quaternion_from_yaw(yaw)) == pytest.approx(yaw)
+    # nuScenes stores (w, x, y, z): a quarter turn to the left about +z, and one eighth.
+    assert quaternion_from_yaw(math.pi / 2) == pytest.approx([math.sqrt(0.5), 0.0, 0.0, math.sqrt(0.5)])
+    assert yaw_from_quaternion([math.cos(math.pi / 8), 0.0, 0.0, math.sin(math.pi / 8)]) == pytest.approx(math.pi / 4)
+    # With a little roll and pitch, as a real ego pose has: the heading is still about 2 atan2(z, w).
+    assert yaw_from_quaternion([0.8738, -0.0046, 0.0040, -0.4862]) == pytest.approx(2 * math.atan2(-0.4862, 0.8738), abs=2e-4)
 
 
 def test_writer_round_trip(tmp_path):

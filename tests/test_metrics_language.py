@@ -118,3 +118,28 @@ def test_caption_metric_equals_pycocoevalcap():
     assert got["samples"].item() == 3
     assert 0 < expected["Bleu_4"] < expected["Bleu_1"] < 1 and expected["CIDEr"] > 0
 
+
+
+@pytest.mark.slow
+@needs_java
+def test_caption_metric_by_hand():
+    # "the cat sat on the mat" against "the cat is on the mat" (6 tokens each, brevity penalty 1):
+    # n-gram precisions 5/6, 3/5, 1/4, 0/3; ROUGE-L: the common subsequence "the cat on the mat"
+    # covers 5 of 6 tokens either way, so P = R = F = 5/6.
+    m = CaptionMetric()
+    m.update(["The cat sat on the mat."], [["the cat is on the mat"]], ids=["a"])
+    got = {k: v.item() for k, v in m.compute().items()}
+    assert got["Bleu_1"] == pytest.approx(5 / 6)
+    assert got["Bleu_2"] == pytest.approx((5 / 6 * 3 / 5) ** 0.5)
+    assert got["Bleu_3"] == pytest.approx((5 / 6 * 3 / 5 * 1 / 4) ** (1 / 3))
+    assert got["Bleu_4"] < 1e-3  # no 4-gram matches (the reference code smooths 0 to about 1e-15)
+    assert got["ROUGE_L"] == pytest.approx(5 / 6)
+    assert 0 < got["METEOR"] < 1
+
+    # CIDEr-D over two samples: one prediction equals its reference, so its tf-idf vectors
+    # equal (cosine 1 at each n, equal lengths): 10; the other shares no n-gram: 0.
+    m = CaptionMetric()
+    m.update(["a red car waits at the light", "trees line the road"], ["a red car waits at the light", "a bus turns left slowly"])
+    got = {k: v.item() for k, v in m.compute().items()}
+    assert got["CIDEr"] == pytest.approx(5.0)
+    assert got["samples"] == 2

@@ -5,6 +5,7 @@ model stage; exports that plain transformers reads; the tokenizer stage resumed 
 from __future__ import annotations
 
 import json
+import math
 import os
 import signal
 import subprocess
@@ -46,6 +47,12 @@ def test_the_recipe_trains_every_stage_and_reports_the_papers_metrics(occllm_run
     for conv in ("stp3", "uniad"):  # the paper names no convention: both, beside constant velocity
         assert {f"val/plan_alternate_L2_{conv}_avg", f"val/baseline_constant_velocity_L2_{conv}_avg"} <= pretrain.keys()
     assert {"val/qa_overall", "val/baseline_prior_qa_overall", "val/forecast_occworld_mIoU_avg"} <= instruct.keys()
+    # Each scored something: sample counts above zero, finite values.
+    assert pretrain["val/forecast_occworld_frames_1s"] > 0 and pretrain["val/plan_alternate_samples"] > 0
+    assert instruct["val/qa_questions"] > 0
+    for metrics, key in ((tokenizer, "val/occworld_mIoU"), (pretrain, "val/forecast_occworld_mIoU_1s"),
+                         (pretrain, "val/plan_alternate_L2_uniad_1s"), (instruct, "val/qa_overall")):
+        assert math.isfinite(metrics[key]), key
     config = json.loads((occllm_run / "pretrain" / "export" / "config.json").read_text())
     assert config["family"] == "occllm" and config["vocab"]["codebook_sizes"] == [128, 128] and config["vocab"]["patch"] == 2
     assert config["world"]["occllm"] == {"patch_size": 2, "frame_separation": True, "pre_fusion": True, "fusion_hidden": 64, "cell_dim": 64}
@@ -75,6 +82,9 @@ def test_eval_scores_each_stage(occllm_run, stage):
         return
     assert "forecast_occworld_mIoU_3s" in metrics and "plan_alternate_L2_uniad_avg" in metrics
     assert ("qa_overall" in metrics) == (stage == "instruct")
+    # Scored on the clips asked for, to finite numbers (an empty metric reports NaN).
+    assert 0 < metrics["forecast_occworld_frames_1s"] == metrics["plan_alternate_samples"] <= 4
+    assert math.isfinite(metrics["forecast_occworld_mIoU_1s"]) and math.isfinite(metrics["plan_alternate_L2_uniad_1s"])
 
 
 def test_the_msvae_tokenizer_resumes_bit_exact_after_kill_9(occllm_run, tmp_path):
@@ -96,10 +106,12 @@ def test_the_msvae_tokenizer_resumes_bit_exact_after_kill_9(occllm_run, tmp_path
     assert proc.poll() is None, "the tokenizer finished before it could be killed"
     os.killpg(proc.pid, signal.SIGKILL)
     proc.wait()
+    step = torch.load(last, weights_only=True, map_location="cpu")["global_step"]
     res = run_cli(*args, timeout=900)
     assert res.returncode == 0, res.stderr[-3000:]
     entry = json.loads((run_dir / "manifest.json").read_text())["stages"]["tokenizer"]
     assert entry["status"] == "done" and entry["attempts"] == 2
+    assert [h["start_step"] for h in entry["history"]] == [0, step]  # resumed, not restarted
     ref, got = _export_tensors(occllm_run / "tokenizer"), _export_tensors(run_dir / "tokenizer")
     assert ref.keys() == got.keys()
     for key in ref:

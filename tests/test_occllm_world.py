@@ -185,9 +185,16 @@ def test_two_codebook_scenes_round_trip_through_the_code_cache(tmp_path, hand_da
     assert engine.vocab.codebook_sizes == [8, 16] and engine.vocab.scene_len == 4
     cache = tmp_path / "cache" / "codes.safetensors"
     engine.build_code_cache(hand_dataset, cache)
+    assert cache.is_file()
     again = new_world_model(export, llm, TaskConfig(), hand_dataset, family="occllm", world_cfgs={"occllm": OccLLMWorldConfig(patch_size=5)})
+
+    def no_encoding(*args, **kwargs):
+        raise AssertionError("the cached codes were encoded again")
+
+    again.scene_tokenizer.encode = no_encoding
     again.build_code_cache(hand_dataset, cache)  # read back from the file
     index = DatasetIndex.open(hand_dataset)
+    assert set(again.code_cache) == {t for _, t in index.samples()}
     scene, token = next((s, t) for s, ts in index.scenes.items() for t in ts)
     semantics = torch.from_numpy(index.labels(scene, token)["semantics"]).long()[None]
     with torch.no_grad():

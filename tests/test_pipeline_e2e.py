@@ -113,11 +113,14 @@ def test_eval_and_score_agree(pipeline, tmp_path):
     assert json.loads(qa.stdout)["overall"] == pytest.approx(metrics["qa_overall"])
 
     # A later eval of one task keeps what the earlier one wrote for the others.
-    again = run_cli("eval", str(pipeline / "instruct"), "--tasks", "qa", "--batch-size", "1")
+    one_by_one = tmp_path / "one_by_one"
+    again = run_cli("eval", str(pipeline / "instruct"), "--tasks", "qa", "--batch-size", "1", "--save-predictions", str(one_by_one))
     assert again.returncode == 0, again.stderr[-3000:]
     merged = json.loads((pipeline / "instruct" / "eval" / "val" / "metrics.json").read_text())
     assert merged["plan_direct_L2_stp3_avg"] == metrics["plan_direct_L2_stp3_avg"]
-    assert merged["qa_overall"] == pytest.approx(metrics["qa_overall"])  # batch size does not change answers
+    assert merged["qa_overall"] == pytest.approx(metrics["qa_overall"])
+    # Batch size does not change answers: every answer, not only the accuracy.
+    assert json.loads((one_by_one / "qa_pred.json").read_text()) == json.loads((preds / "qa_pred.json").read_text())
 
 
 def _export_tensors(stage_dir: Path) -> dict:
@@ -169,7 +172,7 @@ def test_kill_9_at_a_random_step_of_every_stage_resumes_bit_exact(pipeline, tmp_
         assert proc.poll() is None, f"{name} finished before step {target}"
         os.killpg(proc.pid, signal.SIGKILL)
         proc.wait()
-        killed_at[name] = step
+        killed_at[name] = torch.load(last, weights_only=True, map_location="cpu")["global_step"]  # the file as the kill left it
     res = run_cli(*args, timeout=900)
     assert res.returncode == 0, res.stderr[-3000:]
 
@@ -179,6 +182,9 @@ def test_kill_9_at_a_random_step_of_every_stage_resumes_bit_exact(pipeline, tmp_
         entry = stages[name]
         assert entry["status"] == "done" and entry["attempts"] == 2, (name, entry["attempts"])
         assert entry["wall_time_s"] > 0
+        # The second attempt continued from the checkpoint, not from step 0 (a restart would
+        # give the same weights, training being deterministic).
+        assert [h["start_step"] for h in entry["history"]] == [0, killed_at[name]], name
         ref, got = _export_tensors(pipeline / name), _export_tensors(run_dir / name)
         assert ref.keys() == got.keys(), name
         for key in ref:

@@ -81,10 +81,16 @@ def test_changed_config_is_refused_then_restart_retrains(probe_kind, recipe):
     with pytest.raises(ConfigError) as err:
         run(recipe, ["stages[0].optim.lr=0.01"])
     assert str(err.value) == "stage 'first' is done but its config changed (optim.lr); `--restart first` retrains it and the stages after it"
+    before = json.loads((run_dir / "manifest.json").read_text())["stages"]
+    second_export = (run_dir / "second" / "export" / "model.safetensors").read_bytes()
     run(recipe, ["stages[0].optim.lr=0.01"], restart="first")
     manifest = json.loads((run_dir / "manifest.json").read_text())
     assert manifest["stages"]["first"]["config"]["optim"]["lr"] == 0.01
-    assert manifest["stages"]["second"]["attempts"] == 1  # reset and retrained after 'first'
+    # 'second' was reset (one attempt, not two) and retrained after 'first', on the new export.
+    second = manifest["stages"]["second"]
+    assert second["attempts"] == 1 and second["started"] > before["second"]["ended"]
+    assert second["config"]["consumes"]["first"] == manifest["stages"]["first"]["config_hash"] != before["first"]["config_hash"]
+    assert (run_dir / "second" / "export" / "model.safetensors").read_bytes() != second_export
 
 
 def test_failure_is_recorded_in_one_line(probe_kind, recipe):
@@ -193,7 +199,10 @@ def test_checkpoints_load_strictly_by_key(recipe, tmp_path):
         Probe(ctx).load_state_dict({k: v for k, v in state.items() if k != "head.bias"})
     with pytest.raises(OcctrainError, match="unexpected key 'extra.weight'"):
         Probe(ctx).load_state_dict({**state, "extra.weight": torch.zeros(1)})
-    assert stage.step_seed(5) == stage.step_seed(5) != stage.step_seed(6)
+    # A fresh stage of the same config (another rank, a resumed run) seeds a step alike; another data seed does not.
+    assert stage.step_seed(5) == Probe(ctx).step_seed(5) != stage.step_seed(6)
+    other = StageContext(StageSpec(name="first", kind="probe"), ProbeConfig(), DataConfig(seed=1), TrainerConfig(), tmp_path, {})
+    assert Probe(other).step_seed(5) != stage.step_seed(5)
 
 
 def test_a_stage_sets_its_own_batch_size_but_not_the_dataset(probe_kind, tmp_path):

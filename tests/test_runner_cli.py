@@ -83,12 +83,17 @@ def test_kill_9_then_resume_gives_the_uninterrupted_weights(recipe, tmp_path, ac
     # The killed process's lock file stays behind; the kernel dropped its lock with it.
     assert (run_dir / ".lock").read_text().startswith(f"pid {proc.pid} ")
     # And a damaged last.ckpt (a disk error after the fact): the one before it resumes.
+    previous_step = torch.load(last.with_name("previous.ckpt"), weights_only=True, map_location="cpu")["global_step"]
+    assert 2 <= previous_step < saved_step
     (run_dir / "only" / "checkpoints" / "last.ckpt").write_bytes(b"PK\x03\x04 damaged")
     res = run_cli("run", str(recipe), "stages[0].model.step_delay=0.25", acc, "--run-dir", str(run_dir))
     assert res.returncode == 0, res.stderr[-2000:]
     assert "last.ckpt is unreadable" in res.stderr and "resuming only from" in res.stderr and "previous.ckpt" in res.stderr
     manifest = json.loads((run_dir / "manifest.json").read_text())
     assert manifest["stages"]["only"]["status"] == "done" and manifest["stages"]["only"]["attempts"] == 2
+    # The second attempt trained from the checkpoint's step, not from scratch (a restart
+    # would give the same weights: training is deterministic).
+    assert [h["start_step"] for h in manifest["stages"]["only"]["history"]] == [0, previous_step]
     # Wall time sums the attempts: 16 steps of at least 0.25 s, some before the kill.
     assert manifest["stages"]["only"]["wall_time_s"] >= 16 * 0.25
     assert torch.load(last, weights_only=True, map_location="cpu")["global_step"] == 16
@@ -132,12 +137,15 @@ def test_a_stop_signal_interrupts_in_one_line_and_a_rerun_resumes(recipe, tmp_pa
     entry = json.loads((run_dir / "manifest.json").read_text())["stages"]["only"]
     assert entry["status"] == "interrupted" and entry["error"] == f"interrupted by {name}" and entry["wall_time_s"] > 0
     assert last.is_file()
+    saved_step = torch.load(last, weights_only=True, map_location="cpu")["global_step"]
+    assert 0 < saved_step < 16
 
     res = run_cli("run", *args)
     assert res.returncode == 0, res.stderr[-2000:]
     assert "resuming only" in res.stderr
     entry = json.loads((run_dir / "manifest.json").read_text())["stages"]["only"]
     assert entry["status"] == "done" and entry["attempts"] == 2
+    assert [h["start_step"] for h in entry["history"]] == [0, saved_step]
 
 
 def test_cpu_ddp_two_processes(recipe, tmp_path):
@@ -145,6 +153,12 @@ def test_cpu_ddp_two_processes(recipe, tmp_path):
     assert res.returncode == 0, res.stderr[-3000:]
     manifest = json.loads((tmp_path / "ddp" / "manifest.json").read_text())
     assert manifest["stages"]["only"]["status"] == "done" and manifest["stages"]["only"]["attempts"] == 1
+    # Two processes, each training on its half of every global batch of 2 (batch_size 2
+    # per rank here: 16 steps x 2 samples each) and validating 2 batches of 2.
+    (attempt,) = manifest["stages"]["only"]["history"]
+    assert attempt["world_size"] == 2 and attempt["start_step"] == 0
+    assert attempt["train_samples_per_rank"] == [32, 32]
+    assert attempt["val_samples_per_rank"] == [4, 4]
     assert (tmp_path / "ddp" / "only" / "export" / "model.safetensors").is_file()
     assert res.stderr.count("done    only") == 1  # one summary line: only rank zero reports
 

@@ -127,14 +127,27 @@ def test_forecast_hand_case(hand_dataset, capsys, tmp_path):
     future = np.stack([index.labels(scene, t)["semantics"] for t in tokens[1:7]])
     atomic_write_npz(tmp_path / scene / tokens[0] / "forecast.npz", {"semantics": future})  # exact
     atomic_write_npz(tmp_path / scene / tokens[1] / "forecast.npz", {"semantics": np.full_like(future, FREE)})  # all free
-    atomic_write_npz(tmp_path / scene / tokens[-3] / "forecast.npz", {"semantics": future})  # 2 frames left
+    # 2 frames left: at 1 s (its last frame) the ground is exact and the car (10 x 5 x 3 voxels
+    # of class 4) sits 80+ voxels away from the true one.
+    near_end = future.copy()
+    last = index.labels(scene, tokens[-1])["semantics"].copy()
+    xs = np.nonzero(last == 4)[0]
+    assert len(xs) == 150
+    last[last == 4] = FREE
+    x = 5 if xs.min() >= 100 else 180
+    last[x : x + 10, 50:55, 2:5] = 4
+    near_end[1] = last
+    atomic_write_npz(tmp_path / scene / tokens[-3] / "forecast.npz", {"semantics": near_end})
     code, r, _ = score(capsys, "forecast", "--pred", tmp_path, "--gt", hand_dataset)
     assert code == 0 and r["convention"] == "occworld" and r["samples"] == 3
-    # 1 s (frame index 1) sees all three forecasts: the exact one, the all-free one, and the near-end one,
-    # which is exact for ground (every frame has it) while its car sits elsewhere (frames differ).
+    assert r["frames"] == {"1s": 3, "2s": 2, "3s": 2}
+    # 1 s sees all three: ground TP 40000 + 0 + 40000, FN 40000 -> 2/3; car TP 150, FN 150 + 150,
+    # FP 150 -> 1/4; the 15 classes without ground truth count 1 (OccWorld) -> mIoU (2/3 + 1/4 + 15) / 17.
+    # Occupied vs free: TP 40150 + 40000, FN 40150 + 150, FP 150.
+    assert r["mIoU"]["1s"] == pytest.approx(100 * (2 / 3 + 1 / 4 + 15) / 17)
+    assert r["IoU"]["1s"] == pytest.approx(100 * 80150 / 120600)
     # 2 s and 3 s see only the first two: ground TP 40000, FN 40000 -> 1/2; car TP 150, FN 150 -> 1/2;
     # 15 classes without ground truth -> 1: mIoU = 16 / 17; IoU = 40150 / 80300 = 1/2
-    assert r["frames"] == {"1s": 3, "2s": 2, "3s": 2}
     assert r["mIoU"]["2s"] == pytest.approx(100 * 16 / 17) and r["mIoU"]["3s"] == pytest.approx(100 * 16 / 17)
     assert r["IoU"]["2s"] == pytest.approx(50.0) and r["IoU"]["3s"] == pytest.approx(50.0)
     assert r["mIoU"]["avg"] == pytest.approx((r["mIoU"]["1s"] + 2 * 100 * 16 / 17) / 3)

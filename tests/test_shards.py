@@ -40,13 +40,14 @@ def test_frames_round_trip_through_dataloader_with_two_workers(hand_dataset, sha
     ds = DatasetIndex.open(hand_dataset)
     cfg = DataConfig(root=str(hand_dataset), shards=str(shards), batch_size=4, num_workers=2)
     dm = ShardDataModule(cfg, "frames")
-    seen = {}
+    seen, order = {}, []
     for batch in dm.val_dataloader():
         assert batch["semantics"].dtype == torch.uint8 and batch["semantics"].shape[1:] == GRID_SHAPE
         for i, tok in enumerate(batch["token"]):
             seen[tok] = (batch["semantics"][i].numpy(), batch["mask_camera"][i].numpy())
+            order.append(tok)
     val_tokens = [t for _, t in ds.samples("val")]
-    assert sorted(seen) == sorted(val_tokens)  # every val sample exactly once across workers
+    assert sorted(order) == sorted(val_tokens)  # every val sample exactly once across workers, none twice
     for scene, tok in ds.samples("val"):
         want = ds.labels(scene, tok)
         assert np.array_equal(seen[tok][0], want["semantics"])
@@ -71,9 +72,19 @@ def test_clip_content_matches_the_dataset(hand_dataset, shards):
 
 def test_train_pipeline_streams_forever_and_shuffles(hand_dataset, shards):
     urls, _ = shard_urls(shards, "frames", "train")
-    it = iter(make_pipeline(urls, train=True, shuffle_buffer=8, seed=1))
-    keys = [next(it)["__key__"] for _ in range(60)]  # more than the 24 train frames
-    assert len(set(keys)) > 12
+    def keys(buffer: int) -> list[str]:
+        it = iter(make_pipeline(urls, train=True, shuffle_buffer=buffer, seed=1))
+        return [next(it)["__key__"] for _ in range(60)]  # more than the 24 train frames
+
+    shuffled, in_order = keys(8), keys(1)
+    assert len(set(shuffled)) > 12
+    assert shuffled != in_order  # the buffer reorders samples...
+    assert shuffled == keys(8)  # ...the same way every time (seeded)
+    # Without the buffer, samples come in shard order: runs of consecutive keys of one shard.
+    stored = [s["__key__"] for url in urls for s in make_pipeline([url], train=False)]
+    follows = sum(stored.index(b) == stored.index(a) + 1 for a, b in zip(in_order, in_order[1:]))
+    assert follows > 40
+    assert sum(stored.index(b) == stored.index(a) + 1 for a, b in zip(shuffled, shuffled[1:])) < follows
 
 
 def test_validation_is_split_evenly_over_ranks(monkeypatch, shards):
@@ -86,6 +97,22 @@ def test_validation_is_split_evenly_over_ranks(monkeypatch, shards):
         keys.append([s["__key__"] for s in make_pipeline(urls, train=False, total=total)])
     assert len(keys[0]) == len(keys[1]) == total // 2
     assert not set(keys[0]) & set(keys[1])
+
+
+def test_an_odd_validation_split_pads_the_shorter_rank_once(monkeypatch, shards):
+    import occtrain.data.shards as sh
+
+    urls, total = shard_urls(shards, "frames", "val")
+    odd = total - 1  # as if the split held one sample fewer: the last is not read
+    samples = []
+    for rank in (0, 1):
+        monkeypatch.setattr(sh, "rank_world", lambda r=rank: (r, 2))
+        samples.append(list(make_pipeline(urls, train=False, total=odd))[: -(-odd // 2)])
+    pads = [[bool(s.get(sh.PAD_KEY)) for s in rank] for rank in samples]
+    # Rank 1 holds one sample fewer: it starts with one padding sample, so both run alike.
+    assert pads[0] == [False] * len(pads[0]) and pads[1] == [True] + [False] * (len(pads[1]) - 1)
+    real = [[s["__key__"] for s in rank if not s.get(sh.PAD_KEY)] for rank in samples]
+    assert len(real[0]) + len(real[1]) == odd and not set(real[0]) & set(real[1])
 
 
 def _tar_with(tmp_path, entries: dict[str, bytes]) -> str:

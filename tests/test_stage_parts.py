@@ -59,6 +59,18 @@ def test_distillation_losses_by_hand():
     assert cos.item() == pytest.approx(0.0, abs=1e-6)  # same direction as LayerNorm(teacher) = (1, -1)
     kl_same, _ = distillation_losses(teacher, teacher, feat_s, hidden_t, valid, temperature=2.0)
     assert kl_same.item() == pytest.approx(0.0, abs=1e-7)
+    # At T = 2 the teacher's logits (log 3, 0) soften to p_t = (sqrt 3, 1) / (sqrt 3 + 1); the
+    # KL is scaled by T^2 = 4.
+    kl2, _ = distillation_losses(student, teacher, feat_s, hidden_t, valid, temperature=2.0)
+    p = [math.sqrt(3) / (math.sqrt(3) + 1), 1 / (math.sqrt(3) + 1)]
+    assert kl2.item() == pytest.approx(4 * sum(q * math.log(q / 0.5) for q in p), rel=1e-5)
+    # The teacher's state is LayerNorm-ed before the cosine: (3, 1) -> (1, -1), which the
+    # student's (1, -1) matches (loss 0; 1 - cos((3, 1), (1, -1)) = 0.553 without the norm)
+    # and its (1, 1) is orthogonal to (loss 1).
+    hidden_31 = torch.tensor([[[3.0, 1.0], [9.0, 9.0]]])
+    _, cos_match = distillation_losses(student, teacher, torch.tensor([[[1.0, -1.0], [0.0, 0.0]]]), hidden_31, valid, 1.0)
+    _, cos_orth = distillation_losses(student, teacher, torch.tensor([[[1.0, 1.0], [0.0, 0.0]]]), hidden_31, valid, 1.0)
+    assert cos_match.item() == pytest.approx(0.0, abs=1e-5) and cos_orth.item() == pytest.approx(1.0, abs=1e-5)
 
 
 def test_peft_names_map_back_to_the_plain_model():

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import collections
 import json
 import re
 
@@ -265,26 +266,38 @@ def test_static_structure_stays_put_between_frames(scene, labels):
         assert (got == want)[static].mean() > 0.95
 
 
-def test_meta_action_follows_the_documented_rule(scene):
-    frames = scene.frames
-    for i in range(len(frames) - 6):
-        f = frames[i]
-        v = [frames[i + k]["ego_speed"] for k in range(3)]
-        accel = (v[2] - v[0]) / 1.0
-        speed = "maintain" if abs(accel) < META_ACCEL_THRESHOLD else "accelerate" if accel > 0 else "decelerate"
-        turn = np.degrees(np.angle(np.exp(1j * (frames[i + 6]["ego_pose"]["yaw"] - f["ego_pose"]["yaw"]))))
-        lateral = to_ego(f, frames[i + 6]["ego_pose"]["translation"][:2])[1]
-        if max(v) <= STOP_SPEED:
-            direction = "stop"
-        elif abs(turn) > SIDECAR_RULES.turn_heading_deg:
-            direction = "left" if turn > 0 else "right"
-        elif abs(lateral) > SIDECAR_RULES.bear_lateral_m:
-            direction = "bear left" if lateral > 0 else "bear right"
-        elif abs(turn) > SIDECAR_RULES.bear_heading_deg:
-            direction = "bear left" if turn > 0 else "bear right"
-        else:
-            direction = "straight"
-        assert f["meta_action"] == {"speed": speed, "direction": direction}
+@pytest.fixture(scope="module")
+def long_scenes() -> list[SyntheticScene]:
+    """Six 40-frame routes: between them every branch of the meta-action rule occurs."""
+    return [generate_scene(name=f"m{seed}", seed=seed, num_frames=40) for seed in range(6)]
+
+
+def test_meta_action_follows_the_documented_rule(long_scenes):
+    branches = collections.Counter()
+    for scene in long_scenes:
+        frames = scene.frames
+        for i in range(len(frames) - 6):
+            f = frames[i]
+            v = [frames[i + k]["ego_speed"] for k in range(3)]
+            accel = (v[2] - v[0]) / 1.0
+            speed = "maintain" if abs(accel) < META_ACCEL_THRESHOLD else "accelerate" if accel > 0 else "decelerate"
+            turn = np.degrees(np.angle(np.exp(1j * (frames[i + 6]["ego_pose"]["yaw"] - f["ego_pose"]["yaw"]))))
+            lateral = to_ego(f, frames[i + 6]["ego_pose"]["translation"][:2])[1]
+            if max(v) <= STOP_SPEED:
+                branch, direction = "stop", "stop"
+            elif abs(turn) > SIDECAR_RULES.turn_heading_deg:
+                branch, direction = "turn", "left" if turn > 0 else "right"
+            elif abs(lateral) > SIDECAR_RULES.bear_lateral_m:
+                branch, direction = "bear by offset", "bear left" if lateral > 0 else "bear right"
+            elif abs(turn) > SIDECAR_RULES.bear_heading_deg:
+                branch, direction = "bear by heading", "bear left" if turn > 0 else "bear right"
+            else:
+                branch, direction = "straight", "straight"
+            assert f["meta_action"] == {"speed": speed, "direction": direction}, (scene.name, i)
+            branches.update([speed, branch, direction])
+    # Every branch of the rule was checked, not only the common ones.
+    expected = {"maintain", "accelerate", "decelerate", "stop", "turn", "bear by offset", "bear by heading", "straight", "left", "right"}
+    assert expected <= set(branches), branches
 
 
 # ---------------------------------------------------------------- kinematics and variety

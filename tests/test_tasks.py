@@ -5,7 +5,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from occtrain.data.geometry import global_to_ego
 from occtrain.data.shards import decode_sample, iter_raw, shard_urls, write_shards
 from occtrain.data.clips import Actions, Clip, Scene, Text, ego_future
 from occtrain.families.occllama.tasks import OBJECT_CLASSES, TASKS, TaskConfig, sample_task, validate_tasks
@@ -28,11 +27,22 @@ def test_object_classes_are_occ3d_names():
 
 
 def test_ego_steps_recover_the_pose_differences(clips):
-    clip = clips[0]
+    # A turning ego (a step taken in the wrong frame, the next pose's yaw or the global
+    # axes, differs here), and the synthetic clips.
+    turning = Clip({"ego_poses": [[10.0, 5.0, 0.0], [14.0, 5.5, 0.4], [17.0, 8.0, 0.9], [18.5, 12.0, 1.4]], "history": 1}, [], "")
+    np.testing.assert_allclose(turning.ego_steps()[0], [4.0, 0.5])
+    np.testing.assert_allclose(turning.ego_steps()[1], [np.cos(0.4) * 3 + np.sin(0.4) * 2.5, -np.sin(0.4) * 3 + np.cos(0.4) * 2.5])
+    for clip in (turning, clips[0]):
+        _check_steps(clip)
+
+
+def _check_steps(clip: Clip) -> None:
     poses = np.asarray(clip.ann["ego_poses"])
     steps = clip.ego_steps()
     assert steps.shape == (len(poses) - 1, 2)
-    np.testing.assert_allclose(steps[1], global_to_ego(poses[2, :2], poses[1, :2], poses[1, 2]))
+    for k in range(len(steps)):
+        (dx, dy), yaw = poses[k + 1, :2] - poses[k, :2], poses[k, 2]  # pose k -> k + 1 in pose k's frame
+        np.testing.assert_allclose(steps[k], [np.cos(yaw) * dx + np.sin(yaw) * dy, -np.sin(yaw) * dx + np.cos(yaw) * dy], atol=1e-6)
     # The ego drives forwards: each step's x is non-negative and at most a fast car's 0.5 s.
     assert (steps[:, 0] > -0.05).all() and (steps[:, 0] < 12).all()
 
@@ -45,9 +55,11 @@ def test_every_task_builds_prompt_then_answer(clips):
         assert outputs, f"task {name} never applies to the synthetic clips"
         for parts in outputs:
             first_answer = next(i for i, p in enumerate(parts) if p.supervise)
-            # The prompt starts with the context scenes and ends before the first answer part.
-            assert isinstance(parts[0], Scene) and not parts[0].supervise
-            assert first_answer > 0
+            # The prompt starts with the context scenes, is not supervised, and ends before
+            # the first answer part; the answer is supervised to its end.
+            assert isinstance(parts[0], Scene) and first_answer > 0
+            assert not any(p.supervise for p in parts[:first_answer]), name
+            assert all(p.supervise for p in parts[first_answer:]), name
 
 
 def test_forecasting_alternates_waypoints_and_future_scenes(clips):
@@ -62,11 +74,16 @@ def test_forecasting_alternates_waypoints_and_future_scenes(clips):
 
 
 def test_counting_answer_matches_the_boxes(clips):
-    clip = clips[0]
-    parts = TASKS["counting"](clip, TaskConfig(), np.random.default_rng(1))
-    question, answer = parts[-2].text, parts[-1].text
-    noun = question.removeprefix("Task: count the ").removesuffix(" objects.").replace(" ", "_")
-    assert int(answer) == sum(b["category"] == noun for b in clip.anchor["boxes"])
+    counted = []
+    for clip in clips:
+        for seed in range(12):  # each draw picks an object class
+            parts = TASKS["counting"](clip, TaskConfig(), np.random.default_rng(seed))
+            question, answer = parts[-2].text, parts[-1].text
+            noun = question.removeprefix("Task: count the ").removesuffix(" objects.").replace(" ", "_")
+            assert noun in OBJECT_CLASSES
+            assert int(answer) == sum(b["category"] == noun for b in clip.anchor["boxes"])
+            counted.append(int(answer))
+    assert sum(n > 0 for n in counted) >= 5 and max(counted) >= 2  # counts, not only zeros
 
 
 def test_sampling_is_deterministic_and_follows_weights(clips):
@@ -79,6 +96,10 @@ def test_sampling_is_deterministic_and_follows_weights(clips):
     a = [sample_task(c, cfg, 7, c.anchor["token"])[0] for c in clips]
     b = [sample_task(c, cfg, 7, c.anchor["token"])[0] for c in clips]
     assert a == b and set(a) == {"counting", "detection"}
+    # Drawn in proportion to the weights (both apply to every clip): 9 to 1.
+    cfg = TaskConfig(weights={"counting": 9.0, "detection": 1.0})
+    draws = [sample_task(c, cfg, seed, c.anchor["token"])[0] for c in clips for seed in range(40)]
+    assert 0.85 < draws.count("counting") / len(draws) < 0.95, draws.count("counting") / len(draws)
 
 
 def test_cot_answer_ends_with_the_meta_action_then_trajectory(clips):

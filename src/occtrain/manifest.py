@@ -47,6 +47,10 @@ class StageEntry:
     code_version: str = ""
     #: The resolved stage config the hash was taken of, to explain a change key by key.
     config: dict[str, Any] = field(default_factory=dict)
+    #: One record per attempt of what it actually did, as the trainer saw it: the optimizer
+    #: step training began at (a resume begins at its checkpoint's step), the number of
+    #: processes, and the samples each rank trained and validated on.
+    history: list[dict[str, Any]] = field(default_factory=list)
 
 
 @dataclass
@@ -90,9 +94,15 @@ class Manifest:
         e = self.stages[name]
         e.status, e.attempts, e.started, e.ended, e.error = "running", e.attempts + 1, time.time(), None, ""
         e.config_hash, e.config, e.code_version = config_hash, config, code_version()
+        e.history.append({"attempt": e.attempts})
         self._attempt_base = e.wall_time_s
         self.save()
         return e
+
+    def record_attempt(self, name: str, facts: dict[str, Any]) -> None:
+        """Add what the running attempt reports about itself (see ``StageEntry.history``)."""
+        self.stages[name].history[-1].update(facts)
+        self.save()
 
     def record_time(self, name: str, attempt_s: float) -> None:
         """This attempt has run ``attempt_s`` seconds so far: ``wall_time_s`` is the sum over

@@ -192,7 +192,7 @@ def load_recipe(path: str | Path, overrides: list[str] | None = None) -> tuple[R
 
 def _execute(
     stage: PlannedStage, recipe: RecipeConfig, stage_dir: Path, inputs: dict[str, Path],
-    record_time: Callable[[float], None] | None = None,
+    record_time: Callable[[float], None] | None = None, record_attempt: Callable[[dict], None] | None = None,
 ) -> dict:
     import lightning as L
 
@@ -207,7 +207,7 @@ def _execute(
     say = console.print if is_rank_zero() else (lambda line: None)
     ckpt = last_checkpoint(stage_dir, say=lambda line: say(f"[yellow]note[/]: {line}"))
     resume_step = checkpoint_step(ckpt) if ckpt is not None else None
-    trainer = build_trainer(stage.trainer, stage_dir, stage.kind.monitor, stage.kind.mode, resume_step, record_time)
+    trainer = build_trainer(stage.trainer, stage_dir, stage.kind.monitor, stage.kind.mode, resume_step, record_time, record_attempt)
     if ckpt is not None:
         say(f"[yellow]resuming[/] {stage.spec.name} from {ckpt} (step {resume_step})")
     trainer.fit(module, datamodule=datamodule, ckpt_path=ckpt, weights_only=True)
@@ -387,6 +387,7 @@ def _run_stages(planned: list[PlannedStage], manifest: Manifest, run_dir: Path, 
             result = _execute(
                 p, recipe, stage_dir, {d: exports[d] for d in p.spec.consumes},
                 record_time=lambda seconds, name=name: manifest.record_time(name, seconds),
+                record_attempt=lambda facts, name=name: manifest.record_attempt(name, facts),
             )
         except Interrupted as stop:
             _record_failure(manifest, name, f"{stop}", time.time() - started, "interrupted")

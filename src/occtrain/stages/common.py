@@ -24,6 +24,7 @@ from torchmetrics import MeanMetric
 from occtrain.config.recipe import OptimConfig
 from occtrain.config.schema import TrainerConfig
 from occtrain.data.datamodule import ResumableLoader
+from occtrain.data.shards import PAD_KEY
 from occtrain.errors import OcctrainError
 from occtrain.io import atomic_open
 
@@ -196,6 +197,52 @@ class _Heartbeat(Callback):
             self.record(self.last - self.started)
 
 
+class AttemptRecord(Callback):
+    """Reports what this attempt does, as the trainer sees it, to ``record`` (rank zero):
+    ``start_step`` and ``world_size`` when training begins (after a checkpoint is restored,
+    so a resume reports the step it continues from), ``train_samples_per_rank`` when it
+    ends and ``val_samples_per_rank`` after each validation (padding left out)."""
+
+    def __init__(self, record: Callable[[dict[str, Any]], None]):
+        self.record = record
+        self.train_samples = 0
+        self.val_samples = 0
+
+    def _report(self, trainer: L.Trainer, facts: dict[str, Any]) -> None:
+        if trainer.is_global_zero:
+            self.record(facts)
+
+    def _per_rank(self, trainer: L.Trainer, count: int) -> list[int]:
+        counts = trainer.strategy.all_gather(torch.tensor([count]))  # every rank calls it
+        return [int(c) for c in counts.flatten()]
+
+    def on_train_start(self, trainer: L.Trainer, *args: Any) -> None:
+        self.train_samples = 0
+        self._report(trainer, {"start_step": trainer.global_step, "world_size": trainer.world_size})
+
+    def on_train_batch_start(self, trainer: L.Trainer, pl_module: L.LightningModule, batch: Any, *args: Any) -> None:
+        self.train_samples += _batch_samples(batch)
+
+    def on_train_end(self, trainer: L.Trainer, *args: Any) -> None:
+        self._report(trainer, {"train_samples_per_rank": self._per_rank(trainer, self.train_samples)})
+
+    def on_validation_epoch_start(self, *args: Any) -> None:
+        self.val_samples = 0
+
+    def on_validation_batch_start(self, trainer: L.Trainer, pl_module: L.LightningModule, batch: Any, *args: Any) -> None:
+        self.val_samples += _batch_samples(batch)
+
+    def on_validation_epoch_end(self, trainer: L.Trainer, *args: Any) -> None:
+        self._report(trainer, {"val_samples_per_rank": self._per_rank(trainer, self.val_samples)})
+
+
+def _batch_samples(batch: Any) -> int:
+    """Real samples in a collated batch: its tokens, none for a batch of padding alone."""
+    if not isinstance(batch, dict) or batch.get(PAD_KEY):
+        return 0
+    return len(batch.get("token", ()))
+
+
 class StepTimer(Callback):
     """Mean wall time of a training step, loading its batch included: the time from one
     batch's start to the next one's, the first ``warmup`` steps of an attempt and the
@@ -274,11 +321,13 @@ def quiet_lightning() -> None:
 def build_trainer(
     cfg: TrainerConfig, stage_dir: Path, monitor: str | None, mode: str = "max",
     resume_step: int | None = None, record_time: Callable[[float], None] | None = None,
+    record_attempt: Callable[[dict[str, Any]], None] | None = None,
 ) -> L.Trainer:
     """A Trainer writing ``checkpoints/`` (last.ckpt every N steps, best by ``monitor``) and ``logs/``.
 
     ``resume_step``: the step of the checkpoint the stage resumes from (its CSV log keeps
-    the rows before it); ``record_time`` gets the attempt's elapsed seconds now and then.
+    the rows before it); ``record_time`` gets the attempt's elapsed seconds now and then;
+    ``record_attempt`` what the attempt did (see :class:`AttemptRecord`).
     """
     quiet_lightning()
     ckpt_dir = stage_dir / "checkpoints"
@@ -295,6 +344,8 @@ def build_trainer(
     ]
     if record_time is not None:
         callbacks.append(_Heartbeat(record_time))
+    if record_attempt is not None:
+        callbacks.append(AttemptRecord(record_attempt))
     if monitor:
         callbacks.append(
             ModelCheckpoint(
