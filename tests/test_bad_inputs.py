@@ -299,6 +299,7 @@ stages:
   - name: pretrain
     kind: pretrain
     consumes: [tokenizer]
+    model: {{family: occllama}}
 """
 RUN = ["run", "{tmp}/r.yaml", "--run-dir", "{tmp}/run2"]
 RECIPE_FILE = "{tmp}/r.yaml"
@@ -608,10 +609,13 @@ def test_the_table_is_big_and_its_ids_unique() -> None:
 # ----------------------------------------------------------------------------- a real Occ3D release
 
 
-def make_release(root: Path) -> Path:
+def make_release(root: Path, released_form: bool = False) -> Path:
     """What an Occ3D-nuScenes download holds: annotations.json as the release writes it
     (timestamps as strings of digits, camera_sensor records, prev/next links, samples not
     in time order) and gts/<scene>/<token>/labels.npz; no occtrain sidecars, no NuScenes-QA.
+    Camera records in the README's form (keyed by camera token, ``intrinsic``) or, with
+    ``released_form``, as the released files hold them (keyed by channel, ``intrinsics``,
+    ``img_path`` relative to imgs/, a timestamp in the camera's ego pose).
 
     Scene B has no prev/next links at all: its order comes from the timestamps, compared
     as numbers ("999500000" < "1000000000" although not as strings)."""
@@ -626,11 +630,11 @@ def make_release(root: Path) -> Path:
             infos[scene][token] = {
                 "timestamp": str(start[scene] + 500_000 * i),
                 "camera_sensor": {
-                    f"{token}-cam{c}": {
-                        "img_path": f"imgs/CAM_{c}/{token}.jpg",
-                        "intrinsic": [[1266.4, 0.0, 816.3], [0.0, 1266.4, 491.5], [0.0, 0.0, 1.0]],
+                    f"CAM_{c}" if released_form else f"{token}-cam{c}": {
+                        "img_path": f"CAM_{c}/{token}.jpg" if released_form else f"imgs/CAM_{c}/{token}.jpg",
+                        "intrinsics" if released_form else "intrinsic": [[1266.4, 0.0, 816.3], [0.0, 1266.4, 491.5], [0.0, 0.0, 1.0]],
                         "extrinsic": {"translation": [1.7, 0.0, 1.5], "rotation": [0.5, -0.5, 0.5, -0.5]},
-                        "ego_pose": pose,
+                        "ego_pose": {**pose, "timestamp": start[scene] + 500_000 * i} if released_form else pose,
                     }
                     for c in ("FRONT", "BACK")
                 },
@@ -646,8 +650,9 @@ def make_release(root: Path) -> Path:
     return root
 
 
-def test_a_real_release_reads_unchanged_and_checks_ok(tmp_path: Path, capsys) -> None:
-    root = make_release(tmp_path / "occ3d")
+@pytest.mark.parametrize("released_form", [False, True], ids=["readme-form", "released-form"])
+def test_a_real_release_reads_unchanged_and_checks_ok(tmp_path: Path, capsys, released_form: bool) -> None:
+    root = make_release(tmp_path / "occ3d", released_form)
     before = snapshot(root)
     ds = DatasetIndex.open(root)
     assert ds.scenes == {"scene-0061": ["a0", "a1", "a2", "a3"], "scene-0103": ["b0", "b1", "b2"]}

@@ -185,10 +185,12 @@ def test_the_release_layout_reads_back(world):
     records = index.cameras(scene, token)
     assert [r.name for r in records] == list(CAMERA_NAMES)
     assert all(r.image == world / "imgs" / r.name / f"{token}.png" for r in records)
+    # Written as the released files hold them: keyed by channel, intrinsics, img_path under imgs/.
     raw = json.loads((world / "annotations.json").read_text())["scene_infos"][scene][token]["camera_sensor"]
-    entry = next(iter(raw.values()))
-    assert set(entry) == {"img_path", "intrinsic", "extrinsic", "ego_pose"} and set(entry["extrinsic"]) == {"translation", "rotation"}
-    assert isinstance(entry["img_path"], str) and len(entry["intrinsic"]) == 3 and len(entry["extrinsic"]["rotation"]) == 4
+    assert list(raw) == list(CAMERA_NAMES)
+    entry = raw["CAM_FRONT"]
+    assert set(entry) == {"img_path", "intrinsics", "extrinsic", "ego_pose"} and set(entry["extrinsic"]) == {"translation", "rotation"}
+    assert entry["img_path"] == f"CAM_FRONT/{token}.png" and len(entry["intrinsics"]) == 3 and len(entry["extrinsic"]["rotation"]) == 4
     rig = {c.name: c for c in nuscenes_rig(H, W)}
     for r in records:
         np.testing.assert_allclose(r.intrinsic, rig[r.name].intrinsic, atol=1e-9)
@@ -201,6 +203,32 @@ def test_the_release_layout_reads_back(world):
     classes, depth = index.camera_targets(scene, token)
     assert images.shape == (6, H, W, 3) and classes.shape == depth.shape == (6, H, W)
     assert classes.max() <= FREE and (depth[classes == FREE] == 0).all()
+
+
+def test_the_readme_form_of_camera_records_reads_alike(world, tmp_path):
+    """The Occ3D README's form (records keyed by a camera token, ``intrinsic``, ``img_path``
+    from the root) gives the same cameras as the released files' form."""
+    import shutil
+
+    from occtrain.data.layout import DatasetIndex
+
+    copy = tmp_path / "world"
+    shutil.copytree(world, copy)
+    ann = json.loads((copy / "annotations.json").read_text())
+    for samples in ann["scene_infos"].values():
+        for token, info in samples.items():
+            info["camera_sensor"] = {
+                f"{token}-{name.lower()}": {"img_path": f"imgs/{r['img_path']}", "intrinsic": r["intrinsics"], "extrinsic": r["extrinsic"], "ego_pose": r["ego_pose"]}
+                for name, r in info["camera_sensor"].items()
+            }
+    (copy / "annotations.json").write_text(json.dumps(ann))
+    released, readme = DatasetIndex.open(world), DatasetIndex.open(copy)
+    scene, token = next(released.samples("val"))
+    assert readme.has_cameras
+    for a, b in zip(released.cameras(scene, token), readme.cameras(scene, token)):
+        assert a.name == b.name and a.image.relative_to(world) == b.image.relative_to(copy)
+        assert np.array_equal(a.intrinsic, b.intrinsic) and np.array_equal(a.cam_to_ego, b.cam_to_ego)
+    assert np.array_equal(readme.images(scene, token), released.images(scene, token))
 
 
 def test_shards_carry_the_views_only_to_stages_that_read_them(world, tmp_path):
@@ -237,8 +265,8 @@ def test_data_check_names_a_broken_camera_image_and_calibration(world, tmp_path,
     broken = index.cameras(scene, token)[3].image
     broken.write_bytes(b"\x89PNG\r\n\x1a\n not really")
     ann = json.loads((copy / "annotations.json").read_text())
-    record = next(iter(ann["scene_infos"][scene][token]["camera_sensor"].values()))
-    record["intrinsic"][0][2] = 5000.0  # principal point far outside a 128-pixel-wide image
+    record = ann["scene_infos"][scene][token]["camera_sensor"]["CAM_FRONT"]
+    record["intrinsics"][0][2] = 5000.0  # principal point far outside a 128-pixel-wide image
     (copy / "annotations.json").write_text(json.dumps(ann))
     assert main(["data", "check", str(copy)]) == 1
     out, err = capsys.readouterr()

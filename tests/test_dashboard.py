@@ -18,7 +18,7 @@ from PIL import Image
 
 from conftest import REPO
 from occtrain.dashboard import bev_comparison, read_samples, register, write_dashboard, write_samples
-from occtrain.dashboard.paper_figures import PAPER_FIGURES, REAL_DATA, figures_for, metric_words
+from occtrain.core.paper import REAL_DATA, all_figures, figures_for, metric_words
 from occtrain.dashboard.svg import Frame, nice_ticks, tick_labels
 from occtrain.errors import OcctrainError
 from occtrain.manifest import Manifest
@@ -200,7 +200,7 @@ def test_meta_action_accuracy_is_one_chart_of_four_parts_beside_its_baseline():
 def test_every_paper_figure_is_printed_in_its_paper():
     files = {"OccLLaMA": "000_", "OccVLA": "002_", "Occ-LLM": "003_", "SparseOccVLA": "004_"}
     texts = {p: next(SEEDS.glob(f"{prefix}*.txt")).read_text() for p, prefix in files.items()}
-    for fig in PAPER_FIGURES:
+    for fig in all_figures():
         # OccLLaMA's per-type QA row is printed in OccVLA's Table 3
         source = "OccVLA" if fig.where.startswith("OccVLA") else fig.paper
         printed = {f"{fig.value:.1f}", f"{fig.value:.2f}"}

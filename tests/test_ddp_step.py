@@ -22,8 +22,8 @@ from omegaconf import OmegaConf
 from torch.nn.parallel import DistributedDataParallel
 
 from occtrain.config.recipe import OptimConfig
-from occtrain.families.occworld import OccWorldVQVAEConfig
-from occtrain.families import build_tokenizer
+from occtrain.models.tokenizers.occworld_vqvae import OccWorldVQVAEConfig
+from occtrain.core.registry import build_tokenizer
 from occtrain.stages.common import configure_adamw
 
 CFG = dict(

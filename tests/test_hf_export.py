@@ -14,7 +14,7 @@ import torch
 
 from occtrain.config.llm import LLMConfig, LoRAConfig
 from occtrain.engine import export_engine, load_world_model, new_world_model
-from occtrain.families import build_tokenizer, save_tokenizer
+from occtrain.core.registry import build_tokenizer, save_tokenizer
 from occtrain.families.occllama import TaskConfig
 from occtrain.models.attention import allowed_pairs
 from occtrain.models.llm import apply_lora
@@ -62,7 +62,7 @@ def occtrain_logits(engine, ids: torch.Tensor) -> torch.Tensor:
 @pytest.mark.parametrize("merge", [False, True], ids=["adapter", "merged"])
 def test_plain_transformers_and_peft_give_occtrains_logits(tmp_path, synth_dataset, tokenizer_export, merge):
     torch.manual_seed(1)
-    engine = new_world_model(tokenizer_export, TINY_LLM, TaskConfig(context_frames=2), synth_dataset)
+    engine = new_world_model({"tokenizer": tokenizer_export}, TINY_LLM, TaskConfig(context_frames=2), synth_dataset, family="occllama")
     engine.world.llm = apply_lora(engine.world.llm, LoRAConfig(r=4, alpha=8, dropout=0.0))
     with torch.no_grad():  # LoRA's B starts at zero: make the adapter change the output
         for name, p in engine.world.llm.named_parameters():
@@ -98,7 +98,7 @@ def test_export_carries_the_task_config(tmp_path, synth_dataset, tokenizer_expor
     """A later stage or ``occtrain eval`` builds prompts exactly as the model trained."""
     torch.manual_seed(2)
     tasks = TaskConfig(weights={"qa": 1.0}, context_frames=2, forecast_frames=3, max_objects=4)
-    engine = new_world_model(tokenizer_export, TINY_LLM, tasks, synth_dataset, max_new_text_tokens=123)
+    engine = new_world_model({"tokenizer": tokenizer_export}, TINY_LLM, tasks, synth_dataset, max_new_text_tokens=123, family="occllama")
     loaded = load_world_model(export_engine(engine, tmp_path / "export", stage="pretrain"))
     assert loaded.tasks == tasks and loaded.max_new_text_tokens == 123
     assert loaded.family == "occllama"

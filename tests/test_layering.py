@@ -1,11 +1,15 @@
 """The package's import arrows, read from the source with ``ast``.
 
-Layers, top to bottom: cli -> runner (and the other commands) -> stages -> engine ->
-families -> models / metrics / data -> config and the base modules. A module may import
-its own layer or lower ones, never a higher one; on top of that:
+Layers, top to bottom: cli -> runner (and the other commands, the Python API) -> stages ->
+engine -> families -> core -> models / metrics / data -> config and the base modules. A
+module may import its own layer or lower ones, never a higher one; on top of that:
 
-- nothing in ``models/``, ``families/`` or ``engine/`` imports Lightning;
+- nothing in ``models/``, ``core/``, ``families/`` or ``engine/`` imports Lightning;
 - no stage module imports another stage module (they share ``stages/base``, ``stages/common``);
+- a family imports no other family (shared code moves down into ``core/`` or ``models/``);
+- ``core``, ``engine``, ``stages``, the runner, ``evaluate``, the API and the dashboard name
+  no family: they import none, and no string in them is a family's name (they look
+  families up in the registry);
 - ``metrics/`` never imports ``data/`` (metrics score anyone's predictions);
 - only the generator's entry point (``data/synthesize.py``) imports ``data/synth``.
 """
@@ -23,17 +27,22 @@ SRC = REPO / "src" / "occtrain"
 
 #: Layer of each top-level module or package of occtrain (higher imports lower).
 LAYERS = {
-    "cli": 6, "__main__": 6,
-    "comparison": 5, "runner": 5, "evaluate": 5, "scoring": 5, "dashboard": 5, "manifest": 5,
-    "stages": 4,
-    "engine": 3,
-    "families": 2,
+    "cli": 7, "__main__": 7,
+    "comparison": 6, "runner": 6, "evaluate": 6, "scoring": 6, "dashboard": 6, "manifest": 6, "api": 6,
+    "stages": 5,
+    "engine": 4,
+    "families": 3,
+    "core": 2,
     "models": 1, "metrics": 1, "data": 1,
     "config": 0, "errors": 0, "io": 0, "run_control": 0, "exports": 0, "progress": 0, "occ3d": 0, "nuscenes_qa": 0, "__init__": 0,
 }
 #: Modules of ``stages/`` that are infrastructure, not a stage kind.
 STAGE_INFRA = {"occtrain.stages", "occtrain.stages.base", "occtrain.stages.common"}
-LIGHTNING_FREE = ("models", "families", "engine")
+LIGHTNING_FREE = ("models", "core", "families", "engine")
+#: What may not name a family: it looks families up in the registry.
+FAMILY_NEUTRAL = ("core", "engine", "stages", "runner", "evaluate", "api", "dashboard")
+#: The families shipped with occtrain (the registry finds them; this list only checks the rule).
+FAMILIES = ("occworld", "occllama", "occllm", "occvla", "sparseoccvla")
 
 
 def module_name(path: Path) -> str:
@@ -80,11 +89,21 @@ def check_module(me: str, where: str, source: str, is_package: bool = False) -> 
             stage = ".".join(target.split(".")[:3])
             if stage not in STAGE_INFRA and stage != me:
                 found.append(f"{where}:{line} imports {target}: a stage imports another stage")
+        if target.startswith("occtrain.families."):
+            family = target.split(".")[2]
+            if mine in FAMILY_NEUTRAL:
+                found.append(f"{where}:{line} imports {target}: {mine} names no family (look it up in the registry)")
+            elif mine == "families" and len(me.split(".")) > 2 and me.split(".")[2] != family:
+                found.append(f"{where}:{line} imports {target}: a family imports no other family")
         if mine == "metrics" and theirs == "data":
             found.append(f"{where}:{line} imports {target}: metrics/ must not import data/")
         if target.startswith("occtrain.data.synth") and not target.startswith("occtrain.data.synthesize"):
             if not (me.startswith("occtrain.data.synth.") or me in ("occtrain.data.synth", "occtrain.data.synthesize")):
                 found.append(f"{where}:{line} imports {target}: only data/synthesize.py may import the generator")
+    if mine in FAMILY_NEUTRAL:
+        for node in ast.walk(ast.parse(source)):
+            if isinstance(node, ast.Constant) and isinstance(node.value, str) and node.value.lower() in FAMILIES:
+                found.append(f"{where}:{node.lineno} names the family '{node.value}': {mine} looks families up in the registry")
     return found
 
 
@@ -113,6 +132,13 @@ def test_imports_point_down():
         ("metrics/bad.py", "from occtrain.data.schema import COMMANDS\n", "metrics/ must not import data/"),
         ("families/bad.py", "from occtrain.engine import Evaluator\n", "points up"),
         ("data/bad.py", "from occtrain.data.synth.text import caption_for_frame\n", "only data/synthesize.py"),
+        ("families/occllm/bad.py", "from occtrain.families.occllama.tasks import TaskConfig\n", "a family imports no other family"),
+        ("families/occllm/bad.py", "from occtrain.stages.base import Stage\n", "points up"),
+        ("engine/bad.py", "from occtrain.families.occvla.world_model import OccVLAWorldModel\n", "names no family"),
+        ("stages/bad.py", "def f(family):\n    return family == 'occllama'\n", "names the family 'occllama'"),
+        ("dashboard/bad.py", "FAMILY = 'OccVLA'\n", "names the family 'OccVLA'"),
+        ("core/bad.py", "import lightning\n", "must not depend on Lightning"),
+        ("core/bad.py", "from occtrain.families.occllama import OCCLLAMA\n", "points up"),
     ],
 )
 def test_the_checker_catches(module, source, expected):
@@ -124,4 +150,17 @@ def test_the_checker_catches(module, source, expected):
 
 def test_the_checker_passes_allowed_imports():
     assert check_module("occtrain.stages.planner", "stages/planner.py", "from occtrain.stages.base import Stage\nfrom occtrain.engine import Evaluator\n") == []
+    assert check_module("occtrain.families.occllm.tasks", "families/occllm/tasks.py", "from occtrain.families.occllm.config import X\nfrom occtrain.core.tasks import TaskSpec\n") == []
     assert check_module("occtrain.data.synthesize", "data/synthesize.py", "from occtrain.data.synth.text import caption_for_frame\n") == []
+
+
+def test_no_function_outside_the_generator_runs_over_60_lines():
+    """Small functions that say what they do (the synthetic world's geometry is exempt)."""
+    long = []
+    for path in sorted(SRC.rglob("*.py")):
+        if "data/synth/" in str(path):
+            continue
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)) and node.end_lineno - node.lineno + 1 > 60:
+                long.append(f"{path.relative_to(REPO)}:{node.lineno} {node.name} ({node.end_lineno - node.lineno + 1} lines)")
+    assert long == []

@@ -10,8 +10,9 @@ from occtrain.config.llm import LLMConfig, LoRAConfig
 from occtrain.errors import ConfigError
 from occtrain.models.llm import apply_lora, build_llm, load_text_tokenizer
 from occtrain.models.text_tokenizer import train_text_tokenizer
-from occtrain.models.vocab import JointVocab
-from occtrain.families.occllama.world_model import OccWorldModel, collate
+from occtrain.core.vocab import JointVocab
+from occtrain.core.builder import collate
+from occtrain.families.occllama.world_model import OccLLaMAWorldModel as OccWorldModel
 
 TEXTS = ["the car turns left", "how many cars are there"] * 10
 

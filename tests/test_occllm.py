@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from occtrain.errors import ConfigError
-from occtrain.families import build_tokenizer, tokenizer_config
+from occtrain.core.registry import build_tokenizer, tokenizer_config
 from occtrain.families.occllm import MSVAE, merge, separate
 from occtrain.models import count_parameters
 from occtrain.occ3d import CLASS_INDEX, FREE, GRID_SHAPE, NUM_CLASSES
@@ -80,7 +80,7 @@ def test_the_ablation_switches():
 
 
 def test_the_tokenizer_stage_trains_it_and_reports_each_codebook(tmp_path, hand_dataset):
-    from occtrain.families import load_tokenizer
+    from occtrain.core.registry import load_tokenizer
     from occtrain.runner import run
 
     recipe = tmp_path / "msvae.yaml"

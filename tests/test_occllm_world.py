@@ -10,12 +10,13 @@ import pytest
 import torch
 
 from occtrain.config.llm import LLMConfig
-from occtrain.families.occllama.batch_decoding import ActionAnswer, SceneAnswer
-from occtrain.families.occllama.world_model import OccWorldModel, collate
+from occtrain.core.decoding import ActionAnswer, SceneAnswer
+from occtrain.core.builder import collate
+from occtrain.families.occllama.world_model import OccLLaMAWorldModel as OccWorldModel
 from occtrain.families.occllm import OccLLMWorldConfig, OccLLMWorldModel
 from occtrain.models.llm import build_llm
 from occtrain.models.text_tokenizer import train_text_tokenizer
-from occtrain.models.vocab import JointVocab
+from occtrain.core.vocab import JointVocab
 
 TEXTS = ["go straight then turn left", "<4-D occupancy forecasting and self-ego planning>", "<question-answering>"]
 SIZES = [8, 16]  # motion, static
@@ -35,7 +36,7 @@ def world(mode: str = "next_scene", seed: int = 0, **cfg) -> OccLLMWorldModel:
     vocab = JointVocab(train_text_tokenizer(TEXTS, 300), SIZES, HW, llm_cfg(mode), patch=cfg.get("patch_size", 2))
     books = [torch.randn(k, 3) for k in SIZES]
     settings = OccLLMWorldConfig(**{"patch_size": 2, "cell_dim": 8, **cfg})
-    return OccLLMWorldModel(build_llm(llm_cfg(mode), len(vocab)), vocab, books, mode, settings).eval()
+    return OccLLMWorldModel(build_llm(llm_cfg(mode), len(vocab)), vocab, books, mode, settings, HW).eval()
 
 
 def scene_codes(seed: int) -> torch.Tensor:
@@ -171,8 +172,8 @@ def test_two_codebooks_in_the_codes_layout_pick_within_their_own_range():
 def test_two_codebook_scenes_round_trip_through_the_code_cache(tmp_path, hand_dataset):
     from occtrain.data.layout import DatasetIndex
     from occtrain.engine import new_world_model
-    from occtrain.families import build_tokenizer, save_tokenizer
-    from occtrain.families.occllama.tasks import TaskConfig
+    from occtrain.core.registry import build_tokenizer, save_tokenizer
+    from occtrain.families.occllm.tasks import TaskConfig
 
     tiny = dict(num_codes=16, num_codes_motion=8, code_dim=8, class_embed_dim=4, base_channels=8, channel_mult=[1, 1, 1],
                 strides=[4, 5], num_res_blocks=1, latent_attention=False, z_channels=8)  # fmt: skip
@@ -181,33 +182,33 @@ def test_two_codebook_scenes_round_trip_through_the_code_cache(tmp_path, hand_da
     export = save_tokenizer(tok, "occllm_msvae", tiny, tmp_path / "tok")
     assert json.loads((export / "config.json").read_text())["codebook_sizes"] == [8, 16]
     llm = LLMConfig(hidden_size=32, num_layers=1, num_heads=2, intermediate_size=64, text_vocab_size=300)
-    engine = new_world_model(export, llm, TaskConfig(), hand_dataset, family="occllm", world_cfgs={"occllm": OccLLMWorldConfig(patch_size=5)})
+    engine = new_world_model({"tokenizer": export}, llm, TaskConfig(), hand_dataset, family="occllm", world_cfg=OccLLMWorldConfig(patch_size=5))
     assert engine.vocab.codebook_sizes == [8, 16] and engine.vocab.scene_len == 4
     cache = tmp_path / "cache" / "codes.safetensors"
-    engine.build_code_cache(hand_dataset, cache)
+    engine.build_scene_cache(hand_dataset, cache)
     assert cache.is_file()
-    again = new_world_model(export, llm, TaskConfig(), hand_dataset, family="occllm", world_cfgs={"occllm": OccLLMWorldConfig(patch_size=5)})
+    again = new_world_model({"tokenizer": export}, llm, TaskConfig(), hand_dataset, family="occllm", world_cfg=OccLLMWorldConfig(patch_size=5))
 
     def no_encoding(*args, **kwargs):
         raise AssertionError("the cached codes were encoded again")
 
-    again.scene_tokenizer.encode = no_encoding
-    again.build_code_cache(hand_dataset, cache)  # read back from the file
+    again.scene_encoder.encode = no_encoding
+    again.build_scene_cache(hand_dataset, cache)  # read back from the file
     index = DatasetIndex.open(hand_dataset)
-    assert set(again.code_cache) == {t for _, t in index.samples()}
+    assert set(again.scene_cache) == {t for _, t in index.samples()}
     scene, token = next((s, t) for s, ts in index.scenes.items() for t in ts)
     semantics = torch.from_numpy(index.labels(scene, token)["semantics"]).long()[None]
     with torch.no_grad():
         grids = tok.encode(semantics)  # (1, 2, 10, 10): motion, static
         assert grids.shape == (1, 2, 10, 10)
-        assert torch.equal(again.code_cache[token].long(), grids.reshape(-1))
-        assert torch.equal(again.decode_scenes(again.code_cache[token][None].long()), tok.decode(grids).argmax(1))
+        assert torch.equal(again.scene_cache[token].long(), grids.reshape(-1))
+        assert torch.equal(again.decode_scenes(again.scene_cache[token][None].long()), tok.decode(grids).argmax(1))
 
 
 def test_the_tasks_use_the_papers_prompts_and_alternate_waypoints_with_frames(hand_dataset):
     from occtrain.data.clips import Actions, Scene, Text, frame_clips
     from occtrain.data.layout import DatasetIndex
-    from occtrain.families.occllama.tasks import TaskConfig
+    from occtrain.families.occllm.tasks import TaskConfig
     from occtrain.families.occllm.tasks import every_question, forecasting
 
     index = DatasetIndex.open(hand_dataset)

@@ -14,17 +14,17 @@ from omegaconf import OmegaConf
 from occtrain.config.llm import LLMConfig
 from occtrain.data.clips import Clip, Images, Occupancy, Text
 from occtrain.data.meta_actions import KMH_PER_S, MetaActionConfig, label, past_labels
-from occtrain.families import build_tokenizer
-from occtrain.families.occllama.batch_decoding import TextAnswer
-from occtrain.families.occllama.tasks import TaskConfig
-from occtrain.families.occllama.world_model import collate
+from occtrain.core.registry import build_tokenizer
+from occtrain.core.decoding import TextAnswer
+from occtrain.core.builder import collate
+from occtrain.families.occvla.tasks import TaskConfig
 from occtrain.families.occvla import OccVLAWorldConfig, OccVLAWorldModel
 from occtrain.families.occvla.tasks import META_PROMPT, META_QUESTION, meta_action
 from occtrain.metrics import MetaActionAccuracy
 from occtrain.models.adapters import AdapterConfig, add_adapters, load_adapters, save_adapters, without_adapters
 from occtrain.models.llm import build_llm
 from occtrain.models.text_tokenizer import train_text_tokenizer
-from occtrain.models.vocab import JointVocab
+from occtrain.core.vocab import JointVocab
 from occtrain.occ3d import GRID_SHAPE
 
 TEXTS = ["Past meta actions: maintain speed, go straight. What is the next meta action?", "Meta action: decelerate, turn left."]
@@ -97,8 +97,8 @@ def test_greedy_generations_are_identical_with_and_without_the_occupancy_block()
     w = world(seed=3)
     prompt = sequence(w, with_queries=False, answer=False)
     answers = [TextAnswer(12)]
-    skipped, none = w.generate(prompt, answers, occupancy=False)
-    with_occ, logits = w.generate(prompt, answers, occupancy=True)
+    skipped, none = w.generate_with_occupancy(prompt, answers, occupancy=False)
+    with_occ, logits = w.generate_with_occupancy(prompt, answers, occupancy=True)
     assert none is None and logits.shape == (1, 18, *GRID_SHAPE)
     assert skipped == with_occ and len(skipped[0]) > 0
     assert w.generate_batch([prompt, prompt], [answers, answers]) == [skipped, skipped]

@@ -97,7 +97,7 @@ def test_the_reloaded_model_generates_the_same_text_with_and_without_occupancy(o
     from occtrain.data.clips import frame_clips
     from occtrain.data.layout import DatasetIndex
     from occtrain.engine import load_world_model
-    from occtrain.families.occllama.batch_decoding import TextAnswer
+    from occtrain.core.decoding import TextAnswer
 
     engine = load_world_model(occvla_run / "stage2" / "export").eval()
     root = occvla_run.parent / "data"
@@ -107,6 +107,35 @@ def test_the_reloaded_model_generates_the_same_text_with_and_without_occupancy(o
     prompt, _ = engine.prompt_and_plan(parts, {})
     # No end of text: 20 tokens each way, whatever a model of 3 steps would choose to say.
     engine.world.vocab.eos_id = -1
-    skipped, _ = engine.world.generate(prompt, [TextAnswer(20)], occupancy=False)
-    with_occ, logits = engine.world.generate(prompt, [TextAnswer(20)], occupancy=True)
+    skipped, _ = engine.world.generate_with_occupancy(prompt, [TextAnswer(20)], occupancy=False)
+    with_occ, logits = engine.world.generate_with_occupancy(prompt, [TextAnswer(20)], occupancy=True)
     assert len(skipped[0]) == 20 and skipped == with_occ and logits.shape[1] == 18
+
+
+def test_distillation_takes_a_camera_reading_teacher(occvla_run, tmp_path):
+    """A student of OccVLA's stage 2: the same image tokens (one shared cache), the
+    teacher's architecture around a smaller LLM; scored like its teacher."""
+    from conftest import REPO
+
+    recipe = (REPO / "stages" / "occvla.yaml").read_text().replace("../configs/", f"{REPO}/configs/")
+    recipe += """
+  - name: student
+    kind: distill
+    consumes: [stage2]
+    model:
+      student: {hidden_size: 32, num_layers: 1, num_heads: 2, intermediate_size: 64}
+      tasks: {weights: {meta_action: 1}, occupancy_weight: 1.0, context_frames: 6}
+      val_samples: 3
+      max_new_text_tokens: 24
+"""
+    path = tmp_path / "occvla_distill.yaml"
+    path.write_text(recipe)
+    extra = [f"stages[6].trainer.max_steps={STEPS}", f"stages[6].trainer.val_check_interval={STEPS}", "stages[6].trainer.limit_val_batches=1"]
+    res = run_cli("run", str(path), *overrides(occvla_run.parent), *extra, "--run-dir", str(occvla_run), "--only", "student", timeout=900)
+    assert res.returncode == 0, res.stderr[-3000:]
+    metrics = json.loads((occvla_run / "student" / "metrics.json").read_text())
+    assert metrics["student_params"] < metrics["teacher_params"]
+    assert "val/meta_action_overall" in metrics and "val/teacher_meta_action_overall" in metrics
+    assert "val/occupancy_occworld_mIoU" in metrics  # the student's query branch, through the same frozen decoder
+    export = json.loads((occvla_run / "student" / "export" / "config.json").read_text())
+    assert export["family"] == "occvla" and (occvla_run / "student" / "export" / "vision_encoder").is_dir()

@@ -250,3 +250,22 @@ def test_the_vision_recipe_runs_and_hands_over_a_hugging_face_tower(tmp_path):
     images = torch.randint(0, 255, (1, 6, 72, 128, 3), dtype=torch.uint8)
     tokens, grid = encoder(images)
     assert grid == (9, 16) and tokens.shape == (1, 6 * 9 * 16, tower.config.hidden_size)
+
+
+def test_the_readme_python_api_example_runs_as_printed(pipeline, capsys):
+    """README's Python API block, run as printed with its two paths pointed at this run."""
+    import re
+
+    text = (REPO / "README.md").read_text()
+    section = text[text.index("### The Python API"):]
+    code = re.search(r"```python\n(.*?)```", section, re.S).group(1)
+    assert "occtrain.load(" in code
+    code = code.replace("runs/quickstart/instruct/export", str(pipeline / "instruct" / "export"))
+    code = code.replace("data/quickstart", str(pipeline.parent / "data"))
+    names: dict = {}
+    exec(compile(code, "README.md", "exec"), names)
+    printed = capsys.readouterr().out.splitlines()
+    assert printed[0] == "['answer', 'plan', 'forecast', 'chain_of_thought', 'meta_action']"
+    model, clip = names["model"], names["clip"]
+    assert model.plan(clip).shape == (6, 2) and model.forecast(clip).shape[1:] == (200, 200, 16)
+    assert isinstance(model.answer(clip, "Are there any cars?"), str)

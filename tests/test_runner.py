@@ -179,9 +179,12 @@ def test_consumes_are_checked_when_planning(probe_kind, tmp_path):
 
 def test_a_world_model_stage_reads_only_its_kind_of_export(tmp_path):
     with pytest.raises(ConfigError, match="an? instruct stage cannot consume 'tok', a tokenizer stage; it reads pretrain or instruct or distill"):
-        plan_text(tmp_path, "  - {name: tok, kind: tokenizer}\n  - {name: tune, kind: instruct, consumes: [tok]}\n")
-    with pytest.raises(ConfigError, match=r"a pretrain stage consumes 1 to 2 earlier stage\(s\) \(tokenizer or vision\), got 0"):
+        plan_text(tmp_path, "  - {name: tok, kind: tokenizer, model: {arch: occworld_vqvae}}\n  - {name: tune, kind: instruct, consumes: [tok]}\n")
+    with pytest.raises(ConfigError, match=r"model.family is empty and no tokenizer stage is consumed"):
         plan_text(tmp_path, "  - {name: lm, kind: pretrain}\n")
+    # A family's world model is built over what the family names: OccVLA's reads a vision stage too.
+    with pytest.raises(ConfigError, match=r"a 'occvla' world model is built over tokenizer and vision \(consumes those stages\), got tokenizer"):
+        plan_text(tmp_path, "  - {name: tok, kind: tokenizer, model: {arch: occworld_vqvae}}\n  - {name: lm, kind: pretrain, consumes: [tok], model: {family: occvla}}\n")
 
 
 def test_checkpoints_load_strictly_by_key(recipe, tmp_path):

@@ -12,7 +12,7 @@ from occtrain.data.schema import COMMANDS, META_DIRECTIONS, META_SPEEDS
 from occtrain.models.planner import PlanningHead, constant_velocity_plan
 from occtrain.metrics import flatten_metrics
 from occtrain.models.distill import distillation_losses
-from occtrain.stages.planner import ego_features, feature_size
+from occtrain.core.planning import ego_features, feature_size
 from occtrain.engine.export import _base_names
 
 

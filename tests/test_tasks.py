@@ -7,7 +7,8 @@ import pytest
 
 from occtrain.data.shards import decode_sample, iter_raw, shard_urls, write_shards
 from occtrain.data.clips import Actions, Clip, Scene, Text, ego_future
-from occtrain.families.occllama.tasks import OBJECT_CLASSES, TASKS, TaskConfig, sample_task, validate_tasks
+from occtrain.core.tasks import sample_task, validate_tasks
+from occtrain.families.occllama.tasks import OBJECT_CLASSES, TASKS, TaskConfig
 from occtrain.data.text_formats import parse_meta_action
 from occtrain.errors import ConfigError
 from occtrain.occ3d import CLASS_INDEX
@@ -50,7 +51,7 @@ def _check_steps(clip: Clip) -> None:
 def test_every_task_builds_prompt_then_answer(clips):
     cfg = TaskConfig(context_frames=2, forecast_frames=3)
     rng = np.random.default_rng(0)
-    built = {name: [p for c in clips if (p := fn(c, cfg, rng)) is not None] for name, fn in TASKS.items()}
+    built = {name: [p for c in clips if (p := fn.build(c, cfg, rng)) is not None] for name, fn in TASKS.items()}
     for name, outputs in built.items():
         assert outputs, f"task {name} never applies to the synthetic clips"
         for parts in outputs:
@@ -64,7 +65,7 @@ def test_every_task_builds_prompt_then_answer(clips):
 
 def test_forecasting_alternates_waypoints_and_future_scenes(clips):
     clip = clips[0]
-    parts = TASKS["forecasting"](clip, TaskConfig(context_frames=2, forecast_frames=3), np.random.default_rng(0))
+    parts = TASKS["forecasting"].build(clip, TaskConfig(context_frames=2, forecast_frames=3), np.random.default_rng(0))
     answer = [p for p in parts if p.supervise]
     assert [type(p) for p in answer] == [Actions, Scene] * 3
     assert [p.frame for p in answer if isinstance(p, Scene)] == [3, 4, 5]  # anchor is clip frame 2
@@ -77,7 +78,7 @@ def test_counting_answer_matches_the_boxes(clips):
     counted = []
     for clip in clips:
         for seed in range(12):  # each draw picks an object class
-            parts = TASKS["counting"](clip, TaskConfig(), np.random.default_rng(seed))
+            parts = TASKS["counting"].build(clip, TaskConfig(), np.random.default_rng(seed))
             question, answer = parts[-2].text, parts[-1].text
             noun = question.removeprefix("Task: count the ").removesuffix(" objects.").replace(" ", "_")
             assert noun in OBJECT_CLASSES
@@ -88,22 +89,22 @@ def test_counting_answer_matches_the_boxes(clips):
 
 def test_sampling_is_deterministic_and_follows_weights(clips):
     cfg = TaskConfig(weights={"planning": 1.0, "qa": 0.0})
-    drawn = [sample_task(c, cfg, 0, c.anchor["token"]) for c in clips]
+    drawn = [sample_task(c, cfg, 0, c.anchor["token"], TASKS) for c in clips]
     assert {d[0] for d in drawn if d} == {"planning"}
     # A clip no configured task applies to is skipped (None), never given a made-up task.
     assert [d is None for d in drawn] == [not ego_future(c.anchor)[1].all() for c in clips]
     cfg = TaskConfig(weights={"counting": 1.0, "detection": 1.0})
-    a = [sample_task(c, cfg, 7, c.anchor["token"])[0] for c in clips]
-    b = [sample_task(c, cfg, 7, c.anchor["token"])[0] for c in clips]
+    a = [sample_task(c, cfg, 7, c.anchor["token"], TASKS)[0] for c in clips]
+    b = [sample_task(c, cfg, 7, c.anchor["token"], TASKS)[0] for c in clips]
     assert a == b and set(a) == {"counting", "detection"}
     # Drawn in proportion to the weights (both apply to every clip): 9 to 1.
     cfg = TaskConfig(weights={"counting": 9.0, "detection": 1.0})
-    draws = [sample_task(c, cfg, seed, c.anchor["token"])[0] for c in clips for seed in range(40)]
+    draws = [sample_task(c, cfg, seed, c.anchor["token"], TASKS)[0] for c in clips for seed in range(40)]
     assert 0.85 < draws.count("counting") / len(draws) < 0.95, draws.count("counting") / len(draws)
 
 
 def test_cot_answer_ends_with_the_meta_action_then_trajectory(clips):
-    parts = TASKS["cot_planning"](clips[0], TaskConfig(), np.random.default_rng(0))
+    parts = TASKS["cot_planning"].build(clips[0], TaskConfig(), np.random.default_rng(0))
     text, traj = parts[-2], parts[-1]
     assert isinstance(text, Text) and text.supervise
     assert parse_meta_action(text.text) == clips[0].anchor["meta_action"]
@@ -112,9 +113,9 @@ def test_cot_answer_ends_with_the_meta_action_then_trajectory(clips):
 
 def test_bad_task_names_are_one_line_errors():
     with pytest.raises(ConfigError, match="unknown task 'planing'"):
-        validate_tasks(TaskConfig(weights={"planing": 1.0}), "stages[1].model.tasks")
+        validate_tasks(TaskConfig(weights={"planing": 1.0}), "stages[1].model.tasks", TASKS)
     with pytest.raises(ConfigError, match="no task has a positive weight"):
-        validate_tasks(TaskConfig(weights={"planning": 0.0}), "stages[1].model.tasks")
+        validate_tasks(TaskConfig(weights={"planning": 0.0}), "stages[1].model.tasks", TASKS)
 
 
 def test_missing_sidecar_fields_are_left_out_of_the_prompt(clips):
@@ -123,9 +124,9 @@ def test_missing_sidecar_fields_are_left_out_of_the_prompt(clips):
     cfg = TaskConfig(context_frames=2)
     anchor = {k: v for k, v in clips[0].anchor.items() if k not in ("command", "ego_speed")}
     bare = Clip({**clips[0].ann, "anchor": anchor}, clips[0].qa, clips[0].narration)
-    texts = [p.text for p in TASKS["planning"](bare, cfg, np.random.default_rng(0)) if isinstance(p, Text)]
+    texts = [p.text for p in TASKS["planning"].build(bare, cfg, np.random.default_rng(0)) if isinstance(p, Text)]
     assert not any("Command" in t or "Ego speed" in t for t in texts)
-    full = [p.text for p in TASKS["planning"](clips[0], cfg, np.random.default_rng(0)) if isinstance(p, Text)]
+    full = [p.text for p in TASKS["planning"].build(clips[0], cfg, np.random.default_rng(0)) if isinstance(p, Text)]
     assert any(t.startswith(f"Command: {clips[0].anchor['command']}. Ego speed") for t in full)
 
 
@@ -147,7 +148,7 @@ def test_packed_questions_are_branches_of_distinct_questions(clips):
     every = every_question(clip, TaskConfig())
     assert [p[-1].text for p in every] == [q["answer"] for q in clip.qa]
     with pytest.raises(ConfigError, match="questions_per_sample"):
-        validate_tasks(TaskConfig(weights={"qa": 1}, questions_per_sample=0), "stages 'x'.model.tasks")
+        validate_tasks(TaskConfig(weights={"qa": 1}, questions_per_sample=0), "stages 'x'.model.tasks", TASKS)
 
 
 def test_frame_clips_cover_every_frame_with_its_questions(synth_dataset):

@@ -12,10 +12,10 @@ from omegaconf import OmegaConf
 
 from occtrain.config.tokenizer import latent_hw
 from occtrain.errors import ConfigError, DataError
-from occtrain.families import build_tokenizer
+from occtrain.core.registry import build_tokenizer
 from occtrain.families.occllama import OccLLaMATokenizerConfig
 from occtrain.families.occllama.tokenizer import PillarEncoder, combine_decoupled
-from occtrain.families.occworld import OccWorldVQVAEConfig
+from occtrain.models.tokenizers.occworld_vqvae import OccWorldVQVAEConfig
 from occtrain.models import count_parameters
 from occtrain.models.tokenizers.losses import lovasz_softmax
 from occtrain.models.tokenizers.quantizer import VectorQuantizer

@@ -10,7 +10,7 @@ from occtrain.config.llm import LLMConfig
 from occtrain.errors import ConfigError
 from occtrain.models.actions import ActionQuantizer
 from occtrain.models.text_tokenizer import train_text_tokenizer
-from occtrain.models.vocab import JointVocab
+from occtrain.core.vocab import JointVocab
 
 TEXTS = ["the car turns left at the crossing", "Question: how many cars are there? Answer: 3"] * 10
 

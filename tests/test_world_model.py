@@ -11,8 +11,12 @@ import torch.nn.functional as F
 from occtrain.config.llm import LLMConfig
 from occtrain.models.llm import build_llm
 from occtrain.models.text_tokenizer import train_text_tokenizer
-from occtrain.models.vocab import JointVocab
-from occtrain.families.occllama.world_model import IGNORE, OccWorldModel, SequenceBuilder, collate
+from occtrain.core.vocab import JointVocab
+from occtrain.core.builder import SequenceBuilder, collate
+from occtrain.core.decoding import QueryBlock
+from occtrain.core.sequence import IGNORE
+from occtrain.core.world_model import WorldInputs
+from occtrain.families.occllama.world_model import OccLLaMAWorldModel as OccWorldModel
 
 TEXTS = ["go straight", "plan the route", "turn left then stop", "the car turns left"] * 10
 CFG = LLMConfig(hidden_size=64, num_layers=2, num_heads=4, intermediate_size=128, action_bins=16,
@@ -172,7 +176,8 @@ def test_export_round_trip(vocab):
     from transformers import AutoModelForCausalLM
 
     llm = AutoModelForCausalLM.from_config(world.llm.config)
-    again = OccWorldModel.from_export(world.export_config(), llm, vocab, SimpleNamespace(codebooks=[world.codebook])).eval()
+    inputs = WorldInputs(scene=SimpleNamespace(codebooks=[world.codebook]))
+    again = OccWorldModel.from_export(world.export_config(), llm, vocab, inputs).eval()
     again.load_state_dict(world.state_dict())
     assert "codebook" not in world.state_dict()
     assert torch.allclose(world(batch).logits, again(batch).logits, atol=1e-6)
@@ -187,11 +192,11 @@ def test_generation_sees_what_training_sees(vocab):
     train_logits = world(collate([seq], vocab.pad_id)).logits[0]
     prefix = prompt(world.builder()).actions(XY).build().input_ids
     d = world.decoder(prefix)
-    d._queue([vocab.occ_open_id])
-    gen = d._advance(vocab.query_ids()).logits[-9:]
+    d.state.queue([vocab.occ_open_id])
+    gen = d.answer(QueryBlock(vocab.query_ids())).logits
     assert torch.allclose(gen, train_logits[seq.scene_target], atol=1e-4)
-    d._queue(vocab.occ_ids(TARGET), torch.full((9,), 9))
-    d._queue([vocab.occ_close_id])
+    d.state.queue(vocab.occ_ids(TARGET), torch.full((9,), 9))
+    d.state.queue([vocab.occ_close_id])
     d.flush()
     close = int((seq.input_ids == vocab.occ_close_id).nonzero()[-1])
     assert torch.allclose(d.last.logits, train_logits[close], atol=1e-4)
@@ -202,7 +207,7 @@ def test_batched_generation_equals_one_at_a_time(vocab, mode):
     """Prompts of different lengths, answers of every kind, generated as one batch: the
     same greedy tokens as each sequence decoded alone (padding and per-sequence positions
     must not leak into any sequence)."""
-    from occtrain.families.occllama.batch_decoding import ActionAnswer, SceneAnswer, TextAnswer, decode_batch
+    from occtrain.core.decoding import ActionAnswer, SceneAnswer, TextAnswer, decode_batch
 
     world = make_world(vocab, mode, seed=3).eval()
     prefixes = [

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import re
 import sys
+from typing import Any
 
 from occtrain import __version__
 from occtrain.errors import OcctrainError
@@ -98,7 +99,19 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="occtrain", description=__doc__)
     parser.add_argument("--version", action="version", version=f"occtrain {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    _add_run_commands(sub)
+    _add_data_commands(sub)
 
+    from occtrain.dashboard import register as register_dashboard
+    from occtrain.scoring import register as register_score
+
+    register_score(sub)
+    register_dashboard(sub)
+    return parser
+
+
+def _add_run_commands(sub: Any) -> None:
+    """``run``, ``eval``, ``table`` and ``config``."""
     p = sub.add_parser("run", help="run a recipe's stages in order (skips done stages, resumes cut-off ones)")
     p.add_argument("recipe", help="recipe YAML, e.g. stages/quickstart.yaml")
     p.add_argument("overrides", nargs="*", help="key=value overrides, e.g. trainer.max_steps=10 trainer.devices=2")
@@ -110,7 +123,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("eval", help="score a stage's export on a split: a tokenizer's reconstruction, a world model's generations (the papers' metrics)")
     p.add_argument("stage_dir", help="RUN_DIR/STAGE")
     p.add_argument("--split", default="val")
-    p.add_argument("--tasks", default="", help="comma-separated: forecasting, planning, qa, cot_planning (default: the stage's)")
+    p.add_argument("--tasks", default="", help="comma-separated tasks of the model's family, e.g. forecasting,qa (default: those the stage trained on)")
     p.add_argument("--save-predictions", metavar="DIR", help="also write predictions in the formats `occtrain score` reads")
     p.add_argument(
         "--samples", type=int, default=-1,
@@ -131,6 +144,9 @@ def build_parser() -> argparse.ArgumentParser:
     show.add_argument("--group", help="config group of FILE (default: its directory name)")
     show.set_defaults(func=_cmd_config_show)
 
+
+def _add_data_commands(sub: Any) -> None:
+    """``data synth | shards | show | check``."""
     data = sub.add_parser("data", help="synthesize, shard, show and check datasets").add_subparsers(dest="action", required=True)
     p = data.add_parser("synth", help="write the synthetic driving world in the Occ3D layout")
     p.add_argument("--out", required=True, help="dataset directory to create")
@@ -161,13 +177,6 @@ def build_parser() -> argparse.ArgumentParser:
     p = data.add_parser("check", help="validate a dataset or shard directory")
     p.add_argument("path")
     p.set_defaults(func=_cmd_data_check)
-
-    from occtrain.dashboard import register as register_dashboard
-    from occtrain.scoring import register as register_score
-
-    register_score(sub)
-    register_dashboard(sub)
-    return parser
 
 
 _WORKER_ERROR = re.compile(r"^occtrain\.errors\.\w+Error: (.*)$", re.MULTILINE)

@@ -1,10 +1,11 @@
 """``occtrain eval RUN_DIR/STAGE``: score a stage's export on a split.
 
-A world-model export (scene tokenizer + LLM + adapter) is loaded exactly as a later stage
-would load it, its answers are generated on every clip of the split, and the papers'
-metrics are written to ``<stage>/eval/<split>/metrics.json``. A tokenizer export
-reconstructs every frame of the split (IoU/mIoU in both conventions, code use per codebook). ``--save-predictions DIR`` also writes
-the predictions in the formats ``occtrain score`` reads, so both paths give one number.
+The stage's kind says how (``Stage.evaluate_export``; the kinds that can are the
+registered ones with ``evaluable``): a world model's export is loaded exactly as a later
+stage would load it, its answers are generated on every item of the split and scored with
+its family's scorers; a tokenizer's reconstructs every frame of the split. The metrics go
+to ``<stage>/eval/<split>/metrics.json``. ``--save-predictions DIR`` also writes the
+predictions in the formats ``occtrain score`` reads, so both paths give one number.
 """
 
 from __future__ import annotations
@@ -13,17 +14,12 @@ import json
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from occtrain.config import load_config
 from occtrain.config.recipe import RecipeConfig
 from occtrain.errors import ConfigError
 from occtrain.io import atomic_write_json, atomic_write_npz
-from occtrain.progress import console, progress_bar
-
-#: The world-model stage kinds ``occtrain eval`` scores (besides tokenizers); by default the
-#: tasks each trained on, as its validation scored them.
-EVAL_KINDS = ("pretrain", "instruct", "distill")
+from occtrain.progress import console
 
 
 def eval_metrics_file(stage_dir: str | Path, split: str = "val", data_root: str | Path | None = None) -> Path:
@@ -45,55 +41,40 @@ def evaluate(
     dataset, or of ``data_root`` (e.g. a world synthesized from another seed): then the
     metrics go to ``eval/<its directory name>/<split>/`` and its baselines come from its
     own train split."""
-    from occtrain.engine import Evaluator, Priors, load_world_model
+    from occtrain.runner import load_plugins
+    from occtrain.stages import get_kind, kind_names
+    from occtrain.stages.base import EvalRequest
 
     stage_dir = Path(stage_dir)
     pipeline = stage_dir.parent / "pipeline.yaml"
     if not pipeline.is_file():
         raise ConfigError(f"{stage_dir}: not a stage of a run directory (no {pipeline}); pass RUN_DIR/STAGE")
     recipe = load_config(RecipeConfig, pipeline)
+    load_plugins(list(recipe.plugins), str(pipeline))  # a plugin's stage kinds and families
     spec = next((s for s in recipe.stages if s.name == stage_dir.name), None)
     if spec is None:
         raise ConfigError(f"{pipeline} has no stage '{stage_dir.name}'; stages are {', '.join(s.name for s in recipe.stages)}")
-    if spec.kind not in EVAL_KINDS and spec.kind != "tokenizer":
-        raise ConfigError(f"occtrain eval scores tokenizer and world-model stages ({', '.join(EVAL_KINDS)}); '{spec.name}' is a {spec.kind} stage")
+    kind = get_kind(spec.kind)
+    if kind is None or not kind.module.evaluable:
+        scorable = [k for k in kind_names() if (other := get_kind(k)) is not None and other.module.evaluable]
+        raise ConfigError(f"occtrain eval scores {', '.join(scorable)} stages; '{spec.name}' is a {spec.kind} stage")
     if batch_size < 1:
         raise ConfigError(f"--batch-size {batch_size}: must be at least 1")
-    if spec.kind == "tokenizer":
-        root = str(data_root) if data_root is not None else recipe.data.root
-        metrics = reconstruction_metrics(stage_dir / "export", root, split, batch_size, samples)
-        return _save(eval_metrics_file(stage_dir, split, data_root), metrics)
     # Prompts and generation length come from the export: exactly what the model trained with.
-    engine = load_world_model(stage_dir / "export").eval()
-    # Scenes (or a vision-language model's camera tokens) are looked up in the stage's cache
-    # (made by the same frozen encoder; built here if the stage trained without one)
-    # instead of being encoded per clip.
-    out_dir = stage_dir / "eval"
-    cache_dir = stage_dir / "cache"
-    root = recipe.data.root
+    # Inputs encoded by frozen encoders are looked up in the stage's cache (made by the same
+    # encoder; built if the stage trained without one); another dataset's never.
+    root, cache_dir = recipe.data.root, stage_dir / "cache"
     if data_root is not None:
-        root = str(data_root)
-        out_dir = out_dir / Path(root).resolve().name
-        cache_dir = out_dir / "cache"  # another dataset's scenes: never the stage's cache
-    engine.prepare_inputs(root, cache_dir)
-    unknown = [t for t in tasks or [] if t not in engine.task_builders]
-    if unknown:
-        raise ConfigError(f"--tasks: '{unknown[0]}' is not a task of the '{engine.family}' world model; its tasks are {', '.join(engine.task_builders)}")
-    if not tasks and not Evaluator.scorable(engine.tasks.weights):
-        raise ConfigError(f"{stage_dir}: the stage trained no task with a generated answer to score; name some with --tasks")
-    # By default the tasks the stage trained on (saved with the export), as its validation scored them.
-    evaluator = Evaluator(tasks or Evaluator.scorable(engine.tasks.weights), record=save_predictions is not None, priors=Priors.of(root))
-    torch.manual_seed(0)
-    total = evaluator.total(engine, root, split, samples)
-    with progress_bar(total, f"evaluating {stage_dir.name} on {split} ({', '.join(evaluator.tasks)})") as advance:
-        evaluator.run(engine, root, split, batch_size, samples=samples, advance=advance)
-    metrics = {k.removeprefix(f"{split}/"): v for k, v in evaluator.compute(split).items()}
-    if spec.kind == "distill":
-        metrics.update(_speedup(stage_dir.parent / spec.consumes[0] / "export", engine, root, split))
-    _save(eval_metrics_file(stage_dir, split, data_root), metrics)
+        root, cache_dir = str(data_root), stage_dir / "eval" / Path(data_root).resolve().name / "cache"
+    request = EvalRequest(
+        stage_dir / "export", [stage_dir.parent / dep / "export" for dep in spec.consumes], root, split, tasks, samples, batch_size,
+        cache_dir, save_predictions is not None,
+    )
+    result = kind.module.evaluate_export(request)
+    _save(eval_metrics_file(stage_dir, split, data_root), result.metrics)
     if save_predictions is not None:
-        write_predictions(Path(save_predictions), evaluator.predictions)
-    return metrics
+        write_predictions(Path(save_predictions), result.predictions)
+    return result.metrics
 
 
 def _save(out_file: Path, metrics: dict[str, float]) -> dict[str, float]:
@@ -106,47 +87,10 @@ def _save(out_file: Path, metrics: dict[str, float]) -> dict[str, float]:
     return metrics
 
 
-@torch.no_grad()
-def reconstruction_metrics(export: Path, data_root: str, split: str, batch_size: int = 16, samples: int = -1) -> dict[str, float]:
-    """A tokenizer export's reconstruction of every frame of ``split`` (or the first
-    ``samples``): IoU/mIoU in the ``occworld`` and ``occ3d`` conventions, beside an empty
-    scene, and each codebook's usage and perplexity over the split."""
-    from occtrain.data.layout import DatasetIndex
-    from occtrain.families import load_tokenizer
-    from occtrain.metrics.reconstruction import ReconstructionMetrics
-
-    model = load_tokenizer(export)
-    index = DatasetIndex.open(data_root)
-    frames = [(scene, token) for scene in index.splits.get(split, []) for token in index.scenes[scene]]
-    frames = frames if samples < 0 else frames[:samples]
-    recon = ReconstructionMetrics(dict(zip(model.codebook_names, model.codebook_sizes)))
-    with progress_bar(len(frames), f"reconstructing {len(frames)} {split} frames") as advance:
-        for i in range(0, len(frames), batch_size):
-            labels = [index.labels(scene, token) for scene, token in frames[i : i + batch_size]]
-            sem = torch.from_numpy(np.stack([x["semantics"] for x in labels])).long()
-            mask = torch.from_numpy(np.stack([x["mask_camera"] for x in labels])).bool()
-            codes = model.encode(sem)
-            recon.update(model.decode(codes).argmax(1), sem, mask, codes)
-            advance(len(labels))
-    return {"frames": float(len(frames)), **recon.compute()}
-
-
-def _speedup(teacher_export: Path, student, data_root: str, split: str) -> dict[str, float]:
-    """The distilled student's generation speed against its teacher's, by the protocol the
-    distill stage's validation uses (``engine.speed``)."""
-    from occtrain.engine import compare_generation_speed, load_world_model, speed_prompt
-
-    if not (teacher_export / "config.json").is_file():
-        raise ConfigError(f"{teacher_export}: the distill stage's teacher export is missing; its speedup needs it")
-    teacher = load_world_model(teacher_export).eval()
-    teacher.code_cache = student.code_cache  # one frozen scene tokenizer: the same codes
-    speed = compare_generation_speed({"teacher": teacher, "student": student}, speed_prompt(student, data_root, split))
-    return {"student_tokens_per_s": speed["student"], "teacher_tokens_per_s": speed["teacher"], "speedup": speed["student"] / speed["teacher"]}
-
-
 def write_predictions(out: Path, predictions: dict[str, dict]) -> None:
     """The evaluator's recorded predictions in ``occtrain score``'s input formats."""
     out.mkdir(parents=True, exist_ok=True)
+    predictions = {k: predictions.get(k, {}) for k in ("planning", "planning_gt", "forecast", "qa", "captions", "captions_gt")}
     if predictions["planning"]:
         atomic_write_json(out / "planning_pred.json", predictions["planning"])
         atomic_write_json(out / "planning_gt.json", predictions["planning_gt"])

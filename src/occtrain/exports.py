@@ -68,13 +68,21 @@ def read_export(export_dir: Path) -> tuple[dict[str, torch.Tensor], dict]:
     return state, cfg
 
 
-def export_kind(export_dir: Path) -> str:
-    """The stage kind an export was written by (its config's ``stage_kind``), weights unread."""
+def read_config(export_dir: Path) -> dict:
+    """An export's ``config.json``, weights unread."""
     config = Path(export_dir) / EXPORT_CONFIG
     try:
-        return str(json.loads(config.read_text()).get("stage_kind", ""))
-    except (OSError, ValueError, AttributeError) as err:
+        data = json.loads(config.read_text())
+    except (OSError, ValueError) as err:
         raise OcctrainError(f"{config}: unreadable export config ({_first_line(err)}); re-run the stage that wrote it") from None
+    if not isinstance(data, dict):
+        raise OcctrainError(f"{config}: is not a JSON object (found a {type(data).__name__}); re-run the stage that wrote it")
+    return data
+
+
+def export_kind(export_dir: Path) -> str:
+    """The stage kind an export was written by (its config's ``stage_kind``), weights unread."""
+    return str(read_config(export_dir).get("stage_kind", ""))
 
 
 def _first_line(err: BaseException) -> str:

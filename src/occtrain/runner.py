@@ -52,6 +52,8 @@ class PlannedStage:
     config: dict  # resolved, hashed
     config_hash: str
     data: Any = None  # the recipe's DataConfig with the stage's loader keys applied
+    #: The family whose parts the stage trains (None: none, e.g. a vision stage).
+    family: str | None = None
 
 
 def _flatten(d: Any, prefix: str = "") -> dict[str, Any]:
@@ -93,8 +95,9 @@ def plan_stages(recipe: RecipeConfig, source: str) -> list[PlannedStage]:
             if dep not in names:
                 later = " (it runs later)" if any(s.name == dep for s in recipe.stages) else ""
                 raise ConfigError(f"{where} consumes '{dep}', which is not an earlier stage{later}")
-        kind.module.check_consumes(spec.kind, {dep: planned[names.index(dep)].spec.kind for dep in spec.consumes}, where)
-        model_cfg = validate_section(kind.model_schema, spec.model or {}, f"stages[{i}].model", source)
+        consumed = {dep: planned[names.index(dep)] for dep in spec.consumes}
+        kind.module.check_consumes(spec.kind, {dep: p.spec.kind for dep, p in consumed.items()}, where)
+        family, model_cfg = _model_config(kind, spec, consumed, f"stages[{i}].model", source, where)
         wrong = sorted(set(spec.data or {}) - set(STAGE_DATA_KEYS))
         if wrong:
             raise ConfigError(f"stages[{i}].data.{wrong[0]} in {source}: a stage sets only {', '.join(STAGE_DATA_KEYS)}; the dataset is the recipe's")
@@ -117,11 +120,21 @@ def plan_stages(recipe: RecipeConfig, source: str) -> list[PlannedStage]:
             "data": to_container(stage_data),
         }
         digest = hashlib.sha256(json.dumps(config, sort_keys=True).encode()).hexdigest()[:16]
-        planned.append(PlannedStage(spec, kind, model_cfg, trainer, config, digest, stage_data))
+        planned.append(PlannedStage(spec, kind, model_cfg, trainer, config, digest, stage_data, family))
         names.append(spec.name)
     if not planned:
         raise ConfigError(f"{source} has no stages")
     return planned
+
+
+def _model_config(kind: StageKind, spec: StageSpec, consumed: dict, key: str, source: str, where: str) -> tuple[str | None, Any]:
+    """The stage's family and its ``model:`` validated against the schema for that family
+    (only the chosen family's settings: registering another family changes no hash)."""
+    raw = to_container(spec.model) if spec.model is not None else {}
+    raw = raw if isinstance(raw, dict) else {}
+    family = kind.module.family_of(raw, consumed)
+    kind.module.check_family(family, consumed, where)
+    return family, validate_section(kind.module.model_schema(kind, family, raw), spec.model or {}, key, source)
 
 
 def load_plugins(modules: list[str], source: str) -> None:
@@ -207,7 +220,8 @@ def _execute(
     say = console.print if is_rank_zero() else (lambda line: None)
     ckpt = last_checkpoint(stage_dir, say=lambda line: say(f"[yellow]note[/]: {line}"))
     resume_step = checkpoint_step(ckpt) if ckpt is not None else None
-    trainer = build_trainer(stage.trainer, stage_dir, stage.kind.monitor, stage.kind.mode, resume_step, record_time, record_attempt)
+    monitor, mode = module.monitored(stage.kind)
+    trainer = build_trainer(stage.trainer, stage_dir, monitor, mode, resume_step, record_time, record_attempt)
     if ckpt is not None:
         say(f"[yellow]resuming[/] {stage.spec.name} from {ckpt} (step {resume_step})")
     trainer.fit(module, datamodule=datamodule, ckpt_path=ckpt, weights_only=True)

@@ -57,13 +57,13 @@ def main() -> None:
     same = 0
     torch.manual_seed(0)
     with torch.no_grad():
-        engine.world.generate(prompts[0][1], prompts[0][2], occupancy=True)  # warm-up
+        engine.world.generate_with_occupancy(prompts[0][1], prompts[0][2], occupancy=True)  # warm-up
         for rep in range(args.repeats):
             for token, prompt, plan in prompts:
                 outs = {}
                 for occupancy in ((False, True) if rep % 2 == 0 else (True, False)):
                     start = time.perf_counter()
-                    outs[occupancy] = engine.world.generate(prompt, plan, occupancy=occupancy)
+                    outs[occupancy] = engine.world.generate_with_occupancy(prompt, plan, occupancy=occupancy)
                     times[occupancy] += time.perf_counter() - start
                 same += outs[False][0] == outs[True][0]
                 if rep == 0:

@@ -25,9 +25,9 @@ REPO = Path(__file__).resolve().parents[2]
 PROBE = """
 import resource, time, torch
 from omegaconf import OmegaConf
-from occtrain.families import build_tokenizer
+from occtrain.core.registry import build_tokenizer
 from occtrain.families.occllama import OccLLaMATokenizerConfig
-from occtrain.families.occworld import OccWorldVQVAEConfig
+from occtrain.models.tokenizers.occworld_vqvae import OccWorldVQVAEConfig
 from occtrain.models import count_parameters
 torch.set_num_threads(2)
 arch = "{arch}"

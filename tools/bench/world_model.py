@@ -27,11 +27,12 @@ from occtrain.config.llm import LLMConfig  # noqa: E402
 from occtrain.data.clips import clips_from_batch  # noqa: E402
 from occtrain.data.datamodule import ShardDataModule, ensure_data  # noqa: E402
 from occtrain.engine import TEXT_ENTRIES, WorldModelEngine  # noqa: E402
-from occtrain.families import build_tokenizer  # noqa: E402
-from occtrain.families.occllama import OccLLaMATokenizerConfig, OccWorldModel, TaskConfig  # noqa: E402
+from occtrain.core.registry import build_tokenizer  # noqa: E402
+from occtrain.core.scene import VQSceneEncoder  # noqa: E402
+from occtrain.families.occllama import OccLLaMATokenizerConfig, OccLLaMAWorldModel, TaskConfig  # noqa: E402
 from occtrain.models.llm import build_llm  # noqa: E402
 from occtrain.models.text_tokenizer import train_text_tokenizer  # noqa: E402
-from occtrain.models.vocab import JointVocab  # noqa: E402
+from occtrain.core.vocab import JointVocab  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -40,8 +41,8 @@ def engine_for(mode: str, tokenizer: torch.nn.Module) -> WorldModelEngine:
     text = train_text_tokenizer(["a car is parked", "turn left", "go straight"] * 20, 300)
     llm_cfg = LLMConfig(scene_prediction=mode)
     vocab = JointVocab(text, tokenizer.codebook_sizes, tuple(tokenizer.latent_hw), llm_cfg)
-    world = OccWorldModel(build_llm(llm_cfg, len(vocab)), vocab, tokenizer.codebook, mode)
-    engine = WorldModelEngine(tokenizer, world.eval(), text, TaskConfig(context_frames=2, forecast_frames=6))
+    world = OccLLaMAWorldModel(build_llm(llm_cfg, len(vocab)), vocab, tokenizer.codebook, mode)
+    engine = WorldModelEngine(VQSceneEncoder(tokenizer), world.eval(), text, TaskConfig(context_frames=2, forecast_frames=6), family="occllama")
     return engine.default_tasks("pretrain")
 
 
@@ -85,7 +86,7 @@ def main() -> None:
     per_step_encode = time_batches(engine, data, None, args.steps)
     with tempfile.TemporaryDirectory() as tmp:
         start = time.perf_counter()
-        engine.build_code_cache(data.root, Path(tmp) / "codes.safetensors")
+        engine.build_scene_cache(data.root, Path(tmp) / "codes.safetensors")
         cache_build = time.perf_counter() - start
     cached = time_batches(engine, data, TEXT_ENTRIES, args.steps)
     print(f"scene codes per batch of {data.batch_size} clips: encode every step {per_step_encode * 1e3:.0f} ms, "

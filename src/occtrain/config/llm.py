@@ -6,6 +6,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 SCENE_PREDICTION_MODES = ("next_scene", "next_token")
+#: Hugging Face causal-LM model types a world model runs on (``models.llm``): the seeds'
+#: Vicuna/LLaMA, PaliGemma2's Gemma2 and InternVL2's Qwen2 families.
+BACKENDS = ("llama", "qwen2", "gemma2")
 #: Text tokens a generated answer may take before it is cut off, unless a stage says otherwise.
 MAX_NEW_TEXT_TOKENS = 96
 
@@ -14,14 +17,17 @@ MAX_NEW_TEXT_TOKENS = 96
 class LLMConfig:
     """The causal LM behind the world model.
 
-    With ``path`` empty a tiny Llama is built from the size keys below (no download) and
-    the text tokenizer is a byte-level BPE trained on the dataset's text; with ``path`` set
-    the model and its tokenizer load from that local Hugging Face directory and the size
-    keys are ignored.
+    With ``path`` empty a tiny ``model_type`` LM is built from the size keys below (no
+    download) and the text tokenizer is a byte-level BPE trained on the dataset's text;
+    with ``path`` set the model and its tokenizer load from that local Hugging Face
+    directory (a backend's, or a multimodal PaliGemma's language model) and the size keys
+    are ignored.
     """
 
-    #: A local Hugging Face model directory (config.json, weights, tokenizer); empty = tiny Llama.
+    #: A local Hugging Face model directory (config.json, weights, tokenizer); empty = a tiny model.
     path: str = ""
+    #: The tiny model's architecture (``BACKENDS``): llama, qwen2 or gemma2.
+    model_type: str = "llama"
     hidden_size: int = 128
     num_layers: int = 2
     num_heads: int = 4
@@ -29,7 +35,8 @@ class LLMConfig:
     max_position_embeddings: int = 4096
     #: Size of the BPE vocabulary trained on the dataset's text (tiny Llama only).
     text_vocab_size: int = 2048
-    #: Attention kernel; both "sdpa" and "eager" honour the spatial-temporal 4D mask.
+    #: Attention kernel; both "sdpa" and "eager" honour the spatial-temporal 4D mask (a
+    #: backend without SDPA in transformers, Gemma2, runs eager).
     attn_implementation: str = "sdpa"
     #: "next_scene": a scene's tokens come from the query tokens in one pass (OccLLaMA
     #: Algorithm 1, bidirectional inside a scene); "next_token": token by token, causal
@@ -58,6 +65,8 @@ def validate_llm_config(cfg: LLMConfig, key: str = "llm") -> None:
     """One line naming the key when a value of ``cfg`` cannot work."""
     from occtrain.errors import ConfigError
 
+    if not cfg.path and cfg.model_type not in BACKENDS:
+        raise ConfigError(f"{key}.model_type: '{cfg.model_type}' is not an LLM backend occtrain drives; use one of {', '.join(BACKENDS)}")
     if cfg.scene_prediction not in SCENE_PREDICTION_MODES:
         raise ConfigError(f"{key}.scene_prediction: '{cfg.scene_prediction}' is not one of {', '.join(SCENE_PREDICTION_MODES)}")
     if cfg.action_bins < 2:

@@ -8,17 +8,19 @@ import time
 from html import escape
 
 from occtrain.comparison import TABLE_FILE
-from occtrain.dashboard.paper_figures import REAL_DATA, figures_for, metric_words
+from occtrain.metrics.occupancy import OCC3D, OCCWORLD
+from occtrain.metrics.planning import STP3, UNIAD
+from occtrain.core.paper import REAL_DATA, figures_for, metric_words
 from occtrain.dashboard.run_view import RunView, StageView
 from occtrain.dashboard.svg import line_chart
 
 STATUS_COLOURS = {"done": "#2e7d32", "running": "#1565c0", "failed": "#c62828", "pending": "#757575"}
 #: Metric conventions, in the order their tables appear, with what each one means.
 CONVENTIONS = (
-    ("occ3d", "Occ3D convention: voxels seen by the camera only; mIoU over the 17 semantic classes, IoU occupied vs free (%)"),
-    ("occworld", "OccWorld convention: every voxel, no mask; mIoU over the 17 semantic classes, IoU occupied vs free (%)"),
-    ("stp3", "ST-P3 convention: the value at t is the mean over all waypoints up to t"),
-    ("uniad", "UniAD convention: the value at exactly t"),
+    (OCC3D, "Occ3D convention: voxels seen by the camera only; mIoU over the 17 semantic classes, IoU occupied vs free (%)"),
+    (OCCWORLD, "OccWorld convention: every voxel, no mask; mIoU over the 17 semantic classes, IoU occupied vs free (%)"),
+    (STP3, "ST-P3 convention: the value at t is the mean over all waypoints up to t"),
+    (UNIAD, "UniAD convention: the value at exactly t"),
 )
 OTHER = "Other metrics (no convention in the name)"
 
@@ -121,7 +123,7 @@ def _convention(metric: str) -> str:
 
 def _paper_cell(metric: str) -> str:
     """The papers' figures for ``metric`` on one line; where and under which setting each
-    was published shows on hover (and in ``occtrain.dashboard.paper_figures``)."""
+    was published shows on hover (and in each family's ``paper.py``)."""
     figs = figures_for(metric)
     if not figs:
         return ""

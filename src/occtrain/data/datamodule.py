@@ -47,7 +47,7 @@ def _check_synth_record(root: Path, cfg: DataConfig) -> None:
     if record.get("format_version") != FORMAT_VERSION:
         raise DataError(
             f"{root} holds the synthetic world of an older occtrain (format {record.get('format_version')}, now {FORMAT_VERSION}: "
-            "cameras, signal poles); move it away and the run synthesizes it again"
+            "cameras in the released files' form); move it away and the run synthesizes it again"
         )
     wanted = {k: getattr(cfg.synth, k) for k in ("seed", "train_scenes", "val_scenes", "frames_per_scene", "camera_height", "camera_width")}
     differ = [f"{k}={record.get(k)} (recipe: {v})" for k, v in wanted.items() if record.get(k) != v]

@@ -16,7 +16,6 @@ synthetic world is written through :class:`DatasetWriter` and read back through
 
 from __future__ import annotations
 
-import hashlib
 import json
 import math
 from dataclasses import dataclass
@@ -266,21 +265,31 @@ class DatasetIndex:
         """Whether samples carry ``camera_sensor`` records and the images they name exist."""
         first = next(self.samples(), None)
         records = self.info(*first).get("camera_sensor") if first else None
-        return bool(records) and all((self.root / r["img_path"]).is_file() for r in records.values())
+        return bool(records) and all(self.image_path(r["img_path"]).is_file() for r in records.values())
+
+    def image_path(self, img_path: str) -> Path:
+        """Where a record's ``img_path`` lies: relative to the root (the README's form), or
+        to ``imgs/`` (the released files')."""
+        direct = self.root / img_path
+        in_imgs = self.root / IMGS_DIR / img_path
+        return in_imgs if not direct.is_file() and in_imgs.is_file() else direct
 
     def cameras(self, scene: str, token: str) -> list[CameraRecord]:
-        """The sample's six cameras in CAMERA_NAMES order (each named by its image's folder)."""
+        """The sample's six cameras in CAMERA_NAMES order: records keyed by channel (the
+        released files), or by camera token and named by their image's folder (the README)."""
         info = self.info(scene, token)
         records = info.get("camera_sensor")
         src = self.root / ANNOTATIONS_FILE
         if not records:
             raise DataError(f"{src}: sample scene_infos.{scene}.{token} has no camera_sensor; stages that read images (vision) need the cameras")
         by_name = {}
-        for r in records.values():  # the schema checked every record's keys on opening
-            name = Path(r["img_path"]).parent.name
+        for key, r in records.items():  # the schema checked every record's keys on opening
+            name = key if key in CAMERA_NAMES else Path(r["img_path"]).parent.name
+            intrinsic = r.get("intrinsics", r.get("intrinsic"))
+            if intrinsic is None:
+                raise DataError(f"{src}: scene_infos.{scene}.{token}.camera_sensor.{key} has neither intrinsics nor intrinsic; a camera needs its 3 x 3 matrix")
             by_name[name] = CameraRecord(
-                name, self.root / r["img_path"], np.asarray(r["intrinsic"], np.float64),
-                _pose_matrix(r["extrinsic"]), _pose_matrix(r["ego_pose"]),
+                name, self.image_path(r["img_path"]), np.asarray(intrinsic, np.float64), _pose_matrix(r["extrinsic"]), _pose_matrix(r["ego_pose"]),
             )
         missing = [n for n in CAMERA_NAMES if n not in by_name]
         if missing:
@@ -370,16 +379,12 @@ class DatasetIndex:
 # ----------------------------------------------------------------------------- cameras
 
 
-def camera_token(sample_token: str, camera: str) -> str:
-    """A stable 32-hex token for one camera of one sample (the release keys records by token)."""
-    return hashlib.md5(f"{sample_token}/{camera}".encode()).hexdigest()
-
-
 def camera_record(cam: Camera, img_path: str, ego_pose: dict) -> dict:
-    """A ``camera_sensor`` record as the Occ3D release writes it."""
+    """A ``camera_sensor`` record as the released Occ3D files hold it (keyed by its channel;
+    ``img_path`` relative to ``imgs/``)."""
     return {
         "img_path": img_path,
-        "intrinsic": cam.intrinsic.tolist(),
+        "intrinsics": cam.intrinsic.tolist(),
         "extrinsic": {"translation": cam.cam_to_ego[:3, 3].tolist(), "rotation": matrix_to_quaternion(cam.cam_to_ego[:3, :3]).tolist()},
         "ego_pose": ego_pose,
     }
@@ -492,10 +497,7 @@ class DatasetWriter:
                 "next": frames[i + 1]["token"] if i + 1 < len(frames) else "",
             }
             if cameras:
-                infos[f["token"]]["camera_sensor"] = {
-                    camera_token(f["token"], cam.name): camera_record(cam, f"{IMGS_DIR}/{cam.name}/{f['token']}.png", pose)
-                    for cam in cameras
-                }
+                infos[f["token"]]["camera_sensor"] = {cam.name: camera_record(cam, f"{cam.name}/{f['token']}.png", pose) for cam in cameras}
         self._scene_infos[scene] = infos
         self._splits[split].append(scene)
 

@@ -122,8 +122,12 @@ class Occ3DPose(TypedDict):
 
 
 class Occ3DCamera(TypedDict):
+    # Two forms: the Occ3D README documents records keyed by camera token with ``intrinsic``
+    # and ``img_path`` relative to the root; the released files key them by channel
+    # (CAM_FRONT, ...) with ``intrinsics`` and ``img_path`` relative to ``imgs/``. Both read.
     img_path: str
-    intrinsic: Annotated[list[Vec3], Len(3)]
+    intrinsic: NotRequired[Annotated[list[Vec3], Len(3)]]
+    intrinsics: NotRequired[Annotated[list[Vec3], Len(3)]]
     extrinsic: Occ3DPose
     ego_pose: Occ3DPose
 

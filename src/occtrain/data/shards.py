@@ -207,22 +207,7 @@ def write_shards(
     index = DatasetIndex.open(dataset)
     out = Path(out)
     kinds = list(kinds)
-    unknown = [k for k in kinds if k not in KINDS]
-    if unknown:
-        raise DataError(f"unknown shard kind '{unknown[0]}'; choose from {', '.join(KINDS)}")
-    for name, value, least in (("samples_per_shard", samples_per_shard, 1), ("history", history, 0), ("future", future, 0)):
-        if not isinstance(value, int) or isinstance(value, bool) or value < least:
-            raise DataError(f"{name} is {value!r}; it must be a whole number of at least {least}")
-    if "clips" in kinds:
-        _check_sidecars(index)
-    source = {
-        "dataset": str(index.root.resolve()),
-        "fingerprint": dataset_fingerprint(index),
-        "samples_per_shard": samples_per_shard,
-        "history": history,
-        "future": future,
-        "kinds": sorted(kinds),
-    }
+    source = _shard_source(index, samples_per_shard, history, future, kinds)
     existing = out / INDEX_FILE
     if existing.is_file():
         old = read_index(out)
@@ -242,18 +227,7 @@ def write_shards(
             for split in SPLITS:
                 sink = _ShardSink(out / kind, split, samples_per_shard)
                 sinks.append(sink)
-                if kind == "frames":
-                    for scene, token in index.samples(split):
-                        sink.write(_frame_sample(index, scene, token, index.scenes[scene].index(token), split))
-                        if progress:
-                            progress(1)
-                else:
-                    qa = index.questions_by_sample(split)
-                    for scene in index.splits[split]:
-                        for sample in _clip_samples(index, scene, split, history, future, qa):
-                            sink.write(sample)
-                        if progress:
-                            progress(len(index.scenes[scene]))
+                _write_split(sink, index, kind, split, history, future, progress)
                 result["kinds"][kind][split] = sink.close()
     except BaseException:
         # A bad label (or ^C) halfway: remove what this call wrote, so the next call does
@@ -266,6 +240,44 @@ def write_shards(
         raise
     atomic_write_json(out / INDEX_FILE, result)
     return result
+
+
+def _shard_source(index: DatasetIndex, samples_per_shard: int, history: int, future: int, kinds: list[str]) -> dict:
+    """What a shard set is made from (checked), as its index records it."""
+    unknown = [k for k in kinds if k not in KINDS]
+    if unknown:
+        raise DataError(f"unknown shard kind '{unknown[0]}'; choose from {', '.join(KINDS)}")
+    for name, value, least in (("samples_per_shard", samples_per_shard, 1), ("history", history, 0), ("future", future, 0)):
+        if not isinstance(value, int) or isinstance(value, bool) or value < least:
+            raise DataError(f"{name} is {value!r}; it must be a whole number of at least {least}")
+    if "clips" in kinds:
+        _check_sidecars(index)
+    return {
+        "dataset": str(index.root.resolve()),
+        "fingerprint": dataset_fingerprint(index),
+        "samples_per_shard": samples_per_shard,
+        "history": history,
+        "future": future,
+        "kinds": sorted(kinds),
+    }
+
+
+def _write_split(
+    sink: _ShardSink, index: DatasetIndex, kind: str, split: str, history: int, future: int, progress: Callable[[int], None] | None,
+) -> None:
+    """Every sample of one kind and split, into ``sink``."""
+    if kind == "frames":
+        for scene, token in index.samples(split):
+            sink.write(_frame_sample(index, scene, token, index.scenes[scene].index(token), split))
+            if progress:
+                progress(1)
+        return
+    qa = index.questions_by_sample(split)
+    for scene in index.splits[split]:
+        for sample in _clip_samples(index, scene, split, history, future, qa):
+            sink.write(sample)
+        if progress:
+            progress(len(index.scenes[scene]))
 
 
 def _check_sidecars(index: DatasetIndex) -> None:
@@ -458,6 +470,34 @@ class SkipSamples:
                 yield sample
 
 
+def _train_stages(urls: list[str], shuffle_buffer: int, seed: int, skip: SkipSamples | None, batch_size: int) -> list[Any]:
+    # One stream for all ranks (seeded by the worker alone, not the rank): rank r takes
+    # every world-th batch of it, so the global batch of N ranks x B samples is the batch
+    # of one process with N x B, and training does not depend on how many processes share it.
+    stages: list[Any] = [
+        wds.ResampledShards(urls, seed=seed, deterministic=True, worker_seed=_worker_id),
+        wds.tarfile_to_samples(handler=_raise_shard_error),
+    ]
+    if shuffle_buffer > 1:
+        stages.append(wds.shuffle(shuffle_buffer, initial=min(shuffle_buffer, 64), seed=seed))
+    rank, world = rank_world()
+    if world > 1:
+        stages.append(_rank_batches(world, rank, batch_size))
+    if skip is not None:
+        stages.append(skip)
+    return stages
+
+
+def _val_stages(urls: list[str], total: int | None) -> list[Any]:
+    rank, world = rank_world()
+    return [
+        wds.SimpleShardList(urls),
+        wds.tarfile_to_samples(handler=_raise_shard_error),
+        _strided(world, rank, total),
+        _worker_strided,
+    ]
+
+
 def make_pipeline(
     urls: list[str],
     train: bool,
@@ -481,31 +521,7 @@ def make_pipeline(
     """
     if not urls:
         raise DataError("no shards to read; write them with `occtrain data shards`")
-    stages: list[Any]
-    if train:
-        stages = [
-            # One stream for all ranks (seeded by the worker alone, not the rank): rank r
-            # takes every world-th batch of it, so the global batch of N ranks x B samples
-            # is the batch of one process with N x B, and training does not depend on how
-            # many processes share it.
-            wds.ResampledShards(urls, seed=seed, deterministic=True, worker_seed=_worker_id),
-            wds.tarfile_to_samples(handler=_raise_shard_error),
-        ]
-        if shuffle_buffer > 1:
-            stages.append(wds.shuffle(shuffle_buffer, initial=min(shuffle_buffer, 64), seed=seed))
-        rank, world = rank_world()
-        if world > 1:
-            stages.append(_rank_batches(world, rank, batch_size))
-        if skip is not None:
-            stages.append(skip)
-    else:
-        rank, world = rank_world()
-        stages = [
-            wds.SimpleShardList(urls),
-            wds.tarfile_to_samples(handler=_raise_shard_error),
-            _strided(world, rank, total),
-            _worker_strided,
-        ]
+    stages = _train_stages(urls, shuffle_buffer, seed, skip, batch_size) if train else _val_stages(urls, total)
     keep = frozenset(entries) if entries is not None else None
     if keep is not None or not cameras:
         def wanted(name: str) -> bool:

@@ -17,8 +17,9 @@ from occtrain.errors import ConfigError
 from occtrain.progress import console, progress_bar
 
 #: 2: six cameras (images, per-pixel class and depth, camera_sensor records), signal poles at
-#: crossings, mask_camera cast from the camera rays.
-FORMAT_VERSION = 2
+#: crossings, mask_camera cast from the camera rays. 3: camera_sensor records in the released
+#: files' form (keyed by channel, ``intrinsics``, ``img_path`` relative to ``imgs/``).
+FORMAT_VERSION = 3
 
 
 def scene_plan(cfg: SynthConfig) -> list[tuple[str, str, int]]:

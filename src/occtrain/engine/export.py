@@ -28,7 +28,7 @@ from __future__ import annotations
 import copy
 import tempfile
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 import torch
 from omegaconf import OmegaConf
@@ -36,75 +36,66 @@ from safetensors.torch import save_file
 
 from occtrain.config import to_container
 from occtrain.config.llm import MAX_NEW_TEXT_TOKENS, LLMConfig
+from occtrain.core.registry import get_world
+from occtrain.core.scene import SCENE_ENCODER_DIR
+from occtrain.core.tasks import TaskConfig, corpus_texts
+from occtrain.core.vocab import JointVocab
+from occtrain.core.world_model import WorldInputs
 from occtrain.data.layout import DatasetIndex
 from occtrain.engine.world_model import WorldModelEngine
 from occtrain.errors import ConfigError
 from occtrain.exports import load_state_strict, read_export, write_export
-from occtrain.families import get_family, load_tokenizer, tokenizer_family
-from occtrain.families.registry import FamilySpec, families
-from occtrain.families.occllama.tasks import TaskConfig, corpus_texts
 from occtrain.models.adapters import has_adapters, load_adapters, save_adapters, without_adapters
 from occtrain.models.llm import build_llm, load_text_tokenizer
-from occtrain.models.vision import load_vision_encoder
 from occtrain.models.text_tokenizer import train_text_tokenizer
-from occtrain.models.vocab import JointVocab
+from occtrain.models.vision import load_vision_encoder
 
 LLM_DIR = "llm"
 ADAPTER_DIR = "adapter"
-SCENE_TOKENIZER_DIR = "scene_tokenizer"
 VISION_DIR = "vision_encoder"
 BOTTLENECK_DIR = "bottleneck_adapter"
 WORLD_MODEL = "world_model"
 
 
-def world_family(tokenizer_arch: str, requested: str = "") -> FamilySpec:
-    """The family whose world model a pretrain stage builds: ``requested`` when given, else
-    the tokenizer's own family, else OccLLaMA's (a tokenizer-only family, e.g. OccWorld)."""
-    family = get_family(requested or tokenizer_family(tokenizer_arch))
-    if family.world_model is None:
-        if requested:
-            raise ConfigError(f"model.family: '{requested}' has no world model; use one of {', '.join(n for n, f in families().items() if f.world_model)}")
-        family = get_family("occllama")
-    return family
+def world_inputs(family: str, exports: dict[str, Path], world_cfg: Any, where: str) -> WorldInputs:
+    """What a fresh world model of ``family`` is built over, from the consumed exports by
+    stage kind: its scene encoder and, for a model that reads the cameras, the vision encoder."""
+    world = get_world(family, f"{where}.family")
+    scene = world.scene_encoder(exports, world_cfg) if world.scene_encoder is not None else None
+    vision = None
+    if world.reads_cameras:
+        if "vision" not in exports:
+            raise ConfigError(f"{where}: the '{family}' world model reads the cameras; add a vision stage to the stage's consumes")
+        vision = load_vision_encoder(exports["vision"])
+    return WorldInputs(scene, vision)
 
 
 def new_world_model(
-    tokenizer_export: Path, llm_cfg: LLMConfig, tasks: TaskConfig, data_root: str | Path,
-    max_new_text_tokens: int = MAX_NEW_TEXT_TOKENS, family: str = "", world_cfgs: Mapping[str, Any] | None = None,
-    where: str = "model", vision_export: Path | None = None,
+    exports: dict[str, Path], llm_cfg: LLMConfig, tasks: TaskConfig, data_root: str | Path,
+    max_new_text_tokens: int = MAX_NEW_TEXT_TOKENS, family: str = "", world_cfg: Any = None, where: str = "model",
 ) -> WorldModelEngine:
-    """A freshly initialised world model over a tokenizer stage's export (what pretraining starts from).
+    """A freshly initialised world model of ``family`` (what pretraining starts from), over
+    the consumed exports (by stage kind: the tokenizer's, the vision stage's) and with its
+    world settings ``world_cfg`` (checked against them; errors name ``<where>.<family>.<key>``).
 
-    ``family`` picks the world model (see ``world_family``); ``world_cfgs`` holds world
-    settings by family, of which the picked family's are used (checked against the
-    tokenizer's latent grid, errors naming ``<where>.<family>.<key>``; absent: its defaults).
-    A family whose world model reads the cameras takes its frozen encoder from
-    ``vision_export`` (a vision stage's). The text tokenizer is the LLM's own when ``llm_cfg.path`` is set, else a BPE trained on
+    The text tokenizer is the LLM's own when ``llm_cfg.path`` is set, else a BPE trained on
     the dataset's text; training is deterministic, so every DDP rank and a resumed run build
     the same one. The LLM is initialised under the current torch seed.
     """
-    scene_tok = load_tokenizer(tokenizer_export)
-    spec = world_family(scene_tok.arch, family)
-    world_cfg = (world_cfgs or {}).get(spec.name)
-    if world_cfg is None and spec.world_config is not None:
-        world_cfg = spec.world_config()
+    world = get_world(family, f"{where}.family")
+    if world_cfg is None and world.world_config is not None:
+        world_cfg = world.world_config()
+    inputs = world_inputs(family, exports, world_cfg, where)
     if world_cfg is not None:
-        world_cfg.validate(f"{where}.{spec.name}", tuple(scene_tok.latent_hw))
+        world_cfg.validate(f"{where}.{family}", inputs)
     if llm_cfg.path:
         text_tok = load_text_tokenizer(llm_cfg.path)
     else:
-        text_tok = train_text_tokenizer(corpus_texts(DatasetIndex.open(data_root), spec.prompt_words), llm_cfg.text_vocab_size)
-    vision = None
-    if spec.reads_cameras:
-        if vision_export is None:
-            raise ConfigError(f"{where}: the '{spec.name}' world model reads the cameras; add a vision stage to the stage's consumes")
-        vision = load_vision_encoder(vision_export)
-    patch = spec.world_model.vocab_patch(world_cfg)
-    vocab = JointVocab(text_tok, scene_tok.codebook_sizes, tuple(scene_tok.latent_hw), llm_cfg, patch=patch, image=spec.reads_cameras)
+        text_tok = train_text_tokenizer(corpus_texts(DatasetIndex.open(data_root), world.prompt_words), llm_cfg.text_vocab_size)
+    vocab = JointVocab(text_tok, llm_cfg=llm_cfg, **world.model.vocab_layout(inputs, world_cfg))
     llm = build_llm(llm_cfg, len(vocab))
-    extra = {"vision": vision} if vision is not None else {}
-    world = spec.world_model.create(llm, vocab, scene_tok, llm_cfg.scene_prediction, world_cfg, **extra)
-    return WorldModelEngine(scene_tok, world, text_tok, tasks, max_new_text_tokens, spec.name, vision)
+    model = world.model.create(llm, vocab, inputs, llm_cfg.scene_prediction, world_cfg)
+    return WorldModelEngine(inputs.scene, model, text_tok, tasks, max_new_text_tokens, family, inputs.vision)
 
 
 def export_engine(engine: WorldModelEngine, path: Path, stage: str, merge: bool = False) -> Path:
@@ -143,7 +134,9 @@ def export_engine(engine: WorldModelEngine, path: Path, stage: str, merge: bool 
             "tasks": to_container(OmegaConf.structured(engine.tasks)),
             "max_new_text_tokens": engine.max_new_text_tokens,
         }
-        extra = {LLM_DIR: llm_dir, SCENE_TOKENIZER_DIR: Path(engine.scene_tokenizer.export_dir)}
+        extra = {LLM_DIR: llm_dir}
+        if engine.scene_encoder is not None and engine.scene_encoder.export_dir is not None:
+            extra[SCENE_ENCODER_DIR] = Path(engine.scene_encoder.export_dir)
         if engine.vision is not None:
             extra[VISION_DIR] = Path(engine.vision.export_dir)
         return write_export(path, own, config, extra)
@@ -185,7 +178,8 @@ def _base_names(state: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
 
 def load_world_model(export_dir: Path) -> WorldModelEngine:
     """Rebuild the engine from a world-model export: the LLM from its Hugging Face directory
-    (and adapter), occtrain's parts, both tokenizers and the saved task settings."""
+    (and adapter), occtrain's parts, the frozen encoders, the text tokenizer and the saved
+    task settings; the family's registration says how."""
     from transformers import AutoModelForCausalLM
     from transformers.utils import logging as hf_logging
 
@@ -193,9 +187,10 @@ def load_world_model(export_dir: Path) -> WorldModelEngine:
     state, config = read_export(export_dir)
     if config.get("stage_kind") != WORLD_MODEL:
         raise ConfigError(f"{export_dir}: not a world-model export (stage kind '{config.get('stage_kind')}')")
-    family = get_family(config.get("family", "occllama"))
+    family = config.get("family", "")
+    world = get_world(family, f"{export_dir / 'config.json'}: family")
     llm_dir = export_dir / LLM_DIR
-    scene_tok = load_tokenizer(export_dir / SCENE_TOKENIZER_DIR)
+    scene = world.load_scene_encoder(export_dir, config) if world.load_scene_encoder is not None else None
     text_tok = load_text_tokenizer(llm_dir)
     vocab = JointVocab.from_json(config["vocab"], text_tok)
     world_cfg = config["world"]
@@ -211,11 +206,11 @@ def load_world_model(export_dir: Path) -> WorldModelEngine:
     if (llm_dir / BOTTLENECK_DIR).is_dir():
         load_adapters(llm, llm_dir / BOTTLENECK_DIR)
     vision = load_vision_encoder(export_dir / VISION_DIR) if (export_dir / VISION_DIR).is_dir() else None
-    world = family.world_model.from_export(world_cfg, llm, vocab, scene_tok)
-    load_state_strict(world, state, ignore=("llm.",), source=str(export_dir))
+    model = world.model.from_export(world_cfg, llm, vocab, WorldInputs(scene, vision))
+    load_state_strict(model, state, ignore=("llm.",), source=str(export_dir))
     if (llm_dir / ADAPTER_DIR).is_dir():
         from peft import PeftModel
 
-        world.llm = PeftModel.from_pretrained(world.llm, str(llm_dir / ADAPTER_DIR), is_trainable=False)
-    tasks = family.task_config(**config["tasks"])  # as saved: a merge onto the defaults would add task weights
-    return WorldModelEngine(scene_tok, world, text_tok, tasks, config.get("max_new_text_tokens", MAX_NEW_TEXT_TOKENS), family.name, vision)
+        model.llm = PeftModel.from_pretrained(model.llm, str(llm_dir / ADAPTER_DIR), is_trainable=False)
+    tasks = world.task_config(**config["tasks"])  # as saved: a merge onto the defaults would add task weights
+    return WorldModelEngine(scene, model, text_tok, tasks, config.get("max_new_text_tokens", MAX_NEW_TEXT_TOKENS), family, vision)

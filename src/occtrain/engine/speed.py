@@ -14,6 +14,7 @@ from pathlib import Path
 
 import torch
 
+from occtrain.core.sequence import TokenSequence
 from occtrain.data.layout import DatasetIndex
 from occtrain.engine.world_model import WorldModelEngine
 
@@ -22,20 +23,20 @@ SPEED_TOKENS = 32
 ROUNDS = 3
 
 
-def speed_prompt(engine: WorldModelEngine, data_root: str | Path, split: str = "val") -> torch.Tensor:
+def speed_prompt(engine: WorldModelEngine, data_root: str | Path, split: str = "val") -> TokenSequence:
     """The timing prompt: the first question of the first frame of ``split`` that has one."""
     from occtrain.engine.evaluator import evaluation_clips
 
     index = DatasetIndex.open(data_root)
     clip = evaluation_clips(index, split, "qa", engine.tasks.context_frames)[0]
     parts = engine.task_items("qa", clip, every=True)[0]
-    codes = engine.scene_codes({"ann": [clip.ann]}, [set(range(len(clip.ann["tokens"])))])
-    prompt, _ = engine.prompt_and_plan(parts, {f: c for (_, f), c in codes.items()})
+    scenes = engine.scenes({"ann": [clip.ann]}, [set(range(len(clip.ann["tokens"])))]) if engine.reads_scenes() else {}
+    prompt, _ = engine.prompt_and_plan(parts, {f: c for (_, f), c in scenes.items()})
     return prompt
 
 
 @torch.no_grad()
-def compare_generation_speed(engines: dict[str, WorldModelEngine], prompt: torch.Tensor, new_tokens: int = SPEED_TOKENS) -> dict[str, float]:
+def compare_generation_speed(engines: dict[str, WorldModelEngine], prompt: TokenSequence, new_tokens: int = SPEED_TOKENS) -> dict[str, float]:
     """Greedy tokens per second of each engine on ``prompt``, ``new_tokens`` long."""
     best = {name: float("inf") for name in engines}
     for name, engine in engines.items():
@@ -43,6 +44,6 @@ def compare_generation_speed(engines: dict[str, WorldModelEngine], prompt: torch
     for _ in range(ROUNDS):
         for name, engine in engines.items():
             start = time.perf_counter()
-            engine.world.generate_text(prompt, new_tokens, eos=-1)
+            engine.world.generate_text(prompt, new_tokens, stop_at_eos=False)
             best[name] = min(best[name], time.perf_counter() - start)
     return {name: new_tokens / t for name, t in best.items()}

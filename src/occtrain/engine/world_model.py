@@ -1,15 +1,15 @@
-"""The world-model engine: the frozen scene tokenizer, the world model and the text
-tokenizer used as one, with the task settings the model is trained with.
+"""The world-model engine: a family's world model with the frozen encoders it reads
+through and the text tokenizer, used as one with the task settings the model is trained with.
 
-It encodes scenes (once per dataset, through the code cache), turns clips into token
-sequences through a family's tasks, and rolls answers out by generation. Training stages,
-``occtrain eval``, the planner, distillation and the benchmarks all use it; nothing here
-imports Lightning.
+It encodes what the prompts read through a frozen encoder once per dataset (scenes
+through the scene encoder, camera views through the vision encoder; cached on disk),
+turns clips into token sequences through the family's tasks, and rolls answers out by
+generation. Training stages, ``occtrain eval``, the planner, distillation, the Python API
+and the benchmarks all use it; it names no family and never imports Lightning.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
@@ -17,38 +17,30 @@ import numpy as np
 import torch
 
 from occtrain.config.llm import MAX_NEW_TEXT_TOKENS
-from occtrain.data.clips import Actions, Branch, Clip, Images, Occupancy, Part, Scene, Text, clip_rng
+from occtrain.core.builder import collate
+from occtrain.core.decoding import ActionAnswer, Answer, SceneAnswer, TextAnswer
+from occtrain.core.registry import get_world
+from occtrain.core.sequence import TokenSequence
+from occtrain.core.tasks import TaskConfig, sample_task
+from occtrain.core.vocab import JointVocab
+from occtrain.core.world_model import LMWorldModel
+from occtrain.data.clips import Actions, Clip, Occupancy, Part, Scene, Text, clip_rng
 from occtrain.data.layout import DatasetIndex
-from occtrain.data.text_formats import parse_meta_action
-from occtrain.families.occllama.batch_decoding import ActionAnswer, Answer, SceneAnswer, TextAnswer
-from occtrain.families.occllama.tasks import TaskConfig, sample_task
-from occtrain.families.occllama.tokens import TokenSequence
-from occtrain.families.occllama.world_model import OccWorldModel, collate
-from occtrain.families.registry import get_family
 from occtrain.errors import DataError
 from occtrain.io import atomic_write_safetensors, is_rank_zero
-from occtrain.models.vocab import JointVocab
 from occtrain.progress import progress_bar
 
-#: The file of the scene-code cache inside a stage directory's ``cache/``.
-CODE_CACHE = "scene_codes.safetensors"
+#: The file of the scene cache inside a stage directory's ``cache/``.
+SCENE_CACHE = "scene_codes.safetensors"
 #: The file of the image-token cache (a vision-language world model's frozen camera features).
 IMAGE_CACHE = "image_tokens.safetensors"
-#: The shard entries a world-model stage trains on when scenes come from the code cache.
+#: The shard entries a world-model stage trains on when scenes come from the cache.
 TEXT_ENTRIES = ("ann.json", "qa.json", "narration.txt")
 
 
 def move_batch(batch: dict, device: torch.device) -> dict:
     """The batch's tensors on ``device`` (other values as they are)."""
     return {k: v.to(device) if torch.is_tensor(v) else v for k, v in batch.items()}
-
-
-@dataclass
-class CotOutput:
-    """A generated chain of thought: its text and the trajectory that follows it."""
-
-    text: str
-    waypoints: np.ndarray  # (6, 2)
 
 
 @torch.no_grad()
@@ -77,19 +69,19 @@ def per_sample_cache(
 
 
 class WorldModelEngine(torch.nn.Module):
-    """The scene tokenizer (frozen), the world model and the text tokenizer, used as one.
+    """A family's world model, its frozen encoders and its text tokenizer, used as one.
 
-    Turns clips and task parts into token sequences, and rolls answers out by generation.
-    Stages, ``occtrain eval``, the planner and distillation all go through this class.
+    ``scene_encoder``: what the prompts' scenes go through (``core.protocols.SceneEncoder``,
+    None for a model whose prompts hold none); ``vision``: the frozen camera encoder of a
+    model that reads the cameras (None otherwise).
     """
 
     def __init__(
-        self, scene_tokenizer: torch.nn.Module, world: OccWorldModel, text_tokenizer: Any, tasks: TaskConfig,
-        max_new_text_tokens: int = MAX_NEW_TEXT_TOKENS, family: str = "occllama", vision: torch.nn.Module | None = None,
+        self, scene_encoder: torch.nn.Module | None, world: LMWorldModel, text_tokenizer: Any, tasks: TaskConfig,
+        max_new_text_tokens: int = MAX_NEW_TEXT_TOKENS, family: str = "", vision: torch.nn.Module | None = None,
     ):
         super().__init__()
-        self.scene_tokenizer = scene_tokenizer.eval().requires_grad_(False)
-        #: The frozen camera encoder of a vision-language world model (OccVLA), else None.
+        self.scene_encoder = scene_encoder.eval().requires_grad_(False) if scene_encoder is not None else None
         self.vision = vision.eval().requires_grad_(False) if vision is not None else None
         self.world = world
         self.text_tokenizer = text_tokenizer
@@ -98,15 +90,12 @@ class WorldModelEngine(torch.nn.Module):
         self.tasks = tasks
         self.max_new_text_tokens = int(max_new_text_tokens)
         self.family = family
-        spec = get_family(family)
-        #: The family's task builders: its prompts, by task name.
-        self.task_builders = dict(spec.tasks)
-        self.every_item = dict(spec.every_item)
-        self._default_tasks = {kind: dict(weights) for kind, weights in spec.default_tasks.items()}
-        #: Sample token -> codes, when the dataset was encoded ahead (see build_code_cache).
-        self.code_cache: dict[str, torch.Tensor] | None = None
-        #: Sample token -> pooled image tokens (see prepare_images), and the dataset they
-        #: and the occupancy targets are read from.
+        self.spec = get_world(family, "family")
+        #: The family's tasks (builders, evaluation items, scorers), by name.
+        self.task_specs = dict(self.spec.tasks)
+        #: Sample token -> the scene encoder's row / the pooled image tokens, when the
+        #: dataset was encoded ahead (see ``prepare_inputs``); the dataset they come from.
+        self.scene_cache: dict[str, torch.Tensor] | None = None
         self.image_cache: dict[str, torch.Tensor] | None = None
         self.data_index: DatasetIndex | None = None
 
@@ -116,61 +105,76 @@ class WorldModelEngine(torch.nn.Module):
 
     def train(self, mode: bool = True) -> WorldModelEngine:
         super().train(mode)
-        self.scene_tokenizer.eval()  # frozen: no dropout, no codebook updates
-        if self.vision is not None:
-            self.vision.eval()
+        for frozen in (self.scene_encoder, self.vision):
+            if frozen is not None:
+                frozen.eval()  # no dropout, no codebook updates
         return self
 
-    # -- scenes
+    def operation(self, name: str) -> Callable[..., Any] | None:
+        """The family's operation ``name`` (see ``WorldSpec.operations``), or None."""
+        return self.spec.operations.get(name)
+
+    # -- what the prompts read through frozen encoders
+    def reads_scenes(self) -> bool:
+        """Whether the world model's prompts hold scenes (through the scene encoder)."""
+        return self.scene_encoder is not None and self.world.reads_scenes
+
+    def needs_semantics(self) -> bool:
+        """Whether a batch must carry label volumes for the prompts' scenes (no cache)."""
+        return self.reads_scenes() and self.scene_cache is None
+
     @torch.no_grad()
-    def scene_codes(self, batch: dict, needed: list[set[int]]) -> dict[tuple[int, int], torch.Tensor]:
-        """Codes (codebooks * h*w,) of the clip frames each sample needs: from the code cache when one is
-        set (then the batch needs no occupancy at all), else encoded in one tokenizer batch."""
+    def scenes(self, batch: dict, needed: list[set[int]]) -> dict[tuple[int, int], torch.Tensor]:
+        """The scene-encoder row of each clip frame a sample needs: from the cache when
+        there is one (then the batch needs no occupancy at all), else encoded in one batch."""
         keys = [(b, f) for b, frames in enumerate(needed) for f in sorted(frames)]
         if not keys:
             return {}
-        if self.code_cache is not None:
-            return {(b, f): self.code_cache[batch["ann"][b]["tokens"][f]] for b, f in keys}
+        if self.scene_cache is not None:
+            return {(b, f): self.scene_cache[batch["ann"][b]["tokens"][f]] for b, f in keys}
         frames = torch.stack([batch["semantics"][b][f] for b, f in keys]).long()
-        codes = self.scene_tokenizer.encode(frames).flatten(1)
-        return dict(zip(keys, codes))
-
-    @torch.no_grad()
-    def build_code_cache(self, data_root: str | Path, cache_file: Path, batch_size: int = 8) -> None:
-        """Encode every frame of the dataset once (the tokenizer is frozen), kept in
-        ``cache_file`` (safetensors, written atomically) so a resumed stage reuses it."""
-        index = DatasetIndex.open(data_root)
-        device = self.scene_tokenizer.codebook.device
-
-        def encode(chunk: list[tuple[str, str]]) -> torch.Tensor:
-            sem = torch.from_numpy(np.stack([index.labels(s, t)["semantics"] for s, t in chunk])).long().to(device)
-            return self.scene_tokenizer.encode(sem).flatten(1).to(torch.int32)
-
-        self.code_cache = per_sample_cache(index, cache_file, "encoding scenes with the frozen tokenizer", encode, batch_size)
+        return dict(zip(keys, self.scene_encoder.encode(frames)))
 
     def prepare_inputs(self, data_root: str | Path, cache_dir: Path | None = None) -> None:
-        """Encode once what the prompts read through a frozen encoder, cached in
-        ``cache_dir`` (in memory only without one): the camera tokens of a model that reads
-        cameras, else the scene codes."""
+        """Encode once what the prompts read through a frozen encoder (the camera views of a
+        model that reads them; the scenes of one whose prompts hold scenes), cached in
+        ``cache_dir`` (in memory only without one; scenes only with one)."""
+        self.data_index = DatasetIndex.open(data_root)
         if self.vision is not None:
             self.prepare_images(data_root, cache_dir / IMAGE_CACHE if cache_dir is not None else None)
-        elif cache_dir is not None:
-            self.build_code_cache(data_root, cache_dir / CODE_CACHE)
+        if self.reads_scenes() and cache_dir is not None:
+            self.build_scene_cache(data_root, cache_dir / SCENE_CACHE)
 
-    # -- cameras (vision-language world models)
+    @torch.no_grad()
+    def build_scene_cache(self, data_root: str | Path, cache_file: Path, batch_size: int = 8) -> None:
+        """Encode every frame of the dataset once (the encoder is frozen), kept in
+        ``cache_file`` (safetensors, written atomically) so a resumed stage reuses it."""
+        index = DatasetIndex.open(data_root)
+        encoder = self.scene_encoder
+
+        def encode(chunk: list[tuple[str, str]]) -> torch.Tensor:
+            sem = torch.from_numpy(np.stack([index.labels(s, t)["semantics"] for s, t in chunk])).long()
+            rows = encoder.encode(sem)
+            return rows.to(torch.int32) if encoder.discrete else rows.float()
+
+        self.scene_cache = per_sample_cache(index, cache_file, "encoding scenes with the frozen scene encoder", encode, batch_size)
+
+    @torch.no_grad()
+    def decode_scenes(self, scenes: torch.Tensor) -> torch.Tensor:
+        """Scene rows (N, ...) -> (N, X, Y, Z) class labels through the scene encoder."""
+        return self.scene_encoder.decode(scenes)
+
     @torch.no_grad()
     def encode_images(self, images: torch.Tensor) -> torch.Tensor:
-        """uint8 views (B, N, H, W, 3) -> the world model's image tokens (B, N * rows * cols, D):
-        the frozen encoder's patch tokens, average-pooled per camera."""
-        from occtrain.models.vision import pool_views
-
+        """uint8 views (B, N, H, W, 3) -> the world model's image tokens (B, T, D): the frozen
+        encoder's patch tokens, pooled as the world model reads them."""
         tokens, grid = self.vision(images.to(self.vision.camera_embed.device))
-        return pool_views(tokens, grid, images.shape[1], tuple(self.world.cfg.image_tokens)).float()
+        return self.world.pool_images(tokens, grid, images.shape[1]).float()
 
     def prepare_images(self, data_root: str | Path, cache_file: Path | None = None, batch_size: int = 8) -> None:
         """Encode every frame's cameras once (the encoder is frozen), kept in ``cache_file``
-        (safetensors, written atomically; in memory only without one), and remember the
-        dataset for the occupancy targets. A no-op for a world model without cameras."""
+        (safetensors, written atomically; in memory only without one). A no-op for a world
+        model without cameras."""
         if self.vision is None:
             return
         self.data_index = index = DatasetIndex.open(data_root)
@@ -184,44 +188,29 @@ class WorldModelEngine(torch.nn.Module):
 
         self.image_cache = per_sample_cache(index, cache_file, "encoding the cameras with the frozen vision encoder", encode, batch_size)
 
+    # -- what a family's parts read (see ``SequenceBuilder.lay``)
+    def scene(self, frame: int, scenes: dict[int, torch.Tensor]) -> torch.Tensor:
+        return scenes[frame]
+
     def image_tokens(self, token: str) -> torch.Tensor:
-        """The pooled image tokens of sample ``token`` (``prepare_images`` first)."""
+        """The pooled image tokens of sample ``token`` (``prepare_inputs`` first)."""
         if self.image_cache is None:
-            raise RuntimeError("prepare_images(data_root) before laying out images")
+            raise RuntimeError("prepare_inputs(data_root) before laying out images")
         return self.image_cache[token]
 
     def voxels(self, token: str) -> torch.Tensor:
         """The occupancy labels uint8 (X, Y, Z) of sample ``token``, from the dataset."""
         if self.data_index is None:
-            raise RuntimeError("prepare_images(data_root) before laying out occupancy queries")
+            raise RuntimeError("prepare_inputs(data_root) before laying out occupancy targets")
         index = self.data_index
         return torch.from_numpy(index.labels(index.scene_of(token), token)["semantics"])
 
-    @torch.no_grad()
-    def decode_scenes(self, codes: torch.Tensor) -> torch.Tensor:
-        """(N, codebooks * h*w) codes -> (N, X, Y, Z) class labels through the tokenizer's decoder."""
-        h, w = self.scene_tokenizer.latent_hw
-        k = self.scene_tokenizer.num_codebooks
-        grids = codes.view(-1, h, w) if k == 1 else codes.view(-1, k, h, w)
-        return self.scene_tokenizer.decode(grids).argmax(1)
-
     # -- sequences
-    def encode_parts(self, parts: list[Part], codes: dict[int, torch.Tensor]):
-        """One task's parts -> a TokenSequence, scenes looked up by clip frame in ``codes``."""
+    def encode_parts(self, parts: list[Part], scenes: dict[int, torch.Tensor]) -> TokenSequence:
+        """One task's parts -> a TokenSequence, scenes looked up by clip frame in ``scenes``."""
         builder = self.world.builder()
         for part in parts:
-            if isinstance(part, Text):
-                builder.text(part.text, part.supervise)
-            elif isinstance(part, Scene):
-                builder.scene(codes[part.frame], part.supervise)
-            elif isinstance(part, Branch):
-                builder.branch()
-            elif isinstance(part, Images):
-                builder.images(self.image_tokens(part.token))
-            elif isinstance(part, Occupancy):
-                builder.occupancy(self.voxels(part.token), part.weight)
-            else:
-                builder.actions(torch.tensor(part.xy, dtype=torch.float32), part.supervise)
+            builder.lay(part, self, scenes)
         return builder.build()
 
     def task_batch(self, clips: list[Clip], batch: dict, seed: int) -> tuple[dict | None, list[str | None]]:
@@ -229,17 +218,17 @@ class WorldModelEngine(torch.nn.Module):
         a model batch. Returns the batch (None when no clip has a task) and per clip the task
         drawn, None for a clip that no configured task applies to: it is left out, not
         given a made-up answer."""
-        drawn = [sample_task(c, self.tasks, seed, c.anchor["token"], self.task_builders) for c in clips]
+        drawn = [sample_task(c, self.tasks, seed, c.anchor["token"], self.task_specs) for c in clips]
         needed = [{p.frame for p in d[1] if isinstance(p, Scene)} if d else set() for d in drawn]
-        codes = self.scene_codes(batch, needed)
+        scenes = self.scenes(batch, needed)
         seqs = [
-            self.encode_parts(d[1], {f: codes[(b, f)] for f in needed[b]}) for b, d in enumerate(drawn) if d is not None
+            self.encode_parts(d[1], {f: scenes[(b, f)] for f in needed[b]}) for b, d in enumerate(drawn) if d is not None
         ]
         names = [d[0] if d else None for d in drawn]
         return (collate(seqs, pad_id=self.vocab.pad_id) if seqs else None), names
 
     # -- generation
-    def prompt_and_plan(self, parts: list[Part], codes: dict[int, torch.Tensor]) -> tuple[TokenSequence, list[Answer]]:
+    def prompt_and_plan(self, parts: list[Part], scenes: dict[int, torch.Tensor]) -> tuple[TokenSequence, list[Answer]]:
         """The prompt (the parts before the first supervised one) laid out, and what to
         generate after it: text up to end-of-text, as many waypoints as the reference, a scene."""
         first = next(i for i, p in enumerate(parts) if p.supervise)
@@ -250,24 +239,24 @@ class WorldModelEngine(torch.nn.Module):
             else ActionAnswer(len(p.xy)) if isinstance(p, Actions) else SceneAnswer()
             for p in parts[first:]
         ]
-        return self.encode_parts(prompt, codes), plan
+        return self.encode_parts(prompt, scenes), plan
 
     @torch.no_grad()
-    def rollout(self, parts: list[Part], codes: dict[int, torch.Tensor]) -> tuple[list[Part], dict[int, torch.Tensor]]:
+    def rollout(self, parts: list[Part], scenes: dict[int, torch.Tensor]) -> tuple[list[Part], dict[int, torch.Tensor]]:
         """Generate the answer parts of a task one after the other with one decoder, each
         conditioned on the ones generated before it (not on the ground truth). Returns the
-        generated parts and the codes of every scene, generated ones included."""
-        prefix, plan = self.prompt_and_plan(parts, codes)
-        decoder = self.world.decoder(prefix)
-        return self._as_parts([decoder.answer(a) for a in plan], codes)
+        generated parts and the row of every scene, generated ones included."""
+        prefix, plan = self.prompt_and_plan(parts, scenes)
+        return self._as_parts(self.world.generate(prefix, plan), scenes)
 
     def task_items(self, task: str, clip: Clip, seed: int = 0, every: bool = False) -> list[list[Part]]:
         """The prompts of ``task`` on ``clip``: its one training draw (from ``seed`` and the
         clip's token), or with ``every`` each item evaluation asks (every question of the
         frame for QA); empty when the task does not apply."""
-        if every and task in self.every_item:
-            return self.every_item[task](clip, self.tasks)
-        parts = self.task_builders[task](clip, self.tasks, clip_rng(seed, clip.anchor["token"]))
+        spec = self.task_specs[task]
+        if every and spec.every_item is not None:
+            return spec.every_item(clip, self.tasks)
+        parts = spec.build(clip, self.tasks, clip_rng(seed, clip.anchor["token"]))
         return [parts] if parts is not None else []
 
     def rollouts(
@@ -276,15 +265,15 @@ class WorldModelEngine(torch.nn.Module):
     ) -> Iterator[tuple[int, list[Part], list[Part], dict[int, torch.Tensor]]]:
         """Build ``task``'s prompts for every clip (``task_items``, with the engine's prompt
         settings; ``select`` keeps some) and roll their answers out: (sample index, parts,
-        generated parts, scene codes) per prompt. The prompts generate together (one
-        batched forward per step); ``batched=False`` rolls them out one after the other (the
+        generated parts, scenes) per prompt. The prompts generate together (one batched
+        forward per step); ``batched=False`` rolls them out one after the other (the
         reference)."""
         built = [
             [parts for parts in self.task_items(task, c, seed, every) if select is None or select(c, parts)] for c in clips
         ]
         needed = [{p.frame for ps in items for p in ps if isinstance(p, Scene) and not p.supervise} for items in built]
-        codes = self.scene_codes(batch, needed)
-        todo = [(b, parts, {f: codes[(b, f)] for f in needed[b]}) for b, items in enumerate(built) for parts in items]
+        scenes = self.scenes(batch, needed)
+        todo = [(b, parts, {f: scenes[(b, f)] for f in needed[b]}) for b, items in enumerate(built) for parts in items]
         if not batched:
             for b, parts, context in todo:
                 yield (b, parts, *self.rollout(parts, context))
@@ -294,68 +283,27 @@ class WorldModelEngine(torch.nn.Module):
         for (b, parts, context), out in zip(todo, outputs):
             yield (b, parts, *self._as_parts(out, context))
 
-    def _as_parts(self, out: list, codes: dict[int, torch.Tensor]) -> tuple[list[Part], dict[int, torch.Tensor]]:
-        """Decoded answers -> generated parts, and the scene codes with the generated scenes added."""
-        codes = dict(codes)
-        next_frame = max(codes) + 1 if codes else 0
+    def _as_parts(self, out: list, scenes: dict[int, torch.Tensor]) -> tuple[list[Part], dict[int, torch.Tensor]]:
+        """Decoded answers -> generated parts, and the scenes with the generated ones added."""
+        scenes = dict(scenes)
+        next_frame = max(scenes) + 1 if scenes else 0
         generated: list[Part] = []
         for value in out:
             if isinstance(value, list):
                 generated.append(Text(self.vocab.decode_text(value), True))
-            elif value.dtype.is_floating_point:
+            elif value.dtype.is_floating_point and value.dim() == 2 and value.shape[-1] == 2:
                 generated.append(Actions(tuple(map(tuple, value.tolist())), True))
             else:
-                codes[next_frame] = value
+                scenes[next_frame] = value
                 generated.append(Scene(next_frame, True))
                 next_frame += 1
-        return generated, codes
-
-    def chain_of_thought(self, clips: list[Clip], batch: dict) -> list[CotOutput | None]:
-        """Narration, meta action and trajectory generated for each clip (OccLLaMA's CoT
-        planning), built with the prompt settings the model was trained with; None for a
-        clip the task does not apply to (no known future or no narration)."""
-        outputs: list[CotOutput | None] = [None] * len(clips)
-        for b, _, (text, traj), _ in self.rollouts("cot_planning", clips, batch):
-            outputs[b] = CotOutput(text.text, np.asarray(traj.xy))
-        return outputs
-
-    # -- what a planning head reads from a trained world model
-    def reference_meta_action(self, clip: Clip) -> dict | None:
-        """The clip's meta action as the family's tasks define it: OccVLA's labelled from the
-        poses with the task settings' rules (the answer its ``meta_action`` task trains on),
-        else the frame sidecar's."""
-        if "meta_action" in self.task_builders:
-            items = self.task_items("meta_action", clip)
-            return parse_meta_action(items[0][-1].text) if items else None
-        return clip.anchor.get("meta_action")
-
-    def generated_meta_actions(self, clips: list[Clip]) -> list[tuple[dict | None, np.ndarray | None] | None]:
-        """Per clip, the meta action parsed from the model's chain of thought (None when it
-        cannot be parsed) and the trajectory it generated after it (None for a model that
-        generates none); None for a clip the chain of thought does not apply to."""
-        if "meta_action" in self.task_builders:
-            out: list = [None] * len(clips)
-            for b, _, generated, _ in self.rollouts("meta_action", clips, {"ann": [c.ann for c in clips]}):
-                out[b] = (parse_meta_action(generated[0].text), None)
-            return out
-        cot = self.chain_of_thought(clips, {"ann": [c.ann for c in clips]})
-        return [None if o is None else (parse_meta_action(o.text), o.waypoints) for o in cot]
-
-    @torch.no_grad()
-    def visual_summary(self, clips: list[Clip]) -> torch.Tensor:
-        """(B, hidden): the world model's last-layer outputs at each anchor's image tokens,
-        averaged (what OccVLA's planning head reads of the scene)."""
-        seqs = [self.encode_parts([Images(c.anchor["token"])], {}) for c in clips]
-        batch = move_batch(collate(seqs, self.vocab.pad_id), self.world.codebook.device)
-        hidden = self.world(batch, output_hidden_states=True).hidden.float()
-        images = self.vocab.is_image(batch["input_ids"]).float()[..., None]
-        return (hidden * images).sum(1) / images.sum(1).clamp(min=1)
+        return generated, scenes
 
     def default_tasks(self, kind: str) -> WorldModelEngine:
         """Give the engine's task settings the family's default tasks for stage ``kind``
         ("pretrain" or "instruct") when they name none; returns self."""
         if not self.tasks.weights:
-            self.tasks.weights = dict(self._default_tasks.get(kind, {}))
+            self.tasks.weights = dict(self.spec.default_tasks.get(kind, {}))
         return self
 
     def with_settings(self, tasks: TaskConfig | None = None, max_new_text_tokens: int | None = None) -> WorldModelEngine:

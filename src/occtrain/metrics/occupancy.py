@@ -31,7 +31,9 @@ from torchmetrics import Metric
 
 from occtrain.occ3d import CLASS_NAMES, FRAME_DT, FREE, NUM_CLASSES
 
-CONVENTIONS = ("occ3d", "occworld")
+#: The two occupancy conventions (see the module docstring), by name.
+OCC3D, OCCWORLD = "occ3d", "occworld"
+CONVENTIONS = (OCC3D, OCCWORLD)
 
 
 def confusion_matrix(pred: Tensor, target: Tensor, mask: Tensor | None = None) -> Tensor:

@@ -62,11 +62,12 @@ class BottleneckAdapter(nn.Module):
 
 
 def _layers(llm: nn.Module) -> list[nn.Module]:
+    """The decoder layers of a Hugging Face causal LM (Llama, Qwen2, Gemma2: ``get_decoder().layers``)."""
     base = llm.get_base_model() if hasattr(llm, "get_base_model") else llm
-    body = getattr(base, "model", base)
+    body = base.get_decoder() if hasattr(base, "get_decoder") else getattr(base, "model", base)
     layers = getattr(body, "layers", None)
     if layers is None:
-        raise ConfigError(f"adapters: {type(base).__name__} has no decoder layers at .model.layers; adapters fit Llama-style models")
+        raise ConfigError(f"adapters: {type(base).__name__} has no decoder layers (get_decoder().layers); adapters fit decoder-only causal LMs")
     return list(layers)
 
 

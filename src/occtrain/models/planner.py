@@ -4,12 +4,13 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import torch
 from torch import nn
 
 from occtrain.errors import OcctrainError
 from occtrain.exports import load_state_strict, read_export
-from occtrain.occ3d import FRAME_DT
+from occtrain.occ3d import FRAME_DT, FUTURE_STEPS
 
 
 class PlanningHead(nn.Module):
@@ -57,6 +58,27 @@ def constant_velocity_plan(speed: torch.Tensor, steps: int) -> torch.Tensor:
     t = torch.arange(1, steps + 1, device=speed.device, dtype=torch.float32) * FRAME_DT
     x = speed.float()[:, None] * t
     return torch.stack([x, torch.zeros_like(x)], dim=-1)
+
+
+def current_velocity(anchor: dict) -> np.ndarray:
+    """(2,) m/s in the ego frame: the speed (the sidecar's, else the last move's) along the
+    direction of the last move (from the last past waypoint to here; +x without one)."""
+    past = np.asarray(anchor.get("ego_past", []), dtype=np.float64).reshape(-1, 2)
+    mask = np.asarray(anchor.get("ego_past_mask", []), dtype=bool)
+    move = -past[-1] if len(past) and mask[-1] else np.zeros(2)
+    norm = float(np.linalg.norm(move))
+    speed = float(anchor["ego_speed"]) if "ego_speed" in anchor else norm / FRAME_DT
+    return speed * (move / norm if norm > 1e-3 else np.array([1.0, 0.0]))
+
+
+def ego_speed(anchor: dict) -> float:
+    """The ego's current speed (m/s): the sidecar's, else that of its last move."""
+    return float(anchor["ego_speed"]) if "ego_speed" in anchor else float(np.linalg.norm(current_velocity(anchor)))
+
+
+def constant_velocity(anchors: list[dict], device: torch.device | str = "cpu") -> torch.Tensor:
+    """The constant-velocity baseline of each anchor: straight on at its current speed, (B, 6, 2)."""
+    return constant_velocity_plan(torch.tensor([ego_speed(a) for a in anchors], device=device), FUTURE_STEPS)
 
 
 def load_planning_head(export_dir: Path) -> PlanningHead:

@@ -123,6 +123,8 @@ def _load_tower(path: str) -> nn.Module:
         config = AutoConfig.from_pretrained(path, local_files_only=True)
     except (OSError, ValueError, KeyError) as e:
         raise ConfigError(f"vision.path: cannot read the model config in {path} ({_first_line(e)}); point it at a Hugging Face vision model directory") from None
+    if config.model_type == "paligemma":  # a VLM directory: its SigLIP tower, its language model left out
+        return _vlm_tower(path)
     # A full image-text model (SigLIP, CLIP) carries its tower's config inside.
     vision_cfg = getattr(config, "vision_config", None) or config
     if not all(hasattr(vision_cfg, k) for k in ("hidden_size", "patch_size")) or type(vision_cfg) not in MODEL_MAPPING:
@@ -147,6 +149,19 @@ def _load_tower(path: str) -> nn.Module:
     if missing:
         raise ConfigError(f"vision.path: the weights in {path} lack {len(missing)} tower tensor(s), e.g. '{missing[0]}'; they would start random")
     return model
+
+
+def _vlm_tower(path: str) -> nn.Module:
+    """The vision tower of a vision-language model directory (PaliGemma: SigLIP + Gemma)."""
+    from transformers import AutoModelForImageTextToText
+    from transformers.utils import logging as hf_logging
+
+    hf_logging.disable_progress_bar()
+    try:
+        full = AutoModelForImageTextToText.from_pretrained(path, local_files_only=True, dtype=torch.float32)
+    except (OSError, ValueError) as e:
+        raise ConfigError(f"vision.path: cannot load the vision-language model in {path} ({_first_line(e)})") from None
+    return full.model.vision_tower
 
 
 def _preprocessor_stats(path: str) -> tuple[tuple[float, ...], tuple[float, ...]]:

@@ -51,6 +51,32 @@ class StageReport:
     scenes: list[tuple[str, list[tuple[str, Any]]]] = field(default_factory=list)
 
 
+@dataclass
+class EvalRequest:
+    """What ``occtrain eval`` asks of a stage kind that scores its exports (``Stage.evaluate_export``)."""
+
+    #: The stage's export, and the exports of the stages it consumed, in recipe order.
+    export: Path
+    consumed: list[Path]
+    data_root: str
+    split: str = "val"
+    #: The tasks to score (None: what the stage trained on); items per task (-1: all).
+    tasks: list[str] | None = None
+    samples: int = -1
+    batch_size: int = 16
+    #: Where inputs encoded through frozen encoders are cached for this dataset.
+    cache_dir: Path | None = None
+    #: Keep every prediction in ``occtrain score``'s formats.
+    record: bool = False
+
+
+@dataclass
+class EvalResult:
+    metrics: dict[str, float]
+    #: The recorded predictions (see ``EvalRequest.record``), by kind.
+    predictions: dict[str, dict] = field(default_factory=dict)
+
+
 #: What a task needs, in the dataset's terms (``DatasetIndex.available_tasks``), where the names differ.
 TASK_NEEDS = {"cot_planning": "chain_of_thought"}
 
@@ -83,6 +109,8 @@ class Stage(L.LightningModule, ABC):
     frozen_prefixes: ClassVar[tuple[str, ...]] = ()
     #: Whether its frames batches carry the camera images and their dense targets (``images``, ``cam_class``, ...).
     reads_cameras: ClassVar[bool] = False
+    #: Whether ``occtrain eval`` scores its exports (``evaluate_export``).
+    evaluable: ClassVar[bool] = False
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)
@@ -101,7 +129,27 @@ class Stage(L.LightningModule, ABC):
         if not self.trainer.sanity_checking:
             self.validated_at = self.trainer.global_step
 
-    # -- what the runner calls
+    # -- what the runner calls before anything is built
+    @classmethod
+    def family_of(cls, model: dict, consumed: dict[str, Any]) -> str | None:
+        """The family whose parts this stage trains, from its raw ``model:`` and the planned
+        stages it consumes (by name): by default the first consumed stage's."""
+        return next((p.family for p in consumed.values() if p.family), None)
+
+    @classmethod
+    def model_schema(cls, kind: Any, family: str | None, model: dict | None = None) -> type:
+        """The dataclass ``model:`` (raw: ``model``) is validated against, and hashed from, for ``family``."""
+        return kind.model_schema
+
+    @classmethod
+    def check_family(cls, family: str | None, consumed: dict[str, Any], where: str) -> None:
+        """Refuse, before anything runs, a stage whose family cannot do what it is asked."""
+
+    @classmethod
+    def evaluate_export(cls, request: EvalRequest) -> EvalResult:
+        """Score an export of this kind (``occtrain eval``); kinds with ``evaluable`` implement it."""
+        raise NotImplementedError
+
     @classmethod
     def check_consumes(cls, kind: str, consumed: dict[str, str], where: str) -> None:
         """Refuse a recipe whose ``consumes:`` (stage name -> kind) this kind cannot read."""
@@ -130,6 +178,11 @@ class Stage(L.LightningModule, ABC):
     def entries(self, split: str) -> tuple[str, ...] | None:
         """The shard entries this stage reads on ``split`` ("train", "val"); None: all of them."""
         return None
+
+    def monitored(self, kind: Any) -> tuple[str | None, str]:
+        """The validation metric that picks ``best.ckpt`` and whether higher is better: the
+        kind's, unless the stage knows better once built (a family's planner names its own)."""
+        return kind.monitor, kind.mode
 
     def report(self) -> StageReport:
         """Summary, extra metrics and samples, asked for after the final validation."""

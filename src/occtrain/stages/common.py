@@ -10,6 +10,7 @@ import os
 import time
 import warnings
 import zipfile
+from dataclasses import field, make_dataclass
 from pathlib import Path
 from typing import Any, Callable
 
@@ -23,10 +24,13 @@ from torchmetrics import MeanMetric
 
 from occtrain.config.recipe import OptimConfig
 from occtrain.config.schema import TrainerConfig
+from occtrain.core.registry import get_world
 from occtrain.data.datamodule import ResumableLoader
 from occtrain.data.shards import PAD_KEY
-from occtrain.errors import OcctrainError
+from occtrain.engine import Evaluator, Priors, scorable
+from occtrain.errors import ConfigError, OcctrainError
 from occtrain.io import atomic_open
+from occtrain.stages.base import EvalRequest, EvalResult
 
 LAST_CKPT = "last.ckpt"
 #: The checkpoint ``last.ckpt`` replaced, kept so a damaged ``last.ckpt`` still resumes.
@@ -318,19 +322,12 @@ def quiet_lightning() -> None:
     warnings.filterwarnings("ignore", message=r".*module\(s\) in eval mode.*")
 
 
-def build_trainer(
-    cfg: TrainerConfig, stage_dir: Path, monitor: str | None, mode: str = "max",
-    resume_step: int | None = None, record_time: Callable[[float], None] | None = None,
-    record_attempt: Callable[[dict[str, Any]], None] | None = None,
-) -> L.Trainer:
-    """A Trainer writing ``checkpoints/`` (last.ckpt every N steps, best by ``monitor``) and ``logs/``.
-
-    ``resume_step``: the step of the checkpoint the stage resumes from (its CSV log keeps
-    the rows before it); ``record_time`` gets the attempt's elapsed seconds now and then;
-    ``record_attempt`` what the attempt did (see :class:`AttemptRecord`).
-    """
-    quiet_lightning()
-    ckpt_dir = stage_dir / "checkpoints"
+def _callbacks(
+    cfg: TrainerConfig, ckpt_dir: Path, monitor: str | None, mode: str,
+    record_time: Callable[[float], None] | None, record_attempt: Callable[[dict[str, Any]], None] | None,
+) -> list[Callback]:
+    """Checkpoints (last every N steps, best by ``monitor``), the resumable data position,
+    per-step seeds, the learning rate, the progress bar, step times and the manifest's records."""
     callbacks: list[Callback] = [
         ModelCheckpoint(
             dirpath=ckpt_dir, filename="step{step}", every_n_train_steps=cfg.ckpt_every_n_steps,
@@ -353,6 +350,22 @@ def build_trainer(
                 auto_insert_metric_name=False, enable_version_counter=False,
             )
         )
+    return callbacks
+
+
+def build_trainer(
+    cfg: TrainerConfig, stage_dir: Path, monitor: str | None, mode: str = "max",
+    resume_step: int | None = None, record_time: Callable[[float], None] | None = None,
+    record_attempt: Callable[[dict[str, Any]], None] | None = None,
+) -> L.Trainer:
+    """A Trainer writing ``checkpoints/`` (last.ckpt every N steps, best by ``monitor``) and ``logs/``.
+
+    ``resume_step``: the step of the checkpoint the stage resumes from (its CSV log keeps
+    the rows before it); ``record_time`` gets the attempt's elapsed seconds now and then;
+    ``record_attempt`` what the attempt did (see :class:`AttemptRecord`).
+    """
+    quiet_lightning()
+    callbacks = _callbacks(cfg, stage_dir / "checkpoints", monitor, mode, record_time, record_attempt)
     logs = stage_dir / "logs"
     loggers = [
         AppendingCSVLogger(logs, name="", version="csv", resume_step=resume_step),
@@ -413,3 +426,39 @@ def freeze_prefixes(module: torch.nn.Module, prefixes: list[str]) -> int:
     if prefixes and n == 0:
         raise OcctrainError(f"freeze: no parameter name starts with {', '.join(prefixes)}")
     return n
+
+
+# ----------------------------------------------------------------------------- world-model stages
+
+
+def family_schema(base: type, family: str | None, with_world: bool) -> type:
+    """``base`` with ``tasks`` typed by ``family``'s task settings and, ``with_world``, its
+    world settings as ``model.<family>``: only what the stage uses is validated and hashed."""
+    if family is None:
+        return base
+    world = get_world(family)
+    fields: list[tuple[str, Any, Any]] = [("tasks", world.task_config, field(default_factory=world.task_config))]
+    if with_world and world.world_config is not None:
+        fields.append((family, world.world_config, field(default_factory=world.world_config)))
+    return make_dataclass(f"{base.__name__}_{family}", fields, bases=(base,))
+
+
+def evaluate_engine(engine: Any, request: EvalRequest) -> EvalResult:
+    """Score ``engine``'s generated answers on ``request``'s split (see ``evaluate_export``)."""
+    from occtrain.progress import progress_bar
+
+    engine.prepare_inputs(request.data_root, request.cache_dir)
+    specs = engine.task_specs
+    unknown = [t for t in request.tasks or [] if t not in specs]
+    if unknown:
+        raise ConfigError(f"--tasks: '{unknown[0]}' is not a task of the '{engine.family}' world model; its tasks are {', '.join(specs)}")
+    tasks = request.tasks or scorable(specs, engine.tasks.weights)
+    if not tasks:
+        raise ConfigError(f"{request.export}: the stage trained no task with a generated answer to score; name some with --tasks")
+    evaluator = Evaluator(tasks, specs, record=request.record, priors=Priors.of(request.data_root), hooks=engine.spec.eval_hooks)
+    torch.manual_seed(0)
+    total = evaluator.total(engine, request.data_root, request.split, request.samples)
+    with progress_bar(total, f"evaluating {request.export.parent.name} on {request.split} ({', '.join(evaluator.tasks)})") as advance:
+        evaluator.run(engine, request.data_root, request.split, request.batch_size, samples=request.samples, advance=advance)
+    metrics = {k.removeprefix(f"{request.split}/"): v for k, v in evaluator.compute(request.split).items()}
+    return EvalResult(metrics, evaluator.predictions if request.record else {})

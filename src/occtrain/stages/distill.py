@@ -19,19 +19,20 @@ import torch
 
 from occtrain.config import to_object
 from occtrain.config.llm import MAX_NEW_TEXT_TOKENS, LLMConfig
+from occtrain.core.tasks import validate_tasks
+from occtrain.core.world_model import WorldInputs
 from occtrain.data.clips import clips_from_batch
 from occtrain.engine import (
-    CODE_CACHE, TEXT_ENTRIES, Evaluator, Priors, WorldModelEngine, compare_generation_speed, export_engine, load_world_model,
-    move_batch, speed_prompt,
+    TEXT_ENTRIES, Evaluator, Priors, WorldModelEngine, compare_generation_speed, export_engine, load_world_model, move_batch, scorable,
+    speed_prompt,
 )
-from occtrain.families import get_family
-from occtrain.families.occllama.tasks import TaskConfig, validate_tasks
+from occtrain.errors import ConfigError
 from occtrain.models import count_parameters
 from occtrain.models.distill import FeatureProjector, distillation_losses
 from occtrain.models.llm import build_llm
 from occtrain.stages import StageKind, register
-from occtrain.stages.base import Stage, StageContext, StageReport
-from occtrain.stages.common import ValidationMeans, configure_adamw
+from occtrain.stages.base import EvalRequest, EvalResult, Stage, StageContext, StageReport
+from occtrain.stages.common import ValidationMeans, configure_adamw, evaluate_engine, family_schema
 
 
 def _student_llm() -> LLMConfig:
@@ -44,7 +45,6 @@ class DistillModelConfig:
 
     #: The student's LLM (fewer layers / narrower than the teacher's).
     student: LLMConfig = field(default_factory=_student_llm)
-    tasks: TaskConfig = field(default_factory=TaskConfig)
     temperature: float = 2.0
     #: Loss weights: KL on logits, student cross-entropy on the labels, hidden-state cosine.
     kl_weight: float = 1.0
@@ -62,8 +62,13 @@ class DistillStage(Stage):
 
     consumes_kinds = ("pretrain", "instruct", "distill")
     consumes_count = (1, 1)
-    # Teacher and scene tokenizer come from their exports; checkpoints carry what trains.
-    frozen_prefixes = ("teacher.", "student.scene_tokenizer.")
+    # Teacher and frozen encoders come from their exports; checkpoints carry what trains.
+    frozen_prefixes = ("teacher.", "student.scene_encoder.", "student.vision.")
+    evaluable = True
+
+    @classmethod
+    def model_schema(cls, kind: StageKind, family: str | None, model: dict | None = None) -> type:
+        return family_schema(kind.model_schema, family, with_world=False)
 
     def __init__(self, ctx: StageContext):
         super().__init__(ctx)
@@ -71,28 +76,30 @@ class DistillStage(Stage):
         tasks = to_object(cfg.tasks)
         teacher = load_world_model(next(iter(ctx.inputs.values()))).with_settings(tasks, cfg.max_new_text_tokens)
         teacher.default_tasks("instruct")
-        validate_tasks(tasks, f"stages '{ctx.spec.name}'.model.tasks", teacher.task_builders)
+        validate_tasks(tasks, f"stages '{ctx.spec.name}'.model.tasks", teacher.task_specs)
         self.require_tasks(t for t, w in tasks.weights.items() if w > 0)
         self.teacher = teacher.requires_grad_(False).eval()
         vocab = teacher.vocab
         student_llm = build_llm(cfg.student, len(vocab))
-        # The teacher's architecture around the student's LLM.
-        world = get_family(teacher.family).world_model.from_export(
-            teacher.world.export_config(), student_llm, vocab, teacher.scene_tokenizer,
+        # The teacher's architecture around the student's LLM, over the same frozen encoders.
+        world = teacher.spec.model.from_export(teacher.world.export_config(), student_llm, vocab, WorldInputs(teacher.scene_encoder, teacher.vision))
+        self.student = WorldModelEngine(
+            teacher.scene_encoder, world, teacher.text_tokenizer, tasks, cfg.max_new_text_tokens, teacher.family, teacher.vision,
         )
-        self.student = WorldModelEngine(teacher.scene_tokenizer, world, teacher.text_tokenizer, tasks, cfg.max_new_text_tokens, teacher.family)
         self.projector = FeatureProjector(world.hidden_size, teacher.world.hidden_size)
-        priors = Priors.of(ctx.data.root)
-        names = Evaluator.scorable(tasks.weights)
-        self.evaluator = Evaluator(names, priors=priors)
-        self.teacher_evaluator = Evaluator(names, priors=priors)
+        priors, hooks = Priors.of(ctx.data.root), teacher.spec.eval_hooks
+        names = scorable(teacher.task_specs, tasks.weights)
+        self.evaluator = Evaluator(names, teacher.task_specs, priors=priors, hooks=hooks)
+        self.teacher_evaluator = Evaluator(names, teacher.task_specs, priors=priors, hooks=hooks)
         self.val_means = ValidationMeans("val/loss", "val/token_acc")
         self._teacher_scores: dict[str, float] | None = None
         self._entries: dict[str, tuple[str, ...] | None] = {}
-        if cfg.cache_codes:  # one cache, shared: teacher and student read the same scenes
-            self.teacher.build_code_cache(ctx.data.root, ctx.stage_dir / "cache" / CODE_CACHE)
-            self.student.code_cache = self.teacher.code_cache
-            self._entries = {"train": TEXT_ENTRIES}
+        if teacher.vision is not None or (cfg.cache_codes and teacher.reads_scenes()):
+            # One cache, shared: teacher and student read the same scenes and views.
+            self.teacher.prepare_inputs(ctx.data.root, ctx.stage_dir / "cache")
+            self.student.scene_cache, self.student.image_cache = self.teacher.scene_cache, self.teacher.image_cache
+            self.student.data_index = self.teacher.data_index
+            self._entries = {"train": TEXT_ENTRIES} if teacher.reads_scenes() else {"train": TEXT_ENTRIES, "val": TEXT_ENTRIES}
         self._speed: dict[str, float] = {}
 
     def entries(self, split: str) -> tuple[str, ...] | None:
@@ -167,6 +174,23 @@ class DistillStage(Stage):
 
     def export(self, path: Path) -> Path:
         return export_engine(self.student, path, stage=self.ctx.spec.name)
+
+    @classmethod
+    def evaluate_export(cls, request: EvalRequest) -> EvalResult:
+        """The student's answers scored as a world model's, and its generation speed against
+        its teacher's by the protocol validation uses (``engine.speed``)."""
+        student = load_world_model(request.export).eval()
+        result = evaluate_engine(student, request)
+        teacher_export = request.consumed[0]
+        if not (teacher_export / "config.json").is_file():
+            raise ConfigError(f"{teacher_export}: the distill stage's teacher export is missing; its speedup needs it")
+        teacher = load_world_model(teacher_export).eval()
+        teacher.scene_cache, teacher.image_cache = student.scene_cache, student.image_cache  # the same frozen encoders
+        speed = compare_generation_speed({"teacher": teacher, "student": student}, speed_prompt(student, request.data_root, request.split))
+        result.metrics.update(
+            student_tokens_per_s=speed["student"], teacher_tokens_per_s=speed["teacher"], speedup=speed["student"] / speed["teacher"],
+        )
+        return result
 
 
 DISTILL = register(

@@ -10,35 +10,56 @@ needs to lay out its joint vocabulary.
 
 from __future__ import annotations
 
-from dataclasses import field, make_dataclass
+from dataclasses import dataclass, field, make_dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
+from omegaconf import MISSING
 
 from occtrain.config import to_container
+from occtrain.core.registry import load_tokenizer, save_tokenizer, tokenizer_archs, tokenizer_config, tokenizer_family
+from occtrain.data.layout import DatasetIndex
 from occtrain.errors import ConfigError
-from occtrain.families import save_tokenizer, tokenizer_archs, tokenizer_config
 from occtrain.metrics.reconstruction import ReconstructionMetrics
 from occtrain.models import count_parameters
+from occtrain.progress import progress_bar
 from occtrain.stages import StageKind, register
-from occtrain.stages.base import Stage, StageContext, StageReport
+from occtrain.stages.base import EvalRequest, EvalResult, Stage, StageContext, StageReport
 from occtrain.stages.common import ValidationMeans, configure_adamw, freeze_prefixes
 
 
-def tokenizer_model_schema() -> type:
-    """``model:`` of a tokenizer stage: ``arch`` plus one section per registered architecture."""
-    archs = tokenizer_archs()
-    fields = [("arch", str, field(default="occworld_vqvae"))]
-    fields += [(name, arch.config, field(default_factory=arch.config)) for name, arch in archs.items()]
-    return make_dataclass("TokenizerModelConfig", fields)
+@dataclass
+class TokenizerModelConfig:
+    """``model:`` of a tokenizer stage: ``arch`` (a registered architecture) and ``model.<arch>``."""
 
-
-TokenizerModelConfig = tokenizer_model_schema()
+    arch: str = MISSING
 
 
 class TokenizerStage(Stage):
     """Trains a scene tokenizer with its own losses; validates reconstruction IoU."""
+
+    evaluable = True
+
+    @classmethod
+    def family_of(cls, model: dict, consumed: dict[str, Any]) -> str | None:
+        """The family that registered ``model.arch``."""
+        return tokenizer_family(str(model["arch"])) if model.get("arch") else None
+
+    @classmethod
+    def model_schema(cls, kind: StageKind, family: str | None, model: dict | None = None) -> type:
+        """``arch`` and that architecture's section only: another architecture's defaults are no part of the hash."""
+        arch = (model or {}).get("arch")
+        archs = tokenizer_archs()
+        if arch not in archs:
+            return kind.model_schema
+        return make_dataclass(f"TokenizerModelConfig_{arch}", [(arch, archs[arch].config, field(default_factory=archs[arch].config))], bases=(kind.model_schema,))
+
+    @classmethod
+    def check_family(cls, family: str | None, consumed: dict[str, Any], where: str) -> None:
+        if family is None:
+            raise ConfigError(f"{where}: model.arch is missing; tokenizer architectures are {', '.join(tokenizer_archs())}")
 
     def __init__(self, ctx: StageContext):
         super().__init__(ctx)
@@ -95,6 +116,28 @@ class TokenizerStage(Stage):
 
     def export(self, path: Path) -> Path:
         return save_tokenizer(self.model, self.ctx.model_cfg.arch, self.arch_cfg, path)
+
+    @classmethod
+    @torch.no_grad()
+    def evaluate_export(cls, request: EvalRequest) -> EvalResult:
+        """Reconstruction of every frame of the split (or the first ``samples``): IoU/mIoU in
+        the ``occworld`` and ``occ3d`` conventions, beside an empty scene, and each
+        codebook's usage and perplexity over the split."""
+        model = load_tokenizer(request.export)
+        index = DatasetIndex.open(request.data_root)
+        frames = [(scene, token) for scene in index.splits.get(request.split, []) for token in index.scenes[scene]]
+        frames = frames if request.samples < 0 else frames[: request.samples]
+        recon = ReconstructionMetrics(dict(zip(model.codebook_names, model.codebook_sizes)))
+        size = request.batch_size
+        with progress_bar(len(frames), f"reconstructing {len(frames)} {request.split} frames") as advance:
+            for i in range(0, len(frames), size):
+                labels = [index.labels(scene, token) for scene, token in frames[i : i + size]]
+                sem = torch.from_numpy(np.stack([x["semantics"] for x in labels])).long()
+                mask = torch.from_numpy(np.stack([x["mask_camera"] for x in labels])).bool()
+                codes = model.encode(sem)
+                recon.update(model.decode(codes).argmax(1), sem, mask, codes)
+                advance(len(labels))
+        return EvalResult({"frames": float(len(frames)), **recon.compute()})
 
 
 TOKENIZER = register(

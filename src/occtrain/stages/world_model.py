@@ -1,68 +1,124 @@
 """Stage kinds ``pretrain`` and ``instruct``: a family's world model over the joint vocabulary.
 
-``pretrain`` consumes a tokenizer export, trains a local BPE text tokenizer on the
-dataset's text (or takes ``llm.path``'s), lays out the joint vocabulary and trains the LLM
-on OccLLaMA's five tasks. ``instruct`` consumes a world-model export and tunes it on
-NuScenes-QA and chain-of-thought planning through a peft LoRA adapter, the base frozen.
+``pretrain`` builds the family's world model over the exports it consumes (a tokenizer's
+scene encoder, a vision stage's camera encoder: what the family's registration names),
+trains a local BPE text tokenizer on the dataset's text (or takes ``llm.path``'s), lays out
+the joint vocabulary and trains on the family's pretraining tasks. ``instruct`` consumes a
+world-model export and tunes it on the family's instruction tasks, through a peft LoRA
+adapter (the base frozen), bottleneck adapters, or fully.
 
 Both validate by teacher-forced loss and token accuracy on the val batches, and by
 generation on a fixed seeded subset of ``val_samples`` val items per task, scored by the
-engine's evaluator. The model, its prompts, generation and export are the engine's
-(``occtrain.engine``); this module only wires them into Lightning.
+engine's evaluator with the family's scorers. The model, its prompts, generation and
+export are the engine's (``occtrain.engine``); this module only wires them into Lightning.
 """
 
 from __future__ import annotations
 
-from dataclasses import field, make_dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import torch
 
 from occtrain.config import to_object
+from occtrain.config.llm import MAX_NEW_TEXT_TOKENS, LLMConfig, LoRAConfig
+from occtrain.core.registry import get_world, tokenizer_family
+from occtrain.core.tasks import validate_tasks
 from occtrain.data.clips import clips_from_batch
-from occtrain.engine import TEXT_ENTRIES, Evaluator, export_engine, load_world_model, Priors, move_batch, new_world_model
-from occtrain.families import families
-from occtrain.families.occllama import InstructModelConfig, PretrainModelConfig
-from occtrain.families.occllama.tasks import validate_tasks
-from occtrain.models import count_parameters
+from occtrain.engine import TEXT_ENTRIES, Evaluator, Priors, export_engine, load_world_model, move_batch, new_world_model, scorable
 from occtrain.errors import ConfigError
-from occtrain.exports import export_kind
-from occtrain.models.adapters import adapters_of, add_adapters
+from occtrain.exports import export_kind, read_config
+from occtrain.models import count_parameters
+from occtrain.models.adapters import AdapterConfig, adapters_of, add_adapters
 from occtrain.models.llm import apply_lora
 from occtrain.stages import StageKind, register
-from occtrain.stages.base import Stage, StageContext, StageReport
-from occtrain.stages.common import ValidationMeans, configure_adamw, freeze_prefixes
+from occtrain.stages.base import EvalRequest, EvalResult, Stage, StageContext, StageReport
+from occtrain.stages.common import ValidationMeans, configure_adamw, evaluate_engine, family_schema, freeze_prefixes
 
 WORLD_MODEL_KINDS = ("pretrain", "instruct", "distill")
+
+
+@dataclass
+class WorldModelConfig:
+    """``model:`` of a pretrain or instruct stage; ``tasks`` are the family's task settings
+    and ``model.<family>`` its world settings (see ``WorldModelStage.model_schema``)."""
+
+    #: Whose world model a pretrain stage builds (empty: the tokenizer's family); an
+    #: instruct stage's is the consumed export's.
+    family: str = ""
+    llm: LLMConfig = field(default_factory=LLMConfig)
+    lora: LoRAConfig = field(default_factory=LoRAConfig)
+    #: Train through a LoRA adapter, the base frozen (instruct's default).
+    use_lora: bool = False
+    #: Fold the adapter into the exported weights instead of exporting it as a peft dir.
+    merge_export: bool = False
+    #: Train through bottleneck adapters at the residual connections instead, the base
+    #: frozen (OccVLA's stage 2 and VQA branch); an export that has them trains them on.
+    use_adapters: bool = False
+    adapter: AdapterConfig = field(default_factory=AdapterConfig)
+    #: Validation generates answers for this many items per task (a fixed seeded subset
+    #: of the val split, the same at every validation; -1: all of them) and scores them.
+    val_samples: int = 64
+    #: Prompts generated together in validation.
+    val_batch_size: int = 16
+    #: Encode the whole dataset with the frozen encoders once, before training, instead of
+    #: every clip at every step (measured in tools/bench/world_model.py).
+    cache_codes: bool = True
+    max_new_text_tokens: int = MAX_NEW_TEXT_TOKENS
+
+
+@dataclass
+class InstructConfig(WorldModelConfig):
+    """``model:`` of an instruct stage: through a LoRA adapter by default."""
+
+    use_lora: bool = True
 
 
 class WorldModelStage(Stage):
     """Trains the world model on the configured tasks; validates by loss, accuracy and generation."""
 
     consumes_count = (1, 1)
-    # They come from the tokenizer's and the vision stage's exports.
-    frozen_prefixes = ("engine.scene_tokenizer.", "engine.vision.")
+    # They come from the exports of the stages it consumes.
+    frozen_prefixes = ("engine.scene_encoder.", "engine.vision.")
+
+    @classmethod
+    def model_schema(cls, kind: StageKind, family: str | None, model: dict | None = None) -> type:
+        return family_schema(kind.model_schema, family, with_world=False)
 
     def __init__(self, ctx: StageContext):
         super().__init__(ctx)
         cfg = ctx.model_cfg
         where = f"stages '{ctx.spec.name}'.model"
         tasks = to_object(cfg.tasks)
-        if ctx.spec.kind == "pretrain":
-            exports = self._exports_by_kind(where)
-            # Every family's section: the one of the family the tokenizer picks is used.
-            sections = {name: to_object(cfg[name]) for name, spec in families().items() if spec.world_config is not None}
-            self.engine = new_world_model(
-                exports["tokenizer"], cfg.llm, tasks, ctx.data.root, cfg.max_new_text_tokens, cfg.family, sections, where,
-                vision_export=exports.get("vision"),
-            )
-        else:
-            self.engine = load_world_model(next(iter(ctx.inputs.values()))).with_settings(tasks, cfg.max_new_text_tokens)
+        self.engine = self.build_engine(ctx, tasks, where)
         # The family's own tasks: known once the engine says which family it is.
         self.engine.default_tasks("pretrain" if ctx.spec.kind == "pretrain" else "instruct")
-        validate_tasks(tasks, f"{where}.tasks", self.engine.task_builders)
+        validate_tasks(tasks, f"{where}.tasks", self.engine.task_specs)
         self.require_tasks(t for t, w in tasks.weights.items() if w > 0)
+        self.train_through(cfg, where)
+        if getattr(tasks, "occupancy_weight", 1.0) == 0:
+            for p in getattr(self.engine.world, "occupancy_parameters", list)():
+                p.requires_grad_(False)  # no loss reaches them: DDP must not wait for their gradients
+        freeze_prefixes(self.engine.world, list(ctx.spec.freeze))
+        hooks = self.engine.spec.eval_hooks
+        self.evaluator = Evaluator(scorable(self.engine.task_specs, tasks.weights), self.engine.task_specs, priors=Priors.of(ctx.data.root), hooks=hooks)
+        self.val_means = ValidationMeans("val/loss", "val/token_acc")
+        self._entries: dict[str, tuple[str, ...] | None] = {}
+        engine = self.engine
+        if engine.vision is not None or (cfg.cache_codes and engine.reads_scenes()):
+            engine.prepare_inputs(ctx.data.root, ctx.stage_dir / "cache")
+            # Training then reads no occupancy; validation still scores forecasts against it.
+            # A model whose prompts hold no scenes takes its occupancy targets from the
+            # dataset: its shards give the annotations and the text alone.
+            self._entries = {"train": TEXT_ENTRIES} if engine.reads_scenes() else {"train": TEXT_ENTRIES, "val": TEXT_ENTRIES}
+
+    def build_engine(self, ctx: StageContext, tasks: Any, where: str):
+        """The consumed world model with this stage's task settings (instruct)."""
+        return load_world_model(next(iter(ctx.inputs.values()))).with_settings(tasks, ctx.model_cfg.max_new_text_tokens)
+
+    def train_through(self, cfg: Any, where: str) -> None:
+        """What trains: the whole model, a LoRA adapter or bottleneck adapters."""
         world = self.engine.world
         if cfg.use_lora and cfg.use_adapters:
             raise ConfigError(f"{where}: use_lora and use_adapters are both on; train through one of them")
@@ -78,31 +134,6 @@ class WorldModelStage(Stage):
             world.llm.requires_grad_(False)
             for adapter in adapters_of(world.llm) or add_adapters(world.llm, adapter_cfg):
                 adapter.requires_grad_(True)
-        if tasks.occupancy_weight == 0:
-            for p in getattr(world, "occupancy_parameters", list)():
-                p.requires_grad_(False)  # no loss reaches them: DDP must not wait for their gradients
-        freeze_prefixes(world, list(ctx.spec.freeze))
-        self.evaluator = Evaluator(Evaluator.scorable(tasks.weights), priors=Priors.of(ctx.data.root))
-        self.val_means = ValidationMeans("val/loss", "val/token_acc")
-        self._entries: dict[str, tuple[str, ...] | None] = {}
-        if self.engine.vision is not None or cfg.cache_codes:
-            self.engine.prepare_inputs(ctx.data.root, ctx.stage_dir / "cache")
-            # Training then reads no occupancy; validation still scores forecasts against it.
-            # A model that reads cameras takes its occupancy targets from the dataset: its
-            # shards give the annotations and the text alone.
-            self._entries = {"train": TEXT_ENTRIES, "val": TEXT_ENTRIES} if self.engine.vision is not None else {"train": TEXT_ENTRIES}
-
-    def _exports_by_kind(self, where: str) -> dict[str, Path]:
-        """A pretrain stage's inputs by stage kind: one tokenizer, at most one vision stage."""
-        found: dict[str, Path] = {}
-        for name, path in self.ctx.inputs.items():
-            kind = export_kind(Path(path))
-            if kind in found:
-                raise ConfigError(f"{where}: consumes two {kind} stages; a world model reads one")
-            found[kind] = Path(path)
-        if "tokenizer" not in found:
-            raise ConfigError(f"{where}: a pretrain stage consumes a tokenizer stage; add one to consumes")
-        return found
 
     def entries(self, split: str) -> tuple[str, ...] | None:
         return self._entries.get(split)
@@ -161,27 +192,81 @@ class WorldModelStage(Stage):
     def export(self, path: Path) -> Path:
         return export_engine(self.engine, path, stage=self.ctx.spec.name, merge=self.ctx.model_cfg.merge_export)
 
+    evaluable = True
+
+    @classmethod
+    def evaluate_export(cls, request: EvalRequest) -> EvalResult:
+        """The export's answers generated on every item of the split (or a fixed subset),
+        scored with its family's scorers: by default the tasks it trained on."""
+        return evaluate_engine(load_world_model(request.export).eval(), request)
+
 
 class PretrainStage(WorldModelStage):
+    """Builds a fresh world model of its family over the exports it consumes."""
+
     consumes_kinds = ("tokenizer", "vision")
-    consumes_count = (1, 2)  # a tokenizer, and a vision stage for a world model that reads cameras
+    consumes_count = (0, 2)
+
+    @classmethod
+    def family_of(cls, model: dict, consumed: dict[str, Any]) -> str | None:
+        """``model.family``, else the consumed tokenizer's family."""
+        if model.get("family"):
+            return str(model["family"])
+        for planned in consumed.values():
+            if planned.spec.kind == "tokenizer":
+                return planned.family
+        return None
+
+    @classmethod
+    def model_schema(cls, kind: StageKind, family: str | None, model: dict | None = None) -> type:
+        return family_schema(kind.model_schema, family, with_world=True)
+
+    @classmethod
+    def check_family(cls, family: str | None, consumed: dict[str, Any], where: str) -> None:
+        """A pretrain stage builds a world model: its family must have one, and it consumes
+        what that family's model is built over."""
+        if family is None:
+            raise ConfigError(f"{where}: model.family is empty and no tokenizer stage is consumed; name the family whose world model to build")
+        get_world(family, f"{where}: model.family")
+        kinds = sorted(p.spec.kind for p in consumed.values())
+        wanted = sorted(get_world(family).inputs)
+        if kinds != wanted:
+            raise ConfigError(
+                f"{where}: a '{family}' world model is built over {' and '.join(wanted) or 'nothing'} "
+                f"(consumes those stages), got {' and '.join(kinds) or 'none'}"
+            )
+
+    def build_engine(self, ctx: StageContext, tasks: Any, where: str):
+        cfg = ctx.model_cfg
+        family = cfg.family or self.inferred_family(ctx)
+        world_cfg = to_object(cfg[family]) if family in cfg else None
+        return new_world_model(self._exports_by_kind(where), cfg.llm, tasks, ctx.data.root, cfg.max_new_text_tokens, family, world_cfg, where)
+
+    def inferred_family(self, ctx: StageContext) -> str:
+        """The consumed tokenizer's family (what ``family_of`` read from the recipe)."""
+        for path in ctx.inputs.values():
+            if export_kind(Path(path)) == "tokenizer":
+                return tokenizer_family(read_config(Path(path))["arch"])
+        raise ConfigError(f"stages '{ctx.spec.name}'.model.family is empty and no tokenizer stage is consumed")
+
+    def _exports_by_kind(self, where: str) -> dict[str, Path]:
+        """A pretrain stage's inputs by stage kind: at most one of each."""
+        found: dict[str, Path] = {}
+        for path in self.ctx.inputs.values():
+            kind = export_kind(Path(path))
+            if kind in found:
+                raise ConfigError(f"{where}: consumes two {kind} stages; a world model reads one")
+            found[kind] = Path(path)
+        return found
 
 
 class InstructStage(WorldModelStage):
     consumes_kinds = WORLD_MODEL_KINDS
 
 
-def pretrain_model_schema() -> type:
-    """``model:`` of a pretrain stage: OccLLaMA's settings, ``family`` (whose world model;
-    empty: the tokenizer's family, else OccLLaMA's) and a section per family with world settings."""
-    sections = [(name, spec.world_config) for name, spec in families().items() if spec.world_config is not None]
-    extra = [("family", str, field(default=""))] + [(name, cfg, field(default_factory=cfg)) for name, cfg in sections]
-    return make_dataclass("PretrainModelConfig", extra, bases=(PretrainModelConfig,))
-
-
 PRETRAIN = register(
-    StageKind(name="pretrain", model_schema=pretrain_model_schema(), data_kind="clips", module=PretrainStage, monitor="val/token_acc")
+    StageKind(name="pretrain", model_schema=WorldModelConfig, data_kind="clips", module=PretrainStage, monitor="val/token_acc")
 )
 INSTRUCT = register(
-    StageKind(name="instruct", model_schema=InstructModelConfig, data_kind="clips", module=InstructStage, monitor="val/token_acc")
+    StageKind(name="instruct", model_schema=InstructConfig, data_kind="clips", module=InstructStage, monitor="val/token_acc")
 )

@@ -3,26 +3,38 @@ attention and next-scene prediction, and its pretraining and instruction tasks."
 
 from __future__ import annotations
 
-from occtrain.families.occllama.config import InstructModelConfig, OccLLaMATokenizerConfig, PretrainModelConfig
-from occtrain.families.occllama.tasks import EVERY_ITEM, INSTRUCT_TASKS, PRETRAIN_TASKS, TASKS, TaskConfig
+from functools import partial
+
+from occtrain.core.planning import MetaActionPlannerConfig, meta_action_planner
+from occtrain.core.registry import FamilySpec, TokenizerArch, WorldSpec, register_family
+from occtrain.core.scene import load_vq_scene_encoder, vq_scene_encoder
+from occtrain.families.occllama.config import OccLLaMATokenizerConfig
+from occtrain.families.occllama.operations import OPERATIONS
+from occtrain.families.occllama.paper import PAPER_FIGURES
+from occtrain.families.occllama.tasks import INSTRUCT_TASKS, PRETRAIN_TASKS, TASKS, TaskConfig
 from occtrain.families.occllama.tokenizer import OccLLaMATokenizer
-from occtrain.families.occllama.world_model import OccWorldModel
-from occtrain.families.registry import FamilySpec, TokenizerArch, register_family
+from occtrain.families.occllama.world_model import OccLLaMAWorldModel
 
 OCCLLAMA = register_family(
     FamilySpec(
         name="occllama",
         paper="OccLLaMA",
         tokenizers=(TokenizerArch("occllama_tokenizer", OccLLaMATokenizerConfig, OccLLaMATokenizer),),
-        world_model=OccWorldModel,
-        tasks=TASKS,
-        every_item=EVERY_ITEM,
-        default_tasks={"pretrain": {t: 1.0 for t in PRETRAIN_TASKS}, "instruct": {t: 1.0 for t in INSTRUCT_TASKS}},
-        task_config=TaskConfig,
+        world=WorldSpec(
+            model=OccLLaMAWorldModel,
+            task_config=TaskConfig,
+            tasks=TASKS,
+            default_tasks={"pretrain": {t: 1.0 for t in PRETRAIN_TASKS}, "instruct": {t: 1.0 for t in INSTRUCT_TASKS}},
+            inputs=("tokenizer",),
+            scene_encoder=vq_scene_encoder,
+            load_scene_encoder=load_vq_scene_encoder,
+            # OccVLA's MLP head on the meta action its chain of thought ends with (the sidecar's in training).
+            planner=partial(meta_action_planner, sidecar_reference=True),
+            planner_config=MetaActionPlannerConfig,
+            operations=OPERATIONS,
+        ),
+        paper_figures=PAPER_FIGURES,
     )
 )
 
-__all__ = [
-    "OCCLLAMA", "InstructModelConfig", "OccLLaMATokenizer", "OccLLaMATokenizerConfig", "OccWorldModel",
-    "PretrainModelConfig", "TaskConfig",
-]
+__all__ = ["OCCLLAMA", "OccLLaMATokenizer", "OccLLaMATokenizerConfig", "OccLLaMAWorldModel", "TaskConfig"]

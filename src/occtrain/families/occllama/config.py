@@ -1,14 +1,11 @@
-"""OccLLaMA's configs: its scene tokenizer (Sec. III-A) and its world model's stages (Sec. III-B/C)."""
+"""OccLLaMA's scene-tokenizer config (Sec. III-A); its task settings are in ``tasks``."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from occtrain.config.llm import MAX_NEW_TEXT_TOKENS, LLMConfig, LoRAConfig
 from occtrain.config.tokenizer import QuantizerFields, latent_hw
 from occtrain.errors import ConfigError
-from occtrain.models.adapters import AdapterConfig
-from occtrain.families.occllama.tasks import TaskConfig
 
 
 @dataclass
@@ -52,36 +49,3 @@ class OccLLaMATokenizerConfig(QuantizerFields):
         window = min(self.window_size, *latent_hw(self))
         if any(side % window for side in latent_hw(self)):
             raise ConfigError(f"{where}.window_size: {self.window_size} must divide the latent side {latent_hw(self)[0]}")
-
-
-@dataclass
-class PretrainModelConfig:
-    """``model:`` of a pretrain stage (Sec. III-C, multi-task pretraining of the world model)."""
-
-    llm: LLMConfig = field(default_factory=LLMConfig)
-    tasks: TaskConfig = field(default_factory=TaskConfig)
-    lora: LoRAConfig = field(default_factory=LoRAConfig)
-    #: Train through a LoRA adapter, the base frozen (instruct's default).
-    use_lora: bool = False
-    #: Fold the adapter into the exported weights instead of exporting it as a peft dir.
-    merge_export: bool = False
-    #: Train through bottleneck adapters at the residual connections instead, the base
-    #: frozen (OccVLA's stage 2 and VQA branch); an export that has them trains them on.
-    use_adapters: bool = False
-    adapter: AdapterConfig = field(default_factory=AdapterConfig)
-    #: Validation generates answers for this many items per task (a fixed seeded subset
-    #: of the val split, the same at every validation; -1: all of them) and scores them.
-    val_samples: int = 64
-    #: Prompts generated together in validation.
-    val_batch_size: int = 16
-    #: Encode the whole dataset with the frozen tokenizer once, before training, instead of
-    #: every clip at every step (measured in tools/bench/world_model.py).
-    cache_codes: bool = True
-    max_new_text_tokens: int = MAX_NEW_TEXT_TOKENS
-
-
-@dataclass
-class InstructModelConfig(PretrainModelConfig):
-    """``model:`` of an instruct stage: QA and chain-of-thought planning through LoRA."""
-
-    use_lora: bool = True

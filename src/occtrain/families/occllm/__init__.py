@@ -9,28 +9,37 @@ occllm``, settings under ``model.occllm``), on any Occ3D-layout data.
 
 from __future__ import annotations
 
-from occtrain.families.occllama.tasks import TaskConfig
+from occtrain.core import operations
+from occtrain.core.registry import FamilySpec, TokenizerArch, WorldSpec, register_family
+from occtrain.core.scene import load_vq_scene_encoder, vq_scene_encoder
 from occtrain.families.occllm.config import MOVABLE_CLASSES, MSVAEConfig, OccLLMWorldConfig
 from occtrain.families.occllm.msvae import MSVAE, merge, separate
-from occtrain.families.occllm.tasks import EVERY_ITEM, PROMPT_WORDS, TASKS
+from occtrain.families.occllm.paper import PAPER_FIGURES
+from occtrain.families.occllm.tasks import PROMPT_WORDS, TASKS, TaskConfig
 from occtrain.families.occllm.world_model import OccLLMWorldModel
-from occtrain.families.registry import FamilySpec, TokenizerArch, register_family
 
 OCCLLM = register_family(
     FamilySpec(
         name="occllm",
         paper="Occ-LLM",
         tokenizers=(TokenizerArch("occllm_msvae", MSVAEConfig, MSVAE),),
-        world_model=OccLLMWorldModel,
-        tasks=TASKS,
-        every_item=EVERY_ITEM,
-        # Pretraining: forecasting with planning; instruction tuning adds QA and keeps forecasting.
-        default_tasks={"pretrain": {"forecasting": 1.0}, "instruct": {"qa": 2.0, "forecasting": 1.0}},
-        # OccLLaMA's task settings (history frames, forecast length, questions per sequence) fit its prompts as they are.
-        task_config=TaskConfig,
-        world_config=OccLLMWorldConfig,
-        prompt_words=PROMPT_WORDS,
+        world=WorldSpec(
+            model=OccLLMWorldModel,
+            task_config=TaskConfig,
+            tasks=TASKS,
+            # Pretraining: forecasting with planning; instruction tuning adds QA and keeps forecasting.
+            default_tasks={"pretrain": {"forecasting": 1.0}, "instruct": {"qa": 2.0, "forecasting": 1.0}},
+            world_config=OccLLMWorldConfig,
+            prompt_words=PROMPT_WORDS,
+            inputs=("tokenizer",),
+            scene_encoder=vq_scene_encoder,
+            load_scene_encoder=load_vq_scene_encoder,
+            operations={"answer": operations.answer, "forecast": operations.forecast, "plan": operations.plan},
+        ),
+        paper_figures=PAPER_FIGURES,
     )
 )
 
-__all__ = ["MOVABLE_CLASSES", "MSVAE", "MSVAEConfig", "OCCLLM", "OccLLMWorldConfig", "OccLLMWorldModel", "merge", "separate"]
+__all__ = [
+    "MOVABLE_CLASSES", "MSVAE", "MSVAEConfig", "OCCLLM", "OccLLMWorldConfig", "OccLLMWorldModel", "TaskConfig", "merge", "separate",
+]

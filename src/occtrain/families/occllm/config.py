@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 from occtrain.errors import ConfigError
-from occtrain.families.occworld.config import OccWorldVQVAEConfig
+from occtrain.models.tokenizers.occworld_vqvae import OccWorldVQVAEConfig
 from occtrain.occ3d import CLASS_INDEX, FREE, MOVABLE_CLASSES, NUM_CLASSES
 
 
@@ -51,7 +52,9 @@ class OccLLMWorldConfig:
     #: Per-cell feature width of the patch head (see ``PatchHead``).
     cell_dim: int = 64
 
-    def validate(self, where: str, latent: tuple[int, int]) -> None:
+    def validate(self, where: str, inputs: Any) -> None:
+        """One line naming the key when a setting cannot work over ``inputs`` (a ``WorldInputs``)."""
+        latent = tuple(inputs.scene.latent_hw)
         if self.patch_size < 1 or latent[0] % self.patch_size or latent[1] % self.patch_size:
             raise ConfigError(
                 f"{where}.patch_size: {self.patch_size} must divide the tokenizer's latent grid {latent[0]} x {latent[1]}"

@@ -17,7 +17,7 @@ import torch
 from torch import nn
 
 from occtrain.families.occllm.config import MSVAEConfig
-from occtrain.families.occworld.vqvae import OccWorldVQVAE
+from occtrain.models.tokenizers.occworld_vqvae import OccWorldVQVAE
 from occtrain.models.tokenizers.base import TokenizerOutput, check_semantics
 from occtrain.models.tokenizers.losses import ce_lovasz
 from occtrain.models.tokenizers.quantizer import VectorQuantizer

@@ -11,15 +11,24 @@ and a forecast frame with the waypoint generated for it.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
+from occtrain.core import scorers
+from occtrain.core.tasks import ForecastTaskConfig
+from occtrain.core.tasks import TaskSpec, as_xy, each_question, forecast_after, questions_after
 from occtrain.data.clips import Actions, Clip, Part, Scene, Text
-from occtrain.families.occllama.tasks import TaskConfig, as_xy, forecast_after, question_parts, questions_after
 
 FORECAST_PROMPT = "<4-D occupancy forecasting and self-ego planning>"
 QA_PROMPT = "<question-answering>"
 #: Fixed words of the prompts, for the world model's text tokenizer.
 PROMPT_WORDS = (FORECAST_PROMPT, QA_PROMPT)
+
+
+@dataclass
+class TaskConfig(ForecastTaskConfig):
+    """Occ-LLM's task settings: history frames, forecast length, questions per sequence."""
 
 
 def _context(clip: Clip, cfg: TaskConfig) -> list[Part]:
@@ -34,7 +43,7 @@ def _context(clip: Clip, cfg: TaskConfig) -> list[Part]:
 
 def forecasting(clip: Clip, cfg: TaskConfig, rng: np.random.Generator) -> list[Part] | None:
     """4-D occupancy forecasting and self-ego planning: waypoint k, then frame k, ``forecast_frames`` times."""
-    return forecast_after([*_context(clip, cfg), Text(FORECAST_PROMPT)], clip, cfg)
+    return forecast_after([*_context(clip, cfg), Text(FORECAST_PROMPT)], clip, cfg.forecast_frames)
 
 
 def qa(clip: Clip, cfg: TaskConfig, rng: np.random.Generator) -> list[Part] | None:
@@ -44,9 +53,11 @@ def qa(clip: Clip, cfg: TaskConfig, rng: np.random.Generator) -> list[Part] | No
 
 def every_question(clip: Clip, cfg: TaskConfig) -> list[list[Part]]:
     """One prompt per question of the anchor frame (evaluation asks them all)."""
-    context = [*_context(clip, cfg), Text(QA_PROMPT)]
-    return [[*context, *question_parts(q)] for q in clip.qa]
+    return each_question([*_context(clip, cfg), Text(QA_PROMPT)], clip)
 
 
-TASKS = {"forecasting": forecasting, "qa": qa}
-EVERY_ITEM = {"qa": every_question}
+#: The forecast is scored as a forecast and its waypoints as a plan (the paper's two results).
+TASKS = {
+    "forecasting": TaskSpec(forecasting, scorer=(scorers.ForecastScorer, scorers.plan_scorer("plan_alternate", alternate=True))),
+    "qa": TaskSpec(qa, every_question, scorers.QAScorer),
+}

@@ -22,15 +22,24 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from occtrain.families.occllama.tokens import IGNORE, PayloadSpec, TokenSequence, last_waypoint
-from occtrain.families.occllama.world_model import OccWorldModel, SequenceBuilder, WorldModelOutput, batch_payload
+from occtrain.core.builder import SequenceBuilder, batch_payload
+from occtrain.core.sequence import IGNORE, PayloadSpec, TokenSequence
+from occtrain.core.vocab import JointVocab
+from occtrain.core.world_model import LMWorldModel, WorldInputs, WorldModelOutput, token_ce
 from occtrain.families.occllm.config import OccLLMWorldConfig
 from occtrain.families.occllm.patches import PatchEmbedding, PatchHead, PreFusion
 from occtrain.models.patches import patchify, unpatchify
-from occtrain.models.vocab import JointVocab
 
 #: The pre-fusion action: one waypoint (x, y).
 ACTION_DIM = 2
+
+
+def last_waypoint(vocab: JointVocab, recent: torch.Tensor) -> torch.Tensor | None:
+    """Float[2]: the last waypoint of the action block that ``recent`` ids end with, if they
+    end with one (``... x y </act>``): what is fused into the scene that follows."""
+    if recent.numel() < 3 or int(recent[-1]) != vocab.act_close_id or not bool(vocab.is_action(recent[-3:-1]).all()):
+        return None
+    return vocab.actions_from_ids(recent[-3:-1].cpu()).reshape(2)
 
 
 class PatchSequenceBuilder(SequenceBuilder):
@@ -41,8 +50,8 @@ class PatchSequenceBuilder(SequenceBuilder):
         self.world = world
         self._fusion: torch.Tensor | None = None  # the waypoint that ended the last part, if it was actions
 
-    def _add(self, ids, supervise, seg=0, query_target=None, payload=None) -> None:
-        super()._add(ids, supervise, seg, query_target, payload)
+    def add(self, ids, supervise, seg=0, query_target=None, payload=None) -> None:
+        super().add(ids, supervise, seg, query_target, payload)
         self._fusion = None
 
     def actions(self, xy: torch.Tensor, supervise: bool = False) -> PatchSequenceBuilder:
@@ -65,20 +74,20 @@ class PatchSequenceBuilder(SequenceBuilder):
         slots = {"cells": cells, "fusion": fusion.expand(n, ACTION_DIM).clone(), "target": torch.full_like(cells, IGNORE)}
         slot_ids = torch.arange(v.occ_start, v.occ_start + n)
         if world.frame_separation:
-            self._add(torch.tensor([v.occ_open_id]), supervise)
+            self.add(torch.tensor([v.occ_open_id]), supervise)
         if self.next_scene:
-            self._scenes += 1
+            block = self.next_block()
             if supervise:
                 queries = {"cells": torch.zeros_like(cells), "fusion": torch.zeros(n, ACTION_DIM), "target": cells}
-                self._add(v.query_ids(), False, seg=-self._scenes, payload=queries)
-            self._add(slot_ids, False, seg=self._scenes, payload=slots)
+                self.add(v.query_ids(), False, seg=-block, payload=queries)
+            self.add(slot_ids, False, seg=block, payload=slots)
         else:
             if supervise:  # the output before each patch token emits that patch
-                self._payload[-1]["target"][-1] = cells[0]
+                self.last_payload()["target"][-1] = cells[0]
                 slots["target"][:-1] = cells[1:]
-            self._add(slot_ids, False, payload=slots)
+            self.add(slot_ids, False, payload=slots)
         if world.frame_separation:
-            self._add(torch.tensor([v.occ_close_id]), supervise)
+            self.add(torch.tensor([v.occ_close_id]), supervise)
         return self
 
 
@@ -113,7 +122,7 @@ class PatchScene:
         return self.world.codes_of(torch.cat(self.patches))
 
 
-class OccLLMWorldModel(OccWorldModel):
+class OccLLMWorldModel(LMWorldModel):
     """The LLM, Occ-LLM's patch embedding and head, and pre-fusion (see the module docstring).
 
     ``codebooks`` are the frozen scene tokenizer's (motion then static for the MS-VAE), kept
@@ -122,13 +131,13 @@ class OccLLMWorldModel(OccWorldModel):
 
     def __init__(
         self, llm: nn.Module, vocab: JointVocab, codebooks: list[torch.Tensor], scene_prediction: str,
-        cfg: OccLLMWorldConfig,
+        cfg: OccLLMWorldConfig, latent_hw: tuple[int, int],
     ):
-        # Not OccWorldModel.__init__: its occupancy projection embeds one token per code.
-        nn.Module.__init__(self)
+        super().__init__(llm, vocab, scene_prediction)
         if vocab.patch != cfg.patch_size:
             raise ValueError(f"the vocabulary lays out {vocab.patch}-patches, the model {cfg.patch_size}")
-        self.llm, self.vocab, self.scene_prediction, self.cfg = llm, vocab, scene_prediction, cfg
+        self.cfg = cfg
+        self.latent_hw = (int(latent_hw[0]), int(latent_hw[1]))
         self.frame_separation = cfg.frame_separation
         self.num_codebooks = len(codebooks)
         for i, book in enumerate(codebooks):
@@ -144,15 +153,10 @@ class OccLLMWorldModel(OccWorldModel):
             "cells": (cells, torch.long, 0), "fusion": ((ACTION_DIM,), torch.float32, 0.0), "target": (cells, torch.long, IGNORE),
         }
 
-    @property
-    def codebook(self) -> torch.Tensor:
-        """The first codebook: it tells the decoders the device, as OccLLaMA's buffer does."""
-        return self.codebook_0
-
     # -- scenes <-> patches
     def cells_of(self, codes: torch.Tensor) -> torch.Tensor:
         """A scene's codes (flat, codebook-major) -> Long[N, p*p, codebooks], patch by patch."""
-        h, w = self.vocab.scene_hw
+        h, w = self.latent_hw
         grid = codes.reshape(1, self.num_codebooks, h, w)
         p = self.cfg.patch_size
         return patchify(grid, p).reshape(-1, p * p, self.num_codebooks)
@@ -160,19 +164,13 @@ class OccLLMWorldModel(OccWorldModel):
     def codes_of(self, cells: torch.Tensor) -> torch.Tensor:
         """Inverse of ``cells_of``."""
         p = self.cfg.patch_size
-        return unpatchify(cells.reshape(1, cells.shape[0], -1), p, self.vocab.scene_hw).reshape(-1)
+        return unpatchify(cells.reshape(1, cells.shape[0], -1), p, self.latent_hw).reshape(-1)
 
     def builder(self) -> PatchSequenceBuilder:
         return PatchSequenceBuilder(self)
 
-    def decoder(self, prefix: TokenSequence, use_cache: bool = True):
-        """A greedy decoder after a laid-out prompt (patch tokens need their payload)."""
-        return super().decoder(self._laid_out(prefix), use_cache)
-
-    def generate_batch(self, prefixes: list[TokenSequence], answers: list[list]) -> list[list]:
-        return super().generate_batch([self._laid_out(p) for p in prefixes], answers)
-
-    def _laid_out(self, prefix):
+    def check_prompt(self, prefix):
+        """A laid-out prompt: patch tokens need their cells, which bare ids lack."""
         if not isinstance(prefix, TokenSequence) and bool(self.vocab.is_occ(torch.as_tensor(prefix)).any()):
             raise ValueError("a prompt with patch tokens needs their cells: pass the laid-out sequence (builder().build()), not bare ids")
         return prefix
@@ -207,7 +205,7 @@ class OccLLMWorldModel(OccWorldModel):
         out = self._run(batch["input_ids"], batch["attention_mask"], batch["position_ids"], hidden=True, payload=payload)
         logits, hidden = out.logits, out.hidden_states[-1]
         labels = batch["labels"]
-        ce = F.cross_entropy(logits.flatten(0, 1).float(), labels.flatten(), ignore_index=IGNORE, reduction="none").view_as(labels)
+        ce = token_ce(logits, labels)
         valid = labels != IGNORE
         target = payload["target"]
         emits = (target[..., 0, 0] != IGNORE) & batch["pad_mask"]
@@ -231,22 +229,24 @@ class OccLLMWorldModel(OccWorldModel):
         )
 
     # -- export
-    def scene_token_rows(self) -> None:
-        """None: a patch token's embedding row is the LLM's own (which patch); what the patch
-        holds comes from its payload, which plain transformers does not read."""
-        return None
-
     def export_config(self) -> dict:
-        return {**super().export_config(), "occllm": {k: getattr(self.cfg, k) for k in self.cfg.__dataclass_fields__}}
-
-    @classmethod
-    def create(cls, llm, vocab, scene_tokenizer, scene_prediction, world_cfg=None) -> OccLLMWorldModel:
-        return cls(llm, vocab, scene_tokenizer.codebooks, scene_prediction, world_cfg or OccLLMWorldConfig())
+        return {
+            **super().export_config(), "code_dim": int(self.codebook_0.shape[1]), "latent_hw": list(self.latent_hw),
+            "occllm": {k: getattr(self.cfg, k) for k in self.cfg.__dataclass_fields__},
+        }
 
     @staticmethod
-    def vocab_patch(world_cfg=None) -> int:
-        return (world_cfg or OccLLMWorldConfig()).patch_size
+    def vocab_layout(inputs: WorldInputs, world_cfg: OccLLMWorldConfig | None = None) -> dict:
+        """One ``<patch_j>`` token per p x p patch of the latent grid (the patches layout)."""
+        cfg = world_cfg or OccLLMWorldConfig()
+        return {"codebook_sizes": inputs.scene.codebook_sizes, "scene_hw": inputs.scene.latent_hw, "patch": cfg.patch_size}
 
     @classmethod
-    def from_export(cls, data: dict, llm, vocab, scene_tokenizer) -> OccLLMWorldModel:
-        return cls(llm, vocab, scene_tokenizer.codebooks, data["scene_prediction"], OccLLMWorldConfig(**data["occllm"]))
+    def create(cls, llm, vocab, inputs: WorldInputs, scene_prediction, world_cfg=None) -> OccLLMWorldModel:
+        scene = inputs.scene
+        return cls(llm, vocab, scene.codebooks, scene_prediction, world_cfg or OccLLMWorldConfig(), scene.latent_hw)
+
+    @classmethod
+    def from_export(cls, data: dict, llm, vocab, inputs: WorldInputs) -> OccLLMWorldModel:
+        scene = inputs.scene
+        return cls(llm, vocab, scene.codebooks, data["scene_prediction"], OccLLMWorldConfig(**data["occllm"]), scene.latent_hw)

@@ -10,26 +10,43 @@ with bottleneck adapters (stage 2, and the VQA branch), ``planner`` (stage 3).
 
 from __future__ import annotations
 
-from occtrain.families.occllama.tasks import TaskConfig
+from functools import partial
+
+from occtrain.core.planning import MetaActionPlannerConfig, meta_action_planner
+from occtrain.core.registry import FamilySpec, WorldSpec, register_family
+from occtrain.core.scene import load_vq_scene_encoder, vq_scene_encoder
 from occtrain.families.occvla.config import OccVLAWorldConfig
-from occtrain.families.occvla.tasks import EVERY_ITEM, PROMPT_WORDS, TASKS
+from occtrain.families.occvla.operations import OPERATIONS
+from occtrain.families.occvla.paper import PAPER_FIGURES
+from occtrain.families.occvla.scoring import OccupancyQueries
+from occtrain.families.occvla.tasks import PROMPT_WORDS, TASKS, TaskConfig
 from occtrain.families.occvla.world_model import OccVLAWorldModel
-from occtrain.families.registry import FamilySpec, register_family
 
 OCCVLA = register_family(
     FamilySpec(
         name="occvla",
         paper="OccVLA",
-        world_model=OccVLAWorldModel,
-        tasks=TASKS,
-        every_item=EVERY_ITEM,
-        # Stage 1 learns driving scenes in text; stage 2 the meta action with its reasoning.
-        default_tasks={"pretrain": {"caption": 1.0, "qa": 1.0, "meta_action": 1.0}, "instruct": {"meta_action": 1.0}},
-        task_config=TaskConfig,
-        world_config=OccVLAWorldConfig,
-        prompt_words=PROMPT_WORDS,
-        reads_cameras=True,
+        world=WorldSpec(
+            model=OccVLAWorldModel,
+            task_config=TaskConfig,
+            tasks=TASKS,
+            # Stage 1 learns driving scenes in text; stage 2 the meta action with its reasoning.
+            default_tasks={"pretrain": {"caption": 1.0, "qa": 1.0, "meta_action": 1.0}, "instruct": {"meta_action": 1.0}},
+            world_config=OccVLAWorldConfig,
+            prompt_words=PROMPT_WORDS,
+            # The OccWorld VQ-VAE whose decoder its queries train through, and the camera encoder.
+            inputs=("vision", "tokenizer"),
+            scene_encoder=vq_scene_encoder,
+            load_scene_encoder=load_vq_scene_encoder,
+            reads_cameras=True,
+            eval_hooks=(OccupancyQueries,),
+            # Stage 3: the MLP head on the meta action it labels from the poses.
+            planner=partial(meta_action_planner, sidecar_reference=False),
+            planner_config=MetaActionPlannerConfig,
+            operations=OPERATIONS,
+        ),
+        paper_figures=PAPER_FIGURES,
     )
 )
 
-__all__ = ["OCCVLA", "OccVLAWorldConfig", "OccVLAWorldModel"]
+__all__ = ["OCCVLA", "OccVLAWorldConfig", "OccVLAWorldModel", "TaskConfig"]

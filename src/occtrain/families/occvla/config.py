@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 from occtrain.errors import ConfigError
 
@@ -21,7 +22,9 @@ class OccVLAWorldConfig:
     #: Hidden width of the two-layer image projector (vision width -> LLM width).
     projector_hidden: int = 256
 
-    def validate(self, where: str, latent: tuple[int, int]) -> None:
+    def validate(self, where: str, inputs: Any) -> None:
+        """One line naming the key when a setting cannot work over ``inputs`` (a ``WorldInputs``)."""
+        latent = tuple(inputs.scene.latent_hw)
         p = self.query_patch
         if p < 1 or latent[0] % p or latent[1] % p:
             raise ConfigError(f"{where}.query_patch: {p} must divide the tokenizer's latent grid {latent[0]} x {latent[1]}")

@@ -13,14 +13,19 @@ poses by ``data.meta_actions`` with the task settings' rules.
 from __future__ import annotations
 
 from collections import Counter
+from dataclasses import dataclass, field
 
 import numpy as np
 
+from occtrain.core import scorers
+from occtrain.core.tasks import TaskConfig as BaseTaskConfig
+from occtrain.core.tasks import TaskSpec, each_question, questions_after
 from occtrain.data.clips import Clip, Images, Occupancy, Part, Text
-from occtrain.data.meta_actions import label, past_labels
+from occtrain.data.meta_actions import MetaActionConfig, label, past_labels
 from occtrain.data.schema import MetaAction
 from occtrain.data.text_formats import META_DIRECTION_WORDS, META_SPEED_WORDS, format_meta_action
-from occtrain.families.occllama.tasks import TaskConfig, question_parts, questions_after
+from occtrain.errors import ConfigError
+from occtrain.families.occvla.scoring import MetaActionScorer
 from occtrain.occ3d import FRAME_DT
 
 META_PROMPT = "Past meta actions:"
@@ -34,6 +39,35 @@ _DIRECTION_PAST = {
     "straight": "went straight", "left": "turned left", "right": "turned right",
     "bear left": "bore left", "bear right": "bore right", "stop": "stood still",
 }
+
+
+@dataclass
+class TaskConfig(BaseTaskConfig):
+    """OccVLA's task settings: its prompts, the chain of thought and the occupancy loss."""
+
+    #: History frames of a clip (the past meta actions t-5 .. t-1 read the poses back to t-6).
+    context_frames: int = 6
+    #: lambda_occ (Eq. 3): the weight of the occupancy-query loss beside the text loss in
+    #: every sequence; 0 leaves the queries out.
+    occupancy_weight: float = 1.0
+    #: The answer reasons (scene, history) before the meta action (Table 7).
+    chain_of_thought: bool = True
+    #: Past meta actions in the prompt (t-5 .. t-1; fewer where the clip's history is shorter).
+    past_meta_actions: int = 5
+    #: How meta actions are labelled from the ego poses.
+    meta_actions: MetaActionConfig = field(default_factory=MetaActionConfig)
+
+    def __post_init__(self) -> None:
+        if isinstance(self.meta_actions, dict):  # as an export's config.json holds it
+            self.meta_actions = MetaActionConfig(**self.meta_actions)
+
+    def validate(self, key: str) -> None:
+        super().validate(key)
+        if self.occupancy_weight < 0:
+            raise ConfigError(f"{key}.occupancy_weight: {self.occupancy_weight} is negative (paper: 1; 0 turns the occupancy queries off)")
+        if self.past_meta_actions < 0:
+            raise ConfigError(f"{key}.past_meta_actions: {self.past_meta_actions} is negative (paper: 5)")
+        self.meta_actions.validate(f"{key}.meta_actions")
 
 
 def context(clip: Clip, cfg: TaskConfig) -> list[Part]:
@@ -113,8 +147,11 @@ def qa(clip: Clip, cfg: TaskConfig, rng: np.random.Generator) -> list[Part] | No
 
 
 def every_question(clip: Clip, cfg: TaskConfig) -> list[list[Part]]:
-    return [[*context(clip, cfg), *question_parts(q)] for q in clip.qa]
+    return each_question(context(clip, cfg), clip)
 
 
-TASKS = {"meta_action": meta_action, "qa": qa, "caption": caption}
-EVERY_ITEM = {"qa": every_question}
+TASKS = {
+    "meta_action": TaskSpec(meta_action, scorer=MetaActionScorer),
+    "qa": TaskSpec(qa, every_question, scorers.QAScorer),
+    "caption": TaskSpec(caption),
+}

@@ -25,15 +25,21 @@ L_text + lambda_occ * L_occ, lambda_occ riding with each sequence (``voxel_weigh
 
 from __future__ import annotations
 
+from typing import Any
+
 import torch
 import torch.nn.functional as F
 from torch import nn
 
-from occtrain.families.occllama.tokens import IGNORE, PayloadSpec, TokenSequence, empty_payload, head
-from occtrain.families.occllama.world_model import GreedyDecoder, OccWorldModel, SequenceBuilder, WorldModelOutput, batch_payload
+from occtrain.core.builder import SequenceBuilder, batch_payload
+from occtrain.core.decoding import Answer, Feed, Flush, QueryBlock, decode
+from occtrain.core.sequence import IGNORE, PayloadSpec, TokenSequence, empty_payload, head, tail
+from occtrain.core.vocab import JointVocab
+from occtrain.core.world_model import LMWorldModel, WorldInputs, WorldModelOutput, token_ce
+from occtrain.data.clips import Images, Occupancy, Part
 from occtrain.families.occvla.config import OccVLAWorldConfig
 from occtrain.models.patches import unpatchify
-from occtrain.models.vocab import JointVocab
+from occtrain.models.vision import pool_views
 
 
 class VLASequenceBuilder(SequenceBuilder):
@@ -41,45 +47,47 @@ class VLASequenceBuilder(SequenceBuilder):
 
     def __init__(self, world: OccVLAWorldModel):
         super().__init__(world.vocab, "next_scene", world.payload_spec)
-        self._voxels: torch.Tensor | None = None
-        self._weight = 0.0
+        self._has_queries = False
+
+    def lay(self, part: Part, inputs: Any, scenes: dict[int, torch.Tensor]) -> VLASequenceBuilder:
+        if isinstance(part, Images):
+            return self.images(inputs.image_tokens(part.token))
+        if isinstance(part, Occupancy):
+            return self.occupancy(inputs.voxels(part.token), part.weight)
+        return super().lay(part, inputs, scenes)
 
     def images(self, features: torch.Tensor) -> VLASequenceBuilder:
         """Image tokens for ``features`` Float[N, D] (one per token)."""
         n = features.shape[0]
         payload = empty_payload(self.payload_spec, n)
         payload["image"] = features.detach().float().cpu()
-        self._add(torch.full((n,), self.vocab.image_id), False, payload=payload)
+        self.add(torch.full((n,), self.vocab.image_id), False, payload=payload)
         return self
 
     def occupancy(self, voxels: torch.Tensor, weight: float) -> VLASequenceBuilder:
         """The occupancy query block, trained with weight ``weight`` on ``voxels`` uint8 (X, Y, Z)."""
-        if self._voxels is not None:
+        if self._has_queries:
             raise ValueError("a sequence holds one occupancy query block")
-        self._scenes += 1
-        self._add(self.vocab.query_ids(), False, seg=-self._scenes)
-        self._voxels, self._weight = torch.as_tensor(voxels), float(weight)
+        self._has_queries = True
+        self.add(self.vocab.query_ids(), False, seg=-self.next_block())
+        self.targets["voxels"] = torch.as_tensor(voxels)
+        self.targets["voxel_weight"] = torch.tensor(float(weight))
         return self
 
-    def build(self) -> TokenSequence:
-        seq = super().build()
-        seq.voxels, seq.voxel_weight = self._voxels, self._weight
-        return seq
 
-
-class OccVLAWorldModel(OccWorldModel):
+class OccVLAWorldModel(LMWorldModel):
     """The LLM, the image projector, the occupancy queries and their latent projector; the
-    OccWorld decoder is the engine's frozen scene tokenizer, held here by reference."""
+    OccWorld decoder is the engine's frozen scene encoder, held here by reference."""
 
     frame_separation = False
+    #: Its prompts hold camera views, not scenes.
+    reads_scenes = False
 
     def __init__(self, llm: nn.Module, vocab: JointVocab, scene_tokenizer: nn.Module, vision_dim: int, cfg: OccVLAWorldConfig):
-        # Not OccWorldModel.__init__: OccVLA reads no occupancy tokens, so it has no codebook projection.
-        nn.Module.__init__(self)
+        super().__init__(llm, vocab, "next_scene")
         if not vocab.image or vocab.patch != cfg.query_patch:
             raise ValueError("OccVLA's vocabulary needs the <image> token and the query patch layout")
-        self.llm, self.vocab, self.cfg = llm, vocab, cfg
-        self.scene_prediction = "next_scene"
+        self.cfg = cfg
         self.vision_dim = int(vision_dim)
         hidden = llm.get_input_embeddings().embedding_dim
         self.image_proj = nn.Sequential(
@@ -87,17 +95,12 @@ class OccVLAWorldModel(OccWorldModel):
         )
         self.occ_queries = nn.Parameter(torch.randn(vocab.scene_len, hidden) * 0.02)
         self.code_dim = int(scene_tokenizer.codebook.shape[1])
+        self.latent_hw = tuple(scene_tokenizer.latent_hw)
         p = cfg.query_patch
         self.occ_proj = nn.Linear(hidden, self.code_dim * p * p)
         # A plain attribute, not a submodule: the engine owns (and checkpoints skip) the tokenizer.
         self.__dict__["decoder_model"] = scene_tokenizer
-        self.register_buffer("_device_probe", torch.zeros(0), persistent=False)
         self.payload_spec: PayloadSpec = {"image": ((self.vision_dim,), torch.float32, 0.0)}
-
-    @property
-    def codebook(self) -> torch.Tensor:
-        """Tells the decoders the device (OccLLaMA's decoders read ``world.codebook.device``)."""
-        return self._device_probe
 
     def builder(self) -> VLASequenceBuilder:
         return VLASequenceBuilder(self)
@@ -125,8 +128,8 @@ class OccVLAWorldModel(OccWorldModel):
         """Query hidden states (B, Q, H) -> voxel logits (B, 18, X, Y, Z) through the decoder."""
         b = query_hidden.shape[0]
         p = self.cfg.query_patch
-        latent = unpatchify(self.occ_proj(query_hidden.float()), p, self.vocab.scene_hw)  # (B, code_dim, h, w)
-        return self.decoder_model.decode_logits(latent.reshape(b, self.code_dim, *self.vocab.scene_hw))
+        latent = unpatchify(self.occ_proj(query_hidden.float()), p, self.latent_hw)  # (B, code_dim, h, w)
+        return self.decoder_model.decode_logits(latent.reshape(b, self.code_dim, *self.latent_hw))
 
     def forward(self, batch: dict[str, torch.Tensor], output_hidden_states: bool = False) -> WorldModelOutput:
         """L_text (mean over the answer tokens) + lambda_occ * L_occ (per sequence, mean voxel CE)."""
@@ -134,7 +137,7 @@ class OccVLAWorldModel(OccWorldModel):
         ids = batch["input_ids"]
         out = self._run(ids, batch["attention_mask"], batch["position_ids"], hidden=with_occ or output_hidden_states, payload=batch_payload(batch))
         logits, labels = out.logits, batch["labels"]
-        ce = F.cross_entropy(logits.flatten(0, 1).float(), labels.flatten(), ignore_index=IGNORE, reduction="none").view_as(labels)
+        ce = token_ce(logits, labels)
         valid = labels != IGNORE
         text_sum, n_text = (ce * valid).sum(1), valid.sum(1)
         text_loss = text_sum.sum() / n_text.sum().clamp(min=1)
@@ -163,56 +166,48 @@ class OccVLAWorldModel(OccWorldModel):
             raise ValueError("an OccVLA prompt starts with its image tokens")
         return int(images.max()) + 1
 
+    def pool_images(self, tokens: torch.Tensor, grid: tuple[int, int], views: int) -> torch.Tensor:
+        """Each camera's patch grid average-pooled to ``image_tokens`` (rows, cols)."""
+        return pool_views(tokens, grid, views, tuple(self.cfg.image_tokens))
+
     @torch.no_grad()
-    def generate(self, prefix: TokenSequence, answers: list, occupancy: bool = False) -> tuple[list, torch.Tensor | None]:
+    def generate_with_occupancy(self, prefix: TokenSequence, answers: list[Answer], occupancy: bool = False) -> tuple[list, torch.Tensor | None]:
         """Greedy answers after a prompt (images then text, no query block), and with
         ``occupancy`` the voxel logits (1, 18, X, Y, Z) of the query block run after the
         images. The images are fed first either way, so the text sees the same cache."""
         n = self._split(prefix)
-        decoder = GreedyDecoder(self, head(prefix, n))
-        voxels = None
-        if occupancy:
-            step = decoder.side_block(self.vocab.query_ids().to(self.codebook.device))
-            voxels = self.occupancy_logits(step.hidden[-self.vocab.scene_len :][None])
-        else:
-            decoder.flush()
-        decoder.feed(prefix.input_ids[n:], {k: v[n:] for k, v in prefix.payload.items()})
-        return [decoder.answer(a) for a in answers], voxels
+        first = QueryBlock(self.vocab.query_ids()) if occupancy else Flush()
+        out = decode(self, head(prefix, n), [first, Feed(tail(prefix, n)), *answers])
+        voxels = self.occupancy_logits(out[0].hidden[None]) if occupancy else None
+        return out[2:], voxels
 
     @torch.no_grad()
     def predict_occupancy(self, prefix: TokenSequence) -> torch.Tensor:
         """Voxel logits (1, 18, X, Y, Z) of the query block after a prompt's images: one
         forward of bos, the images and the queries."""
         n = self._split(prefix)
-        return self.generate(head(prefix, n), [], occupancy=True)[1]
-
-    def scene_writer(self, recent: torch.Tensor):
-        raise ValueError("OccVLA generates no occupancy tokens; its occupancy comes from the query block")
+        return self.generate_with_occupancy(head(prefix, n), [], occupancy=True)[1]
 
     # -- export
-    def scene_token_rows(self) -> None:
-        """None: image tokens and queries are embedded from occtrain's own weights."""
-        return None
-
     def export_config(self) -> dict:
-        base = self._base_llm()
         return {
-            "attn_implementation": getattr(base.config, "_attn_implementation", "sdpa"),
-            "scene_prediction": self.scene_prediction,
-            "vision_dim": self.vision_dim,
+            **super().export_config(), "vision_dim": self.vision_dim,
             "occvla": {k: getattr(self.cfg, k) for k in self.cfg.__dataclass_fields__},
         }
 
-    @classmethod
-    def create(cls, llm, vocab, scene_tokenizer, scene_prediction, world_cfg=None, vision=None) -> OccVLAWorldModel:
-        if vision is None:
-            raise ValueError("OccVLA needs a camera encoder")
-        return cls(llm, vocab, scene_tokenizer, vision.hidden_size, world_cfg or OccVLAWorldConfig())
-
     @staticmethod
-    def vocab_patch(world_cfg=None) -> int:
-        return (world_cfg or OccVLAWorldConfig()).query_patch
+    def vocab_layout(inputs: WorldInputs, world_cfg: OccVLAWorldConfig | None = None) -> dict:
+        """A query per p x p patch of the OccWorld latent, and the ``<image>`` token."""
+        cfg = world_cfg or OccVLAWorldConfig()
+        scene = inputs.scene
+        return {"codebook_sizes": scene.codebook_sizes, "scene_hw": scene.latent_hw, "patch": cfg.query_patch, "image": True}
 
     @classmethod
-    def from_export(cls, data: dict, llm, vocab, scene_tokenizer) -> OccVLAWorldModel:
-        return cls(llm, vocab, scene_tokenizer, data["vision_dim"], OccVLAWorldConfig(**data["occvla"]))
+    def create(cls, llm, vocab, inputs: WorldInputs, scene_prediction, world_cfg=None) -> OccVLAWorldModel:
+        if inputs.vision is None:
+            raise ValueError("OccVLA needs a camera encoder")
+        return cls(llm, vocab, inputs.scene.tokenizer, inputs.vision.hidden_size, world_cfg or OccVLAWorldConfig())
+
+    @classmethod
+    def from_export(cls, data: dict, llm, vocab, inputs: WorldInputs) -> OccVLAWorldModel:
+        return cls(llm, vocab, inputs.scene.tokenizer, data["vision_dim"], OccVLAWorldConfig(**data["occvla"]))

@@ -1,5 +1,5 @@
-"""What a world model's sequences are made of, shared by training and both decoders:
-the laid-out token sequence, the per-token payload beside the ids, one generation step."""
+"""What a world model's sequences are made of, shared by training and decoding: the
+laid-out token sequence, the per-token payload beside the ids, one generation step."""
 
 from __future__ import annotations
 
@@ -8,13 +8,12 @@ from typing import NamedTuple
 
 import torch
 
-from occtrain.models.vocab import JointVocab
-
 IGNORE = -100
 
 #: What a world model carries beside the ids, per token: name -> (shape, dtype, fill).
-#: OccLLaMA's carries nothing (a code token's id is its code); Occ-LLM's patch tokens
-#: carry their cells' codes and the action fused into them.
+#: A model whose scene tokens are codes carries nothing (a code token's id is its code);
+#: one whose scene tokens are slots carries what each slot holds (its cells' codes, a
+#: continuous feature, an image feature).
 PayloadSpec = dict[str, tuple[tuple[int, ...], torch.dtype, float]]
 
 
@@ -30,14 +29,6 @@ def cat_payload(parts: list[dict[str, torch.Tensor]]) -> dict[str, torch.Tensor]
     return {k: torch.cat([p[k] for p in parts]) for k in parts[0]}
 
 
-def last_waypoint(vocab: JointVocab, recent: torch.Tensor) -> torch.Tensor | None:
-    """Float[2]: the last waypoint of the action block that ``recent`` ids end with, if they
-    end with one (``... x y </act>``); what Occ-LLM fuses into the scene that follows."""
-    if recent.numel() < 3 or int(recent[-1]) != vocab.act_close_id or not bool(vocab.is_action(recent[-3:-1]).all()):
-        return None
-    return vocab.actions_from_ids(recent[-3:-1].cpu()).reshape(2)
-
-
 @dataclass
 class TokenSequence:
     """One laid-out sequence (all Long[L] except ``scene_target`` Bool[L]; ``payload``
@@ -51,10 +42,10 @@ class TokenSequence:
     #: Long[L]: 0 on the shared trunk, k on branch k (see ``SequenceBuilder.branch``).
     branch_ids: torch.Tensor
     payload: dict[str, torch.Tensor] = field(default_factory=dict)
-    #: The voxel labels uint8 (X, Y, Z) its occupancy queries are trained on, and the
-    #: weight of that loss (OccVLA's lambda_occ); None without queries.
-    voxels: torch.Tensor | None = None
-    voxel_weight: float = 0.0
+    #: Per-sequence targets a world model adds to its loss beside the token targets
+    #: (e.g. voxel labels for occupancy queries and their loss weight), by name; collate
+    #: stacks each, zeros for a sequence without it.
+    targets: dict[str, torch.Tensor] = field(default_factory=dict)
 
     def __len__(self) -> int:
         return int(self.input_ids.shape[0])
@@ -74,6 +65,14 @@ def head(seq: TokenSequence, n: int) -> TokenSequence:
     return TokenSequence(
         seq.input_ids[:n], seq.labels[:n], seq.segment_ids[:n], seq.position_ids[:n], seq.scene_target[:n],
         seq.branch_ids[:n], {k: v[:n] for k, v in seq.payload.items()},
+    )
+
+
+def tail(seq: TokenSequence, n: int) -> TokenSequence:
+    """A laid-out sequence from token ``n`` on (what follows a prompt's prefix)."""
+    return TokenSequence(
+        seq.input_ids[n:], seq.labels[n:], seq.segment_ids[n:], seq.position_ids[n:], seq.scene_target[n:],
+        seq.branch_ids[n:], {k: v[n:] for k, v in seq.payload.items()},
     )
 
 

@@ -1,0 +1,324 @@
+"""OccVLA's planner (Sec. 3.3-3.4): an MLP head from the meta action to the 6 future
+waypoints, the ``core.protocols.Planner`` that OccVLA's and OccLLaMA's planner stages train.
+
+The head maps the meta action (speed x direction) and the inputs a recipe names
+(``inputs``: OccVLA's current velocity, averaged visual tokens of the consumed model and
+past trajectory, with no driving command; the OccLLaMA chain's sidecar ego state and
+command) to the waypoints, trained with MSE. It trains on the reference meta actions or,
+as in OccVLA's stage 3, on those the consumed world model generates for the training
+clips (generated once and cached in the stage directory). Validation reports it with the
+reference and with the generated meta action, beside the world model's own action-token
+plan (when it generates one), constant velocity and standing still, on the same samples.
+
+What it asks of the consumed world model goes through its family's operations
+(``WorldSpec.operations``): ``reference_meta_action(engine, clip)``,
+``generated_meta_actions(engine, clips)`` and, for the ``visual`` input,
+``visual_summary(engine, clips)``.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from occtrain.data.clips import Clip, frame_clips, plan_target
+from occtrain.data.layout import DatasetIndex
+from occtrain.data.schema import COMMANDS, META_DIRECTIONS, META_SPEEDS
+from occtrain.errors import ConfigError
+from occtrain.exports import write_export
+from occtrain.io import atomic_write_json, atomic_write_safetensors, is_rank_zero
+from torchmetrics import MeanMetric
+
+from occtrain.metrics import PlanningMetric, flatten_metrics
+from occtrain.models import count_parameters
+from occtrain.models.planner import PlanningHead, constant_velocity, current_velocity
+from occtrain.occ3d import FUTURE_STEPS, PAST_STEPS
+from occtrain.progress import progress_bar
+
+META_SOURCES = ("ground_truth", "generated")
+#: What the head may read, in the order its input vector lays them out.
+HEAD_INPUTS = ("meta_action", "ego_state", "command", "velocity", "past", "visual")
+#: Where the cached teacher outputs live in the stage directory.
+TEACHER_CACHE = "teacher_outputs"
+
+
+@dataclass
+class MetaActionPlannerConfig:
+    """The planning head's settings (flat in ``model:`` of a planner stage)."""
+
+    hidden: int = 256
+    layers: int = 3
+    dropout: float = 0.1
+    #: What the head reads (``HEAD_INPUTS``): the meta action (one-hot speed and direction),
+    #: the ego state of the frame sidecar (speed, acceleration, yaw rate), the driving
+    #: command, the ego's current velocity from its last move, its past waypoints, and
+    #: ``visual``, the consumed world model's outputs at its image tokens, averaged
+    #: (OccVLA: meta action, velocity, visual tokens and past trajectory; no command).
+    inputs: list[str] = field(default_factory=lambda: ["meta_action", "ego_state", "command"])
+    loss: str = "mse"  # mse | l1
+    #: The meta action the head trains on: the reference (``ground_truth``) or the one the
+    #: consumed model generates for each training clip (``generated``, OccVLA's stage 3;
+    #: generated once and cached in the stage directory).
+    train_meta: str = "ground_truth"
+    #: Width of the bottleneck the visual summary passes through (see ``PlanningHead``).
+    visual_width: int = 8
+    #: Where validation takes the meta action from: the annotation, or the consumed
+    #: model's generated chain of thought (both are always reported when possible).
+    meta_source: str = "generated"
+
+    def validate(self, where: str) -> None:
+        if self.loss not in ("mse", "l1"):
+            raise ConfigError(f"{where}: model.loss '{self.loss}' is not one of mse, l1")
+        for key in ("meta_source", "train_meta"):
+            if getattr(self, key) not in META_SOURCES:
+                raise ConfigError(f"{where}: model.{key} '{getattr(self, key)}' is not one of {', '.join(META_SOURCES)}")
+        unknown = [n for n in self.inputs if n not in HEAD_INPUTS]
+        if unknown or not self.inputs:
+            raise ConfigError(f"{where}: model.inputs {list(self.inputs)} must name some of {', '.join(HEAD_INPUTS)}")
+        if "meta_action" not in self.inputs:
+            raise ConfigError(f"{where}: model.inputs must include meta_action: the head plans from it")
+
+    def needs_teacher(self) -> bool:
+        return self.meta_source == "generated" or self.train_meta == "generated" or "visual" in self.inputs
+
+
+def ego_features(anchor: dict, meta: dict, inputs: list[str] | tuple[str, ...]) -> np.ndarray:
+    """The head's input vector: the ``inputs`` in ``HEAD_INPUTS`` order (the visual summary
+    goes in apart, through the head's bottleneck)."""
+    parts = []
+    for name in HEAD_INPUTS:
+        if name not in inputs:
+            continue
+        if name == "meta_action":
+            parts += [np.eye(len(META_SPEEDS))[META_SPEEDS.index(meta["speed"])], np.eye(len(META_DIRECTIONS))[META_DIRECTIONS.index(meta["direction"])]]
+        elif name == "ego_state":
+            parts.append(np.array([anchor["ego_speed"] / 10.0, anchor["ego_accel"] / 3.0, anchor["ego_yaw_rate"]]))
+        elif name == "command":
+            parts.append(np.eye(len(COMMANDS))[COMMANDS.index(anchor["command"])])
+        elif name == "velocity":
+            parts.append(current_velocity(anchor) / 10.0)
+        elif name == "past":
+            past = np.asarray(anchor["ego_past"], dtype=np.float64).reshape(-1) / 10.0
+            parts.append(past * np.repeat(np.asarray(anchor["ego_past_mask"], dtype=np.float64), 2))
+    return np.concatenate(parts).astype(np.float32)
+
+
+def feature_size(inputs: list[str] | tuple[str, ...]) -> int:
+    """The length of ``ego_features`` (the visual summary apart)."""
+    sizes = {
+        "meta_action": len(META_SPEEDS) + len(META_DIRECTIONS), "ego_state": 3, "command": len(COMMANDS),
+        "velocity": 2, "past": 2 * PAST_STEPS, "visual": 0,
+    }
+    return sum(sizes[n] for n in HEAD_INPUTS if n in inputs)
+
+
+class MetaActionPlanner(nn.Module):
+    """The head, the frozen world model's outputs it reads (cached per clip), and its
+    validation metrics (see the module docstring)."""
+
+    #: What picks the best checkpoint (lower is better): the head on the reference meta action.
+    monitor = "val/head_gt_meta_L2_stp3_avg"
+
+    def __init__(self, cfg: Any, teacher: Any, data_root: str, cache_dir: Path, where: str, sidecar_reference: bool = True):
+        """``teacher``: the consumed world model (None when the head reads nothing of it);
+        ``sidecar_reference``: its reference meta action is the frame sidecar's (OccVLA
+        labels its own from the poses)."""
+        super().__init__()
+        self.cfg, self.data_root, self.inputs = cfg, data_root, list(cfg.inputs)
+        self.sidecar_reference = sidecar_reference
+        if teacher is not None:
+            self._check_teacher(teacher, where)
+        self.teacher = teacher
+        visual_dim = teacher.world.hidden_size if "visual" in self.inputs else 0
+        self.head = PlanningHead(feature_size(self.inputs), cfg.hidden, cfg.layers, FUTURE_STEPS, cfg.dropout, visual_dim, cfg.visual_width)
+        self._teacher_out: dict[str, dict] = {}  # sample token -> the frozen model's outputs
+        self._cache_file = cache_dir / f"{TEACHER_CACHE}.json"
+        self._load_teacher_cache()
+        self.parsed = MeanMetric()
+        self.metrics = nn.ModuleDict({
+            name: PlanningMetric()
+            for name in ("head_gt_meta", "head_generated_meta", "llm_action_tokens", "constant_velocity", "baseline_stationary")
+        })
+
+    def _check_teacher(self, teacher: Any, where: str) -> None:
+        family = teacher.family
+        for op in ("reference_meta_action", "generated_meta_actions"):
+            if teacher.operation(op) is None:
+                raise ConfigError(f"{where}: the '{family}' world model generates no meta action; set model.meta_source=ground_truth")
+        if "visual" in self.inputs and (teacher.vision is None or teacher.operation("visual_summary") is None):
+            raise ConfigError(f"{where}: model.inputs 'visual' reads image tokens, which the '{family}' world model has none of")
+
+    @property
+    def device(self) -> torch.device:
+        return next(self.head.parameters()).device
+
+    def sidecar_tasks(self) -> list[str]:
+        """The frame-sidecar annotations it reads: the meta action, unless the world model labels its own."""
+        return ["meta_action"] if self.teacher is None or self.sidecar_reference else []
+
+    # -- the teacher's outputs, computed once per clip and kept on disk
+    def _load_teacher_cache(self) -> None:
+        """Per sample token: ``reference`` (meta action), ``generated`` ([meta action or None,
+        waypoints or None], or None where the chain of thought does not apply) and ``visual``."""
+        if self.teacher is None or not self._cache_file.is_file():
+            return
+        from safetensors.torch import load_file
+
+        self._teacher_out = json.loads(self._cache_file.read_text())
+        visual_file = self._cache_file.with_suffix(".safetensors")
+        for token, vis in (load_file(str(visual_file)) if visual_file.is_file() else {}).items():
+            self._teacher_out.setdefault(token, {})["visual"] = vis.numpy()
+
+    def save_cache(self) -> None:
+        if self.teacher is None or not is_rank_zero():
+            return
+        visual = {t: torch.as_tensor(o["visual"]) for t, o in self._teacher_out.items() if "visual" in o}
+        if visual:
+            atomic_write_safetensors(self._cache_file.with_suffix(".safetensors"), visual)
+        atomic_write_json(self._cache_file, {t: {k: v for k, v in o.items() if k != "visual"} for t, o in self._teacher_out.items()})
+
+    def teacher_outputs(self, clips: list[Clip], generate: bool) -> list[dict]:
+        """The frozen model's outputs for each clip (the generated meta action only with
+        ``generate``), from the cache or computed now and kept."""
+        outs = [self._teacher_out.setdefault(c.anchor["token"], {}) for c in clips]
+        reference = self.teacher.operation("reference_meta_action")
+        for i in [i for i, o in enumerate(outs) if "reference" not in o]:
+            outs[i]["reference"] = reference(self.teacher, clips[i])
+        todo = [i for i, o in enumerate(outs) if "visual" not in o] if "visual" in self.inputs else []
+        if todo:
+            summary = self.teacher.operation("visual_summary")(self.teacher, [clips[i] for i in todo])
+            for i, vis in zip(todo, summary.cpu().numpy()):
+                outs[i]["visual"] = vis
+        todo = [i for i, o in enumerate(outs) if "generated" not in o] if generate else []
+        if todo:
+            for i, gen in zip(todo, self.teacher.operation("generated_meta_actions")(self.teacher, [clips[i] for i in todo])):
+                outs[i]["generated"] = None if gen is None else [gen[0], None if gen[1] is None else np.asarray(gen[1]).tolist()]
+        return outs
+
+    def prepare_training(self, device: torch.device) -> None:
+        """The teacher's outputs for the training clips, once, when the head trains on
+        generated meta actions or reads visual tokens (validation's come as its batches do)."""
+        generate = self.cfg.train_meta == "generated"
+        if self.teacher is None or not (generate or "visual" in self.inputs):
+            return
+        index = DatasetIndex.open(self.data_root)
+        clips = list(frame_clips(index, "train", self.teacher.tasks.context_frames, FUTURE_STEPS, partial_history=False))
+        self.teacher.to(device)
+        with progress_bar(len(clips), f"the world model's {'meta actions' if generate else 'outputs'} on the train split, once") as advance:
+            for i in range(0, len(clips), 16):
+                self.teacher_outputs(clips[i : i + 16], generate)
+                advance(len(clips[i : i + 16]))
+        self.save_cache()
+
+    # -- the head
+    def _features(self, clips: list[Clip], source: str) -> tuple[dict[str, torch.Tensor], list[int]]:
+        """The head's inputs (``features``, and ``visual`` / ``velocity`` where it reads them)
+        for the clips that have a meta action from ``source``, and their rows."""
+        device = self.device
+        outs = self.teacher_outputs(clips, source == "generated") if self.teacher is not None else [None] * len(clips)
+        feats, visual, velocity, rows = [], [], [], []
+        for i, (clip, out) in enumerate(zip(clips, outs)):
+            if out is None:
+                meta = clip.anchor.get("meta_action")
+            elif source == "generated":
+                meta = out["generated"][0] if out["generated"] is not None else None
+            else:
+                meta = out["reference"]
+            if meta is None:
+                continue
+            feats.append(ego_features(clip.anchor, meta, self.inputs))
+            if "visual" in self.inputs:
+                visual.append(np.asarray(out["visual"], dtype=np.float32))
+            velocity.append(current_velocity(clip.anchor).astype(np.float32))
+            rows.append(i)
+
+        def stack(arrays: list[np.ndarray], width: int) -> torch.Tensor:
+            return torch.from_numpy(np.stack(arrays)).to(device) if arrays else torch.zeros(0, width, device=device)
+
+        inputs = {"features": stack(feats, feature_size(self.inputs))}
+        if "visual" in self.inputs:
+            inputs["visual"] = stack(visual, self.head.visual[0].normalized_shape[0])
+        if "velocity" in self.inputs:
+            inputs["velocity"] = stack(velocity, 2)
+        return inputs, rows
+
+    def training_loss(self, clips: list[Clip]) -> torch.Tensor:
+        """The head's loss on the clips with a meta action (zero through the head when none
+        has one: DDP's gradients stay in step)."""
+        x, rows = self._features(clips, self.cfg.train_meta)
+        if not rows:
+            return self.head(**x).sum() * 0.0
+        gt = plan_target([clips[i].anchor for i in rows], x["features"].device)
+        err = self.head(**x) - gt.traj
+        per_point = err.pow(2).sum(-1) if self.cfg.loss == "mse" else err.abs().sum(-1)
+        return (per_point * gt.mask).sum() / gt.mask.sum().clamp(min=1)
+
+    def validate(self, clips: list[Clip], batch_idx: int, generate_batches: int = -1) -> None:
+        anchors = [c.anchor for c in clips]
+        gt = plan_target(anchors, self.device)
+
+        def record(name: str, pred: torch.Tensor, rows: list[int]) -> None:
+            if rows:
+                sub = gt.rows(rows)
+                self.metrics[name].update(pred, sub.traj, sub.mask, sub.agents)
+
+        x, rows = self._features(clips, "ground_truth")
+        record("head_gt_meta", self.head(**x), rows)
+        everyone = list(range(len(anchors)))
+        record("constant_velocity", constant_velocity(anchors, gt.traj.device), everyone)
+        record("baseline_stationary", torch.zeros_like(gt.traj), everyone)
+        if self.teacher is not None and self.cfg.meta_source == "generated" and (generate_batches < 0 or batch_idx < generate_batches):
+            outs = self.teacher_outputs(clips, generate=True)
+            applies = [i for i, o in enumerate(outs) if o["generated"] is not None]
+            x, rows = self._features(clips, "generated")
+            # Clips the chain of thought does not apply to are skipped, not scored as a zero plan.
+            record("head_generated_meta", self.head(**x), rows)
+            tokens = [i for i in applies if outs[i]["generated"][1] is not None]
+            if tokens:
+                plans = torch.stack([torch.as_tensor(outs[i]["generated"][1], dtype=torch.float32) for i in tokens]).to(gt.traj.device)
+                record("llm_action_tokens", plans, tokens)
+            if applies:
+                self.parsed.update(sum(outs[i]["generated"][0] is not None for i in applies) / len(applies), len(applies))
+
+    def compute(self, prefix: str) -> dict[str, float]:
+        """The validation metrics that saw samples, then reset."""
+        out: dict[str, float] = {}
+        for name, metric in self.metrics.items():
+            if metric.update_count:
+                out.update(flatten_metrics(f"{prefix}/{name}", metric.compute()))
+            metric.reset()
+        if self.parsed.update_count:
+            out[f"{prefix}/meta_parsed_fraction"] = float(self.parsed.compute())
+        self.parsed.reset()
+        return out
+
+    def summary(self) -> tuple[str, dict[str, float]]:
+        n = count_parameters(self.head)
+        return f"planning head {n / 1e3:.1f}K params, inputs {', '.join(self.inputs)}", {"params": float(n)}
+
+    def export(self, path: Path) -> Path:
+        cfg = self.cfg
+        config = {
+            "stage_kind": "planner",
+            "features": feature_size(self.inputs),
+            "visual_dim": self.head.visual[0].normalized_shape[0] if self.head.visual is not None else 0,
+            "visual_width": cfg.visual_width,
+            "hidden": cfg.hidden,
+            "layers": cfg.layers,
+            "inputs": self.inputs,
+            "train_meta": cfg.train_meta,
+            "steps": FUTURE_STEPS,
+        }
+        return write_export(path, self.head.state_dict(), config)
+
+
+def meta_action_planner(ctx: Any, teacher: Any, sidecar_reference: bool = True) -> MetaActionPlanner:
+    """The planner of a planner stage (``WorldSpec.planner``) from its context."""
+    where = f"stages '{ctx.spec.name}'"
+    return MetaActionPlanner(ctx.model_cfg, teacher, ctx.data.root, ctx.stage_dir / "cache", where, sidecar_reference)

@@ -1,0 +1,257 @@
+"""The registry of paper families and of the scene-tokenizer architectures they bring.
+
+A family registers one :class:`FamilySpec`: its scene tokenizers, and when it has a world
+model a :class:`WorldSpec` (its model class, task settings and tasks, what the model is
+built over, how its scene encoder is made, its planner and evaluation hooks). Stages,
+the engine, ``occtrain eval`` and the dashboard look families up here by name and never
+import one. The families shipped with occtrain are found by walking the
+``occtrain.families`` package; a plugin registers through the ``occtrain.families`` entry
+point group (its value: a module that calls :func:`register_family` when imported), or a
+recipe's ``plugins:`` list.
+"""
+
+from __future__ import annotations
+
+import importlib
+import inspect
+import pkgutil
+from dataclasses import dataclass, field
+from importlib.metadata import entry_points
+from pathlib import Path
+from typing import Any, Callable, Mapping
+
+from omegaconf import DictConfig, OmegaConf
+
+from occtrain.core.protocols import EvalHook, Scorer
+from occtrain.core.tasks import TaskConfig, TaskSpec
+from occtrain.errors import ConfigError
+from occtrain.exports import read_export, write_export
+from occtrain.models import count_parameters
+
+#: The package whose sub-packages are the families shipped with occtrain.
+BUILTIN_PACKAGE = "occtrain.families"
+#: The entry-point group through which an installed package adds a family.
+ENTRY_POINT_GROUP = "occtrain.families"
+
+
+@dataclass(frozen=True)
+class TokenizerArch:
+    """A scene-tokenizer architecture: ``model.arch`` name, config dataclass, model class."""
+
+    name: str
+    config: type
+    model: type
+
+
+@dataclass(frozen=True)
+class WorldSpec:
+    """What a family with a world model brings to the shared world-model stage kinds."""
+
+    #: Its class: a ``core.world_model.LMWorldModel`` (``create``, ``from_export``,
+    #: ``vocab_layout``, ``export_config``).
+    model: type
+    #: Its task settings (extends ``core.tasks.TaskConfig``) and tasks by name.
+    task_config: type
+    tasks: Mapping[str, TaskSpec]
+    #: Stage kind ("pretrain", "instruct") -> the task weights a stage that names none trains.
+    default_tasks: Mapping[str, Mapping[str, float]] = field(default_factory=dict)
+    #: Its world model's own settings (``model.<family>`` of a pretrain stage), or None.
+    world_config: type | None = None
+    #: Fixed words of its prompts, added to the text its BPE tokenizer trains on.
+    prompt_words: tuple[str, ...] = ()
+    #: Stage kinds a pretrain stage of this family consumes, besides none (its inputs).
+    inputs: tuple[str, ...] = ("tokenizer",)
+    #: ``(exports by kind, world settings) -> SceneEncoder | None`` at pretraining, and
+    #: ``(export dir, export config) -> SceneEncoder | None`` when an export is loaded.
+    scene_encoder: Callable[..., Any] | None = None
+    load_scene_encoder: Callable[..., Any] | None = None
+    #: It reads the cameras through a vision stage's frozen encoder.
+    reads_cameras: bool = False
+    #: Family-level scoring classes (``core.protocols.EvalHook``), made per evaluator.
+    eval_hooks: tuple[type, ...] = ()
+    #: ``(stage context, teacher engine or None) -> core.protocols.Planner``: what its
+    #: planner stage trains; None: the family has no planner.
+    planner: Callable[..., Any] | None = None
+    #: The planner's settings (``model.head`` of a planner stage), a dataclass.
+    planner_config: type | None = None
+    #: Operations of the Python API (``occtrain.load``), name -> ``(engine, **kwargs) -> result``.
+    operations: Mapping[str, Callable[..., Any]] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class FamilySpec:
+    """What one paper family contributes to the shared stage kinds."""
+
+    name: str
+    #: The paper, as README's table names it.
+    paper: str
+    tokenizers: tuple[TokenizerArch, ...] = ()
+    #: Its world model, if it has one.
+    world: WorldSpec | None = None
+    #: The paper's published figures (``core.paper.PaperFigure``), shown beside a run's metrics.
+    paper_figures: tuple[Any, ...] = ()
+
+
+_FAMILIES: dict[str, FamilySpec] = {}
+_TOKENIZERS: dict[str, tuple[TokenizerArch, str]] = {}
+_loaded = False
+
+
+def _check(spec: FamilySpec) -> None:
+    """Refuse, in one line, a family whose parts do not fit the seams they plug into."""
+    where = f"family '{spec.name}'"
+    for arch in spec.tokenizers:
+        if not hasattr(arch.config, "validate") or not inspect.isclass(arch.model):
+            raise ConfigError(f"{where}: tokenizer '{arch.name}' needs a config dataclass with validate() and a model class")
+    world = spec.world
+    if world is None:
+        return
+    from occtrain.core.world_model import LMWorldModel
+
+    if not (inspect.isclass(world.model) and issubclass(world.model, LMWorldModel)):
+        raise ConfigError(f"{where}: its world model {world.model!r} is not an occtrain.core.world_model.LMWorldModel")
+    if not (inspect.isclass(world.task_config) and issubclass(world.task_config, TaskConfig)):
+        raise ConfigError(f"{where}: its task settings {world.task_config!r} do not extend occtrain.core.tasks.TaskConfig")
+    for name, task in world.tasks.items():
+        if not isinstance(task, TaskSpec) or not callable(task.build):
+            raise ConfigError(f"{where}: task '{name}' is not a TaskSpec with a builder")
+        for make in scorer_factories(task):
+            if not isinstance(make(), Scorer):
+                raise ConfigError(f"{where}: the scorer of task '{name}' does not implement occtrain.core.protocols.Scorer")
+    for hook in world.eval_hooks:
+        if not isinstance(hook(), EvalHook):
+            raise ConfigError(f"{where}: {hook!r} does not implement occtrain.core.protocols.EvalHook")
+    for kind, weights in world.default_tasks.items():
+        unknown = set(weights) - set(world.tasks)
+        if unknown:
+            raise ConfigError(f"{where}: default {kind} task '{sorted(unknown)[0]}' is not one of its tasks")
+    if world.scene_encoder is not None and world.load_scene_encoder is None:
+        raise ConfigError(f"{where}: a scene encoder built at pretraining needs load_scene_encoder to come back from an export")
+    if world.planner is not None and world.planner_config is None:
+        raise ConfigError(f"{where}: its planner needs a planner_config dataclass (model.head of a planner stage)")
+
+
+def scorer_factories(task: TaskSpec) -> tuple[Callable[[], Any], ...]:
+    """The scorer factories of a task (none, one or several)."""
+    if task.scorer is None:
+        return ()
+    return tuple(task.scorer) if isinstance(task.scorer, (tuple, list)) else (task.scorer,)
+
+
+def register_family(spec: FamilySpec) -> FamilySpec:
+    """Add a family (a plugin may register its own); tokenizer names must be unique."""
+    _check(spec)
+    for arch in spec.tokenizers:
+        owner = _TOKENIZERS.get(arch.name)
+        if owner is not None and owner[1] != spec.name:
+            raise ConfigError(f"tokenizer arch '{arch.name}' of family '{spec.name}' is already registered by '{owner[1]}'")
+        _TOKENIZERS[arch.name] = (arch, spec.name)
+    _FAMILIES[spec.name] = spec
+    return spec
+
+
+def _discover() -> None:
+    """Import the shipped families (each sub-package of ``occtrain.families``), then the
+    modules that installed packages name in the ``occtrain.families`` entry-point group."""
+    global _loaded
+    if _loaded:
+        return
+    _loaded = True
+    package = importlib.import_module(BUILTIN_PACKAGE)
+    for info in sorted(pkgutil.iter_modules(package.__path__), key=lambda i: i.name):
+        if info.ispkg:
+            importlib.import_module(f"{BUILTIN_PACKAGE}.{info.name}")
+    for ep in entry_points(group=ENTRY_POINT_GROUP):
+        try:
+            ep.load()
+        except ImportError as err:
+            raise ConfigError(f"the occtrain.families entry point '{ep.name}' ({ep.value}) cannot be imported: {err}") from None
+
+
+def families() -> dict[str, FamilySpec]:
+    """Every registered family by name."""
+    _discover()
+    return dict(_FAMILIES)
+
+
+def world_families() -> dict[str, FamilySpec]:
+    """The registered families that have a world model."""
+    return {n: f for n, f in families().items() if f.world is not None}
+
+
+def get_family(name: str) -> FamilySpec:
+    _discover()
+    if name not in _FAMILIES:
+        raise ConfigError(f"unknown model family '{name}'; families are {', '.join(sorted(_FAMILIES))}")
+    return _FAMILIES[name]
+
+
+def get_world(name: str, key: str = "model.family") -> WorldSpec:
+    """The world spec of family ``name``; one line naming ``key`` when it has none."""
+    spec = get_family(name)
+    if spec.world is None:
+        raise ConfigError(f"{key}: family '{name}' has no world model; use one of {', '.join(sorted(world_families()))}")
+    return spec.world
+
+
+def tokenizer_archs() -> dict[str, TokenizerArch]:
+    """Every registered scene-tokenizer architecture by ``model.arch`` name."""
+    _discover()
+    return {name: arch for name, (arch, _) in _TOKENIZERS.items()}
+
+
+def tokenizer_family(arch: str) -> str:
+    _discover()
+    if arch not in _TOKENIZERS:
+        raise ConfigError(f"model.arch: '{arch}' is not a tokenizer; use one of {', '.join(_TOKENIZERS)}")
+    return _TOKENIZERS[arch][1]
+
+
+def _arch(name: str) -> TokenizerArch:
+    archs = tokenizer_archs()
+    if name not in archs:
+        raise ConfigError(f"model.arch: '{name}' is not a tokenizer; use one of {', '.join(archs)}")
+    return archs[name]
+
+
+def tokenizer_config(arch: str, cfg: Any, where: str | None = None) -> Any:
+    """``cfg`` (a dataclass, a DictConfig or a mapping) as ``arch``'s validated config dataclass."""
+    schema = _arch(arch).config
+    if not isinstance(cfg, schema):
+        node = cfg if isinstance(cfg, DictConfig) else OmegaConf.create(dict(cfg))
+        cfg = OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(schema), node))
+    cfg.validate(where or f"model.{arch}")
+    return cfg
+
+
+def build_tokenizer(arch: str, cfg: Any) -> Any:
+    """Build tokenizer ``arch`` from its config: a dataclass, a DictConfig or a plain mapping."""
+    return _arch(arch).model(tokenizer_config(arch, cfg))
+
+
+def save_tokenizer(model: Any, arch: str, cfg: dict, export_dir: Path) -> Path:
+    """Write a tokenizer export: weights, ``arch`` and its config, and the codebook layout
+    (size, latent grid) that a world model's joint vocabulary is laid out from."""
+    config = {
+        "stage_kind": "tokenizer",
+        "arch": arch,
+        "config": cfg,
+        "num_codes": int(model.num_codes),
+        "codebook_sizes": model.codebook_sizes,
+        "latent_hw": list(model.latent_hw),
+        "params": count_parameters(model),
+        "label_convention": "occ3d",
+    }
+    return write_export(export_dir, model.state_dict(), config)
+
+
+def load_tokenizer(export_dir: Path) -> Any:
+    """Rebuild a scene tokenizer from a tokenizer stage's export (frozen, eval mode)."""
+    state, config = read_export(export_dir)
+    if config.get("stage_kind") != "tokenizer":
+        raise ConfigError(f"{export_dir}: not a tokenizer export (stage kind '{config.get('stage_kind')}'); consume the tokenizer stage")
+    model = build_tokenizer(config["arch"], config["config"])
+    model.load_state_dict(state)
+    model.export_dir = Path(export_dir)  # a world-model export copies it from here
+    model.arch = config["arch"]
+    return model.eval().requires_grad_(False)

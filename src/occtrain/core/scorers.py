@@ -1,0 +1,227 @@
+"""Scorers several families share: each grades one task's generated answers with the
+papers' metrics and adds the baselines the literature compares with, on the same samples.
+
+A family names a task's scorers in its :class:`~occtrain.core.tasks.TaskSpec`; the
+evaluator (``engine.evaluator``) makes one of each per evaluation, makes every metric a
+scorer names once (so scorers share a baseline by naming it alike), and hands each
+generated item to its task's scorers. A family with its own way of grading writes its own
+scorer against :class:`~occtrain.core.protocols.Scorer`.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from dataclasses import dataclass, field
+from functools import partial
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torchmetrics import MeanMetric
+
+from occtrain.core.tasks import question_of
+from occtrain.data.clips import Actions, Clip, Part, PlanTarget, Scene
+from occtrain.data.layout import DatasetIndex
+from occtrain.data.text_formats import format_meta_action, parse_meta_action
+from occtrain.metrics import CaptionMetric, ForecastMetric, MetaActionAccuracy, PlanningMetric, QAMetric
+from occtrain.models.planner import constant_velocity
+from occtrain.occ3d import FREE, FUTURE_STEPS
+
+
+@dataclass
+class Priors:
+    """The commonest training answers: the baselines a model must beat by learning."""
+
+    #: NuScenes-QA template type -> its commonest answer.
+    qa: dict[str, str] = field(default_factory=dict)
+    #: The commonest meta action ({"speed", "direction"}) of the frame sidecars, None without them.
+    meta_action: dict | None = None
+
+    @classmethod
+    def of(cls, data_root: str | Path) -> Priors:
+        index = DatasetIndex.open(data_root)
+        by_type: dict[str, Counter] = {}
+        for q in index.questions("train") or []:
+            by_type.setdefault(q["template_type"], Counter())[q["answer"]] += 1
+        metas = Counter(
+            (f["meta_action"]["speed"], f["meta_action"]["direction"])
+            for scene in index.splits.get("train", []) if index.has_frame_annotations(scene)
+            for f in index.frames(scene) if "meta_action" in f
+        )
+        meta = None
+        if metas:
+            speed, direction = metas.most_common(1)[0][0]
+            meta = {"speed": speed, "direction": direction}
+        return cls({t: c.most_common(1)[0][0] for t, c in by_type.items()}, meta)
+
+
+@dataclass
+class Item:
+    """One generated item to score: the task, its clip, the prompt-answer parts, the
+    generated parts, the scene of every clip frame it saw or generated, the clip's label
+    volumes (for scorers that read them), its planning target and the engine."""
+
+    task: str
+    clip: Clip
+    parts: list[Part]
+    generated: list[Part]
+    scenes: dict[int, torch.Tensor]
+    semantics: torch.Tensor | None
+    target: PlanTarget
+    engine: Any
+
+
+class BaseScorer:
+    """What the shared scorers have in common: no own state, nothing derived."""
+
+    metrics: dict[str, Any] = {}
+    needs_semantics = False
+
+    def score(self, evaluator: Any, item: Item) -> None:
+        raise NotImplementedError
+
+    def summary(self, prefix: str) -> dict[str, float]:
+        return {}
+
+    def reset(self) -> None:
+        pass
+
+
+#: The plan baselines, scored once on every clip any plan is scored on.
+PLAN_BASELINES = {"baseline_constant_velocity": PlanningMetric, "baseline_stationary": PlanningMetric}
+
+
+class PlanScorer(BaseScorer):
+    """A plan from the generated waypoints (the last action block's, or with ``alternate``
+    every block's point in turn: a forecast's waypoints between its scenes), under metric
+    ``name``; with ``record``, the predictions ``occtrain score planning`` reads."""
+
+    def __init__(self, name: str, alternate: bool = False, record: bool = False):
+        self.name, self.alternate, self.record = name, alternate, record
+        self.metrics = {name: PlanningMetric, **PLAN_BASELINES}
+
+    def score(self, ev: Any, item: Item) -> None:
+        target, anchor, token = item.target, item.clip.anchor, item.clip.anchor["token"]
+        if ev.once(("plan baselines", token)):  # standing still and constant velocity, once a clip
+            ev.metrics["baseline_constant_velocity"].update(constant_velocity([anchor], ev.device), target.traj, target.mask, target.agents)
+            ev.metrics["baseline_stationary"].update(torch.zeros_like(target.traj), target.traj, target.mask, target.agents)
+        actions = [p for p in item.generated if isinstance(p, Actions)]
+        if not actions:
+            return
+        xy = [pt for p in actions for pt in p.xy] if self.alternate else list(actions[-1].xy)
+        pred = torch.zeros_like(target.traj)
+        pred[0, : len(xy)] = torch.tensor(xy[: pred.shape[1]], dtype=torch.float32, device=ev.device)
+        plan_mask = target.mask.clone()
+        plan_mask[0, len(xy):] = False
+        ev.metrics[self.name].update(pred, target.traj, plan_mask, target.agents)
+        ev.keep_plan_picture(self.name, anchor, np.asarray(xy), target.traj[0][target.mask[0]].cpu().numpy())
+        if self.record and ev.record:
+            ev.predictions["planning"][token] = pred[0].tolist()
+            ev.predictions["planning_gt"][token] = {
+                "traj": target.traj[0].tolist(), "mask": target.mask[0].int().tolist(), "agents": [a.tolist() for a in target.agents[0]],
+            }
+
+
+class ForecastScorer(BaseScorer):
+    """The generated scenes, decoded by the scene encoder, against the following frames
+    (``occworld`` convention, at 1 / 2 / 3 s), beside copying the current scene forward."""
+
+    metrics = {"forecast_occworld": ForecastMetric, "baseline_copy_forecast_occworld": ForecastMetric}
+    needs_semantics = True
+
+    def score(self, ev: Any, item: Item) -> None:
+        scenes = [p for p in item.generated if isinstance(p, Scene)]
+        if not scenes:
+            return
+        decoded = item.engine.decode_scenes(torch.stack([item.scenes[p.frame] for p in scenes])).cpu()
+        semantics, a = item.semantics, item.clip.anchor_index
+        pred = torch.full((1, FUTURE_STEPS, *decoded.shape[1:]), FREE, dtype=torch.long)
+        target = torch.full_like(pred, FREE)
+        valid = torch.zeros(1, FUTURE_STEPS, dtype=torch.bool)
+        n = min(len(scenes), FUTURE_STEPS, semantics.shape[0] - a - 1)
+        pred[0, :n] = decoded[:n]
+        target[0, :n] = semantics[a + 1 : a + 1 + n].long()
+        valid[0, :n] = True
+        dev = ev.device
+        ev.metrics["forecast_occworld"].update(pred.to(dev), target.to(dev), valid.to(dev))
+        copy = semantics[a].long()[None, None].expand_as(pred)
+        ev.metrics["baseline_copy_forecast_occworld"].update(copy.to(dev), target.to(dev), valid.to(dev))
+        token = item.clip.anchor["token"]
+        ev.keep_forecast_picture(token, pred[0].numpy(), target[0].numpy(), n)
+        if ev.record:
+            ev.predictions["forecast"][token] = (item.clip.anchor["scene"], decoded[:n].numpy().astype(np.uint8))
+
+
+class QAScorer(BaseScorer):
+    """NuScenes-QA accuracy by type and hop, beside the commonest training answer per type;
+    the share of the most frequent answer string (a model stuck on one shows here)."""
+
+    metrics = {"qa": QAMetric, "baseline_prior_qa": QAMetric}
+
+    def __init__(self) -> None:
+        self.answers: Counter = Counter()
+
+    def score(self, ev: Any, item: Item) -> None:
+        question = question_of(item.parts)
+        q = next(q for q in item.clip.qa if q["question"] == question)
+        answer = item.generated[0].text.strip()
+        self.answers[answer] += 1
+        ev.metrics["qa"].update([answer], [q["answer"]], [q["template_type"]], [q["num_hop"]])
+        prior = ev.priors.qa.get(q["template_type"], "")
+        ev.metrics["baseline_prior_qa"].update([prior], [q["answer"]], [q["template_type"]], [q["num_hop"]])
+        ev.keep_text("qa", item.parts[-2].text, answer, q["answer"])
+        if ev.record:
+            ev.predictions["qa"][f"{item.clip.anchor['token']}|{question}"] = (q, answer)
+
+    def summary(self, prefix: str) -> dict[str, float]:
+        if not self.answers:
+            return {}
+        # Of this process's answers (the share is a diagnostic, not a paper metric).
+        return {f"{prefix}/qa_top_answer_share": 100.0 * self.answers.most_common(1)[0][1] / sum(self.answers.values())}
+
+    def reset(self) -> None:
+        self.answers = Counter()
+
+
+class ChainOfThoughtScorer(BaseScorer):
+    """A generated chain of thought that ends with the frame's meta action (from the frame
+    sidecar): caption metrics against the reference narration, the meta action parsed from
+    it, right or not, beside the commonest training meta action."""
+
+    metrics = {
+        "cot_caption": CaptionMetric, "meta_action_acc": MeanMetric, "meta_parsed_fraction": MeanMetric,
+        "baseline_prior_meta_action_acc": MeanMetric, "meta_action": MetaActionAccuracy, "baseline_prior_meta_action": MetaActionAccuracy,
+    }
+
+    def __init__(self) -> None:
+        self.scored = 0
+
+    def score(self, ev: Any, item: Item) -> None:
+        anchor, token = item.clip.anchor, item.clip.anchor["token"]
+        text, reference = item.generated[0].text, item.parts[-2].text
+        ev.metrics["cot_caption"].update([text], [[reference]], ids=[token])
+        parsed = parse_meta_action(text)
+        said = format_meta_action(parsed).removeprefix("Meta action: ") if parsed is not None else "none"
+        ev.keep_text("cot", "Task: describe the scene, then plan.", f"{text}  [parsed meta action: {said}]", reference)
+        ev.metrics["meta_parsed_fraction"].update(100.0 * (parsed is not None))
+        ev.metrics["meta_action_acc"].update(100.0 * (parsed == anchor["meta_action"]))
+        ev.metrics["meta_action"].update([parsed], [anchor["meta_action"]])
+        self.scored += 1
+        if ev.priors.meta_action is not None:
+            ev.metrics["baseline_prior_meta_action_acc"].update(100.0 * (ev.priors.meta_action == anchor["meta_action"]))
+            ev.metrics["baseline_prior_meta_action"].update([ev.priors.meta_action], [anchor["meta_action"]])
+        if ev.record:
+            ev.predictions["captions"][token] = text
+            ev.predictions["captions_gt"][token] = [reference]
+
+    def summary(self, prefix: str) -> dict[str, float]:
+        return {f"{prefix}/meta_action_samples": float(self.scored)} if self.scored else {}
+
+    def reset(self) -> None:
+        self.scored = 0
+
+
+def plan_scorer(name: str, alternate: bool = False, record: bool = False) -> partial:
+    """A factory of :class:`PlanScorer` (a task spec names factories)."""
+    return partial(PlanScorer, name, alternate, record)

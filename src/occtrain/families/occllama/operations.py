@@ -1,0 +1,38 @@
+"""What OccLLaMA's world model offers beyond its tasks' scoring: the meta action its chain
+of thought reasons to (what a planner stage reads) and the Python API's operations."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from occtrain.core import operations
+from occtrain.data.clips import Clip
+from occtrain.data.text_formats import parse_meta_action
+
+
+def reference_meta_action(engine: Any, clip: Clip) -> dict | None:
+    """The clip's meta action: the frame sidecar's (the chain of thought ends with it)."""
+    return clip.anchor.get("meta_action")
+
+
+def generated_meta_actions(engine: Any, clips: list[Clip]) -> list[tuple[dict | None, np.ndarray | None] | None]:
+    """Per clip, the meta action parsed from the generated chain of thought (None when it
+    cannot be parsed) and the trajectory generated after it; None for a clip the chain of
+    thought does not apply to (no known future or no narration)."""
+    out: list = [None] * len(clips)
+    for b, _, (text, traj), _ in engine.rollouts("cot_planning", clips, {"ann": [c.ann for c in clips]}):
+        out[b] = (parse_meta_action(text.text), np.asarray(traj.xy))
+    return out
+
+
+OPERATIONS = {
+    "answer": operations.answer,
+    "plan": operations.plan,
+    "forecast": operations.forecast,
+    "chain_of_thought": operations.chain_of_thought,
+    "meta_action": operations.meta_action,
+    "reference_meta_action": reference_meta_action,
+    "generated_meta_actions": generated_meta_actions,
+}

@@ -1,0 +1,66 @@
+"""How OccVLA's answers are graded: the meta action its chain of thought ends with
+(speed / direction / mean / overall, its Table 4), beside the commonest one; and its
+occupancy query branch, decoded and scored in both conventions."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+from torchmetrics import MeanMetric
+
+from occtrain.core.scorers import BaseScorer, Item
+from occtrain.data.clips import Clip, Images
+from occtrain.data.meta_actions import commonest
+from occtrain.data.text_formats import format_meta_action, parse_meta_action
+from occtrain.metrics import MetaActionAccuracy, OccupancyMetric
+from occtrain.metrics.occupancy import OCC3D, OCCWORLD
+
+
+class MetaActionScorer(BaseScorer):
+    """The meta action the chain of thought ends with against the one the prompt's answer
+    holds (labelled from the poses), beside the commonest training one under the same labeller."""
+
+    metrics = {"meta_action": MetaActionAccuracy, "meta_parsed_fraction": MeanMetric, "baseline_prior_meta_action": MetaActionAccuracy}
+
+    def __init__(self) -> None:
+        self._prior: dict[tuple, dict | None] = {}
+
+    def score(self, ev: Any, item: Item) -> None:
+        text, reference = item.generated[0].text, item.parts[-1].text
+        truth, parsed = parse_meta_action(reference), parse_meta_action(text)
+        ev.metrics["meta_action"].update([parsed], [truth])
+        ev.metrics["meta_parsed_fraction"].update(100.0 * (parsed is not None))
+        cfg = item.engine.tasks.meta_actions
+        key = tuple(sorted(vars(cfg).items()))
+        if key not in self._prior and ev.index is not None:
+            self._prior[key] = commonest(ev.index, "train", cfg)
+        prior = self._prior.get(key)
+        if prior is not None:
+            ev.metrics["baseline_prior_meta_action"].update([prior], [truth])
+        said = format_meta_action(parsed).removeprefix("Meta action: ") if parsed is not None else "none"
+        ev.keep_text("meta_action", item.parts[-2].text, f"{text}  [parsed: {said}]", reference)
+
+
+class OccupancyQueries:
+    """OccVLA's query branch on each clip's anchor, when the stage trains it: one forward of
+    the images and the queries, decoded by the frozen OccWorld decoder, scored in both conventions."""
+
+    metrics = {"occupancy_occ3d": lambda: OccupancyMetric(OCC3D), "occupancy_occworld": lambda: OccupancyMetric(OCCWORLD)}
+
+    def applies(self, engine: Any) -> bool:
+        return engine.tasks.occupancy_weight > 0
+
+    @torch.no_grad()
+    def run(self, ev: Any, engine: Any, clips: list[Clip]) -> None:
+        index, dev = ev.index, ev.device
+        for clip in clips:
+            token = clip.anchor["token"]
+            pred = engine.world.predict_occupancy(engine.encode_parts([Images(token)], {})).argmax(1).cpu()
+            labels = index.labels(index.scene_of(token), token)
+            target = torch.from_numpy(labels["semantics"]).long()[None]
+            mask = torch.from_numpy(labels["mask_camera"].astype(bool))[None]
+            ev.metrics["occupancy_occ3d"].update(pred.to(dev), target.to(dev), mask.to(dev))
+            ev.metrics["occupancy_occworld"].update(pred.to(dev), target.to(dev))
+            ev.keep_scene("occupancy", f"occupancy from the queries, sample {token[:8]}: truth and prediction",
+                          [("truth", target[0].numpy()), ("queries", pred[0].numpy())])

@@ -1,0 +1,163 @@
+"""Proof by plugin: a family written in tests/ (``plugins/tiny_family.py``: a continuous
+scene encoder, its own task and scorer, its own planner) runs pretrain -> instruct ->
+planner -> distill through the CLI, ``occtrain eval`` and the Python API, with no file of
+occtrain changed. README's "Adding a family" follows these steps."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from conftest import run_cli
+
+RECIPE = """
+name: tiny
+plugins: [plugins.tiny_family]
+runs_root: {runs}
+data:
+  root: {data}
+  shards: {shards}
+  synth: {{train_scenes: 2, val_scenes: 1, frames_per_scene: 12, seed: 3}}
+  batch_size: 2
+  samples_per_shard: 8
+  shuffle_buffer: 4
+trainer: {{max_steps: 3, val_check_interval: 3, limit_val_batches: 1, ckpt_every_n_steps: 3}}
+stages:
+  - name: pretrain
+    kind: pretrain
+    model:
+      family: tiny_columns
+      llm: {{hidden_size: 32, num_layers: 1, num_heads: 2, intermediate_size: 64, text_vocab_size: 300}}
+      val_samples: 3
+  - name: instruct
+    kind: instruct
+    consumes: [pretrain]
+    model: {{use_lora: false, val_samples: 3}}
+  - name: planner
+    kind: planner
+    consumes: [instruct]
+    model: {{hidden: 16}}
+  - name: distill
+    kind: distill
+    consumes: [instruct]
+    model:
+      student: {{hidden_size: 16, num_layers: 1, num_heads: 2, intermediate_size: 32}}
+      tasks: {{weights: {{car_columns: 1}}}}
+      val_samples: 3
+"""
+
+
+@pytest.fixture(scope="module")
+def tiny_run(synth_dataset, tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("plugin")
+    recipe = root / "tiny.yaml"
+    recipe.write_text(RECIPE.format(runs=root / "runs", data=synth_dataset, shards=root / "shards"))
+    res = run_cli("run", str(recipe), timeout=900)
+    assert res.returncode == 0, res.stderr[-3000:]
+    return root / "runs" / "tiny"
+
+
+@pytest.mark.slow
+def test_the_plugin_family_trains_every_stage_kind(tiny_run):
+    stages = json.loads((tiny_run / "manifest.json").read_text())["stages"]
+    assert [s["status"] for s in stages.values()] == ["done"] * 4
+    pretrain, instruct, planner, distill = (stages[n]["metrics"] for n in ("pretrain", "instruct", "planner", "distill"))
+    # Its own scorer and the shared ones it names, on its continuous scenes.
+    assert "val/car_columns_acc" in pretrain and "val/baseline_commonest_car_columns_acc" in pretrain
+    assert pretrain["val/forecast_occworld_frames_1s"] > 0 and "val/baseline_copy_forecast_occworld_mIoU_1s" in pretrain
+    assert instruct["val/qa_questions"] > 0
+    # Its own planner, beside constant velocity.
+    assert "val/head_L2_stp3_avg" in planner and "val/constant_velocity_L2_stp3_avg" in planner
+    assert distill["student_params"] < distill["teacher_params"] and "val/teacher_car_columns_acc" in distill
+    # No scene tokenizer to copy: its encoder has no weights.
+    assert not (tiny_run / "pretrain" / "export" / "scene_tokenizer").exists()
+    assert json.loads((tiny_run / "pretrain" / "export" / "config.json").read_text())["family"] == "tiny_columns"
+
+
+@pytest.mark.slow
+def test_occtrain_eval_scores_the_plugin_family(tiny_run):
+    res = run_cli("eval", str(tiny_run / "instruct"), "--tasks", "car_columns,forecasting", "--samples", "3")
+    assert res.returncode == 0, res.stderr[-3000:]
+    metrics = json.loads((tiny_run / "instruct" / "eval" / "val" / "metrics.json").read_text())
+    assert {"car_columns_acc", "forecast_occworld_mIoU_1s", "plan_alternate_L2_uniad_1s"} <= metrics.keys()
+    res = run_cli("eval", str(tiny_run / "planner"))
+    assert res.returncode == 2 and "occtrain eval scores" in res.stderr and "'planner' is a planner stage" in res.stderr
+
+
+@pytest.mark.slow
+def test_the_python_api_loads_the_plugin_familys_model(tiny_run, synth_dataset):
+    import plugins.tiny_family  # noqa: F401 - registers the family, as an installed plugin's entry point would
+
+    import occtrain
+
+    model = occtrain.load(tiny_run / "instruct" / "export")
+    assert model.family == "tiny_columns" and model.operations == ["describe_scene"]
+    clip = model.clip(synth_dataset)
+    assert model.describe_scene(clip).endswith("columns hold a car")
+    with pytest.raises(AttributeError, match="has no operation 'plan'"):
+        model.plan(clip)
+
+
+def test_an_installed_plugin_registers_through_its_entry_point(monkeypatch):
+    from importlib.metadata import EntryPoint
+
+    import occtrain.core.registry as registry
+
+    point = EntryPoint(name="tiny", value="plugins.tiny_family", group=registry.ENTRY_POINT_GROUP)
+    registry.families()  # the shipped families, found by walking occtrain.families
+    monkeypatch.setattr(registry, "entry_points", lambda group: [point] if group == registry.ENTRY_POINT_GROUP else [])
+    monkeypatch.setattr(registry, "_loaded", False)
+    monkeypatch.setitem(registry._FAMILIES, "tiny_columns", None)  # restored (removed) afterwards
+    del registry._FAMILIES["tiny_columns"]
+    import sys
+
+    monkeypatch.delitem(sys.modules, "plugins.tiny_family", raising=False)
+    families = registry.families()
+    assert "tiny_columns" in families and {"occllama", "occllm", "occvla"} <= set(families)
+    assert families["tiny_columns"].world.inputs == ()
+
+
+def test_registering_a_family_leaves_every_existing_stage_hash_unchanged(tmp_path):
+    """A stage's config hash covers only what it uses: another family, or another tokenizer
+    architecture, registered later changes no finished run's hash."""
+    from dataclasses import dataclass
+
+    from occtrain.config import load_config
+    from occtrain.config.recipe import RecipeConfig
+    from occtrain.core.registry import FamilySpec, TokenizerArch, WorldSpec, _FAMILIES, _TOKENIZERS, register_family
+    from occtrain.runner import plan_stages
+    from plugins.tiny_family import ColumnTasks, ColumnWorldModel, TASKS
+    from conftest import REPO
+
+    def hashes(recipe: str) -> dict[str, str]:
+        return {p.spec.name: p.config_hash for p in plan_stages(load_config(RecipeConfig, REPO / "stages" / recipe), recipe)}
+
+    recipes = ("quickstart.yaml", "occllm.yaml", "occvla.yaml", "occllama.yaml")
+    before = {r: hashes(r) for r in recipes}
+
+    @dataclass
+    class OtherWorld:
+        width: int = 3
+
+        def validate(self, where, inputs):
+            pass
+
+    @dataclass
+    class OtherTokenizer:
+        size: int = 4
+
+        def validate(self, where):
+            pass
+
+    try:
+        register_family(FamilySpec(
+            name="another", paper="x", tokenizers=(TokenizerArch("another_vae", OtherTokenizer, object),),
+            world=WorldSpec(model=ColumnWorldModel, task_config=ColumnTasks, tasks=TASKS, world_config=OtherWorld, inputs=()),
+        ))
+        after = {r: hashes(r) for r in recipes}
+    finally:
+        _FAMILIES.pop("another", None)
+        _TOKENIZERS.pop("another_vae", None)
+    assert after == before
