@@ -54,6 +54,8 @@ class PlannedStage:
     data: Any = None  # the recipe's DataConfig with the stage's loader keys applied
     #: The family whose parts the stage trains (None: none, e.g. a vision stage).
     family: str | None = None
+    #: Its batches carry the camera images (``Stage.camera_input``).
+    reads_cameras: bool = False
 
 
 def _flatten(d: Any, prefix: str = "") -> dict[str, Any]:
@@ -120,7 +122,8 @@ def plan_stages(recipe: RecipeConfig, source: str) -> list[PlannedStage]:
             "data": to_container(stage_data),
         }
         digest = hashlib.sha256(json.dumps(config, sort_keys=True).encode()).hexdigest()[:16]
-        planned.append(PlannedStage(spec, kind, model_cfg, trainer, config, digest, stage_data, family))
+        cameras = kind.module.camera_input(model_cfg)
+        planned.append(PlannedStage(spec, kind, model_cfg, trainer, config, digest, stage_data, family, cameras))
         names.append(spec.name)
     if not planned:
         raise ConfigError(f"{source} has no stages")
@@ -216,7 +219,7 @@ def _execute(
     ctx = StageContext(stage.spec, stage.model_cfg, stage.data, stage.trainer, stage_dir, inputs)
     module = stage.kind.build(ctx)
     entries = {split: module.entries(split) for split in ("train", "val")}
-    datamodule = ShardDataModule(stage.data, stage.kind.data_kind, entries=entries, cameras=stage.kind.module.reads_cameras)
+    datamodule = ShardDataModule(stage.data, stage.kind.data_kind, entries=entries, cameras=stage.reads_cameras)
     say = console.print if is_rank_zero() else (lambda line: None)
     ckpt = last_checkpoint(stage_dir, say=lambda line: say(f"[yellow]note[/]: {line}"))
     resume_step = checkpoint_step(ckpt) if ckpt is not None else None
@@ -251,6 +254,8 @@ def _execute(
             "checkpoints": str(stage_dir / "checkpoints"),
             "logs": str(stage_dir / "logs"),
         }
+    # Under DDP the next stage's processes read this export: none starts before rank zero wrote it.
+    trainer.strategy.barrier("export")
     return {"metrics": metrics, "artifacts": artifacts, "summary": report.summary}
 
 
@@ -313,7 +318,7 @@ def run(
 
 def refuse_without_cameras(planned: list[PlannedStage], data: DataConfig) -> None:
     """Raise (before anything is written) when a stage reads camera images the dataset lacks."""
-    readers = [p.spec.name for p in planned if p.kind.module.reads_cameras]
+    readers = [p.spec.name for p in planned if p.reads_cameras]
     if not readers:
         return
     from occtrain.data.layout import ANNOTATIONS_FILE, DatasetIndex

@@ -322,3 +322,17 @@ def meta_action_planner(ctx: Any, teacher: Any, sidecar_reference: bool = True) 
     """The planner of a planner stage (``WorldSpec.planner``) from its context."""
     where = f"stages '{ctx.spec.name}'"
     return MetaActionPlanner(ctx.model_cfg, teacher, ctx.data.root, ctx.stage_dir / "cache", where, sidecar_reference)
+
+
+def load_meta_action_planner(export_dir: Path, teacher: Any, request: Any, sidecar_reference: bool = True) -> MetaActionPlanner:
+    """A trained head back from its export, over the consumed world model (``occtrain eval``)."""
+    from occtrain.exports import load_state_strict, read_export
+
+    state, config = read_export(export_dir)
+    cfg = MetaActionPlannerConfig(
+        hidden=config["hidden"], layers=config["layers"], inputs=list(config["inputs"]), visual_width=config["visual_width"],
+        train_meta=config.get("train_meta", "ground_truth"),
+    )
+    planner = MetaActionPlanner(cfg, teacher, request.data_root, request.cache_dir, str(export_dir), sidecar_reference)
+    load_state_strict(planner.head, state, (), str(export_dir))
+    return planner.eval()

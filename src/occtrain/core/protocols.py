@@ -23,12 +23,15 @@ import torch
 
 @runtime_checkable
 class SceneEncoder(Protocol):
-    """Frozen occupancy encoder of a world model.
+    """Frozen scene encoder of a world model.
 
     ``encode`` maps label volumes Long[B, X, Y, Z] to one row per sample: with
     ``discrete``, Long[B, L] codes; otherwise Float[B, N, 3 + D], N tokens of which the
     first three channels are the token's position (metres, ego frame) and the rest its
-    features. ``decode`` maps rows back to label volumes Long[N, X, Y, Z] (how forecasts are
+    features. An encoder that reads the cameras instead (SparseOccVLA's) also has
+    ``encode_samples(index, samples) -> rows`` for ``(scene, token)`` samples of a
+    ``DatasetIndex``; the engine then always encodes through it, once per dataset.
+    ``decode`` maps rows back to label volumes Long[N, X, Y, Z] (how forecasts are
     scored). ``export_dir`` is the directory a world-model export copies (None: nothing
     to copy, the encoder is rebuilt from the world model's settings).
     """
@@ -62,7 +65,9 @@ class Scorer(Protocol):
 @runtime_checkable
 class EvalHook(Protocol):
     """Family-level scoring after the tasks' (e.g. an occupancy query branch), on the
-    clips of the first evaluated task. ``applies(engine)``: whether it runs at all."""
+    clips of the first evaluated task, or with a class attribute ``clips = "future"`` on
+    every frame with a whole 3 s future (a forecast head's). ``applies(engine)``: whether
+    it runs at all."""
 
     metrics: dict[str, Callable[[], Any]]
 

@@ -36,11 +36,22 @@ ENTRY_POINT_GROUP = "occtrain.families"
 
 @dataclass(frozen=True)
 class TokenizerArch:
-    """A scene-tokenizer architecture: ``model.arch`` name, config dataclass, model class."""
+    """A scene-tokenizer architecture: ``model.arch`` name, config dataclass, model class.
+
+    Most read occupancy (``model(semantics)`` in training). One that reads the cameras
+    (``reads_cameras``) is called as ``model(batch, index, teacher)`` with the frames batch
+    (images and calibration beside the labels it learns), the dataset index (other frames
+    of the clip) and the frozen encoder of a consumed stage of a kind in ``teachers`` (a
+    feature-distillation teacher, None when the recipe gives none; the model's
+    ``attach_teacher(width)`` is called first, before its optimizer is made).
+    """
 
     name: str
     config: type
     model: type
+    reads_cameras: bool = False
+    #: Stage kinds a tokenizer stage of this architecture may consume as its teacher.
+    teachers: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -74,6 +85,9 @@ class WorldSpec:
     planner: Callable[..., Any] | None = None
     #: The planner's settings (``model.head`` of a planner stage), a dataclass.
     planner_config: type | None = None
+    #: ``(export dir, teacher engine, eval request) -> Planner``: a trained planner back from
+    #: its export, for ``occtrain eval`` (None: its planner stages are not scored by eval).
+    load_planner: Callable[..., Any] | None = None
     #: Operations of the Python API (``occtrain.load``), name -> ``(engine, **kwargs) -> result``.
     operations: Mapping[str, Callable[..., Any]] = field(default_factory=dict)
 
@@ -230,19 +244,23 @@ def build_tokenizer(arch: str, cfg: Any) -> Any:
 
 
 def save_tokenizer(model: Any, arch: str, cfg: dict, export_dir: Path) -> Path:
-    """Write a tokenizer export: weights, ``arch`` and its config, and the codebook layout
-    (size, latent grid) that a world model's joint vocabulary is laid out from."""
+    """Write a tokenizer export: weights, ``arch`` and its config, and what a world model's
+    joint vocabulary is laid out from: the codebooks (sizes, latent grid) of a discrete
+    tokenizer, the token count and width of a continuous one."""
+    if getattr(model, "discrete", True):
+        layout = {"num_codes": int(model.num_codes), "codebook_sizes": model.codebook_sizes, "latent_hw": list(model.latent_hw)}
+    else:
+        layout = {"discrete": False, "tokens": int(model.num_tokens), "token_dim": int(model.token_dim)}
     config = {
         "stage_kind": "tokenizer",
         "arch": arch,
         "config": cfg,
-        "num_codes": int(model.num_codes),
-        "codebook_sizes": model.codebook_sizes,
-        "latent_hw": list(model.latent_hw),
+        **layout,
         "params": count_parameters(model),
         "label_convention": "occ3d",
     }
-    return write_export(export_dir, model.state_dict(), config)
+    # A training-only branch (a distillation head) is left out where the model says so.
+    return write_export(export_dir, getattr(model, "export_state_dict", model.state_dict)(), config)
 
 
 def load_tokenizer(export_dir: Path) -> Any:

@@ -10,6 +10,8 @@ Ids, in order::
     4 specials             <occ> </occ> <act> </act>
     [.., +Q)               <scene_q_0> ...: learnable scene queries, one per scene token
     (+1)                   <image>: an image token's placeholder (vision-language models only)
+    [.., +E)               a family's own tokens, by name (SparseOccVLA's global scene
+                           queries and ego-state token), whose embeddings it computes
 
 Scene tokens come in two layouts. Codes (OccLLaMA, ``patch=0``): one token per latent cell
 and codebook, ``<occ_k>`` for code k of the first codebook, ``<occ{i}_k>`` for codebook i
@@ -50,13 +52,15 @@ class JointVocab:
         text_size: int | None = None,
         patch: int = 0,
         image: bool = False,
+        extra: Sequence[str] = (),
     ):
         """``codebook_sizes``: the scene tokenizer's codebooks (an int for one); ``patch``: 0
         for the codes layout, else the patch side of the patches layout (module docstring).
         ``text_size`` is T of the layout; by default the tokenizer's size before any of
         the joint tokens are added (give it when the tokenizer already holds them).
         ``image``: add one ``<image>`` token last, the placeholder of an image token whose
-        embedding a vision-language model computes from its payload (OccVLA)."""
+        embedding a vision-language model computes from its payload (OccVLA). ``extra``: a
+        family's own tokens (``<global_0>``, ...), laid out last in this order."""
         cfg = llm_cfg or LLMConfig()
         validate_llm_config(cfg)
         self.tokenizer = text_tokenizer
@@ -80,7 +84,18 @@ class JointVocab:
         (xl, xh), (yl, yh) = cfg.action_range
         self.quantizer = ActionQuantizer(self.bins, (float(xl), float(yl)), (float(xh), float(yh)))
         self.text_size = len(text_tokenizer) if text_size is None else int(text_size)
+        self.image = bool(image)
+        self.extra = tuple(str(name) for name in extra)
+        self._lay_out_ids()
+        self._register_tokens()
 
+        self.eos_id = int(text_tokenizer.eos_token_id)
+        self.bos_id = int(text_tokenizer.bos_token_id if text_tokenizer.bos_token_id is not None else self.eos_id)
+        pad = text_tokenizer.pad_token_id
+        self.pad_id = int(pad if pad is not None else self.eos_id)
+
+    def _lay_out_ids(self) -> None:
+        """The id ranges after the text tokens, in the order of the module docstring."""
         self.occ_start = self.text_size
         self.act_x_start = self.occ_start + self.num_codes
         self.act_y_start = self.act_x_start + self.bins
@@ -89,15 +104,9 @@ class JointVocab:
         self.act_open_id = self.occ_open_id + 2
         self.act_close_id = self.occ_open_id + 3
         self.query_start = self.occ_open_id + 4
-        self.image = bool(image)
         self.image_id = self.query_start + self.scene_len if self.image else -1
-        self.size = self.query_start + self.scene_len + int(self.image)
-        self._register_tokens()
-
-        self.eos_id = int(text_tokenizer.eos_token_id)
-        self.bos_id = int(text_tokenizer.bos_token_id if text_tokenizer.bos_token_id is not None else self.eos_id)
-        pad = text_tokenizer.pad_token_id
-        self.pad_id = int(pad if pad is not None else self.eos_id)
+        self.extra_start = self.query_start + self.scene_len + int(self.image)
+        self.size = self.extra_start + len(self.extra)
 
     def _scene_token_names(self) -> list[str]:
         if self.patch:
@@ -112,6 +121,7 @@ class JointVocab:
             + [OCC_OPEN, OCC_CLOSE, ACT_OPEN, ACT_CLOSE]
             + [f"<scene_q_{j}>" for j in range(self.scene_len)]
             + ([IMAGE] if self.image else [])
+            + list(self.extra)
         )
         if len(self.tokenizer) == self.text_size:
             self.tokenizer.add_tokens(names, special_tokens=True)
@@ -233,6 +243,13 @@ class JointVocab:
     def is_image(self, ids: torch.Tensor) -> torch.Tensor:
         return ids == self.image_id
 
+    def extra_id(self, name: str) -> int:
+        """The id of the family's own token ``name`` (see ``extra``)."""
+        return self.extra_start + self.extra.index(name)
+
+    def is_extra(self, ids: torch.Tensor) -> torch.Tensor:
+        return ids >= self.extra_start
+
     # -- export
     def to_json(self) -> dict:
         """What ``from_json`` needs besides the (saved) text tokenizer."""
@@ -241,6 +258,7 @@ class JointVocab:
             "codebook_sizes": list(self.codebook_sizes),
             "patch": self.patch,
             "image": self.image,
+            "extra": list(self.extra),
             "scene_hw": list(self.scene_hw),
             "action_bins": self.bins,
             "action_range": [[float(lo), float(hi)] for lo, hi in zip(self.quantizer.low.tolist(), self.quantizer.high.tolist())],
@@ -252,5 +270,5 @@ class JointVocab:
         cfg = LLMConfig(action_bins=int(data["action_bins"]), action_range=[list(r) for r in data["action_range"]])
         sizes = data.get("codebook_sizes", [data.get("num_codes", 0)])  # exports before multi-codebook vocabularies
         return cls(text_tokenizer, sizes, tuple(data["scene_hw"]), cfg, text_size=data["text_size"], patch=int(data.get("patch", 0)),
-            image=bool(data.get("image", False)),
+            image=bool(data.get("image", False)), extra=tuple(data.get("extra", ())),
         )

@@ -63,6 +63,9 @@ class LMWorldModel(nn.Module):
     frame_separation = True
     #: Its prompts hold scenes (through the engine's scene encoder): the engine caches them.
     reads_scenes = True
+    #: Under a LoRA adapter its own parts (everything but the LLM) train too; by default
+    #: only the adapter does.
+    trains_own_parts_with_lora = False
 
     def __init__(self, llm: nn.Module, vocab: JointVocab, scene_prediction: str = "next_scene"):
         super().__init__()

@@ -60,6 +60,9 @@ def scorable(tasks: dict[str, TaskSpec], weights: dict[str, float] | None = None
     return [t for t, spec in tasks.items() if scorer_factories(spec) and (weights is None or weights.get(t, 0) > 0)]
 
 
+#: What a hook sets ``clips`` to for every frame with a whole 3 s future (not the first task's clips).
+FUTURE_CLIPS = "future"
+
 #: Dashboard samples kept per validation: texts per task (chains of thought are long),
 #: pictures per kind.
 TEXTS_PER_TASK = {"qa": 4, "cot": 2, "meta_action": 2}
@@ -184,13 +187,28 @@ class Evaluator(torch.nn.Module):
                 self.update(engine, chunk, self._batch(engine, index, chunk, task), tasks=[task])
                 if advance is not None:
                     advance(len(chunk))
-        hooks = [h for h in self.hooks if h.applies(engine)]
-        if self.tasks and hooks:
-            clips = self._task_clips(engine, index, split, self.tasks[0], samples, seed)[rank::world]
-            for hook in hooks:
-                hook.run(self, engine, clips)
+        for hook in self._hooks(engine):
+            clips = self._hook_clips(engine, index, split, hook, samples, seed)[rank::world]
+            hook.run(self, engine, clips)
             if advance is not None:
                 advance(len(clips))
+
+    def _hooks(self, engine: WorldModelEngine) -> list:
+        """The hooks that run: those that apply, and that have clips (a hook on the first
+        task's clips runs only beside a task)."""
+        return [h for h in self.hooks if h.applies(engine) and (self.tasks or getattr(h, "clips", "") == FUTURE_CLIPS)]
+
+    def _hook_clips(self, engine, index, split, hook, samples, seed) -> list[Clip]:
+        """A hook's clips: with ``clips = "future"`` every frame with a whole 3 s future (a
+        fixed subset of ``samples`` of them), else the first evaluated task's."""
+        if getattr(hook, "clips", "") != FUTURE_CLIPS:
+            return self._task_clips(engine, index, split, self.tasks[0], samples, seed)
+        key = (split, FUTURE_CLIPS, samples, seed, engine.tasks.context_frames)
+        if key not in self._clip_cache:
+            clips = evaluation_clips(index, split, FUTURE_CLIPS, engine.tasks.context_frames)
+            chosen = fixed_subset([c.anchor["token"] for c in clips], samples, seed)
+            self._clip_cache[key] = [c for c in clips if c.anchor["token"] in chosen]
+        return self._clip_cache[key]
 
     def _task_clips(self, engine, index, split, task, samples, seed) -> list[Clip]:
         key = (split, task, samples, seed, engine.tasks.context_frames)
@@ -220,9 +238,7 @@ class Evaluator(torch.nn.Module):
         index = DatasetIndex.open(data_root)
         rank, world = rank_world()
         total = sum(len(self._task_clips(engine, index, split, t, samples, seed)[rank::world]) for t in self.tasks)
-        if self.tasks and any(h.applies(engine) for h in self.hooks):
-            total += len(self._task_clips(engine, index, split, self.tasks[0], samples, seed)[rank::world])
-        return total
+        return total + sum(len(self._hook_clips(engine, index, split, h, samples, seed)[rank::world]) for h in self._hooks(engine))
 
     def compute(self, prefix: str) -> dict[str, float]:
         """Every metric that saw samples, flattened under ``prefix`` (e.g. ``val/qa_overall``)."""

@@ -98,6 +98,7 @@ class WorldModelEngine(torch.nn.Module):
         self.scene_cache: dict[str, torch.Tensor] | None = None
         self.image_cache: dict[str, torch.Tensor] | None = None
         self.data_index: DatasetIndex | None = None
+        self._scene_cache_root: Path | None = None
 
     @property
     def vocab(self) -> JointVocab:
@@ -123,6 +124,10 @@ class WorldModelEngine(torch.nn.Module):
         """Whether a batch must carry label volumes for the prompts' scenes (no cache)."""
         return self.reads_scenes() and self.scene_cache is None
 
+    def scenes_from_cameras(self) -> bool:
+        """Whether the scene encoder reads the cameras (its rows come from ``encode_samples``)."""
+        return self.scene_encoder is not None and hasattr(self.scene_encoder, "encode_samples")
+
     @torch.no_grad()
     def scenes(self, batch: dict, needed: list[set[int]]) -> dict[tuple[int, int], torch.Tensor]:
         """The scene-encoder row of each clip frame a sample needs: from the cache when
@@ -138,26 +143,33 @@ class WorldModelEngine(torch.nn.Module):
     def prepare_inputs(self, data_root: str | Path, cache_dir: Path | None = None) -> None:
         """Encode once what the prompts read through a frozen encoder (the camera views of a
         model that reads them; the scenes of one whose prompts hold scenes), cached in
-        ``cache_dir`` (in memory only without one; scenes only with one)."""
+        ``cache_dir`` (in memory only without one; scenes only with one, unless the scene
+        encoder reads the cameras: its scenes are always encoded ahead)."""
         self.data_index = DatasetIndex.open(data_root)
         if self.vision is not None:
             self.prepare_images(data_root, cache_dir / IMAGE_CACHE if cache_dir is not None else None)
-        if self.reads_scenes() and cache_dir is not None:
-            self.build_scene_cache(data_root, cache_dir / SCENE_CACHE)
+        if self.reads_scenes() and (cache_dir is not None or self.scenes_from_cameras()):
+            self.build_scene_cache(data_root, cache_dir / SCENE_CACHE if cache_dir is not None else None)
 
     @torch.no_grad()
-    def build_scene_cache(self, data_root: str | Path, cache_file: Path, batch_size: int = 8) -> None:
+    def build_scene_cache(self, data_root: str | Path, cache_file: Path | None, batch_size: int = 8) -> None:
         """Encode every frame of the dataset once (the encoder is frozen), kept in
-        ``cache_file`` (safetensors, written atomically) so a resumed stage reuses it."""
+        ``cache_file`` (safetensors, written atomically) so a resumed stage reuses it; in
+        memory only without one. A no-op when this dataset's scenes are encoded already."""
         index = DatasetIndex.open(data_root)
+        if self.scene_cache is not None and self._scene_cache_root == index.root:
+            return
         encoder = self.scene_encoder
 
         def encode(chunk: list[tuple[str, str]]) -> torch.Tensor:
+            if self.scenes_from_cameras():
+                return encoder.encode_samples(index, chunk).float()
             sem = torch.from_numpy(np.stack([index.labels(s, t)["semantics"] for s, t in chunk])).long()
             rows = encoder.encode(sem)
             return rows.to(torch.int32) if encoder.discrete else rows.float()
 
         self.scene_cache = per_sample_cache(index, cache_file, "encoding scenes with the frozen scene encoder", encode, batch_size)
+        self._scene_cache_root = index.root
 
     @torch.no_grad()
     def decode_scenes(self, scenes: torch.Tensor) -> torch.Tensor:

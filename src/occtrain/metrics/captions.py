@@ -12,7 +12,10 @@ from __future__ import annotations
 import contextlib
 import io
 import json
+import os
 import shutil
+import sys
+import tempfile
 from typing import Any, Sequence
 
 import torch
@@ -46,6 +49,26 @@ def _gather_bytes(tensor: Tensor, group: Any = None) -> list[Tensor]:
     return gather_all_tensors(tensor.to(torch.uint8), group=group)
 
 
+@contextlib.contextmanager
+def _java_stderr_kept_aside() -> Any:
+    """The PTB tokeniser's Java process reports its speed on the inherited stderr at every
+    call; keep that out of a run's log, and show it only if the tokeniser fails."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    with tempfile.TemporaryFile() as held:
+        os.dup2(held.fileno(), 2)
+        try:
+            yield
+        except BaseException:
+            os.dup2(saved, 2)
+            held.seek(0)
+            sys.stderr.write(held.read().decode(errors="replace"))
+            raise
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+
+
 def coco_caption_scores(predictions: dict[str, str], references: dict[str, list[str]]) -> dict[str, float]:
     """pycocoevalcap's BLEU-1..4, METEOR, ROUGE-L and CIDEr-D for ``{id: caption}`` against ``{id: [refs]}``."""
     if shutil.which("java") is None:
@@ -63,8 +86,9 @@ def coco_caption_scores(predictions: dict[str, str], references: dict[str, list[
         raise OcctrainError("caption metrics need pycocoevalcap: `pip install pycocoevalcap` (or `pip install -e '.[dev]'`)") from None
     ids = list(references)
     tokenizer = PTBTokenizer()
-    gts = tokenizer.tokenize({i: [{"caption": r} for r in references[i]] for i in ids})
-    res = tokenizer.tokenize({i: [{"caption": predictions[i]}] for i in ids})
+    with _java_stderr_kept_aside():
+        gts = tokenizer.tokenize({i: [{"caption": r} for r in references[i]] for i in ids})
+        res = tokenizer.tokenize({i: [{"caption": predictions[i]}] for i in ids})
     scores: dict[str, float] = {}
     with contextlib.redirect_stdout(io.StringIO()):  # Bleu prints its length ratios
         bleu, _ = Bleu(4).compute_score(gts, res)

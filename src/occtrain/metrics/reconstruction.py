@@ -25,12 +25,14 @@ class ReconstructionMetrics(torch.nn.Module):
         })
         self.usage = torch.nn.ModuleDict({name: CodebookUsage(size) for name, size in codebooks.items()})
 
-    def update(self, pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor, codes: torch.Tensor) -> None:
+    def update(self, pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor, codes: torch.Tensor | None = None) -> None:
         """Label volumes (B, X, Y, Z), ``mask_camera``, and the codes: (B, h, w) for one
-        codebook, (B, codebooks, h, w) for several."""
+        codebook, (B, codebooks, h, w) for several, None for a continuous encoder."""
         self.scores["occworld"].update(pred, target)
         self.scores["occ3d"].update(pred, target, mask)
         self.scores["baseline_free_occworld"].update(torch.full_like(target, FREE), target)
+        if codes is None:
+            return
         grids = codes if codes.dim() == 4 else codes[:, None]
         for i, usage in enumerate(self.usage.values()):
             usage.update(grids[:, i])

@@ -146,6 +146,12 @@ class Stage(L.LightningModule, ABC):
         """Refuse, before anything runs, a stage whose family cannot do what it is asked."""
 
     @classmethod
+    def camera_input(cls, model: Any) -> bool:
+        """Whether a stage of this kind with the validated ``model:`` reads the camera
+        images (its batches then carry them): by default the kind's ``reads_cameras``."""
+        return cls.reads_cameras
+
+    @classmethod
     def evaluate_export(cls, request: EvalRequest) -> EvalResult:
         """Score an export of this kind (``occtrain eval``); kinds with ``evaluable`` implement it."""
         raise NotImplementedError

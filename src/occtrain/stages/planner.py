@@ -17,12 +17,16 @@ import torch
 
 from occtrain.config import to_object
 from occtrain.core.registry import get_world
-from occtrain.data.clips import clips_from_batch
+from occtrain.data.clips import clips_from_batch, frame_clips
+from occtrain.data.layout import DatasetIndex
 from occtrain.engine import TEXT_ENTRIES, load_world_model
+from occtrain.engine.evaluator import fixed_subset
 from occtrain.errors import ConfigError
 from occtrain.exports import read_config
+from occtrain.occ3d import FUTURE_STEPS
+from occtrain.progress import progress_bar
 from occtrain.stages import StageKind, register
-from occtrain.stages.base import Stage, StageContext, StageReport
+from occtrain.stages.base import EvalRequest, EvalResult, Stage, StageContext, StageReport
 from occtrain.stages.common import configure_adamw
 
 
@@ -115,6 +119,29 @@ class PlannerStage(Stage):
 
     def export(self, path: Path) -> Path:
         return self.planner.export(path)
+
+    evaluable = True
+
+    @classmethod
+    @torch.no_grad()
+    def evaluate_export(cls, request: EvalRequest) -> EvalResult:
+        """The trained planner on every frame of the split with a whole 3 s future (or a
+        fixed subset of ``samples``), over the consumed world model, beside its baselines."""
+        teacher = load_world_model(request.consumed[0]).eval()
+        world = get_world(teacher.family)
+        if world.load_planner is None:
+            raise ConfigError(f"{request.export}: occtrain eval cannot rebuild a '{teacher.family}' planner; its validation metrics are in metrics.json")
+        teacher.prepare_inputs(request.data_root, request.cache_dir)
+        planner = world.load_planner(request.export, teacher, request)
+        clips = list(frame_clips(DatasetIndex.open(request.data_root), request.split, teacher.tasks.context_frames, FUTURE_STEPS, partial_history=False))
+        chosen = fixed_subset([c.anchor["token"] for c in clips], request.samples)
+        clips = [c for c in clips if c.anchor["token"] in chosen]
+        with progress_bar(len(clips), f"planning {len(clips)} {request.split} frames") as advance:
+            for i in range(0, len(clips), request.batch_size):
+                planner.validate(clips[i : i + request.batch_size], i // request.batch_size)
+                advance(len(clips[i : i + request.batch_size]))
+        metrics = planner.compute(request.split)
+        return EvalResult({k.removeprefix(f"{request.split}/"): v for k, v in metrics.items()})
 
 
 PLANNER = register(

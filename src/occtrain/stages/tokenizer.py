@@ -1,11 +1,13 @@
 """Stage kind ``tokenizer``: train a scene tokenizer of any registered architecture on single frames.
 
-The architectures (OccWorld's VQ-VAE, OccLLaMA's tokenizer, ...) come from the families'
-registrations; ``model.arch`` picks one and ``model.<arch>`` holds its settings. Validation
-reports reconstruction mIoU/IoU in both conventions, labelled: OccWorld (what tokenizer
-tables report: all voxels) and Occ3D (camera-visible voxels only). The export holds the
-weights, the architecture's config and the codebook size, which the pretraining stage
-needs to lay out its joint vocabulary.
+The architectures (OccWorld's VQ-VAE, OccLLaMA's tokenizer, SparseOccVLA's camera-reading
+sparse occupancy encoder, ...) come from the families' registrations; ``model.arch`` picks
+one and ``model.<arch>`` holds its settings. An architecture that reads the cameras gets the
+frames' images and may consume a vision stage, whose frozen encoder is its distillation
+teacher. Validation reports reconstruction mIoU/IoU in both conventions, labelled: OccWorld
+(what tokenizer tables report: all voxels) and Occ3D (camera-visible voxels only). The
+export holds the weights, the architecture's config and the layout (codebooks, or tokens
+and their width) that the pretraining stage lays its joint vocabulary out from.
 """
 
 from __future__ import annotations
@@ -14,16 +16,18 @@ from dataclasses import dataclass, field, make_dataclass
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import torch
 from omegaconf import MISSING
 
 from occtrain.config import to_container
-from occtrain.core.registry import load_tokenizer, save_tokenizer, tokenizer_archs, tokenizer_config, tokenizer_family
+from occtrain.core.registry import TokenizerArch, load_tokenizer, save_tokenizer, tokenizer_archs, tokenizer_config, tokenizer_family
+from occtrain.data.frames import frames_batch
 from occtrain.data.layout import DatasetIndex
 from occtrain.errors import ConfigError
 from occtrain.metrics.reconstruction import ReconstructionMetrics
 from occtrain.models import count_parameters
+from occtrain.models.tokenizers.base import TokenizerOutput
+from occtrain.models.vision import load_vision_encoder
 from occtrain.progress import progress_bar
 from occtrain.stages import StageKind, register
 from occtrain.stages.base import EvalRequest, EvalResult, Stage, StageContext, StageReport
@@ -37,10 +41,26 @@ class TokenizerModelConfig:
     arch: str = MISSING
 
 
+def _arch_of(model: Any) -> TokenizerArch | None:
+    return tokenizer_archs().get(str(model["arch"] if isinstance(model, dict) else getattr(model, "arch", "")))
+
+
+def reconstruction_metrics(model: Any) -> ReconstructionMetrics:
+    """Both conventions, an empty scene as the baseline, code use per codebook (motion and
+    static for the MS-VAE; none for a continuous encoder)."""
+    if not getattr(model, "discrete", True):
+        return ReconstructionMetrics({})
+    return ReconstructionMetrics(dict(zip(model.codebook_names, model.codebook_sizes)))
+
+
 class TokenizerStage(Stage):
     """Trains a scene tokenizer with its own losses; validates reconstruction IoU."""
 
     evaluable = True
+    #: A vision stage: the distillation teacher of an architecture that takes one.
+    consumes_kinds = ("vision",)
+    consumes_count = (0, 1)
+    frozen_prefixes = ("teacher.",)
 
     @classmethod
     def family_of(cls, model: dict, consumed: dict[str, Any]) -> str | None:
@@ -61,6 +81,11 @@ class TokenizerStage(Stage):
         if family is None:
             raise ConfigError(f"{where}: model.arch is missing; tokenizer architectures are {', '.join(tokenizer_archs())}")
 
+    @classmethod
+    def camera_input(cls, model: Any) -> bool:
+        arch = _arch_of(model)
+        return bool(arch is not None and arch.reads_cameras)
+
     def __init__(self, ctx: StageContext):
         super().__init__(ctx)
         cfg = ctx.model_cfg
@@ -68,19 +93,44 @@ class TokenizerStage(Stage):
         if cfg.arch not in archs:
             raise ConfigError(f"stages '{ctx.spec.name}': model.arch '{cfg.arch}' is not one of {', '.join(archs)}")
         arch_cfg = tokenizer_config(cfg.arch, cfg[cfg.arch], f"stages '{ctx.spec.name}'.model.{cfg.arch}")
+        self.arch = archs[cfg.arch]
         self.arch_cfg = to_container(cfg[cfg.arch])
-        self.model = archs[cfg.arch].model(arch_cfg)
+        self.model = self.arch.model(arch_cfg)
         freeze_prefixes(self.model, list(ctx.spec.freeze))
-        #: Both conventions, an empty scene as the baseline, code use per codebook (motion and static for the MS-VAE).
-        self.recon = ReconstructionMetrics(dict(zip(self.model.codebook_names, self.model.codebook_sizes)))
+        self.teacher = self._teacher(ctx)
+        if self.teacher is not None:
+            self.model.attach_teacher(self.teacher.hidden_size)
+        self.index = DatasetIndex.open(ctx.data.root) if self.arch.reads_cameras else None
+        self.recon = reconstruction_metrics(self.model)
         self.val_means = ValidationMeans("val/loss")
         self._pictures: list[tuple] = []
 
+    def _teacher(self, ctx: StageContext) -> torch.nn.Module | None:
+        """The frozen encoder of the consumed vision stage (a distillation teacher), or None."""
+        where = f"stages '{ctx.spec.name}'"
+        if not ctx.inputs:
+            return None
+        if "vision" not in self.arch.teachers:
+            raise ConfigError(f"{where}: a {ctx.model_cfg.arch} tokenizer takes no teacher; remove its consumes")
+        return load_vision_encoder(next(iter(ctx.inputs.values())))
+
+    def forward(self, batch: dict[str, Any]) -> TokenizerOutput:
+        """One pass of the tokenizer over a frames batch: the labels, or for an architecture
+        that reads the cameras the whole batch with the dataset and the teacher."""
+        if self.arch.reads_cameras:
+            return self.model(batch, self.index, self.teacher)
+        return self.model(batch["semantics"].long())
+
+    def train(self, mode: bool = True) -> TokenizerStage:
+        super().train(mode)
+        if self.teacher is not None:
+            self.teacher.eval()  # frozen
+        return self
+
     # -- training
     def training_step(self, batch: dict[str, Any], batch_idx: int) -> torch.Tensor:
-        sem = batch["semantics"].long()
-        out = self.model(sem)
-        bs = sem.shape[0]
+        out = self({**batch, "seed": self.step_seed(self.global_step)})
+        bs = batch["semantics"].shape[0]
         for name, value in out.losses.items():
             self.log(f"train/{name}", value, batch_size=bs, prog_bar=name == "loss")
         for name, value in out.stats.items():
@@ -89,8 +139,8 @@ class TokenizerStage(Stage):
 
     def validation_step(self, batch: dict[str, Any], batch_idx: int) -> None:
         sem = batch["semantics"].long()
-        out = self.model(sem)
-        pred = out.logits.argmax(1)
+        out = self({**batch, "seed": self.ctx.data.seed})
+        pred = out.prediction()
         if batch_idx == 0:  # kept for the dashboard's ground truth vs reconstruction pictures
             self._pictures = [(sem[i].to(torch.uint8).cpu().numpy(), pred[i].to(torch.uint8).cpu().numpy()) for i in range(min(2, len(sem)))]
         self.recon.update(pred, sem, batch["mask_camera"], out.codes)
@@ -124,19 +174,22 @@ class TokenizerStage(Stage):
         the ``occworld`` and ``occ3d`` conventions, beside an empty scene, and each
         codebook's usage and perplexity over the split."""
         model = load_tokenizer(request.export)
+        arch = tokenizer_archs()[model.arch]
         index = DatasetIndex.open(request.data_root)
         frames = [(scene, token) for scene in index.splits.get(request.split, []) for token in index.scenes[scene]]
         frames = frames if request.samples < 0 else frames[: request.samples]
-        recon = ReconstructionMetrics(dict(zip(model.codebook_names, model.codebook_sizes)))
+        recon = reconstruction_metrics(model)
         size = request.batch_size
         with progress_bar(len(frames), f"reconstructing {len(frames)} {request.split} frames") as advance:
             for i in range(0, len(frames), size):
-                labels = [index.labels(scene, token) for scene, token in frames[i : i + size]]
-                sem = torch.from_numpy(np.stack([x["semantics"] for x in labels])).long()
-                mask = torch.from_numpy(np.stack([x["mask_camera"] for x in labels])).bool()
-                codes = model.encode(sem)
-                recon.update(model.decode(codes).argmax(1), sem, mask, codes)
-                advance(len(labels))
+                batch = frames_batch(index, frames[i : i + size], cameras=arch.reads_cameras)
+                sem = batch["semantics"].long()
+                if arch.reads_cameras:
+                    recon.update(model(batch, index, None).prediction(), sem, batch["mask_camera"])
+                else:
+                    codes = model.encode(sem)
+                    recon.update(model.decode(codes).argmax(1), sem, batch["mask_camera"], codes)
+                advance(len(frames[i : i + size]))
         return EvalResult({"frames": float(len(frames)), **recon.compute()})
 
 

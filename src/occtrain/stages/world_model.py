@@ -126,6 +126,10 @@ class WorldModelStage(Stage):
             world.llm.requires_grad_(False)
             world.requires_grad_(False)
             world.llm = apply_lora(world.llm, cfg.lora)
+            if world.trains_own_parts_with_lora:  # the family's own parts train beside the adapter
+                for name, p in world.named_parameters():
+                    if not name.startswith("llm."):
+                        p.requires_grad_(True)
         if cfg.use_adapters:
             # The LM's own weights freeze; its adapters and the model's own parts (image
             # projector, occupancy queries and projector) train.

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from functools import partial
 
-from occtrain.core.planning import MetaActionPlannerConfig, meta_action_planner
+from occtrain.core.planning import MetaActionPlannerConfig, load_meta_action_planner, meta_action_planner
 from occtrain.core.registry import FamilySpec, TokenizerArch, WorldSpec, register_family
 from occtrain.core.scene import load_vq_scene_encoder, vq_scene_encoder
 from occtrain.families.occllama.config import OccLLaMATokenizerConfig
@@ -31,6 +31,7 @@ OCCLLAMA = register_family(
             # OccVLA's MLP head on the meta action its chain of thought ends with (the sidecar's in training).
             planner=partial(meta_action_planner, sidecar_reference=True),
             planner_config=MetaActionPlannerConfig,
+            load_planner=partial(load_meta_action_planner, sidecar_reference=True),
             operations=OPERATIONS,
         ),
         paper_figures=PAPER_FIGURES,

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from functools import partial
 
-from occtrain.core.planning import MetaActionPlannerConfig, meta_action_planner
+from occtrain.core.planning import MetaActionPlannerConfig, load_meta_action_planner, meta_action_planner
 from occtrain.core.registry import FamilySpec, WorldSpec, register_family
 from occtrain.core.scene import load_vq_scene_encoder, vq_scene_encoder
 from occtrain.families.occvla.config import OccVLAWorldConfig
@@ -43,6 +43,7 @@ OCCVLA = register_family(
             # Stage 3: the MLP head on the meta action it labels from the poses.
             planner=partial(meta_action_planner, sidecar_reference=False),
             planner_config=MetaActionPlannerConfig,
+            load_planner=partial(load_meta_action_planner, sidecar_reference=False),
             operations=OPERATIONS,
         ),
         paper_figures=PAPER_FIGURES,

@@ -19,13 +19,20 @@ class TokenizerOutput:
     logits: (B, 18, 200, 200, 16) class scores whose argmax is the reconstruction;
     losses: ``loss`` (the total that is optimised) and its weighted-in parts;
     stats: scalar tensors to log (codebook usage fraction, perplexity);
-    codes: (B, h, w) token ids.
+    codes: (B, h, w) token ids (None for a continuous encoder);
+    labels: the reconstruction (B, 200, 200, 16) itself, when it is not the argmax of
+    ``logits`` (a point-set encoder voxelizes its points).
     """
 
-    logits: torch.Tensor
+    logits: torch.Tensor | None
     losses: dict[str, torch.Tensor]
     stats: dict[str, torch.Tensor]
-    codes: torch.Tensor
+    codes: torch.Tensor | None
+    labels: torch.Tensor | None = None
+
+    def prediction(self) -> torch.Tensor:
+        """The reconstructed label volumes (B, 200, 200, 16)."""
+        return self.labels if self.labels is not None else self.logits.argmax(1)
 
 
 class SceneTokenizer(nn.Module):

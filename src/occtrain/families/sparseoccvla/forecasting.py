@@ -1,0 +1,79 @@
+"""Scoring SparseOccVLA's forecaster and encoder (an evaluation hook): the points of each
+future frame voxelized into the Occ3D grid and scored in the OccWorld convention (every
+voxel: no camera mask, as the paper states), at 1 / 2 / 3 s, on every frame with a whole
+3 s future and, separately, with the paper's frames (the first five and last seven of each
+scene left out); beside copying the exact current scene and copying the encoder's own
+reconstruction of it (OccWorld's Copy&Paste), on the same samples. The encoder's
+reconstruction of the current frame is scored too (Table 8's "Curr")."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import torch
+
+from occtrain.data.clips import Clip, Text
+from occtrain.families.sparseoccvla.tasks import FORECAST_PROMPT, context
+from occtrain.metrics import ForecastMetric, OccupancyMetric
+from occtrain.metrics.occupancy import OCC3D, OCCWORLD
+from occtrain.models.point_sets import voxelize
+from occtrain.occ3d import FREE, FUTURE_STEPS, MOVABLE_CLASSES
+
+#: The paper's forecast frames: a scene's first five and last seven are left out (Sec. 4.1).
+SKIP_FIRST, SKIP_LAST = 5, 7
+#: The two clip selections each forecast number is reported on.
+SELECTIONS = ("", "trimmed_")
+PREDICTIONS = ("forecast", "baseline_copy_forecast", "baseline_copy_reconstruction_forecast")
+
+
+def paper_frame(position: int, scene_frames: int) -> bool:
+    """Whether frame ``position`` of a scene of ``scene_frames`` counts in the paper's forecast mIoU."""
+    return SKIP_FIRST <= position < scene_frames - SKIP_LAST
+
+
+class ForecastHead:
+    """The forecaster on every frame with a whole future (see the module docstring)."""
+
+    clips = "future"
+    metrics = {
+        **{f"{what}_{sel}{OCCWORLD}": ForecastMetric for what in PREDICTIONS for sel in SELECTIONS},
+        "reconstruction_occworld": lambda: OccupancyMetric(OCCWORLD, subsets={"movable": MOVABLE_CLASSES}),
+        "reconstruction_occ3d": lambda: OccupancyMetric(OCC3D),
+    }
+
+    def applies(self, engine: Any) -> bool:
+        return engine.tasks.weights.get("forecast", 0) > 0
+
+    @torch.no_grad()
+    def run(self, ev: Any, engine: Any, clips: list[Clip]) -> None:
+        index, dev = ev.index, ev.device
+        world = engine.world
+        for clip in clips:
+            token, a = clip.anchor["token"], clip.anchor_index
+            scene = index.scene_of(token)
+            rows = engine.scene_cache[token]
+            steps = world.forecast(engine.encode_parts([*context(clip, engine.tasks), Text(FORECAST_PROMPT)], {a: rows}))
+            future = clip.ann["tokens"][a + 1 : a + 1 + FUTURE_STEPS]
+            n = min(len(steps), len(future))
+            labels = [index.labels(scene, t) for t in [token, *future[:n]]]
+            target = torch.full((1, FUTURE_STEPS, *labels[0]["semantics"].shape), FREE, dtype=torch.long)
+            target[0, :n] = torch.from_numpy(np.stack([x["semantics"] for x in labels[1:]])).long()
+            valid = (torch.arange(FUTURE_STEPS) < n)[None]
+            pred = torch.full_like(target, FREE)
+            for t, (points, classes) in enumerate(steps[:n]):
+                pred[0, t] = voxelize(points, classes, world.voxel_extent).cpu()
+            current = torch.from_numpy(labels[0]["semantics"]).long()
+            recon = engine.decode_scenes(rows[None])[0].cpu()
+            predictions = {"forecast": pred, "baseline_copy_forecast": current.expand_as(pred),
+                           "baseline_copy_reconstruction_forecast": recon.expand_as(pred)}
+            selections = [""] + (["trimmed_"] if paper_frame(index.scenes[scene].index(token), len(index.scenes[scene])) else [])
+            for what, volumes in predictions.items():
+                for sel in selections:
+                    ev.metrics[f"{what}_{sel}{OCCWORLD}"].update(volumes.to(dev), target.to(dev), valid.to(dev))
+            ev.metrics["reconstruction_occworld"].update(recon[None].to(dev), current[None].to(dev))
+            mask = torch.from_numpy(labels[0]["mask_camera"].astype(bool))[None]
+            ev.metrics["reconstruction_occ3d"].update(recon[None].to(dev), current[None].to(dev), mask.to(dev))
+            ev.keep_forecast_picture(token, pred[0].numpy(), target[0].numpy(), n)
+            ev.keep_scene("reconstruction", f"reconstruction from the cameras, sample {token[:8]}: truth and the encoder's points",
+                          [("truth", current.numpy()), ("encoder", recon.numpy())])

@@ -1,0 +1,38 @@
+"""What a trained SparseOccVLA model offers through the Python API (``occtrain.load``):
+answer a question, describe the scene, state its decision, forecast the occupancy."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import torch
+
+from occtrain.core import operations
+from occtrain.data.clips import Clip, Text
+from occtrain.families.sparseoccvla.tasks import FORECAST_PROMPT, context
+from occtrain.models.point_sets import voxelize
+
+
+def caption(engine: Any, clip: Clip) -> str:
+    """The model's description of the anchor frame's scene."""
+    generated, _ = operations._one(engine, "caption", clip)
+    return generated[0].text.strip()
+
+
+def decision(engine: Any, clip: Clip) -> str:
+    """The model's decision with its reasoning (what its planner reads)."""
+    generated, _ = operations._one(engine, "planning", clip)
+    return generated[0].text.strip()
+
+
+@torch.no_grad()
+def forecast(engine: Any, clip: Clip) -> np.ndarray:
+    """The forecast occupancy of the next frames (T, 200, 200, 16) uint8, from the forecaster's points."""
+    a = clip.anchor_index
+    rows = engine.scenes({"ann": [clip.ann]}, [{a}])[(0, a)]
+    steps = engine.world.forecast(engine.encode_parts([*context(clip, engine.tasks), Text(FORECAST_PROMPT)], {a: rows}))
+    return np.stack([voxelize(p, c, engine.world.voxel_extent).cpu().numpy().astype(np.uint8) for p, c in steps])
+
+
+OPERATIONS = {"answer": operations.answer, "caption": caption, "decision": decision, "forecast": forecast}
