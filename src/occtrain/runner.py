@@ -213,7 +213,7 @@ def _execute(
     import lightning as L
 
     from occtrain.data.datamodule import ShardDataModule
-    from occtrain.stages.common import StepTimer, build_trainer, checkpoint_step, last_checkpoint
+    from occtrain.stages.common import PeakRSS, StepTimer, build_trainer, checkpoint_step, last_checkpoint
 
     L.seed_everything(stage.trainer.seed, workers=True, verbose=False)
     ctx = StageContext(stage.spec, stage.model_cfg, stage.data, stage.trainer, stage_dir, inputs)
@@ -239,6 +239,9 @@ def _execute(
     timer = next(c for c in trainer.callbacks if isinstance(c, StepTimer))
     if timer.mean_s is not None:  # of this attempt: a measurement, not a result
         metrics["train_step_s"] = timer.mean_s
+    memory = next(c for c in trainer.callbacks if isinstance(c, PeakRSS))
+    if memory.peak_mb is not None:  # rank zero's, in this attempt
+        metrics["train_peak_rss_mb"] = memory.peak_mb
     artifacts: dict[str, str] = {}
     if trainer.is_global_zero:
         export_dir = module.export(stage_dir / "export")

@@ -274,6 +274,31 @@ class StepTimer(Callback):
         return sum(kept) / len(kept) if kept else None
 
 
+def current_rss_mb() -> float | None:
+    """This process's resident memory now (MB), from /proc; None where there is no /proc."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024.0
+    except OSError:
+        return None
+    return None
+
+
+class PeakRSS(Callback):
+    """The largest resident memory of this process seen after a training step (MB): what
+    a stage needs of a machine, read per stage (the process-wide high-water mark would
+    carry an earlier stage's peak into a later one)."""
+
+    def __init__(self) -> None:
+        self.peak_mb: float | None = None
+
+    def on_train_batch_end(self, *args: Any) -> None:
+        rss = current_rss_mb()
+        if rss is not None:
+            self.peak_mb = max(self.peak_mb or 0.0, rss)
+
+
 # ----------------------------------------------------------------------------- validation
 
 
@@ -338,6 +363,7 @@ def _callbacks(
         LearningRateMonitor(logging_interval="step"),
         RichProgressBar(leave=True),
         StepTimer(),
+        PeakRSS(),
     ]
     if record_time is not None:
         callbacks.append(_Heartbeat(record_time))
