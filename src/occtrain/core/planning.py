@@ -35,7 +35,7 @@ from occtrain.exports import write_export
 from occtrain.io import atomic_write_json, atomic_write_safetensors, is_rank_zero
 from torchmetrics import MeanMetric
 
-from occtrain.metrics import PlanningMetric, flatten_metrics
+from occtrain.metrics import PlanningMetric, compute_and_reset
 from occtrain.models import count_parameters
 from occtrain.models.planner import PlanningHead, constant_velocity, current_velocity
 from occtrain.occ3d import FUTURE_STEPS, PAST_STEPS
@@ -288,15 +288,7 @@ class MetaActionPlanner(nn.Module):
 
     def compute(self, prefix: str) -> dict[str, float]:
         """The validation metrics that saw samples, then reset."""
-        out: dict[str, float] = {}
-        for name, metric in self.metrics.items():
-            if metric.update_count:
-                out.update(flatten_metrics(f"{prefix}/{name}", metric.compute()))
-            metric.reset()
-        if self.parsed.update_count:
-            out[f"{prefix}/meta_parsed_fraction"] = float(self.parsed.compute())
-        self.parsed.reset()
-        return out
+        return compute_and_reset(prefix, {**self.metrics, "meta_parsed_fraction": self.parsed})
 
     def summary(self) -> tuple[str, dict[str, float]]:
         n = count_parameters(self.head)

@@ -51,3 +51,15 @@ def flatten_metrics(prefix: str, result: dict[str, Any]) -> dict[str, float]:
         elif isinstance(value, (int, float)) or (torch.is_tensor(value) and value.numel() == 1):
             flat[name] = float(value)
     return flat
+
+
+def compute_and_reset(prefix: str, metrics: dict[str, Any]) -> dict[str, float]:
+    """Every metric of ``metrics`` that saw samples, flattened under ``prefix/name``; all are
+    reset. A scalar metric's value is ``prefix/name`` itself."""
+    out: dict[str, float] = {}
+    for name, metric in metrics.items():
+        if metric.update_count:
+            value = metric.compute()
+            out.update(flatten_metrics(f"{prefix}/{name}", value) if isinstance(value, dict) else {f"{prefix}/{name}": float(value)})
+        metric.reset()
+    return out

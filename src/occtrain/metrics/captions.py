@@ -9,6 +9,7 @@ on the PATH, :meth:`CaptionMetric.compute` raises rather than report a different
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import io
 import json
@@ -69,6 +70,25 @@ def _java_stderr_kept_aside() -> Any:
             os.close(saved)
 
 
+_METEOR: Any = None
+
+
+def _meteor(factory: Any) -> Any:
+    """One METEOR scorer per process, started on first use and stopped at exit: its Java
+    program takes seconds to load its paraphrase tables, and a validation scores captions
+    several times (each text task and its baseline). Scores do not depend on earlier calls."""
+    global _METEOR
+    if _METEOR is None or _METEOR.meteor_p.poll() is not None:
+        _METEOR = factory()
+        atexit.register(_stop_meteor, _METEOR)
+    return _METEOR
+
+
+def _stop_meteor(meteor: Any) -> None:
+    meteor.meteor_p.kill()
+    meteor.meteor_p.wait()
+
+
 def coco_caption_scores(predictions: dict[str, str], references: dict[str, list[str]]) -> dict[str, float]:
     """pycocoevalcap's BLEU-1..4, METEOR, ROUGE-L and CIDEr-D for ``{id: caption}`` against ``{id: [refs]}``."""
     if shutil.which("java") is None:
@@ -93,9 +113,7 @@ def coco_caption_scores(predictions: dict[str, str], references: dict[str, list[
     with contextlib.redirect_stdout(io.StringIO()):  # Bleu prints its length ratios
         bleu, _ = Bleu(4).compute_score(gts, res)
     scores.update({f"Bleu_{n + 1}": float(b) for n, b in enumerate(bleu)})
-    meteor = Meteor()
-    scores["METEOR"] = float(meteor.compute_score(gts, res)[0])
-    del meteor  # its destructor stops the Java process
+    scores["METEOR"] = float(_meteor(Meteor).compute_score(gts, res)[0])
     scores["ROUGE_L"] = float(Rouge().compute_score(gts, res)[0])
     scores["CIDEr"] = float(Cider().compute_score(gts, res)[0])
     return scores
