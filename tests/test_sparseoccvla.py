@@ -216,6 +216,9 @@ def test_planner_returns_the_top_scored_anchors_trajectory(synth_dataset, tmp_pa
     # diffusion starts near it), and equal to re-running with that anchor's row picked by hand.
     again = planner.plan(clips)[0]
     torch.testing.assert_close(plan, again)
+    # A clip's plan does not depend on the batch it is planned in.
+    torch.testing.assert_close(planner.plan(clips[1:2])[0][0], plan[1])
+    torch.testing.assert_close(planner.plan(clips[::-1])[0], plan.flip(0))
     loss = planner.training_loss(clips)
     loss.backward()
     missing = [n for n, p in planner.named_parameters() if p.requires_grad and p.grad is None]

@@ -21,6 +21,7 @@ model's outputs, like every planner stage (see README).
 from __future__ import annotations
 
 import math
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -139,6 +140,14 @@ def kmeans_anchors(index: DatasetIndex, k: int, seed: int = 0) -> np.ndarray:
         raise ConfigError(f"{index.root}: {len(trajs)} training trajectories with a whole 3 s future, fewer than model.anchors {k}")
     centres = KMeans(n_clusters=k, n_init=10, random_state=seed).fit(np.stack(trajs).reshape(len(trajs), -1)).cluster_centers_
     return centres.reshape(k, FUTURE_STEPS, 2).astype(np.float32)
+
+
+def clip_noise(clip: Clip, shape: torch.Size, seed: int = 0) -> torch.Tensor:
+    """The noise a clip's anchors start from at inference: drawn from the clip's own token,
+    so its plan does not depend on the batch it is planned in (validation and ``occtrain
+    eval`` batch differently)."""
+    generator = torch.Generator().manual_seed(seed * 2**32 + zlib.crc32(clip.anchor["token"].encode()))
+    return torch.randn(shape, generator=generator)
 
 
 def timestep_embedding(t: torch.Tensor, dim: int) -> torch.Tensor:
@@ -341,7 +350,7 @@ class AnchorDiffusionPlanner(nn.Module):
         conditions, ego, pooled = self.conditions(clips)
         b = len(clips)
         clean = (self.anchors / self.scale).expand(b, -1, -1, -1)
-        noise = torch.randn(clean.shape, generator=torch.Generator().manual_seed(seed)).to(self.device)
+        noise = torch.stack([clip_noise(c, clean.shape[1:], seed) for c in clips]).to(self.device)
         x = self.scheduler.add_noise(clean, noise, torch.full((b,), cfg.noise_timestep, dtype=torch.long, device=self.device))
 
         def predict(x: torch.Tensor, t: int) -> tuple[torch.Tensor, torch.Tensor]:
