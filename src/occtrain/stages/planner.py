@@ -127,10 +127,11 @@ class PlannerStage(Stage):
     def evaluate_export(cls, request: EvalRequest) -> EvalResult:
         """The trained planner on every frame of the split with a whole 3 s future (or a
         fixed subset of ``samples``), over the consumed world model, beside its baselines."""
+        family = read_config(request.consumed[0]).get("family", "")
+        world = get_world(family)
+        if world.load_planner is None:  # refused before the world model is loaded
+            raise ConfigError(f"{request.export}: occtrain eval cannot rebuild a '{family}' planner; its validation metrics are in metrics.json")
         teacher = load_world_model(request.consumed[0]).eval()
-        world = get_world(teacher.family)
-        if world.load_planner is None:
-            raise ConfigError(f"{request.export}: occtrain eval cannot rebuild a '{teacher.family}' planner; its validation metrics are in metrics.json")
         teacher.prepare_inputs(request.data_root, request.cache_dir)
         planner = world.load_planner(request.export, teacher, request)
         clips = list(frame_clips(DatasetIndex.open(request.data_root), request.split, teacher.tasks.context_frames, FUTURE_STEPS, partial_history=False))
