@@ -47,17 +47,13 @@ def _recipe(stage: Path) -> RecipeConfig:
 
 
 def bench_planner(stage: Path, steps: list[int], batch: int) -> None:
-    from types import SimpleNamespace
-
-    from occtrain.core.registry import get_world
+    from occtrain.stages.base import EvalRequest
+    from occtrain.stages.planner import PlannerStage
 
     recipe = _recipe(stage)
     spec = next(s for s in recipe.stages if s.name == stage.name)
-    teacher = load_world_model(stage.parent / spec.consumes[0] / "export").eval()
-    teacher.prepare_inputs(recipe.data.root, stage / "cache")
-    request = SimpleNamespace(data_root=recipe.data.root, cache_dir=stage / "cache")
-    planner = get_world(teacher.family).load_planner(stage / "export", teacher, request)
-    clips = list(frame_clips(DatasetIndex.open(recipe.data.root), "val", teacher.tasks.context_frames, FUTURE_STEPS, partial_history=False))
+    request = EvalRequest(stage / "export", [stage.parent / d / "export" for d in spec.consumes], recipe.data.root, cache_dir=stage / "cache")
+    planner, clips = PlannerStage.rebuild(request)
     batches = [clips[i : i + batch] for i in range(0, len(clips), batch)]
     for b in batches:  # the decisions, once: the same for every step count
         planner.decisions(b)
@@ -84,8 +80,6 @@ def measure_step(stage: Path, batch: int, steps: int) -> dict:
     forward + backward ``steps`` times; tokens per frame, the sequence length, seconds per
     step and the process's peak resident memory (MB)."""
     import resource
-
-    from occtrain.data.clips import frame_clips
 
     recipe = _recipe(stage)
     engine = load_world_model(stage / "export")

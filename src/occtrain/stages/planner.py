@@ -122,11 +122,10 @@ class PlannerStage(Stage):
 
     evaluable = True
 
-    @classmethod
-    @torch.no_grad()
-    def evaluate_export(cls, request: EvalRequest) -> EvalResult:
-        """The trained planner on every frame of the split with a whole 3 s future (or a
-        fixed subset of ``samples``), over the consumed world model, beside its baselines."""
+    @staticmethod
+    def rebuild(request: EvalRequest) -> tuple[Any, list]:
+        """A trained planner back from its export over its frozen world model, and the
+        split's clips it plans (every frame with a whole 3 s future)."""
         family = read_config(request.consumed[0]).get("family", "")
         world = get_world(family)
         if world.load_planner is None:  # refused before the world model is loaded
@@ -135,6 +134,14 @@ class PlannerStage(Stage):
         teacher.prepare_inputs(request.data_root, request.cache_dir)
         planner = world.load_planner(request.export, teacher, request)
         clips = list(frame_clips(DatasetIndex.open(request.data_root), request.split, teacher.tasks.context_frames, FUTURE_STEPS, partial_history=False))
+        return planner, clips
+
+    @classmethod
+    @torch.no_grad()
+    def evaluate_export(cls, request: EvalRequest) -> EvalResult:
+        """The trained planner on every frame of the split with a whole 3 s future (or a
+        fixed subset of ``samples``), over the consumed world model, beside its baselines."""
+        planner, clips = cls.rebuild(request)
         chosen = fixed_subset([c.anchor["token"] for c in clips], request.samples)
         clips = [c for c in clips if c.anchor["token"] in chosen]
         with progress_bar(len(clips), f"planning {len(clips)} {request.split} frames") as advance:
