@@ -16,6 +16,14 @@ from occtrain.occ3d import FRAME_DT, FREE, GRID_SHAPE
 
 REPO = Path(__file__).resolve().parents[1]
 
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    # The workers (one per core) share the cores: one thread each, for the worker and for
+    # the CLI processes it starts, so that they do not oversubscribe them.
+    os.environ["OMP_NUM_THREADS"] = os.environ["MKL_NUM_THREADS"] = "1"
+    import torch
+
+    torch.set_num_threads(1)
+
 
 def hand_labels(seed: int) -> dict[str, np.ndarray]:
     """A plausible label volume: ground, a box of class 4, masks hiding one corner."""
