@@ -25,6 +25,7 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
+from occtrain.core.vocab import scene_length
 from occtrain.data.cameras import CAMERA_NAMES
 from occtrain.io import atomic_write_json, atomic_write_text
 
@@ -53,7 +54,8 @@ FAMILIES = (
     # Waypoints generated between the forecast frames, as the paper plans.
     Family("Occ-LLM", "occllm", forecast="pretrain", plan="pretrain", qa="instruct", caption=None, world="pretrain",
            plan_metric="plan_alternate", note="MS-VAE codes, patchified"),
-    Family("OccVLA", "occvla", forecast=None, plan="stage3", qa="vqa", caption="stage1", world="stage1",
+    # OccVLA's stage 1 trains on captions, but its evaluation scores meta actions and QA only.
+    Family("OccVLA", "occvla", forecast=None, plan="stage3", qa="vqa", caption=None, world="stage1",
            plan_metric="head_generated_meta", note="camera patches (occupancy is an output)"),
     Family("SparseOccVLA", "sparseoccvla", forecast="stage3", plan="planner", qa="stage3", caption="stage3", world="stage3",
            note="sparse queries + global queries"),
@@ -84,12 +86,7 @@ def _tokens_per_frame(stage: Path) -> str:
         rows, cols = world["occvla"]["image_tokens"]
         cameras = len(CAMERA_NAMES)
         return f"{cameras * rows * cols} image ({cameras} cameras x {rows} x {cols})"
-    h, w = vocab["scene_hw"]
-    patch = int(vocab.get("patch", 0))
-    if patch:
-        n = (h // patch) * (w // patch)
-    else:
-        n = len(vocab["codebook_sizes"]) * h * w
+    n = scene_length(vocab["codebook_sizes"], vocab["scene_hw"], int(vocab.get("patch", 0)))
     extra = sum(1 for t in vocab.get("extra", []) if t.startswith("<global_"))
     return f"{n} + {extra} global" if extra else str(n)
 
@@ -136,8 +133,8 @@ def row(family: Family, runs: Path) -> dict:
     return out
 
 
-def _cell(value: str, baseline: str | None, stage: str) -> str:
-    return f"{value} vs {baseline} ({stage})" if baseline else f"{value} ({stage})"
+def _cell(value: str, baseline: str, stage: str) -> str:
+    return f"{value} vs {baseline} ({stage})"
 
 
 def markdown(rows: list[dict]) -> str:

@@ -40,6 +40,15 @@ OCC_OPEN, OCC_CLOSE, ACT_OPEN, ACT_CLOSE = "<occ>", "</occ>", "<act>", "</act>"
 IMAGE = "<image>"
 
 
+def scene_length(codebook_sizes: Sequence[int], scene_hw: Sequence[int], patch: int = 0) -> int:
+    """Tokens one frame of scene takes (the module docstring's layouts): one per p x p patch
+    of the latent grid, or one per cell and codebook."""
+    h, w = (int(v) for v in scene_hw)
+    if patch:
+        return (h // patch) * (w // patch)
+    return len(codebook_sizes) * h * w
+
+
 class JointVocab:
     """Id ranges and conversions between codes / waypoints / text and token ids."""
 
@@ -72,12 +81,8 @@ class JointVocab:
         self.patch = int(patch)
         if self.patch and (self.scene_hw[0] % self.patch or self.scene_hw[1] % self.patch):
             raise ConfigError(f"patch size {self.patch} must divide the latent grid {self.scene_hw[0]}x{self.scene_hw[1]}")
-        if self.patch:
-            self.scene_len = (self.scene_hw[0] // self.patch) * (self.scene_hw[1] // self.patch)
-            self.num_codes = self.scene_len  # the <patch_j> tokens
-        else:
-            self.scene_len = self.num_codebooks * self.cells
-            self.num_codes = sum(sizes)
+        self.scene_len = scene_length(sizes, self.scene_hw, self.patch)
+        self.num_codes = self.scene_len if self.patch else sum(sizes)  # the <patch_j> tokens, or every codebook's codes
         #: Where each codebook's tokens start inside the scene-token range (codes layout).
         self.codebook_starts = [sum(sizes[:i]) for i in range(len(sizes))]
         self.bins = int(cfg.action_bins)
