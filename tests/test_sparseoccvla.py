@@ -436,3 +436,16 @@ def test_frames_move_between_ego_frames_by_the_poses():
     earlier, later = ego_to_global(0.0, 0.0, math.pi / 2), ego_to_global(0.0, 5.0, math.pi / 2)
     move = np.linalg.inv(earlier) @ later
     np.testing.assert_allclose(move @ [10.0, 0.0, 0.0, 1.0], [15.0, 0.0, 0.0, 1.0], atol=1e-9)
+
+
+def test_nearest_by_tree_equals_dense_distances_over_the_valid_points():
+    from occtrain.models import point_sets
+
+    gen = torch.Generator().manual_seed(0)
+    src, dst = torch.randn(3, 200, 3, generator=gen) * 10, torch.randn(3, 150, 3, generator=gen) * 10
+    valid = torch.rand(3, 150, generator=gen) > 0.3
+    valid[2] = False  # a sample with no point to match: index 0, as the dense path gives
+    tree = point_sets._nearest_by_tree(src, dst, valid)
+    dense = torch.cdist(src, dst).masked_fill(~valid[:, None], float("inf")).argmin(-1)
+    assert torch.equal(tree, dense)
+    assert bool(valid[0, tree[0]].all()) and bool(valid[1, tree[1]].all())

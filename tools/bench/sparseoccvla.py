@@ -2,6 +2,7 @@
 
     python tools/bench/sparseoccvla.py planner [--stage runs/sparseoccvla/planner] [--steps 1,2,3]
     python tools/bench/sparseoccvla.py tokens  [--sparse runs/sparseoccvla/stage2] [--dense runs/occvla/stage1]
+    python tools/bench/sparseoccvla.py chamfer [--points 4096] [--gt 2048] [--batch 4]
 
 ``planner``: the trained anchor-diffusion planner on every val clip with a whole 3 s
 future, denoising its anchors in 1, 2 (the paper's) and 3 DDIM steps. The steps are
@@ -17,6 +18,11 @@ training sequence, the batch's mean sequence length, and
 the forward + backward time of one batch and the peak resident memory of a process that
 runs only that (each family in its own child process, alternating, ``--repeats`` times).
 The paper's Tables 12-13: 612 tokens against HERMES' 2,500, about half the memory.
+
+``chamfer``: the nearest-point search inside every Chamfer loss (Eq. 1, 11), forward and
+backward, on a forecaster frame's sizes (64 queries x 64 points against 2,048 ground-truth
+voxel centres): dense distances (argmin of ``torch.cdist``) against the k-d tree the CPU
+path uses, interleaved on the same inputs; the two must match the same pairs.
 """
 
 from __future__ import annotations
@@ -124,6 +130,41 @@ def bench_tokens(sparse: Path, dense: Path, batch: int, steps: int, repeats: int
     print(f"  -> sparse / dense: step time {s_step / d_step:.2f}x, peak RSS {s_rss / d_rss:.2f}x")
 
 
+def bench_chamfer(points: int, gt_points: int, batch: int, repeats: int) -> None:
+    from occtrain.models import point_sets
+
+    gen = torch.Generator().manual_seed(0)
+    pred = (torch.randn(batch, points, 3, generator=gen) * 15).requires_grad_()
+    # Distinct voxel centres, as occupied_points draws them; a tenth of them padding.
+    cells = torch.stack([torch.randperm(200 * 200 * 16, generator=gen)[:gt_points] for _ in range(batch)])
+    gt = point_sets.voxel_centres(torch.stack([cells // (200 * 16), cells // 16 % 200, cells % 16], -1))
+    valid = torch.rand(batch, gt_points, generator=gen) > 0.1
+
+    def dense(src, dst, dst_valid=None):
+        d = torch.cdist(src.detach(), dst.detach())
+        return (d if dst_valid is None else d.masked_fill(~dst_valid[:, None], float("inf"))).argmin(-1)
+
+    searches = {"dense cdist": dense, "k-d tree": point_sets._nearest_by_tree}
+    times = {name: [] for name in searches}
+    matches = {}
+    for rep in range(repeats):
+        for name in (list(searches) if rep % 2 == 0 else list(searches)[::-1]):
+            t = time.perf_counter()
+            to_gt, to_pred = searches[name](pred, gt, valid), searches[name](gt, pred)
+            # The loss on the pairs, as chamfer_distance takes it, with its backward.
+            fwd = (pred - torch.gather(gt, 1, to_gt[..., None].expand_as(pred))).pow(2).sum(-1).mean()
+            bwd = ((gt - torch.gather(pred, 1, to_pred[..., None].expand_as(gt))).pow(2).sum(-1) * valid).sum() / valid.sum()
+            (fwd + bwd).backward()
+            times[name].append(time.perf_counter() - t)
+            matches[name] = (to_gt, to_pred)
+    same = all(torch.equal(a, b) for a, b in zip(*matches.values()))
+    print(f"Chamfer loss of {batch} x {points} points against {gt_points}, forward + backward, {repeats} alternating runs each")
+    med = {name: sorted(ts)[len(ts) // 2] for name, ts in times.items()}
+    for name, t in med.items():
+        print(f"  {name:>11}: {1e3 * t:8.1f} ms (median)")
+    print(f"  -> dense / tree: {med['dense cdist'] / med['k-d tree']:.1f}x; the same nearest pairs: {same}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="what", required=True)
@@ -137,6 +178,11 @@ def main() -> None:
     t.add_argument("--batch", type=int, default=4)
     t.add_argument("--steps", type=int, default=5)
     t.add_argument("--repeats", type=int, default=2)
+    ch = sub.add_parser("chamfer", help="the Chamfer loss's nearest-point search: dense distances vs a k-d tree")
+    ch.add_argument("--points", type=int, default=4096)
+    ch.add_argument("--gt", type=int, default=2048)
+    ch.add_argument("--batch", type=int, default=4)
+    ch.add_argument("--repeats", type=int, default=6)
     c = sub.add_parser("_step")  # the child process of `tokens`
     c.add_argument("stage")
     c.add_argument("--batch", type=int)
@@ -146,6 +192,8 @@ def main() -> None:
         bench_planner(Path(args.stage), [int(s) for s in args.steps.split(",")], args.batch)
     elif args.what == "tokens":
         bench_tokens(Path(args.sparse), Path(args.dense), args.batch, args.steps, args.repeats)
+    elif args.what == "chamfer":
+        bench_chamfer(args.points, args.gt, args.batch, args.repeats)
     else:
         print(json.dumps(measure_step(Path(args.stage), args.batch, args.steps)))
 

@@ -48,13 +48,32 @@ def occupied_points(semantics: np.ndarray | torch.Tensor, count: int, rng: np.ra
 @torch.no_grad()
 def nearest(src: torch.Tensor, dst: torch.Tensor, dst_valid: torch.Tensor | None = None, chunk: int = 4096) -> torch.Tensor:
     """For each point of ``src`` (B, M, 3) the index of its nearest point of ``dst`` (B, K, 3)
-    (Euclidean, over the ``dst_valid`` ones), in chunks so that M x K never sits in memory."""
+    (Euclidean, over the ``dst_valid`` ones; 0 where a sample has none).
+
+    On the CPU through a k-d tree (scikit-learn's): the dense M x K distances of a
+    forecaster's 4096 points against 2048 took 0.3 s a frame, the tree 7 ms (both exact;
+    `tools/bench/sparseoccvla.py chamfer`). On an accelerator by dense distances, in chunks
+    so that M x K never sits in memory."""
+    if src.device.type == "cpu":
+        return _nearest_by_tree(src, dst, dst_valid)
     out = torch.empty(src.shape[:2], dtype=torch.long, device=src.device)
     for i in range(0, src.shape[1], chunk):
         d = torch.cdist(src[:, i : i + chunk].float(), dst.float())
         if dst_valid is not None:
             d = d.masked_fill(~dst_valid[:, None, :], float("inf"))
         out[:, i : i + chunk] = d.argmin(-1)
+    return out
+
+
+def _nearest_by_tree(src: torch.Tensor, dst: torch.Tensor, dst_valid: torch.Tensor | None = None) -> torch.Tensor:
+    from sklearn.neighbors import KDTree  # here: importing scikit-learn takes seconds, and few commands need it
+
+    out = torch.zeros(src.shape[:2], dtype=torch.long)
+    for b in range(src.shape[0]):
+        keep = torch.arange(dst.shape[1]) if dst_valid is None else dst_valid[b].nonzero().squeeze(1).cpu()
+        if len(keep):
+            tree = KDTree(dst[b, keep].detach().double().numpy())
+            out[b] = keep[torch.from_numpy(tree.query(src[b].detach().double().numpy(), return_distance=False)[:, 0])]
     return out
 
 
