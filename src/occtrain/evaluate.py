@@ -43,7 +43,7 @@ def evaluate(
     own train split."""
     from occtrain.runner import load_plugins
     from occtrain.stages import get_kind, kind_names
-    from occtrain.stages.base import EvalRequest
+    from occtrain.stages.base import SHARED_CACHE, EvalRequest
 
     stage_dir = Path(stage_dir)
     pipeline = stage_dir.parent / "pipeline.yaml"
@@ -62,13 +62,14 @@ def evaluate(
         raise ConfigError(f"--batch-size {batch_size}: must be at least 1")
     # Prompts and generation length come from the export: exactly what the model trained with.
     # Inputs encoded by frozen encoders are looked up in the stage's cache (made by the same
-    # encoder; built if the stage trained without one); another dataset's never.
+    # encoder; built if the stage trained without one); another dataset's never. Scenes are
+    # in the run's shared cache, keyed by the encoder and the dataset they were made from.
     root, cache_dir = recipe.data.root, stage_dir / "cache"
     if data_root is not None:
         root, cache_dir = str(data_root), stage_dir / "eval" / Path(data_root).resolve().name / "cache"
     request = EvalRequest(
         stage_dir / "export", [stage_dir.parent / dep / "export" for dep in spec.consumes], root, split, tasks, samples, batch_size,
-        cache_dir, save_predictions is not None,
+        cache_dir, stage_dir.parent / SHARED_CACHE, save_predictions is not None,
     )
     result = kind.module.evaluate_export(request)
     _save(eval_metrics_file(stage_dir, split, data_root), result.metrics)

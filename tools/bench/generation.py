@@ -48,7 +48,7 @@ def main() -> None:
     data.prepare_data()
     batches = [b for _, b in zip(range(args.batches), data.loader("val", train=False))]
     engine = load_world_model(stage / "export").eval()
-    engine.prepare_inputs(recipe.data.root, stage / "cache")  # time generation, not the frozen encoders
+    engine.prepare_inputs(recipe.data.root, stage / "cache", stage.parent / "cache")  # time generation, not the frozen encoders
     torch.manual_seed(0)
     for task in args.tasks.split(","):
         timed(engine, task, batches[:1], True)  # warm-up

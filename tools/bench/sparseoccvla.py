@@ -58,7 +58,7 @@ def bench_planner(stage: Path, steps: list[int], batch: int) -> None:
 
     recipe = _recipe(stage)
     spec = next(s for s in recipe.stages if s.name == stage.name)
-    request = EvalRequest(stage / "export", [stage.parent / d / "export" for d in spec.consumes], recipe.data.root, cache_dir=stage / "cache")
+    request = EvalRequest(stage / "export", [stage.parent / d / "export" for d in spec.consumes], recipe.data.root, cache_dir=stage / "cache", shared_cache_dir=stage.parent / "cache")
     planner, clips = PlannerStage.rebuild(request)
     batches = [clips[i : i + batch] for i in range(0, len(clips), batch)]
     for b in batches:  # the decisions, once: the same for every step count
@@ -89,7 +89,7 @@ def measure_step(stage: Path, batch: int, steps: int) -> dict:
 
     recipe = _recipe(stage)
     engine = load_world_model(stage / "export")
-    engine.prepare_inputs(recipe.data.root, stage / "cache")
+    engine.prepare_inputs(recipe.data.root, stage / "cache", stage.parent / "cache")
     engine.train()
     clips = list(frame_clips(DatasetIndex.open(recipe.data.root), "train", engine.tasks.context_frames, FUTURE_STEPS, partial_history=False))[:batch]
     laid, _ = engine.task_batch(clips, {"ann": [c.ann for c in clips]}, seed=0)

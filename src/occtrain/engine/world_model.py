@@ -10,6 +10,7 @@ and the benchmarks all use it; it names no family and never imports Lightning.
 
 from __future__ import annotations
 
+import hashlib
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
@@ -26,12 +27,13 @@ from occtrain.core.vocab import JointVocab
 from occtrain.core.world_model import LMWorldModel
 from occtrain.data.clips import Actions, Clip, Occupancy, Part, Scene, Text, clip_rng
 from occtrain.data.layout import DatasetIndex
+from occtrain.data.shards import dataset_fingerprint
 from occtrain.errors import DataError
 from occtrain.io import atomic_write_safetensors, is_rank_zero
 from occtrain.progress import progress_bar
 
-#: The file of the scene cache inside a stage directory's ``cache/``.
-SCENE_CACHE = "scene_codes.safetensors"
+#: The scene cache's file name, completed by the key of what made it (``scene_cache_key``).
+SCENE_CACHE = "scenes-{key}.safetensors"
 #: The file of the image-token cache (a vision-language world model's frozen camera features).
 IMAGE_CACHE = "image_tokens.safetensors"
 #: The shard entries a world-model stage trains on when scenes come from the cache.
@@ -44,6 +46,26 @@ def move_batch(batch: dict, device: torch.device) -> dict:
 
 
 @torch.no_grad()
+def scene_cache_key(encoder: torch.nn.Module, index: DatasetIndex) -> str:
+    """What a scene cache's rows depend on, hashed: the frozen encoder (every file of the
+    export it was loaded from, or its weights when it has none) and the dataset (its root
+    and fingerprint). Stages and evaluations that read the same encoder on the same data
+    find one file; another encoder or another world never does."""
+    h = hashlib.sha256(type(encoder).__name__.encode())
+    export_dir = getattr(encoder, "export_dir", None)
+    if export_dir is not None:
+        for path in sorted(p for p in Path(export_dir).rglob("*") if p.is_file()):
+            h.update(str(path.relative_to(export_dir)).encode())
+            h.update(path.read_bytes())
+    else:
+        for name, tensor in encoder.state_dict().items():
+            h.update(name.encode())
+            h.update(tensor.detach().cpu().contiguous().view(-1).view(torch.uint8).numpy().tobytes())
+    h.update(str(index.root.resolve()).encode())
+    h.update(dataset_fingerprint(index).encode())
+    return h.hexdigest()[:16]
+
+
 def per_sample_cache(
     index: DatasetIndex, cache_file: Path | None, what: str, encode: Callable[[list[tuple[str, str]]], torch.Tensor],
     batch_size: int = 8,
@@ -140,16 +162,22 @@ class WorldModelEngine(torch.nn.Module):
         frames = torch.stack([batch["semantics"][b][f] for b, f in keys]).long()
         return dict(zip(keys, self.scene_encoder.encode(frames)))
 
-    def prepare_inputs(self, data_root: str | Path, cache_dir: Path | None = None) -> None:
+    def prepare_inputs(self, data_root: str | Path, cache_dir: Path | None = None, shared_cache_dir: Path | None = None) -> None:
         """Encode once what the prompts read through a frozen encoder (the camera views of a
         model that reads them; the scenes of one whose prompts hold scenes), cached in
         ``cache_dir`` (in memory only without one; scenes only with one, unless the scene
-        encoder reads the cameras: its scenes are always encoded ahead)."""
-        self.data_index = DatasetIndex.open(data_root)
+        encoder reads the cameras: its scenes are always encoded ahead).
+
+        The scenes go to ``shared_cache_dir`` when given (else ``cache_dir``) under a name
+        keyed by their content (``scene_cache_key``), so the stages of a run that read one
+        scene encoder encode the dataset once between them."""
+        self.data_index = index = DatasetIndex.open(data_root)
         if self.vision is not None:
             self.prepare_images(data_root, cache_dir / IMAGE_CACHE if cache_dir is not None else None)
         if self.reads_scenes() and (cache_dir is not None or self.scenes_from_cameras()):
-            self.build_scene_cache(data_root, cache_dir / SCENE_CACHE if cache_dir is not None else None)
+            where = shared_cache_dir or cache_dir
+            name = SCENE_CACHE.format(key=scene_cache_key(self.scene_encoder, index))
+            self.build_scene_cache(data_root, where / name if where is not None else None)
 
     @torch.no_grad()
     def build_scene_cache(self, data_root: str | Path, cache_file: Path | None, batch_size: int = 8) -> None:

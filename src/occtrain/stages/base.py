@@ -25,6 +25,10 @@ from occtrain.exports import check_loaded_keys
 from occtrain.models import count_parameters
 
 
+#: The run directory's folder of caches keyed by their content, shared by its stages.
+SHARED_CACHE = "cache"
+
+
 @dataclass
 class StageContext:
     """Everything a stage kind needs to build its module."""
@@ -36,6 +40,11 @@ class StageContext:
     stage_dir: Path
     #: Export directories of the consumed stages, by stage name.
     inputs: dict[str, Path]
+
+    @property
+    def shared_cache_dir(self) -> Path:
+        """The run's caches keyed by their content, which its stages share (``<run>/cache/``)."""
+        return self.stage_dir.parent / SHARED_CACHE
 
 
 @dataclass
@@ -66,6 +75,8 @@ class EvalRequest:
     batch_size: int = 16
     #: Where inputs encoded through frozen encoders are cached for this dataset.
     cache_dir: Path | None = None
+    #: The run's caches keyed by their content (see ``StageContext.shared_cache_dir``).
+    shared_cache_dir: Path | None = None
     #: Keep every prediction in ``occtrain score``'s formats.
     record: bool = False
 

@@ -473,7 +473,7 @@ def evaluate_engine(engine: Any, request: EvalRequest) -> EvalResult:
     """Score ``engine``'s generated answers on ``request``'s split (see ``evaluate_export``)."""
     from occtrain.progress import progress_bar
 
-    engine.prepare_inputs(request.data_root, request.cache_dir)
+    engine.prepare_inputs(request.data_root, request.cache_dir, request.shared_cache_dir)
     specs = engine.task_specs
     unknown = [t for t in request.tasks or [] if t not in specs]
     if unknown:

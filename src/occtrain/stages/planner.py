@@ -74,7 +74,7 @@ class PlannerStage(Stage):
             if cfg.max_new_text_tokens > 0:
                 teacher.with_settings(max_new_text_tokens=cfg.max_new_text_tokens)
             teacher.requires_grad_(False).eval()
-            teacher.prepare_inputs(ctx.data.root, ctx.stage_dir / "cache")
+            teacher.prepare_inputs(ctx.data.root, ctx.stage_dir / "cache", ctx.shared_cache_dir)
         family = teacher.family if teacher is not None else str(read_config(export).get("family", ""))
         self.planner = get_world(family).planner(ctx, teacher)
         self.require_tasks(self.planner.sidecar_tasks(), instead="leave the planner stage out of the recipe")
@@ -131,7 +131,7 @@ class PlannerStage(Stage):
         if world.load_planner is None:  # refused before the world model is loaded
             raise ConfigError(f"{request.export}: occtrain eval cannot rebuild a '{family}' planner; its validation metrics are in metrics.json")
         teacher = load_world_model(request.consumed[0]).eval()
-        teacher.prepare_inputs(request.data_root, request.cache_dir)
+        teacher.prepare_inputs(request.data_root, request.cache_dir, request.shared_cache_dir)
         planner = world.load_planner(request.export, teacher, request)
         clips = list(frame_clips(DatasetIndex.open(request.data_root), request.split, teacher.tasks.context_frames, FUTURE_STEPS, partial_history=False))
         return planner, clips
