@@ -78,6 +78,9 @@ def test_every_stage_is_done_and_exported(pipeline):
 
     assert load_planning_head(pipeline / "planner" / "export").steps == 6
     assert (pipeline / "dashboard.html").stat().st_size > 10_000
+    # The four world-model stages read one tokenizer on one world: one scene cache between them.
+    assert len(list((pipeline / "cache").glob("scenes-*.safetensors"))) == 1
+    assert not list(pipeline.glob("*/cache/scene*"))
 
 
 def test_the_occllama_recipe_runs(tmp_path):

@@ -263,3 +263,33 @@ def test_branches_train_each_answer_exactly_as_alone(vocab):
 def test_a_branch_cannot_start_with_an_answer(vocab):
     with pytest.raises(ValueError, match="branch must start"):
         prompt(SequenceBuilder(vocab)).branch().text("go straight", True)
+
+
+def test_the_scene_cache_key_follows_the_encoder_export_and_the_dataset(tmp_path, hand_dataset):
+    import shutil
+
+    from occtrain.data.layout import DatasetIndex
+    from occtrain.engine.world_model import scene_cache_key
+
+    def exported(name: str, weights: bytes) -> torch.nn.Module:
+        encoder = torch.nn.Linear(2, 2)
+        encoder.export_dir = tmp_path / name
+        encoder.export_dir.mkdir()
+        (encoder.export_dir / "config.json").write_text('{"arch": "x"}')
+        (encoder.export_dir / "model.safetensors").write_bytes(weights)
+        return encoder
+
+    index = DatasetIndex.open(hand_dataset)
+    a, same, other = exported("a", b"w1"), exported("b", b"w1"), exported("c", b"w2")
+    # The files decide, not where the export lies (a world-model export copies its encoder's).
+    assert scene_cache_key(a, index) == scene_cache_key(same, index)
+    assert scene_cache_key(a, index) != scene_cache_key(other, index)
+    # Another world, even a byte-identical copy elsewhere, has its own cache.
+    shutil.copytree(hand_dataset, tmp_path / "copy")
+    assert scene_cache_key(a, index) != scene_cache_key(a, DatasetIndex.open(tmp_path / "copy"))
+    # An encoder built in memory is keyed by its weights.
+    plain = torch.nn.Linear(2, 2)
+    key = scene_cache_key(plain, index)
+    with torch.no_grad():
+        plain.weight[0, 0] += 1
+    assert scene_cache_key(plain, index) != key
