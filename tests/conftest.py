@@ -91,11 +91,11 @@ def synth_dataset(tmp_path_factory) -> Path:
     return root
 
 
-def run_cli(*args: str, cwd: Path | None = None, timeout: float = 300) -> subprocess.CompletedProcess:
-    """Run the real ``occtrain`` CLI in a subprocess."""
+def run_cli(*args: str, cwd: Path | None = None, timeout: float = 300, env: dict[str, str] | None = None) -> subprocess.CompletedProcess:
+    """Run the real ``occtrain`` CLI in a subprocess (``env``: variables to add)."""
     # tests/ on the path so recipes can load test-only plugins (tests/plugins/).
     path = os.pathsep.join(filter(None, [str(REPO / "tests"), os.environ.get("PYTHONPATH", "")]))
-    env = dict(os.environ, PYTHONWARNINGS="ignore", PYTHONPATH=path)
+    env = dict(os.environ, PYTHONWARNINGS="ignore", PYTHONPATH=path, **(env or {}))
     return subprocess.run(
         [sys.executable, "-m", "occtrain", *args], cwd=cwd or REPO, env=env, capture_output=True, text=True, timeout=timeout
     )

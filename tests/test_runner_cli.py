@@ -50,22 +50,26 @@ def recipe(tmp_path):
     return path
 
 
-def _env() -> dict:
+def _env(**extra: str) -> dict:
     path = os.pathsep.join(filter(None, [str(REPO / "tests"), os.environ.get("PYTHONPATH", "")]))
-    return dict(os.environ, PYTHONPATH=path, PYTHONWARNINGS="ignore")
+    return dict(os.environ, PYTHONPATH=path, PYTHONWARNINGS="ignore", **extra)
+
+
+#: A quarter of a second per step (tests/plugins/probe_stage.py), to kill a run mid-stage.
+SLOW = {"OCCTRAIN_PROBE_STEP_DELAY": "0.25"}
 
 
 @pytest.mark.parametrize("accumulate", [1, 2])
 def test_kill_9_then_resume_gives_the_uninterrupted_weights(recipe, tmp_path, accumulate):
-    # Reference: one uninterrupted run (the delay changes timing only, not the maths).
+    # Reference: one uninterrupted run, at full speed (the delay changes timing only, not the maths).
     acc = f"trainer.accumulate_grad_batches={accumulate}"
-    res = run_cli("run", str(recipe), "stages[0].model.step_delay=0.25", acc, "--run-dir", str(tmp_path / "ref"))
+    res = run_cli("run", str(recipe), acc, "--run-dir", str(tmp_path / "ref"))
     assert res.returncode == 0, res.stderr[-2000:]
     reference = load_file(tmp_path / "ref" / "only" / "export" / "model.safetensors")
 
     run_dir = tmp_path / "cut"
-    cmd = [sys.executable, "-m", "occtrain", "run", str(recipe), "stages[0].model.step_delay=0.25", acc, "--run-dir", str(run_dir)]
-    proc = subprocess.Popen(cmd, cwd=REPO, env=_env(), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    cmd = [sys.executable, "-m", "occtrain", "run", str(recipe), acc, "--run-dir", str(run_dir)]
+    proc = subprocess.Popen(cmd, cwd=REPO, env=_env(**SLOW), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     last = run_dir / "only" / "checkpoints" / "last.ckpt"
     deadline = time.time() + 120
     while time.time() < deadline and proc.poll() is None:
@@ -86,7 +90,7 @@ def test_kill_9_then_resume_gives_the_uninterrupted_weights(recipe, tmp_path, ac
     previous_step = torch.load(last.with_name("previous.ckpt"), weights_only=True, map_location="cpu")["global_step"]
     assert 2 <= previous_step < saved_step
     (run_dir / "only" / "checkpoints" / "last.ckpt").write_bytes(b"PK\x03\x04 damaged")
-    res = run_cli("run", str(recipe), "stages[0].model.step_delay=0.25", acc, "--run-dir", str(run_dir))
+    res = run_cli("run", str(recipe), acc, "--run-dir", str(run_dir), env=SLOW)
     assert res.returncode == 0, res.stderr[-2000:]
     assert "last.ckpt is unreadable" in res.stderr and "resuming only from" in res.stderr and "previous.ckpt" in res.stderr
     manifest = json.loads((run_dir / "manifest.json").read_text())
@@ -107,9 +111,10 @@ def test_kill_9_then_resume_gives_the_uninterrupted_weights(recipe, tmp_path, ac
 def test_a_stop_signal_interrupts_in_one_line_and_a_rerun_resumes(recipe, tmp_path, sig, code):
     run_dir = tmp_path / "run"
     # 16 steps of 1 s: the stage must still be training after the second run below has
-    # started Python and been refused, which takes seconds on a loaded machine.
-    args = [str(recipe), "stages.only.model.step_delay=1.0", "--run-dir", str(run_dir)]
-    proc = subprocess.Popen([sys.executable, "-m", "occtrain", "run", *args], cwd=REPO, env=_env(),
+    # started Python and been refused, which takes seconds on a loaded machine. The rerun
+    # that resumes it goes at full speed.
+    args = [str(recipe), "--run-dir", str(run_dir)]
+    proc = subprocess.Popen([sys.executable, "-m", "occtrain", "run", *args], cwd=REPO, env=_env(OCCTRAIN_PROBE_STEP_DELAY="1.0"),
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     last = run_dir / "only" / "checkpoints" / "last.ckpt"
     deadline = time.time() + 120

@@ -7,6 +7,7 @@ can be compared weight for weight.
 
 from __future__ import annotations
 
+import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -22,7 +23,12 @@ from occtrain.stages.common import configure_adamw
 class ProbeConfig:
     width: int = 4
     fail: bool = False
-    step_delay: float = 0.0
+
+
+#: Seconds each training step sleeps, so that a test can stop the process mid-stage. An
+#: environment variable, not a config key: it changes timing only, so a rerun without it
+#: resumes the same stage (the config hash) at full speed.
+STEP_DELAY = "OCCTRAIN_PROBE_STEP_DELAY"
 
 
 class Probe(Stage):
@@ -42,8 +48,7 @@ class Probe(Stage):
             self.loaded_from = config["stage"]
 
     def training_step(self, batch, _):
-        if self.ctx.model_cfg.step_delay:
-            time.sleep(self.ctx.model_cfg.step_delay)  # lets a test kill the process mid-stage
+        time.sleep(float(os.environ.get(STEP_DELAY, 0)))
         if self.ctx.model_cfg.fail:
             raise RuntimeError("probe exploded\nsecond line")
         sem = batch["semantics"].long()[:, ::8, ::8]
