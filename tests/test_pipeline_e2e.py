@@ -83,10 +83,11 @@ def test_every_stage_is_done_and_exported(pipeline):
     assert not list(pipeline.glob("*/cache/scene*"))
 
 
-def test_the_occllama_recipe_runs(tmp_path):
-    """stages/occllama.yaml (tokenizer -> pretrain -> instruct) end to end, shrunk."""
+def test_the_occllama_recipe_runs(pipeline, tmp_path):
+    """stages/occllama.yaml (tokenizer -> pretrain -> instruct) end to end, shrunk, on the
+    pipeline's world (the same data settings: its shards are reused, not made again)."""
     run_dir = tmp_path / "run"
-    res = run_cli("run", "stages/occllama.yaml", *tiny_overrides(tmp_path / "data", stages=3), "--run-dir", str(run_dir), timeout=900)
+    res = run_cli("run", "stages/occllama.yaml", *tiny_overrides(pipeline.parent / "data", stages=3), "--run-dir", str(run_dir), timeout=900)
     assert res.returncode == 0, res.stderr[-3000:]
     stages = json.loads((run_dir / "manifest.json").read_text())["stages"]
     assert list(stages) == ["tokenizer", "pretrain", "instruct"] and all(s["status"] == "done" for s in stages.values())
