@@ -15,15 +15,14 @@ from pathlib import Path
 from typing import Annotated, Any, Literal, NotRequired, TypedDict, Union
 
 import numpy as np
-import torch
 
 from occtrain.data.layout import ANNOTATIONS_FILE, GTS_DIR, LABELS_FILE, DatasetIndex, load_labels, read_npz
 from occtrain.data.schema import QAFile, Vec2
 from occtrain.data.validate import Len, first_problem
 from occtrain.errors import DataError
 from occtrain.io import atomic_write_json, finite_or_null
-from occtrain.metrics import CONVENTIONS, ForecastMetric, OccupancyMetric, PlanningMetric, QAMetric, coco_caption_scores
-from occtrain.metrics.occupancy import horizon_label
+# The metrics (torch, torchmetrics) load with the first score, not with the CLI's parser.
+from occtrain.metrics.conventions import CONVENTIONS, horizon_label
 from occtrain.occ3d import FUTURE_STEPS, GRID_SHAPE, NUM_CLASSES
 
 FORECAST_FILE = "forecast.npz"
@@ -119,6 +118,10 @@ def _missing_error(kind: str, missing: list[str], where: Path | str) -> DataErro
 def score_occupancy(pred_dir: Path, gt: Path, convention: str = "occ3d", use_mask: bool = True,
                     split: str | None = None, allow_missing: bool = False) -> dict[str, Any]:
     """Score ``<pred_dir>/<scene>/<token>/labels.npz`` against the ground truth's labels."""
+    import torch
+
+    from occtrain.metrics import OccupancyMetric
+
     if not pred_dir.is_dir():
         raise DataError(f"{pred_dir}: prediction directory not found")
     samples = gt_samples(gt, split)
@@ -166,6 +169,10 @@ def score_forecast(pred_dir: Path, gt: Path) -> dict[str, Any]:
 
     Future frames past the end of a scene are not counted; ``frames`` reports how many were.
     """
+    import torch
+
+    from occtrain.metrics import ForecastMetric
+
     if not pred_dir.is_dir():
         raise DataError(f"{pred_dir}: prediction directory not found")
     if not _has_annotations(gt):
@@ -208,6 +215,10 @@ def score_forecast(pred_dir: Path, gt: Path) -> dict[str, Any]:
 
 def score_planning(pred_file: Path, gt_file: Path, allow_missing: bool = False) -> dict[str, Any]:
     """Score ``{token: [[x, y] x 6]}`` against ``{token: {"traj", "mask", "agents"?}}``."""
+    import torch
+
+    from occtrain.metrics import PlanningMetric
+
     preds = read_json(pred_file, "planning predictions")
     gts = read_json(gt_file, "planning ground truth")
     for obj, path in ((preds, pred_file), (gts, gt_file)):
@@ -243,6 +254,8 @@ def score_planning(pred_file: Path, gt_file: Path, allow_missing: bool = False) 
 
 def score_captions(pred_file: Path, ref_file: Path, allow_missing: bool = False) -> dict[str, Any]:
     """Score ``{id: "caption"}`` against ``{id: ["reference", ...]}`` with pycocoevalcap."""
+    from occtrain.metrics import coco_caption_scores
+
     preds = read_json(pred_file, "caption predictions")
     refs = read_json(ref_file, "caption references")
     check_json(preds, CaptionPredictions, pred_file, 'expected a JSON object {id: "caption"}')
@@ -269,6 +282,8 @@ def score_captions(pred_file: Path, ref_file: Path, allow_missing: bool = False)
 
 def score_qa(pred_file: Path, questions_file: Path) -> dict[str, Any]:
     """Score a JSON list of answers against a NuScenes-QA question file, in order."""
+    from occtrain.metrics import QAMetric
+
     preds = read_json(pred_file, "QA predictions")
     data = read_json(questions_file, "NuScenes-QA questions")
     check_json(data, QAFile, questions_file, 'expected {"questions": [...]} in NuScenes-QA format')

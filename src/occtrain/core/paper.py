@@ -25,8 +25,7 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass
 
-from occtrain.metrics.occupancy import OCC3D, OCCWORLD
-from occtrain.metrics.planning import STP3, UNIAD
+from occtrain.metrics.conventions import OCC3D, OCCWORLD, STP3, UNIAD
 
 #: Words that do not change what a metric measures ("val/qa/overall" is "val/qa_acc").
 NEUTRAL_WORDS = frozenset({

@@ -25,8 +25,6 @@ import argparse
 import time
 from pathlib import Path
 
-from occtrain.dashboard.page import render_page
-from occtrain.dashboard.run_view import load_run
 from occtrain.dashboard.samples import bev_comparison, read_samples, write_samples
 from occtrain.io import atomic_write_text
 
@@ -37,6 +35,9 @@ __all__ = ["DASHBOARD_FILE", "bev_comparison", "read_samples", "register", "writ
 
 def write_dashboard(run_dir: Path, out: Path | None = None) -> Path:
     """Write the dashboard of ``run_dir`` (to ``run_dir/dashboard.html`` unless ``out``); returns its path."""
+    from occtrain.dashboard.page import render_page
+    from occtrain.dashboard.run_view import load_run
+
     run = load_run(Path(run_dir))
     out = Path(out) if out is not None else Path(run_dir) / DASHBOARD_FILE
     return atomic_write_text(out, render_page(run, generated=time.time()))

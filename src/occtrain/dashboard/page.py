@@ -8,8 +8,7 @@ import time
 from html import escape
 
 from occtrain.comparison import TABLE_FILE
-from occtrain.metrics.occupancy import OCC3D, OCCWORLD
-from occtrain.metrics.planning import STP3, UNIAD
+from occtrain.metrics.conventions import OCC3D, OCCWORLD, STP3, UNIAD
 from occtrain.core.paper import REAL_DATA, figures_for, metric_words
 from occtrain.dashboard.run_view import RunView, StageView
 from occtrain.dashboard.svg import line_chart

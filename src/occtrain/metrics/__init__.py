@@ -6,36 +6,28 @@ Every result names its convention: occupancy ``occ3d`` / ``occworld``, planning
 
 from __future__ import annotations
 
+import importlib
 from typing import Any
 
-import torch
+from occtrain.metrics.conventions import CONVENTIONS, horizon_label
 
-from occtrain.metrics.captions import CAPTION_KEYS, CaptionMetric, coco_caption_scores
-from occtrain.metrics.codebook import CodebookUsage
-from occtrain.metrics.meta_action import MetaActionAccuracy
-from occtrain.metrics.occupancy import CONVENTIONS, ForecastMetric, OccupancyMetric, confusion_matrix, horizon_label
-from occtrain.metrics.pixels import DepthAbsRelMetric, PixelSegmentationMetric
-from occtrain.metrics.planning import PlanningMetric
-from occtrain.metrics.qa import QAMetric
+#: Each metric's module. Loaded when first used: torchmetrics takes seconds to import, and
+#: the commands that only name a convention (the CLI's parser, the dashboard) need none.
+_MODULES = {
+    "CAPTION_KEYS": "captions", "CaptionMetric": "captions", "coco_caption_scores": "captions",
+    "CodebookUsage": "codebook", "MetaActionAccuracy": "meta_action",
+    "ForecastMetric": "occupancy", "OccupancyMetric": "occupancy", "confusion_matrix": "occupancy",
+    "DepthAbsRelMetric": "pixels", "PixelSegmentationMetric": "pixels",
+    "PlanningMetric": "planning", "QAMetric": "qa",
+}
 
-__all__ = [
-    "CAPTION_KEYS",
-    "CONVENTIONS",
-    "CaptionMetric",
-    "CodebookUsage",
-    "DepthAbsRelMetric",
-    "ForecastMetric",
-    "MetaActionAccuracy",
-    "OccupancyMetric",
-    "PixelSegmentationMetric",
-    "PlanningMetric",
-    "QAMetric",
-    "coco_caption_scores",
-    "confusion_matrix",
-    "flatten_metrics",
-    "horizon_label",
-]
+__all__ = ["CONVENTIONS", "compute_and_reset", "flatten_metrics", "horizon_label", *_MODULES]
 
+
+def __getattr__(name: str) -> Any:
+    if name in _MODULES:
+        return getattr(importlib.import_module(f"occtrain.metrics.{_MODULES[name]}"), name)
+    raise AttributeError(f"module 'occtrain.metrics' has no attribute {name!r}")
 
 
 def flatten_metrics(prefix: str, result: dict[str, Any]) -> dict[str, float]:
@@ -43,6 +35,8 @@ def flatten_metrics(prefix: str, result: dict[str, Any]) -> dict[str, float]:
 
     Non-numeric values (the convention labels) are left out: the names carry them.
     """
+    import torch
+
     flat: dict[str, float] = {}
     for key, value in result.items():
         name = f"{prefix}_{key}"

@@ -29,11 +29,10 @@ import torch
 from torch import Tensor
 from torchmetrics import Metric
 
-from occtrain.occ3d import CLASS_NAMES, FRAME_DT, FREE, NUM_CLASSES
+from occtrain.metrics.conventions import CONVENTIONS, OCC3D, OCCWORLD, horizon_label  # noqa: F401 (theirs)
+from occtrain.occ3d import CLASS_NAMES, FREE, NUM_CLASSES
 
 #: The two occupancy conventions (see the module docstring), by name.
-OCC3D, OCCWORLD = "occ3d", "occworld"
-CONVENTIONS = (OCC3D, OCCWORLD)
 
 
 def confusion_matrix(pred: Tensor, target: Tensor, mask: Tensor | None = None) -> Tensor:
@@ -136,11 +135,6 @@ class OccupancyMetric(Metric):
         # Here the state is the one summed over every process (torchmetrics syncs it for compute).
         subsets = {f"{name}_mIoU": subset_miou(self.confmat, classes) for name, classes in self.subsets.items()}
         return {"convention": self.convention, **result, **subsets, "samples": self.samples.clone()}
-
-
-def horizon_label(index: int) -> str:
-    """Future frame index -> seconds label: 1 -> '1s', 0 -> '0.5s' (frames at 2 Hz)."""
-    return f"{(index + 1) * FRAME_DT:g}s"
 
 
 class ForecastMetric(Metric):
