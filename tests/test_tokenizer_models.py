@@ -276,6 +276,22 @@ def test_quantizer_ema_update_by_hand():
     torch.testing.assert_close(vq.codebook, torch.tensor([[2.0 / 1.5], [9.5]]))  # no update in eval
 
 
+def test_quantizer_trains_under_bf16_autocast_with_float32_state():
+    """An encoder under bf16-mixed precision hands the quantizer bf16 latents: its EMA
+    update and dead-code restart stay float32, and the result equals float32 inputs'."""
+    reference = VectorQuantizer(2, 1, beta=1.0, ema_decay=0.5, restart_threshold=0.01)
+    set_codebook(reference, [[0], [10]])
+    mixed = VectorQuantizer(2, 1, beta=1.0, ema_decay=0.5, restart_threshold=0.01)
+    set_codebook(mixed, [[0], [10]])
+    latent = as_latent([[1], [3], [9]])  # exact in bf16
+    expected = reference(latent)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        out = mixed(latent.bfloat16())
+    assert mixed.codebook.dtype == mixed.ema_sum.dtype == torch.float32
+    torch.testing.assert_close(mixed.codebook, reference.codebook)
+    assert torch.equal(out.codes, expected.codes) and out.loss.item() == pytest.approx(expected.loss.item())
+
+
 def run_restart(seed: int) -> tuple[list[torch.Tensor], VectorQuantizer, list[torch.Tensor]]:
     torch.manual_seed(seed)
     vq = VectorQuantizer(4, 2, restart_threshold=0.3, usage_decay=0.5)

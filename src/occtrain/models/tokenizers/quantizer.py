@@ -89,7 +89,9 @@ class VectorQuantizer(nn.Module):
 
     def forward(self, z: torch.Tensor) -> QuantizerOutput:
         """Quantize z (B, D, h, w); in training mode also update EMA statistics and restart dead codes."""
-        flat = z.movedim(1, -1).reshape(-1, self.code_dim)
+        # In float32 whatever the encoder's autocast dtype: the codebook, its EMA sums and the
+        # commitment loss are float32 state, and bf16 would round the code distances.
+        flat = z.movedim(1, -1).reshape(-1, self.code_dim).float()
         if self.training and self.restart_threshold > 0:
             self._restart_dead(flat.detach())
         codes = self._assign(flat.detach())
