@@ -449,3 +449,20 @@ def test_nearest_by_tree_equals_dense_distances_over_the_valid_points():
     dense = torch.cdist(src, dst).masked_fill(~valid[:, None], float("inf")).argmin(-1)
     assert torch.equal(tree, dense)
     assert bool(valid[0, tree[0]].all()) and bool(valid[1, tree[1]].all())
+
+
+def test_earlier_camera_frames_follow_the_batch_to_its_device(synth_dataset):
+    """On a GPU the batch is on the device and earlier frames come from disk: every tensor
+    must land beside the batch (the meta device stands in for CUDA here)."""
+    from occtrain.data.frames import camera_batch
+    from occtrain.data.layout import DatasetIndex
+    from occtrain.families.sparseoccvla.inputs import camera_frames
+
+    index = DatasetIndex.open(synth_dataset)
+    scene = next(iter(index.scenes))
+    token = index.scenes[scene][3]
+    batch = {k: v.to("meta") for k, v in camera_batch(index, [(scene, token)]).items()}
+    batch["meta"] = [{"scene": scene, "token": token, "index": 3}]
+    frames = camera_frames(batch, index, frames=2)
+    assert all(t.device.type == "meta" for t in (frames.images, frames.intrinsics, frames.cam_to_ego, frames.current_to_frame))
+    assert frames.images.shape[1] == 2

@@ -217,7 +217,8 @@ class AttemptRecord(Callback):
             self.record(facts)
 
     def _per_rank(self, trainer: L.Trainer, count: int) -> list[int]:
-        counts = trainer.strategy.all_gather(torch.tensor([count]))  # every rank calls it
+        # Every rank calls it, with the tensor on its own device: NCCL gathers no CPU tensors.
+        counts = trainer.strategy.all_gather(torch.tensor([count], device=trainer.strategy.root_device))
         return [int(c) for c in counts.flatten()]
 
     def on_train_start(self, trainer: L.Trainer, *args: Any) -> None:

@@ -47,7 +47,8 @@ def camera_frames(batch: dict[str, Any], index: DatasetIndex | None, frames: int
     """The batch's cameras, and with ``frames`` > 1 those of the frames before each sample
     (a scene's first frames repeat its first)."""
     views = [[batch["images"]], [batch["intrinsics"]], [batch["cam_to_ego"]]]
-    moves = [torch.eye(4).expand(len(batch["meta"]), 4, 4)]
+    dev = batch["images"].device  # earlier frames are read from disk, onto the batch's device
+    moves = [torch.eye(4, device=dev).expand(len(batch["meta"]), 4, 4)]
     for back in range(1, frames):
         if index is None:
             raise ValueError("earlier frames are read from the dataset: pass its index")
@@ -59,8 +60,8 @@ def camera_frames(batch: dict[str, Any], index: DatasetIndex | None, frames: int
             transforms.append(frame_transform(index, meta["scene"], meta["token"], earlier))
         cams = camera_batch(index, samples)
         for slot, key in zip(views, ("images", "intrinsics", "cam_to_ego")):
-            slot.append(cams[key])
-        moves.append(torch.tensor(np.stack(transforms), dtype=torch.float32))
+            slot.append(cams[key].to(dev))
+        moves.append(torch.tensor(np.stack(transforms), dtype=torch.float32, device=dev))
     return CameraFrames(*(torch.stack(v, 1) for v in views), torch.stack(moves, 1))
 
 
@@ -72,7 +73,7 @@ def ground_truth(batch: dict[str, Any], index: DatasetIndex | None, count: int, 
     out = []
     for b, meta in enumerate(batch["meta"]):
         rng = clip_rng(seed, meta["token"])
-        points, classes, n = occupied_points(batch["semantics"][b].numpy(), count, rng)
+        points, classes, n = occupied_points(batch["semantics"][b].cpu().numpy(), count, rng)
         if extended and index is not None:
             more = _later_points(index, meta, count, extended, rng)
             if more is not None:
