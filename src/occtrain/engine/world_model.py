@@ -45,7 +45,6 @@ def move_batch(batch: dict, device: torch.device) -> dict:
     return {k: v.to(device) if torch.is_tensor(v) else v for k, v in batch.items()}
 
 
-@torch.no_grad()
 def scene_cache_key(encoder: torch.nn.Module, index: DatasetIndex) -> str:
     """What a scene cache's rows depend on, hashed: the frozen encoder (every file of the
     export it was loaded from, or its weights when it has none) and the dataset (its root
@@ -66,6 +65,7 @@ def scene_cache_key(encoder: torch.nn.Module, index: DatasetIndex) -> str:
     return h.hexdigest()[:16]
 
 
+@torch.no_grad()
 def per_sample_cache(
     index: DatasetIndex, cache_file: Path | None, what: str, encode: Callable[[list[tuple[str, str]]], torch.Tensor],
     batch_size: int = 8,
