@@ -43,7 +43,7 @@ def evaluate(
     own train split."""
     from occtrain.runner import load_plugins
     from occtrain.stages import get_kind, kind_names
-    from occtrain.stages.base import SHARED_CACHE, EvalRequest
+    from occtrain.stages.base import EvalRequest, shared_cache_dir
 
     stage_dir = Path(stage_dir)
     pipeline = stage_dir.parent / "pipeline.yaml"
@@ -69,7 +69,7 @@ def evaluate(
         root, cache_dir = str(data_root), stage_dir / "eval" / Path(data_root).resolve().name / "cache"
     request = EvalRequest(
         stage_dir / "export", [stage_dir.parent / dep / "export" for dep in spec.consumes], root, split, tasks, samples, batch_size,
-        cache_dir, stage_dir.parent / SHARED_CACHE, save_predictions is not None,
+        cache_dir, shared_cache_dir(stage_dir), save_predictions is not None,
     )
     result = kind.module.evaluate_export(request)
     _save(eval_metrics_file(stage_dir, split, data_root), result.metrics)

@@ -24,6 +24,7 @@ from occtrain.config.recipe import RecipeConfig  # noqa: E402
 from occtrain.data.clips import clips_from_batch  # noqa: E402
 from occtrain.data.datamodule import ShardDataModule  # noqa: E402
 from occtrain.engine import load_world_model  # noqa: E402
+from occtrain.stages.base import shared_cache_dir  # noqa: E402
 
 
 def timed(engine, task, batches, batched: bool) -> tuple[float, list]:
@@ -48,7 +49,7 @@ def main() -> None:
     data.prepare_data()
     batches = [b for _, b in zip(range(args.batches), data.loader("val", train=False))]
     engine = load_world_model(stage / "export").eval()
-    engine.prepare_inputs(recipe.data.root, stage / "cache", stage.parent / "cache")  # time generation, not the frozen encoders
+    engine.prepare_inputs(recipe.data.root, stage / "cache", shared_cache_dir(stage))  # time generation, not the frozen encoders
     torch.manual_seed(0)
     for task in args.tasks.split(","):
         timed(engine, task, batches[:1], True)  # warm-up

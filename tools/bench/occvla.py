@@ -30,6 +30,7 @@ from occtrain.data.layout import DatasetIndex  # noqa: E402
 from occtrain.engine import load_world_model  # noqa: E402
 from occtrain.metrics import OccupancyMetric  # noqa: E402
 from occtrain.occ3d import FUTURE_STEPS  # noqa: E402
+from occtrain.stages.base import shared_cache_dir  # noqa: E402
 
 
 def main() -> None:
@@ -43,7 +44,7 @@ def main() -> None:
     engine = load_world_model(stage / "export").eval()
     if engine.vision is None:
         raise SystemExit(f"{stage}: not an OccVLA stage (its world model reads no cameras)")
-    engine.prepare_inputs(recipe.data.root, stage / "cache", stage.parent / "cache")  # time generation, not camera encoding
+    engine.prepare_inputs(recipe.data.root, stage / "cache", shared_cache_dir(stage))  # time generation, not camera encoding
     index = DatasetIndex.open(recipe.data.root)
     clips = list(frame_clips(index, "val", engine.tasks.context_frames, FUTURE_STEPS, partial_history=False))
     clips = clips if args.samples < 0 else clips[: args.samples]

@@ -19,8 +19,8 @@ the forward + backward time of one batch and the peak resident memory of a proce
 runs only that (each family in its own child process, alternating, ``--repeats`` times).
 The paper's Tables 12-13: 612 tokens against HERMES' 2,500, about half the memory.
 
-``chamfer``: the nearest-point search inside every Chamfer loss (Eq. 1, 11), forward and
-backward, on a forecaster frame's sizes (64 queries x 64 points against 2,048 ground-truth
+``chamfer``: the nearest-point search inside every Chamfer loss (Eq. 1, 11), both
+directions, on a forecaster frame's sizes (64 queries x 64 points against 2,048 ground-truth
 voxel centres): dense distances (argmin of ``torch.cdist``) against the k-d tree the CPU
 path uses, interleaved on the same inputs; the two must match the same pairs.
 """
@@ -46,6 +46,7 @@ from occtrain.data.layout import DatasetIndex  # noqa: E402
 from occtrain.engine import load_world_model  # noqa: E402
 from occtrain.metrics import PlanningMetric  # noqa: E402
 from occtrain.occ3d import FUTURE_STEPS  # noqa: E402
+from occtrain.stages.base import shared_cache_dir  # noqa: E402
 
 
 def _recipe(stage: Path) -> RecipeConfig:
@@ -58,7 +59,7 @@ def bench_planner(stage: Path, steps: list[int], batch: int) -> None:
 
     recipe = _recipe(stage)
     spec = next(s for s in recipe.stages if s.name == stage.name)
-    request = EvalRequest(stage / "export", [stage.parent / d / "export" for d in spec.consumes], recipe.data.root, cache_dir=stage / "cache", shared_cache_dir=stage.parent / "cache")
+    request = EvalRequest(stage / "export", [stage.parent / d / "export" for d in spec.consumes], recipe.data.root, cache_dir=stage / "cache", shared_cache_dir=shared_cache_dir(stage))
     planner, clips = PlannerStage.rebuild(request)
     batches = [clips[i : i + batch] for i in range(0, len(clips), batch)]
     for b in batches:  # the decisions, once: the same for every step count
@@ -89,7 +90,7 @@ def measure_step(stage: Path, batch: int, steps: int) -> dict:
 
     recipe = _recipe(stage)
     engine = load_world_model(stage / "export")
-    engine.prepare_inputs(recipe.data.root, stage / "cache", stage.parent / "cache")
+    engine.prepare_inputs(recipe.data.root, stage / "cache", shared_cache_dir(stage))
     engine.train()
     clips = list(frame_clips(DatasetIndex.open(recipe.data.root), "train", engine.tasks.context_frames, FUTURE_STEPS, partial_history=False))[:batch]
     laid, _ = engine.task_batch(clips, {"ann": [c.ann for c in clips]}, seed=0)
@@ -134,31 +135,23 @@ def bench_chamfer(points: int, gt_points: int, batch: int, repeats: int) -> None
     from occtrain.models import point_sets
 
     gen = torch.Generator().manual_seed(0)
-    pred = (torch.randn(batch, points, 3, generator=gen) * 15).requires_grad_()
+    pred = torch.randn(batch, points, 3, generator=gen) * 15
     # Distinct voxel centres, as occupied_points draws them; a tenth of them padding.
     cells = torch.stack([torch.randperm(200 * 200 * 16, generator=gen)[:gt_points] for _ in range(batch)])
     gt = point_sets.voxel_centres(torch.stack([cells // (200 * 16), cells // 16 % 200, cells % 16], -1))
     valid = torch.rand(batch, gt_points, generator=gen) > 0.1
 
-    def dense(src, dst, dst_valid=None):
-        d = torch.cdist(src.detach(), dst.detach())
-        return (d if dst_valid is None else d.masked_fill(~dst_valid[:, None], float("inf"))).argmin(-1)
-
-    searches = {"dense cdist": dense, "k-d tree": point_sets._nearest_by_tree}
-    times = {name: [] for name in searches}
+    searches = {"dense cdist": point_sets._nearest_dense, "k-d tree": point_sets._nearest_by_tree}
+    times: dict[str, list[float]] = {name: [] for name in searches}
     matches = {}
     for rep in range(repeats):
         for name in (list(searches) if rep % 2 == 0 else list(searches)[::-1]):
             t = time.perf_counter()
-            to_gt, to_pred = searches[name](pred, gt, valid), searches[name](gt, pred)
-            # The loss on the pairs, as chamfer_distance takes it, with its backward.
-            fwd = (pred - torch.gather(gt, 1, to_gt[..., None].expand_as(pred))).pow(2).sum(-1).mean()
-            bwd = ((gt - torch.gather(pred, 1, to_pred[..., None].expand_as(gt))).pow(2).sum(-1) * valid).sum() / valid.sum()
-            (fwd + bwd).backward()
+            # Both directions of Eq. 1: each point to its nearest real truth, each truth to its nearest point.
+            matches[name] = (searches[name](pred, gt, valid), searches[name](gt, pred))
             times[name].append(time.perf_counter() - t)
-            matches[name] = (to_gt, to_pred)
     same = all(torch.equal(a, b) for a, b in zip(*matches.values()))
-    print(f"Chamfer loss of {batch} x {points} points against {gt_points}, forward + backward, {repeats} alternating runs each")
+    print(f"Chamfer's nearest-point search, both directions, {batch} x {points} points against {gt_points}, {repeats} alternating runs each")
     med = {name: sorted(ts)[len(ts) // 2] for name, ts in times.items()}
     for name, t in med.items():
         print(f"  {name:>11}: {1e3 * t:8.1f} ms (median)")

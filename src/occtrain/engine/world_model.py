@@ -174,10 +174,14 @@ class WorldModelEngine(torch.nn.Module):
         self.data_index = index = DatasetIndex.open(data_root)
         if self.vision is not None:
             self.prepare_images(data_root, cache_dir / IMAGE_CACHE if cache_dir is not None else None)
-        if self.reads_scenes() and (cache_dir is not None or self.scenes_from_cameras()):
+        if self.reads_scenes() and (cache_dir is not None or self.scenes_from_cameras()) and not self._has_scenes_of(index):
+            # The key reads the encoder's export: only when there is a cache file to name.
             where = shared_cache_dir or cache_dir
-            name = SCENE_CACHE.format(key=scene_cache_key(self.scene_encoder, index))
-            self.build_scene_cache(data_root, where / name if where is not None else None)
+            name = SCENE_CACHE.format(key=scene_cache_key(self.scene_encoder, index)) if where is not None else None
+            self.build_scene_cache(data_root, where / name if name is not None else None)
+
+    def _has_scenes_of(self, index: DatasetIndex) -> bool:
+        return self.scene_cache is not None and self._scene_cache_root == index.root
 
     @torch.no_grad()
     def build_scene_cache(self, data_root: str | Path, cache_file: Path | None, batch_size: int = 8) -> None:
@@ -185,7 +189,7 @@ class WorldModelEngine(torch.nn.Module):
         ``cache_file`` (safetensors, written atomically) so a resumed stage reuses it; in
         memory only without one. A no-op when this dataset's scenes are encoded already."""
         index = DatasetIndex.open(data_root)
-        if self.scene_cache is not None and self._scene_cache_root == index.root:
+        if self._has_scenes_of(index):
             return
         encoder = self.scene_encoder
 

@@ -29,6 +29,11 @@ from occtrain.models import count_parameters
 SHARED_CACHE = "cache"
 
 
+def shared_cache_dir(stage_dir: Path) -> Path:
+    """The caches keyed by their content that the stages of ``stage_dir``'s run share (``<run>/cache/``)."""
+    return Path(stage_dir).parent / SHARED_CACHE
+
+
 @dataclass
 class StageContext:
     """Everything a stage kind needs to build its module."""
@@ -44,7 +49,7 @@ class StageContext:
     @property
     def shared_cache_dir(self) -> Path:
         """The run's caches keyed by their content, which its stages share (``<run>/cache/``)."""
-        return self.stage_dir.parent / SHARED_CACHE
+        return shared_cache_dir(self.stage_dir)
 
 
 @dataclass
