@@ -44,6 +44,7 @@ from occtrain.data.validate import first_problem
 from occtrain.errors import DataError
 from occtrain.io import atomic_write_json, npz_bytes, rank_world
 from occtrain.occ3d import GRID_SHAPE
+from occtrain.progress import progress_bar
 
 INDEX_FILE = "index.json"
 KINDS = ("frames", "clips")
@@ -216,7 +217,18 @@ def write_shards(
         raise DataError(f"{out}: already holds shards of a different dataset or layout; choose another --out or delete it")
     if out.exists() and any(p.suffix == ".tar" for p in out.rglob("*.tar")):
         raise DataError(f"{out}: holds shards without an {INDEX_FILE} (an interrupted write?); delete it and write again")
+    if progress is None:  # no caller's bar: show one, so a log sees minutes of sharding move
+        frames = sum(len(index.scenes[scene]) for split in SPLITS for scene in index.splits.get(split, []))
+        with progress_bar(frames * len(kinds), f"writing {' and '.join(kinds)} shards of {frames} frames") as advance:
+            return _write_shards(index, out, samples_per_shard, history, future, kinds, source, advance)
+    return _write_shards(index, out, samples_per_shard, history, future, kinds, source, progress)
 
+
+def _write_shards(
+    index: DatasetIndex, out: Path, samples_per_shard: int, history: int, future: int, kinds: list[str],
+    source: dict, progress: Callable[[int], None],
+) -> dict:
+    """:func:`write_shards` once the shards are known to be missing."""
     result: dict[str, Any] = {"source": source, "kinds": {}}
     new_dirs = [d for d in (out, *(out / k for k in kinds)) if not d.exists()]
     sinks: list[_ShardSink] = []
