@@ -71,7 +71,9 @@ def world(tmp_path_factory) -> Path:
     write_shards(root / "ds", root / "shards", samples_per_shard=4, kinds=["frames"])
     export = root / "run" / "pretrain" / "export"
     export.mkdir(parents=True)
-    (root / "run" / "pipeline.yaml").write_text(to_yaml(load_config(RecipeConfig, REPO / "stages" / "quickstart.yaml")))
+    recipe = load_config(RecipeConfig, REPO / "stages" / "quickstart.yaml", [f"data.root={root / 'ds'}"])
+    (root / "run" / "pipeline.yaml").write_text(to_yaml(recipe))
+    (root / "run" / "manifest.json").write_text(json.dumps({"name": "quickstart", "stages": {"pretrain": {"kind": "pretrain", "status": "done"}}}))
     save_file({"w": torch.zeros(4)}, str(export / "model.safetensors"))
     (export / "config.json").write_text(json.dumps({"stage_kind": "world_model"}))
     return root
@@ -270,6 +272,81 @@ def unlinked_token_timestamps(a: dict) -> None:
 def camera(intrinsic: Any) -> dict:
     pose = {"translation": [1.0, 0.0, 1.5], "rotation": [1.0, 0.0, 0.0, 0.0]}
     return {"CAM_FRONT_tok": {"img_path": "imgs/CAM_FRONT/x.jpg", "intrinsic": intrinsic, "extrinsic": pose, "ego_pose": pose}}
+
+
+def pickled_checkpoint(tmp: Path) -> None:
+    """The tokenizer stage cut off under the recipe's own config, its last.ckpt a sound
+    archive whose pickle names a class (not what occtrain writes)."""
+    import collections
+
+    from occtrain.runner import load_recipe
+
+    recipe()(tmp)
+    planned = load_recipe(tmp / "r.yaml")[1]
+    manifest({"status": "interrupted", "config_hash": planned[0].config_hash, "config": planned[0].config})(tmp)
+    (tmp / "run2" / "tokenizer" / "checkpoints").mkdir(parents=True)
+    torch.save({"global_step": 2, "counts": collections.OrderedDict(a=1), "evil": Evil()}, tmp / "run2" / "tokenizer" / "checkpoints" / "last.ckpt")
+
+
+class Evil:
+    """Stands for any class a pickle could name (and run code through)."""
+
+
+def with_cameras(missing: str = "", corrupt: str = "") -> Callable[[Path], None]:
+    """Every sample gets six camera records and 8 x 16 PNGs (the released form: records
+    keyed by channel); ``missing`` leaves one file out, ``corrupt`` damages one."""
+
+    def setup(tmp: Path) -> None:
+        from PIL import Image
+
+        from occtrain.data.cameras import CAMERA_NAMES
+
+        def change(a: dict) -> None:
+            for infos in a["scene_infos"].values():
+                for token, info in infos.items():
+                    pose = {"translation": [1.0, 0.0, 1.5], "rotation": [1.0, 0.0, 0.0, 0.0]}
+                    info["camera_sensor"] = {}
+                    for cam in CAMERA_NAMES:
+                        rel = f"imgs/{cam}/{token}.png"
+                        info["camera_sensor"][cam] = {"img_path": rel, "intrinsic": [[8.0, 0, 8], [0, 8.0, 4], [0, 0, 1]], "extrinsic": pose, "ego_pose": pose}
+                        (tmp / "ds" / rel).parent.mkdir(parents=True, exist_ok=True)
+                        Image.new("RGB", (16, 8), (40, 80, 120)).save(tmp / "ds" / rel)
+
+        edit_json(tmp / "ds" / "annotations.json", change)
+        if missing:
+            (tmp / "ds" / missing).unlink()
+        if corrupt:
+            data = bytearray((tmp / "ds" / corrupt).read_bytes())
+            data[40] ^= 0xFF  # inside the IHDR/IDAT chunks: the CRC no longer matches
+            (tmp / "ds" / corrupt).write_bytes(bytes(data))
+
+    return setup
+
+
+def shards_then(change: Callable[[Path], None], **layout: Any) -> Callable[[Path], None]:
+    """Shards of the copy's own dataset in ``tmp/s2`` (frames, 4 per shard, unless ``layout``
+    says otherwise), then ``change`` to the dataset."""
+
+    def setup(tmp: Path) -> None:
+        from occtrain.data.shards import write_shards
+
+        write_shards(tmp / "ds", tmp / "s2", **{"samples_per_shard": 4, "kinds": ["frames"], **layout})
+        change(tmp)
+
+    return setup
+
+
+def world_without_qa(tmp: Path) -> None:
+    shutil.copytree(tmp / "ds", tmp / "noqa")
+    shutil.rmtree(tmp / "noqa" / "nuscenes_qa")
+
+
+def stage_status(status: str) -> Callable[[Path], None]:
+    return lambda tmp: edit_json(tmp / "run" / "manifest.json", lambda m: m["stages"]["pretrain"].update(status=status))
+
+
+FIRST_IMG = f"imgs/CAM_FRONT/{T0[0]}.png"
+STALE = ["data", "shards", DS, "--out", "{tmp}/s2", "--kinds", "frames", "--samples-per-shard", "4"]
 
 
 # -- shorthands for argv
@@ -508,7 +585,7 @@ CASES: list[Case] = [
     Case("captions-number", captions({"a": 3}, {"a": ["x"]}), CAPTIONS, 2, "{tmp}/cap.json: a is the integer 3, expected a string"),
     Case("captions-reference-numbers", captions({"a": "x"}, {"a": ["x", 2]}), CAPTIONS, 2,
          "{tmp}/ref.json: a is a list of 2 items, expected a string or a list of strings"),
-    Case("qa-answer-bool", qa_answers(["yes", True, "1", "car"]), QA, 2, "{tmp}/a.json: [1] is true, expected a string or an integer"),
+    Case("qa-answer-bool", qa_answers(["yes", True, "1", "car"]), QA, 2, "{tmp}/a.json: [1] is true, expected a string"),
     Case("qa-questions-without-answer", qa_answers(["yes", "2", "1", "car"], lambda qs: drop_key(qs[1], "answer")), QA, 2,
          "{tmp}/q.json: questions[1].answer is missing, expected a string"),
     Case("qa-questions-hop-string", qa_answers(["yes", "2", "1", "car"], lambda qs: qs[2].update(num_hop="1")), QA, 2,
@@ -569,6 +646,60 @@ CASES: list[Case] = [
     Case("vision-synth-without-cameras", recipe(VISION_ONLY), [*RUN, "data.root={tmp}/none", "data.synth.camera_height=0"], 2,
          "stage 'vision' reads camera images; data.synth.camera_height=0 synthesizes none"),
     Case("eval-not-a-stage-dir", nothing, ["eval", "{tmp}/nowhere"], 2, "{tmp}/nowhere"),
+    # ------------------------------------------------------------------ round two: wrong data, silently
+    Case("shards-stale-after-labels-edit", shards_then(save_labels(semantics=np.full(GRID_SHAPE, 3, np.uint8))), STALE, 2,
+         "{tmp}/s2: its shards were made before {tmp}/ds changed"),
+    Case("shards-stale-after-sidecar-edit", shards_then(edit_frame(0, lambda f: f.update(caption="a different caption"))), STALE, 2,
+         "{tmp}/s2: its shards were made before {tmp}/ds changed"),
+    Case("shards-one-camera-image-missing", with_cameras(missing=FIRST_IMG), SHARDS_FRAMES, 2, "{tmp}/ds/" + FIRST_IMG + ": cannot read it"),
+    Case("shards-corrupt-png", with_cameras(corrupt=f"imgs/CAM_BACK/{T0[3]}.png"), SHARDS_FRAMES, 2,
+         "{tmp}/ds/imgs/CAM_BACK/" + T0[3] + ".png: not a readable image"),
+    Case("eval-interrupted-stage", stage_status("interrupted"), EVAL, 2, "{tmp}/run/pretrain: stage 'pretrain' is interrupted, not done"),
+    Case("eval-never-run-stage", lambda tmp: (tmp / "run" / "manifest.json").unlink(), EVAL, 2, "stage 'pretrain' is never run, not done"),
+    Case("data-root-empty", both(recipe(), lambda tmp: (tmp / "empty").mkdir()), [*RUN, "data.root={tmp}/empty"], 2, "data.root {tmp}/empty is empty"),
+    Case("data-root-gts-without-annotations", both(recipe(), lambda tmp: [(tmp / "ds" / f).unlink() for f in ("annotations.json", "occtrain/dataset.json")]),
+         RUN, 2, "data.root {tmp}/ds holds no annotations.json"),
+    Case("data-root-foreign-record-without-annotations", both(recipe(), lambda tmp: (tmp / "ds" / "annotations.json").unlink()), RUN, 2,
+         "{tmp}/ds/occtrain/dataset.json: records a dataset occtrain did not synthesize, and {tmp}/ds has no annotations.json"),
+    # ------------------------------------------------------------------ round two: paths outside their roots
+    Case("ann-gt-path-escapes", edit_sample(0, 1, lambda s: s.update(gt_path="../../../../../etc/passwd")), SHARDS_FRAMES, 2,
+         f"{ANN}: scene_infos.scene-0000.{T0[1]}.gt_path '../../../../../etc/passwd' points outside the dataset root"),
+    Case("ann-gt-path-absolute", edit_sample(0, 1, lambda s: s.update(gt_path="/etc/passwd")), SHARDS_FRAMES, 2, "gt_path '/etc/passwd' points outside"),
+    Case("check-gt-path-valid-file-outside", lambda tmp: edit_json(tmp / "ds" / "annotations.json", lambda a: a["scene_infos"][SCENES[0]][T0[2]].update(
+        gt_path=str(labels_file(tmp, 0, 2).resolve()))), CHECK, 1, f"scene_infos.scene-0000.{T0[2]}.gt_path '"),
+    Case("show-gt-path-outside", edit_sample(1, 0, lambda s: s.update(gt_path="/etc/hostname")), ["data", "show", DS, "--out", "{tmp}/b.png"], 2,
+         "gt_path '/etc/hostname' points outside the dataset root"),
+    Case("ann-img-path-escapes", edit_sample(0, 0, lambda s: s.update(camera_sensor={"CAM_FRONT": {**camera([[1.0, 0, 0]] * 3)["CAM_FRONT_tok"], "img_path": "../x.png"}})),
+         SHARDS_FRAMES, 2, "camera_sensor.CAM_FRONT.img_path '../x.png' points outside the dataset root"),
+    Case("recipe-name-escapes", recipe(lambda t: t.replace("name: tiny", "name: ../../escape")), ["run", "{tmp}/r.yaml"], 2,
+         "name '../../escape' in " + RECIPE_FILE + ": a run's name is a folder name inside runs_root"),
+    # ------------------------------------------------------------------ round two: exit 0 with nothing done
+    Case("eval-split-test", nothing, [*EVAL, "--split", "test"], 2, "--split test: a dataset's splits are train, val"),
+    Case("eval-tasks-qa-without-qa", world_without_qa, ["eval", "{tmp}/run/pretrain", "--tasks", "qa", "--data", "{tmp}/noqa"], 2,
+         "--tasks qa: the task needs nuscenes_qa/NuScenes_<split>_questions.json, which this dataset lacks ({tmp}/noqa)"),
+    Case("eval-samples-zero", nothing, [*EVAL, "--samples", "0"], 2, "--samples 0: score a positive number of items per task, or -1"),
+    Case("eval-samples-minus-five", nothing, [*EVAL, "--samples", "-5"], 2, "--samples -5"),
+    Case("show-zero-frames", nothing, ["data", "show", DS, "--frames", "0", "--out", "{tmp}/b.png"], 2, "--frames 0: draw at least 1 frame"),
+    Case("show-out-exists", write_text("b.png", "mine"), ["data", "show", DS, "--out", "{tmp}/b.png"], 2, "{tmp}/b.png: exists; pass --overwrite"),
+    Case("shards-no-clip-fits", nothing, ["data", "shards", DS, "--out", "{tmp}/out", "--kinds", "clips"], 2,
+         "{tmp}/ds: its longest train scene has 8 frames and a clip spans history 4 + 1 + future 6 = 11"),
+    Case("qa-answer-integer", qa_answers(["yes", "2", 1, "car"]), QA, 2, "{tmp}/a.json: [2] is the integer 1, expected a string"),
+    # ------------------------------------------------------------------ round two: late or raw failures
+    Case("pretrain-family-unknown", recipe(lambda t: t.replace("family: occllama", "family: occlama")), RUN, 2,
+         "model.family: unknown model family 'occlama'"),
+    Case("instruct-family-other", recipe(lambda t: t + "  - {name: instruct, kind: instruct, consumes: [pretrain], model: {family: occllm}}\n"), RUN, 2,
+         "stages[2].model.family in " + RECIPE_FILE + " is 'occllm', but the stage tunes the consumed 'occllama' world model"),
+    Case("batch-size-zero", recipe(), [*RUN, "data.batch_size=0"], 2, "data.batch_size is 0 in " + RECIPE_FILE + ": it must be at least 1"),
+    Case("stage-batch-size-zero", recipe(), [*RUN, "stages.pretrain.data.batch_size=0"], 2, "stages.pretrain.data.batch_size is 0"),
+    Case("lr-negative", recipe(), [*RUN, "stages.tokenizer.optim.lr=-1"], 2, "stages.tokenizer.optim.lr is -1.0 in " + RECIPE_FILE + ": it must be at least 0"),
+    Case("lr-nan", recipe(), [*RUN, "stages.tokenizer.optim.lr=nan"], 2, "stages.tokenizer.optim.lr is nan in " + RECIPE_FILE + ": it must be a finite number"),
+    Case("val-check-interval-zero", recipe(), [*RUN, "trainer.val_check_interval=0"], 2, "trainer.val_check_interval is 0 in " + RECIPE_FILE),
+    Case("schedule-unknown", recipe(), [*RUN, "stages.pretrain.optim.schedule=linear"], 2, "stages.pretrain.optim.schedule is linear"),
+    Case("checkpoint-pickled", pickled_checkpoint, RUN, 2, "{tmp}/run2/tokenizer/checkpoints/last.ckpt: holds pickled object test_bad_inputs.Evil"),
+    Case("validate-batch-size-zero", recipe(), ["validate", "{tmp}/r.yaml", "data.batch_size=0"], 2, "data.batch_size is 0"),
+    Case("dry-run-family-unknown", recipe(lambda t: t.replace("family: occllama", "family: occlama")), [*RUN, "--dry-run"], 2, "unknown model family 'occlama'"),
+    Case("validate-stale-shards", both(recipe(), shards_then(save_labels(semantics=np.full(GRID_SHAPE, 3, np.uint8)), kinds=["frames", "clips"], history=1, future=1)),
+         ["validate", "{tmp}/r.yaml", "data.shards={tmp}/s2"], 2, "{tmp}/s2: its shards were made before {tmp}/ds changed"),
 ]
 
 
@@ -584,6 +715,7 @@ def test_bad_input_is_one_line_and_changes_nothing(case: Case, world: Path, tmp_
     shutil.copytree(world, tmp_path, dirs_exist_ok=True)
     case.setup(tmp_path)
     before = snapshot(tmp_path)
+    capsys.readouterr()  # what the setup printed (writing shards to break) is not the command's
     code = run_cli([a.format(tmp=tmp_path) for a in case.argv])
     out, err = capsys.readouterr()
     says = [s.format(tmp=tmp_path) for s in ((case.says,) if isinstance(case.says, str) else case.says)]

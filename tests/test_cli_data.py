@@ -52,11 +52,17 @@ def test_show_writes_a_picture(world, tmp_path):
     out = tmp_path / "bev.png"
     res = run_cli("data", "show", str(world), "--frames", "3", "--out", str(out))
     assert res.returncode == 0, res.stderr
+    assert "(the first val scene; --scene picks another)" in res.stderr  # which scene it drew, when not told
     img = Image.open(out)
     assert img.width > 3 * 600 and img.height > 600
     assert len(np.unique(np.asarray(img).reshape(-1, 3), axis=0)) > 8  # many classes drawn
-    res = run_cli("data", "show", str(world), "--scene", "scene-9999", "--out", str(out))
+    res = run_cli("data", "show", str(world), "--scene", "scene-9999", "--out", str(tmp_path / "other.png"))
     assert res.returncode == 2 and "no scene 'scene-9999'" in res.stderr
+    before = out.read_bytes()
+    res = run_cli("data", "show", str(world), "--index", "2", "--out", str(out))
+    assert res.returncode == 2 and "exists; pass --overwrite" in res.stderr and out.read_bytes() == before
+    res = run_cli("data", "show", str(world), "--index", "2", "--out", str(out), "--overwrite")
+    assert res.returncode == 0 and out.read_bytes() != before
 
 
 def test_shards_and_check_them(world, tmp_path):

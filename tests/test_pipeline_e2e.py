@@ -212,14 +212,23 @@ def test_eval_asks_every_question_and_scores_another_world(pipeline, tmp_path):
     assert metrics["qa_questions"] == asked and metrics["baseline_prior_qa_questions"] == asked
     assert "samples" in res.stderr and "meta_parsed_fraction" in res.stderr  # the table goes to the console (stderr)
 
-    # The same model on a world synthesized from another seed: its own eval directory.
-    other = tmp_path / "seed5"
-    made = run_cli("data", "synth", "--out", str(other), "--scenes", "1", "--val-scenes", "1", "--frames", "13", "--seed", "5")
-    assert made.returncode == 0, made.stderr[-2000:]
-    res = run_cli("eval", str(pipeline / "instruct"), "--tasks", "qa", "--data", str(other))
-    assert res.returncode == 0, res.stderr[-3000:]
-    theirs = json.loads((pipeline / "instruct" / "eval" / "seed5" / "val" / "metrics.json").read_text())
-    assert theirs["qa_questions"] == len(DatasetIndex.open(other).questions("val"))
+    # The same model on worlds synthesized from other seeds, in folders of one name: each has
+    # its own eval directory and scene cache, keyed by its content (never the other's).
+    from occtrain.evaluate import eval_metrics_file
+
+    scored = {}
+    for seed in (5, 6):
+        other = tmp_path / str(seed) / "world"
+        made = run_cli("data", "synth", "--out", str(other), "--scenes", "1", "--val-scenes", "1", "--frames", "13", "--seed", str(seed))
+        assert made.returncode == 0, made.stderr[-2000:]
+        res = run_cli("eval", str(pipeline / "instruct"), "--tasks", "qa", "--data", str(other))
+        assert res.returncode == 0, res.stderr[-3000:]
+        out = eval_metrics_file(pipeline / "instruct", "val", other)
+        assert f"metrics -> {out}" in res.stdout and out.parent.parent.name.startswith("world-")
+        scored[seed] = out.read_bytes()
+        assert json.loads(scored[seed])["qa_questions"] == len(DatasetIndex.open(other).questions("val"))
+    first, second = (eval_metrics_file(pipeline / "instruct", "val", tmp_path / str(seed) / "world") for seed in (5, 6))
+    assert first != second and first.read_bytes() == scored[5]  # seed 6's eval wrote beside it, not over it
 
     # A distilled stage's eval times student and teacher as its training validation does.
     res = run_cli("eval", str(pipeline / "distill"), "--tasks", "qa")

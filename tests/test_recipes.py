@@ -23,3 +23,15 @@ def test_recipe_validates(path: Path):
     names = [p.spec.name for p in planned]
     for p in planned:  # every handoff points at an earlier stage
         assert all(names.index(dep) < names.index(p.spec.name) for dep in p.spec.consumes)
+
+
+def test_readme_lists_every_recipe():
+    readme = (REPO / "README.md").read_text()
+    unlisted = []
+    for path in RECIPES:
+        rel = str(path.relative_to(REPO))
+        # A family's ablations may be listed by their pattern (stages/ablations/occllm_*.yaml).
+        pattern = f"{rel.rsplit('_', 1)[0]}_*.yaml" if path.parent.name == "ablations" else rel
+        if rel not in readme and pattern not in readme:
+            unlisted.append(rel)
+    assert not unlisted, f"README does not name: {unlisted}"

@@ -198,9 +198,9 @@ def test_checkpoints_load_strictly_by_key(recipe, tmp_path):
     stage = Probe(ctx)
     state = stage.state_dict()
     Probe(ctx).load_state_dict(state)  # the stage's own checkpoint loads
-    with pytest.raises(OcctrainError, match="missing key 'head.bias'.*--restart first"):
+    with pytest.raises(OcctrainError, match="missing tensor 'head.bias'.*--restart first"):
         Probe(ctx).load_state_dict({k: v for k, v in state.items() if k != "head.bias"})
-    with pytest.raises(OcctrainError, match="unexpected key 'extra.weight'"):
+    with pytest.raises(OcctrainError, match="unexpected tensor 'extra.weight'"):
         Probe(ctx).load_state_dict({**state, "extra.weight": torch.zeros(1)})
     # A fresh stage of the same config (another rank, a resumed run) seeds a step alike; another data seed does not.
     assert stage.step_seed(5) == Probe(ctx).step_seed(5) != stage.step_seed(6)

@@ -231,7 +231,7 @@ def test_captions_identical_text_scores_one(capsys, tmp_path):
     (tmp_path / "r.json").write_text(json.dumps({k: [v, "something else entirely"] for k, v in text.items()}))
     code, r, _ = score(capsys, "captions", "--pred", tmp_path / "p.json", "--ref", tmp_path / "r.json")
     assert code == 0
-    assert list(r) == ["Bleu_1", "Bleu_2", "Bleu_3", "Bleu_4", "METEOR", "ROUGE_L", "CIDEr", "samples"]
+    assert list(r) == ["convention", "Bleu_1", "Bleu_2", "Bleu_3", "Bleu_4", "METEOR", "ROUGE_L", "CIDEr", "samples"]
     # each caption has itself among its references: BLEU (clipped counts) and ROUGE-L (max over refs) are 1
     assert [r[f"Bleu_{n}"] for n in (1, 2, 3, 4)] == pytest.approx([1.0] * 4)
     assert r["ROUGE_L"] == pytest.approx(1.0)

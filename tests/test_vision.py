@@ -146,7 +146,7 @@ def test_bad_vision_path_is_a_one_line_config_error(tmp_path, saved_siglip):
     path, _ = saved_siglip  # a tower whose weights lack a tensor would silently start it random
     weights = load_file(str(path / "model.safetensors"))
     save_file({k: v for k, v in weights.items() if k != "post_layernorm.weight"}, str(path / "model.safetensors"), metadata={"format": "pt"})
-    with pytest.raises(ConfigError, match=r"^vision\.path: the weights in .* lack 1 tower tensor\(s\), e\.g\. 'post_layernorm\.weight'"):
+    with pytest.raises(ConfigError, match=r"^vision\.path: the weights in .* do not match its config\.json \(missing tensor 'post_layernorm\.weight'\)"):
         build_vision_tower(VisionConfig(path=str(path)))
     with pytest.raises(ConfigError, match=r"^vision\.hidden_size: 63 is not divisible"):
         build_vision_tower(VisionConfig(hidden_size=63))

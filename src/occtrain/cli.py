@@ -20,11 +20,32 @@ def _cmd_config_show(args: argparse.Namespace) -> int:
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
+    if args.dry_run:
+        return _cmd_validate(args)
     from occtrain.runner import is_rank_zero, run
 
     run_dir = run(args.recipe, args.overrides, run_dir=args.run_dir, only=args.only, restart=args.restart)
     if is_rank_zero():
         print(f"run directory: {run_dir}")
+    return 0
+
+
+def _cmd_validate(args: argparse.Namespace) -> int:
+    from occtrain.manifest import Manifest
+    from occtrain.runner import check_run
+
+    check = check_run(args.recipe, args.overrides, run_dir=args.run_dir, only=args.only, restart=args.restart)
+    manifest = Manifest.load(check.run_dir, writable=False)
+    n = len(check.planned)
+    print(f"{args.recipe}: ok, {n} stage{'' if n == 1 else 's'}; nothing was written")
+    for p in check.planned:
+        entry = manifest.stages.get(p.spec.name)
+        status = "to retrain" if p.spec.name in check.restarted else entry.status if entry else "pending"
+        family = f", {p.family}" if p.family else ""
+        consumes = f", consumes {', '.join(p.spec.consumes)}" if p.spec.consumes else ""
+        print(f"  {p.spec.name:12s} {p.spec.kind}{family}: {p.trainer.max_steps} steps{consumes} [{status}]")
+    print(check.data)
+    print(f"run directory: {check.run_dir}")
     return 0
 
 
@@ -76,7 +97,7 @@ def _cmd_data_shards(args: argparse.Namespace) -> int:
 def _cmd_data_show(args: argparse.Namespace) -> int:
     from occtrain.data.show import show
 
-    out = show(args.path, args.out, scene=args.scene, index=args.index, frames=args.frames, scale=args.scale)
+    out = show(args.path, args.out, scene=args.scene, index=args.index, frames=args.frames, scale=args.scale, overwrite=args.overwrite)
     print(out)
     return 0
 
@@ -118,7 +139,18 @@ def _add_run_commands(sub: Any) -> None:
     p.add_argument("--run-dir", help="run directory (default: runs/<recipe name>)")
     p.add_argument("--only", metavar="STAGE", help="run just this stage (its inputs must be done)")
     p.add_argument("--restart", metavar="STAGE", help="retrain this stage and every stage after it")
+    p.add_argument("--dry-run", action="store_true", help="check everything `run` checks first, then stop (as `occtrain validate`)")
     p.set_defaults(func=_cmd_run)
+
+    p = sub.add_parser(
+        "validate", help="check a recipe end to end (schema, kinds, families, handoffs, ranges, run directory, data) without writing anything",
+    )
+    p.add_argument("recipe", help="recipe YAML, e.g. stages/quickstart.yaml")
+    p.add_argument("overrides", nargs="*", help="key=value overrides, as for run")
+    p.add_argument("--run-dir", help="run directory (default: runs/<recipe name>)")
+    p.add_argument("--only", metavar="STAGE", help="as for run")
+    p.add_argument("--restart", metavar="STAGE", help="as for run")
+    p.set_defaults(func=_cmd_validate)
 
     p = sub.add_parser("eval", help="score a stage's export on a split: a tokenizer's reconstruction, a world model's generations (the papers' metrics)")
     p.add_argument("stage_dir", help="RUN_DIR/STAGE")
@@ -172,6 +204,7 @@ def _add_data_commands(sub: Any) -> None:
     p.add_argument("--index", type=int, default=0, help="frame index in the scene")
     p.add_argument("--frames", type=int, default=1, help="consecutive frames to draw side by side")
     p.add_argument("--scale", type=int, default=3, help="pixels per voxel")
+    p.add_argument("--overwrite", action="store_true", help="replace --out when it exists")
     p.set_defaults(func=_cmd_data_show)
 
     p = data.add_parser("check", help="validate a dataset or shard directory")
@@ -184,7 +217,9 @@ _WORKER_ERROR = re.compile(r"^occtrain\.errors\.\w+Error: (.*)$", re.MULTILINE)
 
 def _one_line(err: OcctrainError) -> str:
     """The user-facing line of an error, also when it crossed a DataLoader worker."""
-    text = str(err)
+    # The message alone: a library that appends context to an exception's args (webdataset
+    # adds its stream and url) would otherwise print as a tuple.
+    text = err.args[0] if err.args and isinstance(err.args[0], str) else str(err)
     found = _WORKER_ERROR.findall(text)
     return found[-1] if found else text.splitlines()[0] if text else type(err).__name__
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -23,9 +24,15 @@ from occtrain.progress import console
 
 
 def eval_metrics_file(stage_dir: str | Path, split: str = "val", data_root: str | Path | None = None) -> Path:
-    """Where ``evaluate`` writes its metrics."""
+    """Where ``evaluate`` writes its metrics: ``eval/<split>/`` on the run's dataset,
+    ``eval/<folder>-<world key>/<split>/`` on another (see ``world_key``), so two worlds in
+    folders of one name never share a file."""
     out = Path(stage_dir) / "eval"
-    return (out / Path(data_root).resolve().name if data_root is not None else out) / split / "metrics.json"
+    if data_root is not None:
+        from occtrain.data.shards import world_key
+
+        out = out / f"{Path(data_root).resolve().name}-{world_key(data_root)}"
+    return out / split / "metrics.json"
 
 
 def evaluate(
@@ -39,16 +46,47 @@ def evaluate(
 ) -> dict[str, float]:
     """Metrics of ``stage_dir``'s export on ``split`` (see the module docstring) of the run's
     dataset, or of ``data_root`` (e.g. a world synthesized from another seed): then the
-    metrics go to ``eval/<its directory name>/<split>/`` and its baselines come from its
-    own train split."""
-    from occtrain.runner import load_plugins
-    from occtrain.stages import get_kind, kind_names
-    from occtrain.stages.base import EvalRequest, shared_cache_dir
+    metrics go to ``eval/<its directory name>-<world key>/<split>/`` and its baselines come
+    from its own train split."""
+    from occtrain.data.shards import world_key
+    from occtrain.stages.base import EvalRequest, shared_cache_dir, stage_cache_dir
 
     stage_dir = Path(stage_dir)
+    recipe, spec, kind = _evaluable_stage(stage_dir, split, samples, batch_size)
+    # Prompts and generation length come from the export: exactly what the model trained with.
+    # Inputs encoded by frozen encoders are looked up in the stage's cache of this world (made
+    # by the same encoder; built if the stage trained without one). Scenes are in the run's
+    # shared cache, keyed by the encoder and the dataset they were made from.
+    root = str(data_root) if data_root is not None else recipe.data.root
+    _refuse_unscorable(tasks or [], root)
+    request = EvalRequest(
+        stage_dir / "export", [stage_dir.parent / dep / "export" for dep in spec.consumes], root, split, tasks, samples, batch_size,
+        stage_cache_dir(stage_dir, root), shared_cache_dir(stage_dir), save_predictions is not None,
+    )
+    result = kind.module.evaluate_export(request)
+    _save(eval_metrics_file(stage_dir, split, data_root), result.metrics, world_key(root))
+    if save_predictions is not None:
+        write_predictions(Path(save_predictions), result.predictions)
+    return result.metrics
+
+
+def _evaluable_stage(stage_dir: Path, split: str, samples: int, batch_size: int) -> tuple[RecipeConfig, Any, Any]:
+    """The run's recipe, the stage's spec and kind, once the arguments, the stage's kind and
+    its status (done: an interrupted stage's export is stale) allow an eval."""
+    from occtrain.data.layout import SPLITS
+    from occtrain.manifest import Manifest
+    from occtrain.runner import load_plugins
+    from occtrain.stages import get_kind, kind_names
+
     pipeline = stage_dir.parent / "pipeline.yaml"
     if not pipeline.is_file():
         raise ConfigError(f"{stage_dir}: not a stage of a run directory (no {pipeline}); pass RUN_DIR/STAGE")
+    if split not in SPLITS:
+        raise ConfigError(f"--split {split}: a dataset's splits are {', '.join(SPLITS)}")
+    if samples == 0 or samples < -1:
+        raise ConfigError(f"--samples {samples}: score a positive number of items per task, or -1 (the default) for all")
+    if batch_size < 1:
+        raise ConfigError(f"--batch-size {batch_size}: must be at least 1")
     recipe = load_config(RecipeConfig, pipeline)
     load_plugins(list(recipe.plugins), str(pipeline))  # a plugin's stage kinds and families
     spec = next((s for s in recipe.stages if s.name == stage_dir.name), None)
@@ -58,33 +96,45 @@ def evaluate(
     if kind is None or not kind.module.evaluable:
         scorable = [k for k in kind_names() if (other := get_kind(k)) is not None and other.module.evaluable]
         raise ConfigError(f"occtrain eval scores {', '.join(scorable)} stages; '{spec.name}' is a {spec.kind} stage")
-    if batch_size < 1:
-        raise ConfigError(f"--batch-size {batch_size}: must be at least 1")
-    # Prompts and generation length come from the export: exactly what the model trained with.
-    # Inputs encoded by frozen encoders are looked up in the stage's cache (made by the same
-    # encoder; built if the stage trained without one); another dataset's never. Scenes are
-    # in the run's shared cache, keyed by the encoder and the dataset they were made from.
-    root, cache_dir = recipe.data.root, stage_dir / "cache"
-    if data_root is not None:
-        root, cache_dir = str(data_root), stage_dir / "eval" / Path(data_root).resolve().name / "cache"
-    request = EvalRequest(
-        stage_dir / "export", [stage_dir.parent / dep / "export" for dep in spec.consumes], root, split, tasks, samples, batch_size,
-        cache_dir, shared_cache_dir(stage_dir), save_predictions is not None,
-    )
-    result = kind.module.evaluate_export(request)
-    _save(eval_metrics_file(stage_dir, split, data_root), result.metrics)
-    if save_predictions is not None:
-        write_predictions(Path(save_predictions), result.predictions)
-    return result.metrics
+    entry = Manifest.load(stage_dir.parent, writable=False).stages.get(spec.name)
+    if entry is None or entry.status != "done":
+        status = "never run" if entry is None else entry.status
+        raise ConfigError(
+            f"{stage_dir}: stage '{spec.name}' is {status}, not done, so its export is missing or stale; "
+            f"finish it with `occtrain run {pipeline} --run-dir {stage_dir.parent}` first"
+        )
+    return recipe, spec, kind
 
 
-def _save(out_file: Path, metrics: dict[str, float]) -> dict[str, float]:
-    """Write ``metrics``, keeping what an earlier eval wrote for other tasks; returns them."""
+def _refuse_unscorable(tasks: list[str], root: str) -> None:
+    """Named tasks must be scorable on the dataset (the defaults are trimmed later, with a note)."""
+    if not tasks:
+        return
+    from occtrain.data.layout import DatasetIndex
+    from occtrain.stages.base import TASK_NEEDS
+
+    available = DatasetIndex.open(root).available_tasks()
+    for task in tasks:
+        if why := available.get(TASK_NEEDS.get(task, task), ""):
+            raise ConfigError(f"--tasks {task}: the task {why} ({root}); score it on a dataset that has it")
+
+
+#: Beside the metrics: the world they were computed on (see ``world_key``).
+WORLD_FILE = "world.json"
+
+
+def _save(out_file: Path, metrics: dict[str, float], world: str) -> dict[str, float]:
+    """Write ``metrics``, keeping what an earlier eval of the same world wrote for other
+    tasks (never another world's: the run's dataset may have changed since); returns them."""
     try:
         earlier = json.loads(out_file.read_text()) if out_file.is_file() else {}
+        seen = json.loads((out_file.parent / WORLD_FILE).read_text()) if (out_file.parent / WORLD_FILE).is_file() else {}
     except ValueError:
-        raise ConfigError(f"{out_file}: not readable JSON; move it away to start the stage's eval afresh") from None
+        raise ConfigError(f"{out_file.parent}: holds unreadable JSON; move it away to start the stage's eval afresh") from None
+    if seen.get("world") != world:
+        earlier = {}
     atomic_write_json(out_file, {**earlier, **metrics})
+    atomic_write_json(out_file.parent / WORLD_FILE, {"world": world})
     return metrics
 
 

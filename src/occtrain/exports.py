@@ -89,12 +89,26 @@ def _first_line(err: BaseException) -> str:
     return str(err).splitlines()[0] if str(err) else type(err).__name__
 
 
+def require_config(config: dict, keys: tuple[str, ...], export_dir: Path) -> None:
+    """Refuse an export config that lacks an entry its loader reads (a KeyError otherwise)."""
+    lacking = [k for k in keys if k not in config]
+    if lacking:
+        raise OcctrainError(f"{Path(export_dir) / EXPORT_CONFIG}: no '{lacking[0]}' entry; re-run the stage that wrote it")
+
+
 def load_state_strict(
     module: torch.nn.Module, state: dict[str, torch.Tensor], ignore: tuple[str, ...], source: str,
     hint: str = "re-run the stage that wrote them",
 ) -> None:
     """Load ``state`` into ``module``; every key outside the ``ignore`` prefixes must match
-    both ways, else a one-line error names the first key that does not."""
+    both ways and in shape, else a one-line error names the first tensor that does not."""
+    own = module.state_dict()
+    for key, tensor in state.items():
+        if key in own and tuple(own[key].shape) != tuple(tensor.shape):
+            raise OcctrainError(
+                f"{source}: tensor '{key}' has shape {tuple(tensor.shape)} in the weights, the model built from its config "
+                f"wants {tuple(own[key].shape)}; {hint}"
+            )
     missing, unexpected = module.load_state_dict(state, strict=False)
     check_loaded_keys(missing, unexpected, ignore, source, hint)
 
@@ -105,4 +119,4 @@ def check_loaded_keys(missing: list[str], unexpected: list[str], ignore: tuple[s
     missing = [k for k in missing if not k.startswith(ignore)]
     if missing or unexpected:
         key, what = (missing[0], "missing") if missing else (unexpected[0], "unexpected")
-        raise OcctrainError(f"{source}: weights do not match the model ({what} key '{key}'); {hint}")
+        raise OcctrainError(f"{source}: weights do not match the model ({what} tensor '{key}'); {hint}")

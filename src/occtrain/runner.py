@@ -13,6 +13,7 @@ import hashlib
 import importlib
 import inspect
 import json
+import math
 import shutil
 import time
 import traceback
@@ -28,6 +29,7 @@ from occtrain.config import load_config, to_container, to_yaml
 from occtrain.config.loading import read_yaml, validate_section
 from occtrain.config.recipe import STAGE_DATA_KEYS, RecipeConfig, StageSpec
 from occtrain.config.schema import DataConfig, TrainerConfig
+from occtrain.core.registry import get_family
 from occtrain.errors import ConfigError, OcctrainError
 from occtrain.io import atomic_write_json, atomic_write_text, is_rank_zero
 from occtrain.manifest import RESUMABLE, Manifest
@@ -111,6 +113,8 @@ def plan_stages(recipe: RecipeConfig, source: str) -> list[PlannedStage]:
                 f"{key} is {trainer.max_steps} in {source}: a stage trains for a positive number of optimizer steps "
                 "(training streams data without end, so there is no 'until the data runs out')"
             )
+        for section, value, own in (("trainer", trainer, spec.trainer), ("data", stage_data, spec.data), ("optim", spec.optim, None)):
+            check_ranges(section, value, spec.name, own, source)
         trainer_dict = {k: v for k, v in to_container(trainer).items() if k not in OPERATIONAL_KEYS}
         config = {
             "kind": spec.kind,
@@ -130,12 +134,42 @@ def plan_stages(recipe: RecipeConfig, source: str) -> list[PlannedStage]:
     return planned
 
 
+#: Settings whose type alone lets through values that fail late, deep in Lightning or
+#: torch: the least each may be, per section (``None``: any finite number).
+_LEAST: dict[str, dict[str, float | None]] = {
+    "trainer": {
+        "devices": 1, "num_nodes": 1, "val_check_interval": 1, "log_every_n_steps": 1, "ckpt_every_n_steps": 1,
+        "accumulate_grad_batches": 1, "limit_val_batches": -1, "gradient_clip_val": 0,
+    },
+    "data": {"batch_size": 1, "num_workers": 0, "shuffle_buffer": 0, "samples_per_shard": 1, "history": 0, "future": 0},
+    "optim": {"lr": 0, "weight_decay": 0, "warmup_steps": 0, "min_lr_ratio": 0, "eps": 0},
+}
+
+
+def check_ranges(section: str, cfg: Any, stage: str, own: dict | None, source: str) -> None:
+    """Refuse a value out of its range (``batch_size: 0``, ``lr: -1``, ``lr: nan``,
+    ``val_check_interval: 0``) in one line naming its key, before anything is written."""
+    for name, least in _LEAST[section].items():
+        value = getattr(cfg, name)
+        if isinstance(value, float) and not math.isfinite(value) or (least is not None and value < least):
+            key = f"stages.{stage}.{section}.{name}" if section == "optim" or name in (own or {}) else f"{section}.{name}"
+            wanted = "a finite number" if isinstance(value, float) and not math.isfinite(value) else f"at least {least:g}"
+            raise ConfigError(f"{key} is {value} in {source}: it must be {wanted}")
+    if section == "optim" and (len(cfg.betas) != 2 or not all(0 <= b < 1 for b in cfg.betas) or cfg.schedule not in ("cosine", "constant")):
+        key = "schedule" if cfg.schedule not in ("cosine", "constant") else "betas"
+        raise ConfigError(f"stages.{stage}.optim.{key} is {getattr(cfg, key)} in {source}: schedule is cosine or constant, betas two numbers in [0, 1)")
+
+
 def _model_config(kind: StageKind, spec: StageSpec, consumed: dict, key: str, source: str, where: str) -> tuple[str | None, Any]:
     """The stage's family and its ``model:`` validated against the schema for that family
     (only the chosen family's settings: registering another family changes no hash)."""
     raw = to_container(spec.model) if spec.model is not None else {}
     raw = raw if isinstance(raw, dict) else {}
     family = kind.module.family_of(raw, consumed)
+    named = raw.get("family")
+    if named and named != family:
+        get_family(str(named), f"{key}.family in {source}")  # a typo is named as one
+        raise ConfigError(f"{key}.family in {source} is '{named}', but the stage tunes the consumed '{family}' world model; leave it out")
     kind.module.check_family(family, consumed, where)
     return family, validate_section(kind.module.model_schema(kind, family, raw), spec.model or {}, key, source)
 
@@ -200,6 +234,8 @@ def load_recipe(path: str | Path, overrides: list[str] | None = None) -> tuple[R
     recipe = load_config(RecipeConfig, path, overrides)
     if OmegaConf.is_missing(recipe, "name"):
         raise ConfigError(f"{path} has no 'name:'; a recipe names its run (the run directory is <runs_root>/<name>)")
+    if not recipe.name or Path(recipe.name).name != recipe.name or recipe.name in (".", "..") or "\\" in recipe.name:
+        raise ConfigError(f"name '{recipe.name}' in {path}: a run's name is a folder name inside runs_root, without / or ..; choose another")
     load_plugins(list(recipe.plugins), str(path))
     planned = plan_stages(recipe, str(path))
     check_table(recipe.table, [p.spec.name for p in planned], str(path))
@@ -276,16 +312,9 @@ def run(
     stage whose config changed, ...) writes nothing. Rank zero holds the run directory's
     lock for the whole run.
     """
-    recipe, planned = load_recipe(recipe_path, overrides)
-    names = [p.spec.name for p in planned]
-    for flag, value in (("--only", only), ("--restart", restart)):
-        if value is not None and value not in names:
-            raise ConfigError(f"{flag} names stage '{value}', but {recipe_path} has stages {', '.join(names)}")
-    run_dir = Path(run_dir) if run_dir else Path(recipe.runs_root) / recipe.name
+    check = check_run(recipe_path, overrides, run_dir, only, restart)
+    recipe, planned, run_dir, restarted = check.recipe, check.planned, check.run_dir, check.restarted
     rank_zero = is_rank_zero()
-    restarted = set(names[names.index(restart) :]) if restart is not None else set()
-    refuse_changed(planned, Manifest.load(run_dir, writable=False), restarted, only)
-    refuse_without_cameras(planned, recipe.data)
     if rank_zero:
         for note in shadowed_overrides(recipe, list(overrides or [])):
             console.print(f"[yellow]note[/]: {note}")
@@ -317,6 +346,71 @@ def run(
                 stop = stop.with_message(f"{stop} before any stage trained; run the same command again to continue")
             raise stop from None
     return run_dir
+
+
+@dataclass
+class RunCheck:
+    """A recipe checked from end to end before anything is written (``check_run``)."""
+
+    recipe: RecipeConfig
+    planned: list[PlannedStage]
+    run_dir: Path
+    restarted: set[str]
+    #: What the run will do with its data (synthesize it, write shards, read them).
+    data: str
+
+
+def check_run(
+    recipe_path: str | Path, overrides: list[str] | None = None, run_dir: str | Path | None = None,
+    only: str | None = None, restart: str | None = None,
+) -> RunCheck:
+    """Every check ``occtrain run`` makes before it writes anything (``occtrain validate``
+    runs exactly these): the recipe's schema, stage kinds, families and architectures,
+    handoffs, value ranges, the run directory's manifest, and the data (checked, not
+    written: a dataset that exists is opened and its shards compared with it)."""
+    from occtrain.data.datamodule import check_data
+
+    recipe, planned = load_recipe(recipe_path, overrides)
+    names = [p.spec.name for p in planned]
+    for flag, value in (("--only", only), ("--restart", restart)):
+        if value is not None and value not in names:
+            raise ConfigError(f"{flag} names stage '{value}', but {recipe_path} has stages {', '.join(names)}")
+    run_dir = Path(run_dir) if run_dir else Path(recipe.runs_root) / recipe.name
+    restarted = set(names[names.index(restart) :]) if restart is not None else set()
+    manifest = Manifest.load(run_dir, writable=False)
+    refuse_changed(planned, manifest, restarted, only)
+    for p in planned:  # a checkpoint the run would resume from must load (weights only)
+        entry = manifest.stages.get(p.spec.name)
+        if entry is not None and entry.status in RESUMABLE and p.spec.name not in restarted:
+            from occtrain.stages.common import last_checkpoint
+
+            last_checkpoint(run_dir / p.spec.name)
+    refuse_without_cameras(planned, recipe.data)
+    data = check_data(recipe.data)
+    refuse_missing_tasks(planned, recipe.data)
+    return RunCheck(recipe, planned, run_dir, restarted, data)
+
+
+def refuse_missing_tasks(planned: list[PlannedStage], data: DataConfig) -> None:
+    """Check each stage's task settings, and refuse a task (weighted above 0) whose sidecar
+    the dataset lacks: a plain Occ3D release has occupancy and ego poses only."""
+    from occtrain.data.layout import ANNOTATIONS_FILE, DatasetIndex
+    from occtrain.stages.base import TASK_NEEDS
+
+    root = Path(data.root)
+    available = DatasetIndex.open(root).available_tasks() if (root / ANNOTATIONS_FILE).is_file() else {}
+    for p in planned:
+        tasks = getattr(p.model_cfg, "tasks", None)
+        if tasks is None or not OmegaConf.is_config(tasks):
+            continue
+        key = f"stages.{p.spec.name}.model.tasks"
+        settings = OmegaConf.to_object(tasks)
+        if hasattr(settings, "validate"):
+            settings.validate(key)
+        for task, weight in (settings.weights or {}).items():
+            why = available.get(TASK_NEEDS.get(task, task), "") if weight > 0 else ""
+            if why:
+                raise ConfigError(f"task {task} {why} ({root}); add the sidecar or set {key}.weights.{task}=0")
 
 
 def refuse_without_cameras(planned: list[PlannedStage], data: DataConfig) -> None:

@@ -42,7 +42,14 @@ class PlanningTruth(TypedDict):
 PlanningPredictions = dict[str, Waypoints]
 CaptionPredictions = dict[str, str]
 CaptionReferences = dict[str, Union[str, list[str]]]
-QAPredictions = list[Union[str, int]]
+#: Strings only, as NuScenes-QA's answers are: the integer 1 is not the answer "1".
+QAPredictions = list[str]
+
+
+#: Every output names how it was computed (occupancy and forecasts carry occ3d/occworld).
+PLANNING_CONVENTION = "L2_stp3/collision_stp3: ST-P3 (mean over the steps up to each horizon); L2_uniad/collision_uniad: UniAD (at the horizon's step)"
+CAPTION_CONVENTION = "coco-caption (pycocoevalcap on PTB-tokenized text, scores as fractions, not percent)"
+QA_CONVENTION = "nuscenes-qa (exact match of the answer string, by template type and hop)"
 
 
 # ----------------------------------------------------------------------------- output
@@ -246,7 +253,7 @@ def score_planning(pred_file: Path, gt_file: Path, allow_missing: bool = False) 
         if rows:
             pred, gt, mask = (torch.from_numpy(np.stack(col)) for col in zip(*(r for r, _ in rows)))
             metric.update(pred, gt, mask, [a for _, a in rows] if has_agents else None)
-    return metric.compute()
+    return {"convention": PLANNING_CONVENTION, **metric.compute()}
 
 
 # ----------------------------------------------------------------------------- text
@@ -275,7 +282,7 @@ def score_captions(pred_file: Path, ref_file: Path, allow_missing: bool = False)
     scored = {k: v for k, v in refs.items() if k in preds}
     if not scored:
         raise DataError(f"{pred_file}: no caption for any id of {ref_file}")
-    result: dict[str, Any] = coco_caption_scores({k: preds[k] for k in scored}, scored)
+    result: dict[str, Any] = {"convention": CAPTION_CONVENTION, **coco_caption_scores({k: preds[k] for k in scored}, scored)}
     result["samples"] = len(scored)
     return result
 
@@ -294,9 +301,9 @@ def score_qa(pred_file: Path, questions_file: Path) -> dict[str, Any]:
     if len(preds) != len(questions):
         raise DataError(f"{pred_file}: holds {len(preds)} answers but {questions_file} asks {len(questions)} questions")
     metric = QAMetric()
-    metric.update([str(p) for p in preds], [q["answer"] for q in questions],
+    metric.update(list(preds), [q["answer"] for q in questions],
                   [q["template_type"] for q in questions], [q["num_hop"] for q in questions])
-    return metric.compute()
+    return {"convention": QA_CONVENTION, **metric.compute()}
 
 
 # ----------------------------------------------------------------------------- CLI

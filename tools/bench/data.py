@@ -1,6 +1,11 @@
 """Data throughput: world synthesis frames/s (one core) and shard reading samples/s.
 
     python tools/bench/data.py [--frames 40] [--read-seconds 8]
+    python tools/bench/data.py fingerprint [--root data/quickstart]
+
+``fingerprint`` times what every stage start pays to know its shards and caches are of the
+dataset as it is: the size-and-mtime fingerprint occtrain uses against hashing the same
+files' bytes, interleaved three times each (the page cache warm for both after the first).
 
 Everything is measured in one run, side by side, on the same machine state:
 synthesis (render + annotate + text, no disk) without and with the six cameras (ray cast
@@ -57,11 +62,43 @@ def bench_read(cfg: DataConfig, workers: int, seconds: float) -> float:
     return rate
 
 
+def bench_fingerprint(root: Path) -> None:
+    import hashlib
+
+    from occtrain.data.layout import DatasetIndex
+    from occtrain.data.shards import dataset_fingerprint, source_files
+
+    index = DatasetIndex.open(root)
+    files = [f for f in source_files(index) if f.is_file()]
+    size = sum(f.stat().st_size for f in files)
+
+    def by_content() -> None:
+        h = hashlib.sha256()
+        for f in files:
+            h.update(f.read_bytes())
+
+    stat_s, hash_s = [], []
+    for _ in range(3):
+        for fn, out in ((lambda: dataset_fingerprint(index), stat_s), (by_content, hash_s)):
+            start = time.perf_counter()
+            fn()
+            out.append(time.perf_counter() - start)
+    print(f"{root}: {len(files)} source files, {size / 1e6:.0f} MB")
+    print(f"fingerprint by size + mtime: {' / '.join(f'{t:.2f}' for t in stat_s)} s")
+    print(f"sha256 of every byte       : {' / '.join(f'{t:.2f}' for t in hash_s)} s   "
+          f"({min(hash_s) / min(stat_s):.1f}x the fingerprint, best of three)")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("what", nargs="?", choices=("throughput", "fingerprint"), default="throughput")
     ap.add_argument("--frames", type=int, default=40)
     ap.add_argument("--read-seconds", type=float, default=8.0)
+    ap.add_argument("--root", type=Path, default=Path("data/quickstart"), help="the dataset `fingerprint` reads")
     args = ap.parse_args()
+    if args.what == "fingerprint":
+        bench_fingerprint(args.root)
+        return
     torch.set_num_threads(1)
 
     plain = bench_synthesis(args.frames, cameras=False)

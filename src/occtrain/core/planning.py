@@ -313,7 +313,7 @@ class MetaActionPlanner(nn.Module):
 def meta_action_planner(ctx: Any, teacher: Any, sidecar_reference: bool = True) -> MetaActionPlanner:
     """The planner of a planner stage (``WorldSpec.planner``) from its context."""
     where = f"stages '{ctx.spec.name}'"
-    return MetaActionPlanner(ctx.model_cfg, teacher, ctx.data.root, ctx.stage_dir / "cache", where, sidecar_reference)
+    return MetaActionPlanner(ctx.model_cfg, teacher, ctx.data.root, ctx.cache_dir, where, sidecar_reference)
 
 
 def load_meta_action_planner(export_dir: Path, teacher: Any, request: Any, sidecar_reference: bool = True) -> MetaActionPlanner:

@@ -25,7 +25,7 @@ from omegaconf import DictConfig, OmegaConf
 from occtrain.core.protocols import EvalHook, Scorer
 from occtrain.core.tasks import TaskConfig, TaskSpec
 from occtrain.errors import ConfigError
-from occtrain.exports import read_export, write_export
+from occtrain.exports import load_state_strict, read_export, require_config, write_export
 from occtrain.models import count_parameters
 
 #: The package whose sub-packages are the families shipped with occtrain.
@@ -193,16 +193,17 @@ def world_families() -> dict[str, FamilySpec]:
     return {n: f for n, f in families().items() if f.world is not None}
 
 
-def get_family(name: str) -> FamilySpec:
+def get_family(name: str, key: str = "model.family") -> FamilySpec:
+    """The registration of family ``name``; one line naming ``key`` when there is none."""
     _discover()
     if name not in _FAMILIES:
-        raise ConfigError(f"unknown model family '{name}'; families are {', '.join(sorted(_FAMILIES))}")
+        raise ConfigError(f"{key}: unknown model family '{name}'; families are {', '.join(sorted(_FAMILIES))}")
     return _FAMILIES[name]
 
 
 def get_world(name: str, key: str = "model.family") -> WorldSpec:
     """The world spec of family ``name``; one line naming ``key`` when it has none."""
-    spec = get_family(name)
+    spec = get_family(name, key)
     if spec.world is None:
         raise ConfigError(f"{key}: family '{name}' has no world model; use one of {', '.join(sorted(world_families()))}")
     return spec.world
@@ -268,8 +269,9 @@ def load_tokenizer(export_dir: Path) -> Any:
     state, config = read_export(export_dir)
     if config.get("stage_kind") != "tokenizer":
         raise ConfigError(f"{export_dir}: not a tokenizer export (stage kind '{config.get('stage_kind')}'); consume the tokenizer stage")
+    require_config(config, ("arch", "config"), export_dir)
     model = build_tokenizer(config["arch"], config["config"])
-    model.load_state_dict(state)
+    load_state_strict(model, state, (), str(export_dir))
     model.export_dir = Path(export_dir)  # a world-model export copies it from here
     model.arch = config["arch"]
     return model.eval().requires_grad_(False)

@@ -10,10 +10,10 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader
 
-from occtrain.config.schema import DataConfig
+from occtrain.config.schema import DataConfig, check_synth_config
 from occtrain.data.cameras import CAMERA_NAMES
-from occtrain.data.layout import ANNOTATIONS_FILE, DEPTH_SCALE, DatasetIndex
-from occtrain.data.shards import INDEX_FILE, KINDS, PAD_KEY, SkipSamples, make_pipeline, shard_urls, write_shards
+from occtrain.data.layout import ANNOTATIONS_FILE, DATASET_FILE, DEPTH_SCALE, DatasetIndex, generator_record
+from occtrain.data.shards import KINDS, current_shards, shard_source, PAD_KEY, SkipSamples, make_pipeline, shard_urls, write_shards
 from occtrain.errors import DataError
 
 
@@ -21,26 +21,63 @@ def shards_dir(cfg: DataConfig) -> Path:
     return Path(cfg.shards) if cfg.shards else Path(cfg.root) / "shards"
 
 
+def check_data(cfg: DataConfig) -> str:
+    """Check, writing nothing, that ``cfg`` names data a run can use; say what the run will
+    do with it. A dataset that exists is opened and checked (annotations, paths inside the
+    root, the synthesis record), and shards that exist must be of it as it is now."""
+    root = Path(cfg.root)
+    if not (root / ANNOTATIONS_FILE).is_file():
+        if root.exists() and not (root / DATASET_FILE).is_file():
+            # Neither an Occ3D root nor a synthesis cut off halfway (which holds the record):
+            # writing a synthetic world into it would train on data nobody asked for.
+            what = "is empty" if root.is_dir() and not any(root.iterdir()) else "holds no annotations.json"
+            raise DataError(
+                f"data.root {root} {what}; point data.root at an Occ3D root (annotations.json + gts/), "
+                "or at a path that does not exist yet for occtrain to synthesize its world there"
+            )
+        s = cfg.synth
+        check_synth_config(s)
+        _check_synth_record(root, cfg)  # a synthesis cut off halfway resumes only under its own settings
+        return (
+            f"data.root {root} {'is incomplete' if root.exists() else 'does not exist'}: synthesizing occtrain's world there "
+            f"(seed {s.seed}, {s.train_scenes}+{s.val_scenes} scenes of {s.frames_per_scene} frames)"
+        )
+    index = DatasetIndex.open(root)
+    _check_synth_record(root, cfg)
+    source = shard_source(index, cfg.samples_per_shard, cfg.history, cfg.future)
+    ready = current_shards(index, shards_dir(cfg), source) is not None
+    return f"data.root {root}: {sum(len(t) for t in index.scenes.values())} frames; shards {'ready' if ready else 'to be written'} in {shards_dir(cfg)}"
+
+
 def ensure_data(cfg: DataConfig, verbose: bool = True) -> Path:
-    """Synthesize the dataset if ``cfg.root`` is absent, write its shards if absent; return the shard dir."""
+    """Synthesize the dataset if ``cfg.root`` is absent, write its shards if absent (see
+    ``check_data``); return the shard dir."""
+    plan = check_data(cfg)
     root = Path(cfg.root)
     if not (root / ANNOTATIONS_FILE).is_file():
         from occtrain.data.synthesize import synthesize  # the world generator loads only when needed
 
+        if verbose:
+            from occtrain.progress import console
+
+            console.print(plan)
         synthesize(root, cfg.synth, verbose=verbose)
-    else:
-        _check_synth_record(root, cfg)
     out = shards_dir(cfg)
-    if not (out / INDEX_FILE).is_file():
-        write_shards(root, out, cfg.samples_per_shard, cfg.history, cfg.future)
+    # Also when they exist: shards made before the dataset changed are refused, never read.
+    write_shards(root, out, cfg.samples_per_shard, cfg.history, cfg.future)
     return out
 
 
 def _check_synth_record(root: Path, cfg: DataConfig) -> None:
     """A world occtrain synthesized with other settings than the recipe's ``data.synth`` is
-    refused (it would silently train on another dataset); real data has no such record."""
-    record = DatasetIndex.open(root).generator
-    if not record or record.get("generator") != "occtrain.synth":
+    refused (it would silently train on another dataset), complete or cut off halfway; real
+    data has no such record, and a record of something else is refused as such."""
+    record = generator_record(root)
+    if not record:
+        return
+    if record.get("generator") != "occtrain.synth":
+        if not (root / ANNOTATIONS_FILE).is_file():
+            raise DataError(f"{root / DATASET_FILE}: records a dataset occtrain did not synthesize, and {root} has no annotations.json; point data.root elsewhere")
         return
     from occtrain.data.synthesize import FORMAT_VERSION
 

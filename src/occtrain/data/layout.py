@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import json
 import math
+import posixpath
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
@@ -194,6 +195,23 @@ def _order_samples(scene: str, infos: dict[str, dict], source: Path) -> list[str
     return sorted(tokens, key=lambda t: stamps[t])
 
 
+def inside_root(rel: str) -> bool:
+    """Whether a path read from a data file stays inside the directory it is relative to.
+
+    Lexical (no symlinks are followed): a root whose ``gts/`` links to another disk is a
+    common and legitimate layout; an absolute path or ``..`` out of the root is not."""
+    if not rel or rel.startswith(("/", "\\")) or (len(rel) > 1 and rel[1] == ":"):
+        return False
+    return not posixpath.normpath(rel.replace("\\", "/")).startswith("..")
+
+
+def generator_record(root: Path) -> dict | None:
+    """occtrain's record of what generated the directory ``root`` (``occtrain/dataset.json``),
+    if any; it is written first, so a synthesis cut off halfway has it too."""
+    path = Path(root) / DATASET_FILE
+    return _read_json(path, "dataset record", dict[str, Any]) if path.is_file() else None
+
+
 def dataset_root(path: str | Path) -> Path:
     """The dataset root that ``path`` names: itself, or the parent of its ``gts/`` directory."""
     path = Path(path)
@@ -223,6 +241,21 @@ class DatasetIndex:
                 raise DataError(f"{src}: {split}_split names scene '{unknown[0]}' that has no scene_infos entry; {ANNOTATIONS_HINT}")
             self.splits[split] = list(names)
         self._scene_of = {tok: scene for scene, toks in self.scenes.items() for tok in toks}
+        self._check_paths(src)
+
+    def _check_paths(self, src: Path) -> None:
+        """Every gt_path and img_path names a file inside the root: one that points out of it
+        (``../../etc/passwd``, ``/etc/passwd``) is never opened, however valid the file."""
+        for scene, infos in self.scene_infos.items():
+            for token, info in infos.items():
+                paths = [("gt_path", info.get("gt_path"))]
+                paths += [(f"camera_sensor.{key}.img_path", r.get("img_path")) for key, r in (info.get("camera_sensor") or {}).items()]
+                for key, rel in paths:
+                    if rel is not None and not inside_root(rel):
+                        raise DataError(
+                            f"{src}: scene_infos.{scene}.{token}.{key} '{rel}' points outside the dataset root {self.root}; "
+                            "paths in annotations.json are relative to the root"
+                        )
 
     @classmethod
     def open(cls, path: str | Path) -> DatasetIndex:
@@ -262,10 +295,13 @@ class DatasetIndex:
 
     @cached_property
     def has_cameras(self) -> bool:
-        """Whether samples carry ``camera_sensor`` records and the images they name exist."""
+        """Whether samples carry ``camera_sensor`` records and images exist for them.
+
+        Any image of the first sample present means the dataset has cameras: a missing one
+        (of any sample) is then an error naming it, never a quiet shard set without cameras."""
         first = next(self.samples(), None)
         records = self.info(*first).get("camera_sensor") if first else None
-        return bool(records) and all(self.image_path(r["img_path"]).is_file() for r in records.values())
+        return bool(records) and any(self.image_path(r["img_path"]).is_file() for r in records.values())
 
     def image_path(self, img_path: str) -> Path:
         """Where a record's ``img_path`` lies: relative to the root (the README's form), or
@@ -330,8 +366,7 @@ class DatasetIndex:
     @cached_property
     def generator(self) -> dict | None:
         """occtrain's record of what generated this directory, if any."""
-        path = self.root / DATASET_FILE
-        return _read_json(path, "dataset record", dict[str, Any]) if path.is_file() else None
+        return generator_record(self.root)
 
     def has_frame_annotations(self, scene: str) -> bool:
         return (self.root / FRAMES_DIR / f"{scene}.json").is_file()

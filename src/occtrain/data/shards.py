@@ -31,6 +31,7 @@ from __future__ import annotations
 import hashlib
 import io
 import json
+import re
 import tarfile
 from pathlib import Path
 from typing import Any, Callable, Iterable, Iterator, TypedDict
@@ -39,7 +40,7 @@ import numpy as np
 import webdataset as wds
 
 from occtrain.data.clips import clip_annotation
-from occtrain.data.layout import FRAMES_DIR, SPLITS, DatasetIndex, read_npz
+from occtrain.data.layout import CLASS_SUFFIX, DEPTH_SUFFIX, FRAMES_DIR, SPLITS, DatasetIndex, qa_file, read_npz
 from occtrain.data.validate import first_problem
 from occtrain.errors import DataError
 from occtrain.io import atomic_write_json, npz_bytes, rank_world
@@ -68,11 +69,45 @@ def unpack_mask(packed: np.ndarray) -> np.ndarray:
 
 
 def dataset_fingerprint(index: DatasetIndex) -> str:
-    """A hash of the dataset's annotations (and generator record), for shard staleness checks."""
+    """A hash of everything shards are made from: annotations.json and the generator record
+    by content, every labels file, camera image, sidecar and QA file by size and mtime.
+
+    Editing any of them (a relabelled ``labels.npz``, a re-rendered image) changes it, so
+    shards and caches made before the edit are refused, never read. Size and mtime, like
+    make: the cost grows with the file count, not with the bytes, which for a real release
+    with its camera images are tens of GB (``tools/bench/data.py fingerprint``)."""
     h = hashlib.sha256((index.root / "annotations.json").read_bytes())
     if index.generator:
         h.update(json.dumps(index.generator, sort_keys=True).encode())
+    for path in source_files(index):
+        try:
+            st = path.stat()
+            h.update(f"{path.relative_to(index.root)}\0{st.st_size}\0{st.st_mtime_ns}\n".encode())
+        except FileNotFoundError:
+            h.update(f"{path}\0missing\n".encode())
     return h.hexdigest()[:16]
+
+
+def world_key(root: str | Path) -> str:
+    """Names the dataset at ``root`` as it is now (its resolved path and fingerprint): caches
+    and metrics made from a world live under its key, so another world (same folder name,
+    another place) or the same one edited since never meets them."""
+    index = DatasetIndex.open(root)
+    return hashlib.sha256(f"{index.root.resolve()}\0{dataset_fingerprint(index)}".encode()).hexdigest()[:12]
+
+
+def source_files(index: DatasetIndex) -> Iterator[Path]:
+    """Every file a shard of ``index`` may be made from (labels, images and their maps, sidecars)."""
+    for scene, token in index.samples():
+        yield index.labels_path(scene, token)
+        for record in (index.info(scene, token).get("camera_sensor") or {}).values():
+            image = index.image_path(record["img_path"])
+            yield image
+            yield from (image.with_name(f"{image.stem}{suffix}.png") for suffix in (CLASS_SUFFIX, DEPTH_SUFFIX))
+    for scene in index.scenes:
+        yield index.root / FRAMES_DIR / f"{scene}.json"
+    for split in SPLITS:
+        yield index.root / qa_file(split)
 
 
 class ShardEntry(TypedDict):
@@ -141,20 +176,30 @@ def _camera_entries(index: DatasetIndex, scene: str, token: str) -> dict[str, by
         stem, ext = r.name.lower(), r.image.suffix.lower().lstrip(".")
         if ext not in ("png", "jpg", "jpeg"):
             raise DataError(f"{r.image}: camera images must be PNG or JPEG")
-        out[f"{stem}.{'jpg' if ext == 'jpeg' else ext}"] = _read_bytes(r.image)
+        out[f"{stem}.{'jpg' if ext == 'jpeg' else ext}"] = _image_bytes(r.image)
         for part, extra in zip(("class", "depth"), r.maps):
             if extra.is_file():
-                out[f"{stem}.{part}.png"] = _read_bytes(extra)
+                out[f"{stem}.{part}.png"] = _image_bytes(extra)
     calib = {"intrinsic": [r.intrinsic.tolist() for r in records], "cam_to_ego": [r.cam_to_ego.tolist() for r in records]}
     out["cams.json"] = json.dumps(calib).encode()
     return out
 
 
-def _read_bytes(path: Path) -> bytes:
+def _image_bytes(path: Path) -> bytes:
+    """An image file's bytes, once its structure checked out (PNG chunk CRCs, JPEG markers):
+    a damaged image is refused here, naming it, not met as a decode error mid-training."""
+    from PIL import Image
+
     try:
-        return path.read_bytes()
+        data = path.read_bytes()
     except OSError as err:
         raise DataError(f"{path}: cannot read it ({err.strerror}); the dataset's camera_sensor records name it") from None
+    try:
+        with Image.open(io.BytesIO(data)) as img:
+            img.verify()
+    except Exception as err:  # PIL raises SyntaxError, OSError, ValueError, struct.error, ...
+        raise DataError(f"{path}: not a readable image ({type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''}); re-create it") from None
+    return data
 
 
 def _frame_sample(index: DatasetIndex, scene: str, token: str, position: int, split: str) -> dict:
@@ -208,15 +253,10 @@ def write_shards(
     index = DatasetIndex.open(dataset)
     out = Path(out)
     kinds = list(kinds)
-    source = _shard_source(index, samples_per_shard, history, future, kinds)
-    existing = out / INDEX_FILE
-    if existing.is_file():
-        old = read_index(out)
-        if old.get("source") == source:
-            return old
-        raise DataError(f"{out}: already holds shards of a different dataset or layout; choose another --out or delete it")
-    if out.exists() and any(p.suffix == ".tar" for p in out.rglob("*.tar")):
-        raise DataError(f"{out}: holds shards without an {INDEX_FILE} (an interrupted write?); delete it and write again")
+    source = shard_source(index, samples_per_shard, history, future, kinds)
+    old = current_shards(index, out, source)
+    if old is not None:
+        return old
     if progress is None:  # no caller's bar: show one, so a log sees minutes of sharding move
         frames = sum(len(index.scenes[scene]) for split in SPLITS for scene in index.splits.get(split, []))
         with progress_bar(frames * len(kinds), f"writing {' and '.join(kinds)} shards of {frames} frames") as advance:
@@ -254,8 +294,30 @@ def _write_shards(
     return result
 
 
-def _shard_source(index: DatasetIndex, samples_per_shard: int, history: int, future: int, kinds: list[str]) -> dict:
-    """What a shard set is made from (checked), as its index records it."""
+def current_shards(index: DatasetIndex, out: Path, source: dict) -> dict | None:
+    """The index of the shards in ``out`` when they were made from ``source`` (the dataset
+    as it is now, this layout); None when ``out`` holds none. Anything else is refused in
+    one line: shards of another dataset, or of this one before it changed, are never read."""
+    if (out / INDEX_FILE).is_file():
+        old = read_index(out)
+        if old.get("source") == source:
+            return old
+        if old.get("source", {}).get("dataset") == source["dataset"] and "fingerprint_version" not in old["source"]:
+            raise DataError(f"{out}: shards of an older occtrain, whose fingerprint saw annotations.json alone; delete {out} and they are written again")
+        if {**old.get("source", {}), "fingerprint": None} == {**source, "fingerprint": None}:
+            raise DataError(
+                f"{out}: its shards were made before {index.root} changed (a labels, image, sidecar or annotations file "
+                f"differs); delete {out} and they are written again"
+            )
+        raise DataError(f"{out}: already holds shards of a different dataset or layout; choose another --out or delete it")
+    if out.exists() and any(p.suffix == ".tar" for p in out.rglob("*.tar")):
+        raise DataError(f"{out}: holds shards without an {INDEX_FILE} (an interrupted write?); delete it and write again")
+    return None
+
+
+def shard_source(index: DatasetIndex, samples_per_shard: int, history: int, future: int, kinds: Iterable[str] = KINDS) -> dict:
+    """What a shard set of ``index`` with this layout is made from (checked), as its index records it."""
+    kinds = list(kinds)
     unknown = [k for k in kinds if k not in KINDS]
     if unknown:
         raise DataError(f"unknown shard kind '{unknown[0]}'; choose from {', '.join(KINDS)}")
@@ -264,9 +326,18 @@ def _shard_source(index: DatasetIndex, samples_per_shard: int, history: int, fut
             raise DataError(f"{name} is {value!r}; it must be a whole number of at least {least}")
     if "clips" in kinds:
         _check_sidecars(index)
+        longest = max((len(index.scenes[s]) for s in index.splits["train"]), default=0)
+        if longest < history + 1 + future:
+            raise DataError(
+                f"{index.root}: its longest train scene has {longest} frames and a clip spans history {history} + 1 + "
+                f"future {future} = {history + 1 + future}, so there would be no clip to train on; "
+                "use longer scenes, a shorter history/future, or --kinds frames"
+            )
     return {
         "dataset": str(index.root.resolve()),
         "fingerprint": dataset_fingerprint(index),
+        # 2: the fingerprint covers every source file (1, unrecorded: annotations.json alone).
+        "fingerprint_version": 2,
         "samples_per_shard": samples_per_shard,
         "history": history,
         "future": future,
@@ -391,14 +462,27 @@ def decode_sample(sample: dict) -> dict:
     return out
 
 
+def _shard_error_detail(exn: BaseException) -> str:
+    """The message of a tar error, without the stream objects webdataset appends to it."""
+    first = exn.args[0] if exn.args else exn
+    while isinstance(first, BaseException) and first.args:
+        first = first.args[0]
+    if isinstance(first, tuple) and first:
+        first = first[0]
+    return re.split(r"\s*@\s*<|'?\)?,\s*<", str(first))[0].strip("(\"' ")
+
+
 def _raise_shard_error(exn: Exception) -> bool:
     """webdataset error handler: turn tar/IO failures into one-line DataErrors naming the shard."""
     if isinstance(exn, DataError):
-        raise exn
+        # webdataset appends its stream and url to the args of what passes through it
+        # (which would print as a tuple): raise the message alone, once more.
+        raise DataError(exn.args[0]) from None
     url = next((a for a in exn.args[1:] if isinstance(a, str)), None) if exn.args else None
     where = url or "shard"
     if isinstance(exn, (tarfile.TarError, EOFError, OSError, ValueError)):
-        raise DataError(f"{where}: corrupt or truncated shard ({type(exn).__name__}: {exn.args[0] if exn.args else exn}); write the shards again") from None
+        detail = _shard_error_detail(exn)
+        raise DataError(f"{where}: corrupt or truncated shard ({type(exn).__name__}: {detail}); write the shards again") from None
     raise exn
 
 
@@ -418,14 +502,18 @@ def _strided(world: int, rank: int, total: int | None) -> Callable[[Iterable[dic
     most = -(-total // world) if total is not None else None
 
     def stage(src: Iterable[dict]) -> Iterator[dict]:
-        first = True
+        first, seen, url = True, 0, "the shards"
         for i, sample in enumerate(src):
+            seen, url = i + 1, sample.get("__url__", url)
             if i % world != rank:
                 continue
             if first and mine is not None and most is not None and mine < most:
                 yield {**sample, PAD_KEY: True}
             first = False
             yield sample
+        if total is not None and seen < total:
+            # A shard cut at a member boundary reads as a shorter valid tar: only the count tells.
+            raise DataError(f"{url}: its split holds {seen} samples, {INDEX_FILE} says {total} (a truncated shard); write the shards again")
 
     return stage
 

@@ -7,13 +7,12 @@ from pathlib import Path
 
 import numpy as np
 
-from occtrain.config.schema import SynthConfig
+from occtrain.config.schema import SynthConfig, check_synth_config
 from occtrain.data.cameras import nuscenes_rig
 from occtrain.data.layout import DatasetIndex, DatasetWriter
 from occtrain.data.schema import QAQuestion
 from occtrain.data.synth import generate_scene
 from occtrain.data.synth.text import caption_for_frame, narration_for_frame, questions_for_frame
-from occtrain.errors import ConfigError
 from occtrain.progress import console, progress_bar
 
 #: 2: six cameras (images, per-pixel class and depth, camera_sensor records), signal poles at
@@ -51,20 +50,12 @@ def synthesize(out: str | Path, cfg: SynthConfig, verbose: bool = True) -> Datas
     An interrupted run resumes at the first scene whose sidecar is missing. A directory
     holding a different dataset is refused (DatasetWriter), never overwritten.
     """
-    if cfg.train_scenes < 1 or cfg.val_scenes < 0 or cfg.frames_per_scene < 1:
-        raise ConfigError(
-            f"synth needs at least one train scene and one frame per scene (got train_scenes={cfg.train_scenes}, "
-            f"val_scenes={cfg.val_scenes}, frames_per_scene={cfg.frames_per_scene}); set --scenes/--frames (or a recipe's data.synth) to at least 1"
-        )
+    check_synth_config(cfg)
     writer = DatasetWriter(out, _fingerprint(cfg))
     if writer.complete:
         if verbose:
             console.print(f"[green]dataset already complete[/] at {out}")
         return DatasetIndex.open(out)
-    if (cfg.camera_height > 0) != (cfg.camera_width > 0) or min(cfg.camera_height, cfg.camera_width) < 0:
-        raise ConfigError(
-            f"synth.camera_height={cfg.camera_height}, synth.camera_width={cfg.camera_width}: both positive, or both 0 for no cameras"
-        )
     cameras = nuscenes_rig(cfg.camera_height, cfg.camera_width) if cfg.camera_height else None
     plan = scene_plan(cfg)
     questions: dict[str, list[QAQuestion]] = {"train": [], "val": []}

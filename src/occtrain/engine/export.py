@@ -44,9 +44,9 @@ from occtrain.core.world_model import WorldInputs
 from occtrain.data.layout import DatasetIndex
 from occtrain.engine.world_model import WorldModelEngine
 from occtrain.errors import ConfigError
-from occtrain.exports import load_state_strict, read_export, write_export
+from occtrain.exports import load_state_strict, read_export, require_config, write_export
 from occtrain.models.adapters import has_adapters, load_adapters, save_adapters, without_adapters
-from occtrain.models.llm import build_llm, load_text_tokenizer
+from occtrain.models.llm import build_llm, load_lora_strict, load_pretrained_strict, load_text_tokenizer
 from occtrain.models.text_tokenizer import train_text_tokenizer
 from occtrain.models.vision import load_vision_encoder
 
@@ -181,12 +181,12 @@ def load_world_model(export_dir: Path) -> WorldModelEngine:
     (and adapter), occtrain's parts, the frozen encoders, the text tokenizer and the saved
     task settings; the family's registration says how."""
     from transformers import AutoModelForCausalLM
-    from transformers.utils import logging as hf_logging
 
     export_dir = Path(export_dir)
     state, config = read_export(export_dir)
     if config.get("stage_kind") != WORLD_MODEL:
         raise ConfigError(f"{export_dir}: not a world-model export (stage kind '{config.get('stage_kind')}')")
+    require_config(config, ("family", "vocab", "world", "tasks"), export_dir)
     family = config.get("family", "")
     world = get_world(family, f"{export_dir / 'config.json'}: family")
     llm_dir = export_dir / LLM_DIR
@@ -194,23 +194,19 @@ def load_world_model(export_dir: Path) -> WorldModelEngine:
     text_tok = load_text_tokenizer(llm_dir)
     vocab = JointVocab.from_json(config["vocab"], text_tok)
     world_cfg = config["world"]
-    hf_logging.disable_progress_bar()  # a bar per load says nothing in a run's log
-    try:
-        llm = AutoModelForCausalLM.from_pretrained(
-            str(llm_dir), local_files_only=True, attn_implementation=world_cfg["attn_implementation"], dtype=torch.float32,
-        )
-    except (OSError, ValueError) as err:
-        raise ConfigError(f"{llm_dir}: cannot load the exported LLM ({str(err).splitlines()[0]}); re-run the stage that wrote it") from None
-    finally:
-        hf_logging.enable_progress_bar()
+    llm = load_pretrained_strict(
+        AutoModelForCausalLM, llm_dir, f"{export_dir}", "re-run the stage that wrote it",
+        attn_implementation=world_cfg["attn_implementation"], dtype=torch.float32,
+    )
     if (llm_dir / BOTTLENECK_DIR).is_dir():
         load_adapters(llm, llm_dir / BOTTLENECK_DIR)
     vision = load_vision_encoder(export_dir / VISION_DIR) if (export_dir / VISION_DIR).is_dir() else None
     model = world.model.from_export(world_cfg, llm, vocab, WorldInputs(scene, vision))
     load_state_strict(model, state, ignore=("llm.",), source=str(export_dir))
     if (llm_dir / ADAPTER_DIR).is_dir():
-        from peft import PeftModel
-
-        model.llm = PeftModel.from_pretrained(model.llm, str(llm_dir / ADAPTER_DIR), is_trainable=False)
-    tasks = world.task_config(**config["tasks"])  # as saved: a merge onto the defaults would add task weights
+        model.llm = load_lora_strict(model.llm, llm_dir / ADAPTER_DIR)
+    try:
+        tasks = world.task_config(**config["tasks"])  # as saved: a merge onto the defaults would add task weights
+    except TypeError as err:
+        raise ConfigError(f"{export_dir / 'config.json'}: its 'tasks' do not fit the '{family}' family ({err}); re-run the stage that wrote it") from None
     return WorldModelEngine(scene, model, text_tok, tasks, config.get("max_new_text_tokens", MAX_NEW_TEXT_TOKENS), family, vision)

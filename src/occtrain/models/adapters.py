@@ -121,13 +121,18 @@ def load_adapters(llm: nn.Module, source: Path) -> AdapterConfig:
     try:
         data = json.loads((source / ADAPTER_CONFIG).read_text())
         state = load_file(str(source / ADAPTER_WEIGHTS))
-    except (OSError, ValueError) as err:
-        raise ConfigError(f"{source}: unreadable bottleneck adapter ({str(err).splitlines()[0]}); re-run the stage that wrote it") from None
+    except Exception as err:  # OSError, JSON and safetensors' own errors: a damaged adapter either way
+        raise ConfigError(f"{source}: unreadable bottleneck adapter ({type(err).__name__}: {str(err).splitlines()[0]}); re-run the stage that wrote it") from None
+    if not isinstance(data, dict):
+        raise ConfigError(f"{source / ADAPTER_CONFIG}: is not a JSON object; re-run the stage that wrote it")
     cfg = AdapterConfig(**{k: data[k] for k in AdapterConfig.__dataclass_fields__ if k in data})
     add_adapters(llm, cfg)
-    own = {k for k in llm.state_dict() if f".{ATTRIBUTE}." in k}
-    if own != set(state):
-        odd = sorted(own ^ set(state))[0]
-        raise ConfigError(f"{source}: adapter weights do not match the model (key '{odd}'); re-run the stage that wrote it")
+    own = {k: v for k, v in llm.state_dict().items() if f".{ATTRIBUTE}." in k}
+    if set(own) != set(state):
+        odd = sorted(set(own) ^ set(state))[0]
+        raise ConfigError(f"{source}: adapter weights do not match the model ({'missing' if odd in own else 'unexpected'} tensor '{odd}'); re-run the stage that wrote it")
+    odd = next((k for k in own if own[k].shape != state[k].shape), None)
+    if odd is not None:
+        raise ConfigError(f"{source}: adapter tensor '{odd}' has shape {tuple(state[odd].shape)}, the model wants {tuple(own[odd].shape)}; re-run the stage that wrote it")
     llm.load_state_dict(state, strict=False)
     return cfg

@@ -89,12 +89,41 @@ def load_llm(path: str | Path, attn_implementation: str = "sdpa") -> PreTrainedM
     if config.model_type in MULTIMODAL:
         return _language_model(path, config, attn_implementation)
     check_backend(config.model_type, f"llm.path {path}")
+    return load_pretrained_strict(
+        AutoModelForCausalLM, path, "llm.path", "point llm.path at a Hugging Face model directory whose weights match its config",
+        attn_implementation=attention_for(config.model_type, attn_implementation),
+    )
+
+
+def load_pretrained_strict(
+    auto: Any, path: str | Path, what: str, hint: str, allow_unexpected: bool = False, **kwargs: Any,
+) -> PreTrainedModel:
+    """``auto.from_pretrained(path)`` that refuses, in one line naming the tensor, weights
+    that disagree with the directory's config: a layer the weights lack would otherwise
+    start random, and transformers only reports it. ``allow_unexpected``: the directory
+    may hold more than the model (a full image-text model read for its vision tower)."""
+    from transformers.utils import logging as hf_logging
+
+    verbosity = hf_logging.get_verbosity()
+    hf_logging.set_verbosity_error()  # its load report is replaced by the check below
+    hf_logging.disable_progress_bar()  # a bar per load says nothing in a run's log
     try:
-        return AutoModelForCausalLM.from_pretrained(
-            str(path), local_files_only=True, attn_implementation=attention_for(config.model_type, attn_implementation),
-        )
-    except (OSError, ValueError) as e:
-        raise ConfigError(f"llm.path: cannot load a causal LM from {path} ({_first_line(e)}); point it at a Hugging Face model directory") from None
+        model, info = auto.from_pretrained(str(path), local_files_only=True, output_loading_info=True, **kwargs)
+    except Exception as e:  # safetensors, OSError, ValueError, RuntimeError (shapes): a broken directory either way
+        raise ConfigError(f"{what}: cannot load the model in {path} ({type(e).__name__}: {_first_line(e)}); {hint}") from None
+    finally:
+        hf_logging.set_verbosity(verbosity)
+        hf_logging.enable_progress_bar()
+    for kind in ("missing", "mismatched", "unexpected"):
+        if kind == "unexpected" and allow_unexpected:
+            continue
+        keys = sorted(str(k[0] if isinstance(k, tuple) else k) for k in info.get(f"{kind}_keys") or [])
+        if keys:
+            raise ConfigError(
+                f"{what}: the weights in {path} do not match its config.json ({kind} tensor '{keys[0]}'"
+                f"{f' and {len(keys) - 1} more' if len(keys) > 1 else ''}); {hint}"
+            )
+    return model
 
 
 def _language_model(path: str | Path, config: Any, attn_implementation: str) -> PreTrainedModel:
@@ -104,16 +133,16 @@ def _language_model(path: str | Path, config: Any, attn_implementation: str) -> 
     text = config.get_text_config()
     check_backend(text.model_type, f"llm.path {path} (its language model)")
     text._attn_implementation = attention_for(text.model_type, attn_implementation)
-    try:
-        full = AutoModelForImageTextToText.from_pretrained(str(path), local_files_only=True, dtype=torch.float32)
-    except (OSError, ValueError) as e:
-        raise ConfigError(f"llm.path: cannot load the {config.model_type} model in {path} ({_first_line(e)})") from None
+    full = load_pretrained_strict(
+        AutoModelForImageTextToText, path, "llm.path", f"point llm.path at a {config.model_type} directory whose weights match its config",
+        dtype=torch.float32,
+    )
     lm = AutoModelForCausalLM.from_config(text)
     state = {f"model.{k}": v for k, v in full.get_decoder().state_dict().items()}
     state.update({f"lm_head.{k}": v for k, v in full.get_output_embeddings().state_dict().items()})
     missing, unexpected = lm.load_state_dict(state, strict=False)
     if missing or unexpected:
-        raise ConfigError(f"llm.path: the language model of {path} does not match its config (key '{(missing or unexpected)[0]}')")
+        raise ConfigError(f"llm.path: the language model of {path} does not match its config (tensor '{(missing or unexpected)[0]}')")
     return lm
 
 
@@ -146,6 +175,27 @@ def apply_lora(model: PreTrainedModel, cfg: LoRAConfig) -> Any:
         return get_peft_model(model, lora)
     except ValueError as e:
         raise ConfigError(f"lora.target_modules: {list(cfg.target_modules)} ({_first_line(e)})") from None
+
+
+def load_lora_strict(model: PreTrainedModel, adapter_dir: str | Path, hint: str = "re-run the stage that wrote it") -> Any:
+    """``PeftModel.from_pretrained`` (frozen) that refuses, naming the tensor, an adapter whose
+    weights do not fit the model: peft would start the missing ones at their init and drop
+    the unexpected ones with at most a warning."""
+    from peft import PeftModel, get_peft_model_state_dict
+    from safetensors import safe_open
+
+    adapter_dir = Path(adapter_dir)
+    try:
+        with safe_open(str(adapter_dir / "adapter_model.safetensors"), "pt") as fh:
+            saved = set(fh.keys())
+        wrapped = PeftModel.from_pretrained(model, str(adapter_dir), is_trainable=False)
+    except Exception as e:  # a damaged file, a config that does not fit, a shape mismatch
+        raise ConfigError(f"{adapter_dir}: cannot load the LoRA adapter ({type(e).__name__}: {_first_line(e)}); {hint}") from None
+    wanted = set(get_peft_model_state_dict(wrapped))
+    if saved != wanted:
+        odd = sorted(saved ^ wanted)[0]
+        raise ConfigError(f"{adapter_dir}: adapter weights do not match the model ({'missing' if odd in wanted else 'unexpected'} tensor '{odd}'); {hint}")
+    return wrapped
 
 
 def _check_dir(path: str | Path) -> None:

@@ -115,7 +115,8 @@ def build_vision_tower(cfg: Any) -> nn.Module:
 def _load_tower(path: str) -> nn.Module:
     from transformers import AutoConfig
     from transformers.models.auto.modeling_auto import MODEL_MAPPING
-    from transformers.utils import logging as hf_logging
+
+    from occtrain.models.llm import load_pretrained_strict
 
     if not (Path(path) / "config.json").is_file():
         raise ConfigError(f"vision.path: {path} is not a local Hugging Face model directory (no config.json); fix the path or leave it empty for the tiny SigLIP")
@@ -132,35 +133,24 @@ def _load_tower(path: str) -> nn.Module:
             f"vision.path: {path} holds a '{config.model_type}' model, not a vision tower (no hidden_size/patch_size); "
             "point it at a SigLIP or CLIP vision model directory"
         )
-    hf_logging.disable_progress_bar()  # a bar per load says nothing in a run's log
-    # A full image-text model's text weights are left out on purpose; transformers' load
-    # report would list each. Missing tower weights are checked below instead.
-    verbosity = hf_logging.get_verbosity()
-    hf_logging.set_verbosity_error()
-    try:
-        model, info = MODEL_MAPPING[type(vision_cfg)].from_pretrained(
-            path, local_files_only=True, dtype=torch.float32, output_loading_info=True,
-        )
-    except (OSError, ValueError) as e:
-        raise ConfigError(f"vision.path: cannot load the vision model in {path} ({_first_line(e)})") from None
-    finally:
-        hf_logging.set_verbosity(verbosity)
-    missing = sorted(info.get("missing_keys") or [])
-    if missing:
-        raise ConfigError(f"vision.path: the weights in {path} lack {len(missing)} tower tensor(s), e.g. '{missing[0]}'; they would start random")
-    return model
+    # A full image-text model's text weights are left out on purpose (allowed as unexpected);
+    # a tower-only directory, which an export's is, must match its config both ways.
+    return load_pretrained_strict(
+        MODEL_MAPPING[type(vision_cfg)], path, "vision.path", "point it at a vision model directory whose weights match its config",
+        allow_unexpected=vision_cfg is not config, dtype=torch.float32,
+    )
 
 
 def _vlm_tower(path: str) -> nn.Module:
     """The vision tower of a vision-language model directory (PaliGemma: SigLIP + Gemma)."""
     from transformers import AutoModelForImageTextToText
-    from transformers.utils import logging as hf_logging
 
-    hf_logging.disable_progress_bar()
-    try:
-        full = AutoModelForImageTextToText.from_pretrained(path, local_files_only=True, dtype=torch.float32)
-    except (OSError, ValueError) as e:
-        raise ConfigError(f"vision.path: cannot load the vision-language model in {path} ({_first_line(e)})") from None
+    from occtrain.models.llm import load_pretrained_strict
+
+    full = load_pretrained_strict(
+        AutoModelForImageTextToText, path, "vision.path", "point it at a vision-language model directory whose weights match its config",
+        dtype=torch.float32,
+    )
     return full.model.vision_tower
 
 

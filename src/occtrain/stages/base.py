@@ -19,7 +19,7 @@ import lightning as L
 
 from occtrain.config.recipe import StageSpec
 from occtrain.config.schema import DataConfig, TrainerConfig
-from occtrain.data.shards import PAD_KEY
+from occtrain.data.shards import PAD_KEY, world_key
 from occtrain.errors import ConfigError
 from occtrain.exports import check_loaded_keys
 from occtrain.models import count_parameters
@@ -32,6 +32,11 @@ SHARED_CACHE = "cache"
 def shared_cache_dir(stage_dir: Path) -> Path:
     """The caches keyed by their content that the stages of ``stage_dir``'s run share (``<run>/cache/``)."""
     return Path(stage_dir).parent / SHARED_CACHE
+
+
+def stage_cache_dir(stage_dir: Path, data_root: str | Path) -> Path:
+    """Where a stage keeps what it encoded from the dataset at ``data_root`` (see ``world_key``)."""
+    return Path(stage_dir) / "cache" / world_key(data_root)
 
 
 @dataclass
@@ -50,6 +55,12 @@ class StageContext:
     def shared_cache_dir(self) -> Path:
         """The run's caches keyed by their content, which its stages share (``<run>/cache/``)."""
         return shared_cache_dir(self.stage_dir)
+
+    @functools.cached_property
+    def cache_dir(self) -> Path:
+        """This stage's own caches (teacher outputs, camera tokens) of the run's dataset as it
+        is now: ``<stage>/cache/<world key>/``, so an edited dataset is encoded afresh."""
+        return stage_cache_dir(self.stage_dir, self.data.root)
 
 
 @dataclass

@@ -7,6 +7,7 @@ import io
 import logging
 import math
 import os
+import re
 import time
 import warnings
 import zipfile
@@ -32,7 +33,7 @@ from occtrain.engine import Evaluator, Priors, scorable
 from occtrain.errors import ConfigError, OcctrainError
 from occtrain.io import atomic_open
 from occtrain.progress import Ticker, console, plain
-from occtrain.stages.base import EvalRequest, EvalResult
+from occtrain.stages.base import TASK_NEEDS, EvalRequest, EvalResult
 
 LAST_CKPT = "last.ckpt"
 #: The checkpoint ``last.ckpt`` replaced, kept so a damaged ``last.ckpt`` still resumes.
@@ -83,12 +84,29 @@ def last_checkpoint(stage_dir: Path, say: Callable[[str], None] = lambda line: N
         return None
     problem = readable_checkpoint(last)
     if not problem:
+        _refuse_pickled(last)
         return last
     if previous.is_file() and not readable_checkpoint(previous):
         say(f"{last} is unreadable ({problem}); resuming from the checkpoint before it, {previous}")
         return previous
     say(f"{last} is unreadable ({problem}) and no earlier checkpoint is; the stage starts afresh")
     return None
+
+
+def _refuse_pickled(path: Path) -> None:
+    """A sound archive whose pickle names more than tensors and plain values (not one
+    occtrain wrote) stops the run: never unpickled, and never overwritten by a fresh start."""
+    import pickle
+
+    try:
+        torch.load(path, map_location="cpu", weights_only=True, mmap=True)
+    except pickle.UnpicklingError as err:
+        found = re.search(r"Unsupported global: (?:GLOBAL )?(\S+)", str(err))
+        what = f"object {found.group(1)}" if found else "objects"
+        raise OcctrainError(
+            f"{path}: holds pickled {what}, which a weights-only load refuses (occtrain never unpickles); "
+            "move it away to start the stage afresh"
+        ) from None
 
 
 def checkpoint_step(path: Path) -> int:
@@ -579,7 +597,8 @@ def family_schema(base: type, family: str | None, with_world: bool) -> type:
 
 def evaluate_engine(engine: Any, request: EvalRequest) -> EvalResult:
     """Score ``engine``'s generated answers on ``request``'s split (see ``evaluate_export``)."""
-    from occtrain.progress import progress_bar
+    from occtrain.data.layout import DatasetIndex
+    from occtrain.progress import console, progress_bar
 
     engine.prepare_inputs(request.data_root, request.cache_dir, request.shared_cache_dir)
     specs = engine.task_specs
@@ -589,9 +608,22 @@ def evaluate_engine(engine: Any, request: EvalRequest) -> EvalResult:
     tasks = request.tasks or scorable(specs, engine.tasks.weights)
     if not tasks:
         raise ConfigError(f"{request.export}: the stage trained no task with a generated answer to score; name some with --tasks")
+    available = DatasetIndex.open(request.data_root).available_tasks()
+    lacking = {t: why for t in tasks if (why := available.get(TASK_NEEDS.get(t, t), ""))}
+    if lacking and (request.tasks or len(lacking) == len(tasks)):
+        task, why = next(iter(lacking.items()))
+        raise ConfigError(f"task {task} {why} ({request.data_root}); score it on a dataset that has it, or leave it out of --tasks")
+    if lacking:
+        console.print(f"[yellow]note[/]: {request.data_root} lacks what {', '.join(lacking)} need; scoring {', '.join(t for t in tasks if t not in lacking)}")
+        tasks = [t for t in tasks if t not in lacking]
     evaluator = Evaluator(tasks, specs, record=request.record, priors=Priors.of(request.data_root), hooks=engine.spec.eval_hooks)
     torch.manual_seed(0)
     total = evaluator.total(engine, request.data_root, request.split, request.samples)
+    if total == 0:
+        raise ConfigError(
+            f"{request.data_root}: its {request.split} split holds no item for {', '.join(evaluator.tasks)} "
+            f"(a clip needs {engine.tasks.context_frames} frames of context and its future); score a dataset with longer scenes"
+        )
     with progress_bar(total, f"evaluating {request.export.parent.name} on {request.split} ({', '.join(evaluator.tasks)})") as advance:
         evaluator.run(engine, request.data_root, request.split, request.batch_size, samples=request.samples, advance=advance)
     metrics = {k.removeprefix(f"{request.split}/"): v for k, v in evaluator.compute(request.split).items()}

@@ -96,7 +96,7 @@ class DistillStage(Stage):
         self._entries: dict[str, tuple[str, ...] | None] = {}
         if teacher.vision is not None or (cfg.cache_codes and teacher.reads_scenes()):
             # One cache, shared: teacher and student read the same scenes and views.
-            self.teacher.prepare_inputs(ctx.data.root, ctx.stage_dir / "cache", ctx.shared_cache_dir)
+            self.teacher.prepare_inputs(ctx.data.root, ctx.cache_dir, ctx.shared_cache_dir)
             self.student.scene_cache, self.student.image_cache = self.teacher.scene_cache, self.teacher.image_cache
             self.student.data_index = self.teacher.data_index
             self._entries = {"train": TEXT_ENTRIES} if teacher.reads_scenes() else {"train": TEXT_ENTRIES, "val": TEXT_ENTRIES}

@@ -74,7 +74,7 @@ class PlannerStage(Stage):
             if cfg.max_new_text_tokens > 0:
                 teacher.with_settings(max_new_text_tokens=cfg.max_new_text_tokens)
             teacher.requires_grad_(False).eval()
-            teacher.prepare_inputs(ctx.data.root, ctx.stage_dir / "cache", ctx.shared_cache_dir)
+            teacher.prepare_inputs(ctx.data.root, ctx.cache_dir, ctx.shared_cache_dir)
         family = teacher.family if teacher is not None else str(read_config(export).get("family", ""))
         self.planner = get_world(family).planner(ctx, teacher)
         self.require_tasks(self.planner.sidecar_tasks(), instead="leave the planner stage out of the recipe")

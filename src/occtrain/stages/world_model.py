@@ -107,7 +107,7 @@ class WorldModelStage(Stage):
         self._entries: dict[str, tuple[str, ...] | None] = {}
         engine = self.engine
         if engine.vision is not None or (cfg.cache_codes and engine.reads_scenes()):
-            engine.prepare_inputs(ctx.data.root, ctx.stage_dir / "cache", ctx.shared_cache_dir)
+            engine.prepare_inputs(ctx.data.root, ctx.cache_dir, ctx.shared_cache_dir)
             # Training then reads no occupancy; validation still scores forecasts against it.
             # A model whose prompts hold no scenes takes its occupancy targets from the
             # dataset: its shards give the annotations and the text alone.

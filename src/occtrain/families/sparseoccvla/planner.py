@@ -217,7 +217,7 @@ class AnchorDiffusionPlanner(nn.Module):
     @classmethod
     def from_stage(cls, ctx: Any, teacher: Any) -> AnchorDiffusionPlanner:
         """The planner a planner stage trains (``WorldSpec.planner``)."""
-        return cls(to_object(ctx.model_cfg), teacher, ctx.data.root, ctx.stage_dir / "cache", seed=ctx.data.seed)
+        return cls(to_object(ctx.model_cfg), teacher, ctx.data.root, ctx.cache_dir, seed=ctx.data.seed)
 
     @classmethod
     def from_export(cls, export_dir: Path, teacher: Any, request: Any) -> AnchorDiffusionPlanner:
