@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 
@@ -149,6 +151,30 @@ def test_packed_questions_are_branches_of_distinct_questions(clips):
     assert [p[-1].text for p in every] == [q["answer"] for q in clip.qa]
     with pytest.raises(ConfigError, match="questions_per_sample"):
         validate_tasks(TaskConfig(weights={"qa": 1}, questions_per_sample=0), "stages 'x'.model.tasks", TASKS)
+
+
+def test_a_packed_draw_generates_one_question_at_a_time(clips):
+    """Generation asks a packed draw's questions one by one, each as its own prompt: one
+    decoder cannot keep branches apart, and generated as one sequence every later question
+    became text to generate and every Branch a scene (the QA benchmark's 40x)."""
+    from occtrain.core.tasks import unpacked
+    from occtrain.data.clips import Branch, clip_rng
+    from occtrain.engine.world_model import WorldModelEngine
+    from occtrain.families.occllama.tasks import qa
+
+    clip = next(c for c in clips if len(c.qa) >= 3)
+    rng = lambda: clip_rng(0, clip.anchor["token"])  # noqa: E731
+    packed = qa(clip, TaskConfig(questions_per_sample=3), rng())
+    prompts = unpacked(packed)
+    trunk = packed[: packed.index(Branch())]
+    assert len(prompts) == 3 and len({p[-2].text for p in prompts}) == 3
+    for p in prompts:  # the context, one question, its answer: the only supervised part, last
+        assert p[: len(trunk)] == trunk and len(p) == len(trunk) + 2 and [q.supervise for q in p].index(True) == len(p) - 1
+    assert unpacked(qa(clip, TaskConfig(), rng())) == [qa(clip, TaskConfig(), rng())]
+    engine = SimpleNamespace(task_specs=TASKS, tasks=TaskConfig(questions_per_sample=3))
+    assert WorldModelEngine.task_items(engine, "qa", clip) == prompts
+    with pytest.raises(ValueError, match="one branch at a time"):
+        WorldModelEngine.prompt_and_plan(engine, packed, {})
 
 
 def test_frame_clips_cover_every_frame_with_its_questions(synth_dataset):

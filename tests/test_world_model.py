@@ -238,6 +238,38 @@ def test_batched_generation_equals_one_at_a_time(vocab, mode):
     assert decode_batch(world, prefixes[2:], [[]]) == [[]]
 
 
+def test_batched_generation_pads_little_and_takes_no_more_steps(vocab):
+    """Batched decoding feeds the tokens each prompt fed alone plus little padding (at most
+    one slot a row and step: a row that waits), in no more forwards than the longest alone
+    per group of prompt lengths.
+    Rows out of step (one at a scene's query block, one still writing text) and prompts of
+    very different lengths would otherwise pad every row to the longest feed."""
+    from occtrain.core.decoding import SceneAnswer, TextAnswer, decode_batch
+
+    world = make_world(vocab, "next_scene", seed=4).eval()
+    shapes = []
+    world.llm.register_forward_hook(lambda m, a, kw, out: shapes.append(kw["inputs_embeds"].shape[:2]), with_kwargs=True)
+
+    def check(prefixes, plans, groups=1):
+        shapes.clear()
+        batched = decode_batch(world, prefixes, plans)
+        slots, forwards = sum(b * n for b, n in shapes), len(shapes)
+        fed, most = 0, 0
+        for prefix, plan, got in zip(prefixes, plans, batched):
+            shapes.clear()
+            assert [torch.as_tensor(x).tolist() for x in world.generate(prefix, plan)] == [torch.as_tensor(x).tolist() for x in got]
+            fed, most = fed + sum(n for _, n in shapes), max(most, len(shapes))
+        assert forwards <= groups * most and slots - fed <= len(prefixes) * forwards
+
+    same = [prompt(world.builder()).text(q).build().input_ids for q in ("go straight", "turn left then stop", "plan the route")]
+    # Texts of fixed, different lengths, then a scene: the rows reach their query blocks apart.
+    check(same, [[TextAnswer(n, False), SceneAnswer(), TextAnswer(2, False)] for n in (1, 6, 12)])
+    check(same, [[TextAnswer(3, False)]] * 3)  # short answers (QA)
+    # A prompt twice as long as the others decodes apart from them.
+    long = world.builder().text("go straight").scene(CTX).scene(TARGET).scene(CTX).text("the car turns left").build().input_ids
+    check([same[0], long, same[1]], [[TextAnswer(3, False)]] * 3, groups=2)
+
+
 def test_branches_train_each_answer_exactly_as_alone(vocab):
     """Packed questions (branches over one context) give each answer the logits and loss it
     would get in its own sequence: branches neither see each other nor shift positions."""

@@ -11,9 +11,10 @@ tokens are fed lazily, with the next forward.
 Two *drivers* run it: :class:`Decoder` one sequence at a time (its cache cropped after a
 query block; ``use_cache=False`` recomputes the whole sequence at each forward, the
 reference in tests), and :func:`decode_batch` many sequences at once (one batched forward
-per step, padding masked, finished sequences dropped from the cache). A world model
-supplies ``vocab``, ``payload_spec``, ``scene_prediction``, ``frame_separation``,
-``scene_writer`` and ``step``.
+per step, padding masked, finished sequences dropped from the cache, prompts grouped by
+length and a feed much longer than the others held back, so that padding never costs
+more than batching saves). A world model supplies ``vocab``, ``payload_spec``,
+``scene_prediction``, ``frame_separation``, ``scene_writer`` and ``step``.
 """
 
 from __future__ import annotations
@@ -302,6 +303,11 @@ def decode(world: Any, prefix: torch.Tensor | TokenSequence, answers: list[Answe
     return [decoder.answer(a) for a in answers]
 
 
+def _nothing(f: Forward) -> Forward:
+    """An empty feed: the row waits this step (all padding, nothing kept)."""
+    return Forward(f.ids[:0], f.seg[:0], {k: v[:0] for k, v in f.payload.items()})
+
+
 def _batched_forward(world: Any, feeds: list[Forward], cache: Any, alive: torch.Tensor, kept: torch.Tensor) -> tuple[Step, torch.Tensor]:
     """One forward of every running sequence's feed, right-padded; the mask of the kept ones."""
     device = alive.device
@@ -323,12 +329,41 @@ def _batched_forward(world: Any, feeds: list[Forward], cache: Any, alive: torch.
     return world.step(ids, mask[:, None], positions, cache, use_cache=True, payload=payload), keep
 
 
+#: A feed this many times longer than the shortest one waits (see :func:`_decode_group`).
+WAIT_FACTOR = 2
+#: Sequences share a batch while the longest prompt is at most this times the shortest.
+PROMPT_SPREAD = 1.25
+
+
 @torch.no_grad()
 def decode_batch(world: Any, prefixes: list, answers: list[list[Answer]]) -> list[list]:
     """Greedy answers for every sequence of the batch: ``prefixes[b]`` (ids Long[L_b], or a
     laid-out sequence with its payload) is its prompt, ``answers[b]`` what to generate after
     it, in order. Returns, per sequence, a list with one entry per answer. A query block's
-    keys stay in the batch's cache, masked for everything after it."""
+    keys stay in the batch's cache, masked for everything after it.
+
+    Prompts of very different lengths decode in separate groups (by length): every row pays
+    for the longest prompt of its batch, which could cost more than the batch saves."""
+    lengths = [len(prompt_of(world.payload_spec, p)[0]) for p in prefixes]
+    order = sorted(range(len(prefixes)), key=lengths.__getitem__)
+    results: list[list | None] = [None] * len(prefixes)
+    start = 0
+    while start < len(order):
+        end = start + 1
+        while end < len(order) and lengths[order[end]] <= PROMPT_SPREAD * max(lengths[order[start]], 1):
+            end += 1
+        group = order[start:end]
+        for b, out in zip(group, _decode_group(world, [prefixes[b] for b in group], [answers[b] for b in group])):
+            results[b] = out
+        start = end
+    return results
+
+
+def _decode_group(world: Any, prefixes: list, answers: list[list[Answer]]) -> list[list]:
+    """:func:`decode_batch` on prompts of similar lengths. A step pads every row to the
+    longest feed, so a feed much longer than the shortest (a query block beside one-token
+    steps, once texts of different lengths put rows out of step) waits, fed as nothing,
+    until the rows beside it catch up or finish."""
     device = world.device
     programs = [program(world, p, a, device) for p, a in zip(prefixes, answers)]
     feeds: list[Forward | None] = []
@@ -346,11 +381,16 @@ def decode_batch(world: Any, prefixes: list, answers: list[list[Answer]]) -> lis
     alive = torch.zeros(len(feeds), 0, dtype=torch.bool, device=device)
     cache = None
     while running_rows:
-        step, keep = _batched_forward(world, feeds, cache, alive, kept)
+        limit = WAIT_FACTOR * max(min(len(f.ids) for f in feeds), 1)
+        waits = [len(f.ids) > limit for f in feeds]
+        fed = [_nothing(f) if w else f for f, w in zip(feeds, waits)]
+        step, keep = _batched_forward(world, fed, cache, alive, kept)
         cache = step.cache
         alive = torch.cat([alive, keep], dim=1)
         kept += keep.sum(1)
-        for i, f in enumerate(feeds):
+        for i, f in enumerate(fed):
+            if waits[i]:
+                continue
             try:
                 feeds[i] = programs[running_rows[i]].send(Step(step.logits[i, : len(f.ids)], None, rows(step.hidden, i, slice(None, len(f.ids)))))
             except StopIteration as stop:

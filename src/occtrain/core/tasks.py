@@ -149,6 +149,16 @@ def each_question(context: list[Part], clip: Clip) -> list[list[Part]]:
     return [[*context, *question_parts(q)] for q in clip.qa]
 
 
+def unpacked(parts: list[Part]) -> list[list[Part]]:
+    """A draw's prompts one by one: with branches, the shared context then each branch
+    alone (a branch is learned exactly as alone, so it is asked alone); else the draw."""
+    starts = [i for i, p in enumerate(parts) if isinstance(p, Branch)]
+    if not starts:
+        return [parts]
+    trunk = parts[: starts[0]]
+    return [trunk + parts[a + 1 : b] for a, b in zip(starts, starts[1:] + [len(parts)])]
+
+
 def question_of(parts: list[Part]) -> str:
     """The question of a single-question QA prompt."""
     return parts[-2].text.removeprefix("Question: ").removesuffix(" Answer:")

@@ -22,10 +22,10 @@ from occtrain.core.builder import collate
 from occtrain.core.decoding import ActionAnswer, Answer, SceneAnswer, TextAnswer
 from occtrain.core.registry import get_world
 from occtrain.core.sequence import TokenSequence
-from occtrain.core.tasks import TaskConfig, sample_task
+from occtrain.core.tasks import TaskConfig, sample_task, unpacked
 from occtrain.core.vocab import JointVocab
 from occtrain.core.world_model import LMWorldModel
-from occtrain.data.clips import Actions, Clip, Occupancy, Part, Scene, Text, clip_rng
+from occtrain.data.clips import Actions, Branch, Clip, Occupancy, Part, Scene, Text, clip_rng
 from occtrain.data.layout import DatasetIndex
 from occtrain.data.shards import dataset_fingerprint
 from occtrain.errors import DataError
@@ -275,6 +275,9 @@ class WorldModelEngine(torch.nn.Module):
     def prompt_and_plan(self, parts: list[Part], scenes: dict[int, torch.Tensor]) -> tuple[TokenSequence, list[Answer]]:
         """The prompt (the parts before the first supervised one) laid out, and what to
         generate after it: text up to end-of-text, as many waypoints as the reference, a scene."""
+        if any(isinstance(p, Branch) for p in parts):
+            # One decoder cannot keep branches apart: each would be generated as an answer.
+            raise ValueError("a prompt with branches generates one branch at a time (core.tasks.unpacked)")
         first = next(i for i, p in enumerate(parts) if p.supervise)
         # Occupancy queries are seen by nothing after them: a prompt skips them (OccVLA's Setting 2).
         prompt = [p for p in parts[:first] if not isinstance(p, Occupancy)]
@@ -295,13 +298,13 @@ class WorldModelEngine(torch.nn.Module):
 
     def task_items(self, task: str, clip: Clip, seed: int = 0, every: bool = False) -> list[list[Part]]:
         """The prompts of ``task`` on ``clip``: its one training draw (from ``seed`` and the
-        clip's token), or with ``every`` each item evaluation asks (every question of the
-        frame for QA); empty when the task does not apply."""
+        clip's token; a packed draw's branches one prompt each), or with ``every`` each item
+        evaluation asks (every question of the frame for QA); empty when the task does not apply."""
         spec = self.task_specs[task]
         if every and spec.every_item is not None:
             return spec.every_item(clip, self.tasks)
         parts = spec.build(clip, self.tasks, clip_rng(seed, clip.anchor["token"]))
-        return [parts] if parts is not None else []
+        return unpacked(parts) if parts is not None else []
 
     def rollouts(
         self, task: str, clips: list[Clip], batch: dict, seed: int = 0, batched: bool = True,
