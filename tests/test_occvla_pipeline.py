@@ -79,10 +79,12 @@ def test_stage2_exports_its_adapters_beside_the_hugging_face_directory(occvla_ru
 def test_the_planning_head_trained_on_cached_generated_meta_actions(occvla_run):
     export = json.loads((occvla_run / "stage3" / "export" / "config.json").read_text())
     assert export["inputs"] == ["meta_action", "velocity", "visual", "past"] and export["train_meta"] == "generated"
-    cache = json.loads((occvla_run / "stage3" / "cache" / "teacher_outputs.json").read_text())
+    # The stage's own cache lives under the key of the world it was made from.
+    (world,) = (occvla_run / "stage3" / "cache").iterdir()
+    cache = json.loads((world / "teacher_outputs.json").read_text())
     assert cache and all("reference" in v for v in cache.values())
     assert any("generated" in v for v in cache.values())
-    assert (occvla_run / "stage3" / "cache" / "teacher_outputs.safetensors").is_file()
+    assert (world / "teacher_outputs.safetensors").is_file()
 
 
 def test_eval_scores_meta_actions_and_the_query_branch(occvla_run):

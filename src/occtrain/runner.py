@@ -387,7 +387,12 @@ def check_run(
             last_checkpoint(run_dir / p.spec.name)
     refuse_without_cameras(planned, recipe.data)
     data = check_data(recipe.data)
-    refuse_missing_tasks(planned, recipe.data)
+    will_train = [
+        p for p in planned
+        if (only is None or p.spec.name == only)
+        and (p.spec.name in restarted or getattr(manifest.stages.get(p.spec.name), "status", "pending") != "done")
+    ]
+    refuse_missing_tasks(will_train, recipe.data)
     return RunCheck(recipe, planned, run_dir, restarted, data)
 
 

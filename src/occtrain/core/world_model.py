@@ -120,7 +120,7 @@ class LMWorldModel(nn.Module):
             inputs_embeds=emb,
             attention_mask=self._mask(attention_mask, emb.dtype),
             position_ids=position_ids,
-            past_key_values=past_key_values,
+            cache=past_key_values,  # transformers 5.24 renamed past_key_values (removed in 5.40)
             use_cache=use_cache,
             output_hidden_states=hidden,
         )
@@ -130,7 +130,7 @@ class LMWorldModel(nn.Module):
         # Only a model with a payload emits scenes from hidden states: the others skip keeping every layer's.
         hidden = bool(self.payload_spec)
         out = self._run(input_ids, attention_mask, position_ids, past_key_values, use_cache, hidden=hidden, payload=payload)
-        return Step(out.logits, out.past_key_values, out.hidden_states[-1] if hidden else None)
+        return Step(out.logits, out.cache, out.hidden_states[-1] if hidden else None)
 
     def forward(self, batch: dict[str, torch.Tensor], output_hidden_states: bool = False) -> WorldModelOutput:
         """Cross-entropy over all targets (one uniform loss); the text (text + action +

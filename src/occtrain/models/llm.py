@@ -191,10 +191,14 @@ def load_lora_strict(model: PreTrainedModel, adapter_dir: str | Path, hint: str 
         wrapped = PeftModel.from_pretrained(model, str(adapter_dir), is_trainable=False)
     except Exception as e:  # a damaged file, a config that does not fit, a shape mismatch
         raise ConfigError(f"{adapter_dir}: cannot load the LoRA adapter ({type(e).__name__}: {_first_line(e)}); {hint}") from None
+    # peft's own state dict also names base layers it saves only when they changed (an
+    # embedding or head it wraps): only its LoRA matrices must all be in the file.
     wanted = set(get_peft_model_state_dict(wrapped))
-    if saved != wanted:
-        odd = sorted(saved ^ wanted)[0]
-        raise ConfigError(f"{adapter_dir}: adapter weights do not match the model ({'missing' if odd in wanted else 'unexpected'} tensor '{odd}'); {hint}")
+    missing = sorted(k for k in wanted - saved if ".lora_" in k)
+    unexpected = sorted(saved - wanted)
+    if missing or unexpected:
+        odd, what = (missing[0], "missing") if missing else (unexpected[0], "unexpected")
+        raise ConfigError(f"{adapter_dir}: adapter weights do not match the model ({what} tensor '{odd}'); {hint}")
     return wrapped
 
 
