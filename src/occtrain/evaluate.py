@@ -23,15 +23,15 @@ from occtrain.io import atomic_write_json, atomic_write_npz
 from occtrain.progress import console
 
 
-def eval_metrics_file(stage_dir: str | Path, split: str = "val", data_root: str | Path | None = None) -> Path:
+def eval_metrics_file(stage_dir: str | Path, split: str = "val", data_root: str | Path | None = None, world: str = "") -> Path:
     """Where ``evaluate`` writes its metrics: ``eval/<split>/`` on the run's dataset,
-    ``eval/<folder>-<world key>/<split>/`` on another (see ``world_key``), so two worlds in
-    folders of one name never share a file."""
+    ``eval/<folder>-<world key>/<split>/`` on another (see ``world_key``; ``world`` when the
+    caller has it already), so two worlds in folders of one name never share a file."""
     out = Path(stage_dir) / "eval"
     if data_root is not None:
         from occtrain.data.shards import world_key
 
-        out = out / f"{Path(data_root).resolve().name}-{world_key(data_root)}"
+        out = out / f"{Path(data_root).resolve().name}-{world or world_key(data_root)}"
     return out / split / "metrics.json"
 
 
@@ -64,7 +64,8 @@ def evaluate(
         stage_cache_dir(stage_dir, root), shared_cache_dir(stage_dir), save_predictions is not None,
     )
     result = kind.module.evaluate_export(request)
-    _save(eval_metrics_file(stage_dir, split, data_root), result.metrics, world_key(root))
+    world = world_key(root)
+    _save(eval_metrics_file(stage_dir, split, data_root, world), result.metrics, world)
     if save_predictions is not None:
         write_predictions(Path(save_predictions), result.predictions)
     return result.metrics
@@ -110,13 +111,10 @@ def _refuse_unscorable(tasks: list[str], root: str) -> None:
     """Named tasks must be scorable on the dataset (the defaults are trimmed later, with a note)."""
     if not tasks:
         return
-    from occtrain.data.layout import DatasetIndex
-    from occtrain.stages.base import TASK_NEEDS
+    from occtrain.stages.base import lacking_tasks
 
-    available = DatasetIndex.open(root).available_tasks()
-    for task in tasks:
-        if why := available.get(TASK_NEEDS.get(task, task), ""):
-            raise ConfigError(f"--tasks {task}: the task {why} ({root}); score it on a dataset that has it")
+    for task, why in lacking_tasks(root, tasks).items():
+        raise ConfigError(f"--tasks {task}: the task {why} ({root}); score it on a dataset that has it")
 
 
 #: Beside the metrics: the world they were computed on (see ``world_key``).

@@ -35,11 +35,6 @@ def plain() -> bool:
     return not console.is_terminal
 
 
-def _rank_zero() -> bool:
-    # Every rank of a multi-process job writes the same log; one set of lines says it all.
-    return all(os.environ.get(name, "0") == "0" for name in ("RANK", "LOCAL_RANK", "NODE_RANK"))
-
-
 def duration(seconds: float) -> str:
     """``9 s``, ``4 min 05 s``, ``2 h 03 min``: short enough for a progress line."""
     s = int(round(seconds))
@@ -98,7 +93,9 @@ class Ticker:
             self.say(extra)
 
     def say(self, extra: str = "", final: bool = False) -> None:
-        if not _rank_zero():
+        from occtrain.io import is_rank_zero
+
+        if not is_rank_zero():  # every rank writes the same log: one set of lines says it all
             return
         # markup and highlighting off: a description may hold brackets, and a log wants no escapes
         console.print(f"{self.description}: {self.text(extra, final)}", markup=False, highlight=False)

@@ -399,11 +399,11 @@ def check_run(
 def refuse_missing_tasks(planned: list[PlannedStage], data: DataConfig) -> None:
     """Check each stage's task settings, and refuse a task (weighted above 0) whose sidecar
     the dataset lacks: a plain Occ3D release has occupancy and ego poses only."""
-    from occtrain.data.layout import ANNOTATIONS_FILE, DatasetIndex
-    from occtrain.stages.base import TASK_NEEDS
+    from occtrain.data.layout import ANNOTATIONS_FILE
+    from occtrain.stages.base import lacking_tasks
 
     root = Path(data.root)
-    available = DatasetIndex.open(root).available_tasks() if (root / ANNOTATIONS_FILE).is_file() else {}
+    exists = (root / ANNOTATIONS_FILE).is_file()  # a world still to be synthesized has every sidecar
     for p in planned:
         tasks = getattr(p.model_cfg, "tasks", None)
         if tasks is None or not OmegaConf.is_config(tasks):
@@ -412,10 +412,9 @@ def refuse_missing_tasks(planned: list[PlannedStage], data: DataConfig) -> None:
         settings = OmegaConf.to_object(tasks)
         if hasattr(settings, "validate"):
             settings.validate(key)
-        for task, weight in (settings.weights or {}).items():
-            why = available.get(TASK_NEEDS.get(task, task), "") if weight > 0 else ""
-            if why:
-                raise ConfigError(f"task {task} {why} ({root}); add the sidecar or set {key}.weights.{task}=0")
+        weighted = [task for task, weight in (settings.weights or {}).items() if weight > 0]
+        for task, why in (lacking_tasks(root, weighted) if exists and weighted else {}).items():
+            raise ConfigError(f"task {task} {why} ({root}); add the sidecar or set {key}.weights.{task}=0")
 
 
 def refuse_without_cameras(planned: list[PlannedStage], data: DataConfig) -> None:

@@ -13,7 +13,7 @@ from torch.utils.data import DataLoader
 from occtrain.config.schema import DataConfig, check_synth_config
 from occtrain.data.cameras import CAMERA_NAMES
 from occtrain.data.layout import ANNOTATIONS_FILE, DATASET_FILE, DEPTH_SCALE, DatasetIndex, generator_record
-from occtrain.data.shards import KINDS, current_shards, shard_source, PAD_KEY, SkipSamples, make_pipeline, shard_urls, write_shards
+from occtrain.data.shards import KINDS, PAD_KEY, SkipSamples, current_shards, make_pipeline, shard_source, shard_urls, write_shards
 from occtrain.errors import DataError
 
 
@@ -52,16 +52,18 @@ def check_data(cfg: DataConfig) -> str:
 def ensure_data(cfg: DataConfig, verbose: bool = True) -> Path:
     """Synthesize the dataset if ``cfg.root`` is absent, write its shards if absent (see
     ``check_data``); return the shard dir."""
-    plan = check_data(cfg)
     root = Path(cfg.root)
     if not (root / ANNOTATIONS_FILE).is_file():
         from occtrain.data.synthesize import synthesize  # the world generator loads only when needed
 
+        plan = check_data(cfg)  # refuses a folder that is neither a dataset nor a cut-off synthesis
         if verbose:
             from occtrain.progress import console
 
             console.print(plan)
         synthesize(root, cfg.synth, verbose=verbose)
+    else:
+        _check_synth_record(root, cfg)
     out = shards_dir(cfg)
     # Also when they exist: shards made before the dataset changed are refused, never read.
     write_shards(root, out, cfg.samples_per_shard, cfg.history, cfg.future)

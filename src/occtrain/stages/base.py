@@ -108,6 +108,15 @@ class EvalResult:
 TASK_NEEDS = {"cot_planning": "chain_of_thought"}
 
 
+def lacking_tasks(data_root: str | Path, tasks: Iterable[str]) -> dict[str, str]:
+    """Of ``tasks``, those the dataset at ``data_root`` lacks the sidecar files for, each
+    with why (a plain Occ3D release has occupancy and ego poses only)."""
+    from occtrain.data.layout import DatasetIndex
+
+    available = DatasetIndex.open(data_root).available_tasks()
+    return {task: why for task in tasks if (why := available.get(TASK_NEEDS.get(task, task), ""))}
+
+
 def _skipping_padding(step: Callable[..., Any]) -> Callable[..., Any]:
     """A validation step that ignores a batch made only of DDP padding (see ``PAD_KEY``)."""
 
@@ -199,14 +208,9 @@ class Stage(L.LightningModule, ABC):
         """Refuse, before any training, a stage whose tasks need sidecar files the dataset
         lacks (a plain Occ3D release has occupancy and ego poses only). ``instead``: what
         else the user can do (default: drop the task by its weight)."""
-        from occtrain.data.layout import DatasetIndex
-
-        available = DatasetIndex.open(self.ctx.data.root).available_tasks()
-        for task in tasks:
-            why = available.get(TASK_NEEDS.get(task, task), "")
-            if why:
-                instead = instead or f"set stages.{self.ctx.spec.name}.model.tasks.weights.{task}=0"
-                raise ConfigError(f"task {task} {why} ({self.ctx.data.root}); add the sidecar or {instead}")
+        for task, why in lacking_tasks(self.ctx.data.root, tasks).items():
+            instead = instead or f"set stages.{self.ctx.spec.name}.model.tasks.weights.{task}=0"
+            raise ConfigError(f"task {task} {why} ({self.ctx.data.root}); add the sidecar or {instead}")
 
     def entries(self, split: str) -> tuple[str, ...] | None:
         """The shard entries this stage reads on ``split`` ("train", "val"); None: all of them."""

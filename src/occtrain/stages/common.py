@@ -32,8 +32,8 @@ from occtrain.data.shards import PAD_KEY
 from occtrain.engine import Evaluator, Priors, scorable
 from occtrain.errors import ConfigError, OcctrainError
 from occtrain.io import atomic_open
-from occtrain.progress import Ticker, console, plain
-from occtrain.stages.base import TASK_NEEDS, EvalRequest, EvalResult
+from occtrain.progress import Ticker, console, plain, progress_bar
+from occtrain.stages.base import EvalRequest, EvalResult, lacking_tasks
 
 LAST_CKPT = "last.ckpt"
 #: The checkpoint ``last.ckpt`` replaced, kept so a damaged ``last.ckpt`` still resumes.
@@ -597,9 +597,6 @@ def family_schema(base: type, family: str | None, with_world: bool) -> type:
 
 def evaluate_engine(engine: Any, request: EvalRequest) -> EvalResult:
     """Score ``engine``'s generated answers on ``request``'s split (see ``evaluate_export``)."""
-    from occtrain.data.layout import DatasetIndex
-    from occtrain.progress import console, progress_bar
-
     engine.prepare_inputs(request.data_root, request.cache_dir, request.shared_cache_dir)
     specs = engine.task_specs
     unknown = [t for t in request.tasks or [] if t not in specs]
@@ -608,8 +605,7 @@ def evaluate_engine(engine: Any, request: EvalRequest) -> EvalResult:
     tasks = request.tasks or scorable(specs, engine.tasks.weights)
     if not tasks:
         raise ConfigError(f"{request.export}: the stage trained no task with a generated answer to score; name some with --tasks")
-    available = DatasetIndex.open(request.data_root).available_tasks()
-    lacking = {t: why for t in tasks if (why := available.get(TASK_NEEDS.get(t, t), ""))}
+    lacking = lacking_tasks(request.data_root, tasks)
     if lacking and (request.tasks or len(lacking) == len(tasks)):
         task, why = next(iter(lacking.items()))
         raise ConfigError(f"task {task} {why} ({request.data_root}); score it on a dataset that has it, or leave it out of --tasks")
