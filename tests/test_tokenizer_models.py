@@ -354,3 +354,21 @@ def test_tiny_model_overfits_one_sample(arch, steps):
         opt.step()
         losses.append(loss.item())
     assert losses[-1] < 0.5 * losses[0], losses
+
+
+def test_class_balance_weighs_a_rare_class_up_and_is_the_plain_loss_at_zero():
+    from occtrain.models.tokenizers.losses import ce_lovasz, class_balance_weights
+
+    labels = torch.full((1, 10, 10, 1), FREE, dtype=torch.long)
+    labels[0, 0, 0, 0] = 4  # one car voxel among 99 free ones
+    assert class_balance_weights(labels, 0.0) is None
+    w = class_balance_weights(labels, 0.5)
+    assert float(w.mean()) == pytest.approx(1.0)
+    assert float(w[0, 0, 0, 0] / w[0, 1, 1, 0]) == pytest.approx(99**0.5)  # (1/100)^-0.5 over (99/100)^-0.5
+    logits = torch.randn(1, NUM_CLASSES, 10, 10, 1, generator=torch.Generator().manual_seed(0))
+    plain, _ = ce_lovasz(logits, labels)
+    ones, _ = ce_lovasz(logits, labels, weights=torch.ones_like(labels, dtype=torch.float32))
+    assert float(plain) == pytest.approx(float(ones))
+    nll = torch.nn.functional.cross_entropy(logits, labels, reduction="none")
+    weighted, _ = ce_lovasz(logits, labels, weights=w)
+    assert float(weighted) == pytest.approx(float((nll * w).sum() / w.sum()), rel=1e-5)

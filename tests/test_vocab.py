@@ -119,3 +119,32 @@ def test_config_errors_name_the_key(tok):
         JointVocab(tok, 4, (1, 1), LLMConfig(scene_prediction="next_frame"))
     with pytest.raises(ConfigError, match="llm.action_range"):
         JointVocab(tok, 4, (1, 1), LLMConfig(action_range=[[5.0, -5.0], [0.0, 1.0]]))
+
+
+def test_delta_encoding_holds_each_move_and_keeps_positions_within_half_a_bin():
+    cfg = LLMConfig(action_bins=256, action_range=[[-40.0, 60.0], [-40.0, 40.0]], action_encoding="delta")
+    v, absolute = JointVocab(train_text_tokenizer(TEXTS, 300), 4, (1, 1), cfg), JointVocab(train_text_tokenizer(TEXTS, 300), 4, (1, 1), LLMConfig())
+    plan = torch.tensor([[3.5, 0.0], [7.0, 0.1], [10.5, 0.3], [14.0, 0.6], [17.5, 1.0], [21.0, 1.5]])
+    ids = v.action_ids(plan).reshape(-1, 2)
+    # Steady moves of 3.5 m are one repeated x token, whatever the position.
+    assert len(set(ids[:, 0].tolist())) <= 2 and len(set(absolute.action_ids(plan).reshape(-1, 2)[:, 0].tolist())) == 6
+    back = v.actions_from_ids(v.action_ids(plan))
+    assert bool(((back - plan).abs() <= torch.tensor([50 / 256, 40 / 256]) + 1e-5).all())  # error feedback: no drift
+    one = torch.tensor([[12.3, -4.4]])
+    assert torch.equal(v.action_ids(one), absolute.action_ids(one))  # a one-waypoint block is the same either way
+    w = JointVocab.from_json(v.to_json(), v.tokenizer)
+    assert (w.action_encoding, w.action_decoding) == ("delta", "greedy")
+    old = {k: x for k, x in absolute.to_json().items() if not k.startswith("action_") or k in ("action_bins", "action_range")}
+    assert JointVocab.from_json(old, absolute.tokenizer).action_encoding == "absolute"  # an export from before the switch
+
+
+def test_expected_value_decoding_picks_the_bin_of_the_mean():
+    v = JointVocab(train_text_tokenizer(TEXTS, 300), 4, (1, 1), LLMConfig(action_bins=8, action_range=[[-40.0, 40.0], [0.0, 8.0]], action_decoding="expected"))
+    logits = torch.full((len(v),), -1e4)
+    lo = v.act_x_start
+    logits[lo + 1], logits[lo + 6] = 0.0, 0.0  # half on -25 m, half on 25 m: the mean is 0 m, bin 4
+    assert v.pick_action(logits, 0) == lo + 4
+    greedy = JointVocab(train_text_tokenizer(TEXTS, 300), 4, (1, 1), LLMConfig(action_bins=8, action_range=[[-40.0, 40.0], [0.0, 8.0]]))
+    assert greedy.pick_action(logits, 0) == lo + 1  # the likeliest, the first of a tie
+    with pytest.raises(ConfigError, match="llm.action_decoding"):
+        JointVocab(train_text_tokenizer(TEXTS, 300), 4, (1, 1), LLMConfig(action_decoding="mean"))

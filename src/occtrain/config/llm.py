@@ -49,6 +49,21 @@ class LLMConfig:
     #: future at the synthetic world's top speed (13.5 m/s -> 40.5 m): bins of 0.39 m in
     #: x and 0.31 m in y.
     action_range: list[list[float]] = field(default_factory=lambda: [[-40.0, 60.0], [-40.0, 40.0]])
+    #: What an action block's bins hold. "absolute" (the papers): each waypoint's position.
+    #: "delta": each waypoint's move from the one before it (the first's from the ego), the
+    #: same tokens as the moves between history scenes, so keeping the last move is copying
+    #: a token; quantized with error feedback, so the block's positions stay within half a
+    #: bin. A one-waypoint block is the same either way.
+    action_encoding: str = "absolute"
+    #: How a generated bin is chosen. "greedy" (the papers): the likeliest bin. "expected":
+    #: the bin holding the expected value of the bins' centres under the model's
+    #: distribution, which a spread-out distribution over neighbouring bins rewards.
+    action_decoding: str = "greedy"
+
+
+#: ``action_encoding`` and ``action_decoding`` values, the papers' first.
+ACTION_ENCODINGS = ("absolute", "delta")
+ACTION_DECODINGS = ("greedy", "expected")
 
 
 @dataclass
@@ -74,5 +89,8 @@ def validate_llm_config(cfg: LLMConfig, key: str = "llm") -> None:
     rng = [list(r) for r in cfg.action_range]
     if len(rng) != 2 or any(len(r) != 2 or not r[0] < r[1] for r in rng):
         raise ConfigError(f"{key}.action_range: {rng} must be [[x_low, x_high], [y_low, y_high]] with low < high")
+    for name, allowed in (("action_encoding", ACTION_ENCODINGS), ("action_decoding", ACTION_DECODINGS)):
+        if getattr(cfg, name) not in allowed:
+            raise ConfigError(f"{key}.{name}: '{getattr(cfg, name)}' is not one of {', '.join(allowed)} (paper: {allowed[0]})")
     if cfg.attn_implementation not in ("sdpa", "eager"):
         raise ConfigError(f"{key}.attn_implementation: '{cfg.attn_implementation}' does not take the 4D spatial-temporal mask; use sdpa or eager")

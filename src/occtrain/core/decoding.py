@@ -142,6 +142,10 @@ class _State:
         lo, hi = id_range
         return int((yield from self.output()).logits[lo:hi].argmax()) + lo
 
+    def pick_action(self, axis: int) -> Generator[Forward, Step, int]:
+        """The next action bin of ``axis``, by the vocabulary's decoding rule."""
+        return self.vocab.pick_action((yield from self.output()).logits, axis)
+
 
 def _text(s: _State, answer: TextAnswer) -> Program:
     out: list[int] = []
@@ -161,8 +165,8 @@ def _actions(s: _State, answer: ActionAnswer) -> Program:
         s.queue([v.act_open_id])
     ids = []
     for _ in range(answer.steps):
-        for id_range in (v.act_x_range, v.act_y_range):
-            ids.append((yield from s.pick(id_range)))
+        for axis in (0, 1):
+            ids.append((yield from s.pick_action(axis)))
             s.queue(ids[-1:])
     s.queue([v.act_close_id])
     return v.actions_from_ids(torch.tensor(ids, dtype=torch.long)).reshape(answer.steps, 2)

@@ -22,11 +22,13 @@ from torchmetrics import MeanMetric
 
 from occtrain.core.tasks import question_of
 from occtrain.data.clips import Actions, Clip, Part, PlanTarget, Scene
+from occtrain.data.geometry import moved_scene
 from occtrain.data.layout import DatasetIndex
+from occtrain.data.meta_actions import MetaActionConfig, past_labels
 from occtrain.data.text_formats import format_meta_action, parse_meta_action
 from occtrain.metrics import CaptionMetric, ForecastMetric, MetaActionAccuracy, PlanningMetric, QAMetric
 from occtrain.models.planner import constant_velocity
-from occtrain.occ3d import FREE, FUTURE_STEPS
+from occtrain.occ3d import FREE, FUTURE_STEPS, MOVABLE_CLASSES
 
 
 @dataclass
@@ -123,11 +125,33 @@ class PlanScorer(BaseScorer):
             }
 
 
+#: A forecast's baselines, on the same samples (``forecast_baselines``), and the metric of each.
+FORECAST_BASELINES = ("baseline_copy_forecast", "baseline_copy_reconstruction_forecast", "baseline_cv_moved_forecast")
+#: Forecasts are scored on every class and on the movable ones, where forecasting shows.
+forecast_metric = partial(ForecastMetric, subsets={"movable": MOVABLE_CLASSES})
+
+
+def forecast_baselines(current: torch.Tensor, reconstruction: torch.Tensor, anchor: dict, steps: int = FUTURE_STEPS) -> dict[str, torch.Tensor]:
+    """The forecasts a world model must beat, (1, steps, X, Y, Z) each, from the current
+    label volume (X, Y, Z) and the scene encoder's reconstruction of it: the exact scene
+    copied forward; the reconstruction copied forward (OccWorld's Copy&Paste, which no
+    tokenizer error can favour); the exact scene moved by the ego's constant-velocity
+    motion, everything else standing still."""
+    plan = constant_velocity([anchor])[0]
+    moved = torch.stack([moved_scene(current, tuple(plan[t].tolist())) for t in range(steps)])
+    return {
+        "baseline_copy_forecast": current[None, None].expand(1, steps, *current.shape),
+        "baseline_copy_reconstruction_forecast": reconstruction[None, None].expand(1, steps, *current.shape),
+        "baseline_cv_moved_forecast": moved[None],
+    }
+
+
 class ForecastScorer(BaseScorer):
     """The generated scenes, decoded by the scene encoder, against the following frames
-    (``occworld`` convention, at 1 / 2 / 3 s), beside copying the current scene forward."""
+    (``occworld`` convention, at 1 / 2 / 3 s, all classes and the movable ones), beside the
+    baselines of ``forecast_baselines`` on the same samples."""
 
-    metrics = {"forecast_occworld": ForecastMetric, "baseline_copy_forecast_occworld": ForecastMetric}
+    metrics = {f"{name}_occworld": forecast_metric for name in ("forecast", *FORECAST_BASELINES)}
     needs_semantics = True
 
     def score(self, ev: Any, item: Item) -> None:
@@ -145,8 +169,10 @@ class ForecastScorer(BaseScorer):
         valid[0, :n] = True
         dev = ev.device
         ev.metrics["forecast_occworld"].update(pred.to(dev), target.to(dev), valid.to(dev))
-        copy = semantics[a].long()[None, None].expand_as(pred)
-        ev.metrics["baseline_copy_forecast_occworld"].update(copy.to(dev), target.to(dev), valid.to(dev))
+        current = semantics[a].long()
+        reconstruction = item.engine.decode_scenes(item.scenes[a][None])[0].cpu()
+        for name, volumes in forecast_baselines(current, reconstruction, item.clip.anchor).items():
+            ev.metrics[f"{name}_occworld"].update(volumes.to(dev), target.to(dev), valid.to(dev))
         token = item.clip.anchor["token"]
         ev.keep_forecast_picture(token, pred[0].numpy(), target[0].numpy(), n)
         if ev.record:
@@ -184,6 +210,14 @@ class QAScorer(BaseScorer):
         self.answers = Counter()
 
 
+def last_past_meta_action(clip: Clip, cfg: MetaActionConfig | None = None) -> dict | None:
+    """The meta action of the frame before the clip's anchor, from the poses up to the
+    anchor (what a model that saw the past could repeat); None at a scene's start."""
+    poses = np.asarray(clip.ann["ego_poses"], dtype=np.float64).reshape(-1, 3)
+    past = past_labels(poses, clip.anchor_index, 1, cfg or MetaActionConfig())
+    return past[-1] if past else None
+
+
 class ChainOfThoughtScorer(BaseScorer):
     """A generated chain of thought that ends with the frame's meta action (from the frame
     sidecar): caption metrics against the reference narration, the meta action parsed from
@@ -211,6 +245,7 @@ class ChainOfThoughtScorer(BaseScorer):
         if ev.priors.meta_action is not None:
             ev.metrics["baseline_prior_meta_action_acc"].update(100.0 * (ev.priors.meta_action == anchor["meta_action"]))
             ev.metrics["baseline_prior_meta_action"].update([ev.priors.meta_action], [anchor["meta_action"]])
+        ev.metrics["baseline_repeat_last_meta_action"].update([last_past_meta_action(item.clip)], [anchor["meta_action"]])
         if ev.record:
             ev.predictions["captions"][token] = text
             ev.predictions["captions_gt"][token] = [reference]

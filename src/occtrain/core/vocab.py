@@ -88,6 +88,7 @@ class JointVocab:
         self.bins = int(cfg.action_bins)
         (xl, xh), (yl, yh) = cfg.action_range
         self.quantizer = ActionQuantizer(self.bins, (float(xl), float(yl)), (float(xh), float(yh)))
+        self.action_encoding, self.action_decoding = cfg.action_encoding, cfg.action_decoding
         self.text_size = len(text_tokenizer) if text_size is None else int(text_size)
         self.image = bool(image)
         self.extra = tuple(str(name) for name in extra)
@@ -213,20 +214,32 @@ class JointVocab:
         return torch.cat(picks)
 
     def action_ids(self, xy: torch.Tensor) -> torch.Tensor:
-        """Waypoints Float[N, 2] (metres) -> Long[2N] ids, x bin then y bin per waypoint.
+        """One block's waypoints Float[N, 2] (metres) -> Long[2N] ids, x bin then y bin per
+        waypoint: their positions, or with ``action_encoding`` "delta" their moves.
         Out-of-range values clamp to the edge bins (see ``ActionQuantizer``)."""
-        bins = self.quantizer.encode(xy.reshape(-1, 2))
+        xy = xy.reshape(-1, 2)
+        bins = self.quantizer.encode_moves(xy) if self.action_encoding == "delta" else self.quantizer.encode(xy)
         offsets = torch.tensor([self.act_x_start, self.act_y_start], device=bins.device)
         return (bins + offsets).reshape(-1)
 
     def actions_from_ids(self, ids: torch.Tensor) -> torch.Tensor:
-        """Long[2N] ids (x bin, y bin, ...) -> Float[N, 2] bin centres in metres."""
+        """One block's Long[2N] ids (x bin, y bin, ...) -> Float[N, 2] positions in metres
+        (bin centres, or with "delta" the moves' centres summed)."""
         pairs = ids.long().reshape(-1, 2)
         offsets = torch.tensor([self.act_x_start, self.act_y_start], device=ids.device)
         bins = pairs - offsets
         if bool(((bins < 0) | (bins >= self.bins)).any()):
             raise ValueError("actions_from_ids expects alternating x-bin and y-bin ids")
-        return self.quantizer.decode(bins)
+        return self.quantizer.decode_moves(bins) if self.action_encoding == "delta" else self.quantizer.decode(bins)
+
+    def pick_action(self, logits: torch.Tensor, axis: int) -> int:
+        """The id of the next bin of ``axis`` (0: x, 1: y) from the output logits over the
+        whole vocabulary: the likeliest, or with ``action_decoding`` "expected" the one
+        holding the expected value."""
+        lo, hi = self.act_x_range if axis == 0 else self.act_y_range
+        if self.action_decoding == "expected":
+            return lo + self.quantizer.expected_bin(logits[lo:hi], axis)
+        return lo + int(logits[lo:hi].argmax())
 
     def query_ids(self) -> torch.Tensor:
         """The Q scene-query ids, one per scene token (latent cell and codebook, or patch), in order."""
@@ -267,12 +280,17 @@ class JointVocab:
             "scene_hw": list(self.scene_hw),
             "action_bins": self.bins,
             "action_range": [[float(lo), float(hi)] for lo, hi in zip(self.quantizer.low.tolist(), self.quantizer.high.tolist())],
+            "action_encoding": self.action_encoding,
+            "action_decoding": self.action_decoding,
         }
 
     @classmethod
     def from_json(cls, data: dict, text_tokenizer: Any) -> JointVocab:
         """Rebuild from ``to_json`` and a text tokenizer, with or without the joint tokens."""
-        cfg = LLMConfig(action_bins=int(data["action_bins"]), action_range=[list(r) for r in data["action_range"]])
+        cfg = LLMConfig(
+            action_bins=int(data["action_bins"]), action_range=[list(r) for r in data["action_range"]],
+            action_encoding=str(data.get("action_encoding", "absolute")), action_decoding=str(data.get("action_decoding", "greedy")),
+        )  # exports from before the two switches hold the papers' rules
         sizes = data.get("codebook_sizes", [data.get("num_codes", 0)])  # exports before multi-codebook vocabularies
         return cls(text_tokenizer, sizes, tuple(data["scene_hw"]), cfg, text_size=data["text_size"], patch=int(data.get("patch", 0)),
             image=bool(data.get("image", False)), extra=tuple(data.get("extra", ())),

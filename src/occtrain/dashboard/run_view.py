@@ -94,6 +94,7 @@ MEASURES = (
     (re.compile(r"^(?P<s>.+)_collision_stp3_avg$"), "collision rate, ST-P3 avg (%)"),
     (re.compile(r"^(?P<s>.+)_occworld_mIoU_avg$"), "forecast mIoU, OccWorld avg (%)"),
     (re.compile(r"^(?P<s>.+)_occworld_IoU_avg$"), "forecast IoU, OccWorld avg (%)"),
+    (re.compile(r"^(?P<s>.+)_occworld_movable_mIoU_avg$"), "forecast movable-class mIoU, OccWorld avg (%)"),
     (re.compile(r"^(?P<s>.*?)_?(?P<m>mIoU|IoU)$"), "reconstruction IoU and mIoU (%)"),
     (re.compile(r"^(?P<s>.*cot_caption)_(?P<m>CIDEr|Bleu_4|METEOR|ROUGE_L)$"), "chain-of-thought text vs reference"),
     (re.compile(r"^(?P<s>.*token_acc)$"), "token accuracy"),

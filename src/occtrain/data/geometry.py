@@ -6,8 +6,10 @@ Ego frame: x forward, y left, origin at the ego; yaw counter-clockwise from glob
 from __future__ import annotations
 
 import numpy as np
+import torch
 
 from occtrain.data.schema import COMMAND_LATERAL_THRESHOLD
+from occtrain.occ3d import FREE, VOXEL_SIZE
 
 
 def rotate_to_ego(vec: np.ndarray, pose_yaw: float) -> np.ndarray:
@@ -39,3 +41,19 @@ def driving_command(future: np.ndarray, mask: np.ndarray) -> str:
     if y < -COMMAND_LATERAL_THRESHOLD:
         return "turn right"
     return "go straight"
+
+
+def moved_scene(semantics: torch.Tensor, offset_xy: tuple[float, float]) -> torch.Tensor:
+    """A label volume (X, Y, Z) as an ego moved by ``offset_xy`` metres (its own axes, same
+    heading) would see it if nothing else moved: shifted by whole voxels, free where the
+    new view reaches past the old grid."""
+    di, dj = (round(float(v) / VOXEL_SIZE) for v in offset_xy)
+    out = torch.full_like(semantics, FREE)
+    nx, ny = semantics.shape[:2]
+    if abs(di) >= nx or abs(dj) >= ny:
+        return out
+    # The voxel at index i of the moved view is the one at i + di of the current grid.
+    src_i, dst_i = slice(max(di, 0), nx + min(di, 0)), slice(max(-di, 0), nx - max(di, 0))
+    src_j, dst_j = slice(max(dj, 0), ny + min(dj, 0)), slice(max(-dj, 0), ny - max(dj, 0))
+    out[dst_i, dst_j] = semantics[src_i, src_j]
+    return out

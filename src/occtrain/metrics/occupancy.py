@@ -145,15 +145,17 @@ class ForecastMetric(Metric):
     counted; OccWorld itself evaluates only samples with a full future). Each horizon
     (future frame index; 1, 3, 5 are 1 s, 2 s, 3 s) accumulates its own confusion matrix
     over all voxels, scored with the ``occworld`` rules of :class:`OccupancyMetric`;
-    ``avg`` is the mean over the horizons, as OccWorld's evaluation prints it.
+    ``avg`` is the mean over the horizons, as OccWorld's evaluation prints it. With
+    ``subsets`` (name -> class names), also ``<name>_mIoU`` per horizon (``subset_miou``).
     """
 
     is_differentiable = False
     higher_is_better = True
     full_state_update = False
 
-    def __init__(self, horizons: tuple[int, ...] = (1, 3, 5), **kwargs: Any):
+    def __init__(self, horizons: tuple[int, ...] = (1, 3, 5), subsets: dict[str, tuple[str, ...]] | None = None, **kwargs: Any):
         super().__init__(**kwargs)
+        self.subsets = dict(subsets or {})
         if not horizons or min(horizons) < 0:
             raise ValueError(f"horizons must be non-empty future frame indices, got {horizons}")
         self.horizons = tuple(int(h) for h in horizons)
@@ -181,5 +183,9 @@ class ForecastMetric(Metric):
             values = {horizon_label(h): s[key] for h, s in zip(self.horizons, scores)}
             values["avg"] = torch.stack([s[key] for s in scores]).mean()
             out[key] = values
+        for name, classes in self.subsets.items():
+            values = {horizon_label(h): subset_miou(cm, classes) for h, cm in zip(self.horizons, self.confmat)}
+            values["avg"] = torch.stack(list(values.values())).nanmean()
+            out[f"{name}_mIoU"] = values
         out["frames"] = {horizon_label(h): n.clone() for h, n in zip(self.horizons, self.frames)}
         return out

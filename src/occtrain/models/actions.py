@@ -31,3 +31,23 @@ class ActionQuantizer:
 
     def to_json(self) -> dict:
         return {"bins": self.bins, "low": self.low.tolist(), "high": self.high.tolist()}
+
+    def expected_bin(self, logits: torch.Tensor, axis: int) -> int:
+        """The bin holding the expected bin centre under ``softmax(logits)`` (one axis's bins)."""
+        centres = self.low[axis] + (torch.arange(self.bins, dtype=torch.float64) + 0.5) * self.width[axis]
+        value = (logits.double().cpu().softmax(-1) * centres).sum()
+        return int(torch.floor((value - self.low[axis]) / self.width[axis]).clamp(0, self.bins - 1))
+
+    def encode_moves(self, xy: torch.Tensor) -> torch.Tensor:
+        """Float[N, 2] positions -> Long[N, 2] bins of each one's move from the decoded
+        position before it (the first's from the origin): error feedback keeps every
+        decoded position within half a bin of its own, however long the block."""
+        bins, reached = [], torch.zeros(2, dtype=torch.float64, device=xy.device)
+        for point in xy.double():
+            bins.append(self.encode(point - reached))
+            reached = reached + self.decode(bins[-1]).double()
+        return torch.stack(bins) if bins else torch.zeros(0, 2, dtype=torch.long, device=xy.device)
+
+    def decode_moves(self, ids: torch.Tensor) -> torch.Tensor:
+        """Inverse of :meth:`encode_moves`: Long[N, 2] move bins -> Float[N, 2] positions."""
+        return self.decode(ids).double().cumsum(0).float()

@@ -20,7 +20,7 @@ from occtrain.config.tokenizer import latent_hw
 from occtrain.families.occllama.config import OccLLaMATokenizerConfig
 from occtrain.models.tokenizers.base import SceneTokenizer, TokenizerOutput, check_semantics
 from occtrain.models.tokenizers.conv import ConvDecoder, ResnetBlock
-from occtrain.models.tokenizers.losses import ce_lovasz
+from occtrain.models.tokenizers.losses import ce_lovasz, class_balance_weights
 from occtrain.models.tokenizers.quantizer import VectorQuantizer
 from occtrain.models.tokenizers.swin import SwinStage
 from occtrain.occ3d import FREE, GRID_SHAPE
@@ -140,8 +140,9 @@ class OccLLaMATokenizer(SceneTokenizer):
         status_logits, semantic_logits = self.decode_heads(vq.z_q)
         occupied = semantics != FREE
         status = torch.where(occupied, STATUS_OCCUPIED, STATUS_FREE)
-        sem_ce, sem_lovasz = ce_lovasz(semantic_logits, semantics, valid=occupied, lovasz_voxels=self.cfg.lovasz_voxels)
-        status_ce, status_lovasz = ce_lovasz(status_logits, status, lovasz_voxels=self.cfg.lovasz_voxels)
+        weights = class_balance_weights(semantics, self.cfg.class_balance)
+        sem_ce, sem_lovasz = ce_lovasz(semantic_logits, semantics, valid=occupied, lovasz_voxels=self.cfg.lovasz_voxels, weights=weights)
+        status_ce, status_lovasz = ce_lovasz(status_logits, status, lovasz_voxels=self.cfg.lovasz_voxels, weights=weights)
         cfg = self.cfg
         total = (
             cfg.lambda1 * (sem_ce + cfg.lambda3 * sem_lovasz)

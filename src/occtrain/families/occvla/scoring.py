@@ -9,7 +9,7 @@ from typing import Any
 import torch
 from torchmetrics import MeanMetric
 
-from occtrain.core.scorers import BaseScorer, Item
+from occtrain.core.scorers import BaseScorer, Item, last_past_meta_action
 from occtrain.data.clips import Clip, Images
 from occtrain.data.meta_actions import commonest
 from occtrain.data.text_formats import format_meta_action, parse_meta_action
@@ -19,9 +19,13 @@ from occtrain.metrics.occupancy import OCC3D, OCCWORLD
 
 class MetaActionScorer(BaseScorer):
     """The meta action the chain of thought ends with against the one the prompt's answer
-    holds (labelled from the poses), beside the commonest training one under the same labeller."""
+    holds (labelled from the poses), beside two baselines under the same labeller: the
+    commonest training one, and repeating the last past one (which the prompt states)."""
 
-    metrics = {"meta_action": MetaActionAccuracy, "meta_parsed_fraction": MeanMetric, "baseline_prior_meta_action": MetaActionAccuracy}
+    metrics = {
+        "meta_action": MetaActionAccuracy, "meta_parsed_fraction": MeanMetric,
+        "baseline_prior_meta_action": MetaActionAccuracy, "baseline_repeat_last_meta_action": MetaActionAccuracy,
+    }
 
     def __init__(self) -> None:
         self._prior: dict[tuple, dict | None] = {}
@@ -38,6 +42,8 @@ class MetaActionScorer(BaseScorer):
         prior = self._prior.get(key)
         if prior is not None:
             ev.metrics["baseline_prior_meta_action"].update([prior], [truth])
+        # The last one the prompt lists; none (a scene's start) scores as a wrong answer.
+        ev.metrics["baseline_repeat_last_meta_action"].update([last_past_meta_action(item.clip, cfg)], [truth])
         said = format_meta_action(parsed).removeprefix("Meta action: ") if parsed is not None else "none"
         ev.keep_text("meta_action", item.parts[-2].text, f"{text}  [parsed: {said}]", reference)
 

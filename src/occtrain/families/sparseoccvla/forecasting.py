@@ -2,8 +2,9 @@
 future frame voxelized into the Occ3D grid and scored in the OccWorld convention (every
 voxel: no camera mask, as the paper states), at 1 / 2 / 3 s, on every frame with a whole
 3 s future and, separately, with the paper's frames (the first five and last seven of each
-scene left out); beside copying the exact current scene and copying the encoder's own
-reconstruction of it (OccWorld's Copy&Paste), on the same samples. The encoder's
+scene left out); beside the shared forecast baselines (``core.scorers.forecast_baselines``:
+the exact current scene copied, the encoder's own reconstruction of it copied, OccWorld's
+Copy&Paste, and the exact scene moved by the ego's constant velocity), on the same samples. The encoder's
 reconstruction of the current frame is scored too (Table 8's "Curr")."""
 
 from __future__ import annotations
@@ -13,9 +14,10 @@ from typing import Any
 import numpy as np
 import torch
 
+from occtrain.core.scorers import FORECAST_BASELINES, forecast_baselines, forecast_metric
 from occtrain.data.clips import Clip, Text
 from occtrain.families.sparseoccvla.tasks import FORECAST_PROMPT, context
-from occtrain.metrics import ForecastMetric, OccupancyMetric
+from occtrain.metrics import OccupancyMetric
 from occtrain.metrics.occupancy import OCC3D, OCCWORLD
 from occtrain.models.point_sets import voxelize
 from occtrain.occ3d import FREE, FUTURE_STEPS, MOVABLE_CLASSES
@@ -24,7 +26,7 @@ from occtrain.occ3d import FREE, FUTURE_STEPS, MOVABLE_CLASSES
 SKIP_FIRST, SKIP_LAST = 5, 7
 #: The two clip selections each forecast number is reported on.
 SELECTIONS = ("", "trimmed_")
-PREDICTIONS = ("forecast", "baseline_copy_forecast", "baseline_copy_reconstruction_forecast")
+PREDICTIONS = ("forecast", *FORECAST_BASELINES)
 
 
 def paper_frame(position: int, scene_frames: int) -> bool:
@@ -37,7 +39,7 @@ class ForecastHead:
 
     clips = "future"
     metrics = {
-        **{f"{what}_{sel}{OCCWORLD}": ForecastMetric for what in PREDICTIONS for sel in SELECTIONS},
+        **{f"{what}_{sel}{OCCWORLD}": forecast_metric for what in PREDICTIONS for sel in SELECTIONS},
         "reconstruction_occworld": lambda: OccupancyMetric(OCCWORLD, subsets={"movable": MOVABLE_CLASSES}),
         "reconstruction_occ3d": lambda: OccupancyMetric(OCC3D),
     }
@@ -65,8 +67,7 @@ class ForecastHead:
                 pred[0, t] = voxelize(points, classes, world.voxel_extent).cpu()
             current = torch.from_numpy(labels[0]["semantics"]).long()
             recon = engine.decode_scenes(rows[None])[0].cpu()
-            predictions = {"forecast": pred, "baseline_copy_forecast": current.expand_as(pred),
-                           "baseline_copy_reconstruction_forecast": recon.expand_as(pred)}
+            predictions = {"forecast": pred, **forecast_baselines(current, recon, clip.anchor)}
             selections = [""] + (["trimmed_"] if paper_frame(index.scenes[scene].index(token), len(index.scenes[scene])) else [])
             for what, volumes in predictions.items():
                 for sel in selections:

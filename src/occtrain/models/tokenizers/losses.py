@@ -11,6 +11,8 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
+from occtrain.occ3d import NUM_CLASSES
+
 
 def lovasz_softmax(probs: torch.Tensor, labels: torch.Tensor, valid: torch.Tensor | None = None) -> torch.Tensor:
     """Mean Lovasz-softmax loss over the classes present in ``labels``.
@@ -48,8 +50,22 @@ def _lovasz_grad(fg_sorted: torch.Tensor) -> torch.Tensor:
     return torch.cat([jaccard[:, :1], jaccard[:, 1:] - jaccard[:, :-1]], dim=1)
 
 
+def class_balance_weights(semantics: torch.Tensor, power: float, num_classes: int = NUM_CLASSES) -> torch.Tensor | None:
+    """Per-voxel weights (same shape as ``semantics``) of ``frequency(class) ** -power``, the
+    frequencies counted in this batch, scaled to a mean of 1: 0 weighs every voxel alike; 0.5
+    lets a class 100 times rarer count 10 times more per voxel (small moving objects
+    against buildings and road). None for 0, the unweighted loss."""
+    if not power:
+        return None
+    counts = torch.bincount(semantics.reshape(-1), minlength=num_classes).to(torch.float32)
+    per_class = torch.where(counts > 0, (counts / counts.sum()).clamp_min(1e-12) ** -power, torch.zeros_like(counts))
+    weights = per_class[semantics]
+    return weights / weights.mean()
+
+
 def ce_lovasz(
-    logits: torch.Tensor, labels: torch.Tensor, valid: torch.Tensor | None = None, lovasz_voxels: int = 0
+    logits: torch.Tensor, labels: torch.Tensor, valid: torch.Tensor | None = None, lovasz_voxels: int = 0,
+    weights: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """(cross-entropy, Lovasz-softmax) of class logits (B, C, *spatial) over the valid voxels.
 
@@ -60,17 +76,25 @@ def ce_lovasz(
     ``lovasz_voxels`` > 0 evaluates Lovasz on that many voxels drawn uniformly (torch's RNG)
     instead of all of them: its sort over every voxel and class dominates a CPU step, and
     the subset's loss is a noisy estimate of the full one. 0 is the exact loss.
+
+    ``weights`` (same shape as ``labels``) weigh each voxel's cross-entropy (a weighted
+    mean); Lovasz, already an average over classes, takes none.
     """
     flat = logits.movedim(1, -1).reshape(-1, logits.shape[1])
     target = labels.reshape(-1)
     keep = None if valid is None else valid.reshape(-1)
+    w = None if weights is None else weights.reshape(-1)
     if keep is not None:
         flat, target = flat[keep], target[keep]
+        w = None if w is None else w[keep]
     if target.numel() == 0:
         zero = logits.sum() * 0.0
         return zero, zero
     log_probs = flat.log_softmax(1)
-    ce = F.nll_loss(log_probs, target)
+    if w is None:
+        ce = F.nll_loss(log_probs, target)
+    else:
+        ce = (F.nll_loss(log_probs, target, reduction="none") * w).sum() / w.sum().clamp_min(1e-12)
     if 0 < lovasz_voxels < target.numel():
         pick = torch.randint(target.numel(), (lovasz_voxels,), device=target.device)
         log_probs, target = log_probs[pick], target[pick]

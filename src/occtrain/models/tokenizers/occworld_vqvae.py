@@ -13,7 +13,7 @@ from torch import nn
 from occtrain.config.tokenizer import QuantizerFields, latent_hw
 from occtrain.models.tokenizers.base import SceneTokenizer, TokenizerOutput, check_semantics
 from occtrain.models.tokenizers.conv import ConvDecoder, ConvEncoder
-from occtrain.models.tokenizers.losses import ce_lovasz
+from occtrain.models.tokenizers.losses import ce_lovasz, class_balance_weights
 from occtrain.models.tokenizers.quantizer import VectorQuantizer
 from occtrain.occ3d import GRID_SHAPE, NUM_CLASSES
 
@@ -90,7 +90,8 @@ class OccWorldVQVAE(SceneTokenizer):
         semantics = check_semantics(semantics)
         vq = self.quantizer(self.encode_latent(semantics))
         logits = self.decode_logits(vq.z_q)
-        ce, lovasz = ce_lovasz(logits, semantics, lovasz_voxels=self.cfg.lovasz_voxels)
+        weights = class_balance_weights(semantics, self.cfg.class_balance)
+        ce, lovasz = ce_lovasz(logits, semantics, lovasz_voxels=self.cfg.lovasz_voxels, weights=weights)
         cfg = self.cfg
         total = cfg.ce_weight * ce + cfg.lovasz_weight * lovasz + cfg.vq_weight * vq.loss
         losses = {"loss": total, "ce": ce, "lovasz": lovasz, "vq": vq.loss}
