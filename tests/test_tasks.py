@@ -195,3 +195,33 @@ def test_frame_clips_cover_every_frame_with_its_questions(synth_dataset):
     chosen = fixed_subset(keys, 10, seed=0)
     assert len(chosen) == 10 and chosen == fixed_subset(list(reversed(keys)), 10, seed=0)
     assert chosen != fixed_subset(keys, 10, seed=1) and fixed_subset(keys, -1) == set(keys)
+
+
+def test_a_constant_velocity_prior_writes_the_plan_as_offsets_and_reads_it_back(clips):
+    import torch
+
+    from occtrain.core.builder import SequenceBuilder
+    from occtrain.core.decoding import ActionAnswer
+    from occtrain.models.planner import constant_velocity
+
+    clip = next(c for c in clips if TASKS["planning"].build(c, TaskConfig(context_frames=2), np.random.default_rng(0)))
+    cv = constant_velocity([clip.anchor])[0].numpy()
+    paper = TASKS["planning"].build(clip, TaskConfig(context_frames=2), np.random.default_rng(0))[-1]
+    prior = TASKS["planning"].build(clip, TaskConfig(context_frames=2, plan_prior="constant_velocity"), np.random.default_rng(0))[-1]
+    assert paper.base is None and paper.xy == prior.xy
+    np.testing.assert_allclose(prior.base, cv, atol=1e-6)
+    forecast = TASKS["forecasting"].build(clip, TaskConfig(context_frames=2, forecast_frames=3, plan_prior="constant_velocity"), np.random.default_rng(0))
+    np.testing.assert_allclose([p.base[0] for p in forecast if isinstance(p, Actions) and p.supervise], cv[:3], atol=1e-6)
+    with pytest.raises(ConfigError, match="tasks.plan_prior"):
+        TaskConfig(plan_prior="cv").validate("tasks")
+    # The builder writes xy - base; generation reads the bins back and adds the base again.
+    from occtrain.core.vocab import JointVocab
+    from occtrain.models.text_tokenizer import train_text_tokenizer
+
+    vocab = JointVocab(train_text_tokenizer(["plan the ego trajectory"] * 10, 300), 4, (1, 1))
+    builder = SequenceBuilder(vocab)
+    builder.lay(prior, None, {})
+    offsets = torch.tensor(prior.xy, dtype=torch.float32) - torch.tensor(prior.base, dtype=torch.float32)
+    ids = builder.build().input_ids.tolist()
+    assert ids[1:] == [vocab.act_open_id, *vocab.action_ids(offsets).tolist(), vocab.act_close_id]  # after bos
+    assert ActionAnswer(6, prior.base).base == prior.base

@@ -66,7 +66,7 @@ def test_masks_and_code_round_trip(tok):
 
 
 def test_action_ids_by_hand(tok):
-    v = JointVocab(tok, 16, scene_hw=(2, 2), llm_cfg=small_cfg())
+    v = JointVocab(tok, 16, scene_hw=(2, 2), llm_cfg=small_cfg(), action_grid="range")
     xs, ys = v.act_x_start, v.act_y_start
     xy = torch.tensor([[-35.0, 3.5], [12.0, 0.2], [39.9, 7.99]])
     # x bins of 10 m from -40: -35 -> 0, 12 -> 5, 39.9 -> 7; y bins of 1 m from 0: 3.5 -> 3, 0.2 -> 0, 7.99 -> 7
@@ -77,8 +77,19 @@ def test_action_ids_by_hand(tok):
         v.actions_from_ids(torch.tensor([ys, xs]))  # y before x
 
 
+def test_the_zero_grid_makes_no_move_exact_by_hand():
+    q = ActionQuantizer(8, (-40.0, 0.0), (40.0, 8.0))  # x bins of 10 m, y bins of 1 m
+    # x centres -40, -30, ..., 30 (0 is one); y centres 0, 1, ..., 7.
+    assert q.encode(torch.tensor([[0.0, 0.0], [-35.1, 3.4], [34.0, 7.6]])).tolist() == [[4, 0], [0, 3], [7, 7]]
+    assert q.decode(torch.tensor([[4, 0], [0, 3]])).tolist() == [[0.0, 0.0], [-40.0, 3.0]]
+    paper = ActionQuantizer(256, (-40.0, -40.0), (60.0, 40.0))
+    assert paper.decode(paper.encode(torch.zeros(1, 2))).tolist() == [[0.0, 0.0]]
+    edges = ActionQuantizer(256, (-40.0, -40.0), (60.0, 40.0), grid="range")
+    assert edges.decode(edges.encode(torch.zeros(1, 2))).tolist() == [[0.0390625, 0.15625]]  # 0 lies on a y edge
+
+
 def test_quantizer_round_trip_within_half_a_bin():
-    q = ActionQuantizer(256, (-40.0, -40.0), (60.0, 40.0))
+    q = ActionQuantizer(256, (-40.0, -40.0), (60.0, 40.0), grid="range")
     g = torch.Generator().manual_seed(0)
     xy = torch.stack([torch.rand(1000, generator=g) * 100 - 40, torch.rand(1000, generator=g) * 80 - 40], dim=1)
     err = (q.decode(q.encode(xy)) - xy).abs()

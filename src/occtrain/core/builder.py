@@ -112,7 +112,8 @@ class SequenceBuilder:
         if isinstance(part, Scene):
             return self.scene(scenes[part.frame], part.supervise)
         if isinstance(part, Actions):
-            return self.actions(torch.tensor(part.xy, dtype=torch.float32), part.supervise)
+            xy = torch.tensor(part.xy, dtype=torch.float32)
+            return self.actions(xy if part.base is None else xy - torch.tensor(part.base, dtype=torch.float32), part.supervise)
         if isinstance(part, Branch):
             return self.branch()
         raise TypeError(f"{type(self).__name__} cannot lay out a {type(part).__name__} part; its world model's builder must")

@@ -37,9 +37,10 @@ class TextAnswer(NamedTuple):
 
 
 class ActionAnswer(NamedTuple):
-    """An ``<act>`` block of ``steps`` waypoints."""
+    """An ``<act>`` block of ``steps`` waypoints, read as offsets from ``base`` (steps, 2) when given."""
 
     steps: int
+    base: tuple | None = None
 
 
 class SceneAnswer(NamedTuple):
@@ -169,7 +170,8 @@ def _actions(s: _State, answer: ActionAnswer) -> Program:
             ids.append((yield from s.pick_action(axis)))
             s.queue(ids[-1:])
     s.queue([v.act_close_id])
-    return v.actions_from_ids(torch.tensor(ids, dtype=torch.long)).reshape(answer.steps, 2)
+    xy = v.actions_from_ids(torch.tensor(ids, dtype=torch.long)).reshape(answer.steps, 2)
+    return xy if answer.base is None else xy + torch.tensor(answer.base, dtype=xy.dtype).reshape(answer.steps, 2)
 
 
 def _query_block(s: _State, ids: torch.Tensor) -> Program:

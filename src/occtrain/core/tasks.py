@@ -18,6 +18,7 @@ import numpy as np
 
 from occtrain.data.clips import Actions, Branch, Clip, Part, Scene, Text, clip_rng, ego_future
 from occtrain.errors import ConfigError
+from occtrain.models.planner import constant_velocity
 
 Builder = Callable[[Clip, Any, np.random.Generator], "list[Part] | None"]
 EveryItem = Callable[[Clip, Any], "list[list[Part]]"]
@@ -52,11 +53,33 @@ class ForecastTaskConfig(TaskConfig):
 
     #: Future scenes the forecast alternates with waypoints (6 = 3 s).
     forecast_frames: int = 6
+    #: What the ego's future waypoints are written against. "none" (the papers): their
+    #: positions. "constant_velocity": their offsets from driving on straight at the
+    #: current speed (stated in the prompt), so the commonest token, no offset, is that
+    #: baseline, and what the model learns is how the ego departs from it.
+    plan_prior: str = "none"
 
     def validate(self, key: str) -> None:
         super().validate(key)
         if self.forecast_frames < 1:
             raise ConfigError(f"{key}.forecast_frames: {self.forecast_frames} must be at least 1")
+        if self.plan_prior not in PLAN_PRIORS:
+            raise ConfigError(f"{key}.plan_prior: '{self.plan_prior}' is not one of {', '.join(PLAN_PRIORS)} (paper: none)")
+
+
+#: ``plan_prior`` values, the papers' first.
+PLAN_PRIORS = ("none", "constant_velocity")
+
+
+def plan_base(clip: Clip, prior: str) -> np.ndarray | None:
+    """The (6, 2) waypoints the ego's future is written against under ``prior`` (None: positions)."""
+    return constant_velocity([clip.anchor])[0].numpy() if prior == "constant_velocity" else None
+
+
+def ego_plan(future: np.ndarray, clip: Clip, prior: str, supervise: bool = True) -> Actions:
+    """The ego's future waypoints as an answer block, written against ``prior``'s base."""
+    base = plan_base(clip, prior)
+    return Actions(as_xy(future), supervise, None if base is None else as_xy(base[: len(future)]))
 
 
 @dataclass(frozen=True)
@@ -114,17 +137,18 @@ def known_future(clip: Clip) -> np.ndarray | None:
     return future if mask.all() else None
 
 
-def forecast_after(prompt: list[Part], clip: Clip, frames: int) -> list[Part] | None:
-    """``prompt``, then the next waypoint and the next scene alternating, ``frames`` times;
-    None unless the clip's future is known."""
+def forecast_after(prompt: list[Part], clip: Clip, frames: int, prior: str = "none") -> list[Part] | None:
+    """``prompt``, then the next waypoint (written against ``prior``, see ``plan_prior``)
+    and the next scene alternating, ``frames`` times; None unless the clip's future is known."""
     a = clip.anchor_index
     n = min(frames, int(clip.ann["future"]))
     future = known_future(clip)
     if future is None or n == 0:
         return None
     parts = list(prompt)
+    base = plan_base(clip, prior)
     for k in range(n):
-        parts += [Actions(as_xy(future[k]), True), Scene(a + 1 + k, True)]
+        parts += [Actions(as_xy(future[k]), True, None if base is None else as_xy(base[k])), Scene(a + 1 + k, True)]
     return parts
 
 

@@ -62,6 +62,7 @@ class JointVocab:
         patch: int = 0,
         image: bool = False,
         extra: Sequence[str] = (),
+        action_grid: str = "zero",
     ):
         """``codebook_sizes``: the scene tokenizer's codebooks (an int for one); ``patch``: 0
         for the codes layout, else the patch side of the patches layout (module docstring).
@@ -69,7 +70,8 @@ class JointVocab:
         the joint tokens are added (give it when the tokenizer already holds them).
         ``image``: add one ``<image>`` token last, the placeholder of an image token whose
         embedding a vision-language model computes from its payload (OccVLA). ``extra``: a
-        family's own tokens (``<global_0>``, ...), laid out last in this order."""
+        family's own tokens (``<global_0>``, ...), laid out last in this order.
+        ``action_grid``: how the action bins lie (``models.actions.ACTION_GRIDS``)."""
         cfg = llm_cfg or LLMConfig()
         validate_llm_config(cfg)
         self.tokenizer = text_tokenizer
@@ -87,7 +89,7 @@ class JointVocab:
         self.codebook_starts = [sum(sizes[:i]) for i in range(len(sizes))]
         self.bins = int(cfg.action_bins)
         (xl, xh), (yl, yh) = cfg.action_range
-        self.quantizer = ActionQuantizer(self.bins, (float(xl), float(yl)), (float(xh), float(yh)))
+        self.quantizer = ActionQuantizer(self.bins, (float(xl), float(yl)), (float(xh), float(yh)), action_grid)
         self.action_encoding, self.action_decoding = cfg.action_encoding, cfg.action_decoding
         self.text_size = len(text_tokenizer) if text_size is None else int(text_size)
         self.image = bool(image)
@@ -280,6 +282,7 @@ class JointVocab:
             "scene_hw": list(self.scene_hw),
             "action_bins": self.bins,
             "action_range": [[float(lo), float(hi)] for lo, hi in zip(self.quantizer.low.tolist(), self.quantizer.high.tolist())],
+            "action_grid": self.quantizer.grid,
             "action_encoding": self.action_encoding,
             "action_decoding": self.action_decoding,
         }
@@ -294,4 +297,5 @@ class JointVocab:
         sizes = data.get("codebook_sizes", [data.get("num_codes", 0)])  # exports before multi-codebook vocabularies
         return cls(text_tokenizer, sizes, tuple(data["scene_hw"]), cfg, text_size=data["text_size"], patch=int(data.get("patch", 0)),
             image=bool(data.get("image", False)), extra=tuple(data.get("extra", ())),
+            action_grid=str(data.get("action_grid", "range")),  # exports before the zero grid
         )

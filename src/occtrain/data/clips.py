@@ -38,10 +38,13 @@ class Scene:
 
 @dataclass(frozen=True)
 class Actions:
-    """Waypoints in metres, ego frame of the anchor, shape (N, 2)."""
+    """Waypoints in metres, ego frame of the anchor, shape (N, 2). With ``base`` (N, 2),
+    e.g. the constant-velocity plan, the tokens hold each waypoint's offset from it, and a
+    generated block is read back as base + offset."""
 
     xy: tuple[tuple[float, float], ...]
     supervise: bool = False
+    base: tuple[tuple[float, float], ...] | None = None
 
 
 @dataclass(frozen=True)

@@ -283,7 +283,7 @@ class WorldModelEngine(torch.nn.Module):
         prompt = [p for p in parts[:first] if not isinstance(p, Occupancy)]
         plan: list[Answer] = [
             TextAnswer(self.max_new_text_tokens) if isinstance(p, Text)
-            else ActionAnswer(len(p.xy)) if isinstance(p, Actions) else SceneAnswer()
+            else ActionAnswer(len(p.xy), p.base) if isinstance(p, Actions) else SceneAnswer()
             for p in parts[first:]
         ]
         return self.encode_parts(prompt, scenes), plan

@@ -16,7 +16,7 @@ import numpy as np
 
 from occtrain.core import scorers
 from occtrain.core.tasks import ForecastTaskConfig
-from occtrain.core.tasks import TaskSpec, as_xy, each_question, forecast_after, known_future, questions_after
+from occtrain.core.tasks import TaskSpec, as_xy, each_question, ego_plan, forecast_after, known_future, questions_after
 from occtrain.data.clips import Actions, Clip, Part, Scene, Text
 from occtrain.data.text_formats import format_meta_action, parse_meta_action
 
@@ -110,12 +110,12 @@ def planning(clip: Clip, cfg: TaskConfig, rng: np.random.Generator) -> list[Part
     future = known_future(clip)
     if future is None:
         return None
-    return [*_context(clip, cfg), Text("Task: plan the ego trajectory."), Actions(as_xy(future), True)]
+    return [*_context(clip, cfg), Text("Task: plan the ego trajectory."), ego_plan(future, clip, cfg.plan_prior)]
 
 
 def forecasting(clip: Clip, cfg: TaskConfig, rng: np.random.Generator) -> list[Part] | None:
     """Alternate the next waypoint and the next scene, ``forecast_frames`` times."""
-    return forecast_after([*_context(clip, cfg), Text("Task: forecast the scene.")], clip, cfg.forecast_frames)
+    return forecast_after([*_context(clip, cfg), Text("Task: forecast the scene.")], clip, cfg.forecast_frames, cfg.plan_prior)
 
 
 def qa(clip: Clip, cfg: TaskConfig, rng: np.random.Generator) -> list[Part] | None:
@@ -141,7 +141,7 @@ def cot_planning(clip: Clip, cfg: TaskConfig, rng: np.random.Generator) -> list[
         *_context(clip, cfg),
         Text("Task: describe the scene, then plan."),
         Text(text, True),
-        Actions(as_xy(future), True),
+        ego_plan(future, clip, cfg.plan_prior),
     ]
 
 

@@ -43,7 +43,7 @@ def _context(clip: Clip, cfg: TaskConfig) -> list[Part]:
 
 def forecasting(clip: Clip, cfg: TaskConfig, rng: np.random.Generator) -> list[Part] | None:
     """4-D occupancy forecasting and self-ego planning: waypoint k, then frame k, ``forecast_frames`` times."""
-    return forecast_after([*_context(clip, cfg), Text(FORECAST_PROMPT)], clip, cfg.forecast_frames)
+    return forecast_after([*_context(clip, cfg), Text(FORECAST_PROMPT)], clip, cfg.forecast_frames, cfg.plan_prior)
 
 
 def qa(clip: Clip, cfg: TaskConfig, rng: np.random.Generator) -> list[Part] | None:
