@@ -23,7 +23,7 @@ CFG = LLMConfig(hidden_size=64, num_layers=2, num_heads=4, intermediate_size=128
                 action_range=[[-8.0, 8.0], [-8.0, 8.0]])
 CTX = torch.tensor([1, 2, 3, 4, 5, 6, 7, 8, 9])
 TARGET = torch.tensor([9, 9, 0, 15, 4, 4, 12, 1, 3])
-XY = torch.tensor([[1.5, -0.5], [3.5, 2.5]])  # bin centres (1 m bins from -8)
+XY = torch.tensor([[2.0, -1.0], [4.0, 3.0]])  # bin centres (1 m bins centred on whole metres)
 
 
 @pytest.fixture(scope="module")

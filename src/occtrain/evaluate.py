@@ -158,7 +158,7 @@ def write_predictions(out: Path, predictions: dict[str, dict]) -> None:
 def sample_count(name: str, metrics: dict[str, float]) -> float | None:
     """How many samples ``name`` was computed on: the ``<family>_samples`` (or
     ``_questions``) entry of the longest family prefix of ``name`` that has one."""
-    if name.startswith(("meta_", "baseline_prior_meta_")):
+    if name.startswith(("meta_", "baseline_prior_meta_", "baseline_repeat_last_meta_")):
         return metrics.get("meta_action_samples")
     parts = name.split("_")
     for n in range(len(parts), 0, -1):

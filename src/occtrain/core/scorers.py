@@ -221,11 +221,13 @@ def last_past_meta_action(clip: Clip, cfg: MetaActionConfig | None = None) -> di
 class ChainOfThoughtScorer(BaseScorer):
     """A generated chain of thought that ends with the frame's meta action (from the frame
     sidecar): caption metrics against the reference narration, the meta action parsed from
-    it, right or not, beside the commonest training meta action."""
+    it, right or not, beside the commonest training meta action and repeating the last
+    past one (labelled from the poses up to the anchor, by the rules the sidecars follow)."""
 
     metrics = {
         "cot_caption": CaptionMetric, "meta_action_acc": MeanMetric, "meta_parsed_fraction": MeanMetric,
         "baseline_prior_meta_action_acc": MeanMetric, "meta_action": MetaActionAccuracy, "baseline_prior_meta_action": MetaActionAccuracy,
+        "baseline_repeat_last_meta_action": MetaActionAccuracy,
     }
 
     def __init__(self) -> None:
