@@ -93,6 +93,7 @@ def test_eval_scores_meta_actions_and_the_query_branch(occvla_run):
     metrics = json.loads((occvla_run / "stage2" / "eval" / "val" / "metrics.json").read_text())
     assert {"meta_action_overall", "baseline_prior_meta_action_overall", "occupancy_occ3d_mIoU", "occupancy_occworld_mIoU"} <= metrics.keys()
     assert metrics["meta_action_samples"] == metrics["baseline_prior_meta_action_samples"] > 0
+    assert metrics["baseline_repeat_last_meta_action_samples"] == metrics["meta_action_samples"]
 
 
 def test_the_reloaded_model_generates_the_same_text_with_and_without_occupancy(occvla_run):

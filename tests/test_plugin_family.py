@@ -67,6 +67,10 @@ def test_the_plugin_family_trains_every_stage_kind(tiny_run):
     # Its own scorer and the shared ones it names, on its continuous scenes.
     assert "val/car_columns_acc" in pretrain and "val/baseline_commonest_car_columns_acc" in pretrain
     assert pretrain["val/forecast_occworld_frames_1s"] > 0 and "val/baseline_copy_forecast_occworld_mIoU_1s" in pretrain
+    # Every forecast baseline, on the same frames, with its movable-class mIoU.
+    for name in ("forecast", "baseline_copy_reconstruction_forecast", "baseline_cv_moved_forecast"):
+        assert pretrain[f"val/{name}_occworld_frames_1s"] == pretrain["val/forecast_occworld_frames_1s"]
+        assert f"val/{name}_occworld_movable_mIoU_1s" in pretrain
     assert instruct["val/qa_questions"] > 0
     # Its own planner, beside constant velocity.
     assert "val/head_L2_stp3_avg" in planner and "val/constant_velocity_L2_stp3_avg" in planner
