@@ -12,6 +12,7 @@ import torch
 from omegaconf import OmegaConf
 
 from occtrain.config.llm import LLMConfig
+from occtrain.errors import ConfigError
 from occtrain.data.clips import Clip, Images, Occupancy, Text
 from occtrain.data.meta_actions import KMH_PER_S, MetaActionConfig, label, past_labels
 from occtrain.core.registry import build_tokenizer
@@ -234,3 +235,18 @@ def test_the_prompt_lists_past_meta_actions_and_the_answer_reasons_first():
     assert answer.text.endswith("Meta action: decelerate, go straight.")
     short = meta_action(clip, TaskConfig(chain_of_thought=False, occupancy_weight=0.0), np.random.default_rng(0))
     assert [type(p) for p in short] == [Images, Text, Text] and short[-1].text == "Meta action: decelerate, go straight."
+
+
+def test_the_chain_of_thought_does_not_state_the_answer_in_its_scene_step():
+    """The synthetic caption opens with the ego's motion over the next seconds, which is the
+    meta action itself; the default scene step leaves it out, "caption" keeps it."""
+    poses = _poses([10.0] * 6 + [9.0] * 7)
+    caption = "The ego car is driving straight at 10 m/s and slowing down, with a moving car nearby. A cone is also around."
+    clip = Clip({"anchor": {"token": "tok", "caption": caption}, "ego_poses": poses.tolist(), "history": 6}, [], "")
+    answer = meta_action(clip, TaskConfig(occupancy_weight=0.0), np.random.default_rng(0))[-1].text
+    assert answer.startswith("Scene: Nearby: a moving car. A cone is also around. History:")
+    assert "slowing down" not in answer
+    whole = meta_action(clip, TaskConfig(occupancy_weight=0.0, cot_scene="caption"), np.random.default_rng(0))[-1].text
+    assert whole.startswith(f"Scene: {caption} History:")
+    with pytest.raises(ConfigError, match=r"tasks.cot_scene: 'narration' is not one of surroundings, caption"):
+        TaskConfig(cot_scene="narration").validate("tasks")

@@ -26,7 +26,7 @@ from occtrain.data.synth.text import (
     questions_for_frame,
     spatial_relation,
 )
-from occtrain.data.text_formats import format_meta_action, parse_meta_action
+from occtrain.data.text_formats import caption_surroundings, format_meta_action, parse_meta_action
 from occtrain.errors import DataError
 
 # ---------------------------------------------------------------- hand-built frames
@@ -405,6 +405,16 @@ def test_caption_names_the_coming_turn_and_speed_change():
     assert caption_for_frame(frame) == (
         "The ego car is driving straight at 6 m/s and slowing down before a right turn, with no other vehicles nearby."
     )
+
+
+def test_caption_surroundings_drop_the_ego_motion_and_keep_the_rest():
+    # The same frames as above: every caption opening with the ego's motion loses exactly it.
+    stopped = caption_for_frame(make_frame([box("traffic_cone", 6, 3)], speed=0.0, meta=("accelerate", "stop")))
+    assert caption_surroundings(stopped) == "Nearby: no other vehicles. 1 traffic cone is also around."
+    turning = caption_for_frame(make_frame([box("car", 12, 0.3, "moving", 7, 0)], speed=6.0, meta=("decelerate", "straight"), command="turn right"))
+    assert caption_surroundings(turning) == "Nearby: 1 moving car."
+    # Captions that do not open with the ego (real data) pass through unchanged.
+    assert caption_surroundings("A wet road with two buses. A cyclist waits.") == "A wet road with two buses. A cyclist waits."
 
 
 # ---------------------------------------------------------------- narration

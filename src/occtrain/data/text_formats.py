@@ -1,5 +1,8 @@
 """Text forms that training, evaluation and the synthetic world agree on.
 
+The caption opens with the ego's own motion (``EGO_MOTION_OPENING``), which states the
+frame's meta action; ``caption_surroundings`` reads the caption without it.
+
 The meta action (OccVLA: speed x direction) is written in one fixed sentence at the end of
 a chain of thought, so a generated one can be parsed back and scored. The synthetic
 generator writes it, real-data sidecars may carry it, and models generate it: it lives
@@ -21,6 +24,11 @@ META_DIRECTION_WORDS = {
     "bear right": "bear right",
     "stop": "stop",
 }
+#: How a caption's first sentence opens: the ego's motion over the next seconds, then
+#: ", with <vehicles> nearby."
+EGO_MOTION_OPENING = "The ego car is"
+_VEHICLES_CLAUSE = ", with "
+
 _META_RE = re.compile(
     r"meta action:\s*(%s)\s*,\s*(%s)\b"
     % ("|".join(META_SPEED_WORDS.values()), "|".join(META_DIRECTION_WORDS.values())),
@@ -45,3 +53,16 @@ def parse_meta_action(text: str) -> MetaAction | None:
     speed = next(k for k, v in META_SPEED_WORDS.items() if v == speed_word)
     direction = next(k for k, v in META_DIRECTION_WORDS.items() if v == direction_word)
     return MetaAction(speed=speed, direction=direction)
+
+
+def caption_surroundings(caption: str) -> str:
+    """The caption without its opening clause on the ego's motion (which states the frame's
+    meta action): "The ego car is turning left at 6 m/s, with a moving car nearby. X." ->
+    "Nearby: a moving car. X." A caption that does not open that way is returned as is."""
+    if not caption.startswith(EGO_MOTION_OPENING):
+        return caption
+    first, stop, rest = caption.partition(". ")
+    first = first.removesuffix(".")
+    _, clause, vehicles = first.partition(_VEHICLES_CLAUSE)
+    opening = f"Nearby: {vehicles.removesuffix(' nearby')}." if clause else ""
+    return " ".join(part for part in (opening, rest) if part)

@@ -30,7 +30,7 @@ from occtrain.data.schema import (
     FrameAnnotation,
     QAQuestion,
 )
-from occtrain.data.text_formats import format_meta_action
+from occtrain.data.text_formats import EGO_MOTION_OPENING, format_meta_action
 from occtrain.errors import DataError
 from occtrain.occ3d import CLASS_NAMES, FRAME_DT
 
@@ -471,10 +471,10 @@ def _describe(box, definite: bool) -> str:
 def _ego_motion(frame: FrameAnnotation) -> str:
     meta, speed = frame["meta_action"], frame["ego_speed"]
     if speed <= STOP_SPEED:
-        return "The ego car is stopped" + (" and about to pull away" if meta["speed"] == "accelerate" else "")
+        return f"{EGO_MOTION_OPENING} stopped" + (" and about to pull away" if meta["speed"] == "accelerate" else "")
     if meta["direction"] == "stop":
-        return f"The ego car is coming to a stop from {speed:.0f} m/s"
-    motion = f"The ego car is {_CAPTION_MOTION[meta['direction']]} at {speed:.0f} m/s{_CAPTION_SPEED[meta['speed']]}"
+        return f"{EGO_MOTION_OPENING} coming to a stop from {speed:.0f} m/s"
+    motion = f"{EGO_MOTION_OPENING} {_CAPTION_MOTION[meta['direction']]} at {speed:.0f} m/s{_CAPTION_SPEED[meta['speed']]}"
     turn = frame["command"].removeprefix("turn ")
     if frame["command"] != "go straight" and turn not in meta["direction"]:
         motion += f" before a {turn} turn"

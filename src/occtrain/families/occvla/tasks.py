@@ -23,7 +23,7 @@ from occtrain.core.tasks import TaskSpec, each_question, questions_after
 from occtrain.data.clips import Clip, Images, Occupancy, Part, Text
 from occtrain.data.meta_actions import MetaActionConfig, label, past_labels
 from occtrain.data.schema import MetaAction
-from occtrain.data.text_formats import META_DIRECTION_WORDS, META_SPEED_WORDS, format_meta_action
+from occtrain.data.text_formats import META_DIRECTION_WORDS, META_SPEED_WORDS, caption_surroundings, format_meta_action
 from occtrain.errors import ConfigError
 from occtrain.families.occvla.scoring import MetaActionScorer
 from occtrain.occ3d import FRAME_DT
@@ -31,6 +31,7 @@ from occtrain.occ3d import FRAME_DT
 META_PROMPT = "Past meta actions:"
 META_QUESTION = "What is the next meta action?"
 CAPTION_PROMPT = "Describe the driving scene."
+COT_SCENES = ("surroundings", "caption")
 PROMPT_WORDS = (META_PROMPT, META_QUESTION, CAPTION_PROMPT, "Scene:", "History:", "none known")
 
 #: Past-tense words of the history analysis.
@@ -52,6 +53,12 @@ class TaskConfig(BaseTaskConfig):
     occupancy_weight: float = 1.0
     #: The answer reasons (scene, history) before the meta action (Table 7).
     chain_of_thought: bool = True
+    #: The chain's scene step: "surroundings", the caption without its opening clause on the
+    #: ego's own motion, or "caption", the whole caption. That clause states the frame's
+    #: meta action, so under teacher forcing the model learns to copy it into the answer,
+    #: and at inference it guesses the clause from the cameras and copies the guess over the
+    #: prompt's history (README, "What the models learn").
+    cot_scene: str = "surroundings"
     #: Past meta actions in the prompt (t-5 .. t-1; fewer where the clip's history is shorter).
     past_meta_actions: int = 5
     #: How meta actions are labelled from the ego poses.
@@ -68,6 +75,8 @@ class TaskConfig(BaseTaskConfig):
         if self.past_meta_actions < 0:
             raise ConfigError(f"{key}.past_meta_actions: {self.past_meta_actions} is negative (paper: 5)")
         self.meta_actions.validate(f"{key}.meta_actions")
+        if self.cot_scene not in COT_SCENES:
+            raise ConfigError(f"{key}.cot_scene: {self.cot_scene!r} is not one of {', '.join(COT_SCENES)}")
 
 
 def context(clip: Clip, cfg: TaskConfig) -> list[Part]:
@@ -120,6 +129,8 @@ def chain_of_thought(clip: Clip, cfg: TaskConfig, past: list[MetaAction], meta: 
     if not cfg.chain_of_thought:
         return format_meta_action(meta)
     caption = clip.anchor.get("caption", "")
+    if cfg.cot_scene == "surroundings":
+        caption = caption_surroundings(caption)
     scene = f"Scene: {caption} " if caption else ""
     return f"{scene}{history_analysis(past)} {format_meta_action(meta)}"
 
