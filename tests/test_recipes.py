@@ -7,6 +7,7 @@ from pathlib import Path
 import pytest
 
 from conftest import REPO
+from occtrain.errors import ConfigError
 from occtrain.runner import load_recipe
 
 RECIPES = sorted((REPO / "stages").rglob("*.yaml"))
@@ -35,3 +36,12 @@ def test_readme_lists_every_recipe():
         if rel not in readme and pattern not in readme:
             unlisted.append(rel)
     assert not unlisted, f"README does not name: {unlisted}"
+
+
+def test_the_shipped_gpu_trainer_config_validates_with_every_device():
+    # configs/trainer/gpu.yaml asks for every GPU (devices: -1, Lightning's convention); the
+    # range check must take it, and still refuse 0 devices in one line.
+    _, planned = load_recipe(REPO / "stages/quickstart.yaml", [f"trainer={REPO / 'configs/trainer/gpu.yaml'}"])
+    assert {(p.trainer.accelerator, p.trainer.devices, p.trainer.precision) for p in planned} == {("gpu", -1, "bf16-mixed")}
+    with pytest.raises(ConfigError, match=r"trainer.devices is 0 in .*: it must be at least 1, or -1 for every device"):
+        load_recipe(REPO / "stages/quickstart.yaml", ["trainer.devices=0"])

@@ -59,6 +59,14 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_plan_memory(args: argparse.Namespace) -> int:
+    from occtrain.memory_plan import format_plans, plan_recipe
+
+    plans = plan_recipe(args.recipe, args.overrides, args.gpus, args.seq_len, args.checkpointing)
+    print(format_plans(plans, args.seq_len, args.gpu_memory, args.checkpointing))
+    return 0
+
+
 def _cmd_table(args: argparse.Namespace) -> int:
     from occtrain.comparison import load_run_table, show_table
     from occtrain.progress import console
@@ -164,6 +172,17 @@ def _add_run_commands(sub: Any) -> None:
     p.add_argument("--batch-size", type=int, default=16, help="clips generated together in one batch (default 16)")
     p.add_argument("--data", metavar="DIR", help="score on this dataset instead of the run's (e.g. a world from another seed)")
     p.set_defaults(func=_cmd_eval)
+
+    p = sub.add_parser(
+        "plan-memory", help="memory per GPU of a recipe's LLM stages under DDP and sharding, from model configs alone (nothing downloaded or trained)",
+    )
+    p.add_argument("recipe", help="recipe YAML, e.g. stages/scale/occllama_vicuna7b.yaml")
+    p.add_argument("overrides", nargs="*", help="key=value overrides, as for run (e.g. trainer.precision=bf16-mixed)")
+    p.add_argument("--gpus", type=int, default=8, help="ranks to shard over (default 8, the papers' machines)")
+    p.add_argument("--seq-len", type=int, default=2048, help="tokens per training sequence (default 2048)")
+    p.add_argument("--gpu-memory", type=float, metavar="GIB", help="say whether each strategy fits a GPU of this many GiB")
+    p.add_argument("--checkpointing", action="store_true", help="with activation checkpointing of the decoder layers")
+    p.set_defaults(func=_cmd_plan_memory)
 
     p = sub.add_parser("table", help="print a run's comparison table (the recipe's table:) and rewrite RUN_DIR/table.md")
     p.add_argument("run_dir", metavar="RUN_DIR", help="a run directory, e.g. runs/tokenizer_ablation")

@@ -151,9 +151,13 @@ def check_ranges(section: str, cfg: Any, stage: str, own: dict | None, source: s
     ``val_check_interval: 0``) in one line naming its key, before anything is written."""
     for name, least in _LEAST[section].items():
         value = getattr(cfg, name)
+        if section == "trainer" and name == "devices" and value == -1:  # Lightning's "every device"
+            continue
         if isinstance(value, float) and not math.isfinite(value) or (least is not None and value < least):
             key = f"stages.{stage}.{section}.{name}" if section == "optim" or name in (own or {}) else f"{section}.{name}"
             wanted = "a finite number" if isinstance(value, float) and not math.isfinite(value) else f"at least {least:g}"
+            if name == "devices":
+                wanted += ", or -1 for every device"
             raise ConfigError(f"{key} is {value} in {source}: it must be {wanted}")
     if section == "optim" and (len(cfg.betas) != 2 or not all(0 <= b < 1 for b in cfg.betas) or cfg.schedule not in ("cosine", "constant")):
         key = "schedule" if cfg.schedule not in ("cosine", "constant") else "betas"

@@ -39,7 +39,7 @@ def attention_for(model_type: str, requested: str) -> str:
     return "eager" if model_type in EAGER_ONLY else requested
 
 
-def _tiny_config(cfg: LLMConfig, vocab_size: int) -> Any:
+def tiny_config(cfg: LLMConfig, vocab_size: int) -> Any:
     """The config of a tiny ``cfg.model_type`` LM from the size keys."""
     kw: dict[str, Any] = {hf: getattr(cfg, ours) for hf, ours in SIZE_KEYS}
     kw.update(
@@ -72,7 +72,7 @@ def build_llm(cfg: LLMConfig, vocab_size: int) -> PreTrainedModel:
     validate_llm_config(cfg)
     if not cfg.path:
         check_backend(cfg.model_type, "llm.model_type")
-        return AutoModelForCausalLM.from_config(_tiny_config(cfg, vocab_size))
+        return AutoModelForCausalLM.from_config(tiny_config(cfg, vocab_size))
     model = load_llm(cfg.path, cfg.attn_implementation)
     model.resize_token_embeddings(vocab_size)
     return model
