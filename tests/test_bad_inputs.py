@@ -696,6 +696,13 @@ CASES: list[Case] = [
     Case("val-check-interval-zero", recipe(), [*RUN, "trainer.val_check_interval=0"], 2, "trainer.val_check_interval is 0 in " + RECIPE_FILE),
     Case("schedule-unknown", recipe(), [*RUN, "stages.pretrain.optim.schedule=linear"], 2, "stages.pretrain.optim.schedule is linear"),
     Case("checkpoint-pickled", pickled_checkpoint, RUN, 2, "{tmp}/run2/tokenizer/checkpoints/last.ckpt: holds pickled object test_bad_inputs.Evil"),
+    # ------------------------------------------------------------------ trainers this machine cannot run
+    Case("gpu-config-without-gpu", recipe(), [*RUN, f"trainer={REPO / 'configs/trainer/gpu.yaml'}"], 2,
+         "trainer.accelerator is gpu, but torch " + torch.__version__ + " sees no GPU here; train on the CPU with configs/trainer/cpu.yaml"),
+    Case("cpu-devices-beyond-cores", recipe(), [*RUN, "trainer.devices=100000"], 2, "trainer.devices is 100000 CPU processes, but this machine has"),
+    Case("fsdp-on-cpu", recipe(), [*RUN, "stages.pretrain.trainer.strategy=fsdp"], 2,
+         "stages.pretrain.trainer: accelerator=cpu devices=1 strategy=fsdp precision=32-true cannot run here (The strategy `fsdp` requires a GPU"),
+    Case("precision-unknown", recipe(), [*RUN, "trainer.precision=bf17"], 2, "trainer: accelerator=cpu devices=1 strategy=auto precision=bf17 cannot run here (Precision 'bf17' is invalid"),
     Case("validate-batch-size-zero", recipe(), ["validate", "{tmp}/r.yaml", "data.batch_size=0"], 2, "data.batch_size is 0"),
     Case("dry-run-family-unknown", recipe(lambda t: t.replace("family: occllama", "family: occlama")), [*RUN, "--dry-run"], 2, "unknown model family 'occlama'"),
     Case("validate-stale-shards", both(recipe(), shards_then(save_labels(semantics=np.full(GRID_SHAPE, 3, np.uint8)), kinds=["frames", "clips"], history=1, future=1)),

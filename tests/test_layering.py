@@ -37,7 +37,7 @@ LAYERS = {
     "config": 0, "errors": 0, "io": 0, "run_control": 0, "exports": 0, "progress": 0, "occ3d": 0, "nuscenes_qa": 0, "__init__": 0,
 }
 #: Modules of ``stages/`` that are infrastructure, not a stage kind.
-STAGE_INFRA = {"occtrain.stages", "occtrain.stages.base", "occtrain.stages.common"}
+STAGE_INFRA = {"occtrain.stages", "occtrain.stages.base", "occtrain.stages.common", "occtrain.stages.loggers"}
 LIGHTNING_FREE = ("models", "core", "families", "engine")
 #: What may not name a family: it looks families up in the registry.
 FAMILY_NEUTRAL = ("core", "engine", "stages", "runner", "evaluate", "api", "dashboard", "memory_plan")

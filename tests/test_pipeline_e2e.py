@@ -282,3 +282,27 @@ def test_the_readme_python_api_example_runs_as_printed(pipeline, capsys):
     model, clip = names["model"], names["clip"]
     assert model.plan(clip).shape == (6, 2) and model.forecast(clip).shape[1:] == (200, 200, 16)
     assert isinstance(model.answer(clip, "Are there any cars?"), str)
+
+
+def test_bf16_mixed_trains_every_stage_on_cpu(pipeline, tmp_path):
+    """The quickstart's five stage kinds at bf16-mixed on the CPU (the GPU default), the
+    world-model stages with gradient checkpointing on: every stage trains and exports, its
+    losses are finite, and the tokenizer's first loss (same weights, same batch) is fp32's
+    to bf16's precision."""
+    import math
+
+    run_dir = tmp_path / "bf16"
+    checkpointing = [f"stages[{i}].model.gradient_checkpointing=true" for i in (1, 2)]
+    res = run_cli(
+        "run", "stages/quickstart.yaml", *tiny_overrides(pipeline.parent / "data", steps=2), "trainer.precision=bf16-mixed",
+        *checkpointing, "--run-dir", str(run_dir), timeout=900,
+    )
+    assert res.returncode == 0, res.stderr[-3000:]
+    manifest = json.loads((run_dir / "manifest.json").read_text())
+    assert {s["config"]["trainer"]["precision"] for s in manifest["stages"].values()} == {"bf16-mixed"}
+    for name in STAGES:
+        rows = _train_rows(run_dir / name)
+        assert len(rows) == 2 and all(math.isfinite(float(loss)) for _, loss in rows), (name, rows)
+        assert (run_dir / name / "export").is_dir()
+    fp32, bf16 = float(_train_rows(pipeline / "tokenizer")[0][1]), float(_train_rows(run_dir / "tokenizer")[0][1])
+    assert bf16 == pytest.approx(fp32, rel=0.02)

@@ -9,7 +9,7 @@ import torch
 import torch.nn.functional as F
 
 from occtrain.config.llm import LLMConfig
-from occtrain.models.llm import build_llm
+from occtrain.models.llm import build_llm, checkpoint_layers
 from occtrain.models.text_tokenizer import train_text_tokenizer
 from occtrain.core.vocab import JointVocab
 from occtrain.core.builder import SequenceBuilder, collate
@@ -325,3 +325,27 @@ def test_the_scene_cache_key_follows_the_encoder_export_and_the_dataset(tmp_path
     with torch.no_grad():
         plain.weight[0, 0] += 1
     assert scene_cache_key(plain, index) != key
+
+
+def test_gradient_checkpointing_gives_the_same_gradients_from_less_kept_memory(vocab):
+    grads, kept = [], []
+    for checkpointing in (False, True):
+        world = make_world(vocab, "next_scene").train()
+        if checkpointing:
+            checkpoint_layers(world.llm)
+        batch = collate([full_sequence(world.builder()), prompt(world.builder()).build()], vocab.pad_id)
+        saved: dict[int, int] = {}
+
+        def pack(t: torch.Tensor) -> torch.Tensor:
+            saved.setdefault(t.data_ptr(), t.untyped_storage().nbytes())
+            return t
+
+        with torch.autograd.graph.saved_tensors_hooks(pack, lambda t: t):
+            loss = world(batch).loss
+        loss.backward()
+        kept.append(sum(saved.values()))
+        grads.append({n: p.grad for n, p in world.named_parameters() if p.grad is not None})
+    assert grads[0].keys() == grads[1].keys() and len(grads[0]) > 10
+    for name, g in grads[0].items():
+        assert torch.allclose(g, grads[1][name], atol=1e-6), name
+    assert kept[1] < 0.8 * kept[0], kept

@@ -38,7 +38,7 @@ from occtrain.run_control import Interrupted, run_lock, stop_on_signals
 from occtrain.stages import Stage, StageContext, StageKind, get_kind, kind_names
 
 #: Trainer keys that change how often things are written, not what is learned.
-OPERATIONAL_KEYS = ("log_every_n_steps", "ckpt_every_n_steps")
+OPERATIONAL_KEYS = ("log_every_n_steps", "ckpt_every_n_steps", "loggers")
 
 
 class StageFailed(OcctrainError):
@@ -397,7 +397,28 @@ def check_run(
         and (p.spec.name in restarted or getattr(manifest.stages.get(p.spec.name), "status", "pending") != "done")
     ]
     refuse_missing_tasks(will_train, recipe.data)
+    refuse_unrunnable_trainers(will_train)
     return RunCheck(recipe, planned, run_dir, restarted, data)
+
+
+def refuse_unrunnable_trainers(planned: list[PlannedStage]) -> None:
+    """A GPU config on a CPU machine, more devices than exist, a strategy the accelerator
+    does not take, a logger that is unknown or not installed: refused before the first
+    stage writes anything."""
+    from occtrain.stages.common import check_trainer_setup
+    from occtrain.stages.loggers import check_loggers
+
+    keys = ("accelerator", "devices", "num_nodes", "strategy", "precision")
+    checked: set[tuple] = set()
+    for p in planned:
+        setup = tuple(getattr(p.trainer, k) for k in keys)
+        if setup in checked:
+            continue
+        checked.add(setup)
+        own = set(p.spec.trainer or {}) & set(keys)
+        check_trainer_setup(p.trainer, f"stages.{p.spec.name}.trainer" if own else "trainer")
+    for p in planned:
+        check_loggers(list(p.trainer.loggers), f"stages.{p.spec.name}.trainer.loggers" if "loggers" in (p.spec.trainer or {}) else "trainer.loggers")
 
 
 def refuse_missing_tasks(planned: list[PlannedStage], data: DataConfig) -> None:

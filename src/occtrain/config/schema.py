@@ -74,6 +74,9 @@ class TrainerConfig:
     accumulate_grad_batches: int = 1
     deterministic: bool = False
     seed: int = 0
+    #: Where metrics go: "csv" (always written: the dashboard and a resume read it),
+    #: "tensorboard", "mlflow" (a local file store in <run>/mlruns) and "wandb" (offline).
+    loggers: list[str] = field(default_factory=lambda: ["csv", "tensorboard"])
 
 
 @dataclass

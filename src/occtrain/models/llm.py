@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
+from torch import nn
 from transformers import AutoConfig, AutoModelForCausalLM, AutoTokenizer, PreTrainedModel
 
 from occtrain.config.llm import BACKENDS, LLMConfig, LoRAConfig, validate_llm_config
@@ -144,6 +145,16 @@ def _language_model(path: str | Path, config: Any, attn_implementation: str) -> 
     if missing or unexpected:
         raise ConfigError(f"llm.path: the language model of {path} does not match its config (tensor '{(missing or unexpected)[0]}')")
     return lm
+
+
+def checkpoint_layers(model: nn.Module) -> None:
+    """Recompute each transformer layer's activations in backward instead of keeping them
+    (Hugging Face's gradient checkpointing, non-reentrant: frozen inputs, LoRA and adapter
+    hooks need nothing extra). Only training forwards recompute; generation is unchanged."""
+    base = model.get_base_model() if hasattr(model, "get_base_model") else model
+    if not getattr(base, "supports_gradient_checkpointing", False):
+        raise ConfigError(f"gradient_checkpointing: {type(base).__name__} does not support it")
+    base.gradient_checkpointing_enable(gradient_checkpointing_kwargs={"use_reentrant": False})
 
 
 def load_text_tokenizer(path: str | Path) -> Any:

@@ -17,9 +17,8 @@ from typing import Any, Callable
 
 import lightning as L
 import torch
-from lightning.fabric.loggers.csv_logs import _ExperimentWriter
+from lightning.fabric.utilities.exceptions import MisconfigurationException
 from lightning.pytorch.callbacks import Callback, LearningRateMonitor, ModelCheckpoint, ProgressBar
-from lightning.pytorch.loggers import CSVLogger, TensorBoardLogger
 from lightning.pytorch.plugins.io import TorchCheckpointIO
 from rich.progress import BarColumn, Progress, TextColumn
 from torchmetrics import MeanMetric
@@ -33,6 +32,7 @@ from occtrain.engine import Evaluator, Priors, scorable
 from occtrain.errors import ConfigError, OcctrainError
 from occtrain.io import atomic_open
 from occtrain.progress import Ticker, console, plain, progress_bar
+from occtrain.stages.loggers import build_loggers
 from occtrain.stages.base import EvalRequest, EvalResult, lacking_tasks
 
 LAST_CKPT = "last.ckpt"
@@ -112,65 +112,6 @@ def _refuse_pickled(path: Path) -> None:
 def checkpoint_step(path: Path) -> int:
     """The optimizer step a checkpoint was saved at (weights-only load: nothing unpickled)."""
     return int(torch.load(path, map_location="cpu", weights_only=True, mmap=True).get("global_step", 0))
-
-
-# ----------------------------------------------------------------------------- logs
-
-
-class _AppendingWriter(_ExperimentWriter):
-    """Lightning's CSV writer deletes ``metrics.csv`` when it starts; a resumed stage keeps
-    the rows logged before the checkpoint it resumes from instead (later rows are logged
-    again by the resumed run)."""
-
-    def __init__(self, log_dir: str, keep_before_step: int | None) -> None:
-        path = Path(log_dir) / self.NAME_METRICS_FILE
-        kept: list[dict] = []
-        keys: list[str] = []
-        if keep_before_step is not None and path.is_file():
-            with open(path, newline="") as fh:
-                reader = csv.DictReader(fh)
-                keys = list(reader.fieldnames or [])
-                kept = [row for row in reader if _row_step(row) < keep_before_step]
-        path.unlink(missing_ok=True)
-        super().__init__(log_dir)
-        if kept:
-            with atomic_open(path) as fh:
-                text = _csv_text(keys, kept)
-                fh.write(text.encode())
-            self.metrics_keys = sorted(keys)
-
-    def _check_log_dir_exists(self) -> None:
-        """The base class deletes earlier logs here (and warns that it will)."""
-
-
-def _row_step(row: dict) -> float:
-    try:
-        return float(row.get("step") or 0)
-    except ValueError:
-        return 0.0
-
-
-def _csv_text(keys: list[str], rows: list[dict]) -> str:
-    buf = io.StringIO()
-    writer = csv.DictWriter(buf, fieldnames=sorted(keys))
-    writer.writeheader()
-    writer.writerows(rows)
-    return buf.getvalue()
-
-
-class AppendingCSVLogger(CSVLogger):
-    """A CSVLogger whose ``metrics.csv`` survives a resume (see :class:`_AppendingWriter`)."""
-
-    def __init__(self, *args: Any, resume_step: int | None = None, **kwargs: Any) -> None:
-        super().__init__(*args, **kwargs)
-        self._resume_step = resume_step
-
-    @property
-    def experiment(self) -> _ExperimentWriter:
-        if self._experiment is None:
-            self._fs.makedirs(self.root_dir, exist_ok=True)
-            self._experiment = _AppendingWriter(self.log_dir, self._resume_step)
-        return self._experiment
 
 
 # ----------------------------------------------------------------------------- callbacks
@@ -505,6 +446,43 @@ def _callbacks(
     return callbacks
 
 
+def _usable_cores() -> int:
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
+def check_trainer_setup(cfg: TrainerConfig, key: str) -> None:
+    """Refuse, in one line naming ``key`` and before anything is written, a trainer this
+    machine cannot run: GPUs where torch sees none, more devices than there are, a strategy
+    or precision the accelerator does not take (Lightning's own checks, run by building
+    the Trainer without fitting)."""
+    accelerator, devices = str(cfg.accelerator), int(cfg.devices)
+    if accelerator in ("gpu", "cuda"):
+        found = torch.cuda.device_count()
+        if found == 0:
+            raise ConfigError(
+                f"{key}.accelerator is {accelerator}, but torch {torch.__version__} sees no GPU here; "
+                "train on the CPU with configs/trainer/cpu.yaml (trainer.accelerator=cpu trainer.strategy=auto trainer.devices=1)"
+            )
+        if devices > found:
+            raise ConfigError(f"{key}.devices is {devices}, but this machine has {found} GPU{'s' * (found != 1)}; use at most {found}, or -1 for all")
+    elif accelerator == "cpu" and devices > _usable_cores():
+        raise ConfigError(
+            f"{key}.devices is {devices} CPU processes, but this machine has {_usable_cores()} cores; "
+            f"use at most {_usable_cores()} (or several nodes with torchrun)"
+        )
+    quiet_lightning()
+    try:
+        L.Trainer(
+            accelerator=accelerator, devices=devices, num_nodes=cfg.num_nodes, strategy=cfg.strategy, precision=cfg.precision,
+            logger=False, enable_checkpointing=False, enable_progress_bar=False, enable_model_summary=False,
+        )
+    except (MisconfigurationException, ValueError, RuntimeError, ImportError, TypeError) as e:
+        raise ConfigError(
+            f"{key}: accelerator={accelerator} devices={devices} strategy={cfg.strategy} precision={cfg.precision} cannot run here "
+            f"({str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__})"
+        ) from None
+
+
 def build_trainer(
     cfg: TrainerConfig, stage_dir: Path, monitor: str | None, mode: str = "max",
     resume_step: int | None = None, record_time: Callable[[float], None] | None = None,
@@ -518,11 +496,7 @@ def build_trainer(
     """
     quiet_lightning()
     callbacks = _callbacks(cfg, stage_dir.name, stage_dir / "checkpoints", monitor, mode, record_time, record_attempt)
-    logs = stage_dir / "logs"
-    loggers = [
-        AppendingCSVLogger(logs, name="", version="csv", resume_step=resume_step),
-        TensorBoardLogger(logs, name="", version="tensorboard"),
-    ]
+    loggers = build_loggers(list(cfg.loggers), stage_dir, resume_step)
     return L.Trainer(
         accelerator=cfg.accelerator,
         devices=cfg.devices,

@@ -23,6 +23,7 @@ import torch.nn.functional as F
 from occtrain.errors import ConfigError, DataError
 from occtrain.metrics import DepthAbsRelMetric, PixelSegmentationMetric
 from occtrain.models import count_parameters
+from occtrain.models.llm import checkpoint_layers
 from occtrain.models.vision import DenseHead, MultiViewEncoder, PixelPrior, VisionConfig, export_vision
 from occtrain.stages import StageKind, register
 from occtrain.stages.base import Stage, StageContext, StageReport
@@ -46,6 +47,8 @@ class VisionModelConfig:
     freeze_tower: bool = False
     #: Train batches (per process) the per-pixel prior baseline is counted over; 0: no baseline.
     prior_batches: int = 16
+    #: Recompute the tower's layer activations in backward instead of keeping them.
+    gradient_checkpointing: bool = False
 
 
 class VisionStage(Stage):
@@ -70,6 +73,8 @@ class VisionStage(Stage):
             if v.path:  # the frozen tower comes back from its directory; checkpoints need not hold it
                 self.frozen_prefixes = (TOWER_PREFIX,)
         freeze_prefixes(self, list(ctx.spec.freeze))
+        if cfg.gradient_checkpointing:
+            checkpoint_layers(self.encoder.tower)
         self.image_hw = (v.image_height, v.image_width)
         self.prior = PixelPrior(v.num_cameras, v.image_height, v.image_width)
         self.pixel = PixelSegmentationMetric()

@@ -1,0 +1,162 @@
+"""What a stage logs to: the CSV file the dashboard and a resume read (always), and the
+trackers a recipe's ``trainer.loggers`` adds through Lightning's own logger classes:
+TensorBoard, MLflow (a local file store, ``<run>/mlruns``) and Weights & Biases (offline,
+``<stage>/logs/wandb``; ``wandb sync`` uploads it later). MLflow and W&B are optional
+extras (``pip install -e '.[mlflow]'`` / ``'.[wandb]'``). A resumed stage logs on into the
+same MLflow run and W&B run: their ids are kept in ``<stage>/logs/``."""
+
+from __future__ import annotations
+
+import csv
+import io
+import os
+from pathlib import Path
+from typing import Any
+
+from lightning.fabric.loggers.csv_logs import _ExperimentWriter
+from lightning.pytorch.loggers import CSVLogger, Logger, MLFlowLogger, TensorBoardLogger, WandbLogger
+
+from occtrain.errors import ConfigError
+from occtrain.io import atomic_open, atomic_write_text
+
+#: The loggers a recipe can name; csv is always written.
+LOGGERS = ("csv", "tensorboard", "mlflow", "wandb")
+_EXTRAS = {"mlflow": "mlflow", "wandb": "wandb"}
+
+
+class _AppendingWriter(_ExperimentWriter):
+    """Lightning's CSV writer deletes ``metrics.csv`` when it starts; a resumed stage keeps
+    the rows logged before the checkpoint it resumes from instead (later rows are logged
+    again by the resumed run)."""
+
+    def __init__(self, log_dir: str, keep_before_step: int | None) -> None:
+        path = Path(log_dir) / self.NAME_METRICS_FILE
+        kept: list[dict] = []
+        keys: list[str] = []
+        if keep_before_step is not None and path.is_file():
+            with open(path, newline="") as fh:
+                reader = csv.DictReader(fh)
+                keys = list(reader.fieldnames or [])
+                kept = [row for row in reader if _row_step(row) < keep_before_step]
+        path.unlink(missing_ok=True)
+        super().__init__(log_dir)
+        if kept:
+            with atomic_open(path) as fh:
+                text = _csv_text(keys, kept)
+                fh.write(text.encode())
+            self.metrics_keys = sorted(keys)
+
+    def _check_log_dir_exists(self) -> None:
+        """The base class deletes earlier logs here (and warns that it will)."""
+
+
+def _row_step(row: dict) -> float:
+    try:
+        return float(row.get("step") or 0)
+    except ValueError:
+        return 0.0
+
+
+def _csv_text(keys: list[str], rows: list[dict]) -> str:
+    buf = io.StringIO()
+    writer = csv.DictWriter(buf, fieldnames=sorted(keys))
+    writer.writeheader()
+    writer.writerows(rows)
+    return buf.getvalue()
+
+
+class AppendingCSVLogger(CSVLogger):
+    """A CSVLogger whose ``metrics.csv`` survives a resume (see :class:`_AppendingWriter`)."""
+
+    def __init__(self, *args: Any, resume_step: int | None = None, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self._resume_step = resume_step
+
+    @property
+    def experiment(self) -> _ExperimentWriter:
+        if self._experiment is None:
+            self._fs.makedirs(self.root_dir, exist_ok=True)
+            self._experiment = _AppendingWriter(self.log_dir, self._resume_step)
+        return self._experiment
+
+
+def check_loggers(names: list[str], key: str = "trainer.loggers") -> None:
+    """One line for an unknown logger, or a tracker whose package is not installed."""
+    import importlib.util
+
+    for name in names:
+        if name not in LOGGERS:
+            raise ConfigError(f"{key}: '{name}' is not a logger occtrain writes; choose from {', '.join(LOGGERS)}")
+        if name in _EXTRAS and importlib.util.find_spec(_EXTRAS[name]) is None:
+            raise ConfigError(f"{key}: '{name}' needs its package; install it with pip install -e '.[{name}]'")
+
+
+def _kept_id(path: Path) -> str | None:
+    return (path.read_text().strip() or None) if path.is_file() else None
+
+
+def _keep_id(path: Path, run_id: Any) -> None:
+    if isinstance(run_id, str) and run_id and _kept_id(path) != run_id:
+        atomic_write_text(path, run_id)
+
+
+class TrackedMLFlowLogger(MLFlowLogger):
+    """MLflow's logger that writes its run id to ``id_file`` once the run exists."""
+
+    def __init__(self, *args: Any, id_file: Path, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self._id_file = id_file
+
+    @property
+    def experiment(self) -> Any:
+        client = super().experiment
+        _keep_id(self._id_file, self._run_id)
+        return client
+
+
+class TrackedWandbLogger(WandbLogger):
+    """W&B's logger that writes its run id to ``id_file`` once the run exists."""
+
+    def __init__(self, *args: Any, id_file: Path, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self._id_file = id_file
+
+    @property
+    def experiment(self) -> Any:
+        run = super().experiment
+        _keep_id(self._id_file, getattr(run, "id", None))  # other ranks hold a dummy without one
+        return run
+
+    def finalize(self, status: str) -> None:
+        # Stages run one after another in one process; an unfinished run would swallow the next stage's.
+        super().finalize(status)
+        if self._experiment is not None and hasattr(self._experiment, "finish"):
+            self._experiment.finish(exit_code=0 if status == "success" else 1)
+            self._experiment = None
+
+
+def build_loggers(names: list[str], stage_dir: Path, resume_step: int | None) -> list[Logger]:
+    """The stage's loggers: CSV always, then each tracker ``names`` adds, in that order."""
+    check_loggers(names)
+    logs = stage_dir / "logs"
+    out: list[Logger] = [AppendingCSVLogger(logs, name="", version="csv", resume_step=resume_step)]
+    run, stage = stage_dir.parent.name, stage_dir.name
+    for name in dict.fromkeys(names):
+        if name == "tensorboard":
+            out.append(TensorBoardLogger(logs, name="", version="tensorboard"))
+        elif name == "mlflow":
+            # MLflow 3 keeps its file store (no database to set up) behind an opt-in.
+            os.environ.setdefault("MLFLOW_ALLOW_FILE_STORE", "true")
+            out.append(TrackedMLFlowLogger(
+                experiment_name=run, run_name=stage, tracking_uri=(stage_dir.parent / "mlruns").resolve().as_uri(),
+                run_id=_kept_id(logs / "mlflow_run_id"), id_file=logs / "mlflow_run_id",
+            ))
+        elif name == "wandb":
+            os.environ.setdefault("WANDB_SILENT", "true")
+            (logs / "wandb").mkdir(parents=True, exist_ok=True)
+            kept = _kept_id(logs / "wandb_run_id")
+            out.append(TrackedWandbLogger(
+                project=run, name=stage, save_dir=str(logs), offline=True, id=kept, resume="allow" if kept else None,
+                id_file=logs / "wandb_run_id",
+            ))
+    return out
