@@ -250,3 +250,29 @@ def test_the_chain_of_thought_does_not_state_the_answer_in_its_scene_step():
     assert whole.startswith(f"Scene: {caption} History:")
     with pytest.raises(ConfigError, match=r"tasks.cot_scene: 'narration' is not one of surroundings, caption"):
         TaskConfig(cot_scene="narration").validate("tasks")
+
+
+def test_the_repeat_last_prior_writes_an_unchanged_meta_action_as_before():
+    """tasks.meta_action_prior: repeat_last: the answer says "as before" when the future
+    meta action equals the last past one (the prompt's last entry), its words otherwise;
+    reading it back gives the same meta action either way."""
+    from occtrain.core.scorers import last_past_meta_action
+    from occtrain.families.occvla.tasks import past_meta_actions, read_meta_action
+
+    cfg = TaskConfig(occupancy_weight=0.0, meta_action_prior="repeat_last")
+    steady = Clip({"anchor": {"token": "t"}, "ego_poses": _poses([10.0] * 13).tolist(), "history": 6}, [], "")
+    slowing = Clip({"anchor": {"token": "t"}, "ego_poses": _poses([10.0] * 6 + [9.0] * 7).tolist(), "history": 6}, [], "")
+    for clip, sentence, meta in (
+        (steady, "Meta action: as before.", {"speed": "maintain", "direction": "straight"}),
+        (slowing, "Meta action: decelerate, go straight.", {"speed": "decelerate", "direction": "straight"}),
+    ):
+        answer = meta_action(clip, cfg, np.random.default_rng(0))[-1].text
+        assert answer.endswith(sentence) and read_meta_action(answer, clip, cfg) == meta
+        # The last past meta action the scorer repeats is the prompt's last entry.
+        assert last_past_meta_action(clip, cfg.meta_actions) == past_meta_actions(clip, cfg)[-1]
+    # The paper's form by default.
+    assert meta_action(steady, TaskConfig(occupancy_weight=0.0), np.random.default_rng(0))[-1].text.endswith(
+        "Meta action: maintain speed, go straight."
+    )
+    with pytest.raises(ConfigError, match=r"tasks.meta_action_prior: 'always' is not one of none, repeat_last \(paper: none\)"):
+        TaskConfig(meta_action_prior="always").validate("tasks")

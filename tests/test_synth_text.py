@@ -425,6 +425,12 @@ def test_meta_action_round_trips_for_every_pair():
         meta = {"speed": speed, "direction": direction}
         assert parse_meta_action("Some reasoning.\n" + format_meta_action(meta)) == meta
     assert format_meta_action({"speed": "decelerate", "direction": "left"}) == "Meta action: decelerate, turn left."
+    # Against the last past meta action: an equal one is "as before", read back as it.
+    last = {"speed": "decelerate", "direction": "left"}
+    assert format_meta_action(last, previous=last) == "Meta action: as before."
+    assert format_meta_action({"speed": "maintain", "direction": "left"}, previous=last) == "Meta action: maintain speed, turn left."
+    assert parse_meta_action("History: ... Meta action: As before.", last) == last
+    assert parse_meta_action("Meta action: as before.") is None  # nothing to repeat
     assert parse_meta_action("meta action: Maintain Speed, bear right.  ") == {"speed": "maintain", "direction": "bear right"}
     # The last one wins (a model may revise itself); unparseable text gives None.
     two = "Meta action: accelerate, go straight. On reflection: Meta action: decelerate, stop."

@@ -40,9 +40,10 @@ def main() -> None:
         if not items:
             continue
         reference = items[0][-1].text
-        truth = parse_meta_action(reference)
+        last = last_past_meta_action(clip, engine.tasks.meta_actions)
+        truth = parse_meta_action(reference, last)  # "as before" (tasks.meta_action_prior) is the last one
         text, _ = model.chain_of_thought(clip)
-        said, last = parse_meta_action(text), last_past_meta_action(clip, engine.tasks.meta_actions)
+        said = parse_meta_action(text, last)
         history = [HISTORY.search(t) for t in (reference, text)]
         motion = [MOTION.search(t) for t in (reference, text)]
         motion_right = all(motion) and motion[0].group(1) == motion[1].group(1)

@@ -29,27 +29,36 @@ META_DIRECTION_WORDS = {
 EGO_MOTION_OPENING = "The ego car is"
 _VEHICLES_CLAUSE = ", with "
 
+#: The meta action sentence's words for "the same as the last past one".
+AS_BEFORE = "as before"
 _META_RE = re.compile(
-    r"meta action:\s*(%s)\s*,\s*(%s)\b"
-    % ("|".join(META_SPEED_WORDS.values()), "|".join(META_DIRECTION_WORDS.values())),
+    r"meta action:\s*(?:(%s)|(%s)\s*,\s*(%s))\b"
+    % (AS_BEFORE, "|".join(META_SPEED_WORDS.values()), "|".join(META_DIRECTION_WORDS.values())),
     re.IGNORECASE,
 )
 
 
-def format_meta_action(meta: MetaAction) -> str:
-    """The fixed, parseable last line of a narration: 'Meta action: decelerate, turn left.'"""
+def format_meta_action(meta: MetaAction, previous: MetaAction | None = None) -> str:
+    """The fixed, parseable last line of a narration: 'Meta action: decelerate, turn left.'
+    Given ``previous`` (the last past meta action), one equal to it is 'Meta action: as before.'"""
+    if previous is not None and dict(previous) == dict(meta):
+        return f"Meta action: {AS_BEFORE}."
     return f"Meta action: {META_SPEED_WORDS[meta['speed']]}, {META_DIRECTION_WORDS[meta['direction']]}."
 
 
-def parse_meta_action(text: str) -> MetaAction | None:
+def parse_meta_action(text: str, previous: MetaAction | None = None) -> MetaAction | None:
     """The last meta action written in :func:`format_meta_action`'s form in ``text``, or None.
+    'As before' reads as ``previous`` (None without one).
 
     Case and spacing are free and the final period optional, since generated text varies.
     """
     matches = list(_META_RE.finditer(text))
     if not matches:
         return None
-    speed_word, direction_word = (g.lower() for g in matches[-1].groups())
+    as_before, speed_word, direction_word = matches[-1].groups()
+    if as_before:
+        return MetaAction(speed=previous["speed"], direction=previous["direction"]) if previous else None
+    speed_word, direction_word = speed_word.lower(), direction_word.lower()
     speed = next(k for k, v in META_SPEED_WORDS.items() if v == speed_word)
     direction = next(k for k, v in META_DIRECTION_WORDS.items() if v == direction_word)
     return MetaAction(speed=speed, direction=direction)

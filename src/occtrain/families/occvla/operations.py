@@ -10,14 +10,14 @@ import torch
 from occtrain.core import operations
 from occtrain.core.builder import collate
 from occtrain.data.clips import Clip, Images
-from occtrain.data.text_formats import parse_meta_action
+from occtrain.families.occvla.tasks import read_meta_action
 
 
 def reference_meta_action(engine: Any, clip: Clip) -> dict | None:
     """The clip's meta action labelled from the poses with the task settings' rules (the
     answer its ``meta_action`` task trains on); None where the clip is too short for it."""
     items = engine.task_items("meta_action", clip)
-    return parse_meta_action(items[0][-1].text) if items else None
+    return read_meta_action(items[0][-1].text, clip, engine.tasks) if items else None
 
 
 def generated_meta_actions(engine: Any, clips: list[Clip]) -> list[tuple[dict | None, None] | None]:
@@ -25,8 +25,13 @@ def generated_meta_actions(engine: Any, clips: list[Clip]) -> list[tuple[dict | 
     cannot be parsed; OccVLA generates no trajectory); None where the task does not apply."""
     out: list = [None] * len(clips)
     for b, _, generated, _ in engine.rollouts("meta_action", clips, {"ann": [c.ann for c in clips]}):
-        out[b] = (parse_meta_action(generated[0].text), None)
+        out[b] = (read_meta_action(generated[0].text, clips[b], engine.tasks), None)
     return out
+
+
+def meta_action(engine: Any, clip: Clip) -> dict | None:
+    """The meta action the generated chain of thought ends with, None if unparsed."""
+    return read_meta_action(operations.chain_of_thought(engine, clip)[0], clip, engine.tasks)
 
 
 @torch.no_grad()
@@ -44,7 +49,7 @@ def visual_summary(engine: Any, clips: list[Clip]) -> torch.Tensor:
 OPERATIONS = {
     "answer": operations.answer,
     "chain_of_thought": operations.chain_of_thought,
-    "meta_action": operations.meta_action,
+    "meta_action": meta_action,
     "reference_meta_action": reference_meta_action,
     "generated_meta_actions": generated_meta_actions,
     "visual_summary": visual_summary,

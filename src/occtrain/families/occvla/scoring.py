@@ -32,10 +32,11 @@ class MetaActionScorer(BaseScorer):
 
     def score(self, ev: Any, item: Item) -> None:
         text, reference = item.generated[0].text, item.parts[-1].text
-        truth, parsed = parse_meta_action(reference), parse_meta_action(text)
+        cfg = item.engine.tasks.meta_actions
+        last = last_past_meta_action(item.clip, cfg)  # what "as before" means (meta_action_prior)
+        truth, parsed = parse_meta_action(reference, last), parse_meta_action(text, last)
         ev.metrics["meta_action"].update([parsed], [truth])
         ev.metrics["meta_parsed_fraction"].update(100.0 * (parsed is not None))
-        cfg = item.engine.tasks.meta_actions
         key = tuple(sorted(vars(cfg).items()))
         if key not in self._prior and ev.index is not None:
             self._prior[key] = commonest(ev.index, "train", cfg)
@@ -43,7 +44,7 @@ class MetaActionScorer(BaseScorer):
         if prior is not None:
             ev.metrics["baseline_prior_meta_action"].update([prior], [truth])
         # The last one the prompt lists; none (a scene's start) scores as a wrong answer.
-        ev.metrics["baseline_repeat_last_meta_action"].update([last_past_meta_action(item.clip, cfg)], [truth])
+        ev.metrics["baseline_repeat_last_meta_action"].update([last], [truth])
         said = format_meta_action(parsed).removeprefix("Meta action: ") if parsed is not None else "none"
         ev.keep_text("meta_action", item.parts[-2].text, f"{text}  [parsed: {said}]", reference)
 

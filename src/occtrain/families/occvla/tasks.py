@@ -18,12 +18,13 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from occtrain.core import scorers
+from occtrain.core.scorers import last_past_meta_action
 from occtrain.core.tasks import TaskConfig as BaseTaskConfig
 from occtrain.core.tasks import TaskSpec, each_question, questions_after
 from occtrain.data.clips import Clip, Images, Occupancy, Part, Text
 from occtrain.data.meta_actions import MetaActionConfig, label, past_labels
 from occtrain.data.schema import MetaAction
-from occtrain.data.text_formats import META_DIRECTION_WORDS, META_SPEED_WORDS, caption_surroundings, format_meta_action
+from occtrain.data.text_formats import META_DIRECTION_WORDS, META_SPEED_WORDS, caption_surroundings, format_meta_action, parse_meta_action
 from occtrain.errors import ConfigError
 from occtrain.families.occvla.scoring import MetaActionScorer
 from occtrain.occ3d import FRAME_DT
@@ -32,6 +33,8 @@ META_PROMPT = "Past meta actions:"
 META_QUESTION = "What is the next meta action?"
 CAPTION_PROMPT = "Describe the driving scene."
 COT_SCENES = ("surroundings", "caption")
+#: ``meta_action_prior`` values, the paper's first.
+META_ACTION_PRIORS = ("none", "repeat_last")
 PROMPT_WORDS = (META_PROMPT, META_QUESTION, CAPTION_PROMPT, "Scene:", "History:", "none known")
 
 #: Past-tense words of the history analysis.
@@ -59,6 +62,11 @@ class TaskConfig(BaseTaskConfig):
     #: and at inference it guesses the clause from the cameras and copies the guess over the
     #: prompt's history (README, "What the models learn").
     cot_scene: str = "surroundings"
+    #: How the answer writes its meta action. "none" (the paper): always as speed and
+    #: direction. "repeat_last": "as before" when it equals the last past one, which the
+    #: prompt lists, so keeping it is one phrase and the model learns when it changes
+    #: (README, "What the models learn").
+    meta_action_prior: str = "none"
     #: Past meta actions in the prompt (t-5 .. t-1; fewer where the clip's history is shorter).
     past_meta_actions: int = 5
     #: How meta actions are labelled from the ego poses.
@@ -75,6 +83,8 @@ class TaskConfig(BaseTaskConfig):
         if self.past_meta_actions < 0:
             raise ConfigError(f"{key}.past_meta_actions: {self.past_meta_actions} is negative (paper: 5)")
         self.meta_actions.validate(f"{key}.meta_actions")
+        if self.meta_action_prior not in META_ACTION_PRIORS:
+            raise ConfigError(f"{key}.meta_action_prior: {self.meta_action_prior!r} is not one of {', '.join(META_ACTION_PRIORS)} (paper: none)")
         if self.cot_scene not in COT_SCENES:
             raise ConfigError(f"{key}.cot_scene: {self.cot_scene!r} is not one of {', '.join(COT_SCENES)}")
 
@@ -104,6 +114,11 @@ def past_meta_actions(clip: Clip, cfg: TaskConfig) -> list[MetaAction]:
     return past_labels(_poses(clip), clip.anchor_index, cfg.past_meta_actions, cfg.meta_actions)
 
 
+def read_meta_action(text: str, clip: Clip, cfg: TaskConfig) -> MetaAction | None:
+    """The meta action an answer ends with, "as before" read as the last past one."""
+    return parse_meta_action(text, last_past_meta_action(clip, cfg.meta_actions))
+
+
 def describe_past(past: list[MetaAction]) -> str:
     """The prompt's list of past meta actions, oldest first."""
     if not past:
@@ -126,13 +141,15 @@ def history_analysis(past: list[MetaAction]) -> str:
 
 def chain_of_thought(clip: Clip, cfg: TaskConfig, past: list[MetaAction], meta: MetaAction) -> str:
     """Scene description -> history analysis -> meta action (or the meta action alone)."""
+    previous = past[-1] if past and cfg.meta_action_prior == "repeat_last" else None
+    answer = format_meta_action(meta, previous)
     if not cfg.chain_of_thought:
-        return format_meta_action(meta)
+        return answer
     caption = clip.anchor.get("caption", "")
     if cfg.cot_scene == "surroundings":
         caption = caption_surroundings(caption)
     scene = f"Scene: {caption} " if caption else ""
-    return f"{scene}{history_analysis(past)} {format_meta_action(meta)}"
+    return f"{scene}{history_analysis(past)} {answer}"
 
 
 def meta_action(clip: Clip, cfg: TaskConfig, rng: np.random.Generator) -> list[Part] | None:
