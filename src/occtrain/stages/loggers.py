@@ -100,32 +100,35 @@ def _keep_id(path: Path, run_id: Any) -> None:
         atomic_write_text(path, run_id)
 
 
-class TrackedMLFlowLogger(MLFlowLogger):
-    """MLflow's logger that writes its run id to ``id_file`` once the run exists."""
+class _KeepsRunId:
+    """A tracker's logger that writes its run id to ``id_file`` once the run exists."""
 
     def __init__(self, *args: Any, id_file: Path, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         self._id_file = id_file
 
-    @property
-    def experiment(self) -> Any:
-        client = super().experiment
-        _keep_id(self._id_file, self._run_id)
-        return client
-
-
-class TrackedWandbLogger(WandbLogger):
-    """W&B's logger that writes its run id to ``id_file`` once the run exists."""
-
-    def __init__(self, *args: Any, id_file: Path, **kwargs: Any) -> None:
-        super().__init__(*args, **kwargs)
-        self._id_file = id_file
+    def _run_id_of(self, experiment: Any) -> Any:
+        raise NotImplementedError
 
     @property
     def experiment(self) -> Any:
-        run = super().experiment
-        _keep_id(self._id_file, getattr(run, "id", None))  # other ranks hold a dummy without one
-        return run
+        experiment = super().experiment
+        _keep_id(self._id_file, self._run_id_of(experiment))
+        return experiment
+
+
+class TrackedMLFlowLogger(_KeepsRunId, MLFlowLogger):
+    """Lightning's MLflow logger, its run id kept for a resume."""
+
+    def _run_id_of(self, experiment: Any) -> Any:
+        return self._run_id
+
+
+class TrackedWandbLogger(_KeepsRunId, WandbLogger):
+    """Lightning's W&B logger, its run id kept for a resume; each stage's run finished."""
+
+    def _run_id_of(self, experiment: Any) -> Any:
+        return getattr(experiment, "id", None)  # other ranks hold a dummy without one
 
     def finalize(self, status: str) -> None:
         # Stages run one after another in one process; an unfinished run would swallow the next stage's.
