@@ -286,16 +286,20 @@ def test_the_readme_python_api_example_runs_as_printed(pipeline, capsys):
 
 def test_bf16_mixed_trains_every_stage_on_cpu(pipeline, tmp_path):
     """The quickstart's five stage kinds at bf16-mixed on the CPU (the GPU default), the
-    world-model stages with gradient checkpointing on: every stage trains and exports, its
-    losses are finite, and the tokenizer's first loss (same weights, same batch) is fp32's
-    to bf16's precision."""
+    world-model stages with gradient checkpointing on, logging to MLflow and W&B (offline)
+    where installed: every stage trains and exports, its losses are finite, the tokenizer's
+    first loss (same weights, same batch) is fp32's to bf16's precision, and each stage has
+    its tracker run."""
+    import importlib.util
     import math
 
     run_dir = tmp_path / "bf16"
     checkpointing = [f"stages[{i}].model.gradient_checkpointing=true" for i in (1, 2)]
+    trackers = [name for name in ("mlflow", "wandb") if importlib.util.find_spec(name)]
     res = run_cli(
         "run", "stages/quickstart.yaml", *tiny_overrides(pipeline.parent / "data", steps=2), "trainer.precision=bf16-mixed",
-        *checkpointing, "--run-dir", str(run_dir), timeout=900,
+        *checkpointing, f"trainer.loggers=[csv,{','.join(trackers or ['tensorboard'])}]", "--run-dir", str(run_dir),
+        timeout=900, env={"WANDB_MODE": "offline"},
     )
     assert res.returncode == 0, res.stderr[-3000:]
     manifest = json.loads((run_dir / "manifest.json").read_text())
@@ -306,3 +310,9 @@ def test_bf16_mixed_trains_every_stage_on_cpu(pipeline, tmp_path):
         assert (run_dir / name / "export").is_dir()
     fp32, bf16 = float(_train_rows(pipeline / "tokenizer")[0][1]), float(_train_rows(run_dir / "tokenizer")[0][1])
     assert bf16 == pytest.approx(fp32, rel=0.02)
+    for name in STAGES:
+        logs = run_dir / name / "logs"
+        if "mlflow" in trackers:
+            assert list((run_dir / "mlruns").glob(f"*/{(logs / 'mlflow_run_id').read_text()}/metrics/train/loss"))
+        if "wandb" in trackers:
+            assert len(list((logs / "wandb").glob("offline-run-*"))) == 1  # its own run, not the stage before's
