@@ -235,3 +235,22 @@ def test_frozen_tower_trains_only_the_embedding_and_head(tmp_path, saved_siglip)
         stage.losses({"semantics": torch.zeros(1, 200, 200, 16, dtype=torch.uint8)})
     with pytest.raises(ConfigError, match=r"model\.prior_batches"):
         make_stage(tmp_path, prior_batches=-1)
+
+
+def test_the_tower_checkpointed_gives_the_same_gradients():
+    """The vision stage's model.gradient_checkpointing on the tiny SigLIP tower."""
+    from occtrain.models.llm import checkpoint_layers
+    from occtrain.models.vision import VisionConfig, build_vision_tower
+
+    grads = []
+    for checkpointing in (False, True):
+        torch.manual_seed(0)
+        tower = build_vision_tower(VisionConfig()).train()
+        if checkpointing:
+            checkpoint_layers(tower)
+        images = torch.randn(2, 3, 72, 128, generator=torch.Generator().manual_seed(1))
+        tower(pixel_values=images, interpolate_pos_encoding=True).last_hidden_state.square().mean().backward()
+        grads.append({n: p.grad for n, p in tower.named_parameters() if p.grad is not None})
+    assert grads[0].keys() == grads[1].keys() and len(grads[0]) > 5
+    assert all(torch.allclose(g, grads[1][n], atol=1e-6) for n, g in grads[0].items())
+    assert any(getattr(m, "gradient_checkpointing", False) is True for m in tower.modules())
