@@ -176,7 +176,7 @@ def _add_run_commands(sub: Any) -> None:
     p = sub.add_parser(
         "plan-memory", help="memory per GPU of a recipe's LLM stages under DDP and sharding, from model configs alone (nothing downloaded or trained)",
     )
-    p.add_argument("recipe", help="recipe YAML, e.g. stages/scale/occllama_vicuna7b.yaml")
+    p.add_argument("recipe", help="recipe YAML, e.g. stages/scale/occllama_llama8b.yaml")
     p.add_argument("overrides", nargs="*", help="key=value overrides, as for run (e.g. trainer.precision=bf16-mixed)")
     p.add_argument("--gpus", type=int, default=8, help="ranks to shard over (default 8, the papers' machines)")
     p.add_argument("--seq-len", type=int, default=2048, help="tokens per training sequence (default 2048)")

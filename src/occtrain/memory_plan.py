@@ -114,6 +114,7 @@ def count_llm(
     count it."""
     from transformers import AutoModelForCausalLM
 
+    from occtrain.models import without_peft
     from occtrain.models.adapters import add_adapters
     from occtrain.models.llm import apply_lora, tiny_config
 
@@ -139,8 +140,7 @@ def count_llm(
             p.requires_grad_(False)
     params = sum(p.numel() for p in model.parameters())
     trainable = sum(p.numel() for p in model.parameters() if p.requires_grad)
-    base = model.get_base_model() if hasattr(model, "get_base_model") else model
-    layer = base.get_decoder().layers[0]
+    layer = without_peft(model).get_decoder().layers[0]
     heads = text.num_attention_heads
     head_dim = getattr(text, "head_dim", None) or text.hidden_size // heads
     return ModelCount(

@@ -24,6 +24,7 @@ from occtrain.core.builder import SequenceBuilder, batch_payload
 from occtrain.core.decoding import Answer, Decoder, SceneAnswer, TextAnswer, ActionAnswer, decode, decode_batch
 from occtrain.core.sequence import IGNORE, PayloadSpec, Step, TokenSequence
 from occtrain.core.vocab import JointVocab
+from occtrain.models import without_peft
 from occtrain.models.attention import additive
 
 
@@ -195,7 +196,7 @@ class LMWorldModel(nn.Module):
     # -- export
     def base_llm(self) -> nn.Module:
         """The LLM without a peft wrapper."""
-        return self.llm.get_base_model() if hasattr(self.llm, "get_base_model") else self.llm
+        return without_peft(self.llm)
 
     def export_config(self) -> dict:
         """JSON-able settings from which ``from_export`` rebuilds the model around its LLM."""

@@ -11,4 +11,9 @@ def count_parameters(module: nn.Module, trainable: bool = False) -> int:
     return sum(p.numel() for p in module.parameters() if p.requires_grad or not trainable)
 
 
-__all__ = ["count_parameters"]
+def without_peft(model: nn.Module) -> nn.Module:
+    """The model inside a peft wrapper (LoRA), or ``model`` itself when it has none."""
+    return model.get_base_model() if hasattr(model, "get_base_model") else model
+
+
+__all__ = ["count_parameters", "without_peft"]

@@ -22,6 +22,7 @@ from torch import nn
 
 from occtrain.errors import ConfigError
 from occtrain.io import atomic_write_json
+from occtrain.models import without_peft
 
 ADAPTER_WEIGHTS = "adapter.safetensors"
 ADAPTER_CONFIG = "adapter_config.json"
@@ -63,7 +64,7 @@ class BottleneckAdapter(nn.Module):
 
 def _layers(llm: nn.Module) -> list[nn.Module]:
     """The decoder layers of a Hugging Face causal LM (Llama, Qwen2, Gemma2: ``get_decoder().layers``)."""
-    base = llm.get_base_model() if hasattr(llm, "get_base_model") else llm
+    base = without_peft(llm)
     body = base.get_decoder() if hasattr(base, "get_decoder") else getattr(base, "model", base)
     layers = getattr(body, "layers", None)
     if layers is None:

@@ -20,6 +20,7 @@ from transformers import AutoConfig, AutoModelForCausalLM, AutoTokenizer, PreTra
 
 from occtrain.config.llm import BACKENDS, LLMConfig, LoRAConfig, validate_llm_config
 from occtrain.errors import ConfigError
+from occtrain.models import without_peft
 
 #: Backends transformers runs without SDPA: they attend eagerly (additive masks).
 EAGER_ONLY = ("gemma2",)
@@ -151,13 +152,10 @@ def checkpoint_layers(model: nn.Module) -> None:
     """Recompute each transformer layer's activations in backward instead of keeping them
     (Hugging Face's gradient checkpointing, non-reentrant: frozen inputs, LoRA and adapter
     hooks need nothing extra). Only training forwards recompute; generation is unchanged."""
-    base = model.get_base_model() if hasattr(model, "get_base_model") else model
+    base = without_peft(model)
     if not getattr(base, "supports_gradient_checkpointing", False):
         raise ConfigError(f"gradient_checkpointing: {type(base).__name__} does not support it")
-    if hasattr(base, "activation_checkpointing_enable"):  # transformers 5's name for it
-        base.activation_checkpointing_enable(activation_checkpointing_kwargs={"use_reentrant": False})
-    else:
-        base.gradient_checkpointing_enable(gradient_checkpointing_kwargs={"use_reentrant": False})
+    base.activation_checkpointing_enable(activation_checkpointing_kwargs={"use_reentrant": False})
 
 
 def load_text_tokenizer(path: str | Path) -> Any:

@@ -21,7 +21,8 @@ from occtrain.io import atomic_open, atomic_write_text
 
 #: The loggers a recipe can name; csv is always written.
 LOGGERS = ("csv", "tensorboard", "mlflow", "wandb")
-_EXTRAS = {"mlflow": "mlflow", "wandb": "wandb"}
+#: Loggers that need their own package (an optional extra of the same name).
+_TRACKERS = ("mlflow", "wandb")
 
 
 class _AppendingWriter(_ExperimentWriter):
@@ -87,7 +88,7 @@ def check_loggers(names: list[str], key: str = "trainer.loggers") -> None:
     for name in names:
         if name not in LOGGERS:
             raise ConfigError(f"{key}: '{name}' is not a logger occtrain writes; choose from {', '.join(LOGGERS)}")
-        if name in _EXTRAS and importlib.util.find_spec(_EXTRAS[name]) is None:
+        if name in _TRACKERS and importlib.util.find_spec(name) is None:
             raise ConfigError(f"{key}: '{name}' needs its package; install it with pip install -e '.[{name}]'")
 
 
@@ -95,17 +96,14 @@ def _kept_id(path: Path) -> str | None:
     return (path.read_text().strip() or None) if path.is_file() else None
 
 
-def _keep_id(path: Path, run_id: Any) -> None:
-    if isinstance(run_id, str) and run_id and _kept_id(path) != run_id:
-        atomic_write_text(path, run_id)
-
-
 class _KeepsRunId:
-    """A tracker's logger that writes its run id to ``id_file`` once the run exists."""
+    """A tracker's logger that writes its run id to ``id_file`` once the run exists (the
+    ``experiment`` property is read at every log call: the file is checked once)."""
 
     def __init__(self, *args: Any, id_file: Path, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         self._id_file = id_file
+        self._id_kept = False
 
     def _run_id_of(self, experiment: Any) -> Any:
         raise NotImplementedError
@@ -113,7 +111,12 @@ class _KeepsRunId:
     @property
     def experiment(self) -> Any:
         experiment = super().experiment
-        _keep_id(self._id_file, self._run_id_of(experiment))
+        if not self._id_kept:
+            run_id = self._run_id_of(experiment)
+            if isinstance(run_id, str) and run_id:  # other ranks hold a dummy without one
+                if _kept_id(self._id_file) != run_id:
+                    atomic_write_text(self._id_file, run_id)
+                self._id_kept = True
         return experiment
 
 
@@ -128,7 +131,7 @@ class TrackedWandbLogger(_KeepsRunId, WandbLogger):
     """Lightning's W&B logger, its run id kept for a resume; each stage's run finished."""
 
     def _run_id_of(self, experiment: Any) -> Any:
-        return getattr(experiment, "id", None)  # other ranks hold a dummy without one
+        return getattr(experiment, "id", None)
 
     def finalize(self, status: str) -> None:
         # Stages run one after another in one process; an unfinished run would swallow the next stage's.
@@ -136,6 +139,7 @@ class TrackedWandbLogger(_KeepsRunId, WandbLogger):
         if self._experiment is not None and hasattr(self._experiment, "finish"):
             self._experiment.finish(exit_code=0 if status == "success" else 1)
             self._experiment = None
+            self._id_kept = False
 
 
 def build_loggers(names: list[str], stage_dir: Path, resume_step: int | None) -> list[Logger]:
