@@ -167,3 +167,58 @@ def test_two_torchrun_nodes_train_like_one_process(tmp_path, world):
     other = run_cli("run", str(recipe), "data.batch_size=1", "--run-dir", str(tmp_path / "other"))
     assert other.returncode == 0, other.stderr[-3000:]
     assert gap(weights("other"), weights("one")) > 10 * same_batches
+
+
+def test_a_ddp_epoch_killed_mid_way_resumes_without_repeating_or_skipping_a_sample(tmp_path, world):
+    """Two ranks, two loader workers each, one sample per rank a step: the 18 train frames
+    are one epoch of 9 steps (no shuffle buffer, so an epoch is each sample once). Killed
+    (-9) after a checkpoint mid-epoch and resumed, the samples of every step equal an
+    uninterrupted run's, and together they are each train frame exactly once."""
+    import signal
+    import time
+
+    recipe = tmp_path / "probe.yaml"
+    recipe.write_text(PROBE_RECIPE.format(runs=tmp_path / "runs", data=world))
+    args = [
+        "run", str(recipe), "trainer.devices=2", "trainer.strategy=ddp", "trainer.max_steps=9", "trainer.val_check_interval=9",
+        "data.batch_size=1", "data.num_workers=2", "data.shuffle_buffer=1",
+    ]
+
+    def steps(seen: Path) -> dict[int, list[str]]:
+        """Each step's global batch (rank 0's samples, then rank 1's), as last recorded."""
+        per_rank = []
+        for rank in (0, 1):
+            rows = [json.loads(line) for line in Path(f"{seen}.rank{rank}").read_text().splitlines()]
+            per_rank.append({row["step"]: row["keys"] for row in rows})  # a resumed step overwrites
+        assert per_rank[0].keys() == per_rank[1].keys()
+        return {step: per_rank[0][step] + per_rank[1][step] for step in sorted(per_rank[0])}
+
+    whole = run_cli(*args, "--run-dir", str(tmp_path / "whole"), env={"OCCTRAIN_PROBE_SEEN": str(tmp_path / "whole.seen")}, timeout=600)
+    assert whole.returncode == 0, whole.stderr[-3000:]
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [str(REPO / "tests"), os.environ.get("PYTHONPATH", "")])),
+               PYTHONWARNINGS="ignore", OCCTRAIN_PROBE_SEEN=str(tmp_path / "cut.seen"), OCCTRAIN_PROBE_STEP_DELAY="0.5")
+    proc = subprocess.Popen([sys.executable, "-m", "occtrain", *args, "--run-dir", str(tmp_path / "cut")], cwd=REPO, env=env,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    last = tmp_path / "cut" / "probe" / "checkpoints" / "last.ckpt"
+    deadline = time.time() + 300
+    while proc.poll() is None and time.time() < deadline:
+        if last.is_file():
+            try:
+                if torch.load(last, weights_only=True, map_location="cpu")["global_step"] >= 4:
+                    break
+            except (RuntimeError, OSError, EOFError):
+                pass  # replaced while reading
+        time.sleep(0.05)
+    assert proc.poll() is None, "the run finished before it could be killed"
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait()
+    killed_at = torch.load(last, weights_only=True, map_location="cpu")["global_step"]
+    resumed = run_cli(*args, "--run-dir", str(tmp_path / "cut"), env={"OCCTRAIN_PROBE_SEEN": str(tmp_path / "cut.seen")}, timeout=600)
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    (first, second) = json.loads((tmp_path / "cut" / "manifest.json").read_text())["stages"]["probe"]["history"]
+    assert second["start_step"] == killed_at >= 4  # resumed mid-epoch, not restarted
+
+    reference, got = steps(tmp_path / "whole.seen"), steps(tmp_path / "cut.seen")
+    assert list(got) == list(range(9)) and got == reference
+    frames = [key for batch in reference.values() for key in batch]
+    assert len(frames) == len(set(frames)) == 18

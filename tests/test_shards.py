@@ -12,7 +12,7 @@ import torch
 from conftest import hand_labels
 from occtrain.config import DataConfig
 from occtrain.data.check import check_shards
-from occtrain.data.datamodule import ShardDataModule
+from occtrain.data.datamodule import COLLATE, ResumableLoader, ShardDataModule
 from occtrain.data.layout import DatasetIndex
 from occtrain.data.shards import decode_sample, make_pipeline, read_index, shard_urls, write_shards
 from occtrain.errors import DataError
@@ -87,30 +87,91 @@ def test_train_pipeline_streams_forever_and_shuffles(hand_dataset, shards):
     assert sum(stored.index(b) == stored.index(a) + 1 for a, b in zip(shuffled, shuffled[1:])) < follows
 
 
-def test_validation_is_split_evenly_over_ranks(monkeypatch, shards):
-    import occtrain.data.shards as sh
+def _train_keys(urls: list[str], steps: int, batch_size: int, rank_and_world=(0, 1), workers: int = 0, **kw) -> list[list[str]]:
+    """Batches of keys a training DataLoader gives, as one rank of ``rank_and_world``."""
+    from torch.utils.data import DataLoader
 
-    urls, total = shard_urls(shards, "frames", "val")
-    keys = []
+    pipeline = make_pipeline(urls, train=True, batch_size=batch_size, rank_and_world=rank_and_world, entries=["meta.json"], **kw)
+    loader = DataLoader(pipeline, batch_size=batch_size, num_workers=workers, collate_fn=lambda s: [x["__key__"] for x in s])
+    return [batch for _, batch in zip(range(steps), loader)]
+
+
+def test_two_ranks_of_b_train_on_the_batches_of_one_process_of_2b(shards):
+    # Each rank through two loader workers: the global batch is the same set, in the same order.
+    urls, _ = shard_urls(shards, "frames", "train")
+    one = _train_keys(urls, 15, batch_size=4, seed=2, shuffle_buffer=8)
+    ranks = [_train_keys(urls, 15, batch_size=2, rank_and_world=(r, 2), workers=2, seed=2, shuffle_buffer=8) for r in (0, 1)]
+    assert [a + b for a, b in zip(*ranks)] == one
+    assert one != _train_keys(urls, 15, batch_size=4, seed=3, shuffle_buffer=8)  # the seed orders it
+
+
+def test_each_rank_reads_only_its_own_samples(shards):
+    urls, total = shard_urls(shards, "frames", "train")
+
+    def bytes_read(rank: int, world: int) -> int:
+        pipeline = make_pipeline(urls, train=True, batch_size=4 // world, rank_and_world=(rank, world), seed=1, shuffle_buffer=1)
+        for _, _ in zip(range(2 * total // world), pipeline):  # two epochs: each sample twice
+            pass
+        return pipeline.pipeline[0].bytes_read
+
+    one, halves = bytes_read(0, 1), [bytes_read(r, 2) for r in (0, 1)]
+    assert halves[0] + halves[1] == one  # no sample read by both ranks
+    assert all(0.35 < h / one < 0.65 for h in halves), (halves, one)
+    # Entries a stage does not ask for are never read.
+    meta = make_pipeline(urls, train=True, entries=["meta.json"], seed=1)
+    next(iter(meta))
+    assert 0 < meta.pipeline[0].bytes_read < 1000
+
+
+def test_an_epoch_resumed_mid_way_with_workers_sees_each_sample_once(hand_dataset, shards):
+    # Stopped after 2 of the 6 batches of an epoch (24 frames / 4), and resumed by a new
+    # loader from the state a checkpoint keeps: the same 6 batches as without the stop.
+    cfg = DataConfig(root=str(hand_dataset), shards=str(shards), batch_size=4, num_workers=2, shuffle_buffer=1, seed=5)
+    ds = DatasetIndex.open(hand_dataset)
+
+    def keys(loader, steps: int) -> list[list[str]]:
+        return [batch["token"] for _, batch in zip(range(steps), loader)]
+
+    whole = keys(ShardDataModule(cfg, "frames").train_dataloader(), 6)
+    assert sorted(k for batch in whole for k in batch) == sorted(t for _, t in ds.samples("train"))
+    first = ShardDataModule(cfg, "frames").train_dataloader()
+    before = keys(first, 2)
+    first.consumed = lambda: 2
+    state = first.state_dict()
+    del first  # the killed process's loader is gone; only its checkpointed state remains
+    resumed = ShardDataModule(cfg, "frames").train_dataloader()
+    resumed.load_state_dict(state)
+    assert before + keys(resumed, 4) == whole
+    # Resumed as two ranks of 2 (the same global batch): the rest of the epoch, split.
+    urls, total = shard_urls(shards, "frames", "train")
+    ranks = []
     for rank in (0, 1):
-        monkeypatch.setattr(sh, "rank_world", lambda r=rank: (r, 2))
-        keys.append([s["__key__"] for s in make_pipeline(urls, train=False, total=total)])
+        pipeline = make_pipeline(urls, train=True, total=total, batch_size=2, rank_and_world=(rank, 2), seed=5, shuffle_buffer=1)
+        loader = ResumableLoader(pipeline.pipeline[0], pipeline, batch_size=2, num_workers=2, collate_fn=COLLATE["frames"])
+        loader.load_state_dict(state)
+        ranks.append(keys(loader, 4))
+    assert [a + b for a, b in zip(*ranks)] == whole[2:]
+
+
+def test_validation_is_split_evenly_over_ranks(shards):
+    urls, total = shard_urls(shards, "frames", "val")
+    keys = [[s["__key__"] for s in make_pipeline(urls, train=False, total=total, rank_and_world=(rank, 2))] for rank in (0, 1)]
     assert len(keys[0]) == len(keys[1]) == total // 2
     assert not set(keys[0]) & set(keys[1])
 
 
-def test_an_odd_validation_split_pads_the_shorter_rank_once(monkeypatch, shards):
+def test_an_odd_validation_split_pads_the_shorter_rank_once(tmp_path):
+    from conftest import write_hand_dataset
     import occtrain.data.shards as sh
 
-    urls, total = shard_urls(shards, "frames", "val")
-    odd = total - 1  # as if the split held one sample fewer: the last is not read
-    samples = []
-    for rank in (0, 1):
-        monkeypatch.setattr(sh, "rank_world", lambda r=rank: (r, 2))
-        samples.append(list(make_pipeline(urls, train=False, total=odd))[: -(-odd // 2)])
+    out = tmp_path / "s"
+    write_shards(write_hand_dataset(tmp_path / "ds", train=1, val=1, frames=9), out, samples_per_shard=4, history=0, future=0, kinds=["frames"])
+    urls, odd = shard_urls(out, "frames", "val")
+    assert odd == 9
+    samples = [list(make_pipeline(urls, train=False, total=odd, rank_and_world=(rank, 2))) for rank in (0, 1)]
     pads = [[bool(s.get(sh.PAD_KEY)) for s in rank] for rank in samples]
     # Rank 1 holds one sample fewer: it starts with one padding sample, so both run alike.
-    assert pads[0] == [False] * len(pads[0]) and pads[1] == [True] + [False] * (len(pads[1]) - 1)
+    assert pads == [[False] * 5, [True] + [False] * 4]
     real = [[s["__key__"] for s in rank if not s.get(sh.PAD_KEY)] for rank in samples]
     assert len(real[0]) + len(real[1]) == odd and not set(real[0]) & set(real[1])
 

@@ -68,9 +68,9 @@ MUTANTS = (
     ),
     Mutant(
         "every-rank-validates-everything", "each DDP rank validates the whole split",
-        "src/occtrain/data/shards.py",
-        "        _strided(world, rank, total),\n",
-        "        _strided(1, 0, total),\n",
+        "src/occtrain/data/reading.py",
+        "    mine: list[int | None] = list(range(rank, total, world))\n",
+        "    mine: list[int | None] = list(range(total))\n",
         ("tests/test_distributed.py::test_ddp_validation_of_an_odd_split_equals_one_process",),
     ),
     Mutant(
@@ -127,17 +127,34 @@ MUTANTS = (
     ),
     Mutant(
         "no-shuffle", "the training stream is not shuffled",
-        "src/occtrain/data/shards.py",
-        "    if shuffle_buffer > 1:\n",
-        "    if False:\n",
+        "src/occtrain/data/reading.py",
+        "    if shuffle_buffer <= 1:\n",
+        "    if True:\n",
         ("tests/test_shards.py::test_train_pipeline_streams_forever_and_shuffles",),
     ),
     Mutant(
         "workers-read-everything", "each validation loader worker reads every sample",
-        "src/occtrain/data/shards.py",
-        "        _worker_strided,\n",
-        "",
+        "src/occtrain/data/reading.py",
+        "    return mine[worker::workers]\n",
+        "    return mine\n",
         ("tests/test_shards.py::test_frames_round_trip_through_dataloader_with_two_workers",),
+    ),
+    Mutant(
+        "ranks-read-everything", "each DDP rank trains on every sample of the global batch",
+        "src/occtrain/data/reading.py",
+        "        if within // batch_size == rank and step % workers == worker:\n",
+        "        if step % workers == worker:\n",
+        ("tests/test_shards.py::test_two_ranks_of_b_train_on_the_batches_of_one_process_of_2b",),
+    ),
+    Mutant(
+        "loader-restarts-its-epoch", "a resumed stage's data starts again at the first sample",
+        "src/occtrain/data/datamodule.py",
+        "        self.source.start, self._start = self._start, 0\n",
+        "        self.source.start, self._start = 0, 0\n",
+        (
+            "tests/test_shards.py::test_an_epoch_resumed_mid_way_with_workers_sees_each_sample_once",
+            "tests/test_distributed.py::test_a_ddp_epoch_killed_mid_way_resumes_without_repeating_or_skipping_a_sample",
+        ),
     ),
     Mutant(
         "uniform-task-draw", "tasks are drawn uniformly, whatever their weights",

@@ -7,6 +7,7 @@ can be compared weight for weight.
 
 from __future__ import annotations
 
+import json
 import os
 import time
 from dataclasses import dataclass
@@ -29,6 +30,9 @@ class ProbeConfig:
 #: environment variable, not a config key: it changes timing only, so a rerun without it
 #: resumes the same stage (the config hash) at full speed.
 STEP_DELAY = "OCCTRAIN_PROBE_STEP_DELAY"
+#: A path: each rank appends the step and the sample keys of every training batch to
+#: ``PATH.rank<R>`` (JSON lines), for tests of which samples training saw.
+SEEN = "OCCTRAIN_PROBE_SEEN"
 
 
 class Probe(Stage):
@@ -49,6 +53,9 @@ class Probe(Stage):
 
     def training_step(self, batch, _):
         time.sleep(float(os.environ.get(STEP_DELAY, 0)))
+        if os.environ.get(SEEN):
+            with open(f"{os.environ[SEEN]}.rank{self.global_rank}", "a") as fh:
+                fh.write(json.dumps({"step": self.global_step, "keys": batch["token"]}) + "\n")
         if self.ctx.model_cfg.fail:
             raise RuntimeError("probe exploded\nsecond line")
         sem = batch["semantics"].long()[:, ::8, ::8]

@@ -49,6 +49,7 @@ class DataConfig:
     future: int = 6
     batch_size: int = 2
     num_workers: int = 0
+    #: Samples shuffled together across the shards of each seeded epoch (<= 1: shard order).
     shuffle_buffer: int = 128
     seed: int = 0
 

@@ -13,7 +13,8 @@ from torch.utils.data import DataLoader
 from occtrain.config.schema import DataConfig, check_synth_config
 from occtrain.data.cameras import CAMERA_NAMES
 from occtrain.data.layout import ANNOTATIONS_FILE, DATASET_FILE, DEPTH_SCALE, DatasetIndex, generator_record
-from occtrain.data.shards import KINDS, PAD_KEY, SkipSamples, current_shards, make_pipeline, shard_source, shard_urls, write_shards
+from occtrain.data.reading import ShardSamples
+from occtrain.data.shards import KINDS, PAD_KEY, current_shards, make_pipeline, shard_source, shard_urls, write_shards
 from occtrain.errors import DataError
 
 
@@ -167,37 +168,31 @@ class ResumableLoader(DataLoader):
     """A training DataLoader whose position survives a checkpoint.
 
     Lightning stores ``state_dict()`` of stateful train loaders in its checkpoints. The
-    position is the number of batches the optimizer has consumed (set through
-    ``consumed``), not the number fetched, because Lightning prefetches a batch ahead. On
-    resume, ``__iter__`` skips that many batches, so with ``num_workers=0`` training
-    continues on exactly the batches an uninterrupted run would have seen; with workers the
-    skip is split over them (each worker's stream is deterministic) and the position is
-    exact up to the round-robin order of the first batches.
+    position is the number of samples of the global training order the optimizer has
+    consumed (batches set through ``consumed``, not fetched, because Lightning prefetches a
+    batch ahead, times the global batch). On resume, ``__iter__`` starts the reader at that
+    sample without reading what comes before: with any number of workers, and with another
+    split of the same global batch over ranks, training continues on exactly the samples an
+    uninterrupted run would have seen (see :mod:`occtrain.data.reading`).
     """
 
-    def __init__(self, *args: Any, skip_fn: Callable[[int], None] | None = None, **kwargs: Any):
+    def __init__(self, source: ShardSamples, *args: Any, **kwargs: Any):
         super().__init__(*args, **kwargs)
+        self.source = source
         self.consumed: Callable[[], int] = lambda: 0
-        self._skip_batches = 0
-        self._skip_fn = skip_fn
+        self._start = 0
 
     def state_dict(self) -> dict[str, int]:
-        return {"batches": int(self.consumed())}
+        batches = int(self.consumed())
+        return {"batches": batches, "samples": batches * self.source.world * self.source.batch_size}
 
     def load_state_dict(self, state: dict[str, int]) -> None:
-        self._skip_batches = int(state.get("batches", 0))
+        # Checkpoints before "samples" count batches of this same split over ranks.
+        self._start = int(state.get("samples", int(state.get("batches", 0)) * self.source.world * self.source.batch_size))
 
     def __iter__(self) -> Iterator[Any]:
-        skip, self._skip_batches = self._skip_batches, 0
-        if skip and self._skip_fn is not None:
-            # Skip raw samples inside the pipeline, before decoding: cheap.
-            self._skip_fn(skip * (self.batch_size or 1))
-            yield from super().__iter__()
-            return
-        it = super().__iter__()
-        for _ in range(skip):
-            next(it)
-        yield from it
+        self.source.start, self._start = self._start, 0
+        return super().__iter__()
 
 
 COLLATE: dict[str, Callable[[list[dict]], dict]] = {"frames": _unpadded(collate_frames), "clips": _unpadded(collate_clips)}
@@ -207,8 +202,9 @@ class ShardDataModule(L.LightningDataModule):
     """Feeds one kind of shard (``frames`` or ``clips``) to a stage.
 
     ``prepare_data`` (rank zero) synthesizes and shards the embedded world when the
-    configured dataset is absent. Training streams resampled shards forever (set
-    ``max_steps``); validation reads each val sample exactly once across DDP ranks.
+    configured dataset is absent. Training reads a seeded order of epochs forever (set
+    ``max_steps``), each rank its own batches of it; validation reads each val sample
+    exactly once across DDP ranks.
     """
 
     def __init__(
@@ -226,15 +222,14 @@ class ShardDataModule(L.LightningDataModule):
         urls, total = shard_urls(shards_dir(self.cfg), self.kind, split)
         if not urls:
             raise DataError(f"{shards_dir(self.cfg)}: no {split} {self.kind} shards; synthesize more {split} scenes")
-        skip = SkipSamples() if train else None
         pipeline = make_pipeline(
             urls, train=train, total=total, shuffle_buffer=self.cfg.shuffle_buffer, seed=self.cfg.seed,
-            skip=skip, entries=self.entries.get(split), batch_size=self.cfg.batch_size, cameras=self.cameras,
+            entries=self.entries.get(split), batch_size=self.cfg.batch_size, cameras=self.cameras,
         )
         kwargs = dict(batch_size=self.cfg.batch_size, num_workers=self.cfg.num_workers, collate_fn=COLLATE[self.kind])
         if not train:
             return DataLoader(pipeline, **kwargs)
-        return ResumableLoader(pipeline, skip_fn=lambda n: setattr(skip, "n", n), **kwargs)
+        return ResumableLoader(pipeline.pipeline[0], pipeline, **kwargs)
 
     def train_dataloader(self) -> DataLoader:
         return self.loader("train", train=True)

@@ -41,6 +41,7 @@ import webdataset as wds
 
 from occtrain.data.clips import clip_annotation
 from occtrain.data.layout import CLASS_SUFFIX, DEPTH_SUFFIX, FRAMES_DIR, SPLITS, DatasetIndex, qa_file, read_npz
+from occtrain.data.reading import PAD_KEY, ShardSamples
 from occtrain.data.validate import first_problem
 from occtrain.errors import DataError
 from occtrain.io import atomic_write_json, npz_bytes, rank_world
@@ -486,118 +487,6 @@ def _raise_shard_error(exn: Exception) -> bool:
     raise exn
 
 
-#: Marks a sample that only evens out the batch count of a DDP rank; collate drops it.
-PAD_KEY = "__pad__"
-
-
-def _strided(world: int, rank: int, total: int | None) -> Callable[[Iterable[dict]], Iterator[dict]]:
-    """Keep every ``world``-th sample starting at ``rank``: each val sample is scored once.
-
-    DDP needs every rank to run the same number of validation batches (each forward is a
-    collective), so a rank with one sample fewer than the others starts with a padding
-    sample (a copy of its first, marked :data:`PAD_KEY`) that collate drops: metrics see
-    each sample exactly once, as in one process, and no batch gets a duplicate.
-    """
-    mine = len(range(rank, total, world)) if total is not None else None
-    most = -(-total // world) if total is not None else None
-
-    def stage(src: Iterable[dict]) -> Iterator[dict]:
-        first, seen, url = True, 0, "the shards"
-        for i, sample in enumerate(src):
-            seen, url = i + 1, sample.get("__url__", url)
-            if i % world != rank:
-                continue
-            if first and mine is not None and most is not None and mine < most:
-                yield {**sample, PAD_KEY: True}
-            first = False
-            yield sample
-        if total is not None and seen < total:
-            # A shard cut at a member boundary reads as a shorter valid tar: only the count tells.
-            raise DataError(f"{url}: its split holds {seen} samples, {INDEX_FILE} says {total} (a truncated shard); write the shards again")
-
-    return stage
-
-
-def _worker_id() -> int:
-    import torch.utils.data
-
-    info = torch.utils.data.get_worker_info()
-    return info.id if info is not None else 0
-
-
-def _rank_batches(world: int, rank: int, batch_size: int) -> Callable[[Iterable[dict]], Iterator[dict]]:
-    """Of a stream shared by all ranks, keep the samples of every ``world``-th batch of
-    ``batch_size`` starting at batch ``rank``. Raw samples are dropped before decoding."""
-
-    def stage(src: Iterable[dict]) -> Iterator[dict]:
-        for i, sample in enumerate(src):
-            if (i // batch_size) % world == rank:
-                yield sample
-
-    return stage
-
-
-def _worker_strided(src: Iterable[dict]) -> Iterator[dict]:
-    import torch.utils.data
-
-    info = torch.utils.data.get_worker_info()
-    if info is None:
-        yield from src
-        return
-    for i, sample in enumerate(src):
-        if i % info.num_workers == info.id:
-            yield sample
-
-
-class SkipSamples:
-    """A pipeline stage that drops the first ``n`` raw samples (set before iterating).
-
-    Used to resume training at a data position without decoding what is skipped. In
-    DataLoader workers each worker drops its share of ``n``.
-    """
-
-    def __init__(self) -> None:
-        self.n = 0
-
-    def __call__(self, src: Iterable[dict]) -> Iterator[dict]:
-        import torch.utils.data
-
-        n, info = self.n, torch.utils.data.get_worker_info()
-        if info is not None:
-            n = n // info.num_workers + (1 if info.id < n % info.num_workers else 0)
-        for i, sample in enumerate(src):
-            if i >= n:
-                yield sample
-
-
-def _train_stages(urls: list[str], shuffle_buffer: int, seed: int, skip: SkipSamples | None, batch_size: int) -> list[Any]:
-    # One stream for all ranks (seeded by the worker alone, not the rank): rank r takes
-    # every world-th batch of it, so the global batch of N ranks x B samples is the batch
-    # of one process with N x B, and training does not depend on how many processes share it.
-    stages: list[Any] = [
-        wds.ResampledShards(urls, seed=seed, deterministic=True, worker_seed=_worker_id),
-        wds.tarfile_to_samples(handler=_raise_shard_error),
-    ]
-    if shuffle_buffer > 1:
-        stages.append(wds.shuffle(shuffle_buffer, initial=min(shuffle_buffer, 64), seed=seed))
-    rank, world = rank_world()
-    if world > 1:
-        stages.append(_rank_batches(world, rank, batch_size))
-    if skip is not None:
-        stages.append(skip)
-    return stages
-
-
-def _val_stages(urls: list[str], total: int | None) -> list[Any]:
-    rank, world = rank_world()
-    return [
-        wds.SimpleShardList(urls),
-        wds.tarfile_to_samples(handler=_raise_shard_error),
-        _strided(world, rank, total),
-        _worker_strided,
-    ]
-
-
 def make_pipeline(
     urls: list[str],
     train: bool,
@@ -605,34 +494,33 @@ def make_pipeline(
     shuffle_buffer: int = 128,
     seed: int = 0,
     transform: Callable[[dict], Any] | None = None,
-    skip: SkipSamples | None = None,
     entries: Iterable[str] | None = None,
     batch_size: int = 1,
     cameras: bool = False,
+    rank_and_world: tuple[int, int] | None = None,
 ) -> wds.DataPipeline:
-    """A webdataset pipeline over shards.
+    """Decoded samples of shards, each rank and loader worker reading only its own (see
+    :mod:`occtrain.data.reading`).
 
-    ``train=True``: shards resampled forever (each rank and worker draws its own order, the
-    usual way to feed DDP with ``max_steps``), a shuffle buffer. ``train=False``: every
-    sample once, in order, strided over ranks (see :func:`_strided`) and workers.
-    ``entries`` keeps only those entries of each sample, dropped before decoding (a stage
-    that needs only annotations never inflates the occupancy arrays); camera entries are
-    kept only with ``cameras`` (a stage that does not read images never decodes one).
+    ``train=True``: the endless seeded training order, this rank's batches of
+    ``batch_size``. ``train=False``: every sample once, in order, strided over ranks and
+    workers. ``entries`` keeps only those entries of each sample, never read otherwise (a
+    stage that needs only annotations never reads the occupancy arrays); camera entries are
+    read only with ``cameras``. ``rank_and_world`` defaults to the process group's. The
+    pipeline's first stage (``pipeline.pipeline[0]``) is the :class:`ShardSamples` reader.
     """
-    if not urls:
-        raise DataError("no shards to read; write them with `occtrain data shards`")
-    stages = _train_stages(urls, shuffle_buffer, seed, skip, batch_size) if train else _val_stages(urls, total)
     keep = frozenset(entries) if entries is not None else None
-    if keep is not None or not cameras:
-        def wanted(name: str) -> bool:
-            if name.startswith("__"):
-                return True
-            if name.startswith(CAMERA_ENTRY_PREFIX):
-                return cameras
-            return keep is None or name in keep
 
-        stages.append(wds.map(lambda s: {k: v for k, v in s.items() if wanted(k)}))
-    stages.append(wds.map(decode_sample, handler=_raise_shard_error))
+    def wanted(name: str) -> bool:
+        if name.startswith(CAMERA_ENTRY_PREFIX):
+            return cameras
+        return keep is None or name in keep
+
+    rank, world = rank_and_world or rank_world()
+    source = ShardSamples(
+        urls, total, train, rank, world, batch_size=batch_size, seed=seed, shuffle_buffer=shuffle_buffer, wanted=wanted,
+    )
+    stages: list[Any] = [source, wds.map(decode_sample, handler=_raise_shard_error)]
     if transform is not None:
         stages.append(wds.map(transform, handler=_raise_shard_error))
     return wds.DataPipeline(*stages)
@@ -646,6 +534,7 @@ def iter_raw(url: str) -> Iterator[dict]:
 __all__ = [
     "ALLOWED_EXTENSIONS",
     "KINDS",
+    "PAD_KEY",
     "decode_sample",
     "make_pipeline",
     "read_index",
