@@ -113,6 +113,31 @@ def test_cot_answer_ends_with_the_meta_action_then_trajectory(clips):
     assert isinstance(traj, Actions) and len(traj.xy) == 6
 
 
+def test_the_repeat_last_prior_states_the_last_meta_action_and_says_as_before(clips):
+    """tasks.meta_action_prior: repeat_last: the prompt names the last past meta action and
+    the chain of thought ends "as before" exactly when the frame's equals it; read back
+    through the clip, the answer is the frame's meta action either way."""
+    from occtrain.core.scorers import last_past_meta_action, said_meta_action
+
+    cfg = TaskConfig(meta_action_prior="repeat_last")
+    kinds = set()
+    for clip in clips:
+        parts = TASKS["cot_planning"].build(clip, cfg, np.random.default_rng(0))
+        if parts is None:
+            continue
+        last, meta = last_past_meta_action(clip), clip.anchor["meta_action"]
+        prompt = [p.text for p in parts if isinstance(p, Text) and not p.supervise]
+        assert sum(t.startswith("Last meta action: ") for t in prompt) == 1
+        answer = parts[-2].text
+        assert answer.endswith("Meta action: as before.") == (last is not None and dict(last) == dict(meta))
+        assert answer.count("Meta action:") == 1  # the narration's own line is replaced, not kept
+        assert said_meta_action(answer, clip) == meta
+        kinds.add(answer.endswith("as before."))
+    assert kinds == {True, False}  # both cases occur in this world
+    with pytest.raises(ConfigError, match=r"tasks.meta_action_prior: 'always' is not one of none, repeat_last \(paper: none\)"):
+        TaskConfig(meta_action_prior="always").validate("tasks")
+
+
 def test_bad_task_names_are_one_line_errors():
     with pytest.raises(ConfigError, match="unknown task 'planing'"):
         validate_tasks(TaskConfig(weights={"planing": 1.0}), "stages[1].model.tasks", TASKS)

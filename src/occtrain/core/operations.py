@@ -12,8 +12,8 @@ from typing import Any
 import numpy as np
 import torch
 
+from occtrain.core.scorers import said_meta_action
 from occtrain.data.clips import Actions, Clip, Scene, Text
-from occtrain.data.text_formats import parse_meta_action
 from occtrain.errors import ConfigError
 
 
@@ -81,4 +81,4 @@ def chain_of_thought(engine: Any, clip: Clip) -> tuple[str, np.ndarray | None]:
 
 def meta_action(engine: Any, clip: Clip) -> dict | None:
     """The meta action the chain of thought ends with ({"speed", "direction"}), None if unparsed."""
-    return parse_meta_action(chain_of_thought(engine, clip)[0])
+    return said_meta_action(chain_of_thought(engine, clip)[0], clip)

@@ -218,6 +218,12 @@ def last_past_meta_action(clip: Clip, cfg: MetaActionConfig | None = None) -> di
     return past[-1] if past else None
 
 
+def said_meta_action(text: str, clip: Clip) -> dict | None:
+    """The meta action a generated text ends with, "as before" read as the clip's last past
+    one (what a model trained with ``meta_action_prior: repeat_last`` says)."""
+    return parse_meta_action(text, last_past_meta_action(clip))
+
+
 class ChainOfThoughtScorer(BaseScorer):
     """A generated chain of thought that ends with the frame's meta action (from the frame
     sidecar): caption metrics against the reference narration, the meta action parsed from
@@ -237,7 +243,7 @@ class ChainOfThoughtScorer(BaseScorer):
         anchor, token = item.clip.anchor, item.clip.anchor["token"]
         text, reference = item.generated[0].text, item.parts[-2].text
         ev.metrics["cot_caption"].update([text], [[reference]], ids=[token])
-        parsed = parse_meta_action(text)
+        parsed = said_meta_action(text, item.clip)
         said = format_meta_action(parsed).removeprefix("Meta action: ") if parsed is not None else "none"
         ev.keep_text("cot", "Task: describe the scene, then plan.", f"{text}  [parsed meta action: {said}]", reference)
         ev.metrics["meta_parsed_fraction"].update(100.0 * (parsed is not None))

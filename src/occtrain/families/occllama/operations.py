@@ -8,8 +8,8 @@ from typing import Any
 import numpy as np
 
 from occtrain.core import operations
+from occtrain.core.scorers import said_meta_action
 from occtrain.data.clips import Clip
-from occtrain.data.text_formats import parse_meta_action
 
 
 def reference_meta_action(engine: Any, clip: Clip) -> dict | None:
@@ -23,7 +23,7 @@ def generated_meta_actions(engine: Any, clips: list[Clip]) -> list[tuple[dict | 
     thought does not apply to (no known future or no narration)."""
     out: list = [None] * len(clips)
     for b, _, (text, traj), _ in engine.rollouts("cot_planning", clips, {"ann": [c.ann for c in clips]}):
-        out[b] = (parse_meta_action(text.text), np.asarray(traj.xy))
+        out[b] = (said_meta_action(text.text, clips[b]), np.asarray(traj.xy))
     return out
 
 

@@ -15,11 +15,15 @@ from dataclasses import dataclass
 import numpy as np
 
 from occtrain.core import scorers
+from occtrain.core.scorers import last_past_meta_action
 from occtrain.core.tasks import ForecastTaskConfig
 from occtrain.core.tasks import TaskSpec, as_xy, each_question, ego_plan, forecast_after, known_future, questions_after
 from occtrain.data.clips import Actions, Clip, Part, Scene, Text
 from occtrain.data.text_formats import format_meta_action, parse_meta_action
+from occtrain.errors import ConfigError
 
+#: ``meta_action_prior`` values, the paper's first.
+META_ACTION_PRIORS = ("none", "repeat_last")
 PRETRAIN_TASKS = ("detection", "counting", "prediction", "planning", "forecasting")
 INSTRUCT_TASKS = ("qa", "cot_planning")
 #: Box categories the detection and counting tasks talk about (movable objects).
@@ -33,6 +37,16 @@ class TaskConfig(ForecastTaskConfig):
 
     #: At most this many objects in a detection answer (nearest first).
     max_objects: int = 6
+    #: How the chain of thought ends. "none" (the paper's form): the narration's meta
+    #: action. "repeat_last": the prompt states the last past meta action and the chain
+    #: of thought says "as before" when it is unchanged (occtrain's; the narration alone
+    #: leaves the model to guess the future motion and copy its guess).
+    meta_action_prior: str = "none"
+
+    def validate(self, key: str) -> None:
+        super().validate(key)
+        if self.meta_action_prior not in META_ACTION_PRIORS:
+            raise ConfigError(f"{key}.meta_action_prior: {self.meta_action_prior!r} is not one of {', '.join(META_ACTION_PRIORS)} (paper: none)")
 
 
 def _context(clip: Clip, cfg: TaskConfig) -> list[Part]:
@@ -133,16 +147,19 @@ def cot_planning(clip: Clip, cfg: TaskConfig, rng: np.random.Generator) -> list[
     future = known_future(clip)
     if future is None or not clip.narration:
         return None
-    # The narration ends with the meta action; older sidecars may lack it.
-    text = clip.narration
-    if parse_meta_action(text) is None:
-        text = f"{text} {format_meta_action(clip.anchor['meta_action'])}"
-    return [
-        *_context(clip, cfg),
-        Text("Task: describe the scene, then plan."),
-        Text(text, True),
-        ego_plan(future, clip, cfg.plan_prior),
-    ]
+    # The narration ends with the meta action (older sidecars may lack it): written again
+    # here, "as before" under the repeat-last prior.
+    lines = clip.narration.rstrip().split("\n")
+    if parse_meta_action(lines[-1]) is not None:
+        lines = lines[:-1]
+    prompt = [*_context(clip, cfg)]
+    previous = None
+    if cfg.meta_action_prior == "repeat_last":
+        previous = last_past_meta_action(clip)
+        said = format_meta_action(previous).removeprefix("Meta action: ") if previous else "none known."
+        prompt.append(Text(f"Last meta action: {said}"))
+    text = "\n".join([*lines, format_meta_action(clip.anchor["meta_action"], previous)])
+    return [*prompt, Text("Task: describe the scene, then plan."), Text(text, True), ego_plan(future, clip, cfg.plan_prior)]
 
 
 #: The tasks, with what evaluation asks of each and how it is scored (M0-M3: planning
