@@ -700,8 +700,12 @@ CASES: list[Case] = [
     Case("gpu-config-without-gpu", recipe(), [*RUN, f"trainer={REPO / 'configs/trainer/gpu.yaml'}"], 2,
          "trainer.accelerator is gpu, but torch " + torch.__version__ + " sees no GPU here; train on the CPU with configs/trainer/cpu.yaml"),
     Case("cpu-devices-beyond-cores", recipe(), [*RUN, "trainer.devices=100000"], 2, "trainer.devices is 100000 CPU processes, but this machine has"),
-    Case("fsdp-on-cpu", recipe(), [*RUN, "stages.pretrain.trainer.strategy=fsdp"], 2,
-         "stages.pretrain.trainer: accelerator=cpu devices=1 strategy=fsdp precision=32-true cannot run here (The strategy `fsdp` requires a GPU"),
+    # Lightning's own FSDP strategies need a GPU (occtrain's `fsdp` is FSDP2 and runs on CPU processes).
+    Case("fsdp-offload-on-cpu", recipe(), [*RUN, "stages.pretrain.trainer.strategy=fsdp_cpu_offload"], 2,
+         "stages.pretrain.trainer: accelerator=cpu devices=1 strategy=fsdp_cpu_offload precision=32-true cannot run here (The strategy `fsdp` requires a GPU"),
+    Case("fsdp-for-a-stage-that-does-not-shard", recipe(), [*RUN, "trainer.strategy=fsdp"], 2,
+         "trainer.strategy is fsdp, but a tokenizer stage does not shard (the pretrain and instruct stages do); "
+         "train 'tokenizer' with stages.tokenizer.trainer.strategy=ddp"),
     Case("precision-unknown", recipe(), [*RUN, "trainer.precision=bf17"], 2, "trainer: accelerator=cpu devices=1 strategy=auto precision=bf17 cannot run here (Precision 'bf17' is invalid"),
     Case("validate-batch-size-zero", recipe(), ["validate", "{tmp}/r.yaml", "data.batch_size=0"], 2, "data.batch_size is 0"),
     Case("dry-run-family-unknown", recipe(lambda t: t.replace("family: occllama", "family: occlama")), [*RUN, "--dry-run"], 2, "unknown model family 'occlama'"),

@@ -5,7 +5,7 @@ engine -> families -> core -> models / metrics / data -> config and the base mod
 module may import its own layer or lower ones, never a higher one; on top of that:
 
 - nothing in ``models/``, ``core/``, ``families/`` or ``engine/`` imports Lightning;
-- no stage module imports another stage module (they share ``stages/base``, ``stages/common``);
+- no stage module imports another stage module (they share ``stages/base``, ``stages/common``, ``stages/loggers``, ``stages/sharding``);
 - a family imports no other family (shared code moves down into ``core/`` or ``models/``);
 - ``core``, ``engine``, ``stages``, the runner, ``evaluate``, the API and the dashboard name
   no family: they import none, and no string in them is a family's name (they look
@@ -37,7 +37,7 @@ LAYERS = {
     "config": 0, "errors": 0, "io": 0, "run_control": 0, "exports": 0, "progress": 0, "occ3d": 0, "nuscenes_qa": 0, "__init__": 0,
 }
 #: Modules of ``stages/`` that are infrastructure, not a stage kind.
-STAGE_INFRA = {"occtrain.stages", "occtrain.stages.base", "occtrain.stages.common", "occtrain.stages.loggers"}
+STAGE_INFRA = {"occtrain.stages", "occtrain.stages.base", "occtrain.stages.common", "occtrain.stages.loggers", "occtrain.stages.sharding"}
 LIGHTNING_FREE = ("models", "core", "families", "engine")
 #: What may not name a family: it looks families up in the registry.
 FAMILY_NEUTRAL = ("core", "engine", "stages", "runner", "evaluate", "api", "dashboard", "memory_plan")

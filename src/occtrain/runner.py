@@ -283,6 +283,7 @@ def _execute(
     if memory.peak_mb is not None:  # rank zero's, in this attempt
         metrics["train_peak_rss_mb"] = memory.peak_mb
     artifacts: dict[str, str] = {}
+    module.prepare_export()  # every rank: a sharded stage gathers its weights for rank zero
     if trainer.is_global_zero:
         export_dir = module.export(stage_dir / "export")
         atomic_write_json(stage_dir / "metrics.json", metrics)
@@ -403,13 +404,21 @@ def check_run(
 
 def refuse_unrunnable_trainers(planned: list[PlannedStage]) -> None:
     """A GPU config on a CPU machine, more devices than exist, a strategy the accelerator
-    does not take, a logger that is unknown or not installed: refused before the first
-    stage writes anything."""
+    does not take (or ``fsdp`` for a stage kind that does not shard), a logger that is
+    unknown or not installed: refused before the first stage writes anything."""
     from occtrain.stages.common import check_trainer_setup
+    from occtrain.stages.sharding import SHARDED
     from occtrain.stages.loggers import check_loggers
 
     keys = ("accelerator", "devices", "num_nodes", "strategy", "precision")
     checked: set[tuple] = set()
+    for p in planned:
+        if p.trainer.strategy == SHARDED and not p.kind.module.shards:
+            key = f"stages.{p.spec.name}.trainer.strategy" if "strategy" in (p.spec.trainer or {}) else "trainer.strategy"
+            raise ConfigError(
+                f"{key} is {SHARDED}, but a {p.spec.kind} stage does not shard (the pretrain and instruct stages do); "
+                f"train '{p.spec.name}' with stages.{p.spec.name}.trainer.strategy=ddp"
+            )
     for p in planned:
         setup = tuple(getattr(p.trainer, k) for k in keys)
         if setup in checked:

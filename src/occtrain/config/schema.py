@@ -61,6 +61,8 @@ class TrainerConfig:
     accelerator: str = "cpu"
     devices: int = 1
     num_nodes: int = 1
+    #: Lightning's strategy name ("auto", "ddp", ...), or "fsdp": occtrain's sharded
+    #: strategy (FSDP2 over every rank, CPU processes or GPUs; pretrain and instruct stages).
     strategy: str = "auto"
     precision: str = "32-true"
     max_steps: int = 100

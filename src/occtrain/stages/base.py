@@ -147,6 +147,9 @@ class Stage(L.LightningModule, ABC):
     reads_cameras: ClassVar[bool] = False
     #: Whether ``occtrain eval`` scores its exports (``evaluate_export``).
     evaluable: ClassVar[bool] = False
+    #: Whether it trains under ``trainer.strategy: fsdp`` (it shards itself in
+    #: ``configure_model``); a kind that does not is refused that strategy before training.
+    shards: ClassVar[bool] = False
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)
@@ -225,6 +228,10 @@ class Stage(L.LightningModule, ABC):
         """Summary, extra metrics and samples, asked for after the final validation."""
         return StageReport(summary=f"{count_parameters(self) / 1e6:.2f}M params")
 
+    def prepare_export(self) -> None:
+        """Called on every rank before rank zero's :meth:`export`: a sharded stage gathers
+        its full weights here (a collective). Nothing by default."""
+
     @abstractmethod
     def export(self, path: Path) -> Path:
         """Write what later stages consume to ``path`` (safetensors + JSON); returns it."""
@@ -240,6 +247,15 @@ class Stage(L.LightningModule, ABC):
     def load_state_dict(self, state_dict: dict[str, Any], strict: bool = True, **kwargs: Any) -> Any:
         """Strict except for :attr:`frozen_prefixes`: a missing or unexpected key is an error naming it."""
         missing, unexpected = super().load_state_dict(state_dict, strict=False)
+        self._check_keys(missing, unexpected)
+
+    def check_checkpoint_keys(self, keys: Iterable[str]) -> None:
+        """The same strict check for a checkpoint loaded another way (a sharded one, by
+        Lightning's strategy): ``keys`` are its state dict's."""
+        keys, expected = set(keys), set(self.state_dict().keys())
+        self._check_keys(sorted(expected - keys), sorted(keys - expected))
+
+    def _check_keys(self, missing: list[str], unexpected: list[str]) -> None:
         check_loaded_keys(
             missing, unexpected, self.frozen_prefixes, f"checkpoint of stage '{self.ctx.spec.name}'",
             f"run with --restart {self.ctx.spec.name}",

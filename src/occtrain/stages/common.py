@@ -33,6 +33,7 @@ from occtrain.errors import ConfigError, OcctrainError
 from occtrain.io import atomic_open
 from occtrain.progress import Ticker, console, plain, progress_bar
 from occtrain.stages.loggers import build_loggers
+from occtrain.stages.sharding import trainer_strategy
 from occtrain.stages.base import EvalRequest, EvalResult, lacking_tasks
 
 LAST_CKPT = "last.ckpt"
@@ -473,7 +474,7 @@ def check_trainer_setup(cfg: TrainerConfig, key: str) -> None:
     quiet_lightning()
     try:
         L.Trainer(
-            accelerator=accelerator, devices=devices, num_nodes=cfg.num_nodes, strategy=cfg.strategy, precision=cfg.precision,
+            accelerator=accelerator, devices=devices, num_nodes=cfg.num_nodes, strategy=trainer_strategy(cfg), precision=cfg.precision,
             logger=False, enable_checkpointing=False, enable_progress_bar=False, enable_model_summary=False,
         )
     except (MisconfigurationException, ValueError, RuntimeError, ImportError, TypeError) as e:
@@ -501,7 +502,7 @@ def build_trainer(
         accelerator=cfg.accelerator,
         devices=cfg.devices,
         num_nodes=cfg.num_nodes,
-        strategy=cfg.strategy,
+        strategy=trainer_strategy(cfg),
         precision=cfg.precision,
         max_steps=cfg.max_steps,
         max_epochs=cfg.max_epochs,

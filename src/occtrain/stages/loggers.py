@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from lightning.fabric.loggers.csv_logs import _ExperimentWriter
+from lightning.fabric.loggers.logger import rank_zero_experiment
 from lightning.pytorch.loggers import CSVLogger, Logger, MLFlowLogger, TensorBoardLogger, WandbLogger
 
 from occtrain.errors import ConfigError
@@ -74,7 +75,11 @@ class AppendingCSVLogger(CSVLogger):
         self._resume_step = resume_step
 
     @property
+    @rank_zero_experiment
     def experiment(self) -> _ExperimentWriter:
+        # Rank zero's alone, as Lightning's own: Lightning creates every logger's experiment
+        # on every rank before fitting, and a second rank rewriting metrics.csv beside rank
+        # zero lost the rows a resumed multi-process stage keeps.
         if self._experiment is None:
             self._fs.makedirs(self.root_dir, exist_ok=True)
             self._experiment = _AppendingWriter(self.log_dir, self._resume_step)

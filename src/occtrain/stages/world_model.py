@@ -15,6 +15,7 @@ export are the engine's (``occtrain.engine``); this module only wires them into 
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -35,6 +36,7 @@ from occtrain.models.llm import apply_lora, checkpoint_layers
 from occtrain.stages import StageKind, register
 from occtrain.stages.base import EvalRequest, EvalResult, Stage, StageContext, StageReport
 from occtrain.stages.common import ValidationMeans, configure_adamw, evaluate_engine, family_schema, freeze_prefixes
+from occtrain.stages.sharding import FullCopy, ShardedStrategy, is_sharded, local_numel, shard_world_model
 
 WORLD_MODEL_KINDS = ("pretrain", "instruct", "distill")
 
@@ -80,11 +82,20 @@ class InstructConfig(WorldModelConfig):
 
 
 class WorldModelStage(Stage):
-    """Trains the world model on the configured tasks; validates by loss, accuracy and generation."""
+    """Trains the world model on the configured tasks; validates by loss, accuracy and generation.
+
+    Under ``trainer.strategy: fsdp`` the world model (its LLM's decoder layers, then the
+    rest of it) is sharded over the ranks in :meth:`configure_model`; the frozen scene
+    encoder and vision tower stay whole on every rank (no gradients, no optimizer state).
+    Validation and the export run on an unsharded copy gathered for them (see
+    :class:`~occtrain.stages.sharding.FullCopy`): every rank holds the full world model's
+    weights while it validates, rank zero alone while it exports.
+    """
 
     consumes_count = (1, 1)
     # They come from the exports of the stages it consumes.
     frozen_prefixes = ("engine.scene_encoder.", "engine.vision.")
+    shards = True
 
     @classmethod
     def model_schema(cls, kind: StageKind, family: str | None, model: dict | None = None) -> type:
@@ -109,6 +120,10 @@ class WorldModelStage(Stage):
         self.evaluator = Evaluator(scorable(self.engine.task_specs, tasks.weights), self.engine.task_specs, priors=Priors.of(ctx.data.root), hooks=hooks)
         self.val_means = ValidationMeans("val/loss", "val/token_acc")
         self._entries: dict[str, tuple[str, ...] | None] = {}
+        #: Under sharding: the world model's unsharded copy, and (while it holds the
+        #: weights) the engine over it, which validation and the export run.
+        self._full: FullCopy | None = None
+        self._gathered: dict[str, Any] = {}
         engine = self.engine
         if engine.vision is not None or (cfg.cache_codes and engine.reads_scenes()):
             engine.prepare_inputs(ctx.data.root, ctx.cache_dir, ctx.shared_cache_dir)
@@ -151,6 +166,31 @@ class WorldModelStage(Stage):
     def entries(self, split: str) -> tuple[str, ...] | None:
         return self._entries.get(split)
 
+    # -- sharding (trainer.strategy: fsdp)
+    def configure_model(self) -> None:
+        """Shard the world model under :class:`ShardedStrategy`; nothing under any other
+        strategy. Lightning calls it again for ``validate``: sharded once."""
+        world = self.engine.world
+        if not isinstance(self.trainer.strategy, ShardedStrategy) or is_sharded(world):
+            return
+        self._full = FullCopy(world)  # before sharding: a copy of the plain module
+        shard_world_model(world, self.device_mesh["data_parallel"])
+
+    def _gather(self, everywhere: bool) -> None:
+        """Fill the unsharded copy (a collective: every rank calls it); see ``FullCopy.gather``."""
+        if self._full is not None and self._full.gather(self.engine.world, self.device, everywhere):
+            self._gathered["engine"] = _with_world(self.engine, self._full.module)
+
+    def _release(self) -> None:
+        if self._full is not None:
+            self._full.release()
+            self._gathered.clear()
+
+    @property
+    def _unsharded(self):
+        """The engine validation and the export run: over the gathered copy when sharded."""
+        return self._gathered.get("engine", self.engine)
+
     # -- training
     def training_step(self, batch: dict[str, Any], batch_idx: int) -> torch.Tensor:
         clips = clips_from_batch(batch)
@@ -175,17 +215,24 @@ class WorldModelStage(Stage):
         clips = clips_from_batch(batch)
         # Tasks drawn by clip alone (not by batch position): every validation, and any
         # split of the clips over DDP ranks, scores each clip on the same task.
-        model_batch, names = self.engine.task_batch(clips, batch, seed=self.ctx.data.seed)
+        engine = self._unsharded
+        model_batch, names = engine.task_batch(clips, batch, seed=self.ctx.data.seed)
         if model_batch is not None:
-            out = self.engine.world(move_batch(model_batch, self.device))
+            out = engine.world(move_batch(model_batch, self.device))
             bs = len(names) - names.count(None)
             self.val_means.update("val/loss", out.loss, bs)
-            acc = self.engine.world.token_accuracy(out.logits, model_batch["labels"].to(self.device))
+            acc = engine.world.token_accuracy(out.logits, model_batch["labels"].to(self.device))
             self.val_means.update("val/token_acc", acc, bs)
+
+    def on_validation_epoch_start(self) -> None:
+        # Sharded, every forward would be a collective: ranks with other numbers of val
+        # batches or generated tokens would wait on each other. The full copy has none.
+        self._gather(everywhere=True)
 
     def on_validation_epoch_end(self) -> None:
         cfg = self.ctx.model_cfg
-        self.evaluator.run(self.engine, self.ctx.data.root, "val", cfg.val_batch_size, samples=cfg.val_samples)
+        self.evaluator.run(self._unsharded, self.ctx.data.root, "val", cfg.val_batch_size, samples=cfg.val_samples)
+        self._release()
         self.log_dict(self.val_means.pop())
         self.log_dict(self.evaluator.compute("val"))  # texts and pictures stay for report()
 
@@ -200,10 +247,17 @@ class WorldModelStage(Stage):
         summary = f"world model {total / 1e6:.2f}M params ({trained / 1e6:.2f}M trained), vocab {len(self.engine.vocab)}"
         # Scene tokens per frame: Occ-LLM's patch-size table reads it beside the step time.
         metrics = {"params": float(total), "scene_tokens": float(self.engine.vocab.scene_len)}
+        if self._full is not None:  # what this rank holds of the sharded world model
+            metrics["params_per_rank"] = float(local_numel(world))
         return StageReport(summary, metrics, texts=list(self.evaluator.texts), scenes=list(self.evaluator.scenes))
 
+    def prepare_export(self) -> None:
+        self._gather(everywhere=False)  # rank zero's copy on the CPU: what export() writes
+
     def export(self, path: Path) -> Path:
-        return export_engine(self.engine, path, stage=self.ctx.spec.name, merge=self.ctx.model_cfg.merge_export)
+        if self._full is not None and not self._full.loaded:
+            raise RuntimeError("a sharded stage exports after prepare_export() ran on every rank")
+        return export_engine(self._unsharded, path, stage=self.ctx.spec.name, merge=self.ctx.model_cfg.merge_export)
 
     evaluable = True
 
@@ -212,6 +266,13 @@ class WorldModelStage(Stage):
         """The export's answers generated on every item of the split (or a fixed subset),
         scored with its family's scorers: by default the tasks it trained on."""
         return evaluate_engine(load_world_model(request.export).eval(), request)
+
+
+def _with_world(engine: Any, world: torch.nn.Module) -> Any:
+    """A shallow copy of ``engine`` (its caches and frozen encoders shared) over ``world``."""
+    twin = copy.copy(engine)
+    object.__setattr__(twin, "_modules", {**engine._modules, "world": world})
+    return twin
 
 
 class PretrainStage(WorldModelStage):
