@@ -157,6 +157,13 @@ MUTANTS = (
         ),
     ),
     Mutant(
+        "fsdp-does-not-shard", "trainer.strategy=fsdp leaves the world model whole on every rank",
+        "src/occtrain/stages/world_model.py",
+        '        shard_world_model(world, self.device_mesh["data_parallel"])\n',
+        "        pass\n",
+        ("tests/test_sharded.py::test_sharded_training_equals_ddp_with_the_same_global_batch",),
+    ),
+    Mutant(
         "uniform-task-draw", "tasks are drawn uniformly, whatever their weights",
         "src/occtrain/core/tasks.py",
         "size=len(names), replace=False, p=p / p.sum())",
