@@ -99,3 +99,31 @@ def run_cli(*args: str, cwd: Path | None = None, timeout: float = 300, env: dict
     return subprocess.run(
         [sys.executable, "-m", "occtrain", *args], cwd=cwd or REPO, env=env, capture_output=True, text=True, timeout=timeout
     )
+
+
+def kill_at_checkpoint(args: list[str], checkpoint: Path, step: int, env: dict[str, str] | None = None, timeout: float = 600) -> int:
+    """Start ``occtrain ARGS`` in its own process group, kill it (-9) once ``checkpoint``
+    holds ``step`` or later, and return the step the checkpoint holds after the kill."""
+    import signal
+    import time
+
+    import torch
+
+    path = os.pathsep.join(filter(None, [str(REPO / "tests"), os.environ.get("PYTHONPATH", "")]))
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "occtrain", *args], cwd=REPO, env=dict(os.environ, PYTHONWARNINGS="ignore", PYTHONPATH=path, **(env or {})),
+        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True,
+    )
+    deadline = time.time() + timeout
+    while proc.poll() is None and time.time() < deadline:
+        if checkpoint.is_file():
+            try:
+                if torch.load(checkpoint, weights_only=True, map_location="cpu")["global_step"] >= step:
+                    break
+            except (RuntimeError, OSError, EOFError, KeyError):
+                pass  # replaced while reading
+        time.sleep(0.02)
+    assert proc.poll() is None, f"the run finished (or timed out) before {checkpoint} reached step {step}"
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait()
+    return torch.load(checkpoint, weights_only=True, map_location="cpu")["global_step"]

@@ -14,7 +14,7 @@ import pytest
 import torch
 from safetensors.torch import load_file
 
-from conftest import REPO, run_cli, write_hand_dataset
+from conftest import REPO, kill_at_checkpoint, run_cli, write_hand_dataset
 
 pytestmark = pytest.mark.slow
 
@@ -174,9 +174,6 @@ def test_a_ddp_epoch_killed_mid_way_resumes_without_repeating_or_skipping_a_samp
     are one epoch of 9 steps (no shuffle buffer, so an epoch is each sample once). Killed
     (-9) after a checkpoint mid-epoch and resumed, the samples of every step equal an
     uninterrupted run's, and together they are each train frame exactly once."""
-    import signal
-    import time
-
     recipe = tmp_path / "probe.yaml"
     recipe.write_text(PROBE_RECIPE.format(runs=tmp_path / "runs", data=world))
     args = [
@@ -195,24 +192,9 @@ def test_a_ddp_epoch_killed_mid_way_resumes_without_repeating_or_skipping_a_samp
 
     whole = run_cli(*args, "--run-dir", str(tmp_path / "whole"), env={"OCCTRAIN_PROBE_SEEN": str(tmp_path / "whole.seen")}, timeout=600)
     assert whole.returncode == 0, whole.stderr[-3000:]
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [str(REPO / "tests"), os.environ.get("PYTHONPATH", "")])),
-               PYTHONWARNINGS="ignore", OCCTRAIN_PROBE_SEEN=str(tmp_path / "cut.seen"), OCCTRAIN_PROBE_STEP_DELAY="0.5")
-    proc = subprocess.Popen([sys.executable, "-m", "occtrain", *args, "--run-dir", str(tmp_path / "cut")], cwd=REPO, env=env,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     last = tmp_path / "cut" / "probe" / "checkpoints" / "last.ckpt"
-    deadline = time.time() + 300
-    while proc.poll() is None and time.time() < deadline:
-        if last.is_file():
-            try:
-                if torch.load(last, weights_only=True, map_location="cpu")["global_step"] >= 4:
-                    break
-            except (RuntimeError, OSError, EOFError):
-                pass  # replaced while reading
-        time.sleep(0.05)
-    assert proc.poll() is None, "the run finished before it could be killed"
-    os.killpg(proc.pid, signal.SIGKILL)
-    proc.wait()
-    killed_at = torch.load(last, weights_only=True, map_location="cpu")["global_step"]
+    cut = {"OCCTRAIN_PROBE_SEEN": str(tmp_path / "cut.seen"), "OCCTRAIN_PROBE_STEP_DELAY": "0.5"}
+    killed_at = kill_at_checkpoint([*args, "--run-dir", str(tmp_path / "cut")], last, step=4, env=cut, timeout=300)
     resumed = run_cli(*args, "--run-dir", str(tmp_path / "cut"), env={"OCCTRAIN_PROBE_SEEN": str(tmp_path / "cut.seen")}, timeout=600)
     assert resumed.returncode == 0, resumed.stderr[-3000:]
     (first, second) = json.loads((tmp_path / "cut" / "manifest.json").read_text())["stages"]["probe"]["history"]

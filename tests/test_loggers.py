@@ -1,6 +1,6 @@
 """`trainer.loggers`: CSV always, TensorBoard, MLflow (local file store) and W&B (offline)
 through Lightning's logger classes; a resumed stage logs on into the same tracker runs.
-A whole recipe logging to both trackers: ``test_pipeline_e2e``'s bf16 run."""
+A whole recipe logging to both trackers: ``test_pipeline_faults``'s bf16 run."""
 
 from __future__ import annotations
 

@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 
 from conftest import REPO, run_cli
-from test_pipeline_e2e import _export_tensors, _train_rows, tiny_overrides
+from quickstart_run import export_tensors, tiny_overrides, train_rows
 
 pytestmark = pytest.mark.slow
 
@@ -112,11 +112,11 @@ def test_the_msvae_tokenizer_resumes_bit_exact_after_kill_9(occllm_run, tmp_path
     entry = json.loads((run_dir / "manifest.json").read_text())["stages"]["tokenizer"]
     assert entry["status"] == "done" and entry["attempts"] == 2
     assert [h["start_step"] for h in entry["history"]] == [0, step]  # resumed, not restarted
-    ref, got = _export_tensors(occllm_run / "tokenizer"), _export_tensors(run_dir / "tokenizer")
+    ref, got = export_tensors(occllm_run / "tokenizer"), export_tensors(run_dir / "tokenizer")
     assert ref.keys() == got.keys()
     for key in ref:
         assert torch.equal(ref[key], got[key]), f"killed at step {step}: {key} differs"
-    assert _train_rows(run_dir / "tokenizer") == _train_rows(occllm_run / "tokenizer")
+    assert train_rows(run_dir / "tokenizer") == train_rows(occllm_run / "tokenizer")
 
 
 def test_it_trains_on_a_plain_occ3d_release(synth_dataset, tmp_path):

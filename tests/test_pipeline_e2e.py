@@ -1,57 +1,26 @@
 """The five-stage quickstart recipe through the real CLI, shrunk to seconds per stage.
 
-One session-scoped run feeds several checks: every stage done and exported, ``occtrain
+One module-scoped run feeds several checks: every stage done and exported, ``occtrain
 eval`` agreeing with ``occtrain score`` on the saved predictions, and the dashboard. The
-fault test kills the pipeline during its third stage and resumes it.
+kill -9 and bf16 runs are ``test_pipeline_faults``'s.
 """
 
 from __future__ import annotations
 
 import json
-import os
-import signal
-import subprocess
-import sys
-import time
 from pathlib import Path
 
 import pytest
 
 from conftest import REPO, run_cli
+from quickstart_run import STAGES, quickstart_run, tiny_overrides
 
 pytestmark = pytest.mark.slow
-
-STAGES = ("tokenizer", "pretrain", "instruct", "planner", "distill")
-#: Optimizer steps per stage of the shared tiny run (a kill test interrupts each in between).
-PIPELINE_STEPS = 5
-
-
-def tiny_overrides(data: Path, steps: int = 3, stages: int = len(STAGES)) -> list[str]:
-    """The quickstart recipe (or another whose first stages are tokenizer, pretrain,
-    instruct) at test size: a 3-scene world, a few steps per stage."""
-    out = [
-        f"data.root={data}",
-        "data.synth.train_scenes=2", "data.synth.val_scenes=1", "data.synth.frames_per_scene=13",
-        "data.samples_per_shard=8", "data.shuffle_buffer=4",
-        "trainer.ckpt_every_n_steps=1", "trainer.log_every_n_steps=1",
-    ]
-    for i in range(stages):
-        out += [
-            f"stages[{i}].trainer.max_steps={steps}", f"stages[{i}].trainer.val_check_interval={steps}",
-            f"stages[{i}].trainer.limit_val_batches=1",
-        ]
-    out += [f"stages[{i}].model.val_samples=4" for i in (1, 2, 4) if i < stages]
-    out += ["stages[1].model.tasks.forecast_frames=2", "stages[1].model.llm.text_vocab_size=400"]
-    return out
 
 
 @pytest.fixture(scope="module")
 def pipeline(tmp_path_factory) -> Path:
-    root = tmp_path_factory.mktemp("pipeline")
-    run_dir = root / "run"
-    res = run_cli("run", "stages/quickstart.yaml", *tiny_overrides(root / "data", steps=PIPELINE_STEPS), "--run-dir", str(run_dir), timeout=900)
-    assert res.returncode == 0, res.stderr[-3000:]
-    return run_dir
+    return quickstart_run(tmp_path_factory.mktemp("pipeline"))
 
 
 def test_every_stage_is_done_and_exported(pipeline):
@@ -125,81 +94,6 @@ def test_eval_and_score_agree(pipeline, tmp_path):
     assert merged["qa_overall"] == pytest.approx(metrics["qa_overall"])
     # Batch size does not change answers: every answer, not only the accuracy.
     assert json.loads((one_by_one / "qa_pred.json").read_text()) == json.loads((preds / "qa_pred.json").read_text())
-
-
-def _export_tensors(stage_dir: Path) -> dict:
-    from safetensors.torch import load_file
-
-    out = {}
-    for f in sorted((stage_dir / "export").rglob("*.safetensors")):
-        rel = f.relative_to(stage_dir / "export")
-        out.update({f"{rel}:{k}": v for k, v in load_file(f).items()})
-    return out
-
-
-def _train_rows(stage_dir: Path) -> list[tuple[str, str]]:
-    import csv
-
-    with open(stage_dir / "logs" / "csv" / "metrics.csv", newline="") as fh:
-        return [(r["step"], r["train/loss"]) for r in csv.DictReader(fh) if r.get("train/loss")]
-
-
-def test_kill_9_at_a_random_step_of_every_stage_resumes_bit_exact(pipeline, tmp_path):
-    """Each stage kind is killed (-9) once, at a random optimizer step, and resumed: every
-    export equals the uninterrupted run's bit for bit, the CSV log holds each step once,
-    and the manifest counts two attempts per stage with their wall times summed."""
-    import random
-
-    import torch
-
-    rng = random.Random(int(os.environ.get("OCCTRAIN_TEST_SEED", time.time_ns() % 10_000)))
-    run_dir = tmp_path / "run"
-    args = ["run", "stages/quickstart.yaml", *tiny_overrides(pipeline.parent / "data", steps=PIPELINE_STEPS), "--run-dir", str(run_dir)]
-    env = dict(os.environ, PYTHONWARNINGS="ignore")
-    killed_at = {}
-    for name in STAGES:
-        target = rng.randint(1, PIPELINE_STEPS - 1)
-        proc = subprocess.Popen([sys.executable, "-m", "occtrain", *args], cwd=REPO, env=env,
-                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
-        last = run_dir / name / "checkpoints" / "last.ckpt"
-        deadline = time.time() + 600
-        step = -1
-        while proc.poll() is None and time.time() < deadline:
-            if last.is_file():
-                try:
-                    step = torch.load(last, weights_only=True, map_location="cpu")["global_step"]
-                except (RuntimeError, OSError, EOFError):
-                    step = -1  # replaced while reading
-                if step >= target:
-                    break
-            time.sleep(0.02)
-        assert proc.poll() is None, f"{name} finished before step {target}"
-        os.killpg(proc.pid, signal.SIGKILL)
-        proc.wait()
-        killed_at[name] = torch.load(last, weights_only=True, map_location="cpu")["global_step"]  # the file as the kill left it
-    res = run_cli(*args, timeout=900)
-    assert res.returncode == 0, res.stderr[-3000:]
-
-    stages = json.loads((run_dir / "manifest.json").read_text())["stages"]
-    reference = json.loads((pipeline / "manifest.json").read_text())["stages"]
-    for name in STAGES:
-        entry = stages[name]
-        assert entry["status"] == "done" and entry["attempts"] == 2, (name, entry["attempts"])
-        assert entry["wall_time_s"] > 0
-        # The second attempt continued from the checkpoint, not from step 0 (a restart would
-        # give the same weights, training being deterministic).
-        assert [h["start_step"] for h in entry["history"]] == [0, killed_at[name]], name
-        ref, got = _export_tensors(pipeline / name), _export_tensors(run_dir / name)
-        assert ref.keys() == got.keys(), name
-        for key in ref:
-            assert torch.equal(ref[key], got[key]), f"{name} (killed at step {killed_at[name]}): {key} differs"
-        rows = _train_rows(run_dir / name)
-        assert [s for s, _ in rows] == [s for s, _ in _train_rows(pipeline / name)], name  # each step logged once
-        assert rows == _train_rows(pipeline / name), name
-        timing = ("per_s", "speedup", "_step_s", "_rss_mb")  # measurements of the machine, not results
-        ours = {k: v for k, v in entry["metrics"].items() if not k.endswith(timing)}
-        theirs = {k: v for k, v in reference[name]["metrics"].items() if not k.endswith(timing)}
-        assert ours == theirs, name
 
 
 def test_eval_asks_every_question_and_scores_another_world(pipeline, tmp_path):
@@ -282,37 +176,3 @@ def test_the_readme_python_api_example_runs_as_printed(pipeline, capsys):
     model, clip = names["model"], names["clip"]
     assert model.plan(clip).shape == (6, 2) and model.forecast(clip).shape[1:] == (200, 200, 16)
     assert isinstance(model.answer(clip, "Are there any cars?"), str)
-
-
-def test_bf16_mixed_trains_every_stage_on_cpu(pipeline, tmp_path):
-    """The quickstart's five stage kinds at bf16-mixed on the CPU (the GPU default), the
-    world-model stages with gradient checkpointing on, logging to MLflow and W&B (offline)
-    where installed: every stage trains and exports, its losses are finite, the tokenizer's
-    first loss (same weights, same batch) is fp32's to bf16's precision, and each stage has
-    its tracker run."""
-    import importlib.util
-    import math
-
-    run_dir = tmp_path / "bf16"
-    checkpointing = [f"stages[{i}].model.gradient_checkpointing=true" for i in (1, 2)]
-    trackers = [name for name in ("mlflow", "wandb") if importlib.util.find_spec(name)]
-    res = run_cli(
-        "run", "stages/quickstart.yaml", *tiny_overrides(pipeline.parent / "data", steps=2), "trainer.precision=bf16-mixed",
-        *checkpointing, f"trainer.loggers=[csv,{','.join(trackers or ['tensorboard'])}]", "--run-dir", str(run_dir),
-        timeout=900, env={"WANDB_MODE": "offline"},
-    )
-    assert res.returncode == 0, res.stderr[-3000:]
-    manifest = json.loads((run_dir / "manifest.json").read_text())
-    assert {s["config"]["trainer"]["precision"] for s in manifest["stages"].values()} == {"bf16-mixed"}
-    for name in STAGES:
-        rows = _train_rows(run_dir / name)
-        assert len(rows) == 2 and all(math.isfinite(float(loss)) for _, loss in rows), (name, rows)
-        assert (run_dir / name / "export").is_dir()
-    fp32, bf16 = float(_train_rows(pipeline / "tokenizer")[0][1]), float(_train_rows(run_dir / "tokenizer")[0][1])
-    assert bf16 == pytest.approx(fp32, rel=0.02)
-    for name in STAGES:
-        logs = run_dir / name / "logs"
-        if "mlflow" in trackers:
-            assert list((run_dir / "mlruns").glob(f"*/{(logs / 'mlflow_run_id').read_text()}/metrics/train/loss"))
-        if "wandb" in trackers:
-            assert len(list((logs / "wandb").glob("offline-run-*"))) == 1  # its own run, not the stage before's

@@ -12,19 +12,14 @@ from __future__ import annotations
 
 import csv
 import json
-import os
 import shutil
-import signal
-import subprocess
-import sys
-import time
 from pathlib import Path
 
 import pytest
 import torch
 from safetensors.torch import load_file
 
-from conftest import REPO, run_cli
+from conftest import REPO, kill_at_checkpoint, run_cli
 from occtrain.config.recipe import OptimConfig
 
 pytestmark = pytest.mark.slow
@@ -183,23 +178,8 @@ def test_a_sharded_stage_killed_mid_way_resumes_bit_exact(ddp, fsdp):
     export equals the uninterrupted sharded run's bit for bit, and so does its loss log."""
     run = _copy(ddp, "cut")
     shutil.rmtree(run / "pretrain")  # DDP's checkpoints, which the watch below must not see
-    env = dict(os.environ, PYTHONWARNINGS="ignore", **ONE_THREAD)
-    proc = subprocess.Popen([sys.executable, "-m", "occtrain", *_args(run, "--restart", "pretrain", "--only", "pretrain")], cwd=REPO,
-                            env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     last = run / "pretrain" / "checkpoints" / "last.ckpt"
-    deadline = time.time() + 600
-    while proc.poll() is None and time.time() < deadline:
-        if last.is_file():
-            try:
-                if torch.load(last, weights_only=True, map_location="cpu")["global_step"] >= 2:
-                    break
-            except (RuntimeError, OSError, EOFError, KeyError):
-                pass  # replaced while reading
-        time.sleep(0.02)
-    assert proc.poll() is None, "the run finished before it could be killed"
-    os.killpg(proc.pid, signal.SIGKILL)
-    proc.wait()
-    killed_at = torch.load(last, weights_only=True, map_location="cpu")["global_step"]
+    killed_at = kill_at_checkpoint(_args(run, "--restart", "pretrain", "--only", "pretrain"), last, step=2, env=ONE_THREAD)
     assert 2 <= killed_at < 4
     resumed = run_cli(*_args(run, "--only", "pretrain"), timeout=900, env=ONE_THREAD)
     assert resumed.returncode == 0, resumed.stderr[-3000:]

@@ -53,7 +53,7 @@ MUTANTS = (
             "tests/test_runner_cli.py::test_kill_9_then_resume_gives_the_uninterrupted_weights",
             "tests/test_runner_cli.py::test_a_stop_signal_interrupts_in_one_line_and_a_rerun_resumes",
             "tests/test_occllm_pipeline.py::test_the_msvae_tokenizer_resumes_bit_exact_after_kill_9",
-            "tests/test_pipeline_e2e.py::test_kill_9_at_a_random_step_of_every_stage_resumes_bit_exact",
+            "tests/test_pipeline_faults.py::test_kill_9_at_a_random_step_of_every_stage_resumes_bit_exact",
         ),
     ),
     Mutant(
