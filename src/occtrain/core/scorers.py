@@ -25,7 +25,7 @@ from occtrain.data.clips import Actions, Clip, Part, PlanTarget, Scene
 from occtrain.data.geometry import moved_scene
 from occtrain.data.layout import DatasetIndex
 from occtrain.data.meta_actions import MetaActionConfig, past_labels
-from occtrain.data.text_formats import format_meta_action, parse_meta_action
+from occtrain.data.text_formats import meta_action_words, parse_meta_action
 from occtrain.metrics import CaptionMetric, ForecastMetric, MetaActionAccuracy, PlanningMetric, QAMetric
 from occtrain.models.planner import constant_velocity
 from occtrain.occ3d import FREE, FUTURE_STEPS, MOVABLE_CLASSES
@@ -244,7 +244,7 @@ class ChainOfThoughtScorer(BaseScorer):
         text, reference = item.generated[0].text, item.parts[-2].text
         ev.metrics["cot_caption"].update([text], [[reference]], ids=[token])
         parsed = said_meta_action(text, item.clip)
-        said = format_meta_action(parsed).removeprefix("Meta action: ") if parsed is not None else "none"
+        said = meta_action_words(parsed) if parsed is not None else "none"
         ev.keep_text("cot", "Task: describe the scene, then plan.", f"{text}  [parsed meta action: {said}]", reference)
         ev.metrics["meta_parsed_fraction"].update(100.0 * (parsed is not None))
         ev.metrics["meta_action_acc"].update(100.0 * (parsed == anchor["meta_action"]))

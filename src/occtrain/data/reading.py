@@ -184,8 +184,7 @@ class ShardSamples(IterableDataset):
         flat = [(s, ref) for s, refs in enumerate(members) for ref in refs]
         positions = own_val_positions(len(flat), self.rank, self.world, worker, workers)
         if positions and positions[0] is None:
-            first = next((p for p in own_val_positions(len(flat), self.rank, self.world, 0, 1) if p is not None), 0)
-            yield {**self.read(*flat[first]), PAD_KEY: True}
+            yield {**self.read(*flat[self.rank]), PAD_KEY: True}  # a copy of the rank's first sample
             positions = positions[1:]
         for p in positions:
             yield self.read(*flat[p])

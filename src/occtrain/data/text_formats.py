@@ -38,12 +38,17 @@ _META_RE = re.compile(
 )
 
 
+def meta_action_words(meta: MetaAction) -> str:
+    """A meta action in words: 'decelerate, turn left'."""
+    return f"{META_SPEED_WORDS[meta['speed']]}, {META_DIRECTION_WORDS[meta['direction']]}"
+
+
 def format_meta_action(meta: MetaAction, previous: MetaAction | None = None) -> str:
     """The fixed, parseable last line of a narration: 'Meta action: decelerate, turn left.'
     Given ``previous`` (the last past meta action), one equal to it is 'Meta action: as before.'"""
     if previous is not None and dict(previous) == dict(meta):
         return f"Meta action: {AS_BEFORE}."
-    return f"Meta action: {META_SPEED_WORDS[meta['speed']]}, {META_DIRECTION_WORDS[meta['direction']]}."
+    return f"Meta action: {meta_action_words(meta)}."
 
 
 def parse_meta_action(text: str, previous: MetaAction | None = None) -> MetaAction | None:

@@ -19,7 +19,7 @@ from occtrain.core.scorers import last_past_meta_action
 from occtrain.core.tasks import ForecastTaskConfig
 from occtrain.core.tasks import TaskSpec, as_xy, each_question, ego_plan, forecast_after, known_future, questions_after
 from occtrain.data.clips import Actions, Clip, Part, Scene, Text
-from occtrain.data.text_formats import format_meta_action, parse_meta_action
+from occtrain.data.text_formats import format_meta_action, meta_action_words, parse_meta_action
 from occtrain.errors import ConfigError
 
 #: ``meta_action_prior`` values, the paper's first.
@@ -156,8 +156,7 @@ def cot_planning(clip: Clip, cfg: TaskConfig, rng: np.random.Generator) -> list[
     previous = None
     if cfg.meta_action_prior == "repeat_last":
         previous = last_past_meta_action(clip)
-        said = format_meta_action(previous).removeprefix("Meta action: ") if previous else "none known."
-        prompt.append(Text(f"Last meta action: {said}"))
+        prompt.append(Text(f"Last meta action: {meta_action_words(previous) + '.' if previous else 'none known.'}"))
     text = "\n".join([*lines, format_meta_action(clip.anchor["meta_action"], previous)])
     return [*prompt, Text("Task: describe the scene, then plan."), Text(text, True), ego_plan(future, clip, cfg.plan_prior)]
 

@@ -12,7 +12,7 @@ from torchmetrics import MeanMetric
 from occtrain.core.scorers import BaseScorer, Item, last_past_meta_action
 from occtrain.data.clips import Clip, Images
 from occtrain.data.meta_actions import commonest
-from occtrain.data.text_formats import format_meta_action, parse_meta_action
+from occtrain.data.text_formats import meta_action_words, parse_meta_action
 from occtrain.metrics import MetaActionAccuracy, OccupancyMetric
 from occtrain.metrics.occupancy import OCC3D, OCCWORLD
 
@@ -45,7 +45,7 @@ class MetaActionScorer(BaseScorer):
             ev.metrics["baseline_prior_meta_action"].update([prior], [truth])
         # The last one the prompt lists; none (a scene's start) scores as a wrong answer.
         ev.metrics["baseline_repeat_last_meta_action"].update([last], [truth])
-        said = format_meta_action(parsed).removeprefix("Meta action: ") if parsed is not None else "none"
+        said = meta_action_words(parsed) if parsed is not None else "none"
         ev.keep_text("meta_action", item.parts[-2].text, f"{text}  [parsed: {said}]", reference)
 
 

@@ -24,7 +24,7 @@ from occtrain.core.tasks import TaskSpec, each_question, questions_after
 from occtrain.data.clips import Clip, Images, Occupancy, Part, Text
 from occtrain.data.meta_actions import MetaActionConfig, label, past_labels
 from occtrain.data.schema import MetaAction
-from occtrain.data.text_formats import META_DIRECTION_WORDS, META_SPEED_WORDS, caption_surroundings, format_meta_action, parse_meta_action
+from occtrain.data.text_formats import caption_surroundings, format_meta_action, meta_action_words, parse_meta_action
 from occtrain.errors import ConfigError
 from occtrain.families.occvla.scoring import MetaActionScorer
 from occtrain.occ3d import FRAME_DT
@@ -123,7 +123,7 @@ def describe_past(past: list[MetaAction]) -> str:
     """The prompt's list of past meta actions, oldest first."""
     if not past:
         return f"{META_PROMPT} none known."
-    return f"{META_PROMPT} " + "; ".join(f"{META_SPEED_WORDS[m['speed']]}, {META_DIRECTION_WORDS[m['direction']]}" for m in past) + "."
+    return f"{META_PROMPT} " + "; ".join(meta_action_words(m) for m in past) + "."
 
 
 def history_analysis(past: list[MetaAction]) -> str:

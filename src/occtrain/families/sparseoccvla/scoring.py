@@ -11,7 +11,7 @@ from typing import Any, Iterable
 from torchmetrics import MeanMetric
 
 from occtrain.core.scorers import BaseScorer, Item
-from occtrain.data.text_formats import format_meta_action, parse_meta_action
+from occtrain.data.text_formats import meta_action_words, parse_meta_action
 from occtrain.metrics import CaptionMetric, MetaActionAccuracy
 
 #: Texts a typical-text baseline is chosen among (a fixed sample: its cost is quadratic).
@@ -93,7 +93,7 @@ class DecisionScorer(BaseScorer):
         ev.metrics["meta_parsed_fraction"].update(100.0 * (parsed is not None))
         if ev.priors.meta_action is not None:
             ev.metrics["baseline_prior_meta_action"].update([ev.priors.meta_action], [truth])
-        said = format_meta_action(parsed).removeprefix("Meta action: ") if parsed is not None else "none"
+        said = meta_action_words(parsed) if parsed is not None else "none"
         self.said[said] += 1
         ev.keep_text("planning", item.parts[-2].text, f"{text}  [parsed: {said}]", reference)
 
