@@ -31,7 +31,7 @@ RECIPES = ("quickstart", "occllama", "occllm", "occvla", "vision")
 #: Stage kinds that generate answers in validation (they take ``model.val_samples``).
 GENERATING = ("pretrain", "instruct", "distill")
 #: Metrics that measure the machine, not the model.
-TIMINGS = ("train_step_s", "train_peak_rss_mb", "per_s", "speedup")
+TIMINGS = ("train_step_s", "train_peak_rss_mb", "train_peak_gpu_mb", "per_s", "speedup")
 
 
 def shrink(recipe: Path, data: Path, steps: int) -> list[str]:

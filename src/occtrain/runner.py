@@ -253,7 +253,7 @@ def _execute(
     import lightning as L
 
     from occtrain.data.datamodule import ShardDataModule
-    from occtrain.stages.common import PeakRSS, StepTimer, build_trainer, checkpoint_step, last_checkpoint
+    from occtrain.stages.common import PeakMemory, StepTimer, build_trainer, checkpoint_step, last_checkpoint
 
     L.seed_everything(stage.trainer.seed, workers=True, verbose=False)
     ctx = StageContext(stage.spec, stage.model_cfg, stage.data, stage.trainer, stage_dir, inputs)
@@ -279,9 +279,11 @@ def _execute(
     timer = next(c for c in trainer.callbacks if isinstance(c, StepTimer))
     if timer.mean_s is not None:  # of this attempt: a measurement, not a result
         metrics["train_step_s"] = timer.mean_s
-    memory = next(c for c in trainer.callbacks if isinstance(c, PeakRSS))
+    memory = next(c for c in trainer.callbacks if isinstance(c, PeakMemory))
     if memory.peak_mb is not None:  # rank zero's, in this attempt
         metrics["train_peak_rss_mb"] = memory.peak_mb
+    if memory.peak_gpu_mb is not None:
+        metrics["train_peak_gpu_mb"] = memory.peak_gpu_mb
     artifacts: dict[str, str] = {}
     module.prepare_export()  # every rank: a sharded stage gathers its weights for rank zero
     if trainer.is_global_zero:

@@ -95,15 +95,56 @@ def measure(mode: str, cfg: LLMConfig, args: argparse.Namespace) -> list[int]:
         return [int(Path(f"{out}.{r}").read_text()) for r in range(world)]
 
 
+def measure_cuda(cfg: LLMConfig, args: argparse.Namespace, precision: str) -> int:
+    """Peak bytes the CUDA allocator held over two optimizer steps in one process."""
+    torch.cuda.empty_cache()
+    torch.cuda.reset_peak_memory_stats()
+    before = torch.cuda.memory_allocated()
+    torch.manual_seed(0)
+    model = build_llm(cfg, VOCAB).cuda()
+    if args.checkpointing:
+        checkpoint_layers(model)
+    model.train()
+    opt = torch.optim.AdamW(model.parameters(), lr=1e-4)
+    ids = torch.randint(0, VOCAB, (args.batch, args.seq), device="cuda")
+    for _ in range(2):
+        with torch.autocast("cuda", dtype=torch.bfloat16, enabled=precision == "bf16-mixed"):
+            loss = model(input_ids=ids, labels=ids).loss
+        loss.backward()
+        opt.step()
+        opt.zero_grad(set_to_none=True)
+    torch.cuda.synchronize()
+    peak = torch.cuda.max_memory_allocated() - before
+    del model, opt, loss
+    return peak
+
+
+def main_cuda(cfg: LLMConfig, count, args: argparse.Namespace) -> None:
+    print(f"LLM {count.params / 1e6:.0f} M parameters, batch {args.batch} x {args.seq} tokens, AdamW, one GPU "
+          f"({torch.cuda.get_device_name()}); GiB")
+    print(f"{'setting':<32} {'measured':>9} {'planned':>9} {'measured / planned':>19}")
+    for precision in ("32-true", "bf16-mixed"):
+        for checkpointing in (False, True):
+            args.checkpointing = checkpointing
+            ddp, _ = plan(count, precision, args.batch, args.seq, 1, checkpointing)
+            planned = ddp.total - ddp.gradients  # one process: no DDP gradient buckets
+            peak = measure_cuda(cfg, args, precision)
+            name = precision + (", checkpointing" if checkpointing else "")
+            print(f"{name:<32} {peak / GIB:>9.2f} {planned / GIB:>9.2f} {peak / planned:>19.2f}", flush=True)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--hidden", type=int, default=1024)
     parser.add_argument("--layers", type=int, default=22)
     parser.add_argument("--seq", type=int, default=256)
     parser.add_argument("--batch", type=int, default=1)
+    parser.add_argument("--cuda", action="store_true", help="one process on the GPU, fp32 and bf16-mixed")
     args = parser.parse_args()
     cfg = LLMConfig(hidden_size=args.hidden, num_layers=args.layers, num_heads=16, intermediate_size=int(args.hidden * 2.75), text_vocab_size=VOCAB)
     count = count_llm(cfg, 0)
+    if args.cuda:
+        return main_cuda(cfg, count, args)
     print(f"LLM {count.params / 1e6:.0f} M parameters, batch {args.batch} x {args.seq} tokens, fp32, AdamW; GiB per rank")
     print(f"{'setting':<30} {'measured (each rank)':>22} {'planned':>9} {'measured / planned':>19}")
     for checkpointing in (False, True):

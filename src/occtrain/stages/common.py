@@ -353,18 +353,26 @@ def current_rss_mb() -> float | None:
     return None
 
 
-class PeakRSS(Callback):
-    """The largest resident memory of this process seen after a training step (MB): what
-    a stage needs of a machine, read per stage (the process-wide high-water mark would
-    carry an earlier stage's peak into a later one)."""
+class PeakMemory(Callback):
+    """The largest resident memory of this process seen after a training step (MB), and on
+    a CUDA device the most it allocated during the stage's training: what a stage needs of
+    a machine, read per stage (the process-wide high-water marks would carry an earlier
+    stage's peak into a later one)."""
 
     def __init__(self) -> None:
         self.peak_mb: float | None = None
+        self.peak_gpu_mb: float | None = None
 
-    def on_train_batch_end(self, *args: Any) -> None:
+    def on_train_start(self, trainer: Any, pl_module: Any) -> None:
+        if pl_module.device.type == "cuda":
+            torch.cuda.reset_peak_memory_stats(pl_module.device)
+
+    def on_train_batch_end(self, trainer: Any, pl_module: Any, *args: Any) -> None:
         rss = current_rss_mb()
         if rss is not None:
             self.peak_mb = max(self.peak_mb or 0.0, rss)
+        if pl_module.device.type == "cuda":
+            self.peak_gpu_mb = torch.cuda.max_memory_allocated(pl_module.device) / 2**20
 
 
 # ----------------------------------------------------------------------------- validation
@@ -431,7 +439,7 @@ def _callbacks(
         LearningRateMonitor(logging_interval="step"),
         StepProgress(name),
         StepTimer(),
-        PeakRSS(),
+        PeakMemory(),
     ]
     if record_time is not None:
         callbacks.append(_Heartbeat(record_time))
