@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 import socket
+import time
 
 import numpy as np
 import pytest
@@ -201,6 +202,17 @@ def run_all(rows: slice) -> dict:
     if rows.start == 0:
         idle.update(*(x[:3] for x in d["cap"]))
     results["cap_idle"] = idle.samples()
+    # Metrics only some processes update (fewer items than ranks): every process must still
+    # join each compute, or the others wait for ever.
+    from torchmetrics import MeanMetric
+
+    from occtrain.metrics import compute_metrics
+
+    some = {"plan_first_three": PlanningMetric(), "mean": MeanMetric(), "never": MeanMetric()}
+    if rows.start == 0:
+        some["plan_first_three"].update(p[:3], g[:3], m[:3], a[:3])
+    some["mean"].update(torch.arange(rows.start, rows.stop, dtype=torch.float32))
+    results["some_ranks"] = compute_metrics("val", some)
     from occtrain.scoring import to_json
 
     return to_json(results)
@@ -237,12 +249,20 @@ def assert_same(a, b, path: str = "") -> None:
 
 def test_two_process_ddp_equals_single_process(tmp_path):
     out = tmp_path / "ddp.json"
-    mp.spawn(_worker, args=(free_port(), str(out)), nprocs=2, join=True)
+    ctx = mp.spawn(_worker, args=(free_port(), str(out)), nprocs=2, join=False)
+    deadline = time.monotonic() + 120  # a process left out of a collective hangs the other
+    while not ctx.join(timeout=1):
+        if time.monotonic() > deadline:
+            for proc in ctx.processes:
+                proc.kill()
+            pytest.fail("the two processes hung: one skipped a metric's collective compute")
     ddp = json.loads(out.read_text())
     single = json.loads(json.dumps(run_all(slice(0, 5))))
     assert_same(ddp, single)
     assert ddp["occ"]["samples"] == 5 and ddp["plan"]["samples"] == 5 and ddp["qa"]["questions"] == 5
     assert sorted(ddp["cap"]) == ["s0", "s1", "s2", "s3"]  # the repeated s0 counts once
+    assert "val/never" not in ddp["some_ranks"] and ddp["some_ranks"]["val/mean"] == 2.0
+    assert ddp["some_ranks"]["val/plan_first_three_samples"] == 3
     assert sorted(ddp["cap_idle"]) == ["s0", "s1", "s2"]
 
 

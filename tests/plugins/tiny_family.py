@@ -34,7 +34,7 @@ from occtrain.core.tasks import TaskConfig, TaskSpec, each_question, forecast_af
 from occtrain.core.world_model import LMWorldModel, WorldInputs, WorldModelOutput, token_ce
 from occtrain.data.clips import Clip, Part, Scene, Text, plan_target
 from occtrain.exports import write_export
-from occtrain.metrics import PlanningMetric, flatten_metrics
+from occtrain.metrics import PlanningMetric, compute_metrics
 from occtrain.models.planner import constant_velocity, current_velocity
 from occtrain.occ3d import CLASS_INDEX, FREE, GRID_SHAPE, NUM_CLASSES, VOXEL_SIZE, FUTURE_STEPS
 
@@ -288,12 +288,7 @@ class SummaryPlanner(nn.Module):
         self.metrics["constant_velocity"].update(constant_velocity([c.anchor for c in clips], self.device), gt.traj, gt.mask, gt.agents)
 
     def compute(self, prefix: str) -> dict[str, float]:
-        out = {}
-        for name, metric in self.metrics.items():
-            if metric.update_count:
-                out.update(flatten_metrics(f"{prefix}/{name}", metric.compute()))
-            metric.reset()
-        return out
+        return compute_metrics(prefix, self.metrics, reset=True)
 
     def prepare_training(self, device: torch.device) -> None:
         self.teacher.to(device)

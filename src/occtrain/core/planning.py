@@ -35,7 +35,7 @@ from occtrain.exports import write_export
 from occtrain.io import atomic_write_json, atomic_write_safetensors, is_rank_zero
 from torchmetrics import MeanMetric
 
-from occtrain.metrics import PlanningMetric, compute_and_reset
+from occtrain.metrics import PlanningMetric, compute_metrics
 from occtrain.models import count_parameters
 from occtrain.models.planner import PlanningHead, constant_velocity, current_velocity
 from occtrain.occ3d import FUTURE_STEPS, PAST_STEPS
@@ -288,7 +288,7 @@ class MetaActionPlanner(nn.Module):
 
     def compute(self, prefix: str) -> dict[str, float]:
         """The validation metrics that saw samples, then reset."""
-        return compute_and_reset(prefix, {**self.metrics, "meta_parsed_fraction": self.parsed})
+        return compute_metrics(prefix, reset=True, metrics={**self.metrics, "meta_parsed_fraction": self.parsed})
 
     def summary(self) -> tuple[str, dict[str, float]]:
         n = count_parameters(self.head)

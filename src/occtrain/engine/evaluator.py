@@ -23,7 +23,7 @@ from occtrain.data.layout import DatasetIndex
 from occtrain.engine.world_model import WorldModelEngine
 from occtrain.errors import ConfigError
 from occtrain.io import rank_world
-from occtrain.metrics import flatten_metrics
+from occtrain.metrics import compute_metrics
 from occtrain.occ3d import FRAME_DT, FUTURE_STEPS
 
 __all__ = ["Evaluator", "Priors", "evaluation_clips", "fixed_subset", "item_key", "scorable"]
@@ -241,15 +241,9 @@ class Evaluator(torch.nn.Module):
         return total + sum(len(self._hook_clips(engine, index, split, h, samples, seed)[rank::world]) for h in self._hooks(engine))
 
     def compute(self, prefix: str) -> dict[str, float]:
-        """Every metric that saw samples, flattened under ``prefix`` (e.g. ``val/qa_overall``)."""
-        out: dict[str, float] = {}
-        for name, metric in self.metrics.items():
-            if metric.update_count:
-                value = metric.compute()
-                if isinstance(value, dict):
-                    out.update(flatten_metrics(f"{prefix}/{name}", value))
-                else:  # a plain mean (meta-action accuracy and parse rate)
-                    out[f"{prefix}/{name}"] = float(value)
+        """Every metric that saw samples on any process, flattened under ``prefix`` (e.g.
+        ``val/qa_overall``). Every process calls it."""
+        out = compute_metrics(prefix, dict(self.metrics.items()))
         for scorer in [s for ss in self.scorers.values() for s in ss]:
             out.update(scorer.summary(prefix))
         return out

@@ -21,7 +21,7 @@ _MODULES = {
     "PlanningMetric": "planning", "QAMetric": "qa",
 }
 
-__all__ = ["CONVENTIONS", "compute_and_reset", "flatten_metrics", "horizon_label", *_MODULES]
+__all__ = ["CONVENTIONS", "compute_metrics", "flatten_metrics", "horizon_label", "updated_anywhere", *_MODULES]
 
 
 def __getattr__(name: str) -> Any:
@@ -47,13 +47,36 @@ def flatten_metrics(prefix: str, result: dict[str, Any]) -> dict[str, float]:
     return flat
 
 
-def compute_and_reset(prefix: str, metrics: dict[str, Any]) -> dict[str, float]:
-    """Every metric of ``metrics`` that saw samples, flattened under ``prefix/name``; all are
-    reset. A scalar metric's value is ``prefix/name`` itself."""
+def updated_anywhere(metrics: list[Any]) -> list[bool]:
+    """Which of ``metrics`` saw a sample on any process. Under DDP every ``compute`` is a
+    collective, so the processes must agree on which to compute: a process that saw no
+    sample of a task (fewer items than ranks, or an answer only some ranks parse) still
+    joins, with empty states, or the others wait on it for ever."""
+    import torch
+    import torch.distributed as dist
+
+    seen = [bool(m.update_count) for m in metrics]
+    if metrics and dist.is_available() and dist.is_initialized() and dist.get_world_size() > 1:
+        flags = torch.tensor(seen, dtype=torch.float32, device=metrics[0].device)
+        dist.all_reduce(flags, op=dist.ReduceOp.MAX)
+        seen = [bool(f) for f in flags.tolist()]
+    return seen
+
+
+def compute_metrics(prefix: str, metrics: dict[str, Any], reset: bool = False) -> dict[str, float]:
+    """Every metric of ``metrics`` that saw samples on any process, flattened under
+    ``prefix/name`` (a scalar metric's value is ``prefix/name`` itself; no prefix: ``name``); with ``reset``,
+    all are reset afterwards. Every process must call it (see :func:`updated_anywhere`)."""
+    import warnings
+
     out: dict[str, float] = {}
-    for name, metric in metrics.items():
-        if metric.update_count:
-            value = metric.compute()
-            out.update(flatten_metrics(f"{prefix}/{name}", value) if isinstance(value, dict) else {f"{prefix}/{name}": float(value)})
-        metric.reset()
+    for (name, metric), seen in zip(metrics.items(), updated_anywhere(list(metrics.values()))):
+        if seen:
+            with warnings.catch_warnings():  # this process saw none; the others did
+                warnings.filterwarnings("ignore", message=".*was called before the ``update`` method.*")
+                value = metric.compute()
+            key = f"{prefix}/{name}" if prefix else name
+            out.update(flatten_metrics(key, value) if isinstance(value, dict) else {key: float(value)})
+        if reset:
+            metric.reset()
     return out

@@ -30,6 +30,7 @@ from occtrain.data.datamodule import ResumableLoader
 from occtrain.data.shards import PAD_KEY
 from occtrain.engine import Evaluator, Priors, scorable
 from occtrain.errors import ConfigError, OcctrainError
+from occtrain.metrics import compute_metrics
 from occtrain.io import atomic_open
 from occtrain.progress import Ticker, console, plain, progress_bar
 from occtrain.stages.loggers import build_loggers
@@ -396,12 +397,7 @@ class ValidationMeans(torch.nn.Module):
 
     def pop(self) -> dict[str, float]:
         """The means of this validation (all ranks must call it), then reset."""
-        out = {}
-        for name, mean in zip(self.names, self.means):
-            if mean.update_count:
-                out[name] = float(mean.compute())
-            mean.reset()
-        return out
+        return compute_metrics("", dict(zip(self.names, self.means)), reset=True)
 
 
 # ----------------------------------------------------------------------------- trainer

@@ -42,7 +42,7 @@ from occtrain.exports import load_state_strict, read_export, write_export
 from occtrain.families.sparseoccvla.tasks import PLANNING_PROMPT, context
 from occtrain.families.sparseoccvla.world_model import EGO_FEATURES, ego_state
 from occtrain.io import atomic_write_safetensors, is_rank_zero
-from occtrain.metrics import PlanningMetric, compute_and_reset
+from occtrain.metrics import PlanningMetric, compute_metrics
 from occtrain.models import count_parameters
 from occtrain.models.planner import constant_velocity
 from occtrain.occ3d import FUTURE_STEPS
@@ -374,7 +374,7 @@ class AnchorDiffusionPlanner(nn.Module):
         self.positive_hit.update(100.0 * hit.mean(), len(clips))
 
     def compute(self, prefix: str) -> dict[str, float]:
-        return compute_and_reset(prefix, {**self.metrics, "scorer_top1": self.positive_hit})
+        return compute_metrics(prefix, reset=True, metrics={**self.metrics, "scorer_top1": self.positive_hit})
 
     def summary(self) -> tuple[str, dict[str, float]]:
         n = count_parameters(self) - count_parameters(self.teacher)
