@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from conftest import run_cli
+from conftest import built_once, run_cli
 
 STAGES = ("tokenizer", "pretrain", "instruct", "planner", "distill")
 #: Optimizer steps per stage of the shared tiny run (a kill test interrupts each in between).
@@ -37,6 +37,11 @@ def quickstart_run(root: Path) -> Path:
     res = run_cli("run", "stages/quickstart.yaml", *tiny_overrides(root / "data", steps=PIPELINE_STEPS), "--run-dir", str(run_dir), timeout=900)
     assert res.returncode == 0, res.stderr[-3000:]
     return run_dir
+
+
+def shared_quickstart_run(tmp_path_factory) -> Path:
+    """The tiny quickstart run, made once for the session's test files that read it."""
+    return built_once(tmp_path_factory, "quickstart", quickstart_run)
 
 
 def export_tensors(stage_dir: Path) -> dict:

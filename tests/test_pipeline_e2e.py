@@ -13,14 +13,14 @@ from pathlib import Path
 import pytest
 
 from conftest import REPO, run_cli
-from quickstart_run import STAGES, quickstart_run, tiny_overrides
+from quickstart_run import STAGES, shared_quickstart_run, tiny_overrides
 
 pytestmark = pytest.mark.slow
 
 
 @pytest.fixture(scope="module")
 def pipeline(tmp_path_factory) -> Path:
-    return quickstart_run(tmp_path_factory.mktemp("pipeline"))
+    return shared_quickstart_run(tmp_path_factory)
 
 
 def test_every_stage_is_done_and_exported(pipeline):
@@ -108,13 +108,14 @@ def test_eval_asks_every_question_and_scores_another_world(pipeline, tmp_path):
 
     # The same model on worlds synthesized from other seeds, in folders of one name: each has
     # its own eval directory and scene cache, keyed by its content (never the other's).
+    from occtrain.config import SynthConfig
+    from occtrain.data.synthesize import synthesize
     from occtrain.evaluate import eval_metrics_file
 
     scored = {}
     for seed in (5, 6):
         other = tmp_path / str(seed) / "world"
-        made = run_cli("data", "synth", "--out", str(other), "--scenes", "1", "--val-scenes", "1", "--frames", "13", "--seed", str(seed))
-        assert made.returncode == 0, made.stderr[-2000:]
+        synthesize(other, SynthConfig(train_scenes=1, val_scenes=1, frames_per_scene=13, seed=seed), verbose=False)
         res = run_cli("eval", str(pipeline / "instruct"), "--tasks", "qa", "--data", str(other))
         assert res.returncode == 0, res.stderr[-3000:]
         out = eval_metrics_file(pipeline / "instruct", "val", other)

@@ -1,6 +1,7 @@
-"""The tiny quickstart killed and resumed in every stage, and trained at bf16-mixed: each
-against a reference run of its own (apart from ``test_pipeline_e2e``'s, so that the two
-files' slow tests run on both pytest workers)."""
+"""The tiny quickstart killed and resumed in every stage, and trained at bf16-mixed, each
+against the reference run ``test_pipeline_e2e`` reads too (made once for the session,
+by whichever pytest worker asks first); a file of its own so both workers share the
+end-to-end time."""
 
 from __future__ import annotations
 
@@ -15,14 +16,14 @@ from pathlib import Path
 import pytest
 
 from conftest import REPO, run_cli
-from quickstart_run import PIPELINE_STEPS, STAGES, export_tensors, quickstart_run, tiny_overrides, train_rows
+from quickstart_run import PIPELINE_STEPS, STAGES, export_tensors, shared_quickstart_run, tiny_overrides, train_rows
 
 pytestmark = pytest.mark.slow
 
 
 @pytest.fixture(scope="module")
 def pipeline(tmp_path_factory) -> Path:
-    return quickstart_run(tmp_path_factory.mktemp("pipeline"))
+    return shared_quickstart_run(tmp_path_factory)
 
 
 def test_kill_9_at_a_random_step_of_every_stage_resumes_bit_exact(pipeline, tmp_path):

@@ -110,10 +110,12 @@ def test_kill_9_then_resume_gives_the_uninterrupted_weights(recipe, tmp_path, ac
 @pytest.mark.parametrize("sig, code", [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
 def test_a_stop_signal_interrupts_in_one_line_and_a_rerun_resumes(recipe, tmp_path, sig, code):
     run_dir = tmp_path / "run"
-    # 16 steps of 1 s: the stage must still be training after the second run below has
-    # started Python and been refused, which takes seconds on a loaded machine. The rerun
-    # that resumes it goes at full speed.
-    args = [str(recipe), "--run-dir", str(run_dir)]
+    # 60 steps of 1 s: the stage must still be training after the second run below has
+    # started Python and been refused, which takes tens of seconds on a loaded machine
+    # (16 steps were too few beside two other pytest workers). The rerun that resumes it
+    # goes at full speed.
+    steps = 60
+    args = [str(recipe), f"trainer.max_steps={steps}", "--run-dir", str(run_dir)]
     proc = subprocess.Popen([sys.executable, "-m", "occtrain", "run", *args], cwd=REPO, env=_env(OCCTRAIN_PROBE_STEP_DELAY="1.0"),
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     last = run_dir / "only" / "checkpoints" / "last.ckpt"
@@ -143,7 +145,7 @@ def test_a_stop_signal_interrupts_in_one_line_and_a_rerun_resumes(recipe, tmp_pa
     assert entry["status"] == "interrupted" and entry["error"] == f"interrupted by {name}" and entry["wall_time_s"] > 0
     assert last.is_file()
     saved_step = torch.load(last, weights_only=True, map_location="cpu")["global_step"]
-    assert 0 < saved_step < 16
+    assert 0 < saved_step < steps
 
     res = run_cli("run", *args)
     assert res.returncode == 0, res.stderr[-2000:]

@@ -105,10 +105,14 @@ def coco_caption_scores(predictions: dict[str, str], references: dict[str, list[
     except ImportError:
         raise OcctrainError("caption metrics need pycocoevalcap: `pip install pycocoevalcap` (or `pip install -e '.[dev]'`)") from None
     ids = list(references)
-    tokenizer = PTBTokenizer()
+    # One Java process for references and predictions alike: the tokeniser treats every
+    # sentence on its own, and each start of Java costs a second or more.
+    both = {("ref", i): [{"caption": r} for r in references[i]] for i in ids}
+    both.update({("pred", i): [{"caption": predictions[i]}] for i in ids})
     with _java_stderr_kept_aside():
-        gts = tokenizer.tokenize({i: [{"caption": r} for r in references[i]] for i in ids})
-        res = tokenizer.tokenize({i: [{"caption": predictions[i]}] for i in ids})
+        tokenized = PTBTokenizer().tokenize(both)
+    gts = {i: tokenized[("ref", i)] for i in ids}
+    res = {i: tokenized[("pred", i)] for i in ids}
     scores: dict[str, float] = {}
     with contextlib.redirect_stdout(io.StringIO()):  # Bleu prints its length ratios
         bleu, _ = Bleu(4).compute_score(gts, res)
