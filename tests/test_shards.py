@@ -87,6 +87,28 @@ def test_train_pipeline_streams_forever_and_shuffles(hand_dataset, shards):
     assert sum(stored.index(b) == stored.index(a) + 1 for a, b in zip(shuffled, shuffled[1:])) < follows
 
 
+def test_the_default_order_is_a_fresh_permutation_of_every_sample_each_epoch():
+    """``shuffle_buffer: -1``: each epoch holds every position once, in an order of its own
+    that the seed fixes; an empty shard is skipped. Shards written in scene order then still
+    give batches from across the whole split, which a buffer of a few shards does not."""
+    from itertools import islice
+
+    from occtrain.data.reading import train_order
+
+    counts = [5, 0, 7, 4]
+    positions = {(shard, i) for shard, n in enumerate(counts) for i in range(n)}
+    first, second = (list(islice(train_order(counts, seed=3, shuffle_buffer=-1), k * 16, (k + 1) * 16)) for k in (0, 1))
+    assert set(first) == set(second) == positions and len(first) == 16
+    assert first != second and first != sorted(first)
+    assert list(islice(train_order(counts, seed=3, shuffle_buffer=-1), 32)) == first + second
+    assert list(islice(train_order(counts, seed=4, shuffle_buffer=-1), 16)) != first
+    # The shards the first 8 samples come from: all three, where a buffer of 4 samples in
+    # front of whole shards of 20 draws them from one.
+    counts = [20, 0, 20, 20]
+    assert len({shard for shard, _ in islice(train_order(counts, seed=3, shuffle_buffer=-1), 8)}) == 3
+    assert len({shard for shard, _ in islice(train_order(counts, seed=3, shuffle_buffer=4), 8)}) == 1
+
+
 def _train_keys(urls: list[str], steps: int, batch_size: int, rank_and_world=(0, 1), workers: int = 0, **kw) -> list[list[str]]:
     """Batches of keys a training DataLoader gives, as one rank of ``rank_and_world``."""
     from torch.utils.data import DataLoader

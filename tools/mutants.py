@@ -133,6 +133,13 @@ MUTANTS = (
         ("tests/test_shards.py::test_train_pipeline_streams_forever_and_shuffles",),
     ),
     Mutant(
+        "epochs-unshuffled", "the default epoch order is the samples as stored",
+        "src/occtrain/data/reading.py",
+        '        random.Random(f"samples:{seed}:{epoch}").shuffle(order)\n',
+        "        pass\n",
+        ("tests/test_shards.py::test_the_default_order_is_a_fresh_permutation_of_every_sample_each_epoch",),
+    ),
+    Mutant(
         "workers-read-everything", "each validation loader worker reads every sample",
         "src/occtrain/data/reading.py",
         "    return mine[worker::workers]\n",

@@ -141,7 +141,7 @@ _LEAST: dict[str, dict[str, float | None]] = {
         "devices": 1, "num_nodes": 1, "val_check_interval": 1, "log_every_n_steps": 1, "ckpt_every_n_steps": 1,
         "accumulate_grad_batches": 1, "limit_val_batches": -1, "gradient_clip_val": 0,
     },
-    "data": {"batch_size": 1, "num_workers": 0, "shuffle_buffer": 0, "samples_per_shard": 1, "history": 0, "future": 0},
+    "data": {"batch_size": 1, "num_workers": 0, "shuffle_buffer": -1, "samples_per_shard": 1, "history": 0, "future": 0},
     "optim": {"lr": 0, "weight_decay": 0, "warmup_steps": 0, "min_lr_ratio": 0, "eps": 0},
 }
 

@@ -49,8 +49,9 @@ class DataConfig:
     future: int = 6
     batch_size: int = 2
     num_workers: int = 0
-    #: Samples shuffled together across the shards of each seeded epoch (<= 1: shard order).
-    shuffle_buffer: int = 128
+    #: How each seeded epoch is shuffled: -1, every sample in one permutation; 0 or 1, whole
+    #: shards in a permutation; larger, those shards mixed by a buffer of this many samples.
+    shuffle_buffer: int = -1
     seed: int = 0
 
 

@@ -17,6 +17,7 @@ resumed run starts at a sample position without reading what it skips.
 
 from __future__ import annotations
 
+import bisect
 import itertools
 import os
 import random
@@ -82,10 +83,21 @@ def shard_members(url: str) -> list[SampleRef]:
 
 def train_order(counts: list[int], seed: int, shuffle_buffer: int) -> Iterator[tuple[int, int]]:
     """The endless training order over ``(shard, sample)`` positions, the same in every
-    process: each epoch reads the shards in a permutation seeded by ``seed`` and the epoch,
-    and a seeded buffer of ``shuffle_buffer`` samples shuffles them (``<= 1``: shard order)."""
+    process, a function of ``seed`` alone:
+
+    - ``shuffle_buffer < 0``: each epoch is a seeded permutation of every sample. Samples are
+      read by position, so this costs no reading beyond the samples themselves;
+    - ``0`` or ``1``: each epoch reads the shards whole, in a seeded permutation;
+    - larger: that permutation of shards, mixed by a seeded buffer of ``shuffle_buffer``
+      samples. Shards written in scene order then give batches from only the few scenes
+      the buffer spans (128 samples spanned 3 of the quickstart's 12 train scenes, and its
+      planning head ended 0.44 m from the truth instead of 0.19 m).
+    """
     if not any(counts):
         raise DataError("the training shards hold no sample")
+    if shuffle_buffer < 0:
+        yield from _epoch_permutations(counts, seed)
+        return
 
     def epochs() -> Iterator[tuple[int, int]]:
         for epoch in itertools.count():
@@ -107,6 +119,17 @@ def train_order(counts: list[int], seed: int, shuffle_buffer: int) -> Iterator[t
         j = rng.randrange(shuffle_buffer)
         yield buffer[j]
         buffer[j] = item
+
+
+def _epoch_permutations(counts: list[int], seed: int) -> Iterator[tuple[int, int]]:
+    starts = list(itertools.accumulate(counts, initial=0))
+    for epoch in itertools.count():
+        order = list(range(starts[-1]))
+        random.Random(f"samples:{seed}:{epoch}").shuffle(order)
+        for n in order:
+            # The last shard starting at or before n: empty shards share a start and are skipped.
+            shard = bisect.bisect_right(starts, n) - 1
+            yield shard, n - starts[shard]
 
 
 def own_train_positions(

@@ -491,7 +491,7 @@ def make_pipeline(
     urls: list[str],
     train: bool,
     total: int | None = None,
-    shuffle_buffer: int = 128,
+    shuffle_buffer: int = -1,
     seed: int = 0,
     transform: Callable[[dict], Any] | None = None,
     entries: Iterable[str] | None = None,
