@@ -7,15 +7,12 @@ from __future__ import annotations
 
 import json
 import os
-import signal
-import subprocess
-import sys
 import time
 from pathlib import Path
 
 import pytest
 
-from conftest import REPO, run_cli
+from conftest import kill_at_checkpoint, run_cli
 from quickstart_run import PIPELINE_STEPS, STAGES, export_tensors, shared_quickstart_run, tiny_overrides, train_rows
 
 pytestmark = pytest.mark.slow
@@ -37,28 +34,7 @@ def test_kill_9_at_a_random_step_of_every_stage_resumes_bit_exact(pipeline, tmp_
     rng = random.Random(int(os.environ.get("OCCTRAIN_TEST_SEED", time.time_ns() % 10_000)))
     run_dir = tmp_path / "run"
     args = ["run", "stages/quickstart.yaml", *tiny_overrides(pipeline.parent / "data", steps=PIPELINE_STEPS), "--run-dir", str(run_dir)]
-    env = dict(os.environ, PYTHONWARNINGS="ignore")
-    killed_at = {}
-    for name in STAGES:
-        target = rng.randint(1, PIPELINE_STEPS - 1)
-        proc = subprocess.Popen([sys.executable, "-m", "occtrain", *args], cwd=REPO, env=env,
-                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
-        last = run_dir / name / "checkpoints" / "last.ckpt"
-        deadline = time.time() + 600
-        step = -1
-        while proc.poll() is None and time.time() < deadline:
-            if last.is_file():
-                try:
-                    step = torch.load(last, weights_only=True, map_location="cpu")["global_step"]
-                except (RuntimeError, OSError, EOFError):
-                    step = -1  # replaced while reading
-                if step >= target:
-                    break
-            time.sleep(0.02)
-        assert proc.poll() is None, f"{name} finished before step {target}"
-        os.killpg(proc.pid, signal.SIGKILL)
-        proc.wait()
-        killed_at[name] = torch.load(last, weights_only=True, map_location="cpu")["global_step"]  # the file as the kill left it
+    killed_at = {name: kill_at_checkpoint(args, run_dir / name / "checkpoints" / "last.ckpt", rng.randint(1, PIPELINE_STEPS - 1)) for name in STAGES}
     res = run_cli(*args, timeout=900)
     assert res.returncode == 0, res.stderr[-3000:]
 

@@ -33,7 +33,7 @@ import torch.distributed as dist  # noqa: E402
 import torch.multiprocessing as mp  # noqa: E402
 
 from occtrain.config.llm import LLMConfig  # noqa: E402
-from occtrain.memory_plan import GIB, count_llm, plan  # noqa: E402
+from occtrain.memory_plan import GIB, MemoryRow, count_llm, plan  # noqa: E402
 from occtrain.models.llm import build_llm, checkpoint_layers  # noqa: E402
 
 VOCAB = 8000
@@ -47,6 +47,11 @@ def _rss_bytes() -> int:
 
 def _peak_bytes() -> int:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+
+
+def one_process(ddp: MemoryRow) -> float:
+    """The plan of one process: DDP's row without its gradient buckets (a gradients' copy)."""
+    return ddp.total - ddp.gradients
 
 
 def _step(rank: int, world: int, mode: str, cfg: LLMConfig, args: argparse.Namespace, store: str, out: str) -> None:
@@ -127,7 +132,7 @@ def main_cuda(cfg: LLMConfig, count, args: argparse.Namespace) -> None:
         for checkpointing in (False, True):
             args.checkpointing = checkpointing
             ddp, _ = plan(count, precision, args.batch, args.seq, 1, checkpointing)
-            planned = ddp.total - ddp.gradients  # one process: no DDP gradient buckets
+            planned = one_process(ddp)
             peak = measure_cuda(cfg, args, precision)
             name = precision + (", checkpointing" if checkpointing else "")
             print(f"{name:<32} {peak / GIB:>9.2f} {planned / GIB:>9.2f} {peak / planned:>19.2f}", flush=True)
@@ -150,7 +155,7 @@ def main() -> None:
     for checkpointing in (False, True):
         args.checkpointing = checkpointing
         ddp, sharded = plan(count, "32-true", args.batch, args.seq, 2, checkpointing)
-        single = ddp.total - ddp.extra  # one process has no gradient buckets
+        single = one_process(ddp)
         for mode, planned in zip(MODES, (single, ddp.total, sharded.total)):
             peaks = measure(mode, cfg, args)
             name = mode + (", checkpointing" if checkpointing else "")

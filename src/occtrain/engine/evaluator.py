@@ -243,7 +243,7 @@ class Evaluator(torch.nn.Module):
     def compute(self, prefix: str) -> dict[str, float]:
         """Every metric that saw samples on any process, flattened under ``prefix`` (e.g.
         ``val/qa_overall``). Every process calls it."""
-        out = compute_metrics(prefix, dict(self.metrics.items()))
+        out = compute_metrics(prefix, self.metrics)
         for scorer in [s for ss in self.scorers.values() for s in ss]:
             out.update(scorer.summary(prefix))
         return out
