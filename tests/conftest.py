@@ -110,14 +110,166 @@ def built_once(tmp_path_factory, name: str, build: Callable[[Path], Path]) -> Pa
     return folder / done.read_text()
 
 
-def run_cli(*args: str, cwd: Path | None = None, timeout: float = 300, env: dict[str, str] | None = None) -> subprocess.CompletedProcess:
-    """Run the real ``occtrain`` CLI in a subprocess (``env``: variables to add)."""
-    # tests/ on the path so recipes can load test-only plugins (tests/plugins/).
+def cli_env(extra: dict[str, str] | None = None) -> dict[str, str]:
+    """The environment of a test's ``occtrain`` process: tests/ on the path, so recipes can
+    load test-only plugins (tests/plugins/), and ``extra`` added."""
     path = os.pathsep.join(filter(None, [str(REPO / "tests"), os.environ.get("PYTHONPATH", "")]))
-    env = dict(os.environ, PYTHONWARNINGS="ignore", PYTHONPATH=path, **(env or {}))
-    return subprocess.run(
-        [sys.executable, "-m", "occtrain", *args], cwd=cwd or REPO, env=env, capture_output=True, text=True, timeout=timeout
-    )
+    return dict(os.environ, PYTHONWARNINGS="ignore", PYTHONPATH=path, **(extra or {}))
+
+
+#: Set to 1 to start every test's ``occtrain`` process from scratch instead of forking it
+#: from the warm parent (tests/cli_zygote.py): slower, and the check that nothing depends on it.
+FRESH_PROCESSES = os.environ.get("OCCTRAIN_TEST_FRESH_PROCESSES") == "1"
+
+
+class CliProcess:
+    """One ``occtrain`` process forked by the warm parent, with :class:`subprocess.Popen`'s
+    ``pid``, ``poll``, ``wait`` and ``returncode``; its output is read once it has ended."""
+
+    def __init__(self, parent: _WarmParent, pid: int, out: Path, err: Path) -> None:
+        self.parent, self.pid, self._out, self._err = parent, pid, out, err
+        self.returncode: int | None = None
+
+    def poll(self) -> int | None:
+        if self.returncode is None:
+            self.returncode = self.parent.exit_code(self.pid, timeout=0)
+        return self.returncode
+
+    def wait(self, timeout: float | None = None) -> int:
+        if self.returncode is None:
+            self.returncode = self.parent.exit_code(self.pid, timeout)
+            if self.returncode is None:
+                raise subprocess.TimeoutExpired(str(self.pid), timeout or 0)
+        return self.returncode
+
+    def send_signal(self, sig: int) -> None:
+        if self.poll() is None:
+            os.kill(self.pid, sig)
+
+    def output(self) -> tuple[str, str]:
+        texts = (self._out.read_text(errors="replace"), self._err.read_text(errors="replace"))
+        self._out.unlink(missing_ok=True)
+        self._err.unlink(missing_ok=True)
+        return texts
+
+
+class _WarmParent:
+    """The client of tests/cli_zygote.py: one per pytest process, started on first use."""
+
+    def __init__(self) -> None:
+        import tempfile
+
+        self.folder = Path(tempfile.mkdtemp(prefix="occtrain-cli-"))
+        self.proc = subprocess.Popen(
+            [sys.executable, str(REPO / "tests" / "cli_zygote.py")], cwd=REPO, env=cli_env(),
+            stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+        )
+        self.buffer, self.started, self.exited, self.count = b"", [], {}, 0
+        self._read_until(lambda: self.started, timeout=300, what="the warm parent to import occtrain")
+        self.started.clear()
+
+    def alive(self) -> bool:
+        return self.proc.poll() is None
+
+    def spawn(self, argv: list[str], cwd: Path, env: dict[str, str], session: bool) -> CliProcess:
+        import json
+
+        self.count += 1
+        out, err = self.folder / f"{self.count}.out", self.folder / f"{self.count}.err"
+        request = {"argv": list(argv), "cwd": str(cwd), "env": env, "stdout": str(out), "stderr": str(err), "session": session}
+        self.proc.stdin.write((json.dumps(request) + "\n").encode())
+        self.proc.stdin.flush()
+        self._read_until(lambda: self.started, timeout=60, what="a fork")
+        return CliProcess(self, self.started.pop(0), out, err)
+
+    def exit_code(self, pid: int, timeout: float | None) -> int | None:
+        self._read_until(lambda: pid in self.exited, timeout=timeout, what=None)
+        return self.exited.pop(pid, None)
+
+    def _read_until(self, done: Callable[[], bool], timeout: float | None, what: str | None) -> None:
+        import json
+        import select
+        import time
+
+        deadline = None if timeout is None else time.monotonic() + timeout
+        fd = self.proc.stdout.fileno()
+        while not done():
+            left = None if deadline is None else max(0.0, deadline - time.monotonic())
+            if not select.select([fd], [], [], left)[0]:
+                if what:
+                    raise RuntimeError(f"timed out waiting for {what}")
+                return
+            chunk = os.read(fd, 1 << 16)
+            if not chunk:
+                raise RuntimeError(f"the warm parent of the CLI processes ended (exit code {self.proc.wait()})")
+            self.buffer += chunk
+            while b"\n" in self.buffer:
+                line, self.buffer = self.buffer.split(b"\n", 1)
+                answer = json.loads(line)
+                if "exited" in answer:
+                    self.exited[answer["exited"]] = answer["rc"]
+                else:
+                    self.started.append(answer.get("started", answer.get("ready")))
+
+    def close(self) -> None:
+        self.proc.stdin.close()
+        self.proc.wait(timeout=30)
+        shutil.rmtree(self.folder, ignore_errors=True)
+
+
+_warm_parent: _WarmParent | None = None
+
+
+class _FreshCliProcess(subprocess.Popen):
+    """``occtrain`` started from scratch (FRESH_PROCESSES), with :class:`CliProcess`'s ``output``."""
+
+    def __init__(self, args: list[str], cwd: Path, env: dict[str, str], session: bool, out: Path, err: Path) -> None:
+        self._out, self._err = out, err
+        with open(out, "w") as stdout, open(err, "w") as stderr:
+            super().__init__([sys.executable, "-m", "occtrain", *args], cwd=cwd, env=env, stdout=stdout, stderr=stderr,
+                             start_new_session=session)  # fmt: skip
+
+    output = CliProcess.output
+
+
+_warm_parent: _WarmParent | None = None
+
+
+def start_cli(*args: str, cwd: Path | None = None, env: dict[str, str] | None = None, session: bool = False, fresh: bool = False):
+    """Start ``occtrain ARGS`` without waiting, forked from the warm parent (a
+    :class:`CliProcess`) or, with ``fresh`` or FRESH_PROCESSES, from scratch. ``session``:
+    its own session and process group, for ``os.killpg``. ``output()`` reads its stdout
+    and stderr once it has ended."""
+    global _warm_parent
+    if fresh or FRESH_PROCESSES:
+        import tempfile
+
+        folder = Path(tempfile.mkdtemp(prefix="occtrain-cli-"))
+        return _FreshCliProcess(list(args), cwd or REPO, cli_env(env), session, folder / "out", folder / "err")
+    if _warm_parent is None or not _warm_parent.alive():
+        import atexit
+
+        _warm_parent = _WarmParent()
+        atexit.register(_warm_parent.close)
+    return _warm_parent.spawn(list(args), cwd or REPO, cli_env(env), session)
+
+
+def run_cli(
+    *args: str, cwd: Path | None = None, timeout: float = 300, env: dict[str, str] | None = None, fresh: bool = False
+) -> subprocess.CompletedProcess:
+    """Run the real ``occtrain`` CLI in another process and wait for it (``env``: variables
+    to add); see :func:`start_cli`."""
+    import signal
+
+    proc = start_cli(*args, cwd=cwd, env=env, session=True, fresh=fresh)
+    try:
+        code = proc.wait(timeout)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
+        raise
+    out, err = proc.output()
+    return subprocess.CompletedProcess(["occtrain", *args], code, out, err)
 
 
 def kill_at_checkpoint(args: list[str], checkpoint: Path, step: int, env: dict[str, str] | None = None, timeout: float = 600) -> int:
@@ -128,11 +280,7 @@ def kill_at_checkpoint(args: list[str], checkpoint: Path, step: int, env: dict[s
 
     import torch
 
-    path = os.pathsep.join(filter(None, [str(REPO / "tests"), os.environ.get("PYTHONPATH", "")]))
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "occtrain", *args], cwd=REPO, env=dict(os.environ, PYTHONWARNINGS="ignore", PYTHONPATH=path, **(env or {})),
-        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True,
-    )
+    proc = start_cli(*args, env=env, session=True)
     deadline = time.time() + timeout
     while proc.poll() is None and time.time() < deadline:
         if checkpoint.is_file():

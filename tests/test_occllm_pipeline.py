@@ -6,16 +6,11 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import signal
-import subprocess
-import sys
-import time
 from pathlib import Path
 
 import pytest
 
-from conftest import REPO, run_cli
+from conftest import kill_at_checkpoint, run_cli
 from quickstart_run import export_tensors, tiny_overrides, train_rows
 
 pytestmark = pytest.mark.slow
@@ -92,21 +87,7 @@ def test_the_msvae_tokenizer_resumes_bit_exact_after_kill_9(occllm_run, tmp_path
 
     run_dir = tmp_path / "run"
     args = ["run", "stages/occllm.yaml", *overrides(occllm_run.parent / "data"), "--run-dir", str(run_dir), "--only", "tokenizer"]
-    proc = subprocess.Popen([sys.executable, "-m", "occtrain", *args], cwd=REPO, env=dict(os.environ, PYTHONWARNINGS="ignore"),
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)  # fmt: skip
-    last = run_dir / "tokenizer" / "checkpoints" / "last.ckpt"
-    deadline, step = time.time() + 600, -1
-    while proc.poll() is None and time.time() < deadline and step < 2:
-        if last.is_file():
-            try:
-                step = torch.load(last, weights_only=True, map_location="cpu")["global_step"]
-            except (RuntimeError, OSError, EOFError):
-                step = -1  # replaced while reading
-        time.sleep(0.02)
-    assert proc.poll() is None, "the tokenizer finished before it could be killed"
-    os.killpg(proc.pid, signal.SIGKILL)
-    proc.wait()
-    step = torch.load(last, weights_only=True, map_location="cpu")["global_step"]
+    step = kill_at_checkpoint(args, run_dir / "tokenizer" / "checkpoints" / "last.ckpt", step=2)
     res = run_cli(*args, timeout=900)
     assert res.returncode == 0, res.stderr[-3000:]
     entry = json.loads((run_dir / "manifest.json").read_text())["stages"]["tokenizer"]

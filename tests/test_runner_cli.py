@@ -6,15 +6,13 @@ import json
 import os
 import signal
 import socket
-import subprocess
-import sys
 import time
 
 import pytest
 import torch
 from safetensors.torch import load_file
 
-from conftest import REPO, run_cli, write_hand_dataset
+from conftest import run_cli, start_cli, write_hand_dataset
 
 pytestmark = pytest.mark.slow
 
@@ -50,11 +48,6 @@ def recipe(tmp_path):
     return path
 
 
-def _env(**extra: str) -> dict:
-    path = os.pathsep.join(filter(None, [str(REPO / "tests"), os.environ.get("PYTHONPATH", "")]))
-    return dict(os.environ, PYTHONPATH=path, PYTHONWARNINGS="ignore", **extra)
-
-
 #: A quarter of a second per step (tests/plugins/probe_stage.py), to kill a run mid-stage.
 SLOW = {"OCCTRAIN_PROBE_STEP_DELAY": "0.25"}
 
@@ -68,8 +61,7 @@ def test_kill_9_then_resume_gives_the_uninterrupted_weights(recipe, tmp_path, ac
     reference = load_file(tmp_path / "ref" / "only" / "export" / "model.safetensors")
 
     run_dir = tmp_path / "cut"
-    cmd = [sys.executable, "-m", "occtrain", "run", str(recipe), acc, "--run-dir", str(run_dir)]
-    proc = subprocess.Popen(cmd, cwd=REPO, env=_env(**SLOW), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    proc = start_cli("run", str(recipe), acc, "--run-dir", str(run_dir), env=SLOW, session=True)
     last = run_dir / "only" / "checkpoints" / "last.ckpt"
     deadline = time.time() + 120
     while time.time() < deadline and proc.poll() is None:
@@ -116,8 +108,7 @@ def test_a_stop_signal_interrupts_in_one_line_and_a_rerun_resumes(recipe, tmp_pa
     # goes at full speed.
     steps = 60
     args = [str(recipe), f"trainer.max_steps={steps}", "--run-dir", str(run_dir)]
-    proc = subprocess.Popen([sys.executable, "-m", "occtrain", "run", *args], cwd=REPO, env=_env(OCCTRAIN_PROBE_STEP_DELAY="1.0"),
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc = start_cli("run", *args, env={"OCCTRAIN_PROBE_STEP_DELAY": "1.0"})
     last = run_dir / "only" / "checkpoints" / "last.ckpt"
     deadline = time.time() + 120
     while not last.is_file() and proc.poll() is None and time.time() < deadline:
@@ -133,7 +124,8 @@ def test_a_stop_signal_interrupts_in_one_line_and_a_rerun_resumes(recipe, tmp_pa
 
     assert proc.poll() is None, "the stage finished before the signal"
     proc.send_signal(sig)
-    _, err = proc.communicate(timeout=120)
+    proc.wait(timeout=120)
+    _, err = proc.output()
     assert proc.returncode == code, err[-2000:]
     name = signal.Signals(sig).name
     assert err.splitlines()[-1] == (

@@ -9,17 +9,12 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import shutil
-import signal
-import subprocess
-import sys
-import time
 from pathlib import Path
 
 import pytest
 
-from conftest import REPO, run_cli
+from conftest import kill_at_checkpoint, run_cli
 from test_sparseoccvla import write_omnidrive
 
 pytestmark = pytest.mark.slow
@@ -136,22 +131,9 @@ def test_kill_9_in_stage_1_and_stage_2_resumes_bit_exact(sparse_run, world, tmp_
     from safetensors.torch import load_file
 
     run_dir = tmp_path / "run"
-    args = [sys.executable, "-m", "occtrain", "run", "stages/sparseoccvla.yaml", *overrides(world), "--run-dir", str(run_dir)]
-    env = dict(os.environ, PYTHONWARNINGS="ignore", PYTHONPATH=str(REPO / "tests"))
+    args = ["run", "stages/sparseoccvla.yaml", *overrides(world), "--run-dir", str(run_dir)]
     for name in ("stage1", "stage2"):
-        proc = subprocess.Popen(args, cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
-        last = run_dir / name / "checkpoints" / "last.ckpt"
-        deadline = time.time() + 600
-        while proc.poll() is None and time.time() < deadline:
-            try:
-                if last.is_file() and torch.load(last, weights_only=True, map_location="cpu")["global_step"] >= 1:
-                    break
-            except (RuntimeError, OSError, EOFError):
-                pass  # replaced while reading
-            time.sleep(0.02)
-        assert proc.poll() is None, f"{name} finished before it could be killed"
-        os.killpg(proc.pid, signal.SIGKILL)
-        proc.wait()
+        kill_at_checkpoint(args, run_dir / name / "checkpoints" / "last.ckpt", step=1)
     res = run_cli("run", "stages/sparseoccvla.yaml", *overrides(world), "--run-dir", str(run_dir), timeout=900)
     assert res.returncode == 0, res.stderr[-3000:]
     stages = json.loads((run_dir / "manifest.json").read_text())["stages"]

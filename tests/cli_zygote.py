@@ -1,0 +1,113 @@
+"""A warm parent for the tests' ``occtrain`` processes (run as a script by ``conftest``).
+
+Every ``occtrain`` process spends 8-10 s importing torch, Lightning and transformers
+before it reads its arguments, and the suite starts about a hundred of them. This process
+imports them once, then forks one child per request; the child runs ``occtrain.cli.main``
+exactly as ``python -m occtrain`` would (its own pid and exit code, optionally its own
+session, its stdout and stderr in files, its environment and working directory), so the
+tests still drive the real CLI in a separate process. Nothing here runs a torch op before
+forking, so no thread pool is inherited.
+
+Protocol, JSON lines: requests on stdin ``{"argv", "cwd", "env", "stdout", "stderr",
+"session"}``; answers on the original stdout ``{"started": pid}`` in request order and
+``{"exited": pid, "rc": code}`` as children end (``rc`` is negative for a signal, as in
+:mod:`subprocess`).
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import os
+import select
+import sys
+import traceback
+
+# The imports a `run` or `eval` spends its start-up on.
+import lightning  # noqa: F401
+import torch  # noqa: F401
+import transformers  # noqa: F401
+
+import occtrain.cli
+import occtrain.evaluate  # noqa: F401
+import occtrain.runner  # noqa: F401
+
+
+def _child(spec: dict) -> None:
+    """Become ``python -m occtrain ARGV``; never returns."""
+    code = 1
+    try:
+        if spec.get("session"):
+            os.setsid()
+        os.chdir(spec["cwd"])
+        os.environ.clear()
+        os.environ.update(spec["env"])
+        sys.path[0] = spec["cwd"]  # what `python -m` puts first, where this script's folder was
+        for entry in reversed(spec["env"].get("PYTHONPATH", "").split(os.pathsep)):
+            if entry and entry not in sys.path:
+                sys.path.insert(1, entry)
+        devnull = os.open(os.devnull, os.O_RDONLY)
+        os.dup2(devnull, 0)  # stdin is this process's request pipe
+        os.close(devnull)
+        for fd, name in ((1, "stdout"), (2, "stderr")):
+            out = os.open(spec[name], os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+            os.dup2(out, fd)
+            os.close(out)
+        # Lightning's DDP launcher restarts `python -m <__main__.__spec__.name> argv[1:]`.
+        sys.modules["__main__"].__spec__ = importlib.util.find_spec("occtrain.__main__")
+        sys.argv = [occtrain.cli.__file__, *spec["argv"]]
+        try:
+            code = occtrain.cli.main(spec["argv"])
+        except SystemExit as stop:
+            code = stop.code if isinstance(stop.code, int) else (0 if stop.code is None else 1)
+            if not isinstance(stop.code, int) and stop.code is not None:
+                print(stop.code, file=sys.stderr)
+        except BaseException:  # noqa: BLE001 - what the interpreter does with an uncaught one
+            traceback.print_exc()
+            code = 1
+        import atexit
+
+        atexit._run_exitfuncs()
+    finally:
+        for stream in (sys.stdout, sys.stderr):
+            try:
+                stream.flush()
+            except Exception:  # noqa: BLE001
+                pass
+        os._exit(code)
+
+
+def main() -> None:
+    answers = os.fdopen(os.dup(1), "w", buffering=1)
+    os.dup2(2, 1)  # a stray print must not corrupt the protocol
+    requests = sys.stdin.fileno()
+    answers.write(json.dumps({"ready": os.getpid()}) + "\n")
+    pending = b""
+    while True:
+        readable, _, _ = select.select([requests], [], [], 0.05)
+        while True:  # reap every child that ended
+            try:
+                pid, status = os.waitpid(-1, os.WNOHANG)
+            except ChildProcessError:
+                break
+            if pid == 0:
+                break
+            answers.write(json.dumps({"exited": pid, "rc": os.waitstatus_to_exitcode(status)}) + "\n")
+        if not readable:
+            continue
+        chunk = os.read(requests, 1 << 16)
+        if not chunk:
+            return
+        pending += chunk
+        while b"\n" in pending:
+            line, pending = pending.split(b"\n", 1)
+            spec = json.loads(line)
+            pid = os.fork()
+            if pid == 0:
+                answers.close()
+                _child(spec)
+            answers.write(json.dumps({"started": pid}) + "\n")
+
+
+if __name__ == "__main__":
+    main()
