@@ -36,7 +36,7 @@ from occtrain.data.clips import Clip, Part, Scene, Text, plan_target
 from occtrain.exports import write_export
 from occtrain.metrics import PlanningMetric, compute_metrics
 from occtrain.models.planner import constant_velocity, current_velocity
-from occtrain.occ3d import CLASS_INDEX, FREE, GRID_SHAPE, NUM_CLASSES, VOXEL_SIZE, FUTURE_STEPS
+from occtrain.occ3d import CLASS_INDEX, GRID_SHAPE, NUM_CLASSES, VOXEL_SIZE, FUTURE_STEPS
 
 CELLS = 10  # columns per side
 SIDE = GRID_SHAPE[0] // CELLS

@@ -24,7 +24,7 @@ from typing import Any, Generator, NamedTuple, Union
 
 import torch
 
-from occtrain.core.sequence import PayloadSpec, Step, TokenSequence, cat_payload, empty_payload, prompt_of, rows
+from occtrain.core.sequence import Step, TokenSequence, cat_payload, empty_payload, prompt_of, rows
 from occtrain.core.vocab import JointVocab
 from occtrain.models.attention import allowed_pairs, chunk_allowed, scene_segments
 
