@@ -54,8 +54,9 @@ def _child(spec: dict) -> None:
             os.dup2(out, fd)
             os.close(out)
         # Lightning's DDP launcher restarts `python -m <__main__.__spec__.name> argv[1:]`.
-        sys.modules["__main__"].__spec__ = importlib.util.find_spec("occtrain.__main__")
-        sys.argv = [occtrain.cli.__file__, *spec["argv"]]
+        main_spec = importlib.util.find_spec("occtrain.__main__")
+        sys.modules["__main__"].__spec__ = main_spec
+        sys.argv = [main_spec.origin, *spec["argv"]]  # as `python -m occtrain` sets it
         try:
             code = occtrain.cli.main(spec["argv"])
         except SystemExit as stop:
