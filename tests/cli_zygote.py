@@ -59,10 +59,12 @@ def _child(spec: dict) -> None:
         sys.argv = [main_spec.origin, *spec["argv"]]  # as `python -m occtrain` sets it
         try:
             code = occtrain.cli.main(spec["argv"])
-        except SystemExit as stop:
-            code = stop.code if isinstance(stop.code, int) else (0 if stop.code is None else 1)
-            if not isinstance(stop.code, int) and stop.code is not None:
+        except SystemExit as stop:  # what the interpreter does with it: a message exits 1
+            if stop.code is None or isinstance(stop.code, int):
+                code = stop.code or 0
+            else:
                 print(stop.code, file=sys.stderr)
+                code = 1
         except BaseException:  # noqa: BLE001 - what the interpreter does with an uncaught one
             traceback.print_exc()
             code = 1

@@ -2,12 +2,18 @@
 
 from __future__ import annotations
 
+import atexit
 import fcntl
 import hashlib
+import json
 import os
+import select
 import shutil
+import signal
 import subprocess
 import sys
+import tempfile
+import time
 from pathlib import Path
 from typing import Callable
 
@@ -157,8 +163,6 @@ class _WarmParent:
     """The client of tests/cli_zygote.py: one per pytest process, started on first use."""
 
     def __init__(self) -> None:
-        import tempfile
-
         self.folder = Path(tempfile.mkdtemp(prefix="occtrain-cli-"))
         self.proc = subprocess.Popen(
             [sys.executable, str(REPO / "tests" / "cli_zygote.py")], cwd=REPO, env=cli_env(),
@@ -172,8 +176,6 @@ class _WarmParent:
         return self.proc.poll() is None
 
     def spawn(self, argv: list[str], cwd: Path, env: dict[str, str], session: bool) -> CliProcess:
-        import json
-
         self.count += 1
         out, err = self.folder / f"{self.count}.out", self.folder / f"{self.count}.err"
         request = {"argv": list(argv), "cwd": str(cwd), "env": env, "stdout": str(out), "stderr": str(err), "session": session}
@@ -187,10 +189,6 @@ class _WarmParent:
         return self.exited.pop(pid, None)
 
     def _read_until(self, done: Callable[[], bool], timeout: float | None, what: str | None) -> None:
-        import json
-        import select
-        import time
-
         deadline = None if timeout is None else time.monotonic() + timeout
         fd = self.proc.stdout.fileno()
         while not done():
@@ -217,9 +215,6 @@ class _WarmParent:
         shutil.rmtree(self.folder, ignore_errors=True)
 
 
-_warm_parent: _WarmParent | None = None
-
-
 class _FreshCliProcess(subprocess.Popen):
     """``occtrain`` started from scratch (FRESH_PROCESSES), with :class:`CliProcess`'s ``output``."""
 
@@ -242,13 +237,9 @@ def start_cli(*args: str, cwd: Path | None = None, env: dict[str, str] | None = 
     and stderr once it has ended."""
     global _warm_parent
     if fresh or FRESH_PROCESSES:
-        import tempfile
-
         folder = Path(tempfile.mkdtemp(prefix="occtrain-cli-"))
         return _FreshCliProcess(list(args), cwd or REPO, cli_env(env), session, folder / "out", folder / "err")
     if _warm_parent is None or not _warm_parent.alive():
-        import atexit
-
         _warm_parent = _WarmParent()
         atexit.register(_warm_parent.close)
     return _warm_parent.spawn(list(args), cwd or REPO, cli_env(env), session)
@@ -259,8 +250,6 @@ def run_cli(
 ) -> subprocess.CompletedProcess:
     """Run the real ``occtrain`` CLI in another process and wait for it (``env``: variables
     to add); see :func:`start_cli`."""
-    import signal
-
     proc = start_cli(*args, cwd=cwd, env=env, session=True, fresh=fresh)
     try:
         code = proc.wait(timeout)
@@ -275,9 +264,6 @@ def run_cli(
 def kill_at_checkpoint(args: list[str], checkpoint: Path, step: int, env: dict[str, str] | None = None, timeout: float = 600) -> int:
     """Start ``occtrain ARGS`` in its own process group, kill it (-9) once ``checkpoint``
     holds ``step`` or later, and return the step the checkpoint holds after the kill."""
-    import signal
-    import time
-
     import torch
 
     proc = start_cli(*args, env=env, session=True)
