@@ -16,6 +16,7 @@ from occtrain.core.builder import SequenceBuilder, collate
 from occtrain.core.decoding import QueryBlock
 from occtrain.core.sequence import IGNORE
 from occtrain.core.world_model import WorldInputs
+from occtrain.families.occllama.config import OccLLaMAWorldConfig
 from occtrain.families.occllama.world_model import OccLLaMAWorldModel as OccWorldModel
 
 TEXTS = ["go straight", "plan the route", "turn left then stop", "the car turns left"] * 10
@@ -31,9 +32,9 @@ def vocab():
     return JointVocab(train_text_tokenizer(TEXTS, 300), 16, scene_hw=(3, 3), llm_cfg=CFG)
 
 
-def make_world(vocab, mode: str, seed: int = 0) -> OccWorldModel:
+def make_world(vocab, mode: str, seed: int = 0, queries: str = "learned") -> OccWorldModel:
     torch.manual_seed(seed)
-    return OccWorldModel(build_llm(CFG, len(vocab)), vocab, torch.randn(16, 8), mode)
+    return OccWorldModel(build_llm(CFG, len(vocab)), vocab, torch.randn(16, 8), mode, OccLLaMAWorldConfig(queries))
 
 
 def prompt(b: SequenceBuilder) -> SequenceBuilder:
@@ -110,11 +111,11 @@ def test_token_accuracy_by_hand():
     assert float(OccWorldModel.token_accuracy(logits, labels, torch.tensor([[False, True, True, False]]))) == 0.0
 
 
-@pytest.mark.parametrize("mode", ["next_scene", "next_token"])
-def test_overfit_then_generate(vocab, mode):
+@pytest.mark.parametrize("mode,queries", [("next_scene", "learned"), ("next_scene", "last_scene"), ("next_token", "learned")])
+def test_overfit_then_generate(vocab, mode, queries):
     """Training and generation agree: a model that memorised one sequence regenerates its
     answers greedily from the prompt (actions, then the scene, then the text)."""
-    world = make_world(vocab, mode)
+    world = make_world(vocab, mode, queries=queries)
     batch = collate([full_sequence(world.builder())], vocab.pad_id)
     opt = torch.optim.Adam(world.parameters(), lr=3e-3)
     first = None
@@ -135,9 +136,8 @@ def test_overfit_then_generate(vocab, mode):
     assert torch.equal(decoder.scene(), TARGET)
     assert vocab.decode_text(decoder.text(20)) == "turn left then stop"
     # The generated stream is the training sequence with the queries replaced by the codes.
-    want = full_sequence(world.builder()).input_ids
-    want = want[~vocab.is_query(want)]
-    assert torch.equal(decoder.flush(), want)
+    seq = full_sequence(world.builder())
+    assert torch.equal(decoder.flush(), seq.input_ids[seq.segment_ids >= 0])
 
 
 @pytest.mark.parametrize("mode", ["next_scene", "next_token"])
@@ -349,3 +349,35 @@ def test_gradient_checkpointing_gives_the_same_gradients_from_less_kept_memory(v
     for name, g in grads[0].items():
         assert torch.allclose(g, grads[1][name], atol=1e-6), name
     assert kept[1] < 0.8 * kept[0], kept
+
+
+def test_last_scene_queries_are_the_scene_before(vocab):
+    """``scene_queries: last_scene``: a supervised scene's query block is the code tokens of
+    the scene laid out before it (the learnable queries when none came before), at the new
+    scene's positions, and the export keeps the setting."""
+    v = vocab
+    world = make_world(vocab, "next_scene", queries="last_scene")
+    seq = world.builder().scene(CTX).actions(XY[:1], True).scene(TARGET, True).scene(CTX, True).build()
+    queries = seq.input_ids[seq.segment_ids < 0].reshape(2, 9)
+    assert queries[0].tolist() == v.occ_ids(CTX).tolist() and queries[1].tolist() == v.occ_ids(TARGET).tolist()
+    assert seq.labels[seq.segment_ids < 0].tolist() == v.occ_ids(TARGET).tolist() + v.occ_ids(CTX).tolist()
+    first = world.builder().scene(TARGET, True).build()
+    assert first.input_ids[first.segment_ids < 0].tolist() == v.query_ids().tolist()
+    assert world.export_config()["occllama"] == {"scene_queries": "last_scene"}
+    inputs = WorldInputs(scene=SimpleNamespace(codebooks=[world.codebook]))
+    old = {k: val for k, val in world.export_config().items() if k != "occllama"}  # an export from before the setting
+    assert OccWorldModel.from_export(old, world.llm, vocab, inputs).cfg.scene_queries == "learned"
+
+
+@pytest.mark.parametrize("queries", ["learned", "last_scene"])
+def test_generated_scenes_read_the_queries_training_reads(vocab, queries):
+    """Untrained, exact: each scene generated after a prompt is the greedy pick of the
+    training forward at its query block, for a scene after the prompt's last scene and for
+    the next one after the generated scene (generation keeps the last scene as it goes)."""
+    world = make_world(vocab, "next_scene", seed=5, queries=queries).eval()
+    d = world.decoder(world.builder().scene(TARGET).scene(CTX).build().input_ids)
+    first, second = d.scene(), d.scene()
+    seq = world.builder().scene(TARGET).scene(CTX).scene(first, True).scene(second, True).build()
+    logits = world(collate([seq], vocab.pad_id)).logits[0][seq.segment_ids < 0]
+    picked = torch.cat([vocab.pick_scene(logits[:9]), vocab.pick_scene(logits[9:])]) - vocab.occ_start
+    assert torch.equal(picked, torch.cat([first, second]))

@@ -9,7 +9,8 @@ Sequence layout. A sequence starts with ``bos``; then parts, each laid out as
   forming one bidirectional segment ("next_scene" mode) or plain causal tokens
   ("next_token" mode);
 - a supervised scene in "next_scene" mode: ``<occ> q_1 ... q_S c_1 ... c_S </occ>``. The
-  query block q (the learnable ``<scene_q_j>`` tokens) is bidirectional, sees everything
+  query block q (the learnable ``<scene_q_j>`` tokens, or what the world model's
+  ``scene_query_ids`` makes of the scene before it) is bidirectional, sees everything
   before it, is seen by nothing after it, and its output at ``q_j`` is trained to give
   token ``c_j``: all of the scene from one forward pass. The code block c repeats the
   scene's tokens at the same positions (RoPE) as the queries, and is what later tokens
@@ -28,7 +29,7 @@ block behind a query block (the queries predict it).
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Callable
 
 import torch
 import torch.nn.functional as F
@@ -42,16 +43,22 @@ from occtrain.models.attention import allowed_pairs
 class SequenceBuilder:
     """Lays parts out in the joint vocabulary (see the module docstring).
 
-    ``scene_prediction`` and ``payload_spec`` must be the model's (``world.builder()``
-    gets them right).
+    ``scene_prediction``, ``payload_spec`` and ``scene_queries`` (the query block's ids
+    from the code ids of the scene before it, or None) must be the model's
+    (``world.builder()`` gets them right).
     """
 
-    def __init__(self, vocab: JointVocab, scene_prediction: str = "next_scene", payload_spec: PayloadSpec | None = None):
+    def __init__(
+        self, vocab: JointVocab, scene_prediction: str = "next_scene", payload_spec: PayloadSpec | None = None,
+        scene_queries: Callable[[torch.Tensor | None], torch.Tensor] | None = None,
+    ):
         if scene_prediction not in SCENE_PREDICTION_MODES:
             raise ValueError(f"scene_prediction must be one of {SCENE_PREDICTION_MODES}")
         self.vocab = vocab
         self.next_scene = scene_prediction == "next_scene"
         self.payload_spec = payload_spec or {}
+        self.scene_queries = scene_queries or (lambda last: vocab.query_ids())
+        self._last_scene: torch.Tensor | None = None  # code ids of the last scene laid out
         #: Per-sequence targets (see ``TokenSequence.targets``), set by a family's parts.
         self.targets: dict[str, torch.Tensor] = {}
         self._payload: list[dict[str, torch.Tensor]] = []
@@ -152,9 +159,10 @@ class SequenceBuilder:
         else:
             block = self.next_block()
             if supervise:
-                self.add(v.query_ids(), False, seg=-block, query_target=code_ids)
+                self.add(self.scene_queries(self._last_scene), False, seg=-block, query_target=code_ids)
             self.add(code_ids, False, seg=block)
         self.add(torch.tensor([v.occ_close_id]), supervise)
+        self._last_scene = code_ids
         return self
 
     def build(self) -> TokenSequence:

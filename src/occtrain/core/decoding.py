@@ -118,6 +118,17 @@ class _State:
         self.next_segment = int(seg.max()) + 1 if seg.numel() else 1
         self.recent = ids[-3:]
         self.last: Step | None = None  # the output at the last kept token
+        #: The code ids of the last scene fed (what ``world.scene_query_ids`` reads), or None.
+        self.last_scene: torch.Tensor | None = None
+        self._see_scenes(ids)
+
+    def _see_scenes(self, ids: torch.Tensor) -> None:
+        """Keep the last whole scene among ``ids``, the tokens just fed."""
+        n = self.vocab.scene_len
+        if n and ids.numel() >= n:  # a single generated token cannot be a scene: skip the mask
+            codes = ids[self.vocab.is_occ(ids)]
+            if codes.numel() >= n:
+                self.last_scene = codes[-n:]
 
     def queue(self, ids, segment: int | torch.Tensor = 0, payload: dict | None = None) -> None:
         ids = torch.as_tensor(ids, dtype=torch.long, device=self.device).reshape(-1)
@@ -125,6 +136,7 @@ class _State:
         extra = payload or empty_payload(self.spec, ids.numel(), self.device)
         self.queued.append((ids, seg, {k: v.to(self.device) for k, v in extra.items()}))
         self.recent = torch.cat([self.recent, ids])[-3:]
+        self._see_scenes(ids)
 
     def take(self) -> tuple[torch.Tensor, torch.Tensor, dict]:
         ids, segs, extras = zip(*self.queued)
@@ -191,7 +203,7 @@ def _scene(s: _State) -> Program:
     if world.frame_separation and int(s.recent[-1]) != v.occ_open_id:
         s.queue([v.occ_open_id])
     if s.next_scene:
-        out = yield from _query_block(s, v.query_ids())
+        out = yield from _query_block(s, world.scene_query_ids(s.last_scene))
         scene_ids, extra = writer.from_queries(out.logits, out.hidden)
         s.queue(scene_ids, s.next_segment, extra)
         s.next_segment += 1

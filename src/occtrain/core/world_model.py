@@ -88,7 +88,13 @@ class LMWorldModel(nn.Module):
 
     # -- what a family overrides
     def builder(self) -> SequenceBuilder:
-        return SequenceBuilder(self.vocab, self.scene_prediction, self.payload_spec)
+        return SequenceBuilder(self.vocab, self.scene_prediction, self.payload_spec, self.scene_query_ids)
+
+    def scene_query_ids(self, last_scene: torch.Tensor | None) -> torch.Tensor:
+        """The query block of a scene predicted at once ("next_scene" mode), given the code
+        ids of the scene before it in the sequence (None when there is none): the learnable
+        ``<scene_q_j>`` tokens. Training and generation both ask here."""
+        return self.vocab.query_ids()
 
     def scene_writer(self, recent: torch.Tensor) -> Any:
         """What writes the next generated scene; ``recent`` are the last ids before it."""

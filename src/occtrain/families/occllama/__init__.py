@@ -8,7 +8,7 @@ from functools import partial
 from occtrain.core.planning import MetaActionPlannerConfig, load_meta_action_planner, meta_action_planner
 from occtrain.core.registry import FamilySpec, TokenizerArch, WorldSpec, register_family
 from occtrain.core.scene import load_vq_scene_encoder, vq_scene_encoder
-from occtrain.families.occllama.config import OccLLaMATokenizerConfig
+from occtrain.families.occllama.config import OccLLaMATokenizerConfig, OccLLaMAWorldConfig
 from occtrain.families.occllama.operations import OPERATIONS
 from occtrain.families.occllama.paper import PAPER_FIGURES
 from occtrain.families.occllama.tasks import INSTRUCT_TASKS, PRETRAIN_TASKS, TASKS, TaskConfig
@@ -23,6 +23,7 @@ OCCLLAMA = register_family(
         world=WorldSpec(
             model=OccLLaMAWorldModel,
             task_config=TaskConfig,
+            world_config=OccLLaMAWorldConfig,
             tasks=TASKS,
             default_tasks={"pretrain": {t: 1.0 for t in PRETRAIN_TASKS}, "instruct": {t: 1.0 for t in INSTRUCT_TASKS}},
             inputs=("tokenizer",),
@@ -38,4 +39,4 @@ OCCLLAMA = register_family(
     )
 )
 
-__all__ = ["OCCLLAMA", "OccLLaMATokenizer", "OccLLaMATokenizerConfig", "OccLLaMAWorldModel", "TaskConfig"]
+__all__ = ["OCCLLAMA", "OccLLaMATokenizer", "OccLLaMATokenizerConfig", "OccLLaMAWorldConfig", "OccLLaMAWorldModel", "TaskConfig"]

@@ -1,8 +1,10 @@
-"""OccLLaMA's scene-tokenizer config (Sec. III-A); its task settings are in ``tasks``."""
+"""OccLLaMA's scene-tokenizer config (Sec. III-A) and world-model settings (Sec. III-B);
+its task settings are in ``tasks``."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 from occtrain.config.tokenizer import QuantizerFields, latent_hw
 from occtrain.errors import ConfigError
@@ -49,3 +51,24 @@ class OccLLaMATokenizerConfig(QuantizerFields):
         window = min(self.window_size, *latent_hw(self))
         if any(side % window for side in latent_hw(self)):
             raise ConfigError(f"{where}.window_size: {self.window_size} must divide the latent side {latent_hw(self)[0]}")
+
+
+#: What a scene's query block is made of ("next_scene" mode): the paper's learnable
+#: ``<scene_q_j>`` tokens, or the code tokens of the scene before it.
+SCENE_QUERIES = ("learned", "last_scene")
+
+
+@dataclass
+class OccLLaMAWorldConfig:
+    """``model.occllama`` of a pretrain stage: OccLLaMA's world model (Sec. III-B)."""
+
+    #: ``learned`` (the paper's): each query is a learnable ``<scene_q_j>`` token.
+    #: ``last_scene`` (not the paper's): query j is the code token at cell j of the scene
+    #: before it, at the new scene's positions, so keeping a cell's code is the identity;
+    #: the model then learns what changes between scenes rather than each scene anew.
+    scene_queries: str = "learned"
+
+    def validate(self, where: str, inputs: Any) -> None:
+        """One line naming the key when a setting is unknown."""
+        if self.scene_queries not in SCENE_QUERIES:
+            raise ConfigError(f"{where}.scene_queries: '{self.scene_queries}' is not one of {', '.join(SCENE_QUERIES)}")

@@ -11,6 +11,10 @@ uniform cross-entropy over every target (``LMWorldModel.forward``).
 Occupancy inputs. The input embedding of ``<occ_k>`` is ``occ_proj(codebook[k])``, a
 LayerNorm + two-layer GELU MLP (LLaVA-style projector) of the frozen scene tokenizer's
 codebook vector, instead of the embedding-table row; the lm-head keeps one row per code.
+
+Scene queries (``model.occllama.scene_queries``). The paper's query block is learnable
+``<scene_q_j>`` tokens; ``last_scene`` makes it the code tokens of the scene before it,
+so predicting an unchanged cell is copying its own input.
 """
 
 from __future__ import annotations
@@ -22,6 +26,7 @@ from torch import nn
 from occtrain.core.decoding import CodeScene
 from occtrain.core.vocab import JointVocab
 from occtrain.core.world_model import LMWorldModel, WorldInputs
+from occtrain.families.occllama.config import OccLLaMAWorldConfig
 
 
 class OccLLaMAWorldModel(LMWorldModel):
@@ -31,14 +36,24 @@ class OccLLaMAWorldModel(LMWorldModel):
     stacked, in the vocabulary's order, when it has several); it is a non-persistent buffer (the tokenizer's export owns it), the projection is trained.
     """
 
-    def __init__(self, llm: nn.Module, vocab: JointVocab, codebook: torch.Tensor, scene_prediction: str = "next_scene"):
+    def __init__(
+        self, llm: nn.Module, vocab: JointVocab, codebook: torch.Tensor, scene_prediction: str = "next_scene",
+        cfg: OccLLaMAWorldConfig | None = None,
+    ):
         super().__init__(llm, vocab, scene_prediction)
+        self.cfg = cfg or OccLLaMAWorldConfig()
         if codebook.shape[0] != vocab.num_codes:
             raise ValueError(f"codebook has {codebook.shape[0]} codes, the vocabulary {vocab.num_codes}")
         self.register_buffer("codebook", codebook.detach().float().clone(), persistent=False)
         hidden = llm.get_input_embeddings().embedding_dim
         dim = codebook.shape[1]
         self.occ_proj = nn.Sequential(nn.LayerNorm(dim), nn.Linear(dim, hidden), nn.GELU(), nn.Linear(hidden, hidden))
+
+    def scene_query_ids(self, last_scene: torch.Tensor | None) -> torch.Tensor:
+        """The scene before, under ``last_scene`` queries (the learnable ones when there is none)."""
+        if self.cfg.scene_queries == "last_scene" and last_scene is not None:
+            return last_scene
+        return self.vocab.query_ids()
 
     def scene_writer(self, recent: torch.Tensor) -> CodeScene:
         """What writes the next generated scene; ``recent`` are the last ids before it."""
@@ -57,7 +72,7 @@ class OccLLaMAWorldModel(LMWorldModel):
 
     # -- export
     def export_config(self) -> dict:
-        return {**super().export_config(), "code_dim": int(self.codebook.shape[1])}
+        return {**super().export_config(), "code_dim": int(self.codebook.shape[1]), "occllama": {"scene_queries": self.cfg.scene_queries}}
 
     @staticmethod
     def vocab_layout(inputs: WorldInputs, world_cfg=None) -> dict:
@@ -66,11 +81,12 @@ class OccLLaMAWorldModel(LMWorldModel):
 
     @classmethod
     def create(cls, llm: nn.Module, vocab: JointVocab, inputs: WorldInputs, scene_prediction: str, world_cfg=None) -> OccLLaMAWorldModel:
-        return cls(llm, vocab, torch.cat(inputs.scene.codebooks), scene_prediction)
+        return cls(llm, vocab, torch.cat(inputs.scene.codebooks), scene_prediction, world_cfg)
 
     @classmethod
     def from_export(cls, data: dict, llm: nn.Module, vocab: JointVocab, inputs: WorldInputs) -> OccLLaMAWorldModel:
-        return cls(llm, vocab, torch.cat(inputs.scene.codebooks), data["scene_prediction"])
+        # Exports written before the setting existed used the paper's queries.
+        return cls(llm, vocab, torch.cat(inputs.scene.codebooks), data["scene_prediction"], OccLLaMAWorldConfig(**data.get("occllama", {})))
 
     def scene_token_rows(self) -> torch.Tensor:
         """The scene tokens' input embeddings: their rows of an exported LLM's table, so
