@@ -19,6 +19,8 @@ so predicting an unchanged cell is copying its own input.
 
 from __future__ import annotations
 
+from dataclasses import asdict
+
 import torch
 import torch.nn.functional as F
 from torch import nn
@@ -53,7 +55,7 @@ class OccLLaMAWorldModel(LMWorldModel):
         """The scene before, under ``last_scene`` queries (the learnable ones when there is none)."""
         if self.cfg.scene_queries == "last_scene" and last_scene is not None:
             return last_scene
-        return self.vocab.query_ids()
+        return super().scene_query_ids(last_scene)
 
     def scene_writer(self, recent: torch.Tensor) -> CodeScene:
         """What writes the next generated scene; ``recent`` are the last ids before it."""
@@ -72,7 +74,7 @@ class OccLLaMAWorldModel(LMWorldModel):
 
     # -- export
     def export_config(self) -> dict:
-        return {**super().export_config(), "code_dim": int(self.codebook.shape[1]), "occllama": {"scene_queries": self.cfg.scene_queries}}
+        return {**super().export_config(), "code_dim": int(self.codebook.shape[1]), "occllama": asdict(self.cfg)}
 
     @staticmethod
     def vocab_layout(inputs: WorldInputs, world_cfg=None) -> dict:
