@@ -225,6 +225,36 @@ def test_planner_returns_the_top_scored_anchors_trajectory(synth_dataset, tmp_pa
     assert not missing, missing
 
 
+def test_plan_prior_writes_anchors_and_plans_as_offsets_from_constant_velocity(synth_dataset, tmp_path):
+    from occtrain.families.sparseoccvla.planner import AnchorDiffusionConfig, AnchorDiffusionPlanner, kmeans_anchors
+    from occtrain.data.clips import frame_clips
+    from occtrain.data.layout import DatasetIndex
+    from occtrain.models.planner import constant_velocity
+    from occtrain.occ3d import FUTURE_STEPS
+
+    index = DatasetIndex.open(synth_dataset)
+    whole, offsets = kmeans_anchors(index, 3), kmeans_anchors(index, 3, prior="constant_velocity")
+    # The synthetic ego mostly keeps its speed: offsets from constant velocity are far
+    # smaller than the trajectories (which run 10-20 m out at 3 s).
+    assert np.abs(offsets).max() < np.abs(whole).max() / 2
+
+    cfg = AnchorDiffusionConfig(anchors=3, dim=16, heads=2, layers=1, decision_tokens=4, plan_prior="constant_velocity")
+    world = SimpleNamespace(hidden_size=8, query_dim=6)
+    torch.manual_seed(0)
+    planner = AnchorDiffusionPlanner(cfg, SimpleNamespace(world=world), str(synth_dataset), tmp_path)
+    np.testing.assert_array_equal(planner.anchors.numpy(), offsets)
+    clips = list(frame_clips(index, "val", 0, FUTURE_STEPS, partial_history=False))[:3]
+    for c in clips:
+        planner._decisions[c.anchor["token"]] = {"reason": torch.randn(4, 8), "mask": torch.tensor([1, 1, 0, 0]).bool(), "scene": torch.randn(5, 9)}
+    _, top, logits = planner.plan(clips)
+    cv = constant_velocity([c.anchor for c in clips])
+    # The top anchor is its offsets added to the clip's constant-velocity plan.
+    torch.testing.assert_close(top, planner.anchors[logits.argmax(-1)] + cv)
+    planner.training_loss(clips).backward()
+    with pytest.raises(ConfigError, match="plan_prior"):
+        AnchorDiffusionConfig(plan_prior="ballistic").validate("stages.planner")
+
+
 def test_kmeans_anchors_cover_the_training_trajectories(synth_dataset):
     from occtrain.families.sparseoccvla.planner import kmeans_anchors
     from occtrain.data.layout import DatasetIndex
