@@ -39,7 +39,7 @@ from torchmetrics import MeanMetric
 
 from occtrain.core.builder import collate
 from occtrain.core.decoding import TextAnswer
-from occtrain.core.tasks import PLAN_PRIORS
+from occtrain.core.tasks import PLAN_PRIORS, plan_base
 from occtrain.data.clips import Clip, Text, frame_clips, plan_target
 from occtrain.data.layout import DatasetIndex
 from occtrain.errors import ConfigError
@@ -141,25 +141,24 @@ def ddim_denoise(scheduler: Any, x: torch.Tensor, start: int, spacing: int, trai
     return x, extra
 
 
-def plan_base(anchors: list[dict], prior: str, device: torch.device | str = "cpu") -> torch.Tensor:
-    """(B, 6, 2): what each anchor frame's trajectory is written against under ``prior``
-    (zeros for the paper's "none")."""
-    if prior == "constant_velocity":
-        return constant_velocity(anchors, device)
-    return torch.zeros(len(anchors), FUTURE_STEPS, 2, device=device)
+def offset_bases(clips: list[Clip], prior: str, device: torch.device | str = "cpu") -> torch.Tensor:
+    """(B, 6, 2): what each clip's trajectory is written against under ``prior``
+    (``core.tasks.plan_base``; zeros for the paper's "none")."""
+    bases = [plan_base(c, prior) for c in clips]
+    return torch.stack([torch.zeros(FUTURE_STEPS, 2) if b is None else torch.as_tensor(b, dtype=torch.float32) for b in bases]).to(device)
 
 
 def kmeans_anchors(index: DatasetIndex, k: int, seed: int = 0, prior: str = "none") -> np.ndarray:
     """K-means centres (K, 6, 2) of the training split's whole 3 s ego trajectories, written
-    against ``prior`` (see ``plan_base``)."""
+    against ``prior`` (see ``offset_bases``)."""
     from sklearn.cluster import KMeans
 
-    frames = [c.anchor for c in frame_clips(index, "train", 0, FUTURE_STEPS, partial_history=False)
-              if len(c.anchor.get("ego_future", [])) >= FUTURE_STEPS and all(c.anchor.get("ego_future_mask", [1] * FUTURE_STEPS)[:FUTURE_STEPS])]
-    if len(frames) < k:
-        raise ConfigError(f"{index.root}: {len(frames)} training trajectories with a whole 3 s future, fewer than model.anchors {k}")
-    trajs = np.stack([np.asarray(a["ego_future"], dtype=np.float64)[:FUTURE_STEPS] for a in frames])
-    trajs = trajs - plan_base(frames, prior).double().numpy()
+    clips = [c for c in frame_clips(index, "train", 0, FUTURE_STEPS, partial_history=False)
+             if len(c.anchor.get("ego_future", [])) >= FUTURE_STEPS and all(c.anchor.get("ego_future_mask", [1] * FUTURE_STEPS)[:FUTURE_STEPS])]
+    if len(clips) < k:
+        raise ConfigError(f"{index.root}: {len(clips)} training trajectories with a whole 3 s future, fewer than model.anchors {k}")
+    trajs = np.stack([np.asarray(c.anchor["ego_future"], dtype=np.float64)[:FUTURE_STEPS] for c in clips])
+    trajs = trajs - offset_bases(clips, prior).double().numpy()
     centres = KMeans(n_clusters=k, n_init=10, random_state=seed).fit(trajs.reshape(len(trajs), -1)).cluster_centers_
     return centres.reshape(k, FUTURE_STEPS, 2).astype(np.float32)
 
@@ -345,7 +344,7 @@ class AnchorDiffusionPlanner(nn.Module):
 
     def base(self, clips: list[Clip]) -> torch.Tensor:
         """(B, 6, 2): what the clips' anchors and plans are offsets from (``plan_prior``)."""
-        return plan_base([c.anchor for c in clips], self.cfg.plan_prior, self.device)
+        return offset_bases(clips, self.cfg.plan_prior, self.device)
 
     def positives(self, offsets: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
         """The anchor nearest each ground truth (B,), both written against the base: mean L2
