@@ -196,19 +196,26 @@ def test_ddim_two_steps_equal_the_scheduler_stepped_by_hand():
         step_spacing(30, 4, 1000)
 
 
-def test_planner_returns_the_top_scored_anchors_trajectory(synth_dataset, tmp_path):
-    from occtrain.families.sparseoccvla.planner import AnchorDiffusionConfig, AnchorDiffusionPlanner
+def stub_planner(dataset, tmp_path, **settings):
+    """A tiny planner over a stub world model (hidden 8, query rows 6), and three val clips
+    whose decisions are random, as the frozen world model's cache would hold them."""
     from occtrain.data.clips import frame_clips
     from occtrain.data.layout import DatasetIndex
+    from occtrain.families.sparseoccvla.planner import AnchorDiffusionConfig, AnchorDiffusionPlanner
     from occtrain.occ3d import FUTURE_STEPS
 
-    cfg = AnchorDiffusionConfig(anchors=3, dim=16, heads=2, layers=1, decision_tokens=4)
+    cfg = AnchorDiffusionConfig(anchors=3, dim=16, heads=2, layers=1, decision_tokens=4, **settings)
     world = SimpleNamespace(hidden_size=8, query_dim=6)
     torch.manual_seed(0)
-    planner = AnchorDiffusionPlanner(cfg, SimpleNamespace(world=world), str(synth_dataset), tmp_path)
-    clips = list(frame_clips(DatasetIndex.open(synth_dataset), "val", 0, FUTURE_STEPS, partial_history=False))[:3]
-    for c in clips:  # the frozen world model's outputs, as its cache would hold them
+    planner = AnchorDiffusionPlanner(cfg, SimpleNamespace(world=world), str(dataset), tmp_path)
+    clips = list(frame_clips(DatasetIndex.open(dataset), "val", 0, FUTURE_STEPS, partial_history=False))[:3]
+    for c in clips:
         planner._decisions[c.anchor["token"]] = {"reason": torch.randn(4, 8), "mask": torch.tensor([1, 1, 0, 0]).bool(), "scene": torch.randn(5, 9)}
+    return planner, clips
+
+
+def test_planner_returns_the_top_scored_anchors_trajectory(synth_dataset, tmp_path):
+    planner, clips = stub_planner(synth_dataset, tmp_path)
     plan, top, logits = planner.plan(clips)
     best = logits.argmax(-1)
     assert torch.equal(top, planner.anchors[best])
@@ -226,11 +233,9 @@ def test_planner_returns_the_top_scored_anchors_trajectory(synth_dataset, tmp_pa
 
 
 def test_plan_prior_writes_anchors_and_plans_as_offsets_from_constant_velocity(synth_dataset, tmp_path):
-    from occtrain.families.sparseoccvla.planner import AnchorDiffusionConfig, AnchorDiffusionPlanner, kmeans_anchors
-    from occtrain.data.clips import frame_clips
     from occtrain.data.layout import DatasetIndex
+    from occtrain.families.sparseoccvla.planner import AnchorDiffusionConfig, kmeans_anchors
     from occtrain.models.planner import constant_velocity
-    from occtrain.occ3d import FUTURE_STEPS
 
     index = DatasetIndex.open(synth_dataset)
     whole, offsets = kmeans_anchors(index, 3), kmeans_anchors(index, 3, prior="constant_velocity")
@@ -238,14 +243,8 @@ def test_plan_prior_writes_anchors_and_plans_as_offsets_from_constant_velocity(s
     # smaller than the trajectories (which run 10-20 m out at 3 s).
     assert np.abs(offsets).max() < np.abs(whole).max() / 2
 
-    cfg = AnchorDiffusionConfig(anchors=3, dim=16, heads=2, layers=1, decision_tokens=4, plan_prior="constant_velocity")
-    world = SimpleNamespace(hidden_size=8, query_dim=6)
-    torch.manual_seed(0)
-    planner = AnchorDiffusionPlanner(cfg, SimpleNamespace(world=world), str(synth_dataset), tmp_path)
+    planner, clips = stub_planner(synth_dataset, tmp_path, plan_prior="constant_velocity")
     np.testing.assert_array_equal(planner.anchors.numpy(), offsets)
-    clips = list(frame_clips(index, "val", 0, FUTURE_STEPS, partial_history=False))[:3]
-    for c in clips:
-        planner._decisions[c.anchor["token"]] = {"reason": torch.randn(4, 8), "mask": torch.tensor([1, 1, 0, 0]).bool(), "scene": torch.randn(5, 9)}
     _, top, logits = planner.plan(clips)
     cv = constant_velocity([c.anchor for c in clips])
     # The top anchor is its offsets added to the clip's constant-velocity plan.
