@@ -99,6 +99,33 @@ def test_kill_9_then_resume_gives_the_uninterrupted_weights(recipe, tmp_path, ac
         assert torch.equal(resumed[key], reference[key]), key
 
 
+def test_a_kill_after_the_last_checkpoint_resumes_to_the_export(recipe, tmp_path):
+    """A kill -9 between the final checkpoint and the export (a race the killing tests hit
+    at random) leaves a stage 'running' whose checkpoint has finished training: the rerun
+    trains nothing, records the step it resumed at and exports the same weights."""
+    import shutil
+
+    run_dir = tmp_path / "run"
+    res = run_cli("run", str(recipe), "--run-dir", str(run_dir))
+    assert res.returncode == 0, res.stderr[-2000:]
+    export = run_dir / "only" / "export"
+    reference = load_file(export / "model.safetensors")
+    # The state such a kill leaves: the stage still running, its export never written.
+    manifest_path = run_dir / "manifest.json"
+    manifest = json.loads(manifest_path.read_text())
+    manifest["stages"]["only"]["status"] = "running"
+    manifest_path.write_text(json.dumps(manifest))
+    shutil.rmtree(export)
+
+    res = run_cli("run", str(recipe), "--run-dir", str(run_dir))
+    assert res.returncode == 0, res.stderr[-2000:]
+    entry = json.loads(manifest_path.read_text())["stages"]["only"]
+    assert entry["status"] == "done" and entry["attempts"] == 2
+    assert [h["start_step"] for h in entry["history"]] == [0, 16]
+    resumed = load_file(export / "model.safetensors")
+    assert resumed.keys() == reference.keys() and all(torch.equal(resumed[k], reference[k]) for k in reference)
+
+
 @pytest.mark.parametrize("sig, code", [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
 def test_a_stop_signal_interrupts_in_one_line_and_a_rerun_resumes(recipe, tmp_path, sig, code):
     run_dir = tmp_path / "run"

@@ -166,13 +166,16 @@ class _Heartbeat(Callback):
 class AttemptRecord(Callback):
     """Reports what this attempt does, as the trainer sees it, to ``record`` (rank zero):
     ``start_step`` and ``world_size`` when training begins (after a checkpoint is restored,
-    so a resume reports the step it continues from), ``train_samples_per_rank`` when it
-    ends and ``val_samples_per_rank`` after each validation (padding left out)."""
+    so a resume reports the step it continues from; at the end of fit when the restored
+    checkpoint had already finished training, which Lightning then skips),
+    ``train_samples_per_rank`` when training ends and ``val_samples_per_rank`` after each
+    validation (padding left out)."""
 
     def __init__(self, record: Callable[[dict[str, Any]], None]):
         self.record = record
         self.train_samples = 0
         self.val_samples = 0
+        self.started = False
 
     def _report(self, trainer: L.Trainer, facts: dict[str, Any]) -> None:
         if trainer.is_global_zero:
@@ -183,9 +186,18 @@ class AttemptRecord(Callback):
         counts = trainer.strategy.all_gather(torch.tensor([count], device=trainer.strategy.root_device))
         return [int(c) for c in counts.flatten()]
 
+    def _report_start(self, trainer: L.Trainer) -> None:
+        self.started = True
+        self._report(trainer, {"start_step": trainer.global_step, "world_size": trainer.world_size})
+
     def on_train_start(self, trainer: L.Trainer, *args: Any) -> None:
         self.train_samples = 0
-        self._report(trainer, {"start_step": trainer.global_step, "world_size": trainer.world_size})
+        self._report_start(trainer)
+
+    def on_fit_end(self, trainer: L.Trainer, *args: Any) -> None:
+        # A kill -9 just after the last checkpoint leaves nothing to train on resume.
+        if not self.started:
+            self._report_start(trainer)
 
     def on_train_batch_start(self, trainer: L.Trainer, pl_module: L.LightningModule, batch: Any, *args: Any) -> None:
         self.train_samples += _batch_samples(batch)
