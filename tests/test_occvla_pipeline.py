@@ -87,13 +87,21 @@ def test_the_planning_head_trained_on_cached_generated_meta_actions(occvla_run):
     assert (world / "teacher_outputs.safetensors").is_file()
 
 
-def test_eval_scores_meta_actions_and_the_query_branch(occvla_run):
-    res = run_cli("eval", str(occvla_run / "stage2"))
+def test_eval_scores_meta_actions_and_the_query_branch(occvla_run, tmp_path):
+    res = run_cli("eval", str(occvla_run / "stage2"), "--save-predictions", str(tmp_path / "preds"))
     assert res.returncode == 0, res.stderr[-3000:]
     metrics = json.loads((occvla_run / "stage2" / "eval" / "val" / "metrics.json").read_text())
     assert {"meta_action_overall", "baseline_prior_meta_action_overall", "occupancy_occ3d_mIoU", "occupancy_occworld_mIoU"} <= metrics.keys()
     assert metrics["meta_action_samples"] == metrics["baseline_prior_meta_action_samples"] > 0
     assert metrics["baseline_repeat_last_meta_action_samples"] == metrics["meta_action_samples"]
+    # Every scored chain of thought, with what was read from it: the metrics recount from them.
+    chains = json.loads((tmp_path / "preds" / "meta_actions.json").read_text())
+    assert len(chains) == metrics["meta_action_samples"]
+    right = sum(c["parsed"] == c["truth"] for c in chains.values())
+    last_right = sum(c["last_past"] == c["truth"] for c in chains.values())
+    assert 100.0 * right / len(chains) == pytest.approx(metrics["meta_action_overall"])
+    assert 100.0 * last_right / len(chains) == pytest.approx(metrics["baseline_repeat_last_meta_action_overall"])
+    assert all(c["prompt"].startswith("Past meta actions:") and c["reference"] for c in chains.values())
 
 
 def test_the_reloaded_model_generates_the_same_text_with_and_without_occupancy(occvla_run):

@@ -139,7 +139,7 @@ def _save(out_file: Path, metrics: dict[str, float], world: str) -> dict[str, fl
 def write_predictions(out: Path, predictions: dict[str, dict]) -> None:
     """The evaluator's recorded predictions in ``occtrain score``'s input formats."""
     out.mkdir(parents=True, exist_ok=True)
-    predictions = {k: predictions.get(k, {}) for k in ("planning", "planning_gt", "forecast", "qa", "captions", "captions_gt")}
+    predictions = {k: predictions.get(k, {}) for k in ("planning", "planning_gt", "forecast", "qa", "captions", "captions_gt", "meta_actions")}
     if predictions["planning"]:
         atomic_write_json(out / "planning_pred.json", predictions["planning"])
         atomic_write_json(out / "planning_gt.json", predictions["planning_gt"])
@@ -153,6 +153,9 @@ def write_predictions(out: Path, predictions: dict[str, dict]) -> None:
     if predictions["captions"]:
         atomic_write_json(out / "captions_pred.json", predictions["captions"])
         atomic_write_json(out / "captions_ref.json", predictions["captions_gt"])
+    if predictions["meta_actions"]:
+        # Per clip: the generated chain, the meta action read from it and the truth.
+        atomic_write_json(out / "meta_actions.json", predictions["meta_actions"])
 
 
 def sample_count(name: str, metrics: dict[str, float]) -> float | None:

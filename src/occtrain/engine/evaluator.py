@@ -108,7 +108,7 @@ class Evaluator(torch.nn.Module):
         self.index: DatasetIndex | None = None  # set by run(): anchor scenes for the pictures
         #: With ``record``, every prediction in the formats ``occtrain score`` reads.
         self.record = record
-        self.predictions: dict[str, dict] = {"planning": {}, "planning_gt": {}, "forecast": {}, "qa": {}, "captions": {}, "captions_gt": {}}
+        self.predictions: dict[str, dict] = {"planning": {}, "planning_gt": {}, "forecast": {}, "qa": {}, "captions": {}, "captions_gt": {}, "meta_actions": {}}
 
     # -- what scorers call
     @property

@@ -47,6 +47,10 @@ class MetaActionScorer(BaseScorer):
         ev.metrics["baseline_repeat_last_meta_action"].update([last], [truth])
         said = meta_action_words(parsed) if parsed is not None else "none"
         ev.keep_text("meta_action", item.parts[-2].text, f"{text}  [parsed: {said}]", reference)
+        if ev.record:
+            ev.predictions["meta_actions"][item.clip.anchor["token"]] = {
+                "prompt": item.parts[-2].text, "generated": text, "parsed": parsed, "reference": reference, "truth": truth, "last_past": last,
+            }
 
 
 class OccupancyQueries:
