@@ -265,6 +265,21 @@ def test_shards_refuse_to_overwrite_different_shards(hand_dataset, shards):
     assert json.loads(before)["source"]["samples_per_shard"] == 5
 
 
+def test_shards_of_a_copied_dataset_are_refused_naming_where_they_came_from(hand_dataset, shards, tmp_path):
+    import shutil
+
+    moved = tmp_path / "moved"
+    shutil.copytree(hand_dataset, moved)
+    before = (shards / "index.json").read_text()
+    with pytest.raises(DataError) as err:
+        write_shards(moved, shards, samples_per_shard=5, history=2, future=3)
+    assert str(err.value) == (
+        f"{shards}: its shards were made from {hand_dataset.resolve()}, a copy of {moved} or where it was "
+        f"before a move; delete {shards} and they are written again from here"
+    )
+    assert (shards / "index.json").read_text() == before
+
+
 def test_decode_sample_unpacks_masks():
     mask = (np.arange(np.prod(GRID_SHAPE)).reshape(GRID_SHAPE) % 3 == 0).astype(np.uint8)
     buf = io.BytesIO()

@@ -305,6 +305,11 @@ def current_shards(index: DatasetIndex, out: Path, source: dict) -> dict | None:
             return old
         if old.get("source", {}).get("dataset") == source["dataset"] and "fingerprint_version" not in old["source"]:
             raise DataError(f"{out}: shards of an older occtrain, whose fingerprint saw annotations.json alone; delete {out} and they are written again")
+        if {**old.get("source", {}), "dataset": None} == {**source, "dataset": None}:
+            raise DataError(
+                f"{out}: its shards were made from {old['source']['dataset']}, a copy of {index.root} or where it was "
+                f"before a move; delete {out} and they are written again from here"
+            )
         if {**old.get("source", {}), "fingerprint": None} == {**source, "fingerprint": None}:
             raise DataError(
                 f"{out}: its shards were made before {index.root} changed (a labels, image, sidecar or annotations file "
