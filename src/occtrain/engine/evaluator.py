@@ -9,6 +9,7 @@ to its task's scorers and keeps a few texts and pictures for the dashboard.
 from __future__ import annotations
 
 import zlib
+from collections import defaultdict
 from pathlib import Path
 from typing import Any, Callable, Iterable
 
@@ -106,9 +107,10 @@ class Evaluator(torch.nn.Module):
         #: A few pictures for the dashboard: (caption, [(label, semantics, trajectories)]).
         self.scenes: list[tuple[str, list[tuple]]] = []
         self.index: DatasetIndex | None = None  # set by run(): anchor scenes for the pictures
-        #: With ``record``, every prediction in the formats ``occtrain score`` reads.
+        #: With ``record``, every prediction by kind (the scorers name the kinds;
+        #: ``evaluate.write_predictions`` writes those ``occtrain score`` reads).
         self.record = record
-        self.predictions: dict[str, dict] = {"planning": {}, "planning_gt": {}, "forecast": {}, "qa": {}, "captions": {}, "captions_gt": {}, "meta_actions": {}}
+        self.predictions: dict[str, dict] = defaultdict(dict)
 
     # -- what scorers call
     @property
