@@ -17,3 +17,24 @@ class DataError(OcctrainError):
 
 class ConfigError(OcctrainError):
     """A config file or command-line override is invalid."""
+
+
+def cause_line(err: BaseException) -> str:
+    """``Type: first line`` of what went wrong behind ``err``.
+
+    A wrapper whose first line only introduces its cause (huggingface_hub's
+    ``StrictDataclassClassValidationError``: "Class validation error for validator
+    'validate_architecture':", the ValueError that says why on later lines and in
+    ``__cause__``) is followed to that cause: the line a person needs is the reason, not
+    the validator's name.
+    """
+    line = _first_line(err)
+    while line.endswith(":") and err.__cause__ is not None:
+        err = err.__cause__
+        line = _first_line(err)
+    return f"{type(err).__name__}: {line}" if line else type(err).__name__
+
+
+def _first_line(err: BaseException) -> str:
+    text = str(err).strip()
+    return text.splitlines()[0] if text else ""

@@ -1,6 +1,10 @@
-"""Atomic file writes: a temp file in the same directory, fsync, then rename.
+"""Where occtrain writes and deletes, made safe.
 
-A reader (or a crash) never sees a half-written manifest, export, metrics file or label.
+Atomic file writes: a temp file in the same directory, fsync, then rename, so a reader (or
+a crash) never sees a half-written manifest, export, metrics file or label. Outputs checked
+before long work (:func:`check_output`), so a bad ``--out`` fails in one line before the
+hour it would take to reach it. And one door for deleting (:func:`remove_inside`): a path
+is removed only when it resolves inside the directory that owns it.
 """
 
 from __future__ import annotations
@@ -10,6 +14,7 @@ import io
 import json
 import math
 import os
+import shutil
 import tempfile
 from contextlib import contextmanager
 from pathlib import Path
@@ -29,13 +34,14 @@ def _umask() -> int:
 #: What a plain ``open(path, "w")`` gives a new file; temp files start at 0600.
 FILE_MODE = 0o666 & ~_umask()
 
-#: Write failures that are the machine's, not the program's: one line each, naming the path.
+#: Write failures that are the machine's, not the program's: what happened, and what to do
+#: when it happens mid-run (a check before any work says what to do itself).
 _WRITE_ERRORS = {
-    errno.ENOSPC: "the disk is full; free space and rerun (a run resumes where it stopped)",
-    errno.EDQUOT: "the disk quota is exhausted; free space and rerun (a run resumes where it stopped)",
-    errno.EROFS: "the file system is read-only; point the run (--run-dir) or --out at a writable place",
-    errno.EACCES: "permission denied; make the directory writable or choose another one",
-    errno.EPERM: "permission denied; make the directory writable or choose another one",
+    errno.ENOSPC: ("the disk is full", "free space and rerun (a run resumes where it stopped)"),
+    errno.EDQUOT: ("the disk quota is exhausted", "free space and rerun (a run resumes where it stopped)"),
+    errno.EROFS: ("the file system is read-only", "point the run (--run-dir) or --out at a writable place"),
+    errno.EACCES: ("permission denied", "make the directory writable or choose another one"),
+    errno.EPERM: ("permission denied", "make the directory writable or choose another one"),
 }
 
 
@@ -46,7 +52,7 @@ class WriteError(OcctrainError):
 def write_error(path: str | Path, err: OSError) -> OSError | WriteError:
     """The one-line error for a failed write of ``path``, or ``err`` itself when it is a bug."""
     what = _WRITE_ERRORS.get(err.errno or 0)
-    return WriteError(f"cannot write {path}: {what}") if what else err
+    return WriteError(f"cannot write {path}: {what[0]}; {what[1]}") if what else err
 
 
 @contextmanager
@@ -73,6 +79,67 @@ def atomic_open(path: str | Path) -> Iterator[IO[bytes]]:
     finally:
         if tmp is not None:
             Path(tmp).unlink(missing_ok=True)
+
+
+def check_output(path: str | Path, flag: str, kind: str = "file", overwrite: bool = True, fix: str = "") -> Path:
+    """Refuse, before any work, an output the command could not write at its end.
+
+    ``kind`` is "file" or "dir" (a directory the command fills). Refused in one line naming
+    ``path`` and ``flag``: a file where a directory goes or the reverse, an existing file
+    without ``overwrite``, a parent that is a file, and a place that cannot be written
+    (read-only, permissions, disk full), found by creating and removing a probe file in the
+    nearest directory that exists, which is what the real write will need. ``fix`` says
+    what to do then (default: choose another ``flag``).
+    """
+    path = Path(path)
+    if kind == "dir" and path.exists() and not path.is_dir():
+        raise WriteError(f"{path}: is a file; {flag} takes a directory (choose a new name or remove the file)")
+    if kind == "file" and path.is_dir():
+        raise WriteError(f"{path}: is a directory; {flag} takes a file name")
+    if kind == "file" and path.exists() and not overwrite:
+        raise WriteError(f"{path}: exists; choose another {flag} or remove it first")
+    parent = path if kind == "dir" else path.parent
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    if not parent.is_dir():
+        raise WriteError(f"cannot write {path}: {parent} is a file, not a directory; choose another {flag}")
+    try:
+        fd, probe = tempfile.mkstemp(dir=parent, prefix=".occtrain-probe.", suffix=".tmp")
+    except OSError as err:
+        what = _WRITE_ERRORS.get(err.errno or 0)
+        if what is None:
+            raise
+        raise WriteError(f"cannot write {path}: {what[0]}; {fix or f'choose another {flag}'}") from None
+    os.close(fd)
+    os.unlink(probe)
+    return path
+
+
+class OutsideError(OcctrainError):
+    """A deletion whose target does not resolve inside the directory that owns it."""
+
+
+def remove_inside(target: str | Path, root: str | Path) -> bool:
+    """Delete ``target`` (a file, a link or a directory tree) if it lies inside ``root``.
+
+    Every deletion occtrain makes goes through here: a name from a recipe or a manifest
+    that reaches outside (``../x``, an absolute path, a link to elsewhere) is refused with
+    :class:`OutsideError` instead of deleting someone's files. The last component is not
+    followed: a link inside ``root`` is removed as a link, never what it points at.
+    Returns whether anything was there to remove.
+    """
+    root_path = Path(root).resolve()
+    target = Path(target)
+    where = target.parent.resolve() / target.name
+    if target.name in ("", ".", "..") or where == root_path or not where.is_relative_to(root_path):
+        raise OutsideError(f"refusing to delete {target}: it is not inside {root_path}")
+    if where.is_symlink() or where.is_file():
+        where.unlink()
+    elif where.is_dir():
+        shutil.rmtree(where)
+    else:
+        return False
+    return True
 
 
 def atomic_write_bytes(path: str | Path, data: bytes) -> Path:
