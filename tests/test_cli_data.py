@@ -80,6 +80,20 @@ def test_shards_and_check_them(world, tmp_path):
     assert res.returncode == 1 and "train-000000.tar" in res.stdout
 
 
+def test_shards_rebuild_replaces_shards_of_another_layout(world, tmp_path):
+    out = tmp_path / "shards"
+    res = run_cli("data", "shards", str(world), "--out", str(out), "--kinds", "frames", "--samples-per-shard", "8")
+    assert res.returncode == 0, res.stderr
+    res = run_cli("data", "shards", str(world), "--out", str(out), "--kinds", "frames", "--samples-per-shard", "5")
+    assert res.returncode == 2 and f"--samples-per-shard 5 --kinds frames --rebuild`" in res.stderr
+    res = run_cli("data", "shards", str(world), "--out", str(out), "--kinds", "frames", "--samples-per-shard", "5", "--rebuild")
+    assert res.returncode == 0, res.stderr
+    index = json.loads((out / "index.json").read_text())
+    assert [e["samples"] for e in index["kinds"]["frames"]["train"]] == [5, 5, 2]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["shards"]  # no staging left beside it
+    assert run_cli("data", "check", str(out)).returncode == 0
+
+
 def test_config_show_and_a_typo(tmp_path):
     res = run_cli("config", "show", "configs/data/quickstart.yaml", "synth.seed=3")
     assert res.returncode == 0, res.stderr

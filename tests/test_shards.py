@@ -265,19 +265,138 @@ def test_shards_refuse_to_overwrite_different_shards(hand_dataset, shards):
     assert json.loads(before)["source"]["samples_per_shard"] == 5
 
 
-def test_shards_of_a_copied_dataset_are_refused_naming_where_they_came_from(hand_dataset, shards, tmp_path):
+def _copy_of(shards, tmp_path):
+    """A copy of the module's shards this test may replace (the module's stay as they are)."""
     import shutil
 
+    copy = tmp_path / "s"
+    shutil.copytree(shards, copy)
+    return copy
+
+
+def test_shards_of_a_moved_dataset_are_accepted_and_of_a_plain_copy_refused(hand_dataset, shards, tmp_path):
+    import os
+    import shutil
+
+    from occtrain.data.shards import dataset_fingerprint
+
+    out = _copy_of(shards, tmp_path)
+    before = (out / "index.json").read_text()
+    # mv, cp -a, copytree: the same files with their times, so the same fingerprint: the
+    # shards hold no path and are exactly what the copy would write.
     moved = tmp_path / "moved"
     shutil.copytree(hand_dataset, moved)
-    before = (shards / "index.json").read_text()
+    os.remove(moved / "nuscenes_qa" / "NuScenes_val_questions.json")  # a missing file, named from the root
+    missing = tmp_path / "missing"
+    shutil.copytree(moved, missing)
+    assert dataset_fingerprint(DatasetIndex.open(moved), 3) == dataset_fingerprint(DatasetIndex.open(missing), 3)
+    assert dataset_fingerprint(DatasetIndex.open(moved), 2) != dataset_fingerprint(DatasetIndex.open(missing), 2)
+    assert write_shards(hand_dataset, out, samples_per_shard=5, history=2, future=3) == json.loads(before)
+    renamed = tmp_path / "renamed"
+    shutil.copytree(hand_dataset, renamed)
+    assert write_shards(renamed, out, samples_per_shard=5, history=2, future=3) == json.loads(before)
+    assert (out / "index.json").read_text() == before  # accepted as they are, not re-pointed
+    # cp -r: the same bytes with new times; not told from an edit without reading them all.
+    copied = tmp_path / "copied"
+    shutil.copytree(hand_dataset, copied, copy_function=shutil.copy)
     with pytest.raises(DataError) as err:
-        write_shards(moved, shards, samples_per_shard=5, history=2, future=3)
+        write_shards(copied, out, samples_per_shard=5, history=2, future=3)
     assert str(err.value) == (
-        f"{shards}: its shards were made from {hand_dataset.resolve()}, a copy of {moved} or where it was "
-        f"before a move; delete {shards} and they are written again from here"
+        f"{out}: its shards were made from {hand_dataset.resolve()}, and {copied} is not that dataset as it was then "
+        "(another dataset, a copy whose files got new times as `cp -r` gives them, or one edited since); "
+        f"delete {out} and they are written again, or replace them with "
+        f"`occtrain data shards {copied} --out {out} --samples-per-shard 5 --history 2 --future 3 --rebuild`"
     )
-    assert (shards / "index.json").read_text() == before
+    assert (out / "index.json").read_text() == before
+
+
+def test_shards_indexed_by_an_earlier_fingerprint_stay_current_where_they_were_made(hand_dataset, shards, tmp_path):
+    from occtrain.data.shards import dataset_fingerprint
+
+    out = _copy_of(shards, tmp_path)
+    index = json.loads((out / "index.json").read_text())
+    index["source"].update(fingerprint=dataset_fingerprint(DatasetIndex.open(hand_dataset), 2), fingerprint_version=2)
+    (out / "index.json").write_text(json.dumps(index))
+    assert write_shards(hand_dataset, out, samples_per_shard=5, history=2, future=3) == index
+
+
+def test_rebuild_replaces_the_shards_and_a_failure_leaves_the_old_ones(hand_dataset, shards, tmp_path, monkeypatch):
+    import occtrain.data.shards as shard_module
+
+    out = _copy_of(shards, tmp_path)
+    before = {p.name: p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    real = shard_module._frame_sample
+    calls = []
+
+    def fails_halfway(*args):
+        calls.append(1)
+        if len(calls) > 12:
+            raise DataError("a bad label halfway")
+        return real(*args)
+
+    monkeypatch.setattr(shard_module, "_frame_sample", fails_halfway)
+    with pytest.raises(DataError, match="a bad label halfway"):
+        write_shards(hand_dataset, out, samples_per_shard=7, history=2, future=3, rebuild=True)
+    assert {p.name: p.read_bytes() for p in out.rglob("*") if p.is_file()} == before and check_shards(out) == []
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["s"]  # nothing left beside it
+    monkeypatch.setattr(shard_module, "_frame_sample", real)
+
+    out.chmod(0o750)
+    index = write_shards(hand_dataset, out, samples_per_shard=7, history=2, future=3, rebuild=True)
+    assert index["source"]["samples_per_shard"] == 7 and read_index(out) == index
+    assert [e["samples"] for e in index["kinds"]["frames"]["train"]] == [7, 7, 7, 3] and check_shards(out) == []
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["s"] and out.stat().st_mode & 0o777 == 0o750
+    assert write_shards(hand_dataset, out, samples_per_shard=7, history=2, future=3) == index  # current now
+
+
+def test_frames_alone_when_no_clip_fits_and_a_note_says_who_cannot_train(hand_dataset, tmp_path, capsys):
+    from occtrain.cli import main
+    from occtrain.data.datamodule import check_data, ensure_data
+
+    out = tmp_path / "s"
+    assert main(["data", "shards", str(hand_dataset), "--out", str(out), "--history", "6", "--future", "6"]) == 0
+    err = capsys.readouterr().err
+    note = [line for line in err.splitlines() if line.startswith("note: ")]
+    assert note == [
+        f"note: {hand_dataset}: its longest train scene has 12 frames and a clip spans history 6 + 1 + future 6 = 13, "
+        "so no clip fits: frame shards only, which tokenizer stages train on; the world-model stages (pretrain, instruct, "
+        "planner, distill) read clips and cannot train on this dataset (use longer scenes or a shorter history/future)"
+    ]
+    index = read_index(out)
+    assert list(index["kinds"]) == ["frames"] and index["source"]["kinds"] == ["frames"]
+    with pytest.raises(DataError, match=r"has no 'clips' shards: .* = 13, so no clip fits; use longer scenes"):
+        shard_urls(out, "clips", "train")
+    # Asked for by name, clips that cannot fit are refused, as before.
+    assert main(["data", "shards", str(hand_dataset), "--out", str(tmp_path / "c"), "--kinds", "clips", "--history", "6", "--future", "6"]) == 2
+    assert "so there would be no clip to train on" in capsys.readouterr().err and not (tmp_path / "c").exists()
+
+    # A run shards the dataset alike, and says so before it writes them.
+    cfg = DataConfig(root=str(hand_dataset), shards=str(tmp_path / "run-shards"), history=6, future=6)
+    line = check_data(cfg)
+    assert line.endswith("frames; shards to be written in " + str(tmp_path / "run-shards") + "; " + note[0].removeprefix("note: "))
+    with pytest.raises(DataError, match=r"^stage 'pretrain' reads clips, and .* = 13, so no clip fits; use longer scenes"):
+        check_data(cfg, clip_readers=["pretrain"])
+    assert read_index(ensure_data(cfg))["source"]["kinds"] == ["frames"]
+    assert note[0] in capsys.readouterr().err
+    assert "shards ready" in check_data(cfg)
+
+
+def test_an_unwritable_out_fails_before_any_shard(hand_dataset, tmp_path, capsys, monkeypatch):
+    import errno
+
+    import occtrain.io
+    from occtrain.cli import main
+
+    def read_only(*args, **kwargs):
+        raise OSError(errno.EROFS, "Read-only file system")
+
+    opened = []
+    monkeypatch.setattr(occtrain.io.tempfile, "mkstemp", read_only)
+    monkeypatch.setattr(DatasetIndex, "open", lambda *a: opened.append(a))  # the dataset is never even read
+    assert main(["data", "shards", str(hand_dataset), "--out", str(tmp_path / "s")]) == 2
+    err = capsys.readouterr().err  # what to do after the ';' is io.check_output's to say
+    assert err.startswith(f"error: cannot write {tmp_path / 's'}: the file system is read-only; ") and err.count("\n") == 1
+    assert opened == [] and list(tmp_path.iterdir()) == []
 
 
 def test_decode_sample_unpacks_masks():

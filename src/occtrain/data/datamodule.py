@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import Any, Callable, Iterable, Iterator
 
 import lightning as L
 import numpy as np
@@ -14,7 +14,9 @@ from occtrain.config.schema import DataConfig, check_synth_config
 from occtrain.data.cameras import CAMERA_NAMES
 from occtrain.data.layout import ANNOTATIONS_FILE, DATASET_FILE, DEPTH_SCALE, DatasetIndex, generator_record
 from occtrain.data.reading import ShardSamples
-from occtrain.data.shards import KINDS, PAD_KEY, current_shards, make_pipeline, shard_source, shard_urls, write_shards
+from occtrain.data.shards import (
+    KINDS, PAD_KEY, clip_shortfall, current_shards, make_pipeline, no_clips_note, shard_source, shard_urls, write_shards,
+)
 from occtrain.errors import DataError
 
 
@@ -22,39 +24,71 @@ def shards_dir(cfg: DataConfig) -> Path:
     return Path(cfg.shards) if cfg.shards else Path(cfg.root) / "shards"
 
 
-def check_data(cfg: DataConfig) -> str:
+def check_data(cfg: DataConfig, clip_readers: Iterable[str] = ()) -> str:
     """Check, writing nothing, that ``cfg`` names data a run can use; say what the run will
     do with it. A dataset that exists is opened and checked (annotations, paths inside the
-    root, the synthesis record), and shards that exist must be of it as it is now."""
+    root, camera folders, the synthesis record), and shards that exist must be of it as it
+    is now.
+
+    Scenes too short for one clip get frame shards only, as `occtrain data shards` writes
+    by default, and the line says so; named ``clip_readers`` (stages that read clips) are
+    then refused here, before anything is written, rather than when their turn comes."""
     root = Path(cfg.root)
-    if not (root / ANNOTATIONS_FILE).is_file():
-        if root.exists() and not (root / DATASET_FILE).is_file():
-            # Neither an Occ3D root nor a synthesis cut off halfway (which holds the record):
-            # writing a synthetic world into it would train on data nobody asked for.
-            what = "is empty" if root.is_dir() and not any(root.iterdir()) else "holds no annotations.json"
-            raise DataError(
-                f"data.root {root} {what}; point data.root at an Occ3D root (annotations.json + gts/), "
-                "or at a path that does not exist yet for occtrain to synthesize its world there"
-            )
-        s = cfg.synth
-        check_synth_config(s)
-        _check_synth_record(root, cfg)  # a synthesis cut off halfway resumes only under its own settings
-        return (
-            f"data.root {root} {'is incomplete' if root.exists() else 'does not exist'}: synthesizing occtrain's world there "
-            f"(seed {s.seed}, {s.train_scenes}+{s.val_scenes} scenes of {s.frames_per_scene} frames)"
+    line, shortfall = _plan_synthesis(cfg) if not (root / ANNOTATIONS_FILE).is_file() else _plan_shards(cfg)
+    if not shortfall:
+        return line
+    readers = list(clip_readers)
+    if readers:
+        raise DataError(
+            f"stage '{readers[0]}' reads clips, and {shortfall}, so no clip fits; "
+            "use longer scenes or shorten data.history/data.future"
         )
+    return f"{line}; {no_clips_note(shortfall)}"
+
+
+def _plan_synthesis(cfg: DataConfig) -> tuple[str, str | None]:
+    """:func:`check_data` of a world still to synthesize: what the run will do, and why no
+    clip would fit it (None when one does)."""
+    root = Path(cfg.root)
+    if root.exists() and not (root / DATASET_FILE).is_file():
+        # Neither an Occ3D root nor a synthesis cut off halfway (which holds the record):
+        # writing a synthetic world into it would train on data nobody asked for.
+        what = "is empty" if root.is_dir() and not any(root.iterdir()) else "holds no annotations.json"
+        raise DataError(
+            f"data.root {root} {what}; point data.root at an Occ3D root (annotations.json + gts/), "
+            "or at a path that does not exist yet for occtrain to synthesize its world there"
+        )
+    s = cfg.synth
+    check_synth_config(s)
+    _check_synth_record(root, cfg)  # a synthesis cut off halfway resumes only under its own settings
+    line = (
+        f"data.root {root} {'is incomplete' if root.exists() else 'does not exist'}: synthesizing occtrain's world there "
+        f"(seed {s.seed}, {s.train_scenes}+{s.val_scenes} scenes of {s.frames_per_scene} frames)"
+    )
+    span = cfg.history + 1 + cfg.future
+    if s.frames_per_scene >= span:
+        return line, None
+    return line, f"data.synth.frames_per_scene is {s.frames_per_scene} and a clip spans history {cfg.history} + 1 + future {cfg.future} = {span}"
+
+
+def _plan_shards(cfg: DataConfig) -> tuple[str, str | None]:
+    """:func:`check_data` of a dataset that exists: what the run will do, and why no clip
+    fits it (None when one does)."""
+    root = Path(cfg.root)
     index = DatasetIndex.open(root)
     _check_synth_record(root, cfg)
     source = shard_source(index, cfg.samples_per_shard, cfg.history, cfg.future)
     ready = current_shards(index, shards_dir(cfg), source) is not None
-    return f"data.root {root}: {sum(len(t) for t in index.scenes.values())} frames; shards {'ready' if ready else 'to be written'} in {shards_dir(cfg)}"
+    line = f"data.root {root}: {sum(len(t) for t in index.scenes.values())} frames; shards {'ready' if ready else 'to be written'} in {shards_dir(cfg)}"
+    return line, None if "clips" in source["kinds"] else clip_shortfall(index, cfg.history, cfg.future)
 
 
 def ensure_data(cfg: DataConfig, verbose: bool = True) -> Path:
     """Synthesize the dataset if ``cfg.root`` is absent, write its shards if absent (see
     ``check_data``); return the shard dir."""
     root = Path(cfg.root)
-    if not (root / ANNOTATIONS_FILE).is_file():
+    synthesized = not (root / ANNOTATIONS_FILE).is_file()
+    if synthesized:
         from occtrain.data.synthesize import synthesize  # the world generator loads only when needed
 
         plan = check_data(cfg)  # refuses a folder that is neither a dataset nor a cut-off synthesis
@@ -67,7 +101,13 @@ def ensure_data(cfg: DataConfig, verbose: bool = True) -> Path:
         _check_synth_record(root, cfg)
     out = shards_dir(cfg)
     # Also when they exist: shards made before the dataset changed are refused, never read.
-    write_shards(root, out, cfg.samples_per_shard, cfg.history, cfg.future)
+    # The kinds as `occtrain data shards` picks them: frames alone when no clip fits.
+    index = write_shards(root, out, cfg.samples_per_shard, cfg.history, cfg.future)
+    shortfall = index.get("missing", {}).get("clips")
+    if shortfall and verbose and not synthesized:  # a synthesis's plan line said it already
+        from occtrain.progress import console
+
+        console.print(f"note: {no_clips_note(shortfall)}", markup=False)
     return out
 
 

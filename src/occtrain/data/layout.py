@@ -297,18 +297,61 @@ class DatasetIndex:
     def has_cameras(self) -> bool:
         """Whether samples carry ``camera_sensor`` records and images exist for them.
 
-        Any image of the first sample present means the dataset has cameras: a missing one
-        (of any sample) is then an error naming it, never a quiet shard set without cameras."""
+        Any image of the first sample present means the dataset has cameras: then every
+        folder the records name must exist (a deleted ``imgs/CAM_BACK`` is refused here,
+        naming it, before a run writes anything), and a missing image is an error naming it
+        later, never a quiet shard set without cameras."""
         first = next(self.samples(), None)
         records = self.info(*first).get("camera_sensor") if first else None
-        return bool(records) and any(self.image_path(r["img_path"]).is_file() for r in records.values())
+        if not records or not any(self.image_path(r["img_path"]).is_file() for r in records.values()):
+            return False
+        self._check_camera_folders()
+        return True
+
+    def _check_camera_folders(self) -> None:
+        """Refuse a camera folder that no longer exists, naming it where the images would be.
+
+        One stat per distinct folder, not per image: a release holds hundreds of thousands."""
+        seen: set[str] = set()
+        for scene, infos in self.scene_infos.items():
+            for token, info in infos.items():
+                for key, record in (info.get("camera_sensor") or {}).items():
+                    folder = posixpath.dirname(record["img_path"])
+                    if folder in seen:
+                        continue
+                    seen.add(folder)
+                    if not (self.root / folder).is_dir() and not (self.root / IMGS_DIR / folder).is_dir():
+                        raise DataError(
+                            f"{self._image_base / folder}: camera folder not found, while {self.root / ANNOTATIONS_FILE} names "
+                            f"images in it (scene_infos.{scene}.{token}.camera_sensor.{key}.img_path '{record['img_path']}'); "
+                            "restore it (the release's images, or `occtrain data synth` for a synthetic world)"
+                        )
+
+    @cached_property
+    def _image_base(self) -> Path:
+        """Where this dataset's ``img_path`` values are relative to: the root (the README's
+        form) or ``imgs/`` (the released files'), told by the first sample's images found."""
+        first = next(self.samples(), None)
+        records = (self.info(*first).get("camera_sensor") or {}) if first else {}
+        for record in records.values():
+            for base in (self.root, self.root / IMGS_DIR):
+                if (base / record["img_path"]).is_file():
+                    return base
+        # No image to tell by: a path under imgs/ names itself; any other is the released form
+        # when imgs/ exists.
+        rel = next((r["img_path"] for r in records.values()), "")
+        released = (self.root / IMGS_DIR).is_dir() and not rel.startswith(f"{IMGS_DIR}/")
+        return self.root / IMGS_DIR if released else self.root
 
     def image_path(self, img_path: str) -> Path:
         """Where a record's ``img_path`` lies: relative to the root (the README's form), or
-        to ``imgs/`` (the released files')."""
+        to ``imgs/`` (the released files'). A missing image is named where this dataset's
+        images lie, so its message points at the real place (``imgs/CAM_BACK/...``)."""
         direct = self.root / img_path
         in_imgs = self.root / IMGS_DIR / img_path
-        return in_imgs if not direct.is_file() and in_imgs.is_file() else direct
+        if direct.is_file():
+            return direct
+        return in_imgs if in_imgs.is_file() else self._image_base / img_path
 
     def cameras(self, scene: str, token: str) -> list[CameraRecord]:
         """The sample's six cameras in CAMERA_NAMES order: records keyed by channel (the

@@ -31,10 +31,13 @@ from __future__ import annotations
 import hashlib
 import io
 import json
+import os
 import re
+import shlex
 import tarfile
+import tempfile
 from pathlib import Path
-from typing import Any, Callable, Iterable, Iterator, TypedDict
+from typing import Any, Callable, Iterable, Iterator, NotRequired, TypedDict
 
 import numpy as np
 import webdataset as wds
@@ -44,7 +47,7 @@ from occtrain.data.layout import CLASS_SUFFIX, DEPTH_SUFFIX, FRAMES_DIR, SPLITS,
 from occtrain.data.reading import PAD_KEY, ShardSamples
 from occtrain.data.validate import first_problem
 from occtrain.errors import DataError
-from occtrain.io import atomic_write_json, npz_bytes, rank_world
+from occtrain.io import atomic_write_json, npz_bytes, rank_world, remove_inside, write_error
 from occtrain.occ3d import GRID_SHAPE
 from occtrain.progress import progress_bar
 
@@ -55,6 +58,10 @@ ALLOWED_EXTENSIONS = ("npy", "npz", "json", "txt", "png", "jpg")
 #: Entries holding camera data start with this (``cam_front.png``, ``cams.json``).
 CAMERA_ENTRY_PREFIX = "cam"
 PACKED_MASKS = ("mask_lidar", "mask_camera")
+#: The fingerprint a new shard index records (see :func:`dataset_fingerprint`).
+FINGERPRINT_VERSION = 3
+#: What `occtrain data shards` writes unless told otherwise (see :func:`shard_source`).
+DEFAULT_LAYOUT = {"samples_per_shard": 64, "history": 4, "future": 6}
 
 
 # ----------------------------------------------------------------------------- writing
@@ -69,14 +76,19 @@ def unpack_mask(packed: np.ndarray) -> np.ndarray:
     return np.unpackbits(packed, axis=-1, count=GRID_SHAPE[-1])
 
 
-def dataset_fingerprint(index: DatasetIndex) -> str:
+def dataset_fingerprint(index: DatasetIndex, version: int = 2) -> str:
     """A hash of everything shards are made from: annotations.json and the generator record
     by content, every labels file, camera image, sidecar and QA file by size and mtime.
 
     Editing any of them (a relabelled ``labels.npz``, a re-rendered image) changes it, so
     shards and caches made before the edit are refused, never read. Size and mtime, like
     make: the cost grows with the file count, not with the bytes, which for a real release
-    with its camera images are tens of GB (``tools/bench/data.py fingerprint``)."""
+    with its camera images are tens of GB (``tools/bench/data.py fingerprint``).
+
+    Version 3 (what shard indexes record) names a missing file (an absent QA sidecar, the
+    class and depth maps real images lack) relative to the root, as it names present ones,
+    so a dataset moved elsewhere keeps its fingerprint; version 2 named it by its absolute
+    path, and stays the default of the caches keyed by it."""
     h = hashlib.sha256((index.root / "annotations.json").read_bytes())
     if index.generator:
         h.update(json.dumps(index.generator, sort_keys=True).encode())
@@ -85,7 +97,7 @@ def dataset_fingerprint(index: DatasetIndex) -> str:
             st = path.stat()
             h.update(f"{path.relative_to(index.root)}\0{st.st_size}\0{st.st_mtime_ns}\n".encode())
         except FileNotFoundError:
-            h.update(f"{path}\0missing\n".encode())
+            h.update(f"{path if version < 3 else path.relative_to(index.root)}\0missing\n".encode())
     return h.hexdigest()[:16]
 
 
@@ -121,6 +133,8 @@ class ShardIndex(TypedDict):
 
     source: dict[str, Any]
     kinds: dict[str, dict[str, list[ShardEntry]]]
+    #: Kinds left out although asked for by default, and why (clips no scene is long enough for).
+    missing: NotRequired[dict[str, str]]
 
 
 class _ShardSink:
@@ -243,34 +257,51 @@ def write_shards(
     samples_per_shard: int = 64,
     history: int = 4,
     future: int = 6,
-    kinds: Iterable[str] = KINDS,
+    kinds: Iterable[str] | None = None,
     progress: Callable[[int], None] | None = None,
+    rebuild: bool = False,
 ) -> dict:
     """Write frame and/or clip shards for both splits; returns the index written to ``out/index.json``.
 
-    An ``out`` that already holds shards of a different dataset or layout is refused;
-    one that holds exactly these shards is left as it is.
+    ``kinds`` None: frames, and clips when a train scene is long enough for one (the index
+    then records why clips are ``missing``). An ``out`` that already holds shards of a
+    different dataset or layout is refused; one that holds exactly these shards is left as
+    it is. ``rebuild`` replaces whatever shards ``out`` holds, the old ones usable until the
+    new ones are complete.
     """
     index = DatasetIndex.open(dataset)
     out = Path(out)
-    kinds = list(kinds)
     source = shard_source(index, samples_per_shard, history, future, kinds)
-    old = current_shards(index, out, source)
-    if old is not None:
-        return old
+    if rebuild:
+        _check_rebuildable(out)
+    else:
+        old = current_shards(index, out, source)
+        if old is not None:
+            return old
+    missing = {} if kinds is not None or "clips" in source["kinds"] else {"clips": clip_shortfall(index, history, future)}
+    written = [k for k in KINDS if k in source["kinds"]]
+
+    def write(into: Path, advance: Callable[[int], None]) -> dict:
+        return _write_shards(index, into, samples_per_shard, history, future, written, source, advance, missing)
+
+    def write_all(advance: Callable[[int], None]) -> dict:
+        if rebuild and out.is_dir() and any(out.iterdir()):
+            return _replace_shards(out, lambda staging: write(staging, advance))
+        return write(out, advance)
+
     if progress is None:  # no caller's bar: show one, so a log sees minutes of sharding move
         frames = sum(len(index.scenes[scene]) for split in SPLITS for scene in index.splits.get(split, []))
-        with progress_bar(frames * len(kinds), f"writing {' and '.join(kinds)} shards of {frames} frames") as advance:
-            return _write_shards(index, out, samples_per_shard, history, future, kinds, source, advance)
-    return _write_shards(index, out, samples_per_shard, history, future, kinds, source, progress)
+        with progress_bar(frames * len(written), f"writing {' and '.join(written)} shards of {frames} frames") as advance:
+            return write_all(advance)
+    return write_all(progress)
 
 
 def _write_shards(
     index: DatasetIndex, out: Path, samples_per_shard: int, history: int, future: int, kinds: list[str],
-    source: dict, progress: Callable[[int], None],
+    source: dict, progress: Callable[[int], None], missing: dict[str, str],
 ) -> dict:
     """:func:`write_shards` once the shards are known to be missing."""
-    result: dict[str, Any] = {"source": source, "kinds": {}}
+    result: dict[str, Any] = {"source": source, "kinds": {}, **({"missing": missing} if missing else {})}
     new_dirs = [d for d in (out, *(out / k for k in kinds)) if not d.exists()]
     sinks: list[_ShardSink] = []
     try:
@@ -295,55 +326,181 @@ def _write_shards(
     return result
 
 
+# ----------------------------------------------------------------------------- --rebuild
+
+#: What a shard directory holds; --rebuild replaces nothing else.
+_SHARD_ENTRIES = frozenset((INDEX_FILE, *KINDS))
+
+
+def _check_rebuildable(out: Path) -> None:
+    """--rebuild swaps the whole of ``out``: refuse it when ``out`` holds anything that is
+    not a shard (a dataset, someone's files), which the swap would delete."""
+    if not out.is_dir():
+        return
+    for entry in sorted(out.iterdir()):
+        leftover = entry.name.startswith(".") and entry.name.endswith(".tmp")  # an interrupted atomic write
+        if entry.name not in _SHARD_ENTRIES and not leftover:
+            raise DataError(
+                f"{out}: holds {entry.name}, which is not a shard file; --rebuild replaces the whole directory, "
+                "so move it away first or choose another --out"
+            )
+
+
+def _replace_shards(out: Path, write: Callable[[Path], dict]) -> dict:
+    """Write a new shard set beside ``out`` and swap it in only once complete (index.json
+    written last): a failure or ^C halfway leaves the old shards as they were, usable.
+
+    Writing over them in place would not: a new ``train-000000.tar`` under the old index
+    is a shard set whose counts lie. The swap is two renames on one file system; the old
+    set is deleted after them."""
+    out = out.resolve()  # a link to the shards stays a link, to the new ones
+    parent = out.parent
+    try:
+        staging = Path(tempfile.mkdtemp(dir=parent, prefix=f".{out.name}.rebuild-"))
+        os.chmod(staging, out.stat().st_mode & 0o7777)  # mkdtemp's 0700 would replace the directory's own mode
+    except OSError as err:
+        raise write_error(out, err) from None
+    try:
+        result = write(staging)
+    except BaseException:
+        remove_inside(staging, parent)
+        raise
+    retired = staging.with_name(staging.name.replace(".rebuild-", ".replaced-"))
+    out.rename(retired)
+    try:
+        staging.rename(out)
+    except OSError as err:
+        retired.rename(out)  # the old shards back where they were
+        remove_inside(staging, parent)
+        raise write_error(out, err) from None
+    remove_inside(retired, parent)
+    return result
+
+
+# ----------------------------------------------------------------------------- which shards are current
+
+
 def current_shards(index: DatasetIndex, out: Path, source: dict) -> dict | None:
     """The index of the shards in ``out`` when they were made from ``source`` (the dataset
     as it is now, this layout); None when ``out`` holds none. Anything else is refused in
-    one line: shards of another dataset, or of this one before it changed, are never read."""
+    one line that says what is true and what to do, for whichever command met it (`data
+    shards`, `run`, `validate`): shards of another dataset, or of this one before it
+    changed, are never read."""
     if (out / INDEX_FILE).is_file():
         old = read_index(out)
-        if old.get("source") == source:
+        made = old.get("source", {})
+        if _same_content(index, made, source):
             return old
-        if old.get("source", {}).get("dataset") == source["dataset"] and "fingerprint_version" not in old["source"]:
-            raise DataError(f"{out}: shards of an older occtrain, whose fingerprint saw annotations.json alone; delete {out} and they are written again")
-        if {**old.get("source", {}), "dataset": None} == {**source, "dataset": None}:
-            raise DataError(
-                f"{out}: its shards were made from {old['source']['dataset']}, a copy of {index.root} or where it was "
-                f"before a move; delete {out} and they are written again from here"
-            )
-        if {**old.get("source", {}), "fingerprint": None} == {**source, "fingerprint": None}:
-            raise DataError(
-                f"{out}: its shards were made before {index.root} changed (a labels, image, sidecar or annotations file "
-                f"differs); delete {out} and they are written again"
-            )
-        raise DataError(f"{out}: already holds shards of a different dataset or layout; choose another --out or delete it")
+        raise DataError(_why_not_current(index, out, made, source))
     if out.exists() and any(p.suffix == ".tar" for p in out.rglob("*.tar")):
-        raise DataError(f"{out}: holds shards without an {INDEX_FILE} (an interrupted write?); delete it and write again")
+        raise DataError(f"{out}: holds shards without an {INDEX_FILE} (an interrupted write?); {_redo(index, out, source)}")
     return None
 
 
-def shard_source(index: DatasetIndex, samples_per_shard: int, history: int, future: int, kinds: Iterable[str] = KINDS) -> dict:
-    """What a shard set of ``index`` with this layout is made from (checked), as its index records it."""
+_CONTENT_KEYS = ("dataset", "fingerprint", "fingerprint_version")
+
+
+def _layout(source: dict) -> dict:
+    return {k: v for k, v in source.items() if k not in _CONTENT_KEYS}
+
+
+def _same_content(index: DatasetIndex, made: dict, source: dict) -> bool:
+    """Whether shards made as ``made`` records are what ``source`` would write now.
+
+    The dataset's path is left out on purpose: a shard holds no path, only what the files
+    hold, so shards of a dataset moved or copied with its files' times kept (``mv``,
+    ``cp -a``) are byte for byte those this copy would write, and are accepted as they are
+    (not re-pointed: `validate` writes nothing, and every copy with this fingerprint may
+    read them alike). A plain ``cp -r`` gives every file a new mtime, hence a new
+    fingerprint, and cannot be told from an edit without reading every byte (tens of GB
+    with images): refused, with the way to rebuild them."""
+    if _layout(made) != _layout(source):
+        return False
+    if made.get("fingerprint_version") == source["fingerprint_version"]:
+        return made.get("fingerprint") == source["fingerprint"]
+    # Shards of an earlier occtrain (version 2: missing files named by absolute path) stay
+    # current where they were made, as long as the dataset there has not changed.
+    return made.get("fingerprint_version") == 2 and made.get("dataset") == source["dataset"] and (
+        made.get("fingerprint") == dataset_fingerprint(index, version=2)
+    )
+
+
+def _why_not_current(index: DatasetIndex, out: Path, made: dict, source: dict) -> str:
+    """The one line refusing shards that :func:`_same_content` found are not these."""
+    redo = _redo(index, out, source)
+    if made.get("dataset") == source["dataset"] and "fingerprint_version" not in made:
+        return f"{out}: shards of an older occtrain, whose fingerprint saw annotations.json alone; {redo}"
+    if _layout(made) != _layout(source):
+        differ = "; ".join(f"{k} {made[k]} there, {source[k]} here" for k in _layout(source) if k in made and made[k] != source[k])
+        return f"{out}: already holds shards of a different dataset or layout{f' ({differ})' if differ else ''}; {redo}"
+    if made.get("dataset") == source["dataset"]:
+        return f"{out}: its shards were made before {index.root} changed (a labels, image, sidecar or annotations file differs); {redo}"
+    return (
+        f"{out}: its shards were made from {made.get('dataset')}, and {index.root} is not that dataset as it was then "
+        f"(another dataset, a copy whose files got new times as `cp -r` gives them, or one edited since); {redo}"
+    )
+
+
+def _redo(index: DatasetIndex, out: Path, source: dict) -> str:
+    """What to do about shards that are not current: true for `data shards` (which has
+    --out and --rebuild) and for `run` or `validate` (which write them again once gone)."""
+    flags = [f"--{k.replace('_', '-')} {source[k]}" for k, default in DEFAULT_LAYOUT.items() if source[k] != default]
+    if sorted(source["kinds"]) != sorted(KINDS):
+        flags.append(f"--kinds {','.join(source['kinds'])}")
+    command = " ".join(["occtrain data shards", shlex.quote(str(index.root)), "--out", shlex.quote(str(out)), *flags, "--rebuild"])
+    return f"delete {out} and they are written again, or replace them with `{command}`"
+
+
+# ----------------------------------------------------------------------------- what shards are made of
+
+
+def clip_shortfall(index: DatasetIndex, history: int, future: int) -> str | None:
+    """Why no clip of ``history`` + 1 + ``future`` frames fits the train scenes; None when one does."""
+    longest = max((len(index.scenes[s]) for s in index.splits["train"]), default=0)
+    if longest >= history + 1 + future:
+        return None
+    return (
+        f"{index.root}: its longest train scene has {longest} frames and a clip spans history {history} + 1 + "
+        f"future {future} = {history + 1 + future}"
+    )
+
+
+def no_clips_note(shortfall: str) -> str:
+    """The line that says shards were (or will be) made without clips, and who cannot train on them."""
+    return (
+        f"{shortfall}, so no clip fits: frame shards only, which tokenizer stages train on; the world-model "
+        "stages (pretrain, instruct, planner, distill) read clips and cannot train on this dataset "
+        "(use longer scenes or a shorter history/future)"
+    )
+
+
+def shard_source(
+    index: DatasetIndex, samples_per_shard: int, history: int, future: int, kinds: Iterable[str] | None = None,
+) -> dict:
+    """What a shard set of ``index`` with this layout is made from (checked), as its index
+    records it. ``kinds`` None: frames, and clips when one fits (see :func:`write_shards`);
+    clips asked for by name and fitting no scene are refused."""
+    for name, value, least in (("samples_per_shard", samples_per_shard, 1), ("history", history, 0), ("future", future, 0)):
+        if not isinstance(value, int) or isinstance(value, bool) or value < least:
+            raise DataError(f"{name} is {value!r}; it must be a whole number of at least {least}")
+    shortfall = clip_shortfall(index, history, future)
+    if kinds is None:
+        kinds = ["frames"] if shortfall else list(KINDS)
     kinds = list(kinds)
     unknown = [k for k in kinds if k not in KINDS]
     if unknown:
         raise DataError(f"unknown shard kind '{unknown[0]}'; choose from {', '.join(KINDS)}")
-    for name, value, least in (("samples_per_shard", samples_per_shard, 1), ("history", history, 0), ("future", future, 0)):
-        if not isinstance(value, int) or isinstance(value, bool) or value < least:
-            raise DataError(f"{name} is {value!r}; it must be a whole number of at least {least}")
     if "clips" in kinds:
         _check_sidecars(index)
-        longest = max((len(index.scenes[s]) for s in index.splits["train"]), default=0)
-        if longest < history + 1 + future:
-            raise DataError(
-                f"{index.root}: its longest train scene has {longest} frames and a clip spans history {history} + 1 + "
-                f"future {future} = {history + 1 + future}, so there would be no clip to train on; "
-                "use longer scenes, a shorter history/future, or --kinds frames"
-            )
+        if shortfall:
+            raise DataError(f"{shortfall}, so there would be no clip to train on; use longer scenes, a shorter history/future, or --kinds frames")
+    index.has_cameras  # noqa: B018 - refuses a missing camera folder before a shard is written, naming it
     return {
         "dataset": str(index.root.resolve()),
-        "fingerprint": dataset_fingerprint(index),
-        # 2: the fingerprint covers every source file (1, unrecorded: annotations.json alone).
-        "fingerprint_version": 2,
+        "fingerprint": dataset_fingerprint(index, FINGERPRINT_VERSION),
+        # 2: the fingerprint covers every source file (1, unrecorded: annotations.json alone);
+        # 3: it names a missing one relative to the root, so a moved dataset keeps it.
+        "fingerprint_version": FINGERPRINT_VERSION,
         "samples_per_shard": samples_per_shard,
         "history": history,
         "future": future,
@@ -410,6 +567,9 @@ def shard_urls(shards: str | Path, kind: str, split: str) -> tuple[list[str], in
     """Paths of one kind/split's shards and their total sample count."""
     idx = read_index(shards)
     if kind not in idx["kinds"]:
+        why = idx.get("missing", {}).get(kind)
+        if why:  # left out by default because no scene is long enough: --kinds would be refused alike
+            raise DataError(f"{Path(shards) / INDEX_FILE}: has no '{kind}' shards: {why}, so no clip fits; use longer scenes or a shorter history/future")
         raise DataError(f"{Path(shards) / INDEX_FILE}: has no '{kind}' shards; write them with --kinds {kind}")
     entries = idx["kinds"][kind].get(split, [])
     return [str(Path(shards) / kind / e["file"]) for e in entries], sum(e["samples"] for e in entries)
