@@ -167,3 +167,129 @@ def test_registering_a_family_leaves_every_existing_stage_hash_unchanged(tmp_pat
         _FAMILIES.pop("another", None)
         _TOKENIZERS.pop("another_vae", None)
     assert after == before
+
+
+# ----------------------------------------------------------------------------- names plugins share
+
+#: The test-only plugins below import; each test's registry fixture forgets them afterwards.
+PLUGINS = ("plugins.broken_plugin", "plugins.clashing_family", "plugins.clashing_kind", "plugins.overriding_family")
+NOTE = (
+    "note: plugin plugins.overriding_family overrides the family 'occllama' of occtrain.families.occllama (shipped with occtrain)\n"
+)
+
+
+@pytest.fixture
+def registry(monkeypatch):
+    """The family registry with every shipped family loaded, restored after the test: what
+    the test's plugins registered or overrode is undone, and their modules forgotten."""
+    import sys
+
+    import occtrain.core.registry as registry
+
+    registry.families()
+    for name in ("_FAMILIES", "_TOKENIZERS", "_ORIGINS", "_OVERRIDDEN"):
+        monkeypatch.setattr(registry, name, dict(getattr(registry, name)))
+    yield registry
+    for module in PLUGINS:
+        sys.modules.pop(module, None)
+
+
+def install(monkeypatch, registry, module: str) -> None:
+    """``module`` as an installed package's ``occtrain.families`` entry point 'mine', found
+    by the next discovery."""
+    from importlib.metadata import EntryPoint
+
+    point = EntryPoint(name="mine", value=module, group=registry.ENTRY_POINT_GROUP)
+    monkeypatch.setattr(registry, "entry_points", lambda group: [point] if group == registry.ENTRY_POINT_GROUP else [])
+    monkeypatch.setattr(registry, "_loaded", False)
+
+
+@pytest.mark.parametrize(
+    "module, says",
+    [
+        ("plugins.broken_plugin", "(plugins.broken_plugin) failed while being imported: RuntimeError: the broken plugin's settings are missing"),
+        ("plugins.clashing_family", "(plugins.clashing_family): family 'occllama' of plugin plugins.clashing_family is already registered by "
+         "occtrain.families.occllama (shipped with occtrain); register it with override=True to replace it"),
+    ],
+    ids=["raises", "family-name-shipped"],
+)
+def test_an_entry_point_that_fails_is_one_line_naming_it(registry, monkeypatch, module, says):
+    import sys
+
+    from occtrain.errors import ConfigError
+
+    shipped = registry.get_family("occllama")
+    install(monkeypatch, registry, module)
+    with pytest.raises(ConfigError) as err:
+        registry.families()
+    assert str(err.value) == f"the occtrain.families entry point 'mine' {says}"
+    assert err.value.__cause__ is None and err.value.__suppress_context__  # no chained traceback to print
+    assert registry.get_family("occllama") is shipped and module not in sys.modules
+
+
+def test_an_entry_point_that_overrides_a_shipped_family_says_so_in_one_note(registry, monkeypatch, capsys):
+    install(monkeypatch, registry, "plugins.overriding_family")
+    assert registry.families()["occllama"].paper == "OccLLaMA, as a plugin retrained it"
+    assert capsys.readouterr() == ("", NOTE)
+    registry.families()  # discovered once per process: one note
+    assert capsys.readouterr() == ("", "")
+
+
+def test_a_recipe_plugin_that_overrides_a_shipped_family_says_so_once_even_imported_twice(registry, capsys):
+    import sys
+
+    from occtrain.runner import load_plugins
+
+    load_plugins(["plugins.overriding_family"], "r.yaml")
+    assert capsys.readouterr() == ("", NOTE)
+    # The same module again (imported afresh: a new spec object from the same registrant) is no news.
+    del sys.modules["plugins.overriding_family"]
+    load_plugins(["plugins.overriding_family"], "r.yaml")
+    assert capsys.readouterr() == ("", "")
+    assert registry.get_family("occllama") is sys.modules["plugins.overriding_family"].OCCLLAMA
+
+
+def test_the_very_same_registration_again_is_harmless(registry, capsys):
+    from occtrain.stages import get_kind, register
+
+    shipped, kind = registry.get_family("occllama"), get_kind("tokenizer")
+    assert registry.register_family(shipped) is shipped and registry.get_family("occllama") is shipped
+    assert register(kind) is kind and get_kind("tokenizer") is kind
+    assert capsys.readouterr() == ("", "")
+
+
+def test_a_tokenizer_arch_of_another_family_is_refused_unless_overridden(registry, capsys):
+    from occtrain.core.registry import FamilySpec, TokenizerArch, register_family
+    from occtrain.errors import ConfigError
+
+    shipped = registry.tokenizer_archs()["occworld_vqvae"]
+    mine = FamilySpec(name="mine", paper="x", tokenizers=(TokenizerArch("occworld_vqvae", shipped.config, shipped.model),))
+    with pytest.raises(ConfigError, match=(
+        f"^tokenizer arch 'occworld_vqvae' of plugin {__name__} is already registered by occtrain.families.occworld "
+        r"\(shipped with occtrain\); register it with override=True to replace it$"
+    )):
+        register_family(mine)
+    assert "mine" not in registry.families() and registry.tokenizer_family("occworld_vqvae") == "occworld"
+    register_family(mine, override=True)
+    assert registry.tokenizer_family("occworld_vqvae") == "mine"
+    assert capsys.readouterr().err == (
+        f"note: plugin {__name__} overrides the tokenizer arch 'occworld_vqvae' of occtrain.families.occworld (shipped with occtrain)\n"
+    )
+
+
+def test_a_stage_kind_of_another_module_is_refused_unless_overridden(registry, monkeypatch, capsys):
+    from dataclasses import replace
+
+    import occtrain.stages as stages
+    from occtrain.errors import ConfigError
+
+    shipped = stages.get_kind("tokenizer")
+    monkeypatch.setitem(stages._KINDS, "tokenizer", shipped)  # restored after the test
+    mine = replace(shipped, monitor="val/mine")
+    with pytest.raises(ConfigError, match=f"^stage kind 'tokenizer' of plugin {__name__} is already registered by occtrain.stages.tokenizer "):
+        stages.register(mine)
+    assert stages.get_kind("tokenizer") is shipped
+    assert stages.register(mine, override=True) is mine and stages.get_kind("tokenizer") is mine
+    assert capsys.readouterr().err == (
+        f"note: plugin {__name__} overrides the stage kind 'tokenizer' of occtrain.stages.tokenizer (shipped with occtrain)\n"
+    )

@@ -8,6 +8,11 @@ import one. The families shipped with occtrain are found by walking the
 ``occtrain.families`` package; a plugin registers through the ``occtrain.families`` entry
 point group (its value: a module that calls :func:`register_family` when imported), or a
 recipe's ``plugins:`` list.
+
+A name (a family, a stage kind, a tokenizer architecture) belongs to the module that
+registered it first: another module registering it is refused in one line unless it says
+``override=True``, and then every command says so in a note. A plugin that fails while
+being imported is one line too (:func:`load_plugin`), whatever it raised.
 """
 
 from __future__ import annotations
@@ -15,6 +20,7 @@ from __future__ import annotations
 import importlib
 import inspect
 import pkgutil
+import sys
 from dataclasses import dataclass, field
 from importlib.metadata import entry_points
 from pathlib import Path
@@ -24,7 +30,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from occtrain.core.protocols import EvalHook, Scorer
 from occtrain.core.tasks import TaskConfig, TaskSpec
-from occtrain.errors import ConfigError
+from occtrain.errors import ConfigError, OcctrainError
 from occtrain.exports import load_state_strict, read_export, require_config, write_export
 from occtrain.models import count_parameters
 
@@ -109,6 +115,10 @@ class FamilySpec:
 _FAMILIES: dict[str, FamilySpec] = {}
 _TOKENIZERS: dict[str, tuple[TokenizerArch, str]] = {}
 _loaded = False
+#: The module that registered each name, by (what it names, name): "family", "stage kind", ...
+_ORIGINS: dict[tuple[str, str], str] = {}
+#: Names a plugin registered with override=True, and the module whose registration it replaced.
+_OVERRIDDEN: dict[tuple[str, str], str] = {}
 
 
 def _check(spec: FamilySpec) -> None:
@@ -152,16 +162,126 @@ def scorer_factories(task: TaskSpec) -> tuple[Callable[[], Any], ...]:
     return tuple(task.scorer) if isinstance(task.scorer, (tuple, list)) else (task.scorer,)
 
 
-def register_family(spec: FamilySpec) -> FamilySpec:
-    """Add a family (a plugin may register its own); tokenizer names must be unique."""
+def registrant(up: int = 1) -> str:
+    """The module whose code called the register function that calls this (``up`` frames
+    above that function): whom a registration belongs to."""
+    return sys._getframe(up + 1).f_globals.get("__name__", "an unnamed module")
+
+
+def _shipped(module: str) -> bool:
+    return module == "occtrain" or module.startswith("occtrain.")
+
+
+def _describe(module: str) -> str:
+    return f"{module} (shipped with occtrain)" if _shipped(module) else f"plugin {module}"
+
+
+def holder(what: str, name: str, registered: bool, shipped_by: str | None = None) -> str | None:
+    """The module that holds ``name`` (a ``what``: "family", "stage kind"), None when free.
+    ``shipped_by``: the module of occtrain that registers it when first used (a stage kind
+    whose module is not imported yet)."""
+    if not registered:
+        return shipped_by
+    return _ORIGINS.get((what, name)) or shipped_by or "an earlier registration"
+
+
+def claim(what: str, name: str, origin: str, override: bool, held_by: str | None) -> bool:
+    """Whether module ``origin`` may register ``name``, which ``held_by`` holds.
+
+    Refused, in one line naming both registrations, when another module holds it and
+    ``override`` is not given. False: skip the registration, it is the shipped module that
+    a plugin has already overridden (imported after the plugin)."""
+    if held_by is None or held_by == origin:
+        return True  # a new name, or the same module registering again (imported twice)
+    if _OVERRIDDEN.get((what, name)) == origin:
+        return False
+    if not override:
+        raise ConfigError(
+            f"{what} '{name}' of {_describe(origin)} is already registered by {_describe(held_by)}; "
+            f"register it with override=True to replace it"
+        )
+    return True
+
+
+def take(what: str, name: str, origin: str, held_by: str | None) -> None:
+    """Record that ``origin`` holds ``name`` now (after :func:`claim` allowed it), with a
+    note when that overrides another module's registration."""
+    _ORIGINS[(what, name)] = origin
+    if held_by is not None and held_by != origin:
+        _OVERRIDDEN[(what, name)] = held_by
+        _note(f"{_describe(origin)} overrides the {what} '{name}' of {_describe(held_by)}")
+
+
+def _note(text: str) -> None:
+    from rich.markup import escape
+
+    from occtrain.io import is_rank_zero
+    from occtrain.progress import console
+
+    if is_rank_zero():  # every rank registers; one note is enough
+        console.print(f"[yellow]note[/]: {escape(text)}")
+
+
+def register_family(spec: FamilySpec, override: bool = False) -> FamilySpec:
+    """Add a family (a plugin may register its own). A family or tokenizer arch name that
+    another module registered is refused unless ``override``; the same module (or the very
+    same spec) registering again is harmless."""
+    origin = registrant()
+    if not _loaded and not _shipped(origin):
+        _discover()  # a plugin's names are checked against every shipped (and installed) one
+    if _FAMILIES.get(spec.name) is spec:
+        return spec
     _check(spec)
+    family_holder = holder("family", spec.name, spec.name in _FAMILIES)
+    if not claim("family", spec.name, origin, override, family_holder):
+        return spec
+    # Another family's arch is a clash of its own; one of the family it replaces goes with it.
+    arch_holders = {
+        a.name: holder("family", _TOKENIZERS[a.name][1], True)
+        for a in spec.tokenizers
+        if a.name in _TOKENIZERS and _TOKENIZERS[a.name][1] != spec.name
+    }
+    for name, held_by in arch_holders.items():
+        claim("tokenizer arch", name, origin, override, held_by)
+    take("family", spec.name, origin, family_holder)
+    for name, held_by in arch_holders.items():
+        take("tokenizer arch", name, origin, held_by)
+    for name in [n for n, (_, family) in _TOKENIZERS.items() if family == spec.name]:
+        del _TOKENIZERS[name]
     for arch in spec.tokenizers:
-        owner = _TOKENIZERS.get(arch.name)
-        if owner is not None and owner[1] != spec.name:
-            raise ConfigError(f"tokenizer arch '{arch.name}' of family '{spec.name}' is already registered by '{owner[1]}'")
         _TOKENIZERS[arch.name] = (arch, spec.name)
     _FAMILIES[spec.name] = spec
     return spec
+
+
+def load_plugin(load: Callable[[], Any], what: str, module: str) -> Any:
+    """``load()`` (an import of plugin ``module``, named ``what`` in messages) with anything
+    it raises as one line: a plugin's traceback is its author's to read, not each command's."""
+    try:
+        return load()
+    except ImportError as err:
+        if _missing(err, module):
+            raise ConfigError(f"{what} cannot be imported ({_first_line(err)}); is it installed or on PYTHONPATH?") from None
+        raise ConfigError(f"{what} failed while being imported: {_first_line(err)}") from None
+    except OcctrainError as err:  # already one line for the user (a name another module holds)
+        raise ConfigError(f"{what}: {_first_line(err, typed=False)}") from None
+    except (Exception, SystemExit) as err:  # SystemExit: a plugin's sys.exit() would end the command silently
+        raise ConfigError(f"{what} failed while being imported: {_first_line(err)}") from None
+
+
+def _missing(err: ImportError, module: str) -> bool:
+    """Whether the plugin module itself (or a package above it) is what cannot be found,
+    rather than something it imports."""
+    name = getattr(err, "name", None) or ""
+    return isinstance(err, ModuleNotFoundError) and (module == name or module.startswith(name + "."))
+
+
+def _first_line(err: BaseException, typed: bool = True) -> str:
+    lines = str(err).strip().splitlines()
+    line = lines[0] if lines else ""
+    if not typed:
+        return line or type(err).__name__
+    return f"{type(err).__name__}: {line}" if line else type(err).__name__
 
 
 def _discover() -> None:
@@ -176,10 +296,7 @@ def _discover() -> None:
         if info.ispkg:
             importlib.import_module(f"{BUILTIN_PACKAGE}.{info.name}")
     for ep in entry_points(group=ENTRY_POINT_GROUP):
-        try:
-            ep.load()
-        except ImportError as err:
-            raise ConfigError(f"the occtrain.families entry point '{ep.name}' ({ep.value}) cannot be imported: {err}") from None
+        load_plugin(ep.load, f"the {ENTRY_POINT_GROUP} entry point '{ep.name}' ({ep.value})", ep.module)
 
 
 def families() -> dict[str, FamilySpec]:

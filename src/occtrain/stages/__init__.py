@@ -2,7 +2,7 @@
 
 ``BUILTIN_KINDS`` is the one list of the kinds occtrain ships; each imports its module on
 first use, so a recipe of tokenizer stages never pays for importing transformers. Plugins
-register more with :func:`register`.
+register more with :func:`register` (``override=True`` to replace a kind, built-in or not).
 """
 
 from __future__ import annotations
@@ -42,8 +42,19 @@ class StageKind:
 _KINDS: dict[str, StageKind] = {}
 
 
-def register(kind: StageKind) -> StageKind:
-    _KINDS[kind.name] = kind
+def register(kind: StageKind, override: bool = False) -> StageKind:
+    """Add a stage kind. A name that another module registered (a built-in kind included,
+    imported or not) is refused unless ``override``; the same module registering again is
+    harmless. The rules are the family registry's (``core.registry.claim``)."""
+    from occtrain.core import registry
+
+    if _KINDS.get(kind.name) is kind:
+        return kind
+    origin = registry.registrant()
+    held_by = registry.holder("stage kind", kind.name, kind.name in _KINDS, BUILTIN_KINDS.get(kind.name))
+    if registry.claim("stage kind", kind.name, origin, override, held_by):
+        registry.take("stage kind", kind.name, origin, held_by)
+        _KINDS[kind.name] = kind
     return kind
 
 
