@@ -8,7 +8,9 @@ Each case copies a tiny valid export, breaks one thing, and loads it as a later 
 
 from __future__ import annotations
 
+import errno
 import json
+import os
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
@@ -18,10 +20,13 @@ import pytest
 import torch
 from safetensors.torch import load_file, save_file
 
+import occtrain
 from occtrain.config.llm import LLMConfig, LoRAConfig
 from occtrain.core.registry import build_tokenizer, load_tokenizer, save_tokenizer
 from occtrain.engine import export_engine, load_world_model, new_world_model
 from occtrain.errors import OcctrainError
+from occtrain.exports import write_export
+from occtrain.io import WriteError
 from occtrain.families.occllama import TaskConfig
 from occtrain.models.adapters import AdapterConfig, add_adapters
 from occtrain.models.llm import apply_lora
@@ -115,6 +120,8 @@ CASES = [
     Case("config-without-vocab", "lora", edit_json("config.json", lambda c: c.pop("vocab")), "{export}/config.json: no 'vocab' entry"),
     Case("config-tasks-unknown-key", "lora", edit_json("config.json", lambda c: c["tasks"].update(speed=1)),
          "{export}/config.json: its 'tasks' do not fit the 'occllama' family"),
+    Case("config-unknown-key", "lora", edit_json("config.json", lambda c: c.update(familly="occllm")),
+         "{export}/config.json: unknown key 'familly' (rename or remove it); did you mean 'family'?"),
     Case("own-weights-missing-tensor", "lora", edit_tensors("model.safetensors", drop_first("occ_proj")), "missing tensor 'occ_proj"),
     Case("own-weights-unexpected-tensor", "lora", edit_tensors("model.safetensors", lambda s: s.update(extra=torch.zeros(2))),
          "unexpected tensor 'extra'"),
@@ -133,12 +140,18 @@ CASES = [
     # ---------------------------------------------------------------- the scene tokenizer, alone and inside a world model
     Case("tokenizer-code-dim-changed", "tokenizer", edit_json("config.json", widen_codes), "has shape"),
     Case("tokenizer-missing-tensor", "tokenizer", edit_tensors("model.safetensors", drop_first()), "missing tensor"),
+    Case("tokenizer-config-unknown-key", "tokenizer", edit_json("config.json", lambda c: c.update(num_code=8)),
+         "{export}/config.json: unknown key 'num_code' (rename or remove it); did you mean 'num_codes'?"),
     Case("world-scene-tokenizer-code-dim-changed", "lora", edit_json("scene_tokenizer/config.json", widen_codes), "{export}/scene_tokenizer: tensor"),
+    Case("world-scene-tokenizer-unknown-key", "lora", edit_json("scene_tokenizer/config.json", lambda c: c.update(zzz=1)),
+         "{export}/scene_tokenizer/config.json: unknown key 'zzz' (rename or remove it); valid keys: arch, codebook_sizes"),
     # ---------------------------------------------------------------- the vision stage's tower and its own weights
     Case("vision-tower-one-more-layer", "vision", edit_json("vision/config.json", add_layer), "missing tensor 'encoder.layers.1."),
     Case("vision-tower-unexpected-tensor", "vision", edit_tensors("vision/model.safetensors", lambda s: s.update(extra=torch.zeros(2))),
          "unexpected tensor 'extra'"),
     Case("vision-own-weights-missing-tensor", "vision", edit_tensors("model.safetensors", drop_first("encoder.")), "missing tensor"),
+    Case("vision-config-unknown-key", "vision", edit_json("config.json", lambda c: c.update(image_means=[0.5])),
+         "{export}/config.json: unknown key 'image_means' (rename or remove it); did you mean 'image_mean'?"),
 ]
 
 
@@ -159,3 +172,96 @@ def test_a_broken_export_is_refused_in_one_line_and_changes_nothing(case: Case, 
 def test_every_valid_export_loads(exports: Path) -> None:
     for name in ("tokenizer", "lora", "bottleneck", "vision"):
         assert load(exports / name) is not None
+
+
+def test_a_writer_whose_key_the_readers_do_not_know_fails_before_writing(tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match="export config key 'new_setting' is missing from occtrain.exports.EXPORT_KEYS"):
+        write_export(tmp_path / "export", {"w": torch.zeros(1)}, {"stage_kind": "tokenizer", "new_setting": 1})
+    assert list(tmp_path.iterdir()) == []
+
+
+# ----------------------------------------------------------------------------- a full disk while exporting
+
+
+def fail_at(where: str, code: int) -> Callable[[pytest.MonkeyPatch], None]:
+    """Make one step of writing an export fail as the machine would, with ``code``'s errno."""
+    def fail(*args, **kwargs):
+        raise OSError(code, os.strerror(code))
+
+    real_rename = Path.rename
+
+    def rename(self, target):  # the new export (.export.<random>) moving into place, once the old one is aside (.export.old)
+        return fail() if self.name.startswith(".export.") and self.name != ".export.old" else real_rename(self, target)
+
+    def patch(monkeypatch: pytest.MonkeyPatch) -> None:
+        if where == "swap":
+            monkeypatch.setattr(Path, "rename", rename)
+        else:
+            monkeypatch.setattr(where, fail)
+
+    return patch
+
+
+@pytest.mark.parametrize("where, code, says", [
+    ("occtrain.exports.os.fsync", errno.ENOSPC, "the disk is full; free space and rerun (a run resumes where it stopped)"),
+    ("occtrain.exports.shutil.copy2", errno.EDQUOT, "the disk quota is exhausted"),
+    ("occtrain.exports.tempfile.mkdtemp", errno.EROFS, "the file system is read-only"),
+    ("swap", errno.EACCES, "permission denied"),
+], ids=["weights-fsync-disk-full", "extra-copy-quota", "read-only", "swap-denied"])
+def test_an_export_that_cannot_be_written_is_one_line_and_keeps_the_old_one(tmp_path: Path, monkeypatch, where, code, says) -> None:
+    export, extra = tmp_path / "stage" / "export", tmp_path / "extra"
+    (extra / "sub").mkdir(parents=True)
+    (extra / "sub" / "f.json").write_text("{}")
+    write_export(export, {"w": torch.zeros(2)}, {"k": 1}, {"llm": extra})
+    before = snapshot(tmp_path)
+    fail_at(where, code)(monkeypatch)
+    with pytest.raises(WriteError) as err:
+        write_export(export, {"w": torch.ones(3)}, {"k": 2}, {"llm": extra})
+    assert str(err.value).startswith(f"cannot write {export}: {says}") and "\n" not in str(err.value), err.value
+    assert snapshot(tmp_path) == before  # the old export whole, no temp directory left
+
+
+def test_a_full_disk_surfaces_through_a_real_writer(exports: Path, tmp_path: Path, monkeypatch) -> None:
+    """The vision stage's export, its Hugging Face tower copied in: the same one line."""
+    export = tmp_path / "vision"
+    shutil.copytree(exports / "vision", export)
+    before = snapshot(tmp_path)
+    encoder = load_vision_encoder(export)
+    fail_at("occtrain.exports.os.fsync", errno.ENOSPC)(monkeypatch)
+    with pytest.raises(WriteError, match=f"^cannot write {export}: the disk is full"):
+        export_vision(export, encoder, DenseHead(encoder.hidden_size, encoder.patch_size))
+    assert snapshot(tmp_path) == before
+
+
+# ----------------------------------------------------------------------------- occtrain.load given another directory
+
+
+@pytest.fixture
+def run_dir(exports: Path, tmp_path: Path) -> Path:
+    """A run: a tokenizer stage done, a pretrain stage cut off before its export, and an
+    instruct stage done (the LoRA world model its export)."""
+    run = tmp_path / "run"
+    stages = {"tokenizer": "done", "pretrain": "interrupted", "instruct": "done"}
+    (run / "pretrain" / "logs").mkdir(parents=True)
+    shutil.copytree(exports / "tokenizer", run / "tokenizer" / "export")
+    shutil.copytree(exports / "lora", run / "instruct" / "export")
+    (run / "manifest.json").write_text(json.dumps({"name": "r", "stages": {n: {"kind": n, "status": s} for n, s in stages.items()}}))
+    return run
+
+
+def test_load_given_a_stage_directory_loads_its_export(run_dir: Path) -> None:
+    model = occtrain.load(run_dir / "instruct")
+    assert model.family == "occllama" and model.operations
+
+
+@pytest.mark.parametrize("given, says", [
+    ("pretrain", "{run}/pretrain is a stage directory without an export; its stage is not done — run it, or pass {run}/pretrain/export"),
+    (".", "{run} is a run directory, not an export; its stages are tokenizer (done), pretrain (interrupted), instruct (done); "
+          "pass a world-model stage's export (e.g. {run}/instruct/export)"),
+], ids=["stage-without-export", "run-directory"])
+def test_load_given_a_directory_without_a_world_model_says_what_to_pass(run_dir: Path, given: str, says: str) -> None:
+    before = snapshot(run_dir)
+    with pytest.raises(OcctrainError) as err:
+        occtrain.load(run_dir / given if given != "." else run_dir)
+    assert str(err.value) == says.format(run=run_dir)
+    assert snapshot(run_dir) == before

@@ -20,7 +20,7 @@ from typing import Any, Callable
 
 from occtrain.data.clips import Clip, frame_clips
 from occtrain.data.layout import DatasetIndex
-from occtrain.errors import ConfigError
+from occtrain.errors import ConfigError, OcctrainError
 from occtrain.occ3d import FUTURE_STEPS
 
 #: Operations a planner stage reads, not meant for a user.
@@ -68,7 +68,49 @@ class TrainedModel:
 
 
 def load(export_dir: str | Path) -> TrainedModel:
-    """A trained world model from a world-model stage's ``export/`` directory."""
+    """A trained world model from a world-model stage's ``export/`` directory (or the stage's
+    own directory, whose ``export/`` it loads)."""
     from occtrain.engine import load_world_model
 
-    return TrainedModel(load_world_model(Path(export_dir)))
+    return TrainedModel(load_world_model(_export_dir(Path(export_dir))))
+
+
+def _export_dir(path: Path) -> Path:
+    """The export ``path`` means: itself, or the ``export/`` of a stage directory; a stage
+    without one or a whole run is refused in one line saying what to pass instead."""
+    from occtrain.exports import EXPORT_CONFIG
+    from occtrain.manifest import MANIFEST_FILE
+
+    if (path / EXPORT_CONFIG).is_file():
+        return path
+    if (path / "export").is_dir():
+        return path / "export"
+    if (path / MANIFEST_FILE).is_file():
+        raise ConfigError(_run_dir_message(path))
+    if (path.parent / MANIFEST_FILE).is_file() and path.is_dir():
+        raise ConfigError(f"{path} is a stage directory without an export; its stage is not done — run it, or pass {path}/export")
+    return path  # not occtrain's layout: the loader says what is missing
+
+
+def _run_dir_message(run: Path) -> str:
+    """What a run directory holds, for a user who passed it to ``load``."""
+    from occtrain.manifest import Manifest
+
+    stages = Manifest.load(run, writable=False).stages
+    if not stages:
+        return f"{run} is a run directory with no stages run yet; run its recipe, then pass RUN/STAGE/export of a world-model stage"
+    listed = ", ".join(f"{name} ({entry.status})" for name, entry in stages.items())
+    loadable = [name for name in stages if _holds_world_model(run / name / "export")]
+    example = f"e.g. {run / loadable[-1] / 'export'}" if loadable else "none has one yet"
+    return f"{run} is a run directory, not an export; its stages are {listed}; pass a world-model stage's export ({example})"
+
+
+def _holds_world_model(export: Path) -> bool:
+    """Whether ``export`` is a world model's, by its config (a plugin's stage kinds may write
+    one too); a broken one is not offered, its own error comes when it is loaded."""
+    from occtrain.exports import EXPORT_CONFIG, export_kind
+
+    try:
+        return (export / EXPORT_CONFIG).is_file() and export_kind(export) == "world_model"
+    except OcctrainError:
+        return False

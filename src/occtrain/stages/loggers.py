@@ -1,7 +1,9 @@
 """What a stage logs to: the CSV file the dashboard and a resume read (always), and the
 trackers a recipe's ``trainer.loggers`` adds through Lightning's own logger classes:
-TensorBoard, MLflow (a local file store, ``<run>/mlruns``) and Weights & Biases (offline,
-``<stage>/logs/wandb``; ``wandb sync`` uploads it later). MLflow and W&B are optional
+TensorBoard, MLflow (a local file store, ``<run>/mlruns``, its artifacts in it too) and Weights
+& Biases (offline, ``<stage>/logs/wandb``, its caches and settings too; ``wandb sync`` uploads
+it later): nothing goes outside the run directory but where a user's own environment
+variable (a ``WANDB_CACHE_DIR``, say) sends it. MLflow and W&B are optional
 extras (``pip install -e '.[mlflow]'`` / ``'.[wandb]'``). A resumed stage logs on into the
 same MLflow run and W&B run: their ids are kept in ``<stage>/logs/``."""
 
@@ -18,7 +20,7 @@ from lightning.fabric.loggers.logger import rank_zero_experiment
 from lightning.pytorch.loggers import CSVLogger, Logger, MLFlowLogger, TensorBoardLogger, WandbLogger
 
 from occtrain.errors import ConfigError
-from occtrain.io import atomic_open, atomic_write_text
+from occtrain.io import atomic_open, atomic_write_text, remove_inside
 
 #: The loggers a recipe can name; csv is always written.
 LOGGERS = ("csv", "tensorboard", "mlflow", "wandb")
@@ -40,7 +42,7 @@ class _AppendingWriter(_ExperimentWriter):
                 reader = csv.DictReader(fh)
                 keys = list(reader.fieldnames or [])
                 kept = [row for row in reader if _row_step(row) < keep_before_step]
-        path.unlink(missing_ok=True)
+        remove_inside(path, log_dir)
         super().__init__(log_dir)
         if kept:
             with atomic_open(path) as fh:
@@ -147,6 +149,31 @@ class TrackedWandbLogger(_KeepsRunId, WandbLogger):
             self._id_kept = False
 
 
+#: Where W&B writes, by the variable that moves it, relative to the stage's ``logs/``: the run
+#: files (``<WANDB_DIR>/wandb``, as ``save_dir``), settings, the artifact cache, artifact
+#: staging and downloads. Unset, the last four are ~/.config/wandb, ~/.cache/wandb,
+#: ~/.local/share/wandb and ./artifacts.
+_WANDB_DIRS = {
+    "WANDB_DIR": ".", "WANDB_CONFIG_DIR": "wandb/config", "WANDB_CACHE_DIR": "wandb/cache",
+    "WANDB_DATA_DIR": "wandb/data", "WANDB_ARTIFACT_DIR": "wandb/artifacts",
+}
+#: The values occtrain set (not the user), so a later stage in the process moves them to its own logs.
+_SET_FOR_A_STAGE: dict[str, str] = {}
+
+
+def _point_wandb_at(logs: Path) -> None:
+    """Keep everything W&B writes inside the stage's ``logs/`` (under ``logs/wandb``).
+
+    W&B reads these directories from the environment wherever it writes, not from
+    ``wandb.init``, so the process environment is the only place to set them. A variable the
+    user set is theirs and kept (they chose that place); the others are set for this stage.
+    """
+    for key, sub in _WANDB_DIRS.items():
+        where = str((logs / sub).resolve())
+        if key not in os.environ or os.environ[key] == _SET_FOR_A_STAGE.get(key):
+            os.environ[key] = _SET_FOR_A_STAGE[key] = where
+
+
 def build_loggers(names: list[str], stage_dir: Path, resume_step: int | None) -> list[Logger]:
     """The stage's loggers: CSV always, then each tracker ``names`` adds, in that order."""
     check_loggers(names)
@@ -159,6 +186,8 @@ def build_loggers(names: list[str], stage_dir: Path, resume_step: int | None) ->
         elif name == "mlflow":
             # MLflow 3 keeps its file store (no database to set up) behind an opt-in.
             os.environ.setdefault("MLFLOW_ALLOW_FILE_STORE", "true")
+            # Given the store's URI, MLflow writes nothing elsewhere: a file store keeps each
+            # run's artifacts inside itself. One store per run, so its stages compare in one UI.
             out.append(TrackedMLFlowLogger(
                 experiment_name=run, run_name=stage, tracking_uri=(stage_dir.parent / "mlruns").resolve().as_uri(),
                 run_id=_kept_id(logs / "mlflow_run_id"), id_file=logs / "mlflow_run_id",
@@ -166,6 +195,7 @@ def build_loggers(names: list[str], stage_dir: Path, resume_step: int | None) ->
         elif name == "wandb":
             os.environ.setdefault("WANDB_SILENT", "true")
             (logs / "wandb").mkdir(parents=True, exist_ok=True)
+            _point_wandb_at(logs)
             kept = _kept_id(logs / "wandb_run_id")
             out.append(TrackedWandbLogger(
                 project=run, name=stage, save_dir=str(logs), offline=True, id=kept, resume="allow" if kept else None,
