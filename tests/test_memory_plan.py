@@ -9,9 +9,9 @@ from transformers import AutoModelForCausalLM
 
 from conftest import REPO
 from occtrain.cli import main
-from occtrain.config.llm import LLMConfig, LoRAConfig
+from occtrain.config.llm import LLMConfig, LoRAConfig, check_llm_sizes
 from occtrain.errors import ConfigError
-from occtrain.memory_plan import ModelCount, activation_bytes, count_llm, plan
+from occtrain.memory_plan import MAX_GPU_GIB, MAX_SEQ_LEN, ModelCount, activation_bytes, check_flags, count_llm, plan
 from occtrain.models.adapters import AdapterConfig, add_adapters
 from occtrain.models.llm import apply_lora, build_llm, tiny_config
 
@@ -103,9 +103,72 @@ def test_plan_memory_plans_the_papers_models(capsys):
 def test_plan_memory_refuses_bad_input_in_one_line(tmp_path, capsys):
     recipe = REPO / "stages/scale/sparseoccvla_vicuna7b.yaml"
     assert main(["plan-memory", str(recipe), "--gpus", "0"]) == 2
-    assert capsys.readouterr().err.strip() == "error: --gpus 0 and --seq-len 2048: both must be at least 1"
+    assert capsys.readouterr().err.strip() == "error: --gpus 0: plan at least 1 GPU (the ranks a sharded model is split over)"
     assert main(["plan-memory", str(recipe), f"stages.stage2.model.llm.path={tmp_path}"]) == 2
     err = capsys.readouterr().err.strip()
-    assert err == f"error: llm.path: {tmp_path} has no config.json; plan-memory reads a model's config.json (weights not needed)"
+    assert err == f"error: stages.stage2.model.llm.path: {tmp_path} has no config.json; plan-memory reads a model's config.json (weights not needed)"
     assert main(["plan-memory", str(REPO / "stages/vision.yaml")]) == 2
     assert "has no pretrain, instruct or distill stage" in capsys.readouterr().err
+
+
+def test_run_and_plan_memory_refuse_the_same_llm_sizes():
+    """The size checks live in ``validate_llm_config``: building the model for ``run``
+    refuses what plan-memory refuses, in the same words."""
+    bad = LLMConfig(hidden_size=128, num_heads=3)
+    for refuse in (lambda: build_llm(bad, 100), lambda: count_llm(bad, 0)):
+        with pytest.raises(ConfigError, match=r"^llm.num_heads is 3, which does not divide hidden_size 128; set num_heads to a divisor of 128 \(e.g. 4\)"):
+            refuse()
+    with pytest.raises(ConfigError, match=r"^s.model.llm.text_vocab_size is 0; it sizes the model's tensors"):
+        count_llm(LLMConfig(text_vocab_size=0), 0, key="s.model.llm")
+    # With a path the size keys are not read, so they are not checked either.
+    count_llm(LLMConfig(path=str(REPO / "configs/llm/vicuna-7b"), hidden_size=-1), 0)
+
+
+def test_llm_sizes_are_checked_by_the_names_written():
+    check_llm_sizes({"hidden_size": 96, "num_heads": 4}, "x.", "hidden_size", "num_heads")
+    for sizes, says in [
+        ({"hidden_size": True}, "x.hidden_size is True;"),
+        ({"hidden_size": 4.0}, "x.hidden_size is 4.0;"),
+        ({"vocab_size": None}, "x.vocab_size is None;"),
+        ({"hidden_size": 2304, "heads": 8, "kv": 3}, "x.kv is 3, which does not divide heads 8; set kv to a divisor of 8 (e.g. 4) or heads to a multiple of 3"),
+    ]:
+        with pytest.raises(ConfigError) as e:
+            check_llm_sizes(sizes, "x.", "hidden_size", "heads", "kv")
+        assert str(e.value).startswith(says), str(e.value)
+
+
+def test_flags_take_their_whole_range_and_no_more():
+    check_flags(1, 1, None)
+    check_flags(8, MAX_SEQ_LEN, MAX_GPU_GIB)
+    for gpus, seq, gib, says in [
+        (1, MAX_SEQ_LEN + 1, None, f"--seq-len {MAX_SEQ_LEN + 1}: tokens per training sequence must be in 1..4194304 (2**22)"),
+        (1, 2048, 0.0, "--gpu-memory 0: a GPU's memory in GiB must be above 0"),
+        (1, 2048, float("inf"), "--gpu-memory inf:"),
+        (-2, 2048, None, "--gpus -2: plan at least 1 GPU"),
+    ]:
+        with pytest.raises(ConfigError) as e:
+            check_flags(gpus, seq, gib)
+        assert str(e.value).startswith(says), str(e.value)
+
+
+def test_a_config_json_with_head_dim_may_have_heads_that_do_not_divide_hidden(tmp_path):
+    """Qwen2 sizes q/k/v as heads x head_dim when head_dim is given: 100 wide, 3 heads of 32."""
+    (tmp_path / "config.json").write_text(
+        '{"model_type": "qwen2", "hidden_size": 100, "num_attention_heads": 3, "num_key_value_heads": 3, "head_dim": 32, '
+        '"num_hidden_layers": 1, "intermediate_size": 64, "vocab_size": 50}'
+    )
+    assert count_llm(LLMConfig(path=str(tmp_path)), 0).kv_hidden == 96
+
+
+def test_an_override_beside_llm_path_is_refused_in_every_stage_form(capsys):
+    recipe = str(REPO / "stages/scale/occllama_llama8b.yaml")
+    for key in ("stages.pretrain.model.llm.hidden_size", "stages.1.model.llm.hidden_size", "stages[1].model.llm.hidden_size"):
+        assert main(["plan-memory", recipe, f"{key}=8192"]) == 2
+        err = capsys.readouterr().err
+        assert err == (
+            f"error: {key}: ignored, since stages.pretrain.model.llm.path is set (configs/llm/llama-3.1-8b) and its config.json "
+            "decides the model; drop the override to plan that model, or point stages.pretrain.model.llm.path at a config.json "
+            "with the sizes you want\n"
+        )
+    # A key the path leaves to the recipe still plans.
+    assert main(["plan-memory", recipe, "stages.pretrain.model.llm.action_bins=128"]) == 0

@@ -29,6 +29,7 @@ against what this machine measures.
 
 from __future__ import annotations
 
+import json
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -37,7 +38,8 @@ from typing import Any
 import torch
 from torch import nn
 
-from occtrain.errors import ConfigError
+from occtrain.config.llm import TINY_SIZE_KEYS, check_llm_sizes, validate_llm_config
+from occtrain.errors import ConfigError, cause_line
 
 GIB = 1024**3
 #: Precision -> (parameter bytes, activation bytes); gradients and moments take the parameter's.
@@ -46,6 +48,15 @@ PRECISIONS = {"32-true": (4, 4), "32": (4, 4), "bf16-mixed": (4, 2), "16-mixed":
 USABLE_FRACTION = 0.9
 #: Stage kinds whose model is a world model over an LLM.
 LLM_STAGE_KINDS = ("pretrain", "instruct", "distill")
+#: Longest --seq-len planned: 4 M tokens, past any context the papers' models train at; a
+#: larger number is a typo, and its activations overflow any table.
+MAX_SEQ_LEN = 2**22
+#: Largest --gpu-memory (GiB) taken as meant: past any accelerator made (an H200 holds 141).
+MAX_GPU_GIB = 10_000
+#: A Hugging Face text config's sizes (``num_key_value_heads``: grouped-query attention, optional).
+HF_SIZE_KEYS = ("hidden_size", "num_hidden_layers", "num_attention_heads", "intermediate_size", "vocab_size", "num_key_value_heads")
+#: ``LLMConfig`` keys a model at ``llm.path`` ignores: its config.json decides them.
+PATH_SHADOWS = (*TINY_SIZE_KEYS, "model_type")
 
 
 @dataclass
@@ -88,15 +99,48 @@ class MemoryRow:
         return self.total <= USABLE_FRACTION * gpu_gib * GIB
 
 
+def check_flags(gpus: int, seq: int, gpu_gib: float | None) -> None:
+    """One line naming the flag when a plan-memory option cannot describe a machine."""
+    if gpus < 1:
+        raise ConfigError(f"--gpus {gpus}: plan at least 1 GPU (the ranks a sharded model is split over)")
+    if not 1 <= seq <= MAX_SEQ_LEN:
+        raise ConfigError(f"--seq-len {seq}: tokens per training sequence must be in 1..{MAX_SEQ_LEN} (2**22)")
+    # ``not 0 < x`` also refuses NaN, which argparse's float() accepts.
+    if gpu_gib is not None and not 0 < gpu_gib <= MAX_GPU_GIB:
+        raise ConfigError(f"--gpu-memory {gpu_gib:g}: a GPU's memory in GiB must be above 0 and at most {MAX_GPU_GIB} (an H100 has 80)")
+
+
 def _read_config(path: str, key: str) -> Any:
+    from huggingface_hub.errors import StrictDataclassError
     from transformers import AutoConfig
 
     if not (Path(path) / "config.json").is_file():
         raise ConfigError(f"{key}: {path} has no config.json; plan-memory reads a model's config.json (weights not needed)")
     try:
         return AutoConfig.from_pretrained(path, local_files_only=True)
-    except (OSError, ValueError, KeyError) as e:
-        raise ConfigError(f"{key}: cannot read the model config in {path} ({str(e).splitlines()[0]})") from None
+    except (OSError, ValueError, KeyError, StrictDataclassError) as e:  # transformers' own checks of the values raise the last
+        raise ConfigError(f"{key}: cannot read the model config in {path} ({cause_line(e)}); fix its config.json") from None
+
+
+def _check_config_sizes(path: str) -> None:
+    """Refuse sizes in ``path``'s config.json that cannot shape a decoder, naming the file and
+    key: transformers builds a negative one into a tensor (a traceback) and words its own
+    refusals without either."""
+    file = Path(path) / "config.json"
+    try:
+        raw = json.loads(file.read_text())
+    except (OSError, ValueError):
+        return  # unreadable: AutoConfig's refusal names the directory
+    if not isinstance(raw, dict):
+        return
+    nested = isinstance(raw.get("text_config"), dict)  # a multimodal model's language model
+    text = raw["text_config"] if nested else raw
+    sizes = {k: text[k] for k in HF_SIZE_KEYS if k in text}
+    if text.get("head_dim") is not None:
+        sizes["head_dim"] = text["head_dim"]
+    # An explicit head_dim sizes q/k/v as heads x head_dim: hidden_size need not divide then.
+    hidden = "" if "head_dim" in sizes else "hidden_size"
+    check_llm_sizes(sizes, f"{file}: {'text_config.' if nested else ''}", hidden, "num_attention_heads", "num_key_value_heads")
 
 
 def _on_meta(config: Any, auto: Any) -> nn.Module:
@@ -107,20 +151,23 @@ def _on_meta(config: Any, auto: Any) -> nn.Module:
 
 def count_llm(
     llm_cfg: Any, extra_vocab: int, lora: Any = None, adapter: Any = None, vocab: int | None = None, freeze: tuple[str, ...] = (),
+    key: str = "llm",
 ) -> ModelCount:
     """Build ``llm_cfg``'s LM on the meta device (vocabulary grown by ``extra_vocab`` rows,
     or ``vocab`` rows for a tiny LM sharing another's vocabulary), apply the LoRA or
     adapter config and the stage's ``freeze`` prefixes (world-model names: ``llm.``), and
-    count it."""
+    count it. ``key``: where ``llm_cfg`` sits in the recipe, for messages."""
     from transformers import AutoModelForCausalLM
 
     from occtrain.models import without_peft
     from occtrain.models.adapters import add_adapters
     from occtrain.models.llm import apply_lora, tiny_config
 
+    validate_llm_config(llm_cfg, key)  # the checks ``run`` makes before it builds the model
     if llm_cfg.path:
+        _check_config_sizes(llm_cfg.path)
         # The language model alone, as ``models.llm.load_llm`` keeps it from a multimodal directory.
-        text = _read_config(llm_cfg.path, "llm.path").get_text_config()
+        text = _read_config(llm_cfg.path, f"{key}.path").get_text_config()
         text.vocab_size += extra_vocab
         name = Path(llm_cfg.path).name
     else:
@@ -234,30 +281,75 @@ def _extra_vocab(stage: Any, planned: dict[str, Any]) -> int:
     return codes + 2 * int(stage.model_cfg.llm.action_bins)
 
 
-def plan_recipe(recipe_path: str, overrides: list[str], gpus: int, seq: int, checkpointing: bool) -> list[StagePlan]:
-    """A plan for every LLM stage of the recipe at its batch and precision."""
+def _refuse_shadowed(llm_cfg: Any, key: str, written: list[tuple[str, str]]) -> None:
+    """Refuse a command-line override of a key that ``llm.path`` makes ``run`` ignore.
+
+    ``written``: each override's key as the user wrote it, beside its ``stages.<name>.``
+    form. Refused, not noted: plan-memory's whole output is numbers, and a table for the
+    model at ``llm.path`` reads as the answer for the sizes asked about (a note above it
+    is easily missed); rerunning without the override costs seconds.
+    """
+    if not llm_cfg.path:
+        return
+    for as_written, normal in written:
+        if normal in {f"{key}.{k}" for k in PATH_SHADOWS}:
+            raise ConfigError(
+                f"{as_written}: ignored, since {key}.path is set ({llm_cfg.path}) and its config.json decides the model; "
+                f"drop the override to plan that model, or point {key}.path at a config.json with the sizes you want"
+            )
+
+
+def _override_keys(overrides: list[str], names: list[str], recipe_path: str) -> list[tuple[str, str]]:
+    """Each override's key as written, and its ``stages.<name>.`` form (what messages name)."""
+    from occtrain.runner import stage_override
+
+    keys = []
+    for item in overrides:
+        normal = stage_override(item, names, recipe_path).split("=", 1)[0].strip()
+        if normal.startswith("stages["):  # stages[<i>].rest -> stages.<name>.rest
+            index, rest = normal[len("stages["):].split("]", 1)
+            normal = f"stages.{names[int(index)]}{rest}" if index.isdigit() and int(index) < len(names) else normal
+        keys.append((item.split("=", 1)[0].strip(), normal))
+    return keys
+
+
+def _count_stage(p: Any, planned: dict[str, Any], written: list[tuple[str, str]]) -> ModelCount:
+    """The LLM stage ``p``'s model, counted, with its LLM config checked as ``run`` checks it."""
+    cfg = p.model_cfg
+    pretrain = _pretrain_of(p.spec.name, planned)
+    llm_key = f"stages.{pretrain.spec.name}.model.llm"
+    _refuse_shadowed(pretrain.model_cfg.llm, llm_key, written)
+    extra = _extra_vocab(pretrain, planned)
+    if p.spec.kind == "distill":
+        student_key = f"stages.{p.spec.name}.model.student"
+        _refuse_shadowed(cfg.student, student_key, written)
+        teacher = count_llm(pretrain.model_cfg.llm, extra, key=llm_key)
+        count = count_llm(cfg.student, extra, vocab=teacher.vocab, key=student_key)  # the student speaks the teacher's vocabulary
+        count.frozen_beside += teacher.params
+        return count
+    lora = cfg.lora if getattr(cfg, "use_lora", False) else None
+    adapter = cfg.adapter if getattr(cfg, "use_adapters", False) else None
+    count = count_llm(pretrain.model_cfg.llm, extra, lora, adapter, freeze=tuple(p.spec.freeze), key=llm_key)
+    count.frozen_beside += sum(count_vision(planned[d].model_cfg.vision) for d in pretrain.spec.consumes if planned[d].spec.kind == "vision")
+    return count
+
+
+def plan_recipe(
+    recipe_path: str, overrides: list[str], gpus: int, seq: int, checkpointing: bool, gpu_gib: float | None = None,
+) -> list[StagePlan]:
+    """A plan for every LLM stage of the recipe at its batch and precision (``gpu_gib``, the
+    GPU a table will be checked against, is only validated here)."""
     from occtrain.runner import load_recipe
 
-    if gpus < 1 or seq < 1:
-        raise ConfigError(f"--gpus {gpus} and --seq-len {seq}: both must be at least 1")
-    _, stages = load_recipe(recipe_path, overrides)
+    check_flags(gpus, seq, gpu_gib)
+    recipe, stages = load_recipe(recipe_path, overrides)
     planned = {p.spec.name: p for p in stages}
+    written = _override_keys(overrides, [s.name for s in recipe.stages], str(recipe_path))
     plans = []
     for p in stages:
         if p.spec.kind not in LLM_STAGE_KINDS:
             continue
-        cfg = p.model_cfg
-        pretrain = _pretrain_of(p.spec.name, planned)
-        extra = _extra_vocab(pretrain, planned)
-        if p.spec.kind == "distill":
-            teacher = count_llm(pretrain.model_cfg.llm, extra)
-            count = count_llm(cfg.student, extra, vocab=teacher.vocab)  # the student speaks the teacher's vocabulary
-            count.frozen_beside += teacher.params
-        else:
-            lora = cfg.lora if getattr(cfg, "use_lora", False) else None
-            adapter = cfg.adapter if getattr(cfg, "use_adapters", False) else None
-            count = count_llm(pretrain.model_cfg.llm, extra, lora, adapter, freeze=tuple(p.spec.freeze))
-            count.frozen_beside += sum(count_vision(planned[d].model_cfg.vision) for d in pretrain.spec.consumes if planned[d].spec.kind == "vision")
+        count = _count_stage(p, planned, written)
         batch = int(p.data.batch_size)
         precision = str(p.trainer.precision)
         plans.append(StagePlan(p.spec.name, p.spec.kind, count, batch, precision, plan(count, precision, batch, seq, gpus, checkpointing)))

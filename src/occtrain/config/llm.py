@@ -4,6 +4,7 @@ action bins and the scene-prediction mode, and the LoRA adapter."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 SCENE_PREDICTION_MODES = ("next_scene", "next_token")
 #: Hugging Face causal-LM model types a world model runs on (``models.llm``): the seeds'
@@ -76,12 +77,50 @@ class LoRAConfig:
     target_modules: list[str] = field(default_factory=lambda: ["q_proj", "v_proj"])
 
 
+#: The keys that size a tiny LLM; a model at ``path`` takes its sizes from its config.json instead.
+TINY_SIZE_KEYS = ("hidden_size", "num_layers", "num_heads", "intermediate_size", "max_position_embeddings", "text_vocab_size")
+
+
+def check_llm_sizes(sizes: dict[str, Any], where: str, hidden: str, heads: str, kv_heads: str = "") -> None:
+    """One line when ``sizes`` cannot shape a decoder: each a positive integer, ``heads``
+    dividing ``hidden`` and ``kv_heads`` dividing ``heads`` (where both are given).
+
+    ``sizes`` holds the values under the names the user wrote (``LLMConfig``'s or a
+    config.json's); ``where`` goes before each name in the message (``stages.pretrain.model.llm.``
+    or ``<dir>/config.json: ``), so the line points at what to edit.
+    """
+    from occtrain.errors import ConfigError
+
+    for name, value in sizes.items():
+        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+            raise ConfigError(f"{where}{name} is {value!r}; it sizes the model's tensors, so it must be a positive integer")
+    for part, whole in ((heads, hidden), (kv_heads, heads)):
+        if part in sizes and whole in sizes and sizes[whole] % sizes[part]:
+            n, total = sizes[part], sizes[whole]
+            raise ConfigError(
+                f"{where}{part} is {n}, which does not divide {whole} {total}; "
+                f"set {part} to a divisor of {total} (e.g. {_near_divisor(total, n)}) or {whole} to a multiple of {n}"
+            )
+
+
+def _near_divisor(total: int, n: int) -> int:
+    """A divisor of ``total`` close to ``n`` (the search is capped: sizes may be absurd)."""
+    n = min(n, total)
+    for step in range(min(n, 100_000)):
+        for d in (n + step, n - step):
+            if 1 <= d <= total and total % d == 0:
+                return d
+    return 1
+
+
 def validate_llm_config(cfg: LLMConfig, key: str = "llm") -> None:
     """One line naming the key when a value of ``cfg`` cannot work."""
     from occtrain.errors import ConfigError
 
     if not cfg.path and cfg.model_type not in BACKENDS:
         raise ConfigError(f"{key}.model_type: '{cfg.model_type}' is not an LLM backend occtrain drives; use one of {', '.join(BACKENDS)}")
+    if not cfg.path:  # with a path the sizes come from its config.json (checked where it is read)
+        check_llm_sizes({k: getattr(cfg, k) for k in TINY_SIZE_KEYS}, f"{key}.", "hidden_size", "num_heads")
     if cfg.scene_prediction not in SCENE_PREDICTION_MODES:
         raise ConfigError(f"{key}.scene_prediction: '{cfg.scene_prediction}' is not one of {', '.join(SCENE_PREDICTION_MODES)}")
     if cfg.action_bins < 2:
