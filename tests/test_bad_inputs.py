@@ -53,6 +53,8 @@ class Case:
     code: int
     #: What the output says; a case that breaks several things names each (all must appear).
     says: str | tuple[str, ...]
+    #: What the machine does while the command runs (``patch(monkeypatch)``): a read-only disk.
+    patch: Callable[[pytest.MonkeyPatch], None] | None = None
 
 
 # ----------------------------------------------------------------------------- the tiny world
@@ -435,6 +437,149 @@ def cut_off_under_other_config(tmp: Path) -> None:
     (tmp / "run2" / "tokenizer" / "checkpoints" / "last.ckpt").write_bytes(b"PK")
 
 
+# -- setups: names and deletions
+
+
+def victim_beside(tmp: Path) -> None:
+    """A directory a hostile stage name would reach from a run at ``tmp/a/run2``."""
+    (tmp / "victim").mkdir()
+    (tmp / "victim" / "precious.txt").write_text("mine")
+
+
+def stage_named(name: str) -> Callable[[Path], None]:
+    """The tiny recipe with its first stage called ``name`` (``{tmp}`` filled in)."""
+
+    def setup(tmp: Path) -> None:
+        named = name.format(tmp=tmp)
+        victim_beside(tmp)
+        recipe(lambda t: t.replace("  - name: tokenizer\n", f"  - name: '{named}'\n").replace("consumes: [tokenizer]", f"consumes: ['{named}']"))(tmp)
+
+    return setup
+
+
+ESCAPING_RUN = ["run", "{tmp}/r.yaml", "--run-dir", "{tmp}/a/run2"]
+
+
+def manifest_naming(stage: str) -> Callable[[Path], None]:
+    """A run directory whose manifest (edited by hand) records a stage called ``stage``."""
+
+    def setup(tmp: Path) -> None:
+        recipe()(tmp)
+        (tmp / "run2").mkdir()
+        (tmp / "run2" / "manifest.json").write_text(json.dumps({"name": "tiny", "stages": {stage: {"kind": "tokenizer", "status": "done"}}}))
+
+    return setup
+
+# -- setups: restart and validate
+
+
+def finished_run(tmp: Path) -> None:
+    """The tiny recipe's run at ``tmp/run2``, both stages done with exports and checkpoints."""
+    recipe()(tmp)
+    stages = {}
+    for name, kind in (("tokenizer", "tokenizer"), ("pretrain", "pretrain")):
+        for rel in ("export/model.safetensors", "export/config.json", "checkpoints/last.ckpt", "metrics.json"):
+            (tmp / "run2" / name / rel).parent.mkdir(parents=True, exist_ok=True)
+            (tmp / "run2" / name / rel).write_text(f"{name} {rel}")
+        stages[name] = {"kind": kind, "status": "done"}
+    (tmp / "run2" / "manifest.json").write_text(json.dumps({"name": "tiny", "stages": stages}))
+    (tmp / "run2" / "pipeline.yaml").write_text("name: tiny\n")
+    victim_beside(tmp)
+
+# -- setups: eval and outputs
+
+
+def read_only_disk(mp: pytest.MonkeyPatch) -> None:
+    """Every new file refused as on a read-only file system (tests run as root: chmod would not stop them)."""
+    import errno
+    import tempfile
+
+    def refuse(*args: Any, **kwargs: Any) -> Any:
+        raise OSError(errno.EROFS, "Read-only file system")
+
+    mp.setattr(tempfile, "mkstemp", refuse)
+
+
+def tokenizer_done(tmp: Path) -> None:
+    edit_json(tmp / "run" / "manifest.json", lambda m: m["stages"].update(tokenizer={"kind": "tokenizer", "status": "done"}))
+
+# -- setups: plan-memory
+
+PLAN = ["plan-memory", RECIPE_FILE]
+SCALE_LLAMA = str(REPO / "stages" / "scale" / "occllama_llama8b.yaml")
+LLM_DIR = "{tmp}/llm"
+
+
+def llm_dir(**change: Any) -> Callable[[Path], None]:
+    """The tiny recipe, and ``tmp/llm``: Llama-3.1-8B's config.json (no weights) with ``change``."""
+
+    def setup(tmp: Path) -> None:
+        recipe()(tmp)
+        config = json.loads((REPO / "configs" / "llm" / "llama-3.1-8b" / "config.json").read_text())
+        (tmp / "llm").mkdir()
+        (tmp / "llm" / "config.json").write_text(json.dumps({**config, **change}))
+
+    return setup
+
+
+# -- setups: plugins
+
+
+def with_plugin(module: str, file: str = "r.yaml") -> Callable[[Path], None]:
+    """The tiny recipe (or the run's pipeline.yaml) loading plugin ``module``, one of the
+    test-only plugins in tests/plugins/ (importable as ``plugins.*``, outside the tree the
+    case checks). A plugin that fails leaves nothing behind: Python drops a module whose
+    import raised, and the registry refuses a clash before it changes anything."""
+
+    def setup(tmp: Path) -> None:
+        if file == "r.yaml":
+            recipe()(tmp)
+        with open(tmp / file, "a") as fh:
+            fh.write(f"plugins: [{module}]\n")
+
+    return setup
+
+
+PLUGIN_RAISES = "failed while being imported: RuntimeError: the broken plugin's settings are missing"
+
+# -- setups: exports, load and trackers
+
+# -- setups: data
+def released_cameras(drop: str = "") -> Callable[[Path], None]:
+    """Cameras in the released files' form (``img_path`` relative to ``imgs/``), ``drop``
+    (a folder or an image under ``imgs/``) deleted."""
+
+    def setup(tmp: Path) -> None:
+        with_cameras()(tmp)
+
+        def strip(a: dict) -> None:
+            for infos in a["scene_infos"].values():
+                for info in infos.values():
+                    for record in info["camera_sensor"].values():
+                        record["img_path"] = record["img_path"].removeprefix("imgs/")
+
+        edit_json(tmp / "ds" / "annotations.json", strip)
+        gone = tmp / "ds" / "imgs" / drop
+        if drop:
+            shutil.rmtree(gone) if gone.is_dir() else gone.unlink()
+
+    return setup
+
+
+def without_folder(folder: str) -> Callable[[Path], None]:
+    """Cameras in the README's form (``img_path`` from the root), ``folder`` deleted."""
+    return both(with_cameras(), lambda tmp: shutil.rmtree(tmp / "ds" / folder))
+
+
+def plain_copy(tmp: Path) -> None:
+    """``cp -r ds ds2``: the same bytes, every file with a new mtime."""
+    shutil.copytree(tmp / "ds", tmp / "ds2", copy_function=shutil.copy)
+
+
+NO_BACK = "{tmp}/ds/imgs/CAM_BACK: camera folder not found, while {tmp}/ds/annotations.json names images in it"
+REBUILD_COPY = "or replace them with `occtrain data shards {tmp}/ds2 --out {tmp}/s2 --samples-per-shard 4 --history 1 --future 1 --rebuild`"
+
+
 CASES: list[Case] = [
     # ------------------------------------------------------------------ annotations.json
     Case("ann-not-json", write_text("ds/annotations.json", "{not json"), SHARDS_FRAMES, 2, f"{ANN}: not valid JSON"),
@@ -672,7 +817,7 @@ CASES: list[Case] = [
     Case("ann-img-path-escapes", edit_sample(0, 0, lambda s: s.update(camera_sensor={"CAM_FRONT": {**camera([[1.0, 0, 0]] * 3)["CAM_FRONT_tok"], "img_path": "../x.png"}})),
          SHARDS_FRAMES, 2, "camera_sensor.CAM_FRONT.img_path '../x.png' points outside the dataset root"),
     Case("recipe-name-escapes", recipe(lambda t: t.replace("name: tiny", "name: ../../escape")), ["run", "{tmp}/r.yaml"], 2,
-         "name '../../escape' in " + RECIPE_FILE + ": a run's name is a folder name inside runs_root"),
+         "name '../../escape' in " + RECIPE_FILE + ": a run is a folder name inside runs_root"),
     # ------------------------------------------------------------------ round two: exit 0 with nothing done
     Case("eval-split-test", nothing, [*EVAL, "--split", "test"], 2, "--split test: a dataset's splits are train, val"),
     Case("eval-tasks-qa-without-qa", world_without_qa, ["eval", "{tmp}/run/pretrain", "--tasks", "qa", "--data", "{tmp}/noqa"], 2,
@@ -711,6 +856,104 @@ CASES: list[Case] = [
     Case("dry-run-family-unknown", recipe(lambda t: t.replace("family: occllama", "family: occlama")), [*RUN, "--dry-run"], 2, "unknown model family 'occlama'"),
     Case("validate-stale-shards", both(recipe(), shards_then(save_labels(semantics=np.full(GRID_SHAPE, 3, np.uint8)), kinds=["frames", "clips"], history=1, future=1)),
          ["validate", "{tmp}/r.yaml", "data.shards={tmp}/s2"], 2, "{tmp}/s2: its shards were made before {tmp}/ds changed"),
+    # ------------------------------------------------------------------ names and deletions
+    Case("stage-name-escapes", stage_named("../../victim"), ESCAPING_RUN, 2,
+         "stages[0].name '../../victim' in " + RECIPE_FILE + ": a stage is a folder name inside the run"),
+    Case("validate-stage-name-escapes", stage_named("../../victim"), ["validate", "{tmp}/r.yaml", "--run-dir", "{tmp}/a/run2"], 2,
+         "stages[0].name '../../victim'"),
+    Case("restart-an-escaping-stage", stage_named("../../victim"), [*ESCAPING_RUN, "--restart", "../../victim"], 2,
+         "stages[0].name '../../victim'"),
+    Case("stage-name-absolute", stage_named("{tmp}/victim"), ESCAPING_RUN, 2, "stages[0].name '{tmp}/victim'"),
+    Case("stage-name-empty", stage_named(""), ESCAPING_RUN, 2, "stages[0].name '' in"),
+    Case("stage-name-hidden", stage_named(".."), ESCAPING_RUN, 2, "stages[0].name '..' in"),
+    Case("manifest-stage-name-escapes", manifest_naming("../../victim"), RUN, 2,
+         "{tmp}/run2/manifest.json: stage '../../victim' is not a folder name inside the run"),
+    # ------------------------------------------------------------------ restart and validate
+    Case("restart-with-an-architecture-run-refuses", finished_run, [*RUN, "--restart", "tokenizer", "stages.pretrain.model.llm.num_heads=3"], 2,
+         "stages.pretrain.model.llm.num_heads is 3, which does not divide hidden_size 128"),
+    Case("validate-refuses-the-architecture-run-refuses", finished_run,
+         ["validate", "{tmp}/r.yaml", "--run-dir", "{tmp}/run2", "--restart", "pretrain", "stages.pretrain.model.llm.num_heads=3"], 2,
+         "stages.pretrain.model.llm.num_heads is 3, which does not divide"),
+    Case("restart-with-a-negative-hidden-size", finished_run, [*RUN, "--restart", "pretrain", "stages.pretrain.model.llm.hidden_size=-128"], 2,
+         "stages.pretrain.model.llm.hidden_size is -128; it sizes the model's tensors"),
+    Case("restart-with-adapters-and-lora", finished_run,
+         [*RUN, "--restart", "pretrain", "stages.pretrain.model.use_lora=true", "stages.pretrain.model.use_adapters=true"], 2,
+         "stages.pretrain.model: use_lora and use_adapters are both on"),
+    Case("stage-consumes-itself", recipe(lambda t: t.replace("consumes: [tokenizer]", "consumes: [pretrain]")), RUN, 2,
+         "stages[1] ('pretrain') in " + RECIPE_FILE + " consumes itself"),
+    Case("precision-16-mixed-on-cpu", recipe(), [*RUN, "trainer.precision=16-mixed"], 2,
+         "trainer.precision is 16-mixed, but float16 mixed precision needs a GPU; on the CPU use bf16-mixed"),
+    # ------------------------------------------------------------------ eval and outputs
+    Case("eval-save-predictions-onto-a-file", write_text("p.json", "mine"), [*EVAL, "--save-predictions", "{tmp}/p.json"], 2,
+         "{tmp}/p.json: is a file; --save-predictions takes a directory"),
+    Case("eval-save-predictions-read-only", nothing, [*EVAL, "--save-predictions", "{tmp}/preds"], 2,
+         "cannot write {tmp}/preds: the file system is read-only; choose another --save-predictions", patch=read_only_disk),
+    Case("eval-save-predictions-of-a-tokenizer", tokenizer_done, ["eval", "{tmp}/run/tokenizer", "--save-predictions", "{tmp}/preds"], 2,
+         "--save-predictions {tmp}/preds: a tokenizer stage's eval has metrics only, no predictions to save"),
+    Case("eval-read-only-run", nothing, EVAL, 2,
+         ("cannot write {tmp}/run/pretrain/eval/val/metrics.json: the file system is read-only; eval writes its metrics into {tmp}/run/pretrain",
+          "copy the run to a writable place"), patch=read_only_disk),
+    Case("score-out-read-only", planning(lambda p, g: None), [*PLANNING, "--out", "{tmp}/o/r.json"], 2,
+         "cannot write {tmp}/o/r.json: the file system is read-only; choose another --out", patch=read_only_disk),
+    Case("dashboard-out-read-only", nothing, ["dashboard", "{tmp}/run", "--out", "{tmp}/d.html"], 2,
+         "cannot write {tmp}/d.html: the file system is read-only; choose another --out", patch=read_only_disk),
+    Case("dashboard-out-is-a-directory", nothing, ["dashboard", "{tmp}/run", "--out", "{tmp}/ds"], 2, "{tmp}/ds: is a directory; --out takes a file name"),
+    # ------------------------------------------------------------------ plan-memory
+    Case("plan-memory-hidden-size-negative", recipe(), [*PLAN, "stages.pretrain.model.llm.hidden_size=-128"], 2,
+         "stages.pretrain.model.llm.hidden_size is -128; it sizes the model's tensors, so it must be a positive integer"),
+    Case("plan-memory-heads-do-not-divide-hidden", recipe(), [*PLAN, "stages.pretrain.model.llm.num_heads=3"], 2,
+         "stages.pretrain.model.llm.num_heads is 3, which does not divide hidden_size 128; set num_heads to a divisor of 128 (e.g. 4)"),
+    Case("plan-memory-layers-zero", recipe(), [*PLAN, "stages.pretrain.model.llm.num_layers=0"], 2, "stages.pretrain.model.llm.num_layers is 0;"),
+    Case("plan-memory-config-json-hidden-negative", llm_dir(hidden_size=-128), [*PLAN, f"stages.pretrain.model.llm.path={LLM_DIR}"], 2,
+         f"{LLM_DIR}/config.json: hidden_size is -128; it sizes the model's tensors, so it must be a positive integer"),
+    Case("plan-memory-config-json-kv-heads-do-not-divide", llm_dir(num_key_value_heads=5), [*PLAN, f"stages.pretrain.model.llm.path={LLM_DIR}"], 2,
+         f"{LLM_DIR}/config.json: num_key_value_heads is 5, which does not divide num_attention_heads 32"),
+    Case("plan-memory-config-json-vocab-string", llm_dir(vocab_size="128256"), [*PLAN, f"stages.pretrain.model.llm.path={LLM_DIR}"], 2,
+         f"{LLM_DIR}/config.json: vocab_size is '128256';"),
+    Case("plan-memory-size-override-beside-path", nothing, ["plan-memory", SCALE_LLAMA, "stages.pretrain.model.llm.hidden_size=-128"], 2,
+         "stages.pretrain.model.llm.hidden_size: ignored, since stages.pretrain.model.llm.path is set (configs/llm/llama-3.1-8b) and its config.json decides the model"),
+    Case("plan-memory-gpus-zero", recipe(), [*PLAN, "--gpus", "0"], 2, "--gpus 0: plan at least 1 GPU"),
+    Case("plan-memory-seq-len-huge", recipe(), [*PLAN, "--seq-len", str(10**12)], 2, f"--seq-len {10**12}: tokens per training sequence must be in 1..4194304 (2**22)"),
+    Case("plan-memory-gpu-memory-negative", recipe(), [*PLAN, "--gpu-memory", "-5"], 2, "--gpu-memory -5: a GPU's memory in GiB must be above 0 and at most 10000"),
+    Case("plan-memory-gpu-memory-absurd", recipe(), [*PLAN, "--gpu-memory", "1e6"], 2, "--gpu-memory 1e+06: a GPU's memory in GiB must be above 0 and at most 10000"),
+    # ------------------------------------------------------------------ plugins
+    Case("plugin-raises-on-import", with_plugin("plugins.broken_plugin"), RUN, 2, "plugin 'plugins.broken_plugin' in " + RECIPE_FILE + " " + PLUGIN_RAISES),
+    Case("validate-plugin-raises-on-import", with_plugin("plugins.broken_plugin"), ["validate", RECIPE_FILE], 2, "plugin 'plugins.broken_plugin' in " + RECIPE_FILE + " " + PLUGIN_RAISES),
+    Case("eval-pipeline-plugin-raises-on-import", with_plugin("plugins.broken_plugin", "run/pipeline.yaml"), EVAL, 2,
+         "plugin 'plugins.broken_plugin' in {tmp}/run/pipeline.yaml " + PLUGIN_RAISES),
+    Case("plugin-family-name-shipped", with_plugin("plugins.clashing_family"), RUN, 2,
+         ("plugin 'plugins.clashing_family' in " + RECIPE_FILE + ": family 'occllama' of plugin plugins.clashing_family is already registered by "
+          "occtrain.families.occllama (shipped with occtrain); register it with override=True to replace it")),
+    Case("plugin-kind-name-built-in", with_plugin("plugins.clashing_kind"), RUN, 2,
+         "stage kind 'pretrain' of plugin plugins.clashing_kind is already registered by occtrain.stages.world_model (shipped with occtrain)"),
+    # ------------------------------------------------------------------ exports, load and trackers
+    Case("export-config-unknown-key", export_file("config.json", b'{"stage_kind": "world_model", "familly": "occllama"}'), EVAL, 2,
+         EXPORT + "config.json: unknown key 'familly' (rename or remove it); did you mean 'family'?"),
+    Case("export-config-unknown-key-unlike-any", export_file("config.json", b'{"stage_kind": "world_model", "notes": "mine"}'), EVAL, 2,
+         EXPORT + "config.json: unknown key 'notes' (rename or remove it); valid keys: family, max_new_text_tokens, stage, stage_kind, tasks, vocab, world"),
+    # ------------------------------------------------------------------ data
+    Case("validate-a-clip-stage-where-no-clip-fits", recipe(), ["validate", "{tmp}/r.yaml", "data.history=4", "data.future=6"], 2,
+         "stage 'pretrain' reads clips"),
+    Case("shards-plain-copy-validate", both(recipe(), shards_then(plain_copy, kinds=["frames", "clips"], history=1, future=1)),
+         ["validate", "{tmp}/r.yaml", "data.root={tmp}/ds2", "data.shards={tmp}/s2"], 2,
+         ("{tmp}/s2: its shards were made from {tmp}/ds, and {tmp}/ds2 is not that dataset as it was then", "delete {tmp}/s2", REBUILD_COPY)),
+    Case("shards-plain-copy-run", both(recipe(), shards_then(plain_copy, kinds=["frames", "clips"], history=1, future=1)),
+         [*RUN, "data.root={tmp}/ds2", "data.shards={tmp}/s2"], 2, ("{tmp}/s2: its shards were made from {tmp}/ds", REBUILD_COPY)),
+    Case("shards-plain-copy-data-shards", shards_then(plain_copy), ["data", "shards", "{tmp}/ds2", "--out", "{tmp}/s2", "--kinds", "frames", "--samples-per-shard", "4"], 2,
+         ("{tmp}/s2: its shards were made from {tmp}/ds", "`occtrain data shards {tmp}/ds2 --out {tmp}/s2 --samples-per-shard 4 --kinds frames --rebuild`")),
+    Case("shards-other-layout-names-the-rebuild", shards_then(nothing), [*STALE[:-1], "5"], 2,
+         ("{tmp}/s2: already holds shards of a different dataset or layout (samples_per_shard 4 there, 5 here)",
+          "`occtrain data shards {tmp}/ds --out {tmp}/s2 --samples-per-shard 5 --kinds frames --rebuild`")),
+    Case("shards-rebuild-out-is-a-dataset", nothing, ["data", "shards", DS, "--out", DS, "--rebuild"], 2,
+         "{tmp}/ds: holds annotations.json, which is not a shard file; --rebuild replaces the whole directory"),
+    Case("shards-out-is-a-file", write_text("f", "mine"), ["data", "shards", DS, "--out", "{tmp}/f"], 2, "{tmp}/f: is a file; --out takes a directory"),
+    Case("shards-out-under-a-file", write_text("f", "mine"), ["data", "shards", DS, "--out", "{tmp}/f/out"], 2, "cannot write {tmp}/f/out: {tmp}/f is a file"),
+    Case("shards-camera-folder-deleted", released_cameras(drop="CAM_BACK"), SHARDS_FRAMES, 2, NO_BACK),
+    Case("shards-camera-folder-deleted-readme-form", without_folder("imgs/CAM_BACK"), SHARDS_FRAMES, 2, NO_BACK),
+    Case("validate-camera-folder-deleted", both(recipe(), released_cameras(drop="CAM_BACK")), ["validate", "{tmp}/r.yaml"], 2, NO_BACK),
+    Case("run-vision-camera-folder-deleted", both(recipe(VISION_ONLY), released_cameras(drop="CAM_BACK")), RUN, 2, NO_BACK),
+    Case("shards-camera-image-missing-released-form", released_cameras(drop=FIRST_IMG.removeprefix("imgs/")), SHARDS_FRAMES, 2,
+         "{tmp}/ds/" + FIRST_IMG + ": cannot read it"),
 ]
 
 
@@ -722,11 +965,13 @@ def run_cli(argv: list[str]) -> int:
 
 
 @pytest.mark.parametrize("case", CASES, ids=[c.id for c in CASES])
-def test_bad_input_is_one_line_and_changes_nothing(case: Case, world: Path, tmp_path: Path, capsys) -> None:
+def test_bad_input_is_one_line_and_changes_nothing(case: Case, world: Path, tmp_path: Path, capsys, monkeypatch) -> None:
     shutil.copytree(world, tmp_path, dirs_exist_ok=True)
     case.setup(tmp_path)
     before = snapshot(tmp_path)
     capsys.readouterr()  # what the setup printed (writing shards to break) is not the command's
+    if case.patch is not None:
+        case.patch(monkeypatch)
     code = run_cli([a.format(tmp=tmp_path) for a in case.argv])
     out, err = capsys.readouterr()
     says = [s.format(tmp=tmp_path) for s in ((case.says,) if isinstance(case.says, str) else case.says)]

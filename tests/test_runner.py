@@ -328,3 +328,56 @@ def test_a_refused_run_writes_nothing(probe_kind, recipe):
     with pytest.raises(ConfigError):
         run(recipe, ["stages.first.optim.lr=0.5", "trainer.log_every_n_steps=3"])
     assert _hashes(run_dir) == before
+
+
+def _tree(root):
+    """sha256 of every file under ``root`` by relative path (what a restart must keep)."""
+    import hashlib
+
+    return {str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+def _stages(run_dir):
+    return json.loads((run_dir / "manifest.json").read_text())["stages"]
+
+
+def test_a_restart_that_fails_before_its_first_checkpoint_puts_the_old_stages_back(probe_kind, recipe):
+    run_dir = run(recipe)
+    trees = {name: _tree(run_dir / name) for name in ("first", "second")}
+    entries = _stages(run_dir)
+    with pytest.raises(StageFailed) as err:
+        run(recipe, ["stages[0].model.fail=true"], restart="first")
+    assert "the stages --restart replaced (first, second) are back as they were" in str(err.value)
+    assert f"traceback is in {run_dir / 'restart-traceback.txt'}" in str(err.value)
+    assert "probe exploded" in (run_dir / "restart-traceback.txt").read_text()
+    assert {name: _tree(run_dir / name) for name in ("first", "second")} == trees
+    assert _stages(run_dir) == entries and not (run_dir / ".replaced").exists()
+    run(recipe)  # and the run goes on from them: both done, nothing retrains
+    assert _stages(run_dir) == entries
+
+
+def test_a_restart_past_its_first_checkpoint_replaces_the_old_stages(probe_kind, recipe):
+    run_dir = run(recipe)
+    old = (run_dir / "second" / "export" / "model.safetensors").read_bytes()
+    with pytest.raises(StageFailed):
+        run(recipe, ["stages[0].optim.lr=0.01", "stages[1].model.fail=true"], restart="first")
+    stages = _stages(run_dir)
+    assert stages["first"]["status"] == "done" and stages["first"]["config"]["optim"]["lr"] == 0.01
+    assert stages["second"]["status"] == "failed" and not (run_dir / "second" / "export").exists()
+    assert not (run_dir / ".replaced").exists()
+    run(recipe, ["stages[0].optim.lr=0.01"])
+    assert (run_dir / "second" / "export" / "model.safetensors").read_bytes() != old
+
+
+def test_a_restart_killed_before_it_settled_is_put_back_by_the_next_run(probe_kind, recipe, capsys):
+    from occtrain.manifest import Manifest
+
+    run_dir = run(recipe)
+    tree, entries = _tree(run_dir / "second"), _stages(run_dir)
+    Manifest.load(run_dir).set_aside(["second"])  # as `--restart second` does, then kill -9
+    (run_dir / "second" / "logs").mkdir(parents=True)  # what the killed attempt had begun
+    capsys.readouterr()
+    run(recipe)
+    out = capsys.readouterr().err
+    assert "the stages --restart replaced (second) are back as they were" in out
+    assert _tree(run_dir / "second") == tree and _stages(run_dir) == entries

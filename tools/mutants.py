@@ -114,8 +114,8 @@ MUTANTS = (
     Mutant(
         "restart-resets-one-stage", "--restart retrains the named stage but keeps the later ones",
         "src/occtrain/runner.py",
-        "                for name in restarted:\n",
-        "                for name in [restart]:\n",
+        "manifest.set_aside([p.spec.name for p in planned if p.spec.name in restarted])",
+        "manifest.set_aside([str(restart)])",
         ("tests/test_runner.py::test_changed_config_is_refused_then_restart_retrains",),
     ),
     Mutant(
@@ -190,6 +190,30 @@ MUTANTS = (
         'scores["CIDEr"] = float(Cider().compute_score(gts, res)[0])',
         'scores["CIDEr"] = float(Cider().compute_score(gts, res)[0]) / 10',
         ("tests/test_metrics_language.py::test_caption_metric_by_hand",),
+    ),
+    Mutant(
+        "deletion-escapes-the-run", "the one door for deletions no longer checks the target lies inside its directory",
+        "src/occtrain/io.py",
+        'if target.name in ("", ".", "..") or where == root_path or not where.is_relative_to(root_path):',
+        "if False:",
+        ("tests/test_io.py::test_a_deletion_that_reaches_outside_the_run_is_refused",),
+    ),
+    Mutant(
+        "stage-name-unchecked", "a stage's name is not checked to be one folder name",
+        "src/occtrain/runner.py",
+        '        check_name(spec.name, f"stages[{i}].name", source, "a stage")\n',
+        "",
+        (
+            "tests/test_bad_inputs.py::test_bad_input_is_one_line_and_changes_nothing[stage-name-escapes]",
+            "tests/test_bad_inputs.py::test_bad_input_is_one_line_and_changes_nothing[restart-an-escaping-stage]",
+        ),
+    ),
+    Mutant(
+        "restart-deletes-at-once", "--restart deletes the stages it retrains instead of setting them aside",
+        "src/occtrain/manifest.py",
+        "                    os.rename(run_dir / name, aside / name)\n",
+        "                    remove_inside(run_dir / name, run_dir)\n",
+        ("tests/test_runner.py::test_a_restart_that_fails_before_its_first_checkpoint_puts_the_old_stages_back",),
     ),
 )
 

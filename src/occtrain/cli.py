@@ -62,7 +62,7 @@ def _cmd_eval(args: argparse.Namespace) -> int:
 def _cmd_plan_memory(args: argparse.Namespace) -> int:
     from occtrain.memory_plan import format_plans, plan_recipe
 
-    plans = plan_recipe(args.recipe, args.overrides, args.gpus, args.seq_len, args.checkpointing)
+    plans = plan_recipe(args.recipe, args.overrides, args.gpus, args.seq_len, args.checkpointing, args.gpu_memory)
     print(format_plans(plans, args.seq_len, args.gpu_memory, args.checkpointing))
     return 0
 
@@ -89,11 +89,15 @@ def _cmd_data_synth(args: argparse.Namespace) -> int:
 
 
 def _cmd_data_shards(args: argparse.Namespace) -> int:
-    from occtrain.data.shards import write_shards
+    from occtrain.data.shards import no_clips_note, write_shards
+    from occtrain.io import check_output
     from occtrain.progress import console
 
-    kinds = [k.strip() for k in args.kinds.split(",") if k.strip()]
-    index = write_shards(args.dataset, args.out, args.samples_per_shard, args.history, args.future, kinds)
+    check_output(args.out, "--out", kind="dir")  # an unwritable --out fails now, not after minutes of sharding
+    kinds = None if args.kinds is None else [k.strip() for k in args.kinds.split(",") if k.strip()]
+    index = write_shards(args.dataset, args.out, args.samples_per_shard, args.history, args.future, kinds, rebuild=args.rebuild)
+    if "clips" in index.get("missing", {}):
+        console.print(f"note: {no_clips_note(index['missing']['clips'])}", markup=False)
     for kind, splits in index["kinds"].items():
         for split, entries in splits.items():
             n = sum(e["samples"] for e in entries)
@@ -211,9 +215,13 @@ def _add_data_commands(sub: Any) -> None:
     p.add_argument("dataset")
     p.add_argument("--out", required=True)
     p.add_argument("--samples-per-shard", type=int, default=64)
-    p.add_argument("--kinds", default="frames,clips", help="comma-separated: frames, clips")
+    p.add_argument("--kinds", help="comma-separated: frames, clips (default: both, or frames alone when no scene is long enough for a clip)")
     p.add_argument("--history", type=int, default=4, help="history frames per clip")
     p.add_argument("--future", type=int, default=6, help="future frames per clip")
+    p.add_argument(
+        "--rebuild", action="store_true",
+        help="replace the shards --out holds (of another layout, a copy or an earlier state of the dataset); the old ones stay usable until the new ones are complete",
+    )
     p.set_defaults(func=_cmd_data_shards)
 
     p = data.add_parser("show", help="bird's-eye picture of a frame (or a strip of frames)")

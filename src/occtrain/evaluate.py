@@ -19,7 +19,7 @@ import numpy as np
 from occtrain.config import load_config
 from occtrain.config.recipe import RecipeConfig
 from occtrain.errors import ConfigError
-from occtrain.io import atomic_write_json, atomic_write_npz
+from occtrain.io import atomic_write_json, atomic_write_npz, check_output
 from occtrain.progress import console
 
 
@@ -59,6 +59,7 @@ def evaluate(
     # shared cache, keyed by the encoder and the dataset they were made from.
     root = str(data_root) if data_root is not None else recipe.data.root
     _refuse_unscorable(tasks or [], root)
+    _check_outputs(stage_dir, spec.kind, kind.module.saves_predictions, split, data_root, save_predictions)
     request = EvalRequest(
         stage_dir / "export", [stage_dir.parent / dep / "export" for dep in spec.consumes], root, split, tasks, samples, batch_size,
         stage_cache_dir(stage_dir, root), shared_cache_dir(stage_dir), save_predictions is not None,
@@ -105,6 +106,22 @@ def _evaluable_stage(stage_dir: Path, split: str, samples: int, batch_size: int)
             f"finish it with `occtrain run {pipeline} --run-dir {stage_dir.parent}` first"
         )
     return recipe, spec, kind
+
+
+def _check_outputs(
+    stage_dir: Path, kind: str, saves: bool, split: str, data_root: str | Path | None, save_predictions: str | Path | None,
+) -> None:
+    """Refuse, before the evaluation's minutes, a place its results could not be written."""
+    if save_predictions is not None:
+        if not saves:
+            raise ConfigError(
+                f"--save-predictions {save_predictions}: a {kind} stage's eval has metrics only, no predictions to save "
+                "(world-model stages' evals have); leave the flag out"
+            )
+        check_output(save_predictions, "--save-predictions", kind="dir")
+    metrics = eval_metrics_file(stage_dir, split, data_root)
+    fix = f"eval writes its metrics into {stage_dir}; make it writable, or copy the run to a writable place and eval the copy"
+    check_output(metrics, "the eval directory", fix=fix)
 
 
 def _refuse_unscorable(tasks: list[str], root: str) -> None:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import time
 from dataclasses import asdict, dataclass, field
@@ -10,10 +11,16 @@ from pathlib import Path
 from typing import Any
 
 from occtrain import __version__
+from occtrain.config.recipe import NAME_PATTERN
 from occtrain.errors import OcctrainError
-from occtrain.io import atomic_write_json
+from occtrain.io import atomic_write_json, remove_inside, write_error
 
 MANIFEST_FILE = "manifest.json"
+#: Where ``--restart`` keeps the stages it replaces until the new attempt has a checkpoint.
+ASIDE_DIR = ".replaced"
+ASIDE_ENTRIES = "entries.json"
+#: A failed restart's traceback, kept when its stage directory gives way to the old one.
+RESTART_TRACEBACK = "restart-traceback.txt"
 STATUSES = ("pending", "running", "done", "failed", "interrupted")
 #: A stage in one of these states has a checkpoint to resume from (or none yet).
 RESUMABLE = ("running", "failed", "interrupted")
@@ -75,6 +82,9 @@ class Manifest:
             stages = {name: StageEntry(**entry) for name, entry in raw["stages"].items()}
         except (json.JSONDecodeError, KeyError, TypeError) as err:
             raise OcctrainError(f"{path}: unreadable manifest ({err}); move it aside to start the run afresh") from None
+        for name in stages:  # each names a directory the runner writes and --restart replaces
+            if not NAME_PATTERN.fullmatch(name):
+                raise OcctrainError(f"{path}: stage '{name}' is not a folder name inside the run; move the manifest aside to start the run afresh")
         return cls(path=path, name=raw.get("name", ""), stages=stages, writable=writable)
 
     def save(self) -> None:
@@ -125,3 +135,67 @@ class Manifest:
         kind = self.stages[name].kind
         self.stages[name] = StageEntry(kind=kind)
         self.save()
+
+    # -- --restart replaces stages without losing them: they move to RUN/.replaced/ with their
+    # entries; once a retrained stage has a checkpoint or an export (or the command
+    # succeeded) they are stale and go, and if the attempt fails or is killed before that
+    # they come back as they were.
+
+    def set_aside(self, names: list[str]) -> None:
+        """Move the stages ``--restart`` retrains to ``RUN/.replaced/`` and reset their entries.
+
+        Their entries are written there first, so a kill at any point leaves what
+        :meth:`settle_aside` needs to put them back: renames within one directory are atomic.
+        """
+        run_dir = self.path.parent
+        aside = run_dir / ASIDE_DIR
+        entries = {name: asdict(self.stages[name]) for name in names if name in self.stages}
+        try:
+            aside.mkdir(parents=True)
+            atomic_write_json(aside / ASIDE_ENTRIES, entries)
+            for name in names:
+                if (run_dir / name).exists():
+                    os.rename(run_dir / name, aside / name)
+        except OSError as err:
+            raise write_error(aside, err) from None
+        for name in names:
+            if name in self.stages:
+                self.stages[name] = StageEntry(kind=self.stages[name].kind)
+        self.save()
+
+    def settle_aside(self, succeeded: bool = False) -> str:
+        """End a restart's set-aside: discard the old stages once the command succeeded or a
+        retrained stage has a checkpoint, else put them back (directories and entries) as
+        they were. Returns a line for the user ("" when nothing was put back)."""
+        run_dir = self.path.parent
+        aside = run_dir / ASIDE_DIR
+        if not aside.is_dir():
+            return ""
+        try:
+            raw = json.loads((aside / ASIDE_ENTRIES).read_text())
+            restored = {name: StageEntry(**entry) for name, entry in raw.items() if NAME_PATTERN.fullmatch(name)}
+        except (OSError, ValueError, TypeError, AttributeError):
+            restored = None  # killed before the entries were written: nothing was moved yet
+        if restored is None or succeeded or any(_progressed(run_dir / name) for name in restored):
+            remove_inside(aside, run_dir)
+            return ""
+        kept = ""
+        for name in sorted(p.name for p in aside.iterdir() if p.is_dir()):
+            failed = run_dir / name / "logs" / "traceback.txt"
+            if failed.is_file():  # why the attempt failed outlives the attempt's directory
+                kept = f"; the failure's traceback is in {run_dir / RESTART_TRACEBACK}"
+                os.replace(failed, run_dir / RESTART_TRACEBACK)
+            remove_inside(run_dir / name, run_dir)  # the failed attempt's logs; it has no checkpoint
+            os.rename(aside / name, run_dir / name)
+        self.stages.update(restored)
+        self.save()
+        remove_inside(aside, run_dir)
+        return (
+            f"the stages --restart replaced ({', '.join(restored)}) are back as they were: "
+            f"the retrained ones stopped before their first checkpoint{kept}"
+        )
+
+
+def _progressed(stage_dir: Path) -> bool:
+    """Whether a retrained stage has something worth more than what it replaced."""
+    return (stage_dir / "export").is_dir() or any((stage_dir / "checkpoints").glob("*.ckpt"))

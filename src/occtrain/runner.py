@@ -14,7 +14,6 @@ import importlib
 import inspect
 import json
 import math
-import shutil
 import time
 import traceback
 from dataclasses import dataclass
@@ -27,11 +26,11 @@ from omegaconf import OmegaConf
 from occtrain.comparison import TABLE_FILE, check_table, show_table
 from occtrain.config import load_config, to_container, to_yaml
 from occtrain.config.loading import read_yaml, validate_section
-from occtrain.config.recipe import STAGE_DATA_KEYS, RecipeConfig, StageSpec
+from occtrain.config.recipe import STAGE_DATA_KEYS, RecipeConfig, StageSpec, check_name
 from occtrain.config.schema import DataConfig, TrainerConfig
 from occtrain.core.registry import get_family
-from occtrain.errors import ConfigError, OcctrainError
-from occtrain.io import atomic_write_json, atomic_write_text, is_rank_zero
+from occtrain.errors import ConfigError, OcctrainError, cause_line
+from occtrain.io import atomic_write_json, atomic_write_text, is_rank_zero, remove_inside
 from occtrain.manifest import RESUMABLE, Manifest
 from occtrain.progress import console
 from occtrain.run_control import Interrupted, run_lock, stop_on_signals
@@ -84,6 +83,7 @@ def plan_stages(recipe: RecipeConfig, source: str) -> list[PlannedStage]:
         for key in ("name", "kind"):
             if OmegaConf.is_missing(spec, key):
                 raise ConfigError(f"stages[{i}] in {source} has no '{key}:'; every stage needs a name and a kind ({', '.join(kind_names())})")
+        check_name(spec.name, f"stages[{i}].name", source, "a stage")
         where = f"stages[{i}] ('{spec.name}') in {source}"
         kind = get_kind(spec.kind)
         if kind is None:
@@ -95,13 +95,11 @@ def plan_stages(recipe: RecipeConfig, source: str) -> list[PlannedStage]:
             )
         if spec.name in names:
             raise ConfigError(f"stage name '{spec.name}' is used twice in {source}")
-        for dep in spec.consumes:
-            if dep not in names:
-                later = " (it runs later)" if any(s.name == dep for s in recipe.stages) else ""
-                raise ConfigError(f"{where} consumes '{dep}', which is not an earlier stage{later}")
+        _check_consumes(spec, names, [s.name for s in recipe.stages], where)
         consumed = {dep: planned[names.index(dep)] for dep in spec.consumes}
         kind.module.check_consumes(spec.kind, {dep: p.spec.kind for dep, p in consumed.items()}, where)
         family, model_cfg = _model_config(kind, spec, consumed, f"stages[{i}].model", source, where)
+        kind.module.check_model(model_cfg, f"stages.{spec.name}.model")
         wrong = sorted(set(spec.data or {}) - set(STAGE_DATA_KEYS))
         if wrong:
             raise ConfigError(f"stages[{i}].data.{wrong[0]} in {source}: a stage sets only {', '.join(STAGE_DATA_KEYS)}; the dataset is the recipe's")
@@ -132,6 +130,16 @@ def plan_stages(recipe: RecipeConfig, source: str) -> list[PlannedStage]:
     if not planned:
         raise ConfigError(f"{source} has no stages")
     return planned
+
+
+def _check_consumes(spec: StageSpec, earlier: list[str], every: list[str], where: str) -> None:
+    """A stage consumes the exports of stages that run before it."""
+    for dep in spec.consumes:
+        if dep == spec.name:
+            raise ConfigError(f"{where} consumes itself; a stage consumes the exports of earlier stages")
+        if dep not in earlier:
+            later = " (it runs later)" if dep in every else ""
+            raise ConfigError(f"{where} consumes '{dep}', which is not an earlier stage{later}")
 
 
 #: Settings whose type alone lets through values that fail late, deep in Lightning or
@@ -179,12 +187,14 @@ def _model_config(kind: StageKind, spec: StageSpec, consumed: dict, key: str, so
 
 
 def load_plugins(modules: list[str], source: str) -> None:
-    """Import the recipe's plugin modules, which register their stage kinds."""
+    """Import the recipe's plugin modules, which register their stage kinds and families;
+    whatever one raises is one line naming it (``core.registry.load_plugin``)."""
+    from functools import partial
+
+    from occtrain.core.registry import load_plugin
+
     for name in modules:
-        try:
-            importlib.import_module(name)
-        except ImportError as err:
-            raise ConfigError(f"plugin '{name}' in {source} cannot be imported ({err}); is it installed or on PYTHONPATH?") from None
+        load_plugin(partial(importlib.import_module, name), f"plugin '{name}' in {source}", name)
 
 
 def _stage_names(path: str | Path) -> list[str]:
@@ -238,8 +248,7 @@ def load_recipe(path: str | Path, overrides: list[str] | None = None) -> tuple[R
     recipe = load_config(RecipeConfig, path, overrides)
     if OmegaConf.is_missing(recipe, "name"):
         raise ConfigError(f"{path} has no 'name:'; a recipe names its run (the run directory is <runs_root>/<name>)")
-    if not recipe.name or Path(recipe.name).name != recipe.name or recipe.name in (".", "..") or "\\" in recipe.name:
-        raise ConfigError(f"name '{recipe.name}' in {path}: a run's name is a folder name inside runs_root, without / or ..; choose another")
+    check_name(recipe.name, "name", str(path), "a run")
     load_plugins(list(recipe.plugins), str(path))
     planned = plan_stages(recipe, str(path))
     check_table(recipe.table, [p.spec.name for p in planned], str(path))
@@ -328,6 +337,10 @@ def run(
     with stop_on_signals(), (run_lock(run_dir) if rank_zero else contextlib.nullcontext()):
         # Read again under the lock: the manifest this run writes is the one it checked.
         manifest = Manifest.load(run_dir, writable=rank_zero)
+        if rank_zero:  # an earlier --restart killed before it settled
+            note = manifest.settle_aside()
+            if note:
+                console.print(f"[yellow]note[/]: {note}")
         refuse_changed(planned, manifest, restarted, only)
         manifest.name = recipe.name
         for p in planned:
@@ -335,17 +348,21 @@ def run(
         try:
             if rank_zero:
                 atomic_write_text(run_dir / "pipeline.yaml", to_yaml(recipe))
-                for name in restarted:
-                    shutil.rmtree(run_dir / name, ignore_errors=True)
-                    manifest.reset(name)
+                if restarted:
+                    manifest.set_aside([p.spec.name for p in planned if p.spec.name in restarted])
                 manifest.save()
                 from occtrain.data.datamodule import ensure_data
 
                 ensure_data(recipe.data)
             try:
                 _run_stages(planned, manifest, run_dir, recipe, only, rank_zero)
+            except (Exception, Interrupted) as err:
+                if rank_zero and restarted:
+                    _put_back(err, manifest.settle_aside())
+                raise
             finally:
                 if rank_zero:
+                    manifest.settle_aside(succeeded=True)  # a no-op once put back
                     _write_table(run_dir, recipe, manifest)
                     _write_dashboard(run_dir)  # after the table: the page shows it
         except Interrupted as stop:
@@ -353,6 +370,12 @@ def run(
                 stop = stop.with_message(f"{stop} before any stage trained; run the same command again to continue")
             raise stop from None
     return run_dir
+
+
+def _put_back(err: BaseException, note: str) -> None:
+    """Say, in the failure's own line, that the stages a restart replaced are back."""
+    if note and isinstance(err, (OcctrainError, Interrupted)) and err.args:
+        err.args = (f"{err.args[0]}; {note}", *err.args[1:])
 
 
 @dataclass
@@ -393,12 +416,12 @@ def check_run(
 
             last_checkpoint(run_dir / p.spec.name)
     refuse_without_cameras(planned, recipe.data)
-    data = check_data(recipe.data)
     will_train = [
         p for p in planned
         if (only is None or p.spec.name == only)
         and (p.spec.name in restarted or getattr(manifest.stages.get(p.spec.name), "status", "pending") != "done")
     ]
+    data = check_data(recipe.data, [p.spec.name for p in will_train if p.kind.data_kind == "clips"])
     refuse_missing_tasks(will_train, recipe.data)
     refuse_unrunnable_trainers(will_train)
     return RunCheck(recipe, planned, run_dir, restarted, data)
@@ -517,7 +540,7 @@ def _write_table(run_dir: Path, recipe: RecipeConfig, manifest: Manifest) -> Non
         if recipe.table is not None and all(manifest.stages[s.name].status == "done" for s in recipe.stages):
             console.print(f"table -> {show_table(run_dir, recipe.table, manifest)}")
         else:
-            (run_dir / TABLE_FILE).unlink(missing_ok=True)
+            remove_inside(run_dir / TABLE_FILE, run_dir)
     except (OcctrainError, OSError) as err:
         line = str(err).splitlines()[0] if str(err) else type(err).__name__
         console.print(f"[yellow]table not written[/]: {line}")
@@ -551,7 +574,7 @@ def _run_stages(planned: list[PlannedStage], manifest: Manifest, run_dir: Path, 
             raise stop.with_message(f"stage '{name}' of {run_dir} {stop}; {resume}") from None
         except Exception as err:
             line = str(err).splitlines()[0] if str(err) else type(err).__name__
-            summary = line if isinstance(err, OcctrainError) else f"{type(err).__name__}: {line}"
+            summary = line if isinstance(err, OcctrainError) else cause_line(err)
             _record_failure(manifest, name, summary, time.time() - started, "failed")
             if rank_zero and not isinstance(err, OcctrainError):
                 try:

@@ -12,7 +12,7 @@ import argparse
 import json
 from functools import lru_cache
 from pathlib import Path
-from typing import Annotated, Any, Literal, NotRequired, TypedDict, Union
+from typing import Annotated, Any, Callable, Literal, NotRequired, TypedDict, Union
 
 import numpy as np
 
@@ -20,7 +20,7 @@ from occtrain.data.layout import ANNOTATIONS_FILE, GTS_DIR, LABELS_FILE, Dataset
 from occtrain.data.schema import QAFile, Vec2
 from occtrain.data.validate import Len, first_problem
 from occtrain.errors import DataError
-from occtrain.io import atomic_write_json, finite_or_null
+from occtrain.io import atomic_write_json, check_output, finite_or_null
 # The metrics (torch, torchmetrics) load with the first score, not with the CLI's parser.
 from occtrain.metrics.conventions import CONVENTIONS, horizon_label
 from occtrain.occ3d import FUTURE_STEPS, GRID_SHAPE, NUM_CLASSES
@@ -64,8 +64,6 @@ def emit(result: dict[str, Any], out: str | None) -> None:
     obj = to_json(result)
     text = json.dumps(obj, indent=2, allow_nan=False)
     if out:
-        if Path(out).is_dir():
-            raise DataError(f"{out}: is a directory; --out takes a file name")
         atomic_write_json(out, obj)
     print(text)
 
@@ -334,6 +332,17 @@ def _cmd_qa(args: argparse.Namespace) -> int:
     return 0
 
 
+def _out_checked_first(cmd: Callable[[argparse.Namespace], int]) -> Callable[[argparse.Namespace], int]:
+    """``cmd`` with its ``--out`` checked before it scores (minutes on a whole release)."""
+
+    def checked(args: argparse.Namespace) -> int:
+        if args.out:
+            check_output(args.out, "--out")
+        return cmd(args)
+
+    return checked
+
+
 def register(subparsers: argparse._SubParsersAction) -> None:
     """Add ``occtrain score {occupancy,forecast,planning,captions,qa}``."""
     score = subparsers.add_parser("score", help="score your own predictions with the papers' metric conventions")
@@ -342,7 +351,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     def add(name: str, summary: str, func: Any, pred_help: str) -> argparse.ArgumentParser:
         p = sub.add_parser(name, help=summary)
         p.add_argument("--pred", required=True, help=pred_help)
-        p.set_defaults(func=func)
+        p.set_defaults(func=_out_checked_first(func))
         return p
 
     def out(p: argparse.ArgumentParser) -> None:

@@ -3,12 +3,28 @@ optional table of its results beside a paper's figures."""
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass, field
 from typing import Any, Optional
 
 from omegaconf import MISSING
 
 from occtrain.config.schema import DataConfig, TrainerConfig
+from occtrain.errors import ConfigError
+
+#: What a run's or a stage's name may be. Each becomes one directory (``<runs_root>/<run>``,
+#: ``<run>/<stage>``) that the runner writes into and ``--restart`` deletes, so it is a
+#: single plain path component: no separator, no ``..``, not hidden, never absolute.
+NAME_PATTERN = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.+-]{0,127}")
+NAME_RULE = "letters, digits and _ . + - (first a letter, digit or _), at most 128 characters"
+
+
+def check_name(name: Any, key: str, source: str, what: str) -> str:
+    """``name`` if it is a safe folder name (:data:`NAME_PATTERN`); else one line naming ``key``."""
+    if not isinstance(name, str) or not NAME_PATTERN.fullmatch(name):
+        raise ConfigError(f"{key} '{name}' in {source}: {what} is a folder name inside {'runs_root' if what == 'a run' else 'the run'}, "
+                          f"so it is {NAME_RULE}; choose another")
+    return name
 
 
 @dataclass

@@ -26,7 +26,7 @@ import time
 from pathlib import Path
 
 from occtrain.dashboard.samples import bev_comparison, read_samples, write_samples
-from occtrain.io import atomic_write_text
+from occtrain.io import atomic_write_text, check_output
 
 DASHBOARD_FILE = "dashboard.html"
 
@@ -40,6 +40,7 @@ def write_dashboard(run_dir: Path, out: Path | None = None) -> Path:
 
     run = load_run(Path(run_dir))
     out = Path(out) if out is not None else Path(run_dir) / DASHBOARD_FILE
+    check_output(out, "--out")  # before the page is drawn: a run's figures take a while
     return atomic_write_text(out, render_page(run, generated=time.time()))
 
 

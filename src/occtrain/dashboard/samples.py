@@ -20,7 +20,7 @@ import numpy as np
 
 from occtrain.data.render import render_bev, strip
 from occtrain.errors import DataError
-from occtrain.io import atomic_write_bytes, atomic_write_json, png_bytes
+from occtrain.io import atomic_write_bytes, atomic_write_json, png_bytes, remove_inside
 from occtrain.occ3d import FREE, GRID_SHAPE
 
 SAMPLES_DIR = "samples"
@@ -53,7 +53,7 @@ def write_samples(stage_dir: Path, images: Sequence[tuple[str, np.ndarray]], tex
     listed = {e["file"] for e in entries}
     for stale in out.glob("*.png"):
         if stale.name not in listed:
-            stale.unlink(missing_ok=True)
+            remove_inside(stale, out)
     return index
 
 

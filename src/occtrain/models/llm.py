@@ -19,7 +19,7 @@ from torch import nn
 from transformers import AutoConfig, AutoModelForCausalLM, AutoTokenizer, PreTrainedModel
 
 from occtrain.config.llm import BACKENDS, LLMConfig, LoRAConfig, validate_llm_config
-from occtrain.errors import ConfigError
+from occtrain.errors import ConfigError, cause_line
 from occtrain.models import without_peft
 
 #: Backends transformers runs without SDPA: they attend eagerly (additive masks).
@@ -52,6 +52,19 @@ def tiny_config(cfg: LLMConfig, vocab_size: int) -> Any:
         head = cfg.hidden_size // cfg.num_heads
         kw.update(head_dim=head, query_pre_attn_scalar=head)
     return AutoConfig.for_model(cfg.model_type, **kw)
+
+
+def check_llm(cfg: LLMConfig, key: str) -> None:
+    """What :func:`build_llm` would refuse, found without building it: occtrain's own
+    checks, then the backend config's validators (transformers checks the architecture
+    when its config is made), so ``occtrain validate`` refuses what ``run`` would."""
+    validate_llm_config(cfg, key)
+    if cfg.path:  # loaded from its directory at build time, where its config.json is checked
+        return
+    try:
+        tiny_config(cfg, cfg.text_vocab_size)
+    except Exception as err:  # noqa: BLE001 - any validator's refusal is the user's config
+        raise ConfigError(f"{key}: the {cfg.model_type} config is refused ({cause_line(err)})") from None
 
 
 def check_backend(model_type: str, where: str) -> None:

@@ -147,6 +147,8 @@ class Stage(L.LightningModule, ABC):
     reads_cameras: ClassVar[bool] = False
     #: Whether ``occtrain eval`` scores its exports (``evaluate_export``).
     evaluable: ClassVar[bool] = False
+    #: Whether that eval records predictions (``EvalRequest.record``) for ``--save-predictions``.
+    saves_predictions: ClassVar[bool] = False
     #: Whether it trains under ``trainer.strategy: fsdp`` (it shards itself in
     #: ``configure_model``); a kind that does not is refused that strategy before training.
     shards: ClassVar[bool] = False
@@ -183,6 +185,12 @@ class Stage(L.LightningModule, ABC):
     @classmethod
     def check_family(cls, family: str | None, consumed: dict[str, Any], where: str) -> None:
         """Refuse, before anything runs, a stage whose family cannot do what it is asked."""
+
+    @classmethod
+    def check_model(cls, model: Any, key: str) -> None:
+        """Refuse, before anything is written, a validated ``model:`` (under ``key``) that
+        building the stage's model would refuse: what ``occtrain validate`` shares with
+        ``run``. By default nothing beyond the schema."""
 
     @classmethod
     def camera_input(cls, model: Any) -> bool:

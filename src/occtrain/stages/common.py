@@ -30,7 +30,7 @@ from occtrain.data.shards import PAD_KEY
 from occtrain.engine import Evaluator, Priors, scorable
 from occtrain.errors import ConfigError, OcctrainError
 from occtrain.metrics import compute_metrics
-from occtrain.io import atomic_open
+from occtrain.io import atomic_open, remove_inside
 from occtrain.progress import Ticker, console, plain, progress_bar
 from occtrain.stages.loggers import build_loggers
 from occtrain.stages.sharding import trainer_strategy
@@ -59,7 +59,7 @@ class AtomicCheckpointIO(TorchCheckpointIO):
             fh.write(buf.getbuffer())
             if path.name == LAST_CKPT and path.is_file():
                 previous = path.with_name(PREVIOUS_CKPT)
-                previous.unlink(missing_ok=True)
+                remove_inside(previous, path.parent)
                 os.link(path, previous)
 
 
@@ -485,6 +485,14 @@ def check_trainer_setup(cfg: TrainerConfig, key: str) -> None:
         raise ConfigError(
             f"{key}.devices is {devices} CPU processes, but this machine has {_usable_cores()} cores; "
             f"use at most {_usable_cores()} (or several nodes with torchrun)"
+        )
+    on_cpu = accelerator == "cpu" or (accelerator == "auto" and not torch.cuda.is_available())
+    if on_cpu and str(cfg.precision) in ("16-mixed", "16"):
+        # Lightning would train in bf16 instead, with a warning, while the recipe, the
+        # manifest and the config hash all keep saying 16-mixed.
+        raise ConfigError(
+            f"{key}.precision is {cfg.precision}, but float16 mixed precision needs a GPU; "
+            "on the CPU use bf16-mixed (what Lightning would switch to) or 32-true"
         )
     quiet_lightning()
     try:

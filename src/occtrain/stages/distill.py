@@ -65,6 +65,7 @@ class DistillStage(Stage):
     # Teacher and frozen encoders come from their exports; checkpoints carry what trains.
     frozen_prefixes = ("teacher.", "student.scene_encoder.", "student.vision.")
     evaluable = True
+    saves_predictions = True
 
     @classmethod
     def model_schema(cls, kind: StageKind, family: str | None, model: dict | None = None) -> type:

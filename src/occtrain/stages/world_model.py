@@ -32,7 +32,7 @@ from occtrain.errors import ConfigError
 from occtrain.exports import export_kind, read_config
 from occtrain.models import count_parameters
 from occtrain.models.adapters import AdapterConfig, adapters_of, add_adapters
-from occtrain.models.llm import apply_lora, checkpoint_layers
+from occtrain.models.llm import apply_lora, check_llm, checkpoint_layers
 from occtrain.stages import StageKind, register
 from occtrain.stages.base import EvalRequest, EvalResult, Stage, StageContext, StageReport
 from occtrain.stages.common import ValidationMeans, configure_adamw, evaluate_engine, family_schema, freeze_prefixes
@@ -131,6 +131,14 @@ class WorldModelStage(Stage):
             # A model whose prompts hold no scenes takes its occupancy targets from the
             # dataset: its shards give the annotations and the text alone.
             self._entries = {"train": TEXT_ENTRIES} if engine.reads_scenes() else {"train": TEXT_ENTRIES, "val": TEXT_ENTRIES}
+
+    @classmethod
+    def check_model(cls, model: Any, key: str) -> None:
+        """How the stage trains (an instruct stage's LLM is the consumed export's)."""
+        if model.use_lora and model.use_adapters:
+            raise ConfigError(f"{key}: use_lora and use_adapters are both on; train through one of them")
+        if model.use_adapters:
+            to_object(model.adapter).validate(f"{key}.adapter")
 
     def build_engine(self, ctx: StageContext, tasks: Any, where: str):
         """The consumed world model with this stage's task settings (instruct)."""
@@ -260,6 +268,7 @@ class WorldModelStage(Stage):
         return export_engine(self._unsharded, path, stage=self.ctx.spec.name, merge=self.ctx.model_cfg.merge_export)
 
     evaluable = True
+    saves_predictions = True
 
     @classmethod
     def evaluate_export(cls, request: EvalRequest) -> EvalResult:
@@ -309,6 +318,12 @@ class PretrainStage(WorldModelStage):
                 f"{where}: a '{family}' world model is built over {' and '.join(wanted) or 'nothing'} "
                 f"(consumes those stages), got {' and '.join(kinds) or 'none'}"
             )
+
+    @classmethod
+    def check_model(cls, model: Any, key: str) -> None:
+        """Also the LLM it builds, through the backend's own config validators."""
+        super().check_model(model, key)
+        check_llm(to_object(model.llm), f"{key}.llm")
 
     def build_engine(self, ctx: StageContext, tasks: Any, where: str):
         cfg = ctx.model_cfg
