@@ -152,6 +152,13 @@ CASES = [
     Case("vision-own-weights-missing-tensor", "vision", edit_tensors("model.safetensors", drop_first("encoder.")), "missing tensor"),
     Case("vision-config-unknown-key", "vision", edit_json("config.json", lambda c: c.update(image_means=[0.5])),
          "{export}/config.json: unknown key 'image_means' (rename or remove it); did you mean 'image_mean'?"),
+    # ---------------------------------------------------------------- unknown keys inside a section, not only at the top
+    Case("tokenizer-section-unknown-key", "tokenizer", edit_json("config.json", lambda c: c["config"].update(num_code=8)),
+         "{export}/config.json: unknown key 'config.num_code' (rename or remove it); did you mean 'num_codes'?"),
+    Case("world-family-section-unknown-key", "lora", edit_json("config.json", lambda c: c["world"][c["family"]].update(zzz=1)),
+         "{export}/config.json: unknown key 'world.occllama.zzz' (rename or remove it)"),
+    Case("vision-section-unknown-key", "vision", edit_json("config.json", lambda c: c["vision"].update(patchsize=8)),
+         "{export}/config.json: unknown key 'vision.patchsize' (rename or remove it)"),
 ]
 
 
@@ -230,6 +237,19 @@ def test_a_full_disk_surfaces_through_a_real_writer(exports: Path, tmp_path: Pat
     fail_at("occtrain.exports.os.fsync", errno.ENOSPC)(monkeypatch)
     with pytest.raises(WriteError, match=f"^cannot write {export}: the disk is full"):
         export_vision(export, encoder, DenseHead(encoder.hidden_size, encoder.patch_size))
+    assert snapshot(tmp_path) == before
+
+
+def test_a_full_disk_while_a_world_model_stages_its_llm_is_one_line(exports: Path, tmp_path: Path, monkeypatch) -> None:
+    """The LLM directory is staged beside the export: a full disk there names the export
+    (not a SafetensorError from a system temp directory) and keeps the export it replaces."""
+    export = tmp_path / "lora"
+    shutil.copytree(exports / "lora", export)
+    engine = load_world_model(export)
+    before = snapshot(tmp_path)
+    fail_at("occtrain.engine.export._save_hf_llm", errno.ENOSPC)(monkeypatch)
+    with pytest.raises(WriteError, match=f"^cannot write {export}: the disk is full"):
+        export_engine(engine, export, stage="instruct")
     assert snapshot(tmp_path) == before
 
 

@@ -8,15 +8,18 @@ either. Nothing here imports Lightning: models, families and the engine load exp
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import json
 import os
 import shutil
 import tempfile
 from pathlib import Path
+from typing import Any
 
 import torch
 from safetensors.torch import load_file, save
 
+from occtrain.config.loading import did_you_mean
 from occtrain.errors import OcctrainError
 from occtrain.io import remove_inside, write_error
 
@@ -150,9 +153,21 @@ def _unknown_key(config: dict) -> str | None:
 
 
 def _suggestion(key: str, config: dict) -> str:
-    from occtrain.config.loading import _suggest  # the recipes' did-you-mean; loaded only to word an error
+    return did_you_mean(key, sorted(EXPORT_KEYS[_kind_of(config)]))
 
-    return _suggest(key, sorted(EXPORT_KEYS[_kind_of(config)]))
+
+def check_section(schema: type, values: Any, key: str, export_dir: Path) -> None:
+    """Refuse, in one line as at the top level, a key of ``values`` (the ``key`` section of
+    an export's config.json) that the ``schema`` dataclass it was written from lacks: built
+    with ``schema(**values)`` it would be a TypeError, merged onto defaults it would be
+    silently ignored."""
+    config = Path(export_dir) / EXPORT_CONFIG
+    if not isinstance(values, dict):
+        raise OcctrainError(f"{config}: '{key}' is not a JSON object; re-run the stage that wrote it")
+    names = [f.name for f in dataclasses.fields(schema)]
+    unknown = next((k for k in values if k not in names), None)
+    if unknown is not None:
+        raise OcctrainError(f"{config}: unknown key '{key}.{unknown}' (rename or remove it){did_you_mean(str(unknown), names)}")
 
 
 def export_kind(export_dir: Path) -> str:

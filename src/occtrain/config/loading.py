@@ -49,7 +49,7 @@ def _is_mapping(tp: Any) -> bool:
     return any(typing.get_origin(a) is dict for a in typing.get_args(tp))
 
 
-def _suggest(key: str, valid: list[str]) -> str:
+def did_you_mean(key: str, valid: list[str]) -> str:
     close = difflib.get_close_matches(key, valid, n=1, cutoff=0.6)
     return f"; did you mean '{close[0]}'?" if close else f"; valid keys: {', '.join(sorted(valid))}"
 
@@ -80,7 +80,7 @@ def _resolve_includes(raw: Any, cls: type, source: Path, prefix: str) -> Any:
     for key, value in raw.items():
         full = f"{prefix}{key}"
         if key not in fields:
-            raise ConfigError(f"unknown key '{full}' in {source}{_suggest(str(key), list(fields))}")
+            raise ConfigError(f"unknown key '{full}' in {source}{did_you_mean(str(key), list(fields))}")
         sub = _section_type(fields[key])
         if sub is None and _is_mapping(fields[key]) and isinstance(value, str) and value.endswith((".yaml", ".yml")):
             value = read_yaml(_find_include(value, source))  # a free-form section kept in its own file
@@ -124,7 +124,7 @@ def _check_override_key(cls: type, dotted: str, source: str) -> type | None:
         if name not in fields:
             where = ".".join(parts[:depth])
             key = f"{where}.{name}" if where else name
-            raise ConfigError(f"unknown key '{key}' in {source}{_suggest(name, list(fields))}")
+            raise ConfigError(f"unknown key '{key}' in {source}{did_you_mean(name, list(fields))}")
         cur = _section_type(fields[name])
     return cur
 

@@ -31,7 +31,7 @@ from omegaconf import DictConfig, OmegaConf
 from occtrain.core.protocols import EvalHook, Scorer
 from occtrain.core.tasks import TaskConfig, TaskSpec
 from occtrain.errors import ConfigError, OcctrainError
-from occtrain.exports import load_state_strict, read_export, require_config, write_export
+from occtrain.exports import check_section, load_state_strict, read_export, require_config, write_export
 from occtrain.models import count_parameters
 
 #: The package whose sub-packages are the families shipped with occtrain.
@@ -387,6 +387,7 @@ def load_tokenizer(export_dir: Path) -> Any:
     if config.get("stage_kind") != "tokenizer":
         raise ConfigError(f"{export_dir}: not a tokenizer export (stage kind '{config.get('stage_kind')}'); consume the tokenizer stage")
     require_config(config, ("arch", "config"), export_dir)
+    check_section(_arch(config["arch"]).config, config["config"], "config", export_dir)
     model = build_tokenizer(config["arch"], config["config"])
     load_state_strict(model, state, (), str(export_dir))
     model.export_dir = Path(export_dir)  # a world-model export copies it from here

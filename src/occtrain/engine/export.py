@@ -32,7 +32,7 @@ from typing import Any
 
 import torch
 from omegaconf import OmegaConf
-from safetensors.torch import save_file
+from safetensors.torch import save
 
 from occtrain.config import to_container
 from occtrain.config.llm import MAX_NEW_TEXT_TOKENS, LLMConfig
@@ -44,7 +44,8 @@ from occtrain.core.world_model import WorldInputs
 from occtrain.data.layout import DatasetIndex
 from occtrain.engine.world_model import WorldModelEngine
 from occtrain.errors import ConfigError
-from occtrain.exports import load_state_strict, read_export, require_config, write_export
+from occtrain.exports import check_section, load_state_strict, read_export, require_config, write_export
+from occtrain.io import write_error
 from occtrain.models.adapters import has_adapters, load_adapters, save_adapters, without_adapters
 from occtrain.models.llm import build_llm, load_lora_strict, load_pretrained_strict, load_text_tokenizer
 from occtrain.models.text_tokenizer import train_text_tokenizer
@@ -102,44 +103,56 @@ def export_engine(engine: WorldModelEngine, path: Path, stage: str, merge: bool 
     """Write a world-model export (see the module docstring). With a LoRA adapter,
     ``llm/`` holds the base weights and ``llm/adapter/`` the adapter; ``merge`` folds the
     adapter into ``llm/`` instead. The engine itself is left as it was."""
+    path = Path(path)
+    try:
+        # Staged beside the export (the same disk it is moved to), so a full disk or a
+        # read-only place is reported for the export, in one line, before it is swapped in.
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryDirectory(dir=path.parent, prefix=f".{path.name}.llm.") as tmp:
+            return _stage_and_write(engine, path, stage, merge, Path(tmp))
+    except OSError as err:
+        raise write_error(path, err) from None
+
+
+def _stage_and_write(engine: WorldModelEngine, path: Path, stage: str, merge: bool, tmp: Path) -> Path:
+    """:func:`export_engine` with its LLM directory staged in ``tmp``."""
     from peft import PeftModel
 
     world = engine.world
     wrapped = isinstance(world.llm, PeftModel)
-    with tempfile.TemporaryDirectory() as tmp:
-        llm_dir = Path(tmp) / LLM_DIR
-        if wrapped and merge:
-            base = copy.deepcopy(world.llm).merge_and_unload()
-            state = base.state_dict()
-        elif wrapped:
-            base = world.llm.get_base_model()
-            state = _base_names(world.llm.state_dict())
-            # The base embedding table is in llm/ already; the adapter keeps its own LoRA weights only.
-            world.llm.save_pretrained(str(llm_dir / ADAPTER_DIR), save_embedding_layers=False)
-        else:
-            base = world.llm
-            state = base.state_dict()
-        if has_adapters(base):
-            # The Hugging Face directory holds the LM's own weights; the adapters sit beside them.
-            state = without_adapters(state)
-            save_adapters(base, llm_dir / BOTTLENECK_DIR)
-        _save_hf_llm(llm_dir, base, state, world, engine)
-        own = {k: v for k, v in world.state_dict().items() if not k.startswith("llm.")}
-        config = {
-            "stage_kind": WORLD_MODEL,
-            "stage": stage,
-            "family": engine.family,
-            "vocab": engine.vocab.to_json(),
-            "world": world.export_config(),
-            "tasks": to_container(OmegaConf.structured(engine.tasks)),
-            "max_new_text_tokens": engine.max_new_text_tokens,
-        }
-        extra = {LLM_DIR: llm_dir}
-        if engine.scene_encoder is not None and engine.scene_encoder.export_dir is not None:
-            extra[SCENE_ENCODER_DIR] = Path(engine.scene_encoder.export_dir)
-        if engine.vision is not None:
-            extra[VISION_DIR] = Path(engine.vision.export_dir)
-        return write_export(path, own, config, extra)
+    llm_dir = tmp / LLM_DIR
+    if wrapped and merge:
+        base = copy.deepcopy(world.llm).merge_and_unload()
+        state = base.state_dict()
+    elif wrapped:
+        base = world.llm.get_base_model()
+        state = _base_names(world.llm.state_dict())
+        # The base embedding table is in llm/ already; the adapter keeps its own LoRA weights only.
+        world.llm.save_pretrained(str(llm_dir / ADAPTER_DIR), save_embedding_layers=False)
+    else:
+        base = world.llm
+        state = base.state_dict()
+    if has_adapters(base):
+        # The Hugging Face directory holds the LM's own weights; the adapters sit beside them.
+        state = without_adapters(state)
+        save_adapters(base, llm_dir / BOTTLENECK_DIR)
+    _save_hf_llm(llm_dir, base, state, world, engine)
+    own = {k: v for k, v in world.state_dict().items() if not k.startswith("llm.")}
+    config = {
+        "stage_kind": WORLD_MODEL,
+        "stage": stage,
+        "family": engine.family,
+        "vocab": engine.vocab.to_json(),
+        "world": world.export_config(),
+        "tasks": to_container(OmegaConf.structured(engine.tasks)),
+        "max_new_text_tokens": engine.max_new_text_tokens,
+    }
+    extra = {LLM_DIR: llm_dir}
+    if engine.scene_encoder is not None and engine.scene_encoder.export_dir is not None:
+        extra[SCENE_ENCODER_DIR] = Path(engine.scene_encoder.export_dir)
+    if engine.vision is not None:
+        extra[VISION_DIR] = Path(engine.vision.export_dir)
+    return write_export(path, own, config, extra)
 
 
 def _save_hf_llm(llm_dir: Path, base: Any, state: dict[str, torch.Tensor], world: Any, engine: WorldModelEngine) -> None:
@@ -156,7 +169,9 @@ def _save_hf_llm(llm_dir: Path, base: Any, state: dict[str, torch.Tensor], world
         with torch.no_grad():
             lo, hi = engine.vocab.occ_range
             state[embed_key][lo:hi] = rows.to(state[embed_key].dtype).cpu()
-    save_file(state, str(llm_dir / "model.safetensors"), metadata={"format": "pt"})
+    # Serialised here and written by Python: safetensors' save_file reports a full disk as a
+    # SafetensorError that has lost the errno.
+    (llm_dir / "model.safetensors").write_bytes(save(state, metadata={"format": "pt"}))
     base.config.save_pretrained(str(llm_dir))
     vocab = engine.vocab
     GenerationConfig(
@@ -194,6 +209,8 @@ def load_world_model(export_dir: Path) -> WorldModelEngine:
     text_tok = load_text_tokenizer(llm_dir)
     vocab = JointVocab.from_json(config["vocab"], text_tok)
     world_cfg = config["world"]
+    if world.world_config is not None and family in world_cfg:  # the family's own settings
+        check_section(world.world_config, world_cfg[family], f"world.{family}", export_dir)
     llm = load_pretrained_strict(
         AutoModelForCausalLM, llm_dir, f"{export_dir}", "re-run the stage that wrote it",
         attn_implementation=world_cfg["attn_implementation"], dtype=torch.float32,

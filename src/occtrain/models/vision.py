@@ -23,7 +23,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from occtrain.errors import ConfigError, DataError
-from occtrain.exports import load_state_strict, read_export, write_export
+from occtrain.exports import check_section, load_state_strict, read_export, write_export
 from occtrain.models.patches import unpatchify
 from occtrain.occ3d import NUM_CLASSES
 
@@ -369,6 +369,7 @@ def load_vision_encoder(export_dir: Path, trainable: bool = False) -> MultiViewE
     """The encoder of a vision stage's export: frozen in eval mode, or trainable."""
     export_dir = Path(export_dir)
     state, config = _read_vision_export(export_dir)
+    check_section(VisionConfig, config["vision"], "vision", export_dir)
     cfg = VisionConfig(**{**config["vision"], "path": str(export_dir / TOWER_DIR)})
     encoder = MultiViewEncoder(cfg, tuple(config["image_mean"]), tuple(config["image_std"]))
     own = {k[len("encoder.") :]: v for k, v in state.items() if k.startswith("encoder.")}

@@ -44,7 +44,7 @@ from occtrain.data.clips import Clip, Text, frame_clips, plan_target
 from occtrain.data.layout import DatasetIndex
 from occtrain.errors import ConfigError
 from occtrain.config import to_object
-from occtrain.exports import load_state_strict, read_export, write_export
+from occtrain.exports import check_section, load_state_strict, read_export, write_export
 from occtrain.families.sparseoccvla.tasks import PLANNING_PROMPT, context
 from occtrain.families.sparseoccvla.world_model import EGO_FEATURES, ego_state
 from occtrain.io import atomic_write_safetensors, is_rank_zero
@@ -244,6 +244,7 @@ class AnchorDiffusionPlanner(nn.Module):
     def from_export(cls, export_dir: Path, teacher: Any, request: Any) -> AnchorDiffusionPlanner:
         """A trained planner back from its export (``WorldSpec.load_planner``)."""
         state, config = read_export(export_dir)
+        check_section(AnchorDiffusionConfig, config["config"], "config", export_dir)
         cfg = AnchorDiffusionConfig(**config["config"])
         planner = cls(cfg, teacher, request.data_root, request.cache_dir, anchors=state["anchors"].numpy())
         load_state_strict(planner, state, ("teacher.",), str(export_dir))
