@@ -30,7 +30,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from occtrain.core.protocols import EvalHook, Scorer
 from occtrain.core.tasks import TaskConfig, TaskSpec
-from occtrain.errors import ConfigError, OcctrainError
+from occtrain.errors import ConfigError, OcctrainError, cause_line
 from occtrain.exports import check_section, load_state_strict, read_export, require_config, write_export
 from occtrain.models import count_parameters
 
@@ -261,12 +261,12 @@ def load_plugin(load: Callable[[], Any], what: str, module: str) -> Any:
         return load()
     except ImportError as err:
         if _missing(err, module):
-            raise ConfigError(f"{what} cannot be imported ({_first_line(err)}); is it installed or on PYTHONPATH?") from None
-        raise ConfigError(f"{what} failed while being imported: {_first_line(err)}") from None
+            raise ConfigError(f"{what} cannot be imported ({cause_line(err)}); is it installed or on PYTHONPATH?") from None
+        raise ConfigError(f"{what} failed while being imported: {cause_line(err)}") from None
     except OcctrainError as err:  # already one line for the user (a name another module holds)
-        raise ConfigError(f"{what}: {_first_line(err, typed=False)}") from None
+        raise ConfigError(f"{what}: {(str(err).splitlines() or [type(err).__name__])[0]}") from None
     except (Exception, SystemExit) as err:  # SystemExit: a plugin's sys.exit() would end the command silently
-        raise ConfigError(f"{what} failed while being imported: {_first_line(err)}") from None
+        raise ConfigError(f"{what} failed while being imported: {cause_line(err)}") from None
 
 
 def _missing(err: ImportError, module: str) -> bool:
@@ -274,14 +274,6 @@ def _missing(err: ImportError, module: str) -> bool:
     rather than something it imports."""
     name = getattr(err, "name", None) or ""
     return isinstance(err, ModuleNotFoundError) and (module == name or module.startswith(name + "."))
-
-
-def _first_line(err: BaseException, typed: bool = True) -> str:
-    lines = str(err).strip().splitlines()
-    line = lines[0] if lines else ""
-    if not typed:
-        return line or type(err).__name__
-    return f"{type(err).__name__}: {line}" if line else type(err).__name__
 
 
 def _discover() -> None:
