@@ -879,6 +879,8 @@ CASES: list[Case] = [
     Case("restart-with-adapters-and-lora", finished_run,
          [*RUN, "--restart", "pretrain", "stages.pretrain.model.use_lora=true", "stages.pretrain.model.use_adapters=true"], 2,
          "stages.pretrain.model: use_lora and use_adapters are both on"),
+    Case("validate-refuses-a-tokenizer-its-build-refuses", recipe(), ["validate", "{tmp}/r.yaml", "stages.tokenizer.model.occworld_vqvae.strides=[3,5]"], 2,
+         "stages.tokenizer.model.occworld_vqvae"),
     Case("stage-consumes-itself", recipe(lambda t: t.replace("consumes: [tokenizer]", "consumes: [pretrain]")), RUN, 2,
          "stages[1] ('pretrain') in " + RECIPE_FILE + " consumes itself"),
     Case("precision-16-mixed-on-cpu", recipe(), [*RUN, "trainer.precision=16-mixed"], 2,

@@ -82,6 +82,11 @@ class TokenizerStage(Stage):
             raise ConfigError(f"{where}: model.arch is missing; tokenizer architectures are {', '.join(tokenizer_archs())}")
 
     @classmethod
+    def check_model(cls, model: Any, key: str) -> None:
+        """The architecture's own checks (heads dividing channels, windows the latent grid)."""
+        tokenizer_config(model.arch, model[model.arch], f"{key}.{model.arch}")
+
+    @classmethod
     def camera_input(cls, model: Any) -> bool:
         arch = _arch_of(model)
         return bool(arch is not None and arch.reads_cameras)
