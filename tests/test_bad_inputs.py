@@ -934,6 +934,11 @@ CASES: list[Case] = [
     Case("export-config-unknown-key-unlike-any", export_file("config.json", b'{"stage_kind": "world_model", "notes": "mine"}'), EVAL, 2,
          EXPORT + "config.json: unknown key 'notes' (rename or remove it); valid keys: family, max_new_text_tokens, stage, stage_kind, tasks, vocab, world"),
     # ------------------------------------------------------------------ data
+    Case("stats-frames-zero", nothing, ["data", "stats", DS, "--frames", "0"], 2, "--frames 0: count at least 1 frame"),
+    Case("stats-json-is-a-directory", nothing, ["data", "stats", DS, "--json", "{tmp}/ds"], 2, "{tmp}/ds: is a directory; --json takes a file name"),
+    Case("stats-chart-read-only", nothing, ["data", "stats", DS, "--chart", "{tmp}/c.png"], 2,
+         "cannot write {tmp}/c.png: the file system is read-only; choose another --chart", patch=read_only_disk),
+    Case("stats-not-a-dataset", nothing, ["data", "stats", "{tmp}/nowhere"], 2, "{tmp}/nowhere"),
     Case("validate-a-clip-stage-where-no-clip-fits", recipe(), ["validate", "{tmp}/r.yaml", "data.history=4", "data.future=6"], 2,
          "stage 'pretrain' reads clips"),
     Case("shards-plain-copy-validate", both(recipe(), shards_then(plain_copy, kinds=["frames", "clips"], history=1, future=1)),

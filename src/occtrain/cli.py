@@ -114,6 +114,39 @@ def _cmd_data_show(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_data_stats(args: argparse.Namespace) -> int:
+    from rich.console import Console
+    from rich.table import Table
+
+    from occtrain.data.stats import class_chart, class_rows, dataset_stats, rows
+    from occtrain.io import atomic_write_bytes, atomic_write_json, check_output, png_bytes
+    from occtrain.progress import console
+
+    result = Console()  # the tables are the command's result: stdout, where a pipe takes them
+
+    for path, flag in ((args.json, "--json"), (args.chart, "--chart")):
+        if path:
+            check_output(path, flag)  # before the counting, which reads every frame asked for
+    stats = dataset_stats(args.root, args.split, args.frames)
+    table = Table(title=f"{args.root}: {args.split}, {stats.frames} frames (means over frames)")
+    for column in ("statistic", "this dataset", "Occ3D-nuScenes (one frame)"):
+        table.add_column(column, justify="left" if column == "statistic" else "right")
+    for row in rows(stats):
+        table.add_row(*row)
+    result.print(table)
+    classes = Table(title="class shares of the occupied voxels (all counted frames together)")
+    for column in ("class", "this dataset", "Occ3D-nuScenes train", "ratio"):
+        classes.add_column(column, justify="left" if column == "class" else "right")
+    for row in class_rows(stats):
+        classes.add_row(*row)
+    result.print(classes)
+    if args.json:
+        console.print(f"statistics -> {atomic_write_json(args.json, stats.to_json())}")
+    if args.chart:
+        console.print(f"chart -> {atomic_write_bytes(args.chart, png_bytes(class_chart(stats)))}")
+    return 0
+
+
 def _cmd_data_check(args: argparse.Namespace) -> int:
     from occtrain.data.check import check_dataset, check_shards, looks_like_shards
 
@@ -201,7 +234,7 @@ def _add_run_commands(sub: Any) -> None:
 
 
 def _add_data_commands(sub: Any) -> None:
-    """``data synth | shards | show | check``."""
+    """``data synth | shards | show | stats | check``."""
     data = sub.add_parser("data", help="synthesize, shard, show and check datasets").add_subparsers(dest="action", required=True)
     p = data.add_parser("synth", help="write the synthetic driving world in the Occ3D layout")
     p.add_argument("--out", required=True, help="dataset directory to create")
@@ -233,6 +266,14 @@ def _add_data_commands(sub: Any) -> None:
     p.add_argument("--scale", type=int, default=3, help="pixels per voxel")
     p.add_argument("--overwrite", action="store_true", help="replace --out when it exists")
     p.set_defaults(func=_cmd_data_show)
+
+    p = data.add_parser("stats", help="a dataset's voxel statistics beside Occ3D-nuScenes' (occupancy, masks, layers, class shares)")
+    p.add_argument("root", help="dataset root (annotations.json + gts/), real or synthesized")
+    p.add_argument("--split", default="val", choices=("train", "val"))
+    p.add_argument("--frames", type=int, default=100, help="frames counted, spread evenly over the split (default 100; -1: all)")
+    p.add_argument("--json", metavar="FILE", help="also write the statistics and the reference figures as JSON")
+    p.add_argument("--chart", metavar="PNG", help="also draw the class shares beside the reference as a bar chart")
+    p.set_defaults(func=_cmd_data_stats)
 
     p = data.add_parser("check", help="validate a dataset or shard directory")
     p.add_argument("path")

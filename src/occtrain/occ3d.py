@@ -39,6 +39,26 @@ MOVABLE_CLASSES: tuple[str, ...] = (
     "bicycle", "bus", "car", "construction_vehicle", "motorcycle", "pedestrian", "trailer", "truck",
 )
 
+#: Occ3D-nuScenes training-set voxel counts per class, in class order (free last): the
+#: counts public Occ3D training code weights its class-balanced losses with (the BEVDet-occ
+#: lineage's ``nusc_class_frequencies``). Facts for ``occtrain data stats`` to compare with.
+OCC3D_TRAIN_VOXELS: tuple[int, ...] = (
+    1163161, 2309034, 188743, 2997643, 20317180, 852476, 243808, 2457947, 497017, 2731022,
+    7224789, 214411435, 5565043, 63191967, 76098082, 128860031, 141625221, 2307405309,
+)
+#: What one real Occ3D-nuScenes frame (``labels.npz``) shows, as shares in [0, 1] but for
+#: the voxels per column: its mask_camera lies wholly inside its mask_lidar.
+OCC3D_FRAME: dict[str, float] = {
+    "occupied": 0.061,
+    "occupied_columns": 0.39,
+    "voxels_per_column": 2.5,
+    "low_layers": 0.40,
+    "mask_lidar": 0.088,
+    "mask_camera": 0.068,
+    "camera_inside_lidar": 1.0,
+    "occupied_in_camera": 0.527,
+}
+
 #: Voxel grid: (X, Y, Z) cells, ego frame with x forward, y left, z up.
 GRID_SHAPE: tuple[int, int, int] = (200, 200, 16)
 VOXEL_SIZE = 0.4  # metres, isotropic
