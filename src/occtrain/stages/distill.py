@@ -29,7 +29,7 @@ from occtrain.engine import (
 from occtrain.errors import ConfigError
 from occtrain.models import count_parameters
 from occtrain.models.distill import FeatureProjector, distillation_losses
-from occtrain.models.llm import build_llm
+from occtrain.models.llm import build_llm, check_llm
 from occtrain.stages import StageKind, register
 from occtrain.stages.base import EvalRequest, EvalResult, Stage, StageContext, StageReport
 from occtrain.stages.common import ValidationMeans, configure_adamw, evaluate_engine, family_schema
@@ -70,6 +70,11 @@ class DistillStage(Stage):
     @classmethod
     def model_schema(cls, kind: StageKind, family: str | None, model: dict | None = None) -> type:
         return family_schema(kind.model_schema, family, with_world=False)
+
+    @classmethod
+    def check_model(cls, model: Any, key: str) -> None:
+        """The student's LLM, through the checks its build makes (the backend's own included)."""
+        check_llm(to_object(model.student), f"{key}.student")
 
     def __init__(self, ctx: StageContext):
         super().__init__(ctx)
