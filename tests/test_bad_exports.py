@@ -228,28 +228,26 @@ def test_an_export_that_cannot_be_written_is_one_line_and_keeps_the_old_one(tmp_
     assert snapshot(tmp_path) == before  # the old export whole, no temp directory left
 
 
-def test_a_full_disk_surfaces_through_a_real_writer(exports: Path, tmp_path: Path, monkeypatch) -> None:
-    """The vision stage's export, its Hugging Face tower copied in: the same one line."""
-    export = tmp_path / "vision"
-    shutil.copytree(exports / "vision", export)
-    before = snapshot(tmp_path)
+def _write_vision(export: Path) -> None:
     encoder = load_vision_encoder(export)
-    fail_at("occtrain.exports.os.fsync", errno.ENOSPC)(monkeypatch)
-    with pytest.raises(WriteError, match=f"^cannot write {export}: the disk is full"):
-        export_vision(export, encoder, DenseHead(encoder.hidden_size, encoder.patch_size))
-    assert snapshot(tmp_path) == before
+    export_vision(export, encoder, DenseHead(encoder.hidden_size, encoder.patch_size))
 
 
-def test_a_full_disk_while_a_world_model_stages_its_llm_is_one_line(exports: Path, tmp_path: Path, monkeypatch) -> None:
-    """The LLM directory is staged beside the export: a full disk there names the export
-    (not a SafetensorError from a system temp directory) and keeps the export it replaces."""
-    export = tmp_path / "lora"
-    shutil.copytree(exports / "lora", export)
-    engine = load_world_model(export)
+@pytest.mark.parametrize("kind, write, where", [
+    # The vision stage's export, its Hugging Face tower copied in.
+    ("vision", _write_vision, "occtrain.exports.os.fsync"),
+    # A world model stages its LLM directory beside the export: a full disk there names the
+    # export (not a SafetensorError from a system temp directory).
+    ("lora", lambda export: export_engine(load_world_model(export), export, stage="instruct"), "occtrain.engine.export._save_hf_llm"),
+], ids=["vision", "world-model-llm-staging"])
+def test_a_full_disk_surfaces_through_a_real_writer(exports: Path, tmp_path: Path, monkeypatch, kind, write, where) -> None:
+    """A real stage's writer on a full disk: the same one line, the export it replaces kept."""
+    export = tmp_path / kind
+    shutil.copytree(exports / kind, export)
     before = snapshot(tmp_path)
-    fail_at("occtrain.engine.export._save_hf_llm", errno.ENOSPC)(monkeypatch)
+    fail_at(where, errno.ENOSPC)(monkeypatch)
     with pytest.raises(WriteError, match=f"^cannot write {export}: the disk is full"):
-        export_engine(engine, export, stage="instruct")
+        write(export)
     assert snapshot(tmp_path) == before
 
 
