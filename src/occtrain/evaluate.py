@@ -59,14 +59,15 @@ def evaluate(
     # shared cache, keyed by the encoder and the dataset they were made from.
     root = str(data_root) if data_root is not None else recipe.data.root
     _refuse_unscorable(tasks or [], root)
-    _check_outputs(stage_dir, spec.kind, kind.module.saves_predictions, split, data_root, save_predictions)
+    world = world_key(root)
+    metrics_file = eval_metrics_file(stage_dir, split, data_root, world)
+    _check_outputs(stage_dir, spec.kind, kind.module.saves_predictions, metrics_file, save_predictions)
     request = EvalRequest(
         stage_dir / "export", [stage_dir.parent / dep / "export" for dep in spec.consumes], root, split, tasks, samples, batch_size,
         stage_cache_dir(stage_dir, root), shared_cache_dir(stage_dir), save_predictions is not None,
     )
     result = kind.module.evaluate_export(request)
-    world = world_key(root)
-    _save(eval_metrics_file(stage_dir, split, data_root, world), result.metrics, world)
+    _save(metrics_file, result.metrics, world)
     if save_predictions is not None:
         write_predictions(Path(save_predictions), result.predictions)
     return result.metrics
@@ -108,9 +109,7 @@ def _evaluable_stage(stage_dir: Path, split: str, samples: int, batch_size: int)
     return recipe, spec, kind
 
 
-def _check_outputs(
-    stage_dir: Path, kind: str, saves: bool, split: str, data_root: str | Path | None, save_predictions: str | Path | None,
-) -> None:
+def _check_outputs(stage_dir: Path, kind: str, saves: bool, metrics: Path, save_predictions: str | Path | None) -> None:
     """Refuse, before the evaluation's minutes, a place its results could not be written."""
     if save_predictions is not None:
         if not saves:
@@ -119,7 +118,6 @@ def _check_outputs(
                 "(world-model stages' evals have); leave the flag out"
             )
         check_output(save_predictions, "--save-predictions", kind="dir")
-    metrics = eval_metrics_file(stage_dir, split, data_root)
     fix = f"eval writes its metrics into {stage_dir}; make it writable, or copy the run to a writable place and eval the copy"
     check_output(metrics, "the eval directory", fix=fix)
 
