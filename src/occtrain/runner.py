@@ -348,21 +348,23 @@ def run(
         try:
             if rank_zero:
                 atomic_write_text(run_dir / "pipeline.yaml", to_yaml(recipe))
-                if restarted:
-                    manifest.set_aside([p.spec.name for p in planned if p.spec.name in restarted])
                 manifest.save()
                 from occtrain.data.datamodule import ensure_data
 
                 ensure_data(recipe.data)
+                if restarted:  # last before training: nothing else can fail with the stages away
+                    manifest.set_aside([p.spec.name for p in planned if p.spec.name in restarted])
             try:
                 _run_stages(planned, manifest, run_dir, recipe, only, rank_zero)
             except (Exception, Interrupted) as err:
                 if rank_zero and restarted:
                     _put_back(err, manifest.settle_aside())
                 raise
+            else:
+                if rank_zero:
+                    manifest.settle_aside(succeeded=True)
             finally:
                 if rank_zero:
-                    manifest.settle_aside(succeeded=True)  # a no-op once put back
                     _write_table(run_dir, recipe, manifest)
                     _write_dashboard(run_dir)  # after the table: the page shows it
         except Interrupted as stop:
