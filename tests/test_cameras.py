@@ -10,7 +10,10 @@ import numpy as np
 import pytest
 
 from occtrain.data.cameras import CAMERA_NAMES, matrix_to_quaternion, nuscenes_rig, quaternion_to_matrix
-from occtrain.occ3d import FREE, GRID_SHAPE, RANGE_MIN, VOXEL_SIZE
+from occtrain.occ3d import CLASS_INDEX, FREE, GRID_SHAPE, RANGE_MIN, VOXEL_SIZE
+
+GROUND_CLASSES = [CLASS_INDEX[c] for c in ("driveable_surface", "other_flat", "sidewalk", "terrain")]
+from occtrain.data.synth.grid import GROUND_LAYER
 
 H, W = 72, 128
 
@@ -90,9 +93,14 @@ def test_every_pixel_shows_the_first_occupied_voxel_on_its_ray(frame):
     sem = labels["semantics"]
     for cam, view in zip(nuscenes_rig(H, W), views):
         dirs, cos = cam.pixel_rays()
-        voxel, entry = _first_voxel_by_plane_crossings(cam.centre, dirs.reshape(-1, 3), sem != FREE)
+        # The ground is a plane under everything: a ray ends where it enters the ground layer,
+        # labelled there or not; only a labelled voxel is "in the grid".
+        surface = sem != FREE
+        surface[..., GROUND_LAYER] = True
+        voxel, entry = _first_voxel_by_plane_crossings(cam.centre, dirs.reshape(-1, 3), surface)
+        labelled = (voxel >= 0) & (sem.reshape(-1)[np.maximum(voxel, 0)] != FREE)
         in_grid = view.in_grid.reshape(-1)
-        assert np.array_equal(in_grid, voxel >= 0), cam.name
+        assert np.array_equal(in_grid, labelled), cam.name
         assert np.array_equal(view.first_voxel.reshape(-1)[in_grid], voxel[in_grid]), cam.name
         assert np.array_equal(view.classes.reshape(-1)[in_grid], sem.reshape(-1)[voxel[in_grid]]), cam.name
         # The depth map is camera-z depth of the point where the ray enters that voxel.
@@ -116,22 +124,25 @@ def test_sky_ground_and_colours(frame):
         sky = view.classes == FREE
         assert (view.depth[sky] == 0).all() and (view.depth[~sky] > 0).all()
         beyond = ~view.in_grid & ~sky
-        if beyond.any():  # ground met past the grid's edge: farther than the grid reaches
-            assert view.depth[beyond].min() > 10
+        # The ground plane met where no sweep labelled it, or past the grid: the map's ground class.
+        assert np.isin(view.classes[beyond], GROUND_CLASSES).all()
         assert view.image.dtype == np.uint8 and view.image.shape == (H, W, 3)
     front = views[0]
     assert (front.classes == FREE)[: H // 4].mean() > 0.3  # sky at the top of the front view
     assert len(np.unique(front.image.reshape(-1, 3), axis=0)) > 50  # shading, not flat class colours
 
 
-@pytest.mark.parametrize("size, least", [((H, W), 0.99), ((90, 160), 0.97), ((54, 96), 0.97)])
+@pytest.mark.parametrize("size, least", [((H, W), 0.99), ((90, 160), 0.95), ((54, 96), 0.95)])
 def test_the_cameras_first_voxels_are_in_mask_camera(frame, size, least):
-    """At the default size the mask's rays are the images' own (the two must agree); at
-    other sizes the rays differ and the mask still holds nearly all they meet."""
+    """mask_camera is what the cameras see of what the lidar observed: of the voxels the
+    images show that the lidar observed, the mask holds all at the default size (the
+    mask's rays are the images' own) and nearly all at other sizes."""
     scene, labels, views = frame
     views = views if size == (H, W) else scene.cameras(6, labels["semantics"], *size)
     first = np.unique(np.concatenate([v.first_voxel[v.in_grid] for v in views]))
+    first = first[labels["mask_lidar"].reshape(-1)[first] == 1]
     seen = labels["mask_camera"].reshape(-1)[first]
+    assert len(first) > 500
     assert seen.mean() >= least, f"{seen.mean():.4f} of {len(first)} first-hit voxels in mask_camera"
 
 

@@ -20,9 +20,9 @@ from occtrain.data.schema import (
 )
 from occtrain.data.synth import SyntheticScene, generate_scene
 from occtrain.data.synth.annotate import SIDECAR_RULES
-from occtrain.data.synth.grid import GROUND_LAYERS, GROUND_TOP_Z
+from occtrain.data.synth.grid import GROUND_LAYER, GROUND_LAYERS, GROUND_TOP_Z
 from occtrain.data.cameras import nuscenes_rig
-from occtrain.data.synth.raster import masks
+from occtrain.data.synth.raster import LIDAR, masks
 from occtrain.occ3d import (
     CLASS_INDEX,
     CLASS_NAMES,
@@ -108,11 +108,15 @@ def test_scene_api_grid_and_records(scene, labels):
             assert attr == "" or attr in STATUS_VALUES
 
 
-def test_ground_lies_in_the_lowest_layers_and_the_ego_box_is_free(labels):
+def test_the_ground_is_one_surface_layer_and_the_ego_box_is_free(labels):
     for lab in labels:
         sem = lab["semantics"]
-        assert np.isin(sem[..., :GROUND_LAYERS], GROUND_CLASSES).all()
+        ground = sem[..., GROUND_LAYER]
+        assert np.isin(ground[ground != FREE], GROUND_CLASSES).all()
+        assert (sem[..., :GROUND_LAYER] == FREE).all()  # nothing under the surface
         assert not np.isin(sem[..., GROUND_LAYERS:], GROUND_CLASSES).any()
+        # Labelled where the sweeps saw it: some ground, not all of it.
+        assert 0.15 < (ground != FREE).mean() < 0.9
         # Ground top at -0.2 m: the lidar 1.84 m above it, at 1.64 m in the ego frame.
         assert voxel_centers_1d(2)[GROUND_LAYERS - 1] < GROUND_TOP_Z < voxel_centers_1d(2)[GROUND_LAYERS]
         ego = sem[95:105, 98:102, GROUND_LAYERS:6]  # 4 m x 1.6 m around the origin, up to 1.4 m
@@ -150,7 +154,7 @@ def _at(x: float, y: float, z: float) -> tuple[int, int, int]:
 def _wall_world() -> np.ndarray:
     """Flat road, and a wall 4 m high from x = 10 to 12 m spanning y in [-8, 8] m."""
     sem = np.full(GRID_SHAPE, FREE, np.uint8)
-    sem[..., :GROUND_LAYERS] = CLASS_INDEX["driveable_surface"]
+    sem[..., GROUND_LAYER] = CLASS_INDEX["driveable_surface"]
     (ix0, iy0, _), (ix1, iy1, _) = _at(10.0, -8.0, 0.0), _at(12.0, 8.0, 0.0)
     sem[ix0:ix1, iy0:iy1, GROUND_LAYERS:12] = CLASS_INDEX["manmade"]
     return sem
@@ -164,12 +168,19 @@ def test_a_wall_hides_what_is_behind_it_and_shows_its_face():
     for m in (lidar, camera):
         assert m[face] == 1 and m[before] == 1 and m[ground_before] == 1
         assert m[behind] == 0 and m[inside] == 0 and m[ground_behind] == 0
-        assert (m[..., : GROUND_LAYERS - 1] == 0).all()  # under the ground surface
+        assert (m[..., :GROUND_LAYER] == 0).all()  # under the ground surface
         assert 0 < m.mean() < 1
-    # Beside the wall nothing is hidden; above the lidar's +10 degrees it sees nothing, where
-    # the front camera (about +-20 degrees) still does.
-    assert lidar[_at(16.1, 16.1, 0.7)] == 1
-    assert lidar[_at(8.1, 0.1, 3.3)] == 0 and camera[_at(8.1, 0.1, 3.3)] == 1
+    assert not (camera & ~lidar).any()  # mask_camera lies inside mask_lidar
+    # Beside the wall nothing is hidden, out to where the 32 beams cross every layer (~17 m).
+    assert lidar[_at(8.1, 12.1, 0.7)] == 1 and lidar[_at(0.1, 14.1, -0.3)] == 1
+    # A ray that returns nothing observes nothing: up into the sky beside the wall, the
+    # lidar sees no voxel though its top beam passes; in front of the wall the same beam
+    # returns from it and observes the air it crossed.
+    assert lidar[_at(6.1, 14.1, 4.5)] == 0 and lidar[_at(8.1, 0.1, 3.3)] == 1
+    # Far out, one sweep's beams meet the ground in rings: between two rings, nothing.
+    ring = 1.84 / np.tan(np.deg2rad(-np.asarray(LIDAR.beams)[np.asarray(LIDAR.beams) < 0]))
+    gap = next(float((a + b) / 2) for a, b in zip(sorted(ring), sorted(ring)[1:]) if 20 < a and b < 40 and b - a > 8)
+    assert lidar[_at(0.1, gap, -0.3)] == 0
 
 
 def test_in_a_scene_voxels_behind_a_visible_building_face_are_hidden(labels):
@@ -198,8 +209,9 @@ def test_in_a_scene_voxels_behind_a_visible_building_face_are_hidden(labels):
 def test_masks_are_partial_and_see_no_deeper_than_the_ground(labels):
     for lab in labels:
         lidar, cam = lab["mask_lidar"], lab["mask_camera"]
-        assert 0.05 < lidar.mean() < 0.95 and 0.05 < cam.mean() < 0.95
-        assert (lidar[..., : GROUND_LAYERS - 1] == 0).all() and (cam[..., : GROUND_LAYERS - 1] == 0).all()
+        assert 0.03 < lidar.mean() < 0.3 and 0.02 < cam.mean() < 0.3
+        assert (lidar[..., :GROUND_LAYER] == 0).all() and (cam[..., :GROUND_LAYER] == 0).all()
+        assert not (cam & ~lidar).any()
 
 
 # ---------------------------------------------------------------- trajectories and labels
@@ -262,8 +274,10 @@ def test_static_structure_stays_put_between_frames(scene, labels):
         got = labels[i + 1]["semantics"][j[ok, 0], j[ok, 1], iz[ok]]
         want = labels[i]["semantics"][ix[ok], iy[ok], iz[ok]]
         static = ~np.isin(got, list(MOVABLE))
-        assert ok.sum() > 50_000
-        assert (got == want)[static].mean() > 0.95
+        assert ok.sum() > 8_000
+        # Labels are where the sweeps saw a surface; that edge is sampled from each frame's
+        # rotated grid, so a few per cent of the voxels near it differ between frames.
+        assert (got == want)[static].mean() > 0.9
 
 
 @pytest.fixture(scope="module")

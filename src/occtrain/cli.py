@@ -118,28 +118,33 @@ def _cmd_data_stats(args: argparse.Namespace) -> int:
     from rich.console import Console
     from rich.table import Table
 
-    from occtrain.data.stats import class_chart, class_rows, dataset_stats, rows
+    from occtrain.data.stats import CLASS_FACTOR, class_chart, class_rows, dataset_stats, rows
     from occtrain.io import atomic_write_bytes, atomic_write_json, check_output, png_bytes
     from occtrain.progress import console
 
-    result = Console()  # the tables are the command's result: stdout, where a pipe takes them
+    # The tables are the command's result: stdout, where a pipe takes them whole (a pipe
+    # has no width, and rich would wrap them at 80 columns).
+    result = Console(width=None if sys.stdout.isatty() else 160)
 
     for path, flag in ((args.json, "--json"), (args.chart, "--chart")):
         if path:
             check_output(path, flag)  # before the counting, which reads every frame asked for
     stats = dataset_stats(args.root, args.split, args.frames)
-    table = Table(title=f"{args.root}: {args.split}, {stats.frames} frames (means over frames)")
-    for column in ("statistic", "this dataset", "Occ3D-nuScenes (one frame)"):
+    world = f", synthetic world {stats.world}" if stats.world else ""
+    table = Table(title=f"{args.root}{world}: {args.split}, {stats.frames} frames (means over frames)")
+    for column in ("statistic", "this dataset", "Occ3D-nuScenes (one frame)", "target", "met"):
         table.add_column(column, justify="left" if column == "statistic" else "right")
     for row in rows(stats):
         table.add_row(*row)
     result.print(table)
     classes = Table(title="class shares of the occupied voxels (all counted frames together)")
-    for column in ("class", "this dataset", "Occ3D-nuScenes train", "ratio"):
+    for column in ("class", "this dataset", "Occ3D-nuScenes train", "ratio", f"within {CLASS_FACTOR:g}x"):
         classes.add_column(column, justify="left" if column == "class" else "right")
     for row in class_rows(stats):
         classes.add_row(*row)
     result.print(classes)
+    present = stats.targets()["all_classes_present"]
+    result.print(f"every class present: {'yes' if present else 'no: ' + ', '.join(n for n, v in stats.class_shares.items() if v == 0)}")
     if args.json:
         console.print(f"statistics -> {atomic_write_json(args.json, stats.to_json())}")
     if args.chart:

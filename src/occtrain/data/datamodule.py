@@ -122,12 +122,12 @@ def _check_synth_record(root: Path, cfg: DataConfig) -> None:
         if not (root / ANNOTATIONS_FILE).is_file():
             raise DataError(f"{root / DATASET_FILE}: records a dataset occtrain did not synthesize, and {root} has no annotations.json; point data.root elsewhere")
         return
-    from occtrain.data.synthesize import FORMAT_VERSION
+    from occtrain.data.synthesize import FORMAT_CHANGES, FORMAT_VERSION
 
     if record.get("format_version") != FORMAT_VERSION:
         raise DataError(
-            f"{root} holds the synthetic world of an older occtrain (format {record.get('format_version')}, now {FORMAT_VERSION}: "
-            "cameras in the released files' form); move it away and the run synthesizes it again"
+            f"{root} holds the synthetic world of an older occtrain (world v{record.get('format_version')}, now v{FORMAT_VERSION}: "
+            f"{FORMAT_CHANGES[FORMAT_VERSION]}); move it away and the run synthesizes it again"
         )
     wanted = {k: getattr(cfg.synth, k) for k in ("seed", "train_scenes", "val_scenes", "frames_per_scene", "camera_height", "camera_width")}
     differ = [f"{k}={record.get(k)} (recipe: {v})" for k, v in wanted.items() if record.get(k) != v]

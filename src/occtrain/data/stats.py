@@ -28,6 +28,31 @@ from occtrain.progress import progress_bar
 #: The lowest layers, where a real frame's ground lies (ground, kerbs, the feet of things).
 LOW_LAYERS = 3
 
+#: The ranges a dataset that looks like Occ3D-nuScenes falls in (means over frames), set
+#: around the real frame's figures wide enough for a city's variety: the embedded world
+#: is held to them (tests/test_synth_world.py), and any dataset is shown against them.
+TARGETS: dict[str, tuple[float, float]] = {
+    "occupied": (0.04, 0.10),
+    "occupied_columns": (0.25, 0.60),
+    "low_layers": (0.30, 0.60),
+    "mask_lidar": (0.05, 0.15),
+    "mask_camera": (0.04, 0.12),
+    "camera_inside_lidar": (1.0, 1.0),
+    "occupied_in_camera": (0.30, 0.70),
+}
+#: Classes whose share of the occupied voxels should lie within a factor of
+#: CLASS_FACTOR of the training set's.
+TARGET_CLASSES = ("driveable_surface", "vegetation", "manmade", "terrain", "sidewalk", "car")
+CLASS_FACTOR = 2.0
+
+
+def within(key: str, value: float) -> bool | None:
+    """Whether a figure lies in its target range (None: the figure has no target)."""
+    if key not in TARGETS:
+        return None
+    lo, hi = TARGETS[key]
+    return lo - 1e-9 <= value <= hi + 1e-9
+
 
 @dataclass(frozen=True)
 class DatasetStats:
@@ -36,6 +61,9 @@ class DatasetStats:
     root: str
     split: str
     frames: int
+    #: The synthetic world's version from ``occtrain/dataset.json`` ("v4"), or "" for data
+    #: occtrain did not synthesize.
+    world: str
     #: Non-free voxels among all of a frame's voxels.
     occupied: float
     #: x-y columns holding any non-free voxel, and non-free voxels per such column.
@@ -56,7 +84,17 @@ class DatasetStats:
     class_shares: dict[str, float]
 
     def to_json(self) -> dict[str, Any]:
-        return {**asdict(self), "reference": reference_json()}
+        return {**asdict(self), "reference": reference_json(), "targets": self.targets()}
+
+    def targets(self) -> dict[str, bool]:
+        """Figure (or ``class:<name>``, ``all_classes_present``) -> whether it meets its target."""
+        met = {key: bool(within(key, getattr(self, key))) for key in TARGETS}
+        ref = reference_class_shares()
+        for name in TARGET_CLASSES:
+            ratio = self.class_shares[name] / ref[name]
+            met[f"class:{name}"] = 1 / CLASS_FACTOR <= ratio <= CLASS_FACTOR
+        met["all_classes_present"] = all(v > 0 for v in self.class_shares.values())
+        return met
 
 
 def reference_class_shares() -> dict[str, float]:
@@ -112,11 +150,11 @@ class _Counts:
         self.classes += np.bincount(labels["semantics"][occ].ravel(), minlength=FREE)[:FREE]
         self.frames += 1
 
-    def result(self, root: Path, split: str) -> DatasetStats:
+    def result(self, root: Path, split: str, world: str = "") -> DatasetStats:
         n = max(self.frames, 1)
         total = max(int(self.classes.sum()), 1)
         return DatasetStats(
-            root=str(root), split=split, frames=self.frames,
+            root=str(root), split=split, frames=self.frames, world=world,
             **{key: value / n for key, value in self.sums.items()},
             per_layer=[float(v) / n for v in self.layers],
             class_shares={name: float(c) / total for name, c in zip(CLASS_NAMES[:FREE], self.classes)},
@@ -132,7 +170,15 @@ def dataset_stats(root: str | Path, split: str = "val", frames: int = 100) -> Da
         for scene, token in picked:
             counts.add(index.labels(scene, token))
             advance(1)
-    return counts.result(index.root, split)
+    return counts.result(index.root, split, world_version(index.root))
+
+
+def world_version(root: Path) -> str:
+    """"v<N>" of a world occtrain synthesized (its ``occtrain/dataset.json``), else ""."""
+    from occtrain.data.layout import generator_record
+
+    record = generator_record(root) or {}
+    return f"v{record['format_version']}" if record.get("generator") == "occtrain.synth" else ""
 
 
 # ----------------------------------------------------------------------------- what a person reads
@@ -151,24 +197,41 @@ FIGURES = (
 )
 
 
-def rows(stats: DatasetStats) -> list[tuple[str, str, str]]:
-    """(figure, this dataset, Occ3D-nuScenes) as text: shares in %, counts as they are."""
+def rows(stats: DatasetStats) -> list[tuple[str, str, str, str, str]]:
+    """(figure, this dataset, Occ3D-nuScenes, target, met) as text: shares in %, counts as they are."""
 
     def text(key: str, value: float | None) -> str:
         if value is None:
             return "–"
         return f"{value:.2f}" if key == "voxels_per_column" else f"{100 * value:.1f} %"
 
-    return [(label, text(key, getattr(stats, key)), text(key, OCC3D_FRAME.get(ref))) for key, label, ref in FIGURES]
+    def target(key: str) -> str:
+        if key not in TARGETS:
+            return ""
+        lo, hi = TARGETS[key]
+        return f"{100 * lo:.0f} %" if lo == hi else f"{100 * lo:.0f}-{100 * hi:.0f} %"
+
+    def met(key: str) -> str:
+        ok = within(key, getattr(stats, key))
+        return "" if ok is None else ("yes" if ok else "no")
+
+    return [
+        (label, text(key, getattr(stats, key)), text(key, OCC3D_FRAME.get(ref)), target(key), met(key))
+        for key, label, ref in FIGURES
+    ]
 
 
-def class_rows(stats: DatasetStats) -> list[tuple[str, str, str, str]]:
-    """(class, this dataset, Occ3D-nuScenes training set, ratio) as text, commonest in the reference first."""
+def class_rows(stats: DatasetStats) -> list[tuple[str, str, str, str, str]]:
+    """(class, this dataset, Occ3D-nuScenes training set, ratio, met) as text, commonest in
+    the reference first; "met" is filled for the TARGET_CLASSES."""
     ref = reference_class_shares()
+    met = stats.targets()
     out = []
     for name in sorted(ref, key=ref.get, reverse=True):
         ours = stats.class_shares[name]
-        out.append((name, f"{100 * ours:.2f} %", f"{100 * ref[name]:.2f} %", f"{ours / ref[name]:.2f}x"))
+        ok = met.get(f"class:{name}")
+        out.append((name, f"{100 * ours:.2f} %", f"{100 * ref[name]:.2f} %", f"{ours / ref[name]:.2f}x",
+                    "" if ok is None else ("yes" if ok else "no")))
     return out
 
 

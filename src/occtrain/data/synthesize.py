@@ -15,10 +15,16 @@ from occtrain.data.synth import generate_scene
 from occtrain.data.synth.text import caption_for_frame, narration_for_frame, questions_for_frame
 from occtrain.progress import console, progress_bar
 
-#: 2: six cameras (images, per-pixel class and depth, camera_sensor records), signal poles at
-#: crossings, mask_camera cast from the camera rays. 3: camera_sensor records in the released
-#: files' form (keyed by channel, ``intrinsics``, ``img_path`` relative to ``imgs/``).
-FORMAT_VERSION = 3
+#: What each version of the world changed; the last is the current one. The version is the
+#: world's name in every table measured on it ("world v4").
+FORMAT_CHANGES = {
+    2: "six cameras (images, per-pixel class and depth, camera_sensor records), signal poles at "
+    "crossings, mask_camera cast from the camera rays",
+    3: "camera_sensor records in the released files' form (keyed by channel, intrinsics, img_path)",
+    4: "surfaces instead of solids, labels only where the scene's lidar sweeps saw a surface, "
+    "mask_lidar from 32 beams that return, mask_camera inside it, street-like class areas",
+}
+FORMAT_VERSION = max(FORMAT_CHANGES)
 
 
 def scene_plan(cfg: SynthConfig) -> list[tuple[str, str, int]]:

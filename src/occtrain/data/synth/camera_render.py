@@ -5,8 +5,9 @@ Geometry is the frame's own occupancy: each pixel's ray walks the grid voxel by 
 (Amanatides and Woo) from the camera centre and stops at the first occupied voxel, so the
 class and depth maps agree with the labels by construction. Cameras and grid are fixed in
 the ego frame, so every ray's voxel sequence is computed once per process; a frame is one
-gather of its occupancy along those sequences. Rays that leave the grid meet the ground
-plane (its class from the city map beyond the grid) or the sky.
+gather of its occupancy along those sequences. The ground is a plane under everything:
+a ray that reaches it where no sweep labelled it, or beyond the grid, shows the city
+map's ground class there; a ray that meets nothing shows the sky.
 
 Appearance comes from the world, not only from the 0.4 m voxels: a colour per class lit by
 the sun through the face the ray entered, haze with distance, lane markings painted on the
@@ -82,6 +83,12 @@ class _Rays:
     axis: np.ndarray  # (E,) int8 axis of the face it enters through (-1: the starting voxel)
     ray: np.ndarray  # (E,) int32 the ray of each entry (non-decreasing)
     starts: np.ndarray  # (R,) index of each ray's first entry
+    ground: np.ndarray  # (E,) bool: the entry is in the ground layer (the ray meets the ground there)
+
+    @property
+    def ends(self) -> np.ndarray:
+        """(R,) index of each ray's last entry."""
+        return np.r_[self.starts[1:], len(self.voxel)] - 1
 
 
 def _traverse(origin: np.ndarray, dirs: np.ndarray, cos: np.ndarray) -> _Rays:
@@ -123,6 +130,7 @@ def _traverse(origin: np.ndarray, dirs: np.ndarray, cos: np.ndarray) -> _Rays:
         t=np.concatenate([p[2] for p in parts])[order].astype(np.float32),
         axis=np.concatenate([p[3] for p in parts])[order].astype(np.int8), ray=ray[order],
         starts=np.searchsorted(ray[order], np.arange(rays)).astype(np.int64),
+        ground=(np.concatenate([p[1] for p in parts])[order] % n[2] < GROUND_LAYERS),
     )
 
 
@@ -161,9 +169,8 @@ class FrameWorld:
 def render_camera(cam: Camera, rays: _Rays, semantics: np.ndarray, world: FrameWorld) -> CameraView:
     """Cast ``cam``'s rays through ``semantics`` (X, Y, Z) and shade what they meet."""
     flat = semantics.reshape(-1)
-    hits = flat[rays.voxel] != FREE
-    entry = np.flatnonzero(hits)
-    first = entry[np.r_[True, rays.ray[entry][1:] != rays.ray[entry][:-1]]] if len(entry) else entry
+    first = _first_hits(rays, flat != FREE)
+    first = first[flat[rays.voxel[first]] != FREE]  # the ground plane, where unlabelled, is shaded below
     n = len(rays.dirs)
     cls = np.full(n, FREE, np.uint8)
     rng = np.zeros(n)
@@ -275,16 +282,55 @@ def signal_colours(static: StaticMap, xy: np.ndarray, time_s: float) -> np.ndarr
 MASK_RAYS = (72, 128)
 
 
-def camera_mask(semantics: np.ndarray) -> np.ndarray:
-    """(X, Y, Z) bool: voxels some camera ray crosses, up to and including the first occupied one."""
-    flat = semantics.reshape(-1) != FREE
-    seen = np.zeros(flat.shape, bool)
-    for _, rays in camera_rays(*MASK_RAYS):
-        hit = flat[rays.voxel]
-        hits_so_far = np.cumsum(hit, dtype=np.int32)
-        # An entry is crossed when no occupied voxel comes before it on its ray.
-        at_ray_start = (hits_so_far - hit)[rays.starts][rays.ray]
-        seen[rays.voxel[hits_so_far - hit == at_ray_start]] = True
+def _first_hits(rays: _Rays, occupied: np.ndarray) -> np.ndarray:
+    """Index of the first entry of each ray that meets something (an occupied voxel or the
+    ground layer), for the rays that do, in ray order."""
+    entry = np.flatnonzero(occupied[rays.voxel] | rays.ground)
+    return entry[np.r_[True, rays.ray[entry][1:] != rays.ray[entry][:-1]]] if len(entry) else entry
+
+
+@lru_cache(maxsize=1)
+def _voxels_in_view() -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray], ...]:
+    """Per camera of the mask rig: the voxels whose centre it images (flat index), the
+    pixel of each centre and its distance from the camera (computed once per process)."""
+    centres = np.stack(np.meshgrid(*(RANGE_MIN[a] + (np.arange(GRID_SHAPE[a]) + 0.5) * VOXEL_SIZE for a in range(3)), indexing="ij"), -1)
+    centres = centres.reshape(-1, 3)
+    out = []
+    for cam, _ in camera_rays(*MASK_RAYS):
+        uv, _, inside = cam.project(centres)
+        idx = np.flatnonzero(inside)
+        pix = np.floor(uv[idx, 1]).astype(np.int64) * cam.width + np.floor(uv[idx, 0]).astype(np.int64)
+        out.append((idx, pix, np.linalg.norm(centres[idx] - cam.centre, axis=1).astype(np.float32)))
+    return tuple(out)
+
+
+#: A voxel's centre lies at most half its diagonal beyond the point where a ray enters it.
+_HALF_DIAGONAL = VOXEL_SIZE * np.sqrt(3) / 2
+
+
+def camera_mask(semantics: np.ndarray, among: np.ndarray | None = None) -> np.ndarray:
+    """(X, Y, Z) bool: voxels some camera ray crosses up to and including the surface it
+    meets. A ray that meets nothing in the grid counts only when it looks down (it meets
+    the ground beyond); one into the sky, like a lidar ray without return, shows no depth.
+
+    Each voxel is judged by the ray through the pixel its centre falls in (the surface a
+    ray meets always counts); ``among`` (bool, X x Y x Z) limits the judging to those
+    voxels, as Occ3D limits the camera mask to what the lidar observed.
+    """
+    occupied = semantics.reshape(-1) != FREE
+    seen = np.zeros(occupied.shape, bool)
+    for (_, rays), (idx, pix, rng) in zip(camera_rays(*MASK_RAYS), _voxels_in_view()):
+        first = _first_hits(rays, occupied)
+        # How far each pixel's ray observes: to the surface it meets, everything when it
+        # looks down and leaves the grid, nothing when it goes into the sky.
+        reach = np.where(rays.dirs[:, 2] < -1e-6, np.inf, -np.inf).astype(np.float32)
+        reach[rays.ray[first]] = rays.t[first]
+        seen[rays.voxel[first]] = True
+        if among is not None:
+            keep = among.reshape(-1)[idx]
+            idx, pix, rng = idx[keep], pix[keep], rng[keep]
+        slack = np.where(occupied[idx], _HALF_DIAGONAL, 0.0)
+        seen[idx[rng <= reach[pix] + slack]] = True
     return _with_faces_in_view(seen.reshape(semantics.shape), semantics != FREE)
 
 

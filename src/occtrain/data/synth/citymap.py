@@ -1,7 +1,7 @@
 """The static city around a route: a global column raster plus the static boxed objects.
 
 Every block between roads is a rounded rectangle ringed by sidewalk. Blocks hold
-buildings set back behind grass, plazas or hedges, street trees, bins and bike racks, and
+buildings set back behind grass, plazas, hedges or fences, street trees, lamp posts, bins and bike racks, and
 sometimes a parking lot or a fenced construction site at their frontage; some blocks are
 parks. Roads get medians (other_flat, with hedges, trees or jersey barriers) and parking
 strips with parked vehicles. The raster stores, per 0.2 m cell, the ground class and one
@@ -17,7 +17,7 @@ from functools import cached_property
 import numpy as np
 
 from occtrain.data.synth.catalog import CYCLE_CLASSES, KINDS, TrackSet, pick
-from occtrain.data.synth.grid import layer_span
+from occtrain.data.synth.grid import ABOVE_GRID, layer_span
 from occtrain.data.synth.roads import CURB_RADIUS, HEADINGS, MEDIAN_END, LaneState, Road, RoadNetwork, right_of
 from occtrain.occ3d import CLASS_INDEX, FREE
 
@@ -25,6 +25,8 @@ from occtrain.occ3d import CLASS_INDEX, FREE
 RASTER_RES = 0.2
 #: Height of the signal poles at crossings (m); cameras light their top.
 SIGNAL_POLE_M = 5.0
+#: Height of the lamp posts between the street trees (m).
+LAMP_POST_M = 7.0
 
 DRIVEABLE = CLASS_INDEX["driveable_surface"]
 OTHER_FLAT = CLASS_INDEX["other_flat"]
@@ -41,28 +43,58 @@ LOT_STALLS = (("car", 0.92), ("motorcycle", 0.08))
 LOT_LONG = (("truck", 0.4), ("trailer", 0.35), ("bus", 0.25))
 
 
-#: Number of distinct layer bounds (0..16) in a column code.
-_BOUNDS = 17
+#: Number of distinct layer bounds in a column code: 0..16, and ABOVE_GRID (17).
+_BOUNDS = ABOVE_GRID + 1
+#: Cells (0.2 m) within this many of a different standing thing are its surface; beyond
+#: it a column is inside the thing. Three cells (0.6 m) so that voxel centres, sampled
+#: 0.4 m apart at any rotation, always find a wall (a band needs 0.4 x sqrt(2) m).
+SHELL_CELLS = 3
 
 
-def column_key(ground, cls, lo, hi) -> np.ndarray:
-    """One integer per column from its ground class, standing class and layer range."""
+def column_key(ground, cls, lo, hi, shell) -> np.ndarray:
+    """One integer per column from its ground class, standing class, layer range and
+    whether the column is on the standing thing's surface (``shell``) or inside it."""
     g, c = np.asarray(ground, np.int32), np.asarray(cls, np.int32)
-    return ((g * (FREE + 1) + c) * _BOUNDS + np.asarray(lo, np.int32)) * _BOUNDS + np.asarray(hi, np.int32)
+    key = ((g * (FREE + 1) + c) * _BOUNDS + np.asarray(lo, np.int32)) * _BOUNDS + np.asarray(hi, np.int32)
+    return key * 2 + np.asarray(shell, np.int32)
 
 
 def column_table(layers: int, ground_layers: int) -> np.ndarray:
-    """(codes, layers) uint8: the voxel column of every possible column code."""
-    code = np.arange((FREE + 1) ** 2 * _BOUNDS**2)
-    hi = code % _BOUNDS
-    lo = code // _BOUNDS % _BOUNDS
-    cls = code // _BOUNDS**2 % (FREE + 1)
-    ground = code // (_BOUNDS**2 * (FREE + 1))
-    k = np.arange(layers)
-    solid = (k >= lo[:, None]) & (k < hi[:, None])
-    table = np.where(solid, cls[:, None], FREE).astype(np.uint8)
-    table[:, :ground_layers] = ground[:, None]
+    """(codes, layers) uint8: the voxel column of every possible column code.
+
+    Occ3D labels surfaces, so a standing thing is its hull: a surface column holds the
+    whole segment; a column inside it only its top (a roof, a crown; absent when the top is
+    above the grid) and, when it floats, its underside (a crown seen from below). The ground
+    is one layer, and is absent inside anything standing on it (no sensor reaches it there).
+    """
+    code = np.arange(2 * (FREE + 1) ** 2 * _BOUNDS**2)
+    shell = (code % 2).astype(bool)[:, None]
+    rest = code // 2
+    hi = (rest % _BOUNDS)[:, None]
+    lo = (rest // _BOUNDS % _BOUNDS)[:, None]
+    cls = rest // _BOUNDS**2 % (FREE + 1)
+    ground = rest // (_BOUNDS**2 * (FREE + 1))
+    k = np.arange(layers)[None]
+    solid = (k >= lo) & (k < hi)
+    floats = lo > ground_layers
+    hull = shell | (k == hi - 1) | ((k == lo) & floats)
+    table = np.where(solid & hull, cls[:, None], FREE).astype(np.uint8)
+    covered = (cls[:, None] != FREE) & ~shell & ~floats
+    table[:, :ground_layers] = FREE
+    table[:, ground_layers - 1] = np.where(covered[:, 0], FREE, ground)
     return table
+
+
+def _window_extremes(a: np.ndarray, r: int) -> tuple[np.ndarray, np.ndarray]:
+    """Minimum and maximum of ``a`` over the (2r+1) x (2r+1) window around each cell."""
+    from numpy.lib.stride_tricks import sliding_window_view
+
+    def run(x: np.ndarray, fn, axis: int) -> np.ndarray:
+        pad = [(0, 0), (0, 0)]
+        pad[axis] = (r, r)
+        return fn(sliding_window_view(np.pad(x, pad, mode="edge"), 2 * r + 1, axis=axis), axis=-1)
+
+    return run(run(a, np.min, 0), np.min, 1), run(run(a, np.max, 0), np.max, 1)
 
 
 @dataclass
@@ -70,6 +102,8 @@ class StaticMap:
     """Global column raster: ground class and one standing segment per cell.
 
     ``cls`` is FREE where nothing stands; otherwise layers [lo, hi) of the column hold it.
+    ``observed`` ((NX, NY, layers) bool, set by ``raster.observe_static``) marks the cells
+    and layers a sensor saw over the scene: Occ3D labels only what the scene's sweeps hit.
     """
 
     origin: np.ndarray  # (2,) global xy of the raster's lower corner
@@ -80,11 +114,21 @@ class StaticMap:
     #: Signal poles at crossings: (K, 9) rows of global x, y, the axis of the traffic the
     #: head faces, and that crossing's light parameters (``RoadNetwork.light``).
     signals: np.ndarray = field(default_factory=lambda: np.zeros((0, 9)))
+    observed: np.ndarray | None = None
+
+    @cached_property
+    def shell(self) -> np.ndarray:
+        """(NX, NY) bool: the cell is within SHELL_CELLS of a different standing thing (or
+        of where nothing stands), so it is on its thing's surface."""
+        seg = (self.cls.astype(np.int32) * _BOUNDS + self.lo) * _BOUNDS + self.hi
+        seg = np.where(self.cls == FREE, -1, seg)
+        lo, hi = _window_extremes(seg, SHELL_CELLS)
+        return (lo != seg) | (hi != seg)
 
     @cached_property
     def column_key(self) -> np.ndarray:
         """(NX, NY) int32 code of each cell's whole column; see :func:`column_key`."""
-        return column_key(self.ground, self.cls, self.lo, self.hi)
+        return column_key(self.ground, self.cls, self.lo, self.hi, self.shell)
 
     def cells(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Nearest raster cell (clipped to the raster) of global points ``xy`` (..., 2)."""
@@ -173,9 +217,9 @@ class CityPainter:
             self._paint(win, (win[1] - cx) ** 2 + (win[2] - cy) ** 2 <= r * r, ground, solid)
 
     def tree(self, x: float, y: float):
-        """A trunk with a round canopy starting 1.8-3 m up."""
-        r = self.rng.uniform(1.4, 3.2)
-        base = self.rng.uniform(1.8, 3.0)
+        """A trunk with a round canopy starting 1.5-2.8 m up."""
+        r = self.rng.uniform(1.8, 3.6)
+        base = self.rng.uniform(1.5, 2.8)
         self.disc(x, y, r, solid=(VEGETATION, base, base + self.rng.uniform(2.5, 6.0)))
         t = self.rng.uniform(0.2, 0.3)
         self.rect(x - t, x + t, y - t, y + t, solid=(VEGETATION, 0.0, base + 0.4))
@@ -256,8 +300,8 @@ class CityPainter:
         """
         rng, w = self.rng, self.net.sidewalk
         x0, x1, y0, y1 = box + np.array([w, -w, w, -w])
-        strip = int(rng.choice([TERRAIN, OTHER_FLAT, SIDEWALK], p=[0.6, 0.25, 0.15]))
-        setback = rng.uniform(4.5, 6.0) if bus_stop else rng.uniform(2.0, 6.0)
+        strip = int(rng.choice([TERRAIN, SIDEWALK, OTHER_FLAT], p=[0.65, 0.3, 0.05]))
+        setback = rng.uniform(4.5, 6.0) if bus_stop else rng.uniform(1.5, 5.0)
         self.rect(x0, x1, y0, y1, ground=strip)
         bx0, bx1, by0, by1 = x0 + setback, x1 - setback, y0 + setback, y1 - setback
         if bx1 - bx0 < 6 or by1 - by0 < 6:
@@ -274,21 +318,28 @@ class CityPainter:
                 h = rng.uniform(6.0, 30.0)
                 if horizontal:
                     yy = (by0, min(by0 + depth, by1)) if side == 0 else (max(by1 - depth, by0), by1)
-                    self.rect(a, a + ln, *yy, ground=OTHER_FLAT, solid=(MANMADE, 0.0, h))
+                    self.rect(a, a + ln, *yy, ground=SIDEWALK, solid=(MANMADE, 0.0, h))
                 else:
                     xx = (bx0, min(bx0 + depth, bx1)) if side == 2 else (max(bx1 - depth, bx0), bx1)
-                    self.rect(*xx, a, a + ln, ground=OTHER_FLAT, solid=(MANMADE, 0.0, h))
+                    self.rect(*xx, a, a + ln, ground=SIDEWALK, solid=(MANMADE, 0.0, h))
                 a += ln + (rng.uniform(2.0, 5.0) if rng.random() < 0.4 else 0.0)
         if bx1 - bx0 > 2 * depth + 8 and by1 - by0 > 2 * depth + 8:
             for _ in range(int(rng.integers(0, 4))):
                 self.tree(rng.uniform(bx0 + depth + 3, bx1 - depth - 3), rng.uniform(by0 + depth + 3, by1 - depth - 3))
-        hedge = rng.random() < 0.35
+        edge = str(rng.choice(["hedge", "fence", "open"], p=[0.45, 0.35, 0.2]))
         for side in range(4):
-            self._frontage(box, side, furnished=not bus_stop and setback > 3.0, hedge=hedge and not bus_stop)
+            self._frontage(box, side, furnished=not bus_stop and setback > 3.0, edge="open" if bus_stop else edge)
+        if setback > 3.0 and not bus_stop:  # a row of trees in the front gardens
+            for side in range(4):
+                a0, a1 = (bx0, bx1) if side < 2 else (by0, by1)
+                mid = (y0 + setback / 2, y1 - setback / 2, x0 + setback / 2, x1 - setback / 2)[side]
+                for a in np.arange(a0 + rng.uniform(2, 6), a1 - 2, rng.uniform(7.0, 11.0)):
+                    self.tree(*((a, mid) if side < 2 else (mid, a)))
 
-    def _frontage(self, box: np.ndarray, side: int, furnished: bool, hedge: bool) -> None:
-        """Street trees and bins at the kerb along one side of a block, maybe a hedge behind the
-        sidewalk, and (``furnished``: the setback has room) maybe a bike rack."""
+    def _frontage(self, box: np.ndarray, side: int, furnished: bool, edge: str) -> None:
+        """Street trees, lamp posts and bins at the kerb along one side of a block; behind the
+        sidewalk a hedge, a fence or wall (``edge``) or nothing, and (``furnished``: the setback
+        has room, nothing closes it) maybe a bike rack."""
         rng, w = self.rng, self.net.sidewalk
         x0, x1, y0, y1 = box
         # Side 0: south (y0), 1: north (y1), 2: west (x0), 3: east (x1); "out" points to the road.
@@ -304,15 +355,21 @@ class CityPainter:
         a = a0 + CURB_RADIUS + rng.uniform(2, 8)
         while a < a1 - CURB_RADIUS - 2:
             x, y = at(a, 0.55)
-            self.tree(x, y)
-            a += rng.uniform(8.0, 14.0)
-        if hedge:
+            if rng.random() < 0.8:
+                self.tree(x, y)
+            else:
+                self.rect(x - 0.15, x + 0.15, y - 0.15, y + 0.15, solid=(MANMADE, 0.0, LAMP_POST_M))
+            a += rng.uniform(6.0, 10.0)
+        if edge == "hedge":
             p0, p1 = at(a0 + w + 1, w + 0.2), at(a1 - w - 1, w + 1.0)
-            self.rect(p0[0], p1[0], p0[1], p1[1], solid=(VEGETATION, 0.0, rng.uniform(0.9, 1.6)))
+            self.rect(p0[0], p1[0], p0[1], p1[1], solid=(VEGETATION, 0.0, rng.uniform(1.0, 2.0)))
+        elif edge == "fence":
+            p0, p1 = at(a0 + w + 1, w + 0.2), at(a1 - w - 1, w + 0.5)
+            self.rect(p0[0], p1[0], p0[1], p1[1], solid=(MANMADE, 0.0, rng.uniform(1.2, 2.2)))
         for a in rng.uniform(a0 + 8, a1 - 8, size=int(rng.integers(0, 3))):
             c = at(a, 0.5)
             self.rect(c[0] - 0.3, c[0] + 0.3, c[1] - 0.3, c[1] + 0.3, solid=(OTHERS, 0.0, rng.uniform(0.9, 1.3)))
-        if furnished and not hedge and rng.random() < 0.5:
+        if furnished and edge == "open" and rng.random() < 0.5:
             self.bike_rack(side, at(rng.uniform(a0 + 12, a1 - 12), w + 0.6))
 
     def bike_rack(self, side: int, centre: np.ndarray) -> None:
@@ -347,7 +404,7 @@ class CityPainter:
         cx, cy = rng.uniform(x0 + 10, x1 - 10), rng.uniform(y0 + 10, y1 - 10)
         self.rect(x0, x1, cy - 1.25, cy + 1.25, ground=SIDEWALK)
         self.rect(cx - 1.25, cx + 1.25, y0, y1, ground=SIDEWALK)
-        n = int((x1 - x0) * (y1 - y0) / 180)
+        n = int((x1 - x0) * (y1 - y0) / 110)
         for x, y in zip(rng.uniform(x0 + 3, x1 - 3, n), rng.uniform(y0 + 3, y1 - 3, n)):
             if abs(x - cx) > 3.5 and abs(y - cy) > 3.5:
                 self.tree(x, y)
@@ -375,7 +432,7 @@ class CityPainter:
         """Stalls in rows perpendicular to the road side, long vehicles along the back."""
         rng = self.rng
         x0, x1, y0, y1 = site
-        self.clear(x0, x1, y0, y1, OTHER_FLAT)
+        self.clear(x0, x1, y0, y1, DRIVEABLE)
         horizontal = side < 2  # rows run along x
         a0, a1, b0, b1 = (x0, x1, y0, y1) if horizontal else (y0, y1, x0, x1)
         # Back row for long vehicles, then stall rows of 5.5 m with 7 m aisles.
@@ -412,7 +469,7 @@ class CityPainter:
         and material piles (others) and an unfinished structure (manmade) at the back."""
         rng = self.rng
         x0, x1, y0, y1 = site
-        self.clear(x0, x1, y0, y1, int(rng.choice([TERRAIN, OTHER_FLAT])))
+        self.clear(x0, x1, y0, y1, OTHER_FLAT)  # gravel: nuScenes' flat.other
         horizontal = side < 2
         a0, a1, b0, b1 = (x0, x1, y0, y1) if horizontal else (y0, y1, x0, x1)
         inward = 1.0 if side in (0, 2) else -1.0

@@ -11,7 +11,7 @@ from occtrain.data.synth.annotate import EgoMotion, frame_annotation
 from occtrain.data.synth.catalog import TrackSet
 from occtrain.data.synth.citymap import StaticMap, paint_city
 from occtrain.data.synth.population import ego_mover, ego_start, spawn_traffic, spawn_walkers
-from occtrain.data.synth.raster import frame_semantics, masks
+from occtrain.data.synth.raster import frame_semantics, masks, observe_static
 from occtrain.data.synth.roads import PATH_DS, RoadNetwork
 from occtrain.data.synth.traffic import SIM_DT, mover_tracks, settle_traffic, walker_tracks
 from occtrain.occ3d import FRAME_DT, FUTURE_STEPS, RANGE_MAX
@@ -34,13 +34,15 @@ class SyntheticScene:
     tracks: TrackSet
     ego: EgoMotion
     net: RoadNetwork
+    #: (frames, X, Y, Z) bool lidar visibility of each frame, from ``observe_static``.
+    lidar: np.ndarray
 
     def render(self, i: int) -> dict[str, np.ndarray]:
         """Occ3D labels of frame ``i``: semantics, mask_lidar, mask_camera ((200, 200, 16) uint8)."""
         if not 0 <= i < len(self.frames):
             raise IndexError(f"scene {self.name} has {len(self.frames)} frames, asked for frame {i}")
         sem = self.semantics(i)
-        lidar, camera = masks(sem)
+        lidar, camera = masks(sem, self.lidar[i])
         return {"semantics": sem, "mask_lidar": lidar, "mask_camera": camera}
 
     def semantics(self, i: int) -> np.ndarray:
@@ -98,5 +100,6 @@ def generate_scene(name: str, seed: int, num_frames: int = 40) -> SyntheticScene
         total_frames,
     )
     tracks = TrackSet.concat([mover_tracks(motion, stride), walker_tracks(walkers, walk_hist, stride), placed])
+    lidar = observe_static(static, tracks, ego_motion.xy[:num_frames], ego_motion.yaw[:num_frames])
     frames = [frame_annotation(name, seed, i, num_frames, ego_motion, tracks) for i in range(num_frames)]
-    return SyntheticScene(name, seed, frames, static, tracks, ego_motion, net)
+    return SyntheticScene(name, seed, frames, static, tracks, ego_motion, net, np.stack(lidar))
