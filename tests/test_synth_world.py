@@ -334,3 +334,41 @@ def test_motion_is_bounded_and_routes_vary_by_seed():
     assert commands == set(COMMANDS)
     assert {"straight", "left", "right", "stop"} <= directions
     assert directions & {"bear left", "bear right"}
+
+
+# ---------------------------------------------------------------- looking like Occ3D-nuScenes
+
+
+@pytest.fixture(scope="module")
+def world_stats():
+    """Three 40-frame scenes of the embedded world (the quickstart's scene length: what a
+    scene's sweeps observe grows with its route), every fourth frame counted."""
+    from pathlib import Path
+
+    from occtrain.data.stats import _Counts
+
+    counts = _Counts()
+    for seed in (101, 202, 303):
+        scene = generate_scene(name=f"w{seed}", seed=seed, num_frames=40)
+        for i in range(0, 40, 4):
+            counts.add(scene.render(i))
+    return counts.result(Path("embedded"), "val", "v4")
+
+
+def test_the_world_meets_the_occ3d_targets_but_one(world_stats):
+    """Occupancy, columns, layers, both masks and the class shares are in their target
+    ranges (``data.stats.TARGETS``). Missed, and pinned here so a change that meets it
+    updates this test and README: the occupied share inside mask_camera (target 30-70 %).
+    Every ray that returns observes the free voxels it crosses, and in these streets that
+    is about nine free voxels for each surface the cameras see."""
+    missed = {k for k, ok in world_stats.targets().items() if not ok}
+    assert missed == {"occupied_in_camera"}, world_stats
+    assert 0.05 < world_stats.occupied_in_camera < 0.2
+
+
+def test_surfaces_not_solids(world_stats):
+    """The old world's 36 % occupied and 100 % occupied columns came from solid buildings
+    and two solid ground layers; a real frame: 6.1 % and 39 %."""
+    assert world_stats.per_layer[0] == 0  # under the ground surface
+    assert world_stats.voxels_per_column < 3.5
+    assert world_stats.camera_inside_lidar == 1.0

@@ -77,7 +77,9 @@ def column_table(layers: int, ground_layers: int) -> np.ndarray:
     k = np.arange(layers)[None]
     solid = (k >= lo) & (k < hi)
     floats = lo > ground_layers
-    hull = shell | (k == hi - 1) | ((k == lo) & floats)
+    # Foliage is porous: a lidar returns from inside a crown or a hedge, so vegetation is
+    # labelled through, not as a hull.
+    hull = shell | (k == hi - 1) | ((k == lo) & floats) | (cls == VEGETATION)[:, None]
     table = np.where(solid & hull, cls[:, None], FREE).astype(np.uint8)
     covered = (cls[:, None] != FREE) & ~shell & ~floats
     table[:, :ground_layers] = FREE
@@ -218,7 +220,7 @@ class CityPainter:
 
     def tree(self, x: float, y: float):
         """A trunk with a round canopy starting 1.5-2.8 m up."""
-        r = self.rng.uniform(1.8, 3.6)
+        r = self.rng.uniform(1.4, 3.0)
         base = self.rng.uniform(1.5, 2.8)
         self.disc(x, y, r, solid=(VEGETATION, base, base + self.rng.uniform(2.5, 6.0)))
         t = self.rng.uniform(0.2, 0.3)
@@ -301,7 +303,7 @@ class CityPainter:
         rng, w = self.rng, self.net.sidewalk
         x0, x1, y0, y1 = box + np.array([w, -w, w, -w])
         strip = int(rng.choice([TERRAIN, SIDEWALK, OTHER_FLAT], p=[0.65, 0.3, 0.05]))
-        setback = rng.uniform(4.5, 6.0) if bus_stop else rng.uniform(1.5, 5.0)
+        setback = rng.uniform(4.5, 6.0) if bus_stop else rng.uniform(1.0, 4.0)
         self.rect(x0, x1, y0, y1, ground=strip)
         bx0, bx1, by0, by1 = x0 + setback, x1 - setback, y0 + setback, y1 - setback
         if bx1 - bx0 < 6 or by1 - by0 < 6:
@@ -326,15 +328,9 @@ class CityPainter:
         if bx1 - bx0 > 2 * depth + 8 and by1 - by0 > 2 * depth + 8:
             for _ in range(int(rng.integers(0, 4))):
                 self.tree(rng.uniform(bx0 + depth + 3, bx1 - depth - 3), rng.uniform(by0 + depth + 3, by1 - depth - 3))
-        edge = str(rng.choice(["hedge", "fence", "open"], p=[0.45, 0.35, 0.2]))
+        edge = str(rng.choice(["hedge", "fence", "open"], p=[0.3, 0.45, 0.25]))
         for side in range(4):
             self._frontage(box, side, furnished=not bus_stop and setback > 3.0, edge="open" if bus_stop else edge)
-        if setback > 3.0 and not bus_stop:  # a row of trees in the front gardens
-            for side in range(4):
-                a0, a1 = (bx0, bx1) if side < 2 else (by0, by1)
-                mid = (y0 + setback / 2, y1 - setback / 2, x0 + setback / 2, x1 - setback / 2)[side]
-                for a in np.arange(a0 + rng.uniform(2, 6), a1 - 2, rng.uniform(7.0, 11.0)):
-                    self.tree(*((a, mid) if side < 2 else (mid, a)))
 
     def _frontage(self, box: np.ndarray, side: int, furnished: bool, edge: str) -> None:
         """Street trees, lamp posts and bins at the kerb along one side of a block; behind the
@@ -385,7 +381,7 @@ class CityPainter:
     def bus_stop(self, box: np.ndarray, side: int, a_mid: float) -> None:
         """A shelter just inside the sidewalk with two or three people standing by it."""
         shelter = self.frontage_rect(box, side, a_mid, 4.0, 1.6)
-        self.clear(*shelter, ground=SIDEWALK)
+        self.clear(*shelter, ground=OTHER_FLAT)  # a raised platform: nuScenes' flat.other
         self.rect(*shelter, solid=(MANMADE, 0.0, 2.6))
         centre = np.array([(shelter[0] + shelter[1]) / 2, (shelter[2] + shelter[3]) / 2])
         along = np.array([1.0, 0.0]) if side < 2 else np.array([0.0, 1.0])
@@ -404,7 +400,7 @@ class CityPainter:
         cx, cy = rng.uniform(x0 + 10, x1 - 10), rng.uniform(y0 + 10, y1 - 10)
         self.rect(x0, x1, cy - 1.25, cy + 1.25, ground=SIDEWALK)
         self.rect(cx - 1.25, cx + 1.25, y0, y1, ground=SIDEWALK)
-        n = int((x1 - x0) * (y1 - y0) / 110)
+        n = int((x1 - x0) * (y1 - y0) / 200)
         for x, y in zip(rng.uniform(x0 + 3, x1 - 3, n), rng.uniform(y0 + 3, y1 - 3, n)):
             if abs(x - cx) > 3.5 and abs(y - cy) > 3.5:
                 self.tree(x, y)
@@ -469,7 +465,7 @@ class CityPainter:
         and material piles (others) and an unfinished structure (manmade) at the back."""
         rng = self.rng
         x0, x1, y0, y1 = site
-        self.clear(x0, x1, y0, y1, OTHER_FLAT)  # gravel: nuScenes' flat.other
+        self.clear(x0, x1, y0, y1, TERRAIN)
         horizontal = side < 2
         a0, a1, b0, b1 = (x0, x1, y0, y1) if horizontal else (y0, y1, x0, x1)
         inward = 1.0 if side in (0, 2) else -1.0
@@ -608,7 +604,7 @@ def paint_city(
             (k for k, p in probes.items() if box[0] <= p[0] <= box[1] and box[2] <= p[1] <= box[3]), None
         )
         painter.block_ground(box, TERRAIN)
-        if forced is None and rng.random() < 0.2:
+        if forced is None and rng.random() < 0.12:
             painter.park_block(box)
             continue
         painter.building_block(box, bus_stop=forced == "bus")

@@ -2,20 +2,21 @@
 builds them.
 
 Semantics are surfaces. The static raster (``citymap``) is sampled at the grid columns'
-global positions (nearest cell) and expanded to hulls by ``column_table``; every box whose
-footprint reaches the grid is drawn as the hull of an oriented prism standing on the
-ground. Occ3D aggregates a scene's lidar sweeps, so a static surface is labelled only where
-some frame's lidar saw it (``observe_static`` records that over the scene); boxed objects
-are labelled whole, as Occ3D aggregates their points in their own box frames. The ego's
-own box stays free.
+global positions (nearest cell) and expanded to hulls by ``column_table`` (foliage, which
+a lidar sees into, through); every box whose footprint reaches the grid is drawn as the
+hull of an oriented prism standing on the ground. Occ3D aggregates a scene's lidar sweeps,
+so a static surface is labelled only where some frame's lidar saw it (``observe_static``
+records that over the scene); boxed objects are labelled whole, as Occ3D aggregates their
+points in their own box frames. The ego's own box stays free.
 
-Lidar visibility is a z-buffer over (azimuth, elevation) bins around the roof sensor,
-fixed in the ego frame (one dense sweep: the sweeps a scene accumulates). Every occupied
-surface voxel above the ground writes its range into the bins its cube covers, and the
-ground plane returns in every bin looking down. A ray observes only when it returns: a
-voxel is seen when it is the first hit of its bin (within half a voxel) or free and before
-that hit; a bin that meets nothing, looking up into the sky, observes nothing. A ground
-voxel is seen when nothing stands between the sensor and its surface point. The
+Lidar visibility is a z-buffer over (beam, azimuth) bins of the 32-beam roof sensor, fixed
+in the ego frame. Every occupied surface voxel above the ground writes its range into the
+bins its cube covers, and the ground plane returns in every beam that looks down and meets
+it within the sensor's range. A ray observes only when it returns: a voxel is seen when a
+beam crosses it and it is the first hit of that bin (within half a voxel) or free and
+before that hit; a bin that meets nothing, looking up into the sky, observes nothing. A
+ground voxel is seen when a beam's ring on the ground crosses its column (the ego's motion
+over a key frame's sweeps widens each ring) and nothing stands in front of it. The
 per-voxel geometry is computed once per process.
 """
 
@@ -27,7 +28,7 @@ from functools import lru_cache
 import numpy as np
 
 from occtrain.data.synth.catalog import TrackSet
-from occtrain.data.synth.citymap import StaticMap, column_table
+from occtrain.data.synth.citymap import VEGETATION, StaticMap, column_table
 from occtrain.data.synth.grid import EGO_HEIGHT, GROUND_LAYER, GROUND_LAYERS, GROUND_TOP_Z, column_centres, layer_span
 from occtrain.occ3d import EGO_LENGTH, EGO_WIDTH, FREE, GRID_SHAPE, RANGE_MIN, VOXEL_SIZE, voxel_centers_1d
 from occtrain.data.geometry import ego_to_global, global_to_ego
@@ -111,6 +112,7 @@ def _geometry(sensor: Sensor) -> _Geometry:
     c_rho = np.hypot(cx, cy)
     c_half = 0.5 * VOXEL_SIZE * (np.abs(np.cos(np.arctan2(cy, cx))) + np.abs(np.sin(np.arctan2(cy, cx))))
     ring = np.where(beams < 0, sensor.height / np.tan(-np.minimum(beams, -1e-9)), np.inf)
+    ring[np.isinf(row)] = np.inf  # a beam whose ground is too far returns nothing from it
     reach = c_half[:, None] + SWEEP_SPREAD_M * (SWEEPS - 1) / 2
     crossing = np.abs(ring[None] - c_rho[:, None]) <= reach
     c_beam = np.where(crossing.any(1), np.argmax(crossing, axis=1), -1)
@@ -337,5 +339,9 @@ def observe_static(static: StaticMap, tracks: TrackSet, poses_xy: np.ndarray, po
             spread[tuple(lo)] |= observed[tuple(hi)]
             spread[tuple(hi)] |= observed[tuple(lo)]
         observed = spread
+    # Foliage is porous (see column_table): where a sweep saw into a crown or a hedge, it
+    # saw all of that column's foliage.
+    porous = static.cls == VEGETATION
+    observed[porous] = observed[porous].any(axis=1, keepdims=True)
     static.observed = observed
     return seen_per_frame
