@@ -48,6 +48,7 @@ def evaluate(
     dataset, or of ``data_root`` (e.g. a world synthesized from another seed): then the
     metrics go to ``eval/<its directory name>-<world key>/<split>/`` and its baselines come
     from its own train split."""
+    from occtrain.data.layout import world_version
     from occtrain.data.shards import world_key
     from occtrain.stages.base import EvalRequest, shared_cache_dir, stage_cache_dir
 
@@ -67,7 +68,7 @@ def evaluate(
         stage_cache_dir(stage_dir, root), shared_cache_dir(stage_dir), save_predictions is not None,
     )
     result = kind.module.evaluate_export(request)
-    _save(metrics_file, result.metrics, world)
+    _save(metrics_file, result.metrics, world, world_version(root))
     if save_predictions is not None:
         write_predictions(Path(save_predictions), result.predictions)
     return result.metrics
@@ -136,9 +137,10 @@ def _refuse_unscorable(tasks: list[str], root: str) -> None:
 WORLD_FILE = "world.json"
 
 
-def _save(out_file: Path, metrics: dict[str, float], world: str) -> dict[str, float]:
+def _save(out_file: Path, metrics: dict[str, float], world: str, version: str = "") -> dict[str, float]:
     """Write ``metrics``, keeping what an earlier eval of the same world wrote for other
-    tasks (never another world's: the run's dataset may have changed since); returns them."""
+    tasks (never another world's: the run's dataset may have changed since), and beside
+    them the world's key and version (``data.layout.world_version``); returns them."""
     try:
         earlier = json.loads(out_file.read_text()) if out_file.is_file() else {}
         seen = json.loads((out_file.parent / WORLD_FILE).read_text()) if (out_file.parent / WORLD_FILE).is_file() else {}
@@ -147,7 +149,7 @@ def _save(out_file: Path, metrics: dict[str, float], world: str) -> dict[str, fl
     if seen.get("world") != world:
         earlier = {}
     atomic_write_json(out_file, {**earlier, **metrics})
-    atomic_write_json(out_file.parent / WORLD_FILE, {"world": world})
+    atomic_write_json(out_file.parent / WORLD_FILE, {"world": world, "world_version": version})
     return metrics
 
 

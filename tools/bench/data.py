@@ -8,11 +8,12 @@ dataset as it is: the size-and-mtime fingerprint occtrain uses against hashing t
 files' bytes, interleaved three times each (the page cache warm for both after the first).
 
 Everything is measured in one run, side by side, on the same machine state:
-synthesis (render + annotate + text, no disk) without and with the six cameras (ray cast
-and shaded at the default 72 x 128), synthesis including the labels.npz and image writes,
-and reading single-frame shards with decoding through a DataLoader at num_workers 0 and 2.
-Goals: synthesis >= 20 frames/s (foundation issue), cameras costing no more than 3x
-synthesis without them (cameras issue), reading >= 200 samples/s.
+synthesis (scene generation with its lidar sweeps, labels with both masks, annotation and
+text, no disk) without and with the six cameras (ray cast and shaded at the default
+72 x 128), synthesis including the labels.npz and image writes, and reading single-frame
+shards with decoding through a DataLoader at num_workers 0 and 2.
+Goals: synthesis with both masks and the cameras >= 15 frames/s (world v4 issue), cameras
+costing no more than 3x synthesis without them (cameras issue), reading >= 200 samples/s.
 """
 
 from __future__ import annotations
@@ -30,14 +31,13 @@ import torch  # noqa: E402
 from occtrain.config import DataConfig, SynthConfig  # noqa: E402
 from occtrain.data.datamodule import ShardDataModule  # noqa: E402
 from occtrain.data.shards import write_shards  # noqa: E402
-from occtrain.data.synth import generate_scene  # noqa: E402
-from occtrain.data.synth.camera_render import MASK_RAYS, camera_rays  # noqa: E402
+from occtrain.data.synth import generate_scene, prepare_sensors  # noqa: E402
 from occtrain.data.synth.text import caption_for_frame, narration_for_frame  # noqa: E402
 from occtrain.data.synthesize import synthesize  # noqa: E402
 
 
 def bench_synthesis(frames: int, cameras: bool) -> float:
-    camera_rays(*MASK_RAYS), camera_rays(72, 128)  # the per-process ray walk is set-up, not throughput
+    prepare_sensors((72, 128))  # per-process set-up, not throughput
     start = time.perf_counter()
     scene = generate_scene(name="scene-bench", seed=11, num_frames=frames)
     for i, frame in enumerate(scene.frames):
@@ -114,8 +114,8 @@ def main() -> None:
         read0 = bench_read(data, 0, args.read_seconds)
         read2 = bench_read(data, 2, args.read_seconds)
 
-    print(f"synthesis, in memory      : {plain:7.1f} frames/s   (goal >= 20)")
-    print(f"  with the six cameras    : {with_cams:7.1f} frames/s   ({plain / with_cams:.2f}x the time; goal <= 3x)")
+    print(f"synthesis, in memory      : {plain:7.1f} frames/s   (labels and both masks)")
+    print(f"  with the six cameras    : {with_cams:7.1f} frames/s   (goal >= 15; {plain / with_cams:.2f}x the time, goal <= 3x)")
     print(f"synthesis, written to disk: {disk_fps:7.1f} frames/s   (labels, six images with class and depth maps)")
     print(f"shard read, num_workers=0 : {read0:7.1f} samples/s  (goal >= 200)")
     print(f"shard read, num_workers=2 : {read2:7.1f} samples/s  ({read2 / read0:.2f}x workers=0)")

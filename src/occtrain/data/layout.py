@@ -212,6 +212,13 @@ def generator_record(root: Path) -> dict | None:
     return _read_json(path, "dataset record", dict[str, Any]) if path.is_file() else None
 
 
+def world_version(root: str | Path) -> str:
+    """"v<N>" of a world occtrain synthesized (its ``occtrain/dataset.json``), else "": the
+    name every table measured on the world states."""
+    record = generator_record(Path(root)) or {}
+    return f"v{record['format_version']}" if record.get("generator") == "occtrain.synth" else ""
+
+
 def dataset_root(path: str | Path) -> Path:
     """The dataset root that ``path`` names: itself, or the parent of its ``gts/`` directory."""
     path = Path(path)

@@ -692,8 +692,19 @@ def make_pipeline(
 
 
 def iter_raw(url: str) -> Iterator[dict]:
-    """Raw samples of one shard (for checking), errors as DataError."""
-    yield from wds.DataPipeline(wds.SimpleShardList([url]), wds.tarfile_to_samples(handler=_raise_shard_error))
+    """Raw samples of one shard (for checking), errors as DataError naming the shard.
+
+    webdataset names the shard in some of the errors it passes on and not in others (a
+    tar cut inside a member's header arrives without it): the one shard read here is
+    named whenever the error does not.
+    """
+    try:
+        yield from wds.DataPipeline(wds.SimpleShardList([url]), wds.tarfile_to_samples(handler=_raise_shard_error))
+    except DataError as err:
+        message = str(err)
+        if message.startswith("shard: "):
+            raise DataError(f"{url}: {message[len('shard: '):]}") from None
+        raise
 
 
 __all__ = [

@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from occtrain.data.layout import DatasetIndex
+from occtrain.data.layout import DatasetIndex, world_version
 from occtrain.errors import DataError
 from occtrain.occ3d import CLASS_NAMES, FREE, GRID_SHAPE, OCC3D_FRAME, OCC3D_TRAIN_VOXELS
 from occtrain.progress import progress_bar
@@ -172,13 +172,6 @@ def dataset_stats(root: str | Path, split: str = "val", frames: int = 100) -> Da
             advance(1)
     return counts.result(index.root, split, world_version(index.root))
 
-
-def world_version(root: Path) -> str:
-    """"v<N>" of a world occtrain synthesized (its ``occtrain/dataset.json``), else ""."""
-    from occtrain.data.layout import generator_record
-
-    record = generator_record(root) or {}
-    return f"v{record['format_version']}" if record.get("generator") == "occtrain.synth" else ""
 
 
 # ----------------------------------------------------------------------------- what a person reads

@@ -4,13 +4,14 @@
 seed: a grid city (roads, sidewalks, buildings, vegetation, parking, construction), traffic
 and pedestrians simulated at 10 Hz, an ego route with turns, lane changes, stops and speed
 changes, and per-frame annotations at 2 Hz. ``SyntheticScene.render(i)`` rasterises frame
-``i`` with its lidar and camera visibility masks. Modules: ``grid`` (vertical convention),
+``i`` with its lidar and camera visibility masks; ``prepare_sensors`` computes the
+per-process sensor geometry up front. Modules: ``grid`` (vertical convention),
 ``catalog`` (object kinds, tracks), ``roads`` (network, lights, routes), ``citymap``
 (static raster and objects), ``population`` and ``traffic`` (agents and their motion),
 ``raster`` (voxels, masks), ``annotate`` (FrameAnnotation), ``scene`` (the whole);
 ``text`` writes the captions, narrations and questions.
 """
 
-from occtrain.data.synth.scene import SyntheticScene, generate_scene
+from occtrain.data.synth.scene import SyntheticScene, generate_scene, prepare_sensors
 
-__all__ = ["SyntheticScene", "generate_scene"]
+__all__ = ["SyntheticScene", "generate_scene", "prepare_sensors"]

@@ -290,7 +290,7 @@ def _first_hits(rays: _Rays, occupied: np.ndarray) -> np.ndarray:
 
 
 @lru_cache(maxsize=1)
-def _voxels_in_view() -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray], ...]:
+def voxels_in_view() -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray], ...]:
     """Per camera of the mask rig: the voxels whose centre it images (flat index), the
     pixel of each centre and its distance from the camera (computed once per process)."""
     centres = np.stack(np.meshgrid(*(RANGE_MIN[a] + (np.arange(GRID_SHAPE[a]) + 0.5) * VOXEL_SIZE for a in range(3)), indexing="ij"), -1)
@@ -319,7 +319,7 @@ def camera_mask(semantics: np.ndarray, among: np.ndarray | None = None) -> np.nd
     """
     occupied = semantics.reshape(-1) != FREE
     seen = np.zeros(occupied.shape, bool)
-    for (_, rays), (idx, pix, rng) in zip(camera_rays(*MASK_RAYS), _voxels_in_view()):
+    for (_, rays), (idx, pix, rng) in zip(camera_rays(*MASK_RAYS), voxels_in_view()):
         first = _first_hits(rays, occupied)
         # How far each pixel's ray observes: to the surface it meets, everything when it
         # looks down and leaves the grid, nothing when it goes into the sky.

@@ -77,7 +77,7 @@ class _Geometry:
 
 
 @lru_cache(maxsize=None)
-def _geometry(sensor: Sensor) -> _Geometry:
+def sensor_geometry(sensor: Sensor) -> _Geometry:
     xs, ys, zs = (voxel_centers_1d(a) for a in range(3))
     zs = zs - (GROUND_TOP_Z + sensor.height)
     x, y, z = (a.ravel() for a in np.meshgrid(xs, ys, zs, indexing="ij"))
@@ -173,7 +173,7 @@ def visibility(semantics: np.ndarray, sensor: Sensor, free_nb=None) -> np.ndarra
     ``free_nb`` may pass in :func:`_facing_free` of the occupancy when several sensors look
     at the same frame.
     """
-    g = _geometry(sensor)
+    g = sensor_geometry(sensor)
     occupied = semantics != FREE
     if free_nb is None:
         free_nb = _facing_free(occupied)

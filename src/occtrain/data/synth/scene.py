@@ -57,6 +57,20 @@ class SyntheticScene:
         return render_cameras(semantics, world, height, width)
 
 
+def prepare_sensors(camera_size: tuple[int, int] | None = None) -> None:
+    """Compute the per-process sensor geometry once (the lidar's per-voxel beams, the mask
+    cameras' ray walks and pixels, and the ray walks at ``camera_size`` if given), so that
+    what follows measures or shows per-frame work only."""
+    from occtrain.data.synth.camera_render import MASK_RAYS, camera_rays, voxels_in_view
+    from occtrain.data.synth.raster import LIDAR, sensor_geometry
+
+    sensor_geometry(LIDAR)
+    camera_rays(*MASK_RAYS)
+    voxels_in_view()
+    if camera_size is not None:
+        camera_rays(*camera_size)
+
+
 def generate_scene(name: str, seed: int, num_frames: int = 40) -> SyntheticScene:
     """Build scene ``name`` deterministically from ``seed`` (the name only labels it).
 
