@@ -298,3 +298,35 @@ def test_chromium_renders_a_real_page(run_dir: Path, tmp_path: Path):
     # Series colours of the charts (#1f77b4, #d62728) appear: the SVGs were drawn.
     for rgb in ((31, 119, 180), (214, 39, 40)):
         assert (np.abs(img.astype(int) - rgb).sum(-1) < 30).sum() > 50, rgb
+
+
+# ----------------------------------------------------------------------------- the data
+
+
+def test_the_data_section_shows_the_runs_dataset_beside_occ3d_and_counts_it_once(run_dir: Path, tmp_path: Path, monkeypatch):
+    from conftest import write_hand_dataset
+
+    import occtrain.data.stats as stats_module
+    from occtrain.dashboard.run_view import DATA_STATS_FILE
+
+    root = write_hand_dataset(tmp_path / "ds", train=1, val=1, frames=4)
+    (run_dir / "pipeline.yaml").write_text(f"name: quick\ndata:\n  root: {root}\nstages: []\n")
+    html = write_dashboard(run_dir).read_text()
+    section = html.split("<h2>Data: ", 1)[1].split("</section>", 1)[0]
+    assert section.startswith(str(root))
+    assert "occupied share inside mask_camera" in section and "52.7 %" in section and "30-70 %" in section
+    assert section.count("data:image/png;base64,") == 1  # the class-share chart
+    saved = json.loads((run_dir / DATA_STATS_FILE).read_text())
+    assert saved["frames"] == 4 and saved["world_key"]
+
+    def no_recount(*args, **kwargs):
+        raise AssertionError("the statistics of an unchanged world were counted again")
+
+    monkeypatch.setattr(stats_module, "dataset_stats", no_recount)
+    assert write_dashboard(run_dir).read_text().count("<h2>Data: ") == 1
+
+
+def test_a_dataset_not_found_is_said_on_the_page(run_dir: Path, tmp_path: Path):
+    (run_dir / "pipeline.yaml").write_text(f"name: quick\ndata:\n  root: {tmp_path / 'gone'}\nstages: []\n")
+    html = write_dashboard(run_dir).read_text()
+    assert "gone: not found from" in html and 'class="problem"' in html

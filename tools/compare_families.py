@@ -78,6 +78,13 @@ def _scored(stage: Path) -> dict[str, float]:
     return json.loads(out.read_text())
 
 
+def _world(stage: Path) -> str:
+    """The world version the stage's whole-split eval was scored on (``eval/val/world.json``)."""
+    path = stage / "eval" / "val" / "world.json"
+    version = json.loads(path.read_text()).get("world_version", "") if path.is_file() else ""
+    return version or "unrecorded"
+
+
 def _tokens_per_frame(stage: Path) -> str:
     """What the LLM reads per frame of scene, from the world model's export."""
     cfg = json.loads((stage / "export" / "config.json").read_text())
@@ -109,6 +116,7 @@ def row(family: Family, runs: Path) -> dict:
     run = runs / family.recipe
     out: dict = {"family": family.name, "recipe": f"stages/{family.recipe}.yaml", "scene": family.note,
                  "tokens_per_frame": _tokens_per_frame(run / family.world), "costs": _stage_costs(run)}
+    scored = [s for s in (family.forecast, family.plan, family.qa, family.caption) if s]
     if family.forecast:
         m = _scored(run / family.forecast)
         out["forecast"] = {h: m.get(f"forecast_occworld_mIoU_{h}") for h in ("1s", "2s", "3s")}
@@ -130,6 +138,7 @@ def row(family: Family, runs: Path) -> dict:
         out["cider"] = m.get("caption_CIDEr")
         out["cider_baseline"] = m.get("baseline_typical_caption_CIDEr")
         out["caption_stage"] = family.caption
+    out["worlds"] = sorted({_world(run / stage) for stage in scored})
     return out
 
 
@@ -141,7 +150,10 @@ def markdown(rows: list[dict]) -> str:
     """The comparison, each number beside its trivial baseline on the family's own samples
     (the families' clips differ in how much history they need, so the baselines differ)."""
     horizons = ("1s", "2s", "3s")
+    worlds = sorted({w for r in rows for w in r["worlds"]})
     lines = [
+        f"World: {', '.join(worlds)} (the version `occtrain data stats` prints; unrecorded: scored before evals recorded it).",
+        "",
         "| family (recipe) | LLM tokens per frame of scene | forecast mIoU 1 / 2 / 3 s (`occworld`) vs copying the current scene "
         "| plan L2 avg (`stp3`) vs constant velocity; collision avg | NuScenes-QA vs commonest answer per type "
         "| caption CIDEr vs the typical caption |",

@@ -231,6 +231,33 @@ def comparison_section(run: RunView) -> str:
     return f'<section class="stage"><h2>Comparison with the paper</h2><pre>{escape(text)}</pre></section>'
 
 
+def data_section(run: RunView) -> str:
+    """The run's dataset beside Occ3D-nuScenes: the figures with their targets and the
+    class-share chart (what ``occtrain data stats`` prints)."""
+    from occtrain.data.stats import rows
+
+    data = run.data
+    if data is None:
+        return ""
+    if data.stats is None:
+        return f'<section class="stage"><h2>Data</h2><p class="problem">{escape(data.problem)}</p></section>'
+    st = data.stats
+    world = f", synthetic world {st.world}" if st.world else ""
+    body = "".join(
+        f"<tr><td>{escape(label)}</td><td class=\"num\">{escape(ours)}</td><td class=\"num\">{escape(ref)}</td>"
+        f"<td class=\"num\">{escape(target)}</td><td class=\"{'ok' if met == 'yes' else 'bad' if met == 'no' else ''}\">{met}</td></tr>"
+        for label, ours, ref, target, met in rows(st)
+    )
+    table = ("<table><tr><th>statistic</th><th>this dataset</th><th>Occ3D-nuScenes (one frame)</th><th>target</th><th>met</th></tr>"
+             f"{body}</table>")
+    return (
+        f'<section class="stage"><h2>Data: {escape(data.root)}{escape(world)}</h2>'
+        f'<p class="note">{st.frames} {escape(st.split)} frames (means over frames); '
+        "<code>occtrain data stats</code> counts every frame.</p>"
+        f"{table}{_images([('class shares of the occupied voxels, beside Occ3D-nuScenes train', data.chart)])}</section>"
+    )
+
+
 def render_page(run: RunView, generated: float | None = None) -> str:
     """The whole page as one HTML string."""
     versions = sorted({s.entry.code_version for s in run.stages if s.entry.code_version})
@@ -250,6 +277,7 @@ def render_page(run: RunView, generated: float | None = None) -> str:
         "nuScenes / Occ3D-nuScenes data with full-size models, shown for orientation; this run trains on the data "
         "in pipeline.yaml.</p></section>"
         + comparison_section(run)
+        + data_section(run)
         + "".join(stage_section(s) for s in run.stages)
         + pipeline
         + "</main></body></html>\n"

@@ -16,6 +16,7 @@ from pathlib import Path
 
 from occtrain.dashboard.samples import read_samples
 from occtrain.dashboard.svg import Series
+from occtrain.data.stats import DatasetStats
 from occtrain.errors import OcctrainError
 from occtrain.manifest import MANIFEST_FILE, Manifest, StageEntry
 
@@ -42,12 +43,64 @@ class StageView:
 
 
 @dataclass
+class DataView:
+    """The run's dataset beside Occ3D-nuScenes (``occtrain data stats`` on a few val frames)."""
+
+    root: str
+    stats: DatasetStats | None = None
+    chart: bytes = b""
+    problem: str = ""
+
+
+@dataclass
 class RunView:
     run_dir: Path
     name: str
     updated: float | None
     pipeline_yaml: str
     stages: list[StageView]
+    data: DataView | None = None
+
+
+#: Where the dashboard keeps the data statistics it counted, with the world they are of.
+DATA_STATS_FILE = "data_stats.json"
+#: Val frames counted for the page: enough for the shares, cheap enough for every rewrite.
+DATA_FRAMES = 20
+
+
+def read_data(run_dir: Path, pipeline_yaml: str) -> DataView | None:
+    """The statistics of the dataset the run's ``pipeline.yaml`` names (relative to the
+    working directory, as ``occtrain run`` read it), counted once per world and kept in
+    ``RUN_DIR/data_stats.json``; None when the run records no dataset."""
+    from dataclasses import fields
+
+    from omegaconf import OmegaConf
+
+    from occtrain.data.shards import world_key
+    from occtrain.data.stats import class_chart, dataset_stats
+    from occtrain.io import atomic_write_json, png_bytes
+
+    try:
+        root = str(OmegaConf.create(pipeline_yaml).data.root) if pipeline_yaml else ""
+    except Exception:  # noqa: BLE001 - any unreadable pipeline.yaml only means no data section
+        root = ""
+    if not root:
+        return None
+    if not Path(root).is_dir():
+        return DataView(root, problem=f"{root}: not found from {Path.cwd()}; run `occtrain dashboard` where the run was started")
+    try:
+        key = world_key(root)
+        cache = run_dir / DATA_STATS_FILE
+        saved = json.loads(cache.read_text()) if cache.is_file() else {}
+        names = {f.name for f in fields(DatasetStats)}
+        if saved.get("world_key") == key and names <= set(saved):
+            stats = DatasetStats(**{k: saved[k] for k in names})
+        else:
+            stats = dataset_stats(root, "val", DATA_FRAMES)
+            atomic_write_json(cache, {**stats.to_json(), "world_key": key})
+        return DataView(root, stats, png_bytes(class_chart(stats)))
+    except (OcctrainError, OSError, ValueError, TypeError) as err:
+        return DataView(root, problem=f"{root}: no statistics ({str(err).splitlines()[0]})")
 
 
 def read_metrics_csv(path: Path) -> dict[str, list[tuple[float, float]]]:
@@ -193,4 +246,7 @@ def load_run(run_dir: Path) -> RunView:
     pipeline = run_dir / "pipeline.yaml"
     pipeline_yaml = pipeline.read_text(errors="replace") if pipeline.is_file() else ""
     stages = [_read_stage(run_dir, name, entry) for name, entry in manifest.stages.items()]
-    return RunView(run_dir, manifest.name or run_dir.name, updated if isinstance(updated, (int, float)) else None, pipeline_yaml, stages)
+    return RunView(
+        run_dir, manifest.name or run_dir.name, updated if isinstance(updated, (int, float)) else None, pipeline_yaml, stages,
+        read_data(run_dir, pipeline_yaml),
+    )
