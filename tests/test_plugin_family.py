@@ -1,7 +1,7 @@
 """Proof by plugin: a family written in tests/ (``plugins/tiny_family.py``: a continuous
 scene encoder, its own task and scorer, its own planner) runs pretrain -> instruct ->
 planner -> distill through the CLI, ``occtrain eval`` and the Python API, with no file of
-occtrain changed. README's "Adding a family" follows these steps."""
+occtrain changed. docs/adding-a-family.md follows these steps."""
 
 from __future__ import annotations
 

@@ -358,7 +358,7 @@ def world_stats():
 def test_the_world_meets_the_occ3d_targets_but_one(world_stats):
     """Occupancy, columns, layers, both masks and the class shares are in their target
     ranges (``data.stats.TARGETS``). Missed, and pinned here so a change that meets it
-    updates this test and README: the occupied share inside mask_camera (target 30-70 %).
+    updates this test and docs/world.md: the occupied share inside mask_camera (target 30-70 %).
     Every ray that returns observes the free voxels it crosses, and in these streets that
     is about nine free voxels for each surface the cameras see."""
     missed = {k for k, ok in world_stats.targets().items() if not ok}

@@ -23,7 +23,7 @@ are exact. Memory per rank is then counted term by term:
   activations the float copy the loss makes first another ``V``.
 
 It leaves out the CUDA context, allocator fragmentation and kernels' workspaces: a plan
-fits when its total is under 90 % of the GPU's memory. README's "Scale" section checks it
+fits when its total is under 90 % of the GPU's memory. The "Scale" page (docs/scale.md) checks it
 against what this machine measures.
 """
 

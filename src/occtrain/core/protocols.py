@@ -1,7 +1,7 @@
 """The seams between the family-neutral engine and a family: declared once, checked when
 a family registers (``core.registry.register_family``).
 
-Subject to change while the families that use them settle; README's "Adding a family"
+Subject to change while the families that use them settle; docs/adding-a-family.md
 shows them in use.
 
 - :class:`SceneEncoder`: occupancy -> what a world model's scene parts hold, and back:

@@ -15,12 +15,12 @@ positive anchor as the only positive. Inference noises the anchors, denoises the
 Not the paper's, a switch (``plan_prior``): anchors and trajectories as offsets from driving
 on straight at the current speed. With the paper's anchors over whole trajectories, the
 top-scored anchor alone was 2.4-3.8 m from the truth on average and the denoised plan
-1.7-2.4 m, where constant velocity is 0.51 m (README, "The SparseOccVLA family").
+1.7-2.4 m, where constant velocity is 0.51 m (docs/families/sparseoccvla.md).
 
 The LLM's decision tokens are the frozen world model's last-layer outputs over the decision
 it generates for the planning prompt (generated once per clip and cached). The paper trains
 the planner with the LLM in its stages 2-3; here it trains after them, on the frozen
-model's outputs, like every planner stage (see README).
+model's outputs, like every planner stage (docs/recipes.md).
 """
 
 from __future__ import annotations
