@@ -19,6 +19,13 @@ def _cmd_config_show(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_config_reference(args: argparse.Namespace) -> int:
+    from occtrain.stages.reference import config_reference
+
+    print(config_reference(), end="")
+    return 0
+
+
 def _cmd_run(args: argparse.Namespace) -> int:
     if args.dry_run:
         return _cmd_validate(args)
@@ -236,6 +243,8 @@ def _add_run_commands(sub: Any) -> None:
     show.add_argument("overrides", nargs="*", help="key=value overrides, e.g. trainer.max_steps=10")
     show.add_argument("--group", help="config group of FILE (default: its directory name)")
     show.set_defaults(func=_cmd_config_show)
+    reference = config.add_parser("reference", help="every key a recipe may set, with type, default and doc (Markdown)")
+    reference.set_defaults(func=_cmd_config_reference)
 
 
 def _add_data_commands(sub: Any) -> None:

@@ -1,0 +1,12 @@
+"""MkDocs hooks: pages generated from the code at build time, so they cannot drift from it."""
+
+from __future__ import annotations
+
+from mkdocs.structure.files import File
+
+
+def on_files(files, config):
+    from occtrain.stages.reference import config_reference
+
+    files.append(File.generated(config, "reference/config.md", content=config_reference()))
+    return files
