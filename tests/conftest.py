@@ -14,8 +14,8 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 import pytest
@@ -55,15 +55,25 @@ def hand_frames(scene: str, n: int, seed: int) -> list[dict]:
         mask = [1 if i + k + 1 < n else 0 for k in range(6)]
         frames.append(
             {
-                "scene": scene, "token": token, "index": i, "timestamp": int(1e6 * (100 + i * FRAME_DT)),
+                "scene": scene,
+                "token": token,
+                "index": i,
+                "timestamp": int(1e6 * (100 + i * FRAME_DT)),
                 "ego_pose": {"translation": [5.0 * FRAME_DT * i, 0.0, 0.0], "yaw": 0.0},
-                "ego_speed": 5.0, "ego_accel": 0.0, "ego_yaw_rate": 0.0,
-                "command": "go straight", "meta_action": {"speed": "maintain", "direction": "straight"},
-                "ego_future": fut, "ego_future_mask": mask,
+                "ego_speed": 5.0,
+                "ego_accel": 0.0,
+                "ego_yaw_rate": 0.0,
+                "command": "go straight",
+                "meta_action": {"speed": "maintain", "direction": "straight"},
+                "ego_future": fut,
+                "ego_future_mask": mask,
                 "ego_past": [[-5.0 * FRAME_DT * (4 - k), 0.0] for k in range(4)],
                 "ego_past_mask": [1 if i - (4 - k) >= 0 else 0 for k in range(4)],
-                "boxes": [], "agent_futures": [], "agent_future_mask": [],
-                "caption": f"caption {i}", "narration": f"narration {i}",
+                "boxes": [],
+                "agent_futures": [],
+                "agent_future_mask": [],
+                "caption": f"caption {i}",
+                "narration": f"narration {i}",
             }
         )
     return frames
@@ -78,7 +88,15 @@ def write_hand_dataset(root: Path, train: int = 2, val: int = 1, frames: int = 1
         for f in fr:
             # The token's own digits, not hash(): str hashes change with every process.
             writer.write_labels(scene, f["token"], hand_labels(int(f["token"][:8], 16) % 1000))
-            qs[split].append({"question": "Are there any cars?", "answer": "yes", "sample_token": f["token"], "template_type": "exist", "num_hop": 0})
+            qs[split].append(
+                {
+                    "question": "Are there any cars?",
+                    "answer": "yes",
+                    "sample_token": f["token"],
+                    "template_type": "exist",
+                    "num_hop": 0,
+                }
+            )
         writer.write_scene(scene, split, fr)
     writer.finalize(qs)
     return root
@@ -165,8 +183,11 @@ class _WarmParent:
     def __init__(self) -> None:
         self.folder = Path(tempfile.mkdtemp(prefix="occtrain-cli-"))
         self.proc = subprocess.Popen(
-            [sys.executable, str(REPO / "tests" / "cli_zygote.py")], cwd=REPO, env=cli_env(),
-            stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+            [sys.executable, str(REPO / "tests" / "cli_zygote.py")],
+            cwd=REPO,
+            env=cli_env(),
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
         )
         self.buffer, self.started, self.exited, self.count = b"", [], {}, 0
         self._read_until(lambda: self.started, timeout=300, what="the warm parent to import occtrain")
@@ -178,7 +199,14 @@ class _WarmParent:
     def spawn(self, argv: list[str], cwd: Path, env: dict[str, str], session: bool) -> CliProcess:
         self.count += 1
         out, err = self.folder / f"{self.count}.out", self.folder / f"{self.count}.err"
-        request = {"argv": list(argv), "cwd": str(cwd), "env": env, "stdout": str(out), "stderr": str(err), "session": session}
+        request = {
+            "argv": list(argv),
+            "cwd": str(cwd),
+            "env": env,
+            "stdout": str(out),
+            "stderr": str(err),
+            "session": session,
+        }
         self.proc.stdin.write((json.dumps(request) + "\n").encode())
         self.proc.stdin.flush()
         self._read_until(lambda: self.started, timeout=60, what="a fork")
@@ -230,7 +258,9 @@ class _FreshCliProcess(subprocess.Popen):
 _warm_parent: _WarmParent | None = None
 
 
-def start_cli(*args: str, cwd: Path | None = None, env: dict[str, str] | None = None, session: bool = False, fresh: bool = False):
+def start_cli(
+    *args: str, cwd: Path | None = None, env: dict[str, str] | None = None, session: bool = False, fresh: bool = False
+):
     """Start ``occtrain ARGS`` without waiting, forked from the warm parent (a
     :class:`CliProcess`) or, with ``fresh`` or FRESH_PROCESSES, from scratch. ``session``:
     its own session and process group, for ``os.killpg``. ``output()`` reads its stdout
@@ -261,7 +291,9 @@ def run_cli(
     return subprocess.CompletedProcess(["occtrain", *args], code, out, err)
 
 
-def kill_at_checkpoint(args: list[str], checkpoint: Path, step: int, env: dict[str, str] | None = None, timeout: float = 600) -> int:
+def kill_at_checkpoint(
+    args: list[str], checkpoint: Path, step: int, env: dict[str, str] | None = None, timeout: float = 600
+) -> int:
     """Start ``occtrain ARGS`` in its own process group, kill it (-9) once ``checkpoint``
     holds ``step`` or later, and return the step the checkpoint holds after the kill."""
     import torch

@@ -17,13 +17,18 @@ def tiny_overrides(data: Path, steps: int = 3, stages: int = len(STAGES)) -> lis
     instruct) at test size: a 3-scene world, a few steps per stage."""
     out = [
         f"data.root={data}",
-        "data.synth.train_scenes=2", "data.synth.val_scenes=1", "data.synth.frames_per_scene=13",
-        "data.samples_per_shard=8", "data.shuffle_buffer=4",
-        "trainer.ckpt_every_n_steps=1", "trainer.log_every_n_steps=1",
+        "data.synth.train_scenes=2",
+        "data.synth.val_scenes=1",
+        "data.synth.frames_per_scene=13",
+        "data.samples_per_shard=8",
+        "data.shuffle_buffer=4",
+        "trainer.ckpt_every_n_steps=1",
+        "trainer.log_every_n_steps=1",
     ]
     for i in range(stages):
         out += [
-            f"stages[{i}].trainer.max_steps={steps}", f"stages[{i}].trainer.val_check_interval={steps}",
+            f"stages[{i}].trainer.max_steps={steps}",
+            f"stages[{i}].trainer.val_check_interval={steps}",
             f"stages[{i}].trainer.limit_val_batches=1",
         ]
     out += [f"stages[{i}].model.val_samples=4" for i in (1, 2, 4) if i < stages]
@@ -36,7 +41,13 @@ def quickstart_run(root: Path) -> Path:
     run_dir = root / "run"
     # Started from scratch as a user starts it: the suite's one run not forked from the
     # warm parent (tests/cli_zygote.py), so nothing comes to depend on it.
-    args = ["run", "stages/quickstart.yaml", *tiny_overrides(root / "data", steps=PIPELINE_STEPS), "--run-dir", str(run_dir)]
+    args = [
+        "run",
+        "stages/quickstart.yaml",
+        *tiny_overrides(root / "data", steps=PIPELINE_STEPS),
+        "--run-dir",
+        str(run_dir),
+    ]
     res = run_cli(*args, timeout=900, fresh=True)
     assert res.returncode == 0, res.stderr[-3000:]
     return run_dir

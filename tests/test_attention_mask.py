@@ -12,18 +12,21 @@ from occtrain.models.attention import additive, allowed_pairs, build_4d_mask, ch
 SEGMENTS = torch.tensor([[0, 1, 1, 0, -2, -2, 2, 2, 0, 0]])
 PAD = torch.tensor([[True] * 9 + [False]])
 # Row = query token, column = key token; written out by hand from the rules.
-EXPECTED = torch.tensor([
-    [1, 0, 0, 0, 0, 0, 0, 0, 0, 0],  # text: causal
-    [1, 1, 1, 0, 0, 0, 0, 0, 0, 0],  # scene 1: its whole scene, the past
-    [1, 1, 1, 0, 0, 0, 0, 0, 0, 0],
-    [1, 1, 1, 1, 0, 0, 0, 0, 0, 0],  # text after a scene sees all of it
-    [1, 1, 1, 1, 1, 1, 0, 0, 0, 0],  # queries: the past and their own block
-    [1, 1, 1, 1, 1, 1, 0, 0, 0, 0],
-    [1, 1, 1, 1, 0, 0, 1, 1, 0, 0],  # scene 2's codes: not the queries
-    [1, 1, 1, 1, 0, 0, 1, 1, 0, 0],
-    [1, 1, 1, 1, 0, 0, 1, 1, 1, 0],  # text after: never the queries, never padding
-    [1, 1, 1, 1, 0, 0, 1, 1, 1, 1],  # padding row: itself, so never empty
-], dtype=torch.bool)
+EXPECTED = torch.tensor(
+    [
+        [1, 0, 0, 0, 0, 0, 0, 0, 0, 0],  # text: causal
+        [1, 1, 1, 0, 0, 0, 0, 0, 0, 0],  # scene 1: its whole scene, the past
+        [1, 1, 1, 0, 0, 0, 0, 0, 0, 0],
+        [1, 1, 1, 1, 0, 0, 0, 0, 0, 0],  # text after a scene sees all of it
+        [1, 1, 1, 1, 1, 1, 0, 0, 0, 0],  # queries: the past and their own block
+        [1, 1, 1, 1, 1, 1, 0, 0, 0, 0],
+        [1, 1, 1, 1, 0, 0, 1, 1, 0, 0],  # scene 2's codes: not the queries
+        [1, 1, 1, 1, 0, 0, 1, 1, 0, 0],
+        [1, 1, 1, 1, 0, 0, 1, 1, 1, 0],  # text after: never the queries, never padding
+        [1, 1, 1, 1, 0, 0, 1, 1, 1, 1],  # padding row: itself, so never empty
+    ],
+    dtype=torch.bool,
+)
 
 
 def test_mask_semantics_by_hand():
@@ -48,8 +51,15 @@ def test_scene_segments_from_code_runs():
 
 def _llama(impl: str) -> LlamaForCausalLM:
     torch.manual_seed(0)
-    cfg = LlamaConfig(vocab_size=40, hidden_size=32, intermediate_size=64, num_hidden_layers=2, num_attention_heads=4,
-                      num_key_value_heads=4, attn_implementation=impl)
+    cfg = LlamaConfig(
+        vocab_size=40,
+        hidden_size=32,
+        intermediate_size=64,
+        num_hidden_layers=2,
+        num_attention_heads=4,
+        num_key_value_heads=4,
+        attn_implementation=impl,
+    )
     return LlamaForCausalLM(cfg).eval()
 
 

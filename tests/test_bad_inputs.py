@@ -17,9 +17,10 @@ import json
 import shutil
 import struct
 import zipfile
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Any, Callable, Literal, NotRequired, Optional, TypedDict
+from typing import Annotated, Any, Literal, NotRequired, Optional, TypedDict
 
 import numpy as np
 import pytest
@@ -75,7 +76,9 @@ def world(tmp_path_factory) -> Path:
     export.mkdir(parents=True)
     recipe = load_config(RecipeConfig, REPO / "stages" / "quickstart.yaml", [f"data.root={root / 'ds'}"])
     (root / "run" / "pipeline.yaml").write_text(to_yaml(recipe))
-    (root / "run" / "manifest.json").write_text(json.dumps({"name": "quickstart", "stages": {"pretrain": {"kind": "pretrain", "status": "done"}}}))
+    (root / "run" / "manifest.json").write_text(
+        json.dumps({"name": "quickstart", "stages": {"pretrain": {"kind": "pretrain", "status": "done"}}})
+    )
     save_file({"w": torch.zeros(4)}, str(export / "model.safetensors"))
     (export / "config.json").write_text(json.dumps({"stage_kind": "world_model"}))
     return root
@@ -115,7 +118,9 @@ def edit_frame(i: int, change: Callable[[dict], Any], scene: int = 0) -> Callabl
 
 
 def edit_qa(change: Callable[[list], Any], split: str = "val") -> Callable[[Path], None]:
-    return lambda tmp: edit_json(tmp / "ds" / "nuscenes_qa" / f"NuScenes_{split}_questions.json", lambda d: change(d["questions"]))
+    return lambda tmp: edit_json(
+        tmp / "ds" / "nuscenes_qa" / f"NuScenes_{split}_questions.json", lambda d: change(d["questions"])
+    )
 
 
 def write_text(rel: str, text: str) -> Callable[[Path], None]:
@@ -273,7 +278,14 @@ def unlinked_token_timestamps(a: dict) -> None:
 
 def camera(intrinsic: Any) -> dict:
     pose = {"translation": [1.0, 0.0, 1.5], "rotation": [1.0, 0.0, 0.0, 0.0]}
-    return {"CAM_FRONT_tok": {"img_path": "imgs/CAM_FRONT/x.jpg", "intrinsic": intrinsic, "extrinsic": pose, "ego_pose": pose}}
+    return {
+        "CAM_FRONT_tok": {
+            "img_path": "imgs/CAM_FRONT/x.jpg",
+            "intrinsic": intrinsic,
+            "extrinsic": pose,
+            "ego_pose": pose,
+        }
+    }
 
 
 def pickled_checkpoint(tmp: Path) -> None:
@@ -287,7 +299,10 @@ def pickled_checkpoint(tmp: Path) -> None:
     planned = load_recipe(tmp / "r.yaml")[1]
     manifest({"status": "interrupted", "config_hash": planned[0].config_hash, "config": planned[0].config})(tmp)
     (tmp / "run2" / "tokenizer" / "checkpoints").mkdir(parents=True)
-    torch.save({"global_step": 2, "counts": collections.OrderedDict(a=1), "evil": Evil()}, tmp / "run2" / "tokenizer" / "checkpoints" / "last.ckpt")
+    torch.save(
+        {"global_step": 2, "counts": collections.OrderedDict(a=1), "evil": Evil()},
+        tmp / "run2" / "tokenizer" / "checkpoints" / "last.ckpt",
+    )
 
 
 class Evil:
@@ -310,7 +325,12 @@ def with_cameras(missing: str = "", corrupt: str = "") -> Callable[[Path], None]
                     info["camera_sensor"] = {}
                     for cam in CAMERA_NAMES:
                         rel = f"imgs/{cam}/{token}.png"
-                        info["camera_sensor"][cam] = {"img_path": rel, "intrinsic": [[8.0, 0, 8], [0, 8.0, 4], [0, 0, 1]], "extrinsic": pose, "ego_pose": pose}
+                        info["camera_sensor"][cam] = {
+                            "img_path": rel,
+                            "intrinsic": [[8.0, 0, 8], [0, 8.0, 4], [0, 0, 1]],
+                            "extrinsic": pose,
+                            "ego_pose": pose,
+                        }
                         (tmp / "ds" / rel).parent.mkdir(parents=True, exist_ok=True)
                         Image.new("RGB", (16, 8), (40, 80, 120)).save(tmp / "ds" / rel)
 
@@ -373,7 +393,10 @@ trainer: {{max_steps: 2, val_check_interval: 2, limit_val_batches: 1}}
 stages:
   - name: tokenizer
     kind: tokenizer
-    model: {{arch: occworld_vqvae, occworld_vqvae: {{num_codes: 8, code_dim: 4, base_channels: 4, channel_mult: [1, 1, 1], strides: [4, 5], num_res_blocks: 1, latent_attention: false, z_channels: 4}}}}
+    model:
+      arch: occworld_vqvae
+      occworld_vqvae: {{num_codes: 8, code_dim: 4, base_channels: 4, channel_mult: [1, 1, 1], strides: [4, 5],
+                        num_res_blocks: 1, latent_attention: false, z_channels: 4}}
     trainer: {{max_steps: 3}}
   - name: pretrain
     kind: pretrain
@@ -452,7 +475,11 @@ def stage_named(name: str) -> Callable[[Path], None]:
     def setup(tmp: Path) -> None:
         named = name.format(tmp=tmp)
         victim_beside(tmp)
-        recipe(lambda t: t.replace("  - name: tokenizer\n", f"  - name: '{named}'\n").replace("consumes: [tokenizer]", f"consumes: ['{named}']"))(tmp)
+        recipe(
+            lambda t: t.replace("  - name: tokenizer\n", f"  - name: '{named}'\n").replace(
+                "consumes: [tokenizer]", f"consumes: ['{named}']"
+            )
+        )(tmp)
 
     return setup
 
@@ -466,9 +493,12 @@ def manifest_naming(stage: str) -> Callable[[Path], None]:
     def setup(tmp: Path) -> None:
         recipe()(tmp)
         (tmp / "run2").mkdir()
-        (tmp / "run2" / "manifest.json").write_text(json.dumps({"name": "tiny", "stages": {stage: {"kind": "tokenizer", "status": "done"}}}))
+        (tmp / "run2" / "manifest.json").write_text(
+            json.dumps({"name": "tiny", "stages": {stage: {"kind": "tokenizer", "status": "done"}}})
+        )
 
     return setup
+
 
 # -- setups: restart and validate
 
@@ -486,6 +516,7 @@ def finished_run(tmp: Path) -> None:
     (tmp / "run2" / "pipeline.yaml").write_text("name: tiny\n")
     victim_beside(tmp)
 
+
 # -- setups: eval and outputs
 
 
@@ -501,7 +532,10 @@ def read_only_disk(mp: pytest.MonkeyPatch) -> None:
 
 
 def tokenizer_done(tmp: Path) -> None:
-    edit_json(tmp / "run" / "manifest.json", lambda m: m["stages"].update(tokenizer={"kind": "tokenizer", "status": "done"}))
+    edit_json(
+        tmp / "run" / "manifest.json", lambda m: m["stages"].update(tokenizer={"kind": "tokenizer", "status": "done"})
+    )
+
 
 # -- setups: plan-memory
 
@@ -544,6 +578,7 @@ PLUGIN_RAISES = "failed while being imported: RuntimeError: the broken plugin's 
 
 # -- setups: exports, load and trackers
 
+
 # -- setups: data
 def released_cameras(drop: str = "") -> Callable[[Path], None]:
     """Cameras in the released files' form (``img_path`` relative to ``imgs/``), ``drop``
@@ -577,393 +612,1553 @@ def plain_copy(tmp: Path) -> None:
 
 
 NO_BACK = "{tmp}/ds/imgs/CAM_BACK: camera folder not found, while {tmp}/ds/annotations.json names images in it"
-REBUILD_COPY = "or replace them with `occtrain data shards {tmp}/ds2 --out {tmp}/s2 --samples-per-shard 4 --history 1 --future 1 --rebuild`"
+REBUILD_COPY = (
+    "or replace them with `occtrain data shards {tmp}/ds2 --out {tmp}/s2 --samples-per-shard 4 "
+    "--history 1 --future 1 --rebuild`"
+)
 
 
 CASES: list[Case] = [
     # ------------------------------------------------------------------ annotations.json
     Case("ann-not-json", write_text("ds/annotations.json", "{not json"), SHARDS_FRAMES, 2, f"{ANN}: not valid JSON"),
-    Case("ann-not-an-object", write_text("ds/annotations.json", "[]"), SHARDS_FRAMES, 2, f"{ANN}: no 'scene_infos' key"),
-    Case("ann-translation-string", edit_sample(0, 0, lambda s: s["ego_pose"].update(translation="1,2,0")), SHARDS_FRAMES, 2,
-         f'{ANN}: {S0}.ego_pose.translation is the string "1,2,0", expected a list of 3 numbers'),
-    Case("ann-rotation-three-numbers", edit_sample(0, 0, lambda s: s["ego_pose"].update(rotation=[1.0, 0.0, 0.0])), SHARDS_FRAMES, 2,
-         f"{ANN}: {S0}.ego_pose.rotation holds 3 items, expected a list of 4 numbers"),
-    Case("ann-translation-nan", edit_sample(0, 0, lambda s: s["ego_pose"]["translation"].__setitem__(0, float("nan"))),
-         SHARDS_FRAMES, 2, f"{ANN}: {S0}.ego_pose.translation[0] is NaN, expected a number"),
-    Case("ann-rotation-bool", edit_sample(0, 0, lambda s: s["ego_pose"]["rotation"].__setitem__(0, True)), ["data", "show", DS, "--out", "{tmp}/b.png"],
-         2, f"{ANN}: {S0}.ego_pose.rotation[0] is true, expected a number"),
-    Case("ann-no-ego-pose", edit_sample(0, 0, lambda s: drop_key(s, "ego_pose")), SHARDS_FRAMES, 2, f"{ANN}: {S0}.ego_pose is missing, expected an object"),
-    Case("ann-timestamp-float", edit_sample(0, 0, lambda s: s.update(timestamp=1.5e14)), SHARDS_FRAMES, 2,
-         f"{ANN}: {S0}.timestamp is the number 1.5e+14, expected an integer or a string"),
-    Case("ann-prev-is-a-number", edit_sample(0, 0, lambda s: s.update(prev=0)), SHARDS_FRAMES, 2, f"{ANN}: {S0}.prev is the integer 0, expected a string"),
-    Case("ann-gt-path-list", edit_sample(0, 0, lambda s: s.update(gt_path=["gts"])), SHARDS_FRAMES, 2, f"{ANN}: {S0}.gt_path is a list of 1 item, expected a string"),
-    Case("ann-camera-intrinsic-2x3", edit_sample(0, 0, lambda s: s.update(camera_sensor=camera([[1.0, 0.0, 0.5]] * 2))), SHARDS_FRAMES, 2,
-         f"{ANN}: {S0}.camera_sensor.CAM_FRONT_tok.intrinsic holds 2 items, expected a list of 3 lists of 3 numbers"),
-    Case("ann-scene-is-a-list", edit_ann(lambda a: a["scene_infos"].update({SCENES[0]: []})), SHARDS_FRAMES, 2,
-         f"{ANN}: scene_infos.scene-0000 is a list of 0 items, expected an object"),
-    Case("ann-split-is-a-string", edit_ann(lambda a: a.update(train_split="scene-0000")), SHARDS_FRAMES, 2,
-         f'{ANN}: train_split is the string "scene-0000", expected a list of strings'),
-    Case("ann-split-names-unknown-scene", edit_ann(lambda a: a.update(val_split=["scene-9999"])), SHARDS_FRAMES, 2,
-         f"{ANN}: val_split names scene 'scene-9999' that has no scene_infos entry"),
-    Case("ann-no-order", edit_ann(unlinked_token_timestamps), SHARDS_FRAMES, 2,
-         f"{ANN}: scene_infos.scene-0000.{T0[0]}.timestamp is not a number of microseconds"),
-    Case("ann-as-score-ground-truth", edit_sample(1, 0, lambda s: s["ego_pose"].update(translation=None)),
-         ["score", "occupancy", "--pred", "{tmp}/ds/gts", "--gt", DS], 2,
-         f"{ANN}: scene_infos.scene-0001.{T1[0]}.ego_pose.translation is null, expected a list of 3 numbers"),
-    Case("check-ann-lists-every-problem",
-         edit_ann(lambda a: [a["scene_infos"][SCENES[0]][T0[0]].update(prev=1), a["scene_infos"][SCENES[1]][T1[4]].update(timestamp=None)]),
-         CHECK, 1, (f"{ANN}: scene_infos.scene-0000.{T0[0]}.prev is the integer 1, expected a string",
-                    f"{ANN}: scene_infos.scene-0001.{T1[4]}.timestamp is null, expected an integer or a string")),
-    Case("check-timestamps-decrease", edit_ann(swap_timestamps), CHECK, 1, f"{ANN}: scene 'scene-0000' timestamps do not increase"),
-    Case("check-duplicate-token", edit_ann(duplicate_token), CHECK, 1, f"{ANN}: sample token {T0[-1]} is in both scene_infos.scene-0000 and scene_infos.scene-0001"),
-    Case("check-not-a-unit-quaternion", edit_sample(0, 3, lambda s: s["ego_pose"].update(rotation=[0.0, 0.0, 0.0, 0.0])), CHECK, 1,
-         f"{ANN}: scene_infos.scene-0000.{T0[3]}.ego_pose.rotation is not a unit quaternion"),
+    Case(
+        "ann-not-an-object", write_text("ds/annotations.json", "[]"), SHARDS_FRAMES, 2, f"{ANN}: no 'scene_infos' key"
+    ),
+    Case(
+        "ann-translation-string",
+        edit_sample(0, 0, lambda s: s["ego_pose"].update(translation="1,2,0")),
+        SHARDS_FRAMES,
+        2,
+        f'{ANN}: {S0}.ego_pose.translation is the string "1,2,0", expected a list of 3 numbers',
+    ),
+    Case(
+        "ann-rotation-three-numbers",
+        edit_sample(0, 0, lambda s: s["ego_pose"].update(rotation=[1.0, 0.0, 0.0])),
+        SHARDS_FRAMES,
+        2,
+        f"{ANN}: {S0}.ego_pose.rotation holds 3 items, expected a list of 4 numbers",
+    ),
+    Case(
+        "ann-translation-nan",
+        edit_sample(0, 0, lambda s: s["ego_pose"]["translation"].__setitem__(0, float("nan"))),
+        SHARDS_FRAMES,
+        2,
+        f"{ANN}: {S0}.ego_pose.translation[0] is NaN, expected a number",
+    ),
+    Case(
+        "ann-rotation-bool",
+        edit_sample(0, 0, lambda s: s["ego_pose"]["rotation"].__setitem__(0, True)),
+        ["data", "show", DS, "--out", "{tmp}/b.png"],
+        2,
+        f"{ANN}: {S0}.ego_pose.rotation[0] is true, expected a number",
+    ),
+    Case(
+        "ann-no-ego-pose",
+        edit_sample(0, 0, lambda s: drop_key(s, "ego_pose")),
+        SHARDS_FRAMES,
+        2,
+        f"{ANN}: {S0}.ego_pose is missing, expected an object",
+    ),
+    Case(
+        "ann-timestamp-float",
+        edit_sample(0, 0, lambda s: s.update(timestamp=1.5e14)),
+        SHARDS_FRAMES,
+        2,
+        f"{ANN}: {S0}.timestamp is the number 1.5e+14, expected an integer or a string",
+    ),
+    Case(
+        "ann-prev-is-a-number",
+        edit_sample(0, 0, lambda s: s.update(prev=0)),
+        SHARDS_FRAMES,
+        2,
+        f"{ANN}: {S0}.prev is the integer 0, expected a string",
+    ),
+    Case(
+        "ann-gt-path-list",
+        edit_sample(0, 0, lambda s: s.update(gt_path=["gts"])),
+        SHARDS_FRAMES,
+        2,
+        f"{ANN}: {S0}.gt_path is a list of 1 item, expected a string",
+    ),
+    Case(
+        "ann-camera-intrinsic-2x3",
+        edit_sample(0, 0, lambda s: s.update(camera_sensor=camera([[1.0, 0.0, 0.5]] * 2))),
+        SHARDS_FRAMES,
+        2,
+        f"{ANN}: {S0}.camera_sensor.CAM_FRONT_tok.intrinsic holds 2 items, expected a list of 3 lists of 3 numbers",
+    ),
+    Case(
+        "ann-scene-is-a-list",
+        edit_ann(lambda a: a["scene_infos"].update({SCENES[0]: []})),
+        SHARDS_FRAMES,
+        2,
+        f"{ANN}: scene_infos.scene-0000 is a list of 0 items, expected an object",
+    ),
+    Case(
+        "ann-split-is-a-string",
+        edit_ann(lambda a: a.update(train_split="scene-0000")),
+        SHARDS_FRAMES,
+        2,
+        f'{ANN}: train_split is the string "scene-0000", expected a list of strings',
+    ),
+    Case(
+        "ann-split-names-unknown-scene",
+        edit_ann(lambda a: a.update(val_split=["scene-9999"])),
+        SHARDS_FRAMES,
+        2,
+        f"{ANN}: val_split names scene 'scene-9999' that has no scene_infos entry",
+    ),
+    Case(
+        "ann-no-order",
+        edit_ann(unlinked_token_timestamps),
+        SHARDS_FRAMES,
+        2,
+        f"{ANN}: scene_infos.scene-0000.{T0[0]}.timestamp is not a number of microseconds",
+    ),
+    Case(
+        "ann-as-score-ground-truth",
+        edit_sample(1, 0, lambda s: s["ego_pose"].update(translation=None)),
+        ["score", "occupancy", "--pred", "{tmp}/ds/gts", "--gt", DS],
+        2,
+        f"{ANN}: scene_infos.scene-0001.{T1[0]}.ego_pose.translation is null, expected a list of 3 numbers",
+    ),
+    Case(
+        "check-ann-lists-every-problem",
+        edit_ann(
+            lambda a: [
+                a["scene_infos"][SCENES[0]][T0[0]].update(prev=1),
+                a["scene_infos"][SCENES[1]][T1[4]].update(timestamp=None),
+            ]
+        ),
+        CHECK,
+        1,
+        (
+            f"{ANN}: scene_infos.scene-0000.{T0[0]}.prev is the integer 1, expected a string",
+            f"{ANN}: scene_infos.scene-0001.{T1[4]}.timestamp is null, expected an integer or a string",
+        ),
+    ),
+    Case(
+        "check-timestamps-decrease",
+        edit_ann(swap_timestamps),
+        CHECK,
+        1,
+        f"{ANN}: scene 'scene-0000' timestamps do not increase",
+    ),
+    Case(
+        "check-duplicate-token",
+        edit_ann(duplicate_token),
+        CHECK,
+        1,
+        f"{ANN}: sample token {T0[-1]} is in both scene_infos.scene-0000 and scene_infos.scene-0001",
+    ),
+    Case(
+        "check-not-a-unit-quaternion",
+        edit_sample(0, 3, lambda s: s["ego_pose"].update(rotation=[0.0, 0.0, 0.0, 0.0])),
+        CHECK,
+        1,
+        f"{ANN}: scene_infos.scene-0000.{T0[3]}.ego_pose.rotation is not a unit quaternion",
+    ),
     # ------------------------------------------------------------------ labels.npz
-    Case("labels-garbage", lambda tmp: labels_file(tmp).write_bytes(b"garbage"), SHARDS_FRAMES, 2, f"{LABELS}: corrupt or truncated .npz (not a zip archive)"),
-    Case("labels-truncated", lambda tmp: labels_file(tmp).write_bytes(labels_file(tmp).read_bytes()[:300]), SHARDS_FRAMES, 2,
-         f"{LABELS}: corrupt or truncated .npz"),
-    Case("labels-corrupt-deflate", lambda tmp: corrupt_deflate(labels_file(tmp)), SHARDS_FRAMES, 2,
-         f"{LABELS}: corrupt or truncated .npz (zlib.error: Error -3 while decompressing data"),
-    Case("labels-corrupt-deflate-check", lambda tmp: corrupt_deflate(labels_file(tmp)), CHECK, 1, f"{LABELS}: corrupt or truncated .npz (zlib.error"),
-    Case("labels-pickled", save_labels(semantics=np.array([{"evil": 1}], dtype=object)), SHARDS_FRAMES, 2,
-         f"{LABELS}: holds an object (pickled) array; refusing to load it"),
-    Case("labels-wrong-shape", save_labels(semantics=np.zeros((200, 200, 8), np.uint8)), SHARDS_FRAMES, 2, f"{LABELS}: 'semantics' has shape (200, 200, 8)"),
-    Case("labels-float", save_labels(semantics=np.zeros(GRID_SHAPE, np.float32)), SHARDS_FRAMES, 2, f"{LABELS}: 'semantics' has dtype float32, expected uint8"),
-    Case("labels-class-18", save_labels(semantics=np.full(GRID_SHAPE, 18, np.uint8)), SHARDS_FRAMES, 2, f"{LABELS}: 'semantics' holds class 18"),
-    Case("labels-no-camera-mask", save_labels(mask_camera=None), SHARDS_FRAMES, 2, f"{LABELS}: missing array 'mask_camera'"),
-    Case("labels-mask-of-twos", save_labels(mask_lidar=np.full(GRID_SHAPE, 2, np.uint8)), SHARDS_FRAMES, 2, f"{LABELS}: 'mask_lidar' holds values other than 0/1"),
+    Case(
+        "labels-garbage",
+        lambda tmp: labels_file(tmp).write_bytes(b"garbage"),
+        SHARDS_FRAMES,
+        2,
+        f"{LABELS}: corrupt or truncated .npz (not a zip archive)",
+    ),
+    Case(
+        "labels-truncated",
+        lambda tmp: labels_file(tmp).write_bytes(labels_file(tmp).read_bytes()[:300]),
+        SHARDS_FRAMES,
+        2,
+        f"{LABELS}: corrupt or truncated .npz",
+    ),
+    Case(
+        "labels-corrupt-deflate",
+        lambda tmp: corrupt_deflate(labels_file(tmp)),
+        SHARDS_FRAMES,
+        2,
+        f"{LABELS}: corrupt or truncated .npz (zlib.error: Error -3 while decompressing data",
+    ),
+    Case(
+        "labels-corrupt-deflate-check",
+        lambda tmp: corrupt_deflate(labels_file(tmp)),
+        CHECK,
+        1,
+        f"{LABELS}: corrupt or truncated .npz (zlib.error",
+    ),
+    Case(
+        "labels-pickled",
+        save_labels(semantics=np.array([{"evil": 1}], dtype=object)),
+        SHARDS_FRAMES,
+        2,
+        f"{LABELS}: holds an object (pickled) array; refusing to load it",
+    ),
+    Case(
+        "labels-wrong-shape",
+        save_labels(semantics=np.zeros((200, 200, 8), np.uint8)),
+        SHARDS_FRAMES,
+        2,
+        f"{LABELS}: 'semantics' has shape (200, 200, 8)",
+    ),
+    Case(
+        "labels-float",
+        save_labels(semantics=np.zeros(GRID_SHAPE, np.float32)),
+        SHARDS_FRAMES,
+        2,
+        f"{LABELS}: 'semantics' has dtype float32, expected uint8",
+    ),
+    Case(
+        "labels-class-18",
+        save_labels(semantics=np.full(GRID_SHAPE, 18, np.uint8)),
+        SHARDS_FRAMES,
+        2,
+        f"{LABELS}: 'semantics' holds class 18",
+    ),
+    Case(
+        "labels-no-camera-mask",
+        save_labels(mask_camera=None),
+        SHARDS_FRAMES,
+        2,
+        f"{LABELS}: missing array 'mask_camera'",
+    ),
+    Case(
+        "labels-mask-of-twos",
+        save_labels(mask_lidar=np.full(GRID_SHAPE, 2, np.uint8)),
+        SHARDS_FRAMES,
+        2,
+        f"{LABELS}: 'mask_lidar' holds values other than 0/1",
+    ),
     Case("labels-missing", lambda tmp: labels_file(tmp).unlink(), SHARDS_FRAMES, 2, f"{LABELS}: file not found"),
-    Case("check-labels-all-visible", save_labels(mask_camera=np.ones(GRID_SHAPE, np.uint8)), CHECK, 1, f"{LABELS}: mask_camera is all ones"),
+    Case(
+        "check-labels-all-visible",
+        save_labels(mask_camera=np.ones(GRID_SHAPE, np.uint8)),
+        CHECK,
+        1,
+        f"{LABELS}: mask_camera is all ones",
+    ),
     # ------------------------------------------------------------------ frame sidecars
-    Case("frames-no-ego-future", edit_frame(2, lambda f: drop_key(f, "ego_future")), SHARDS_CLIPS, 2,
-         f"{SIDECAR}: [2].ego_future is missing, expected a list of 6 lists of 2 numbers"),
-    Case("frames-translation-string", edit_frame(3, lambda f: f["ego_pose"].update(translation="7.5, 0")), SHARDS_CLIPS, 2,
-         f'{SIDECAR}: [3].ego_pose.translation is the string "7.5, 0", expected a list of 3 numbers'),
-    Case("frames-not-json", write_text("ds/occtrain/frames/scene-0000.json", "[{"), SHARDS_CLIPS, 2, f"{SIDECAR}: not valid JSON"),
-    Case("frames-not-a-list", write_text("ds/occtrain/frames/scene-0000.json", "{}"), SHARDS_CLIPS, 2,
-         f"{SIDECAR}: the top level is an object, expected a list of objects"),
-    Case("frames-unknown-command", edit_frame(0, lambda f: f.update(command="fly")), SHARDS_CLIPS, 2,
-         f'{SIDECAR}: [0].command is the string "fly", expected one of "turn right", "turn left", "go straight"'),
-    Case("frames-mask-of-two", edit_frame(0, lambda f: f["ego_future_mask"].__setitem__(1, 2)), SHARDS_CLIPS, 2,
-         f"{SIDECAR}: [0].ego_future_mask[1] is the integer 2, expected one of 0, 1"),
-    Case("frames-short-future", edit_frame(1, lambda f: f["ego_future"].pop()), SHARDS_CLIPS, 2,
-         f"{SIDECAR}: [1].ego_future holds 5 items, expected a list of 6 lists of 2 numbers"),
-    Case("frames-box-category", edit_frame(4, lambda f: f["boxes"].append(
-        {"track_id": 1, "category": "spaceship", "center": [1.0, 2.0, 0.5], "size": [4.0, 2.0, 1.5], "yaw": 0.0, "velocity": [0.0, 0.0], "attribute": ""})),
-        SHARDS_CLIPS, 2, f'{SIDECAR}: [4].boxes[0].category is the string "spaceship", expected one of "others"'),
-    Case("frames-speed-infinite", edit_frame(5, lambda f: f.update(ego_speed=float("inf"))), ["data", "show", DS, "--scene", "scene-0000", "--out", "{tmp}/b.png"],
-         2, f"{SIDECAR}: [5].ego_speed is Infinity, expected a number"),
-    Case("frames-token-mismatch", edit_frame(0, lambda f: f.update(token="not-a-sample")), SHARDS_CLIPS, 2,
-         f"{SIDECAR}: frame tokens do not match the samples of scene_infos.scene-0000"),
-    Case("frames-one-scene-lacks-its-sidecar", lambda tmp: (tmp / "ds/occtrain/frames/scene-0001.json").unlink(), SHARDS_CLIPS, 2,
-         "{tmp}/ds/occtrain/frames/scene-0001.json: missing while 1 other scenes have their frame sidecar"),
-    Case("check-frames-lists-every-problem", both(edit_frame(2, lambda f: drop_key(f, "ego_future")), edit_frame(6, lambda f: f.update(index="6"))),
-         CHECK, 1, (f"{SIDECAR}: [2].ego_future is missing, expected a list of 6 lists of 2 numbers",
-                    f'{SIDECAR}: [6].index is the string "6", expected an integer')),
-    Case("check-frames-disagree-with-poses", edit_frame(1, lambda f: f["ego_future"].__setitem__(0, [9.0, 9.0])), CHECK, 1,
-         f"{SIDECAR}: [1].ego_future[0] [9.0, 9.0] disagrees with the ego poses"),
-    Case("check-frames-box-count", edit_frame(1, lambda f: f["agent_futures"].append([[0.0, 0.0]] * 6)), CHECK, 1,
-         f"{SIDECAR}: [1].agent_futures has 1 entries for 0 boxes"),
+    Case(
+        "frames-no-ego-future",
+        edit_frame(2, lambda f: drop_key(f, "ego_future")),
+        SHARDS_CLIPS,
+        2,
+        f"{SIDECAR}: [2].ego_future is missing, expected a list of 6 lists of 2 numbers",
+    ),
+    Case(
+        "frames-translation-string",
+        edit_frame(3, lambda f: f["ego_pose"].update(translation="7.5, 0")),
+        SHARDS_CLIPS,
+        2,
+        f'{SIDECAR}: [3].ego_pose.translation is the string "7.5, 0", expected a list of 3 numbers',
+    ),
+    Case(
+        "frames-not-json",
+        write_text("ds/occtrain/frames/scene-0000.json", "[{"),
+        SHARDS_CLIPS,
+        2,
+        f"{SIDECAR}: not valid JSON",
+    ),
+    Case(
+        "frames-not-a-list",
+        write_text("ds/occtrain/frames/scene-0000.json", "{}"),
+        SHARDS_CLIPS,
+        2,
+        f"{SIDECAR}: the top level is an object, expected a list of objects",
+    ),
+    Case(
+        "frames-unknown-command",
+        edit_frame(0, lambda f: f.update(command="fly")),
+        SHARDS_CLIPS,
+        2,
+        f'{SIDECAR}: [0].command is the string "fly", expected one of "turn right", "turn left", "go straight"',
+    ),
+    Case(
+        "frames-mask-of-two",
+        edit_frame(0, lambda f: f["ego_future_mask"].__setitem__(1, 2)),
+        SHARDS_CLIPS,
+        2,
+        f"{SIDECAR}: [0].ego_future_mask[1] is the integer 2, expected one of 0, 1",
+    ),
+    Case(
+        "frames-short-future",
+        edit_frame(1, lambda f: f["ego_future"].pop()),
+        SHARDS_CLIPS,
+        2,
+        f"{SIDECAR}: [1].ego_future holds 5 items, expected a list of 6 lists of 2 numbers",
+    ),
+    Case(
+        "frames-box-category",
+        edit_frame(
+            4,
+            lambda f: f["boxes"].append(
+                {
+                    "track_id": 1,
+                    "category": "spaceship",
+                    "center": [1.0, 2.0, 0.5],
+                    "size": [4.0, 2.0, 1.5],
+                    "yaw": 0.0,
+                    "velocity": [0.0, 0.0],
+                    "attribute": "",
+                }
+            ),
+        ),
+        SHARDS_CLIPS,
+        2,
+        f'{SIDECAR}: [4].boxes[0].category is the string "spaceship", expected one of "others"',
+    ),
+    Case(
+        "frames-speed-infinite",
+        edit_frame(5, lambda f: f.update(ego_speed=float("inf"))),
+        ["data", "show", DS, "--scene", "scene-0000", "--out", "{tmp}/b.png"],
+        2,
+        f"{SIDECAR}: [5].ego_speed is Infinity, expected a number",
+    ),
+    Case(
+        "frames-token-mismatch",
+        edit_frame(0, lambda f: f.update(token="not-a-sample")),
+        SHARDS_CLIPS,
+        2,
+        f"{SIDECAR}: frame tokens do not match the samples of scene_infos.scene-0000",
+    ),
+    Case(
+        "frames-one-scene-lacks-its-sidecar",
+        lambda tmp: (tmp / "ds/occtrain/frames/scene-0001.json").unlink(),
+        SHARDS_CLIPS,
+        2,
+        "{tmp}/ds/occtrain/frames/scene-0001.json: missing while 1 other scenes have their frame sidecar",
+    ),
+    Case(
+        "check-frames-lists-every-problem",
+        both(edit_frame(2, lambda f: drop_key(f, "ego_future")), edit_frame(6, lambda f: f.update(index="6"))),
+        CHECK,
+        1,
+        (
+            f"{SIDECAR}: [2].ego_future is missing, expected a list of 6 lists of 2 numbers",
+            f'{SIDECAR}: [6].index is the string "6", expected an integer',
+        ),
+    ),
+    Case(
+        "check-frames-disagree-with-poses",
+        edit_frame(1, lambda f: f["ego_future"].__setitem__(0, [9.0, 9.0])),
+        CHECK,
+        1,
+        f"{SIDECAR}: [1].ego_future[0] [9.0, 9.0] disagrees with the ego poses",
+    ),
+    Case(
+        "check-frames-box-count",
+        edit_frame(1, lambda f: f["agent_futures"].append([[0.0, 0.0]] * 6)),
+        CHECK,
+        1,
+        f"{SIDECAR}: [1].agent_futures has 1 entries for 0 boxes",
+    ),
     # ------------------------------------------------------------------ NuScenes-QA sidecars
-    Case("qa-not-json", write_text("ds/nuscenes_qa/NuScenes_val_questions.json", '{"questions": ['), SHARDS_CLIPS, 2, f"{QA_VAL}: not valid JSON"),
-    Case("qa-top-level-list", write_text("ds/nuscenes_qa/NuScenes_val_questions.json", "[]"), SHARDS_CLIPS, 2,
-         f"{QA_VAL}: the top level is a list of 0 items, expected an object; NuScenes-QA format is"),
-    Case("qa-entry-not-an-object", edit_qa(lambda qs: qs.__setitem__(0, "Are there any cars?")), SHARDS_CLIPS, 2,
-         f'{QA_VAL}: questions[0] is the string "Are there any cars?", expected an object'),
-    Case("qa-sample-token-list", edit_qa(lambda qs: qs[1].update(sample_token=[T1[1]])), SHARDS_CLIPS, 2,
-         f"{QA_VAL}: questions[1].sample_token is a list of 1 item, expected a string"),
-    Case("qa-unknown-template", edit_qa(lambda qs: qs[2].update(template_type="why")), SHARDS_CLIPS, 2,
-         f'{QA_VAL}: questions[2].template_type is the string "why", expected one of "exist", "count"'),
-    Case("qa-num-hop-2", edit_qa(lambda qs: qs[3].update(num_hop=2)), SHARDS_CLIPS, 2, f"{QA_VAL}: questions[3].num_hop is the integer 2, expected one of 0, 1"),
-    Case("qa-no-answer", edit_qa(lambda qs: drop_key(qs[0], "answer"), split="train"), SHARDS_CLIPS, 2,
-         "{tmp}/ds/nuscenes_qa/NuScenes_train_questions.json: questions[0].answer is missing, expected a string"),
-    Case("check-qa-outside-split", edit_qa(lambda qs: qs[0].update(sample_token=T0[0])), CHECK, 1,
-         f"{QA_VAL}: questions[0].sample_token '{T0[0]}' is not a sample of the val split"),
-    Case("check-qa-lists-every-problem", edit_qa(lambda qs: [qs[0].update(num_hop=True), qs[5].update(answer=5)]), CHECK, 1,
-         (f"{QA_VAL}: questions[0].num_hop is true, expected one of 0, 1",
-          f"{QA_VAL}: questions[5].answer is the integer 5, expected a string")),
+    Case(
+        "qa-not-json",
+        write_text("ds/nuscenes_qa/NuScenes_val_questions.json", '{"questions": ['),
+        SHARDS_CLIPS,
+        2,
+        f"{QA_VAL}: not valid JSON",
+    ),
+    Case(
+        "qa-top-level-list",
+        write_text("ds/nuscenes_qa/NuScenes_val_questions.json", "[]"),
+        SHARDS_CLIPS,
+        2,
+        f"{QA_VAL}: the top level is a list of 0 items, expected an object; NuScenes-QA format is",
+    ),
+    Case(
+        "qa-entry-not-an-object",
+        edit_qa(lambda qs: qs.__setitem__(0, "Are there any cars?")),
+        SHARDS_CLIPS,
+        2,
+        f'{QA_VAL}: questions[0] is the string "Are there any cars?", expected an object',
+    ),
+    Case(
+        "qa-sample-token-list",
+        edit_qa(lambda qs: qs[1].update(sample_token=[T1[1]])),
+        SHARDS_CLIPS,
+        2,
+        f"{QA_VAL}: questions[1].sample_token is a list of 1 item, expected a string",
+    ),
+    Case(
+        "qa-unknown-template",
+        edit_qa(lambda qs: qs[2].update(template_type="why")),
+        SHARDS_CLIPS,
+        2,
+        f'{QA_VAL}: questions[2].template_type is the string "why", expected one of "exist", "count"',
+    ),
+    Case(
+        "qa-num-hop-2",
+        edit_qa(lambda qs: qs[3].update(num_hop=2)),
+        SHARDS_CLIPS,
+        2,
+        f"{QA_VAL}: questions[3].num_hop is the integer 2, expected one of 0, 1",
+    ),
+    Case(
+        "qa-no-answer",
+        edit_qa(lambda qs: drop_key(qs[0], "answer"), split="train"),
+        SHARDS_CLIPS,
+        2,
+        "{tmp}/ds/nuscenes_qa/NuScenes_train_questions.json: questions[0].answer is missing, expected a string",
+    ),
+    Case(
+        "check-qa-outside-split",
+        edit_qa(lambda qs: qs[0].update(sample_token=T0[0])),
+        CHECK,
+        1,
+        f"{QA_VAL}: questions[0].sample_token '{T0[0]}' is not a sample of the val split",
+    ),
+    Case(
+        "check-qa-lists-every-problem",
+        edit_qa(lambda qs: [qs[0].update(num_hop=True), qs[5].update(answer=5)]),
+        CHECK,
+        1,
+        (
+            f"{QA_VAL}: questions[0].num_hop is true, expected one of 0, 1",
+            f"{QA_VAL}: questions[5].answer is the integer 5, expected a string",
+        ),
+    ),
     # ------------------------------------------------------------------ shards
-    Case("shards-out-holds-other-shards", other_shards, SHARDS_FRAMES, 2, "{tmp}/out: already holds shards of a different dataset or layout"),
-    Case("shards-out-index-not-json", both(other_shards, write_text("out/index.json", "{")), SHARDS_FRAMES, 2, "{tmp}/out/index.json: not valid JSON"),
+    Case(
+        "shards-out-holds-other-shards",
+        other_shards,
+        SHARDS_FRAMES,
+        2,
+        "{tmp}/out: already holds shards of a different dataset or layout",
+    ),
+    Case(
+        "shards-out-index-not-json",
+        both(other_shards, write_text("out/index.json", "{")),
+        SHARDS_FRAMES,
+        2,
+        "{tmp}/out/index.json: not valid JSON",
+    ),
     Case("shards-out-holds-a-stray-tar", stray_tar, SHARDS_FRAMES, 2, "{tmp}/out: holds shards without an index.json"),
-    Case("shards-zero-per-shard", nothing, ["data", "shards", DS, "--out", "{tmp}/out", "--samples-per-shard", "0"], 2,
-         "samples_per_shard is 0; it must be a whole number of at least 1"),
-    Case("check-shards-index-escapes", shard_index(lambda i: i["kinds"]["frames"]["train"][0].update(file="../../ds/annotations.json")),
-         CHECK_SHARDS, 1, "{tmp}/shards/index.json: kinds.frames.train[0].file '../../ds/annotations.json' is not a file name"),
-    Case("check-shards-index-count-string", shard_index(lambda i: i["kinds"]["frames"]["val"][1].update(samples="4")), CHECK_SHARDS, 1,
-         '{tmp}/shards/index.json: kinds.frames.val[1].samples is the string "4", expected an integer'),
-    Case("check-shards-index-is-a-list", write_text("shards/index.json", "[]"), CHECK_SHARDS, 1,
-         "{tmp}/shards/index.json: the top level is a list of 0 items, expected an object"),
-    Case("check-shards-truncated", truncate("shards/frames/train-000001.tar", 3000), CHECK_SHARDS, 1, "{tmp}/shards/frames/train-000001.tar"),
-    Case("check-shards-missing", lambda tmp: (tmp / "shards/frames/val-000000.tar").unlink(), CHECK_SHARDS, 1,
-         "{tmp}/shards/frames/val-000000.tar: listed in index.json but missing"),
-    Case("check-shards-wrong-count", shard_index(lambda i: i["kinds"]["frames"]["val"][1].update(samples=9)), CHECK_SHARDS, 1,
-         "{tmp}/shards/frames/val-000001.tar: holds 4 samples, index.json says 9"),
+    Case(
+        "shards-zero-per-shard",
+        nothing,
+        ["data", "shards", DS, "--out", "{tmp}/out", "--samples-per-shard", "0"],
+        2,
+        "samples_per_shard is 0; it must be a whole number of at least 1",
+    ),
+    Case(
+        "check-shards-index-escapes",
+        shard_index(lambda i: i["kinds"]["frames"]["train"][0].update(file="../../ds/annotations.json")),
+        CHECK_SHARDS,
+        1,
+        "{tmp}/shards/index.json: kinds.frames.train[0].file '../../ds/annotations.json' is not a file name",
+    ),
+    Case(
+        "check-shards-index-count-string",
+        shard_index(lambda i: i["kinds"]["frames"]["val"][1].update(samples="4")),
+        CHECK_SHARDS,
+        1,
+        '{tmp}/shards/index.json: kinds.frames.val[1].samples is the string "4", expected an integer',
+    ),
+    Case(
+        "check-shards-index-is-a-list",
+        write_text("shards/index.json", "[]"),
+        CHECK_SHARDS,
+        1,
+        "{tmp}/shards/index.json: the top level is a list of 0 items, expected an object",
+    ),
+    Case(
+        "check-shards-truncated",
+        truncate("shards/frames/train-000001.tar", 3000),
+        CHECK_SHARDS,
+        1,
+        "{tmp}/shards/frames/train-000001.tar",
+    ),
+    Case(
+        "check-shards-missing",
+        lambda tmp: (tmp / "shards/frames/val-000000.tar").unlink(),
+        CHECK_SHARDS,
+        1,
+        "{tmp}/shards/frames/val-000000.tar: listed in index.json but missing",
+    ),
+    Case(
+        "check-shards-wrong-count",
+        shard_index(lambda i: i["kinds"]["frames"]["val"][1].update(samples=9)),
+        CHECK_SHARDS,
+        1,
+        "{tmp}/shards/frames/val-000001.tar: holds 4 samples, index.json says 9",
+    ),
     # ------------------------------------------------------------------ occtrain score
-    Case("forecast-float-labels", forecast(np.full((6, *GRID_SHAPE), 4.0, np.float32)), FORECAST, 2,
-         f"{{tmp}}/fc/scene-0001/{T1[0]}/forecast.npz: 'semantics' has dtype float32; save class indices 0..17 as uint8"),
-    Case("forecast-nan-labels", forecast(np.full((6, *GRID_SHAPE), np.nan, np.float16)), FORECAST, 2,
-         f"{{tmp}}/fc/scene-0001/{T1[0]}/forecast.npz: 'semantics' has dtype float16"),
-    Case("forecast-negative-labels", forecast(np.full((6, *GRID_SHAPE), -1, np.int8)), FORECAST, 2,
-         f"{{tmp}}/fc/scene-0001/{T1[0]}/forecast.npz: 'semantics' holds class -1; Occ3D classes are 0..17"),
-    Case("forecast-bool-labels", forecast(np.zeros((6, *GRID_SHAPE), bool)), FORECAST, 2,
-         f"{{tmp}}/fc/scene-0001/{T1[0]}/forecast.npz: 'semantics' has dtype bool"),
-    Case("forecast-corrupt-deflate", bad_forecast_deflate, FORECAST, 2, f"{{tmp}}/fc/scene-0001/{T1[0]}/forecast.npz: corrupt or truncated .npz"),
-    Case("forecast-pickled", forecast(np.array([{"evil": 1}], dtype=object)), FORECAST, 2,
-         f"{{tmp}}/fc/scene-0001/{T1[0]}/forecast.npz: holds an object (pickled) array"),
-    Case("occupancy-float-prediction", occupancy_prediction,
-         ["score", "occupancy", "--pred", "{tmp}/occ", "--gt", DS, "--split", "val", "--allow-missing"], 2,
-         f"{{tmp}}/occ/scene-0001/{T1[0]}/labels.npz: 'semantics' has dtype float32, expected uint8"),
-    Case("planning-mask-of-strings", planning(lambda p, g: g["tok-b"].update(mask=["1", "1", "1", "1", "1", "0"])), PLANNING, 2,
-         '{tmp}/g.json: tok-b.mask[0] is the string "1", expected one of 0, 1, true, false'),
-    Case("planning-mask-of-twos", planning(lambda p, g: g["tok-a"].update(mask=[1, 1, 2, 1, 1, 1])), PLANNING, 2,
-         "{tmp}/g.json: tok-a.mask[2] is the integer 2, expected one of 0, 1, true, false"),
-    Case("planning-nan-prediction", planning(lambda p, g: p["tok-b"][3].__setitem__(0, float("nan"))), PLANNING, 2,
-         "{tmp}/p.json: tok-b[3][0] is NaN, expected a number"),
-    Case("planning-infinite-truth", planning(lambda p, g: g["tok-a"]["traj"][0].__setitem__(1, float("-inf"))), PLANNING, 2,
-         "{tmp}/g.json: tok-a.traj[0][1] is -Infinity, expected a number"),
-    Case("planning-numbers-as-strings", planning(lambda p, g: p.update({"tok-a": [["2.5", "0"]] * 6})), PLANNING, 2,
-         '{tmp}/p.json: tok-a[0][0] is the string "2.5", expected a number'),
-    Case("planning-agents-not-boxes", planning(lambda p, g: g["tok-a"]["agents"].__setitem__(2, "none")), PLANNING, 2,
-         '{tmp}/g.json: tok-a.agents[2] is the string "none", expected a list of lists of 5 numbers'),
-    Case("planning-out-is-a-directory", planning(lambda p, g: None), [*PLANNING, "--out", "{tmp}/ds"], 2, "{tmp}/ds: is a directory; --out takes a file name"),
-    Case("captions-number", captions({"a": 3}, {"a": ["x"]}), CAPTIONS, 2, "{tmp}/cap.json: a is the integer 3, expected a string"),
-    Case("captions-reference-numbers", captions({"a": "x"}, {"a": ["x", 2]}), CAPTIONS, 2,
-         "{tmp}/ref.json: a is a list of 2 items, expected a string or a list of strings"),
-    Case("qa-answer-bool", qa_answers(["yes", True, "1", "car"]), QA, 2, "{tmp}/a.json: [1] is true, expected a string"),
-    Case("qa-questions-without-answer", qa_answers(["yes", "2", "1", "car"], lambda qs: drop_key(qs[1], "answer")), QA, 2,
-         "{tmp}/q.json: questions[1].answer is missing, expected a string"),
-    Case("qa-questions-hop-string", qa_answers(["yes", "2", "1", "car"], lambda qs: qs[2].update(num_hop="1")), QA, 2,
-         '{tmp}/q.json: questions[2].num_hop is the string "1", expected one of 0, 1'),
+    Case(
+        "forecast-float-labels",
+        forecast(np.full((6, *GRID_SHAPE), 4.0, np.float32)),
+        FORECAST,
+        2,
+        f"{{tmp}}/fc/scene-0001/{T1[0]}/forecast.npz: 'semantics' has dtype float32; save class indices 0..17 as uint8",
+    ),
+    Case(
+        "forecast-nan-labels",
+        forecast(np.full((6, *GRID_SHAPE), np.nan, np.float16)),
+        FORECAST,
+        2,
+        f"{{tmp}}/fc/scene-0001/{T1[0]}/forecast.npz: 'semantics' has dtype float16",
+    ),
+    Case(
+        "forecast-negative-labels",
+        forecast(np.full((6, *GRID_SHAPE), -1, np.int8)),
+        FORECAST,
+        2,
+        f"{{tmp}}/fc/scene-0001/{T1[0]}/forecast.npz: 'semantics' holds class -1; Occ3D classes are 0..17",
+    ),
+    Case(
+        "forecast-bool-labels",
+        forecast(np.zeros((6, *GRID_SHAPE), bool)),
+        FORECAST,
+        2,
+        f"{{tmp}}/fc/scene-0001/{T1[0]}/forecast.npz: 'semantics' has dtype bool",
+    ),
+    Case(
+        "forecast-corrupt-deflate",
+        bad_forecast_deflate,
+        FORECAST,
+        2,
+        f"{{tmp}}/fc/scene-0001/{T1[0]}/forecast.npz: corrupt or truncated .npz",
+    ),
+    Case(
+        "forecast-pickled",
+        forecast(np.array([{"evil": 1}], dtype=object)),
+        FORECAST,
+        2,
+        f"{{tmp}}/fc/scene-0001/{T1[0]}/forecast.npz: holds an object (pickled) array",
+    ),
+    Case(
+        "occupancy-float-prediction",
+        occupancy_prediction,
+        ["score", "occupancy", "--pred", "{tmp}/occ", "--gt", DS, "--split", "val", "--allow-missing"],
+        2,
+        f"{{tmp}}/occ/scene-0001/{T1[0]}/labels.npz: 'semantics' has dtype float32, expected uint8",
+    ),
+    Case(
+        "planning-mask-of-strings",
+        planning(lambda p, g: g["tok-b"].update(mask=["1", "1", "1", "1", "1", "0"])),
+        PLANNING,
+        2,
+        '{tmp}/g.json: tok-b.mask[0] is the string "1", expected one of 0, 1, true, false',
+    ),
+    Case(
+        "planning-mask-of-twos",
+        planning(lambda p, g: g["tok-a"].update(mask=[1, 1, 2, 1, 1, 1])),
+        PLANNING,
+        2,
+        "{tmp}/g.json: tok-a.mask[2] is the integer 2, expected one of 0, 1, true, false",
+    ),
+    Case(
+        "planning-nan-prediction",
+        planning(lambda p, g: p["tok-b"][3].__setitem__(0, float("nan"))),
+        PLANNING,
+        2,
+        "{tmp}/p.json: tok-b[3][0] is NaN, expected a number",
+    ),
+    Case(
+        "planning-infinite-truth",
+        planning(lambda p, g: g["tok-a"]["traj"][0].__setitem__(1, float("-inf"))),
+        PLANNING,
+        2,
+        "{tmp}/g.json: tok-a.traj[0][1] is -Infinity, expected a number",
+    ),
+    Case(
+        "planning-numbers-as-strings",
+        planning(lambda p, g: p.update({"tok-a": [["2.5", "0"]] * 6})),
+        PLANNING,
+        2,
+        '{tmp}/p.json: tok-a[0][0] is the string "2.5", expected a number',
+    ),
+    Case(
+        "planning-agents-not-boxes",
+        planning(lambda p, g: g["tok-a"]["agents"].__setitem__(2, "none")),
+        PLANNING,
+        2,
+        '{tmp}/g.json: tok-a.agents[2] is the string "none", expected a list of lists of 5 numbers',
+    ),
+    Case(
+        "planning-out-is-a-directory",
+        planning(lambda p, g: None),
+        [*PLANNING, "--out", "{tmp}/ds"],
+        2,
+        "{tmp}/ds: is a directory; --out takes a file name",
+    ),
+    Case(
+        "captions-number",
+        captions({"a": 3}, {"a": ["x"]}),
+        CAPTIONS,
+        2,
+        "{tmp}/cap.json: a is the integer 3, expected a string",
+    ),
+    Case(
+        "captions-reference-numbers",
+        captions({"a": "x"}, {"a": ["x", 2]}),
+        CAPTIONS,
+        2,
+        "{tmp}/ref.json: a is a list of 2 items, expected a string or a list of strings",
+    ),
+    Case(
+        "qa-answer-bool", qa_answers(["yes", True, "1", "car"]), QA, 2, "{tmp}/a.json: [1] is true, expected a string"
+    ),
+    Case(
+        "qa-questions-without-answer",
+        qa_answers(["yes", "2", "1", "car"], lambda qs: drop_key(qs[1], "answer")),
+        QA,
+        2,
+        "{tmp}/q.json: questions[1].answer is missing, expected a string",
+    ),
+    Case(
+        "qa-questions-hop-string",
+        qa_answers(["yes", "2", "1", "car"], lambda qs: qs[2].update(num_hop="1")),
+        QA,
+        2,
+        '{tmp}/q.json: questions[2].num_hop is the string "1", expected one of 0, 1',
+    ),
     # ------------------------------------------------------------------ exports
-    Case("export-config-not-json", export_file("config.json", b"{\"stage_kind\": "), EVAL, 2,
-         EXPORT + "config.json: unreadable export config"),
-    Case("export-config-a-list", export_file("config.json", b"[]"), EVAL, 2, EXPORT + "config.json: is not a JSON object (found a list); re-run the stage that wrote it"),
-    Case("export-weights-truncated", export_file("model.safetensors", keep=40), EVAL, 2,
-         EXPORT + "model.safetensors: unreadable weights"),
-    Case("export-weights-garbage", export_file("model.safetensors", b"\x00" * 3), EVAL, 2, EXPORT + "model.safetensors: unreadable weights"),
+    Case(
+        "export-config-not-json",
+        export_file("config.json", b'{"stage_kind": '),
+        EVAL,
+        2,
+        EXPORT + "config.json: unreadable export config",
+    ),
+    Case(
+        "export-config-a-list",
+        export_file("config.json", b"[]"),
+        EVAL,
+        2,
+        EXPORT + "config.json: is not a JSON object (found a list); re-run the stage that wrote it",
+    ),
+    Case(
+        "export-weights-truncated",
+        export_file("model.safetensors", keep=40),
+        EVAL,
+        2,
+        EXPORT + "model.safetensors: unreadable weights",
+    ),
+    Case(
+        "export-weights-garbage",
+        export_file("model.safetensors", b"\x00" * 3),
+        EVAL,
+        2,
+        EXPORT + "model.safetensors: unreadable weights",
+    ),
     # ------------------------------------------------------------------ data synth / show
-    Case("synth-into-another-dataset", nothing, ["data", "synth", "--out", DS, "--scenes", "1", "--val-scenes", "1", "--frames", "8"], 2,
-         "{tmp}/ds: already holds a different dataset"),
-    Case("synth-into-a-foreign-directory", nothing, ["data", "synth", "--out", "{tmp}/ds/gts", "--scenes", "1", "--frames", "8"], 2,
-         "{tmp}/ds/gts: exists and is not an occtrain dataset"),
-    Case("synth-no-frames", nothing, ["data", "synth", "--out", "{tmp}/new", "--frames", "0"], 2, "synth needs at least one train scene and one frame per scene"),
-    Case("show-unknown-scene", nothing, ["data", "show", DS, "--scene", "scene-9999", "--out", "{tmp}/b.png"], 2, "{tmp}/ds: no scene 'scene-9999'"),
-    Case("show-out-under-a-file", nothing, ["data", "show", DS, "--out", "{tmp}/ds/annotations.json/b.png"], 2,
-         "{tmp}/ds/annotations.json/b.png: cannot write the picture"),
-    Case("show-zero-scale", nothing, ["data", "show", DS, "--scale", "0", "--out", "{tmp}/b.png"], 2, "--scale 0: must be at least 1"),
+    Case(
+        "synth-into-another-dataset",
+        nothing,
+        ["data", "synth", "--out", DS, "--scenes", "1", "--val-scenes", "1", "--frames", "8"],
+        2,
+        "{tmp}/ds: already holds a different dataset",
+    ),
+    Case(
+        "synth-into-a-foreign-directory",
+        nothing,
+        ["data", "synth", "--out", "{tmp}/ds/gts", "--scenes", "1", "--frames", "8"],
+        2,
+        "{tmp}/ds/gts: exists and is not an occtrain dataset",
+    ),
+    Case(
+        "synth-no-frames",
+        nothing,
+        ["data", "synth", "--out", "{tmp}/new", "--frames", "0"],
+        2,
+        "synth needs at least one train scene and one frame per scene",
+    ),
+    Case(
+        "show-unknown-scene",
+        nothing,
+        ["data", "show", DS, "--scene", "scene-9999", "--out", "{tmp}/b.png"],
+        2,
+        "{tmp}/ds: no scene 'scene-9999'",
+    ),
+    Case(
+        "show-out-under-a-file",
+        nothing,
+        ["data", "show", DS, "--out", "{tmp}/ds/annotations.json/b.png"],
+        2,
+        "{tmp}/ds/annotations.json/b.png: cannot write the picture",
+    ),
+    Case(
+        "show-zero-scale",
+        nothing,
+        ["data", "show", DS, "--scale", "0", "--out", "{tmp}/b.png"],
+        2,
+        "--scale 0: must be at least 1",
+    ),
     # ------------------------------------------------------------------ recipes, overrides, run directories
-    Case("recipe-without-name", recipe(lambda t: t.replace("name: tiny\n", "")), RUN, 2, RECIPE_FILE + " has no 'name:'"),
-    Case("stage-without-kind", recipe(lambda t: t.replace("    kind: tokenizer\n", "")), RUN, 2,
-         "stages[0] in " + RECIPE_FILE + " has no 'kind:'"),
-    Case("stage-without-name", recipe(lambda t: t.replace("  - name: tokenizer\n    kind", "  - kind")), RUN, 2,
-         "stages[0] in " + RECIPE_FILE + " has no 'name:'"),
-    Case("recipe-unknown-key", recipe(lambda t: t + "trainr: {}\n"), RUN, 2, "unknown key 'trainr' in " + RECIPE_FILE + "; did you mean 'trainer'?"),
+    Case(
+        "recipe-without-name", recipe(lambda t: t.replace("name: tiny\n", "")), RUN, 2, RECIPE_FILE + " has no 'name:'"
+    ),
+    Case(
+        "stage-without-kind",
+        recipe(lambda t: t.replace("    kind: tokenizer\n", "")),
+        RUN,
+        2,
+        "stages[0] in " + RECIPE_FILE + " has no 'kind:'",
+    ),
+    Case(
+        "stage-without-name",
+        recipe(lambda t: t.replace("  - name: tokenizer\n    kind", "  - kind")),
+        RUN,
+        2,
+        "stages[0] in " + RECIPE_FILE + " has no 'name:'",
+    ),
+    Case(
+        "recipe-unknown-key",
+        recipe(lambda t: t + "trainr: {}\n"),
+        RUN,
+        2,
+        "unknown key 'trainr' in " + RECIPE_FILE + "; did you mean 'trainer'?",
+    ),
     Case("recipe-not-yaml", recipe(lambda t: t + "stages: [\n"), RUN, 2, RECIPE_FILE + " line"),
     Case("recipe-missing", nothing, ["run", "{tmp}/none.yaml"], 2, "config file not found: {tmp}/none.yaml"),
-    Case("recipe-stages-not-a-list", recipe(lambda t: t[: t.index("stages:")] + "stages: 3\n"), RUN, 2, "invalid value for 'stages' in " + RECIPE_FILE),
-    Case("stage-kind-unknown", recipe(lambda t: t.replace("kind: pretrain", "kind: pretrian")), RUN, 2, "unknown stage kind 'pretrian'"),
-    Case("stage-consumes-later", recipe(lambda t: t.replace("    kind: tokenizer\n", "    kind: tokenizer\n    consumes: [pretrain]\n", 1)), RUN, 2,
-         "consumes 'pretrain', which is not an earlier stage (it runs later)"),
-    Case("stage-names-twice", recipe(lambda t: t.replace("name: pretrain", "name: tokenizer")), RUN, 2, "stage name 'tokenizer' is used twice"),
-    Case("stage-model-typo", recipe(lambda t: t.replace("num_codes: 8", "num_code: 8")), RUN, 2, "unknown key 'stages[0].model.occworld_vqvae.num_code' in " + RECIPE_FILE + "; did you mean 'num_codes'?"),
-    Case("stage-data-root", recipe(lambda t: t.replace("    trainer: {max_steps: 3}", "    trainer: {max_steps: 3}\n    data: {root: x}")), RUN, 2,
-         "stages[0].data.root in " + RECIPE_FILE + ": a stage sets only batch_size, num_workers, shuffle_buffer"),
-    Case("plugin-missing", recipe(lambda t: t + "plugins: [no_such_plugin_module]\n"), RUN, 2, "plugin 'no_such_plugin_module'"),
-    Case("override-typo", recipe(), [*RUN, "trainer.max_step=3"], 2, "unknown key 'trainer.max_step' in override 'trainer.max_step=3'; did you mean 'max_steps'?"),
-    Case("override-no-equals", recipe(), [*RUN, "trainer.max_steps"], 2, "override 'trainer.max_steps' must look like key=value"),
+    Case(
+        "recipe-stages-not-a-list",
+        recipe(lambda t: t[: t.index("stages:")] + "stages: 3\n"),
+        RUN,
+        2,
+        "invalid value for 'stages' in " + RECIPE_FILE,
+    ),
+    Case(
+        "stage-kind-unknown",
+        recipe(lambda t: t.replace("kind: pretrain", "kind: pretrian")),
+        RUN,
+        2,
+        "unknown stage kind 'pretrian'",
+    ),
+    Case(
+        "stage-consumes-later",
+        recipe(lambda t: t.replace("    kind: tokenizer\n", "    kind: tokenizer\n    consumes: [pretrain]\n", 1)),
+        RUN,
+        2,
+        "consumes 'pretrain', which is not an earlier stage (it runs later)",
+    ),
+    Case(
+        "stage-names-twice",
+        recipe(lambda t: t.replace("name: pretrain", "name: tokenizer")),
+        RUN,
+        2,
+        "stage name 'tokenizer' is used twice",
+    ),
+    Case(
+        "stage-model-typo",
+        recipe(lambda t: t.replace("num_codes: 8", "num_code: 8")),
+        RUN,
+        2,
+        "unknown key 'stages[0].model.occworld_vqvae.num_code' in " + RECIPE_FILE + "; did you mean 'num_codes'?",
+    ),
+    Case(
+        "stage-data-root",
+        recipe(lambda t: t.replace("    trainer: {max_steps: 3}", "    trainer: {max_steps: 3}\n    data: {root: x}")),
+        RUN,
+        2,
+        "stages[0].data.root in " + RECIPE_FILE + ": a stage sets only batch_size, num_workers, shuffle_buffer",
+    ),
+    Case(
+        "plugin-missing",
+        recipe(lambda t: t + "plugins: [no_such_plugin_module]\n"),
+        RUN,
+        2,
+        "plugin 'no_such_plugin_module'",
+    ),
+    Case(
+        "override-typo",
+        recipe(),
+        [*RUN, "trainer.max_step=3"],
+        2,
+        "unknown key 'trainer.max_step' in override 'trainer.max_step=3'; did you mean 'max_steps'?",
+    ),
+    Case(
+        "override-no-equals",
+        recipe(),
+        [*RUN, "trainer.max_steps"],
+        2,
+        "override 'trainer.max_steps' must look like key=value",
+    ),
     Case("override-wrong-type", recipe(), [*RUN, "trainer.max_steps=many"], 2, "invalid value for 'trainer.max_steps'"),
-    Case("override-unknown-stage-name", recipe(), [*RUN, "stages.tokeniser.optim.lr=1"], 2,
-         "has no stage 'tokeniser' (stages: tokenizer, pretrain); address one as stages.<name>.<key>="),
+    Case(
+        "override-unknown-stage-name",
+        recipe(),
+        [*RUN, "stages.tokeniser.optim.lr=1"],
+        2,
+        "has no stage 'tokeniser' (stages: tokenizer, pretrain); address one as stages.<name>.<key>=",
+    ),
     Case("override-stage-index-out-of-range", recipe(), [*RUN, "stages.7.optim.lr=1"], 2, "has no stage '7'"),
-    Case("override-stage-key-typo", recipe(), [*RUN, "stages.tokenizer.optim.lrr=1"], 2, "unknown key 'stages[0].optim.lrr'"),
-    Case("max-steps-zero", recipe(lambda t: t.replace("    trainer: {max_steps: 3}\n", "")), [*RUN, "trainer.max_steps=0"], 2,
-         "trainer.max_steps is 0 in " + RECIPE_FILE + ": a stage trains for a positive number of optimizer steps"),
-    Case("max-steps-minus-one", recipe(), [*RUN, "stages.tokenizer.trainer.max_steps=-1"], 2, "stages.tokenizer.trainer.max_steps is -1"),
-    Case("only-unknown-stage", recipe(), [*RUN, "--only", "planner"], 2, "--only names stage 'planner', but " + RECIPE_FILE + " has stages tokenizer, pretrain"),
+    Case(
+        "override-stage-key-typo",
+        recipe(),
+        [*RUN, "stages.tokenizer.optim.lrr=1"],
+        2,
+        "unknown key 'stages[0].optim.lrr'",
+    ),
+    Case(
+        "max-steps-zero",
+        recipe(lambda t: t.replace("    trainer: {max_steps: 3}\n", "")),
+        [*RUN, "trainer.max_steps=0"],
+        2,
+        "trainer.max_steps is 0 in " + RECIPE_FILE + ": a stage trains for a positive number of optimizer steps",
+    ),
+    Case(
+        "max-steps-minus-one",
+        recipe(),
+        [*RUN, "stages.tokenizer.trainer.max_steps=-1"],
+        2,
+        "stages.tokenizer.trainer.max_steps is -1",
+    ),
+    Case(
+        "only-unknown-stage",
+        recipe(),
+        [*RUN, "--only", "planner"],
+        2,
+        "--only names stage 'planner', but " + RECIPE_FILE + " has stages tokenizer, pretrain",
+    ),
     Case("restart-unknown-stage", recipe(), [*RUN, "--restart", "planner"], 2, "--restart names stage 'planner'"),
-    Case("run-dir-locked", locked_run_dir, RUN, 2, "{tmp}/run2 is in use by pid 4242 on elsewhere; wait for it to finish, stop it, or choose another --run-dir"),
-    Case("done-stage-config-changed", manifest(DONE_OTHER_CONFIG), RUN, 2, "stage 'tokenizer' is done but its config changed"),
-    Case("cut-off-under-other-config", cut_off_under_other_config, RUN, 2, "stage 'tokenizer' was cut off under a different config"),
-    Case("manifest-unreadable", both(manifest({}), write_text("run2/manifest.json", "{")), RUN, 2, "{tmp}/run2/manifest.json: unreadable manifest"),
-    Case("vision-without-cameras", recipe(VISION_ONLY), RUN, 2,
-         "stage 'vision' reads camera images, and {tmp}/ds has none (no camera_sensor records or no imgs/)"),
-    Case("vision-synth-without-cameras", recipe(VISION_ONLY), [*RUN, "data.root={tmp}/none", "data.synth.camera_height=0"], 2,
-         "stage 'vision' reads camera images; data.synth.camera_height=0 synthesizes none"),
+    Case(
+        "run-dir-locked",
+        locked_run_dir,
+        RUN,
+        2,
+        "{tmp}/run2 is in use by pid 4242 on elsewhere; wait for it to finish, stop it, or choose another --run-dir",
+    ),
+    Case(
+        "done-stage-config-changed",
+        manifest(DONE_OTHER_CONFIG),
+        RUN,
+        2,
+        "stage 'tokenizer' is done but its config changed",
+    ),
+    Case(
+        "cut-off-under-other-config",
+        cut_off_under_other_config,
+        RUN,
+        2,
+        "stage 'tokenizer' was cut off under a different config",
+    ),
+    Case(
+        "manifest-unreadable",
+        both(manifest({}), write_text("run2/manifest.json", "{")),
+        RUN,
+        2,
+        "{tmp}/run2/manifest.json: unreadable manifest",
+    ),
+    Case(
+        "vision-without-cameras",
+        recipe(VISION_ONLY),
+        RUN,
+        2,
+        "stage 'vision' reads camera images, and {tmp}/ds has none (no camera_sensor records or no imgs/)",
+    ),
+    Case(
+        "vision-synth-without-cameras",
+        recipe(VISION_ONLY),
+        [*RUN, "data.root={tmp}/none", "data.synth.camera_height=0"],
+        2,
+        "stage 'vision' reads camera images; data.synth.camera_height=0 synthesizes none",
+    ),
     Case("eval-not-a-stage-dir", nothing, ["eval", "{tmp}/nowhere"], 2, "{tmp}/nowhere"),
     # ------------------------------------------------------------------ round two: wrong data, silently
-    Case("shards-stale-after-labels-edit", shards_then(save_labels(semantics=np.full(GRID_SHAPE, 3, np.uint8))), STALE, 2,
-         "{tmp}/s2: its shards were made before {tmp}/ds changed"),
-    Case("shards-stale-after-sidecar-edit", shards_then(edit_frame(0, lambda f: f.update(caption="a different caption"))), STALE, 2,
-         "{tmp}/s2: its shards were made before {tmp}/ds changed"),
-    Case("shards-one-camera-image-missing", with_cameras(missing=FIRST_IMG), SHARDS_FRAMES, 2, "{tmp}/ds/" + FIRST_IMG + ": cannot read it"),
-    Case("shards-corrupt-png", with_cameras(corrupt=f"imgs/CAM_BACK/{T0[3]}.png"), SHARDS_FRAMES, 2,
-         "{tmp}/ds/imgs/CAM_BACK/" + T0[3] + ".png: not a readable image"),
-    Case("eval-interrupted-stage", stage_status("interrupted"), EVAL, 2, "{tmp}/run/pretrain: stage 'pretrain' is interrupted, not done"),
-    Case("eval-never-run-stage", lambda tmp: (tmp / "run" / "manifest.json").unlink(), EVAL, 2, "stage 'pretrain' is never run, not done"),
-    Case("data-root-empty", both(recipe(), lambda tmp: (tmp / "empty").mkdir()), [*RUN, "data.root={tmp}/empty"], 2, "data.root {tmp}/empty is empty"),
-    Case("data-root-gts-without-annotations", both(recipe(), lambda tmp: [(tmp / "ds" / f).unlink() for f in ("annotations.json", "occtrain/dataset.json")]),
-         RUN, 2, "data.root {tmp}/ds holds no annotations.json"),
-    Case("data-root-foreign-record-without-annotations", both(recipe(), lambda tmp: (tmp / "ds" / "annotations.json").unlink()), RUN, 2,
-         "{tmp}/ds/occtrain/dataset.json: records a dataset occtrain did not synthesize, and {tmp}/ds has no annotations.json"),
+    Case(
+        "shards-stale-after-labels-edit",
+        shards_then(save_labels(semantics=np.full(GRID_SHAPE, 3, np.uint8))),
+        STALE,
+        2,
+        "{tmp}/s2: its shards were made before {tmp}/ds changed",
+    ),
+    Case(
+        "shards-stale-after-sidecar-edit",
+        shards_then(edit_frame(0, lambda f: f.update(caption="a different caption"))),
+        STALE,
+        2,
+        "{tmp}/s2: its shards were made before {tmp}/ds changed",
+    ),
+    Case(
+        "shards-one-camera-image-missing",
+        with_cameras(missing=FIRST_IMG),
+        SHARDS_FRAMES,
+        2,
+        "{tmp}/ds/" + FIRST_IMG + ": cannot read it",
+    ),
+    Case(
+        "shards-corrupt-png",
+        with_cameras(corrupt=f"imgs/CAM_BACK/{T0[3]}.png"),
+        SHARDS_FRAMES,
+        2,
+        "{tmp}/ds/imgs/CAM_BACK/" + T0[3] + ".png: not a readable image",
+    ),
+    Case(
+        "eval-interrupted-stage",
+        stage_status("interrupted"),
+        EVAL,
+        2,
+        "{tmp}/run/pretrain: stage 'pretrain' is interrupted, not done",
+    ),
+    Case(
+        "eval-never-run-stage",
+        lambda tmp: (tmp / "run" / "manifest.json").unlink(),
+        EVAL,
+        2,
+        "stage 'pretrain' is never run, not done",
+    ),
+    Case(
+        "data-root-empty",
+        both(recipe(), lambda tmp: (tmp / "empty").mkdir()),
+        [*RUN, "data.root={tmp}/empty"],
+        2,
+        "data.root {tmp}/empty is empty",
+    ),
+    Case(
+        "data-root-gts-without-annotations",
+        both(recipe(), lambda tmp: [(tmp / "ds" / f).unlink() for f in ("annotations.json", "occtrain/dataset.json")]),
+        RUN,
+        2,
+        "data.root {tmp}/ds holds no annotations.json",
+    ),
+    Case(
+        "data-root-foreign-record-without-annotations",
+        both(recipe(), lambda tmp: (tmp / "ds" / "annotations.json").unlink()),
+        RUN,
+        2,
+        "{tmp}/ds/occtrain/dataset.json: records a dataset occtrain did not synthesize, and {tmp}/ds has no "
+        "annotations.json",
+    ),
     # ------------------------------------------------------------------ round two: paths outside their roots
-    Case("ann-gt-path-escapes", edit_sample(0, 1, lambda s: s.update(gt_path="../../../../../etc/passwd")), SHARDS_FRAMES, 2,
-         f"{ANN}: scene_infos.scene-0000.{T0[1]}.gt_path '../../../../../etc/passwd' points outside the dataset root"),
-    Case("ann-gt-path-absolute", edit_sample(0, 1, lambda s: s.update(gt_path="/etc/passwd")), SHARDS_FRAMES, 2, "gt_path '/etc/passwd' points outside"),
-    Case("check-gt-path-valid-file-outside", lambda tmp: edit_json(tmp / "ds" / "annotations.json", lambda a: a["scene_infos"][SCENES[0]][T0[2]].update(
-        gt_path=str(labels_file(tmp, 0, 2).resolve()))), CHECK, 1, f"scene_infos.scene-0000.{T0[2]}.gt_path '"),
-    Case("show-gt-path-outside", edit_sample(1, 0, lambda s: s.update(gt_path="/etc/hostname")), ["data", "show", DS, "--out", "{tmp}/b.png"], 2,
-         "gt_path '/etc/hostname' points outside the dataset root"),
-    Case("ann-img-path-escapes", edit_sample(0, 0, lambda s: s.update(camera_sensor={"CAM_FRONT": {**camera([[1.0, 0, 0]] * 3)["CAM_FRONT_tok"], "img_path": "../x.png"}})),
-         SHARDS_FRAMES, 2, "camera_sensor.CAM_FRONT.img_path '../x.png' points outside the dataset root"),
-    Case("recipe-name-escapes", recipe(lambda t: t.replace("name: tiny", "name: ../../escape")), ["run", "{tmp}/r.yaml"], 2,
-         "name '../../escape' in " + RECIPE_FILE + ": a run is a folder name inside runs_root"),
+    Case(
+        "ann-gt-path-escapes",
+        edit_sample(0, 1, lambda s: s.update(gt_path="../../../../../etc/passwd")),
+        SHARDS_FRAMES,
+        2,
+        f"{ANN}: scene_infos.scene-0000.{T0[1]}.gt_path '../../../../../etc/passwd' points outside the dataset root",
+    ),
+    Case(
+        "ann-gt-path-absolute",
+        edit_sample(0, 1, lambda s: s.update(gt_path="/etc/passwd")),
+        SHARDS_FRAMES,
+        2,
+        "gt_path '/etc/passwd' points outside",
+    ),
+    Case(
+        "check-gt-path-valid-file-outside",
+        lambda tmp: edit_json(
+            tmp / "ds" / "annotations.json",
+            lambda a: a["scene_infos"][SCENES[0]][T0[2]].update(gt_path=str(labels_file(tmp, 0, 2).resolve())),
+        ),
+        CHECK,
+        1,
+        f"scene_infos.scene-0000.{T0[2]}.gt_path '",
+    ),
+    Case(
+        "show-gt-path-outside",
+        edit_sample(1, 0, lambda s: s.update(gt_path="/etc/hostname")),
+        ["data", "show", DS, "--out", "{tmp}/b.png"],
+        2,
+        "gt_path '/etc/hostname' points outside the dataset root",
+    ),
+    Case(
+        "ann-img-path-escapes",
+        edit_sample(
+            0,
+            0,
+            lambda s: s.update(
+                camera_sensor={"CAM_FRONT": {**camera([[1.0, 0, 0]] * 3)["CAM_FRONT_tok"], "img_path": "../x.png"}}
+            ),
+        ),
+        SHARDS_FRAMES,
+        2,
+        "camera_sensor.CAM_FRONT.img_path '../x.png' points outside the dataset root",
+    ),
+    Case(
+        "recipe-name-escapes",
+        recipe(lambda t: t.replace("name: tiny", "name: ../../escape")),
+        ["run", "{tmp}/r.yaml"],
+        2,
+        "name '../../escape' in " + RECIPE_FILE + ": a run is a folder name inside runs_root",
+    ),
     # ------------------------------------------------------------------ round two: exit 0 with nothing done
     Case("eval-split-test", nothing, [*EVAL, "--split", "test"], 2, "--split test: a dataset's splits are train, val"),
-    Case("eval-tasks-qa-without-qa", world_without_qa, ["eval", "{tmp}/run/pretrain", "--tasks", "qa", "--data", "{tmp}/noqa"], 2,
-         "--tasks qa: the task needs nuscenes_qa/NuScenes_<split>_questions.json, which this dataset lacks ({tmp}/noqa)"),
-    Case("eval-samples-zero", nothing, [*EVAL, "--samples", "0"], 2, "--samples 0: score a positive number of items per task, or -1"),
+    Case(
+        "eval-tasks-qa-without-qa",
+        world_without_qa,
+        ["eval", "{tmp}/run/pretrain", "--tasks", "qa", "--data", "{tmp}/noqa"],
+        2,
+        "--tasks qa: the task needs nuscenes_qa/NuScenes_<split>_questions.json, which this dataset lacks ({tmp}/noqa)",
+    ),
+    Case(
+        "eval-samples-zero",
+        nothing,
+        [*EVAL, "--samples", "0"],
+        2,
+        "--samples 0: score a positive number of items per task, or -1",
+    ),
     Case("eval-samples-minus-five", nothing, [*EVAL, "--samples", "-5"], 2, "--samples -5"),
-    Case("show-zero-frames", nothing, ["data", "show", DS, "--frames", "0", "--out", "{tmp}/b.png"], 2, "--frames 0: draw at least 1 frame"),
-    Case("show-out-exists", write_text("b.png", "mine"), ["data", "show", DS, "--out", "{tmp}/b.png"], 2, "{tmp}/b.png: exists; pass --overwrite"),
-    Case("shards-no-clip-fits", nothing, ["data", "shards", DS, "--out", "{tmp}/out", "--kinds", "clips"], 2,
-         "{tmp}/ds: its longest train scene has 8 frames and a clip spans history 4 + 1 + future 6 = 11"),
-    Case("qa-answer-integer", qa_answers(["yes", "2", 1, "car"]), QA, 2, "{tmp}/a.json: [2] is the integer 1, expected a string"),
+    Case(
+        "show-zero-frames",
+        nothing,
+        ["data", "show", DS, "--frames", "0", "--out", "{tmp}/b.png"],
+        2,
+        "--frames 0: draw at least 1 frame",
+    ),
+    Case(
+        "show-out-exists",
+        write_text("b.png", "mine"),
+        ["data", "show", DS, "--out", "{tmp}/b.png"],
+        2,
+        "{tmp}/b.png: exists; pass --overwrite",
+    ),
+    Case(
+        "shards-no-clip-fits",
+        nothing,
+        ["data", "shards", DS, "--out", "{tmp}/out", "--kinds", "clips"],
+        2,
+        "{tmp}/ds: its longest train scene has 8 frames and a clip spans history 4 + 1 + future 6 = 11",
+    ),
+    Case(
+        "qa-answer-integer",
+        qa_answers(["yes", "2", 1, "car"]),
+        QA,
+        2,
+        "{tmp}/a.json: [2] is the integer 1, expected a string",
+    ),
     # ------------------------------------------------------------------ round two: late or raw failures
-    Case("pretrain-family-unknown", recipe(lambda t: t.replace("family: occllama", "family: occlama")), RUN, 2,
-         "model.family: unknown model family 'occlama'"),
-    Case("instruct-family-other", recipe(lambda t: t + "  - {name: instruct, kind: instruct, consumes: [pretrain], model: {family: occllm}}\n"), RUN, 2,
-         "stages[2].model.family in " + RECIPE_FILE + " is 'occllm', but the stage tunes the consumed 'occllama' world model"),
-    Case("batch-size-zero", recipe(), [*RUN, "data.batch_size=0"], 2, "data.batch_size is 0 in " + RECIPE_FILE + ": it must be at least 1"),
-    Case("stage-batch-size-zero", recipe(), [*RUN, "stages.pretrain.data.batch_size=0"], 2, "stages.pretrain.data.batch_size is 0"),
-    Case("lr-negative", recipe(), [*RUN, "stages.tokenizer.optim.lr=-1"], 2, "stages.tokenizer.optim.lr is -1.0 in " + RECIPE_FILE + ": it must be at least 0"),
-    Case("lr-nan", recipe(), [*RUN, "stages.tokenizer.optim.lr=nan"], 2, "stages.tokenizer.optim.lr is nan in " + RECIPE_FILE + ": it must be a finite number"),
-    Case("val-check-interval-zero", recipe(), [*RUN, "trainer.val_check_interval=0"], 2, "trainer.val_check_interval is 0 in " + RECIPE_FILE),
-    Case("schedule-unknown", recipe(), [*RUN, "stages.pretrain.optim.schedule=linear"], 2, "stages.pretrain.optim.schedule is linear"),
-    Case("checkpoint-pickled", pickled_checkpoint, RUN, 2, "{tmp}/run2/tokenizer/checkpoints/last.ckpt: holds pickled object test_bad_inputs.Evil"),
+    Case(
+        "pretrain-family-unknown",
+        recipe(lambda t: t.replace("family: occllama", "family: occlama")),
+        RUN,
+        2,
+        "model.family: unknown model family 'occlama'",
+    ),
+    Case(
+        "instruct-family-other",
+        recipe(lambda t: t + "  - {name: instruct, kind: instruct, consumes: [pretrain], model: {family: occllm}}\n"),
+        RUN,
+        2,
+        "stages[2].model.family in "
+        + RECIPE_FILE
+        + " is 'occllm', but the stage tunes the consumed 'occllama' world model",
+    ),
+    Case(
+        "batch-size-zero",
+        recipe(),
+        [*RUN, "data.batch_size=0"],
+        2,
+        "data.batch_size is 0 in " + RECIPE_FILE + ": it must be at least 1",
+    ),
+    Case(
+        "stage-batch-size-zero",
+        recipe(),
+        [*RUN, "stages.pretrain.data.batch_size=0"],
+        2,
+        "stages.pretrain.data.batch_size is 0",
+    ),
+    Case(
+        "lr-negative",
+        recipe(),
+        [*RUN, "stages.tokenizer.optim.lr=-1"],
+        2,
+        "stages.tokenizer.optim.lr is -1.0 in " + RECIPE_FILE + ": it must be at least 0",
+    ),
+    Case(
+        "lr-nan",
+        recipe(),
+        [*RUN, "stages.tokenizer.optim.lr=nan"],
+        2,
+        "stages.tokenizer.optim.lr is nan in " + RECIPE_FILE + ": it must be a finite number",
+    ),
+    Case(
+        "val-check-interval-zero",
+        recipe(),
+        [*RUN, "trainer.val_check_interval=0"],
+        2,
+        "trainer.val_check_interval is 0 in " + RECIPE_FILE,
+    ),
+    Case(
+        "schedule-unknown",
+        recipe(),
+        [*RUN, "stages.pretrain.optim.schedule=linear"],
+        2,
+        "stages.pretrain.optim.schedule is linear",
+    ),
+    Case(
+        "checkpoint-pickled",
+        pickled_checkpoint,
+        RUN,
+        2,
+        "{tmp}/run2/tokenizer/checkpoints/last.ckpt: holds pickled object test_bad_inputs.Evil",
+    ),
     # ------------------------------------------------------------------ trainers this machine cannot run
-    Case("gpu-config-without-gpu", recipe(), [*RUN, f"trainer={REPO / 'configs/trainer/gpu.yaml'}"], 2,
-         "trainer.accelerator is gpu, but torch " + torch.__version__ + " sees no GPU here; train on the CPU with configs/trainer/cpu.yaml"),
-    Case("cpu-devices-beyond-cores", recipe(), [*RUN, "trainer.devices=100000"], 2, "trainer.devices is 100000 CPU processes, but this machine has"),
+    Case(
+        "gpu-config-without-gpu",
+        recipe(),
+        [*RUN, f"trainer={REPO / 'configs/trainer/gpu.yaml'}"],
+        2,
+        "trainer.accelerator is gpu, but torch "
+        + torch.__version__
+        + " sees no GPU here; train on the CPU with configs/trainer/cpu.yaml",
+    ),
+    Case(
+        "cpu-devices-beyond-cores",
+        recipe(),
+        [*RUN, "trainer.devices=100000"],
+        2,
+        "trainer.devices is 100000 CPU processes, but this machine has",
+    ),
     # Lightning's own FSDP strategies need a GPU (occtrain's `fsdp` is FSDP2 and runs on CPU processes).
-    Case("fsdp-offload-on-cpu", recipe(), [*RUN, "stages.pretrain.trainer.strategy=fsdp_cpu_offload"], 2,
-         "stages.pretrain.trainer: accelerator=cpu devices=1 strategy=fsdp_cpu_offload precision=32-true cannot run here (The strategy `fsdp` requires a GPU"),
-    Case("fsdp-for-a-stage-that-does-not-shard", recipe(), [*RUN, "trainer.strategy=fsdp"], 2,
-         "trainer.strategy is fsdp, but a tokenizer stage does not shard (the pretrain and instruct stages do); "
-         "train 'tokenizer' with stages.tokenizer.trainer.strategy=ddp"),
-    Case("precision-unknown", recipe(), [*RUN, "trainer.precision=bf17"], 2, "trainer: accelerator=cpu devices=1 strategy=auto precision=bf17 cannot run here (Precision 'bf17' is invalid"),
-    Case("validate-batch-size-zero", recipe(), ["validate", "{tmp}/r.yaml", "data.batch_size=0"], 2, "data.batch_size is 0"),
-    Case("dry-run-family-unknown", recipe(lambda t: t.replace("family: occllama", "family: occlama")), [*RUN, "--dry-run"], 2, "unknown model family 'occlama'"),
-    Case("validate-stale-shards", both(recipe(), shards_then(save_labels(semantics=np.full(GRID_SHAPE, 3, np.uint8)), kinds=["frames", "clips"], history=1, future=1)),
-         ["validate", "{tmp}/r.yaml", "data.shards={tmp}/s2"], 2, "{tmp}/s2: its shards were made before {tmp}/ds changed"),
+    Case(
+        "fsdp-offload-on-cpu",
+        recipe(),
+        [*RUN, "stages.pretrain.trainer.strategy=fsdp_cpu_offload"],
+        2,
+        "stages.pretrain.trainer: accelerator=cpu devices=1 strategy=fsdp_cpu_offload precision=32-true cannot run "
+        "here (The strategy `fsdp` requires a GPU",
+    ),
+    Case(
+        "fsdp-for-a-stage-that-does-not-shard",
+        recipe(),
+        [*RUN, "trainer.strategy=fsdp"],
+        2,
+        "trainer.strategy is fsdp, but a tokenizer stage does not shard (the pretrain and instruct stages do); "
+        "train 'tokenizer' with stages.tokenizer.trainer.strategy=ddp",
+    ),
+    Case(
+        "precision-unknown",
+        recipe(),
+        [*RUN, "trainer.precision=bf17"],
+        2,
+        "trainer: accelerator=cpu devices=1 strategy=auto precision=bf17 cannot run here (Precision 'bf17' is invalid",
+    ),
+    Case(
+        "validate-batch-size-zero",
+        recipe(),
+        ["validate", "{tmp}/r.yaml", "data.batch_size=0"],
+        2,
+        "data.batch_size is 0",
+    ),
+    Case(
+        "dry-run-family-unknown",
+        recipe(lambda t: t.replace("family: occllama", "family: occlama")),
+        [*RUN, "--dry-run"],
+        2,
+        "unknown model family 'occlama'",
+    ),
+    Case(
+        "validate-stale-shards",
+        both(
+            recipe(),
+            shards_then(
+                save_labels(semantics=np.full(GRID_SHAPE, 3, np.uint8)), kinds=["frames", "clips"], history=1, future=1
+            ),
+        ),
+        ["validate", "{tmp}/r.yaml", "data.shards={tmp}/s2"],
+        2,
+        "{tmp}/s2: its shards were made before {tmp}/ds changed",
+    ),
     # ------------------------------------------------------------------ names and deletions
-    Case("stage-name-escapes", stage_named("../../victim"), ESCAPING_RUN, 2,
-         "stages[0].name '../../victim' in " + RECIPE_FILE + ": a stage is a folder name inside the run"),
-    Case("validate-stage-name-escapes", stage_named("../../victim"), ["validate", "{tmp}/r.yaml", "--run-dir", "{tmp}/a/run2"], 2,
-         "stages[0].name '../../victim'"),
-    Case("restart-an-escaping-stage", stage_named("../../victim"), [*ESCAPING_RUN, "--restart", "../../victim"], 2,
-         "stages[0].name '../../victim'"),
+    Case(
+        "stage-name-escapes",
+        stage_named("../../victim"),
+        ESCAPING_RUN,
+        2,
+        "stages[0].name '../../victim' in " + RECIPE_FILE + ": a stage is a folder name inside the run",
+    ),
+    Case(
+        "validate-stage-name-escapes",
+        stage_named("../../victim"),
+        ["validate", "{tmp}/r.yaml", "--run-dir", "{tmp}/a/run2"],
+        2,
+        "stages[0].name '../../victim'",
+    ),
+    Case(
+        "restart-an-escaping-stage",
+        stage_named("../../victim"),
+        [*ESCAPING_RUN, "--restart", "../../victim"],
+        2,
+        "stages[0].name '../../victim'",
+    ),
     Case("stage-name-absolute", stage_named("{tmp}/victim"), ESCAPING_RUN, 2, "stages[0].name '{tmp}/victim'"),
     Case("stage-name-empty", stage_named(""), ESCAPING_RUN, 2, "stages[0].name '' in"),
     Case("stage-name-hidden", stage_named(".."), ESCAPING_RUN, 2, "stages[0].name '..' in"),
-    Case("manifest-stage-name-escapes", manifest_naming("../../victim"), RUN, 2,
-         "{tmp}/run2/manifest.json: stage '../../victim' is not a folder name inside the run"),
+    Case(
+        "manifest-stage-name-escapes",
+        manifest_naming("../../victim"),
+        RUN,
+        2,
+        "{tmp}/run2/manifest.json: stage '../../victim' is not a folder name inside the run",
+    ),
     # ------------------------------------------------------------------ restart and validate
-    Case("restart-with-an-architecture-run-refuses", finished_run, [*RUN, "--restart", "tokenizer", "stages.pretrain.model.llm.num_heads=3"], 2,
-         "stages.pretrain.model.llm.num_heads is 3, which does not divide hidden_size 128"),
-    Case("validate-refuses-the-architecture-run-refuses", finished_run,
-         ["validate", "{tmp}/r.yaml", "--run-dir", "{tmp}/run2", "--restart", "pretrain", "stages.pretrain.model.llm.num_heads=3"], 2,
-         "stages.pretrain.model.llm.num_heads is 3, which does not divide"),
-    Case("restart-with-a-negative-hidden-size", finished_run, [*RUN, "--restart", "pretrain", "stages.pretrain.model.llm.hidden_size=-128"], 2,
-         "stages.pretrain.model.llm.hidden_size is -128; it sizes the model's tensors"),
-    Case("restart-with-adapters-and-lora", finished_run,
-         [*RUN, "--restart", "pretrain", "stages.pretrain.model.use_lora=true", "stages.pretrain.model.use_adapters=true"], 2,
-         "stages.pretrain.model: use_lora and use_adapters are both on"),
-    Case("validate-refuses-a-tokenizer-its-build-refuses", recipe(), ["validate", "{tmp}/r.yaml", "stages.tokenizer.model.occworld_vqvae.strides=[3,5]"], 2,
-         "stages.tokenizer.model.occworld_vqvae"),
-    Case("validate-refuses-a-student-its-build-refuses",
-         recipe(lambda t: t + "  - {name: instruct, kind: instruct, consumes: [pretrain]}\n  - {name: distill, kind: distill, consumes: [instruct]}\n"),
-         ["validate", "{tmp}/r.yaml", "stages.distill.model.student.num_heads=5"], 2, "stages.distill.model.student.num_heads is 5, which does not divide hidden_size 96"),
-    Case("stage-consumes-itself", recipe(lambda t: t.replace("consumes: [tokenizer]", "consumes: [pretrain]")), RUN, 2,
-         "stages[1] ('pretrain') in " + RECIPE_FILE + " consumes itself"),
-    Case("precision-16-mixed-on-cpu", recipe(), [*RUN, "trainer.precision=16-mixed"], 2,
-         "trainer.precision is 16-mixed, but float16 mixed precision needs a GPU; on the CPU use bf16-mixed"),
+    Case(
+        "restart-with-an-architecture-run-refuses",
+        finished_run,
+        [*RUN, "--restart", "tokenizer", "stages.pretrain.model.llm.num_heads=3"],
+        2,
+        "stages.pretrain.model.llm.num_heads is 3, which does not divide hidden_size 128",
+    ),
+    Case(
+        "validate-refuses-the-architecture-run-refuses",
+        finished_run,
+        [
+            "validate",
+            "{tmp}/r.yaml",
+            "--run-dir",
+            "{tmp}/run2",
+            "--restart",
+            "pretrain",
+            "stages.pretrain.model.llm.num_heads=3",
+        ],
+        2,
+        "stages.pretrain.model.llm.num_heads is 3, which does not divide",
+    ),
+    Case(
+        "restart-with-a-negative-hidden-size",
+        finished_run,
+        [*RUN, "--restart", "pretrain", "stages.pretrain.model.llm.hidden_size=-128"],
+        2,
+        "stages.pretrain.model.llm.hidden_size is -128; it sizes the model's tensors",
+    ),
+    Case(
+        "restart-with-adapters-and-lora",
+        finished_run,
+        [
+            *RUN,
+            "--restart",
+            "pretrain",
+            "stages.pretrain.model.use_lora=true",
+            "stages.pretrain.model.use_adapters=true",
+        ],
+        2,
+        "stages.pretrain.model: use_lora and use_adapters are both on",
+    ),
+    Case(
+        "validate-refuses-a-tokenizer-its-build-refuses",
+        recipe(),
+        ["validate", "{tmp}/r.yaml", "stages.tokenizer.model.occworld_vqvae.strides=[3,5]"],
+        2,
+        "stages.tokenizer.model.occworld_vqvae",
+    ),
+    Case(
+        "validate-refuses-a-student-its-build-refuses",
+        recipe(
+            lambda t: (
+                t
+                + "  - {name: instruct, kind: instruct, consumes: [pretrain]}\n"
+                + "  - {name: distill, kind: distill, consumes: [instruct]}\n"
+            )
+        ),
+        ["validate", "{tmp}/r.yaml", "stages.distill.model.student.num_heads=5"],
+        2,
+        "stages.distill.model.student.num_heads is 5, which does not divide hidden_size 96",
+    ),
+    Case(
+        "stage-consumes-itself",
+        recipe(lambda t: t.replace("consumes: [tokenizer]", "consumes: [pretrain]")),
+        RUN,
+        2,
+        "stages[1] ('pretrain') in " + RECIPE_FILE + " consumes itself",
+    ),
+    Case(
+        "precision-16-mixed-on-cpu",
+        recipe(),
+        [*RUN, "trainer.precision=16-mixed"],
+        2,
+        "trainer.precision is 16-mixed, but float16 mixed precision needs a GPU; on the CPU use bf16-mixed",
+    ),
     # ------------------------------------------------------------------ eval and outputs
-    Case("eval-save-predictions-onto-a-file", write_text("p.json", "mine"), [*EVAL, "--save-predictions", "{tmp}/p.json"], 2,
-         "{tmp}/p.json: is a file; --save-predictions takes a directory"),
-    Case("eval-save-predictions-read-only", nothing, [*EVAL, "--save-predictions", "{tmp}/preds"], 2,
-         "cannot write {tmp}/preds: the file system is read-only; choose another --save-predictions", patch=read_only_disk),
-    Case("eval-save-predictions-of-a-tokenizer", tokenizer_done, ["eval", "{tmp}/run/tokenizer", "--save-predictions", "{tmp}/preds"], 2,
-         "--save-predictions {tmp}/preds: a tokenizer stage's eval has metrics only, no predictions to save"),
-    Case("eval-read-only-run", nothing, EVAL, 2,
-         ("cannot write {tmp}/run/pretrain/eval/val/metrics.json: the file system is read-only; eval writes its metrics into {tmp}/run/pretrain",
-          "copy the run to a writable place"), patch=read_only_disk),
-    Case("score-out-read-only", planning(lambda p, g: None), [*PLANNING, "--out", "{tmp}/o/r.json"], 2,
-         "cannot write {tmp}/o/r.json: the file system is read-only; choose another --out", patch=read_only_disk),
-    Case("dashboard-out-read-only", nothing, ["dashboard", "{tmp}/run", "--out", "{tmp}/d.html"], 2,
-         "cannot write {tmp}/d.html: the file system is read-only; choose another --out", patch=read_only_disk),
-    Case("dashboard-out-is-a-directory", nothing, ["dashboard", "{tmp}/run", "--out", "{tmp}/ds"], 2, "{tmp}/ds: is a directory; --out takes a file name"),
+    Case(
+        "eval-save-predictions-onto-a-file",
+        write_text("p.json", "mine"),
+        [*EVAL, "--save-predictions", "{tmp}/p.json"],
+        2,
+        "{tmp}/p.json: is a file; --save-predictions takes a directory",
+    ),
+    Case(
+        "eval-save-predictions-read-only",
+        nothing,
+        [*EVAL, "--save-predictions", "{tmp}/preds"],
+        2,
+        "cannot write {tmp}/preds: the file system is read-only; choose another --save-predictions",
+        patch=read_only_disk,
+    ),
+    Case(
+        "eval-save-predictions-of-a-tokenizer",
+        tokenizer_done,
+        ["eval", "{tmp}/run/tokenizer", "--save-predictions", "{tmp}/preds"],
+        2,
+        "--save-predictions {tmp}/preds: a tokenizer stage's eval has metrics only, no predictions to save",
+    ),
+    Case(
+        "eval-read-only-run",
+        nothing,
+        EVAL,
+        2,
+        (
+            "cannot write {tmp}/run/pretrain/eval/val/metrics.json: the file system is read-only; eval writes its "
+            "metrics into {tmp}/run/pretrain",
+            "copy the run to a writable place",
+        ),
+        patch=read_only_disk,
+    ),
+    Case(
+        "score-out-read-only",
+        planning(lambda p, g: None),
+        [*PLANNING, "--out", "{tmp}/o/r.json"],
+        2,
+        "cannot write {tmp}/o/r.json: the file system is read-only; choose another --out",
+        patch=read_only_disk,
+    ),
+    Case(
+        "dashboard-out-read-only",
+        nothing,
+        ["dashboard", "{tmp}/run", "--out", "{tmp}/d.html"],
+        2,
+        "cannot write {tmp}/d.html: the file system is read-only; choose another --out",
+        patch=read_only_disk,
+    ),
+    Case(
+        "dashboard-out-is-a-directory",
+        nothing,
+        ["dashboard", "{tmp}/run", "--out", "{tmp}/ds"],
+        2,
+        "{tmp}/ds: is a directory; --out takes a file name",
+    ),
     # ------------------------------------------------------------------ plan-memory
-    Case("plan-memory-hidden-size-negative", recipe(), [*PLAN, "stages.pretrain.model.llm.hidden_size=-128"], 2,
-         "stages.pretrain.model.llm.hidden_size is -128; it sizes the model's tensors, so it must be a positive integer"),
-    Case("plan-memory-heads-do-not-divide-hidden", recipe(), [*PLAN, "stages.pretrain.model.llm.num_heads=3"], 2,
-         "stages.pretrain.model.llm.num_heads is 3, which does not divide hidden_size 128; set num_heads to a divisor of 128 (e.g. 4)"),
-    Case("plan-memory-layers-zero", recipe(), [*PLAN, "stages.pretrain.model.llm.num_layers=0"], 2, "stages.pretrain.model.llm.num_layers is 0;"),
-    Case("plan-memory-config-json-hidden-negative", llm_dir(hidden_size=-128), [*PLAN, f"stages.pretrain.model.llm.path={LLM_DIR}"], 2,
-         f"{LLM_DIR}/config.json: hidden_size is -128; it sizes the model's tensors, so it must be a positive integer"),
-    Case("plan-memory-config-json-kv-heads-do-not-divide", llm_dir(num_key_value_heads=5), [*PLAN, f"stages.pretrain.model.llm.path={LLM_DIR}"], 2,
-         f"{LLM_DIR}/config.json: num_key_value_heads is 5, which does not divide num_attention_heads 32"),
-    Case("plan-memory-config-json-vocab-string", llm_dir(vocab_size="128256"), [*PLAN, f"stages.pretrain.model.llm.path={LLM_DIR}"], 2,
-         f"{LLM_DIR}/config.json: vocab_size is '128256';"),
-    Case("plan-memory-size-override-beside-path", nothing, ["plan-memory", SCALE_LLAMA, "stages.pretrain.model.llm.hidden_size=-128"], 2,
-         "stages.pretrain.model.llm.hidden_size: ignored, since stages.pretrain.model.llm.path is set (configs/llm/llama-3.1-8b) and its config.json decides the model"),
+    Case(
+        "plan-memory-hidden-size-negative",
+        recipe(),
+        [*PLAN, "stages.pretrain.model.llm.hidden_size=-128"],
+        2,
+        "stages.pretrain.model.llm.hidden_size is -128; it sizes the model's tensors, so it must be a positive integer",
+    ),
+    Case(
+        "plan-memory-heads-do-not-divide-hidden",
+        recipe(),
+        [*PLAN, "stages.pretrain.model.llm.num_heads=3"],
+        2,
+        "stages.pretrain.model.llm.num_heads is 3, which does not divide hidden_size 128; set num_heads to a divisor "
+        "of 128 (e.g. 4)",
+    ),
+    Case(
+        "plan-memory-layers-zero",
+        recipe(),
+        [*PLAN, "stages.pretrain.model.llm.num_layers=0"],
+        2,
+        "stages.pretrain.model.llm.num_layers is 0;",
+    ),
+    Case(
+        "plan-memory-config-json-hidden-negative",
+        llm_dir(hidden_size=-128),
+        [*PLAN, f"stages.pretrain.model.llm.path={LLM_DIR}"],
+        2,
+        f"{LLM_DIR}/config.json: hidden_size is -128; it sizes the model's tensors, so it must be a positive integer",
+    ),
+    Case(
+        "plan-memory-config-json-kv-heads-do-not-divide",
+        llm_dir(num_key_value_heads=5),
+        [*PLAN, f"stages.pretrain.model.llm.path={LLM_DIR}"],
+        2,
+        f"{LLM_DIR}/config.json: num_key_value_heads is 5, which does not divide num_attention_heads 32",
+    ),
+    Case(
+        "plan-memory-config-json-vocab-string",
+        llm_dir(vocab_size="128256"),
+        [*PLAN, f"stages.pretrain.model.llm.path={LLM_DIR}"],
+        2,
+        f"{LLM_DIR}/config.json: vocab_size is '128256';",
+    ),
+    Case(
+        "plan-memory-size-override-beside-path",
+        nothing,
+        ["plan-memory", SCALE_LLAMA, "stages.pretrain.model.llm.hidden_size=-128"],
+        2,
+        "stages.pretrain.model.llm.hidden_size: ignored, since stages.pretrain.model.llm.path is set "
+        "(configs/llm/llama-3.1-8b) and its config.json decides the model",
+    ),
     Case("plan-memory-gpus-zero", recipe(), [*PLAN, "--gpus", "0"], 2, "--gpus 0: plan at least 1 GPU"),
-    Case("plan-memory-seq-len-huge", recipe(), [*PLAN, "--seq-len", str(10**12)], 2, f"--seq-len {10**12}: tokens per training sequence must be in 1..4194304 (2**22)"),
-    Case("plan-memory-gpu-memory-negative", recipe(), [*PLAN, "--gpu-memory", "-5"], 2, "--gpu-memory -5: a GPU's memory in GiB must be above 0 and at most 10000"),
-    Case("plan-memory-gpu-memory-absurd", recipe(), [*PLAN, "--gpu-memory", "1e6"], 2, "--gpu-memory 1e+06: a GPU's memory in GiB must be above 0 and at most 10000"),
+    Case(
+        "plan-memory-seq-len-huge",
+        recipe(),
+        [*PLAN, "--seq-len", str(10**12)],
+        2,
+        f"--seq-len {10**12}: tokens per training sequence must be in 1..4194304 (2**22)",
+    ),
+    Case(
+        "plan-memory-gpu-memory-negative",
+        recipe(),
+        [*PLAN, "--gpu-memory", "-5"],
+        2,
+        "--gpu-memory -5: a GPU's memory in GiB must be above 0 and at most 10000",
+    ),
+    Case(
+        "plan-memory-gpu-memory-absurd",
+        recipe(),
+        [*PLAN, "--gpu-memory", "1e6"],
+        2,
+        "--gpu-memory 1e+06: a GPU's memory in GiB must be above 0 and at most 10000",
+    ),
     # ------------------------------------------------------------------ plugins
-    Case("plugin-raises-on-import", with_plugin("plugins.broken_plugin"), RUN, 2, "plugin 'plugins.broken_plugin' in " + RECIPE_FILE + " " + PLUGIN_RAISES),
-    Case("validate-plugin-raises-on-import", with_plugin("plugins.broken_plugin"), ["validate", RECIPE_FILE], 2, "plugin 'plugins.broken_plugin' in " + RECIPE_FILE + " " + PLUGIN_RAISES),
-    Case("eval-pipeline-plugin-raises-on-import", with_plugin("plugins.broken_plugin", "run/pipeline.yaml"), EVAL, 2,
-         "plugin 'plugins.broken_plugin' in {tmp}/run/pipeline.yaml " + PLUGIN_RAISES),
-    Case("plugin-family-name-shipped", with_plugin("plugins.clashing_family"), RUN, 2,
-         ("plugin 'plugins.clashing_family' in " + RECIPE_FILE + ": family 'occllama' of plugin plugins.clashing_family is already registered by "
-          "occtrain.families.occllama (shipped with occtrain); register it with override=True to replace it")),
-    Case("plugin-kind-name-built-in", with_plugin("plugins.clashing_kind"), RUN, 2,
-         "stage kind 'pretrain' of plugin plugins.clashing_kind is already registered by occtrain.stages.world_model (shipped with occtrain)"),
+    Case(
+        "plugin-raises-on-import",
+        with_plugin("plugins.broken_plugin"),
+        RUN,
+        2,
+        "plugin 'plugins.broken_plugin' in " + RECIPE_FILE + " " + PLUGIN_RAISES,
+    ),
+    Case(
+        "validate-plugin-raises-on-import",
+        with_plugin("plugins.broken_plugin"),
+        ["validate", RECIPE_FILE],
+        2,
+        "plugin 'plugins.broken_plugin' in " + RECIPE_FILE + " " + PLUGIN_RAISES,
+    ),
+    Case(
+        "eval-pipeline-plugin-raises-on-import",
+        with_plugin("plugins.broken_plugin", "run/pipeline.yaml"),
+        EVAL,
+        2,
+        "plugin 'plugins.broken_plugin' in {tmp}/run/pipeline.yaml " + PLUGIN_RAISES,
+    ),
+    Case(
+        "plugin-family-name-shipped",
+        with_plugin("plugins.clashing_family"),
+        RUN,
+        2,
+        (
+            "plugin 'plugins.clashing_family' in "
+            + RECIPE_FILE
+            + ": family 'occllama' of plugin plugins.clashing_family is already registered by "
+            "occtrain.families.occllama (shipped with occtrain); register it with override=True to replace it"
+        ),
+    ),
+    Case(
+        "plugin-kind-name-built-in",
+        with_plugin("plugins.clashing_kind"),
+        RUN,
+        2,
+        "stage kind 'pretrain' of plugin plugins.clashing_kind is already registered by occtrain.stages.world_model "
+        "(shipped with occtrain)",
+    ),
     # ------------------------------------------------------------------ exports, load and trackers
-    Case("export-config-unknown-key", export_file("config.json", b'{"stage_kind": "world_model", "familly": "occllama"}'), EVAL, 2,
-         EXPORT + "config.json: unknown key 'familly' (rename or remove it); did you mean 'family'?"),
-    Case("export-config-unknown-key-unlike-any", export_file("config.json", b'{"stage_kind": "world_model", "notes": "mine"}'), EVAL, 2,
-         EXPORT + "config.json: unknown key 'notes' (rename or remove it); valid keys: family, max_new_text_tokens, stage, stage_kind, tasks, vocab, world"),
+    Case(
+        "export-config-unknown-key",
+        export_file("config.json", b'{"stage_kind": "world_model", "familly": "occllama"}'),
+        EVAL,
+        2,
+        EXPORT + "config.json: unknown key 'familly' (rename or remove it); did you mean 'family'?",
+    ),
+    Case(
+        "export-config-unknown-key-unlike-any",
+        export_file("config.json", b'{"stage_kind": "world_model", "notes": "mine"}'),
+        EVAL,
+        2,
+        EXPORT
+        + "config.json: unknown key 'notes' (rename or remove it); valid keys: family, max_new_text_tokens, stage, "
+        "stage_kind, tasks, vocab, world",
+    ),
     # ------------------------------------------------------------------ data
     Case("stats-frames-zero", nothing, ["data", "stats", DS, "--frames", "0"], 2, "--frames 0: count at least 1 frame"),
-    Case("stats-json-is-a-directory", nothing, ["data", "stats", DS, "--json", "{tmp}/ds"], 2, "{tmp}/ds: is a directory; --json takes a file name"),
-    Case("stats-chart-read-only", nothing, ["data", "stats", DS, "--chart", "{tmp}/c.png"], 2,
-         "cannot write {tmp}/c.png: the file system is read-only; choose another --chart", patch=read_only_disk),
+    Case(
+        "stats-json-is-a-directory",
+        nothing,
+        ["data", "stats", DS, "--json", "{tmp}/ds"],
+        2,
+        "{tmp}/ds: is a directory; --json takes a file name",
+    ),
+    Case(
+        "stats-chart-read-only",
+        nothing,
+        ["data", "stats", DS, "--chart", "{tmp}/c.png"],
+        2,
+        "cannot write {tmp}/c.png: the file system is read-only; choose another --chart",
+        patch=read_only_disk,
+    ),
     Case("stats-not-a-dataset", nothing, ["data", "stats", "{tmp}/nowhere"], 2, "{tmp}/nowhere"),
-    Case("validate-a-clip-stage-where-no-clip-fits", recipe(), ["validate", "{tmp}/r.yaml", "data.history=4", "data.future=6"], 2,
-         "stage 'pretrain' reads clips"),
-    Case("shards-plain-copy-validate", both(recipe(), shards_then(plain_copy, kinds=["frames", "clips"], history=1, future=1)),
-         ["validate", "{tmp}/r.yaml", "data.root={tmp}/ds2", "data.shards={tmp}/s2"], 2,
-         ("{tmp}/s2: its shards were made from {tmp}/ds, and {tmp}/ds2 is not that dataset as it was then", "delete {tmp}/s2", REBUILD_COPY)),
-    Case("shards-plain-copy-run", both(recipe(), shards_then(plain_copy, kinds=["frames", "clips"], history=1, future=1)),
-         [*RUN, "data.root={tmp}/ds2", "data.shards={tmp}/s2"], 2, ("{tmp}/s2: its shards were made from {tmp}/ds", REBUILD_COPY)),
-    Case("shards-plain-copy-data-shards", shards_then(plain_copy), ["data", "shards", "{tmp}/ds2", "--out", "{tmp}/s2", "--kinds", "frames", "--samples-per-shard", "4"], 2,
-         ("{tmp}/s2: its shards were made from {tmp}/ds", "`occtrain data shards {tmp}/ds2 --out {tmp}/s2 --samples-per-shard 4 --kinds frames --rebuild`")),
-    Case("shards-other-layout-names-the-rebuild", shards_then(nothing), [*STALE[:-1], "5"], 2,
-         ("{tmp}/s2: already holds shards of a different dataset or layout (samples_per_shard 4 there, 5 here)",
-          "`occtrain data shards {tmp}/ds --out {tmp}/s2 --samples-per-shard 5 --kinds frames --rebuild`")),
-    Case("shards-rebuild-out-is-a-dataset", nothing, ["data", "shards", DS, "--out", DS, "--rebuild"], 2,
-         "{tmp}/ds: holds annotations.json, which is not a shard file; --rebuild replaces the whole directory"),
-    Case("shards-out-is-a-file", write_text("f", "mine"), ["data", "shards", DS, "--out", "{tmp}/f"], 2, "{tmp}/f: is a file; --out takes a directory"),
-    Case("shards-out-under-a-file", write_text("f", "mine"), ["data", "shards", DS, "--out", "{tmp}/f/out"], 2, "cannot write {tmp}/f/out: {tmp}/f is a file"),
+    Case(
+        "validate-a-clip-stage-where-no-clip-fits",
+        recipe(),
+        ["validate", "{tmp}/r.yaml", "data.history=4", "data.future=6"],
+        2,
+        "stage 'pretrain' reads clips",
+    ),
+    Case(
+        "shards-plain-copy-validate",
+        both(recipe(), shards_then(plain_copy, kinds=["frames", "clips"], history=1, future=1)),
+        ["validate", "{tmp}/r.yaml", "data.root={tmp}/ds2", "data.shards={tmp}/s2"],
+        2,
+        (
+            "{tmp}/s2: its shards were made from {tmp}/ds, and {tmp}/ds2 is not that dataset as it was then",
+            "delete {tmp}/s2",
+            REBUILD_COPY,
+        ),
+    ),
+    Case(
+        "shards-plain-copy-run",
+        both(recipe(), shards_then(plain_copy, kinds=["frames", "clips"], history=1, future=1)),
+        [*RUN, "data.root={tmp}/ds2", "data.shards={tmp}/s2"],
+        2,
+        ("{tmp}/s2: its shards were made from {tmp}/ds", REBUILD_COPY),
+    ),
+    Case(
+        "shards-plain-copy-data-shards",
+        shards_then(plain_copy),
+        ["data", "shards", "{tmp}/ds2", "--out", "{tmp}/s2", "--kinds", "frames", "--samples-per-shard", "4"],
+        2,
+        (
+            "{tmp}/s2: its shards were made from {tmp}/ds",
+            "`occtrain data shards {tmp}/ds2 --out {tmp}/s2 --samples-per-shard 4 --kinds frames --rebuild`",
+        ),
+    ),
+    Case(
+        "shards-other-layout-names-the-rebuild",
+        shards_then(nothing),
+        [*STALE[:-1], "5"],
+        2,
+        (
+            "{tmp}/s2: already holds shards of a different dataset or layout (samples_per_shard 4 there, 5 here)",
+            "`occtrain data shards {tmp}/ds --out {tmp}/s2 --samples-per-shard 5 --kinds frames --rebuild`",
+        ),
+    ),
+    Case(
+        "shards-rebuild-out-is-a-dataset",
+        nothing,
+        ["data", "shards", DS, "--out", DS, "--rebuild"],
+        2,
+        "{tmp}/ds: holds annotations.json, which is not a shard file; --rebuild replaces the whole directory",
+    ),
+    Case(
+        "shards-out-is-a-file",
+        write_text("f", "mine"),
+        ["data", "shards", DS, "--out", "{tmp}/f"],
+        2,
+        "{tmp}/f: is a file; --out takes a directory",
+    ),
+    Case(
+        "shards-out-under-a-file",
+        write_text("f", "mine"),
+        ["data", "shards", DS, "--out", "{tmp}/f/out"],
+        2,
+        "cannot write {tmp}/f/out: {tmp}/f is a file",
+    ),
     Case("shards-camera-folder-deleted", released_cameras(drop="CAM_BACK"), SHARDS_FRAMES, 2, NO_BACK),
     Case("shards-camera-folder-deleted-readme-form", without_folder("imgs/CAM_BACK"), SHARDS_FRAMES, 2, NO_BACK),
-    Case("validate-camera-folder-deleted", both(recipe(), released_cameras(drop="CAM_BACK")), ["validate", "{tmp}/r.yaml"], 2, NO_BACK),
-    Case("run-vision-camera-folder-deleted", both(recipe(VISION_ONLY), released_cameras(drop="CAM_BACK")), RUN, 2, NO_BACK),
-    Case("shards-camera-image-missing-released-form", released_cameras(drop=FIRST_IMG.removeprefix("imgs/")), SHARDS_FRAMES, 2,
-         "{tmp}/ds/" + FIRST_IMG + ": cannot read it"),
+    Case(
+        "validate-camera-folder-deleted",
+        both(recipe(), released_cameras(drop="CAM_BACK")),
+        ["validate", "{tmp}/r.yaml"],
+        2,
+        NO_BACK,
+    ),
+    Case(
+        "run-vision-camera-folder-deleted",
+        both(recipe(VISION_ONLY), released_cameras(drop="CAM_BACK")),
+        RUN,
+        2,
+        NO_BACK,
+    ),
+    Case(
+        "shards-camera-image-missing-released-form",
+        released_cameras(drop=FIRST_IMG.removeprefix("imgs/")),
+        SHARDS_FRAMES,
+        2,
+        "{tmp}/ds/" + FIRST_IMG + ": cannot read it",
+    ),
 ]
 
 
@@ -975,7 +2170,9 @@ def run_cli(argv: list[str]) -> int:
 
 
 @pytest.mark.parametrize("case", CASES, ids=[c.id for c in CASES])
-def test_bad_input_is_one_line_and_changes_nothing(case: Case, world: Path, tmp_path: Path, capsys, monkeypatch) -> None:
+def test_bad_input_is_one_line_and_changes_nothing(
+    case: Case, world: Path, tmp_path: Path, capsys, monkeypatch
+) -> None:
     shutil.copytree(world, tmp_path, dirs_exist_ok=True)
     case.setup(tmp_path)
     before = snapshot(tmp_path)
@@ -1030,7 +2227,11 @@ def make_release(root: Path, released_form: bool = False) -> Path:
                 "camera_sensor": {
                     f"CAM_{c}" if released_form else f"{token}-cam{c}": {
                         "img_path": f"CAM_{c}/{token}.jpg" if released_form else f"imgs/CAM_{c}/{token}.jpg",
-                        "intrinsics" if released_form else "intrinsic": [[1266.4, 0.0, 816.3], [0.0, 1266.4, 491.5], [0.0, 0.0, 1.0]],
+                        "intrinsics" if released_form else "intrinsic": [
+                            [1266.4, 0.0, 816.3],
+                            [0.0, 1266.4, 491.5],
+                            [0.0, 0.0, 1.0],
+                        ],
                         "extrinsic": {"translation": [1.7, 0.0, 1.5], "rotation": [0.5, -0.5, 0.5, -0.5]},
                         "ego_pose": {**pose, "timestamp": start[scene] + 500_000 * i} if released_form else pose,
                     }
@@ -1040,11 +2241,16 @@ def make_release(root: Path, released_form: bool = False) -> Path:
                 "gt_path": f"gts/{scene}/{token}/labels.npz",
             }
             if scene == "scene-0061":
-                infos[scene][token] |= {"prev": order[i - 1] if i else "", "next": order[i + 1] if i + 1 < len(order) else ""}
+                infos[scene][token] |= {
+                    "prev": order[i - 1] if i else "",
+                    "next": order[i + 1] if i + 1 < len(order) else "",
+                }
             path = root / "gts" / scene / token / "labels.npz"
             path.parent.mkdir(parents=True)
             np.savez_compressed(path, **hand_labels(i))
-    (root / "annotations.json").write_text(json.dumps({"train_split": ["scene-0061"], "val_split": ["scene-0103"], "scene_infos": infos}))
+    (root / "annotations.json").write_text(
+        json.dumps({"train_split": ["scene-0061"], "val_split": ["scene-0103"], "scene_infos": infos})
+    )
     return root
 
 
@@ -1065,7 +2271,10 @@ def test_a_real_release_reads_unchanged_and_checks_ok(tmp_path: Path, capsys, re
     assert err == "" and out.splitlines()[-1] == f"dataset {root}: ok"
     notes = out.splitlines()[:-1]
     assert len(notes) == 3 and all(n.startswith(f"note: {root}: no ") for n in notes)
-    assert "detection, counting, prediction, chain_of_thought, meta_action training" in notes[0] and "occtrain/frames/<scene>.json" in notes[0]
+    assert (
+        "detection, counting, prediction, chain_of_thought, meta_action training" in notes[0]
+        and "occtrain/frames/<scene>.json" in notes[0]
+    )
     assert "no qa training" in notes[1] and "NuScenes_<split>_questions.json" in notes[1]
     assert notes[2] == f"note: {root}: no imgs/ camera images; stages that read cameras (vision) need them"
 
@@ -1087,7 +2296,20 @@ def test_score_output_is_standard_json(world: Path, tmp_path: Path, capsys) -> N
     """Classes absent on both sides are undefined (NaN inside): null on stdout and in --out."""
     out = tmp_path / "occ.json"
     # the ground truth scored against itself: its labels tree is a prediction directory too
-    code = run_cli(["score", "occupancy", "--pred", str(world / "ds" / "gts"), "--gt", str(world / "ds"), "--split", "val", "--out", str(out)])
+    code = run_cli(
+        [
+            "score",
+            "occupancy",
+            "--pred",
+            str(world / "ds" / "gts"),
+            "--gt",
+            str(world / "ds"),
+            "--split",
+            "val",
+            "--out",
+            str(out),
+        ]
+    )
     printed = capsys.readouterr().out
     assert code == 0
     for result in (_strict_json(printed), _strict_json(out.read_text())):
@@ -1110,10 +2332,15 @@ class Inner(TypedDict):
         (3, float, []),
         (float("nan"), float, ["x is NaN, expected a number"]),
         (False, float, ["x is false, expected a number"]),
-        (None, Optional[int], []),
-        ("3", Optional[int], ['x is the string "3", expected an integer']),
+        # typing.Optional spelled out on purpose: the validator reads both spellings of a union.
+        (None, Optional[int], []),  # noqa: UP045
+        ("3", Optional[int], ['x is the string "3", expected an integer']),  # noqa: UP045
         ({"xy": [1, 2.5], "extra": "kept"}, Inner, []),
-        ({"xy": [1], "tag": "c"}, Inner, ["x.xy holds 1 item, expected a list of 2 numbers", 'x.tag is the string "c", expected one of "a", "b"']),
+        (
+            {"xy": [1], "tag": "c"},
+            Inner,
+            ["x.xy holds 1 item, expected a list of 2 numbers", 'x.tag is the string "c", expected one of "a", "b"'],
+        ),
         ({}, Inner, ["x.xy is missing, expected a list of 2 numbers"]),
         ({"k": [{"xy": "no"}]}, dict[str, list[Inner]], ['x.k[0].xy is the string "no", expected a list of 2 numbers']),
         (1.0, Literal[1], ["x is the number 1, expected 1"]),

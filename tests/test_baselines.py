@@ -57,7 +57,9 @@ def test_forecast_movable_miou_is_the_mean_over_the_movable_classes_present_per_
     out = m.compute()
     assert out["movable_mIoU"]["0.5s"] == 100.0 and out["movable_mIoU"]["1s"] == 50.0  # car 100, pedestrian 0
     assert out["movable_mIoU"]["avg"] == 75.0
-    assert float(out["mIoU"]["1s"]) == pytest.approx(1600.0 / 17)  # occworld: classes absent from both score 100; pedestrian 0
+    assert float(out["mIoU"]["1s"]) == pytest.approx(
+        1600.0 / 17
+    )  # occworld: classes absent from both score 100; pedestrian 0
     plain = ForecastMetric(horizons=(0, 1))
     plain.update(pred, target)
     assert "movable_mIoU" not in plain.compute()

@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 
 from occtrain.data.cameras import CAMERA_NAMES, matrix_to_quaternion, nuscenes_rig, quaternion_to_matrix
+from occtrain.data.synth.grid import GROUND_LAYER
 from occtrain.occ3d import CLASS_INDEX, FREE, GRID_SHAPE, RANGE_MIN, VOXEL_SIZE
 
 GROUND_CLASSES = [CLASS_INDEX[c] for c in ("driveable_surface", "other_flat", "sidewalk", "terrain")]
-from occtrain.data.synth.grid import GROUND_LAYER
 
 H, W = 72, 128
 
@@ -63,7 +63,9 @@ def test_projection_and_lifting_round_trip():
 # ----------------------------------------------------------------------------- rendering
 
 
-def _first_voxel_by_plane_crossings(origin: np.ndarray, dirs: np.ndarray, occupied: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _first_voxel_by_plane_crossings(
+    origin: np.ndarray, dirs: np.ndarray, occupied: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """(flat index of the first occupied voxel or -1, distance entering it) of each ray, by a
     method independent of the renderer: every crossing of a voxel plane along the ray,
     sorted, and the voxel holding each midpoint between consecutive crossings."""
@@ -79,7 +81,9 @@ def _first_voxel_by_plane_crossings(origin: np.ndarray, dirs: np.ndarray, occupi
     p = origin + dirs[:, None, :] * np.where(valid, mid, 0)[..., None]
     idx = np.floor((p - RANGE_MIN) / VOXEL_SIZE).astype(np.int64)
     inside = valid & np.all((idx >= 0) & (idx < GRID_SHAPE), axis=-1)
-    flat = (idx[..., 0] * GRID_SHAPE[1] + np.clip(idx[..., 1], 0, GRID_SHAPE[1] - 1)) * GRID_SHAPE[2] + np.clip(idx[..., 2], 0, GRID_SHAPE[2] - 1)
+    flat = (idx[..., 0] * GRID_SHAPE[1] + np.clip(idx[..., 1], 0, GRID_SHAPE[1] - 1)) * GRID_SHAPE[2] + np.clip(
+        idx[..., 2], 0, GRID_SHAPE[2] - 1
+    )
     flat = np.where(inside, np.clip(flat, 0, occupied.size - 1), 0)
     hit = inside & occupied.reshape(-1)[flat]
     first = np.argmax(hit, axis=1)
@@ -104,7 +108,9 @@ def test_every_pixel_shows_the_first_occupied_voxel_on_its_ray(frame):
         assert np.array_equal(view.first_voxel.reshape(-1)[in_grid], voxel[in_grid]), cam.name
         assert np.array_equal(view.classes.reshape(-1)[in_grid], sem.reshape(-1)[voxel[in_grid]]), cam.name
         # The depth map is camera-z depth of the point where the ray enters that voxel.
-        np.testing.assert_allclose(view.depth.reshape(-1)[in_grid], (entry * cos.reshape(-1))[in_grid], rtol=1e-5, atol=1e-4)
+        np.testing.assert_allclose(
+            view.depth.reshape(-1)[in_grid], (entry * cos.reshape(-1))[in_grid], rtol=1e-5, atol=1e-4
+        )
 
 
 def test_rendered_depth_lifts_onto_the_voxel_the_pixel_shows(frame):
@@ -160,13 +166,20 @@ def test_lane_markings_and_signal_colours(frame):
     scene = frame[0]
     road = next(r for r in scene.net.roads[0] if r.lanes == 2 and r.median == 0)  # seed 11 has such roads
     crossing = scene.net.roads[1]
-    gap = [(a.centre + a.half_width + 20, b.centre - b.half_width - 20) for a, b in zip(crossing, crossing[1:])
-           if b.centre - b.half_width - a.centre - a.half_width > 60][0]
+    gap = [
+        (a.centre + a.half_width + 20, b.centre - b.half_width - 20)
+        for a, b in zip(crossing, crossing[1:])
+        if b.centre - b.half_width - a.centre - a.half_width > 60
+    ][0]
     x = np.linspace(*gap, 400)
     centre = lane_markings(scene.net, np.stack([x, np.full_like(x, road.centre + road.median / 2)], axis=1))
-    between = lane_markings(scene.net, np.stack([x, np.full_like(x, road.centre + road.median / 2 + LANE_WIDTH / 2)], axis=1))
+    between = lane_markings(
+        scene.net, np.stack([x, np.full_like(x, road.centre + road.median / 2 + LANE_WIDTH / 2)], axis=1)
+    )
     assert (centre == 2).all() and (between == 0).all()  # a solid yellow line, bare lane beside it
-    divider = lane_markings(scene.net, np.stack([x, np.full_like(x, road.centre + road.median / 2 + LANE_WIDTH)], axis=1))
+    divider = lane_markings(
+        scene.net, np.stack([x, np.full_like(x, road.centre + road.median / 2 + LANE_WIDTH)], axis=1)
+    )
     assert 0.2 < (divider == 1).mean() < 0.5  # dashed: 3 m painted in every 9 m
     signals = scene.static.signals
     assert len(signals) and signals.shape[1] == 9
@@ -200,8 +213,15 @@ def test_the_release_layout_reads_back(world):
     raw = json.loads((world / "annotations.json").read_text())["scene_infos"][scene][token]["camera_sensor"]
     assert list(raw) == list(CAMERA_NAMES)
     entry = raw["CAM_FRONT"]
-    assert set(entry) == {"img_path", "intrinsics", "extrinsic", "ego_pose"} and set(entry["extrinsic"]) == {"translation", "rotation"}
-    assert entry["img_path"] == f"CAM_FRONT/{token}.png" and len(entry["intrinsics"]) == 3 and len(entry["extrinsic"]["rotation"]) == 4
+    assert set(entry) == {"img_path", "intrinsics", "extrinsic", "ego_pose"} and set(entry["extrinsic"]) == {
+        "translation",
+        "rotation",
+    }
+    assert (
+        entry["img_path"] == f"CAM_FRONT/{token}.png"
+        and len(entry["intrinsics"]) == 3
+        and len(entry["extrinsic"]["rotation"]) == 4
+    )
     rig = {c.name: c for c in nuscenes_rig(H, W)}
     for r in records:
         np.testing.assert_allclose(r.intrinsic, rig[r.name].intrinsic, atol=1e-9)
@@ -229,7 +249,12 @@ def test_the_readme_form_of_camera_records_reads_alike(world, tmp_path):
     for samples in ann["scene_infos"].values():
         for token, info in samples.items():
             info["camera_sensor"] = {
-                f"{token}-{name.lower()}": {"img_path": f"imgs/{r['img_path']}", "intrinsic": r["intrinsics"], "extrinsic": r["extrinsic"], "ego_pose": r["ego_pose"]}
+                f"{token}-{name.lower()}": {
+                    "img_path": f"imgs/{r['img_path']}",
+                    "intrinsic": r["intrinsics"],
+                    "extrinsic": r["extrinsic"],
+                    "ego_pose": r["ego_pose"],
+                }
                 for name, r in info["camera_sensor"].items()
             }
     (copy / "annotations.json").write_text(json.dumps(ann))
@@ -260,7 +285,9 @@ def test_shards_carry_the_views_only_to_stages_that_read_them(world, tmp_path):
         classes, depth = index.camera_targets(scene, sample["__key__"])
         assert np.array_equal(batch["cam_class"][0].numpy(), classes)
         np.testing.assert_allclose(batch["cam_depth"][0].numpy(), depth)
-        np.testing.assert_allclose(batch["intrinsics"][0, 0].numpy(), index.cameras(scene, sample["__key__"])[0].intrinsic, rtol=1e-6)
+        np.testing.assert_allclose(
+            batch["intrinsics"][0, 0].numpy(), index.cameras(scene, sample["__key__"])[0].intrinsic, rtol=1e-6
+        )
 
 
 def test_data_check_names_a_broken_camera_image_and_calibration(world, tmp_path, capsys):
@@ -282,5 +309,8 @@ def test_data_check_names_a_broken_camera_image_and_calibration(world, tmp_path,
     assert main(["data", "check", str(copy)]) == 1
     out, err = capsys.readouterr()
     assert f"{broken}: not a readable image" in out
-    assert f"scene_infos.{scene}.{token}.camera_sensor (CAM_FRONT): intrinsic" in out and "does not fit its 128x72 image" in out
+    assert (
+        f"scene_infos.{scene}.{token}.camera_sensor (CAM_FRONT): intrinsic" in out
+        and "does not fit its 128x72 image" in out
+    )
     assert err.strip() == f"2 problem(s) in dataset {copy}"

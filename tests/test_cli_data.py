@@ -14,7 +14,9 @@ pytestmark = pytest.mark.slow
 @pytest.fixture(scope="module")
 def world(tmp_path_factory):
     root = tmp_path_factory.mktemp("cli") / "world"
-    res = run_cli("data", "synth", "--out", str(root), "--scenes", "1", "--val-scenes", "1", "--frames", "12", "--seed", "4")
+    res = run_cli(
+        "data", "synth", "--out", str(root), "--scenes", "1", "--val-scenes", "1", "--frames", "12", "--seed", "4"
+    )
     assert res.returncode == 0, res.stderr
     assert "wrote 2 scenes" in res.stderr
     return root
@@ -22,11 +24,18 @@ def world(tmp_path_factory):
 
 def test_synth_again_reuses_and_a_different_request_is_refused(world):
     stamp = (world / "annotations.json").stat().st_mtime_ns
-    res = run_cli("data", "synth", "--out", str(world), "--scenes", "1", "--val-scenes", "1", "--frames", "12", "--seed", "4")
+    res = run_cli(
+        "data", "synth", "--out", str(world), "--scenes", "1", "--val-scenes", "1", "--frames", "12", "--seed", "4"
+    )
     assert res.returncode == 0 and "already complete" in res.stderr
-    res = run_cli("data", "synth", "--out", str(world), "--scenes", "1", "--val-scenes", "1", "--frames", "12", "--seed", "5")
+    res = run_cli(
+        "data", "synth", "--out", str(world), "--scenes", "1", "--val-scenes", "1", "--frames", "12", "--seed", "5"
+    )
     assert res.returncode == 2
-    assert res.stderr.strip().splitlines() == [f"error: {world}: already holds a different dataset (differs in seed); choose another --out or delete that directory"]
+    assert res.stderr.strip().splitlines() == [
+        f"error: {world}: already holds a different dataset (differs in seed); choose another --out or delete that "
+        "directory"
+    ]
     assert (world / "annotations.json").stat().st_mtime_ns == stamp
 
 
@@ -44,8 +53,8 @@ def test_check_dataset_ok_then_lists_problems(world, tmp_path):
     res = run_cli("data", "check", str(bad))
     assert res.returncode == 1
     lines = res.stdout.strip().splitlines()
-    assert any(str(victims[0]) in l and "shape" in l for l in lines)
-    assert any(str(victims[1]) in l and "corrupt" in l for l in lines)
+    assert any(str(victims[0]) in line and "shape" in line for line in lines)
+    assert any(str(victims[1]) in line and "corrupt" in line for line in lines)
 
 
 def test_show_writes_a_picture(world, tmp_path):
@@ -85,8 +94,10 @@ def test_shards_rebuild_replaces_shards_of_another_layout(world, tmp_path):
     res = run_cli("data", "shards", str(world), "--out", str(out), "--kinds", "frames", "--samples-per-shard", "8")
     assert res.returncode == 0, res.stderr
     res = run_cli("data", "shards", str(world), "--out", str(out), "--kinds", "frames", "--samples-per-shard", "5")
-    assert res.returncode == 2 and f"--samples-per-shard 5 --kinds frames --rebuild`" in res.stderr
-    res = run_cli("data", "shards", str(world), "--out", str(out), "--kinds", "frames", "--samples-per-shard", "5", "--rebuild")
+    assert res.returncode == 2 and "--samples-per-shard 5 --kinds frames --rebuild`" in res.stderr
+    res = run_cli(
+        "data", "shards", str(world), "--out", str(out), "--kinds", "frames", "--samples-per-shard", "5", "--rebuild"
+    )
     assert res.returncode == 0, res.stderr
     index = json.loads((out / "index.json").read_text())
     assert [e["samples"] for e in index["kinds"]["frames"]["train"]] == [5, 5, 2]

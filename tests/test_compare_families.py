@@ -44,14 +44,27 @@ def test_each_cell_reads_its_stage_beside_the_familys_own_baseline(tool, tmp_pat
     run = tmp_path / "sparseoccvla"
     forecast = {f"forecast_occworld_mIoU_{h}": v for h, v in (("1s", 3.0), ("2s", 2.0), ("3s", 1.0))}
     copy = {f"baseline_copy_forecast_occworld_mIoU_{h}": v for h, v in (("1s", 30.0), ("2s", 20.0), ("3s", 10.0))}
-    world = {**forecast, **copy, "qa_overall": 55.0, "baseline_prior_qa_overall": 44.0, "caption_CIDEr": 0.7,
-             "baseline_typical_caption_CIDEr": 0.8}
+    world = {
+        **forecast,
+        **copy,
+        "qa_overall": 55.0,
+        "baseline_prior_qa_overall": 44.0,
+        "caption_CIDEr": 0.7,
+        "baseline_typical_caption_CIDEr": 0.8,
+    }
     extra = [f"<global_{j}>" for j in range(12)] + ["<ego>"]
     _stage(run, "stage3", _vocab(scene_hw=[64, 1], patch=1, codebook_sizes=[], extra=extra), world)
     (run / "stage3" / "eval" / "val" / "world.json").write_text(json.dumps({"world": "abc", "world_version": "v4"}))
-    _stage(run, "planner", {}, {"plan_L2_stp3_avg": 1.5, "plan_collision_stp3_avg": 0.25, "constant_velocity_L2_stp3_avg": 0.5},
-           stale=True)
-    manifest = {"stages": {"stage3": {"metrics": {"train_step_s": 0.5, "train_peak_rss_mb": 900.0}}, "planner": {"metrics": {}}}}
+    _stage(
+        run,
+        "planner",
+        {},
+        {"plan_L2_stp3_avg": 1.5, "plan_collision_stp3_avg": 0.25, "constant_velocity_L2_stp3_avg": 0.5},
+        stale=True,
+    )
+    manifest = {
+        "stages": {"stage3": {"metrics": {"train_step_s": 0.5, "train_peak_rss_mb": 900.0}}, "planner": {"metrics": {}}}
+    }
     (run / "manifest.json").write_text(json.dumps(manifest))
     scored = []
     monkeypatch.setattr(tool, "_cli", lambda *args: scored.append(args))

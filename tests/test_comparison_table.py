@@ -45,22 +45,35 @@ def write_recipe(tmp_path, table: str, data: str = "data") -> str:
 @pytest.mark.parametrize(
     "table, message",
     [
-        ("table: {columns: [{name: acc, metric: val/acc}], rows: [{stage: first}, {stage: foo}]}",
-         "table.rows[1].stage in {path}: 'foo' is not a stage of this recipe; stages are first, second"),
-        ("table: {columns: [{name: acc, metric: val/acc}], rows: [{stage: first, paper: {mIoU: 3}}]}",
-         "table.rows[0].paper.mIoU in {path}: 'mIoU' is not a column; columns are acc"),
-        ("table: {columns: [], rows: [{stage: first}]}",
-         "table.columns in {path} is empty; a table needs at least one column and one row"),
-        ("table: {columns: [{name: acc, metric: val/acc}]}",
-         "table.rows in {path} is empty; a table needs at least one column and one row"),
-        ("table: {columns: [{name: acc}], rows: [{stage: first}]}",
-         "table.columns[0] in {path} has no 'metric:'; a column needs a name and a metric"),
-        ("table: {columns: [{name: acc, metric: a}, {name: acc, metric: b}], rows: [{stage: first}]}",
-         "table.columns[1].name in {path}: 'acc' names two columns"),
-        ("table: {columns: [{name: acc, metric: a, digits: -1}], rows: [{stage: first}]}",
-         "table.columns[0].digits in {path} is -1; decimals are 0 or more"),
-        ("table: {colums: [], rows: []}",
-         "unknown key 'table.colums' in {path}; did you mean 'columns'?"),
+        (
+            "table: {columns: [{name: acc, metric: val/acc}], rows: [{stage: first}, {stage: foo}]}",
+            "table.rows[1].stage in {path}: 'foo' is not a stage of this recipe; stages are first, second",
+        ),
+        (
+            "table: {columns: [{name: acc, metric: val/acc}], rows: [{stage: first, paper: {mIoU: 3}}]}",
+            "table.rows[0].paper.mIoU in {path}: 'mIoU' is not a column; columns are acc",
+        ),
+        (
+            "table: {columns: [], rows: [{stage: first}]}",
+            "table.columns in {path} is empty; a table needs at least one column and one row",
+        ),
+        (
+            "table: {columns: [{name: acc, metric: val/acc}]}",
+            "table.rows in {path} is empty; a table needs at least one column and one row",
+        ),
+        (
+            "table: {columns: [{name: acc}], rows: [{stage: first}]}",
+            "table.columns[0] in {path} has no 'metric:'; a column needs a name and a metric",
+        ),
+        (
+            "table: {columns: [{name: acc, metric: a}, {name: acc, metric: b}], rows: [{stage: first}]}",
+            "table.columns[1].name in {path}: 'acc' names two columns",
+        ),
+        (
+            "table: {columns: [{name: acc, metric: a, digits: -1}], rows: [{stage: first}]}",
+            "table.columns[0].digits in {path} is -1; decimals are 0 or more",
+        ),
+        ("table: {colums: [], rows: []}", "unknown key 'table.colums' in {path}; did you mean 'columns'?"),
     ],
 )
 def test_a_bad_table_is_refused_in_one_line_naming_the_key(tmp_path, table, message):
@@ -113,10 +126,13 @@ def test_markdown_shows_ours_then_the_papers_with_scale_digits_and_dashes():
 
 
 def test_from_a_manifest_only_done_stages_count(tmp_path):
-    manifest = Manifest(tmp_path / "manifest.json", stages={
-        "occllama": StageEntry("tokenizer", "done", metrics={"val/occworld_IoU": 41.234}),
-        "vqvae": StageEntry("tokenizer", "failed", metrics={"val/occworld_IoU": 38.5}),
-    })
+    manifest = Manifest(
+        tmp_path / "manifest.json",
+        stages={
+            "occllama": StageEntry("tokenizer", "done", metrics={"val/occworld_IoU": 41.234}),
+            "vqvae": StageEntry("tokenizer", "failed", metrics={"val/occworld_IoU": 38.5}),
+        },
+    )
     rows = build_table(HAND, manifest)
     assert [r.ours[0] for r in rows] == [41.234, None, None]
 
@@ -133,9 +149,13 @@ def test_a_run_writes_the_table_only_when_every_stage_is_done(tmp_path, capsys):
     from occtrain.runner import _write_table
 
     recipe, _ = load_recipe(write_recipe(tmp_path, TABLE))
-    manifest = Manifest(tmp_path / "manifest.json", stages={
-        "first": StageEntry("probe", "done", metrics={"val/acc": 0.5}), "second": StageEntry("probe", "failed"),
-    })
+    manifest = Manifest(
+        tmp_path / "manifest.json",
+        stages={
+            "first": StageEntry("probe", "done", metrics={"val/acc": 0.5}),
+            "second": StageEntry("probe", "failed"),
+        },
+    )
     (tmp_path / "table.md").write_text("stale: second was retrained since\n")
     _write_table(tmp_path, recipe, manifest)
     assert not (tmp_path / "table.md").exists() and "Probe vs paper" not in capsys.readouterr().out

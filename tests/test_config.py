@@ -78,5 +78,7 @@ def test_override_may_name_a_section_file(tmp_path):
     cfg = load_config(RecipeConfig, None, ["name=x", f"trainer={gpu}", "trainer.devices=2"])
     assert (cfg.trainer.accelerator, cfg.trainer.devices, cfg.trainer.max_steps) == ("gpu", 2, 100)
     bad = write(tmp_path, "configs/trainer/bad.yaml", "acelerator: gpu\n")
-    with pytest.raises(ConfigError, match=r"unknown key 'trainer.acelerator' in .*bad.yaml; did you mean 'accelerator'\?"):
+    with pytest.raises(
+        ConfigError, match=r"unknown key 'trainer.acelerator' in .*bad.yaml; did you mean 'accelerator'\?"
+    ):
         load_config(RecipeConfig, None, ["name=x", f"trainer={bad}"])

@@ -4,7 +4,6 @@ written beside the fields, for every registered stage kind, family and tokenizer
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Optional
 
 from omegaconf import MISSING
 
@@ -30,7 +29,7 @@ class _Schema:
     rate: float = 0.5
     mode: str = "a"  # a | b
     tags: list[str] = field(default_factory=lambda: ["x"])
-    limit: Optional[int] = None
+    limit: int | None = None
     inner: _Inner = field(default_factory=_Inner)
     items: list[_Inner] = field(default_factory=list)
     flag: bool = False

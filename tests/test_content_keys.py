@@ -114,7 +114,11 @@ def test_a_torn_tar_is_one_message_not_a_tuple(world: Path, tmp_path: Path) -> N
         with pytest.raises(DataError) as err:
             for i, _ in enumerate(make_pipeline(urls, train=train, total=total)):
                 assert i < 50
-        assert len(err.value.args) == 1 and "corrupt or truncated shard" in err.value.args[0] and "<_io" not in err.value.args[0]
+        assert (
+            len(err.value.args) == 1
+            and "corrupt or truncated shard" in err.value.args[0]
+            and "<_io" not in err.value.args[0]
+        )
 
 
 def test_validate_checks_without_writing(world: Path, tmp_path: Path, capsys) -> None:

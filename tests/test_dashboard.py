@@ -17,8 +17,8 @@ import pytest
 from PIL import Image
 
 from conftest import REPO
-from occtrain.dashboard import bev_comparison, read_samples, register, write_dashboard, write_samples
 from occtrain.core.paper import REAL_DATA, all_figures, figures_for, metric_words
+from occtrain.dashboard import bev_comparison, read_samples, register, write_dashboard, write_samples
 from occtrain.dashboard.svg import Frame, nice_ticks, tick_labels
 from occtrain.errors import OcctrainError
 from occtrain.manifest import Manifest
@@ -54,7 +54,13 @@ def make_run(tmp_path: Path) -> Path:
     for name, kind in (("tokenizer", "tokenizer"), ("pretrain", "pretrain"), ("instruct", "instruct")):
         m.entry(name, kind)
     m.mark_running("tokenizer", "abc123", {"kind": "tokenizer"})
-    final = {"val/occworld_mIoU": 41.5, "val/occworld_IoU": 55.25, "val/occ3d_mIoU": 38.0, "val/loss": 0.3, "params": 1.2e6}
+    final = {
+        "val/occworld_mIoU": 41.5,
+        "val/occworld_IoU": 55.25,
+        "val/occ3d_mIoU": 38.0,
+        "val/loss": 0.3,
+        "params": 1.2e6,
+    }
     m.mark_done("tokenizer", final, {"export": str(run / "tokenizer" / "export")}, 95.0)
     m.mark_running("pretrain", "def456", {"kind": "pretrain"})
     m.mark_failed("pretrain", "RuntimeError: out of memory", 12.5)
@@ -159,7 +165,9 @@ def test_stage_table_statuses_and_failures(run_dir: Path):
 def test_metrics_grouped_by_convention_with_paper_figures(run_dir: Path):
     html = write_dashboard(run_dir).read_text()
     tok = html.split('id="stage-tokenizer"', 1)[1].split("</section>", 1)[0]
-    occ3d, occworld, other = (tok.index(h) for h in ("<h3>Occ3D convention", "<h3>OccWorld convention", "<h3>Other metrics"))
+    occ3d, occworld, other = (
+        tok.index(h) for h in ("<h3>Occ3D convention", "<h3>OccWorld convention", "<h3>Other metrics")
+    )
     assert occ3d < occworld < other
     row = re.search(r"<tr><td>val/occworld_mIoU</td>.*?</tr>", tok).group(0)
     assert '<td class="num">41.5</td>' in row
@@ -274,13 +282,22 @@ def test_cli_command_writes_to_out(run_dir: Path, tmp_path: Path, capsys):
 
 
 @pytest.mark.slow
-@pytest.mark.skipif(not CHROMIUM.exists(), reason="Debian's chromium is not installed (/usr/bin/chromium); .ci/run installs it")
+@pytest.mark.skipif(
+    not CHROMIUM.exists(), reason="Debian's chromium is not installed (/usr/bin/chromium); .ci/run installs it"
+)
 def test_chromium_renders_a_real_page(run_dir: Path, tmp_path: Path):
     page = write_dashboard(run_dir)
     shot = tmp_path / "dashboard.png"
     cmd = [
-        str(CHROMIUM), "--headless", "--no-sandbox", "--disable-gpu", "--hide-scrollbars",
-        f"--user-data-dir={tmp_path / 'profile'}", f"--screenshot={shot}", "--window-size=1280,2000", page.as_uri(),
+        str(CHROMIUM),
+        "--headless",
+        "--no-sandbox",
+        "--disable-gpu",
+        "--hide-scrollbars",
+        f"--user-data-dir={tmp_path / 'profile'}",
+        f"--screenshot={shot}",
+        "--window-size=1280,2000",
+        page.as_uri(),
     ]
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=60)
     assert shot.is_file(), proc.stderr[-2000:]
@@ -303,10 +320,11 @@ def test_chromium_renders_a_real_page(run_dir: Path, tmp_path: Path):
 # ----------------------------------------------------------------------------- the data
 
 
-def test_the_data_section_shows_the_runs_dataset_beside_occ3d_and_counts_it_once(run_dir: Path, tmp_path: Path, monkeypatch):
-    from conftest import write_hand_dataset
-
+def test_the_data_section_shows_the_runs_dataset_beside_occ3d_and_counts_it_once(
+    run_dir: Path, tmp_path: Path, monkeypatch
+):
     import occtrain.data.stats as stats_module
+    from conftest import write_hand_dataset
     from occtrain.dashboard.run_view import DATA_STATS_FILE
 
     root = write_hand_dataset(tmp_path / "ds", train=1, val=1, frames=4)

@@ -40,11 +40,19 @@ def test_one_frame_counted_by_hand() -> None:
     assert s.occupied == pytest.approx(4 / 640_000)
     assert s.occupied_columns == pytest.approx(3 / 40_000) and s.voxels_per_column == pytest.approx(4 / 3)
     assert s.low_layers == pytest.approx(3 / 4)
-    assert s.per_layer[0] == pytest.approx(2 / 40_000) and s.per_layer[5] == pytest.approx(1 / 40_000) and s.per_layer[2] == 0
+    assert (
+        s.per_layer[0] == pytest.approx(2 / 40_000)
+        and s.per_layer[5] == pytest.approx(1 / 40_000)
+        and s.per_layer[2] == 0
+    )
     assert s.mask_lidar == pytest.approx(8 / 640_000) and s.mask_camera == pytest.approx(3 / 640_000)
     assert s.camera_inside_lidar == pytest.approx(2 / 3)
     assert s.occupied_in_lidar == pytest.approx(4 / 8) and s.occupied_in_camera == pytest.approx(2 / 3)
-    assert s.class_shares["car"] == 0.5 and s.class_shares["driveable_surface"] == 0.25 and s.class_shares["manmade"] == 0.25
+    assert (
+        s.class_shares["car"] == 0.5
+        and s.class_shares["driveable_surface"] == 0.25
+        and s.class_shares["manmade"] == 0.25
+    )
     assert sum(s.class_shares.values()) == pytest.approx(1.0)
 
 

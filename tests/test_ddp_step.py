@@ -22,13 +22,22 @@ from omegaconf import OmegaConf
 from torch.nn.parallel import DistributedDataParallel
 
 from occtrain.config.recipe import OptimConfig
-from occtrain.models.tokenizers.occworld_vqvae import OccWorldVQVAEConfig
 from occtrain.core.registry import build_tokenizer
+from occtrain.models.tokenizers.occworld_vqvae import OccWorldVQVAEConfig
 from occtrain.stages.common import configure_adamw
 
 CFG = dict(
-    num_codes=16, code_dim=8, class_embed_dim=4, base_channels=8, channel_mult=[1, 1, 1], strides=[4, 5],
-    num_res_blocks=1, latent_attention=False, z_channels=8, ema_decay=0.9, lovasz_weight=0.0,
+    num_codes=16,
+    code_dim=8,
+    class_embed_dim=4,
+    base_channels=8,
+    channel_mult=[1, 1, 1],
+    strides=[4, 5],
+    num_res_blocks=1,
+    latent_attention=False,
+    z_channels=8,
+    ema_decay=0.9,
+    lovasz_weight=0.0,
 )
 
 
@@ -82,13 +91,17 @@ def test_ddp_step_equals_single_process_step(tmp_path):
         # Up to the order the two halves are summed in: within 0.1 % of the tensor's largest
         # gradient (a rank that scaled its loss by 1.5 is 50 % off).
         atol = 1e-3 * float(grad.abs().max())
-        torch.testing.assert_close(ddp["grads"][name], grad, rtol=1e-3, atol=atol, msg=lambda m: f"grad of {name}: {m}")
+        torch.testing.assert_close(
+            ddp["grads"][name], grad, rtol=1e-3, atol=atol, msg=lambda m, name=name: f"grad of {name}: {m}"
+        )
     assert sum(int(g.abs().max() > 1e-6) for g in grads.values()) > 10  # real gradients, so equality means something
 
     single = model.state_dict()
     assert ddp["state"].keys() == single.keys()
     moved = 0
     for name, value in single.items():
-        torch.testing.assert_close(ddp["state"][name], value, rtol=1e-4, atol=1e-5, msg=lambda m: f"{name}: {m}")
+        torch.testing.assert_close(
+            ddp["state"][name], value, rtol=1e-4, atol=1e-5, msg=lambda m, name=name: f"{name}: {m}"
+        )
         moved += int(not torch.equal(value, _model().state_dict()[name]))
     assert moved > 10  # the step changed the weights (and the EMA codebook)

@@ -74,15 +74,27 @@ def _port() -> int:
 
 
 def _torchrun(args: list[str], nodes: int, per_node: int, port: int) -> list[subprocess.Popen]:
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [str(REPO / "tests"), os.environ.get("PYTHONPATH", "")])))
+    env = dict(
+        os.environ, PYTHONPATH=os.pathsep.join(filter(None, [str(REPO / "tests"), os.environ.get("PYTHONPATH", "")]))
+    )
     procs = []
     for node in range(nodes):
         cmd = [
-            sys.executable, "-m", "torch.distributed.run", f"--nnodes={nodes}", f"--nproc-per-node={per_node}",
-            f"--node-rank={node}", "--master-addr=127.0.0.1", f"--master-port={port}",
-            "-m", "occtrain", *args,
+            sys.executable,
+            "-m",
+            "torch.distributed.run",
+            f"--nnodes={nodes}",
+            f"--nproc-per-node={per_node}",
+            f"--node-rank={node}",
+            "--master-addr=127.0.0.1",
+            f"--master-port={port}",
+            "-m",
+            "occtrain",
+            *args,
         ]
-        procs.append(subprocess.Popen(cmd, cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True))
+        procs.append(
+            subprocess.Popen(cmd, cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        )
     return procs
 
 
@@ -110,7 +122,13 @@ def test_ddp_validation_of_an_odd_split_equals_one_process(tmp_path, world):
     one = run_cli("run", str(recipe), "data.batch_size=1", "--run-dir", str(tmp_path / "one"))
     assert one.returncode == 0, one.stderr[-3000:]
     two = run_cli(
-        "run", str(recipe), "data.batch_size=1", "trainer.devices=2", "trainer.strategy=ddp", "--run-dir", str(tmp_path / "two"),
+        "run",
+        str(recipe),
+        "data.batch_size=1",
+        "trainer.devices=2",
+        "trainer.strategy=ddp",
+        "--run-dir",
+        str(tmp_path / "two"),
         timeout=600,
     )
     assert two.returncode == 0, two.stderr[-3000:]
@@ -123,7 +141,11 @@ def test_ddp_validation_of_an_odd_split_equals_one_process(tmp_path, world):
     ddp = json.loads((tmp_path / "two" / "tokenizer" / "metrics.json").read_text())
     assert single.keys() == ddp.keys()
     for key in single:
-        if key in ("train_step_s", "train_peak_rss_mb", "train_peak_gpu_mb"):  # measurements of the machine, not results
+        if key in (
+            "train_step_s",
+            "train_peak_rss_mb",
+            "train_peak_gpu_mb",
+        ):  # measurements of the machine, not results
             continue
         if "IoU" in key:  # from integer counts, gathered across ranks: exactly equal
             assert ddp[key] == single[key], key
@@ -139,7 +161,15 @@ def test_two_torchrun_nodes_train_like_one_process(tmp_path, world):
     assert one.returncode == 0, one.stderr[-3000:]
 
     # Two node ranks of one process each, batch 1 per rank: the same global batch of 2.
-    args = ["run", str(recipe), "trainer.num_nodes=2", "trainer.strategy=ddp", "data.batch_size=1", "--run-dir", str(tmp_path / "two")]
+    args = [
+        "run",
+        str(recipe),
+        "trainer.num_nodes=2",
+        "trainer.strategy=ddp",
+        "data.batch_size=1",
+        "--run-dir",
+        str(tmp_path / "two"),
+    ]
     results = _finish(_torchrun(args, nodes=2, per_node=1, port=_port()))
     for code, err in results:
         assert code == 0, err[-3000:]
@@ -177,8 +207,15 @@ def test_a_ddp_epoch_killed_mid_way_resumes_without_repeating_or_skipping_a_samp
     recipe = tmp_path / "probe.yaml"
     recipe.write_text(PROBE_RECIPE.format(runs=tmp_path / "runs", data=world))
     args = [
-        "run", str(recipe), "trainer.devices=2", "trainer.strategy=ddp", "trainer.max_steps=9", "trainer.val_check_interval=9",
-        "data.batch_size=1", "data.num_workers=2", "data.shuffle_buffer=1",
+        "run",
+        str(recipe),
+        "trainer.devices=2",
+        "trainer.strategy=ddp",
+        "trainer.max_steps=9",
+        "trainer.val_check_interval=9",
+        "data.batch_size=1",
+        "data.num_workers=2",
+        "data.shuffle_buffer=1",
     ]
 
     def steps(seen: Path) -> dict[int, list[str]]:
@@ -190,12 +227,20 @@ def test_a_ddp_epoch_killed_mid_way_resumes_without_repeating_or_skipping_a_samp
         assert per_rank[0].keys() == per_rank[1].keys()
         return {step: per_rank[0][step] + per_rank[1][step] for step in sorted(per_rank[0])}
 
-    whole = run_cli(*args, "--run-dir", str(tmp_path / "whole"), env={"OCCTRAIN_PROBE_SEEN": str(tmp_path / "whole.seen")}, timeout=600)
+    whole = run_cli(
+        *args,
+        "--run-dir",
+        str(tmp_path / "whole"),
+        env={"OCCTRAIN_PROBE_SEEN": str(tmp_path / "whole.seen")},
+        timeout=600,
+    )
     assert whole.returncode == 0, whole.stderr[-3000:]
     last = tmp_path / "cut" / "probe" / "checkpoints" / "last.ckpt"
     cut = {"OCCTRAIN_PROBE_SEEN": str(tmp_path / "cut.seen"), "OCCTRAIN_PROBE_STEP_DELAY": "0.5"}
     killed_at = kill_at_checkpoint([*args, "--run-dir", str(tmp_path / "cut")], last, step=4, env=cut, timeout=300)
-    resumed = run_cli(*args, "--run-dir", str(tmp_path / "cut"), env={"OCCTRAIN_PROBE_SEEN": str(tmp_path / "cut.seen")}, timeout=600)
+    resumed = run_cli(
+        *args, "--run-dir", str(tmp_path / "cut"), env={"OCCTRAIN_PROBE_SEEN": str(tmp_path / "cut.seen")}, timeout=600
+    )
     assert resumed.returncode == 0, resumed.stderr[-3000:]
     (first, second) = json.loads((tmp_path / "cut" / "manifest.json").read_text())["stages"]["probe"]["history"]
     assert second["start_step"] == killed_at >= 4  # resumed mid-epoch, not restarted

@@ -32,7 +32,14 @@ def test_the_site_builds_strict(tmp_path, monkeypatch):
     site = tmp_path / "site"
     home = (site / "index.html").read_text()
     assert "first public implementation" in home and "A short tour" in home  # the README's sections came in
-    for page in ("getting-started", "world", "families/occllm", "families/sparseoccvla", "performance", "reference/config"):
+    for page in (
+        "getting-started",
+        "world",
+        "families/occllm",
+        "families/sparseoccvla",
+        "performance",
+        "reference/config",
+    ):
         assert (site / page / "index.html").is_file(), page
     api = (site / "api" / "index.html").read_text()
     assert "TrainedModel" in api and "export_dir" in api  # rendered from src/occtrain/api.py

@@ -15,7 +15,10 @@ def test_a_validator_that_only_introduces_its_cause_is_followed_to_it() -> None:
     with pytest.raises(Exception) as err:
         tiny_config(LLMConfig(num_heads=3), 100)  # occtrain's own check is bypassed: straight to transformers
     assert str(err.value).startswith("Class validation error for validator 'validate_architecture':")
-    assert cause_line(err.value) == "ValueError: The hidden size (128) is not a multiple of the number of attention heads (3)."
+    assert (
+        cause_line(err.value)
+        == "ValueError: The hidden size (128) is not a multiple of the number of attention heads (3)."
+    )
 
 
 def test_an_error_that_says_why_keeps_its_own_line() -> None:

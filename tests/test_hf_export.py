@@ -13,14 +13,23 @@ import pytest
 import torch
 
 from occtrain.config.llm import LLMConfig, LoRAConfig
-from occtrain.engine import export_engine, load_world_model, new_world_model
 from occtrain.core.registry import build_tokenizer, save_tokenizer
+from occtrain.engine import export_engine, load_world_model, new_world_model
 from occtrain.families.occllama import TaskConfig
 from occtrain.models.attention import allowed_pairs
 from occtrain.models.llm import apply_lora
 
-TINY_TOKENIZER = {"num_codes": 16, "code_dim": 8, "class_embed_dim": 4, "base_channels": 4, "channel_mult": [1, 1, 1, 1],
-                  "strides": [2, 2, 5], "num_res_blocks": 1, "z_channels": 8, "latent_attention": False}
+TINY_TOKENIZER = {
+    "num_codes": 16,
+    "code_dim": 8,
+    "class_embed_dim": 4,
+    "base_channels": 4,
+    "channel_mult": [1, 1, 1, 1],
+    "strides": [2, 2, 5],
+    "num_res_blocks": 1,
+    "z_channels": 8,
+    "latent_attention": False,
+}
 TINY_LLM = LLMConfig(hidden_size=32, num_layers=2, num_heads=2, intermediate_size=64, text_vocab_size=300)
 
 #: Runs in a fresh interpreter: transformers and peft only.
@@ -62,7 +71,9 @@ def occtrain_logits(engine, ids: torch.Tensor) -> torch.Tensor:
 @pytest.mark.parametrize("merge", [False, True], ids=["adapter", "merged"])
 def test_plain_transformers_and_peft_give_occtrains_logits(tmp_path, synth_dataset, tokenizer_export, merge):
     torch.manual_seed(1)
-    engine = new_world_model({"tokenizer": tokenizer_export}, TINY_LLM, TaskConfig(context_frames=2), synth_dataset, family="occllama")
+    engine = new_world_model(
+        {"tokenizer": tokenizer_export}, TINY_LLM, TaskConfig(context_frames=2), synth_dataset, family="occllama"
+    )
     engine.world.llm = apply_lora(engine.world.llm, LoRAConfig(r=4, alpha=8, dropout=0.0))
     with torch.no_grad():  # LoRA's B starts at zero: make the adapter change the output
         for name, p in engine.world.llm.named_parameters():
@@ -77,15 +88,28 @@ def test_plain_transformers_and_peft_give_occtrains_logits(tmp_path, synth_datas
 
     vocab = engine.vocab
     text = vocab.text_ids("a car is parked ahead, turn left")
-    ids = torch.tensor([vocab.bos_id, *text, vocab.act_open_id, *vocab.action_ids(torch.tensor([[3.0, -1.0]])).tolist(), vocab.eos_id])
+    ids = torch.tensor(
+        [vocab.bos_id, *text, vocab.act_open_id, *vocab.action_ids(torch.tensor([[3.0, -1.0]])).tolist(), vocab.eos_id]
+    )
     loaded = load_world_model(export).eval()
     ours = occtrain_logits(loaded, ids)
     assert torch.allclose(ours, occtrain_logits(engine, ids), atol=1e-5)  # export -> load is lossless
 
     (tmp_path / "ids.json").write_text(json.dumps(ids.tolist()))
     out = subprocess.run(
-        [sys.executable, "-c", PLAIN_HF, str(llm_dir), str(tmp_path / "ids.json"), str(tmp_path / "hf.npy"), "0" if merge else "1"],
-        capture_output=True, text=True, timeout=300, cwd=tmp_path,
+        [
+            sys.executable,
+            "-c",
+            PLAIN_HF,
+            str(llm_dir),
+            str(tmp_path / "ids.json"),
+            str(tmp_path / "hf.npy"),
+            "0" if merge else "1",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        cwd=tmp_path,
     )
     assert out.returncode == 0, out.stderr[-2000:]
     info = json.loads(out.stdout.strip().splitlines()[-1])
@@ -98,7 +122,9 @@ def test_export_carries_the_task_config(tmp_path, synth_dataset, tokenizer_expor
     """A later stage or ``occtrain eval`` builds prompts exactly as the model trained."""
     torch.manual_seed(2)
     tasks = TaskConfig(weights={"qa": 1.0}, context_frames=2, forecast_frames=3, max_objects=4)
-    engine = new_world_model({"tokenizer": tokenizer_export}, TINY_LLM, tasks, synth_dataset, max_new_text_tokens=123, family="occllama")
+    engine = new_world_model(
+        {"tokenizer": tokenizer_export}, TINY_LLM, tasks, synth_dataset, max_new_text_tokens=123, family="occllama"
+    )
     loaded = load_world_model(export_engine(engine, tmp_path / "export", stage="pretrain"))
     assert loaded.tasks == tasks and loaded.max_new_text_tokens == 123
     assert loaded.family == "occllama"

@@ -60,7 +60,12 @@ def test_inside_the_run_files_and_trees_go(run_dir):
     [
         (lambda t: (t / "f").write_text("x"), "dir", True, "{tmp}/f: is a file; --out takes a directory"),
         (lambda t: (t / "f").mkdir(), "file", True, "{tmp}/f: is a directory; --out takes a file name"),
-        (lambda t: (t / "f").write_text("x"), "file", False, "{tmp}/f: exists; choose another --out or remove it first"),
+        (
+            lambda t: (t / "f").write_text("x"),
+            "file",
+            False,
+            "{tmp}/f: exists; choose another --out or remove it first",
+        ),
     ],
     ids=["file-where-a-dir-goes", "dir-where-a-file-goes", "file-exists"],
 )

@@ -5,7 +5,8 @@ engine -> families -> core -> models / metrics / data -> config and the base mod
 module may import its own layer or lower ones, never a higher one; on top of that:
 
 - nothing in ``models/``, ``core/``, ``families/`` or ``engine/`` imports Lightning;
-- no stage module imports another stage module (they share ``stages/base``, ``stages/common``, ``stages/loggers``, ``stages/sharding``);
+- no stage module imports another stage module (they share ``stages/base``, ``stages/common``,
+  ``stages/loggers``, ``stages/sharding``);
 - a family imports no other family (shared code moves down into ``core/`` or ``models/``);
 - ``core``, ``engine``, ``stages``, the runner, ``evaluate``, the API and the dashboard name
   no family: they import none, and no string in them is a family's name (they look
@@ -27,17 +28,41 @@ SRC = REPO / "src" / "occtrain"
 
 #: Layer of each top-level module or package of occtrain (higher imports lower).
 LAYERS = {
-    "cli": 7, "__main__": 7,
-    "comparison": 6, "runner": 6, "evaluate": 6, "scoring": 6, "dashboard": 6, "manifest": 6, "api": 6, "memory_plan": 6,
+    "cli": 7,
+    "__main__": 7,
+    "comparison": 6,
+    "runner": 6,
+    "evaluate": 6,
+    "scoring": 6,
+    "dashboard": 6,
+    "manifest": 6,
+    "api": 6,
+    "memory_plan": 6,
     "stages": 5,
     "engine": 4,
     "families": 3,
     "core": 2,
-    "models": 1, "metrics": 1, "data": 1,
-    "config": 0, "errors": 0, "io": 0, "run_control": 0, "exports": 0, "progress": 0, "occ3d": 0, "nuscenes_qa": 0, "__init__": 0,
+    "models": 1,
+    "metrics": 1,
+    "data": 1,
+    "config": 0,
+    "errors": 0,
+    "io": 0,
+    "run_control": 0,
+    "exports": 0,
+    "progress": 0,
+    "occ3d": 0,
+    "nuscenes_qa": 0,
+    "__init__": 0,
 }
 #: Modules of ``stages/`` that are infrastructure, not a stage kind.
-STAGE_INFRA = {"occtrain.stages", "occtrain.stages.base", "occtrain.stages.common", "occtrain.stages.loggers", "occtrain.stages.sharding"}
+STAGE_INFRA = {
+    "occtrain.stages",
+    "occtrain.stages.base",
+    "occtrain.stages.common",
+    "occtrain.stages.loggers",
+    "occtrain.stages.sharding",
+}
 LIGHTNING_FREE = ("models", "core", "families", "engine")
 #: What may not name a family: it looks families up in the registry.
 FAMILY_NEUTRAL = ("core", "engine", "stages", "runner", "evaluate", "api", "dashboard", "memory_plan")
@@ -84,7 +109,10 @@ def check_module(me: str, where: str, source: str, is_package: bool = False) -> 
         if theirs not in LAYERS:
             continue
         if LAYERS[theirs] > LAYERS[mine]:
-            found.append(f"{where}:{line} imports {target}: {mine} (layer {LAYERS[mine]}) points up at {theirs} (layer {LAYERS[theirs]})")
+            found.append(
+                f"{where}:{line} imports {target}: {mine} (layer {LAYERS[mine]}) points up at {theirs} (layer "
+                f"{LAYERS[theirs]})"
+            )
         if mine == "stages" and me not in STAGE_INFRA and target.startswith("occtrain.stages."):
             stage = ".".join(target.split(".")[:3])
             if stage not in STAGE_INFRA and stage != me:
@@ -103,14 +131,18 @@ def check_module(me: str, where: str, source: str, is_package: bool = False) -> 
     if mine in FAMILY_NEUTRAL:
         for node in ast.walk(ast.parse(source)):
             if isinstance(node, ast.Constant) and isinstance(node.value, str) and node.value.lower() in FAMILIES:
-                found.append(f"{where}:{node.lineno} names the family '{node.value}': {mine} looks families up in the registry")
+                found.append(
+                    f"{where}:{node.lineno} names the family '{node.value}': {mine} looks families up in the registry"
+                )
     return found
 
 
 def violations() -> list[str]:
     found = []
     for path in sorted(SRC.rglob("*.py")):
-        found += check_module(module_name(path), str(path.relative_to(REPO)), path.read_text(), path.name == "__init__.py")
+        found += check_module(
+            module_name(path), str(path.relative_to(REPO)), path.read_text(), path.name == "__init__.py"
+        )
     return found
 
 
@@ -132,7 +164,11 @@ def test_imports_point_down():
         ("metrics/bad.py", "from occtrain.data.schema import COMMANDS\n", "metrics/ must not import data/"),
         ("families/bad.py", "from occtrain.engine import Evaluator\n", "points up"),
         ("data/bad.py", "from occtrain.data.synth.text import caption_for_frame\n", "only data/synthesize.py"),
-        ("families/occllm/bad.py", "from occtrain.families.occllama.tasks import TaskConfig\n", "a family imports no other family"),
+        (
+            "families/occllm/bad.py",
+            "from occtrain.families.occllama.tasks import TaskConfig\n",
+            "a family imports no other family",
+        ),
         ("families/occllm/bad.py", "from occtrain.stages.base import Stage\n", "points up"),
         ("engine/bad.py", "from occtrain.families.occvla.world_model import OccVLAWorldModel\n", "names no family"),
         ("stages/bad.py", "def f(family):\n    return family == 'occllama'\n", "names the family 'occllama'"),
@@ -149,9 +185,28 @@ def test_the_checker_catches(module, source, expected):
 
 
 def test_the_checker_passes_allowed_imports():
-    assert check_module("occtrain.stages.planner", "stages/planner.py", "from occtrain.stages.base import Stage\nfrom occtrain.engine import Evaluator\n") == []
-    assert check_module("occtrain.families.occllm.tasks", "families/occllm/tasks.py", "from occtrain.families.occllm.config import X\nfrom occtrain.core.tasks import TaskSpec\n") == []
-    assert check_module("occtrain.data.synthesize", "data/synthesize.py", "from occtrain.data.synth.text import caption_for_frame\n") == []
+    assert (
+        check_module(
+            "occtrain.stages.planner",
+            "stages/planner.py",
+            "from occtrain.stages.base import Stage\nfrom occtrain.engine import Evaluator\n",
+        )
+        == []
+    )
+    assert (
+        check_module(
+            "occtrain.families.occllm.tasks",
+            "families/occllm/tasks.py",
+            "from occtrain.families.occllm.config import X\nfrom occtrain.core.tasks import TaskSpec\n",
+        )
+        == []
+    )
+    assert (
+        check_module(
+            "occtrain.data.synthesize", "data/synthesize.py", "from occtrain.data.synth.text import caption_for_frame\n"
+        )
+        == []
+    )
 
 
 def test_no_function_outside_the_generator_runs_over_60_lines():
@@ -162,5 +217,7 @@ def test_no_function_outside_the_generator_runs_over_60_lines():
             continue
         for node in ast.walk(ast.parse(path.read_text())):
             if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)) and node.end_lineno - node.lineno + 1 > 60:
-                long.append(f"{path.relative_to(REPO)}:{node.lineno} {node.name} ({node.end_lineno - node.lineno + 1} lines)")
+                long.append(
+                    f"{path.relative_to(REPO)}:{node.lineno} {node.name} ({node.end_lineno - node.lineno + 1} lines)"
+                )
     assert long == []

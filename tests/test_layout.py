@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from conftest import hand_labels, write_hand_dataset
-from occtrain.data.layout import DatasetIndex, DatasetWriter, load_labels, yaw_from_quaternion, quaternion_from_yaw
+from occtrain.data.layout import DatasetIndex, DatasetWriter, load_labels, quaternion_from_yaw, yaw_from_quaternion
 from occtrain.errors import DataError
 from occtrain.occ3d import GRID_SHAPE
 
@@ -66,7 +66,9 @@ def test_quaternion_yaw_round_trip():
     assert quaternion_from_yaw(math.pi / 2) == pytest.approx([math.sqrt(0.5), 0.0, 0.0, math.sqrt(0.5)])
     assert yaw_from_quaternion([math.cos(math.pi / 8), 0.0, 0.0, math.sin(math.pi / 8)]) == pytest.approx(math.pi / 4)
     # With a little roll and pitch, as a real ego pose has: the heading is still about 2 atan2(z, w).
-    assert yaw_from_quaternion([0.8738, -0.0046, 0.0040, -0.4862]) == pytest.approx(2 * math.atan2(-0.4862, 0.8738), abs=2e-4)
+    assert yaw_from_quaternion([0.8738, -0.0046, 0.0040, -0.4862]) == pytest.approx(
+        2 * math.atan2(-0.4862, 0.8738), abs=2e-4
+    )
 
 
 def test_writer_round_trip(tmp_path):

@@ -7,12 +7,12 @@ import torch
 from transformers import LlamaConfig, LlamaForCausalLM
 
 from occtrain.config.llm import LLMConfig, LoRAConfig
+from occtrain.core.builder import collate
+from occtrain.core.vocab import JointVocab
 from occtrain.errors import ConfigError
+from occtrain.families.occllama.world_model import OccLLaMAWorldModel as OccWorldModel
 from occtrain.models.llm import apply_lora, build_llm, load_text_tokenizer
 from occtrain.models.text_tokenizer import train_text_tokenizer
-from occtrain.core.vocab import JointVocab
-from occtrain.core.builder import collate
-from occtrain.families.occllama.world_model import OccLLaMAWorldModel as OccWorldModel
 
 TEXTS = ["the car turns left", "how many cars are there"] * 10
 
@@ -33,8 +33,15 @@ def saved_llm(tmp_path):
     tok = train_text_tokenizer(TEXTS, 300)
     tok.pad_token = None  # like LLaMA's tokenizer: no pad token
     torch.manual_seed(0)
-    cfg = LlamaConfig(vocab_size=len(tok), hidden_size=32, intermediate_size=64, num_hidden_layers=1,
-                      num_attention_heads=2, num_key_value_heads=2, tie_word_embeddings=False)
+    cfg = LlamaConfig(
+        vocab_size=len(tok),
+        hidden_size=32,
+        intermediate_size=64,
+        num_hidden_layers=1,
+        num_attention_heads=2,
+        num_key_value_heads=2,
+        tie_word_embeddings=False,
+    )
     model = LlamaForCausalLM(cfg)
     model.save_pretrained(str(tmp_path))
     tok.save_pretrained(str(tmp_path))
@@ -86,5 +93,7 @@ def test_lora_trains_only_the_adapter():
     assert all(p.grad is not None for n, p in peft_model.named_parameters() if p.requires_grad)
     assert world.export_config()["attn_implementation"] == "sdpa"
     with pytest.raises(ConfigError, match="lora.target_modules"):
-        apply_lora(build_llm(LLMConfig(hidden_size=32, num_layers=1, num_heads=2, intermediate_size=64), 50),
-                   LoRAConfig(target_modules=["nope_proj"]))
+        apply_lora(
+            build_llm(LLMConfig(hidden_size=32, num_layers=1, num_heads=2, intermediate_size=64), 50),
+            LoRAConfig(target_modules=["nope_proj"]),
+        )

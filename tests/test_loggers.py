@@ -16,7 +16,8 @@ from occtrain.errors import ConfigError
 from occtrain.stages.loggers import build_loggers, check_loggers
 
 trackers = pytest.mark.skipif(
-    importlib.util.find_spec("mlflow") is None or importlib.util.find_spec("wandb") is None, reason="needs the mlflow and wandb extras"
+    importlib.util.find_spec("mlflow") is None or importlib.util.find_spec("wandb") is None,
+    reason="needs the mlflow and wandb extras",
 )
 WANDB_DIRS = ("WANDB_DIR", "WANDB_CONFIG_DIR", "WANDB_CACHE_DIR", "WANDB_DATA_DIR", "WANDB_ARTIFACT_DIR")
 
@@ -32,7 +33,12 @@ def test_every_logger_writes_and_a_resume_reuses_the_tracker_runs(tmp_path, monk
     monkeypatch.setenv("WANDB_MODE", "offline")
     stage = tmp_path / "run" / "tokenizer"
     first = build_loggers(["csv", "tensorboard", "mlflow", "wandb"], stage, resume_step=None)
-    assert [type(lg).__name__ for lg in first] == ["AppendingCSVLogger", "TensorBoardLogger", "TrackedMLFlowLogger", "TrackedWandbLogger"]
+    assert [type(lg).__name__ for lg in first] == [
+        "AppendingCSVLogger",
+        "TensorBoardLogger",
+        "TrackedMLFlowLogger",
+        "TrackedWandbLogger",
+    ]
     _log_and_close(first, 0)
     mlflow_id, wandb_id = (stage / "logs" / "mlflow_run_id").read_text(), (stage / "logs" / "wandb_run_id").read_text()
     # The file store holds the metric under the run's id, in the run directory's mlruns/.
@@ -47,7 +53,11 @@ def test_every_logger_writes_and_a_resume_reuses_the_tracker_runs(tmp_path, monk
 
 def test_unknown_loggers_are_refused_by_key():
     check_loggers(["csv", "wandb"])
-    with pytest.raises(ConfigError, match=r"stages.x.trainer.loggers: 'neptune' is not a logger occtrain writes; choose from csv, tensorboard, mlflow, wandb"):
+    with pytest.raises(
+        ConfigError,
+        match=r"stages.x.trainer.loggers: 'neptune' is not a logger occtrain writes; "
+        r"choose from csv, tensorboard, mlflow, wandb",
+    ):
         check_loggers(["csv", "neptune"], "stages.x.trainer.loggers")
 
 
@@ -68,7 +78,9 @@ def recorded(monkeypatch):
         monkeypatch.setenv(key, "")  # records the caller's value (or its absence) for teardown
         monkeypatch.delenv(key)
     monkeypatch.setattr(occtrain.stages.loggers, "_SET_FOR_A_STAGE", {})
-    monkeypatch.setattr(occtrain.stages.loggers, "check_loggers", lambda names: None)  # the extras need not be installed
+    monkeypatch.setattr(
+        occtrain.stages.loggers, "check_loggers", lambda names: None
+    )  # the extras need not be installed
     monkeypatch.setattr(occtrain.stages.loggers, "TrackedWandbLogger", _Recorded)
     monkeypatch.setattr(occtrain.stages.loggers, "TrackedMLFlowLogger", _Recorded)
 

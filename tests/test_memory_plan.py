@@ -20,8 +20,18 @@ TINY = LLMConfig(hidden_size=64, num_layers=2, num_heads=4, intermediate_size=17
 
 def _hand_model() -> ModelCount:
     return ModelCount(
-        name="hand", params=1000, trainable=100, frozen_beside=0, layers=2, hidden=4, kv_hidden=4,
-        intermediate=8, heads=2, vocab=10, layer_params=50, attention="sdpa",
+        name="hand",
+        params=1000,
+        trainable=100,
+        frozen_beside=0,
+        layers=2,
+        hidden=4,
+        kv_hidden=4,
+        intermediate=8,
+        heads=2,
+        vocab=10,
+        layer_params=50,
+        attention="sdpa",
     )
 
 
@@ -58,7 +68,8 @@ def test_counts_on_the_meta_device_equal_the_built_model():
     wrapped = apply_lora(built, lora_cfg)
     lora = count_llm(TINY, extra, lora=lora_cfg)
     assert (lora.params, lora.trainable) == (
-        sum(p.numel() for p in wrapped.parameters()), sum(p.numel() for p in wrapped.parameters() if p.requires_grad),
+        sum(p.numel() for p in wrapped.parameters()),
+        sum(p.numel() for p in wrapped.parameters() if p.requires_grad),
     )
     plain = build_llm(TINY, TINY.text_vocab_size + extra).requires_grad_(False)
     adapters = add_adapters(plain, AdapterConfig(reduction_factor=4))
@@ -92,7 +103,12 @@ def test_the_activation_estimate_is_within_ten_percent_of_what_autograd_keeps():
 
 
 def test_plan_memory_plans_the_papers_models(capsys):
-    assert main(["plan-memory", str(REPO / "stages/scale/sparseoccvla_vicuna7b.yaml"), "--gpus", "8", "--gpu-memory", "96"]) == 0
+    assert (
+        main(
+            ["plan-memory", str(REPO / "stages/scale/sparseoccvla_vicuna7b.yaml"), "--gpus", "8", "--gpu-memory", "96"]
+        )
+        == 0
+    )
     out = capsys.readouterr().out
     # Vicuna-7B's 6.738 B and the joint vocabulary's 2 x 256 action-bin rows (in and out).
     assert "stage2 (pretrain): vicuna-7b, 6.743 B parameters, 0.00 M trainable" in out
@@ -103,10 +119,16 @@ def test_plan_memory_plans_the_papers_models(capsys):
 def test_plan_memory_refuses_bad_input_in_one_line(tmp_path, capsys):
     recipe = REPO / "stages/scale/sparseoccvla_vicuna7b.yaml"
     assert main(["plan-memory", str(recipe), "--gpus", "0"]) == 2
-    assert capsys.readouterr().err.strip() == "error: --gpus 0: plan at least 1 GPU (the ranks a sharded model is split over)"
+    assert (
+        capsys.readouterr().err.strip()
+        == "error: --gpus 0: plan at least 1 GPU (the ranks a sharded model is split over)"
+    )
     assert main(["plan-memory", str(recipe), f"stages.stage2.model.llm.path={tmp_path}"]) == 2
     err = capsys.readouterr().err.strip()
-    assert err == f"error: stages.stage2.model.llm.path: {tmp_path} has no config.json; plan-memory reads a model's config.json (weights not needed)"
+    assert (
+        err == f"error: stages.stage2.model.llm.path: {tmp_path} has no config.json; "
+        "plan-memory reads a model's config.json (weights not needed)"
+    )
     assert main(["plan-memory", str(REPO / "stages/vision.yaml")]) == 2
     assert "has no pretrain, instruct or distill stage" in capsys.readouterr().err
 
@@ -116,7 +138,11 @@ def test_run_and_plan_memory_refuse_the_same_llm_sizes():
     refuses what plan-memory refuses, in the same words."""
     bad = LLMConfig(hidden_size=128, num_heads=3)
     for refuse in (lambda: build_llm(bad, 100), lambda: count_llm(bad, 0)):
-        with pytest.raises(ConfigError, match=r"^llm.num_heads is 3, which does not divide hidden_size 128; set num_heads to a divisor of 128 \(e.g. 4\)"):
+        with pytest.raises(
+            ConfigError,
+            match=r"^llm.num_heads is 3, which does not divide hidden_size 128; "
+            r"set num_heads to a divisor of 128 \(e.g. 4\)",
+        ):
             refuse()
     with pytest.raises(ConfigError, match=r"^s.model.llm.text_vocab_size is 0; it sizes the model's tensors"):
         count_llm(LLMConfig(text_vocab_size=0), 0, key="s.model.llm")
@@ -130,7 +156,10 @@ def test_llm_sizes_are_checked_by_the_names_written():
         ({"hidden_size": True}, "x.hidden_size is True;"),
         ({"hidden_size": 4.0}, "x.hidden_size is 4.0;"),
         ({"vocab_size": None}, "x.vocab_size is None;"),
-        ({"hidden_size": 2304, "heads": 8, "kv": 3}, "x.kv is 3, which does not divide heads 8; set kv to a divisor of 8 (e.g. 4) or heads to a multiple of 3"),
+        (
+            {"hidden_size": 2304, "heads": 8, "kv": 3},
+            "x.kv is 3, which does not divide heads 8; set kv to a divisor of 8 (e.g. 4) or heads to a multiple of 3",
+        ),
     ]:
         with pytest.raises(ConfigError) as e:
             check_llm_sizes(sizes, "x.", "hidden_size", "heads", "kv")
@@ -141,7 +170,12 @@ def test_flags_take_their_whole_range_and_no_more():
     check_flags(1, 1, None)
     check_flags(8, MAX_SEQ_LEN, MAX_GPU_GIB)
     for gpus, seq, gib, says in [
-        (1, MAX_SEQ_LEN + 1, None, f"--seq-len {MAX_SEQ_LEN + 1}: tokens per training sequence must be in 1..4194304 (2**22)"),
+        (
+            1,
+            MAX_SEQ_LEN + 1,
+            None,
+            f"--seq-len {MAX_SEQ_LEN + 1}: tokens per training sequence must be in 1..4194304 (2**22)",
+        ),
         (1, 2048, 0.0, "--gpu-memory 0: a GPU's memory in GiB must be above 0"),
         (1, 2048, float("inf"), "--gpu-memory inf:"),
         (-2, 2048, None, "--gpus -2: plan at least 1 GPU"),
@@ -154,7 +188,8 @@ def test_flags_take_their_whole_range_and_no_more():
 def test_a_config_json_with_head_dim_may_have_heads_that_do_not_divide_hidden(tmp_path):
     """Qwen2 sizes q/k/v as heads x head_dim when head_dim is given: 100 wide, 3 heads of 32."""
     (tmp_path / "config.json").write_text(
-        '{"model_type": "qwen2", "hidden_size": 100, "num_attention_heads": 3, "num_key_value_heads": 3, "head_dim": 32, '
+        '{"model_type": "qwen2", "hidden_size": 100, "num_attention_heads": 3, "num_key_value_heads": 3, "head_dim": '
+        "32, "
         '"num_hidden_layers": 1, "intermediate_size": 64, "vocab_size": 50}'
     )
     assert count_llm(LLMConfig(path=str(tmp_path)), 0).kv_hidden == 96
@@ -162,12 +197,18 @@ def test_a_config_json_with_head_dim_may_have_heads_that_do_not_divide_hidden(tm
 
 def test_an_override_beside_llm_path_is_refused_in_every_stage_form(capsys):
     recipe = str(REPO / "stages/scale/occllama_llama8b.yaml")
-    for key in ("stages.pretrain.model.llm.hidden_size", "stages.1.model.llm.hidden_size", "stages[1].model.llm.hidden_size"):
+    for key in (
+        "stages.pretrain.model.llm.hidden_size",
+        "stages.1.model.llm.hidden_size",
+        "stages[1].model.llm.hidden_size",
+    ):
         assert main(["plan-memory", recipe, f"{key}=8192"]) == 2
         err = capsys.readouterr().err
         assert err == (
-            f"error: {key}: ignored, since stages.pretrain.model.llm.path is set (configs/llm/llama-3.1-8b) and its config.json "
-            "decides the model; drop the override to plan that model, or point stages.pretrain.model.llm.path at a config.json "
+            f"error: {key}: ignored, since stages.pretrain.model.llm.path is set (configs/llm/llama-3.1-8b) and its "
+            "config.json "
+            "decides the model; drop the override to plan that model, or point stages.pretrain.model.llm.path at a "
+            "config.json "
             "with the sizes you want\n"
         )
     # A key the path leaves to the recipe still plans.

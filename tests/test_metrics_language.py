@@ -12,7 +12,9 @@ import torch
 from occtrain.errors import OcctrainError
 from occtrain.metrics import CAPTION_KEYS, CaptionMetric, QAMetric
 
-needs_java = pytest.mark.skipif(shutil.which("java") is None, reason="pycocoevalcap's PTB tokeniser and METEOR need Java")
+needs_java = pytest.mark.skipif(
+    shutil.which("java") is None, reason="pycocoevalcap's PTB tokeniser and METEOR need Java"
+)
 
 
 # ----------------------------------------------------------------------------- QA
@@ -33,7 +35,15 @@ def test_qa_hand_case_exact_match_after_str_only():
         {"exist": 50.0, "count": 50.0, "object": 100.0, "status": 0.0, "comparison": 100.0}
     )
     assert {k: v.item() for k, v in r["by_type_hop"].items()} == pytest.approx(
-        {"exist_H0": 100.0, "exist_H1": 0.0, "count_H0": 100.0, "count_H1": 0.0, "object_H1": 100.0, "status_H0": 0.0, "comparison_H0": 100.0}
+        {
+            "exist_H0": 100.0,
+            "exist_H1": 0.0,
+            "count_H0": 100.0,
+            "count_H1": 0.0,
+            "object_H1": 100.0,
+            "status_H0": 0.0,
+            "comparison_H0": 100.0,
+        }
     )
     assert r["questions"].item() == 7
 
@@ -59,7 +69,10 @@ def test_caption_strings_survive_the_tensor_states_and_repeated_ids_count_once()
     m.update(["un vélo à gauche", "a truck"], [["a bicycle on the left", "bike left"], "a truck ahead"], ids=["a", "b"])
     m.update(["un vélo à gauche"], [["a bicycle on the left", "bike left"]], ids=["a"])
     assert all(t.dtype == torch.uint8 for t in m.text)
-    assert m.samples() == {"a": ("un vélo à gauche", ["a bicycle on the left", "bike left"]), "b": ("a truck", ["a truck ahead"])}
+    assert m.samples() == {
+        "a": ("un vélo à gauche", ["a bicycle on the left", "bike left"]),
+        "b": ("a truck", ["a truck ahead"]),
+    }
     unnamed = CaptionMetric()
     unnamed.update(["x", "x"], ["y", "y"])
     assert list(unnamed.samples()) == ["#0", "#1"]
@@ -98,7 +111,12 @@ def reference_scores() -> dict[str, float]:
     res = tok.tokenize({k: [{"caption": PREDS[k]}] for k in REFS})
     out = {}
     with contextlib.redirect_stdout(io.StringIO()):
-        for scorer, names in ((Bleu(4), ["Bleu_1", "Bleu_2", "Bleu_3", "Bleu_4"]), (Meteor(), "METEOR"), (Rouge(), "ROUGE_L"), (Cider(), "CIDEr")):
+        for scorer, names in (
+            (Bleu(4), ["Bleu_1", "Bleu_2", "Bleu_3", "Bleu_4"]),
+            (Meteor(), "METEOR"),
+            (Rouge(), "ROUGE_L"),
+            (Cider(), "CIDEr"),
+        ):
             score, _ = scorer.compute_score(gts, res)
             out.update(zip(names, score) if isinstance(names, list) else {names: score})
     return out
@@ -117,7 +135,6 @@ def test_caption_metric_equals_pycocoevalcap():
     assert {k: got[k].item() for k in CAPTION_KEYS} == expected  # exactly: it is the same code
     assert got["samples"].item() == 3
     assert 0 < expected["Bleu_4"] < expected["Bleu_1"] < 1 and expected["CIDEr"] > 0
-
 
 
 @pytest.mark.slow
@@ -139,7 +156,10 @@ def test_caption_metric_by_hand():
     # CIDEr-D over two samples: one prediction equals its reference, so its tf-idf vectors
     # equal (cosine 1 at each n, equal lengths): 10; the other shares no n-gram: 0.
     m = CaptionMetric()
-    m.update(["a red car waits at the light", "trees line the road"], ["a red car waits at the light", "a bus turns left slowly"])
+    m.update(
+        ["a red car waits at the light", "trees line the road"],
+        ["a red car waits at the light", "a bus turns left slowly"],
+    )
     got = {k: v.item() for k, v in m.compute().items()}
     assert got["CIDEr"] == pytest.approx(5.0)
     assert got["samples"] == 2

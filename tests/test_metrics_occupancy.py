@@ -160,7 +160,9 @@ def test_forecast_invalid_frames_are_not_counted():
 
 def test_forecast_refuses_too_short_forecasts():
     with pytest.raises(ValueError, match="horizon index 5"):
-        ForecastMetric().update(torch.zeros(1, 4, 2, 1, 1, dtype=torch.long), torch.zeros(1, 4, 2, 1, 1, dtype=torch.long))
+        ForecastMetric().update(
+            torch.zeros(1, 4, 2, 1, 1, dtype=torch.long), torch.zeros(1, 4, 2, 1, 1, dtype=torch.long)
+        )
 
 
 # ----------------------------------------------------------------------------- DDP
@@ -179,12 +181,24 @@ def ddp_data() -> dict:
     plan_mask = torch.ones(5, 6, dtype=torch.bool)
     plan_mask[4, 4:] = False
     agents = [[np.array([[float(plan_gt[b, t, 0]) + 1.0, 1.5, 4.0, 2.0, 0.2]]) for t in range(6)] for b in range(5)]
-    qa = (["yes", "no", "2", "car", "yes"], ["yes", "yes", 2, "car", "no"],
-          ["exist", "exist", "count", "object", "comparison"], [0, 1, 0, 1, 0])
-    captions = (["a car ahead", "a bus turns", "nothing", "rain", "a car ahead"],
-                [["a car is ahead"], ["the bus turns left"], ["empty road"], ["it rains"], ["a car is ahead"]],
-                ["s0", "s1", "s2", "s3", "s0"])  # the last repeats s0, as a padding sampler does
-    return dict(sem=(sem_pred, sem_gt, mask), fc=(fc_pred, fc_gt), plan=(plan_pred, plan_gt, plan_mask, agents), qa=qa, cap=captions)
+    qa = (
+        ["yes", "no", "2", "car", "yes"],
+        ["yes", "yes", 2, "car", "no"],
+        ["exist", "exist", "count", "object", "comparison"],
+        [0, 1, 0, 1, 0],
+    )
+    captions = (
+        ["a car ahead", "a bus turns", "nothing", "rain", "a car ahead"],
+        [["a car is ahead"], ["the bus turns left"], ["empty road"], ["it rains"], ["a car is ahead"]],
+        ["s0", "s1", "s2", "s3", "s0"],
+    )  # the last repeats s0, as a padding sampler does
+    return dict(
+        sem=(sem_pred, sem_gt, mask),
+        fc=(fc_pred, fc_gt),
+        plan=(plan_pred, plan_gt, plan_mask, agents),
+        qa=qa,
+        cap=captions,
+    )
 
 
 def run_all(rows: slice) -> dict:

@@ -101,7 +101,14 @@ def collision_case() -> tuple[torch.Tensor, torch.Tensor, list]:
     pred = gt.clone()
     pred[:, 1] = 3.0
     far = np.array([[40.0, 40.0, 4.0, 2.0, 0.0]])
-    agents = [far, np.array([[5.0, 3.0, 2.0, 1.0, 0.0]]), far, np.array([[10.0, 0.0, 2.0, 8.0, 0.0]]), far, np.zeros((0, 5))]
+    agents = [
+        far,
+        np.array([[5.0, 3.0, 2.0, 1.0, 0.0]]),
+        far,
+        np.array([[10.0, 0.0, 2.0, 8.0, 0.0]]),
+        far,
+        np.zeros((0, 5)),
+    ]
     return pred[None], gt[None], [agents]
 
 

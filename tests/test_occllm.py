@@ -8,15 +8,23 @@ import json
 import pytest
 import torch
 
-from occtrain.errors import ConfigError
 from occtrain.core.registry import build_tokenizer, tokenizer_config
+from occtrain.errors import ConfigError
 from occtrain.families.occllm import MSVAE, merge, separate
 from occtrain.models import count_parameters
 from occtrain.occ3d import CLASS_INDEX, FREE, GRID_SHAPE, NUM_CLASSES
 
 TINY = dict(
-    num_codes=16, num_codes_motion=8, code_dim=8, class_embed_dim=4, base_channels=8, channel_mult=[1, 1, 1],
-    strides=[4, 5], num_res_blocks=1, latent_attention=False, z_channels=8,
+    num_codes=16,
+    num_codes_motion=8,
+    code_dim=8,
+    class_embed_dim=4,
+    base_channels=8,
+    channel_mult=[1, 1, 1],
+    strides=[4, 5],
+    num_res_blocks=1,
+    latent_attention=False,
+    z_channels=8,
 )
 ROAD, CAR, MANMADE = CLASS_INDEX["driveable_surface"], CLASS_INDEX["car"], CLASS_INDEX["manmade"]
 
@@ -86,7 +94,7 @@ def test_the_tokenizer_stage_trains_it_and_reports_each_codebook(tmp_path, hand_
     recipe = tmp_path / "msvae.yaml"
     recipe.write_text(f"""
 name: msvae
-runs_root: {tmp_path / 'runs'}
+runs_root: {tmp_path / "runs"}
 data: {{root: {hand_dataset}, batch_size: 2, samples_per_shard: 4, history: 1, future: 1}}
 trainer: {{max_steps: 3, val_check_interval: 3, limit_val_batches: 1, log_every_n_steps: 1}}
 stages:
@@ -155,4 +163,6 @@ def test_pre_fusion_starts_as_the_identity_and_learns_a_per_channel_gate():
     with torch.no_grad():
         fuse.mlp[-1].bias.copy_(torch.tensor([10.0, -10.0, 0.0, 0.0]))
     gated = fuse(latents, action)
-    assert torch.allclose(gated[:, 0], 2 * latents[:, 0], atol=1e-3) and torch.allclose(gated[:, 1], 0 * latents[:, 1], atol=1e-3)
+    assert torch.allclose(gated[:, 0], 2 * latents[:, 0], atol=1e-3) and torch.allclose(
+        gated[:, 1], 0 * latents[:, 1], atol=1e-3
+    )

@@ -45,12 +45,26 @@ def test_the_recipe_trains_every_stage_and_reports_the_papers_metrics(occllm_run
     # Each scored something: sample counts above zero, finite values.
     assert pretrain["val/forecast_occworld_frames_1s"] > 0 and pretrain["val/plan_alternate_samples"] > 0
     assert instruct["val/qa_questions"] > 0
-    for metrics, key in ((tokenizer, "val/occworld_mIoU"), (pretrain, "val/forecast_occworld_mIoU_1s"),
-                         (pretrain, "val/plan_alternate_L2_uniad_1s"), (instruct, "val/qa_overall")):
+    for metrics, key in (
+        (tokenizer, "val/occworld_mIoU"),
+        (pretrain, "val/forecast_occworld_mIoU_1s"),
+        (pretrain, "val/plan_alternate_L2_uniad_1s"),
+        (instruct, "val/qa_overall"),
+    ):
         assert math.isfinite(metrics[key]), key
     config = json.loads((occllm_run / "pretrain" / "export" / "config.json").read_text())
-    assert config["family"] == "occllm" and config["vocab"]["codebook_sizes"] == [128, 128] and config["vocab"]["patch"] == 2
-    assert config["world"]["occllm"] == {"patch_size": 2, "frame_separation": True, "pre_fusion": True, "fusion_hidden": 64, "cell_dim": 64}
+    assert (
+        config["family"] == "occllm"
+        and config["vocab"]["codebook_sizes"] == [128, 128]
+        and config["vocab"]["patch"] == 2
+    )
+    assert config["world"]["occllm"] == {
+        "patch_size": 2,
+        "frame_separation": True,
+        "pre_fusion": True,
+        "fusion_hidden": 64,
+        "cell_dim": 64,
+    }
 
 
 def test_exports_load_as_hugging_face_models_with_a_peft_adapter(occllm_run):
@@ -73,7 +87,10 @@ def test_eval_scores_each_stage(occllm_run, stage):
     assert res.returncode == 0, res.stderr[-3000:]
     metrics = json.loads((occllm_run / stage / "eval" / "val" / "metrics.json").read_text())
     if stage == "tokenizer":  # reconstruction of the first 4 val frames, code use per codebook
-        assert metrics["frames"] == 4 and {"occworld_mIoU", "occ3d_IoU", "motion_usage", "static_perplexity"} <= metrics.keys()
+        assert (
+            metrics["frames"] == 4
+            and {"occworld_mIoU", "occ3d_IoU", "motion_usage", "static_perplexity"} <= metrics.keys()
+        )
         return
     assert "forecast_occworld_mIoU_3s" in metrics and "plan_alternate_L2_uniad_avg" in metrics
     assert ("qa_overall" in metrics) == (stage == "instruct")
@@ -86,7 +103,15 @@ def test_the_msvae_tokenizer_resumes_bit_exact_after_kill_9(occllm_run, tmp_path
     import torch
 
     run_dir = tmp_path / "run"
-    args = ["run", "stages/occllm.yaml", *overrides(occllm_run.parent / "data"), "--run-dir", str(run_dir), "--only", "tokenizer"]
+    args = [
+        "run",
+        "stages/occllm.yaml",
+        *overrides(occllm_run.parent / "data"),
+        "--run-dir",
+        str(run_dir),
+        "--only",
+        "tokenizer",
+    ]
     step = kill_at_checkpoint(args, run_dir / "tokenizer" / "checkpoints" / "last.ckpt", step=2)
     res = run_cli(*args, timeout=900)
     assert res.returncode == 0, res.stderr[-3000:]
@@ -111,7 +136,11 @@ def test_it_trains_on_a_plain_occ3d_release(synth_dataset, tmp_path):
     run_dir = tmp_path / "run"
     args = [f"data.root={root}", "data.samples_per_shard=8", "data.shuffle_buffer=4"]
     for i in range(2):
-        args += [f"stages[{i}].trainer.max_steps=2", f"stages[{i}].trainer.val_check_interval=2", f"stages[{i}].trainer.limit_val_batches=1"]
+        args += [
+            f"stages[{i}].trainer.max_steps=2",
+            f"stages[{i}].trainer.val_check_interval=2",
+            f"stages[{i}].trainer.limit_val_batches=1",
+        ]
     args += ["stages[1].model.val_samples=2", "stages[1].model.llm.text_vocab_size=300"]
     res = run_cli("run", "stages/occllm.yaml", *args, "--run-dir", str(run_dir), "--only", "tokenizer")
     assert res.returncode == 0, res.stderr[-3000:]

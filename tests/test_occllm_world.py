@@ -10,13 +10,13 @@ import pytest
 import torch
 
 from occtrain.config.llm import LLMConfig
-from occtrain.core.decoding import ActionAnswer, SceneAnswer
 from occtrain.core.builder import collate
+from occtrain.core.decoding import ActionAnswer, SceneAnswer
+from occtrain.core.vocab import JointVocab
 from occtrain.families.occllama.world_model import OccLLaMAWorldModel as OccWorldModel
 from occtrain.families.occllm import OccLLMWorldConfig, OccLLMWorldModel
 from occtrain.models.llm import build_llm
 from occtrain.models.text_tokenizer import train_text_tokenizer
-from occtrain.core.vocab import JointVocab
 
 TEXTS = ["go straight then turn left", "<4-D occupancy forecasting and self-ego planning>", "<question-answering>"]
 SIZES = [8, 16]  # motion, static
@@ -26,8 +26,13 @@ XY = torch.tensor([[1.0, 0.5]])
 
 def llm_cfg(mode: str = "next_scene") -> LLMConfig:
     return LLMConfig(
-        hidden_size=32, num_layers=1, num_heads=2, intermediate_size=64, action_bins=16,
-        action_range=[[-10.0, 10.0], [-10.0, 10.0]], scene_prediction=mode,
+        hidden_size=32,
+        num_layers=1,
+        num_heads=2,
+        intermediate_size=64,
+        action_bins=16,
+        action_range=[[-10.0, 10.0], [-10.0, 10.0]],
+        scene_prediction=mode,
     )
 
 
@@ -77,7 +82,14 @@ def test_frame_separation_is_a_switch():
 def test_pre_fusion_gates_a_scene_by_the_action_before_it_and_learns_from_the_loss():
     w = world().train()
     v = w.vocab
-    seq = w.builder().actions(XY).scene(scene_codes(1)).actions(torch.tensor([[2.0, -1.0]]), True).scene(scene_codes(2), True).build()
+    seq = (
+        w.builder()
+        .actions(XY)
+        .scene(scene_codes(1))
+        .actions(torch.tensor([[2.0, -1.0]]), True)
+        .scene(scene_codes(2), True)
+        .build()
+    )
     slots = v.is_occ(seq.input_ids)
     fused = seq.payload["fusion"][slots]
     # The waypoint's bin centre: what generation reads back from the bins it chose.
@@ -96,7 +108,10 @@ def test_pre_fusion_gates_a_scene_by_the_action_before_it_and_learns_from_the_lo
         w.fusion.mlp[-1].weight.normal_()
     a = w.builder().actions(XY).scene(scene_codes(1)).build()
     b = w.builder().actions(-XY).scene(scene_codes(1)).build()
-    ea, eb = w.embed(a.input_ids[None], {k: t[None] for k, t in a.payload.items()}), w.embed(b.input_ids[None], {k: t[None] for k, t in b.payload.items()})
+    ea, eb = (
+        w.embed(a.input_ids[None], {k: t[None] for k, t in a.payload.items()}),
+        w.embed(b.input_ids[None], {k: t[None] for k, t in b.payload.items()}),
+    )
     slots = v.is_occ(a.input_ids)
     assert not torch.allclose(ea[0, slots], eb[0, slots])
     assert world(pre_fusion=False).fusion is None
@@ -109,7 +124,9 @@ def test_the_loss_averages_text_and_cell_targets_alike():
         out = w(collate([seq], w.vocab.pad_id))
     n_text = int((seq.labels != -100).sum())
     n_cells = 4 * 4 * 2  # one supervised scene: 16 cells, 2 codebooks
-    assert out.loss == pytest.approx((out.text_loss * n_text + out.scene_loss * n_cells).item() / (n_text + n_cells), rel=1e-5)
+    assert out.loss == pytest.approx(
+        (out.text_loss * n_text + out.scene_loss * n_cells).item() / (n_text + n_cells), rel=1e-5
+    )
     assert out.scene_loss > 0 and out.text_loss > 0
 
 
@@ -122,7 +139,10 @@ def test_generation_is_the_same_cached_uncached_and_batched(mode, separation):
     for use_cache in (True, False):
         d = w.decoder(p, use_cache=use_cache)
         outs.append((d.actions(1), d.scene(), d.actions(1), d.scene()))
-    batched = w.generate_batch([p, prompt(w).text("go straight").build()], [[ActionAnswer(1), SceneAnswer(), ActionAnswer(1), SceneAnswer()]] * 2)
+    batched = w.generate_batch(
+        [p, prompt(w).text("go straight").build()],
+        [[ActionAnswer(1), SceneAnswer(), ActionAnswer(1), SceneAnswer()]] * 2,
+    )
     for got in (outs[1], batched[0]):
         for x, y in zip(outs[0], got):
             assert torch.equal(x, y)
@@ -157,7 +177,9 @@ def test_two_codebooks_in_the_codes_layout_pick_within_their_own_range():
     assert vocab.scene_token_range(4) == (vocab.occ_start + 8, vocab.occ_start + 24)
     codes = torch.tensor([7, 0, 1, 2, 15, 0, 3, 9])
     ids = vocab.occ_ids(codes)
-    assert ids.tolist() == [vocab.occ_start + c for c in (7, 0, 1, 2)] + [vocab.occ_start + 8 + c for c in (15, 0, 3, 9)]
+    assert ids.tolist() == [vocab.occ_start + c for c in (7, 0, 1, 2)] + [
+        vocab.occ_start + 8 + c for c in (15, 0, 3, 9)
+    ]
     assert torch.equal(vocab.codes_from_ids(ids), codes)
     with pytest.raises(ValueError, match="their codebook"):
         vocab.occ_ids(torch.tensor([8, 0, 0, 0, 0, 0, 0, 0]))  # 8 is not a code of the 8-code motion book
@@ -170,24 +192,39 @@ def test_two_codebooks_in_the_codes_layout_pick_within_their_own_range():
 
 
 def test_two_codebook_scenes_round_trip_through_the_code_cache(tmp_path, hand_dataset):
+    from occtrain.core.registry import build_tokenizer, save_tokenizer
     from occtrain.data.layout import DatasetIndex
     from occtrain.engine import new_world_model
-    from occtrain.core.registry import build_tokenizer, save_tokenizer
     from occtrain.families.occllm.tasks import TaskConfig
 
-    tiny = dict(num_codes=16, num_codes_motion=8, code_dim=8, class_embed_dim=4, base_channels=8, channel_mult=[1, 1, 1],
-                strides=[4, 5], num_res_blocks=1, latent_attention=False, z_channels=8)  # fmt: skip
+    tiny = dict(num_codes=16, num_codes_motion=8, code_dim=8, class_embed_dim=4, base_channels=8,
+                channel_mult=[1, 1, 1], strides=[4, 5], num_res_blocks=1, latent_attention=False,
+                z_channels=8)  # fmt: skip
     torch.manual_seed(0)
     tok = build_tokenizer("occllm_msvae", tiny).eval()
     export = save_tokenizer(tok, "occllm_msvae", tiny, tmp_path / "tok")
     assert json.loads((export / "config.json").read_text())["codebook_sizes"] == [8, 16]
     llm = LLMConfig(hidden_size=32, num_layers=1, num_heads=2, intermediate_size=64, text_vocab_size=300)
-    engine = new_world_model({"tokenizer": export}, llm, TaskConfig(), hand_dataset, family="occllm", world_cfg=OccLLMWorldConfig(patch_size=5))
+    engine = new_world_model(
+        {"tokenizer": export},
+        llm,
+        TaskConfig(),
+        hand_dataset,
+        family="occllm",
+        world_cfg=OccLLMWorldConfig(patch_size=5),
+    )
     assert engine.vocab.codebook_sizes == [8, 16] and engine.vocab.scene_len == 4
     cache = tmp_path / "cache" / "codes.safetensors"
     engine.build_scene_cache(hand_dataset, cache)
     assert cache.is_file()
-    again = new_world_model({"tokenizer": export}, llm, TaskConfig(), hand_dataset, family="occllm", world_cfg=OccLLMWorldConfig(patch_size=5))
+    again = new_world_model(
+        {"tokenizer": export},
+        llm,
+        TaskConfig(),
+        hand_dataset,
+        family="occllm",
+        world_cfg=OccLLMWorldConfig(patch_size=5),
+    )
 
     def no_encoding(*args, **kwargs):
         raise AssertionError("the cached codes were encoded again")
@@ -208,8 +245,7 @@ def test_two_codebook_scenes_round_trip_through_the_code_cache(tmp_path, hand_da
 def test_the_tasks_use_the_papers_prompts_and_alternate_waypoints_with_frames(hand_dataset):
     from occtrain.data.clips import Actions, Scene, Text, frame_clips
     from occtrain.data.layout import DatasetIndex
-    from occtrain.families.occllm.tasks import TaskConfig
-    from occtrain.families.occllm.tasks import every_question, forecasting
+    from occtrain.families.occllm.tasks import TaskConfig, every_question, forecasting
 
     index = DatasetIndex.open(hand_dataset)
     clip = next(c for c in frame_clips(index, "train", 2, 6, partial_history=False) if c.qa)

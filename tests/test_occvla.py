@@ -12,23 +12,25 @@ import torch
 from omegaconf import OmegaConf
 
 from occtrain.config.llm import LLMConfig
-from occtrain.errors import ConfigError
+from occtrain.core.builder import collate
+from occtrain.core.decoding import TextAnswer
+from occtrain.core.registry import build_tokenizer
+from occtrain.core.vocab import JointVocab
 from occtrain.data.clips import Clip, Images, Occupancy, Text
 from occtrain.data.meta_actions import KMH_PER_S, MetaActionConfig, label, past_labels
-from occtrain.core.registry import build_tokenizer
-from occtrain.core.decoding import TextAnswer
-from occtrain.core.builder import collate
-from occtrain.families.occvla.tasks import TaskConfig
+from occtrain.errors import ConfigError
 from occtrain.families.occvla import OccVLAWorldConfig, OccVLAWorldModel
-from occtrain.families.occvla.tasks import META_PROMPT, META_QUESTION, meta_action
+from occtrain.families.occvla.tasks import META_PROMPT, META_QUESTION, TaskConfig, meta_action
 from occtrain.metrics import MetaActionAccuracy
 from occtrain.models.adapters import AdapterConfig, add_adapters, load_adapters, save_adapters, without_adapters
 from occtrain.models.llm import build_llm
 from occtrain.models.text_tokenizer import train_text_tokenizer
-from occtrain.core.vocab import JointVocab
 from occtrain.occ3d import GRID_SHAPE
 
-TEXTS = ["Past meta actions: maintain speed, go straight. What is the next meta action?", "Meta action: decelerate, turn left."]
+TEXTS = [
+    "Past meta actions: maintain speed, go straight. What is the next meta action?",
+    "Meta action: decelerate, turn left.",
+]
 VISION_DIM = 8
 IMAGES = 6
 
@@ -39,13 +41,27 @@ def tokenizer_model():
 
 
 def llm_cfg() -> LLMConfig:
-    return LLMConfig(hidden_size=32, num_layers=2, num_heads=2, intermediate_size=64, action_bins=4, action_range=[[-10.0, 10.0], [-10.0, 10.0]])
+    return LLMConfig(
+        hidden_size=32,
+        num_layers=2,
+        num_heads=2,
+        intermediate_size=64,
+        action_bins=4,
+        action_range=[[-10.0, 10.0], [-10.0, 10.0]],
+    )
 
 
 def world(seed: int = 0, query_patch: int = 2) -> OccVLAWorldModel:
     torch.manual_seed(seed)
     scene_tok = tokenizer_model()
-    vocab = JointVocab(train_text_tokenizer(TEXTS, 300), scene_tok.codebook_sizes, tuple(scene_tok.latent_hw), llm_cfg(), patch=query_patch, image=True)
+    vocab = JointVocab(
+        train_text_tokenizer(TEXTS, 300),
+        scene_tok.codebook_sizes,
+        tuple(scene_tok.latent_hw),
+        llm_cfg(),
+        patch=query_patch,
+        image=True,
+    )
     cfg = OccVLAWorldConfig(query_patch=query_patch, projector_hidden=16)
     return OccVLAWorldModel(build_llm(llm_cfg(), len(vocab)), vocab, scene_tok, VISION_DIM, cfg).eval()
 
@@ -106,7 +122,13 @@ def test_greedy_generations_are_identical_with_and_without_the_occupancy_block()
     # The query branch at inference equals the one training reads (teacher forcing).
     batch = collate([sequence(w, with_queries=True, answer=False)], w.vocab.pad_id)
     with torch.no_grad():
-        out = w._run(batch["input_ids"], batch["attention_mask"], batch["position_ids"], hidden=True, payload={"image": batch["payload_image"]})
+        out = w._run(
+            batch["input_ids"],
+            batch["attention_mask"],
+            batch["position_ids"],
+            hidden=True,
+            payload={"image": batch["payload_image"]},
+        )
     hidden = out.hidden_states[-1][0][w.vocab.is_query(batch["input_ids"][0])]
     torch.testing.assert_close(w.occupancy_logits(hidden[None]), logits, rtol=1e-4, atol=1e-4)
 
@@ -225,23 +247,31 @@ def test_meta_action_accuracy_by_hand():
 
 def test_the_prompt_lists_past_meta_actions_and_the_answer_reasons_first():
     poses = _poses([10.0] * 6 + [9.0] * 7)  # the step after the anchor (frame 6) slows by 1 m/s
-    clip = Clip({"anchor": {"token": "tok", "caption": "A straight road."}, "ego_poses": poses.tolist(), "history": 6}, [], "")
+    clip = Clip(
+        {"anchor": {"token": "tok", "caption": "A straight road."}, "ego_poses": poses.tolist(), "history": 6}, [], ""
+    )
     parts = meta_action(clip, TaskConfig(), np.random.default_rng(0))
     assert isinstance(parts[0], Images) and isinstance(parts[1], Occupancy) and parts[1].weight == 1.0
     assert parts[2].text == f"{META_PROMPT} " + "; ".join(["maintain speed, go straight"] * 5) + f". {META_QUESTION}"
     answer = parts[3]
     assert isinstance(answer, Text) and answer.supervise
-    assert answer.text.startswith("Scene: A straight road. History: over the last 2.5 s the ego mostly kept its speed and went straight")
+    assert answer.text.startswith(
+        "Scene: A straight road. History: over the last 2.5 s the ego mostly kept its speed and went straight"
+    )
     assert answer.text.endswith("Meta action: decelerate, go straight.")
     short = meta_action(clip, TaskConfig(chain_of_thought=False, occupancy_weight=0.0), np.random.default_rng(0))
-    assert [type(p) for p in short] == [Images, Text, Text] and short[-1].text == "Meta action: decelerate, go straight."
+    assert [type(p) for p in short] == [Images, Text, Text] and short[
+        -1
+    ].text == "Meta action: decelerate, go straight."
 
 
 def test_the_chain_of_thought_does_not_state_the_answer_in_its_scene_step():
     """The synthetic caption opens with the ego's motion over the next seconds, which is the
     meta action itself; the default scene step leaves it out, "caption" keeps it."""
     poses = _poses([10.0] * 6 + [9.0] * 7)
-    caption = "The ego car is driving straight at 10 m/s and slowing down, with a moving car nearby. A cone is also around."
+    caption = (
+        "The ego car is driving straight at 10 m/s and slowing down, with a moving car nearby. A cone is also around."
+    )
     clip = Clip({"anchor": {"token": "tok", "caption": caption}, "ego_poses": poses.tolist(), "history": 6}, [], "")
     answer = meta_action(clip, TaskConfig(occupancy_weight=0.0), np.random.default_rng(0))[-1].text
     assert answer.startswith("Scene: Nearby: a moving car. A cone is also around. History:")
@@ -261,7 +291,9 @@ def test_the_repeat_last_prior_writes_an_unchanged_meta_action_as_before():
 
     cfg = TaskConfig(occupancy_weight=0.0, meta_action_prior="repeat_last")
     steady = Clip({"anchor": {"token": "t"}, "ego_poses": _poses([10.0] * 13).tolist(), "history": 6}, [], "")
-    slowing = Clip({"anchor": {"token": "t"}, "ego_poses": _poses([10.0] * 6 + [9.0] * 7).tolist(), "history": 6}, [], "")
+    slowing = Clip(
+        {"anchor": {"token": "t"}, "ego_poses": _poses([10.0] * 6 + [9.0] * 7).tolist(), "history": 6}, [], ""
+    )
     for clip, sentence, meta in (
         (steady, "Meta action: as before.", {"speed": "maintain", "direction": "straight"}),
         (slowing, "Meta action: decelerate, go straight.", {"speed": "decelerate", "direction": "straight"}),
@@ -274,5 +306,7 @@ def test_the_repeat_last_prior_writes_an_unchanged_meta_action_as_before():
     assert meta_action(steady, TaskConfig(occupancy_weight=0.0), np.random.default_rng(0))[-1].text.endswith(
         "Meta action: maintain speed, go straight."
     )
-    with pytest.raises(ConfigError, match=r"tasks.meta_action_prior: 'always' is not one of none, repeat_last \(paper: none\)"):
+    with pytest.raises(
+        ConfigError, match=r"tasks.meta_action_prior: 'always' is not one of none, repeat_last \(paper: none\)"
+    ):
         TaskConfig(meta_action_prior="always").validate("tasks")

@@ -21,14 +21,23 @@ STEPS = 3
 
 def overrides(root: Path) -> list[str]:
     out = [
-        f"data.root={root / 'data'}", f"data.shards={root / 'data' / 'shards_h6'}",
-        "data.synth.train_scenes=2", "data.synth.val_scenes=1", "data.synth.frames_per_scene=16",
-        "data.samples_per_shard=8", "data.shuffle_buffer=4",
-        "stages[0].model.prior_batches=2", "stages[1].data.batch_size=1",
+        f"data.root={root / 'data'}",
+        f"data.shards={root / 'data' / 'shards_h6'}",
+        "data.synth.train_scenes=2",
+        "data.synth.val_scenes=1",
+        "data.synth.frames_per_scene=16",
+        "data.samples_per_shard=8",
+        "data.shuffle_buffer=4",
+        "stages[0].model.prior_batches=2",
+        "stages[1].data.batch_size=1",
         "stages[2].model.llm.text_vocab_size=400",
     ]
     for i in range(len(STAGES)):
-        out += [f"stages[{i}].trainer.max_steps={STEPS}", f"stages[{i}].trainer.val_check_interval={STEPS}", f"stages[{i}].trainer.limit_val_batches=1"]
+        out += [
+            f"stages[{i}].trainer.max_steps={STEPS}",
+            f"stages[{i}].trainer.val_check_interval={STEPS}",
+            f"stages[{i}].trainer.limit_val_batches=1",
+        ]
     out += [f"stages[{i}].model.val_samples=3" for i in (2, 3, 5)]
     return out
 
@@ -66,11 +75,16 @@ def test_stage2_exports_its_adapters_beside_the_hugging_face_directory(occvla_ru
     from transformers import AutoModelForCausalLM
 
     export = occvla_run / "stage2" / "export"
-    assert {p.name for p in (export / "llm" / "bottleneck_adapter").iterdir()} == {"adapter.safetensors", "adapter_config.json"}
+    assert {p.name for p in (export / "llm" / "bottleneck_adapter").iterdir()} == {
+        "adapter.safetensors",
+        "adapter_config.json",
+    }
     assert (export / "vision_encoder" / "vision" / "config.json").is_file()
     config = json.loads((export / "config.json").read_text())
     assert config["family"] == "occvla" and config["vocab"]["image"] is True
-    assert config["tasks"]["occupancy_weight"] == 1.0 and config["tasks"]["meta_actions"]["accel_threshold_kmh_s"] == 1.0
+    assert (
+        config["tasks"]["occupancy_weight"] == 1.0 and config["tasks"]["meta_actions"]["accel_threshold_kmh_s"] == 1.0
+    )
     # The LM's own weights load in plain transformers, no adapter key left over.
     model = AutoModelForCausalLM.from_pretrained(str(export / "llm"), local_files_only=True)
     assert not any("bottleneck" in k for k in model.state_dict())
@@ -91,7 +105,12 @@ def test_eval_scores_meta_actions_and_the_query_branch(occvla_run, tmp_path):
     res = run_cli("eval", str(occvla_run / "stage2"), "--save-predictions", str(tmp_path / "preds"))
     assert res.returncode == 0, res.stderr[-3000:]
     metrics = json.loads((occvla_run / "stage2" / "eval" / "val" / "metrics.json").read_text())
-    assert {"meta_action_overall", "baseline_prior_meta_action_overall", "occupancy_occ3d_mIoU", "occupancy_occworld_mIoU"} <= metrics.keys()
+    assert {
+        "meta_action_overall",
+        "baseline_prior_meta_action_overall",
+        "occupancy_occ3d_mIoU",
+        "occupancy_occworld_mIoU",
+    } <= metrics.keys()
     assert metrics["meta_action_samples"] == metrics["baseline_prior_meta_action_samples"] > 0
     assert metrics["baseline_repeat_last_meta_action_samples"] == metrics["meta_action_samples"]
     # Every scored chain of thought, with what was read from it: the metrics recount from them.
@@ -105,10 +124,10 @@ def test_eval_scores_meta_actions_and_the_query_branch(occvla_run, tmp_path):
 
 
 def test_the_reloaded_model_generates_the_same_text_with_and_without_occupancy(occvla_run):
+    from occtrain.core.decoding import TextAnswer
     from occtrain.data.clips import frame_clips
     from occtrain.data.layout import DatasetIndex
     from occtrain.engine import load_world_model
-    from occtrain.core.decoding import TextAnswer
 
     engine = load_world_model(occvla_run / "stage2" / "export").eval()
     root = occvla_run.parent / "data"
@@ -141,8 +160,22 @@ def test_distillation_takes_a_camera_reading_teacher(occvla_run, tmp_path):
 """
     path = tmp_path / "occvla_distill.yaml"
     path.write_text(recipe)
-    extra = [f"stages[6].trainer.max_steps={STEPS}", f"stages[6].trainer.val_check_interval={STEPS}", "stages[6].trainer.limit_val_batches=1"]
-    res = run_cli("run", str(path), *overrides(occvla_run.parent), *extra, "--run-dir", str(occvla_run), "--only", "student", timeout=900)
+    extra = [
+        f"stages[6].trainer.max_steps={STEPS}",
+        f"stages[6].trainer.val_check_interval={STEPS}",
+        "stages[6].trainer.limit_val_batches=1",
+    ]
+    res = run_cli(
+        "run",
+        str(path),
+        *overrides(occvla_run.parent),
+        *extra,
+        "--run-dir",
+        str(occvla_run),
+        "--only",
+        "student",
+        timeout=900,
+    )
     assert res.returncode == 0, res.stderr[-3000:]
     metrics = json.loads((occvla_run / "student" / "metrics.json").read_text())
     assert metrics["student_params"] < metrics["teacher_params"]

@@ -30,7 +30,9 @@ def test_every_stage_is_done_and_exported(pipeline):
         entry = manifest["stages"][name]
         assert entry["status"] == "done" and entry["attempts"] == 1
         assert (pipeline / name / "export" / "model.safetensors").is_file()
-        assert json.loads((pipeline / name / "metrics.json").read_text()) == pytest.approx(entry["metrics"], nan_ok=True)
+        assert json.loads((pipeline / name / "metrics.json").read_text()) == pytest.approx(
+            entry["metrics"], nan_ok=True
+        )
     # World-model exports hold a Hugging Face directory (the quickstart fine-tunes fully:
     # no adapter; the LoRA export is checked on stages/occllama.yaml below).
     for name in ("pretrain", "instruct", "distill"):
@@ -56,7 +58,14 @@ def test_the_occllama_recipe_runs(pipeline, tmp_path):
     """stages/occllama.yaml (tokenizer -> pretrain -> instruct) end to end, shrunk, on the
     pipeline's world (the same data settings: its shards are reused, not made again)."""
     run_dir = tmp_path / "run"
-    res = run_cli("run", "stages/occllama.yaml", *tiny_overrides(pipeline.parent / "data", stages=3), "--run-dir", str(run_dir), timeout=900)
+    res = run_cli(
+        "run",
+        "stages/occllama.yaml",
+        *tiny_overrides(pipeline.parent / "data", stages=3),
+        "--run-dir",
+        str(run_dir),
+        timeout=900,
+    )
     assert res.returncode == 0, res.stderr[-3000:]
     stages = json.loads((run_dir / "manifest.json").read_text())["stages"]
     assert list(stages) == ["tokenizer", "pretrain", "instruct"] and all(s["status"] == "done" for s in stages.values())
@@ -68,18 +77,26 @@ def test_the_occllama_recipe_runs(pipeline, tmp_path):
 
 def test_eval_and_score_agree(pipeline, tmp_path):
     preds = tmp_path / "preds"
-    res = run_cli("eval", str(pipeline / "instruct"), "--tasks", "planning,qa,cot_planning", "--save-predictions", str(preds))
+    res = run_cli(
+        "eval", str(pipeline / "instruct"), "--tasks", "planning,qa,cot_planning", "--save-predictions", str(preds)
+    )
     assert res.returncode == 0, res.stderr[-3000:]
     metrics = json.loads((pipeline / "instruct" / "eval" / "val" / "metrics.json").read_text())
     # Two tasks plan on every clip; the baselines still count each clip once.
-    assert metrics["baseline_constant_velocity_samples"] == metrics["plan_direct_samples"] == metrics["plan_cot_samples"]
+    assert (
+        metrics["baseline_constant_velocity_samples"] == metrics["plan_direct_samples"] == metrics["plan_cot_samples"]
+    )
 
-    planning = run_cli("score", "planning", "--pred", str(preds / "planning_pred.json"), "--gt", str(preds / "planning_gt.json"))
+    planning = run_cli(
+        "score", "planning", "--pred", str(preds / "planning_pred.json"), "--gt", str(preds / "planning_gt.json")
+    )
     assert planning.returncode == 0, planning.stderr
     scored = json.loads(planning.stdout)
     for conv in ("stp3", "uniad"):
         for h in ("1s", "2s", "3s", "avg"):
-            assert scored[f"L2_{conv}"][h] == pytest.approx(metrics[f"plan_direct_L2_{conv}_{h}"], rel=1e-6, nan_ok=True)
+            assert scored[f"L2_{conv}"][h] == pytest.approx(
+                metrics[f"plan_direct_L2_{conv}_{h}"], rel=1e-6, nan_ok=True
+            )
 
     qa = run_cli("score", "qa", "--pred", str(preds / "qa_pred.json"), "--questions", str(preds / "qa_questions.json"))
     assert qa.returncode == 0, qa.stderr
@@ -87,7 +104,9 @@ def test_eval_and_score_agree(pipeline, tmp_path):
 
     # A later eval of one task keeps what the earlier one wrote for the others.
     one_by_one = tmp_path / "one_by_one"
-    again = run_cli("eval", str(pipeline / "instruct"), "--tasks", "qa", "--batch-size", "1", "--save-predictions", str(one_by_one))
+    again = run_cli(
+        "eval", str(pipeline / "instruct"), "--tasks", "qa", "--batch-size", "1", "--save-predictions", str(one_by_one)
+    )
     assert again.returncode == 0, again.stderr[-3000:]
     merged = json.loads((pipeline / "instruct" / "eval" / "val" / "metrics.json").read_text())
     assert merged["plan_direct_L2_stp3_avg"] == metrics["plan_direct_L2_stp3_avg"]
@@ -143,15 +162,30 @@ def test_the_vision_recipe_runs_and_hands_over_a_hugging_face_tower(tmp_path):
 
     run_dir = tmp_path / "run"
     res = run_cli(
-        "run", "stages/vision.yaml", f"data.root={tmp_path / 'data'}",
-        "data.synth.train_scenes=1", "data.synth.val_scenes=1", "data.synth.frames_per_scene=4",
-        "data.samples_per_shard=4", "data.history=1", "data.future=1",
-        "stages.vision.trainer.max_steps=6", "stages.vision.trainer.val_check_interval=6", "stages.vision.model.prior_batches=2",
-        "--run-dir", str(run_dir), timeout=900,
+        "run",
+        "stages/vision.yaml",
+        f"data.root={tmp_path / 'data'}",
+        "data.synth.train_scenes=1",
+        "data.synth.val_scenes=1",
+        "data.synth.frames_per_scene=4",
+        "data.samples_per_shard=4",
+        "data.history=1",
+        "data.future=1",
+        "stages.vision.trainer.max_steps=6",
+        "stages.vision.trainer.val_check_interval=6",
+        "stages.vision.model.prior_batches=2",
+        "--run-dir",
+        str(run_dir),
+        timeout=900,
     )
     assert res.returncode == 0, res.stderr[-3000:]
     metrics = json.loads((run_dir / "vision" / "metrics.json").read_text())
-    for key in ("val/pixel_mIoU", "val/baseline_prior_pixel_mIoU", "val/depth_absrel", "val/baseline_prior_depth_absrel"):
+    for key in (
+        "val/pixel_mIoU",
+        "val/baseline_prior_pixel_mIoU",
+        "val/depth_absrel",
+        "val/baseline_prior_depth_absrel",
+    ):
         assert metrics[key] is not None and metrics[key] >= 0, key
     tower = SiglipVisionModel.from_pretrained(run_dir / "vision" / "export" / "vision")
     encoder = load_vision_encoder(run_dir / "vision" / "export")
@@ -165,7 +199,7 @@ def test_the_readme_python_api_example_runs_as_printed(pipeline, capsys):
     import re
 
     text = (REPO / "README.md").read_text()
-    section = text[text.index("### The Python API"):]
+    section = text[text.index("### The Python API") :]
     code = re.search(r"```python\n(.*?)```", section, re.S).group(1)
     assert "occtrain.load(" in code
     code = code.replace("runs/quickstart/instruct/export", str(pipeline / "instruct" / "export"))

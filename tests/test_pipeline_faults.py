@@ -33,8 +33,17 @@ def test_kill_9_at_a_random_step_of_every_stage_resumes_bit_exact(pipeline, tmp_
 
     rng = random.Random(int(os.environ.get("OCCTRAIN_TEST_SEED", time.time_ns() % 10_000)))
     run_dir = tmp_path / "run"
-    args = ["run", "stages/quickstart.yaml", *tiny_overrides(pipeline.parent / "data", steps=PIPELINE_STEPS), "--run-dir", str(run_dir)]
-    killed_at = {name: kill_at_checkpoint(args, run_dir / name / "checkpoints" / "last.ckpt", rng.randint(1, PIPELINE_STEPS - 1)) for name in STAGES}
+    args = [
+        "run",
+        "stages/quickstart.yaml",
+        *tiny_overrides(pipeline.parent / "data", steps=PIPELINE_STEPS),
+        "--run-dir",
+        str(run_dir),
+    ]
+    killed_at = {
+        name: kill_at_checkpoint(args, run_dir / name / "checkpoints" / "last.ckpt", rng.randint(1, PIPELINE_STEPS - 1))
+        for name in STAGES
+    }
     res = run_cli(*args, timeout=900)
     assert res.returncode == 0, res.stderr[-3000:]
 
@@ -73,9 +82,16 @@ def test_bf16_mixed_trains_every_stage_on_cpu(pipeline, tmp_path):
     checkpointing = [f"stages[{i}].model.gradient_checkpointing=true" for i in (1, 2)]
     trackers = [name for name in ("mlflow", "wandb") if importlib.util.find_spec(name)]
     res = run_cli(
-        "run", "stages/quickstart.yaml", *tiny_overrides(pipeline.parent / "data", steps=2), "trainer.precision=bf16-mixed",
-        *checkpointing, f"trainer.loggers=[csv,{','.join(trackers or ['tensorboard'])}]", "--run-dir", str(run_dir),
-        timeout=900, env={"WANDB_MODE": "offline"},
+        "run",
+        "stages/quickstart.yaml",
+        *tiny_overrides(pipeline.parent / "data", steps=2),
+        "trainer.precision=bf16-mixed",
+        *checkpointing,
+        f"trainer.loggers=[csv,{','.join(trackers or ['tensorboard'])}]",
+        "--run-dir",
+        str(run_dir),
+        timeout=900,
+        env={"WANDB_MODE": "offline"},
     )
     assert res.returncode == 0, res.stderr[-3000:]
     manifest = json.loads((run_dir / "manifest.json").read_text())

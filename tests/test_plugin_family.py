@@ -63,7 +63,9 @@ def tiny_run(synth_dataset, tmp_path_factory) -> Path:
 def test_the_plugin_family_trains_every_stage_kind(tiny_run):
     stages = json.loads((tiny_run / "manifest.json").read_text())["stages"]
     assert [s["status"] for s in stages.values()] == ["done"] * 4
-    pretrain, instruct, planner, distill = (stages[n]["metrics"] for n in ("pretrain", "instruct", "planner", "distill"))
+    pretrain, instruct, planner, distill = (
+        stages[n]["metrics"] for n in ("pretrain", "instruct", "planner", "distill")
+    )
     # Its own scorer and the shared ones it names, on its continuous scenes.
     assert "val/car_columns_acc" in pretrain and "val/baseline_commonest_car_columns_acc" in pretrain
     assert pretrain["val/forecast_occworld_frames_1s"] > 0 and "val/baseline_copy_forecast_occworld_mIoU_1s" in pretrain
@@ -94,9 +96,8 @@ def test_occtrain_eval_scores_the_plugin_family(tiny_run):
 
 @pytest.mark.slow
 def test_the_python_api_loads_the_plugin_familys_model(tiny_run, synth_dataset):
-    import plugins.tiny_family  # noqa: F401 - registers the family, as an installed plugin's entry point would
-
     import occtrain
+    import plugins.tiny_family  # noqa: F401 - registers the family, as an installed plugin's entry point would
 
     model = occtrain.load(tiny_run / "instruct" / "export")
     assert model.family == "tiny_columns" and model.operations == ["describe_scene"]
@@ -130,15 +131,17 @@ def test_registering_a_family_leaves_every_existing_stage_hash_unchanged(tmp_pat
     architecture, registered later changes no finished run's hash."""
     from dataclasses import dataclass
 
+    from conftest import REPO
     from occtrain.config import load_config
     from occtrain.config.recipe import RecipeConfig
-    from occtrain.core.registry import FamilySpec, TokenizerArch, WorldSpec, _FAMILIES, _TOKENIZERS, register_family
+    from occtrain.core.registry import _FAMILIES, _TOKENIZERS, FamilySpec, TokenizerArch, WorldSpec, register_family
     from occtrain.runner import plan_stages
-    from plugins.tiny_family import ColumnTasks, ColumnWorldModel, TASKS
-    from conftest import REPO
+    from plugins.tiny_family import TASKS, ColumnTasks, ColumnWorldModel
 
     def hashes(recipe: str) -> dict[str, str]:
-        return {p.spec.name: p.config_hash for p in plan_stages(load_config(RecipeConfig, REPO / "stages" / recipe), recipe)}
+        return {
+            p.spec.name: p.config_hash for p in plan_stages(load_config(RecipeConfig, REPO / "stages" / recipe), recipe)
+        }
 
     recipes = ("quickstart.yaml", "occllm.yaml", "occvla.yaml", "occllama.yaml")
     before = {r: hashes(r) for r in recipes}
@@ -158,10 +161,16 @@ def test_registering_a_family_leaves_every_existing_stage_hash_unchanged(tmp_pat
             pass
 
     try:
-        register_family(FamilySpec(
-            name="another", paper="x", tokenizers=(TokenizerArch("another_vae", OtherTokenizer, object),),
-            world=WorldSpec(model=ColumnWorldModel, task_config=ColumnTasks, tasks=TASKS, world_config=OtherWorld, inputs=()),
-        ))
+        register_family(
+            FamilySpec(
+                name="another",
+                paper="x",
+                tokenizers=(TokenizerArch("another_vae", OtherTokenizer, object),),
+                world=WorldSpec(
+                    model=ColumnWorldModel, task_config=ColumnTasks, tasks=TASKS, world_config=OtherWorld, inputs=()
+                ),
+            )
+        )
         after = {r: hashes(r) for r in recipes}
     finally:
         _FAMILIES.pop("another", None)
@@ -174,7 +183,8 @@ def test_registering_a_family_leaves_every_existing_stage_hash_unchanged(tmp_pat
 #: The test-only plugins below import; each test's registry fixture forgets them afterwards.
 PLUGINS = ("plugins.broken_plugin", "plugins.clashing_family", "plugins.clashing_kind", "plugins.overriding_family")
 NOTE = (
-    "note: plugin plugins.overriding_family overrides the family 'occllama' of occtrain.families.occllama (shipped with occtrain)\n"
+    "note: plugin plugins.overriding_family overrides the family 'occllama' of occtrain.families.occllama "
+    "(shipped with occtrain)\n"
 )
 
 
@@ -207,9 +217,16 @@ def install(monkeypatch, registry, module: str) -> None:
 @pytest.mark.parametrize(
     "module, says",
     [
-        ("plugins.broken_plugin", "(plugins.broken_plugin) failed while being imported: RuntimeError: the broken plugin's settings are missing"),
-        ("plugins.clashing_family", "(plugins.clashing_family): family 'occllama' of plugin plugins.clashing_family is already registered by "
-         "occtrain.families.occllama (shipped with occtrain); register it with override=True to replace it"),
+        (
+            "plugins.broken_plugin",
+            "(plugins.broken_plugin) failed while being imported: RuntimeError: the broken plugin's settings are "
+            "missing",
+        ),
+        (
+            "plugins.clashing_family",
+            "(plugins.clashing_family): family 'occllama' of plugin plugins.clashing_family is already registered by "
+            "occtrain.families.occllama (shipped with occtrain); register it with override=True to replace it",
+        ),
     ],
     ids=["raises", "family-name-shipped"],
 )
@@ -263,17 +280,24 @@ def test_a_tokenizer_arch_of_another_family_is_refused_unless_overridden(registr
     from occtrain.errors import ConfigError
 
     shipped = registry.tokenizer_archs()["occworld_vqvae"]
-    mine = FamilySpec(name="mine", paper="x", tokenizers=(TokenizerArch("occworld_vqvae", shipped.config, shipped.model),))
-    with pytest.raises(ConfigError, match=(
-        f"^tokenizer arch 'occworld_vqvae' of plugin {__name__} is already registered by occtrain.families.occworld "
-        r"\(shipped with occtrain\); register it with override=True to replace it$"
-    )):
+    mine = FamilySpec(
+        name="mine", paper="x", tokenizers=(TokenizerArch("occworld_vqvae", shipped.config, shipped.model),)
+    )
+    with pytest.raises(
+        ConfigError,
+        match=(
+            f"^tokenizer arch 'occworld_vqvae' of plugin {__name__} is already registered by "
+            "occtrain.families.occworld "
+            r"\(shipped with occtrain\); register it with override=True to replace it$"
+        ),
+    ):
         register_family(mine)
     assert "mine" not in registry.families() and registry.tokenizer_family("occworld_vqvae") == "occworld"
     register_family(mine, override=True)
     assert registry.tokenizer_family("occworld_vqvae") == "mine"
     assert capsys.readouterr().err == (
-        f"note: plugin {__name__} overrides the tokenizer arch 'occworld_vqvae' of occtrain.families.occworld (shipped with occtrain)\n"
+        f"note: plugin {__name__} overrides the tokenizer arch 'occworld_vqvae' of occtrain.families.occworld (shipped "
+        "with occtrain)\n"
     )
 
 
@@ -286,10 +310,14 @@ def test_a_stage_kind_of_another_module_is_refused_unless_overridden(registry, m
     shipped = stages.get_kind("tokenizer")
     monkeypatch.setitem(stages._KINDS, "tokenizer", shipped)  # restored after the test
     mine = replace(shipped, monitor="val/mine")
-    with pytest.raises(ConfigError, match=f"^stage kind 'tokenizer' of plugin {__name__} is already registered by occtrain.stages.tokenizer "):
+    with pytest.raises(
+        ConfigError,
+        match=f"^stage kind 'tokenizer' of plugin {__name__} is already registered by occtrain.stages.tokenizer ",
+    ):
         stages.register(mine)
     assert stages.get_kind("tokenizer") is shipped
     assert stages.register(mine, override=True) is mine and stages.get_kind("tokenizer") is mine
     assert capsys.readouterr().err == (
-        f"note: plugin {__name__} overrides the stage kind 'tokenizer' of occtrain.stages.tokenizer (shipped with occtrain)\n"
+        f"note: plugin {__name__} overrides the stage kind 'tokenizer' of occtrain.stages.tokenizer (shipped with "
+        "occtrain)\n"
     )

@@ -48,8 +48,13 @@ def test_rates_read_well_fast_and_slow():
 
 
 def _trainer(step: int, max_steps: int = 20) -> SimpleNamespace:
-    return SimpleNamespace(global_step=step, max_steps=max_steps, progress_bar_metrics={"train/loss": 2.25},
-                           num_val_batches=[4], sanity_checking=False)
+    return SimpleNamespace(
+        global_step=step,
+        max_steps=max_steps,
+        progress_bar_metrics={"train/loss": 2.25},
+        num_val_batches=[4],
+        sanity_checking=False,
+    )
 
 
 def _resume_and_train(bar, trainer) -> None:

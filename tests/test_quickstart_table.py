@@ -1,4 +1,5 @@
-"""tools/quickstart_table.py: the quickstart's seeds table comes from the runs' eval files, states their world, mixes no worlds."""
+"""tools/quickstart_table.py: the quickstart's seeds table comes from the runs' eval files,
+states their world, mixes no worlds."""
 
 from __future__ import annotations
 

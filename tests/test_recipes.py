@@ -14,7 +14,12 @@ RECIPES = sorted((REPO / "stages").rglob("*.yaml"))
 
 
 def test_there_are_recipes():
-    assert {p.name for p in RECIPES} >= {"quickstart.yaml", "occllama.yaml", "tokenizer.yaml", "occllama_multitask.yaml"}
+    assert {p.name for p in RECIPES} >= {
+        "quickstart.yaml",
+        "occllama.yaml",
+        "tokenizer.yaml",
+        "occllama_multitask.yaml",
+    }
 
 
 @pytest.mark.parametrize("path", RECIPES, ids=lambda p: str(p.relative_to(REPO)))
@@ -42,6 +47,8 @@ def test_the_shipped_gpu_trainer_config_validates_with_every_device():
     # configs/trainer/gpu.yaml asks for every GPU (devices: -1, Lightning's convention); the
     # range check must take it, and still refuse 0 devices in one line.
     _, planned = load_recipe(REPO / "stages/quickstart.yaml", [f"trainer={REPO / 'configs/trainer/gpu.yaml'}"])
-    assert {(p.trainer.accelerator, p.trainer.devices, p.trainer.precision) for p in planned} == {("gpu", -1, "bf16-mixed")}
+    assert {(p.trainer.accelerator, p.trainer.devices, p.trainer.precision) for p in planned} == {
+        ("gpu", -1, "bf16-mixed")
+    }
     with pytest.raises(ConfigError, match=r"trainer.devices is 0 in .*: it must be at least 1, or -1 for every device"):
         load_recipe(REPO / "stages/quickstart.yaml", ["trainer.devices=0"])

@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import json
+
 import pytest
 import torch
 
 from conftest import write_hand_dataset
 from occtrain.errors import ConfigError, OcctrainError
-from occtrain.runner import StageFailed, run
 from occtrain.exports import read_export, write_export
+from occtrain.runner import StageFailed, run
 from plugins.probe_stage import PROBE
 
 
@@ -24,7 +25,7 @@ def recipe(tmp_path):
     text = f"""
 name: probe
 plugins: [plugins.probe_stage]
-runs_root: {tmp_path / 'runs'}
+runs_root: {tmp_path / "runs"}
 data:
   root: {data}
   batch_size: 2
@@ -80,7 +81,10 @@ def test_changed_config_is_refused_then_restart_retrains(probe_kind, recipe):
     run_dir = run(recipe)
     with pytest.raises(ConfigError) as err:
         run(recipe, ["stages[0].optim.lr=0.01"])
-    assert str(err.value) == "stage 'first' is done but its config changed (optim.lr); `--restart first` retrains it and the stages after it"
+    assert (
+        str(err.value) == "stage 'first' is done but its config changed (optim.lr); "
+        "`--restart first` retrains it and the stages after it"
+    )
     before = json.loads((run_dir / "manifest.json").read_text())["stages"]
     second_export = (run_dir / "second" / "export" / "model.safetensors").read_bytes()
     run(recipe, ["stages[0].optim.lr=0.01"], restart="first")
@@ -89,7 +93,11 @@ def test_changed_config_is_refused_then_restart_retrains(probe_kind, recipe):
     # 'second' was reset (one attempt, not two) and retrained after 'first', on the new export.
     second = manifest["stages"]["second"]
     assert second["attempts"] == 1 and second["started"] > before["second"]["ended"]
-    assert second["config"]["consumes"]["first"] == manifest["stages"]["first"]["config_hash"] != before["first"]["config_hash"]
+    assert (
+        second["config"]["consumes"]["first"]
+        == manifest["stages"]["first"]["config_hash"]
+        != before["first"]["config_hash"]
+    )
     assert (run_dir / "second" / "export" / "model.safetensors").read_bytes() != second_export
 
 
@@ -155,7 +163,9 @@ def test_a_kind_that_is_not_a_stage_is_refused_before_training(recipe, tmp_path)
 
     for name, module in (("plain_module", NotAStage), ("no_export", NoExport)):
         register(StageKind(name=name, model_schema=ProbeConfig, data_kind="frames", module=module))
-        text = recipe.read_text().replace("kind: probe\n    model: {width: 4}\n    optim", f"kind: {name}\n    model: {{width: 4}}\n    optim", 1)
+        text = recipe.read_text().replace(
+            "kind: probe\n    model: {width: 4}\n    optim", f"kind: {name}\n    model: {{width: 4}}\n    optim", 1
+        )
         (tmp_path / f"{name}.yaml").write_text(text)
         with pytest.raises(ConfigError, match=f"stage kind '{name}' .* not a concrete occtrain.stages.Stage"):
             run(tmp_path / f"{name}.yaml")
@@ -173,18 +183,34 @@ def plan_text(tmp_path, stages: str):
 
 def test_consumes_are_checked_when_planning(probe_kind, tmp_path):
     stages = "  - {name: a, kind: probe}\n  - {name: b, kind: probe}\n  - {name: c, kind: probe, consumes: [a, b]}\n"
-    with pytest.raises(ConfigError, match=r"stages\[2\] \('c'\).*: a probe stage consumes 0 to 1 earlier stage\(s\) \(probe\), got 2"):
+    with pytest.raises(
+        ConfigError, match=r"stages\[2\] \('c'\).*: a probe stage consumes 0 to 1 earlier stage\(s\) \(probe\), got 2"
+    ):
         plan_text(tmp_path, stages)
 
 
 def test_a_world_model_stage_reads_only_its_kind_of_export(tmp_path):
-    with pytest.raises(ConfigError, match="an? instruct stage cannot consume 'tok', a tokenizer stage; it reads pretrain or instruct or distill"):
-        plan_text(tmp_path, "  - {name: tok, kind: tokenizer, model: {arch: occworld_vqvae}}\n  - {name: tune, kind: instruct, consumes: [tok]}\n")
+    with pytest.raises(
+        ConfigError,
+        match="an? instruct stage cannot consume 'tok', a tokenizer stage; it reads pretrain or instruct or distill",
+    ):
+        plan_text(
+            tmp_path,
+            "  - {name: tok, kind: tokenizer, model: {arch: occworld_vqvae}}\n  - {name: tune, kind: instruct, "
+            "consumes: [tok]}\n",
+        )
     with pytest.raises(ConfigError, match=r"model.family is empty and no tokenizer stage is consumed"):
         plan_text(tmp_path, "  - {name: lm, kind: pretrain}\n")
     # A family's world model is built over what the family names: OccVLA's reads a vision stage too.
-    with pytest.raises(ConfigError, match=r"a 'occvla' world model is built over tokenizer and vision \(consumes those stages\), got tokenizer"):
-        plan_text(tmp_path, "  - {name: tok, kind: tokenizer, model: {arch: occworld_vqvae}}\n  - {name: lm, kind: pretrain, consumes: [tok], model: {family: occvla}}\n")
+    with pytest.raises(
+        ConfigError,
+        match=r"a 'occvla' world model is built over tokenizer and vision \(consumes those stages\), got tokenizer",
+    ):
+        plan_text(
+            tmp_path,
+            "  - {name: tok, kind: tokenizer, model: {arch: occworld_vqvae}}\n  - {name: lm, kind: pretrain, consumes: "
+            "[tok], model: {family: occvla}}\n",
+        )
 
 
 def test_checkpoints_load_strictly_by_key(recipe, tmp_path):
@@ -194,7 +220,9 @@ def test_checkpoints_load_strictly_by_key(recipe, tmp_path):
     from occtrain.stages import StageContext
     from plugins.probe_stage import Probe, ProbeConfig
 
-    ctx = StageContext(StageSpec(name="first", kind="probe"), ProbeConfig(), DataConfig(), TrainerConfig(), tmp_path, {})
+    ctx = StageContext(
+        StageSpec(name="first", kind="probe"), ProbeConfig(), DataConfig(), TrainerConfig(), tmp_path, {}
+    )
     stage = Probe(ctx)
     state = stage.state_dict()
     Probe(ctx).load_state_dict(state)  # the stage's own checkpoint loads
@@ -204,7 +232,9 @@ def test_checkpoints_load_strictly_by_key(recipe, tmp_path):
         Probe(ctx).load_state_dict({**state, "extra.weight": torch.zeros(1)})
     # A fresh stage of the same config (another rank, a resumed run) seeds a step alike; another data seed does not.
     assert stage.step_seed(5) == Probe(ctx).step_seed(5) != stage.step_seed(6)
-    other = StageContext(StageSpec(name="first", kind="probe"), ProbeConfig(), DataConfig(seed=1), TrainerConfig(), tmp_path, {})
+    other = StageContext(
+        StageSpec(name="first", kind="probe"), ProbeConfig(), DataConfig(seed=1), TrainerConfig(), tmp_path, {}
+    )
     assert Probe(other).step_seed(5) != stage.step_seed(5)
 
 
@@ -222,7 +252,11 @@ def test_a_stage_sets_its_own_batch_size_but_not_the_dataset(probe_kind, tmp_pat
 def _hashes(root) -> dict[str, bytes]:
     import hashlib
 
-    return {str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).digest() for p in sorted(root.rglob("*")) if p.is_file()}
+    return {
+        str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).digest()
+        for p in sorted(root.rglob("*"))
+        if p.is_file()
+    }
 
 
 def test_disk_full_at_a_checkpoint_is_one_line_and_leaves_the_run_consistent(probe_kind, recipe, monkeypatch):
@@ -284,8 +318,13 @@ def test_written_files_have_the_permissions_of_a_plain_write(probe_kind, recipe)
     umask = os.umask(0)
     os.umask(umask)
     run_dir = run(recipe)
-    for path in (run_dir / "manifest.json", run_dir / "dashboard.html", run_dir / "pipeline.yaml", run_dir / "first" / "metrics.json",
-                 run_dir / "first" / "checkpoints" / "last.ckpt"):
+    for path in (
+        run_dir / "manifest.json",
+        run_dir / "dashboard.html",
+        run_dir / "pipeline.yaml",
+        run_dir / "first" / "metrics.json",
+        run_dir / "first" / "checkpoints" / "last.ckpt",
+    ):
         assert path.stat().st_mode & 0o777 == 0o666 & ~umask, path
 
 
@@ -317,9 +356,15 @@ def test_stages_are_addressed_by_name_or_index(probe_kind, recipe):
 def test_a_shadowed_trainer_override_is_said_once(probe_kind, recipe, capsys):
     run_dir = run(recipe, ["trainer.max_steps=2"])
     err = capsys.readouterr().err
-    assert err.count("note") == 1 and "trainer.max_steps=2 applies to every stage except second, which set their own" in err
+    assert (
+        err.count("note") == 1
+        and "trainer.max_steps=2 applies to every stage except second, which set their own" in err
+    )
     manifest = json.loads((run_dir / "manifest.json").read_text())["stages"]
-    assert manifest["first"]["config"]["trainer"]["max_steps"] == 2 and manifest["second"]["config"]["trainer"]["max_steps"] == 4
+    assert (
+        manifest["first"]["config"]["trainer"]["max_steps"] == 2
+        and manifest["second"]["config"]["trainer"]["max_steps"] == 4
+    )
 
 
 def test_a_refused_run_writes_nothing(probe_kind, recipe):
@@ -334,7 +379,11 @@ def _tree(root):
     """sha256 of every file under ``root`` by relative path (what a restart must keep)."""
     import hashlib
 
-    return {str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(root.rglob("*")) if p.is_file()}
+    return {
+        str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(root.rglob("*"))
+        if p.is_file()
+    }
 
 
 def _stages(run_dir):

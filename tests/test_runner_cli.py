@@ -84,7 +84,9 @@ def test_kill_9_then_resume_gives_the_uninterrupted_weights(recipe, tmp_path, ac
     (run_dir / "only" / "checkpoints" / "last.ckpt").write_bytes(b"PK\x03\x04 damaged")
     res = run_cli("run", str(recipe), acc, "--run-dir", str(run_dir), env=SLOW)
     assert res.returncode == 0, res.stderr[-2000:]
-    assert "last.ckpt is unreadable" in res.stderr and "resuming only from" in res.stderr and "previous.ckpt" in res.stderr
+    assert (
+        "last.ckpt is unreadable" in res.stderr and "resuming only from" in res.stderr and "previous.ckpt" in res.stderr
+    )
     manifest = json.loads((run_dir / "manifest.json").read_text())
     assert manifest["stages"]["only"]["status"] == "done" and manifest["stages"]["only"]["attempts"] == 2
     # The second attempt trained from the checkpoint's step, not from scratch (a restart
@@ -146,7 +148,8 @@ def test_a_stop_signal_interrupts_in_one_line_and_a_rerun_resumes(recipe, tmp_pa
     second = run_cli("run", *args)
     assert second.returncode == 2
     assert second.stderr.strip() == (
-        f"error: {run_dir} is in use by pid {proc.pid} on {socket.gethostname()}; wait for it to finish, stop it, or choose another --run-dir"
+        f"error: {run_dir} is in use by pid {proc.pid} on {socket.gethostname()}; wait for it to finish, stop it, or "
+        "choose another --run-dir"
     )
 
     assert proc.poll() is None, "the stage finished before the signal"
@@ -156,9 +159,12 @@ def test_a_stop_signal_interrupts_in_one_line_and_a_rerun_resumes(recipe, tmp_pa
     assert proc.returncode == code, err[-2000:]
     name = signal.Signals(sig).name
     assert err.splitlines()[-1] == (
-        f"interrupted: stage 'only' of {run_dir} interrupted by {name}; rerun the same command to resume it from {run_dir / 'only' / 'checkpoints'}"
+        f"interrupted: stage 'only' of {run_dir} interrupted by {name}; rerun the same command to resume it from "
+        f"{run_dir / 'only' / 'checkpoints'}"
     )
-    assert sum(name in line for line in err.splitlines()) == 1  # and nothing else about it (Lightning's "Received SIGTERM")
+    assert (
+        sum(name in line for line in err.splitlines()) == 1
+    )  # and nothing else about it (Lightning's "Received SIGTERM")
     assert "Traceback" not in err
     entry = json.loads((run_dir / "manifest.json").read_text())["stages"]["only"]
     assert entry["status"] == "interrupted" and entry["error"] == f"interrupted by {name}" and entry["wall_time_s"] > 0
@@ -175,7 +181,9 @@ def test_a_stop_signal_interrupts_in_one_line_and_a_rerun_resumes(recipe, tmp_pa
 
 
 def test_cpu_ddp_two_processes(recipe, tmp_path):
-    res = run_cli("run", str(recipe), "trainer.devices=2", "trainer.strategy=ddp", "--run-dir", str(tmp_path / "ddp"), timeout=600)
+    res = run_cli(
+        "run", str(recipe), "trainer.devices=2", "trainer.strategy=ddp", "--run-dir", str(tmp_path / "ddp"), timeout=600
+    )
     assert res.returncode == 0, res.stderr[-3000:]
     manifest = json.loads((tmp_path / "ddp" / "manifest.json").read_text())
     assert manifest["stages"]["only"]["status"] == "done" and manifest["stages"]["only"]["attempts"] == 1
@@ -192,7 +200,9 @@ def test_cpu_ddp_two_processes(recipe, tmp_path):
 def test_cli_errors_are_one_line(recipe, tmp_path):
     res = run_cli("run", str(recipe), "trainer.max_step=3")
     assert res.returncode == 2
-    assert res.stderr.strip().splitlines() == ["error: unknown key 'trainer.max_step' in override 'trainer.max_step=3'; did you mean 'max_steps'?"]
+    assert res.stderr.strip().splitlines() == [
+        "error: unknown key 'trainer.max_step' in override 'trainer.max_step=3'; did you mean 'max_steps'?"
+    ]
     res = run_cli("run", str(recipe), "stages[0].model.fail=true", "--run-dir", str(tmp_path / "f"))
     assert res.returncode == 2
     last = res.stderr.strip().splitlines()[-1]

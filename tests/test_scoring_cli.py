@@ -14,7 +14,9 @@ from occtrain.data.layout import DatasetIndex
 from occtrain.io import atomic_write_npz
 from occtrain.occ3d import FREE
 
-needs_java = pytest.mark.skipif(shutil.which("java") is None, reason="pycocoevalcap's PTB tokeniser and METEOR need Java")
+needs_java = pytest.mark.skipif(
+    shutil.which("java") is None, reason="pycocoevalcap's PTB tokeniser and METEOR need Java"
+)
 
 
 def score(capsys, *argv: str) -> tuple[int, dict | None, str]:
@@ -52,13 +54,17 @@ def occ_preds(hand_dataset, tmp_path_factory) -> Path:
     root = tmp_path_factory.mktemp("occ_pred")
     index = DatasetIndex.open(hand_dataset)
     for scene, token in val_samples(hand_dataset):
-        atomic_write_npz(root / scene / token / "labels.npz", {"semantics": ground_halved(index.labels(scene, token)["semantics"])})
+        atomic_write_npz(
+            root / scene / token / "labels.npz", {"semantics": ground_halved(index.labels(scene, token)["semantics"])}
+        )
     return root
 
 
 def test_occupancy_occ3d_masked_hand_case(hand_dataset, occ_preds, capsys, tmp_path):
     out_file = tmp_path / "occ.json"
-    code, r, _ = score(capsys, "occupancy", "--pred", occ_preds, "--gt", hand_dataset, "--split", "val", "--out", out_file)
+    code, r, _ = score(
+        capsys, "occupancy", "--pred", occ_preds, "--gt", hand_dataset, "--split", "val", "--out", out_file
+    )
     assert code == 0
     n = len(val_samples(hand_dataset))
     # hand_labels: ground (11) fills z = 1 (40000 voxels), mask_camera hides x, y < 50 (2500 of them);
@@ -70,7 +76,10 @@ def test_occupancy_occ3d_masked_hand_case(hand_dataset, occ_preds, capsys, tmp_p
     assert r["per_class"]["bus"] is None  # absent from both: NaN, printed as null
     assert r["mIoU"] == pytest.approx((100 * 17500 / 37500 + 100) / 2)
     index = DatasetIndex.open(hand_dataset)
-    cars = sum(int(((l := index.labels(s, t))["semantics"] == 4)[l["mask_camera"] == 1].sum()) for s, t in val_samples(hand_dataset))
+    cars = sum(
+        int(((lab := index.labels(s, t))["semantics"] == 4)[lab["mask_camera"] == 1].sum())
+        for s, t in val_samples(hand_dataset)
+    )
     # geometry: TP = 17500 n + visible car voxels, FN = 20000 n, FP = 0
     assert r["IoU"] == pytest.approx(100 * (17500 * n + cars) / (37500 * n + cars))
     assert json.loads(out_file.read_text()) == r
@@ -83,7 +92,9 @@ def test_occupancy_no_mask_and_occworld(hand_dataset, occ_preds, capsys):
     assert r["per_class"]["driveable_surface"] == pytest.approx(50.0)
     assert r["mIoU"] == pytest.approx(75.0)
     assert r["IoU"] == pytest.approx(100 * 20150 / 40150)
-    code, r, _ = score(capsys, "occupancy", "--pred", occ_preds, "--gt", hand_dataset, "--split", "val", "--convention", "occworld")
+    code, r, _ = score(
+        capsys, "occupancy", "--pred", occ_preds, "--gt", hand_dataset, "--split", "val", "--convention", "occworld"
+    )
     # occworld: the 15 classes without ground truth score 1: mIoU = (1/2 + 1 + 15) / 17
     assert code == 0 and r["convention"] == "occworld"
     assert r["mIoU"] == pytest.approx(100 * 16.5 / 17)
@@ -113,8 +124,12 @@ def test_occupancy_bad_input(hand_dataset, capsys, tmp_path):
     atomic_write_npz(bad / scene / token / "labels.npz", {"semantics": np.zeros((200, 200, 8), np.uint8)})
     line = one_line_error(capsys, "occupancy", "--pred", bad, "--gt", hand_dataset, "--split", "val", "--allow-missing")
     assert "shape (200, 200, 8)" in line and str(bad / scene / token / "labels.npz") in line
-    assert "prediction directory not found" in one_line_error(capsys, "occupancy", "--pred", tmp_path / "nope", "--gt", hand_dataset)
-    assert "no samples found" in one_line_error(capsys, "occupancy", "--pred", bad, "--gt", tmp_path / "bad" / scene / token)
+    assert "prediction directory not found" in one_line_error(
+        capsys, "occupancy", "--pred", tmp_path / "nope", "--gt", hand_dataset
+    )
+    assert "no samples found" in one_line_error(
+        capsys, "occupancy", "--pred", bad, "--gt", tmp_path / "bad" / scene / token
+    )
 
 
 # ----------------------------------------------------------------------------- forecasting
@@ -126,7 +141,9 @@ def test_forecast_hand_case(hand_dataset, capsys, tmp_path):
     tokens = index.scenes[scene]
     future = np.stack([index.labels(scene, t)["semantics"] for t in tokens[1:7]])
     atomic_write_npz(tmp_path / scene / tokens[0] / "forecast.npz", {"semantics": future})  # exact
-    atomic_write_npz(tmp_path / scene / tokens[1] / "forecast.npz", {"semantics": np.full_like(future, FREE)})  # all free
+    atomic_write_npz(
+        tmp_path / scene / tokens[1] / "forecast.npz", {"semantics": np.full_like(future, FREE)}
+    )  # all free
     # 2 frames left: at 1 s (its last frame) the ground is exact and the car (10 x 5 x 3 voxels
     # of class 4) sits 80+ voxels away from the true one.
     near_end = future.copy()
@@ -157,10 +174,14 @@ def test_forecast_bad_input(hand_dataset, capsys, tmp_path):
     index = DatasetIndex.open(hand_dataset)
     scene = index.splits["val"][0]
     short = tmp_path / "short"
-    atomic_write_npz(short / scene / index.scenes[scene][0] / "forecast.npz", {"semantics": np.zeros((4, 200, 200, 16), np.uint8)})
+    atomic_write_npz(
+        short / scene / index.scenes[scene][0] / "forecast.npz", {"semantics": np.zeros((4, 200, 200, 16), np.uint8)}
+    )
     assert "holds 4 future frames" in one_line_error(capsys, "forecast", "--pred", short, "--gt", hand_dataset)
     stranger = tmp_path / "stranger"
-    atomic_write_npz(stranger / scene / "not-a-token" / "forecast.npz", {"semantics": np.zeros((6, 200, 200, 16), np.uint8)})
+    atomic_write_npz(
+        stranger / scene / "not-a-token" / "forecast.npz", {"semantics": np.zeros((6, 200, 200, 16), np.uint8)}
+    )
     assert "is not in the ground truth" in one_line_error(capsys, "forecast", "--pred", stranger, "--gt", hand_dataset)
     assert "dataset root" in one_line_error(capsys, "forecast", "--pred", short, "--gt", hand_dataset / "gts" / scene)
 
@@ -176,7 +197,10 @@ def planning_files(tmp_path: Path) -> tuple[Path, Path]:
     far = [40.0, 40.0, 4.0, 2.0, 0.0]
     agents = [[far], [[5.0, 3.0, 2.0, 1.0, 0.0]], [far], [[10.0, 0.0, 2.0, 8.0, 0.0]], [far], []]
     preds = {"tok-a": straight(3.0), "tok-b": straight(1.0)}
-    gts = {"tok-a": {"traj": straight(), "mask": [1] * 6, "agents": agents}, "tok-b": {"traj": straight(), "mask": [1, 1, 1, 1, 1, 0]}}
+    gts = {
+        "tok-a": {"traj": straight(), "mask": [1] * 6, "agents": agents},
+        "tok-b": {"traj": straight(), "mask": [1, 1, 1, 1, 1, 0]},
+    }
     (tmp_path / "p.json").write_text(json.dumps(preds))
     (tmp_path / "g.json").write_text(json.dumps(gts))
     return tmp_path / "p.json", tmp_path / "g.json"
@@ -208,12 +232,16 @@ def test_planning_bad_input(capsys, tmp_path):
     assert code == 0 and r["samples"] == 1
     short = tmp_path / "short.json"
     short.write_text(json.dumps(preds | {"tok-a": straight()[:5]}))
-    assert "tok-a holds 5 items, expected a list of 6 lists of 2 numbers" in one_line_error(capsys, "planning", "--pred", short, "--gt", g)
+    assert "tok-a holds 5 items, expected a list of 6 lists of 2 numbers" in one_line_error(
+        capsys, "planning", "--pred", short, "--gt", g
+    )
     gts = json.loads(g.read_text())
     gts["tok-a"]["agents"][1] = [[5.0, 3.0, 2.0, 1.0]] * 5  # 4 numbers per box
     bad_agents = tmp_path / "bad_agents.json"
     bad_agents.write_text(json.dumps(gts))
-    assert "tok-a.agents[1][0] holds 4 items, expected a list of 5 numbers" in one_line_error(capsys, "planning", "--pred", p, "--gt", bad_agents)
+    assert "tok-a.agents[1][0] holds 4 items, expected a list of 5 numbers" in one_line_error(
+        capsys, "planning", "--pred", p, "--gt", bad_agents
+    )
     broken = tmp_path / "broken.json"
     broken.write_text("{not json")
     assert "is not valid JSON" in one_line_error(capsys, "planning", "--pred", broken, "--gt", g)
@@ -241,11 +269,17 @@ def test_captions_identical_text_scores_one(capsys, tmp_path):
 def test_captions_bad_input(capsys, tmp_path):
     (tmp_path / "p.json").write_text(json.dumps({"a": "x", "z": "y"}))
     (tmp_path / "r.json").write_text(json.dumps({"a": ["x"], "b": ["y"]}))
-    assert "id z has no references" in one_line_error(capsys, "captions", "--pred", tmp_path / "p.json", "--ref", tmp_path / "r.json")
+    assert "id z has no references" in one_line_error(
+        capsys, "captions", "--pred", tmp_path / "p.json", "--ref", tmp_path / "r.json"
+    )
     (tmp_path / "p.json").write_text(json.dumps({"a": "x"}))
-    assert "no caption for sample b" in one_line_error(capsys, "captions", "--pred", tmp_path / "p.json", "--ref", tmp_path / "r.json")
+    assert "no caption for sample b" in one_line_error(
+        capsys, "captions", "--pred", tmp_path / "p.json", "--ref", tmp_path / "r.json"
+    )
     (tmp_path / "p.json").write_text(json.dumps(["x"]))
-    assert "expected a JSON object" in one_line_error(capsys, "captions", "--pred", tmp_path / "p.json", "--ref", tmp_path / "r.json")
+    assert "expected a JSON object" in one_line_error(
+        capsys, "captions", "--pred", tmp_path / "p.json", "--ref", tmp_path / "r.json"
+    )
 
 
 # ----------------------------------------------------------------------------- QA
@@ -253,10 +287,28 @@ def test_captions_bad_input(capsys, tmp_path):
 
 def qa_questions(path: Path) -> Path:
     qs = [
-        {"question": "Are there any cars?", "answer": "yes", "sample_token": "t0", "template_type": "exist", "num_hop": 0},
+        {
+            "question": "Are there any cars?",
+            "answer": "yes",
+            "sample_token": "t0",
+            "template_type": "exist",
+            "num_hop": 0,
+        },
         {"question": "How many trucks?", "answer": "2", "sample_token": "t0", "template_type": "count", "num_hop": 0},
-        {"question": "How many moving cars?", "answer": "1", "sample_token": "t1", "template_type": "count", "num_hop": 1},
-        {"question": "What is the parked thing?", "answer": "car", "sample_token": "t1", "template_type": "object", "num_hop": 1},
+        {
+            "question": "How many moving cars?",
+            "answer": "1",
+            "sample_token": "t1",
+            "template_type": "count",
+            "num_hop": 1,
+        },
+        {
+            "question": "What is the parked thing?",
+            "answer": "car",
+            "sample_token": "t1",
+            "template_type": "object",
+            "num_hop": 1,
+        },
     ]
     path.write_text(json.dumps({"info": {}, "questions": qs}))
     return path
@@ -270,7 +322,9 @@ def test_qa_hand_case(capsys, tmp_path):
     assert code == 0 and r["questions"] == 4
     assert r["overall"] == pytest.approx(75.0)
     assert r["by_type"] == pytest.approx({"exist": 100.0, "count": 50.0, "object": 100.0})
-    assert r["by_type_hop"] == pytest.approx({"exist_H0": 100.0, "count_H0": 100.0, "count_H1": 0.0, "object_H1": 100.0})
+    assert r["by_type_hop"] == pytest.approx(
+        {"exist_H0": 100.0, "count_H0": 100.0, "count_H1": 0.0, "object_H1": 100.0}
+    )
 
 
 def test_qa_bad_input(capsys, tmp_path):
@@ -280,7 +334,9 @@ def test_qa_bad_input(capsys, tmp_path):
     (tmp_path / "p.json").write_text(json.dumps({"0": "yes"}))
     assert "expected a JSON list" in one_line_error(capsys, "qa", "--pred", tmp_path / "p.json", "--questions", q)
     (tmp_path / "q2.json").write_text(json.dumps([]))
-    assert "NuScenes-QA format" in one_line_error(capsys, "qa", "--pred", tmp_path / "p.json", "--questions", tmp_path / "q2.json")
+    assert "NuScenes-QA format" in one_line_error(
+        capsys, "qa", "--pred", tmp_path / "p.json", "--questions", tmp_path / "q2.json"
+    )
 
 
 def test_version(capsys):

@@ -45,7 +45,10 @@ stages:
     consumes: [tokenizer]
     model:
       llm: {{hidden_size: 64, num_layers: 2, num_heads: 4, intermediate_size: 128, text_vocab_size: 400}}
-      tasks: {{weights: {{detection: 1, counting: 1, prediction: 1, planning: 2, forecasting: 2}}, context_frames: 2, forecast_frames: 2}}
+      tasks:
+        weights: {{detection: 1, counting: 1, prediction: 1, planning: 2, forecasting: 2}}
+        context_frames: 2
+        forecast_frames: 2
       val_samples: 4
     optim: {{lr: 2.0e-3, weight_decay: 0.01}}
     # A small clip value: every step clips (by the norm over all shards, as DDP's over the whole model).
@@ -78,7 +81,14 @@ def _on_two(strategy: str) -> list[str]:
 def ddp(tmp_path_factory, synth_dataset) -> Path:
     root = tmp_path_factory.mktemp("sharded")
     recipe = root / "sharded.yaml"
-    recipe.write_text(RECIPE.format(runs=root / "runs", data=synth_dataset, tokenizer=REPO / "configs/model/occllama_tokenizer_tiny.yaml", clip=CLIP))
+    recipe.write_text(
+        RECIPE.format(
+            runs=root / "runs",
+            data=synth_dataset,
+            tokenizer=REPO / "configs/model/occllama_tokenizer_tiny.yaml",
+            clip=CLIP,
+        )
+    )
     res = run_cli("run", str(recipe), *_on_two("ddp"), "--run-dir", str(root / "ddp"), timeout=900, env=ONE_THREAD)
     assert res.returncode == 0, res.stderr[-3000:]
     return root / "ddp"
@@ -127,7 +137,12 @@ def _readable(path: Path, run: Path, as_run: Path) -> object:
 
 
 def _tensors(stage_dir: Path) -> dict[str, torch.Tensor]:
-    return {f"{name}:{k}": v for name, path in _export(stage_dir).items() if name.endswith(".safetensors") for k, v in load_file(path).items()}
+    return {
+        f"{name}:{k}": v
+        for name, path in _export(stage_dir).items()
+        if name.endswith(".safetensors")
+        for k, v in load_file(path).items()
+    }
 
 
 @pytest.mark.parametrize("stage", WORLD_STAGES)
@@ -143,7 +158,10 @@ def test_sharded_training_equals_ddp_with_the_same_global_batch(ddp, fsdp, stage
     # The clip bound at the last step: its gradient, read back from AdamW's first moments in
     # the last two checkpoints (m_t = b1 m_t-1 + (1 - b1) g_t), has the clip's norm.
     b1 = OptimConfig().betas[0]
-    prev, last = (torch.load(fsdp / stage / "checkpoints" / name, weights_only=True)["optimizer_states"][0]["state"] for name in ("previous.ckpt", "last.ckpt"))
+    prev, last = (
+        torch.load(fsdp / stage / "checkpoints" / name, weights_only=True)["optimizer_states"][0]["state"]
+        for name in ("previous.ckpt", "last.ckpt")
+    )
     grads = [(last[k]["exp_avg"] - b1 * prev[k]["exp_avg"]) / (1 - b1) for k in last]
     assert float(torch.stack([g.double().norm() for g in grads]).norm()) == pytest.approx(CLIP, rel=1e-4)
 
@@ -169,7 +187,7 @@ def test_sharded_training_equals_ddp_with_the_same_global_batch(ddp, fsdp, stage
     a, b = _tensors(fsdp / stage), _tensors(ddp / stage)
     assert a.keys() == b.keys()
     for key in a:
-        torch.testing.assert_close(a[key], b[key], rtol=1e-4, atol=1e-5, msg=lambda m: f"{stage} {key}: {m}")
+        torch.testing.assert_close(a[key], b[key], rtol=1e-4, atol=1e-5, msg=lambda m, key=key: f"{stage} {key}: {m}")
 
 
 def test_a_sharded_stage_killed_mid_way_resumes_bit_exact(ddp, fsdp):
@@ -179,7 +197,9 @@ def test_a_sharded_stage_killed_mid_way_resumes_bit_exact(ddp, fsdp):
     run = _copy(ddp, "cut")
     shutil.rmtree(run / "pretrain")  # DDP's checkpoints, which the watch below must not see
     last = run / "pretrain" / "checkpoints" / "last.ckpt"
-    killed_at = kill_at_checkpoint(_args(run, "--restart", "pretrain", "--only", "pretrain"), last, step=2, env=ONE_THREAD)
+    killed_at = kill_at_checkpoint(
+        _args(run, "--restart", "pretrain", "--only", "pretrain"), last, step=2, env=ONE_THREAD
+    )
     assert 2 <= killed_at < 4
     resumed = run_cli(*_args(run, "--only", "pretrain"), timeout=900, env=ONE_THREAD)
     assert resumed.returncode == 0, resumed.stderr[-3000:]

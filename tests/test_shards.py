@@ -72,6 +72,7 @@ def test_clip_content_matches_the_dataset(hand_dataset, shards):
 
 def test_train_pipeline_streams_forever_and_shuffles(hand_dataset, shards):
     urls, _ = shard_urls(shards, "frames", "train")
+
     def keys(buffer: int) -> list[str]:
         it = iter(make_pipeline(urls, train=True, shuffle_buffer=buffer, seed=1))
         return [next(it)["__key__"] for _ in range(60)]  # more than the 24 train frames
@@ -109,12 +110,18 @@ def test_the_default_order_is_a_fresh_permutation_of_every_sample_each_epoch():
     assert len({shard for shard, _ in islice(train_order(counts, seed=3, shuffle_buffer=4), 8)}) == 1
 
 
-def _train_keys(urls: list[str], steps: int, batch_size: int, rank_and_world=(0, 1), workers: int = 0, **kw) -> list[list[str]]:
+def _train_keys(
+    urls: list[str], steps: int, batch_size: int, rank_and_world=(0, 1), workers: int = 0, **kw
+) -> list[list[str]]:
     """Batches of keys a training DataLoader gives, as one rank of ``rank_and_world``."""
     from torch.utils.data import DataLoader
 
-    pipeline = make_pipeline(urls, train=True, batch_size=batch_size, rank_and_world=rank_and_world, entries=["meta.json"], **kw)
-    loader = DataLoader(pipeline, batch_size=batch_size, num_workers=workers, collate_fn=lambda s: [x["__key__"] for x in s])
+    pipeline = make_pipeline(
+        urls, train=True, batch_size=batch_size, rank_and_world=rank_and_world, entries=["meta.json"], **kw
+    )
+    loader = DataLoader(
+        pipeline, batch_size=batch_size, num_workers=workers, collate_fn=lambda s: [x["__key__"] for x in s]
+    )
     return [batch for _, batch in zip(range(steps), loader)]
 
 
@@ -122,7 +129,9 @@ def test_two_ranks_of_b_train_on_the_batches_of_one_process_of_2b(shards):
     # Each rank through two loader workers: the global batch is the same set, in the same order.
     urls, _ = shard_urls(shards, "frames", "train")
     one = _train_keys(urls, 15, batch_size=4, seed=2, shuffle_buffer=8)
-    ranks = [_train_keys(urls, 15, batch_size=2, rank_and_world=(r, 2), workers=2, seed=2, shuffle_buffer=8) for r in (0, 1)]
+    ranks = [
+        _train_keys(urls, 15, batch_size=2, rank_and_world=(r, 2), workers=2, seed=2, shuffle_buffer=8) for r in (0, 1)
+    ]
     assert [a + b for a, b in zip(*ranks)] == one
     assert one != _train_keys(urls, 15, batch_size=4, seed=3, shuffle_buffer=8)  # the seed orders it
 
@@ -131,7 +140,9 @@ def test_each_rank_reads_only_its_own_samples(shards):
     urls, total = shard_urls(shards, "frames", "train")
 
     def bytes_read(rank: int, world: int) -> int:
-        pipeline = make_pipeline(urls, train=True, batch_size=4 // world, rank_and_world=(rank, world), seed=1, shuffle_buffer=1)
+        pipeline = make_pipeline(
+            urls, train=True, batch_size=4 // world, rank_and_world=(rank, world), seed=1, shuffle_buffer=1
+        )
         for _, _ in zip(range(2 * total // world), pipeline):  # two epochs: each sample twice
             pass
         return pipeline.pipeline[0].bytes_read
@@ -168,8 +179,12 @@ def test_an_epoch_resumed_mid_way_with_workers_sees_each_sample_once(hand_datase
     urls, total = shard_urls(shards, "frames", "train")
     ranks = []
     for rank in (0, 1):
-        pipeline = make_pipeline(urls, train=True, total=total, batch_size=2, rank_and_world=(rank, 2), seed=5, shuffle_buffer=1)
-        loader = ResumableLoader(pipeline.pipeline[0], pipeline, batch_size=2, num_workers=2, collate_fn=COLLATE["frames"])
+        pipeline = make_pipeline(
+            urls, train=True, total=total, batch_size=2, rank_and_world=(rank, 2), seed=5, shuffle_buffer=1
+        )
+        loader = ResumableLoader(
+            pipeline.pipeline[0], pipeline, batch_size=2, num_workers=2, collate_fn=COLLATE["frames"]
+        )
         loader.load_state_dict(state)
         ranks.append(keys(loader, 4))
     assert [a + b for a, b in zip(*ranks)] == whole[2:]
@@ -177,17 +192,27 @@ def test_an_epoch_resumed_mid_way_with_workers_sees_each_sample_once(hand_datase
 
 def test_validation_is_split_evenly_over_ranks(shards):
     urls, total = shard_urls(shards, "frames", "val")
-    keys = [[s["__key__"] for s in make_pipeline(urls, train=False, total=total, rank_and_world=(rank, 2))] for rank in (0, 1)]
+    keys = [
+        [s["__key__"] for s in make_pipeline(urls, train=False, total=total, rank_and_world=(rank, 2))]
+        for rank in (0, 1)
+    ]
     assert len(keys[0]) == len(keys[1]) == total // 2
     assert not set(keys[0]) & set(keys[1])
 
 
 def test_an_odd_validation_split_pads_the_shorter_rank_once(tmp_path):
-    from conftest import write_hand_dataset
     import occtrain.data.shards as sh
+    from conftest import write_hand_dataset
 
     out = tmp_path / "s"
-    write_shards(write_hand_dataset(tmp_path / "ds", train=1, val=1, frames=9), out, samples_per_shard=4, history=0, future=0, kinds=["frames"])
+    write_shards(
+        write_hand_dataset(tmp_path / "ds", train=1, val=1, frames=9),
+        out,
+        samples_per_shard=4,
+        history=0,
+        future=0,
+        kinds=["frames"],
+    )
     urls, odd = shard_urls(out, "frames", "val")
     assert odd == 9
     samples = [list(make_pipeline(urls, train=False, total=odd, rank_and_world=(rank, 2))) for rank in (0, 1)]
@@ -359,7 +384,8 @@ def test_frames_alone_when_no_clip_fits_and_a_note_says_who_cannot_train(hand_da
     note = [line for line in err.splitlines() if line.startswith("note: ")]
     assert note == [
         f"note: {hand_dataset}: its longest train scene has 12 frames and a clip spans history 6 + 1 + future 6 = 13, "
-        "so no clip fits: frame shards only, which tokenizer stages train on; the world-model stages (pretrain, instruct, "
+        "so no clip fits: frame shards only, which tokenizer stages train on; the world-model stages (pretrain, "
+        "instruct, "
         "planner, distill) read clips and cannot train on this dataset (use longer scenes or a shorter history/future)"
     ]
     index = read_index(out)
@@ -367,14 +393,35 @@ def test_frames_alone_when_no_clip_fits_and_a_note_says_who_cannot_train(hand_da
     with pytest.raises(DataError, match=r"has no 'clips' shards: .* = 13, so no clip fits; use longer scenes"):
         shard_urls(out, "clips", "train")
     # Asked for by name, clips that cannot fit are refused, as before.
-    assert main(["data", "shards", str(hand_dataset), "--out", str(tmp_path / "c"), "--kinds", "clips", "--history", "6", "--future", "6"]) == 2
+    assert (
+        main(
+            [
+                "data",
+                "shards",
+                str(hand_dataset),
+                "--out",
+                str(tmp_path / "c"),
+                "--kinds",
+                "clips",
+                "--history",
+                "6",
+                "--future",
+                "6",
+            ]
+        )
+        == 2
+    )
     assert "so there would be no clip to train on" in capsys.readouterr().err and not (tmp_path / "c").exists()
 
     # A run shards the dataset alike, and says so before it writes them.
     cfg = DataConfig(root=str(hand_dataset), shards=str(tmp_path / "run-shards"), history=6, future=6)
     line = check_data(cfg)
-    assert line.endswith("frames; shards to be written in " + str(tmp_path / "run-shards") + "; " + note[0].removeprefix("note: "))
-    with pytest.raises(DataError, match=r"^stage 'pretrain' reads clips, and .* = 13, so no clip fits; use longer scenes"):
+    assert line.endswith(
+        "frames; shards to be written in " + str(tmp_path / "run-shards") + "; " + note[0].removeprefix("note: ")
+    )
+    with pytest.raises(
+        DataError, match=r"^stage 'pretrain' reads clips, and .* = 13, so no clip fits; use longer scenes"
+    ):
         check_data(cfg, clip_readers=["pretrain"])
     assert read_index(ensure_data(cfg))["source"]["kinds"] == ["frames"]
     assert note[0] in capsys.readouterr().err
@@ -395,7 +442,9 @@ def test_an_unwritable_out_fails_before_any_shard(hand_dataset, tmp_path, capsys
     monkeypatch.setattr(DatasetIndex, "open", lambda *a: opened.append(a))  # the dataset is never even read
     assert main(["data", "shards", str(hand_dataset), "--out", str(tmp_path / "s")]) == 2
     err = capsys.readouterr().err  # what to do after the ';' is io.check_output's to say
-    assert err.startswith(f"error: cannot write {tmp_path / 's'}: the file system is read-only; ") and err.count("\n") == 1
+    assert (
+        err.startswith(f"error: cannot write {tmp_path / 's'}: the file system is read-only; ") and err.count("\n") == 1
+    )
     assert opened == [] and list(tmp_path.iterdir()) == []
 
 

@@ -70,7 +70,9 @@ def test_occupied_points_are_voxel_centres_of_the_labels():
     sem[3, 4, 5], sem[100, 50, 2] = 4, 11
     points, classes, n = occupied_points(sem, 5, np.random.default_rng(0))
     assert n == 2 and points.shape == (5, 3)
-    got = {tuple(np.floor((p.numpy() + [40, 40, 1]) / 0.4).astype(int)): int(c) for p, c in zip(points[:n], classes[:n])}
+    got = {
+        tuple(np.floor((p.numpy() + [40, 40, 1]) / 0.4).astype(int)): int(c) for p, c in zip(points[:n], classes[:n])
+    }
     assert got == {(3, 4, 5): 4, (100, 50, 2): 11}
 
 
@@ -99,7 +101,9 @@ def test_distillation_reads_the_teacher_feature_where_a_point_projects():
     feature exactly; a point no camera sees reads zeros."""
     intr, to_ego, cams = _rig()
     gh, gw = 9, 16
-    rows, cols = torch.meshgrid(torch.arange(gh, dtype=torch.float32), torch.arange(gw, dtype=torch.float32), indexing="ij")
+    rows, cols = torch.meshgrid(
+        torch.arange(gh, dtype=torch.float32), torch.arange(gw, dtype=torch.float32), indexing="ij"
+    )
     features = torch.zeros(1, 6, 3, gh, gw)
     features[:, :, 0], features[:, :, 1] = rows, cols
     features[:, :, 2] = torch.arange(6, dtype=torch.float32)[:, None, None]  # which camera
@@ -110,7 +114,9 @@ def test_distillation_reads_the_teacher_feature_where_a_point_projects():
     assert inside[0, :, 0].tolist() == [True, False, False, False, False, False]  # the front camera alone sees it
     assert sampled[0, 0].tolist() == pytest.approx([4.0, 9.0, 0.0], abs=1e-4)
     assert bool(seen[0, 0])
-    nowhere, seen = sample_views(features, *project(torch.tensor([[[0.0, 0.0, 500.0]]]), intr, to_ego, (72, 128)), (72, 128))
+    nowhere, seen = sample_views(
+        features, *project(torch.tensor([[[0.0, 0.0, 500.0]]]), intr, to_ego, (72, 128)), (72, 128)
+    )
     assert not bool(seen[0, 0]) and nowhere.abs().sum() == 0
 
 
@@ -210,7 +216,11 @@ def stub_planner(dataset, tmp_path, **settings):
     planner = AnchorDiffusionPlanner(cfg, SimpleNamespace(world=world), str(dataset), tmp_path)
     clips = list(frame_clips(DatasetIndex.open(dataset), "val", 0, FUTURE_STEPS, partial_history=False))[:3]
     for c in clips:
-        planner._decisions[c.anchor["token"]] = {"reason": torch.randn(4, 8), "mask": torch.tensor([1, 1, 0, 0]).bool(), "scene": torch.randn(5, 9)}
+        planner._decisions[c.anchor["token"]] = {
+            "reason": torch.randn(4, 8),
+            "mask": torch.tensor([1, 1, 0, 0]).bool(),
+            "scene": torch.randn(5, 9),
+        }
     return planner, clips
 
 
@@ -255,8 +265,8 @@ def test_plan_prior_writes_anchors_and_plans_as_offsets_from_constant_velocity(s
 
 
 def test_kmeans_anchors_cover_the_training_trajectories(synth_dataset):
-    from occtrain.families.sparseoccvla.planner import kmeans_anchors
     from occtrain.data.layout import DatasetIndex
+    from occtrain.families.sparseoccvla.planner import kmeans_anchors
 
     index = DatasetIndex.open(synth_dataset)
     anchors = kmeans_anchors(index, 3)
@@ -290,7 +300,8 @@ def test_omnidrive_reader_reads_the_released_layout(tmp_path):
     text = OmniDriveText(tmp_path)
     assert text.description("tok_b") == "A quiet street number 1 with parked cars."
     assert text.pairs("tok_a") == [
-        {"question": "Is the road clear?", "answer": "Yes, clear 0."}, {"question": "What is ahead?", "answer": "A parked car."},
+        {"question": "Is the road clear?", "answer": "Yes, clear 0."},
+        {"question": "What is ahead?", "answer": "A parked car."},
     ]
     assert text.driving_action("tok_a") == "Keep going straight."
     assert text.description("unknown") is None and text.pairs("unknown") == []
@@ -356,13 +367,18 @@ def sparse_world():
     from occtrain.models.text_tokenizer import train_text_tokenizer
 
     torch.manual_seed(0)
-    enc_cfg = SparseOccConfig(queries=4, dim=8, heads=2, points_per_layer=[2, 3], token_dim=32, gt_points=16, mixing_groups=2)
+    enc_cfg = SparseOccConfig(
+        queries=4, dim=8, heads=2, points_per_layer=[2, 3], token_dim=32, gt_points=16, mixing_groups=2
+    )
     scene = SparseSceneEncoder(SparseOccEncoder(enc_cfg))
     llm_cfg = LLMConfig(hidden_size=32, num_layers=1, num_heads=2, intermediate_size=64)
     inputs = WorldInputs(scene)
     world_cfg = SparseOccVLAWorldConfig(global_queries=2, forecast_frames=2)
-    vocab = JointVocab(train_text_tokenizer(["describe the scene", "forecast now", "yes no"] * 5, 200), llm_cfg=llm_cfg,
-                       **SparseOccVLAWorldModel.vocab_layout(inputs, world_cfg))
+    vocab = JointVocab(
+        train_text_tokenizer(["describe the scene", "forecast now", "yes no"] * 5, 200),
+        llm_cfg=llm_cfg,
+        **SparseOccVLAWorldModel.vocab_layout(inputs, world_cfg),
+    )
     return SparseOccVLAWorldModel.create(build_llm(llm_cfg, len(vocab)), vocab, inputs, "next_scene", world_cfg)
 
 
@@ -408,7 +424,9 @@ def test_global_tokens_read_their_own_sequences_occupancy_tokens(sparse_world):
     a, b = torch.randn(4, 11), torch.randn(4, 11)
     batch = collate([_sequence(sparse_world, a, False), _sequence(sparse_world, b, False)], sparse_world.vocab.pad_id)
     emb = sparse_world.embed(batch["input_ids"], batch_payload(batch))
-    changed = collate([_sequence(sparse_world, a + 1.0, False), _sequence(sparse_world, b, False)], sparse_world.vocab.pad_id)
+    changed = collate(
+        [_sequence(sparse_world, a + 1.0, False), _sequence(sparse_world, b, False)], sparse_world.vocab.pad_id
+    )
     emb2 = sparse_world.embed(changed["input_ids"], batch_payload(changed))
     assert not torch.allclose(emb[0, 5:7], emb2[0, 5:7])  # sequence 0's global tokens follow its scene
     torch.testing.assert_close(emb[1], emb2[1])
@@ -421,7 +439,9 @@ def test_forecast_loss_trains_every_part_and_a_batch_without_it_still_reaches_th
 
     torch.manual_seed(2)
     rows = torch.randn(4, 11) * 5
-    batch = collate([_sequence(sparse_world, rows, True), _sequence(sparse_world, rows, False)], sparse_world.vocab.pad_id)
+    batch = collate(
+        [_sequence(sparse_world, rows, True), _sequence(sparse_world, rows, False)], sparse_world.vocab.pad_id
+    )
     assert batch["forecast_points"].shape == (2, 2, 16, 3) and batch["forecast_valid"][1].sum() == 0
     sparse_world.zero_grad()
     out = sparse_world(batch)
@@ -493,5 +513,7 @@ def test_earlier_camera_frames_follow_the_batch_to_its_device(synth_dataset):
     batch = {k: v.to("meta") for k, v in camera_batch(index, [(scene, token)]).items()}
     batch["meta"] = [{"scene": scene, "token": token, "index": 3}]
     frames = camera_frames(batch, index, frames=2)
-    assert all(t.device.type == "meta" for t in (frames.images, frames.intrinsics, frames.cam_to_ego, frames.current_to_frame))
+    assert all(
+        t.device.type == "meta" for t in (frames.images, frames.intrinsics, frames.cam_to_ego, frames.current_to_frame)
+    )
     assert frames.images.shape[1] == 2

@@ -26,23 +26,37 @@ SYNTH = ("--scenes", "2", "--val-scenes", "1", "--frames", "16")
 
 def overrides(root: Path) -> list[str]:
     out = [
-        f"data.root={root / 'data'}", "data.synth.train_scenes=2", "data.synth.val_scenes=1", "data.synth.frames_per_scene=16",
-        "data.samples_per_shard=8", "data.shuffle_buffer=4", "trainer.ckpt_every_n_steps=1", "trainer.log_every_n_steps=1",
+        f"data.root={root / 'data'}",
+        "data.synth.train_scenes=2",
+        "data.synth.val_scenes=1",
+        "data.synth.frames_per_scene=16",
+        "data.samples_per_shard=8",
+        "data.shuffle_buffer=4",
+        "trainer.ckpt_every_n_steps=1",
+        "trainer.log_every_n_steps=1",
         "stages.vision.model.prior_batches=2",
-        "stages.stage1.model.sparseocc.queries=16", "stages.stage1.model.sparseocc.points_per_layer=[2,8]",
-        "stages.stage1.model.sparseocc.gt_points=256", "stages.stage1.model.sparseocc.extended_range=1",
+        "stages.stage1.model.sparseocc.queries=16",
+        "stages.stage1.model.sparseocc.points_per_layer=[2,8]",
+        "stages.stage1.model.sparseocc.gt_points=256",
+        "stages.stage1.model.sparseocc.extended_range=1",
         "stages.stage2.model.llm.text_vocab_size=400",
-        "stages.planner.model.anchors=4", "stages.planner.model.decision_tokens=8",
+        "stages.planner.model.anchors=4",
+        "stages.planner.model.decision_tokens=8",
     ]
     for stage in ("stage2", "stage3"):
         out += [
-            f"stages.{stage}.model.val_samples=3", f"stages.{stage}.model.max_new_text_tokens=16",
-            f"stages.{stage}.model.tasks.questions_per_sample=2", f"stages.{stage}.model.tasks.omnidrive={root / 'omnidrive'}",
+            f"stages.{stage}.model.val_samples=3",
+            f"stages.{stage}.model.max_new_text_tokens=16",
+            f"stages.{stage}.model.tasks.questions_per_sample=2",
+            f"stages.{stage}.model.tasks.omnidrive={root / 'omnidrive'}",
             f"stages.{stage}.model.tasks.weights={{caption: 1, conversation: 1, qa: 1, planning: 1, forecast: 1}}",
         ]
     for stage in STAGES:
-        out += [f"stages.{stage}.trainer.max_steps={STEPS}", f"stages.{stage}.trainer.val_check_interval={STEPS}",
-                f"stages.{stage}.trainer.limit_val_batches=1"]
+        out += [
+            f"stages.{stage}.trainer.max_steps={STEPS}",
+            f"stages.{stage}.trainer.val_check_interval={STEPS}",
+            f"stages.{stage}.trainer.limit_val_batches=1",
+        ]
     return out
 
 
@@ -74,11 +88,23 @@ def test_every_stage_trains_and_reports_the_papers_metrics_beside_baselines(spar
     for conv in ("occworld", "occ3d"):
         assert math.isfinite(stage1[f"val/{conv}_mIoU"])
     for m in (stage2, stage3):
-        for key in ("caption_CIDEr", "baseline_typical_caption_CIDEr", "caption_METEOR", "caption_ROUGE_L", "conversation_CIDEr",
-                    "qa_overall", "baseline_prior_qa_overall", "meta_action_overall", "baseline_prior_meta_action_overall",
-                    "forecast_occworld_mIoU_1s", "baseline_copy_forecast_occworld_mIoU_1s",
-                    "baseline_copy_reconstruction_forecast_occworld_mIoU_1s", "forecast_trimmed_occworld_mIoU_avg",
-                    "reconstruction_occworld_mIoU", "reconstruction_occ3d_mIoU"):
+        for key in (
+            "caption_CIDEr",
+            "baseline_typical_caption_CIDEr",
+            "caption_METEOR",
+            "caption_ROUGE_L",
+            "conversation_CIDEr",
+            "qa_overall",
+            "baseline_prior_qa_overall",
+            "meta_action_overall",
+            "baseline_prior_meta_action_overall",
+            "forecast_occworld_mIoU_1s",
+            "baseline_copy_forecast_occworld_mIoU_1s",
+            "baseline_copy_reconstruction_forecast_occworld_mIoU_1s",
+            "forecast_trimmed_occworld_mIoU_avg",
+            "reconstruction_occworld_mIoU",
+            "reconstruction_occ3d_mIoU",
+        ):
             assert math.isfinite(m[f"val/{key}"]), key
         assert m["val/caption_samples"] > 0 and m["val/forecast_occworld_frames_1s"] > 0
         assert m["val/forecast_trimmed_occworld_frames_1s"] <= m["val/forecast_occworld_frames_1s"]
@@ -104,7 +130,9 @@ def test_the_encoder_export_leaves_the_distillation_branch_out(sparse_run):
     assert config["arch"] == "sparseocc" and config["discrete"] is False and config["tokens"] == 16
     state = load_file(export / "model.safetensors")
     assert not any(k.startswith("distillation.") for k in state) and any(k.startswith("connector.") for k in state)
-    checkpoint_keys = __import__("torch").load(sparse_run / "stage1" / "checkpoints" / "last.ckpt", weights_only=True)["state_dict"]
+    checkpoint_keys = __import__("torch").load(sparse_run / "stage1" / "checkpoints" / "last.ckpt", weights_only=True)[
+        "state_dict"
+    ]
     assert any(".distillation." in k for k in checkpoint_keys)  # trained with it
     assert not any(k.startswith("teacher.") for k in checkpoint_keys)  # the frozen teacher is not saved
 
@@ -115,12 +143,22 @@ def test_eval_scores_each_stage_on_the_whole_split(sparse_run, stage):
     assert res.returncode == 0, res.stderr[-3000:]
     metrics = json.loads((sparse_run / stage / "eval" / "val" / "metrics.json").read_text())
     if stage == "stage1":
-        assert metrics["frames"] == 16 and {"occworld_mIoU", "occ3d_mIoU", "baseline_free_occworld_mIoU"} <= metrics.keys()
+        assert (
+            metrics["frames"] == 16 and {"occworld_mIoU", "occ3d_mIoU", "baseline_free_occworld_mIoU"} <= metrics.keys()
+        )
     elif stage == "stage2":
         assert metrics["caption_samples"] == 16 - 6  # every val frame with a whole future
-        assert metrics["forecast_occworld_frames_1s"] == metrics["baseline_copy_reconstruction_forecast_occworld_frames_1s"] == 16 - 6
+        assert (
+            metrics["forecast_occworld_frames_1s"]
+            == metrics["baseline_copy_reconstruction_forecast_occworld_frames_1s"]
+            == 16 - 6
+        )
         # The paper's frames: the first 5 and last 7 of the 16 left out.
-        assert metrics["forecast_trimmed_occworld_frames_1s"] == metrics["baseline_copy_forecast_trimmed_occworld_frames_1s"] == 16 - 5 - 7
+        assert (
+            metrics["forecast_trimmed_occworld_frames_1s"]
+            == metrics["baseline_copy_forecast_trimmed_occworld_frames_1s"]
+            == 16 - 5 - 7
+        )
         assert metrics["qa_questions"] > 0 and "baseline_prior_qa_overall" in metrics
     else:
         assert metrics["plan_samples"] == metrics["constant_velocity_samples"] == 16 - 6
@@ -140,7 +178,10 @@ def test_kill_9_in_stage_1_and_stage_2_resumes_bit_exact(sparse_run, world, tmp_
     for name in ("stage1", "stage2"):
         assert stages[name]["attempts"] == 2 and stages[name]["history"][1]["start_step"] >= 1, name
     for name in STAGES:
-        ref, got = load_file(sparse_run / name / "export" / "model.safetensors"), load_file(run_dir / name / "export" / "model.safetensors")
+        ref, got = (
+            load_file(sparse_run / name / "export" / "model.safetensors"),
+            load_file(run_dir / name / "export" / "model.safetensors"),
+        )
         assert ref.keys() == got.keys(), name
         for key in ref:
             assert torch.equal(ref[key], got[key]), f"{name}: {key} differs"
@@ -152,7 +193,17 @@ def test_the_stages_train_under_ddp_with_every_parameter_getting_a_gradient(spar
     run_dir = tmp_path / "ddp"
     shutil.copytree(sparse_run, run_dir)
     ddp = [f"stages.{s}.trainer.{k}" for s in STAGES[1:] for k in ("devices=2", "strategy=ddp")]
-    res = run_cli("run", "stages/sparseoccvla.yaml", *overrides(world), *ddp, "--restart", "stage1", "--run-dir", str(run_dir), timeout=900)
+    res = run_cli(
+        "run",
+        "stages/sparseoccvla.yaml",
+        *overrides(world),
+        *ddp,
+        "--restart",
+        "stage1",
+        "--run-dir",
+        str(run_dir),
+        timeout=900,
+    )
     assert res.returncode == 0, res.stderr[-3000:]
     stages = json.loads((run_dir / "manifest.json").read_text())["stages"]
     for name in STAGES[1:]:

@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 import torch
 
+from occtrain.core.planning import ego_features, feature_size
 from occtrain.data.schema import COMMANDS, META_DIRECTIONS, META_SPEEDS
-from occtrain.models.planner import PlanningHead, constant_velocity_plan
+from occtrain.engine.export import _base_names
 from occtrain.metrics import flatten_metrics
 from occtrain.models.distill import distillation_losses
-from occtrain.core.planning import ego_features, feature_size
-from occtrain.engine.export import _base_names
+from occtrain.models.planner import PlanningHead, constant_velocity_plan
 
 
 def test_constant_velocity_drives_straight_at_the_current_speed():
@@ -34,8 +34,14 @@ def test_planning_head_sums_step_displacements():
 
 
 def test_ego_features_one_hot_layout():
-    anchor = {"command": "turn left", "ego_speed": 5.0, "ego_accel": -1.5, "ego_yaw_rate": 0.2,
-              "ego_past": [[-4, 0], [-3, 0], [-2, 0], [-1, 0]], "ego_past_mask": [0, 1, 1, 1]}
+    anchor = {
+        "command": "turn left",
+        "ego_speed": 5.0,
+        "ego_accel": -1.5,
+        "ego_yaw_rate": 0.2,
+        "ego_past": [[-4, 0], [-3, 0], [-2, 0], [-1, 0]],
+        "ego_past_mask": [0, 1, 1, 1],
+    }
     meta = {"speed": "decelerate", "direction": "left"}
     f = ego_features(anchor, meta, ["meta_action", "ego_state", "command", "past"])
     assert f.shape == (feature_size(["meta_action", "ego_state", "command", "past"]),)
@@ -68,7 +74,9 @@ def test_distillation_losses_by_hand():
     # student's (1, -1) matches (loss 0; 1 - cos((3, 1), (1, -1)) = 0.553 without the norm)
     # and its (1, 1) is orthogonal to (loss 1).
     hidden_31 = torch.tensor([[[3.0, 1.0], [9.0, 9.0]]])
-    _, cos_match = distillation_losses(student, teacher, torch.tensor([[[1.0, -1.0], [0.0, 0.0]]]), hidden_31, valid, 1.0)
+    _, cos_match = distillation_losses(
+        student, teacher, torch.tensor([[[1.0, -1.0], [0.0, 0.0]]]), hidden_31, valid, 1.0
+    )
     _, cos_orth = distillation_losses(student, teacher, torch.tensor([[[1.0, 1.0], [0.0, 0.0]]]), hidden_31, valid, 1.0)
     assert cos_match.item() == pytest.approx(0.0, abs=1e-5) and cos_orth.item() == pytest.approx(1.0, abs=1e-5)
 
@@ -81,7 +89,9 @@ def test_peft_names_map_back_to_the_plain_model():
         "llm.base_model.model.lm_head.weight": 4,
     }
     assert _base_names(state) == {
-        "occ_proj.0.weight": 1, "llm.model.layers.0.self_attn.q_proj.weight": 2, "llm.lm_head.weight": 4,
+        "occ_proj.0.weight": 1,
+        "llm.model.layers.0.self_attn.q_proj.weight": 2,
+        "llm.lm_head.weight": 4,
     }
 
 

@@ -44,8 +44,15 @@ def box(cat: str, x: float, y: float, attr: str = "", vx: float = 0.0, vy: float
     }
 
 
-def make_frame(boxes: list[dict], *, token: str = "tok0", speed: float = 8.0, command: str = "go straight",
-               meta: tuple[str, str] = ("maintain", "straight"), ego_future: list | None = None) -> dict:
+def make_frame(
+    boxes: list[dict],
+    *,
+    token: str = "tok0",
+    speed: float = 8.0,
+    command: str = "go straight",
+    meta: tuple[str, str] = ("maintain", "straight"),
+    ego_future: list | None = None,
+) -> dict:
     """A frame whose agents keep their velocity for 3 s and whose ego drives along +x at ``speed``."""
     for i, b in enumerate(boxes):
         b["track_id"] = i
@@ -139,14 +146,34 @@ def hand_relation(ref: tuple[float, float], target: tuple[float, float]) -> str:
 
 
 NOUNS = {
-    "car": "car", "cars": "car", "truck": "truck", "trucks": "truck", "bus": "bus", "buses": "bus",
-    "trailer": "trailer", "trailers": "trailer", "construction vehicle": "construction_vehicle",
-    "construction vehicles": "construction_vehicle", "pedestrian": "pedestrian", "pedestrians": "pedestrian",
-    "bicycle": "bicycle", "bicycles": "bicycle", "motorcycle": "motorcycle", "motorcycles": "motorcycle",
-    "barrier": "barrier", "barriers": "barrier", "traffic cone": "traffic_cone", "traffic cones": "traffic_cone",
+    "car": "car",
+    "cars": "car",
+    "truck": "truck",
+    "trucks": "truck",
+    "bus": "bus",
+    "buses": "bus",
+    "trailer": "trailer",
+    "trailers": "trailer",
+    "construction vehicle": "construction_vehicle",
+    "construction vehicles": "construction_vehicle",
+    "pedestrian": "pedestrian",
+    "pedestrians": "pedestrian",
+    "bicycle": "bicycle",
+    "bicycles": "bicycle",
+    "motorcycle": "motorcycle",
+    "motorcycles": "motorcycle",
+    "barrier": "barrier",
+    "barriers": "barrier",
+    "traffic cone": "traffic_cone",
+    "traffic cones": "traffic_cone",
     "thing": None,
 }
-RIDER = {"with a rider": "with rider", "with riders": "with rider", "without a rider": "without rider", "without riders": "without rider"}
+RIDER = {
+    "with a rider": "with rider",
+    "with riders": "with rider",
+    "without a rider": "without rider",
+    "without riders": "without rider",
+}
 REL = r"(?: to the (front left|front right|back left|back right|front|back) of the (.+?))?"
 
 
@@ -171,7 +198,9 @@ class Truth:
 
     def matches(self, objs, desc):
         cat, status = desc
-        return [o for o in objs if (cat is None or o["category"] == cat) and (status is None or o["attribute"] == status)]
+        return [
+            o for o in objs if (cat is None or o["category"] == cat) and (status is None or o["attribute"] == status)
+        ]
 
     def the(self, objs, desc):
         found = self.matches(objs, desc)
@@ -287,8 +316,24 @@ def test_question_records_are_nuscenes_qa_json():
 
 def test_answer_vocabulary_uses_nuscenes_qa_wording():
     words = {str(n) for n in range(11)} | {"yes", "no"}
-    words |= {"car", "truck", "bus", "trailer", "construction vehicle", "pedestrian", "motorcycle", "bicycle",
-              "traffic cone", "barrier", "moving", "parked", "stopped", "standing", "with rider", "without rider"}
+    words |= {
+        "car",
+        "truck",
+        "bus",
+        "trailer",
+        "construction vehicle",
+        "pedestrian",
+        "motorcycle",
+        "bicycle",
+        "traffic cone",
+        "barrier",
+        "moving",
+        "parked",
+        "stopped",
+        "standing",
+        "with rider",
+        "without rider",
+    }
     assert set(ANSWERS) == words
 
 
@@ -308,7 +353,9 @@ def test_hand_placed_relations_to_a_unique_truck():
     seen = 0
     for seed in range(60):
         for q in questions_for_frame(frame, np.random.default_rng(seed), max_questions=30):
-            m = re.fullmatch(r"How many (pedestrians|cars) are there to the (.+) of the (parked truck|truck)\?", q["question"])
+            m = re.fullmatch(
+                r"How many (pedestrians|cars) are there to the (.+) of the (parked truck|truck)\?", q["question"]
+            )
             if m:
                 table = pedestrians if m.group(1) == "pedestrians" else cars
                 assert q["answer"] == str(table.get(m.group(2), 0)), q
@@ -335,7 +382,9 @@ def test_ambiguous_references_and_large_counts_are_never_asked():
             assert "standing thing" not in text or q["num_hop"] == 1, text
             if q["template_type"] == "count":
                 assert int(q["answer"]) <= 10
-                assert not re.fullmatch(r"(How many|What is the number of) (standing )?pedestrians( are there)?\?", text)
+                assert not re.fullmatch(
+                    r"(How many|What is the number of) (standing )?pedestrians( are there)?\?", text
+                )
             assert q["answer"] == Truth(frame).answer(q)
 
 
@@ -371,7 +420,10 @@ def test_unknown_category_or_attribute_is_a_data_error():
 
 
 def caption_counts(caption: str) -> dict[str, int]:
-    return {m.group(2): int(m.group(1)) for m in re.finditer(r"(\d+) ([a-z][a-z ]*?)(?=,| and | nearby| is | are )", caption)}
+    return {
+        m.group(2): int(m.group(1))
+        for m in re.finditer(r"(\d+) ([a-z][a-z ]*?)(?=,| and | nearby| is | are )", caption)
+    }
 
 
 def test_caption_counts_every_group_exactly():
@@ -411,10 +463,17 @@ def test_caption_surroundings_drop_the_ego_motion_and_keep_the_rest():
     # The same frames as above: every caption opening with the ego's motion loses exactly it.
     stopped = caption_for_frame(make_frame([box("traffic_cone", 6, 3)], speed=0.0, meta=("accelerate", "stop")))
     assert caption_surroundings(stopped) == "Nearby: no other vehicles. 1 traffic cone is also around."
-    turning = caption_for_frame(make_frame([box("car", 12, 0.3, "moving", 7, 0)], speed=6.0, meta=("decelerate", "straight"), command="turn right"))
+    turning = caption_for_frame(
+        make_frame(
+            [box("car", 12, 0.3, "moving", 7, 0)], speed=6.0, meta=("decelerate", "straight"), command="turn right"
+        )
+    )
     assert caption_surroundings(turning) == "Nearby: 1 moving car."
     # Captions that do not open with the ego (real data) pass through unchanged.
-    assert caption_surroundings("A wet road with two buses. A cyclist waits.") == "A wet road with two buses. A cyclist waits."
+    assert (
+        caption_surroundings("A wet road with two buses. A cyclist waits.")
+        == "A wet road with two buses. A cyclist waits."
+    )
 
 
 # ---------------------------------------------------------------- narration
@@ -428,10 +487,16 @@ def test_meta_action_round_trips_for_every_pair():
     # Against the last past meta action: an equal one is "as before", read back as it.
     last = {"speed": "decelerate", "direction": "left"}
     assert format_meta_action(last, previous=last) == "Meta action: as before."
-    assert format_meta_action({"speed": "maintain", "direction": "left"}, previous=last) == "Meta action: maintain speed, turn left."
+    assert (
+        format_meta_action({"speed": "maintain", "direction": "left"}, previous=last)
+        == "Meta action: maintain speed, turn left."
+    )
     assert parse_meta_action("History: ... Meta action: As before.", last) == last
     assert parse_meta_action("Meta action: as before.") is None  # nothing to repeat
-    assert parse_meta_action("meta action: Maintain Speed, bear right.  ") == {"speed": "maintain", "direction": "bear right"}
+    assert parse_meta_action("meta action: Maintain Speed, bear right.  ") == {
+        "speed": "maintain",
+        "direction": "bear right",
+    }
     # The last one wins (a model may revise itself); unparseable text gives None.
     two = "Meta action: accelerate, go straight. On reflection: Meta action: decelerate, stop."
     assert parse_meta_action(two) == {"speed": "decelerate", "direction": "stop"}
@@ -460,7 +525,10 @@ def test_narration_has_four_parts_and_ends_with_the_meta_action():
         "Surroundings: a parked car 9 m behind on the left; a moving pedestrian 11 m ahead; a moving car 20 m ahead."
     )
     # Pedestrian: 3.6 m toward -y over 3 s; at step 3 it is at (10, 2.2), 2.97 m from the ego at (12, 0).
-    assert "the moving pedestrian 11 m ahead will move 4 m to the right in 3 s and come close to the ego's planned path" in lines[1]
+    assert (
+        "the moving pedestrian 11 m ahead will move 4 m to the right in 3 s and come close to the ego's planned path"
+        in lines[1]
+    )
     assert "the moving car 20 m ahead will move 24 m forward in 3 s" in lines[1]
     assert "parked car" not in lines[1]
     assert lines[2] == (

@@ -9,6 +9,7 @@ import re
 import numpy as np
 import pytest
 
+from occtrain.data.cameras import nuscenes_rig
 from occtrain.data.schema import (
     COMMANDS,
     META_ACCEL_THRESHOLD,
@@ -21,7 +22,6 @@ from occtrain.data.schema import (
 from occtrain.data.synth import SyntheticScene, generate_scene
 from occtrain.data.synth.annotate import SIDECAR_RULES
 from occtrain.data.synth.grid import GROUND_LAYER, GROUND_LAYERS, GROUND_TOP_Z
-from occtrain.data.cameras import nuscenes_rig
 from occtrain.data.synth.raster import LIDAR, masks
 from occtrain.occ3d import (
     CLASS_INDEX,
@@ -55,19 +55,28 @@ def to_global(frame: FrameAnnotation, xy) -> np.ndarray:
     yaw = frame["ego_pose"]["yaw"]
     t = np.array(frame["ego_pose"]["translation"][:2])
     p = np.asarray(xy, dtype=np.float64)
-    return np.stack([np.cos(yaw) * p[..., 0] - np.sin(yaw) * p[..., 1], np.sin(yaw) * p[..., 0] + np.cos(yaw) * p[..., 1]], -1) + t
+    return (
+        np.stack(
+            [np.cos(yaw) * p[..., 0] - np.sin(yaw) * p[..., 1], np.sin(yaw) * p[..., 0] + np.cos(yaw) * p[..., 1]], -1
+        )
+        + t
+    )
 
 
 def to_ego(frame: FrameAnnotation, xy) -> np.ndarray:
     yaw = frame["ego_pose"]["yaw"]
     d = np.asarray(xy, dtype=np.float64) - np.array(frame["ego_pose"]["translation"][:2])
-    return np.stack([np.cos(yaw) * d[..., 0] + np.sin(yaw) * d[..., 1], -np.sin(yaw) * d[..., 0] + np.cos(yaw) * d[..., 1]], -1)
+    return np.stack(
+        [np.cos(yaw) * d[..., 0] + np.sin(yaw) * d[..., 1], -np.sin(yaw) * d[..., 0] + np.cos(yaw) * d[..., 1]], -1
+    )
 
 
 def rotate_to_global(frame: FrameAnnotation, v) -> np.ndarray:
     yaw = frame["ego_pose"]["yaw"]
     v = np.asarray(v, dtype=np.float64)
-    return np.stack([np.cos(yaw) * v[..., 0] - np.sin(yaw) * v[..., 1], np.sin(yaw) * v[..., 0] + np.cos(yaw) * v[..., 1]], -1)
+    return np.stack(
+        [np.cos(yaw) * v[..., 0] - np.sin(yaw) * v[..., 1], np.sin(yaw) * v[..., 0] + np.cos(yaw) * v[..., 1]], -1
+    )
 
 
 # ---------------------------------------------------------------- API, grid, records
@@ -196,7 +205,9 @@ def test_in_a_scene_voxels_behind_a_visible_building_face_are_hidden(labels):
             centre = RANGE_MIN + (idx + 0.5) * VOXEL_SIZE
             d = centre - origin
             # The facade must continue around the voxel across the line of sight.
-            patch = man[x, y - 1 : y + 2, z - 1 : z + 2] if abs(d[0]) >= abs(d[1]) else man[x - 1 : x + 2, y, z - 1 : z + 2]
+            patch = (
+                man[x, y - 1 : y + 2, z - 1 : z + 2] if abs(d[0]) >= abs(d[1]) else man[x - 1 : x + 2, y, z - 1 : z + 2]
+            )
             if patch.size != 9 or not patch.all():
                 continue
             back = metres_to_index(centre + 3.0 * d / np.linalg.norm(d))
@@ -267,7 +278,9 @@ def test_agents_move_by_their_velocity_and_futures_match_later_boxes(scene):
 def test_static_structure_stays_put_between_frames(scene, labels):
     for i in range(len(labels) - 1):
         a, b = scene.frames[i], scene.frames[i + 1]
-        ix, iy, iz = np.nonzero(np.isin(labels[i]["semantics"], [CLASS_INDEX["manmade"], CLASS_INDEX["vegetation"]] + GROUND_CLASSES))
+        ix, iy, iz = np.nonzero(
+            np.isin(labels[i]["semantics"], [CLASS_INDEX["manmade"], CLASS_INDEX["vegetation"]] + GROUND_CLASSES)
+        )
         xy = np.stack([voxel_centers_1d(0)[ix], voxel_centers_1d(1)[iy]], -1)
         j = metres_to_index(to_ego(b, to_global(a, xy)))
         ok = np.all((j >= 0) & (j < GRID_SHAPE[:2]), axis=1)
@@ -310,7 +323,18 @@ def test_meta_action_follows_the_documented_rule(long_scenes):
             assert f["meta_action"] == {"speed": speed, "direction": direction}, (scene.name, i)
             branches.update([speed, branch, direction])
     # Every branch of the rule was checked, not only the common ones.
-    expected = {"maintain", "accelerate", "decelerate", "stop", "turn", "bear by offset", "bear by heading", "straight", "left", "right"}
+    expected = {
+        "maintain",
+        "accelerate",
+        "decelerate",
+        "stop",
+        "turn",
+        "bear by offset",
+        "bear by heading",
+        "straight",
+        "left",
+        "right",
+    }
     assert expected <= set(branches), branches
 
 

@@ -7,12 +7,12 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from occtrain.data.shards import decode_sample, iter_raw, shard_urls, write_shards
-from occtrain.data.clips import Actions, Clip, Scene, Text, ego_future
 from occtrain.core.tasks import sample_task, validate_tasks
-from occtrain.families.occllama.tasks import OBJECT_CLASSES, TASKS, TaskConfig
+from occtrain.data.clips import Actions, Clip, Scene, Text, ego_future
+from occtrain.data.shards import decode_sample, iter_raw, shard_urls, write_shards
 from occtrain.data.text_formats import parse_meta_action
 from occtrain.errors import ConfigError
+from occtrain.families.occllama.tasks import OBJECT_CLASSES, TASKS, TaskConfig
 from occtrain.occ3d import CLASS_INDEX
 
 
@@ -32,9 +32,13 @@ def test_object_classes_are_occ3d_names():
 def test_ego_steps_recover_the_pose_differences(clips):
     # A turning ego (a step taken in the wrong frame, the next pose's yaw or the global
     # axes, differs here), and the synthetic clips.
-    turning = Clip({"ego_poses": [[10.0, 5.0, 0.0], [14.0, 5.5, 0.4], [17.0, 8.0, 0.9], [18.5, 12.0, 1.4]], "history": 1}, [], "")
+    turning = Clip(
+        {"ego_poses": [[10.0, 5.0, 0.0], [14.0, 5.5, 0.4], [17.0, 8.0, 0.9], [18.5, 12.0, 1.4]], "history": 1}, [], ""
+    )
     np.testing.assert_allclose(turning.ego_steps()[0], [4.0, 0.5])
-    np.testing.assert_allclose(turning.ego_steps()[1], [np.cos(0.4) * 3 + np.sin(0.4) * 2.5, -np.sin(0.4) * 3 + np.cos(0.4) * 2.5])
+    np.testing.assert_allclose(
+        turning.ego_steps()[1], [np.cos(0.4) * 3 + np.sin(0.4) * 2.5, -np.sin(0.4) * 3 + np.cos(0.4) * 2.5]
+    )
     for clip in (turning, clips[0]):
         _check_steps(clip)
 
@@ -45,7 +49,9 @@ def _check_steps(clip: Clip) -> None:
     assert steps.shape == (len(poses) - 1, 2)
     for k in range(len(steps)):
         (dx, dy), yaw = poses[k + 1, :2] - poses[k, :2], poses[k, 2]  # pose k -> k + 1 in pose k's frame
-        np.testing.assert_allclose(steps[k], [np.cos(yaw) * dx + np.sin(yaw) * dy, -np.sin(yaw) * dx + np.cos(yaw) * dy], atol=1e-6)
+        np.testing.assert_allclose(
+            steps[k], [np.cos(yaw) * dx + np.sin(yaw) * dy, -np.sin(yaw) * dx + np.cos(yaw) * dy], atol=1e-6
+        )
     # The ego drives forwards: each step's x is non-negative and at most a fast car's 0.5 s.
     assert (steps[:, 0] > -0.05).all() and (steps[:, 0] < 12).all()
 
@@ -134,7 +140,9 @@ def test_the_repeat_last_prior_states_the_last_meta_action_and_says_as_before(cl
         assert said_meta_action(answer, clip) == meta
         kinds.add(answer.endswith("as before."))
     assert kinds == {True, False}  # both cases occur in this world
-    with pytest.raises(ConfigError, match=r"tasks.meta_action_prior: 'always' is not one of none, repeat_last \(paper: none\)"):
+    with pytest.raises(
+        ConfigError, match=r"tasks.meta_action_prior: 'always' is not one of none, repeat_last \(paper: none\)"
+    ):
         TaskConfig(meta_action_prior="always").validate("tasks")
 
 
@@ -169,7 +177,9 @@ def test_packed_questions_are_branches_of_distinct_questions(clips):
     assert len(branches) == 3 and len({b[0].text for b in branches}) == 3
     asked = {q["question"]: q["answer"] for q in clip.qa}
     for question, answer in branches:
-        assert asked[question.text.removeprefix("Question: ").removesuffix(" Answer:")] == answer.text and answer.supervise
+        assert (
+            asked[question.text.removeprefix("Question: ").removesuffix(" Answer:")] == answer.text and answer.supervise
+        )
     # One question per sample (the paper's setting) has no branch; evaluation asks them all.
     assert not any(isinstance(p, Branch) for p in qa(clip, TaskConfig(), clip_rng(0, "x")))
     every = every_question(clip, TaskConfig())
@@ -194,7 +204,9 @@ def test_a_packed_draw_generates_one_question_at_a_time(clips):
     trunk = packed[: packed.index(Branch())]
     assert len(prompts) == 3 and len({p[-2].text for p in prompts}) == 3
     for p in prompts:  # the context, one question, its answer: the only supervised part, last
-        assert p[: len(trunk)] == trunk and len(p) == len(trunk) + 2 and [q.supervise for q in p].index(True) == len(p) - 1
+        assert (
+            p[: len(trunk)] == trunk and len(p) == len(trunk) + 2 and [q.supervise for q in p].index(True) == len(p) - 1
+        )
     assert unpacked(qa(clip, TaskConfig(), rng())) == [qa(clip, TaskConfig(), rng())]
     engine = SimpleNamespace(task_specs=TASKS, tasks=TaskConfig(questions_per_sample=3))
     assert WorldModelEngine.task_items(engine, "qa", clip) == prompts
@@ -232,11 +244,17 @@ def test_a_constant_velocity_prior_writes_the_plan_as_offsets_and_reads_it_back(
     clip = next(c for c in clips if TASKS["planning"].build(c, TaskConfig(context_frames=2), np.random.default_rng(0)))
     cv = constant_velocity([clip.anchor])[0].numpy()
     paper = TASKS["planning"].build(clip, TaskConfig(context_frames=2), np.random.default_rng(0))[-1]
-    prior = TASKS["planning"].build(clip, TaskConfig(context_frames=2, plan_prior="constant_velocity"), np.random.default_rng(0))[-1]
+    prior = TASKS["planning"].build(
+        clip, TaskConfig(context_frames=2, plan_prior="constant_velocity"), np.random.default_rng(0)
+    )[-1]
     assert paper.base is None and paper.xy == prior.xy
     np.testing.assert_allclose(prior.base, cv, atol=1e-6)
-    forecast = TASKS["forecasting"].build(clip, TaskConfig(context_frames=2, forecast_frames=3, plan_prior="constant_velocity"), np.random.default_rng(0))
-    np.testing.assert_allclose([p.base[0] for p in forecast if isinstance(p, Actions) and p.supervise], cv[:3], atol=1e-6)
+    forecast = TASKS["forecasting"].build(
+        clip, TaskConfig(context_frames=2, forecast_frames=3, plan_prior="constant_velocity"), np.random.default_rng(0)
+    )
+    np.testing.assert_allclose(
+        [p.base[0] for p in forecast if isinstance(p, Actions) and p.supervise], cv[:3], atol=1e-6
+    )
     with pytest.raises(ConfigError, match="tasks.plan_prior"):
         TaskConfig(plan_prior="cv").validate("tasks")
     # The builder writes xy - base; generation reads the bins back and adds the base again.

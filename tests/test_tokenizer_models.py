@@ -11,13 +11,13 @@ import torch.multiprocessing as mp
 from omegaconf import OmegaConf
 
 from occtrain.config.tokenizer import latent_hw
-from occtrain.errors import ConfigError, DataError
 from occtrain.core.registry import build_tokenizer
+from occtrain.errors import ConfigError, DataError
 from occtrain.families.occllama import OccLLaMATokenizerConfig
 from occtrain.families.occllama.tokenizer import PillarEncoder, combine_decoupled
-from occtrain.models.tokenizers.occworld_vqvae import OccWorldVQVAEConfig
 from occtrain.models import count_parameters
 from occtrain.models.tokenizers.losses import lovasz_softmax
+from occtrain.models.tokenizers.occworld_vqvae import OccWorldVQVAEConfig
 from occtrain.models.tokenizers.quantizer import VectorQuantizer
 from occtrain.models.tokenizers.swin import shifted_window_mask
 from occtrain.occ3d import FREE, GRID_SHAPE, NUM_CLASSES
@@ -199,7 +199,10 @@ def brute_force_lovasz(probs: list[list[float]], labels: list[int]) -> float:
         fg = {i for i, y in enumerate(labels) if y == c}
         errors = [abs((y == c) - p[c]) for p, y in zip(probs, labels)]
         order = sorted(range(len(labels)), key=lambda i: -errors[i])
-        delta = lambda m: len(m) / len(fg | m) if m else 0.0  # noqa: E731
+
+        def delta(m: set[int], fg: set[int] = fg) -> float:
+            return len(m) / len(fg | m) if m else 0.0
+
         total, mistakes = 0.0, set()
         for i in order:
             before = delta(mistakes)
@@ -218,7 +221,9 @@ def test_lovasz_of_soft_prediction_matches_brute_force():
     expected = brute_force_lovasz(rows, labels[0].tolist())
     assert lovasz_softmax(probs, labels).item() == pytest.approx(expected, abs=1e-6)
     keep = valid[0].tolist()
-    expected_valid = brute_force_lovasz([r for r, k in zip(rows, keep) if k], [y for y, k in zip(labels[0].tolist(), keep) if k])
+    expected_valid = brute_force_lovasz(
+        [r for r, k in zip(rows, keep) if k], [y for y, k in zip(labels[0].tolist(), keep) if k]
+    )
     assert lovasz_softmax(probs, labels, valid).item() == pytest.approx(expected_valid, abs=1e-6)
 
 

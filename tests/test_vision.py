@@ -17,7 +17,12 @@ from occtrain.config.schema import DataConfig, TrainerConfig
 from occtrain.errors import ConfigError, DataError
 from occtrain.metrics import DepthAbsRelMetric, PixelSegmentationMetric
 from occtrain.models.vision import (
-    DenseHead, MultiViewEncoder, VisionConfig, build_vision_tower, load_dense_head, load_vision_encoder,
+    DenseHead,
+    MultiViewEncoder,
+    VisionConfig,
+    build_vision_tower,
+    load_dense_head,
+    load_vision_encoder,
 )
 from occtrain.occ3d import FREE
 from occtrain.stages import get_kind
@@ -61,12 +66,15 @@ def fake_batch(batch_size: int = 2, seed: int = 0) -> dict:
     noise = torch.randint(-10, 11, images.shape, generator=g)
     images = (images.int() + noise).clamp(0, 255).to(torch.uint8)
     return {
-        "images": images, "cam_class": cls, "cam_depth": depth.float(),
+        "images": images,
+        "cam_class": cls,
+        "cam_depth": depth.float(),
         "intrinsics": torch.eye(3).expand(batch_size, N, 3, 3).clone(),
         "cam_to_ego": torch.eye(4).expand(batch_size, N, 4, 4).clone(),
         "semantics": torch.full((batch_size, 200, 200, 16), FREE, dtype=torch.uint8),
         "mask_camera": torch.ones(batch_size, 200, 200, 16, dtype=torch.bool),
-        "token": [f"t{i}" for i in range(batch_size)], "meta": [{} for _ in range(batch_size)],
+        "token": [f"t{i}" for i in range(batch_size)],
+        "meta": [{} for _ in range(batch_size)],
     }
 
 
@@ -112,8 +120,9 @@ def test_non_multiple_image_size_is_resized_to_the_patch_grid():
 def saved_siglip(tmp_path) -> tuple[Path, SiglipVisionModel]:
     """A tiny 'pretrained' SigLIP vision model, with its pooling head, saved as a user would."""
     torch.manual_seed(1)
-    cfg = SiglipVisionConfig(hidden_size=32, intermediate_size=64, num_hidden_layers=1, num_attention_heads=2,
-                             image_size=64, patch_size=16)
+    cfg = SiglipVisionConfig(
+        hidden_size=32, intermediate_size=64, num_hidden_layers=1, num_attention_heads=2, image_size=64, patch_size=16
+    )
     model = SiglipVisionModel(cfg).eval()
     model.save_pretrained(str(tmp_path / "siglip"))
     return tmp_path / "siglip", model
@@ -136,7 +145,9 @@ def test_bad_vision_path_is_a_one_line_config_error(tmp_path, saved_siglip):
     with pytest.raises(ConfigError, match=r"^vision\.path: .*no config\.json") as e:
         build_vision_tower(VisionConfig(path=str(tmp_path / "missing")))
     assert "\n" not in str(e.value) and "missing" in str(e.value)
-    LlamaConfig(vocab_size=10, hidden_size=8, intermediate_size=16, num_hidden_layers=1, num_attention_heads=2).save_pretrained(str(tmp_path))
+    LlamaConfig(
+        vocab_size=10, hidden_size=8, intermediate_size=16, num_hidden_layers=1, num_attention_heads=2
+    ).save_pretrained(str(tmp_path))
     with pytest.raises(ConfigError, match=r"^vision\.path: .* holds a 'llama' model, not a vision tower") as e:
         build_vision_tower(VisionConfig(path=str(tmp_path)))
     assert "\n" not in str(e.value)
@@ -145,8 +156,16 @@ def test_bad_vision_path_is_a_one_line_config_error(tmp_path, saved_siglip):
         build_vision_tower(VisionConfig(path=str(tmp_path)))
     path, _ = saved_siglip  # a tower whose weights lack a tensor would silently start it random
     weights = load_file(str(path / "model.safetensors"))
-    save_file({k: v for k, v in weights.items() if k != "post_layernorm.weight"}, str(path / "model.safetensors"), metadata={"format": "pt"})
-    with pytest.raises(ConfigError, match=r"^vision\.path: the weights in .* do not match its config\.json \(missing tensor 'post_layernorm\.weight'\)"):
+    save_file(
+        {k: v for k, v in weights.items() if k != "post_layernorm.weight"},
+        str(path / "model.safetensors"),
+        metadata={"format": "pt"},
+    )
+    with pytest.raises(
+        ConfigError,
+        match=r"^vision\.path: the weights in .* do not match its config\.json "
+        r"\(missing tensor 'post_layernorm\.weight'\)",
+    ):
         build_vision_tower(VisionConfig(path=str(path)))
     with pytest.raises(ConfigError, match=r"^vision\.hidden_size: 63 is not divisible"):
         build_vision_tower(VisionConfig(hidden_size=63))
@@ -176,7 +195,12 @@ def test_pixel_metrics_by_hand():
 
 def test_stage_trains_validates_against_the_prior_and_exports(tmp_path):
     kind = get_kind("vision")
-    assert kind.module is VisionStage and kind.data_kind == "frames" and kind.monitor == "val/pixel_mIoU" and kind.mode == "max"
+    assert (
+        kind.module is VisionStage
+        and kind.data_kind == "frames"
+        and kind.monitor == "val/pixel_mIoU"
+        and kind.mode == "max"
+    )
     assert VisionStage.reads_cameras and not Stage.reads_cameras
     stage = make_stage(tmp_path)
     batch = fake_batch(2)
@@ -197,15 +221,25 @@ def test_stage_trains_validates_against_the_prior_and_exports(tmp_path):
         stage.validation_step(fake_batch(2, seed=7), 0)
         stage.validation_step(fake_batch(1, seed=8), 1)
     m = stage.validation_results()
-    for key in ("val/loss", "val/pixel_mIoU", "val/depth_absrel", "val/baseline_prior_pixel_mIoU", "val/baseline_prior_depth_absrel"):
+    for key in (
+        "val/loss",
+        "val/pixel_mIoU",
+        "val/depth_absrel",
+        "val/baseline_prior_pixel_mIoU",
+        "val/baseline_prior_depth_absrel",
+    ):
         assert key in m and m[key] == m[key], key  # present, not NaN
-    assert {k for k in m if k.startswith("val/pixel_IoU_")} == {f"val/pixel_IoU_{c}" for c in ("car", "manmade", "driveable_surface", "free")}
+    assert {k for k in m if k.startswith("val/pixel_IoU_")} == {
+        f"val/pixel_IoU_{c}" for c in ("car", "manmade", "driveable_surface", "free")
+    }
     assert m["val/baseline_prior_pixel_mIoU"] < 100 and m["val/baseline_prior_depth_absrel"] < 0.5
     assert stage.report().metrics["params"] > 0
 
     export = stage.export(tmp_path / "export")
     assert json.loads((export / "vision" / "config.json").read_text())["model_type"] == "siglip_vision_model"
-    assert (export / "vision" / "model.safetensors").is_file() and (export / "vision" / "preprocessor_config.json").is_file()
+    assert (export / "vision" / "model.safetensors").is_file() and (
+        export / "vision" / "preprocessor_config.json"
+    ).is_file()
     images = fake_batch(2, seed=9)["images"]
     with torch.no_grad():
         want, _ = stage.encoder(images)
@@ -218,8 +252,10 @@ def test_stage_trains_validates_against_the_prior_and_exports(tmp_path):
     plain = SiglipVisionModel.from_pretrained(str(export / "vision")).eval()
     x = stage.encoder.pixel_values(images)
     with torch.no_grad():
-        assert torch.equal(plain(pixel_values=x, interpolate_pos_encoding=True).last_hidden_state,
-                           stage.encoder.tower(pixel_values=x, interpolate_pos_encoding=True).last_hidden_state)
+        assert torch.equal(
+            plain(pixel_values=x, interpolate_pos_encoding=True).last_hidden_state,
+            stage.encoder.tower(pixel_values=x, interpolate_pos_encoding=True).last_hidden_state,
+        )
     frozen = load_vision_encoder(export)
     assert not any(p.requires_grad for p in frozen.parameters()) and not frozen.training
     assert all(p.requires_grad for p in load_vision_encoder(export, trainable=True).parameters())

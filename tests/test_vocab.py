@@ -7,10 +7,10 @@ import torch
 from transformers import PreTrainedTokenizerFast
 
 from occtrain.config.llm import LLMConfig
+from occtrain.core.vocab import JointVocab
 from occtrain.errors import ConfigError
 from occtrain.models.actions import ActionQuantizer
 from occtrain.models.text_tokenizer import train_text_tokenizer
-from occtrain.core.vocab import JointVocab
 
 TEXTS = ["the car turns left at the crossing", "Question: how many cars are there? Answer: 3"] * 10
 
@@ -99,7 +99,9 @@ def test_quantizer_round_trip_within_half_a_bin():
     # Out of range clamps to the edge bins.
     far = torch.tensor([[-100.0, 100.0], [1e3, -1e3]])
     assert q.encode(far).tolist() == [[0, 255], [255, 0]]
-    assert torch.allclose(q.decode(q.encode(far)), torch.tensor([[-40 + 50 / 256, 40 - 40 / 256], [60 - 50 / 256, -40 + 40 / 256]]))
+    assert torch.allclose(
+        q.decode(q.encode(far)), torch.tensor([[-40 + 50 / 256, 40 - 40 / 256], [60 - 50 / 256, -40 + 40 / 256]])
+    )
 
 
 def test_decode_text_hides_joint_tokens(tok):
@@ -115,7 +117,11 @@ def test_json_round_trip_with_saved_tokenizer(tok, tmp_path):
     loaded = PreTrainedTokenizerFast.from_pretrained(str(tmp_path), local_files_only=True)
     w = JointVocab.from_json(v.to_json(), loaded)
     assert (w.text_size, w.occ_range, w.act_y_range, w.query_range, len(w)) == (
-        v.text_size, v.occ_range, v.act_y_range, v.query_range, len(v),
+        v.text_size,
+        v.occ_range,
+        v.act_y_range,
+        v.query_range,
+        len(v),
     )
     xy = torch.tensor([[-12.3, 4.4]])
     assert torch.equal(w.action_ids(xy), v.action_ids(xy))
@@ -134,7 +140,10 @@ def test_config_errors_name_the_key(tok):
 
 def test_delta_encoding_holds_each_move_and_keeps_positions_within_half_a_bin():
     cfg = LLMConfig(action_bins=256, action_range=[[-40.0, 60.0], [-40.0, 40.0]], action_encoding="delta")
-    v, absolute = JointVocab(train_text_tokenizer(TEXTS, 300), 4, (1, 1), cfg), JointVocab(train_text_tokenizer(TEXTS, 300), 4, (1, 1), LLMConfig())
+    v, absolute = (
+        JointVocab(train_text_tokenizer(TEXTS, 300), 4, (1, 1), cfg),
+        JointVocab(train_text_tokenizer(TEXTS, 300), 4, (1, 1), LLMConfig()),
+    )
     plan = torch.tensor([[3.5, 0.0], [7.0, 0.1], [10.5, 0.3], [14.0, 0.6], [17.5, 1.0], [21.0, 1.5]])
     ids = v.action_ids(plan).reshape(-1, 2)
     # Steady moves of 3.5 m are one repeated x token, whatever the position.
@@ -145,17 +154,30 @@ def test_delta_encoding_holds_each_move_and_keeps_positions_within_half_a_bin():
     assert torch.equal(v.action_ids(one), absolute.action_ids(one))  # a one-waypoint block is the same either way
     w = JointVocab.from_json(v.to_json(), v.tokenizer)
     assert (w.action_encoding, w.action_decoding) == ("delta", "greedy")
-    old = {k: x for k, x in absolute.to_json().items() if not k.startswith("action_") or k in ("action_bins", "action_range")}
-    assert JointVocab.from_json(old, absolute.tokenizer).action_encoding == "absolute"  # an export from before the switch
+    old = {
+        k: x
+        for k, x in absolute.to_json().items()
+        if not k.startswith("action_") or k in ("action_bins", "action_range")
+    }
+    assert (
+        JointVocab.from_json(old, absolute.tokenizer).action_encoding == "absolute"
+    )  # an export from before the switch
 
 
 def test_expected_value_decoding_picks_the_bin_of_the_mean():
-    v = JointVocab(train_text_tokenizer(TEXTS, 300), 4, (1, 1), LLMConfig(action_bins=8, action_range=[[-40.0, 40.0], [0.0, 8.0]], action_decoding="expected"))
+    v = JointVocab(
+        train_text_tokenizer(TEXTS, 300),
+        4,
+        (1, 1),
+        LLMConfig(action_bins=8, action_range=[[-40.0, 40.0], [0.0, 8.0]], action_decoding="expected"),
+    )
     logits = torch.full((len(v),), -1e4)
     lo = v.act_x_start
     logits[lo + 1], logits[lo + 6] = 0.0, 0.0  # half on -25 m, half on 25 m: the mean is 0 m, bin 4
     assert v.pick_action(logits, 0) == lo + 4
-    greedy = JointVocab(train_text_tokenizer(TEXTS, 300), 4, (1, 1), LLMConfig(action_bins=8, action_range=[[-40.0, 40.0], [0.0, 8.0]]))
+    greedy = JointVocab(
+        train_text_tokenizer(TEXTS, 300), 4, (1, 1), LLMConfig(action_bins=8, action_range=[[-40.0, 40.0], [0.0, 8.0]])
+    )
     assert greedy.pick_action(logits, 0) == lo + 1  # the likeliest, the first of a tie
     with pytest.raises(ConfigError, match="llm.action_decoding"):
         JointVocab(train_text_tokenizer(TEXTS, 300), 4, (1, 1), LLMConfig(action_decoding="mean"))

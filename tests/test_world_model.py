@@ -2,26 +2,32 @@
 
 from __future__ import annotations
 
-import pytest
 from types import SimpleNamespace
 
+import pytest
 import torch
 import torch.nn.functional as F
 
 from occtrain.config.llm import LLMConfig
-from occtrain.models.llm import build_llm, checkpoint_layers
-from occtrain.models.text_tokenizer import train_text_tokenizer
-from occtrain.core.vocab import JointVocab
 from occtrain.core.builder import SequenceBuilder, collate
 from occtrain.core.decoding import QueryBlock
 from occtrain.core.sequence import IGNORE
+from occtrain.core.vocab import JointVocab
 from occtrain.core.world_model import WorldInputs
 from occtrain.families.occllama.config import OccLLaMAWorldConfig
 from occtrain.families.occllama.world_model import OccLLaMAWorldModel as OccWorldModel
+from occtrain.models.llm import build_llm, checkpoint_layers
+from occtrain.models.text_tokenizer import train_text_tokenizer
 
 TEXTS = ["go straight", "plan the route", "turn left then stop", "the car turns left"] * 10
-CFG = LLMConfig(hidden_size=64, num_layers=2, num_heads=4, intermediate_size=128, action_bins=16,
-                action_range=[[-8.0, 8.0], [-8.0, 8.0]])
+CFG = LLMConfig(
+    hidden_size=64,
+    num_layers=2,
+    num_heads=4,
+    intermediate_size=128,
+    action_bins=16,
+    action_range=[[-8.0, 8.0], [-8.0, 8.0]],
+)
 CTX = torch.tensor([1, 2, 3, 4, 5, 6, 7, 8, 9])
 TARGET = torch.tensor([9, 9, 0, 15, 4, 4, 12, 1, 3])
 XY = torch.tensor([[2.0, -1.0], [4.0, 3.0]])  # bin centres (1 m bins centred on whole metres)
@@ -51,15 +57,15 @@ def test_next_scene_layout(vocab):
     ctx_ids, tgt_ids = (v.occ_ids(CTX).tolist(), v.occ_ids(TARGET).tolist())
     act = v.action_ids(XY[:1]).tolist()
     queries = v.query_ids().tolist()
-    O, C, A, E = v.occ_open_id, v.occ_close_id, v.act_open_id, v.act_close_id
-    assert seq.input_ids.tolist() == [v.bos_id, O, *ctx_ids, C, A, *act, E, O, *queries, *tgt_ids, C]
+    OPEN, CLOSE, ACT, END = v.occ_open_id, v.occ_close_id, v.act_open_id, v.act_close_id
+    assert seq.input_ids.tolist() == [v.bos_id, OPEN, *ctx_ids, CLOSE, ACT, *act, END, OPEN, *queries, *tgt_ids, CLOSE]
     assert seq.segment_ids.tolist() == [0, 0] + [1] * 9 + [0] * 6 + [-2] * 9 + [2] * 9 + [0]
     # Queries take the positions of the codes they stand for.
     assert seq.position_ids.tolist() == list(range(17)) + list(range(17, 26)) + list(range(17, 26)) + [26]
     # Targets: the context scene predicts nothing; </occ> predicts <act> and on through the
     # action block to the target's <occ>; the queries predict the codes; the copied codes
     # predict only </occ>.
-    want = [IGNORE] * 11 + [A, *act, E, O, IGNORE] + tgt_ids + [IGNORE] * 8 + [C, IGNORE]
+    want = [IGNORE] * 11 + [ACT, *act, END, OPEN, IGNORE] + tgt_ids + [IGNORE] * 8 + [CLOSE, IGNORE]
     assert seq.labels.tolist() == want
     assert seq.scene_target.tolist() == [False] * 17 + [True] * 9 + [False] * 10
 
@@ -85,10 +91,10 @@ def test_collate_pads_right(vocab):
     batch = collate([a, b], vocab.pad_id)
     L = max(len(a), len(b))
     assert batch["input_ids"].shape == (2, L) and batch["attention_mask"].shape == (2, 1, L, L)
-    assert batch["input_ids"][0, len(a):].eq(vocab.pad_id).all() and batch["labels"][0, len(a):].eq(IGNORE).all()
+    assert batch["input_ids"][0, len(a) :].eq(vocab.pad_id).all() and batch["labels"][0, len(a) :].eq(IGNORE).all()
     assert batch["pad_mask"].sum(1).tolist() == [len(a), len(b)]
     # No real token attends to padding.
-    assert not batch["attention_mask"][0, 0, : len(a), len(a):].any()
+    assert not batch["attention_mask"][0, 0, : len(a), len(a) :].any()
 
 
 def test_losses_split_text_and_scene(vocab):
@@ -111,7 +117,9 @@ def test_token_accuracy_by_hand():
     assert float(OccWorldModel.token_accuracy(logits, labels, torch.tensor([[False, True, True, False]]))) == 0.0
 
 
-@pytest.mark.parametrize("mode,queries", [("next_scene", "learned"), ("next_scene", "last_scene"), ("next_token", "learned")])
+@pytest.mark.parametrize(
+    "mode,queries", [("next_scene", "learned"), ("next_scene", "last_scene"), ("next_token", "learned")]
+)
 def test_overfit_then_generate(vocab, mode, queries):
     """Training and generation agree: a model that memorised one sequence regenerates its
     answers greedily from the prompt (actions, then the scene, then the text)."""
@@ -166,7 +174,7 @@ def test_scene_generation_cost_and_tokens(vocab, mode, forwards):
     d = world.decoder(prefix)
     codes = d.scene()
     assert len(calls) == forwards and codes.shape == (9,)
-    tail = d.flush()[len(prefix):]
+    tail = d.flush()[len(prefix) :]
     assert tail.tolist() == [vocab.occ_open_id, *vocab.occ_ids(codes).tolist(), vocab.occ_close_id]
 
 
@@ -248,7 +256,9 @@ def test_batched_generation_pads_little_and_takes_no_more_steps(vocab):
 
     world = make_world(vocab, "next_scene", seed=4).eval()
     shapes = []
-    world.llm.register_forward_hook(lambda m, a, kw, out: shapes.append(kw["inputs_embeds"].shape[:2]), with_kwargs=True)
+    world.llm.register_forward_hook(
+        lambda m, a, kw, out: shapes.append(kw["inputs_embeds"].shape[:2]), with_kwargs=True
+    )
 
     def check(prefixes, plans, groups=1):
         shapes.clear()
@@ -257,16 +267,30 @@ def test_batched_generation_pads_little_and_takes_no_more_steps(vocab):
         fed, most = 0, 0
         for prefix, plan, got in zip(prefixes, plans, batched):
             shapes.clear()
-            assert [torch.as_tensor(x).tolist() for x in world.generate(prefix, plan)] == [torch.as_tensor(x).tolist() for x in got]
+            assert [torch.as_tensor(x).tolist() for x in world.generate(prefix, plan)] == [
+                torch.as_tensor(x).tolist() for x in got
+            ]
             fed, most = fed + sum(n for _, n in shapes), max(most, len(shapes))
         assert forwards <= groups * most and slots - fed <= len(prefixes) * forwards
 
-    same = [prompt(world.builder()).text(q).build().input_ids for q in ("go straight", "turn left then stop", "plan the route")]
+    same = [
+        prompt(world.builder()).text(q).build().input_ids
+        for q in ("go straight", "turn left then stop", "plan the route")
+    ]
     # Texts of fixed, different lengths, then a scene: the rows reach their query blocks apart.
     check(same, [[TextAnswer(n, False), SceneAnswer(), TextAnswer(2, False)] for n in (1, 6, 12)])
     check(same, [[TextAnswer(3, False)]] * 3)  # short answers (QA)
     # A prompt twice as long as the others decodes apart from them.
-    long = world.builder().text("go straight").scene(CTX).scene(TARGET).scene(CTX).text("the car turns left").build().input_ids
+    long = (
+        world.builder()
+        .text("go straight")
+        .scene(CTX)
+        .scene(TARGET)
+        .scene(CTX)
+        .text("the car turns left")
+        .build()
+        .input_ids
+    )
     check([same[0], long, same[1]], [[TextAnswer(3, False)]] * 3, groups=2)
 
 
@@ -282,11 +306,20 @@ def test_branches_train_each_answer_exactly_as_alone(vocab):
     assert packed.branch_ids.max().item() == 2
     with torch.no_grad():
         out = world(collate([packed], vocab.pad_id))
-        alone = [world(collate([prompt(world.builder()).text(q).text(a, True).build()], vocab.pad_id)) for q, a in questions]
+        alone = [
+            world(collate([prompt(world.builder()).text(q).text(a, True).build()], vocab.pad_id)) for q, a in questions
+        ]
     sup = packed.labels != IGNORE
     got = out.logits[0][sup]
-    want = torch.cat([o.logits[0][b["labels"][0] != IGNORE] for o, b in zip(
-        alone, [collate([prompt(world.builder()).text(q).text(a, True).build()], vocab.pad_id) for q, a in questions])])
+    want = torch.cat(
+        [
+            o.logits[0][b["labels"][0] != IGNORE]
+            for o, b in zip(
+                alone,
+                [collate([prompt(world.builder()).text(q).text(a, True).build()], vocab.pad_id) for q, a in questions],
+            )
+        ]
+    )
     assert torch.allclose(got, want, atol=1e-5)
     # Targets: each branch's answer tokens only; the trunk's last token predicts no branch.
     assert sup.sum().item() == sum(len(vocab.text_ids(a)) + 1 for _, a in questions)
@@ -336,7 +369,7 @@ def test_gradient_checkpointing_gives_the_same_gradients_from_less_kept_memory(v
         batch = collate([full_sequence(world.builder()), prompt(world.builder()).build()], vocab.pad_id)
         saved: dict[int, int] = {}
 
-        def pack(t: torch.Tensor) -> torch.Tensor:
+        def pack(t: torch.Tensor, saved: dict[int, int] = saved) -> torch.Tensor:
             saved.setdefault(t.data_ptr(), t.untyped_storage().nbytes())
             return t
 

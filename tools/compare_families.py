@@ -49,22 +49,59 @@ class Family:
 
 FAMILIES = (
     # The planning head on the meta action the instruct model generates (not the reference one).
-    Family("OccLLaMA", "quickstart", forecast="pretrain", plan="planner", qa="instruct", caption=None, world="pretrain",
-           plan_metric="head_generated_meta", note="VQ codes of a 2D VAE"),
+    Family(
+        "OccLLaMA",
+        "quickstart",
+        forecast="pretrain",
+        plan="planner",
+        qa="instruct",
+        caption=None,
+        world="pretrain",
+        plan_metric="head_generated_meta",
+        note="VQ codes of a 2D VAE",
+    ),
     # Waypoints generated between the forecast frames, as the paper plans.
-    Family("Occ-LLM", "occllm", forecast="pretrain", plan="pretrain", qa="instruct", caption=None, world="pretrain",
-           plan_metric="plan_alternate", note="MS-VAE codes, patchified"),
+    Family(
+        "Occ-LLM",
+        "occllm",
+        forecast="pretrain",
+        plan="pretrain",
+        qa="instruct",
+        caption=None,
+        world="pretrain",
+        plan_metric="plan_alternate",
+        note="MS-VAE codes, patchified",
+    ),
     # OccVLA's stage 1 trains on captions, but its evaluation scores meta actions and QA only.
-    Family("OccVLA", "occvla", forecast=None, plan="stage3", qa="vqa", caption=None, world="stage1",
-           plan_metric="head_generated_meta", note="camera patches (occupancy is an output)"),
-    Family("SparseOccVLA", "sparseoccvla", forecast="stage3", plan="planner", qa="stage3", caption="stage3", world="stage3",
-           note="sparse queries + global queries"),
+    Family(
+        "OccVLA",
+        "occvla",
+        forecast=None,
+        plan="stage3",
+        qa="vqa",
+        caption=None,
+        world="stage1",
+        plan_metric="head_generated_meta",
+        note="camera patches (occupancy is an output)",
+    ),
+    Family(
+        "SparseOccVLA",
+        "sparseoccvla",
+        forecast="stage3",
+        plan="planner",
+        qa="stage3",
+        caption="stage3",
+        world="stage3",
+        note="sparse queries + global queries",
+    ),
 )
 
 
 def _cli(*args: str) -> None:
     print("$ occtrain " + " ".join(args), file=sys.stderr, flush=True)
-    res = subprocess.run([sys.executable, "-m", "occtrain", *args], cwd=REPO, env=dict(os.environ, PYTHONWARNINGS="ignore"))
+    res = subprocess.run(
+        [sys.executable, "-m", "occtrain", *args], cwd=REPO, env=dict(os.environ, PYTHONWARNINGS="ignore")
+    )
     if res.returncode:
         raise SystemExit(f"error: `occtrain {' '.join(args)}` exited {res.returncode}")
 
@@ -114,8 +151,13 @@ def _stage_costs(run: Path) -> str:
 
 def row(family: Family, runs: Path) -> dict:
     run = runs / family.recipe
-    out: dict = {"family": family.name, "recipe": f"stages/{family.recipe}.yaml", "scene": family.note,
-                 "tokens_per_frame": _tokens_per_frame(run / family.world), "costs": _stage_costs(run)}
+    out: dict = {
+        "family": family.name,
+        "recipe": f"stages/{family.recipe}.yaml",
+        "scene": family.note,
+        "tokens_per_frame": _tokens_per_frame(run / family.world),
+        "costs": _stage_costs(run),
+    }
     scored = [s for s in (family.forecast, family.plan, family.qa, family.caption) if s]
     if family.forecast:
         m = _scored(run / family.forecast)
@@ -125,8 +167,14 @@ def row(family: Family, runs: Path) -> dict:
     if family.plan:
         m = _scored(run / family.plan)
         p = family.plan_metric
-        cv = next((m[k] for k in ("constant_velocity_L2_stp3_avg", "baseline_constant_velocity_L2_stp3_avg") if k in m), None)
-        out["plan"] = {"L2": m.get(f"{p}_L2_stp3_avg"), "collision": m.get(f"{p}_collision_stp3_avg"), "constant_velocity_L2": cv}
+        cv = next(
+            (m[k] for k in ("constant_velocity_L2_stp3_avg", "baseline_constant_velocity_L2_stp3_avg") if k in m), None
+        )
+        out["plan"] = {
+            "L2": m.get(f"{p}_L2_stp3_avg"),
+            "collision": m.get(f"{p}_collision_stp3_avg"),
+            "constant_velocity_L2": cv,
+        }
         out["plan_stage"] = family.plan
     if family.qa:
         m = _scored(run / family.qa)
@@ -152,24 +200,50 @@ def markdown(rows: list[dict]) -> str:
     horizons = ("1s", "2s", "3s")
     worlds = sorted({w for r in rows for w in r["worlds"]})
     lines = [
-        f"World: {', '.join(worlds)} (the version `occtrain data stats` prints; unrecorded: scored before evals recorded it).",
+        f"World: {', '.join(worlds)} (the version `occtrain data stats` prints; unrecorded: scored before evals "
+        "recorded it).",
         "",
-        "| family (recipe) | LLM tokens per frame of scene | forecast mIoU 1 / 2 / 3 s (`occworld`) vs copying the current scene "
+        "| family (recipe) | LLM tokens per frame of scene | forecast mIoU 1 / 2 / 3 s (`occworld`) vs copying the "
+        "current scene "
         "| plan L2 avg (`stp3`) vs constant velocity; collision avg | NuScenes-QA vs commonest answer per type "
         "| caption CIDEr vs the typical caption |",
         "|---|---|---|---|---|---|",
     ]
     for r in rows:
         fc = r.get("forecast")
-        forecast = _cell(" / ".join(_fmt(fc[h]) for h in horizons), " / ".join(_fmt(r["copy_forecast"][h]) for h in horizons),
-                         r["forecast_stage"]) if fc else "-"
+        forecast = (
+            _cell(
+                " / ".join(_fmt(fc[h]) for h in horizons),
+                " / ".join(_fmt(r["copy_forecast"][h]) for h in horizons),
+                r["forecast_stage"],
+            )
+            if fc
+            else "-"
+        )
         plan = r.get("plan")
-        plans = _cell(f"{_fmt(plan['L2'], 2)} m", f"{_fmt(plan['constant_velocity_L2'], 2)} m; {_fmt(plan['collision'], 2)} %",
-                      r["plan_stage"]) if plan else "-"
-        qa = _cell(f"{_fmt(r['qa'])} %", f"{_fmt(r['qa_baseline'])} %", r["qa_stage"]) if r.get("qa") is not None else "-"
-        cider = (_cell(_fmt(r["cider"], 3), _fmt(r["cider_baseline"], 3), r["caption_stage"])
-                 if r.get("cider") is not None else "-")
-        lines.append(f"| {r['family']} (`{r['recipe']}`) | {r['tokens_per_frame']}: {r['scene']} | {forecast} | {plans} | {qa} | {cider} |")
+        plans = (
+            _cell(
+                f"{_fmt(plan['L2'], 2)} m",
+                f"{_fmt(plan['constant_velocity_L2'], 2)} m; {_fmt(plan['collision'], 2)} %",
+                r["plan_stage"],
+            )
+            if plan
+            else "-"
+        )
+        qa = (
+            _cell(f"{_fmt(r['qa'])} %", f"{_fmt(r['qa_baseline'])} %", r["qa_stage"])
+            if r.get("qa") is not None
+            else "-"
+        )
+        cider = (
+            _cell(_fmt(r["cider"], 3), _fmt(r["cider_baseline"], 3), r["caption_stage"])
+            if r.get("cider") is not None
+            else "-"
+        )
+        lines.append(
+            f"| {r['family']} (`{r['recipe']}`) | {r['tokens_per_frame']}: {r['scene']} | {forecast} | {plans} | {qa} "
+            f"| {cider} |"
+        )
     lines += ["", "| family | per stage: train step (ms) / peak RSS (MB) |", "|---|---|"]
     lines += [f"| {r['family']} | {r['costs']} |" for r in rows]
     return "\n".join(lines) + "\n"

@@ -38,13 +38,21 @@ def shrink(recipe: Path, data: Path, steps: int) -> list[str]:
     """Overrides that make ``recipe`` a few-minute run on a 3-scene world."""
     stages = yaml.safe_load(recipe.read_text())["stages"]
     out = [
-        f"data.root={data}", f"data.shards={data / ('shards_' + recipe.stem)}",
-        "data.synth.train_scenes=2", "data.synth.val_scenes=1", "data.synth.frames_per_scene=16",
-        "data.samples_per_shard=8", "data.shuffle_buffer=4", "trainer.ckpt_every_n_steps=1000",
+        f"data.root={data}",
+        f"data.shards={data / ('shards_' + recipe.stem)}",
+        "data.synth.train_scenes=2",
+        "data.synth.val_scenes=1",
+        "data.synth.frames_per_scene=16",
+        "data.samples_per_shard=8",
+        "data.shuffle_buffer=4",
+        "trainer.ckpt_every_n_steps=1000",
     ]
     for i, stage in enumerate(stages):
-        out += [f"stages[{i}].trainer.max_steps={steps}", f"stages[{i}].trainer.val_check_interval={steps}",
-                f"stages[{i}].trainer.limit_val_batches=2"]
+        out += [
+            f"stages[{i}].trainer.max_steps={steps}",
+            f"stages[{i}].trainer.val_check_interval={steps}",
+            f"stages[{i}].trainer.limit_val_batches=2",
+        ]
         if stage["kind"] in GENERATING:
             out.append(f"stages[{i}].model.val_samples=6")
         if stage["kind"] == "vision":
@@ -61,7 +69,16 @@ def run(out: Path, recipes: list[str], steps: int) -> int:
         recipe = REPO / "stages" / f"{name}.yaml"
         # One world per data config (the OccVLA recipe reads 6 history frames from its own shards).
         data = out / "data"
-        cmd = [sys.executable, "-m", "occtrain", "run", str(recipe), *shrink(recipe, data, steps), "--run-dir", str(out / name)]
+        cmd = [
+            sys.executable,
+            "-m",
+            "occtrain",
+            "run",
+            str(recipe),
+            *shrink(recipe, data, steps),
+            "--run-dir",
+            str(out / name),
+        ]
         print(f"== {name}", file=sys.stderr, flush=True)
         res = subprocess.run(cmd, cwd=REPO, env=env)
         failed += res.returncode != 0
@@ -103,7 +120,9 @@ def compare(before: Path, after: Path) -> int:
             diff = sorted(k for k in set(a_m) | set(b_m) if not _same(a_m.get(k), b_m.get(k)))
             a_t, b_t = _tensors(a_dir), _tensors(b_dir)
             only = sorted(set(a_t) ^ set(b_t))
-            changed = sorted(k for k in set(a_t) & set(b_t) if a_t[k].shape != b_t[k].shape or not torch.equal(a_t[k], b_t[k]))
+            changed = sorted(
+                k for k in set(a_t) & set(b_t) if a_t[k].shape != b_t[k].shape or not torch.equal(a_t[k], b_t[k])
+            )
             status = "same" if not (diff or only or changed) else "DIFFERS"
             print(f"{run_dir.name:11s} {stage:10s} {status:8s} {len(a_m)} metrics, {len(a_t)} tensors")
             for k in diff[:10]:
@@ -111,7 +130,9 @@ def compare(before: Path, after: Path) -> int:
             for k in only[:10]:
                 print(f"    tensor {k} only {'before' if k in a_t else 'after'}")
             for k in changed[:10]:
-                print(f"    tensor {k} changed (max |diff| {float((a_t[k].float() - b_t[k].float()).abs().max()) if a_t[k].shape == b_t[k].shape else 'shape'})")
+                same_shape = a_t[k].shape == b_t[k].shape
+                diff = float((a_t[k].float() - b_t[k].float()).abs().max()) if same_shape else "shape"
+                print(f"    tensor {k} changed (max |diff| {diff})")
             problems += status != "same"
     return 1 if problems else 0
 

@@ -45,7 +45,8 @@ class Mutant:
 
 MUTANTS = (
     Mutant(
-        "resume-from-scratch", "a cut-off stage retrains from step 0 (and still says it resumes)",
+        "resume-from-scratch",
+        "a cut-off stage retrains from step 0 (and still says it resumes)",
         "src/occtrain/runner.py",
         "trainer.fit(module, datamodule=datamodule, ckpt_path=ckpt, weights_only=True)",
         "trainer.fit(module, datamodule=datamodule, ckpt_path=None, weights_only=True)",
@@ -57,7 +58,8 @@ MUTANTS = (
         ),
     ),
     Mutant(
-        "one-process", "trainer.devices=2 runs one process",
+        "one-process",
+        "trainer.devices=2 runs one process",
         "src/occtrain/stages/common.py",
         "        devices=cfg.devices,\n",
         "        devices=1,\n",
@@ -67,42 +69,48 @@ MUTANTS = (
         ),
     ),
     Mutant(
-        "every-rank-validates-everything", "each DDP rank validates the whole split",
+        "every-rank-validates-everything",
+        "each DDP rank validates the whole split",
         "src/occtrain/data/reading.py",
         "    mine: list[int | None] = list(range(rank, total, world))\n",
         "    mine: list[int | None] = list(range(total))\n",
         ("tests/test_distributed.py::test_ddp_validation_of_an_odd_split_equals_one_process",),
     ),
     Mutant(
-        "scaled-ddp-loss", "the tokenizer's loss is 1.5x under DDP",
+        "scaled-ddp-loss",
+        "the tokenizer's loss is 1.5x under DDP",
         "src/occtrain/models/tokenizers/occworld_vqvae.py",
         'losses = {"loss": total, ',
         'losses = {"loss": total * (1.5 if torch.distributed.is_initialized() else 1.0), ',
         ("tests/test_ddp_step.py::test_ddp_step_equals_single_process_step",),
     ),
     Mutant(
-        "bear-by-heading-flipped", "the meta-action rule's bear-by-heading branch picks the wrong side",
+        "bear-by-heading-flipped",
+        "the meta-action rule's bear-by-heading branch picks the wrong side",
         "src/occtrain/data/meta_actions.py",
         'return "bear left" if heading_change_deg > 0 else "bear right"',
         'return "bear right" if heading_change_deg > 0 else "bear left"',
         ("tests/test_synth_world.py::test_meta_action_follows_the_documented_rule",),
     ),
     Mutant(
-        "wrong-1s-frame", "the 1 s forecast horizon reads the 0.5 s frame",
+        "wrong-1s-frame",
+        "the 1 s forecast horizon reads the 0.5 s frame",
         "src/occtrain/scoring.py",
         "FORECAST_HORIZONS = (1, 3, 5)",
         "FORECAST_HORIZONS = (0, 3, 5)",
         ("tests/test_scoring_cli.py::test_forecast_hand_case",),
     ),
     Mutant(
-        "empty-generation", "greedy text generation stops at once",
+        "empty-generation",
+        "greedy text generation stops at once",
         "src/occtrain/core/decoding.py",
         "    for _ in range(answer.max_new_tokens):\n        tok = yield from s.pick(s.vocab.text_range)",
         "    for _ in range(0):\n        tok = yield from s.pick(s.vocab.text_range)",
         ("tests/test_occvla_pipeline.py::test_the_reloaded_model_generates_the_same_text_with_and_without_occupancy",),
     ),
     Mutant(
-        "check-stops-at-first-problem", "data check reports only a file's first problem",
+        "check-stops-at-first-problem",
+        "data check reports only a file's first problem",
         "src/occtrain/data/check.py",
         "    found = schema_problems(data, schema, limit=MAX_PER_FILE + 1)",
         "    found = schema_problems(data, schema, limit=1)",
@@ -112,56 +120,64 @@ MUTANTS = (
         ),
     ),
     Mutant(
-        "restart-resets-one-stage", "--restart retrains the named stage but keeps the later ones",
+        "restart-resets-one-stage",
+        "--restart retrains the named stage but keeps the later ones",
         "src/occtrain/runner.py",
         "manifest.set_aside([p.spec.name for p in planned if p.spec.name in restarted])",
         "manifest.set_aside([str(restart)])",
         ("tests/test_runner.py::test_changed_config_is_refused_then_restart_retrains",),
     ),
     Mutant(
-        "kl-without-t-squared", "the distillation KL is not scaled by T^2",
+        "kl-without-t-squared",
+        "the distillation KL is not scaled by T^2",
         "src/occtrain/models/distill.py",
         'reduction="batchmean") * t * t',
         'reduction="batchmean")',
         ("tests/test_stage_parts.py::test_distillation_losses_by_hand",),
     ),
     Mutant(
-        "no-shuffle", "the training stream is not shuffled",
+        "no-shuffle",
+        "the training stream is not shuffled",
         "src/occtrain/data/reading.py",
         "    if shuffle_buffer <= 1:\n",
         "    if True:\n",
         ("tests/test_shards.py::test_train_pipeline_streams_forever_and_shuffles",),
     ),
     Mutant(
-        "epochs-unshuffled", "the default epoch order is the samples as stored",
+        "epochs-unshuffled",
+        "the default epoch order is the samples as stored",
         "src/occtrain/data/reading.py",
         '        random.Random(f"samples:{seed}:{epoch}").shuffle(order)\n',
         "        pass\n",
         ("tests/test_shards.py::test_the_default_order_is_a_fresh_permutation_of_every_sample_each_epoch",),
     ),
     Mutant(
-        "workers-read-everything", "each validation loader worker reads every sample",
+        "workers-read-everything",
+        "each validation loader worker reads every sample",
         "src/occtrain/data/reading.py",
         "    return mine[worker::workers]\n",
         "    return mine\n",
         ("tests/test_shards.py::test_frames_round_trip_through_dataloader_with_two_workers",),
     ),
     Mutant(
-        "ranks-compute-what-they-saw", "each process computes only the metrics it updated itself",
+        "ranks-compute-what-they-saw",
+        "each process computes only the metrics it updated itself",
         "src/occtrain/metrics/__init__.py",
         "    if metrics and dist.is_available() and dist.is_initialized() and dist.get_world_size() > 1:\n",
         "    if False:\n",
         ("tests/test_metrics_occupancy.py::test_two_process_ddp_equals_single_process",),
     ),
     Mutant(
-        "ranks-read-everything", "each DDP rank trains on every sample of the global batch",
+        "ranks-read-everything",
+        "each DDP rank trains on every sample of the global batch",
         "src/occtrain/data/reading.py",
         "        if within // batch_size == rank and step % workers == worker:\n",
         "        if step % workers == worker:\n",
         ("tests/test_shards.py::test_two_ranks_of_b_train_on_the_batches_of_one_process_of_2b",),
     ),
     Mutant(
-        "loader-restarts-its-epoch", "a resumed stage's data starts again at the first sample",
+        "loader-restarts-its-epoch",
+        "a resumed stage's data starts again at the first sample",
         "src/occtrain/data/datamodule.py",
         "        self.source.start, self._start = self._start, 0\n",
         "        self.source.start, self._start = 0, 0\n",
@@ -171,35 +187,40 @@ MUTANTS = (
         ),
     ),
     Mutant(
-        "fsdp-does-not-shard", "trainer.strategy=fsdp leaves the world model whole on every rank",
+        "fsdp-does-not-shard",
+        "trainer.strategy=fsdp leaves the world model whole on every rank",
         "src/occtrain/stages/world_model.py",
         '        shard_world_model(world, self.device_mesh["data_parallel"])\n',
         "        pass\n",
         ("tests/test_sharded.py::test_sharded_training_equals_ddp_with_the_same_global_batch",),
     ),
     Mutant(
-        "uniform-task-draw", "tasks are drawn uniformly, whatever their weights",
+        "uniform-task-draw",
+        "tasks are drawn uniformly, whatever their weights",
         "src/occtrain/core/tasks.py",
         "size=len(names), replace=False, p=p / p.sum())",
         "size=len(names), replace=False)",
         ("tests/test_tasks.py::test_sampling_is_deterministic_and_follows_weights",),
     ),
     Mutant(
-        "cider-as-fraction", "CIDEr reported divided by 10",
+        "cider-as-fraction",
+        "CIDEr reported divided by 10",
         "src/occtrain/metrics/captions.py",
         'scores["CIDEr"] = float(Cider().compute_score(gts, res)[0])',
         'scores["CIDEr"] = float(Cider().compute_score(gts, res)[0]) / 10',
         ("tests/test_metrics_language.py::test_caption_metric_by_hand",),
     ),
     Mutant(
-        "deletion-escapes-the-run", "the one door for deletions no longer checks the target lies inside its directory",
+        "deletion-escapes-the-run",
+        "the one door for deletions no longer checks the target lies inside its directory",
         "src/occtrain/io.py",
         'if target.name in ("", ".", "..") or where == root_path or not where.is_relative_to(root_path):',
         "if False:",
         ("tests/test_io.py::test_a_deletion_that_reaches_outside_the_run_is_refused",),
     ),
     Mutant(
-        "stage-name-unchecked", "a stage's name is not checked to be one folder name",
+        "stage-name-unchecked",
+        "a stage's name is not checked to be one folder name",
         "src/occtrain/runner.py",
         '        check_name(spec.name, f"stages[{i}].name", source, "a stage")\n',
         "",
@@ -209,7 +230,8 @@ MUTANTS = (
         ),
     ),
     Mutant(
-        "restart-deletes-at-once", "--restart deletes the stages it retrains instead of setting them aside",
+        "restart-deletes-at-once",
+        "--restart deletes the stages it retrains instead of setting them aside",
         "src/occtrain/manifest.py",
         "                    os.rename(run_dir / name, aside / name)\n",
         "                    remove_inside(run_dir / name, run_dir)\n",
@@ -220,9 +242,16 @@ MUTANTS = (
 
 def working_tree(dest: Path) -> None:
     """Copy the files git sees (tracked and untracked, not ignored) to ``dest``."""
-    files = subprocess.run(
-        ["git", "ls-files", "-z", "--cached", "--others", "--exclude-standard"], cwd=REPO, capture_output=True, check=True,
-    ).stdout.decode().split("\0")
+    files = (
+        subprocess.run(
+            ["git", "ls-files", "-z", "--cached", "--others", "--exclude-standard"],
+            cwd=REPO,
+            capture_output=True,
+            check=True,
+        )
+        .stdout.decode()
+        .split("\0")
+    )
     for rel in filter(None, files):
         src = REPO / rel
         if src.is_file():
@@ -235,18 +264,26 @@ def apply(mutant: Mutant, root: Path) -> None:
     text = path.read_text()
     count = text.count(mutant.old)
     if count != 1:
-        raise SystemExit(f"mutant '{mutant.name}': {mutant.file} holds its original text {count} times, not once; update tools/mutants.py")
+        raise SystemExit(
+            f"mutant '{mutant.name}': {mutant.file} holds its original text {count} times, not once; update "
+            "tools/mutants.py"
+        )
     path.write_text(text.replace(mutant.old, mutant.new))
 
 
 def run_tests(root: Path, tests: tuple[str, ...]) -> tuple[int, float, str]:
     """pytest on ``tests`` in the copy at ``root``, importing occtrain from the copy; in one
     process, since with -x pytest-xdist reports a failure as an interruption (exit code 2)."""
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [str(root / "src"), os.environ.get("PYTHONPATH", "")])))
+    env = dict(
+        os.environ, PYTHONPATH=os.pathsep.join(filter(None, [str(root / "src"), os.environ.get("PYTHONPATH", "")]))
+    )
     started = time.time()
     res = subprocess.run(
         [sys.executable, "-m", "pytest", "-q", "-x", "-n", "0", "-p", "no:cacheprovider", *tests],
-        cwd=root, env=env, capture_output=True, text=True,
+        cwd=root,
+        env=env,
+        capture_output=True,
+        text=True,
     )
     tail = (res.stdout + res.stderr).strip().splitlines()
     return res.returncode, time.time() - started, tail[-1] if tail else ""
@@ -255,10 +292,17 @@ def run_tests(root: Path, tests: tuple[str, ...]) -> tuple[int, float, str]:
 def check_imports_copy(root: Path) -> None:
     env = dict(os.environ, PYTHONPATH=str(root / "src"))
     where = subprocess.run(
-        [sys.executable, "-c", "import occtrain; print(occtrain.__file__)"], cwd=root, env=env, capture_output=True, text=True, check=True,
+        [sys.executable, "-c", "import occtrain; print(occtrain.__file__)"],
+        cwd=root,
+        env=env,
+        capture_output=True,
+        text=True,
+        check=True,
     ).stdout.strip()
     if not where.startswith(str(root)):
-        raise SystemExit(f"the copy imports occtrain from {where}, not from {root}/src; a mutant there would change nothing")
+        raise SystemExit(
+            f"the copy imports occtrain from {where}, not from {root}/src; a mutant there would change nothing"
+        )
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -33,35 +33,91 @@ class Row:
 
 
 ROWS = (
-    Row("tokenizer", "reconstruction mIoU (`occworld`)", "occworld_mIoU", baselines=(("empty scene", "baseline_free_occworld_mIoU"),)),
-    Row("tokenizer", "reconstruction IoU (`occworld`)", "occworld_IoU", baselines=(("empty scene", "baseline_free_occworld_IoU"),)),
+    Row(
+        "tokenizer",
+        "reconstruction mIoU (`occworld`)",
+        "occworld_mIoU",
+        baselines=(("empty scene", "baseline_free_occworld_mIoU"),),
+    ),
+    Row(
+        "tokenizer",
+        "reconstruction IoU (`occworld`)",
+        "occworld_IoU",
+        baselines=(("empty scene", "baseline_free_occworld_IoU"),),
+    ),
     Row("tokenizer", "movable-class mIoU (`occworld`)", "occworld_movable_mIoU", 2),
-    Row("pretrain", "forecast mIoU at 1 s (`occworld`)", "forecast_occworld_mIoU_1s", baselines=(
-        ("Copy&Paste of the reconstruction", "baseline_copy_reconstruction_forecast_occworld_mIoU_1s"),
-        ("copy the scene", "baseline_copy_forecast_occworld_mIoU_1s"),
-        ("the scene moved at constant velocity", "baseline_cv_moved_forecast_occworld_mIoU_1s"),
-    )),
-    Row("pretrain", "forecast movable mIoU at 1 s (`occworld`)", "forecast_occworld_movable_mIoU_1s", 2, baselines=(
-        ("Copy&Paste of the reconstruction", "baseline_copy_reconstruction_forecast_occworld_movable_mIoU_1s"),
-    )),
-    Row("pretrain", "direct plan L2 avg (`stp3`, m)", "plan_direct_L2_stp3_avg", 3, baselines=(
-        ("constant velocity", "baseline_constant_velocity_L2_stp3_avg"), ("standing still", "baseline_stationary_L2_stp3_avg"),
-    )),
-    Row("instruct", "NuScenes-QA accuracy (%)", "qa_overall", baselines=(("commonest answer per type", "baseline_prior_qa_overall"),)),
-    Row("instruct", "meta action right (%)", "meta_action_overall", baselines=(
-        ("commonest", "baseline_prior_meta_action_overall"), ("repeat the last past one", "baseline_repeat_last_meta_action_overall"),
-    )),
-    Row("instruct", "plan after the chain of thought, L2 avg (`stp3`, m)", "cot_plan_L2_stp3_avg", 3, baselines=(
-        ("constant velocity", "baseline_constant_velocity_L2_stp3_avg"),
-    )),
+    Row(
+        "pretrain",
+        "forecast mIoU at 1 s (`occworld`)",
+        "forecast_occworld_mIoU_1s",
+        baselines=(
+            ("Copy&Paste of the reconstruction", "baseline_copy_reconstruction_forecast_occworld_mIoU_1s"),
+            ("copy the scene", "baseline_copy_forecast_occworld_mIoU_1s"),
+            ("the scene moved at constant velocity", "baseline_cv_moved_forecast_occworld_mIoU_1s"),
+        ),
+    ),
+    Row(
+        "pretrain",
+        "forecast movable mIoU at 1 s (`occworld`)",
+        "forecast_occworld_movable_mIoU_1s",
+        2,
+        baselines=(
+            ("Copy&Paste of the reconstruction", "baseline_copy_reconstruction_forecast_occworld_movable_mIoU_1s"),
+        ),
+    ),
+    Row(
+        "pretrain",
+        "direct plan L2 avg (`stp3`, m)",
+        "plan_direct_L2_stp3_avg",
+        3,
+        baselines=(
+            ("constant velocity", "baseline_constant_velocity_L2_stp3_avg"),
+            ("standing still", "baseline_stationary_L2_stp3_avg"),
+        ),
+    ),
+    Row(
+        "instruct",
+        "NuScenes-QA accuracy (%)",
+        "qa_overall",
+        baselines=(("commonest answer per type", "baseline_prior_qa_overall"),),
+    ),
+    Row(
+        "instruct",
+        "meta action right (%)",
+        "meta_action_overall",
+        baselines=(
+            ("commonest", "baseline_prior_meta_action_overall"),
+            ("repeat the last past one", "baseline_repeat_last_meta_action_overall"),
+        ),
+    ),
+    Row(
+        "instruct",
+        "plan after the chain of thought, L2 avg (`stp3`, m)",
+        "cot_plan_L2_stp3_avg",
+        3,
+        baselines=(("constant velocity", "baseline_constant_velocity_L2_stp3_avg"),),
+    ),
     Row("instruct", "chain of thought CIDEr", "cot_CIDEr", 3),
-    Row("planner", "head on true meta actions, L2 avg (`stp3`, m)", "head_gt_meta_L2_stp3_avg", 3, baselines=(
-        ("constant velocity", "constant_velocity_L2_stp3_avg"),
-    )),
-    Row("planner", "head on generated meta actions, L2 avg (`stp3`, m)", "head_generated_meta_L2_stp3_avg", 3, baselines=(
-        ("constant velocity", "constant_velocity_L2_stp3_avg"),
-    )),
-    Row("distill", "student NuScenes-QA accuracy (%)", "qa_overall", baselines=(("commonest answer per type", "baseline_prior_qa_overall"),)),
+    Row(
+        "planner",
+        "head on true meta actions, L2 avg (`stp3`, m)",
+        "head_gt_meta_L2_stp3_avg",
+        3,
+        baselines=(("constant velocity", "constant_velocity_L2_stp3_avg"),),
+    ),
+    Row(
+        "planner",
+        "head on generated meta actions, L2 avg (`stp3`, m)",
+        "head_generated_meta_L2_stp3_avg",
+        3,
+        baselines=(("constant velocity", "constant_velocity_L2_stp3_avg"),),
+    ),
+    Row(
+        "distill",
+        "student NuScenes-QA accuracy (%)",
+        "qa_overall",
+        baselines=(("commonest answer per type", "baseline_prior_qa_overall"),),
+    ),
     Row("distill", "student meta action right (%)", "meta_action_overall"),
 )
 
@@ -101,16 +157,21 @@ def table(runs: list[Path]) -> str:
     """The markdown table (see the module docstring); raises SystemExit when the runs' worlds differ."""
     worlds = [_world(run) for run in runs]
     if len(set(worlds)) > 1:
-        raise SystemExit(f"error: the runs were scored on different worlds ({', '.join(f'{r}: {w}' for r, w in zip(runs, worlds))})")
+        raise SystemExit(
+            f"error: the runs were scored on different worlds ({', '.join(f'{r}: {w}' for r, w in zip(runs, worlds))})"
+        )
     scored = {(run, stage): _metrics(run, stage) for run in runs for stage in {r.stage for r in ROWS}}
     stamps = [_stamp(run) for run in runs]
     lines = [
         f"World {worlds[0]}; whole val split (`occtrain eval`). Generated by `python tools/quickstart_table.py` from:",
         "",
-        *(f"- run {i}: `{run}`, training seed {seed}, code {code}, scored {date}"
-          for i, (run, (code, seed, date)) in enumerate(zip(runs, stamps))),
+        *(
+            f"- run {i}: `{run}`, training seed {seed}, code {code}, scored {date}"
+            for i, (run, (code, seed, date)) in enumerate(zip(runs, stamps))
+        ),
         "",
-        f"| stage | metric | {' / '.join(f'run {i}' for i in range(len(runs)))} | mean (min to max) | baselines (run 0's samples) |",
+        f"| stage | metric | {' / '.join(f'run {i}' for i in range(len(runs)))} | mean (min to max) | baselines (run "
+        "0's samples) |",
         "|---|---|---|---|---|",
     ]
     for row in ROWS:
@@ -119,10 +180,19 @@ def table(runs: list[Path]) -> str:
         if not have:
             continue
         mean = sum(have) / len(have)
-        spread = f"{_fmt(mean, row.digits)} ({_fmt(min(have), row.digits)} to {_fmt(max(have), row.digits)})" if len(have) > 1 else "-"
+        spread = (
+            f"{_fmt(mean, row.digits)} ({_fmt(min(have), row.digits)} to {_fmt(max(have), row.digits)})"
+            if len(have) > 1
+            else "-"
+        )
         first = scored[runs[0], row.stage]
-        base = "; ".join(f"{label} {_fmt(first.get(key), row.digits)}" for label, key in row.baselines if key in first) or "-"
-        lines.append(f"| {row.stage} | {row.label} | {' / '.join(_fmt(v, row.digits) for v in values)} | {spread} | {base} |")
+        base = (
+            "; ".join(f"{label} {_fmt(first.get(key), row.digits)}" for label, key in row.baselines if key in first)
+            or "-"
+        )
+        lines.append(
+            f"| {row.stage} | {row.label} | {' / '.join(_fmt(v, row.digits) for v in values)} | {spread} | {base} |"
+        )
     return "\n".join(lines) + "\n"
 
 

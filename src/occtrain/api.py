@@ -14,9 +14,10 @@ a family's own), each taking a clip of a dataset in the Occ3D layout.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from functools import partial
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 from occtrain.data.clips import Clip, frame_clips
 from occtrain.data.layout import DatasetIndex
@@ -56,11 +57,15 @@ class TrainedModel:
             if token is None or clip.anchor["token"] == token:
                 return clip
         which = f"sample {token}" if token is not None else "sample"
-        raise ConfigError(f"{root}: no {split} {which} with {self.engine.tasks.context_frames} history frames and a 3 s future")
+        raise ConfigError(
+            f"{root}: no {split} {which} with {self.engine.tasks.context_frames} history frames and a 3 s future"
+        )
 
     def __getattr__(self, name: str) -> Callable[..., Any]:
         if name.startswith("_") or name in _INTERNAL or name not in self.engine.spec.operations:
-            raise AttributeError(f"the '{self.engine.family}' world model has no operation '{name}'; it has {', '.join(self.operations)}")
+            raise AttributeError(
+                f"the '{self.engine.family}' world model has no operation '{name}'; it has {', '.join(self.operations)}"
+            )
         return partial(self.engine.spec.operations[name], self.engine)
 
     def __dir__(self) -> list[str]:
@@ -88,7 +93,9 @@ def _export_dir(path: Path) -> Path:
     if (path / MANIFEST_FILE).is_file():
         raise ConfigError(_run_dir_message(path))
     if (path.parent / MANIFEST_FILE).is_file() and path.is_dir():
-        raise ConfigError(f"{path} is a stage directory without an export; its stage is not done — run it, or pass {path}/export")
+        raise ConfigError(
+            f"{path} is a stage directory without an export; its stage is not done — run it, or pass {path}/export"
+        )
     return path  # not occtrain's layout: the loader says what is missing
 
 
@@ -98,11 +105,17 @@ def _run_dir_message(run: Path) -> str:
 
     stages = Manifest.load(run, writable=False).stages
     if not stages:
-        return f"{run} is a run directory with no stages run yet; run its recipe, then pass RUN/STAGE/export of a world-model stage"
+        return (
+            f"{run} is a run directory with no stages run yet; run its recipe, "
+            "then pass RUN/STAGE/export of a world-model stage"
+        )
     listed = ", ".join(f"{name} ({entry.status})" for name, entry in stages.items())
     loadable = [name for name in stages if _holds_world_model(run / name / "export")]
     example = f"e.g. {run / loadable[-1] / 'export'}" if loadable else "none has one yet"
-    return f"{run} is a run directory, not an export; its stages are {listed}; pass a world-model stage's export ({example})"
+    return (
+        f"{run} is a run directory, not an export; its stages are {listed}; "
+        f"pass a world-model stage's export ({example})"
+    )
 
 
 def _holds_world_model(export: Path) -> bool:

@@ -60,7 +60,9 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     from occtrain.evaluate import eval_metrics_file, evaluate, print_metrics
 
     tasks = [t.strip() for t in args.tasks.split(",") if t.strip()] if args.tasks else None
-    metrics = evaluate(args.stage_dir, args.split, tasks, args.save_predictions, args.samples, args.batch_size, args.data)
+    metrics = evaluate(
+        args.stage_dir, args.split, tasks, args.save_predictions, args.samples, args.batch_size, args.data
+    )
     print_metrics(metrics, f"{args.stage_dir} on {args.split}" + (f" of {args.data}" if args.data else ""))
     print(f"metrics -> {eval_metrics_file(args.stage_dir, args.split, args.data)}")
     return 0
@@ -79,7 +81,9 @@ def _cmd_table(args: argparse.Namespace) -> int:
     from occtrain.progress import console
 
     table, manifest = load_run_table(args.run_dir)
-    pending = [r.stage for r in table.rows if r.stage not in manifest.stages or manifest.stages[r.stage].status != "done"]
+    pending = [
+        r.stage for r in table.rows if r.stage not in manifest.stages or manifest.stages[r.stage].status != "done"
+    ]
     if pending:
         console.print(f"[yellow]note[/]: not done yet, shown as –: {', '.join(dict.fromkeys(pending))}")
     console.print(f"table -> {show_table(args.run_dir, table, manifest)}")
@@ -90,7 +94,9 @@ def _cmd_data_synth(args: argparse.Namespace) -> int:
     from occtrain.config import SynthConfig
     from occtrain.data.synthesize import synthesize
 
-    cfg = SynthConfig(train_scenes=args.scenes, val_scenes=args.val_scenes, frames_per_scene=args.frames, seed=args.seed)
+    cfg = SynthConfig(
+        train_scenes=args.scenes, val_scenes=args.val_scenes, frames_per_scene=args.frames, seed=args.seed
+    )
     synthesize(args.out, cfg)
     return 0
 
@@ -102,7 +108,9 @@ def _cmd_data_shards(args: argparse.Namespace) -> int:
 
     check_output(args.out, "--out", kind="dir")  # an unwritable --out fails now, not after minutes of sharding
     kinds = None if args.kinds is None else [k.strip() for k in args.kinds.split(",") if k.strip()]
-    index = write_shards(args.dataset, args.out, args.samples_per_shard, args.history, args.future, kinds, rebuild=args.rebuild)
+    index = write_shards(
+        args.dataset, args.out, args.samples_per_shard, args.history, args.future, kinds, rebuild=args.rebuild
+    )
     if "clips" in index.get("missing", {}):
         console.print(f"note: {no_clips_note(index['missing']['clips'])}", markup=False)
     for kind, splits in index["kinds"].items():
@@ -116,7 +124,15 @@ def _cmd_data_shards(args: argparse.Namespace) -> int:
 def _cmd_data_show(args: argparse.Namespace) -> int:
     from occtrain.data.show import show
 
-    out = show(args.path, args.out, scene=args.scene, index=args.index, frames=args.frames, scale=args.scale, overwrite=args.overwrite)
+    out = show(
+        args.path,
+        args.out,
+        scene=args.scene,
+        index=args.index,
+        frames=args.frames,
+        scale=args.scale,
+        overwrite=args.overwrite,
+    )
     print(out)
     return 0
 
@@ -151,7 +167,10 @@ def _cmd_data_stats(args: argparse.Namespace) -> int:
         classes.add_row(*row)
     result.print(classes)
     present = stats.targets()["all_classes_present"]
-    result.print(f"every class present: {'yes' if present else 'no: ' + ', '.join(n for n, v in stats.class_shares.items() if v == 0)}")
+    result.print(
+        "every class present: "
+        f"{'yes' if present else 'no: ' + ', '.join(n for n, v in stats.class_shares.items() if v == 0)}"
+    )
     if args.json:
         console.print(f"statistics -> {atomic_write_json(args.json, stats.to_json())}")
     if args.chart:
@@ -196,11 +215,15 @@ def _add_run_commands(sub: Any) -> None:
     p.add_argument("--run-dir", help="run directory (default: runs/<recipe name>)")
     p.add_argument("--only", metavar="STAGE", help="run just this stage (its inputs must be done)")
     p.add_argument("--restart", metavar="STAGE", help="retrain this stage and every stage after it")
-    p.add_argument("--dry-run", action="store_true", help="check everything `run` checks first, then stop (as `occtrain validate`)")
+    p.add_argument(
+        "--dry-run", action="store_true", help="check everything `run` checks first, then stop (as `occtrain validate`)"
+    )
     p.set_defaults(func=_cmd_run)
 
     p = sub.add_parser(
-        "validate", help="check a recipe end to end (schema, kinds, families, handoffs, ranges, run directory, data) without writing anything",
+        "validate",
+        help="check a recipe end to end (schema, kinds, families, handoffs, ranges, run directory, data) "
+        "without writing anything",
     )
     p.add_argument("recipe", help="recipe YAML, e.g. stages/quickstart.yaml")
     p.add_argument("overrides", nargs="*", help="key=value overrides, as for run")
@@ -209,31 +232,51 @@ def _add_run_commands(sub: Any) -> None:
     p.add_argument("--restart", metavar="STAGE", help="as for run")
     p.set_defaults(func=_cmd_validate)
 
-    p = sub.add_parser("eval", help="score a stage's export on a split: a tokenizer's reconstruction, a world model's generations (the papers' metrics)")
+    p = sub.add_parser(
+        "eval",
+        help="score a stage's export on a split: a tokenizer's reconstruction, a world model's generations "
+        "(the papers' metrics)",
+    )
     p.add_argument("stage_dir", help="RUN_DIR/STAGE")
     p.add_argument("--split", default="val")
-    p.add_argument("--tasks", default="", help="comma-separated tasks of the model's family, e.g. forecasting,qa (default: those the stage trained on)")
-    p.add_argument("--save-predictions", metavar="DIR", help="also write predictions in the formats `occtrain score` reads")
     p.add_argument(
-        "--samples", type=int, default=-1,
+        "--tasks",
+        default="",
+        help="comma-separated tasks of the model's family, e.g. forecasting,qa (default: those the stage trained on)",
+    )
+    p.add_argument(
+        "--save-predictions", metavar="DIR", help="also write predictions in the formats `occtrain score` reads"
+    )
+    p.add_argument(
+        "--samples",
+        type=int,
+        default=-1,
         help="score a fixed seeded subset of N items per task (default -1: every question, chain of thought and plan)",
     )
     p.add_argument("--batch-size", type=int, default=16, help="clips generated together in one batch (default 16)")
-    p.add_argument("--data", metavar="DIR", help="score on this dataset instead of the run's (e.g. a world from another seed)")
+    p.add_argument(
+        "--data", metavar="DIR", help="score on this dataset instead of the run's (e.g. a world from another seed)"
+    )
     p.set_defaults(func=_cmd_eval)
 
     p = sub.add_parser(
-        "plan-memory", help="memory per GPU of a recipe's LLM stages under DDP and sharding, from model configs alone (nothing downloaded or trained)",
+        "plan-memory",
+        help="memory per GPU of a recipe's LLM stages under DDP and sharding, from model configs alone "
+        "(nothing downloaded or trained)",
     )
     p.add_argument("recipe", help="recipe YAML, e.g. stages/scale/occllama_llama8b.yaml")
     p.add_argument("overrides", nargs="*", help="key=value overrides, as for run (e.g. trainer.precision=bf16-mixed)")
     p.add_argument("--gpus", type=int, default=8, help="ranks to shard over (default 8, the papers' machines)")
     p.add_argument("--seq-len", type=int, default=2048, help="tokens per training sequence (default 2048)")
-    p.add_argument("--gpu-memory", type=float, metavar="GIB", help="say whether each strategy fits a GPU of this many GiB")
+    p.add_argument(
+        "--gpu-memory", type=float, metavar="GIB", help="say whether each strategy fits a GPU of this many GiB"
+    )
     p.add_argument("--checkpointing", action="store_true", help="with activation checkpointing of the decoder layers")
     p.set_defaults(func=_cmd_plan_memory)
 
-    p = sub.add_parser("table", help="print a run's comparison table (the recipe's table:) and rewrite RUN_DIR/table.md")
+    p = sub.add_parser(
+        "table", help="print a run's comparison table (the recipe's table:) and rewrite RUN_DIR/table.md"
+    )
     p.add_argument("run_dir", metavar="RUN_DIR", help="a run directory, e.g. runs/tokenizer_ablation")
     p.set_defaults(func=_cmd_table)
 
@@ -249,7 +292,9 @@ def _add_run_commands(sub: Any) -> None:
 
 def _add_data_commands(sub: Any) -> None:
     """``data synth | shards | show | stats | check``."""
-    data = sub.add_parser("data", help="synthesize, shard, show and check datasets").add_subparsers(dest="action", required=True)
+    data = sub.add_parser("data", help="synthesize, shard, show and check datasets").add_subparsers(
+        dest="action", required=True
+    )
     p = data.add_parser("synth", help="write the synthetic driving world in the Occ3D layout")
     p.add_argument("--out", required=True, help="dataset directory to create")
     p.add_argument("--scenes", type=int, default=4, help="train scenes (default 4)")
@@ -262,12 +307,17 @@ def _add_data_commands(sub: Any) -> None:
     p.add_argument("dataset")
     p.add_argument("--out", required=True)
     p.add_argument("--samples-per-shard", type=int, default=64)
-    p.add_argument("--kinds", help="comma-separated: frames, clips (default: both, or frames alone when no scene is long enough for a clip)")
+    p.add_argument(
+        "--kinds",
+        help="comma-separated: frames, clips (default: both, or frames alone when no scene is long enough for a clip)",
+    )
     p.add_argument("--history", type=int, default=4, help="history frames per clip")
     p.add_argument("--future", type=int, default=6, help="future frames per clip")
     p.add_argument(
-        "--rebuild", action="store_true",
-        help="replace the shards --out holds (of another layout, a copy or an earlier state of the dataset); the old ones stay usable until the new ones are complete",
+        "--rebuild",
+        action="store_true",
+        help="replace the shards --out holds (of another layout, a copy or an earlier state of the dataset); "
+        "the old ones stay usable until the new ones are complete",
     )
     p.set_defaults(func=_cmd_data_shards)
 
@@ -281,10 +331,14 @@ def _add_data_commands(sub: Any) -> None:
     p.add_argument("--overwrite", action="store_true", help="replace --out when it exists")
     p.set_defaults(func=_cmd_data_show)
 
-    p = data.add_parser("stats", help="a dataset's voxel statistics beside Occ3D-nuScenes' (occupancy, masks, layers, class shares)")
+    p = data.add_parser(
+        "stats", help="a dataset's voxel statistics beside Occ3D-nuScenes' (occupancy, masks, layers, class shares)"
+    )
     p.add_argument("root", help="dataset root (annotations.json + gts/), real or synthesized")
     p.add_argument("--split", default="val", choices=("train", "val"))
-    p.add_argument("--frames", type=int, default=100, help="frames counted, spread evenly over the split (default 100; -1: all)")
+    p.add_argument(
+        "--frames", type=int, default=100, help="frames counted, spread evenly over the split (default 100; -1: all)"
+    )
     p.add_argument("--json", metavar="FILE", help="also write the statistics and the reference figures as JSON")
     p.add_argument("--chart", metavar="PNG", help="also draw the class shares beside the reference as a bar chart")
     p.set_defaults(func=_cmd_data_stats)

@@ -7,9 +7,10 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 from omegaconf import OmegaConf
 
@@ -56,11 +57,14 @@ def check_table(table: ComparisonTable | None, stages: list[str], source: str) -
             raise ConfigError(f"table.rows[{i}] in {source} has no 'stage:'; stages are {', '.join(stages)}")
         if row.stage not in stages:
             raise ConfigError(
-                f"table.rows[{i}].stage in {source}: '{row.stage}' is not a stage of this recipe; stages are {', '.join(stages)}"
+                f"table.rows[{i}].stage in {source}: '{row.stage}' is not a stage of this recipe; stages are "
+                f"{', '.join(stages)}"
             )
         for key in row.paper:
             if key not in names:
-                raise ConfigError(f"table.rows[{i}].paper.{key} in {source}: '{key}' is not a column; columns are {', '.join(names)}")
+                raise ConfigError(
+                    f"table.rows[{i}].paper.{key} in {source}: '{key}' is not a column; columns are {', '.join(names)}"
+                )
 
 
 def _number(value: Any) -> float | None:
@@ -81,11 +85,13 @@ def build_table(table: ComparisonTable, results: Manifest | Mapping[str, Mapping
     for row in table.rows:
         metrics = results.get(row.stage) or {}
         ours = [_number(metrics.get(c.metric)) for c in table.columns]
-        rows.append(Row(
-            row.label or row.stage,
-            [None if v is None else v * c.scale for v, c in zip(ours, table.columns)],
-            [_number(row.paper.get(c.name)) for c in table.columns],
-        ))
+        rows.append(
+            Row(
+                row.label or row.stage,
+                [None if v is None else v * c.scale for v, c in zip(ours, table.columns)],
+                [_number(row.paper.get(c.name)) for c in table.columns],
+            )
+        )
     return rows
 
 
@@ -100,7 +106,11 @@ def _cells(table: ComparisonTable, rows: list[Row]) -> tuple[list[str], list[lis
 
     header = [LABEL_HEADER, *(c.name for c in cols), *(f"paper {cols[j].name}" for j in reported)]
     body = [
-        [r.label, *(fmt(v, c.digits) for v, c in zip(r.ours, cols)), *(fmt(r.paper[j], cols[j].digits) for j in reported)]
+        [
+            r.label,
+            *(fmt(v, c.digits) for v, c in zip(r.ours, cols)),
+            *(fmt(r.paper[j], cols[j].digits) for j in reported),
+        ]
         for r in rows
     ]
     return header, body
@@ -154,9 +164,13 @@ def load_run_table(run_dir: str | Path) -> tuple[ComparisonTable, Manifest]:
     """The table of a run's saved recipe and the run's manifest; a run without one is a ConfigError."""
     pipeline = Path(run_dir) / "pipeline.yaml"
     if not pipeline.is_file():
-        raise ConfigError(f"{run_dir}: no pipeline.yaml, so not a run directory; pass runs/<name> as written by `occtrain run`")
+        raise ConfigError(
+            f"{run_dir}: no pipeline.yaml, so not a run directory; pass runs/<name> as written by `occtrain run`"
+        )
     recipe = load_config(RecipeConfig, pipeline)
     if recipe.table is None:
-        raise ConfigError(f"{pipeline} has no table: section; add one to the recipe and run it again (done stages are skipped)")
+        raise ConfigError(
+            f"{pipeline} has no table: section; add one to the recipe and run it again (done stages are skipped)"
+        )
     check_table(recipe.table, [s.name for s in recipe.stages], str(pipeline))
     return recipe.table, Manifest.load(Path(run_dir), writable=False)

@@ -23,7 +23,9 @@ from occtrain.io import atomic_write_json, atomic_write_npz, check_output
 from occtrain.progress import console
 
 
-def eval_metrics_file(stage_dir: str | Path, split: str = "val", data_root: str | Path | None = None, world: str = "") -> Path:
+def eval_metrics_file(
+    stage_dir: str | Path, split: str = "val", data_root: str | Path | None = None, world: str = ""
+) -> Path:
     """Where ``evaluate`` writes its metrics: ``eval/<split>/`` on the run's dataset,
     ``eval/<folder>-<world key>/<split>/`` on another (see ``world_key``; ``world`` when the
     caller has it already), so two worlds in folders of one name never share a file."""
@@ -64,8 +66,16 @@ def evaluate(
     metrics_file = eval_metrics_file(stage_dir, split, data_root, world)
     _check_outputs(stage_dir, spec.kind, kind.module.saves_predictions, metrics_file, save_predictions)
     request = EvalRequest(
-        stage_dir / "export", [stage_dir.parent / dep / "export" for dep in spec.consumes], root, split, tasks, samples, batch_size,
-        stage_cache_dir(stage_dir, root), shared_cache_dir(stage_dir), save_predictions is not None,
+        stage_dir / "export",
+        [stage_dir.parent / dep / "export" for dep in spec.consumes],
+        root,
+        split,
+        tasks,
+        samples,
+        batch_size,
+        stage_cache_dir(stage_dir, root),
+        shared_cache_dir(stage_dir),
+        save_predictions is not None,
     )
     result = kind.module.evaluate_export(request)
     _save(metrics_file, result.metrics, world, world_version(root))
@@ -88,14 +98,18 @@ def _evaluable_stage(stage_dir: Path, split: str, samples: int, batch_size: int)
     if split not in SPLITS:
         raise ConfigError(f"--split {split}: a dataset's splits are {', '.join(SPLITS)}")
     if samples == 0 or samples < -1:
-        raise ConfigError(f"--samples {samples}: score a positive number of items per task, or -1 (the default) for all")
+        raise ConfigError(
+            f"--samples {samples}: score a positive number of items per task, or -1 (the default) for all"
+        )
     if batch_size < 1:
         raise ConfigError(f"--batch-size {batch_size}: must be at least 1")
     recipe = load_config(RecipeConfig, pipeline)
     load_plugins(list(recipe.plugins), str(pipeline))  # a plugin's stage kinds and families
     spec = next((s for s in recipe.stages if s.name == stage_dir.name), None)
     if spec is None:
-        raise ConfigError(f"{pipeline} has no stage '{stage_dir.name}'; stages are {', '.join(s.name for s in recipe.stages)}")
+        raise ConfigError(
+            f"{pipeline} has no stage '{stage_dir.name}'; stages are {', '.join(s.name for s in recipe.stages)}"
+        )
     kind = get_kind(spec.kind)
     if kind is None or not kind.module.evaluable:
         scorable = [k for k in kind_names() if (other := get_kind(k)) is not None and other.module.evaluable]
@@ -115,11 +129,15 @@ def _check_outputs(stage_dir: Path, kind: str, saves: bool, metrics: Path, save_
     if save_predictions is not None:
         if not saves:
             raise ConfigError(
-                f"--save-predictions {save_predictions}: a {kind} stage's eval has metrics only, no predictions to save "
+                f"--save-predictions {save_predictions}: a {kind} stage's eval has metrics only, no predictions to "
+                "save "
                 "(world-model stages' evals have); leave the flag out"
             )
         check_output(save_predictions, "--save-predictions", kind="dir")
-    fix = f"eval writes its metrics into {stage_dir}; make it writable, or copy the run to a writable place and eval the copy"
+    fix = (
+        f"eval writes its metrics into {stage_dir}; make it writable, "
+        "or copy the run to a writable place and eval the copy"
+    )
     check_output(metrics, "the eval directory", fix=fix)
 
 
@@ -143,9 +161,13 @@ def _save(out_file: Path, metrics: dict[str, float], world: str, version: str = 
     them the world's key and version (``data.layout.world_version``); returns them."""
     try:
         earlier = json.loads(out_file.read_text()) if out_file.is_file() else {}
-        seen = json.loads((out_file.parent / WORLD_FILE).read_text()) if (out_file.parent / WORLD_FILE).is_file() else {}
+        seen = (
+            json.loads((out_file.parent / WORLD_FILE).read_text()) if (out_file.parent / WORLD_FILE).is_file() else {}
+        )
     except ValueError:
-        raise ConfigError(f"{out_file.parent}: holds unreadable JSON; move it away to start the stage's eval afresh") from None
+        raise ConfigError(
+            f"{out_file.parent}: holds unreadable JSON; move it away to start the stage's eval afresh"
+        ) from None
     if seen.get("world") != world:
         earlier = {}
     atomic_write_json(out_file, {**earlier, **metrics})
@@ -156,12 +178,17 @@ def _save(out_file: Path, metrics: dict[str, float], world: str, version: str = 
 def write_predictions(out: Path, predictions: dict[str, dict]) -> None:
     """The evaluator's recorded predictions in ``occtrain score``'s input formats."""
     out.mkdir(parents=True, exist_ok=True)
-    predictions = {k: predictions.get(k, {}) for k in ("planning", "planning_gt", "forecast", "qa", "captions", "captions_gt", "meta_actions")}
+    predictions = {
+        k: predictions.get(k, {})
+        for k in ("planning", "planning_gt", "forecast", "qa", "captions", "captions_gt", "meta_actions")
+    }
     if predictions["planning"]:
         atomic_write_json(out / "planning_pred.json", predictions["planning"])
         atomic_write_json(out / "planning_gt.json", predictions["planning_gt"])
     for token, (scene, semantics) in predictions["forecast"].items():
-        atomic_write_npz(out / "forecast" / scene / token / "forecast.npz", {"semantics": np.asarray(semantics, dtype=np.uint8)})
+        atomic_write_npz(
+            out / "forecast" / scene / token / "forecast.npz", {"semantics": np.asarray(semantics, dtype=np.uint8)}
+        )
     if predictions["qa"]:
         # NuScenes-QA's format: answers in the order of a questions file, written beside them.
         questions, answers = zip(*predictions["qa"].values())

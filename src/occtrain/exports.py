@@ -33,18 +33,32 @@ EXPORT_CONFIG = "config.json"
 #: rebuilt from a default. Exports of other kinds (a plugin's stage or planner) are their
 #: writer's to check.
 EXPORT_KEYS: dict[tuple[str, str], frozenset[str]] = {
-    ("tokenizer", ""): frozenset({
-        "stage_kind", "arch", "config", "params", "label_convention",
-        "num_codes", "codebook_sizes", "latent_hw",  # a discrete tokenizer's layout
-        "discrete", "tokens", "token_dim",  # a continuous one's
-    }),
+    ("tokenizer", ""): frozenset(
+        {
+            "stage_kind",
+            "arch",
+            "config",
+            "params",
+            "label_convention",
+            "num_codes",
+            "codebook_sizes",
+            "latent_hw",  # a discrete tokenizer's layout
+            "discrete",
+            "tokens",
+            "token_dim",  # a continuous one's
+        }
+    ),
     ("world_model", ""): frozenset({"stage_kind", "stage", "family", "vocab", "world", "tasks", "max_new_text_tokens"}),
     ("vision", ""): frozenset({"stage_kind", "stage", "vision", "tower", "image_mean", "image_std", "num_classes"}),
-    ("planner", ""): frozenset({"stage_kind", "features", "visual_dim", "visual_width", "hidden", "layers", "inputs", "train_meta", "steps"}),
+    ("planner", ""): frozenset(
+        {"stage_kind", "features", "visual_dim", "visual_width", "hidden", "layers", "inputs", "train_meta", "steps"}
+    ),
 }
 
 
-def write_export(export_dir: Path, state_dict: dict[str, torch.Tensor], config: dict, extra: dict[str, Path] | None = None) -> Path:
+def write_export(
+    export_dir: Path, state_dict: dict[str, torch.Tensor], config: dict, extra: dict[str, Path] | None = None
+) -> Path:
     """Write ``model.safetensors`` + ``config.json`` (+ extra files/dirs) as one atomic directory swap.
 
     A full disk, a read-only file system or a permission error is a one-line
@@ -118,12 +132,17 @@ def read_export(export_dir: Path) -> tuple[dict[str, torch.Tensor], dict]:
     export_dir = Path(export_dir)
     weights, config = export_dir / EXPORT_WEIGHTS, export_dir / EXPORT_CONFIG
     if not weights.is_file() or not config.is_file():
-        raise OcctrainError(f"{export_dir}: no exported model ({EXPORT_WEIGHTS} + {EXPORT_CONFIG}); run the stage that produces it first")
+        raise OcctrainError(
+            f"{export_dir}: no exported model ({EXPORT_WEIGHTS} + {EXPORT_CONFIG}); run the stage that produces it "
+            "first"
+        )
     cfg = read_config(export_dir)
     try:
         state = load_file(str(weights))
     except Exception as err:  # safetensors raises its own error types on a corrupt or truncated file
-        raise OcctrainError(f"{weights}: unreadable weights ({type(err).__name__}: {_first_line(err)}); re-run the stage that wrote it") from None
+        raise OcctrainError(
+            f"{weights}: unreadable weights ({type(err).__name__}: {_first_line(err)}); re-run the stage that wrote it"
+        ) from None
     return state, cfg
 
 
@@ -133,9 +152,13 @@ def read_config(export_dir: Path) -> dict:
     try:
         data = json.loads(config.read_text())
     except (OSError, ValueError) as err:  # JSONDecodeError and UnicodeDecodeError are ValueErrors
-        raise OcctrainError(f"{config}: unreadable export config ({_first_line(err)}); re-run the stage that wrote it") from None
+        raise OcctrainError(
+            f"{config}: unreadable export config ({_first_line(err)}); re-run the stage that wrote it"
+        ) from None
     if not isinstance(data, dict):
-        raise OcctrainError(f"{config}: is not a JSON object (found a {type(data).__name__}); re-run the stage that wrote it")
+        raise OcctrainError(
+            f"{config}: is not a JSON object (found a {type(data).__name__}); re-run the stage that wrote it"
+        )
     unknown = _unknown_key(data)
     if unknown is not None:
         raise OcctrainError(f"{config}: unknown key '{unknown}' (rename or remove it){_suggestion(unknown, data)}")
@@ -167,7 +190,9 @@ def check_section(schema: type, values: Any, key: str, export_dir: Path) -> None
     names = [f.name for f in dataclasses.fields(schema)]
     unknown = next((k for k in values if k not in names), None)
     if unknown is not None:
-        raise OcctrainError(f"{config}: unknown key '{key}.{unknown}' (rename or remove it){did_you_mean(str(unknown), names)}")
+        raise OcctrainError(
+            f"{config}: unknown key '{key}.{unknown}' (rename or remove it){did_you_mean(str(unknown), names)}"
+        )
 
 
 def export_kind(export_dir: Path) -> str:
@@ -183,11 +208,16 @@ def require_config(config: dict, keys: tuple[str, ...], export_dir: Path) -> Non
     """Refuse an export config that lacks an entry its loader reads (a KeyError otherwise)."""
     lacking = [k for k in keys if k not in config]
     if lacking:
-        raise OcctrainError(f"{Path(export_dir) / EXPORT_CONFIG}: no '{lacking[0]}' entry; re-run the stage that wrote it")
+        raise OcctrainError(
+            f"{Path(export_dir) / EXPORT_CONFIG}: no '{lacking[0]}' entry; re-run the stage that wrote it"
+        )
 
 
 def load_state_strict(
-    module: torch.nn.Module, state: dict[str, torch.Tensor], ignore: tuple[str, ...], source: str,
+    module: torch.nn.Module,
+    state: dict[str, torch.Tensor],
+    ignore: tuple[str, ...],
+    source: str,
     hint: str = "re-run the stage that wrote them",
 ) -> None:
     """Load ``state`` into ``module``; every key outside the ``ignore`` prefixes must match
@@ -196,14 +226,17 @@ def load_state_strict(
     for key, tensor in state.items():
         if key in own and tuple(own[key].shape) != tuple(tensor.shape):
             raise OcctrainError(
-                f"{source}: tensor '{key}' has shape {tuple(tensor.shape)} in the weights, the model built from its config "
+                f"{source}: tensor '{key}' has shape {tuple(tensor.shape)} in the weights, the model built from its "
+                "config "
                 f"wants {tuple(own[key].shape)}; {hint}"
             )
     missing, unexpected = module.load_state_dict(state, strict=False)
     check_loaded_keys(missing, unexpected, ignore, source, hint)
 
 
-def check_loaded_keys(missing: list[str], unexpected: list[str], ignore: tuple[str, ...], source: str, hint: str) -> None:
+def check_loaded_keys(
+    missing: list[str], unexpected: list[str], ignore: tuple[str, ...], source: str, hint: str
+) -> None:
     """The strict half of ``load_state_dict(strict=False)``: keys under ``ignore`` may be
     missing (frozen parts that come from another export); nothing else may be."""
     missing = [k for k in missing if not k.startswith(ignore)]

@@ -30,7 +30,11 @@ def code_version() -> str:
     """occtrain's version, plus the git commit when running from a checkout."""
     try:
         sha = subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"], cwd=Path(__file__).parent, capture_output=True, text=True, timeout=5
+            ["git", "rev-parse", "--short", "HEAD"],
+            cwd=Path(__file__).parent,
+            capture_output=True,
+            text=True,
+            timeout=5,
         ).stdout.strip()
     except (OSError, subprocess.SubprocessError):
         sha = ""
@@ -84,7 +88,10 @@ class Manifest:
             raise OcctrainError(f"{path}: unreadable manifest ({err}); move it aside to start the run afresh") from None
         for name in stages:  # each names a directory the runner writes and --restart replaces
             if not NAME_PATTERN.fullmatch(name):
-                raise OcctrainError(f"{path}: stage '{name}' is not a folder name inside the run; move the manifest aside to start the run afresh")
+                raise OcctrainError(
+                    f"{path}: stage '{name}' is not a folder name inside the run; move the manifest aside to start the "
+                    "run afresh"
+                )
         return cls(path=path, name=raw.get("name", ""), stages=stages, writable=writable)
 
     def save(self) -> None:

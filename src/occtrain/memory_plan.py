@@ -43,7 +43,14 @@ from occtrain.errors import ConfigError, cause_line
 
 GIB = 1024**3
 #: Precision -> (parameter bytes, activation bytes); gradients and moments take the parameter's.
-PRECISIONS = {"32-true": (4, 4), "32": (4, 4), "bf16-mixed": (4, 2), "16-mixed": (4, 2), "bf16-true": (2, 2), "16-true": (2, 2)}
+PRECISIONS = {
+    "32-true": (4, 4),
+    "32": (4, 4),
+    "bf16-mixed": (4, 2),
+    "16-mixed": (4, 2),
+    "bf16-true": (2, 2),
+    "16-true": (2, 2),
+}
 #: Headroom for what the plan leaves out (CUDA context, fragmentation, workspaces).
 USABLE_FRACTION = 0.9
 #: Stage kinds whose model is a world model over an LLM.
@@ -54,7 +61,14 @@ MAX_SEQ_LEN = 2**22
 #: Largest --gpu-memory (GiB) taken as meant: past any accelerator made (an H200 holds 141).
 MAX_GPU_GIB = 10_000
 #: A Hugging Face text config's sizes (``num_key_value_heads``: grouped-query attention, optional).
-HF_SIZE_KEYS = ("hidden_size", "num_hidden_layers", "num_attention_heads", "intermediate_size", "vocab_size", "num_key_value_heads")
+HF_SIZE_KEYS = (
+    "hidden_size",
+    "num_hidden_layers",
+    "num_attention_heads",
+    "intermediate_size",
+    "vocab_size",
+    "num_key_value_heads",
+)
 #: ``LLMConfig`` keys a model at ``llm.path`` ignores: its config.json decides them.
 PATH_SHADOWS = (*TINY_SIZE_KEYS, "model_type")
 
@@ -107,7 +121,10 @@ def check_flags(gpus: int, seq: int, gpu_gib: float | None) -> None:
         raise ConfigError(f"--seq-len {seq}: tokens per training sequence must be in 1..{MAX_SEQ_LEN} (2**22)")
     # ``not 0 < x`` also refuses NaN, which argparse's float() accepts.
     if gpu_gib is not None and not 0 < gpu_gib <= MAX_GPU_GIB:
-        raise ConfigError(f"--gpu-memory {gpu_gib:g}: a GPU's memory in GiB must be above 0 and at most {MAX_GPU_GIB} (an H100 has 80)")
+        raise ConfigError(
+            f"--gpu-memory {gpu_gib:g}: a GPU's memory in GiB must be above 0 and at most {MAX_GPU_GIB} (an H100 has "
+            "80)"
+        )
 
 
 def _read_config(path: str, key: str) -> Any:
@@ -115,11 +132,20 @@ def _read_config(path: str, key: str) -> Any:
     from transformers import AutoConfig
 
     if not (Path(path) / "config.json").is_file():
-        raise ConfigError(f"{key}: {path} has no config.json; plan-memory reads a model's config.json (weights not needed)")
+        raise ConfigError(
+            f"{key}: {path} has no config.json; plan-memory reads a model's config.json (weights not needed)"
+        )
     try:
         return AutoConfig.from_pretrained(path, local_files_only=True)
-    except (OSError, ValueError, KeyError, StrictDataclassError) as e:  # transformers' own checks of the values raise the last
-        raise ConfigError(f"{key}: cannot read the model config in {path} ({cause_line(e)}); fix its config.json") from None
+    except (
+        OSError,
+        ValueError,
+        KeyError,
+        StrictDataclassError,
+    ) as e:  # transformers' own checks of the values raise the last
+        raise ConfigError(
+            f"{key}: cannot read the model config in {path} ({cause_line(e)}); fix its config.json"
+        ) from None
 
 
 def _check_config_sizes(path: str) -> None:
@@ -140,7 +166,9 @@ def _check_config_sizes(path: str) -> None:
         sizes["head_dim"] = text["head_dim"]
     # An explicit head_dim sizes q/k/v as heads x head_dim: hidden_size need not divide then.
     hidden = "" if "head_dim" in sizes else "hidden_size"
-    check_llm_sizes(sizes, f"{file}: {'text_config.' if nested else ''}", hidden, "num_attention_heads", "num_key_value_heads")
+    check_llm_sizes(
+        sizes, f"{file}: {'text_config.' if nested else ''}", hidden, "num_attention_heads", "num_key_value_heads"
+    )
 
 
 def _on_meta(config: Any, auto: Any) -> nn.Module:
@@ -150,7 +178,12 @@ def _on_meta(config: Any, auto: Any) -> nn.Module:
 
 
 def count_llm(
-    llm_cfg: Any, extra_vocab: int, lora: Any = None, adapter: Any = None, vocab: int | None = None, freeze: tuple[str, ...] = (),
+    llm_cfg: Any,
+    extra_vocab: int,
+    lora: Any = None,
+    adapter: Any = None,
+    vocab: int | None = None,
+    freeze: tuple[str, ...] = (),
     key: str = "llm",
 ) -> ModelCount:
     """Build ``llm_cfg``'s LM on the meta device (vocabulary grown by ``extra_vocab`` rows,
@@ -191,11 +224,16 @@ def count_llm(
     heads = text.num_attention_heads
     head_dim = getattr(text, "head_dim", None) or text.hidden_size // heads
     return ModelCount(
-        name=name, params=params, trainable=trainable,
+        name=name,
+        params=params,
+        trainable=trainable,
         frozen_beside=0,
-        layers=text.num_hidden_layers, hidden=text.hidden_size,
+        layers=text.num_hidden_layers,
+        hidden=text.hidden_size,
         kv_hidden=(getattr(text, "num_key_value_heads", None) or heads) * head_dim,
-        intermediate=text.intermediate_size, heads=heads, vocab=text.vocab_size,
+        intermediate=text.intermediate_size,
+        heads=heads,
+        vocab=text.vocab_size,
         layer_params=sum(p.numel() for p in layer.parameters()),
         attention=getattr(text, "_attn_implementation", None) or "sdpa",
     )
@@ -294,7 +332,8 @@ def _refuse_shadowed(llm_cfg: Any, key: str, written: list[tuple[str, str]]) -> 
     for as_written, normal in written:
         if normal in {f"{key}.{k}" for k in PATH_SHADOWS}:
             raise ConfigError(
-                f"{as_written}: ignored, since {key}.path is set ({llm_cfg.path}) and its config.json decides the model; "
+                f"{as_written}: ignored, since {key}.path is set ({llm_cfg.path}) and its config.json decides the "
+                "model; "
                 f"drop the override to plan that model, or point {key}.path at a config.json with the sizes you want"
             )
 
@@ -307,7 +346,7 @@ def _override_keys(overrides: list[str], names: list[str], recipe_path: str) -> 
     for item in overrides:
         normal = stage_override(item, names, recipe_path).split("=", 1)[0].strip()
         if normal.startswith("stages["):  # stages[<i>].rest -> stages.<name>.rest
-            index, rest = normal[len("stages["):].split("]", 1)
+            index, rest = normal[len("stages[") :].split("]", 1)
             normal = f"stages.{names[int(index)]}{rest}" if index.isdigit() and int(index) < len(names) else normal
         keys.append((item.split("=", 1)[0].strip(), normal))
     return keys
@@ -324,18 +363,27 @@ def _count_stage(p: Any, planned: dict[str, Any], written: list[tuple[str, str]]
         student_key = f"stages.{p.spec.name}.model.student"
         _refuse_shadowed(cfg.student, student_key, written)
         teacher = count_llm(pretrain.model_cfg.llm, extra, key=llm_key)
-        count = count_llm(cfg.student, extra, vocab=teacher.vocab, key=student_key)  # the student speaks the teacher's vocabulary
+        count = count_llm(
+            cfg.student, extra, vocab=teacher.vocab, key=student_key
+        )  # the student speaks the teacher's vocabulary
         count.frozen_beside += teacher.params
         return count
     lora = cfg.lora if getattr(cfg, "use_lora", False) else None
     adapter = cfg.adapter if getattr(cfg, "use_adapters", False) else None
     count = count_llm(pretrain.model_cfg.llm, extra, lora, adapter, freeze=tuple(p.spec.freeze), key=llm_key)
-    count.frozen_beside += sum(count_vision(planned[d].model_cfg.vision) for d in pretrain.spec.consumes if planned[d].spec.kind == "vision")
+    count.frozen_beside += sum(
+        count_vision(planned[d].model_cfg.vision) for d in pretrain.spec.consumes if planned[d].spec.kind == "vision"
+    )
     return count
 
 
 def plan_recipe(
-    recipe_path: str, overrides: list[str], gpus: int, seq: int, checkpointing: bool, gpu_gib: float | None = None,
+    recipe_path: str,
+    overrides: list[str],
+    gpus: int,
+    seq: int,
+    checkpointing: bool,
+    gpu_gib: float | None = None,
 ) -> list[StagePlan]:
     """A plan for every LLM stage of the recipe at its batch and precision (``gpu_gib``, the
     GPU a table will be checked against, is only validated here)."""
@@ -352,7 +400,16 @@ def plan_recipe(
         count = _count_stage(p, planned, written)
         batch = int(p.data.batch_size)
         precision = str(p.trainer.precision)
-        plans.append(StagePlan(p.spec.name, p.spec.kind, count, batch, precision, plan(count, precision, batch, seq, gpus, checkpointing)))
+        plans.append(
+            StagePlan(
+                p.spec.name,
+                p.spec.kind,
+                count,
+                batch,
+                precision,
+                plan(count, precision, batch, seq, gpus, checkpointing),
+            )
+        )
     if not plans:
         raise ConfigError(f"{recipe_path} has no pretrain, instruct or distill stage: plan-memory plans LLM stages")
     return plans
@@ -365,7 +422,8 @@ def _gib(n: float) -> str:
 def format_plans(plans: list[StagePlan], seq: int, gpu_gib: float | None, checkpointing: bool) -> str:
     """A table per stage, GiB per rank, and whether each strategy fits ``gpu_gib``."""
     lines = [
-        f"memory per rank (GiB) of one training step at {seq} tokens per sequence, activation checkpointing {'on' if checkpointing else 'off'}",
+        f"memory per rank (GiB) of one training step at {seq} tokens per sequence, activation checkpointing "
+        f"{'on' if checkpointing else 'off'}",
         "(CUDA context, fragmentation and workspaces not included; a plan fits under 90 % of the GPU)",
     ]
     for sp in plans:
@@ -375,7 +433,8 @@ def format_plans(plans: list[StagePlan], seq: int, gpu_gib: float | None, checkp
             f"{sp.stage} ({sp.kind}): {c.name}, {c.params / 1e9:.3f} B parameters, {c.trainable / 1e6:.2f} M trainable"
             + (f", {c.frozen_beside / 1e9:.3f} B frozen beside it" if c.frozen_beside else "")
             + f", batch {sp.batch} per rank, {sp.precision}",
-            f"  {'strategy':<12} {'weights':>8} {'grads':>8} {'AdamW':>8} {'extra':>8} {'activ.':>8} {'total':>8}" + ("  fits" if gpu_gib else ""),
+            f"  {'strategy':<12} {'weights':>8} {'grads':>8} {'AdamW':>8} {'extra':>8} {'activ.':>8} {'total':>8}"
+            + ("  fits" if gpu_gib else ""),
         ]
         for r in sp.rows:
             fit = f"  {'yes' if r.fits(gpu_gib) else 'no'} ({gpu_gib:g} GiB)" if gpu_gib else ""
@@ -384,4 +443,14 @@ def format_plans(plans: list[StagePlan], seq: int, gpu_gib: float | None, checkp
     return "\n".join(lines)
 
 
-__all__ = ["GIB", "ModelCount", "MemoryRow", "StagePlan", "activation_bytes", "count_llm", "format_plans", "plan", "plan_recipe"]
+__all__ = [
+    "GIB",
+    "ModelCount",
+    "MemoryRow",
+    "StagePlan",
+    "activation_bytes",
+    "count_llm",
+    "format_plans",
+    "plan",
+    "plan_recipe",
+]

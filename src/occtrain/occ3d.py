@@ -36,15 +36,38 @@ CLASS_INDEX = {name: i for i, name in enumerate(CLASS_NAMES)}
 #: The classes that move: vehicles, cyclists and pedestrians (barriers and cones stand
 #: still). Occ-LLM's motion separation and the movable-class mIoU read this grouping.
 MOVABLE_CLASSES: tuple[str, ...] = (
-    "bicycle", "bus", "car", "construction_vehicle", "motorcycle", "pedestrian", "trailer", "truck",
+    "bicycle",
+    "bus",
+    "car",
+    "construction_vehicle",
+    "motorcycle",
+    "pedestrian",
+    "trailer",
+    "truck",
 )
 
 #: Occ3D-nuScenes training-set voxel counts per class, in class order (free last): the
 #: counts public Occ3D training code weights its class-balanced losses with (the BEVDet-occ
 #: lineage's ``nusc_class_frequencies``). Facts for ``occtrain data stats`` to compare with.
 OCC3D_TRAIN_VOXELS: tuple[int, ...] = (
-    1163161, 2309034, 188743, 2997643, 20317180, 852476, 243808, 2457947, 497017, 2731022,
-    7224789, 214411435, 5565043, 63191967, 76098082, 128860031, 141625221, 2307405309,
+    1163161,
+    2309034,
+    188743,
+    2997643,
+    20317180,
+    852476,
+    243808,
+    2457947,
+    497017,
+    2731022,
+    7224789,
+    214411435,
+    5565043,
+    63191967,
+    76098082,
+    128860031,
+    141625221,
+    2307405309,
 )
 #: What one real Occ3D-nuScenes frame (``labels.npz``) shows, as shares in [0, 1] but for
 #: the voxels per column: its mask_camera lies wholly inside its mask_lidar.

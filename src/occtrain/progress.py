@@ -5,8 +5,8 @@ from __future__ import annotations
 import math
 import os
 import time
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from typing import Callable, Iterator
 
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
@@ -60,7 +60,9 @@ class Ticker:
     only what this process did, so a resume does not claim the earlier steps' speed.
     """
 
-    def __init__(self, description: str, total: int | None, start: int = 0, unit: str = "", every_s: float | None = None):
+    def __init__(
+        self, description: str, total: int | None, start: int = 0, unit: str = "", every_s: float | None = None
+    ):
         self.description, self.total, self.unit = description, total, unit
         self.start = self.done = start
         self.every_s = interval_s() if every_s is None else every_s
@@ -70,7 +72,11 @@ class Ticker:
         """``12/40 (30%), loss 2.1, 3.1/s, 9 s left`` (``in 13 s`` once ``final``)."""
         elapsed = time.monotonic() - self.t0
         prefix = f"{self.unit} " if self.unit else ""
-        parts = [f"{prefix}{self.done}/{self.total} ({100 * self.done // max(1, self.total)}%)" if self.total else f"{prefix}{self.done}"]
+        parts = [
+            f"{prefix}{self.done}/{self.total} ({100 * self.done // max(1, self.total)}%)"
+            if self.total
+            else f"{prefix}{self.done}"
+        ]
         if extra:
             parts.append(extra)
         made = self.done - self.start

@@ -14,9 +14,10 @@ import fcntl
 import os
 import signal
 import socket
+from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import IO, Iterator
+from typing import IO
 
 from occtrain.errors import OcctrainError
 from occtrain.io import write_error

@@ -16,10 +16,10 @@ import json
 import math
 import time
 import traceback
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable
-
+from typing import Any
 
 from omegaconf import OmegaConf
 
@@ -82,7 +82,10 @@ def plan_stages(recipe: RecipeConfig, source: str) -> list[PlannedStage]:
     for i, spec in enumerate(recipe.stages):
         for key in ("name", "kind"):
             if OmegaConf.is_missing(spec, key):
-                raise ConfigError(f"stages[{i}] in {source} has no '{key}:'; every stage needs a name and a kind ({', '.join(kind_names())})")
+                raise ConfigError(
+                    f"stages[{i}] in {source} has no '{key}:'; every stage needs a name and a kind "
+                    f"({', '.join(kind_names())})"
+                )
         check_name(spec.name, f"stages[{i}].name", source, "a stage")
         where = f"stages[{i}] ('{spec.name}') in {source}"
         kind = get_kind(spec.kind)
@@ -102,16 +105,27 @@ def plan_stages(recipe: RecipeConfig, source: str) -> list[PlannedStage]:
         kind.module.check_model(model_cfg, f"stages.{spec.name}.model")
         wrong = sorted(set(spec.data or {}) - set(STAGE_DATA_KEYS))
         if wrong:
-            raise ConfigError(f"stages[{i}].data.{wrong[0]} in {source}: a stage sets only {', '.join(STAGE_DATA_KEYS)}; the dataset is the recipe's")
+            raise ConfigError(
+                f"stages[{i}].data.{wrong[0]} in {source}: a stage sets only {', '.join(STAGE_DATA_KEYS)}; the dataset "
+                "is the recipe's"
+            )
         stage_data = validate_section(DataConfig, {**data, **(spec.data or {})}, f"stages[{i}].data", source)
-        trainer = validate_section(TrainerConfig, {**to_container(recipe.trainer), **(spec.trainer or {})}, f"stages[{i}].trainer", source)
+        trainer = validate_section(
+            TrainerConfig, {**to_container(recipe.trainer), **(spec.trainer or {})}, f"stages[{i}].trainer", source
+        )
         if trainer.max_steps <= 0:
-            key = f"stages.{spec.name}.trainer.max_steps" if "max_steps" in (spec.trainer or {}) else "trainer.max_steps"
+            key = (
+                f"stages.{spec.name}.trainer.max_steps" if "max_steps" in (spec.trainer or {}) else "trainer.max_steps"
+            )
             raise ConfigError(
                 f"{key} is {trainer.max_steps} in {source}: a stage trains for a positive number of optimizer steps "
                 "(training streams data without end, so there is no 'until the data runs out')"
             )
-        for section, value, own in (("trainer", trainer, spec.trainer), ("data", stage_data, spec.data), ("optim", spec.optim, None)):
+        for section, value, own in (
+            ("trainer", trainer, spec.trainer),
+            ("data", stage_data, spec.data),
+            ("optim", spec.optim, None),
+        ):
             check_ranges(section, value, spec.name, own, source)
         trainer_dict = {k: v for k, v in to_container(trainer).items() if k not in OPERATIONAL_KEYS}
         config = {
@@ -146,10 +160,23 @@ def _check_consumes(spec: StageSpec, earlier: list[str], every: list[str], where
 #: torch: the least each may be, per section (``None``: any finite number).
 _LEAST: dict[str, dict[str, float | None]] = {
     "trainer": {
-        "devices": 1, "num_nodes": 1, "val_check_interval": 1, "log_every_n_steps": 1, "ckpt_every_n_steps": 1,
-        "accumulate_grad_batches": 1, "limit_val_batches": -1, "gradient_clip_val": 0,
+        "devices": 1,
+        "num_nodes": 1,
+        "val_check_interval": 1,
+        "log_every_n_steps": 1,
+        "ckpt_every_n_steps": 1,
+        "accumulate_grad_batches": 1,
+        "limit_val_batches": -1,
+        "gradient_clip_val": 0,
     },
-    "data": {"batch_size": 1, "num_workers": 0, "shuffle_buffer": -1, "samples_per_shard": 1, "history": 0, "future": 0},
+    "data": {
+        "batch_size": 1,
+        "num_workers": 0,
+        "shuffle_buffer": -1,
+        "samples_per_shard": 1,
+        "history": 0,
+        "future": 0,
+    },
     "optim": {"lr": 0, "weight_decay": 0, "warmup_steps": 0, "min_lr_ratio": 0, "eps": 0},
 }
 
@@ -162,17 +189,28 @@ def check_ranges(section: str, cfg: Any, stage: str, own: dict | None, source: s
         if section == "trainer" and name == "devices" and value == -1:  # Lightning's "every device"
             continue
         if isinstance(value, float) and not math.isfinite(value) or (least is not None and value < least):
-            key = f"stages.{stage}.{section}.{name}" if section == "optim" or name in (own or {}) else f"{section}.{name}"
-            wanted = "a finite number" if isinstance(value, float) and not math.isfinite(value) else f"at least {least:g}"
+            key = (
+                f"stages.{stage}.{section}.{name}" if section == "optim" or name in (own or {}) else f"{section}.{name}"
+            )
+            wanted = (
+                "a finite number" if isinstance(value, float) and not math.isfinite(value) else f"at least {least:g}"
+            )
             if name == "devices":
                 wanted += ", or -1 for every device"
             raise ConfigError(f"{key} is {value} in {source}: it must be {wanted}")
-    if section == "optim" and (len(cfg.betas) != 2 or not all(0 <= b < 1 for b in cfg.betas) or cfg.schedule not in ("cosine", "constant")):
+    if section == "optim" and (
+        len(cfg.betas) != 2 or not all(0 <= b < 1 for b in cfg.betas) or cfg.schedule not in ("cosine", "constant")
+    ):
         key = "schedule" if cfg.schedule not in ("cosine", "constant") else "betas"
-        raise ConfigError(f"stages.{stage}.optim.{key} is {getattr(cfg, key)} in {source}: schedule is cosine or constant, betas two numbers in [0, 1)")
+        raise ConfigError(
+            f"stages.{stage}.optim.{key} is {getattr(cfg, key)} in {source}: schedule is cosine or constant, betas two "
+            "numbers in [0, 1)"
+        )
 
 
-def _model_config(kind: StageKind, spec: StageSpec, consumed: dict, key: str, source: str, where: str) -> tuple[str | None, Any]:
+def _model_config(
+    kind: StageKind, spec: StageSpec, consumed: dict, key: str, source: str, where: str
+) -> tuple[str | None, Any]:
     """The stage's family and its ``model:`` validated against the schema for that family
     (only the chosen family's settings: registering another family changes no hash)."""
     raw = to_container(spec.model) if spec.model is not None else {}
@@ -181,7 +219,10 @@ def _model_config(kind: StageKind, spec: StageSpec, consumed: dict, key: str, so
     named = raw.get("family")
     if named and named != family:
         get_family(str(named), f"{key}.family in {source}")  # a typo is named as one
-        raise ConfigError(f"{key}.family in {source} is '{named}', but the stage tunes the consumed '{family}' world model; leave it out")
+        raise ConfigError(
+            f"{key}.family in {source} is '{named}', but the stage tunes the consumed '{family}' world model; leave it "
+            "out"
+        )
     kind.module.check_family(family, consumed, where)
     return family, validate_section(kind.module.model_schema(kind, family, raw), spec.model or {}, key, source)
 
@@ -217,7 +258,8 @@ def stage_override(item: str, names: list[str], source: str) -> str:
     else:
         forms = "stages.<name>.<key>=, stages.<index>.<key>= or stages[<index>].<key>="
         raise ConfigError(
-            f"override '{item}': {source} has no stage '{ref}' (stages: {', '.join(names) or 'none'}); address one as {forms}"
+            f"override '{item}': {source} has no stage '{ref}' (stages: {', '.join(names) or 'none'}); address one as "
+            f"{forms}"
         )
     return f"stages[{index}].{'.'.join(parts[2:])}={item.split('=', 1)[1]}" if "=" in item else item
 
@@ -256,8 +298,12 @@ def load_recipe(path: str | Path, overrides: list[str] | None = None) -> tuple[R
 
 
 def _execute(
-    stage: PlannedStage, recipe: RecipeConfig, stage_dir: Path, inputs: dict[str, Path],
-    record_time: Callable[[float], None] | None = None, record_attempt: Callable[[dict], None] | None = None,
+    stage: PlannedStage,
+    recipe: RecipeConfig,
+    stage_dir: Path,
+    inputs: dict[str, Path],
+    record_time: Callable[[float], None] | None = None,
+    record_attempt: Callable[[dict], None] | None = None,
 ) -> dict:
     import lightning as L
 
@@ -334,7 +380,7 @@ def run(
     if rank_zero:
         for note in shadowed_overrides(recipe, list(overrides or [])):
             console.print(f"[yellow]note[/]: {note}")
-    with stop_on_signals(), (run_lock(run_dir) if rank_zero else contextlib.nullcontext()):
+    with stop_on_signals(), run_lock(run_dir) if rank_zero else contextlib.nullcontext():
         # Read again under the lock: the manifest this run writes is the one it checked.
         manifest = Manifest.load(run_dir, writable=rank_zero)
         if rank_zero:  # an earlier --restart killed before it settled
@@ -393,8 +439,11 @@ class RunCheck:
 
 
 def check_run(
-    recipe_path: str | Path, overrides: list[str] | None = None, run_dir: str | Path | None = None,
-    only: str | None = None, restart: str | None = None,
+    recipe_path: str | Path,
+    overrides: list[str] | None = None,
+    run_dir: str | Path | None = None,
+    only: str | None = None,
+    restart: str | None = None,
 ) -> RunCheck:
     """Every check ``occtrain run`` makes before it writes anything (``occtrain validate``
     runs exactly these): the recipe's schema, stage kinds, families and architectures,
@@ -419,7 +468,8 @@ def check_run(
             last_checkpoint(run_dir / p.spec.name)
     refuse_without_cameras(planned, recipe.data)
     will_train = [
-        p for p in planned
+        p
+        for p in planned
         if (only is None or p.spec.name == only)
         and (p.spec.name in restarted or getattr(manifest.stages.get(p.spec.name), "status", "pending") != "done")
     ]
@@ -434,14 +484,16 @@ def refuse_unrunnable_trainers(planned: list[PlannedStage]) -> None:
     does not take (or ``fsdp`` for a stage kind that does not shard), a logger that is
     unknown or not installed: refused before the first stage writes anything."""
     from occtrain.stages.common import check_trainer_setup
-    from occtrain.stages.sharding import SHARDED
     from occtrain.stages.loggers import check_loggers
+    from occtrain.stages.sharding import SHARDED
 
     keys = ("accelerator", "devices", "num_nodes", "strategy", "precision")
     checked: set[tuple] = set()
     for p in planned:
         if p.trainer.strategy == SHARDED and not p.kind.module.shards:
-            key = f"stages.{p.spec.name}.trainer.strategy" if "strategy" in (p.spec.trainer or {}) else "trainer.strategy"
+            key = (
+                f"stages.{p.spec.name}.trainer.strategy" if "strategy" in (p.spec.trainer or {}) else "trainer.strategy"
+            )
             raise ConfigError(
                 f"{key} is {SHARDED}, but a {p.spec.kind} stage does not shard (the pretrain and instruct stages do); "
                 f"train '{p.spec.name}' with stages.{p.spec.name}.trainer.strategy=ddp"
@@ -454,7 +506,10 @@ def refuse_unrunnable_trainers(planned: list[PlannedStage]) -> None:
         own = set(p.spec.trainer or {}) & set(keys)
         check_trainer_setup(p.trainer, f"stages.{p.spec.name}.trainer" if own else "trainer")
     for p in planned:
-        check_loggers(list(p.trainer.loggers), f"stages.{p.spec.name}.trainer.loggers" if "loggers" in (p.spec.trainer or {}) else "trainer.loggers")
+        check_loggers(
+            list(p.trainer.loggers),
+            f"stages.{p.spec.name}.trainer.loggers" if "loggers" in (p.spec.trainer or {}) else "trainer.loggers",
+        )
 
 
 def refuse_missing_tasks(planned: list[PlannedStage], data: DataConfig) -> None:
@@ -489,7 +544,8 @@ def refuse_without_cameras(planned: list[PlannedStage], data: DataConfig) -> Non
     if (root / ANNOTATIONS_FILE).is_file():
         if not DatasetIndex.open(root).has_cameras:
             raise ConfigError(
-                f"stage '{readers[0]}' reads camera images, and {root} has none (no camera_sensor records or no imgs/); "
+                f"stage '{readers[0]}' reads camera images, and {root} has none (no camera_sensor records or no "
+                "imgs/); "
                 "point data.root at a dataset with cameras, or move this one away to synthesize one"
             )
     elif data.synth.camera_height <= 0:
@@ -506,11 +562,14 @@ def refuse_changed(planned: list[PlannedStage], manifest: Manifest, restarted: s
         keys = ", ".join(changed_keys(entry.config, p.config)[:6]) or "inputs"
         if entry.status == "done":
             raise ConfigError(
-                f"stage '{name}' is done but its config changed ({keys}); `--restart {name}` retrains it and the stages after it"
+                f"stage '{name}' is done but its config changed ({keys}); `--restart {name}` retrains it and the "
+                "stages after it"
             )
         resumes = only is None or only == name
         if resumes and entry.status in RESUMABLE and (manifest.path.parent / name / "checkpoints").exists():
-            raise ConfigError(f"stage '{name}' was cut off under a different config ({keys}); `--restart {name}` starts it afresh")
+            raise ConfigError(
+                f"stage '{name}' was cut off under a different config ({keys}); `--restart {name}` starts it afresh"
+            )
 
 
 def _record_failure(manifest: Manifest, name: str, summary: str, seconds: float, status: str) -> None:
@@ -548,7 +607,14 @@ def _write_table(run_dir: Path, recipe: RecipeConfig, manifest: Manifest) -> Non
         console.print(f"[yellow]table not written[/]: {line}")
 
 
-def _run_stages(planned: list[PlannedStage], manifest: Manifest, run_dir: Path, recipe: RecipeConfig, only: str | None, rank_zero: bool) -> None:
+def _run_stages(
+    planned: list[PlannedStage],
+    manifest: Manifest,
+    run_dir: Path,
+    recipe: RecipeConfig,
+    only: str | None,
+    rank_zero: bool,
+) -> None:
     exports: dict[str, Path] = {}
     for p in planned:
         name, entry, stage_dir = p.spec.name, manifest.stages[p.spec.name], run_dir / p.spec.name
@@ -561,12 +627,17 @@ def _run_stages(planned: list[PlannedStage], manifest: Manifest, run_dir: Path, 
             continue
         missing = [d for d in p.spec.consumes if d not in exports]
         if missing:
-            raise ConfigError(f"stage '{name}' consumes the export of '{missing[0]}', which is not done; run it first (drop --only)")
+            raise ConfigError(
+                f"stage '{name}' consumes the export of '{missing[0]}', which is not done; run it first (drop --only)"
+            )
         manifest.mark_running(name, p.config_hash, p.config)
         started = time.time()
         try:
             result = _execute(
-                p, recipe, stage_dir, {d: exports[d] for d in p.spec.consumes},
+                p,
+                recipe,
+                stage_dir,
+                {d: exports[d] for d in p.spec.consumes},
                 record_time=lambda seconds, name=name: manifest.record_time(name, seconds),
                 record_attempt=lambda facts, name=name: manifest.record_attempt(name, facts),
             )

@@ -10,9 +10,10 @@ from __future__ import annotations
 
 import argparse
 import json
+from collections.abc import Callable
 from functools import lru_cache
 from pathlib import Path
-from typing import Annotated, Any, Callable, Literal, NotRequired, TypedDict, Union
+from typing import Annotated, Any, Literal, NotRequired, TypedDict
 
 import numpy as np
 
@@ -21,6 +22,7 @@ from occtrain.data.schema import QAFile, Vec2
 from occtrain.data.validate import Len, first_problem
 from occtrain.errors import DataError
 from occtrain.io import atomic_write_json, check_output, finite_or_null
+
 # The metrics (torch, torchmetrics) load with the first score, not with the CLI's parser.
 from occtrain.metrics.conventions import CONVENTIONS, horizon_label
 from occtrain.occ3d import FUTURE_STEPS, GRID_SHAPE, NUM_CLASSES
@@ -41,13 +43,16 @@ class PlanningTruth(TypedDict):
 
 PlanningPredictions = dict[str, Waypoints]
 CaptionPredictions = dict[str, str]
-CaptionReferences = dict[str, Union[str, list[str]]]
+CaptionReferences = dict[str, str | list[str]]
 #: Strings only, as NuScenes-QA's answers are: the integer 1 is not the answer "1".
 QAPredictions = list[str]
 
 
 #: Every output names how it was computed (occupancy and forecasts carry occ3d/occworld).
-PLANNING_CONVENTION = "L2_stp3/collision_stp3: ST-P3 (mean over the steps up to each horizon); L2_uniad/collision_uniad: UniAD (at the horizon's step)"
+PLANNING_CONVENTION = (
+    "L2_stp3/collision_stp3: ST-P3 (mean over the steps up to each horizon); "
+    "L2_uniad/collision_uniad: UniAD (at the horizon's step)"
+)
 CAPTION_CONVENTION = "coco-caption (pycocoevalcap on PTB-tokenized text, scores as fractions, not percent)"
 QA_CONVENTION = "nuscenes-qa (exact match of the answer string, by template type and hop)"
 
@@ -120,8 +125,14 @@ def _missing_error(kind: str, missing: list[str], where: Path | str) -> DataErro
 # ----------------------------------------------------------------------------- occupancy
 
 
-def score_occupancy(pred_dir: Path, gt: Path, convention: str = "occ3d", use_mask: bool = True,
-                    split: str | None = None, allow_missing: bool = False) -> dict[str, Any]:
+def score_occupancy(
+    pred_dir: Path,
+    gt: Path,
+    convention: str = "occ3d",
+    use_mask: bool = True,
+    split: str | None = None,
+    allow_missing: bool = False,
+) -> dict[str, Any]:
     """Score ``<pred_dir>/<scene>/<token>/labels.npz`` against the ground truth's labels."""
     import torch
 
@@ -160,12 +171,16 @@ def load_forecast(path: Path) -> np.ndarray:
     if sem.ndim != 4 or sem.shape[1:] != GRID_SHAPE:
         raise DataError(f"{path}: 'semantics' has shape {sem.shape}, expected (T, {', '.join(map(str, GRID_SHAPE))})")
     if sem.shape[0] <= max(FORECAST_HORIZONS):
-        raise DataError(f"{path}: holds {sem.shape[0]} future frames; the 1 s/2 s/3 s horizons need {max(FORECAST_HORIZONS) + 1}")
+        raise DataError(
+            f"{path}: holds {sem.shape[0]} future frames; the 1 s/2 s/3 s horizons need {max(FORECAST_HORIZONS) + 1}"
+        )
     if sem.dtype.kind not in "ui":  # floats (NaN, 3.7) and bools are not class labels: never cast them
         raise DataError(f"{path}: 'semantics' has dtype {sem.dtype}; save class indices 0..{NUM_CLASSES - 1} as uint8")
     low, high = int(sem.min()), int(sem.max())
     if low < 0 or high >= NUM_CLASSES:
-        raise DataError(f"{path}: 'semantics' holds class {low if low < 0 else high}; Occ3D classes are 0..{NUM_CLASSES - 1}")
+        raise DataError(
+            f"{path}: 'semantics' holds class {low if low < 0 else high}; Occ3D classes are 0..{NUM_CLASSES - 1}"
+        )
     return sem.astype(np.uint8, copy=False)  # lossless: every value is 0..17
 
 
@@ -181,7 +196,9 @@ def score_forecast(pred_dir: Path, gt: Path) -> dict[str, Any]:
     if not pred_dir.is_dir():
         raise DataError(f"{pred_dir}: prediction directory not found")
     if not _has_annotations(gt):
-        raise DataError(f"{gt}: forecasting needs a dataset root with {ANNOTATIONS_FILE} (it gives the scenes' frame order)")
+        raise DataError(
+            f"{gt}: forecasting needs a dataset root with {ANNOTATIONS_FILE} (it gives the scenes' frame order)"
+        )
     index = DatasetIndex.open(gt)
     files = sorted(pred_dir.glob(f"*/*/{FORECAST_FILE}"))
     if not files:
@@ -230,8 +247,13 @@ def score_planning(pred_file: Path, gt_file: Path, allow_missing: bool = False) 
         if not isinstance(obj, dict) or not obj:
             raise DataError(f"{path}: expected a non-empty JSON object keyed by sample token")
     check_json(preds, PlanningPredictions, pred_file, f"each sample needs {FUTURE_STEPS} waypoints [[x, y], ...]")
-    check_json(gts, dict[str, PlanningTruth], gt_file,
-               'each sample needs {"traj": [[x, y] x 6], "mask": [0/1 x 6], "agents": [[[x, y, length, width, yaw], ...] x 6]}')
+    check_json(
+        gts,
+        dict[str, PlanningTruth],
+        gt_file,
+        'each sample needs {"traj": [[x, y] x 6], "mask": [0/1 x 6], "agents": [[[x, y, length, width, yaw], ...] x '
+        "6]}",
+    )
     extra = [t for t in preds if t not in gts]
     if extra:
         raise DataError(f"{pred_file}: sample {extra[0]} is not in the ground truth {gt_file}")
@@ -245,7 +267,11 @@ def score_planning(pred_file: Path, gt_file: Path, allow_missing: bool = False) 
             continue
         mask = np.asarray(entry.get("mask", [1] * FUTURE_STEPS), dtype=bool)  # 0/1 or true/false: checked above
         row = (np.asarray(preds[token], dtype=np.float64), np.asarray(entry["traj"], dtype=np.float64), mask)
-        agents = [np.asarray(boxes, dtype=np.float64).reshape(-1, 5) for boxes in entry["agents"]] if "agents" in entry else None
+        agents = (
+            [np.asarray(boxes, dtype=np.float64).reshape(-1, 5) for boxes in entry["agents"]]
+            if "agents" in entry
+            else None
+        )
         with_agents[agents is not None].append((row, agents))
     for has_agents, rows in with_agents.items():
         if rows:
@@ -265,7 +291,7 @@ def score_captions(pred_file: Path, ref_file: Path, allow_missing: bool = False)
     refs = read_json(ref_file, "caption references")
     check_json(preds, CaptionPredictions, pred_file, 'expected a JSON object {id: "caption"}')
     if not isinstance(refs, dict) or not refs:
-        raise DataError(f"{ref_file}: expected a non-empty JSON object {{id: [\"reference\", ...]}}")
+        raise DataError(f'{ref_file}: expected a non-empty JSON object {{id: ["reference", ...]}}')
     check_json(refs, CaptionReferences, ref_file, 'expected a JSON object {id: ["reference", ...]}')
     refs = {k: [v] if isinstance(v, str) else v for k, v in refs.items()}
     for k, v in refs.items():
@@ -280,7 +306,10 @@ def score_captions(pred_file: Path, ref_file: Path, allow_missing: bool = False)
     scored = {k: v for k, v in refs.items() if k in preds}
     if not scored:
         raise DataError(f"{pred_file}: no caption for any id of {ref_file}")
-    result: dict[str, Any] = {"convention": CAPTION_CONVENTION, **coco_caption_scores({k: preds[k] for k in scored}, scored)}
+    result: dict[str, Any] = {
+        "convention": CAPTION_CONVENTION,
+        **coco_caption_scores({k: preds[k] for k in scored}, scored),
+    }
     result["samples"] = len(scored)
     return result
 
@@ -295,12 +324,18 @@ def score_qa(pred_file: Path, questions_file: Path) -> dict[str, Any]:
     questions = data["questions"]
     if not isinstance(preds, list):
         raise DataError(f"{pred_file}: expected a JSON list of answer strings, in the order of {questions_file}")
-    check_json(preds, QAPredictions, pred_file, f"expected a JSON list of answer strings, in the order of {questions_file}")
+    check_json(
+        preds, QAPredictions, pred_file, f"expected a JSON list of answer strings, in the order of {questions_file}"
+    )
     if len(preds) != len(questions):
         raise DataError(f"{pred_file}: holds {len(preds)} answers but {questions_file} asks {len(questions)} questions")
     metric = QAMetric()
-    metric.update(list(preds), [q["answer"] for q in questions],
-                  [q["template_type"] for q in questions], [q["num_hop"] for q in questions])
+    metric.update(
+        list(preds),
+        [q["answer"] for q in questions],
+        [q["template_type"] for q in questions],
+        [q["num_hop"] for q in questions],
+    )
     return {"convention": QA_CONVENTION, **metric.compute()}
 
 
@@ -308,7 +343,12 @@ def score_qa(pred_file: Path, questions_file: Path) -> dict[str, Any]:
 
 
 def _cmd_occupancy(args: argparse.Namespace) -> int:
-    emit(score_occupancy(Path(args.pred), Path(args.gt), args.convention, not args.no_mask, args.split, args.allow_missing), args.out)
+    emit(
+        score_occupancy(
+            Path(args.pred), Path(args.gt), args.convention, not args.no_mask, args.split, args.allow_missing
+        ),
+        args.out,
+    )
     return 0
 
 
@@ -357,33 +397,71 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     def out(p: argparse.ArgumentParser) -> None:
         p.add_argument("--out", metavar="FILE", help="also write the JSON result to FILE (atomically)")
 
-    p = add("occupancy", "semantic occupancy mIoU/IoU (Occ3D convention by default)", _cmd_occupancy,
-            "directory of <scene>/<token>/labels.npz with 'semantics'")
-    p.add_argument("--gt", required=True, help="dataset root (annotations.json + gts/) or a plain <scene>/<token>/labels.npz tree")
-    p.add_argument("--split", choices=("train", "val"), help="score one split of a dataset root (default: every sample)")
-    p.add_argument("--convention", choices=CONVENTIONS, default="occ3d", help="occ3d (default) or occworld (all voxels, absent class = 100)")
+    p = add(
+        "occupancy",
+        "semantic occupancy mIoU/IoU (Occ3D convention by default)",
+        _cmd_occupancy,
+        "directory of <scene>/<token>/labels.npz with 'semantics'",
+    )
+    p.add_argument(
+        "--gt", required=True, help="dataset root (annotations.json + gts/) or a plain <scene>/<token>/labels.npz tree"
+    )
+    p.add_argument(
+        "--split", choices=("train", "val"), help="score one split of a dataset root (default: every sample)"
+    )
+    p.add_argument(
+        "--convention",
+        choices=CONVENTIONS,
+        default="occ3d",
+        help="occ3d (default) or occworld (all voxels, absent class = 100)",
+    )
     p.add_argument("--no-mask", action="store_true", help="occ3d: count every voxel, not only mask_camera ones")
-    p.add_argument("--allow-missing", action="store_true", help="score the samples that have a prediction, skip the rest")
+    p.add_argument(
+        "--allow-missing", action="store_true", help="score the samples that have a prediction, skip the rest"
+    )
     out(p)
 
-    p = add("forecast", f"occupancy forecasting mIoU/IoU at {', '.join(horizon_label(h) for h in FORECAST_HORIZONS)} (OccWorld convention)",
-            _cmd_forecast, f"directory of <scene>/<token>/{FORECAST_FILE} with 'semantics' (T, 200, 200, 16)")
+    p = add(
+        "forecast",
+        f"occupancy forecasting mIoU/IoU at {', '.join(horizon_label(h) for h in FORECAST_HORIZONS)} (OccWorld "
+        "convention)",
+        _cmd_forecast,
+        f"directory of <scene>/<token>/{FORECAST_FILE} with 'semantics' (T, 200, 200, 16)",
+    )
     p.add_argument("--gt", required=True, help="dataset root: its scene order gives the future frames")
     out(p)
 
-    p = add("planning", "planning L2 and collision rate, ST-P3 and UniAD conventions", _cmd_planning,
-            'JSON {sample_token: [[x, y] x 6]}')
-    p.add_argument("--gt", required=True, help='JSON {sample_token: {"traj": [[x, y] x 6], "mask": [0/1 x 6], "agents": [[[x, y, l, w, yaw], ...] x 6]}}')
-    p.add_argument("--allow-missing", action="store_true", help="score the samples that have a prediction, skip the rest")
+    p = add(
+        "planning",
+        "planning L2 and collision rate, ST-P3 and UniAD conventions",
+        _cmd_planning,
+        "JSON {sample_token: [[x, y] x 6]}",
+    )
+    p.add_argument(
+        "--gt",
+        required=True,
+        help='JSON {sample_token: {"traj": [[x, y] x 6], "mask": [0/1 x 6], "agents": [[[x, y, l, w, yaw], ...] x 6]}}',
+    )
+    p.add_argument(
+        "--allow-missing", action="store_true", help="score the samples that have a prediction, skip the rest"
+    )
     out(p)
 
-    p = add("captions", "BLEU-1..4, METEOR, ROUGE-L, CIDEr-D (pycocoevalcap; needs Java)", _cmd_captions,
-            'JSON {id: "caption"}')
+    p = add(
+        "captions",
+        "BLEU-1..4, METEOR, ROUGE-L, CIDEr-D (pycocoevalcap; needs Java)",
+        _cmd_captions,
+        'JSON {id: "caption"}',
+    )
     p.add_argument("--ref", required=True, help='JSON {id: ["reference", ...]}')
     p.add_argument("--allow-missing", action="store_true", help="score the ids that have a caption, skip the rest")
     out(p)
 
-    p = add("qa", "NuScenes-QA exact-match accuracy, by type and by hop", _cmd_qa,
-            "JSON list of answer strings, in the order of the questions file")
+    p = add(
+        "qa",
+        "NuScenes-QA exact-match accuracy, by type and by hop",
+        _cmd_qa,
+        "JSON list of answer strings, in the order of the questions file",
+    )
     p.add_argument("--questions", required=True, help='NuScenes-QA JSON {"questions": [...]}')
     out(p)

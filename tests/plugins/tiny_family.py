@@ -36,7 +36,7 @@ from occtrain.data.clips import Clip, Part, Scene, Text, plan_target
 from occtrain.exports import write_export
 from occtrain.metrics import PlanningMetric, compute_metrics
 from occtrain.models.planner import constant_velocity, current_velocity
-from occtrain.occ3d import CLASS_INDEX, GRID_SHAPE, NUM_CLASSES, VOXEL_SIZE, FUTURE_STEPS
+from occtrain.occ3d import CLASS_INDEX, FUTURE_STEPS, GRID_SHAPE, NUM_CLASSES, VOXEL_SIZE
 
 CELLS = 10  # columns per side
 SIDE = GRID_SHAPE[0] // CELLS
@@ -91,8 +91,18 @@ class ColumnBuilder(SequenceBuilder):
         self.add(torch.tensor([v.occ_open_id]), supervise)
         block = self.next_block()
         if supervise:
-            self.add(v.query_ids(), False, seg=-block, payload={"feat": torch.zeros(n, FEATURES), "target": feats, "has_target": torch.ones(n)})
-        self.add(torch.arange(v.occ_start, v.occ_start + n), False, seg=block, payload={"feat": feats, "target": torch.zeros(n, FEATURES), "has_target": torch.zeros(n)})
+            self.add(
+                v.query_ids(),
+                False,
+                seg=-block,
+                payload={"feat": torch.zeros(n, FEATURES), "target": feats, "has_target": torch.ones(n)},
+            )
+        self.add(
+            torch.arange(v.occ_start, v.occ_start + n),
+            False,
+            seg=block,
+            payload={"feat": feats, "target": torch.zeros(n, FEATURES), "has_target": torch.zeros(n)},
+        )
         self.add(torch.tensor([v.occ_close_id]), supervise)
         return self
 
@@ -107,7 +117,11 @@ class ColumnScene:
         v = self.world.vocab
         self.feats = self.world.predict_features(hidden)
         n = v.scene_len
-        payload = {"feat": self.feats, "target": torch.zeros_like(self.feats), "has_target": torch.zeros(n, device=hidden.device)}
+        payload = {
+            "feat": self.feats,
+            "target": torch.zeros_like(self.feats),
+            "has_target": torch.zeros(n, device=hidden.device),
+        }
         return torch.arange(v.occ_start, v.occ_start + n, device=hidden.device), payload
 
     def codes(self) -> torch.Tensor:
@@ -122,7 +136,11 @@ class ColumnWorldModel(LMWorldModel):
         hidden = self.hidden_size
         self.embed_features = nn.Linear(FEATURES, hidden)
         self.to_features = nn.Linear(hidden, FEATURES - 3)
-        self.payload_spec = {"feat": ((FEATURES,), torch.float32, 0.0), "target": ((FEATURES,), torch.float32, 0.0), "has_target": ((), torch.float32, 0.0)}
+        self.payload_spec = {
+            "feat": ((FEATURES,), torch.float32, 0.0),
+            "target": ((FEATURES,), torch.float32, 0.0),
+            "has_target": ((), torch.float32, 0.0),
+        }
         centres = ColumnEncoder().centres
         self.register_buffer("centres", centres, persistent=False)
 
@@ -149,7 +167,9 @@ class ColumnWorldModel(LMWorldModel):
 
     def forward(self, batch: dict, output_hidden_states: bool = False) -> WorldModelOutput:
         payload = batch_payload(batch)
-        out = self._run(batch["input_ids"], batch["attention_mask"], batch["position_ids"], hidden=True, payload=payload)
+        out = self._run(
+            batch["input_ids"], batch["attention_mask"], batch["position_ids"], hidden=True, payload=payload
+        )
         labels = batch["labels"]
         ce = token_ce(out.logits, labels)
         valid = labels != IGNORE
@@ -158,7 +178,9 @@ class ColumnWorldModel(LMWorldModel):
         pred = self.predict_shares(out.hidden_states[-1][rows])
         scene = F.mse_loss(pred, payload["target"][rows][..., 3:], reduction="sum") / rows.sum().clamp(min=1)
         per_sample = (ce * valid).sum(1) / valid.sum(1).clamp(min=1)
-        return WorldModelOutput(text + scene, text, scene, out.logits, out.hidden_states[-1] if output_hidden_states else None, per_sample)
+        return WorldModelOutput(
+            text + scene, text, scene, out.logits, out.hidden_states[-1] if output_hidden_states else None, per_sample
+        )
 
     def check_prompt(self, prefix):
         if not isinstance(prefix, TokenSequence) and bool(self.vocab.is_occ(torch.as_tensor(prefix)).any()):
@@ -195,7 +217,11 @@ def _context(clip: Clip, cfg: ColumnTasks) -> list[Part]:
 
 def car_columns(clip: Clip, cfg: ColumnTasks, rng) -> list[Part] | None:
     """How many of the anchor's columns hold a car (from the boxes: one per car's column)."""
-    cells = {(int((b["center"][0] + 40) // 8), int((b["center"][1] + 40) // 8)) for b in clip.anchor.get("boxes", []) if b["category"] == "car"}
+    cells = {
+        (int((b["center"][0] + 40) // 8), int((b["center"][1] + 40) // 8))
+        for b in clip.anchor.get("boxes", [])
+        if b["category"] == "car"
+    }
     return [*_context(clip, cfg), Text("How many columns hold a car?"), Text(str(len(cells)), True)]
 
 
@@ -223,13 +249,17 @@ class CarColumnScorer(scorers.BaseScorer):
         truth, said = item.parts[-1].text, item.generated[0].text.strip()
         self.answers[truth] += 1
         ev.metrics["car_columns_acc"].update(100.0 * (said == truth))
-        ev.metrics["baseline_commonest_car_columns_acc"].update(100.0 * (truth == "0"))  # the synthetic world's commonest
+        ev.metrics["baseline_commonest_car_columns_acc"].update(
+            100.0 * (truth == "0")
+        )  # the synthetic world's commonest
         ev.keep_text("car_columns", item.parts[-2].text, said, truth)
 
 
 TASKS = {
     "car_columns": TaskSpec(car_columns, scorer=CarColumnScorer),
-    "forecasting": TaskSpec(forecasting, scorer=(scorers.ForecastScorer, scorers.plan_scorer("plan_alternate", alternate=True))),
+    "forecasting": TaskSpec(
+        forecasting, scorer=(scorers.ForecastScorer, scorers.plan_scorer("plan_alternate", alternate=True))
+    ),
     "qa": TaskSpec(qa, every_question, scorers.QAScorer),
 }
 
@@ -253,7 +283,11 @@ class SummaryPlanner(nn.Module):
     def __init__(self, ctx: Any, teacher: Any):
         super().__init__()
         self.teacher = teacher.requires_grad_(False).eval()
-        self.head = nn.Sequential(nn.Linear(teacher.world.hidden_size + 2, ctx.model_cfg.hidden), nn.GELU(), nn.Linear(ctx.model_cfg.hidden, FUTURE_STEPS * 2))
+        self.head = nn.Sequential(
+            nn.Linear(teacher.world.hidden_size + 2, ctx.model_cfg.hidden),
+            nn.GELU(),
+            nn.Linear(ctx.model_cfg.hidden, FUTURE_STEPS * 2),
+        )
         self.metrics = nn.ModuleDict({"head": PlanningMetric(), "constant_velocity": PlanningMetric()})
 
     @property
@@ -264,16 +298,23 @@ class SummaryPlanner(nn.Module):
     def _summary(self, clips: list[Clip]) -> torch.Tensor:
         engine = self.teacher
         rows = engine.scenes({"ann": [c.ann for c in clips]}, [{c.anchor_index} for c in clips])
-        seqs = [engine.encode_parts([Scene(c.anchor_index)], {c.anchor_index: rows[(b, c.anchor_index)]}) for b, c in enumerate(clips)]
+        seqs = [
+            engine.encode_parts([Scene(c.anchor_index)], {c.anchor_index: rows[(b, c.anchor_index)]})
+            for b, c in enumerate(clips)
+        ]
         from occtrain.core.builder import collate
 
-        batch = {k: v.to(self.device) if torch.is_tensor(v) else v for k, v in collate(seqs, engine.vocab.pad_id).items()}
+        batch = {
+            k: v.to(self.device) if torch.is_tensor(v) else v for k, v in collate(seqs, engine.vocab.pad_id).items()
+        }
         hidden = engine.world(batch, output_hidden_states=True).hidden
         slots = engine.vocab.is_occ(batch["input_ids"]).float()[..., None]
         return (hidden * slots).sum(1) / slots.sum(1).clamp(min=1)
 
     def _plan(self, clips: list[Clip]) -> torch.Tensor:
-        velocity = torch.tensor(np.stack([current_velocity(c.anchor) for c in clips]), dtype=torch.float32, device=self.device)
+        velocity = torch.tensor(
+            np.stack([current_velocity(c.anchor) for c in clips]), dtype=torch.float32, device=self.device
+        )
         x = torch.cat([self._summary(clips), velocity / 10.0], 1)
         return constant_velocity([c.anchor for c in clips], self.device) + self.head(x).view(-1, FUTURE_STEPS, 2)
 
@@ -285,7 +326,9 @@ class SummaryPlanner(nn.Module):
     def validate(self, clips: list[Clip], batch_idx: int, generate_batches: int = -1) -> None:
         gt = plan_target([c.anchor for c in clips], self.device)
         self.metrics["head"].update(self._plan(clips), gt.traj, gt.mask, gt.agents)
-        self.metrics["constant_velocity"].update(constant_velocity([c.anchor for c in clips], self.device), gt.traj, gt.mask, gt.agents)
+        self.metrics["constant_velocity"].update(
+            constant_velocity([c.anchor for c in clips], self.device), gt.traj, gt.mask, gt.agents
+        )
 
     def compute(self, prefix: str) -> dict[str, float]:
         return compute_metrics(prefix, self.metrics, reset=True)
@@ -323,7 +366,10 @@ TINY = register_family(
             model=ColumnWorldModel,
             task_config=ColumnTasks,
             tasks=TASKS,
-            default_tasks={"pretrain": {"forecasting": 1.0, "car_columns": 1.0}, "instruct": {"qa": 1.0, "car_columns": 1.0}},
+            default_tasks={
+                "pretrain": {"forecasting": 1.0, "car_columns": 1.0},
+                "instruct": {"qa": 1.0, "car_columns": 1.0},
+            },
             prompt_words=("How many columns hold a car?", "Forecast."),
             inputs=(),
             scene_encoder=column_encoder,

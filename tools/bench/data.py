@@ -85,8 +85,10 @@ def bench_fingerprint(root: Path) -> None:
             out.append(time.perf_counter() - start)
     print(f"{root}: {len(files)} source files, {size / 1e6:.0f} MB")
     print(f"fingerprint by size + mtime: {' / '.join(f'{t:.2f}' for t in stat_s)} s")
-    print(f"sha256 of every byte       : {' / '.join(f'{t:.2f}' for t in hash_s)} s   "
-          f"({min(hash_s) / min(stat_s):.1f}x the fingerprint, best of three)")
+    print(
+        f"sha256 of every byte       : {' / '.join(f'{t:.2f}' for t in hash_s)} s   "
+        f"({min(hash_s) / min(stat_s):.1f}x the fingerprint, best of three)"
+    )
 
 
 def main() -> None:
@@ -115,7 +117,10 @@ def main() -> None:
         read2 = bench_read(data, 2, args.read_seconds)
 
     print(f"synthesis, in memory      : {plain:7.1f} frames/s   (labels and both masks)")
-    print(f"  with the six cameras    : {with_cams:7.1f} frames/s   (goal >= 15; {plain / with_cams:.2f}x the time, goal <= 3x)")
+    print(
+        f"  with the six cameras    : {with_cams:7.1f} frames/s   (goal >= 15; {plain / with_cams:.2f}x the time, goal "
+        "<= 3x)"
+    )
     print(f"synthesis, written to disk: {disk_fps:7.1f} frames/s   (labels, six images with class and depth maps)")
     print(f"shard read, num_workers=0 : {read0:7.1f} samples/s  (goal >= 200)")
     print(f"shard read, num_workers=2 : {read2:7.1f} samples/s  ({read2 / read0:.2f}x workers=0)")

@@ -39,7 +39,9 @@ def _rchar() -> int:
 
 
 def _rank(rank: int, world: int, urls: list[str], total: int, batch: int, steps: int, out: dict) -> None:
-    pipeline = make_pipeline(urls, train=True, total=total, batch_size=batch, rank_and_world=(rank, world), seed=0, shuffle_buffer=1)
+    pipeline = make_pipeline(
+        urls, train=True, total=total, batch_size=batch, rank_and_world=(rank, world), seed=0, shuffle_buffer=1
+    )
     loader = DataLoader(pipeline, batch_size=batch, num_workers=0, collate_fn=len)
     iterator = iter(loader)
     next(iterator)  # imports and the header scan of the first batch are set-up, not reading
@@ -56,7 +58,10 @@ def measure(urls: list[str], total: int, world: int, global_batch: int, steps: i
     ctx = mp.get_context("spawn")
     with ctx.Manager() as manager:
         out = manager.dict()
-        procs = [ctx.Process(target=_rank, args=(r, world, urls, total, global_batch // world, steps, out)) for r in range(world)]
+        procs = [
+            ctx.Process(target=_rank, args=(r, world, urls, total, global_batch // world, steps, out))
+            for r in range(world)
+        ]
         for p in procs:
             p.start()
         for p in procs:
@@ -73,7 +78,9 @@ def main() -> None:
     parser.add_argument("--epochs", type=float, default=1.0)
     args = parser.parse_args()
     if not (Path(args.shards) / "index.json").is_file():
-        raise SystemExit(f"{args.shards}: no shards; run `occtrain run stages/quickstart.yaml` (or `occtrain data shards`) first")
+        raise SystemExit(
+            f"{args.shards}: no shards; run `occtrain run stages/quickstart.yaml` (or `occtrain data shards`) first"
+        )
     print(f"training shards of {args.shards}, global batch {args.global_batch}, {args.epochs:g} epoch(s); MiB per rank")
     print(f"{'kind':<7} {'processes':>9} {'rchar/rank':>11} {'entries/rank':>13} {'vs 1 process':>13} {'1/N':>6}")
     for kind in ("frames", "clips"):
@@ -86,7 +93,10 @@ def main() -> None:
             entries = sum(e for _, e, _ in ranks) / world
             assert all(n == steps * args.global_batch // world for _, _, n in ranks)
             one = one or rchar
-            print(f"{kind:<7} {world:>9} {rchar / 2**20:>11.1f} {entries / 2**20:>13.1f} {rchar / one:>13.3f} {1 / world:>6.3f}")
+            print(
+                f"{kind:<7} {world:>9} {rchar / 2**20:>11.1f} {entries / 2**20:>13.1f} {rchar / one:>13.3f} "
+                f"{1 / world:>6.3f}"
+            )
 
 
 if __name__ == "__main__":

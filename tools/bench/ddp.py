@@ -23,9 +23,18 @@ REPO = Path(__file__).resolve().parents[2]
 def samples_per_s(devices: int, steps: int) -> float:
     with tempfile.TemporaryDirectory() as tmp:
         cmd = [
-            sys.executable, "-m", "occtrain", "run", "stages/tokenizer.yaml", f"trainer.devices={devices}",
-            f"trainer.strategy={'ddp' if devices > 1 else 'auto'}", f"stages[0].trainer.max_steps={steps}",
-            f"stages[0].trainer.val_check_interval={steps}", "stages[0].trainer.limit_val_batches=1", "--run-dir", tmp,
+            sys.executable,
+            "-m",
+            "occtrain",
+            "run",
+            "stages/tokenizer.yaml",
+            f"trainer.devices={devices}",
+            f"trainer.strategy={'ddp' if devices > 1 else 'auto'}",
+            f"stages[0].trainer.max_steps={steps}",
+            f"stages[0].trainer.val_check_interval={steps}",
+            "stages[0].trainer.limit_val_batches=1",
+            "--run-dir",
+            tmp,
         ]
         subprocess.run(cmd, cwd=REPO, check=True, capture_output=True)
         manifest = json.loads((Path(tmp) / "manifest.json").read_text())
@@ -40,8 +49,10 @@ def main() -> None:
     args = parser.parse_args()
     one = samples_per_s(1, args.steps)
     two = samples_per_s(2, args.steps)
-    print(f"tokenizer stage, {args.steps} steps: 1 process {one:.2f} samples/s, 2 DDP processes {two:.2f} samples/s "
-          f"-> {two / one:.2f}x")
+    print(
+        f"tokenizer stage, {args.steps} steps: 1 process {one:.2f} samples/s, 2 DDP processes {two:.2f} samples/s "
+        f"-> {two / one:.2f}x"
+    )
 
 
 if __name__ == "__main__":

@@ -49,7 +49,9 @@ def main() -> None:
     data.prepare_data()
     batches = [b for _, b in zip(range(args.batches), data.loader("val", train=False))]
     engine = load_world_model(stage / "export").eval()
-    engine.prepare_inputs(recipe.data.root, stage / "cache", shared_cache_dir(stage))  # time generation, not the frozen encoders
+    engine.prepare_inputs(
+        recipe.data.root, stage / "cache", shared_cache_dir(stage)
+    )  # time generation, not the frozen encoders
     torch.manual_seed(0)
     for task in args.tasks.split(","):
         timed(engine, task, batches[:1], True)  # warm-up
@@ -57,8 +59,11 @@ def main() -> None:
         t_batch, many = timed(engine, task, batches, batched=True)
         same = sum(a == b for a, b in zip(one, many))
         n = len(one)
-        print(f"{task}: {n} sequences, one at a time {n / t_one:.2f} seq/s, batched ({args.batch_size}) {n / t_batch:.2f} seq/s "
-              f"-> {t_one / t_batch:.1f}x; identical answers {same}/{n}")
+        print(
+            f"{task}: {n} sequences, one at a time {n / t_one:.2f} seq/s, batched ({args.batch_size}) "
+            f"{n / t_batch:.2f} seq/s "
+            f"-> {t_one / t_batch:.1f}x; identical answers {same}/{n}"
+        )
 
 
 if __name__ == "__main__":

@@ -44,7 +44,9 @@ def main() -> None:
     engine = load_world_model(stage / "export").eval()
     if engine.vision is None:
         raise SystemExit(f"{stage}: not an OccVLA stage (its world model reads no cameras)")
-    engine.prepare_inputs(recipe.data.root, stage / "cache", shared_cache_dir(stage))  # time generation, not camera encoding
+    engine.prepare_inputs(
+        recipe.data.root, stage / "cache", shared_cache_dir(stage)
+    )  # time generation, not camera encoding
     index = DatasetIndex.open(recipe.data.root)
     clips = list(frame_clips(index, "val", engine.tasks.context_frames, FUTURE_STEPS, partial_history=False))
     clips = clips if args.samples < 0 else clips[: args.samples]
@@ -62,7 +64,7 @@ def main() -> None:
         for rep in range(args.repeats):
             for token, prompt, plan in prompts:
                 outs = {}
-                for occupancy in ((False, True) if rep % 2 == 0 else (True, False)):
+                for occupancy in (False, True) if rep % 2 == 0 else (True, False):
                     start = time.perf_counter()
                     outs[occupancy] = engine.world.generate_with_occupancy(prompt, plan, occupancy=occupancy)
                     times[occupancy] += time.perf_counter() - start

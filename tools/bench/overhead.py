@@ -34,8 +34,12 @@ REPO = Path(__file__).resolve().parents[2]
 
 
 def context(data: DataConfig, steps: int, stage_dir: Path) -> StageContext:
-    model_cfg = OmegaConf.merge(OmegaConf.structured(TokenizerModelConfig), OmegaConf.load(REPO / "configs/model/occworld_vqvae_tiny.yaml"))
-    trainer = TrainerConfig(max_steps=steps, val_check_interval=10_000, limit_val_batches=0, ckpt_every_n_steps=10, log_every_n_steps=5)
+    model_cfg = OmegaConf.merge(
+        OmegaConf.structured(TokenizerModelConfig), OmegaConf.load(REPO / "configs/model/occworld_vqvae_tiny.yaml")
+    )
+    trainer = TrainerConfig(
+        max_steps=steps, val_check_interval=10_000, limit_val_batches=0, ckpt_every_n_steps=10, log_every_n_steps=5
+    )
     spec = StageSpec(name="bench", kind="tokenizer", optim=OptimConfig(lr=1e-3))
     return StageContext(spec, model_cfg, data, trainer, stage_dir, {})
 
@@ -83,7 +87,9 @@ def main() -> None:
         times["bare"].append(bare(data, args.steps))
         times["lightning"].append(lightning(data, args.steps))
     b, lt = min(times["bare"]), min(times["lightning"])
-    print(f"{args.steps} steps: bare loop {b:.1f} s, occtrain Trainer {lt:.1f} s -> ratio {lt / b:.3f} (best of 2 each)")
+    print(
+        f"{args.steps} steps: bare loop {b:.1f} s, occtrain Trainer {lt:.1f} s -> ratio {lt / b:.3f} (best of 2 each)"
+    )
 
 
 if __name__ == "__main__":

@@ -125,8 +125,10 @@ def measure_cuda(cfg: LLMConfig, args: argparse.Namespace, precision: str) -> in
 
 
 def main_cuda(cfg: LLMConfig, count, args: argparse.Namespace) -> None:
-    print(f"LLM {count.params / 1e6:.0f} M parameters, batch {args.batch} x {args.seq} tokens, AdamW, one GPU "
-          f"({torch.cuda.get_device_name()}); GiB")
+    print(
+        f"LLM {count.params / 1e6:.0f} M parameters, batch {args.batch} x {args.seq} tokens, AdamW, one GPU "
+        f"({torch.cuda.get_device_name()}); GiB"
+    )
     print(f"{'setting':<32} {'measured':>9} {'planned':>9} {'measured / planned':>19}")
     for precision in ("32-true", "bf16-mixed"):
         for checkpointing in (False, True):
@@ -146,11 +148,19 @@ def main() -> None:
     parser.add_argument("--batch", type=int, default=1)
     parser.add_argument("--cuda", action="store_true", help="one process on the GPU, fp32 and bf16-mixed")
     args = parser.parse_args()
-    cfg = LLMConfig(hidden_size=args.hidden, num_layers=args.layers, num_heads=16, intermediate_size=int(args.hidden * 2.75), text_vocab_size=VOCAB)
+    cfg = LLMConfig(
+        hidden_size=args.hidden,
+        num_layers=args.layers,
+        num_heads=16,
+        intermediate_size=int(args.hidden * 2.75),
+        text_vocab_size=VOCAB,
+    )
     count = count_llm(cfg, 0)
     if args.cuda:
         return main_cuda(cfg, count, args)
-    print(f"LLM {count.params / 1e6:.0f} M parameters, batch {args.batch} x {args.seq} tokens, fp32, AdamW; GiB per rank")
+    print(
+        f"LLM {count.params / 1e6:.0f} M parameters, batch {args.batch} x {args.seq} tokens, fp32, AdamW; GiB per rank"
+    )
     print(f"{'setting':<30} {'measured (each rank)':>22} {'planned':>9} {'measured / planned':>19}")
     for checkpointing in (False, True):
         args.checkpointing = checkpointing

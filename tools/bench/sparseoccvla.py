@@ -59,7 +59,13 @@ def bench_planner(stage: Path, steps: list[int], batch: int) -> None:
 
     recipe = _recipe(stage)
     spec = next(s for s in recipe.stages if s.name == stage.name)
-    request = EvalRequest(stage / "export", [stage.parent / d / "export" for d in spec.consumes], recipe.data.root, cache_dir=stage / "cache", shared_cache_dir=shared_cache_dir(stage))
+    request = EvalRequest(
+        stage / "export",
+        [stage.parent / d / "export" for d in spec.consumes],
+        recipe.data.root,
+        cache_dir=stage / "cache",
+        shared_cache_dir=shared_cache_dir(stage),
+    )
     planner, clips = PlannerStage.rebuild(request)
     batches = [clips[i : i + batch] for i in range(0, len(clips), batch)]
     for b in batches:  # the decisions, once: the same for every step count
@@ -69,7 +75,7 @@ def bench_planner(stage: Path, steps: list[int], batch: int) -> None:
     planner.plan(batches[0], steps=steps[0])  # warm-up
     for i, b in enumerate(batches):
         gt = plan_target([c.anchor for c in b], planner.device)
-        for s in steps[i % len(steps):] + steps[: i % len(steps)]:
+        for s in steps[i % len(steps) :] + steps[: i % len(steps)]:
             start = time.perf_counter()
             plan, _, _ = planner.plan(b, steps=s)
             times[s] += time.perf_counter() - start
@@ -78,8 +84,11 @@ def bench_planner(stage: Path, steps: list[int], batch: int) -> None:
     base = times[steps[0]]
     for s in steps:
         l2 = metrics[s].compute()["L2_stp3"]
-        print(f"  {s} DDIM step(s): {1e3 * times[s] / len(batches):7.2f} ms/batch ({times[s] / base:.2f}x {steps[0]} step), "
-              f"L2 stp3 1s/2s/3s/avg {l2['1s']:.3f} / {l2['2s']:.3f} / {l2['3s']:.3f} / {l2['avg']:.3f} m")
+        print(
+            f"  {s} DDIM step(s): {1e3 * times[s] / len(batches):7.2f} ms/batch ({times[s] / base:.2f}x {steps[0]} "
+            "step), "
+            f"L2 stp3 1s/2s/3s/avg {l2['1s']:.3f} / {l2['2s']:.3f} / {l2['3s']:.3f} / {l2['avg']:.3f} m"
+        )
 
 
 def measure_step(stage: Path, batch: int, steps: int) -> dict:
@@ -92,7 +101,15 @@ def measure_step(stage: Path, batch: int, steps: int) -> dict:
     engine = load_world_model(stage / "export")
     engine.prepare_inputs(recipe.data.root, stage / "cache", shared_cache_dir(stage))
     engine.train()
-    clips = list(frame_clips(DatasetIndex.open(recipe.data.root), "train", engine.tasks.context_frames, FUTURE_STEPS, partial_history=False))[:batch]
+    clips = list(
+        frame_clips(
+            DatasetIndex.open(recipe.data.root),
+            "train",
+            engine.tasks.context_frames,
+            FUTURE_STEPS,
+            partial_history=False,
+        )
+    )[:batch]
     laid, _ = engine.task_batch(clips, {"ann": [c.ann for c in clips]}, seed=0)
     params = [p for p in engine.world.parameters() if p.requires_grad]
     engine.world(laid).loss.backward()  # warm-up
@@ -104,29 +121,43 @@ def measure_step(stage: Path, batch: int, steps: int) -> dict:
     step_s = (time.perf_counter() - start) / steps
     ids = laid["input_ids"]
     images = int(engine.vocab.is_image(ids[0]).sum()) if engine.vocab.image else 0
-    return {"family": engine.family, "scene_tokens": int(engine.vocab.scene_len), "image_tokens": images,
-            "sequence_length": float((ids != engine.vocab.pad_id).sum(1).float().mean()),
-            "batch": len(clips), "step_s": step_s, "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
+    return {
+        "family": engine.family,
+        "scene_tokens": int(engine.vocab.scene_len),
+        "image_tokens": images,
+        "sequence_length": float((ids != engine.vocab.pad_id).sum(1).float().mean()),
+        "batch": len(clips),
+        "step_s": step_s,
+        "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+    }
 
 
 def bench_tokens(sparse: Path, dense: Path, batch: int, steps: int, repeats: int) -> None:
     results: dict[str, list[dict]] = {"sparse": [], "dense": []}
     for rep in range(repeats):
-        for name in (("sparse", "dense") if rep % 2 == 0 else ("dense", "sparse")):
+        for name in ("sparse", "dense") if rep % 2 == 0 else ("dense", "sparse"):
             stage = sparse if name == "sparse" else dense
-            out = subprocess.run([sys.executable, __file__, "_step", str(stage), "--batch", str(batch), "--steps", str(steps)],
-                                 capture_output=True, text=True, check=True)
+            out = subprocess.run(
+                [sys.executable, __file__, "_step", str(stage), "--batch", str(batch), "--steps", str(steps)],
+                capture_output=True,
+                text=True,
+                check=True,
+            )
             results[name].append(json.loads(out.stdout.strip().splitlines()[-1]))
-    print(f"one training step (forward + backward), batch {batch}, {steps} steps x {repeats} alternating processes each")
+    print(
+        f"one training step (forward + backward), batch {batch}, {steps} steps x {repeats} alternating processes each"
+    )
     row = {}
     for name, runs in results.items():
         r = runs[0]
         step = sorted(x["step_s"] for x in runs)[len(runs) // 2]
         rss = max(x["peak_rss_mb"] for x in runs)
         row[name] = (step, rss)
-        print(f"  {r['family']:>12}: {r['scene_tokens']:4d} scene + {r['image_tokens']:3d} image tokens per frame, "
-              f"mean sequence {r['sequence_length']:6.1f}, "
-              f"{1e3 * step:7.1f} ms/step (median), peak RSS {rss:7.0f} MB")
+        print(
+            f"  {r['family']:>12}: {r['scene_tokens']:4d} scene + {r['image_tokens']:3d} image tokens per frame, "
+            f"mean sequence {r['sequence_length']:6.1f}, "
+            f"{1e3 * step:7.1f} ms/step (median), peak RSS {rss:7.0f} MB"
+        )
     (s_step, s_rss), (d_step, d_rss) = row["sparse"], row["dense"]
     print(f"  -> sparse / dense: step time {s_step / d_step:.2f}x, peak RSS {s_rss / d_rss:.2f}x")
 
@@ -145,13 +176,16 @@ def bench_chamfer(points: int, gt_points: int, batch: int, repeats: int) -> None
     times: dict[str, list[float]] = {name: [] for name in searches}
     matches = {}
     for rep in range(repeats):
-        for name in (list(searches) if rep % 2 == 0 else list(searches)[::-1]):
+        for name in list(searches) if rep % 2 == 0 else list(searches)[::-1]:
             t = time.perf_counter()
             # Both directions of Eq. 1: each point to its nearest real truth, each truth to its nearest point.
             matches[name] = (searches[name](pred, gt, valid), searches[name](gt, pred))
             times[name].append(time.perf_counter() - t)
     same = all(torch.equal(a, b) for a, b in zip(*matches.values()))
-    print(f"Chamfer's nearest-point search, both directions, {batch} x {points} points against {gt_points}, {repeats} alternating runs each")
+    print(
+        f"Chamfer's nearest-point search, both directions, {batch} x {points} points against {gt_points}, {repeats} "
+        "alternating runs each"
+    )
     med = {name: sorted(ts)[len(ts) // 2] for name, ts in times.items()}
     for name, t in med.items():
         print(f"  {name:>11}: {1e3 * t:8.1f} ms (median)")

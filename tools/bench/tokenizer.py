@@ -53,11 +53,21 @@ def train(steps: int) -> dict[str, dict]:
         overrides = []
         for i in range(2):
             overrides += [f"stages[{i}].trainer.max_steps={steps}", f"stages[{i}].trainer.val_check_interval={steps}"]
-        cmd = [sys.executable, "-m", "occtrain", "run", "stages/ablations/tokenizer_decoupled_vs_vqvae.yaml",
-               *overrides, "--run-dir", tmp]
+        cmd = [
+            sys.executable,
+            "-m",
+            "occtrain",
+            "run",
+            "stages/ablations/tokenizer_decoupled_vs_vqvae.yaml",
+            *overrides,
+            "--run-dir",
+            tmp,
+        ]
         subprocess.run(cmd, cwd=REPO, check=True, capture_output=True)
         manifest = json.loads((Path(tmp) / "manifest.json").read_text())
-        return {name: {**entry["metrics"], "wall_s": entry["wall_time_s"]} for name, entry in manifest["stages"].items()}
+        return {
+            name: {**entry["metrics"], "wall_s": entry["wall_time_s"]} for name, entry in manifest["stages"].items()
+        }
 
 
 def main() -> None:
@@ -67,11 +77,17 @@ def main() -> None:
     args = parser.parse_args()
     for arch in ("occworld_vqvae", "occllama_tokenizer"):
         params, seconds, gib = probe(arch)
-        print(f"{arch:20s} paper size: {params / 1e6:6.2f} M params, fwd+bwd batch 1 {seconds:5.2f} s, peak RSS {gib:.2f} GiB")
+        print(
+            f"{arch:20s} paper size: {params / 1e6:6.2f} M params, fwd+bwd batch 1 {seconds:5.2f} s, peak RSS "
+            f"{gib:.2f} GiB"
+        )
     if not args.skip_training:
         for name, m in train(args.steps).items():
-            print(f"{name:20s} after {args.steps} steps ({m['wall_s']:.0f} s): val occworld mIoU {m['val/occworld_mIoU']:.1f}, "
-                  f"IoU {m['val/occworld_IoU']:.1f}; occ3d mIoU {m['val/occ3d_mIoU']:.1f}")
+            print(
+                f"{name:20s} after {args.steps} steps ({m['wall_s']:.0f} s): val occworld mIoU "
+                f"{m['val/occworld_mIoU']:.1f}, "
+                f"IoU {m['val/occworld_IoU']:.1f}; occ3d mIoU {m['val/occ3d_mIoU']:.1f}"
+            )
 
 
 if __name__ == "__main__":

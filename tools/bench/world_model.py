@@ -24,15 +24,15 @@ from omegaconf import OmegaConf  # noqa: E402
 
 from occtrain.config import DataConfig, load_config  # noqa: E402
 from occtrain.config.llm import LLMConfig  # noqa: E402
+from occtrain.core.registry import build_tokenizer  # noqa: E402
+from occtrain.core.scene import VQSceneEncoder  # noqa: E402
+from occtrain.core.vocab import JointVocab  # noqa: E402
 from occtrain.data.clips import clips_from_batch  # noqa: E402
 from occtrain.data.datamodule import ShardDataModule, ensure_data  # noqa: E402
 from occtrain.engine import TEXT_ENTRIES, WorldModelEngine  # noqa: E402
-from occtrain.core.registry import build_tokenizer  # noqa: E402
-from occtrain.core.scene import VQSceneEncoder  # noqa: E402
 from occtrain.families.occllama import OccLLaMATokenizerConfig, OccLLaMAWorldModel, TaskConfig  # noqa: E402
 from occtrain.models.llm import build_llm  # noqa: E402
 from occtrain.models.text_tokenizer import train_text_tokenizer  # noqa: E402
-from occtrain.core.vocab import JointVocab  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -42,7 +42,13 @@ def engine_for(mode: str, tokenizer: torch.nn.Module) -> WorldModelEngine:
     llm_cfg = LLMConfig(scene_prediction=mode)
     vocab = JointVocab(text, tokenizer.codebook_sizes, tuple(tokenizer.latent_hw), llm_cfg)
     world = OccLLaMAWorldModel(build_llm(llm_cfg, len(vocab)), vocab, tokenizer.codebook, mode)
-    engine = WorldModelEngine(VQSceneEncoder(tokenizer), world.eval(), text, TaskConfig(context_frames=2, forecast_frames=6), family="occllama")
+    engine = WorldModelEngine(
+        VQSceneEncoder(tokenizer),
+        world.eval(),
+        text,
+        TaskConfig(context_frames=2, forecast_frames=6),
+        family="occllama",
+    )
     return engine.default_tasks("pretrain")
 
 
@@ -89,14 +95,18 @@ def main() -> None:
         engine.build_scene_cache(data.root, Path(tmp) / "codes.safetensors")
         cache_build = time.perf_counter() - start
     cached = time_batches(engine, data, TEXT_ENTRIES, args.steps)
-    print(f"scene codes per batch of {data.batch_size} clips: encode every step {per_step_encode * 1e3:.0f} ms, "
-          f"code cache {cached * 1e3:.0f} ms -> {per_step_encode / cached:.1f}x faster "
-          f"(the cache costs {cache_build:.1f} s once)")
+    print(
+        f"scene codes per batch of {data.batch_size} clips: encode every step {per_step_encode * 1e3:.0f} ms, "
+        f"code cache {cached * 1e3:.0f} ms -> {per_step_encode / cached:.1f}x faster "
+        f"(the cache costs {cache_build:.1f} s once)"
+    )
 
     next_scene = time_scene(engine, 5)
     next_token = time_scene(engine_for("next_token", tokenizer), 2)
-    print(f"one {engine.vocab.scene_len}-token scene: next-scene {next_scene * 1e3:.0f} ms, "
-          f"token by token {next_token * 1e3:.0f} ms -> {next_token / next_scene:.1f}x faster")
+    print(
+        f"one {engine.vocab.scene_len}-token scene: next-scene {next_scene * 1e3:.0f} ms, "
+        f"token by token {next_token * 1e3:.0f} ms -> {next_token / next_scene:.1f}x faster"
+    )
 
 
 if __name__ == "__main__":

@@ -55,7 +55,11 @@ def main() -> None:
                 cv_errors.append(np.linalg.norm(constant_velocity([clip.anchor])[0].numpy() - truth, axis=1).mean())
                 if len(errors) <= args.show:
                     print(f"{decoding}: truth x {truth[:, 0].round(1).tolist()}, plan x {plan[:, 0].round(1).tolist()}")
-            print(f"{decoding}: {len(errors)} clips, mean L2 {np.mean(errors):.2f} m; constant velocity {np.mean(cv_errors):.2f} m", flush=True)
+            print(
+                f"{decoding}: {len(errors)} clips, mean L2 {np.mean(errors):.2f} m; constant velocity "
+                f"{np.mean(cv_errors):.2f} m",
+                flush=True,
+            )
 
 
 if __name__ == "__main__":

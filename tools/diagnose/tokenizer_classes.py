@@ -66,15 +66,22 @@ def main() -> None:
             sem = frames_batch(index, val[i : i + 4])["semantics"].long()
             pred = model.decode(model.encode(sem)).argmax(1)
             metric.update(pred, sem)
-            confusion += torch.bincount((sem * NUM_CLASSES + pred).reshape(-1), minlength=NUM_CLASSES**2).view(NUM_CLASSES, NUM_CLASSES)
+            confusion += torch.bincount((sem * NUM_CLASSES + pred).reshape(-1), minlength=NUM_CLASSES**2).view(
+                NUM_CLASSES, NUM_CLASSES
+            )
     r = metric.compute()
-    print(f"{args.overrides}, {args.steps} steps: mIoU {float(r['mIoU']):.1f}, IoU {float(r['IoU']):.1f}, "
-          f"movable mIoU {float(r['movable_mIoU']):.1f} (occworld, {len(val)} val frames)")
+    print(
+        f"{args.overrides}, {args.steps} steps: mIoU {float(r['mIoU']):.1f}, IoU {float(r['IoU']):.1f}, "
+        f"movable mIoU {float(r['movable_mIoU']):.1f} (occworld, {len(val)} val frames)"
+    )
     print("per class:", ", ".join(f"{k} {float(v):.1f}" for k, v in r["per_class"].items()))
     for name in ("car", "bus", "truck", "trailer", "pedestrian"):
         row = confusion[CLASS_INDEX[name]]
         top = row.argsort(descending=True)[:3]
-        print(f"  {name} voxels come back as: " + ", ".join(f"{CLASS_NAMES[t]} {100 * float(row[t]) / max(1, int(row.sum())):.1f} %" for t in top))
+        print(
+            f"  {name} voxels come back as: "
+            + ", ".join(f"{CLASS_NAMES[t]} {100 * float(row[t]) / max(1, int(row.sum())):.1f} %" for t in top)
+        )
 
 
 if __name__ == "__main__":

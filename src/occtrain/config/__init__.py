@@ -18,9 +18,13 @@ __all__ = [
 
 #: Which schema a file under ``configs/<group>/`` follows.
 GROUP_SCHEMAS: dict[str, type] = {
-    "data": DataConfig, "trainer": TrainerConfig, "dataset": DatasetFile,
+    "data": DataConfig,
+    "trainer": TrainerConfig,
+    "dataset": DatasetFile,
     # recipes live in top-level stages/ (and stages/ablations/)
-    "recipe": RecipeConfig, "stages": RecipeConfig, "ablations": RecipeConfig,
+    "recipe": RecipeConfig,
+    "stages": RecipeConfig,
+    "ablations": RecipeConfig,
 }
 
 
@@ -33,7 +37,8 @@ def schema_for(path: str, group: str | None = None) -> type:
     name = group or Path(path).parent.name
     if name not in GROUP_SCHEMAS:
         raise ConfigError(
-            f"{path}: cannot tell which config group it belongs to; pass --group one of {', '.join(sorted(GROUP_SCHEMAS))}"
+            f"{path}: cannot tell which config group it belongs to; pass --group one of "
+            f"{', '.join(sorted(GROUP_SCHEMAS))}"
         )
     return GROUP_SCHEMAS[name]
 

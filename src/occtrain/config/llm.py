@@ -78,7 +78,14 @@ class LoRAConfig:
 
 
 #: The keys that size a tiny LLM; a model at ``path`` takes its sizes from its config.json instead.
-TINY_SIZE_KEYS = ("hidden_size", "num_layers", "num_heads", "intermediate_size", "max_position_embeddings", "text_vocab_size")
+TINY_SIZE_KEYS = (
+    "hidden_size",
+    "num_layers",
+    "num_heads",
+    "intermediate_size",
+    "max_position_embeddings",
+    "text_vocab_size",
+)
 
 
 def check_llm_sizes(sizes: dict[str, Any], where: str, hidden: str, heads: str, kv_heads: str = "") -> None:
@@ -93,7 +100,9 @@ def check_llm_sizes(sizes: dict[str, Any], where: str, hidden: str, heads: str, 
 
     for name, value in sizes.items():
         if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-            raise ConfigError(f"{where}{name} is {value!r}; it sizes the model's tensors, so it must be a positive integer")
+            raise ConfigError(
+                f"{where}{name} is {value!r}; it sizes the model's tensors, so it must be a positive integer"
+            )
     for part, whole in ((heads, hidden), (kv_heads, heads)):
         if part in sizes and whole in sizes and sizes[whole] % sizes[part]:
             n, total = sizes[part], sizes[whole]
@@ -118,18 +127,30 @@ def validate_llm_config(cfg: LLMConfig, key: str = "llm") -> None:
     from occtrain.errors import ConfigError
 
     if not cfg.path and cfg.model_type not in BACKENDS:
-        raise ConfigError(f"{key}.model_type: '{cfg.model_type}' is not an LLM backend occtrain drives; use one of {', '.join(BACKENDS)}")
+        raise ConfigError(
+            f"{key}.model_type: '{cfg.model_type}' is not an LLM backend occtrain drives; use one of "
+            f"{', '.join(BACKENDS)}"
+        )
     if not cfg.path:  # with a path the sizes come from its config.json (checked where it is read)
         check_llm_sizes({k: getattr(cfg, k) for k in TINY_SIZE_KEYS}, f"{key}.", "hidden_size", "num_heads")
     if cfg.scene_prediction not in SCENE_PREDICTION_MODES:
-        raise ConfigError(f"{key}.scene_prediction: '{cfg.scene_prediction}' is not one of {', '.join(SCENE_PREDICTION_MODES)}")
+        raise ConfigError(
+            f"{key}.scene_prediction: '{cfg.scene_prediction}' is not one of {', '.join(SCENE_PREDICTION_MODES)}"
+        )
     if cfg.action_bins < 2:
-        raise ConfigError(f"{key}.action_bins: {cfg.action_bins} bins cannot encode a waypoint; use at least 2 (paper: 256)")
+        raise ConfigError(
+            f"{key}.action_bins: {cfg.action_bins} bins cannot encode a waypoint; use at least 2 (paper: 256)"
+        )
     rng = [list(r) for r in cfg.action_range]
     if len(rng) != 2 or any(len(r) != 2 or not r[0] < r[1] for r in rng):
         raise ConfigError(f"{key}.action_range: {rng} must be [[x_low, x_high], [y_low, y_high]] with low < high")
     for name, allowed in (("action_encoding", ACTION_ENCODINGS), ("action_decoding", ACTION_DECODINGS)):
         if getattr(cfg, name) not in allowed:
-            raise ConfigError(f"{key}.{name}: '{getattr(cfg, name)}' is not one of {', '.join(allowed)} (paper: {allowed[0]})")
+            raise ConfigError(
+                f"{key}.{name}: '{getattr(cfg, name)}' is not one of {', '.join(allowed)} (paper: {allowed[0]})"
+            )
     if cfg.attn_implementation not in ("sdpa", "eager"):
-        raise ConfigError(f"{key}.attn_implementation: '{cfg.attn_implementation}' does not take the 4D spatial-temporal mask; use sdpa or eager")
+        raise ConfigError(
+            f"{key}.attn_implementation: '{cfg.attn_implementation}' does not take the 4D spatial-temporal mask; use "
+            "sdpa or eager"
+        )

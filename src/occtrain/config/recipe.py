@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import re
 from dataclasses import dataclass, field
-from typing import Any, Optional
+from typing import Any
 
 from omegaconf import MISSING
 
@@ -22,8 +22,11 @@ NAME_RULE = "letters, digits and _ . + - (first a letter, digit or _), at most 1
 def check_name(name: Any, key: str, source: str, what: str) -> str:
     """``name`` if it is a safe folder name (:data:`NAME_PATTERN`); else one line naming ``key``."""
     if not isinstance(name, str) or not NAME_PATTERN.fullmatch(name):
-        raise ConfigError(f"{key} '{name}' in {source}: {what} is a folder name inside {'runs_root' if what == 'a run' else 'the run'}, "
-                          f"so it is {NAME_RULE}; choose another")
+        raise ConfigError(
+            f"{key} '{name}' in {source}: {what} is a folder name inside "
+            f"{'runs_root' if what == 'a run' else 'the run'}, "
+            f"so it is {NAME_RULE}; choose another"
+        )
     return name
 
 
@@ -89,7 +92,7 @@ class TableRow:
     #: Defaults to the stage's name.
     label: str = ""
     #: Column name -> the paper's figure; a column left out (or null) was not reported.
-    paper: dict[str, Optional[float]] = field(default_factory=dict)
+    paper: dict[str, float | None] = field(default_factory=dict)
 
 
 @dataclass
@@ -116,4 +119,4 @@ class RecipeConfig:
     #: Importable modules that register extra stage kinds (``occtrain.stages.register``).
     plugins: list[str] = field(default_factory=list)
     #: Our figures beside the paper's, one row per stage (see occtrain.comparison).
-    table: Optional[ComparisonTable] = None
+    table: ComparisonTable | None = None

@@ -128,7 +128,9 @@ def reference_rows(schema: type, prefix: str = "") -> list[KeyDoc]:
         if inner is not None:
             many = typing.get_origin(hint) is list
             section = "list of sections" if many else "section" if dataclasses.is_dataclass(hint) else "section | null"
-            rows.append(KeyDoc(path, section, "", doc or (inspect.getdoc(inner) or "").split("\n\n")[0].replace("\n", " ")))
+            rows.append(
+                KeyDoc(path, section, "", doc or (inspect.getdoc(inner) or "").split("\n\n")[0].replace("\n", " "))
+            )
             rows.extend(reference_rows(inner, f"{path}[]." if many else f"{path}."))
             continue
         rows.append(KeyDoc(path, type_name(hint), _shown(_default(f)), doc))
@@ -142,5 +144,7 @@ def markdown_table(rows: list[KeyDoc]) -> str:
         return text.replace("|", "\\|")
 
     lines = ["| key | type | default | what it sets |", "|---|---|---|---|"]
-    lines += [f"| `{r.path}` | {cell(r.type)} | {cell(f'`{r.default}`' if r.default else '')} | {cell(r.doc)} |" for r in rows]
+    lines += [
+        f"| `{r.path}` | {cell(r.type)} | {cell(f'`{r.default}`' if r.default else '')} | {cell(r.doc)} |" for r in rows
+    ]
     return "\n".join(lines) + "\n"

@@ -26,11 +26,13 @@ def check_synth_config(cfg: SynthConfig) -> None:
     if cfg.train_scenes < 1 or cfg.val_scenes < 0 or cfg.frames_per_scene < 1:
         raise ConfigError(
             f"synth needs at least one train scene and one frame per scene (got train_scenes={cfg.train_scenes}, "
-            f"val_scenes={cfg.val_scenes}, frames_per_scene={cfg.frames_per_scene}); set --scenes/--frames (or a recipe's data.synth) to at least 1"
+            f"val_scenes={cfg.val_scenes}, frames_per_scene={cfg.frames_per_scene}); set --scenes/--frames (or a "
+            "recipe's data.synth) to at least 1"
         )
     if (cfg.camera_height > 0) != (cfg.camera_width > 0) or min(cfg.camera_height, cfg.camera_width) < 0:
         raise ConfigError(
-            f"synth.camera_height={cfg.camera_height}, synth.camera_width={cfg.camera_width}: both positive, or both 0 for no cameras"
+            f"synth.camera_height={cfg.camera_height}, synth.camera_width={cfg.camera_width}: both positive, or both 0 "
+            "for no cameras"
         )
 
 

@@ -63,10 +63,13 @@ def validate_common(cfg: Any, where: str) -> None:
         raise ConfigError(f"{where}.strides: {strides} must be a non-empty list of positive integers")
     r = math.prod(strides)
     if GRID_SHAPE[0] % r or GRID_SHAPE[1] % r:
-        raise ConfigError(f"{where}.strides: their product {r} must divide {GRID_SHAPE[0]} (e.g. [2, 2] -> 50, [4, 5] -> 10)")
+        raise ConfigError(
+            f"{where}.strides: their product {r} must divide {GRID_SHAPE[0]} (e.g. [2, 2] -> 50, [4, 5] -> 10)"
+        )
     if len(cfg.channel_mult) != len(strides) + 1:
         raise ConfigError(
-            f"{where}.channel_mult: needs one entry per level, i.e. len(strides) + 1 = {len(strides) + 1}, got {len(cfg.channel_mult)}"
+            f"{where}.channel_mult: needs one entry per level, i.e. len(strides) + 1 = {len(strides) + 1}, got "
+            f"{len(cfg.channel_mult)}"
         )
     for key in ("num_codes", "code_dim", "base_channels", "class_embed_dim"):
         if getattr(cfg, key) < 1:
@@ -74,6 +77,8 @@ def validate_common(cfg: Any, where: str) -> None:
     if not 0.0 <= cfg.ema_decay < 1.0:
         raise ConfigError(f"{where}.ema_decay: {cfg.ema_decay} must be in [0, 1) (0 turns EMA off)")
     if not 0.0 <= cfg.class_balance <= 1.0:
-        raise ConfigError(f"{where}.class_balance: {cfg.class_balance} must lie in [0, 1] (0: the papers' unweighted loss)")
+        raise ConfigError(
+            f"{where}.class_balance: {cfg.class_balance} must lie in [0, 1] (0: the papers' unweighted loss)"
+        )
     if not 0.0 < cfg.usage_decay < 1.0:
         raise ConfigError(f"{where}.usage_decay: {cfg.usage_decay} must be in (0, 1)")

@@ -29,7 +29,8 @@ block behind a query block (the queries predict it).
 
 from __future__ import annotations
 
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import torch
 import torch.nn.functional as F
@@ -40,6 +41,7 @@ from occtrain.core.vocab import JointVocab
 from occtrain.data.clips import Actions, Branch, Part, Scene, Text
 from occtrain.models.attention import allowed_pairs
 
+
 class SequenceBuilder:
     """Lays parts out in the joint vocabulary (see the module docstring).
 
@@ -49,7 +51,10 @@ class SequenceBuilder:
     """
 
     def __init__(
-        self, vocab: JointVocab, scene_prediction: str = "next_scene", payload_spec: PayloadSpec | None = None,
+        self,
+        vocab: JointVocab,
+        scene_prediction: str = "next_scene",
+        payload_spec: PayloadSpec | None = None,
         scene_queries: Callable[[torch.Tensor | None], torch.Tensor] | None = None,
     ):
         if scene_prediction not in SCENE_PREDICTION_MODES:
@@ -77,7 +82,11 @@ class SequenceBuilder:
 
     # -- the extension point
     def add(
-        self, ids: torch.Tensor, supervise: bool, seg: int = 0, query_target: torch.Tensor | None = None,
+        self,
+        ids: torch.Tensor,
+        supervise: bool,
+        seg: int = 0,
+        query_target: torch.Tensor | None = None,
         payload: dict[str, torch.Tensor] | None = None,
     ) -> None:
         """Append a run of tokens. ``seg`` > 0: a bidirectional block (``next_block``); < 0:
@@ -94,7 +103,9 @@ class SequenceBuilder:
         self._ids.append(ids.long())
         self._sup.append(torch.full((n,), bool(supervise)))
         self._seg.append(torch.full((n,), seg, dtype=torch.long))
-        self._query_target.append(query_target if query_target is not None else torch.full((n,), IGNORE, dtype=torch.long))
+        self._query_target.append(
+            query_target if query_target is not None else torch.full((n,), IGNORE, dtype=torch.long)
+        )
         # A query block takes the positions of the code block that follows it (and replaces it in generation).
         self._pos.append(torch.arange(self._kept, self._kept + n))
         if seg >= 0:
@@ -120,10 +131,14 @@ class SequenceBuilder:
             return self.scene(scenes[part.frame], part.supervise)
         if isinstance(part, Actions):
             xy = torch.tensor(part.xy, dtype=torch.float32)
-            return self.actions(xy if part.base is None else xy - torch.tensor(part.base, dtype=torch.float32), part.supervise)
+            return self.actions(
+                xy if part.base is None else xy - torch.tensor(part.base, dtype=torch.float32), part.supervise
+            )
         if isinstance(part, Branch):
             return self.branch()
-        raise TypeError(f"{type(self).__name__} cannot lay out a {type(part).__name__} part; its world model's builder must")
+        raise TypeError(
+            f"{type(self).__name__} cannot lay out a {type(part).__name__} part; its world model's builder must"
+        )
 
     def branch(self) -> SequenceBuilder:
         """Start a branch: the parts after it (up to the next branch) see what came before
@@ -142,7 +157,13 @@ class SequenceBuilder:
 
     def actions(self, xy: torch.Tensor, supervise: bool = False) -> SequenceBuilder:
         v = self.vocab
-        ids = torch.cat([torch.tensor([v.act_open_id]), v.action_ids(torch.as_tensor(xy, dtype=torch.float32).cpu()), torch.tensor([v.act_close_id])])
+        ids = torch.cat(
+            [
+                torch.tensor([v.act_open_id]),
+                v.action_ids(torch.as_tensor(xy, dtype=torch.float32).cpu()),
+                torch.tensor([v.act_close_id]),
+            ]
+        )
         self.add(ids, supervise)
         return self
 
@@ -177,7 +198,14 @@ class SequenceBuilder:
         same = branch[kept[1:]] == branch[kept[:-1]]
         labels[kept[:-1]] = torch.where(sup[kept[1:]] & same, ids[kept[1:]], IGNORE)
         return TokenSequence(
-            ids, labels, seg, torch.cat(self._pos), self.vocab.is_occ(labels), branch, cat_payload(self._payload), dict(self.targets),
+            ids,
+            labels,
+            seg,
+            torch.cat(self._pos),
+            self.vocab.is_occ(labels),
+            branch,
+            cat_payload(self._payload),
+            dict(self.targets),
         )
 
 

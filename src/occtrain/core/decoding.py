@@ -19,8 +19,9 @@ more than batching saves). A world model supplies ``vocab``, ``payload_spec``,
 
 from __future__ import annotations
 
+from collections.abc import Generator
 from dataclasses import dataclass
-from typing import Any, Generator, NamedTuple, Union
+from typing import Any, NamedTuple
 
 import torch
 
@@ -64,7 +65,7 @@ class Flush(NamedTuple):
     """Feed what is queued now (a forward of its own), before what follows."""
 
 
-Answer = Union[TextAnswer, ActionAnswer, SceneAnswer, QueryBlock, Feed, Flush]
+Answer = TextAnswer | ActionAnswer | SceneAnswer | QueryBlock | Feed | Flush
 
 
 class CodeScene:
@@ -114,7 +115,9 @@ class _State:
         ids = ids.to(device)
         self.next_scene = world.scene_prediction == "next_scene"
         seg = scene_segments(self.vocab.is_occ(ids)) if self.next_scene else torch.zeros_like(ids)
-        self.queued: list[tuple[torch.Tensor, torch.Tensor, dict]] = [(ids, seg, {k: t.to(device) for k, t in payload.items()})]
+        self.queued: list[tuple[torch.Tensor, torch.Tensor, dict]] = [
+            (ids, seg, {k: t.to(device) for k, t in payload.items()})
+        ]
         self.next_segment = int(seg.max()) + 1 if seg.numel() else 1
         self.recent = ids[-3:]
         self.last: Step | None = None  # the output at the last kept token
@@ -188,7 +191,9 @@ def _actions(s: _State, answer: ActionAnswer) -> Program:
 
 def _query_block(s: _State, ids: torch.Tensor) -> Program:
     """Feed what is queued and then ``ids`` as a transient query block; its outputs."""
-    queued, segs, extras = s.take() if s.queued else (ids[:0].to(s.device), ids[:0].to(s.device), empty_payload(s.spec, 0, s.device))
+    queued, segs, extras = (
+        s.take() if s.queued else (ids[:0].to(s.device), ids[:0].to(s.device), empty_payload(s.spec, 0, s.device))
+    )
     ids = ids.to(s.device)
     n = len(ids)
     extras = cat_payload([extras, empty_payload(s.spec, n, s.device)])
@@ -274,7 +279,14 @@ class Decoder:
         past, n, keep = self.ids.shape[0], f.ids.shape[0], f.ids.shape[0] - f.transient
         positions = torch.arange(past, past + n, device=self.device)[None]
         if self.use_cache:
-            step = self.world.step(f.ids[None], chunk_allowed(f.seg, past)[:, None], positions, self.cache, True, {k: v[None] for k, v in f.payload.items()})
+            step = self.world.step(
+                f.ids[None],
+                chunk_allowed(f.seg, past)[:, None],
+                positions,
+                self.cache,
+                True,
+                {k: v[None] for k, v in f.payload.items()},
+            )
             self.cache = step.cache
             if n > keep:
                 self.cache.crop(-(n - keep))
@@ -282,7 +294,9 @@ class Decoder:
             all_ids, all_seg = torch.cat([self.ids, f.ids]), torch.cat([self.seg, f.seg])
             payload = {k: torch.cat([self.payload[k], v])[None] for k, v in f.payload.items()}
             allowed = allowed_pairs(all_seg[None], torch.ones_like(all_seg[None], dtype=torch.bool))
-            step = self.world.step(all_ids[None], allowed[:, None], torch.arange(past + n, device=self.device)[None], payload=payload)
+            step = self.world.step(
+                all_ids[None], allowed[:, None], torch.arange(past + n, device=self.device)[None], payload=payload
+            )
             step = Step(step.logits[:, past:], None, rows(step.hidden, slice(None), slice(past, None)))
         self.ids, self.seg = torch.cat([self.ids, f.ids[:keep]]), torch.cat([self.seg, f.seg[:keep]])
         self.payload = cat_payload([self.payload, {k: v[:keep] for k, v in f.payload.items()}])
@@ -326,7 +340,9 @@ def _nothing(f: Forward) -> Forward:
     return Forward(f.ids[:0], f.seg[:0], {k: v[:0] for k, v in f.payload.items()})
 
 
-def _batched_forward(world: Any, feeds: list[Forward], cache: Any, alive: torch.Tensor, kept: torch.Tensor) -> tuple[Step, torch.Tensor]:
+def _batched_forward(
+    world: Any, feeds: list[Forward], cache: Any, alive: torch.Tensor, kept: torch.Tensor
+) -> tuple[Step, torch.Tensor]:
     """One forward of every running sequence's feed, right-padded; the mask of the kept ones."""
     device = alive.device
     B, n = len(feeds), max(len(f.ids) for f in feeds)
@@ -334,7 +350,9 @@ def _batched_forward(world: Any, feeds: list[Forward], cache: Any, alive: torch.
     seg = torch.zeros(B, n, dtype=torch.long, device=device)
     real = torch.zeros(B, n, dtype=torch.bool, device=device)
     keep = torch.zeros(B, n, dtype=torch.bool, device=device)
-    payload = {k: t.unsqueeze(0).repeat(B, *([1] * t.dim())) for k, t in empty_payload(world.payload_spec, n, device).items()}
+    payload = {
+        k: t.unsqueeze(0).repeat(B, *([1] * t.dim())) for k, t in empty_payload(world.payload_spec, n, device).items()
+    }
     for i, f in enumerate(feeds):
         m = len(f.ids)
         ids[i, :m], seg[i, :m], real[i, :m] = f.ids, f.seg, True
@@ -410,7 +428,9 @@ def _decode_group(world: Any, prefixes: list, answers: list[list[Answer]]) -> li
             if waits[i]:
                 continue
             try:
-                feeds[i] = programs[running_rows[i]].send(Step(step.logits[i, : len(f.ids)], None, rows(step.hidden, i, slice(None, len(f.ids)))))
+                feeds[i] = programs[running_rows[i]].send(
+                    Step(step.logits[i, : len(f.ids)], None, rows(step.hidden, i, slice(None, len(f.ids))))
+                )
             except StopIteration as stop:
                 feeds[i] = None
                 results[running_rows[i]] = stop.value

@@ -23,7 +23,9 @@ def _one(engine: Any, task: str, clip: Clip) -> tuple[list, dict]:
         raise ConfigError(f"the '{engine.family}' world model has no task '{task}'")
     out = list(engine.rollouts(task, [clip], _batch(engine, clip), batched=False))
     if not out:
-        raise ConfigError(f"task '{task}' does not apply to sample {clip.anchor['token']} (its future or its text is not known)")
+        raise ConfigError(
+            f"task '{task}' does not apply to sample {clip.anchor['token']} (its future or its text is not known)"
+        )
     _, _, generated, scenes = out[0]
     return generated, scenes
 
@@ -49,7 +51,9 @@ def _batch(engine: Any, clip: Clip) -> dict:
     batch: dict = {"ann": [clip.ann]}
     if engine.needs_semantics():
         index = engine.data_index
-        batch["semantics"] = [torch.from_numpy(np.stack([index.labels(index.scene_of(t), t)["semantics"] for t in clip.ann["tokens"]]))]
+        batch["semantics"] = [
+            torch.from_numpy(np.stack([index.labels(index.scene_of(t), t)["semantics"] for t in clip.ann["tokens"]]))
+        ]
     return batch
 
 

@@ -28,11 +28,25 @@ from dataclasses import dataclass
 from occtrain.metrics.conventions import OCC3D, OCCWORLD, STP3, UNIAD
 
 #: Words that do not change what a metric measures ("val/qa/overall" is "val/qa_acc").
-NEUTRAL_WORDS = frozenset({
-    "val", "test", "plan", "planning", "by", "type", "hop", "overall", "all", "acc", "accuracy",
-    # occtrain's planning variants (OccLLaMA's M0-M3 ways of planning) all measure the same thing
-    "direct", "alternate", "cot",
-})
+NEUTRAL_WORDS = frozenset(
+    {
+        "val",
+        "test",
+        "plan",
+        "planning",
+        "by",
+        "type",
+        "hop",
+        "overall",
+        "all",
+        "acc",
+        "accuracy",
+        # occtrain's planning variants (OccLLaMA's M0-M3 ways of planning) all measure the same thing
+        "direct",
+        "alternate",
+        "cot",
+    }
+)
 #: Words naming a metric convention: a paper figure without one matches each of them.
 CONVENTION_WORDS = frozenset({OCC3D, OCCWORLD, STP3, UNIAD})
 REAL_DATA = "paper, real nuScenes"

@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 import torch
 from torch import nn
+from torchmetrics import MeanMetric
 
 from occtrain.data.clips import Clip, frame_clips, plan_target
 from occtrain.data.layout import DatasetIndex
@@ -33,8 +34,6 @@ from occtrain.data.schema import COMMANDS, META_DIRECTIONS, META_SPEEDS
 from occtrain.errors import ConfigError
 from occtrain.exports import write_export
 from occtrain.io import atomic_write_json, atomic_write_safetensors, is_rank_zero
-from torchmetrics import MeanMetric
-
 from occtrain.metrics import PlanningMetric, compute_metrics
 from occtrain.models import count_parameters
 from occtrain.models.planner import PlanningHead, constant_velocity, current_velocity
@@ -77,7 +76,9 @@ class MetaActionPlannerConfig:
             raise ConfigError(f"{where}: model.loss '{self.loss}' is not one of mse, l1")
         for key in ("meta_source", "train_meta"):
             if getattr(self, key) not in META_SOURCES:
-                raise ConfigError(f"{where}: model.{key} '{getattr(self, key)}' is not one of {', '.join(META_SOURCES)}")
+                raise ConfigError(
+                    f"{where}: model.{key} '{getattr(self, key)}' is not one of {', '.join(META_SOURCES)}"
+                )
         unknown = [n for n in self.inputs if n not in HEAD_INPUTS]
         if unknown or not self.inputs:
             raise ConfigError(f"{where}: model.inputs {list(self.inputs)} must name some of {', '.join(HEAD_INPUTS)}")
@@ -96,7 +97,10 @@ def ego_features(anchor: dict, meta: dict, inputs: list[str] | tuple[str, ...]) 
         if name not in inputs:
             continue
         if name == "meta_action":
-            parts += [np.eye(len(META_SPEEDS))[META_SPEEDS.index(meta["speed"])], np.eye(len(META_DIRECTIONS))[META_DIRECTIONS.index(meta["direction"])]]
+            parts += [
+                np.eye(len(META_SPEEDS))[META_SPEEDS.index(meta["speed"])],
+                np.eye(len(META_DIRECTIONS))[META_DIRECTIONS.index(meta["direction"])],
+            ]
         elif name == "ego_state":
             parts.append(np.array([anchor["ego_speed"] / 10.0, anchor["ego_accel"] / 3.0, anchor["ego_yaw_rate"]]))
         elif name == "command":
@@ -112,8 +116,12 @@ def ego_features(anchor: dict, meta: dict, inputs: list[str] | tuple[str, ...]) 
 def feature_size(inputs: list[str] | tuple[str, ...]) -> int:
     """The length of ``ego_features`` (the visual summary apart)."""
     sizes = {
-        "meta_action": len(META_SPEEDS) + len(META_DIRECTIONS), "ego_state": 3, "command": len(COMMANDS),
-        "velocity": 2, "past": 2 * PAST_STEPS, "visual": 0,
+        "meta_action": len(META_SPEEDS) + len(META_DIRECTIONS),
+        "ego_state": 3,
+        "command": len(COMMANDS),
+        "velocity": 2,
+        "past": 2 * PAST_STEPS,
+        "visual": 0,
     }
     return sum(sizes[n] for n in HEAD_INPUTS if n in inputs)
 
@@ -125,7 +133,9 @@ class MetaActionPlanner(nn.Module):
     #: What picks the best checkpoint (lower is better): the head on the reference meta action.
     monitor = "val/head_gt_meta_L2_stp3_avg"
 
-    def __init__(self, cfg: Any, teacher: Any, data_root: str, cache_dir: Path, where: str, sidecar_reference: bool = True):
+    def __init__(
+        self, cfg: Any, teacher: Any, data_root: str, cache_dir: Path, where: str, sidecar_reference: bool = True
+    ):
         """``teacher``: the consumed world model (None when the head reads nothing of it);
         ``sidecar_reference``: its reference meta action is the frame sidecar's (OccVLA
         labels its own from the poses)."""
@@ -136,23 +146,37 @@ class MetaActionPlanner(nn.Module):
             self._check_teacher(teacher, where)
         self.teacher = teacher
         visual_dim = teacher.world.hidden_size if "visual" in self.inputs else 0
-        self.head = PlanningHead(feature_size(self.inputs), cfg.hidden, cfg.layers, FUTURE_STEPS, cfg.dropout, visual_dim, cfg.visual_width)
+        self.head = PlanningHead(
+            feature_size(self.inputs), cfg.hidden, cfg.layers, FUTURE_STEPS, cfg.dropout, visual_dim, cfg.visual_width
+        )
         self._teacher_out: dict[str, dict] = {}  # sample token -> the frozen model's outputs
         self._cache_file = cache_dir / f"{TEACHER_CACHE}.json"
         self._load_teacher_cache()
         self.parsed = MeanMetric()
-        self.metrics = nn.ModuleDict({
-            name: PlanningMetric()
-            for name in ("head_gt_meta", "head_generated_meta", "llm_action_tokens", "constant_velocity", "baseline_stationary")
-        })
+        self.metrics = nn.ModuleDict(
+            {
+                name: PlanningMetric()
+                for name in (
+                    "head_gt_meta",
+                    "head_generated_meta",
+                    "llm_action_tokens",
+                    "constant_velocity",
+                    "baseline_stationary",
+                )
+            }
+        )
 
     def _check_teacher(self, teacher: Any, where: str) -> None:
         family = teacher.family
         for op in ("reference_meta_action", "generated_meta_actions"):
             if teacher.operation(op) is None:
-                raise ConfigError(f"{where}: the '{family}' world model generates no meta action; set model.meta_source=ground_truth")
+                raise ConfigError(
+                    f"{where}: the '{family}' world model generates no meta action; set model.meta_source=ground_truth"
+                )
         if "visual" in self.inputs and (teacher.vision is None or teacher.operation("visual_summary") is None):
-            raise ConfigError(f"{where}: model.inputs 'visual' reads image tokens, which the '{family}' world model has none of")
+            raise ConfigError(
+                f"{where}: model.inputs 'visual' reads image tokens, which the '{family}' world model has none of"
+            )
 
     @property
     def device(self) -> torch.device:
@@ -181,7 +205,9 @@ class MetaActionPlanner(nn.Module):
         visual = {t: torch.as_tensor(o["visual"]) for t, o in self._teacher_out.items() if "visual" in o}
         if visual:
             atomic_write_safetensors(self._cache_file.with_suffix(".safetensors"), visual)
-        atomic_write_json(self._cache_file, {t: {k: v for k, v in o.items() if k != "visual"} for t, o in self._teacher_out.items()})
+        atomic_write_json(
+            self._cache_file, {t: {k: v for k, v in o.items() if k != "visual"} for t, o in self._teacher_out.items()}
+        )
 
     def teacher_outputs(self, clips: list[Clip], generate: bool) -> list[dict]:
         """The frozen model's outputs for each clip (the generated meta action only with
@@ -197,8 +223,12 @@ class MetaActionPlanner(nn.Module):
                 outs[i]["visual"] = vis
         todo = [i for i, o in enumerate(outs) if "generated" not in o] if generate else []
         if todo:
-            for i, gen in zip(todo, self.teacher.operation("generated_meta_actions")(self.teacher, [clips[i] for i in todo])):
-                outs[i]["generated"] = None if gen is None else [gen[0], None if gen[1] is None else np.asarray(gen[1]).tolist()]
+            for i, gen in zip(
+                todo, self.teacher.operation("generated_meta_actions")(self.teacher, [clips[i] for i in todo])
+            ):
+                outs[i]["generated"] = (
+                    None if gen is None else [gen[0], None if gen[1] is None else np.asarray(gen[1]).tolist()]
+                )
         return outs
 
     def prepare_training(self, device: torch.device) -> None:
@@ -208,9 +238,13 @@ class MetaActionPlanner(nn.Module):
         if self.teacher is None or not (generate or "visual" in self.inputs):
             return
         index = DatasetIndex.open(self.data_root)
-        clips = list(frame_clips(index, "train", self.teacher.tasks.context_frames, FUTURE_STEPS, partial_history=False))
+        clips = list(
+            frame_clips(index, "train", self.teacher.tasks.context_frames, FUTURE_STEPS, partial_history=False)
+        )
         self.teacher.to(device)
-        with progress_bar(len(clips), f"the world model's {'meta actions' if generate else 'outputs'} on the train split, once") as advance:
+        with progress_bar(
+            len(clips), f"the world model's {'meta actions' if generate else 'outputs'} on the train split, once"
+        ) as advance:
             for i in range(0, len(clips), 16):
                 self.teacher_outputs(clips[i : i + 16], generate)
                 advance(len(clips[i : i + 16]))
@@ -273,7 +307,11 @@ class MetaActionPlanner(nn.Module):
         everyone = list(range(len(anchors)))
         record("constant_velocity", constant_velocity(anchors, gt.traj.device), everyone)
         record("baseline_stationary", torch.zeros_like(gt.traj), everyone)
-        if self.teacher is not None and self.cfg.meta_source == "generated" and (generate_batches < 0 or batch_idx < generate_batches):
+        if (
+            self.teacher is not None
+            and self.cfg.meta_source == "generated"
+            and (generate_batches < 0 or batch_idx < generate_batches)
+        ):
             outs = self.teacher_outputs(clips, generate=True)
             applies = [i for i, o in enumerate(outs) if o["generated"] is not None]
             x, rows = self._features(clips, "generated")
@@ -281,10 +319,14 @@ class MetaActionPlanner(nn.Module):
             record("head_generated_meta", self.head(**x), rows)
             tokens = [i for i in applies if outs[i]["generated"][1] is not None]
             if tokens:
-                plans = torch.stack([torch.as_tensor(outs[i]["generated"][1], dtype=torch.float32) for i in tokens]).to(gt.traj.device)
+                plans = torch.stack([torch.as_tensor(outs[i]["generated"][1], dtype=torch.float32) for i in tokens]).to(
+                    gt.traj.device
+                )
                 record("llm_action_tokens", plans, tokens)
             if applies:
-                self.parsed.update(sum(outs[i]["generated"][0] is not None for i in applies) / len(applies), len(applies))
+                self.parsed.update(
+                    sum(outs[i]["generated"][0] is not None for i in applies) / len(applies), len(applies)
+                )
 
     def compute(self, prefix: str) -> dict[str, float]:
         """The validation metrics that saw samples, then reset."""
@@ -316,13 +358,18 @@ def meta_action_planner(ctx: Any, teacher: Any, sidecar_reference: bool = True) 
     return MetaActionPlanner(ctx.model_cfg, teacher, ctx.data.root, ctx.cache_dir, where, sidecar_reference)
 
 
-def load_meta_action_planner(export_dir: Path, teacher: Any, request: Any, sidecar_reference: bool = True) -> MetaActionPlanner:
+def load_meta_action_planner(
+    export_dir: Path, teacher: Any, request: Any, sidecar_reference: bool = True
+) -> MetaActionPlanner:
     """A trained head back from its export, over the consumed world model (``occtrain eval``)."""
     from occtrain.exports import load_state_strict, read_export
 
     state, config = read_export(export_dir)
     cfg = MetaActionPlannerConfig(
-        hidden=config["hidden"], layers=config["layers"], inputs=list(config["inputs"]), visual_width=config["visual_width"],
+        hidden=config["hidden"],
+        layers=config["layers"],
+        inputs=list(config["inputs"]),
+        visual_width=config["visual_width"],
         train_meta=config.get("train_meta", "ground_truth"),
     )
     planner = MetaActionPlanner(cfg, teacher, request.data_root, request.cache_dir, str(export_dir), sidecar_reference)

@@ -21,10 +21,11 @@ import importlib
 import inspect
 import pkgutil
 import sys
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from importlib.metadata import entry_points
 from pathlib import Path
-from typing import Any, Callable, Mapping
+from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
@@ -126,7 +127,9 @@ def _check(spec: FamilySpec) -> None:
     where = f"family '{spec.name}'"
     for arch in spec.tokenizers:
         if not hasattr(arch.config, "validate") or not inspect.isclass(arch.model):
-            raise ConfigError(f"{where}: tokenizer '{arch.name}' needs a config dataclass with validate() and a model class")
+            raise ConfigError(
+                f"{where}: tokenizer '{arch.name}' needs a config dataclass with validate() and a model class"
+            )
     world = spec.world
     if world is None:
         return
@@ -135,13 +138,17 @@ def _check(spec: FamilySpec) -> None:
     if not (inspect.isclass(world.model) and issubclass(world.model, LMWorldModel)):
         raise ConfigError(f"{where}: its world model {world.model!r} is not an occtrain.core.world_model.LMWorldModel")
     if not (inspect.isclass(world.task_config) and issubclass(world.task_config, TaskConfig)):
-        raise ConfigError(f"{where}: its task settings {world.task_config!r} do not extend occtrain.core.tasks.TaskConfig")
+        raise ConfigError(
+            f"{where}: its task settings {world.task_config!r} do not extend occtrain.core.tasks.TaskConfig"
+        )
     for name, task in world.tasks.items():
         if not isinstance(task, TaskSpec) or not callable(task.build):
             raise ConfigError(f"{where}: task '{name}' is not a TaskSpec with a builder")
         for make in scorer_factories(task):
             if not isinstance(make(), Scorer):
-                raise ConfigError(f"{where}: the scorer of task '{name}' does not implement occtrain.core.protocols.Scorer")
+                raise ConfigError(
+                    f"{where}: the scorer of task '{name}' does not implement occtrain.core.protocols.Scorer"
+                )
     for hook in world.eval_hooks:
         if not isinstance(hook(), EvalHook):
             raise ConfigError(f"{where}: {hook!r} does not implement occtrain.core.protocols.EvalHook")
@@ -150,7 +157,9 @@ def _check(spec: FamilySpec) -> None:
         if unknown:
             raise ConfigError(f"{where}: default {kind} task '{sorted(unknown)[0]}' is not one of its tasks")
     if world.scene_encoder is not None and world.load_scene_encoder is None:
-        raise ConfigError(f"{where}: a scene encoder built at pretraining needs load_scene_encoder to come back from an export")
+        raise ConfigError(
+            f"{where}: a scene encoder built at pretraining needs load_scene_encoder to come back from an export"
+        )
     if world.planner is not None and world.planner_config is None:
         raise ConfigError(f"{where}: its planner needs a planner_config dataclass (model.head of a planner stage)")
 
@@ -261,7 +270,9 @@ def load_plugin(load: Callable[[], Any], what: str, module: str) -> Any:
         return load()
     except ImportError as err:
         if _missing(err, module):
-            raise ConfigError(f"{what} cannot be imported ({cause_line(err)}); is it installed or on PYTHONPATH?") from None
+            raise ConfigError(
+                f"{what} cannot be imported ({cause_line(err)}); is it installed or on PYTHONPATH?"
+            ) from None
         raise ConfigError(f"{what} failed while being imported: {cause_line(err)}") from None
     except OcctrainError as err:  # already one line for the user (a name another module holds)
         raise ConfigError(f"{what}: {(str(err).splitlines() or [type(err).__name__])[0]}") from None
@@ -314,7 +325,9 @@ def get_world(name: str, key: str = "model.family") -> WorldSpec:
     """The world spec of family ``name``; one line naming ``key`` when it has none."""
     spec = get_family(name, key)
     if spec.world is None:
-        raise ConfigError(f"{key}: family '{name}' has no world model; use one of {', '.join(sorted(world_families()))}")
+        raise ConfigError(
+            f"{key}: family '{name}' has no world model; use one of {', '.join(sorted(world_families()))}"
+        )
     return spec.world
 
 
@@ -358,7 +371,11 @@ def save_tokenizer(model: Any, arch: str, cfg: dict, export_dir: Path) -> Path:
     joint vocabulary is laid out from: the codebooks (sizes, latent grid) of a discrete
     tokenizer, the token count and width of a continuous one."""
     if getattr(model, "discrete", True):
-        layout = {"num_codes": int(model.num_codes), "codebook_sizes": model.codebook_sizes, "latent_hw": list(model.latent_hw)}
+        layout = {
+            "num_codes": int(model.num_codes),
+            "codebook_sizes": model.codebook_sizes,
+            "latent_hw": list(model.latent_hw),
+        }
     else:
         layout = {"discrete": False, "tokens": int(model.num_tokens), "token_dim": int(model.token_dim)}
     config = {
@@ -377,7 +394,10 @@ def load_tokenizer(export_dir: Path) -> Any:
     """Rebuild a scene tokenizer from a tokenizer stage's export (frozen, eval mode)."""
     state, config = read_export(export_dir)
     if config.get("stage_kind") != "tokenizer":
-        raise ConfigError(f"{export_dir}: not a tokenizer export (stage kind '{config.get('stage_kind')}'); consume the tokenizer stage")
+        raise ConfigError(
+            f"{export_dir}: not a tokenizer export (stage kind '{config.get('stage_kind')}'); consume the tokenizer "
+            "stage"
+        )
     require_config(config, ("arch", "config"), export_dir)
     check_section(_arch(config["arch"]).config, config["config"], "config", export_dir)
     model = build_tokenizer(config["arch"], config["config"])

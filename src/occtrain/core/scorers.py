@@ -48,8 +48,10 @@ class Priors:
             by_type.setdefault(q["template_type"], Counter())[q["answer"]] += 1
         metas = Counter(
             (f["meta_action"]["speed"], f["meta_action"]["direction"])
-            for scene in index.splits.get("train", []) if index.has_frame_annotations(scene)
-            for f in index.frames(scene) if "meta_action" in f
+            for scene in index.splits.get("train", [])
+            if index.has_frame_annotations(scene)
+            for f in index.frames(scene)
+            if "meta_action" in f
         )
         meta = None
         if metas:
@@ -106,8 +108,12 @@ class PlanScorer(BaseScorer):
     def score(self, ev: Any, item: Item) -> None:
         target, anchor, token = item.target, item.clip.anchor, item.clip.anchor["token"]
         if ev.once(("plan baselines", token)):  # standing still and constant velocity, once a clip
-            ev.metrics["baseline_constant_velocity"].update(constant_velocity([anchor], ev.device), target.traj, target.mask, target.agents)
-            ev.metrics["baseline_stationary"].update(torch.zeros_like(target.traj), target.traj, target.mask, target.agents)
+            ev.metrics["baseline_constant_velocity"].update(
+                constant_velocity([anchor], ev.device), target.traj, target.mask, target.agents
+            )
+            ev.metrics["baseline_stationary"].update(
+                torch.zeros_like(target.traj), target.traj, target.mask, target.agents
+            )
         actions = [p for p in item.generated if isinstance(p, Actions)]
         if not actions:
             return
@@ -115,13 +121,15 @@ class PlanScorer(BaseScorer):
         pred = torch.zeros_like(target.traj)
         pred[0, : len(xy)] = torch.tensor(xy[: pred.shape[1]], dtype=torch.float32, device=ev.device)
         plan_mask = target.mask.clone()
-        plan_mask[0, len(xy):] = False
+        plan_mask[0, len(xy) :] = False
         ev.metrics[self.name].update(pred, target.traj, plan_mask, target.agents)
         ev.keep_plan_picture(self.name, anchor, np.asarray(xy), target.traj[0][target.mask[0]].cpu().numpy())
         if self.record and ev.record:
             ev.predictions["planning"][token] = pred[0].tolist()
             ev.predictions["planning_gt"][token] = {
-                "traj": target.traj[0].tolist(), "mask": target.mask[0].int().tolist(), "agents": [a.tolist() for a in target.agents[0]],
+                "traj": target.traj[0].tolist(),
+                "mask": target.mask[0].int().tolist(),
+                "agents": [a.tolist() for a in target.agents[0]],
             }
 
 
@@ -131,7 +139,9 @@ FORECAST_BASELINES = ("baseline_copy_forecast", "baseline_copy_reconstruction_fo
 forecast_metric = partial(ForecastMetric, subsets={"movable": MOVABLE_CLASSES})
 
 
-def forecast_baselines(current: torch.Tensor, reconstruction: torch.Tensor, anchor: dict, steps: int = FUTURE_STEPS) -> dict[str, torch.Tensor]:
+def forecast_baselines(
+    current: torch.Tensor, reconstruction: torch.Tensor, anchor: dict, steps: int = FUTURE_STEPS
+) -> dict[str, torch.Tensor]:
     """The forecasts a world model must beat, (1, steps, X, Y, Z) each, from the current
     label volume (X, Y, Z) and the scene encoder's reconstruction of it: the exact scene
     copied forward; the reconstruction copied forward (OccWorld's Copy&Paste, which no
@@ -231,8 +241,12 @@ class ChainOfThoughtScorer(BaseScorer):
     past one (labelled from the poses up to the anchor, by the rules the sidecars follow)."""
 
     metrics = {
-        "cot_caption": CaptionMetric, "meta_action_acc": MeanMetric, "meta_parsed_fraction": MeanMetric,
-        "baseline_prior_meta_action_acc": MeanMetric, "meta_action": MetaActionAccuracy, "baseline_prior_meta_action": MetaActionAccuracy,
+        "cot_caption": CaptionMetric,
+        "meta_action_acc": MeanMetric,
+        "meta_parsed_fraction": MeanMetric,
+        "baseline_prior_meta_action_acc": MeanMetric,
+        "meta_action": MetaActionAccuracy,
+        "baseline_prior_meta_action": MetaActionAccuracy,
         "baseline_repeat_last_meta_action": MetaActionAccuracy,
     }
 
@@ -251,9 +265,13 @@ class ChainOfThoughtScorer(BaseScorer):
         ev.metrics["meta_action"].update([parsed], [anchor["meta_action"]])
         self.scored += 1
         if ev.priors.meta_action is not None:
-            ev.metrics["baseline_prior_meta_action_acc"].update(100.0 * (ev.priors.meta_action == anchor["meta_action"]))
+            ev.metrics["baseline_prior_meta_action_acc"].update(
+                100.0 * (ev.priors.meta_action == anchor["meta_action"])
+            )
             ev.metrics["baseline_prior_meta_action"].update([ev.priors.meta_action], [anchor["meta_action"]])
-        ev.metrics["baseline_repeat_last_meta_action"].update([last_past_meta_action(item.clip)], [anchor["meta_action"]])
+        ev.metrics["baseline_repeat_last_meta_action"].update(
+            [last_past_meta_action(item.clip)], [anchor["meta_action"]]
+        )
         if ev.record:
             ev.predictions["captions"][token] = text
             ev.predictions["captions_gt"][token] = [reference]

@@ -63,16 +63,26 @@ class Step(NamedTuple):
 def head(seq: TokenSequence, n: int) -> TokenSequence:
     """The first ``n`` tokens of a laid-out sequence (a prompt's prefix)."""
     return TokenSequence(
-        seq.input_ids[:n], seq.labels[:n], seq.segment_ids[:n], seq.position_ids[:n], seq.scene_target[:n],
-        seq.branch_ids[:n], {k: v[:n] for k, v in seq.payload.items()},
+        seq.input_ids[:n],
+        seq.labels[:n],
+        seq.segment_ids[:n],
+        seq.position_ids[:n],
+        seq.scene_target[:n],
+        seq.branch_ids[:n],
+        {k: v[:n] for k, v in seq.payload.items()},
     )
 
 
 def tail(seq: TokenSequence, n: int) -> TokenSequence:
     """A laid-out sequence from token ``n`` on (what follows a prompt's prefix)."""
     return TokenSequence(
-        seq.input_ids[n:], seq.labels[n:], seq.segment_ids[n:], seq.position_ids[n:], seq.scene_target[n:],
-        seq.branch_ids[n:], {k: v[n:] for k, v in seq.payload.items()},
+        seq.input_ids[n:],
+        seq.labels[n:],
+        seq.segment_ids[n:],
+        seq.position_ids[n:],
+        seq.scene_target[n:],
+        seq.branch_ids[n:],
+        {k: v[n:] for k, v in seq.payload.items()},
     )
 
 
@@ -88,5 +98,3 @@ def prompt_of(spec: PayloadSpec, prefix: torch.Tensor | TokenSequence) -> tuple[
         return prefix.input_ids.reshape(-1).long(), prefix.payload
     ids = torch.as_tensor(prefix).reshape(-1).long()
     return ids, empty_payload(spec, ids.numel())
-
-

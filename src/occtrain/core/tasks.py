@@ -11,8 +11,9 @@ of waypoints and future scenes, and the corpus a world model's text tokenizer le
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
-from typing import Any, Callable, Iterator
+from typing import Any
 
 import numpy as np
 
@@ -64,7 +65,9 @@ class ForecastTaskConfig(TaskConfig):
         if self.forecast_frames < 1:
             raise ConfigError(f"{key}.forecast_frames: {self.forecast_frames} must be at least 1")
         if self.plan_prior not in PLAN_PRIORS:
-            raise ConfigError(f"{key}.plan_prior: '{self.plan_prior}' is not one of {', '.join(PLAN_PRIORS)} (paper: none)")
+            raise ConfigError(
+                f"{key}.plan_prior: '{self.plan_prior}' is not one of {', '.join(PLAN_PRIORS)} (paper: none)"
+            )
 
 
 #: ``plan_prior`` values, the papers' first.
@@ -104,7 +107,9 @@ def validate_tasks(cfg: TaskConfig, key: str, tasks: dict[str, TaskSpec]) -> Non
     cfg.validate(key)
 
 
-def sample_task(clip: Clip, cfg: TaskConfig, seed: int, token: str, tasks: dict[str, TaskSpec]) -> tuple[str, list[Part]] | None:
+def sample_task(
+    clip: Clip, cfg: TaskConfig, seed: int, token: str, tasks: dict[str, TaskSpec]
+) -> tuple[str, list[Part]] | None:
     """Draw a task by weight (deterministic in ``seed`` and the sample token) and build it.
 
     A task that does not apply to the clip (e.g. no moving object to predict) gives way to
@@ -114,7 +119,9 @@ def sample_task(clip: Clip, cfg: TaskConfig, seed: int, token: str, tasks: dict[
     rng = clip_rng(seed, token)
     names = [n for n, w in cfg.weights.items() if w > 0]
     if not names:
-        raise ValueError("no task has a positive weight: give the task settings weights (the engine fills a family's defaults)")
+        raise ValueError(
+            "no task has a positive weight: give the task settings weights (the engine fills a family's defaults)"
+        )
     p = np.asarray([cfg.weights[n] for n in names], dtype=np.float64)
     for name in rng.choice(names, size=len(names), replace=False, p=p / p.sum()):
         parts = tasks[str(name)].build(clip, cfg, rng)
@@ -195,10 +202,16 @@ def question_of(parts: list[Part]) -> str:
 #: task phrases, object names, numbers): a world model's BPE tokenizer learns them even
 #: where the data has no sidecar text.
 COMMON_PROMPT_WORDS = (
-    "Task: detect the nearest objects.", "Task: count the objects.", "Task: predict the future of the",
-    "Task: plan the ego trajectory.", "Task: forecast the scene.", "Task: describe the scene, then plan.",
-    "Command: turn left. turn right. go straight. Ego speed 0.0 m/s.", "Ego past:",
-    "no objects", "car truck bus trailer construction vehicle pedestrian motorcycle bicycle barrier traffic cone",
+    "Task: detect the nearest objects.",
+    "Task: count the objects.",
+    "Task: predict the future of the",
+    "Task: plan the ego trajectory.",
+    "Task: forecast the scene.",
+    "Task: describe the scene, then plan.",
+    "Command: turn left. turn right. go straight. Ego speed 0.0 m/s.",
+    "Ego past:",
+    "no objects",
+    "car truck bus trailer construction vehicle pedestrian motorcycle bicycle barrier traffic cone",
     "0 1 2 3 4 5 6 7 8 9 10",
 )
 

@@ -28,7 +28,8 @@ ids, so ``decode`` shows them and ``skip_special_tokens`` hides them.
 
 from __future__ import annotations
 
-from typing import Any, Sequence
+from collections.abc import Sequence
+from typing import Any
 
 import torch
 
@@ -82,7 +83,9 @@ class JointVocab:
         self.cells = self.scene_hw[0] * self.scene_hw[1]
         self.patch = int(patch)
         if self.patch and (self.scene_hw[0] % self.patch or self.scene_hw[1] % self.patch):
-            raise ConfigError(f"patch size {self.patch} must divide the latent grid {self.scene_hw[0]}x{self.scene_hw[1]}")
+            raise ConfigError(
+                f"patch size {self.patch} must divide the latent grid {self.scene_hw[0]}x{self.scene_hw[1]}"
+            )
         self.scene_len = scene_length(sizes, self.scene_hw, self.patch)
         self.num_codes = self.scene_len if self.patch else sum(sizes)  # the <patch_j> tokens, or every codebook's codes
         #: Where each codebook's tokens start inside the scene-token range (codes layout).
@@ -137,7 +140,8 @@ class JointVocab:
         if len(self.tokenizer) != self.size or got != list(range(self.text_size, self.size)):
             raise ConfigError(
                 f"text tokenizer: its {len(self.tokenizer)} tokens do not match the joint vocabulary layout "
-                f"({self.text_size} text + {self.size - self.text_size} joint tokens); use the tokenizer saved with this vocabulary"
+                f"({self.text_size} text + {self.size - self.text_size} joint tokens); use the tokenizer saved with "
+                "this vocabulary"
             )
 
     def __len__(self) -> int:
@@ -192,7 +196,9 @@ class JointVocab:
         """A scene's codes, flat and codebook-major (``scene_len``,) -> its token ids."""
         codes = codes.reshape(-1).long()
         if codes.numel() != self.scene_len or self.patch:
-            raise ValueError(f"occ_ids takes the {self.scene_len} codes of one scene in the codes layout, got {codes.numel()}")
+            raise ValueError(
+                f"occ_ids takes the {self.scene_len} codes of one scene in the codes layout, got {codes.numel()}"
+            )
         sizes = torch.tensor(self.codebook_sizes, device=codes.device).repeat_interleave(self.cells)
         if bool(((codes < 0) | (codes >= sizes)).any()):
             raise ValueError(f"scene codes must lie in [0, K) of their codebook (sizes {self.codebook_sizes})")
@@ -281,7 +287,9 @@ class JointVocab:
             "extra": list(self.extra),
             "scene_hw": list(self.scene_hw),
             "action_bins": self.bins,
-            "action_range": [[float(lo), float(hi)] for lo, hi in zip(self.quantizer.low.tolist(), self.quantizer.high.tolist())],
+            "action_range": [
+                [float(lo), float(hi)] for lo, hi in zip(self.quantizer.low.tolist(), self.quantizer.high.tolist())
+            ],
             "action_grid": self.quantizer.grid,
             "action_encoding": self.action_encoding,
             "action_decoding": self.action_decoding,
@@ -291,11 +299,20 @@ class JointVocab:
     def from_json(cls, data: dict, text_tokenizer: Any) -> JointVocab:
         """Rebuild from ``to_json`` and a text tokenizer, with or without the joint tokens."""
         cfg = LLMConfig(
-            action_bins=int(data["action_bins"]), action_range=[list(r) for r in data["action_range"]],
-            action_encoding=str(data.get("action_encoding", "absolute")), action_decoding=str(data.get("action_decoding", "greedy")),
+            action_bins=int(data["action_bins"]),
+            action_range=[list(r) for r in data["action_range"]],
+            action_encoding=str(data.get("action_encoding", "absolute")),
+            action_decoding=str(data.get("action_decoding", "greedy")),
         )  # exports from before the two switches hold the papers' rules
         sizes = data.get("codebook_sizes", [data.get("num_codes", 0)])  # exports before multi-codebook vocabularies
-        return cls(text_tokenizer, sizes, tuple(data["scene_hw"]), cfg, text_size=data["text_size"], patch=int(data.get("patch", 0)),
-            image=bool(data.get("image", False)), extra=tuple(data.get("extra", ())),
+        return cls(
+            text_tokenizer,
+            sizes,
+            tuple(data["scene_hw"]),
+            cfg,
+            text_size=data["text_size"],
+            patch=int(data.get("patch", 0)),
+            image=bool(data.get("image", False)),
+            extra=tuple(data.get("extra", ())),
             action_grid=str(data.get("action_grid", "range")),  # exports before the zero grid
         )

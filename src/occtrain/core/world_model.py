@@ -21,7 +21,7 @@ from torch import nn
 
 from occtrain.config.llm import SCENE_PREDICTION_MODES
 from occtrain.core.builder import SequenceBuilder, batch_payload
-from occtrain.core.decoding import Answer, Decoder, SceneAnswer, TextAnswer, ActionAnswer, decode, decode_batch
+from occtrain.core.decoding import ActionAnswer, Answer, Decoder, SceneAnswer, TextAnswer, decode, decode_batch
 from occtrain.core.sequence import IGNORE, PayloadSpec, Step, TokenSequence
 from occtrain.core.vocab import JointVocab
 from occtrain.models import without_peft
@@ -30,7 +30,9 @@ from occtrain.models.attention import additive
 
 def token_ce(logits: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
     """Per-token cross-entropy (B, L) of ``logits`` (B, L, V) against ``labels`` (0 where IGNORE)."""
-    return F.cross_entropy(logits.flatten(0, 1).float(), labels.flatten(), ignore_index=IGNORE, reduction="none").view_as(labels)
+    return F.cross_entropy(
+        logits.flatten(0, 1).float(), labels.flatten(), ignore_index=IGNORE, reduction="none"
+    ).view_as(labels)
 
 
 @dataclass
@@ -121,7 +123,9 @@ class LMWorldModel(nn.Module):
         impl = getattr(self.llm.config, "_attn_implementation", "sdpa")
         return allowed if impl == "sdpa" else additive(allowed[:, 0], dtype)
 
-    def _run(self, input_ids, attention_mask, position_ids, past_key_values=None, use_cache=False, hidden=False, payload=None):
+    def _run(
+        self, input_ids, attention_mask, position_ids, past_key_values=None, use_cache=False, hidden=False, payload=None
+    ):
         emb = self.embed(input_ids, payload)
         return self.llm(
             inputs_embeds=emb,
@@ -132,17 +136,27 @@ class LMWorldModel(nn.Module):
             output_hidden_states=hidden,
         )
 
-    def step(self, input_ids, attention_mask, position_ids, past_key_values=None, use_cache=False, payload=None) -> Step:
+    def step(
+        self, input_ids, attention_mask, position_ids, past_key_values=None, use_cache=False, payload=None
+    ) -> Step:
         """The LLM's output for ``input_ids`` (and their payload) under a boolean 4D mask."""
         # Only a model with a payload emits scenes from hidden states: the others skip keeping every layer's.
         hidden = bool(self.payload_spec)
-        out = self._run(input_ids, attention_mask, position_ids, past_key_values, use_cache, hidden=hidden, payload=payload)
+        out = self._run(
+            input_ids, attention_mask, position_ids, past_key_values, use_cache, hidden=hidden, payload=payload
+        )
         return Step(out.logits, out.cache, out.hidden_states[-1] if hidden else None)
 
     def forward(self, batch: dict[str, torch.Tensor], output_hidden_states: bool = False) -> WorldModelOutput:
         """Cross-entropy over all targets (one uniform loss); the text (text + action +
         marker) and scene parts are reported apart."""
-        out = self._run(batch["input_ids"], batch["attention_mask"], batch["position_ids"], hidden=output_hidden_states, payload=batch_payload(batch))
+        out = self._run(
+            batch["input_ids"],
+            batch["attention_mask"],
+            batch["position_ids"],
+            hidden=output_hidden_states,
+            payload=batch_payload(batch),
+        )
         logits, labels = out.logits, batch["labels"]
         ce = token_ce(logits, labels)
         valid = labels != IGNORE
@@ -185,7 +199,9 @@ class LMWorldModel(nn.Module):
         return decode_batch(self, [self.check_prompt(p) for p in prefixes], answers)
 
     @torch.no_grad()
-    def generate_text(self, prefix: torch.Tensor | TokenSequence, max_new_tokens: int = 64, stop_at_eos: bool = True) -> str:
+    def generate_text(
+        self, prefix: torch.Tensor | TokenSequence, max_new_tokens: int = 64, stop_at_eos: bool = True
+    ) -> str:
         """Greedy text after ``prefix``, up to end-of-text."""
         return self.vocab.decode_text(self.generate(prefix, [TextAnswer(max_new_tokens, stop_at_eos)])[0])
 
@@ -218,7 +234,9 @@ class LMWorldModel(nn.Module):
         raise NotImplementedError
 
     @classmethod
-    def create(cls, llm: nn.Module, vocab: JointVocab, inputs: WorldInputs, scene_prediction: str, world_cfg: Any = None) -> LMWorldModel:
+    def create(
+        cls, llm: nn.Module, vocab: JointVocab, inputs: WorldInputs, scene_prediction: str, world_cfg: Any = None
+    ) -> LMWorldModel:
         """A fresh model around ``llm`` over the frozen inputs (pretraining's start)."""
         raise NotImplementedError
 

@@ -51,7 +51,9 @@ def _cmd_dashboard(args: argparse.Namespace) -> int:
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     """Add ``occtrain dashboard RUN_DIR [--out FILE]`` to the CLI."""
-    p = subparsers.add_parser("dashboard", help="write RUN_DIR/dashboard.html: stages, curves, metrics vs papers, samples")
+    p = subparsers.add_parser(
+        "dashboard", help="write RUN_DIR/dashboard.html: stages, curves, metrics vs papers, samples"
+    )
     p.add_argument("run_dir", metavar="RUN_DIR", help="a run directory, e.g. runs/quickstart")
     p.add_argument("--out", metavar="FILE", help="where to write the page (default: RUN_DIR/dashboard.html)")
     p.set_defaults(func=_cmd_dashboard)

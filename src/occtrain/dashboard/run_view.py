@@ -87,7 +87,9 @@ def read_data(run_dir: Path, pipeline_yaml: str) -> DataView | None:
     if not root:
         return None
     if not Path(root).is_dir():
-        return DataView(root, problem=f"{root}: not found from {Path.cwd()}; run `occtrain dashboard` where the run was started")
+        return DataView(
+            root, problem=f"{root}: not found from {Path.cwd()}; run `occtrain dashboard` where the run was started"
+        )
     try:
         key = world_key(root)
         cache = run_dir / DATA_STATS_FILE
@@ -140,7 +142,10 @@ def _series(label: str, points: list[tuple[float, float]]) -> Series:
 MEASURES = (
     (re.compile(r"^(?P<s>.*?)_?qa_overall$"), "QA accuracy (%)"),
     (re.compile(r"^(?P<s>.*?)_?meta_action_acc$"), "meta-action accuracy (%)"),
-    (re.compile(r"^(?P<s>.*?meta_action)_(?P<m>speed|direction|mean|overall)$"), "meta-action accuracy: speed, direction, their mean, overall (%)"),
+    (
+        re.compile(r"^(?P<s>.*?meta_action)_(?P<m>speed|direction|mean|overall)$"),
+        "meta-action accuracy: speed, direction, their mean, overall (%)",
+    ),
     (re.compile(r"^(?P<s>meta_parsed_fraction)$"), "meta action parsed (%)"),
     (re.compile(r"^(?P<s>.+)_L2_stp3_avg$"), "planning L2, ST-P3 avg (m)"),
     (re.compile(r"^(?P<s>.+)_L2_uniad_avg$"), "planning L2, UniAD avg (m)"),
@@ -183,7 +188,9 @@ def charts_from_curves(curves: dict[str, list[tuple[float, float]]]) -> list[Cha
             fixed[title].append(_series(name.split("/", 1)[1], points))
         elif name.startswith("train/") and name.endswith(("codebook_usage", "perplexity")):
             kind = "usage" if name.endswith("usage") else "perplexity"
-            label = name.split("/", 1)[1].removesuffix("codebook_usage").removesuffix("perplexity").strip("_") or "codebook"
+            label = (
+                name.split("/", 1)[1].removesuffix("codebook_usage").removesuffix("perplexity").strip("_") or "codebook"
+            )
             fixed[f"codebook {kind} per train batch"].append(_series(label, points))
         elif name.startswith("train/"):
             fixed["train, other"].append(_series(name.split("/", 1)[1], points))
@@ -237,7 +244,9 @@ def load_run(run_dir: Path) -> RunView:
     if not run_dir.is_dir():
         raise OcctrainError(f"{run_dir}: no such run directory; pass runs/<name> as written by `occtrain run`")
     if not (run_dir / MANIFEST_FILE).is_file():
-        raise OcctrainError(f"{run_dir}: no {MANIFEST_FILE}, so not a run directory; pass runs/<name> as written by `occtrain run`")
+        raise OcctrainError(
+            f"{run_dir}: no {MANIFEST_FILE}, so not a run directory; pass runs/<name> as written by `occtrain run`"
+        )
     manifest = Manifest.load(run_dir, writable=False)
     try:
         updated = json.loads(manifest.path.read_text()).get("updated")
@@ -247,6 +256,10 @@ def load_run(run_dir: Path) -> RunView:
     pipeline_yaml = pipeline.read_text(errors="replace") if pipeline.is_file() else ""
     stages = [_read_stage(run_dir, name, entry) for name, entry in manifest.stages.items()]
     return RunView(
-        run_dir, manifest.name or run_dir.name, updated if isinstance(updated, (int, float)) else None, pipeline_yaml, stages,
+        run_dir,
+        manifest.name or run_dir.name,
+        updated if isinstance(updated, (int, float)) else None,
+        pipeline_yaml,
+        stages,
         read_data(run_dir, pipeline_yaml),
     )

@@ -12,11 +12,11 @@ from __future__ import annotations
 
 import json
 import re
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
-
 
 from occtrain.data.render import render_bev, strip
 from occtrain.errors import DataError
@@ -71,7 +71,9 @@ def read_samples(stage_dir: Path) -> tuple[list[tuple[str, bytes]], list[dict[st
         texts = [{k: str(t.get(k, "")) for k in TEXT_KEYS} for t in text_entries]
         names = [(str(e["file"]), str(e.get("caption", ""))) for e in image_entries]
     except (json.JSONDecodeError, AttributeError, KeyError, TypeError) as err:
-        raise DataError(f"{path}: unreadable samples index ({err}); re-run the stage's validation to rewrite it") from None
+        raise DataError(
+            f"{path}: unreadable samples index ({err}); re-run the stage's validation to rewrite it"
+        ) from None
     images = []
     for name, caption in names:
         png = path.parent / name

@@ -6,9 +6,9 @@ The SVG is meant to sit inside an HTML5 page, which needs no namespace declarati
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from html import escape
-from typing import Sequence
 
 #: Series colours (colour-blind friendly), cycled when a chart has more series.
 PALETTE = ("#1f77b4", "#d62728", "#2ca02c", "#ff7f0e", "#9467bd", "#8c564b", "#e377c2", "#17becf")
@@ -64,12 +64,14 @@ def tick_labels(ticks: Sequence[float]) -> list[str]:
     if top >= 1e5 or step < 1e-4:
         return [f"{t:.1e}" if t else "0" for t in ticks]
     decimals = max(0, -math.floor(math.log10(step) + 1e-9))
-    if round(step / 10.0 ** -decimals, 6) % 1:  # a step of 2.5 needs one more digit
+    if round(step / 10.0**-decimals, 6) % 1:  # a step of 2.5 needs one more digit
         decimals += 1
     return [f"{t:.{decimals}f}" for t in ticks]
 
 
-def line_chart(series: Sequence[Series], title: str, xlabel: str = "step", ylabel: str = "", frame: Frame = Frame()) -> str:
+def line_chart(
+    series: Sequence[Series], title: str, xlabel: str = "step", ylabel: str = "", frame: Frame = Frame()
+) -> str:
     """An ``<svg>`` element drawing each series as a ``<polyline>`` (and a dot per point)."""
     series = [s for s in series if len(s.xs)]
     legend_rows = math.ceil(len(series) / 3) if len(series) > 1 else 0

@@ -16,7 +16,12 @@ import numpy as np
 
 #: The six nuScenes cameras, in the order every occtrain tensor stacks them.
 CAMERA_NAMES: tuple[str, ...] = (
-    "CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_FRONT_LEFT", "CAM_BACK", "CAM_BACK_LEFT", "CAM_BACK_RIGHT",
+    "CAM_FRONT",
+    "CAM_FRONT_RIGHT",
+    "CAM_FRONT_LEFT",
+    "CAM_BACK",
+    "CAM_BACK_LEFT",
+    "CAM_BACK_RIGHT",
 )
 #: nuScenes' image size, which the rig below is calibrated for.
 NUSCENES_SIZE = (900, 1600)  # (height, width)
@@ -37,11 +42,13 @@ _RIG = {
 def quaternion_to_matrix(q: np.ndarray) -> np.ndarray:
     """Rotation matrix of a (w, x, y, z) quaternion (normalised first)."""
     w, x, y, z = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-    ])
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
 
 
 def matrix_to_quaternion(r: np.ndarray) -> np.ndarray:
@@ -94,7 +101,13 @@ class Camera:
         safe = np.where(np.abs(depth) < 1e-9, 1e-9, depth)
         uvw = cam @ self.intrinsic.T
         uv = uvw[..., :2] / safe[..., None]
-        inside = (depth > 1e-6) & (uv[..., 0] >= 0) & (uv[..., 0] < self.width) & (uv[..., 1] >= 0) & (uv[..., 1] < self.height)
+        inside = (
+            (depth > 1e-6)
+            & (uv[..., 0] >= 0)
+            & (uv[..., 0] < self.width)
+            & (uv[..., 1] >= 0)
+            & (uv[..., 1] < self.height)
+        )
         return uv, depth, inside
 
     def lift(self, uv: np.ndarray, depth: np.ndarray) -> np.ndarray:

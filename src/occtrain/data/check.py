@@ -9,14 +9,24 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Callable
+from functools import partial
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
 from occtrain.data.geometry import global_to_ego
 from occtrain.data.layout import (
-    ANNOTATIONS_FILE, FRAMES_DIR, IMGS_DIR, SPLITS, DatasetIndex, dataset_root, load_labels, qa_file, read_image,
+    ANNOTATIONS_FILE,
+    FRAMES_DIR,
+    IMGS_DIR,
+    SPLITS,
+    DatasetIndex,
+    dataset_root,
+    load_labels,
+    qa_file,
+    read_image,
 )
 from occtrain.data.schema import FrameAnnotation, Occ3DAnnotations, QAFile
 from occtrain.data.shards import INDEX_FILE, decode_sample, iter_raw, read_index
@@ -92,23 +102,29 @@ def _check_dataset(root: Path, problems: list[str], note: Callable[[str], None])
         problems.extend(_timing_problems(index, scene, tokens))
         for token in tokens:
             if token in owner:
-                problems.append(f"{ann}: sample token {token} is in both scene_infos.{owner[token]} and scene_infos.{scene}")
+                problems.append(
+                    f"{ann}: sample token {token} is in both scene_infos.{owner[token]} and scene_infos.{scene}"
+                )
             owner[token] = scene
             rotation = index.info(scene, token)["ego_pose"]["rotation"]
             if abs(math.sqrt(sum(q * q for q in rotation)) - 1.0) > QUATERNION_TOLERANCE:
-                problems.append(f"{ann}: scene_infos.{scene}.{token}.ego_pose.rotation is not a unit quaternion (w, x, y, z)")
+                problems.append(
+                    f"{ann}: scene_infos.{scene}.{token}.ego_pose.rotation is not a unit quaternion (w, x, y, z)"
+                )
             if checks_images:
-                problems.extend(_guarded(lambda found: _check_cameras(index, scene, token, found), ann))
+                problems.extend(_guarded(partial(_check_cameras, index, scene, token), ann))
             path = index.labels_path(scene, token)
             if "gt_path" not in index.info(scene, token) and not path.exists():
                 no_truth += 1  # a test split: Occ3D gives it no gt_path and no labels
                 continue
-            problems.extend(_guarded(lambda found: _check_labels(path, found), path))
+            problems.extend(_guarded(partial(_check_labels, path), path))
     if no_truth:
-        note(f"note: {no_truth} samples have no gt_path and no labels (a test split?); they cannot be trained or scored")
+        note(
+            f"note: {no_truth} samples have no gt_path and no labels (a test split?); they cannot be trained or scored"
+        )
     problems.extend(_sidecar_problems(index))
     for split in SPLITS:
-        problems.extend(_guarded(lambda found: _check_questions(index, split, found), root / qa_file(split)))
+        problems.extend(_guarded(partial(_check_questions, index, split), root / qa_file(split)))
 
 
 def _check_cameras(index: DatasetIndex, scene: str, token: str, problems: list[str]) -> None:
@@ -135,7 +151,9 @@ def _check_cameras(index: DatasetIndex, scene: str, token: str, problems: list[s
         sizes.add((height, width))
         k = r.intrinsic
         if not (k[0, 0] > 0 and k[1, 1] > 0 and 0 <= k[0, 2] <= width and 0 <= k[1, 2] <= height):
-            problems.append(f"{where} ({r.name}): intrinsic {k.round(2).tolist()} does not fit its {width}x{height} image")
+            problems.append(
+                f"{where} ({r.name}): intrinsic {k.round(2).tolist()} does not fit its {width}x{height} image"
+            )
         if abs(np.linalg.det(r.cam_to_ego[:3, :3]) - 1.0) > QUATERNION_TOLERANCE:
             problems.append(f"{where} ({r.name}): extrinsic rotation is not a unit quaternion (w, x, y, z)")
     if len(sizes) > 1:
@@ -160,7 +178,9 @@ def _timing_problems(index: DatasetIndex, scene: str, tokens: list[str]) -> list
     if (gaps <= 0).any():
         return [f"{ann}: scene '{scene}' timestamps do not increase along its prev/next links"]
     if np.abs(gaps - FRAME_DT).max() > GAP_TOLERANCE:
-        return [f"{ann}: scene '{scene}' frames are not {FRAME_DT} s apart (found {gaps.min():.3f}..{gaps.max():.3f} s)"]
+        return [
+            f"{ann}: scene '{scene}' frames are not {FRAME_DT} s apart (found {gaps.min():.3f}..{gaps.max():.3f} s)"
+        ]
     return []
 
 
@@ -179,13 +199,14 @@ def _sidecar_problems(index: DatasetIndex) -> list[str]:
         for scene in scenes:
             if scene not in present:
                 problems.append(
-                    f"{index.root / FRAMES_DIR / f'{scene}.json'}: missing while {len(present)} other scenes have their "
+                    f"{index.root / FRAMES_DIR / f'{scene}.json'}: missing while {len(present)} other scenes have "
+                    "their "
                     "frame sidecar; write it or delete them all"
                 )
     for scene in present:
         path = index.root / FRAMES_DIR / f"{scene}.json"
         listed = _file_problems(path, list[FrameAnnotation])[1]
-        problems.extend(listed or _guarded(lambda found: _check_frames(index, scene, index.frames(scene), found), path))
+        problems.extend(listed or _guarded(partial(_check_frames, index, scene, index.frames(scene)), path))
     return problems
 
 
@@ -197,13 +218,18 @@ def _check_frames(index: DatasetIndex, scene: str, frames: list[FrameAnnotation]
     for i, frame in enumerate(frames):
         where = f"{path}: [{i}]"
         if frame["scene"] != scene or frame["index"] != i:
-            problems.append(f"{where} says scene '{frame['scene']}' index {frame['index']}, but it is frame {i} of '{scene}'")
+            problems.append(
+                f"{where} says scene '{frame['scene']}' index {frame['index']}, but it is frame {i} of '{scene}'"
+            )
         fut, mask = np.asarray(frame["ego_future"]), frame["ego_future_mask"]
         for k, valid in enumerate(mask):
             if valid and i + k + 1 < len(poses):
                 want = global_to_ego(np.asarray(poses[i + k + 1][:2]), np.asarray(poses[i][:2]), poses[i][2])
                 if np.abs(fut[k] - want).max() > POSE_TOLERANCE:
-                    problems.append(f"{where}.ego_future[{k}] {fut[k].round(2).tolist()} disagrees with the ego poses ({want.round(2).tolist()})")
+                    problems.append(
+                        f"{where}.ego_future[{k}] {fut[k].round(2).tolist()} disagrees with the ego poses "
+                        f"({want.round(2).tolist()})"
+                    )
                     break
         boxes = len(frame["boxes"])
         for key in ("agent_futures", "agent_future_mask"):
@@ -222,7 +248,9 @@ def _check_questions(index: DatasetIndex, split: str, problems: list[str]) -> No
     allowed = {t for s in index.splits[split] for t in index.scenes[s]}
     for i, q in enumerate(data["questions"]):
         if q["sample_token"] not in allowed:
-            problems.append(f"{path}: questions[{i}].sample_token '{q['sample_token']}' is not a sample of the {split} split")
+            problems.append(
+                f"{path}: questions[{i}].sample_token '{q['sample_token']}' is not a sample of the {split} split"
+            )
 
 
 # ----------------------------------------------------------------------------- shards
@@ -236,24 +264,26 @@ def check_shards(shards: str | Path) -> list[str]:
 def _check_shards(shards: Path, problems: list[str]) -> None:
     idx = read_index(shards)
     for kind, splits in idx["kinds"].items():
-        for split, entries in splits.items():
+        for entries in splits.values():
             for entry in entries:
                 url = shards / kind / entry["file"]
                 if not url.is_file():
                     problems.append(f"{url}: listed in {INDEX_FILE} but missing")
                     continue
-                count = 0
-
-                def read(found: list[str]) -> None:
-                    nonlocal count
-                    for raw in iter_raw(str(url)):
-                        decode_sample(raw)
-                        count += 1
-
-                failed = _guarded(read, url)
+                counted: list[int] = []
+                failed = _guarded(partial(_read_shard, url, counted), url)
                 problems.extend(failed)
-                if not failed and count != entry["samples"]:
-                    problems.append(f"{url}: holds {count} samples, {INDEX_FILE} says {entry['samples']}")
+                if not failed and counted[0] != entry["samples"]:
+                    problems.append(f"{url}: holds {counted[0]} samples, {INDEX_FILE} says {entry['samples']}")
+
+
+def _read_shard(url: Path, counted: list[int], problems: list[str]) -> None:
+    """Decode every sample of one shard (a problem raises); how many there were goes to ``counted``."""
+    n = 0
+    for raw in iter_raw(str(url)):
+        decode_sample(raw)
+        n += 1
+    counted.append(n)
 
 
 def looks_like_shards(path: str | Path) -> bool:

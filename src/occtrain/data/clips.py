@@ -11,8 +11,8 @@ stage and evaluator that scores a plan.
 from __future__ import annotations
 
 import zlib
+from collections.abc import Iterator
 from dataclasses import dataclass
-from typing import Iterator, Union
 
 import numpy as np
 import torch
@@ -75,7 +75,7 @@ class Occupancy:
     supervise: bool = False  # their loss is their own, not the answer's
 
 
-Part = Union[Text, Scene, Actions, Branch, Images, Occupancy]
+Part = Text | Scene | Actions | Branch | Images | Occupancy
 
 
 @dataclass
@@ -118,7 +118,9 @@ def clips_from_batch(batch: dict) -> list[Clip]:
     return [Clip(ann, qa, narr) for ann, qa, narr in zip(batch["ann"], batch["qa"], batch["narration"])]
 
 
-def clip_annotation(index: DatasetIndex, scene: str, anchor: int, history: int, future: int, split: str, frames: list | None) -> dict:
+def clip_annotation(
+    index: DatasetIndex, scene: str, anchor: int, history: int, future: int, split: str, frames: list | None
+) -> dict:
     """The ``ann.json`` of the clip of ``scene`` anchored at sample ``anchor`` with ``history``
     frames before it and ``future`` after (the caller keeps both inside the scene)."""
     tokens = index.scenes[scene]
@@ -154,13 +156,19 @@ def pose_anchor(index: DatasetIndex, scene: str, anchor: int) -> dict:
     missing = PAST_STEPS - len(past_xy)  # oldest first: the missing ones lead
     past = [[0.0, 0.0]] * missing + past[: len(past_xy)]
     return {
-        "scene": scene, "token": tokens[anchor], "index": anchor,
-        "ego_future": future, "ego_future_mask": future_mask,
-        "ego_past": past, "ego_past_mask": [0] * missing + [1] * len(past_xy),
+        "scene": scene,
+        "token": tokens[anchor],
+        "index": anchor,
+        "ego_future": future,
+        "ego_future_mask": future_mask,
+        "ego_past": past,
+        "ego_past_mask": [0] * missing + [1] * len(past_xy),
     }
 
 
-def frame_clips(index: DatasetIndex, split: str, history: int, future: int = 0, partial_history: bool = True) -> Iterator[Clip]:
+def frame_clips(
+    index: DatasetIndex, split: str, history: int, future: int = 0, partial_history: bool = True
+) -> Iterator[Clip]:
     """A clip anchored at every frame of ``split`` that has ``future`` frames after it, with
     ``history`` frames before it; with ``partial_history`` also the frames at a scene's
     start, with fewer (what a question about the frame needs). The clips carry no

@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
-from typing import Any, Callable, Iterable, Iterator
+from typing import Any
 
 import lightning as L
 import numpy as np
@@ -15,7 +16,15 @@ from occtrain.data.cameras import CAMERA_NAMES
 from occtrain.data.layout import ANNOTATIONS_FILE, DATASET_FILE, DEPTH_SCALE, DatasetIndex, generator_record
 from occtrain.data.reading import ShardSamples
 from occtrain.data.shards import (
-    KINDS, PAD_KEY, clip_shortfall, current_shards, make_pipeline, no_clips_note, shard_source, shard_urls, write_shards,
+    KINDS,
+    PAD_KEY,
+    clip_shortfall,
+    current_shards,
+    make_pipeline,
+    no_clips_note,
+    shard_source,
+    shard_urls,
+    write_shards,
 )
 from occtrain.errors import DataError
 
@@ -62,13 +71,18 @@ def _plan_synthesis(cfg: DataConfig) -> tuple[str, str | None]:
     check_synth_config(s)
     _check_synth_record(root, cfg)  # a synthesis cut off halfway resumes only under its own settings
     line = (
-        f"data.root {root} {'is incomplete' if root.exists() else 'does not exist'}: synthesizing occtrain's world there "
+        f"data.root {root} {'is incomplete' if root.exists() else 'does not exist'}: synthesizing occtrain's world "
+        "there "
         f"(seed {s.seed}, {s.train_scenes}+{s.val_scenes} scenes of {s.frames_per_scene} frames)"
     )
     span = cfg.history + 1 + cfg.future
     if s.frames_per_scene >= span:
         return line, None
-    return line, f"data.synth.frames_per_scene is {s.frames_per_scene} and a clip spans history {cfg.history} + 1 + future {cfg.future} = {span}"
+    return (
+        line,
+        f"data.synth.frames_per_scene is {s.frames_per_scene} and a clip spans history {cfg.history} + 1 + future "
+        f"{cfg.future} = {span}",
+    )
 
 
 def _plan_shards(cfg: DataConfig) -> tuple[str, str | None]:
@@ -79,7 +93,8 @@ def _plan_shards(cfg: DataConfig) -> tuple[str, str | None]:
     _check_synth_record(root, cfg)
     source = shard_source(index, cfg.samples_per_shard, cfg.history, cfg.future)
     ready = current_shards(index, shards_dir(cfg), source) is not None
-    line = f"data.root {root}: {sum(len(t) for t in index.scenes.values())} frames; shards {'ready' if ready else 'to be written'} in {shards_dir(cfg)}"
+    frames = sum(len(t) for t in index.scenes.values())
+    line = f"data.root {root}: {frames} frames; shards {'ready' if ready else 'to be written'} in {shards_dir(cfg)}"
     return line, None if "clips" in source["kinds"] else clip_shortfall(index, cfg.history, cfg.future)
 
 
@@ -120,16 +135,23 @@ def _check_synth_record(root: Path, cfg: DataConfig) -> None:
         return
     if record.get("generator") != "occtrain.synth":
         if not (root / ANNOTATIONS_FILE).is_file():
-            raise DataError(f"{root / DATASET_FILE}: records a dataset occtrain did not synthesize, and {root} has no annotations.json; point data.root elsewhere")
+            raise DataError(
+                f"{root / DATASET_FILE}: records a dataset occtrain did not synthesize, and {root} has no "
+                "annotations.json; point data.root elsewhere"
+            )
         return
     from occtrain.data.synthesize import FORMAT_CHANGES, FORMAT_VERSION
 
     if record.get("format_version") != FORMAT_VERSION:
         raise DataError(
-            f"{root} holds the synthetic world of an older occtrain (world v{record.get('format_version')}, now v{FORMAT_VERSION}: "
+            f"{root} holds the synthetic world of an older occtrain (world v{record.get('format_version')}, now "
+            f"v{FORMAT_VERSION}: "
             f"{FORMAT_CHANGES[FORMAT_VERSION]}); move it away and the run synthesizes it again"
         )
-    wanted = {k: getattr(cfg.synth, k) for k in ("seed", "train_scenes", "val_scenes", "frames_per_scene", "camera_height", "camera_width")}
+    wanted = {
+        k: getattr(cfg.synth, k)
+        for k in ("seed", "train_scenes", "val_scenes", "frames_per_scene", "camera_height", "camera_width")
+    }
     differ = [f"{k}={record.get(k)} (recipe: {v})" for k, v in wanted.items() if record.get(k) != v]
     if differ:
         raise DataError(
@@ -197,7 +219,12 @@ def collate_clips(samples: list[dict]) -> dict[str, Any]:
         occ = [s["occ.npz"] for s in samples]
         batch["semantics"] = torch.from_numpy(np.stack([o["semantics"] for o in occ]))
         batch["mask_camera"] = torch.from_numpy(np.stack([o["mask_camera"] for o in occ]).astype(bool))
-    for key, entry in (("ann", "ann.json"), ("qa", "qa.json"), ("caption", "caption.txt"), ("narration", "narration.txt")):
+    for key, entry in (
+        ("ann", "ann.json"),
+        ("qa", "qa.json"),
+        ("caption", "caption.txt"),
+        ("narration", "narration.txt"),
+    ):
         if entry in samples[0]:
             batch[key] = [s[entry] for s in samples]
     batch.update(collate_cameras(samples))
@@ -228,14 +255,19 @@ class ResumableLoader(DataLoader):
 
     def load_state_dict(self, state: dict[str, int]) -> None:
         # Checkpoints before "samples" count batches of this same split over ranks.
-        self._start = int(state.get("samples", int(state.get("batches", 0)) * self.source.world * self.source.batch_size))
+        self._start = int(
+            state.get("samples", int(state.get("batches", 0)) * self.source.world * self.source.batch_size)
+        )
 
     def __iter__(self) -> Iterator[Any]:
         self.source.start, self._start = self._start, 0
         return super().__iter__()
 
 
-COLLATE: dict[str, Callable[[list[dict]], dict]] = {"frames": _unpadded(collate_frames), "clips": _unpadded(collate_clips)}
+COLLATE: dict[str, Callable[[list[dict]], dict]] = {
+    "frames": _unpadded(collate_frames),
+    "clips": _unpadded(collate_clips),
+}
 
 
 class ShardDataModule(L.LightningDataModule):
@@ -248,7 +280,11 @@ class ShardDataModule(L.LightningDataModule):
     """
 
     def __init__(
-        self, cfg: DataConfig, kind: str, entries: dict[str, tuple[str, ...] | None] | None = None, cameras: bool = False,
+        self,
+        cfg: DataConfig,
+        kind: str,
+        entries: dict[str, tuple[str, ...] | None] | None = None,
+        cameras: bool = False,
     ):
         super().__init__()
         if kind not in KINDS:
@@ -263,8 +299,14 @@ class ShardDataModule(L.LightningDataModule):
         if not urls:
             raise DataError(f"{shards_dir(self.cfg)}: no {split} {self.kind} shards; synthesize more {split} scenes")
         pipeline = make_pipeline(
-            urls, train=train, total=total, shuffle_buffer=self.cfg.shuffle_buffer, seed=self.cfg.seed,
-            entries=self.entries.get(split), batch_size=self.cfg.batch_size, cameras=self.cameras,
+            urls,
+            train=train,
+            total=total,
+            shuffle_buffer=self.cfg.shuffle_buffer,
+            seed=self.cfg.seed,
+            entries=self.entries.get(split),
+            batch_size=self.cfg.batch_size,
+            cameras=self.cameras,
         )
         kwargs = dict(batch_size=self.cfg.batch_size, num_workers=self.cfg.num_workers, collate_fn=COLLATE[self.kind])
         if not train:

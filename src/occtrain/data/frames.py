@@ -20,7 +20,9 @@ def frames_batch(index: DatasetIndex, samples: list[tuple[str, str]], cameras: b
         "semantics": torch.from_numpy(np.stack([x["semantics"] for x in labels])),
         "mask_camera": torch.from_numpy(np.stack([x["mask_camera"] for x in labels]).astype(bool)),
         "token": [token for _, token in samples],
-        "meta": [{"scene": scene, "token": token, "index": index.scenes[scene].index(token)} for scene, token in samples],
+        "meta": [
+            {"scene": scene, "token": token, "index": index.scenes[scene].index(token)} for scene, token in samples
+        ],
     }
     if cameras:
         batch.update(camera_batch(index, samples))

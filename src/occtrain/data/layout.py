@@ -19,10 +19,11 @@ from __future__ import annotations
 import json
 import math
 import posixpath
+from collections.abc import Iterator
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 
 import numpy as np
 
@@ -52,7 +53,7 @@ LABEL_KEYS = ("semantics", "mask_lidar", "mask_camera")
 #: What to do about a bad file, after its one-line problem.
 ANNOTATIONS_HINT = "fix that key, or re-download (Occ3D-nuScenes) or re-create (occtrain data synth) the dataset"
 FRAMES_HINT = "re-create the sidecar with `occtrain data synth`, or delete it to train without the tasks it feeds"
-QA_HINT = "NuScenes-QA format is {\"questions\": [...]}; fix the file, or delete it to train without QA"
+QA_HINT = 'NuScenes-QA format is {"questions": [...]}; fix the file, or delete it to train without QA'
 
 
 def qa_file(split: str) -> str:
@@ -100,10 +101,14 @@ def read_npz(path: Path) -> dict[str, np.ndarray]:
             return {key: npz[key] for key in npz.files}
     except ValueError as err:
         if "allow_pickle" in str(err):
-            raise DataError(f"{path}: holds an object (pickled) array; refusing to load it — re-save with plain arrays") from None
+            raise DataError(
+                f"{path}: holds an object (pickled) array; refusing to load it — re-save with plain arrays"
+            ) from None
         raise DataError(f"{path}: not a readable .npz ({_first_line(err)}); re-create it") from None
     except Exception as err:  # zlib.error, BadZipFile, EOFError, OSError, ...: all mean a damaged file
-        raise DataError(f"{path}: corrupt or truncated .npz ({_error_name(err)}: {_first_line(err)}); re-create it") from None
+        raise DataError(
+            f"{path}: corrupt or truncated .npz ({_error_name(err)}: {_first_line(err)}); re-create it"
+        ) from None
 
 
 def _first_line(err: BaseException) -> str:
@@ -213,7 +218,7 @@ def generator_record(root: Path) -> dict | None:
 
 
 def world_version(root: str | Path) -> str:
-    """"v<N>" of a world occtrain synthesized (its ``occtrain/dataset.json``), else "": the
+    """The version ("v<N>") of a world occtrain synthesized (its ``occtrain/dataset.json``), else "": the
     name every table measured on the world states."""
     record = generator_record(Path(root)) or {}
     return f"v{record['format_version']}" if record.get("generator") == "occtrain.synth" else ""
@@ -245,7 +250,9 @@ class DatasetIndex:
             names = annotations.get(f"{split}_split", [])
             unknown = [n for n in names if n not in self.scenes]
             if unknown:
-                raise DataError(f"{src}: {split}_split names scene '{unknown[0]}' that has no scene_infos entry; {ANNOTATIONS_HINT}")
+                raise DataError(
+                    f"{src}: {split}_split names scene '{unknown[0]}' that has no scene_infos entry; {ANNOTATIONS_HINT}"
+                )
             self.splits[split] = list(names)
         self._scene_of = {tok: scene for scene, toks in self.scenes.items() for tok in toks}
         self._check_paths(src)
@@ -256,11 +263,15 @@ class DatasetIndex:
         for scene, infos in self.scene_infos.items():
             for token, info in infos.items():
                 paths = [("gt_path", info.get("gt_path"))]
-                paths += [(f"camera_sensor.{key}.img_path", r.get("img_path")) for key, r in (info.get("camera_sensor") or {}).items()]
+                paths += [
+                    (f"camera_sensor.{key}.img_path", r.get("img_path"))
+                    for key, r in (info.get("camera_sensor") or {}).items()
+                ]
                 for key, rel in paths:
                     if rel is not None and not inside_root(rel):
                         raise DataError(
-                            f"{src}: scene_infos.{scene}.{token}.{key} '{rel}' points outside the dataset root {self.root}; "
+                            f"{src}: scene_infos.{scene}.{token}.{key} '{rel}' points outside the dataset root "
+                            f"{self.root}; "
                             "paths in annotations.json are relative to the root"
                         )
 
@@ -269,7 +280,10 @@ class DatasetIndex:
         """Open a dataset root (or its ``gts/`` directory)."""
         path = dataset_root(path)
         if not path.is_dir():
-            raise DataError(f"{path}: dataset directory not found; run `occtrain data synth --out {path}` or point at an Occ3D-nuScenes root")
+            raise DataError(
+                f"{path}: dataset directory not found; run `occtrain data synth --out {path}` or point at an "
+                "Occ3D-nuScenes root"
+            )
         ann = path / ANNOTATIONS_FILE
         if not ann.is_file():
             raise DataError(f"{ann}: annotations file not found; an Occ3D root holds annotations.json and gts/")
@@ -329,8 +343,10 @@ class DatasetIndex:
                     seen.add(folder)
                     if not (self.root / folder).is_dir() and not (self.root / IMGS_DIR / folder).is_dir():
                         raise DataError(
-                            f"{self._image_base / folder}: camera folder not found, while {self.root / ANNOTATIONS_FILE} names "
-                            f"images in it (scene_infos.{scene}.{token}.camera_sensor.{key}.img_path '{record['img_path']}'); "
+                            f"{self._image_base / folder}: camera folder not found, while "
+                            f"{self.root / ANNOTATIONS_FILE} names "
+                            f"images in it (scene_infos.{scene}.{token}.camera_sensor.{key}.img_path "
+                            f"'{record['img_path']}'); "
                             "restore it (the release's images, or `occtrain data synth` for a synthetic world)"
                         )
 
@@ -367,19 +383,32 @@ class DatasetIndex:
         records = info.get("camera_sensor")
         src = self.root / ANNOTATIONS_FILE
         if not records:
-            raise DataError(f"{src}: sample scene_infos.{scene}.{token} has no camera_sensor; stages that read images (vision) need the cameras")
+            raise DataError(
+                f"{src}: sample scene_infos.{scene}.{token} has no camera_sensor; stages that read images (vision) "
+                "need the cameras"
+            )
         by_name = {}
         for key, r in records.items():  # the schema checked every record's keys on opening
             name = key if key in CAMERA_NAMES else Path(r["img_path"]).parent.name
             intrinsic = r.get("intrinsics", r.get("intrinsic"))
             if intrinsic is None:
-                raise DataError(f"{src}: scene_infos.{scene}.{token}.camera_sensor.{key} has neither intrinsics nor intrinsic; a camera needs its 3 x 3 matrix")
+                raise DataError(
+                    f"{src}: scene_infos.{scene}.{token}.camera_sensor.{key} has neither intrinsics nor intrinsic; a "
+                    "camera needs its 3 x 3 matrix"
+                )
             by_name[name] = CameraRecord(
-                name, self.image_path(r["img_path"]), np.asarray(intrinsic, np.float64), _pose_matrix(r["extrinsic"]), _pose_matrix(r["ego_pose"]),
+                name,
+                self.image_path(r["img_path"]),
+                np.asarray(intrinsic, np.float64),
+                _pose_matrix(r["extrinsic"]),
+                _pose_matrix(r["ego_pose"]),
             )
         missing = [n for n in CAMERA_NAMES if n not in by_name]
         if missing:
-            raise DataError(f"{src}: sample scene_infos.{scene}.{token} has no {missing[0]} camera (img_path folders: {', '.join(sorted(by_name))})")
+            raise DataError(
+                f"{src}: sample scene_infos.{scene}.{token} has no {missing[0]} camera (img_path folders: "
+                f"{', '.join(sorted(by_name))})"
+            )
         return [by_name[n] for n in CAMERA_NAMES]
 
     def images(self, scene: str, token: str) -> np.ndarray:
@@ -387,7 +416,9 @@ class DatasetIndex:
         imgs = [read_image(r.image) for r in self.cameras(scene, token)]
         shapes = {i.shape for i in imgs}
         if len(shapes) != 1 or len(imgs[0].shape) != 3:
-            raise DataError(f"{self.root}: sample {token}'s camera images differ in size or are not RGB ({sorted(shapes)})")
+            raise DataError(
+                f"{self.root}: sample {token}'s camera images differ in size or are not RGB ({sorted(shapes)})"
+            )
         return np.stack(imgs)
 
     def camera_targets(self, scene: str, token: str) -> tuple[np.ndarray, np.ndarray] | None:
@@ -425,11 +456,16 @@ class DatasetIndex:
         """The scene's FrameAnnotation sidecar, ordered like its samples; its first problem is a DataError."""
         path = self.root / FRAMES_DIR / f"{scene}.json"
         if not path.is_file():
-            raise DataError(f"{path}: no frame annotations for scene '{scene}' (trajectories, boxes, text are occtrain sidecars)")
+            raise DataError(
+                f"{path}: no frame annotations for scene '{scene}' (trajectories, boxes, text are occtrain sidecars)"
+            )
         frames = _read_json(path, "frame annotations", list[FrameAnnotation], FRAMES_HINT)
         tokens = [f["token"] for f in frames]
         if tokens != self.scenes.get(scene):
-            raise DataError(f"{path}: frame tokens do not match the samples of scene_infos.{scene} in {ANNOTATIONS_FILE}; {FRAMES_HINT}")
+            raise DataError(
+                f"{path}: frame tokens do not match the samples of scene_infos.{scene} in {ANNOTATIONS_FILE}; "
+                f"{FRAMES_HINT}"
+            )
         return frames
 
     def questions(self, split: str) -> list[QAQuestion] | None:
@@ -452,7 +488,11 @@ class DatasetIndex:
         lacking = [s for s in scenes if not self.has_frame_annotations(s)]
         has_frames = bool(scenes) and not lacking
         has_qa = all((self.root / qa_file(s)).is_file() for s in SPLITS if self.splits.get(s))
-        who = f"{len(lacking)} of {len(scenes)} scenes lack (first: {lacking[0]})" if 0 < len(lacking) < len(scenes) else "this dataset lacks"
+        who = (
+            f"{len(lacking)} of {len(scenes)} scenes lack (first: {lacking[0]})"
+            if 0 < len(lacking) < len(scenes)
+            else "this dataset lacks"
+        )
         sidecar = f"needs the {FRAMES_DIR}/<scene>.json sidecar, which {who}"
         tasks = {"reconstruction": "", "forecasting": "", "planning": ""}
         for task in ("detection", "counting", "prediction", "chain_of_thought", "meta_action"):
@@ -470,7 +510,10 @@ def camera_record(cam: Camera, img_path: str, ego_pose: dict) -> dict:
     return {
         "img_path": img_path,
         "intrinsics": cam.intrinsic.tolist(),
-        "extrinsic": {"translation": cam.cam_to_ego[:3, 3].tolist(), "rotation": matrix_to_quaternion(cam.cam_to_ego[:3, :3]).tolist()},
+        "extrinsic": {
+            "translation": cam.cam_to_ego[:3, 3].tolist(),
+            "rotation": matrix_to_quaternion(cam.cam_to_ego[:3, :3]).tolist(),
+        },
         "ego_pose": ego_pose,
     }
 
@@ -488,7 +531,10 @@ class CameraRecord:
     @property
     def maps(self) -> tuple[Path, Path]:
         """Where the renderer's per-pixel class and depth maps of this image lie (synthetic data)."""
-        return (self.image.with_name(f"{self.image.stem}{CLASS_SUFFIX}.png"), self.image.with_name(f"{self.image.stem}{DEPTH_SUFFIX}.png"))
+        return (
+            self.image.with_name(f"{self.image.stem}{CLASS_SUFFIX}.png"),
+            self.image.with_name(f"{self.image.stem}{DEPTH_SUFFIX}.png"),
+        )
 
     def camera(self, height: int, width: int) -> Camera:
         return Camera(self.name, height, width, self.intrinsic, self.cam_to_ego)
@@ -524,7 +570,9 @@ class DatasetWriter:
         self.fingerprint = fingerprint
         record = self.root / DATASET_FILE
         if record.is_file():
-            existing = _read_json(record, "dataset record", dict[str, Any], "delete that directory or choose another --out")
+            existing = _read_json(
+                record, "dataset record", dict[str, Any], "delete that directory or choose another --out"
+            )
             if existing != fingerprint:
                 diff = sorted(k for k in set(existing) | set(fingerprint) if existing.get(k) != fingerprint.get(k))
                 raise DataError(
@@ -532,7 +580,9 @@ class DatasetWriter:
                     "choose another --out or delete that directory"
                 )
         elif self.root.exists() and any(self.root.iterdir()):
-            raise DataError(f"{self.root}: exists and is not an occtrain dataset; choose an empty or new --out directory")
+            raise DataError(
+                f"{self.root}: exists and is not an occtrain dataset; choose an empty or new --out directory"
+            )
         atomic_write_json(record, fingerprint)
         self._scene_infos: dict[str, dict] = {}
         self._splits: dict[str, list[str]] = {s: [] for s in SPLITS}
@@ -560,16 +610,22 @@ class DatasetWriter:
             centimetres = np.clip(np.round(depth * DEPTH_SCALE), 0, 65535).astype(np.uint16)
             atomic_write_bytes(folder / f"{token}{DEPTH_SUFFIX}.png", png_bytes(centimetres))
 
-    def write_scene(self, scene: str, split: str, frames: list[FrameAnnotation], cameras: list[Camera] | None = None) -> None:
+    def write_scene(
+        self, scene: str, split: str, frames: list[FrameAnnotation], cameras: list[Camera] | None = None
+    ) -> None:
         """Write the scene's frame sidecar (after its labels): the scene is then complete."""
         atomic_write_json(self.root / FRAMES_DIR / f"{scene}.json", frames, indent=None)
         self.add_scene_info(scene, split, frames, cameras)
 
     def read_scene(self, scene: str) -> list[FrameAnnotation]:
         """A completed scene's frames, for resuming an interrupted write."""
-        return _read_json(self.root / FRAMES_DIR / f"{scene}.json", "frame annotations", list[FrameAnnotation], FRAMES_HINT)
+        return _read_json(
+            self.root / FRAMES_DIR / f"{scene}.json", "frame annotations", list[FrameAnnotation], FRAMES_HINT
+        )
 
-    def add_scene_info(self, scene: str, split: str, frames: list[FrameAnnotation], cameras: list[Camera] | None = None) -> None:
+    def add_scene_info(
+        self, scene: str, split: str, frames: list[FrameAnnotation], cameras: list[Camera] | None = None
+    ) -> None:
         infos = {}
         for i, f in enumerate(frames):
             x, y = f["ego_pose"]["translation"][:2]
@@ -582,14 +638,18 @@ class DatasetWriter:
                 "next": frames[i + 1]["token"] if i + 1 < len(frames) else "",
             }
             if cameras:
-                infos[f["token"]]["camera_sensor"] = {cam.name: camera_record(cam, f"{cam.name}/{f['token']}.png", pose) for cam in cameras}
+                infos[f["token"]]["camera_sensor"] = {
+                    cam.name: camera_record(cam, f"{cam.name}/{f['token']}.png", pose) for cam in cameras
+                }
         self._scene_infos[scene] = infos
         self._splits[split].append(scene)
 
     def finalize(self, questions: dict[str, list[QAQuestion]]) -> None:
         """Write the QA files and, last, annotations.json."""
         for split, qs in questions.items():
-            atomic_write_json(self.root / qa_file(split), {"info": {"generator": "occtrain.synth", "split": split}, "questions": qs})
+            atomic_write_json(
+                self.root / qa_file(split), {"info": {"generator": "occtrain.synth", "split": split}, "questions": qs}
+            )
         atomic_write_json(
             self.root / ANNOTATIONS_FILE,
             {f"{s}_split": names for s, names in self._splits.items()} | {"scene_infos": self._scene_infos},

@@ -49,7 +49,10 @@ class MetaActionConfig:
             if getattr(self, key) <= 0:
                 raise ConfigError(f"{where}.{key}: must be > 0, got {getattr(self, key)}")
         if not 0 < self.bear_heading_deg < self.turn_heading_deg:
-            raise ConfigError(f"{where}: bear_heading_deg ({self.bear_heading_deg}) must lie in (0, turn_heading_deg = {self.turn_heading_deg})")
+            raise ConfigError(
+                f"{where}: bear_heading_deg ({self.bear_heading_deg}) must lie in (0, turn_heading_deg = "
+                f"{self.turn_heading_deg})"
+            )
 
     def steps(self, seconds: float) -> int:
         return max(1, int(round(seconds / FRAME_DT)))
@@ -128,4 +131,13 @@ def commonest(index, split: str, cfg: MetaActionConfig) -> MetaAction | None:
     return {"speed": speed, "direction": direction}
 
 
-__all__ = ["META_DIRECTIONS", "META_SPEEDS", "MetaActionConfig", "commonest", "direction_action", "label", "past_labels", "speed_action"]
+__all__ = [
+    "META_DIRECTIONS",
+    "META_SPEEDS",
+    "MetaActionConfig",
+    "commonest",
+    "direction_action",
+    "label",
+    "past_labels",
+    "speed_action",
+]

@@ -23,8 +23,8 @@ import os
 import random
 import re
 import tarfile
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
-from typing import Callable, Iterable, Iterator
 
 from torch.utils.data import IterableDataset, get_worker_info
 
@@ -74,7 +74,9 @@ def shard_members(url: str) -> list[SampleRef]:
                     key, entries = match.group(1), []
                 entries.append((match.group(2).lower(), member.offset_data, member.size))
     except (tarfile.TarError, EOFError, OSError) as err:
-        raise DataError(f"{url}: corrupt or truncated shard ({type(err).__name__}: {err}); write the shards again") from None
+        raise DataError(
+            f"{url}: corrupt or truncated shard ({type(err).__name__}: {err}); write the shards again"
+        ) from None
     if key is not None:
         samples.append(SampleRef(key, tuple(entries)))
     _MEMBERS[cache_key] = samples
@@ -133,7 +135,13 @@ def _epoch_permutations(counts: list[int], seed: int) -> Iterator[tuple[int, int
 
 
 def own_train_positions(
-    order: Iterable[tuple[int, int]], start: int, rank: int, world: int, batch_size: int, worker: int, workers: int,
+    order: Iterable[tuple[int, int]],
+    start: int,
+    rank: int,
+    world: int,
+    batch_size: int,
+    worker: int,
+    workers: int,
 ) -> Iterator[tuple[int, int]]:
     """The positions of ``order`` from sample ``start`` on that are this rank's and worker's:
     rank ``r`` takes the ``r``-th ``batch_size`` samples of each global batch of
@@ -169,8 +177,16 @@ class ShardSamples(IterableDataset):
     """
 
     def __init__(
-        self, urls: list[str], total: int | None, train: bool, rank: int, world: int,
-        batch_size: int = 1, seed: int = 0, shuffle_buffer: int = 0, wanted: Callable[[str], bool] | None = None,
+        self,
+        urls: list[str],
+        total: int | None,
+        train: bool,
+        rank: int,
+        world: int,
+        batch_size: int = 1,
+        seed: int = 0,
+        shuffle_buffer: int = 0,
+        wanted: Callable[[str], bool] | None = None,
     ):
         super().__init__()
         if not urls:
@@ -191,7 +207,8 @@ class ShardSamples(IterableDataset):
             # A shard cut at a member boundary reads as a shorter valid tar: only the count tells.
             url = next((u for u, m in zip(self.urls, members) if not m), self.urls[-1])
             raise DataError(
-                f"{url}: its split holds {found} samples, index.json says {self.total} (a truncated or replaced shard); write the shards again"
+                f"{url}: its split holds {found} samples, index.json says {self.total} (a truncated or replaced "
+                "shard); write the shards again"
             )
         return members
 
@@ -201,7 +218,9 @@ class ShardSamples(IterableDataset):
         members = self.members()
         if self.train:
             order = train_order([len(m) for m in members], self.seed, self.shuffle_buffer)
-            for shard, i in own_train_positions(order, self.start, self.rank, self.world, self.batch_size, worker, workers):
+            for shard, i in own_train_positions(
+                order, self.start, self.rank, self.world, self.batch_size, worker, workers
+            ):
                 yield self.read(shard, members[shard][i])
             return
         flat = [(s, ref) for s, refs in enumerate(members) for ref in refs]
@@ -223,10 +242,21 @@ class ShardSamples(IterableDataset):
                 f.seek(offset)
                 data = f.read(size)
                 if len(data) != size:
-                    raise DataError(f"{url}: corrupt or truncated shard (entry '{ref.key}.{name}' is cut short); write the shards again")
+                    raise DataError(
+                        f"{url}: corrupt or truncated shard (entry '{ref.key}.{name}' is cut short); write the shards "
+                        "again"
+                    )
                 sample[name] = data
                 self.bytes_read += size
         return sample
 
 
-__all__ = ["PAD_KEY", "SampleRef", "ShardSamples", "own_train_positions", "own_val_positions", "shard_members", "train_order"]
+__all__ = [
+    "PAD_KEY",
+    "SampleRef",
+    "ShardSamples",
+    "own_train_positions",
+    "own_val_positions",
+    "shard_members",
+    "train_order",
+]

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 from PIL import Image, ImageDraw
@@ -51,7 +51,8 @@ def render_bev(
     corners = np.array([[1, 1], [1, -1], [-1, -1], [-1, 1]]) * [EGO_LENGTH / 2, EGO_WIDTH / 2]
     draw.polygon([tuple(p) for p in _ego_to_pixel(corners, scale)], fill=(30, 30, 30), outline=(255, 255, 255))
     for points, mask_, (line, dot) in (
-        (trajectory, trajectory_mask, ((0, 200, 80), (0, 110, 40))), (plan, None, ((230, 40, 40), (150, 0, 0))),
+        (trajectory, trajectory_mask, ((0, 200, 80), (0, 110, 40))),
+        (plan, None, ((230, 40, 40), (150, 0, 0))),
     ):
         if points is None:
             continue
@@ -98,7 +99,7 @@ def surround(views: dict[str, np.ndarray], bev: Image.Image, gap: int = 4) -> Im
     width = max(row_w, bev.width)
     out = Image.new("RGB", (width, 2 * h * scale + bev.height + 2 * gap), (255, 255, 255))
     draw = ImageDraw.Draw(out)
-    for r, (names, top) in enumerate(zip(SURROUND_ROWS, (0, h * scale + bev.height + 2 * gap))):
+    for names, top in zip(SURROUND_ROWS, (0, h * scale + bev.height + 2 * gap)):
         x = (width - row_w) // 2
         for name in names:
             out.paste(tiles[name], (x, top))

@@ -1,15 +1,16 @@
 """The declared types of the dataset's JSON files, checked on reading by :mod:`occtrain.data.validate`.
 
 FrameAnnotation is the per-frame record that the synthetic world writes and every reader
-returns; QAQuestion is NuScenes-QA's; Occ3DAnnotations is Occ3D's ``annotations.json``. A real Occ3D-nuScenes directory supplies the occupancy and ego poses; everything else
-here comes from occtrain's sidecar files (``occtrain/<scene>.json``), which real data
-may lack. All coordinates are metres in the *current* ego frame (x forward, y left)
-unless a field says "global". Yaw is in radians, counter-clockwise from +x.
+returns; QAQuestion is NuScenes-QA's; Occ3DAnnotations is Occ3D's ``annotations.json``. A
+real Occ3D-nuScenes directory supplies the occupancy and ego poses; everything else here
+comes from occtrain's sidecar files (``occtrain/<scene>.json``), which real data may lack.
+All coordinates are metres in the *current* ego frame (x forward, y left) unless a field
+says "global". Yaw is in radians, counter-clockwise from +x.
 """
 
 from __future__ import annotations
 
-from typing import Annotated, Literal, NotRequired, TypedDict, Union, get_args
+from typing import Annotated, Literal, NotRequired, TypedDict, get_args
 
 from occtrain.data.validate import Len
 from occtrain.nuscenes_qa import TemplateType
@@ -70,7 +71,7 @@ class Box(TypedDict):
     size: Vec3  # [length, width, height]
     yaw: float  # ego frame
     velocity: Vec2  # [vx, vy] m/s, ego frame
-    attribute: Union[Status, Literal[""]]  # "" for static objects (barrier, cone)
+    attribute: Status | Literal[""]  # "" for static objects (barrier, cone)
 
 
 class FrameAnnotation(TypedDict):
@@ -135,7 +136,7 @@ class Occ3DCamera(TypedDict):
 class Occ3DSample(TypedDict):
     # Documented as "timestamp (or token), unique by sample": a string, of digits in the
     # release; occtrain's writer stores an int. Numeric ones are microseconds.
-    timestamp: Union[int, str]
+    timestamp: int | str
     ego_pose: Occ3DPose
     camera_sensor: NotRequired[dict[str, Occ3DCamera]]
     gt_path: NotRequired[str]  # relative to the root; the test split has none

@@ -36,8 +36,9 @@ import re
 import shlex
 import tarfile
 import tempfile
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
-from typing import Any, Callable, Iterable, Iterator, NotRequired, TypedDict
+from typing import Any, NotRequired, TypedDict
 
 import numpy as np
 import webdataset as wds
@@ -195,7 +196,10 @@ def _camera_entries(index: DatasetIndex, scene: str, token: str) -> dict[str, by
         for part, extra in zip(("class", "depth"), r.maps):
             if extra.is_file():
                 out[f"{stem}.{part}.png"] = _image_bytes(extra)
-    calib = {"intrinsic": [r.intrinsic.tolist() for r in records], "cam_to_ego": [r.cam_to_ego.tolist() for r in records]}
+    calib = {
+        "intrinsic": [r.intrinsic.tolist() for r in records],
+        "cam_to_ego": [r.cam_to_ego.tolist() for r in records],
+    }
     out["cams.json"] = json.dumps(calib).encode()
     return out
 
@@ -208,12 +212,17 @@ def _image_bytes(path: Path) -> bytes:
     try:
         data = path.read_bytes()
     except OSError as err:
-        raise DataError(f"{path}: cannot read it ({err.strerror}); the dataset's camera_sensor records name it") from None
+        raise DataError(
+            f"{path}: cannot read it ({err.strerror}); the dataset's camera_sensor records name it"
+        ) from None
     try:
         with Image.open(io.BytesIO(data)) as img:
             img.verify()
     except Exception as err:  # PIL raises SyntaxError, OSError, ValueError, struct.error, ...
-        raise DataError(f"{path}: not a readable image ({type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''}); re-create it") from None
+        raise DataError(
+            f"{path}: not a readable image ({type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''}); "
+            "re-create it"
+        ) from None
     return data
 
 
@@ -222,7 +231,12 @@ def _frame_sample(index: DatasetIndex, scene: str, token: str, position: int, sp
     arrays = {"semantics": labels["semantics"]}
     arrays.update({k: _pack(labels[k]) for k in PACKED_MASKS})
     meta = {"scene": scene, "token": token, "index": position, "split": split}
-    return {"__key__": token, "occ.npz": npz_bytes(arrays), "meta.json": json.dumps(meta).encode(), **_camera_entries(index, scene, token)}
+    return {
+        "__key__": token,
+        "occ.npz": npz_bytes(arrays),
+        "meta.json": json.dumps(meta).encode(),
+        **_camera_entries(index, scene, token),
+    }
 
 
 def _clip_samples(index: DatasetIndex, scene: str, split: str, history: int, future: int, qa: dict) -> Iterator[dict]:
@@ -278,7 +292,9 @@ def write_shards(
         old = current_shards(index, out, source)
         if old is not None:
             return old
-    missing = {} if kinds is not None or "clips" in source["kinds"] else {"clips": clip_shortfall(index, history, future)}
+    missing = (
+        {} if kinds is not None or "clips" in source["kinds"] else {"clips": clip_shortfall(index, history, future)}
+    )
     written = [k for k in KINDS if k in source["kinds"]]
 
     def write(into: Path, advance: Callable[[int], None]) -> dict:
@@ -291,14 +307,23 @@ def write_shards(
 
     if progress is None:  # no caller's bar: show one, so a log sees minutes of sharding move
         frames = sum(len(index.scenes[scene]) for split in SPLITS for scene in index.splits.get(split, []))
-        with progress_bar(frames * len(written), f"writing {' and '.join(written)} shards of {frames} frames") as advance:
+        with progress_bar(
+            frames * len(written), f"writing {' and '.join(written)} shards of {frames} frames"
+        ) as advance:
             return write_all(advance)
     return write_all(progress)
 
 
 def _write_shards(
-    index: DatasetIndex, out: Path, samples_per_shard: int, history: int, future: int, kinds: list[str],
-    source: dict, progress: Callable[[int], None], missing: dict[str, str],
+    index: DatasetIndex,
+    out: Path,
+    samples_per_shard: int,
+    history: int,
+    future: int,
+    kinds: list[str],
+    source: dict,
+    progress: Callable[[int], None],
+    missing: dict[str, str],
 ) -> dict:
     """:func:`write_shards` once the shards are known to be missing."""
     result: dict[str, Any] = {"source": source, "kinds": {}, **({"missing": missing} if missing else {})}
@@ -393,7 +418,9 @@ def current_shards(index: DatasetIndex, out: Path, source: dict) -> dict | None:
             return old
         raise DataError(_why_not_current(index, out, made, source))
     if out.exists() and any(p.suffix == ".tar" for p in out.rglob("*.tar")):
-        raise DataError(f"{out}: holds shards without an {INDEX_FILE} (an interrupted write?); {_redo(index, out, source)}")
+        raise DataError(
+            f"{out}: holds shards without an {INDEX_FILE} (an interrupted write?); {_redo(index, out, source)}"
+        )
     return None
 
 
@@ -420,8 +447,10 @@ def _same_content(index: DatasetIndex, made: dict, source: dict) -> bool:
         return made.get("fingerprint") == source["fingerprint"]
     # Shards of an earlier occtrain (version 2: missing files named by absolute path) stay
     # current where they were made, as long as the dataset there has not changed.
-    return made.get("fingerprint_version") == 2 and made.get("dataset") == source["dataset"] and (
-        made.get("fingerprint") == dataset_fingerprint(index, version=2)
+    return (
+        made.get("fingerprint_version") == 2
+        and made.get("dataset") == source["dataset"]
+        and (made.get("fingerprint") == dataset_fingerprint(index, version=2))
     )
 
 
@@ -431,10 +460,15 @@ def _why_not_current(index: DatasetIndex, out: Path, made: dict, source: dict) -
     if made.get("dataset") == source["dataset"] and "fingerprint_version" not in made:
         return f"{out}: shards of an older occtrain, whose fingerprint saw annotations.json alone; {redo}"
     if _layout(made) != _layout(source):
-        differ = "; ".join(f"{k} {made[k]} there, {source[k]} here" for k in _layout(source) if k in made and made[k] != source[k])
+        differ = "; ".join(
+            f"{k} {made[k]} there, {source[k]} here" for k in _layout(source) if k in made and made[k] != source[k]
+        )
         return f"{out}: already holds shards of a different dataset or layout{f' ({differ})' if differ else ''}; {redo}"
     if made.get("dataset") == source["dataset"]:
-        return f"{out}: its shards were made before {index.root} changed (a labels, image, sidecar or annotations file differs); {redo}"
+        return (
+            f"{out}: its shards were made before {index.root} changed "
+            f"(a labels, image, sidecar or annotations file differs); {redo}"
+        )
     return (
         f"{out}: its shards were made from {made.get('dataset')}, and {index.root} is not that dataset as it was then "
         f"(another dataset, a copy whose files got new times as `cp -r` gives them, or one edited since); {redo}"
@@ -447,7 +481,9 @@ def _redo(index: DatasetIndex, out: Path, source: dict) -> str:
     flags = [f"--{k.replace('_', '-')} {source[k]}" for k, default in DEFAULT_LAYOUT.items() if source[k] != default]
     if sorted(source["kinds"]) != sorted(KINDS):
         flags.append(f"--kinds {','.join(source['kinds'])}")
-    command = " ".join(["occtrain data shards", shlex.quote(str(index.root)), "--out", shlex.quote(str(out)), *flags, "--rebuild"])
+    command = " ".join(
+        ["occtrain data shards", shlex.quote(str(index.root)), "--out", shlex.quote(str(out)), *flags, "--rebuild"]
+    )
     return f"delete {out} and they are written again, or replace them with `{command}`"
 
 
@@ -475,12 +511,20 @@ def no_clips_note(shortfall: str) -> str:
 
 
 def shard_source(
-    index: DatasetIndex, samples_per_shard: int, history: int, future: int, kinds: Iterable[str] | None = None,
+    index: DatasetIndex,
+    samples_per_shard: int,
+    history: int,
+    future: int,
+    kinds: Iterable[str] | None = None,
 ) -> dict:
     """What a shard set of ``index`` with this layout is made from (checked), as its index
     records it. ``kinds`` None: frames, and clips when one fits (see :func:`write_shards`);
     clips asked for by name and fitting no scene are refused."""
-    for name, value, least in (("samples_per_shard", samples_per_shard, 1), ("history", history, 0), ("future", future, 0)):
+    for name, value, least in (
+        ("samples_per_shard", samples_per_shard, 1),
+        ("history", history, 0),
+        ("future", future, 0),
+    ):
         if not isinstance(value, int) or isinstance(value, bool) or value < least:
             raise DataError(f"{name} is {value!r}; it must be a whole number of at least {least}")
     shortfall = clip_shortfall(index, history, future)
@@ -493,7 +537,10 @@ def shard_source(
     if "clips" in kinds:
         _check_sidecars(index)
         if shortfall:
-            raise DataError(f"{shortfall}, so there would be no clip to train on; use longer scenes, a shorter history/future, or --kinds frames")
+            raise DataError(
+                f"{shortfall}, so there would be no clip to train on; use longer scenes, a shorter history/future, or "
+                "--kinds frames"
+            )
     index.has_cameras  # noqa: B018 - refuses a missing camera folder before a shard is written, naming it
     return {
         "dataset": str(index.root.resolve()),
@@ -509,7 +556,13 @@ def shard_source(
 
 
 def _write_split(
-    sink: _ShardSink, index: DatasetIndex, kind: str, split: str, history: int, future: int, progress: Callable[[int], None] | None,
+    sink: _ShardSink,
+    index: DatasetIndex,
+    kind: str,
+    split: str,
+    history: int,
+    future: int,
+    progress: Callable[[int], None] | None,
 ) -> None:
     """Every sample of one kind and split, into ``sink``."""
     if kind == "frames":
@@ -535,7 +588,9 @@ def _check_sidecars(index: DatasetIndex) -> None:
     if present and len(present) < len(scenes):
         lacking = next(s for s in scenes if s not in present)
         path = index.root / FRAMES_DIR / f"{lacking}.json"
-        raise DataError(f"{path}: missing while {len(present)} other scenes have their frame sidecar; write it or delete them all")
+        raise DataError(
+            f"{path}: missing while {len(present)} other scenes have their frame sidecar; write it or delete them all"
+        )
     for scene in present:
         index.frames(scene)
     for split in SPLITS:
@@ -558,8 +613,14 @@ def read_index(shards: str | Path) -> dict:
         for split, entries in splits.items():
             for i, entry in enumerate(entries):
                 name = entry["file"]
-                if Path(name).name != name or name in ("", ".", ".."):  # a shard never lies outside its kind's directory
-                    raise DataError(f"{path}: kinds.{kind}.{split}[{i}].file '{name}' is not a file name; write the shards again")
+                if Path(name).name != name or name in (
+                    "",
+                    ".",
+                    "..",
+                ):  # a shard never lies outside its kind's directory
+                    raise DataError(
+                        f"{path}: kinds.{kind}.{split}[{i}].file '{name}' is not a file name; write the shards again"
+                    )
     return idx
 
 
@@ -569,7 +630,10 @@ def shard_urls(shards: str | Path, kind: str, split: str) -> tuple[list[str], in
     if kind not in idx["kinds"]:
         why = idx.get("missing", {}).get(kind)
         if why:  # left out by default because no scene is long enough: --kinds would be refused alike
-            raise DataError(f"{Path(shards) / INDEX_FILE}: has no '{kind}' shards: {why}, so no clip fits; use longer scenes or a shorter history/future")
+            raise DataError(
+                f"{Path(shards) / INDEX_FILE}: has no '{kind}' shards: {why}, so no clip fits; use longer scenes or a "
+                "shorter history/future"
+            )
         raise DataError(f"{Path(shards) / INDEX_FILE}: has no '{kind}' shards; write them with --kinds {kind}")
     entries = idx["kinds"][kind].get(split, [])
     return [str(Path(shards) / kind / e["file"]) for e in entries], sum(e["samples"] for e in entries)
@@ -648,7 +712,9 @@ def _raise_shard_error(exn: Exception) -> bool:
     where = url or "shard"
     if isinstance(exn, (tarfile.TarError, EOFError, OSError, ValueError)):
         detail = _shard_error_detail(exn)
-        raise DataError(f"{where}: corrupt or truncated shard ({type(exn).__name__}: {detail}); write the shards again") from None
+        raise DataError(
+            f"{where}: corrupt or truncated shard ({type(exn).__name__}: {detail}); write the shards again"
+        ) from None
     raise exn
 
 
@@ -683,7 +749,15 @@ def make_pipeline(
 
     rank, world = rank_and_world or rank_world()
     source = ShardSamples(
-        urls, total, train, rank, world, batch_size=batch_size, seed=seed, shuffle_buffer=shuffle_buffer, wanted=wanted,
+        urls,
+        total,
+        train,
+        rank,
+        world,
+        batch_size=batch_size,
+        seed=seed,
+        shuffle_buffer=shuffle_buffer,
+        wanted=wanted,
     )
     stages: list[Any] = [source, wds.map(decode_sample, handler=_raise_shard_error)]
     if transform is not None:
@@ -703,7 +777,7 @@ def iter_raw(url: str) -> Iterator[dict]:
     except DataError as err:
         message = str(err)
         if message.startswith("shard: "):
-            raise DataError(f"{url}: {message[len('shard: '):]}") from None
+            raise DataError(f"{url}: {message[len('shard: ') :]}") from None
         raise
 
 

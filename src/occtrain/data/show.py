@@ -11,12 +11,17 @@ from occtrain.data.clips import pose_anchor
 from occtrain.data.layout import DatasetIndex, load_labels
 from occtrain.data.render import render_bev, strip, surround
 from occtrain.errors import DataError
-from occtrain.progress import console
 from occtrain.occ3d import FRAME_DT, FREE
+from occtrain.progress import console
 
 
 def show(
-    path: str | Path, out: str | Path, scene: str | None = None, index: int = 0, frames: int = 1, scale: int = 3,
+    path: str | Path,
+    out: str | Path,
+    scene: str | None = None,
+    index: int = 0,
+    frames: int = 1,
+    scale: int = 3,
     overwrite: bool = False,
 ) -> Path:
     """Render ``frames`` consecutive frames starting at ``index`` of ``scene`` (default: the
@@ -57,7 +62,9 @@ def show(
     return out
 
 
-def _dataset_pictures(path: Path, scene: str | None, index: int, frames: int, scale: int) -> tuple[list, list[int], str]:
+def _dataset_pictures(
+    path: Path, scene: str | None, index: int, frames: int, scale: int
+) -> tuple[list, list[int], str]:
     """The frames' pictures, the classes they show, and which scene was chosen for the user
     ("" when they named one)."""
     chosen = ""

@@ -154,7 +154,10 @@ class _Counts:
         n = max(self.frames, 1)
         total = max(int(self.classes.sum()), 1)
         return DatasetStats(
-            root=str(root), split=split, frames=self.frames, world=world,
+            root=str(root),
+            split=split,
+            frames=self.frames,
+            world=world,
             **{key: value / n for key, value in self.sums.items()},
             per_layer=[float(v) / n for v in self.layers],
             class_shares={name: float(c) / total for name, c in zip(CLASS_NAMES[:FREE], self.classes)},
@@ -171,7 +174,6 @@ def dataset_stats(root: str | Path, split: str = "val", frames: int = 100) -> Da
             counts.add(index.labels(scene, token))
             advance(1)
     return counts.result(index.root, split, world_version(index.root))
-
 
 
 # ----------------------------------------------------------------------------- what a person reads
@@ -223,8 +225,15 @@ def class_rows(stats: DatasetStats) -> list[tuple[str, str, str, str, str]]:
     for name in sorted(ref, key=ref.get, reverse=True):
         ours = stats.class_shares[name]
         ok = met.get(f"class:{name}")
-        out.append((name, f"{100 * ours:.2f} %", f"{100 * ref[name]:.2f} %", f"{ours / ref[name]:.2f}x",
-                    "" if ok is None else ("yes" if ok else "no")))
+        out.append(
+            (
+                name,
+                f"{100 * ours:.2f} %",
+                f"{100 * ref[name]:.2f} %",
+                f"{ours / ref[name]:.2f}x",
+                "" if ok is None else ("yes" if ok else "no"),
+            )
+        )
     return out
 
 
@@ -242,8 +251,12 @@ def class_chart(stats: DatasetStats, width: int = 720) -> np.ndarray:
     img = Image.new("RGB", (width, pad * 2 + row * len(names) + 20), "white")
     draw = ImageDraw.Draw(img)
     bar_w = width - label_w - pad * 2 - 60
-    draw.text((pad, pad), f"class shares of occupied voxels: {Path(stats.root).name} ({stats.split}, {stats.frames} frames) "
-              "above, Occ3D-nuScenes train below", fill="black")
+    draw.text(
+        (pad, pad),
+        f"class shares of occupied voxels: {Path(stats.root).name} ({stats.split}, {stats.frames} frames) "
+        "above, Occ3D-nuScenes train below",
+        fill="black",
+    )
     for i, name in enumerate(names):
         y = pad + 20 + i * row
         draw.text((pad, y + 4), name, fill="black")

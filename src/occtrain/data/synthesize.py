@@ -82,7 +82,9 @@ def synthesize(out: str | Path, cfg: SynthConfig, verbose: bool = True) -> Datas
                     writer.write_labels(name, frame["token"], labels)
                     if cameras:
                         views = scene.cameras(i, labels["semantics"], cfg.camera_height, cfg.camera_width)
-                        writer.write_images(frame["token"], [(c.name, v.image, v.classes, v.depth) for c, v in zip(cameras, views)])
+                        writer.write_images(
+                            frame["token"], [(c.name, v.image, v.classes, v.depth) for c, v in zip(cameras, views)]
+                        )
                     rendered += 1
                     advance(1)
             writer.write_scene(name, split, frames, cameras)

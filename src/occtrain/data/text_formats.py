@@ -32,8 +32,8 @@ _VEHICLES_CLAUSE = ", with "
 #: The meta action sentence's words for "the same as the last past one".
 AS_BEFORE = "as before"
 _META_RE = re.compile(
-    r"meta action:\s*(?:(%s)|(%s)\s*,\s*(%s))\b"
-    % (AS_BEFORE, "|".join(META_SPEED_WORDS.values()), "|".join(META_DIRECTION_WORDS.values())),
+    rf"meta action:\s*(?:({AS_BEFORE})|({'|'.join(META_SPEED_WORDS.values())})\s*,\s*"
+    rf"({'|'.join(META_DIRECTION_WORDS.values())}))\b",
     re.IGNORECASE,
 )
 

@@ -15,9 +15,21 @@ from __future__ import annotations
 import json
 import math
 import types
+from collections.abc import Callable
 from dataclasses import dataclass
-from functools import lru_cache
-from typing import Annotated, Any, Callable, Literal, NotRequired, Required, Union, get_args, get_origin, get_type_hints, is_typeddict
+from functools import cache
+from typing import (
+    Annotated,
+    Any,
+    Literal,
+    NotRequired,
+    Required,
+    Union,
+    get_args,
+    get_origin,
+    get_type_hints,
+    is_typeddict,
+)
 
 
 @dataclass(frozen=True)
@@ -72,7 +84,7 @@ def _len_of(meta: tuple) -> int | None:
     return next((m.n for m in meta if isinstance(m, Len)), None)
 
 
-@lru_cache(maxsize=None)
+@cache
 def _ok(tp: Any) -> Callable[[Any], bool]:
     """A predicate: does a value conform to ``tp``?"""
     origin, args = get_origin(tp), get_args(tp)
@@ -113,14 +125,15 @@ def _ok(tp: Any) -> Callable[[Any], bool]:
     raise TypeError(f"validate: unsupported type {tp!r}")  # a schema bug, not a user error
 
 
-@lru_cache(maxsize=None)
+@cache
 def _fields(tp: type) -> tuple[dict[str, Any], frozenset[str]]:
     """A TypedDict's field types and required keys."""
     hints = get_type_hints(tp, include_extras=True)
     # Under `from __future__ import annotations`, Python 3.11 files NotRequired[...] fields
     # in __required_keys__ (it cannot see through the string), so the qualifiers decide.
     required = {
-        k for k, h in hints.items()
+        k
+        for k, h in hints.items()
         if get_origin(h) is Required or (get_origin(h) is not NotRequired and k in tp.__required_keys__)
     }
     return hints, frozenset(required)
@@ -213,7 +226,10 @@ def expected(tp: Any, plural: bool = False) -> str:
     if origin is Annotated:
         n, inner = _len_of(args[1:]), args[0]
         if n is not None and get_origin(inner) is list:
-            return noun(f"list of {n} {expected(get_args(inner)[0], True)}", f"lists of {n} {expected(get_args(inner)[0], True)}")
+            return noun(
+                f"list of {n} {expected(get_args(inner)[0], True)}",
+                f"lists of {n} {expected(get_args(inner)[0], True)}",
+            )
         return expected(inner, plural)
     if tp is Any:
         return noun("value", "values")

@@ -10,6 +10,18 @@ from occtrain.engine.speed import compare_generation_speed, speed_prompt
 from occtrain.engine.world_model import IMAGE_CACHE, SCENE_CACHE, TEXT_ENTRIES, WorldModelEngine, move_batch
 
 __all__ = [
-    "IMAGE_CACHE", "SCENE_CACHE", "TEXT_ENTRIES", "Evaluator", "WorldModelEngine", "export_engine", "load_world_model",
-    "Priors", "compare_generation_speed", "evaluation_clips", "move_batch", "new_world_model", "scorable", "speed_prompt",
+    "IMAGE_CACHE",
+    "SCENE_CACHE",
+    "TEXT_ENTRIES",
+    "Evaluator",
+    "WorldModelEngine",
+    "export_engine",
+    "load_world_model",
+    "Priors",
+    "compare_generation_speed",
+    "evaluation_clips",
+    "move_batch",
+    "new_world_model",
+    "scorable",
+    "speed_prompt",
 ]

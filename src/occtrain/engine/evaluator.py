@@ -10,8 +10,9 @@ from __future__ import annotations
 
 import zlib
 from collections import defaultdict
+from collections.abc import Callable, Iterable
 from pathlib import Path
-from typing import Any, Callable, Iterable
+from typing import Any
 
 import numpy as np
 import torch
@@ -74,8 +75,13 @@ class Evaluator(torch.nn.Module):
     """Rolls out the answers of the evaluation tasks and scores them (see the module docstring)."""
 
     def __init__(
-        self, tasks: Iterable[str], family_tasks: dict[str, TaskSpec], record: bool = False, priors: Priors | None = None,
-        subset: dict[str, set[str]] | None = None, hooks: Iterable[type] = (),
+        self,
+        tasks: Iterable[str],
+        family_tasks: dict[str, TaskSpec],
+        record: bool = False,
+        priors: Priors | None = None,
+        subset: dict[str, set[str]] | None = None,
+        hooks: Iterable[type] = (),
     ):
         """``tasks``: the evaluation tasks to run, of ``family_tasks`` (the world model's
         family's); their prompts are built with the engine's own task settings. Every item
@@ -88,7 +94,9 @@ class Evaluator(torch.nn.Module):
             if name not in family_tasks:
                 raise ConfigError(f"'{name}' is an unknown task; the world model's tasks are {', '.join(family_tasks)}")
             if name not in can:
-                raise ConfigError(f"'{name}' is a task without a generated answer to score; the evaluator scores {', '.join(can)}")
+                raise ConfigError(
+                    f"'{name}' is a task without a generated answer to score; the evaluator scores {', '.join(can)}"
+                )
         self.tasks = tuple(t for t in can if t in set(tasks))
         self.scorers = {t: [make() for make in scorer_factories(family_tasks[t])] for t in self.tasks}
         self.hooks = [make() for make in hooks]
@@ -138,7 +146,9 @@ class Evaluator(torch.nn.Module):
         steps = [k for k in (1, 3, 5) if k < n]
         rows = [(f"truth {(k + 1) * FRAME_DT:g} s", target[k]) for k in steps]
         rows += [(f"forecast {(k + 1) * FRAME_DT:g} s", pred[k]) for k in steps]
-        self.keep_scene("forecast", f"forecast of sample {token[:8]}: truth (left) and forecast (right) at 1, 2, 3 s", rows)
+        self.keep_scene(
+            "forecast", f"forecast of sample {token[:8]}: truth (left) and forecast (right) at 1, 2, 3 s", rows
+        )
 
     def keep_plan_picture(self, name: str, anchor: dict, plan: np.ndarray, truth: np.ndarray) -> None:
         """The plan (red) beside the true future (green) on the anchor's bird's-eye view."""
@@ -146,17 +156,25 @@ class Evaluator(torch.nn.Module):
             return
         token = anchor["token"]
         semantics = self.index.labels(self.index.scene_of(token), token)["semantics"]
-        self.keep_scene(name, f"{name} of sample {token[:8]}: true future green, plan red", [("plan vs truth", semantics, {"truth": truth, "plan": plan})])
+        self.keep_scene(
+            name,
+            f"{name} of sample {token[:8]}: true future green, plan red",
+            [("plan vs truth", semantics, {"truth": truth, "plan": plan})],
+        )
 
     # -- running
     @torch.no_grad()
-    def update(self, engine: WorldModelEngine, clips: list[Clip], batch: dict, tasks: Iterable[str] | None = None) -> None:
+    def update(
+        self, engine: WorldModelEngine, clips: list[Clip], batch: dict, tasks: Iterable[str] | None = None
+    ) -> None:
         """Generate and score the evaluator's tasks (or those of ``tasks``) on ``clips``."""
         tasks = self.tasks if tasks is None else [t for t in self.tasks if t in set(tasks)]
         # The planning ground truth of each clip, built once for every plan scored on it.
         targets = [plan_target([c.anchor], self.device) for c in clips]
         for task in tasks:
-            for b, parts, generated, scenes in engine.rollouts(task, clips, batch, every=True, select=self._selector(task)):
+            for b, parts, generated, scenes in engine.rollouts(
+                task, clips, batch, every=True, select=self._selector(task)
+            ):
                 semantics = batch["semantics"][b] if "semantics" in batch else None
                 item = Item(task, clips[b], parts, generated, scenes, semantics, targets[b], engine)
                 for scorer in self.scorers[task]:
@@ -169,8 +187,14 @@ class Evaluator(torch.nn.Module):
         return lambda clip, parts: item_key(task, clip, parts) in keys
 
     def run(
-        self, engine: WorldModelEngine, data_root: str | Path, split: str, batch_size: int = 16,
-        samples: int = -1, seed: int = 0, advance: Callable[[int], None] | None = None,
+        self,
+        engine: WorldModelEngine,
+        data_root: str | Path,
+        split: str,
+        batch_size: int = 16,
+        samples: int = -1,
+        seed: int = 0,
+        advance: Callable[[int], None] | None = None,
     ) -> None:
         """Generate and score every task on ``split`` (clips from ``evaluation_clips``):
         every item, or with ``samples`` >= 0 a fixed seeded subset of that many items per
@@ -217,7 +241,10 @@ class Evaluator(torch.nn.Module):
         if key not in self._clip_cache:
             clips = evaluation_clips(index, split, task, engine.tasks.context_frames)
             if samples >= 0:
-                keys = {c.anchor["token"]: [item_key(task, c, p) for p in engine.task_items(task, c, every=True)] for c in clips}
+                keys = {
+                    c.anchor["token"]: [item_key(task, c, p) for p in engine.task_items(task, c, every=True)]
+                    for c in clips
+                }
                 chosen = fixed_subset([k for ks in keys.values() for k in ks], samples, seed)
                 self.subset = {**(self.subset or {}), task: chosen}
                 clips = [c for c in clips if chosen.intersection(keys[c.anchor["token"]])]
@@ -231,16 +258,21 @@ class Evaluator(torch.nn.Module):
         if engine.needs_semantics() or any(s.needs_semantics for s in self.scorers[task]):
             # One (T, X, Y, Z) tensor per clip: QA clips at a scene's start have shorter windows.
             batch["semantics"] = [
-                torch.from_numpy(np.stack([index.labels(index.scene_of(t), t)["semantics"] for t in c.ann["tokens"]])) for c in clips
+                torch.from_numpy(np.stack([index.labels(index.scene_of(t), t)["semantics"] for t in c.ann["tokens"]]))
+                for c in clips
             ]
         return batch
 
-    def total(self, engine: WorldModelEngine, data_root: str | Path, split: str, samples: int = -1, seed: int = 0) -> int:
+    def total(
+        self, engine: WorldModelEngine, data_root: str | Path, split: str, samples: int = -1, seed: int = 0
+    ) -> int:
         """How many clips ``run`` visits (for a progress bar)."""
         index = DatasetIndex.open(data_root)
         rank, world = rank_world()
         total = sum(len(self._task_clips(engine, index, split, t, samples, seed)[rank::world]) for t in self.tasks)
-        return total + sum(len(self._hook_clips(engine, index, split, h, samples, seed)[rank::world]) for h in self._hooks(engine))
+        return total + sum(
+            len(self._hook_clips(engine, index, split, h, samples, seed)[rank::world]) for h in self._hooks(engine)
+        )
 
     def compute(self, prefix: str) -> dict[str, float]:
         """Every metric that saw samples on any process, flattened under ``prefix`` (e.g.

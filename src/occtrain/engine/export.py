@@ -66,14 +66,22 @@ def world_inputs(family: str, exports: dict[str, Path], world_cfg: Any, where: s
     vision = None
     if world.reads_cameras:
         if "vision" not in exports:
-            raise ConfigError(f"{where}: the '{family}' world model reads the cameras; add a vision stage to the stage's consumes")
+            raise ConfigError(
+                f"{where}: the '{family}' world model reads the cameras; add a vision stage to the stage's consumes"
+            )
         vision = load_vision_encoder(exports["vision"])
     return WorldInputs(scene, vision)
 
 
 def new_world_model(
-    exports: dict[str, Path], llm_cfg: LLMConfig, tasks: TaskConfig, data_root: str | Path,
-    max_new_text_tokens: int = MAX_NEW_TEXT_TOKENS, family: str = "", world_cfg: Any = None, where: str = "model",
+    exports: dict[str, Path],
+    llm_cfg: LLMConfig,
+    tasks: TaskConfig,
+    data_root: str | Path,
+    max_new_text_tokens: int = MAX_NEW_TEXT_TOKENS,
+    family: str = "",
+    world_cfg: Any = None,
+    where: str = "model",
 ) -> WorldModelEngine:
     """A freshly initialised world model of ``family`` (what pretraining starts from), over
     the consumed exports (by stage kind: the tokenizer's, the vision stage's) and with its
@@ -92,7 +100,9 @@ def new_world_model(
     if llm_cfg.path:
         text_tok = load_text_tokenizer(llm_cfg.path)
     else:
-        text_tok = train_text_tokenizer(corpus_texts(DatasetIndex.open(data_root), world.prompt_words), llm_cfg.text_vocab_size)
+        text_tok = train_text_tokenizer(
+            corpus_texts(DatasetIndex.open(data_root), world.prompt_words), llm_cfg.text_vocab_size
+        )
     vocab = JointVocab(text_tok, llm_cfg=llm_cfg, **world.model.vocab_layout(inputs, world_cfg))
     llm = build_llm(llm_cfg, len(vocab))
     model = world.model.create(llm, vocab, inputs, llm_cfg.scene_prediction, world_cfg)
@@ -155,7 +165,9 @@ def _stage_and_write(engine: WorldModelEngine, path: Path, stage: str, merge: bo
     return write_export(path, own, config, extra)
 
 
-def _save_hf_llm(llm_dir: Path, base: Any, state: dict[str, torch.Tensor], world: Any, engine: WorldModelEngine) -> None:
+def _save_hf_llm(
+    llm_dir: Path, base: Any, state: dict[str, torch.Tensor], world: Any, engine: WorldModelEngine
+) -> None:
     """A plain Hugging Face directory: config, weights (safetensors, HF names), generation
     config and tokenizer."""
     from transformers import GenerationConfig
@@ -175,14 +187,18 @@ def _save_hf_llm(llm_dir: Path, base: Any, state: dict[str, torch.Tensor], world
     base.config.save_pretrained(str(llm_dir))
     vocab = engine.vocab
     GenerationConfig(
-        bos_token_id=vocab.bos_id, eos_token_id=vocab.eos_id, pad_token_id=vocab.pad_id,
-        max_new_tokens=engine.max_new_text_tokens, do_sample=False,
+        bos_token_id=vocab.bos_id,
+        eos_token_id=vocab.eos_id,
+        pad_token_id=vocab.pad_id,
+        max_new_tokens=engine.max_new_text_tokens,
+        do_sample=False,
     ).save_pretrained(str(llm_dir))
     engine.text_tokenizer.save_pretrained(str(llm_dir))
 
 
 def _base_names(state: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
-    """peft's wrapped names (``base_model.model.``, ``.base_layer.``) back to the plain model's; LoRA weights dropped."""
+    """peft's wrapped names (``base_model.model.``, ``.base_layer.``) back to the plain model's;
+    LoRA weights dropped."""
     out = {}
     for name, value in state.items():
         if ".lora_" in name:
@@ -212,8 +228,12 @@ def load_world_model(export_dir: Path) -> WorldModelEngine:
     if world.world_config is not None and family in world_cfg:  # the family's own settings
         check_section(world.world_config, world_cfg[family], f"world.{family}", export_dir)
     llm = load_pretrained_strict(
-        AutoModelForCausalLM, llm_dir, f"{export_dir}", "re-run the stage that wrote it",
-        attn_implementation=world_cfg["attn_implementation"], dtype=torch.float32,
+        AutoModelForCausalLM,
+        llm_dir,
+        f"{export_dir}",
+        "re-run the stage that wrote it",
+        attn_implementation=world_cfg["attn_implementation"],
+        dtype=torch.float32,
     )
     if (llm_dir / BOTTLENECK_DIR).is_dir():
         load_adapters(llm, llm_dir / BOTTLENECK_DIR)
@@ -225,5 +245,10 @@ def load_world_model(export_dir: Path) -> WorldModelEngine:
     try:
         tasks = world.task_config(**config["tasks"])  # as saved: a merge onto the defaults would add task weights
     except TypeError as err:
-        raise ConfigError(f"{export_dir / 'config.json'}: its 'tasks' do not fit the '{family}' family ({err}); re-run the stage that wrote it") from None
-    return WorldModelEngine(scene, model, text_tok, tasks, config.get("max_new_text_tokens", MAX_NEW_TEXT_TOKENS), family, vision)
+        raise ConfigError(
+            f"{export_dir / 'config.json'}: its 'tasks' do not fit the '{family}' family ({err}); re-run the stage "
+            "that wrote it"
+        ) from None
+    return WorldModelEngine(
+        scene, model, text_tok, tasks, config.get("max_new_text_tokens", MAX_NEW_TEXT_TOKENS), family, vision
+    )

@@ -36,10 +36,12 @@ def speed_prompt(engine: WorldModelEngine, data_root: str | Path, split: str = "
 
 
 @torch.no_grad()
-def compare_generation_speed(engines: dict[str, WorldModelEngine], prompt: TokenSequence, new_tokens: int = SPEED_TOKENS) -> dict[str, float]:
+def compare_generation_speed(
+    engines: dict[str, WorldModelEngine], prompt: TokenSequence, new_tokens: int = SPEED_TOKENS
+) -> dict[str, float]:
     """Greedy tokens per second of each engine on ``prompt``, ``new_tokens`` long."""
     best = {name: float("inf") for name in engines}
-    for name, engine in engines.items():
+    for engine in engines.values():
         engine.world.generate_text(prompt, 2)  # warm-up: allocator, kernels
     for _ in range(ROUNDS):
         for name, engine in engines.items():

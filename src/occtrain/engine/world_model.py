@@ -11,8 +11,9 @@ and the benchmarks all use it; it names no family and never imports Lightning.
 from __future__ import annotations
 
 import hashlib
+from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import Any
 
 import numpy as np
 import torch
@@ -67,7 +68,10 @@ def scene_cache_key(encoder: torch.nn.Module, index: DatasetIndex) -> str:
 
 @torch.no_grad()
 def per_sample_cache(
-    index: DatasetIndex, cache_file: Path | None, what: str, encode: Callable[[list[tuple[str, str]]], torch.Tensor],
+    index: DatasetIndex,
+    cache_file: Path | None,
+    what: str,
+    encode: Callable[[list[tuple[str, str]]], torch.Tensor],
     batch_size: int = 8,
 ) -> dict[str, torch.Tensor]:
     """Sample token -> ``encode``'s row for it, over every frame of the dataset in chunks of
@@ -99,8 +103,14 @@ class WorldModelEngine(torch.nn.Module):
     """
 
     def __init__(
-        self, scene_encoder: torch.nn.Module | None, world: LMWorldModel, text_tokenizer: Any, tasks: TaskConfig,
-        max_new_text_tokens: int = MAX_NEW_TEXT_TOKENS, family: str = "", vision: torch.nn.Module | None = None,
+        self,
+        scene_encoder: torch.nn.Module | None,
+        world: LMWorldModel,
+        text_tokenizer: Any,
+        tasks: TaskConfig,
+        max_new_text_tokens: int = MAX_NEW_TEXT_TOKENS,
+        family: str = "",
+        vision: torch.nn.Module | None = None,
     ):
         super().__init__()
         self.scene_encoder = scene_encoder.eval().requires_grad_(False) if scene_encoder is not None else None
@@ -162,7 +172,9 @@ class WorldModelEngine(torch.nn.Module):
         frames = torch.stack([batch["semantics"][b][f] for b, f in keys]).long()
         return dict(zip(keys, self.scene_encoder.encode(frames)))
 
-    def prepare_inputs(self, data_root: str | Path, cache_dir: Path | None = None, shared_cache_dir: Path | None = None) -> None:
+    def prepare_inputs(
+        self, data_root: str | Path, cache_dir: Path | None = None, shared_cache_dir: Path | None = None
+    ) -> None:
         """Encode once what the prompts read through a frozen encoder (the camera views of a
         model that reads them; the scenes of one whose prompts hold scenes), cached in
         ``cache_dir`` (in memory only without one; scenes only with one, unless the scene
@@ -174,7 +186,11 @@ class WorldModelEngine(torch.nn.Module):
         self.data_index = index = DatasetIndex.open(data_root)
         if self.vision is not None:
             self.prepare_images(data_root, cache_dir / IMAGE_CACHE if cache_dir is not None else None)
-        if self.reads_scenes() and (cache_dir is not None or self.scenes_from_cameras()) and not self._has_scenes_of(index):
+        if (
+            self.reads_scenes()
+            and (cache_dir is not None or self.scenes_from_cameras())
+            and not self._has_scenes_of(index)
+        ):
             # The key reads the encoder's export: only when there is a cache file to name.
             where = shared_cache_dir or cache_dir
             name = SCENE_CACHE.format(key=scene_cache_key(self.scene_encoder, index)) if where is not None else None
@@ -200,7 +216,9 @@ class WorldModelEngine(torch.nn.Module):
             rows = encoder.encode(sem)
             return rows.to(torch.int32) if encoder.discrete else rows.float()
 
-        self.scene_cache = per_sample_cache(index, cache_file, "encoding scenes with the frozen scene encoder", encode, batch_size)
+        self.scene_cache = per_sample_cache(
+            index, cache_file, "encoding scenes with the frozen scene encoder", encode, batch_size
+        )
         self._scene_cache_root = index.root
 
     @torch.no_grad()
@@ -225,12 +243,16 @@ class WorldModelEngine(torch.nn.Module):
         if self.image_cache is not None:
             return
         if not index.has_cameras and (cache_file is None or not cache_file.is_file()):
-            raise DataError(f"{data_root}: the dataset has no camera images, which the '{self.family}' world model reads")
+            raise DataError(
+                f"{data_root}: the dataset has no camera images, which the '{self.family}' world model reads"
+            )
 
         def encode(chunk: list[tuple[str, str]]) -> torch.Tensor:
             return self.encode_images(torch.from_numpy(np.stack([index.images(s, t) for s, t in chunk])))
 
-        self.image_cache = per_sample_cache(index, cache_file, "encoding the cameras with the frozen vision encoder", encode, batch_size)
+        self.image_cache = per_sample_cache(
+            index, cache_file, "encoding the cameras with the frozen vision encoder", encode, batch_size
+        )
 
     # -- what a family's parts read (see ``SequenceBuilder.lay``)
     def scene(self, frame: int, scenes: dict[int, torch.Tensor]) -> torch.Tensor:
@@ -266,7 +288,9 @@ class WorldModelEngine(torch.nn.Module):
         needed = [{p.frame for p in d[1] if isinstance(p, Scene)} if d else set() for d in drawn]
         scenes = self.scenes(batch, needed)
         seqs = [
-            self.encode_parts(d[1], {f: scenes[(b, f)] for f in needed[b]}) for b, d in enumerate(drawn) if d is not None
+            self.encode_parts(d[1], {f: scenes[(b, f)] for f in needed[b]})
+            for b, d in enumerate(drawn)
+            if d is not None
         ]
         names = [d[0] if d else None for d in drawn]
         return (collate(seqs, pad_id=self.vocab.pad_id) if seqs else None), names
@@ -282,8 +306,11 @@ class WorldModelEngine(torch.nn.Module):
         # Occupancy queries are seen by nothing after them: a prompt skips them (OccVLA's Setting 2).
         prompt = [p for p in parts[:first] if not isinstance(p, Occupancy)]
         plan: list[Answer] = [
-            TextAnswer(self.max_new_text_tokens) if isinstance(p, Text)
-            else ActionAnswer(len(p.xy), p.base) if isinstance(p, Actions) else SceneAnswer()
+            TextAnswer(self.max_new_text_tokens)
+            if isinstance(p, Text)
+            else ActionAnswer(len(p.xy), p.base)
+            if isinstance(p, Actions)
+            else SceneAnswer()
             for p in parts[first:]
         ]
         return self.encode_parts(prompt, scenes), plan
@@ -307,8 +334,14 @@ class WorldModelEngine(torch.nn.Module):
         return unpacked(parts) if parts is not None else []
 
     def rollouts(
-        self, task: str, clips: list[Clip], batch: dict, seed: int = 0, batched: bool = True,
-        every: bool = False, select: Callable[[Clip, list[Part]], bool] | None = None,
+        self,
+        task: str,
+        clips: list[Clip],
+        batch: dict,
+        seed: int = 0,
+        batched: bool = True,
+        every: bool = False,
+        select: Callable[[Clip, list[Part]], bool] | None = None,
     ) -> Iterator[tuple[int, list[Part], list[Part], dict[int, torch.Tensor]]]:
         """Build ``task``'s prompts for every clip (``task_items``, with the engine's prompt
         settings; ``select`` keeps some) and roll their answers out: (sample index, parts,
@@ -316,7 +349,8 @@ class WorldModelEngine(torch.nn.Module):
         forward per step); ``batched=False`` rolls them out one after the other (the
         reference)."""
         built = [
-            [parts for parts in self.task_items(task, c, seed, every) if select is None or select(c, parts)] for c in clips
+            [parts for parts in self.task_items(task, c, seed, every) if select is None or select(c, parts)]
+            for c in clips
         ]
         needed = [{p.frame for ps in items for p in ps if isinstance(p, Scene) and not p.supervise} for items in built]
         scenes = self.scenes(batch, needed)
@@ -353,7 +387,9 @@ class WorldModelEngine(torch.nn.Module):
             self.tasks.weights = dict(self.spec.default_tasks.get(kind, {}))
         return self
 
-    def with_settings(self, tasks: TaskConfig | None = None, max_new_text_tokens: int | None = None) -> WorldModelEngine:
+    def with_settings(
+        self, tasks: TaskConfig | None = None, max_new_text_tokens: int | None = None
+    ) -> WorldModelEngine:
         """A stage's own task settings and generation length in place of the saved ones; returns self."""
         if tasks is not None:
             self.tasks = tasks

@@ -14,11 +14,18 @@ from occtrain.metrics.conventions import CONVENTIONS, horizon_label
 #: Each metric's module. Loaded when first used: torchmetrics takes seconds to import, and
 #: the commands that only name a convention (the CLI's parser, the dashboard) need none.
 _MODULES = {
-    "CAPTION_KEYS": "captions", "CaptionMetric": "captions", "coco_caption_scores": "captions",
-    "CodebookUsage": "codebook", "MetaActionAccuracy": "meta_action",
-    "ForecastMetric": "occupancy", "OccupancyMetric": "occupancy", "confusion_matrix": "occupancy",
-    "DepthAbsRelMetric": "pixels", "PixelSegmentationMetric": "pixels",
-    "PlanningMetric": "planning", "QAMetric": "qa",
+    "CAPTION_KEYS": "captions",
+    "CaptionMetric": "captions",
+    "coco_caption_scores": "captions",
+    "CodebookUsage": "codebook",
+    "MetaActionAccuracy": "meta_action",
+    "ForecastMetric": "occupancy",
+    "OccupancyMetric": "occupancy",
+    "confusion_matrix": "occupancy",
+    "DepthAbsRelMetric": "pixels",
+    "PixelSegmentationMetric": "pixels",
+    "PlanningMetric": "planning",
+    "QAMetric": "qa",
 }
 
 __all__ = ["CONVENTIONS", "compute_metrics", "flatten_metrics", "horizon_label", "updated_anywhere", *_MODULES]

@@ -17,7 +17,8 @@ import os
 import shutil
 import sys
 import tempfile
-from typing import Any, Sequence
+from collections.abc import Sequence
+from typing import Any
 
 import torch
 from torch import Tensor
@@ -103,7 +104,9 @@ def coco_caption_scores(predictions: dict[str, str], references: dict[str, list[
         from pycocoevalcap.rouge.rouge import Rouge
         from pycocoevalcap.tokenizer.ptbtokenizer import PTBTokenizer
     except ImportError:
-        raise OcctrainError("caption metrics need pycocoevalcap: `pip install pycocoevalcap` (or `pip install -e '.[dev]'`)") from None
+        raise OcctrainError(
+            "caption metrics need pycocoevalcap: `pip install pycocoevalcap` (or `pip install -e '.[dev]'`)"
+        ) from None
     ids = list(references)
     # One Java process for references and predictions alike: the tokeniser treats every
     # sentence on its own, and each start of Java costs a second or more.
@@ -141,9 +144,14 @@ class CaptionMetric(Metric):
         super().__init__(**{"dist_sync_fn": _gather_bytes, **kwargs})
         self.add_state("text", [], dist_reduce_fx="cat")
 
-    def update(self, predictions: Sequence[str], references: Sequence[str | Sequence[str]], ids: Sequence[Any] | None = None) -> None:
+    def update(
+        self, predictions: Sequence[str], references: Sequence[str | Sequence[str]], ids: Sequence[Any] | None = None
+    ) -> None:
         if len(predictions) != len(references) or (ids is not None and len(ids) != len(predictions)):
-            raise ValueError(f"{len(predictions)} predictions, {len(references)} references and {len(ids) if ids else 0} ids differ in number")
+            raise ValueError(
+                f"{len(predictions)} predictions, {len(references)} references and {len(ids) if ids else 0} ids differ "
+                "in number"
+            )
         records = []
         for k, (pred, refs) in enumerate(zip(predictions, references)):
             refs = [refs] if isinstance(refs, str) else list(refs)

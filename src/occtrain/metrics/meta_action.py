@@ -10,11 +10,11 @@ wrong on both parts: a model is not let off for not answering.
 
 from __future__ import annotations
 
-from typing import Any, Mapping, Sequence
+from collections.abc import Mapping, Sequence
+from typing import Any
 
 import torch
 from torchmetrics import Metric
-
 
 
 class MetaActionAccuracy(Metric):
@@ -46,6 +46,9 @@ class MetaActionAccuracy(Metric):
         n = max(int(self.total), 1)
         speed, direction = 100.0 * float(self.speed) / n, 100.0 * float(self.direction) / n
         return {
-            "speed": speed, "direction": direction, "mean": (speed + direction) / 2,
-            "overall": 100.0 * float(self.both) / n, "samples": float(self.total),
+            "speed": speed,
+            "direction": direction,
+            "mean": (speed + direction) / 2,
+            "overall": 100.0 * float(self.both) / n,
+            "samples": float(self.total),
         }

@@ -93,7 +93,9 @@ def subset_miou(confmat: Tensor, classes: tuple[str, ...]) -> Tensor:
     idx = torch.tensor([CLASS_NAMES.index(c) for c in classes], device=cm.device)
     tp, gt, pred = cm.diagonal()[idx], cm.sum(1)[idx], cm.sum(0)[idx]
     present = gt > 0
-    return 100.0 * (tp[present] / (gt + pred - tp)[present]).mean() if bool(present.any()) else torch.tensor(float("nan"))
+    return (
+        100.0 * (tp[present] / (gt + pred - tp)[present]).mean() if bool(present.any()) else torch.tensor(float("nan"))
+    )
 
 
 class OccupancyMetric(Metric):
@@ -112,7 +114,13 @@ class OccupancyMetric(Metric):
     higher_is_better = True
     full_state_update = False
 
-    def __init__(self, convention: str = "occ3d", use_mask: bool = True, subsets: dict[str, tuple[str, ...]] | None = None, **kwargs: Any):
+    def __init__(
+        self,
+        convention: str = "occ3d",
+        use_mask: bool = True,
+        subsets: dict[str, tuple[str, ...]] | None = None,
+        **kwargs: Any,
+    ):
         super().__init__(**kwargs)
         self.subsets = dict(subsets or {})
         if convention not in CONVENTIONS:
@@ -153,7 +161,9 @@ class ForecastMetric(Metric):
     higher_is_better = True
     full_state_update = False
 
-    def __init__(self, horizons: tuple[int, ...] = (1, 3, 5), subsets: dict[str, tuple[str, ...]] | None = None, **kwargs: Any):
+    def __init__(
+        self, horizons: tuple[int, ...] = (1, 3, 5), subsets: dict[str, tuple[str, ...]] | None = None, **kwargs: Any
+    ):
         super().__init__(**kwargs)
         self.subsets = dict(subsets or {})
         if not horizons or min(horizons) < 0:
@@ -165,7 +175,9 @@ class ForecastMetric(Metric):
 
     def update(self, pred: Tensor, target: Tensor, valid: Tensor | None = None) -> None:
         if pred.shape != target.shape or pred.dim() < 3:
-            raise ValueError(f"prediction {tuple(pred.shape)} and target {tuple(target.shape)} must both be [B, T, X, Y, Z]")
+            raise ValueError(
+                f"prediction {tuple(pred.shape)} and target {tuple(target.shape)} must both be [B, T, X, Y, Z]"
+            )
         if pred.shape[1] <= max(self.horizons):
             raise ValueError(f"forecast has {pred.shape[1]} frames; horizon index {max(self.horizons)} needs more")
         if valid is not None and tuple(valid.shape) != tuple(pred.shape[:2]):

@@ -30,7 +30,8 @@ L2 is metres.
 
 from __future__ import annotations
 
-from typing import Any, Sequence
+from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 import torch
@@ -82,7 +83,9 @@ def pad_agents(agents: Sequence[Sequence[Any]], batch: int, steps: int) -> tuple
         for boxes in per_step:
             arr = np.asarray(boxes.cpu() if isinstance(boxes, Tensor) else boxes, dtype=np.float64)
             if arr.size and (arr.ndim != 2 or arr.shape[1] != 5):
-                raise ValueError(f"agents[{b}] holds boxes of shape {arr.shape}, expected [N, 5] (x, y, length, width, yaw)")
+                raise ValueError(
+                    f"agents[{b}] holds boxes of shape {arr.shape}, expected [N, 5] (x, y, length, width, yaw)"
+                )
             arrays.append(arr.reshape(-1, 5))
     most = max((a.shape[0] for a in arrays), default=0)
     out = np.zeros((batch * steps, max(most, 1), 5))
@@ -171,7 +174,9 @@ class PlanningMetric(Metric):
             "L2_uniad": self._at_horizons(self.l2_uniad, self.samples, cumulative=False),
         }
         if int(self.col_samples) > 0:
-            out["collision_stp3"] = self._at_horizons(self.col_stp3, self.col_samples_stp3, cumulative=True, scale=100.0)
+            out["collision_stp3"] = self._at_horizons(
+                self.col_stp3, self.col_samples_stp3, cumulative=True, scale=100.0
+            )
             out["collision_uniad"] = self._at_horizons(self.col_uniad, self.col_samples, cumulative=False, scale=100.0)
         out["samples"] = self.samples.clone()
         out["samples_stp3"] = self.samples_stp3.clone()

@@ -10,7 +10,8 @@ correct / asked in percent, reported only for the types and hops that were asked
 
 from __future__ import annotations
 
-from typing import Any, Sequence
+from collections.abc import Sequence
+from typing import Any
 
 import torch
 from torchmetrics import Metric
@@ -41,10 +42,15 @@ class QAMetric(Metric):
         self.add_state("correct", torch.zeros(shape, dtype=torch.long), dist_reduce_fx="sum")
         self.add_state("asked", torch.zeros(shape, dtype=torch.long), dist_reduce_fx="sum")
 
-    def update(self, predictions: Sequence[str], answers: Sequence[Any], template_types: Sequence[str], num_hops: Sequence[int]) -> None:
+    def update(
+        self, predictions: Sequence[str], answers: Sequence[Any], template_types: Sequence[str], num_hops: Sequence[int]
+    ) -> None:
         n = len(predictions)
         if not (len(answers) == len(template_types) == len(num_hops) == n):
-            raise ValueError(f"{n} predictions, {len(answers)} answers, {len(template_types)} types and {len(num_hops)} hops differ in number")
+            raise ValueError(
+                f"{n} predictions, {len(answers)} answers, {len(template_types)} types and {len(num_hops)} hops differ "
+                "in number"
+            )
         unknown = sorted({t for t in template_types if t not in TEMPLATE_TYPES})
         if unknown:
             raise ValueError(f"unknown template type '{unknown[0]}'; NuScenes-QA types are {', '.join(TEMPLATE_TYPES)}")
@@ -57,14 +63,21 @@ class QAMetric(Metric):
         flat = rows * len(HOPS) + cols
         size = len(TEMPLATE_TYPES) * len(HOPS)
         self.asked += torch.bincount(flat, minlength=size).reshape(self.asked.shape).to(self.asked.device)
-        self.correct += torch.bincount(flat, weights=hits.double(), minlength=size).long().reshape(self.correct.shape).to(self.correct.device)
+        self.correct += (
+            torch.bincount(flat, weights=hits.double(), minlength=size)
+            .long()
+            .reshape(self.correct.shape)
+            .to(self.correct.device)
+        )
 
     def compute(self) -> dict[str, Any]:
         def pct(correct: torch.Tensor, asked: torch.Tensor) -> torch.Tensor:
             return 100.0 * correct.double() / asked.double()
 
         by_type = {
-            t: pct(self.correct[i].sum(), self.asked[i].sum()) for i, t in enumerate(TEMPLATE_TYPES) if self.asked[i].sum() > 0
+            t: pct(self.correct[i].sum(), self.asked[i].sum())
+            for i, t in enumerate(TEMPLATE_TYPES)
+            if self.asked[i].sum() > 0
         }
         by_type_hop = {
             f"{t}_H{h}": pct(self.correct[i, h], self.asked[i, h])

@@ -18,14 +18,18 @@ class ReconstructionMetrics(torch.nn.Module):
 
     def __init__(self, codebooks: dict[str, int]):
         super().__init__()
-        self.scores = torch.nn.ModuleDict({
-            "occworld": OccupancyMetric(convention="occworld", subsets={"movable": MOVABLE_CLASSES}),
-            "occ3d": OccupancyMetric(convention="occ3d"),
-            "baseline_free_occworld": OccupancyMetric(convention="occworld"),
-        })
+        self.scores = torch.nn.ModuleDict(
+            {
+                "occworld": OccupancyMetric(convention="occworld", subsets={"movable": MOVABLE_CLASSES}),
+                "occ3d": OccupancyMetric(convention="occ3d"),
+                "baseline_free_occworld": OccupancyMetric(convention="occworld"),
+            }
+        )
         self.usage = torch.nn.ModuleDict({name: CodebookUsage(size) for name, size in codebooks.items()})
 
-    def update(self, pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor, codes: torch.Tensor | None = None) -> None:
+    def update(
+        self, pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor, codes: torch.Tensor | None = None
+    ) -> None:
         """Label volumes (B, X, Y, Z), ``mask_camera``, and the codes: (B, h, w) for one
         codebook, (B, codebooks, h, w) for several, None for a continuous encoder."""
         self.scores["occworld"].update(pred, target)
@@ -38,7 +42,8 @@ class ReconstructionMetrics(torch.nn.Module):
             usage.update(grids[:, i])
 
     def compute(self) -> dict[str, float]:
-        """``occworld_mIoU``, ``occworld_movable_mIoU``, ``occ3d_IoU``, ..., ``<codebook>_usage``, ``<codebook>_perplexity``."""
+        """``occworld_mIoU``, ``occworld_movable_mIoU``, ``occ3d_IoU``, ..., ``<codebook>_usage``,
+        ``<codebook>_perplexity``."""
         out: dict[str, float] = {}
         for name, metric in self.scores.items():
             out |= {f"{name}_{k}": float(v) for k, v in metric.compute().items() if k.endswith("IoU")}

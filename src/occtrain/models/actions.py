@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import torch
 
-
 #: Where the bins lie: "range" puts the first bin's lower edge at ``low``; "zero" shifts
 #: the bins by less than half a width so that 0 m is a bin centre (no move, no offset from
 #: a prior, is then exact: with "range", 256 bins over [-40, 40] m put 0 on an edge and

@@ -68,7 +68,10 @@ def _layers(llm: nn.Module) -> list[nn.Module]:
     body = base.get_decoder() if hasattr(base, "get_decoder") else getattr(base, "model", base)
     layers = getattr(body, "layers", None)
     if layers is None:
-        raise ConfigError(f"adapters: {type(base).__name__} has no decoder layers (get_decoder().layers); adapters fit decoder-only causal LMs")
+        raise ConfigError(
+            f"adapters: {type(base).__name__} has no decoder layers (get_decoder().layers); adapters fit decoder-only "
+            "causal LMs"
+        )
     return list(layers)
 
 
@@ -123,7 +126,10 @@ def load_adapters(llm: nn.Module, source: Path) -> AdapterConfig:
         data = json.loads((source / ADAPTER_CONFIG).read_text())
         state = load_file(str(source / ADAPTER_WEIGHTS))
     except Exception as err:  # OSError, JSON and safetensors' own errors: a damaged adapter either way
-        raise ConfigError(f"{source}: unreadable bottleneck adapter ({type(err).__name__}: {str(err).splitlines()[0]}); re-run the stage that wrote it") from None
+        raise ConfigError(
+            f"{source}: unreadable bottleneck adapter ({type(err).__name__}: {str(err).splitlines()[0]}); re-run the "
+            "stage that wrote it"
+        ) from None
     if not isinstance(data, dict):
         raise ConfigError(f"{source / ADAPTER_CONFIG}: is not a JSON object; re-run the stage that wrote it")
     cfg = AdapterConfig(**{k: data[k] for k in AdapterConfig.__dataclass_fields__ if k in data})
@@ -131,9 +137,15 @@ def load_adapters(llm: nn.Module, source: Path) -> AdapterConfig:
     own = {k: v for k, v in llm.state_dict().items() if f".{ATTRIBUTE}." in k}
     if set(own) != set(state):
         odd = sorted(set(own) ^ set(state))[0]
-        raise ConfigError(f"{source}: adapter weights do not match the model ({'missing' if odd in own else 'unexpected'} tensor '{odd}'); re-run the stage that wrote it")
+        raise ConfigError(
+            f"{source}: adapter weights do not match the model ({'missing' if odd in own else 'unexpected'} tensor "
+            f"'{odd}'); re-run the stage that wrote it"
+        )
     odd = next((k for k in own if own[k].shape != state[k].shape), None)
     if odd is not None:
-        raise ConfigError(f"{source}: adapter tensor '{odd}' has shape {tuple(state[odd].shape)}, the model wants {tuple(own[odd].shape)}; re-run the stage that wrote it")
+        raise ConfigError(
+            f"{source}: adapter tensor '{odd}' has shape {tuple(state[odd].shape)}, the model wants "
+            f"{tuple(own[odd].shape)}; re-run the stage that wrote it"
+        )
     llm.load_state_dict(state, strict=False)
     return cfg

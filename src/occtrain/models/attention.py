@@ -26,7 +26,9 @@ from __future__ import annotations
 import torch
 
 
-def allowed_pairs(segment_ids: torch.Tensor, pad_mask: torch.Tensor, branch_ids: torch.Tensor | None = None) -> torch.Tensor:
+def allowed_pairs(
+    segment_ids: torch.Tensor, pad_mask: torch.Tensor, branch_ids: torch.Tensor | None = None
+) -> torch.Tensor:
     """Bool[B, L, L]: may query i attend to key j? ``pad_mask`` is True on real tokens;
     ``branch_ids`` Long[B, L] (optional) keeps branches apart (see the module docstring).
 
@@ -51,7 +53,9 @@ def additive(allowed: torch.Tensor, dtype: torch.dtype = torch.float32) -> torch
     return mask.masked_fill(~allowed, torch.finfo(dtype).min)[:, None]
 
 
-def build_4d_mask(segment_ids: torch.Tensor, pad_mask: torch.Tensor, dtype: torch.dtype = torch.float32) -> torch.Tensor:
+def build_4d_mask(
+    segment_ids: torch.Tensor, pad_mask: torch.Tensor, dtype: torch.dtype = torch.float32
+) -> torch.Tensor:
     """Segment ids Long[B, L] and real-token mask Bool[B, L] -> additive mask Float[B, 1, L, L]."""
     return additive(allowed_pairs(segment_ids, pad_mask), dtype)
 

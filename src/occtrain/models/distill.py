@@ -21,8 +21,12 @@ class FeatureProjector(torch.nn.Module):
 
 
 def distillation_losses(
-    student_logits: torch.Tensor, teacher_logits: torch.Tensor, student_feat: torch.Tensor, teacher_hidden: torch.Tensor,
-    valid: torch.Tensor, temperature: float,
+    student_logits: torch.Tensor,
+    teacher_logits: torch.Tensor,
+    student_feat: torch.Tensor,
+    teacher_hidden: torch.Tensor,
+    valid: torch.Tensor,
+    temperature: float,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """KL(teacher || student) at temperature T (times T^2) and 1 - cosine of the features,
     both averaged over the ``valid`` (non-padding) positions."""

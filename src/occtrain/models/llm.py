@@ -31,8 +31,11 @@ MULTIMODAL = ("paligemma",)
 
 #: Hugging Face config keys of a tiny model and the ``LLMConfig`` keys that size them.
 SIZE_KEYS = (
-    ("hidden_size", "hidden_size"), ("intermediate_size", "intermediate_size"), ("num_hidden_layers", "num_layers"),
-    ("num_attention_heads", "num_heads"), ("max_position_embeddings", "max_position_embeddings"),
+    ("hidden_size", "hidden_size"),
+    ("intermediate_size", "intermediate_size"),
+    ("num_hidden_layers", "num_layers"),
+    ("num_attention_heads", "num_heads"),
+    ("max_position_embeddings", "max_position_embeddings"),
 )
 
 
@@ -45,7 +48,9 @@ def tiny_config(cfg: LLMConfig, vocab_size: int) -> Any:
     """The config of a tiny ``cfg.model_type`` LM from the size keys."""
     kw: dict[str, Any] = {hf: getattr(cfg, ours) for hf, ours in SIZE_KEYS}
     kw.update(
-        vocab_size=vocab_size, num_key_value_heads=cfg.num_heads, tie_word_embeddings=False,
+        vocab_size=vocab_size,
+        num_key_value_heads=cfg.num_heads,
+        tie_word_embeddings=False,
         attn_implementation=attention_for(cfg.model_type, cfg.attn_implementation),
     )
     if cfg.model_type == "gemma2":  # its defaults size heads for 2B models: give it the tiny model's
@@ -100,18 +105,29 @@ def load_llm(path: str | Path, attn_implementation: str = "sdpa") -> PreTrainedM
     try:
         config = AutoConfig.from_pretrained(str(path), local_files_only=True)
     except (OSError, ValueError, KeyError) as e:
-        raise ConfigError(f"llm.path: cannot load the model config in {path} ({_first_line(e)}); point it at a Hugging Face model directory") from None
+        raise ConfigError(
+            f"llm.path: cannot load the model config in {path} ({_first_line(e)}); point it at a Hugging Face model "
+            "directory"
+        ) from None
     if config.model_type in MULTIMODAL:
         return _language_model(path, config, attn_implementation)
     check_backend(config.model_type, f"llm.path {path}")
     return load_pretrained_strict(
-        AutoModelForCausalLM, path, "llm.path", "point llm.path at a Hugging Face model directory whose weights match its config",
+        AutoModelForCausalLM,
+        path,
+        "llm.path",
+        "point llm.path at a Hugging Face model directory whose weights match its config",
         attn_implementation=attention_for(config.model_type, attn_implementation),
     )
 
 
 def load_pretrained_strict(
-    auto: Any, path: str | Path, what: str, hint: str, allow_unexpected: bool = False, **kwargs: Any,
+    auto: Any,
+    path: str | Path,
+    what: str,
+    hint: str,
+    allow_unexpected: bool = False,
+    **kwargs: Any,
 ) -> PreTrainedModel:
     """``auto.from_pretrained(path)`` that refuses, in one line naming the tensor, weights
     that disagree with the directory's config: a layer the weights lack would otherwise
@@ -125,7 +141,9 @@ def load_pretrained_strict(
     try:
         model, info = auto.from_pretrained(str(path), local_files_only=True, output_loading_info=True, **kwargs)
     except Exception as e:  # safetensors, OSError, ValueError, RuntimeError (shapes): a broken directory either way
-        raise ConfigError(f"{what}: cannot load the model in {path} ({type(e).__name__}: {_first_line(e)}); {hint}") from None
+        raise ConfigError(
+            f"{what}: cannot load the model in {path} ({type(e).__name__}: {_first_line(e)}); {hint}"
+        ) from None
     finally:
         hf_logging.set_verbosity(verbosity)
         hf_logging.enable_progress_bar()
@@ -149,7 +167,10 @@ def _language_model(path: str | Path, config: Any, attn_implementation: str) -> 
     check_backend(text.model_type, f"llm.path {path} (its language model)")
     text._attn_implementation = attention_for(text.model_type, attn_implementation)
     full = load_pretrained_strict(
-        AutoModelForImageTextToText, path, "llm.path", f"point llm.path at a {config.model_type} directory whose weights match its config",
+        AutoModelForImageTextToText,
+        path,
+        "llm.path",
+        f"point llm.path at a {config.model_type} directory whose weights match its config",
         dtype=torch.float32,
     )
     lm = AutoModelForCausalLM.from_config(text)
@@ -157,7 +178,9 @@ def _language_model(path: str | Path, config: Any, attn_implementation: str) -> 
     state.update({f"lm_head.{k}": v for k, v in full.get_output_embeddings().state_dict().items()})
     missing, unexpected = lm.load_state_dict(state, strict=False)
     if missing or unexpected:
-        raise ConfigError(f"llm.path: the language model of {path} does not match its config (tensor '{(missing or unexpected)[0]}')")
+        raise ConfigError(
+            f"llm.path: the language model of {path} does not match its config (tensor '{(missing or unexpected)[0]}')"
+        )
     return lm
 
 
@@ -177,7 +200,9 @@ def load_text_tokenizer(path: str | Path) -> Any:
     try:
         tok = AutoTokenizer.from_pretrained(str(path), local_files_only=True)
     except (OSError, ValueError) as e:
-        raise ConfigError(f"llm.path: cannot load a tokenizer from {path} ({_first_line(e)}); the directory needs its tokenizer files") from None
+        raise ConfigError(
+            f"llm.path: cannot load a tokenizer from {path} ({_first_line(e)}); the directory needs its tokenizer files"
+        ) from None
     if tok.eos_token_id is None:
         raise ConfigError(f"llm.path: the tokenizer in {path} has no eos token; the world model needs one to end text")
     if tok.pad_token_id is None:
@@ -202,7 +227,9 @@ def apply_lora(model: PreTrainedModel, cfg: LoRAConfig) -> Any:
         raise ConfigError(f"lora.target_modules: {list(cfg.target_modules)} ({_first_line(e)})") from None
 
 
-def load_lora_strict(model: PreTrainedModel, adapter_dir: str | Path, hint: str = "re-run the stage that wrote it") -> Any:
+def load_lora_strict(
+    model: PreTrainedModel, adapter_dir: str | Path, hint: str = "re-run the stage that wrote it"
+) -> Any:
     """``PeftModel.from_pretrained`` (frozen) that refuses, naming the tensor, an adapter whose
     weights do not fit the model: peft would start the missing ones at their init and drop
     the unexpected ones with at most a warning."""
@@ -215,7 +242,9 @@ def load_lora_strict(model: PreTrainedModel, adapter_dir: str | Path, hint: str 
             saved = set(fh.keys())
         wrapped = PeftModel.from_pretrained(model, str(adapter_dir), is_trainable=False)
     except Exception as e:  # a damaged file, a config that does not fit, a shape mismatch
-        raise ConfigError(f"{adapter_dir}: cannot load the LoRA adapter ({type(e).__name__}: {_first_line(e)}); {hint}") from None
+        raise ConfigError(
+            f"{adapter_dir}: cannot load the LoRA adapter ({type(e).__name__}: {_first_line(e)}); {hint}"
+        ) from None
     # peft's own state dict also names base layers it saves only when they changed (an
     # embedding or head it wraps): only its LoRA matrices must all be in the file.
     wanted = set(get_peft_model_state_dict(wrapped))
@@ -229,7 +258,10 @@ def load_lora_strict(model: PreTrainedModel, adapter_dir: str | Path, hint: str 
 
 def _check_dir(path: str | Path) -> None:
     if not (Path(path) / "config.json").is_file():
-        raise ConfigError(f"llm.path: {path} is not a local Hugging Face model directory (no config.json); fix the path or leave it empty for the tiny Llama")
+        raise ConfigError(
+            f"llm.path: {path} is not a local Hugging Face model directory (no config.json); fix the path or leave it "
+            "empty for the tiny Llama"
+        )
 
 
 def _first_line(e: Exception) -> str:

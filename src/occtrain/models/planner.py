@@ -27,12 +27,20 @@ class PlanningHead(nn.Module):
     """
 
     def __init__(
-        self, features: int, hidden: int, layers: int, steps: int, dropout: float = 0.0,
-        visual_dim: int = 0, visual_width: int = 8,
+        self,
+        features: int,
+        hidden: int,
+        layers: int,
+        steps: int,
+        dropout: float = 0.0,
+        visual_dim: int = 0,
+        visual_width: int = 8,
     ):
         super().__init__()
         self.visual = (
-            nn.Sequential(nn.LayerNorm(visual_dim), nn.Dropout(0.5), nn.Linear(visual_dim, visual_width)) if visual_dim else None
+            nn.Sequential(nn.LayerNorm(visual_dim), nn.Dropout(0.5), nn.Linear(visual_dim, visual_width))
+            if visual_dim
+            else None
         )
         dims = [features + (visual_width if visual_dim else 0)] + [hidden] * (layers - 1)
         blocks: list[nn.Module] = []
@@ -42,7 +50,9 @@ class PlanningHead(nn.Module):
         self.mlp = nn.Sequential(*blocks)
         self.steps = steps
 
-    def forward(self, features: torch.Tensor, visual: torch.Tensor | None = None, velocity: torch.Tensor | None = None) -> torch.Tensor:
+    def forward(
+        self, features: torch.Tensor, visual: torch.Tensor | None = None, velocity: torch.Tensor | None = None
+    ) -> torch.Tensor:
         """(B, features) [+ visual (B, visual_dim)] [+ velocity (B, 2) m/s] -> (B, steps, 2) waypoints in metres."""
         if self.visual is not None:
             features = torch.cat([features, self.visual(visual)], dim=1)
@@ -88,8 +98,13 @@ def load_planning_head(export_dir: Path) -> PlanningHead:
     if config.get("stage_kind") != "planner":
         raise OcctrainError(f"{export_dir}: not a planner export (stage kind '{config.get('stage_kind')}')")
     head = PlanningHead(
-        config["features"], config["hidden"], config["layers"], config["steps"], 0.0,
-        config.get("visual_dim", 0), config.get("visual_width", 8),
+        config["features"],
+        config["hidden"],
+        config["layers"],
+        config["steps"],
+        0.0,
+        config.get("visual_dim", 0),
+        config.get("visual_width", 8),
     )
     load_state_strict(head, state, (), str(export_dir))
     return head.eval()

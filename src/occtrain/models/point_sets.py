@@ -29,7 +29,9 @@ def voxel_centres(indices: torch.Tensor) -> torch.Tensor:
     return _LOW.to(indices.device) + VOXEL_SIZE * (indices.float() + 0.5)
 
 
-def occupied_points(semantics: np.ndarray | torch.Tensor, count: int, rng: np.random.Generator) -> tuple[torch.Tensor, torch.Tensor, int]:
+def occupied_points(
+    semantics: np.ndarray | torch.Tensor, count: int, rng: np.random.Generator
+) -> tuple[torch.Tensor, torch.Tensor, int]:
     """A sparsified ground-truth point set of one label volume (X, Y, Z): the centres of
     ``count`` occupied voxels drawn without replacement (every one when there are fewer),
     their classes, and how many are real (the rest repeat the first, to stack batches).
@@ -39,14 +41,20 @@ def occupied_points(semantics: np.ndarray | torch.Tensor, count: int, rng: np.ra
     n = min(count, occupied.shape[0])
     if n == 0:
         return torch.zeros(count, 3), torch.zeros(count, dtype=torch.long), 0
-    pick = torch.from_numpy(rng.choice(occupied.shape[0], size=n, replace=False)) if occupied.shape[0] > count else torch.arange(n)
+    pick = (
+        torch.from_numpy(rng.choice(occupied.shape[0], size=n, replace=False))
+        if occupied.shape[0] > count
+        else torch.arange(n)
+    )
     chosen = occupied[pick]
     chosen = torch.cat([chosen, chosen[:1].expand(count - n, 3)]) if n < count else chosen
     return voxel_centres(chosen), sem[chosen[:, 0], chosen[:, 1], chosen[:, 2]], n
 
 
 @torch.no_grad()
-def nearest(src: torch.Tensor, dst: torch.Tensor, dst_valid: torch.Tensor | None = None, chunk: int = 4096) -> torch.Tensor:
+def nearest(
+    src: torch.Tensor, dst: torch.Tensor, dst_valid: torch.Tensor | None = None, chunk: int = 4096
+) -> torch.Tensor:
     """For each point of ``src`` (B, M, 3) the index of its nearest point of ``dst`` (B, K, 3)
     (Euclidean, over the ``dst_valid`` ones; 0 where a sample has none).
 
@@ -59,7 +67,9 @@ def nearest(src: torch.Tensor, dst: torch.Tensor, dst_valid: torch.Tensor | None
     return _nearest_dense(src, dst, dst_valid, chunk)
 
 
-def _nearest_dense(src: torch.Tensor, dst: torch.Tensor, dst_valid: torch.Tensor | None = None, chunk: int = 4096) -> torch.Tensor:
+def _nearest_dense(
+    src: torch.Tensor, dst: torch.Tensor, dst_valid: torch.Tensor | None = None, chunk: int = 4096
+) -> torch.Tensor:
     out = torch.empty(src.shape[:2], dtype=torch.long, device=src.device)
     for i in range(0, src.shape[1], chunk):
         d = torch.cdist(src[:, i : i + chunk].detach().float(), dst.detach().float())
@@ -82,7 +92,10 @@ def _nearest_by_tree(src: torch.Tensor, dst: torch.Tensor, dst_valid: torch.Tens
 
 
 def chamfer_distance(
-    pred: torch.Tensor, gt: torch.Tensor, gt_valid: torch.Tensor | None = None, reduction: str = "mean",
+    pred: torch.Tensor,
+    gt: torch.Tensor,
+    gt_valid: torch.Tensor | None = None,
+    reduction: str = "mean",
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """The Chamfer distance of Eq. 1 between point sets ``pred`` (B, M, 3) and ``gt`` (B, K, 3):
     the squared distance from each predicted point to its nearest ground-truth point plus
@@ -106,7 +119,9 @@ def chamfer_distance(
     return forward.mean(1) + backward.sum(1) / valid.sum(1).clamp(min=1), to_gt
 
 
-def sigmoid_focal_loss(logits: torch.Tensor, labels: torch.Tensor, alpha: float = 0.25, gamma: float = 2.0) -> torch.Tensor:
+def sigmoid_focal_loss(
+    logits: torch.Tensor, labels: torch.Tensor, alpha: float = 0.25, gamma: float = 2.0
+) -> torch.Tensor:
     """The focal loss (Lin et al.) of class logits (..., C) against integer labels (...),
     one sigmoid per class as OPUS and the mmdetection focal loss compute it:
     ``-alpha_t (1 - p_t)^gamma log p_t`` summed over the C classes; mean over the points."""
@@ -127,9 +142,19 @@ def voxelize(points: torch.Tensor, classes: torch.Tensor, extent: tuple[int, int
     grid = torch.tensor(GRID_SHAPE, device=points.device)
     base = torch.floor((points.float() - _LOW.to(points.device)) / VOXEL_SIZE).long()  # (M, 3)
     ex, ey, ez = (int(e) for e in extent)
-    offsets = torch.stack(torch.meshgrid(
-        torch.arange(ex) - (ex - 1) // 2, torch.arange(ey) - (ey - 1) // 2, torch.arange(ez) - (ez - 1) // 2, indexing="ij",
-    ), -1).reshape(-1, 3).to(points.device)
+    offsets = (
+        torch.stack(
+            torch.meshgrid(
+                torch.arange(ex) - (ex - 1) // 2,
+                torch.arange(ey) - (ey - 1) // 2,
+                torch.arange(ez) - (ez - 1) // 2,
+                indexing="ij",
+            ),
+            -1,
+        )
+        .reshape(-1, 3)
+        .to(points.device)
+    )
     cells = (base[:, None] + offsets[None]).reshape(-1, 3)
     labels = classes.long().repeat_interleave(offsets.shape[0])
     inside = ((cells >= 0) & (cells < grid)).all(-1)
@@ -147,4 +172,12 @@ def voxelize(points: torch.Tensor, classes: torch.Tensor, extent: tuple[int, int
     return out.view(GRID_SHAPE)
 
 
-__all__ = ["POINT_CLASSES", "chamfer_distance", "nearest", "occupied_points", "sigmoid_focal_loss", "voxel_centres", "voxelize"]
+__all__ = [
+    "POINT_CLASSES",
+    "chamfer_distance",
+    "nearest",
+    "occupied_points",
+    "sigmoid_focal_loss",
+    "voxel_centres",
+    "voxelize",
+]

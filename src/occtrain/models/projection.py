@@ -16,7 +16,9 @@ import torch.nn.functional as F
 MIN_DEPTH = 1e-3
 
 
-def project(points: torch.Tensor, intrinsics: torch.Tensor, cam_to_ego: torch.Tensor, image_hw: tuple[int, int]) -> tuple[torch.Tensor, torch.Tensor]:
+def project(
+    points: torch.Tensor, intrinsics: torch.Tensor, cam_to_ego: torch.Tensor, image_hw: tuple[int, int]
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Points (B, N, 3) in the ego frame -> pixel coordinates (B, V, N, 2) in each of V
     cameras (``intrinsics`` (B, V, 3, 3), ``cam_to_ego`` (B, V, 4, 4)) and whether each
     lands inside the ``image_hw`` image in front of the camera (B, V, N)."""
@@ -31,7 +33,9 @@ def project(points: torch.Tensor, intrinsics: torch.Tensor, cam_to_ego: torch.Te
     return uv, inside
 
 
-def sample_views(features: torch.Tensor, uv: torch.Tensor, inside: torch.Tensor, image_hw: tuple[int, int]) -> tuple[torch.Tensor, torch.Tensor]:
+def sample_views(
+    features: torch.Tensor, uv: torch.Tensor, inside: torch.Tensor, image_hw: tuple[int, int]
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Bilinear samples of per-camera feature maps ``features`` (B, V, C, h, w), which cover
     the ``image_hw`` image, at pixels ``uv`` (B, V, N, 2), averaged over the cameras each
     point is ``inside`` (B, V, N). Returns (B, N, C) and whether any camera sees the point
@@ -39,7 +43,9 @@ def sample_views(features: torch.Tensor, uv: torch.Tensor, inside: torch.Tensor,
     b, v, c, fh, fw = features.shape
     h, w = image_hw
     grid = torch.stack([uv[..., 0] / w * 2 - 1, uv[..., 1] / h * 2 - 1], -1).reshape(b * v, 1, -1, 2)
-    sampled = F.grid_sample(features.reshape(b * v, c, fh, fw), grid.to(features.dtype), mode="bilinear", align_corners=False)
+    sampled = F.grid_sample(
+        features.reshape(b * v, c, fh, fw), grid.to(features.dtype), mode="bilinear", align_corners=False
+    )
     sampled = sampled.reshape(b, v, c, -1).permute(0, 1, 3, 2)  # (B, V, N, C)
     weight = inside.to(sampled.dtype)[..., None]
     seen = weight.sum(1)  # (B, N, 1)

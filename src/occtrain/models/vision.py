@@ -14,9 +14,10 @@ import json
 import math
 import shutil
 import tempfile
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import torch
 import torch.nn.functional as F
@@ -78,7 +79,9 @@ def _first_line(e: Exception) -> str:
 def _square(value: Any, what: str, path: str) -> int:
     if isinstance(value, (list, tuple)):
         if len(set(value)) != 1:
-            raise ConfigError(f"vision.path: {path} has a non-square {what} {list(value)}; occtrain reads square patches only")
+            raise ConfigError(
+                f"vision.path: {path} has a non-square {what} {list(value)}; occtrain reads square patches only"
+            )
         value = value[0]
     return int(value)
 
@@ -119,11 +122,17 @@ def _load_tower(path: str) -> nn.Module:
     from occtrain.models.llm import load_pretrained_strict
 
     if not (Path(path) / "config.json").is_file():
-        raise ConfigError(f"vision.path: {path} is not a local Hugging Face model directory (no config.json); fix the path or leave it empty for the tiny SigLIP")
+        raise ConfigError(
+            f"vision.path: {path} is not a local Hugging Face model directory (no config.json); fix the path or leave "
+            "it empty for the tiny SigLIP"
+        )
     try:
         config = AutoConfig.from_pretrained(path, local_files_only=True)
     except (OSError, ValueError, KeyError) as e:
-        raise ConfigError(f"vision.path: cannot read the model config in {path} ({_first_line(e)}); point it at a Hugging Face vision model directory") from None
+        raise ConfigError(
+            f"vision.path: cannot read the model config in {path} ({_first_line(e)}); point it at a Hugging Face "
+            "vision model directory"
+        ) from None
     if config.model_type == "paligemma":  # a VLM directory: its SigLIP tower, its language model left out
         return _vlm_tower(path)
     # A full image-text model (SigLIP, CLIP) carries its tower's config inside.
@@ -136,8 +145,12 @@ def _load_tower(path: str) -> nn.Module:
     # A full image-text model's text weights are left out on purpose (allowed as unexpected);
     # a tower-only directory, which an export's is, must match its config both ways.
     return load_pretrained_strict(
-        MODEL_MAPPING[type(vision_cfg)], path, "vision.path", "point it at a vision model directory whose weights match its config",
-        allow_unexpected=vision_cfg is not config, dtype=torch.float32,
+        MODEL_MAPPING[type(vision_cfg)],
+        path,
+        "vision.path",
+        "point it at a vision model directory whose weights match its config",
+        allow_unexpected=vision_cfg is not config,
+        dtype=torch.float32,
     )
 
 
@@ -148,7 +161,10 @@ def _vlm_tower(path: str) -> nn.Module:
     from occtrain.models.llm import load_pretrained_strict
 
     full = load_pretrained_strict(
-        AutoModelForImageTextToText, path, "vision.path", "point it at a vision-language model directory whose weights match its config",
+        AutoModelForImageTextToText,
+        path,
+        "vision.path",
+        "point it at a vision-language model directory whose weights match its config",
         dtype=torch.float32,
     )
     return full.model.vision_tower
@@ -173,7 +189,9 @@ class MultiViewEncoder(nn.Module):
     over the grid, cameras in the dataset's order) get that camera's learned embedding.
     """
 
-    def __init__(self, cfg: Any, image_mean: tuple[float, ...] | None = None, image_std: tuple[float, ...] | None = None):
+    def __init__(
+        self, cfg: Any, image_mean: tuple[float, ...] | None = None, image_std: tuple[float, ...] | None = None
+    ):
         super().__init__()
         self.cfg = VisionConfig(**{k: getattr(cfg, k) for k in VisionConfig.__dataclass_fields__})
         self.tower = build_vision_tower(self.cfg)
@@ -184,8 +202,12 @@ class MultiViewEncoder(nn.Module):
         self.grid = (self.input_hw[0] // self.patch_size, self.input_hw[1] // self.patch_size)
         if image_mean is None or image_std is None:
             image_mean, image_std = _preprocessor_stats(self.cfg.path)
-        self.register_buffer("pixel_mean", torch.tensor(image_mean, dtype=torch.float32).view(1, 3, 1, 1), persistent=False)
-        self.register_buffer("pixel_std", torch.tensor(image_std, dtype=torch.float32).view(1, 3, 1, 1), persistent=False)
+        self.register_buffer(
+            "pixel_mean", torch.tensor(image_mean, dtype=torch.float32).view(1, 3, 1, 1), persistent=False
+        )
+        self.register_buffer(
+            "pixel_std", torch.tensor(image_std, dtype=torch.float32).view(1, 3, 1, 1), persistent=False
+        )
         self._interpolates = "interpolate_pos_encoding" in inspect.signature(self.tower.forward).parameters
         self.camera_embed = nn.Parameter(torch.randn(self.cfg.num_cameras, self.hidden_size) * 0.02)
         if self.cfg.path:
@@ -254,7 +276,9 @@ class DenseHead(nn.Module):
         with torch.no_grad():  # log-depth starts at ~10 m, a typical distance, not at 1 m
             self.proj.bias.view(patch_size * patch_size, num_classes + 1)[:, -1].fill_(math.log(10.0))
 
-    def forward(self, tokens: Tensor, grid: tuple[int, int], num_cameras: int, image_hw: tuple[int, int]) -> tuple[Tensor, Tensor]:
+    def forward(
+        self, tokens: Tensor, grid: tuple[int, int], num_cameras: int, image_hw: tuple[int, int]
+    ) -> tuple[Tensor, Tensor]:
         """(B, N*P, D) -> class logits (B, N, C, H, W) and log-depth (B, N, H, W)."""
         b, p = tokens.shape[0], self.patch_size
         gh, gw = grid
@@ -307,7 +331,11 @@ class PixelPrior(nn.Module):
         """Classes (B, N, H, W) and depths (B, N, H, W); a pixel never seen with depth gets the mean over all."""
         classes = self.class_counts.argmax(-1)
         overall = self.log_depth_sum.sum() / self.depth_pixels.sum().clamp(min=1)
-        depth = torch.where(self.depth_pixels > 0, self.log_depth_sum / self.depth_pixels.clamp(min=1), overall).exp().float()
+        depth = (
+            torch.where(self.depth_pixels > 0, self.log_depth_sum / self.depth_pixels.clamp(min=1), overall)
+            .exp()
+            .float()
+        )
         return classes.expand(batch_size, *classes.shape), depth.expand(batch_size, *depth.shape)
 
 
@@ -327,9 +355,14 @@ def _tower_dir(encoder: MultiViewEncoder, out: Path) -> Path:
         h, w = encoder.input_hw
         pre = {
             "image_processor_type": "SiglipImageProcessor",
-            "do_resize": True, "size": {"height": h, "width": w}, "resample": 3,
-            "do_rescale": True, "rescale_factor": 1 / 255, "do_normalize": True,
-            "image_mean": encoder.pixel_mean.flatten().tolist(), "image_std": encoder.pixel_std.flatten().tolist(),
+            "do_resize": True,
+            "size": {"height": h, "width": w},
+            "resample": 3,
+            "do_rescale": True,
+            "rescale_factor": 1 / 255,
+            "do_normalize": True,
+            "image_mean": encoder.pixel_mean.flatten().tolist(),
+            "image_std": encoder.pixel_std.flatten().tolist(),
         }
         (out / PREPROCESSOR_FILE).write_text(json.dumps(pre, indent=2) + "\n")
     return out
@@ -345,8 +378,10 @@ def export_vision(export_dir: Path, encoder: MultiViewEncoder, head: DenseHead, 
         "vision": asdict(encoder.cfg),
         "tower": {
             "model_type": encoder.tower.config.model_type,
-            "hidden_size": encoder.hidden_size, "patch_size": encoder.patch_size,
-            "grid": list(encoder.grid), "input_hw": list(encoder.input_hw),
+            "hidden_size": encoder.hidden_size,
+            "patch_size": encoder.patch_size,
+            "grid": list(encoder.grid),
+            "input_hw": list(encoder.input_hw),
         },
         "image_mean": encoder.pixel_mean.flatten().tolist(),
         "image_std": encoder.pixel_std.flatten().tolist(),
@@ -361,7 +396,9 @@ def export_vision(export_dir: Path, encoder: MultiViewEncoder, head: DenseHead, 
 def _read_vision_export(export_dir: Path) -> tuple[dict[str, Tensor], dict]:
     state, config = read_export(export_dir)
     if config.get("stage_kind") != VISION_KIND:
-        raise ConfigError(f"{export_dir}: not a vision export (stage kind '{config.get('stage_kind')}'); consume a vision stage")
+        raise ConfigError(
+            f"{export_dir}: not a vision export (stage kind '{config.get('stage_kind')}'); consume a vision stage"
+        )
     return state, config
 
 
@@ -385,5 +422,7 @@ def load_dense_head(export_dir: Path) -> DenseHead:
     state, config = _read_vision_export(export_dir)
     tower = config["tower"]
     head = DenseHead(tower["hidden_size"], tower["patch_size"], config["num_classes"])
-    load_state_strict(head, {k[len("head.") :]: v for k, v in state.items() if k.startswith("head.")}, (), str(export_dir))
+    load_state_strict(
+        head, {k[len("head.") :]: v for k, v in state.items() if k.startswith("head.")}, (), str(export_dir)
+    )
     return head.eval()

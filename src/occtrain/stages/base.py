@@ -11,9 +11,10 @@ from __future__ import annotations
 
 import functools
 from abc import ABC, abstractmethod
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, ClassVar, Iterable
+from typing import Any, ClassVar
 
 import lightning as L
 
@@ -23,7 +24,6 @@ from occtrain.data.shards import PAD_KEY, world_key
 from occtrain.errors import ConfigError
 from occtrain.exports import check_loaded_keys
 from occtrain.models import count_parameters
-
 
 #: The run directory's folder of caches keyed by their content, shared by its stages.
 SHARED_CACHE = "cache"
@@ -213,7 +213,10 @@ class Stage(L.LightningModule, ABC):
             raise ConfigError(f"{where}: a {kind} stage consumes {n} earlier stage(s){what}, got {len(consumed)}")
         for name, other in consumed.items():
             if other not in cls.consumes_kinds:
-                raise ConfigError(f"{where}: a {kind} stage cannot consume '{name}', a {other} stage; it reads {' or '.join(cls.consumes_kinds)}")
+                raise ConfigError(
+                    f"{where}: a {kind} stage cannot consume '{name}', a {other} stage; it reads "
+                    f"{' or '.join(cls.consumes_kinds)}"
+                )
 
     def require_tasks(self, tasks: Iterable[str], instead: str = "") -> None:
         """Refuse, before any training, a stage whose tasks need sidecar files the dataset
@@ -265,6 +268,9 @@ class Stage(L.LightningModule, ABC):
 
     def _check_keys(self, missing: list[str], unexpected: list[str]) -> None:
         check_loaded_keys(
-            missing, unexpected, self.frozen_prefixes, f"checkpoint of stage '{self.ctx.spec.name}'",
+            missing,
+            unexpected,
+            self.frozen_prefixes,
+            f"checkpoint of stage '{self.ctx.spec.name}'",
             f"run with --restart {self.ctx.spec.name}",
         )

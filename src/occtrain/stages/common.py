@@ -10,9 +10,10 @@ import re
 import time
 import warnings
 import zipfile
+from collections.abc import Callable
 from dataclasses import field, make_dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import lightning as L
 import torch
@@ -29,12 +30,12 @@ from occtrain.data.datamodule import ResumableLoader
 from occtrain.data.shards import PAD_KEY
 from occtrain.engine import Evaluator, Priors, scorable
 from occtrain.errors import ConfigError, OcctrainError
-from occtrain.metrics import compute_metrics
 from occtrain.io import atomic_open, remove_inside
+from occtrain.metrics import compute_metrics
 from occtrain.progress import Ticker, console, plain, progress_bar
+from occtrain.stages.base import EvalRequest, EvalResult, lacking_tasks
 from occtrain.stages.loggers import build_loggers
 from occtrain.stages.sharding import trainer_strategy
-from occtrain.stages.base import EvalRequest, EvalResult, lacking_tasks
 
 LAST_CKPT = "last.ckpt"
 #: The checkpoint ``last.ckpt`` replaced, kept so a damaged ``last.ckpt`` still resumes.
@@ -137,7 +138,9 @@ class _StepSeed(Callback):
     def __init__(self, base_seed: int):
         self.base_seed = base_seed
 
-    def on_train_batch_start(self, trainer: L.Trainer, pl_module: L.LightningModule, batch: Any, batch_idx: int) -> None:
+    def on_train_batch_start(
+        self, trainer: L.Trainer, pl_module: L.LightningModule, batch: Any, batch_idx: int
+    ) -> None:
         acc = trainer.accumulate_grad_batches
         micro = trainer.global_step * acc + batch_idx % acc
         torch.manual_seed((self.base_seed * 1_000_003 + micro) * 1024 + trainer.global_rank)
@@ -208,7 +211,9 @@ class AttemptRecord(Callback):
     def on_validation_epoch_start(self, *args: Any) -> None:
         self.val_samples = 0
 
-    def on_validation_batch_start(self, trainer: L.Trainer, pl_module: L.LightningModule, batch: Any, *args: Any) -> None:
+    def on_validation_batch_start(
+        self, trainer: L.Trainer, pl_module: L.LightningModule, batch: Any, *args: Any
+    ) -> None:
         self.val_samples += _batch_samples(batch)
 
     def on_validation_epoch_end(self, trainer: L.Trainer, *args: Any) -> None:
@@ -289,11 +294,16 @@ class StepProgress(ProgressBar):
         ticker.every_s = math.inf  # the bar shows it; no plain lines through the bar
         if self._bar is None:
             self._bar = Progress(
-                TextColumn("[bold]{task.description}"), BarColumn(), TextColumn("{task.fields[text]}"),
-                console=console, transient=False,
+                TextColumn("[bold]{task.description}"),
+                BarColumn(),
+                TextColumn("{task.fields[text]}"),
+                console=console,
+                transient=False,
             )
             self._bar.start()
-        self._tasks[key] = self._bar.add_task(ticker.description, total=ticker.total, completed=ticker.done, text=ticker.text())
+        self._tasks[key] = self._bar.add_task(
+            ticker.description, total=ticker.total, completed=ticker.done, text=ticker.text()
+        )
 
     def _set(self, key: str, ticker: Ticker, done: int, extra: str = "", final: bool = False) -> None:
         ticker.update(done, extra)
@@ -329,7 +339,9 @@ class StepProgress(ProgressBar):
             return
         batches = trainer.num_val_batches
         total = sum(batches) if isinstance(batches, list) else batches
-        self._val = Ticker(f"{self.name} validation", int(total) if math.isfinite(total) and total > 0 else None, unit="batch")
+        self._val = Ticker(
+            f"{self.name} validation", int(total) if math.isfinite(total) and total > 0 else None, unit="batch"
+        )
         self._show("val", self._val)
 
     def on_validation_batch_end(self, trainer: L.Trainer, *args: Any) -> None:
@@ -431,15 +443,25 @@ def quiet_lightning() -> None:
 
 
 def _callbacks(
-    cfg: TrainerConfig, name: str, ckpt_dir: Path, monitor: str | None, mode: str,
-    record_time: Callable[[float], None] | None, record_attempt: Callable[[dict[str, Any]], None] | None,
+    cfg: TrainerConfig,
+    name: str,
+    ckpt_dir: Path,
+    monitor: str | None,
+    mode: str,
+    record_time: Callable[[float], None] | None,
+    record_attempt: Callable[[dict[str, Any]], None] | None,
 ) -> list[Callback]:
     """Checkpoints (last every N steps, best by ``monitor``), the resumable data position,
     per-step seeds, the learning rate, the progress bar, step times and the manifest's records."""
     callbacks: list[Callback] = [
         ModelCheckpoint(
-            dirpath=ckpt_dir, filename="step{step}", every_n_train_steps=cfg.ckpt_every_n_steps,
-            save_last=True, save_top_k=0, auto_insert_metric_name=False, enable_version_counter=False,
+            dirpath=ckpt_dir,
+            filename="step{step}",
+            every_n_train_steps=cfg.ckpt_every_n_steps,
+            save_last=True,
+            save_top_k=0,
+            auto_insert_metric_name=False,
+            enable_version_counter=False,
         ),
         _TrackConsumed(),
         _StepSeed(cfg.seed),
@@ -455,8 +477,13 @@ def _callbacks(
     if monitor:
         callbacks.append(
             ModelCheckpoint(
-                dirpath=ckpt_dir, filename="best", monitor=monitor, mode=mode, save_top_k=1,
-                auto_insert_metric_name=False, enable_version_counter=False,
+                dirpath=ckpt_dir,
+                filename="best",
+                monitor=monitor,
+                mode=mode,
+                save_top_k=1,
+                auto_insert_metric_name=False,
+                enable_version_counter=False,
             )
         )
     return callbacks
@@ -477,10 +504,14 @@ def check_trainer_setup(cfg: TrainerConfig, key: str) -> None:
         if found == 0:
             raise ConfigError(
                 f"{key}.accelerator is {accelerator}, but torch {torch.__version__} sees no GPU here; "
-                "train on the CPU with configs/trainer/cpu.yaml (trainer.accelerator=cpu trainer.strategy=auto trainer.devices=1)"
+                "train on the CPU with configs/trainer/cpu.yaml (trainer.accelerator=cpu trainer.strategy=auto "
+                "trainer.devices=1)"
             )
         if devices > found:
-            raise ConfigError(f"{key}.devices is {devices}, but this machine has {found} GPU{'s' * (found != 1)}; use at most {found}, or -1 for all")
+            raise ConfigError(
+                f"{key}.devices is {devices}, but this machine has {found} GPU{'s' * (found != 1)}; use at most "
+                f"{found}, or -1 for all"
+            )
     elif accelerator == "cpu" and devices > _usable_cores():
         raise ConfigError(
             f"{key}.devices is {devices} CPU processes, but this machine has {_usable_cores()} cores; "
@@ -497,19 +528,31 @@ def check_trainer_setup(cfg: TrainerConfig, key: str) -> None:
     quiet_lightning()
     try:
         L.Trainer(
-            accelerator=accelerator, devices=devices, num_nodes=cfg.num_nodes, strategy=trainer_strategy(cfg), precision=cfg.precision,
-            logger=False, enable_checkpointing=False, enable_progress_bar=False, enable_model_summary=False,
+            accelerator=accelerator,
+            devices=devices,
+            num_nodes=cfg.num_nodes,
+            strategy=trainer_strategy(cfg),
+            precision=cfg.precision,
+            logger=False,
+            enable_checkpointing=False,
+            enable_progress_bar=False,
+            enable_model_summary=False,
         )
     except (MisconfigurationException, ValueError, RuntimeError, ImportError, TypeError) as e:
         raise ConfigError(
-            f"{key}: accelerator={accelerator} devices={devices} strategy={cfg.strategy} precision={cfg.precision} cannot run here "
+            f"{key}: accelerator={accelerator} devices={devices} strategy={cfg.strategy} precision={cfg.precision} "
+            "cannot run here "
             f"({str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__})"
         ) from None
 
 
 def build_trainer(
-    cfg: TrainerConfig, stage_dir: Path, monitor: str | None, mode: str = "max",
-    resume_step: int | None = None, record_time: Callable[[float], None] | None = None,
+    cfg: TrainerConfig,
+    stage_dir: Path,
+    monitor: str | None,
+    mode: str = "max",
+    resume_step: int | None = None,
+    record_time: Callable[[float], None] | None = None,
     record_attempt: Callable[[dict[str, Any]], None] | None = None,
 ) -> L.Trainer:
     """A Trainer writing ``checkpoints/`` (last.ckpt every N steps, best by ``monitor``) and ``logs/``.
@@ -599,26 +642,43 @@ def evaluate_engine(engine: Any, request: EvalRequest) -> EvalResult:
     specs = engine.task_specs
     unknown = [t for t in request.tasks or [] if t not in specs]
     if unknown:
-        raise ConfigError(f"--tasks: '{unknown[0]}' is not a task of the '{engine.family}' world model; its tasks are {', '.join(specs)}")
+        raise ConfigError(
+            f"--tasks: '{unknown[0]}' is not a task of the '{engine.family}' world model; its tasks are "
+            f"{', '.join(specs)}"
+        )
     tasks = request.tasks or scorable(specs, engine.tasks.weights)
     if not tasks:
-        raise ConfigError(f"{request.export}: the stage trained no task with a generated answer to score; name some with --tasks")
+        raise ConfigError(
+            f"{request.export}: the stage trained no task with a generated answer to score; name some with --tasks"
+        )
     lacking = lacking_tasks(request.data_root, tasks)
     if lacking and (request.tasks or len(lacking) == len(tasks)):
         task, why = next(iter(lacking.items()))
-        raise ConfigError(f"task {task} {why} ({request.data_root}); score it on a dataset that has it, or leave it out of --tasks")
+        raise ConfigError(
+            f"task {task} {why} ({request.data_root}); score it on a dataset that has it, or leave it out of --tasks"
+        )
     if lacking:
-        console.print(f"[yellow]note[/]: {request.data_root} lacks what {', '.join(lacking)} need; scoring {', '.join(t for t in tasks if t not in lacking)}")
+        console.print(
+            f"[yellow]note[/]: {request.data_root} lacks what {', '.join(lacking)} need; scoring "
+            f"{', '.join(t for t in tasks if t not in lacking)}"
+        )
         tasks = [t for t in tasks if t not in lacking]
-    evaluator = Evaluator(tasks, specs, record=request.record, priors=Priors.of(request.data_root), hooks=engine.spec.eval_hooks)
+    evaluator = Evaluator(
+        tasks, specs, record=request.record, priors=Priors.of(request.data_root), hooks=engine.spec.eval_hooks
+    )
     torch.manual_seed(0)
     total = evaluator.total(engine, request.data_root, request.split, request.samples)
     if total == 0:
         raise ConfigError(
             f"{request.data_root}: its {request.split} split holds no item for {', '.join(evaluator.tasks)} "
-            f"(a clip needs {engine.tasks.context_frames} frames of context and its future); score a dataset with longer scenes"
+            f"(a clip needs {engine.tasks.context_frames} frames of context and its future); score a dataset with "
+            "longer scenes"
         )
-    with progress_bar(total, f"evaluating {request.export.parent.name} on {request.split} ({', '.join(evaluator.tasks)})") as advance:
-        evaluator.run(engine, request.data_root, request.split, request.batch_size, samples=request.samples, advance=advance)
+    with progress_bar(
+        total, f"evaluating {request.export.parent.name} on {request.split} ({', '.join(evaluator.tasks)})"
+    ) as advance:
+        evaluator.run(
+            engine, request.data_root, request.split, request.batch_size, samples=request.samples, advance=advance
+        )
     metrics = {k.removeprefix(f"{request.split}/"): v for k, v in evaluator.compute(request.split).items()}
     return EvalResult(metrics, evaluator.predictions if request.record else {})

@@ -23,7 +23,15 @@ from occtrain.core.tasks import validate_tasks
 from occtrain.core.world_model import WorldInputs
 from occtrain.data.clips import clips_from_batch
 from occtrain.engine import (
-    TEXT_ENTRIES, Evaluator, Priors, WorldModelEngine, compare_generation_speed, export_engine, load_world_model, move_batch, scorable,
+    TEXT_ENTRIES,
+    Evaluator,
+    Priors,
+    WorldModelEngine,
+    compare_generation_speed,
+    export_engine,
+    load_world_model,
+    move_batch,
+    scorable,
     speed_prompt,
 )
 from occtrain.errors import ConfigError
@@ -88,9 +96,17 @@ class DistillStage(Stage):
         vocab = teacher.vocab
         student_llm = build_llm(cfg.student, len(vocab))
         # The teacher's architecture around the student's LLM, over the same frozen encoders.
-        world = teacher.spec.model.from_export(teacher.world.export_config(), student_llm, vocab, WorldInputs(teacher.scene_encoder, teacher.vision))
+        world = teacher.spec.model.from_export(
+            teacher.world.export_config(), student_llm, vocab, WorldInputs(teacher.scene_encoder, teacher.vision)
+        )
         self.student = WorldModelEngine(
-            teacher.scene_encoder, world, teacher.text_tokenizer, tasks, cfg.max_new_text_tokens, teacher.family, teacher.vision,
+            teacher.scene_encoder,
+            world,
+            teacher.text_tokenizer,
+            tasks,
+            cfg.max_new_text_tokens,
+            teacher.family,
+            teacher.vision,
         )
         self.projector = FeatureProjector(world.hidden_size, teacher.world.hidden_size)
         priors, hooks = Priors.of(ctx.data.root), teacher.spec.eval_hooks
@@ -105,7 +121,9 @@ class DistillStage(Stage):
             self.teacher.prepare_inputs(ctx.data.root, ctx.cache_dir, ctx.shared_cache_dir)
             self.student.scene_cache, self.student.image_cache = self.teacher.scene_cache, self.teacher.image_cache
             self.student.data_index = self.teacher.data_index
-            self._entries = {"train": TEXT_ENTRIES} if teacher.reads_scenes() else {"train": TEXT_ENTRIES, "val": TEXT_ENTRIES}
+            self._entries = (
+                {"train": TEXT_ENTRIES} if teacher.reads_scenes() else {"train": TEXT_ENTRIES, "val": TEXT_ENTRIES}
+            )
         self._speed: dict[str, float] = {}
 
     def entries(self, split: str) -> tuple[str, ...] | None:
@@ -128,7 +146,9 @@ class DistillStage(Stage):
             t_out = self.teacher.world(model_batch, output_hidden_states=True)
         s_out = self.student.world(model_batch, output_hidden_states=True)
         valid = model_batch["input_ids"] != self.student.vocab.pad_id
-        kl, cos = distillation_losses(s_out.logits, t_out.logits, self.projector(s_out.hidden), t_out.hidden, valid, cfg.temperature)
+        kl, cos = distillation_losses(
+            s_out.logits, t_out.logits, self.projector(s_out.hidden), t_out.hidden, valid, cfg.temperature
+        )
         loss = cfg.kl_weight * kl + cfg.ce_weight * s_out.loss + cfg.feature_weight * cos
         bs = len(names) - names.count(None)
         self.log("train/loss", loss, prog_bar=True, batch_size=bs)
@@ -155,9 +175,13 @@ class DistillStage(Stage):
         scores = self.evaluator.compute("val")  # texts and pictures stay for report()
         if self._teacher_scores is None:  # the teacher is frozen: score it once
             self.teacher_evaluator.run(self.teacher, root, "val", cfg.val_batch_size, samples=cfg.val_samples)
-            self._teacher_scores = {k.replace("val/", "val/teacher_", 1): v for k, v in self.teacher_evaluator.compute("val").items()}
+            self._teacher_scores = {
+                k.replace("val/", "val/teacher_", 1): v for k, v in self.teacher_evaluator.compute("val").items()
+            }
         # The protocol occtrain eval uses too (engine.speed), so both report one speedup.
-        self._speed = compare_generation_speed({"teacher": self.teacher, "student": self.student}, speed_prompt(self.student, root))
+        self._speed = compare_generation_speed(
+            {"teacher": self.teacher, "student": self.student}, speed_prompt(self.student, root)
+        )
         scores.update(self._teacher_scores)
         if self._speed:
             scores["val/student_tokens_per_s"] = self._speed["student"]
@@ -175,7 +199,8 @@ class DistillStage(Stage):
         return StageReport(
             f"student {s / 1e6:.2f}M params vs teacher {t / 1e6:.2f}M ({s / t:.2f}x)",
             {"student_params": float(s), "teacher_params": float(t), "param_ratio": s / t},
-            texts=list(self.evaluator.texts), scenes=list(self.evaluator.scenes),
+            texts=list(self.evaluator.texts),
+            scenes=list(self.evaluator.scenes),
         )
 
     def export(self, path: Path) -> Path:
@@ -192,13 +217,19 @@ class DistillStage(Stage):
             raise ConfigError(f"{teacher_export}: the distill stage's teacher export is missing; its speedup needs it")
         teacher = load_world_model(teacher_export).eval()
         teacher.scene_cache, teacher.image_cache = student.scene_cache, student.image_cache  # the same frozen encoders
-        speed = compare_generation_speed({"teacher": teacher, "student": student}, speed_prompt(student, request.data_root, request.split))
+        speed = compare_generation_speed(
+            {"teacher": teacher, "student": student}, speed_prompt(student, request.data_root, request.split)
+        )
         result.metrics.update(
-            student_tokens_per_s=speed["student"], teacher_tokens_per_s=speed["teacher"], speedup=speed["student"] / speed["teacher"],
+            student_tokens_per_s=speed["student"],
+            teacher_tokens_per_s=speed["teacher"],
+            speedup=speed["student"] / speed["teacher"],
         )
         return result
 
 
 DISTILL = register(
-    StageKind(name="distill", model_schema=DistillModelConfig, data_kind="clips", module=DistillStage, monitor="val/token_acc")
+    StageKind(
+        name="distill", model_schema=DistillModelConfig, data_kind="clips", module=DistillStage, monitor="val/token_acc"
+    )
 )

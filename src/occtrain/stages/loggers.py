@@ -154,8 +154,11 @@ class TrackedWandbLogger(_KeepsRunId, WandbLogger):
 #: staging and downloads. Unset, the last four are ~/.config/wandb, ~/.cache/wandb,
 #: ~/.local/share/wandb and ./artifacts.
 _WANDB_DIRS = {
-    "WANDB_DIR": ".", "WANDB_CONFIG_DIR": "wandb/config", "WANDB_CACHE_DIR": "wandb/cache",
-    "WANDB_DATA_DIR": "wandb/data", "WANDB_ARTIFACT_DIR": "wandb/artifacts",
+    "WANDB_DIR": ".",
+    "WANDB_CONFIG_DIR": "wandb/config",
+    "WANDB_CACHE_DIR": "wandb/cache",
+    "WANDB_DATA_DIR": "wandb/data",
+    "WANDB_ARTIFACT_DIR": "wandb/artifacts",
 }
 #: The values occtrain set (not the user), so a later stage in the process moves them to its own logs.
 _SET_FOR_A_STAGE: dict[str, str] = {}
@@ -188,17 +191,29 @@ def build_loggers(names: list[str], stage_dir: Path, resume_step: int | None) ->
             os.environ.setdefault("MLFLOW_ALLOW_FILE_STORE", "true")
             # Given the store's URI, MLflow writes nothing elsewhere: a file store keeps each
             # run's artifacts inside itself. One store per run, so its stages compare in one UI.
-            out.append(TrackedMLFlowLogger(
-                experiment_name=run, run_name=stage, tracking_uri=(stage_dir.parent / "mlruns").resolve().as_uri(),
-                run_id=_kept_id(logs / "mlflow_run_id"), id_file=logs / "mlflow_run_id",
-            ))
+            out.append(
+                TrackedMLFlowLogger(
+                    experiment_name=run,
+                    run_name=stage,
+                    tracking_uri=(stage_dir.parent / "mlruns").resolve().as_uri(),
+                    run_id=_kept_id(logs / "mlflow_run_id"),
+                    id_file=logs / "mlflow_run_id",
+                )
+            )
         elif name == "wandb":
             os.environ.setdefault("WANDB_SILENT", "true")
             (logs / "wandb").mkdir(parents=True, exist_ok=True)
             _point_wandb_at(logs)
             kept = _kept_id(logs / "wandb_run_id")
-            out.append(TrackedWandbLogger(
-                project=run, name=stage, save_dir=str(logs), offline=True, id=kept, resume="allow" if kept else None,
-                id_file=logs / "wandb_run_id",
-            ))
+            out.append(
+                TrackedWandbLogger(
+                    project=run,
+                    name=stage,
+                    save_dir=str(logs),
+                    offline=True,
+                    id=kept,
+                    resume="allow" if kept else None,
+                    id_file=logs / "wandb_run_id",
+                )
+            )
     return out

@@ -54,12 +54,18 @@ class PlannerStage(Stage):
         if family is None:
             return kind.model_schema
         own = get_world(family).planner_config
-        return make_dataclass(f"PlannerModelConfig_{family}", [], bases=(own, kind.model_schema)) if own else kind.model_schema
+        return (
+            make_dataclass(f"PlannerModelConfig_{family}", [], bases=(own, kind.model_schema))
+            if own
+            else kind.model_schema
+        )
 
     @classmethod
     def check_family(cls, family: str | None, consumed: dict[str, Any], where: str) -> None:
         if family is not None and get_world(family).planner is None:
-            raise ConfigError(f"{where}: the '{family}' family has no planner; leave the planner stage out of the recipe")
+            raise ConfigError(
+                f"{where}: the '{family}' family has no planner; leave the planner stage out of the recipe"
+            )
 
     def __init__(self, ctx: StageContext):
         super().__init__(ctx)
@@ -129,11 +135,22 @@ class PlannerStage(Stage):
         family = read_config(request.consumed[0]).get("family", "")
         world = get_world(family)
         if world.load_planner is None:  # refused before the world model is loaded
-            raise ConfigError(f"{request.export}: occtrain eval cannot rebuild a '{family}' planner; its validation metrics are in metrics.json")
+            raise ConfigError(
+                f"{request.export}: occtrain eval cannot rebuild a '{family}' planner; its validation metrics are in "
+                "metrics.json"
+            )
         teacher = load_world_model(request.consumed[0]).eval()
         teacher.prepare_inputs(request.data_root, request.cache_dir, request.shared_cache_dir)
         planner = world.load_planner(request.export, teacher, request)
-        clips = list(frame_clips(DatasetIndex.open(request.data_root), request.split, teacher.tasks.context_frames, FUTURE_STEPS, partial_history=False))
+        clips = list(
+            frame_clips(
+                DatasetIndex.open(request.data_root),
+                request.split,
+                teacher.tasks.context_frames,
+                FUTURE_STEPS,
+                partial_history=False,
+            )
+        )
         return planner, clips
 
     @classmethod
@@ -154,7 +171,11 @@ class PlannerStage(Stage):
 
 PLANNER = register(
     StageKind(
-        name="planner", model_schema=PlannerStageConfig, data_kind="clips", module=PlannerStage,
-        monitor="val/head_gt_meta_L2_stp3_avg", mode="min",
+        name="planner",
+        model_schema=PlannerStageConfig,
+        data_kind="clips",
+        module=PlannerStage,
+        monitor="val/head_gt_meta_L2_stp3_avg",
+        mode="min",
     )
 )

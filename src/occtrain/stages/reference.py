@@ -24,14 +24,23 @@ def config_reference() -> str:
         "`required` default must be given; `[]` marks a list of sections. A stage's `model:` is checked "
         "against its kind's schema, extended by the family (`model.family`) or tokenizer architecture "
         "(`model.arch`) it names.\n",
-        _section("Recipe", "What `occtrain run RECIPE` reads; `configs/data/*.yaml` and `configs/trainer/*.yaml` "
-                 "hold its `data:` and `trainer:` sections.", reference_rows(RecipeConfig)),
+        _section(
+            "Recipe",
+            "What `occtrain run RECIPE` reads; `configs/data/*.yaml` and `configs/trainer/*.yaml` "
+            "hold its `data:` and `trainer:` sections.",
+            reference_rows(RecipeConfig),
+        ),
     ]
     for name in kind_names():
         kind = get_kind(name)
         if kind is not None:
-            parts.append(_section(f"`model:` of the `{name}` kind", f"What a stage of kind `{name}` reads under `model:`.",
-                                  reference_rows(kind.model_schema, "model.")))
+            parts.append(
+                _section(
+                    f"`model:` of the `{name}` kind",
+                    f"What a stage of kind `{name}` reads under `model:`.",
+                    reference_rows(kind.model_schema, "model."),
+                )
+            )
     for name, family in sorted(registry.world_families().items()):
         world = family.world
         assert world is not None  # world_families() holds only families with one
@@ -40,9 +49,20 @@ def config_reference() -> str:
             rows += reference_rows(world.world_config, f"model.{name}.")
         if world.planner_config is not None:
             rows += reference_rows(world.planner_config, "model.head.")
-        parts.append(_section(f"Family `{name}`", f"{family.paper}: what a world-model stage with `model.family: {name}` "
-                              "adds (its tasks, its world model, its planner head).", rows))
+        parts.append(
+            _section(
+                f"Family `{name}`",
+                f"{family.paper}: what a world-model stage with `model.family: {name}` "
+                "adds (its tasks, its world model, its planner head).",
+                rows,
+            )
+        )
     for name, arch in sorted(registry.tokenizer_archs().items()):
-        parts.append(_section(f"Tokenizer `{name}`", f"What a `tokenizer` stage with `model.arch: {name}` adds.",
-                              reference_rows(arch.config, f"model.{name}.")))
+        parts.append(
+            _section(
+                f"Tokenizer `{name}`",
+                f"What a `tokenizer` stage with `model.arch: {name}` adds.",
+                reference_rows(arch.config, f"model.{name}."),
+            )
+        )
     return "\n".join(parts)

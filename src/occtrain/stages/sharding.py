@@ -8,14 +8,14 @@ unsharded copy (:class:`FullCopy`), where no forward is a collective.
 
 from __future__ import annotations
 
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import torch
 from lightning.pytorch.strategies import ModelParallelStrategy
 
 from occtrain.config.schema import TrainerConfig
 from occtrain.errors import ConfigError
-
 
 #: ``trainer.strategy`` that shards parameters, gradients and AdamW state over every rank (FSDP2).
 SHARDED = "fsdp"
@@ -83,7 +83,9 @@ def shard_world_model(world: torch.nn.Module, mesh: Any) -> None:
 
     layers = _decoder_layers(without_peft(world.llm))
     if not layers:
-        raise ConfigError(f"trainer.strategy={SHARDED}: found no decoder layers in {type(without_peft(world.llm)).__name__} to shard")
+        raise ConfigError(
+            f"trainer.strategy={SHARDED}: found no decoder layers in {type(without_peft(world.llm)).__name__} to shard"
+        )
     for layer in layers:
         fully_shard(layer, mesh=mesh)
     fully_shard(world, mesh=mesh)
@@ -117,7 +119,9 @@ class FullCopy:
     def __init__(self, module: torch.nn.Module):
         import copy
 
-        memo: dict[int, Any] = {id(p): torch.nn.Parameter(torch.empty_like(p, device="meta"), p.requires_grad) for p in module.parameters()}
+        memo: dict[int, Any] = {
+            id(p): torch.nn.Parameter(torch.empty_like(p, device="meta"), p.requires_grad) for p in module.parameters()
+        }
         for sub in module.modules():
             memo.update((id(v), v) for v in vars(sub).values() if isinstance(v, torch.nn.Module))
         self.module = copy.deepcopy(module, memo)

@@ -20,7 +20,14 @@ import torch
 from omegaconf import MISSING
 
 from occtrain.config import to_container
-from occtrain.core.registry import TokenizerArch, load_tokenizer, save_tokenizer, tokenizer_archs, tokenizer_config, tokenizer_family
+from occtrain.core.registry import (
+    TokenizerArch,
+    load_tokenizer,
+    save_tokenizer,
+    tokenizer_archs,
+    tokenizer_config,
+    tokenizer_family,
+)
 from occtrain.data.frames import frames_batch
 from occtrain.data.layout import DatasetIndex
 from occtrain.errors import ConfigError
@@ -74,12 +81,18 @@ class TokenizerStage(Stage):
         archs = tokenizer_archs()
         if arch not in archs:
             return kind.model_schema
-        return make_dataclass(f"TokenizerModelConfig_{arch}", [(arch, archs[arch].config, field(default_factory=archs[arch].config))], bases=(kind.model_schema,))
+        return make_dataclass(
+            f"TokenizerModelConfig_{arch}",
+            [(arch, archs[arch].config, field(default_factory=archs[arch].config))],
+            bases=(kind.model_schema,),
+        )
 
     @classmethod
     def check_family(cls, family: str | None, consumed: dict[str, Any], where: str) -> None:
         if family is None:
-            raise ConfigError(f"{where}: model.arch is missing; tokenizer architectures are {', '.join(tokenizer_archs())}")
+            raise ConfigError(
+                f"{where}: model.arch is missing; tokenizer architectures are {', '.join(tokenizer_archs())}"
+            )
 
     @classmethod
     def check_model(cls, model: Any, key: str) -> None:
@@ -147,7 +160,10 @@ class TokenizerStage(Stage):
         out = self({**batch, "seed": self.ctx.data.seed})
         pred = out.prediction()
         if batch_idx == 0:  # kept for the dashboard's ground truth vs reconstruction pictures
-            self._pictures = [(sem[i].to(torch.uint8).cpu().numpy(), pred[i].to(torch.uint8).cpu().numpy()) for i in range(min(2, len(sem)))]
+            self._pictures = [
+                (sem[i].to(torch.uint8).cpu().numpy(), pred[i].to(torch.uint8).cpu().numpy())
+                for i in range(min(2, len(sem)))
+            ]
         self.recon.update(pred, sem, batch["mask_camera"], out.codes)
         self.val_means.update("val/loss", out.losses["loss"], sem.shape[0])
 

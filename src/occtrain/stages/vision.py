@@ -13,9 +13,10 @@ from __future__ import annotations
 
 import itertools
 import math
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any
 
 import torch
 import torch.nn.functional as F
@@ -129,7 +130,10 @@ class VisionStage(Stage):
         self.prior.reset()
         for batch in batches:
             if "cam_class" not in batch or "cam_depth" not in batch:
-                raise DataError(f"{self.ctx.data.root}: frames carry no cam_class/cam_depth; the per-pixel prior needs the renderer's targets")
+                raise DataError(
+                    f"{self.ctx.data.root}: frames carry no cam_class/cam_depth; the per-pixel prior needs the "
+                    "renderer's targets"
+                )
             self.prior.update(batch["cam_class"], batch["cam_depth"])
 
     def on_fit_start(self) -> None:
@@ -178,7 +182,9 @@ class VisionStage(Stage):
     # -- reporting and export
     def report(self) -> StageReport:
         tower, total = count_parameters(self.encoder.tower), count_parameters(self)
-        summary = f"{self.encoder.tower.config.model_type} tower {tower / 1e6:.2f}M + {(total - tower) / 1e3:.0f}K params"
+        summary = (
+            f"{self.encoder.tower.config.model_type} tower {tower / 1e6:.2f}M + {(total - tower) / 1e3:.0f}K params"
+        )
         m = self._last
         if "val/pixel_mIoU" in m:
             summary += f"; pixel mIoU {m['val/pixel_mIoU']:.1f}"

@@ -27,7 +27,16 @@ from occtrain.config.llm import MAX_NEW_TEXT_TOKENS, LLMConfig, LoRAConfig
 from occtrain.core.registry import get_world, tokenizer_family
 from occtrain.core.tasks import validate_tasks
 from occtrain.data.clips import clips_from_batch
-from occtrain.engine import TEXT_ENTRIES, Evaluator, Priors, export_engine, load_world_model, move_batch, new_world_model, scorable
+from occtrain.engine import (
+    TEXT_ENTRIES,
+    Evaluator,
+    Priors,
+    export_engine,
+    load_world_model,
+    move_batch,
+    new_world_model,
+    scorable,
+)
 from occtrain.errors import ConfigError
 from occtrain.exports import export_kind, read_config
 from occtrain.models import count_parameters
@@ -117,7 +126,12 @@ class WorldModelStage(Stage):
                 p.requires_grad_(False)  # no loss reaches them: DDP must not wait for their gradients
         freeze_prefixes(self.engine.world, list(ctx.spec.freeze))
         hooks = self.engine.spec.eval_hooks
-        self.evaluator = Evaluator(scorable(self.engine.task_specs, tasks.weights), self.engine.task_specs, priors=Priors.of(ctx.data.root), hooks=hooks)
+        self.evaluator = Evaluator(
+            scorable(self.engine.task_specs, tasks.weights),
+            self.engine.task_specs,
+            priors=Priors.of(ctx.data.root),
+            hooks=hooks,
+        )
         self.val_means = ValidationMeans("val/loss", "val/token_acc")
         self._entries: dict[str, tuple[str, ...] | None] = {}
         #: Under sharding: the world model's unsharded copy, and (while it holds the
@@ -130,7 +144,9 @@ class WorldModelStage(Stage):
             # Training then reads no occupancy; validation still scores forecasts against it.
             # A model whose prompts hold no scenes takes its occupancy targets from the
             # dataset: its shards give the annotations and the text alone.
-            self._entries = {"train": TEXT_ENTRIES} if engine.reads_scenes() else {"train": TEXT_ENTRIES, "val": TEXT_ENTRIES}
+            self._entries = (
+                {"train": TEXT_ENTRIES} if engine.reads_scenes() else {"train": TEXT_ENTRIES, "val": TEXT_ENTRIES}
+            )
 
     @classmethod
     def check_model(cls, model: Any, key: str) -> None:
@@ -252,7 +268,9 @@ class WorldModelStage(Stage):
     def report(self) -> StageReport:
         world = self.engine.world
         total, trained = count_parameters(world), count_parameters(world, trainable=True)
-        summary = f"world model {total / 1e6:.2f}M params ({trained / 1e6:.2f}M trained), vocab {len(self.engine.vocab)}"
+        summary = (
+            f"world model {total / 1e6:.2f}M params ({trained / 1e6:.2f}M trained), vocab {len(self.engine.vocab)}"
+        )
         # Scene tokens per frame: Occ-LLM's patch-size table reads it beside the step time.
         metrics = {"params": float(total), "scene_tokens": float(self.engine.vocab.scene_len)}
         if self._full is not None:  # what this rank holds of the sharded world model
@@ -309,7 +327,10 @@ class PretrainStage(WorldModelStage):
         """A pretrain stage builds a world model: its family must have one, and it consumes
         what that family's model is built over."""
         if family is None:
-            raise ConfigError(f"{where}: model.family is empty and no tokenizer stage is consumed; name the family whose world model to build")
+            raise ConfigError(
+                f"{where}: model.family is empty and no tokenizer stage is consumed; name the family whose world model "
+                "to build"
+            )
         get_world(family, f"{where}: model.family")
         kinds = sorted(p.spec.kind for p in consumed.values())
         wanted = sorted(get_world(family).inputs)
@@ -329,7 +350,16 @@ class PretrainStage(WorldModelStage):
         cfg = ctx.model_cfg
         family = cfg.family or self.inferred_family(ctx)
         world_cfg = to_object(cfg[family]) if family in cfg else None
-        return new_world_model(self._exports_by_kind(where), cfg.llm, tasks, ctx.data.root, cfg.max_new_text_tokens, family, world_cfg, where)
+        return new_world_model(
+            self._exports_by_kind(where),
+            cfg.llm,
+            tasks,
+            ctx.data.root,
+            cfg.max_new_text_tokens,
+            family,
+            world_cfg,
+            where,
+        )
 
     def inferred_family(self, ctx: StageContext) -> str:
         """The consumed tokenizer's family (what ``family_of`` read from the recipe)."""
@@ -354,8 +384,12 @@ class InstructStage(WorldModelStage):
 
 
 PRETRAIN = register(
-    StageKind(name="pretrain", model_schema=WorldModelConfig, data_kind="clips", module=PretrainStage, monitor="val/token_acc")
+    StageKind(
+        name="pretrain", model_schema=WorldModelConfig, data_kind="clips", module=PretrainStage, monitor="val/token_acc"
+    )
 )
 INSTRUCT = register(
-    StageKind(name="instruct", model_schema=InstructConfig, data_kind="clips", module=InstructStage, monitor="val/token_acc")
+    StageKind(
+        name="instruct", model_schema=InstructConfig, data_kind="clips", module=InstructStage, monitor="val/token_acc"
+    )
 )

@@ -28,6 +28,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from occtrain.data.geometry import driving_command, global_to_ego, rotate_to_ego
+from occtrain.data.meta_actions import MetaActionConfig, direction_action, speed_action
 from occtrain.data.schema import (
     META_ACCEL_THRESHOLD,
     STOP_SPEED,
@@ -35,16 +37,16 @@ from occtrain.data.schema import (
     FrameAnnotation,
     MetaAction,
 )
-from occtrain.data.meta_actions import MetaActionConfig, direction_action, speed_action
 from occtrain.data.synth.catalog import TrackSet
 from occtrain.data.synth.grid import GROUND_TOP_Z
 from occtrain.occ3d import CLASS_NAMES, FRAME_DT, FUTURE_STEPS, PAST_STEPS, RANGE_MAX
-from occtrain.data.geometry import driving_command, global_to_ego, rotate_to_ego
 
 SPEED_WINDOW_S = 1.0
 DIRECTION_WINDOW_S = 3.0
 #: The direction thresholds (turn above 30 degrees, bear above 8 degrees or 1 m sideways).
-SIDECAR_RULES = MetaActionConfig(direction_window_s=DIRECTION_WINDOW_S, turn_heading_deg=30.0, bear_heading_deg=8.0, bear_lateral_m=1.0)
+SIDECAR_RULES = MetaActionConfig(
+    direction_window_s=DIRECTION_WINDOW_S, turn_heading_deg=30.0, bear_heading_deg=8.0, bear_lateral_m=1.0
+)
 #: Scene start times are spread by seed so timestamps of different scenes do not overlap.
 EPOCH_US = 1_600_000_000_000_000
 SCENE_SLOT_US = 100_000_000
@@ -80,7 +82,10 @@ def meta_action(ego: EgoMotion, i: int) -> MetaAction:
     stopped = bool(np.all(ego.speed[i : i + n1 + 1] <= STOP_SPEED))
     turn = float(np.rad2deg(ego.yaw[i + n3] - ego.yaw[i]))
     lateral = float(global_to_ego(ego.xy[i + n3], ego.xy[i], ego.yaw[i])[1])
-    return {"speed": speed_action(accel, META_ACCEL_THRESHOLD), "direction": direction_action(turn, lateral, stopped, SIDECAR_RULES)}
+    return {
+        "speed": speed_action(accel, META_ACCEL_THRESHOLD),
+        "direction": direction_action(turn, lateral, stopped, SIDECAR_RULES),
+    }
 
 
 def _relative(xy: np.ndarray, i: int, num_frames: int, pose_xy: np.ndarray, pose_yaw: float, offsets: range):
@@ -93,7 +98,9 @@ def _relative(xy: np.ndarray, i: int, num_frames: int, pose_xy: np.ndarray, pose
     return pts, valid.astype(int)
 
 
-def frame_annotation(scene: str, seed: int, i: int, num_frames: int, ego: EgoMotion, tracks: TrackSet) -> FrameAnnotation:
+def frame_annotation(
+    scene: str, seed: int, i: int, num_frames: int, ego: EgoMotion, tracks: TrackSet
+) -> FrameAnnotation:
     """The FrameAnnotation of frame ``i`` (caption and narration left empty for the text module)."""
     pxy, pyaw = ego.xy[i], float(ego.yaw[i])
     future, fmask = _relative(ego.xy, i, num_frames, pxy, pyaw, range(1, FUTURE_STEPS + 1))

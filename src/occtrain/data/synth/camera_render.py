@@ -31,25 +31,28 @@ from occtrain.occ3d import CLASS_INDEX, FREE, GRID_SHAPE, RANGE_MIN, VOXEL_SIZE
 
 #: What each class looks like to a camera (Occ3D class order): asphalt, concrete, grass,
 #: brick and foliage rather than the label palette, so a camera model learns appearance.
-CAMERA_COLOURS = np.array([
-    (120, 110, 100),  # others
-    (205, 205, 195),  # barrier
-    (170, 40, 40),  # bicycle
-    (225, 185, 40),  # bus
-    (45, 75, 140),  # car
-    (230, 150, 25),  # construction_vehicle
-    (55, 55, 60),  # motorcycle
-    (205, 125, 95),  # pedestrian
-    (255, 110, 20),  # traffic_cone
-    (150, 150, 160),  # trailer
-    (195, 195, 205),  # truck
-    (82, 82, 88),  # driveable_surface
-    (140, 128, 115),  # other_flat
-    (172, 168, 160),  # sidewalk
-    (118, 142, 78),  # terrain
-    (160, 118, 96),  # manmade
-    (52, 112, 46),  # vegetation
-], np.float64)
+CAMERA_COLOURS = np.array(
+    [
+        (120, 110, 100),  # others
+        (205, 205, 195),  # barrier
+        (170, 40, 40),  # bicycle
+        (225, 185, 40),  # bus
+        (45, 75, 140),  # car
+        (230, 150, 25),  # construction_vehicle
+        (55, 55, 60),  # motorcycle
+        (205, 125, 95),  # pedestrian
+        (255, 110, 20),  # traffic_cone
+        (150, 150, 160),  # trailer
+        (195, 195, 205),  # truck
+        (82, 82, 88),  # driveable_surface
+        (140, 128, 115),  # other_flat
+        (172, 168, 160),  # sidewalk
+        (118, 142, 78),  # terrain
+        (160, 118, 96),  # manmade
+        (52, 112, 46),  # vegetation
+    ],
+    np.float64,
+)
 SKY_HORIZON = np.array([196, 214, 232], np.float64)
 SKY_ZENITH = np.array([92, 136, 204], np.float64)
 #: Sun direction in the global frame (high, from the south-west); shading rotates it into the ego frame.
@@ -126,9 +129,13 @@ def _traverse(origin: np.ndarray, dirs: np.ndarray, cos: np.ndarray) -> _Rays:
     ray = np.concatenate([p[0] for p in parts]).astype(np.int32)
     order = np.argsort(ray, kind="stable")  # parts are in step order: stable keeps each ray's order
     return _Rays(
-        origin=origin, dirs=dirs, cos=cos, voxel=np.concatenate([p[1] for p in parts])[order].astype(np.int32),
+        origin=origin,
+        dirs=dirs,
+        cos=cos,
+        voxel=np.concatenate([p[1] for p in parts])[order].astype(np.int32),
         t=np.concatenate([p[2] for p in parts])[order].astype(np.float32),
-        axis=np.concatenate([p[3] for p in parts])[order].astype(np.int8), ray=ray[order],
+        axis=np.concatenate([p[3] for p in parts])[order].astype(np.int8),
+        ray=ray[order],
         starts=np.searchsorted(ray[order], np.arange(rays)).astype(np.int64),
         ground=(np.concatenate([p[1] for p in parts])[order] % n[2] < GROUND_LAYERS),
     )
@@ -198,7 +205,11 @@ def render_camera(cam: Camera, rays: _Rays, semantics: np.ndarray, world: FrameW
     depth = np.where(surface, rng * rays.cos, 0.0).astype(np.float32)
     shape = (cam.height, cam.width)
     return CameraView(
-        colour.reshape(*shape, 3), cls.reshape(shape), depth.reshape(shape), in_grid.reshape(shape), voxel.reshape(shape),
+        colour.reshape(*shape, 3),
+        cls.reshape(shape),
+        depth.reshape(shape),
+        in_grid.reshape(shape),
+        voxel.reshape(shape),
     )
 
 
@@ -293,7 +304,10 @@ def _first_hits(rays: _Rays, occupied: np.ndarray) -> np.ndarray:
 def voxels_in_view() -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray], ...]:
     """Per camera of the mask rig: the voxels whose centre it images (flat index), the
     pixel of each centre and its distance from the camera (computed once per process)."""
-    centres = np.stack(np.meshgrid(*(RANGE_MIN[a] + (np.arange(GRID_SHAPE[a]) + 0.5) * VOXEL_SIZE for a in range(3)), indexing="ij"), -1)
+    centres = np.stack(
+        np.meshgrid(*(RANGE_MIN[a] + (np.arange(GRID_SHAPE[a]) + 0.5) * VOXEL_SIZE for a in range(3)), indexing="ij"),
+        -1,
+    )
     centres = centres.reshape(-1, 3)
     out = []
     for cam, _ in camera_rays(*MASK_RAYS):
@@ -363,4 +377,13 @@ def render_cameras(semantics: np.ndarray, world: FrameWorld, height: int, width:
     return [render_camera(cam, rays, semantics, world) for cam, rays in camera_rays(height, width)]
 
 
-__all__ = ["CAMERA_COLOURS", "CameraView", "FrameWorld", "camera_mask", "camera_rays", "lane_markings", "render_camera", "render_cameras"]
+__all__ = [
+    "CAMERA_COLOURS",
+    "CameraView",
+    "FrameWorld",
+    "camera_mask",
+    "camera_rays",
+    "lane_markings",
+    "render_camera",
+    "render_cameras",
+]

@@ -44,6 +44,7 @@ KINDS: dict[str, Kind] = {
     "barrier": Kind("barrier", (1.8, 0.4, 0.8), (2.6, 0.6, 1.1)),
 }
 
+
 def pick(rng: np.random.Generator, table: tuple[tuple[str, float], ...]) -> str:
     """A kind name drawn from (name, weight) pairs."""
     names, weights = zip(*table)

@@ -450,7 +450,9 @@ class CityPainter:
         while (row < b1 - 6.5) if back_at_b1 else (row > b0 + 6.5):
             for a in np.arange(a0 + 2.5, a1 - 2.5, 2.7):
                 if rng.random() < 0.7:
-                    self.place(pick(rng, LOT_STALLS), self._xy(horizontal, a, row), stall_yaw + np.pi * rng.integers(0, 2))
+                    self.place(
+                        pick(rng, LOT_STALLS), self._xy(horizontal, a, row), stall_yaw + np.pi * rng.integers(0, 2)
+                    )
             row += step
         for a in np.arange(a0 + 6, a1 - 3, 18.0):
             p = self._xy(horizontal, a, b0 + 0.6 if back_at_b1 else b1 - 0.6)
@@ -509,7 +511,9 @@ class CityPainter:
         style = rng.choice(["plain", "hedge", "trees", "barriers"], p=[0.3, 0.3, 0.2, 0.2])
         if style == "hedge":
             inner = (a0 + 2, a1 - 2, c - hm + 0.4, c + hm - 0.4)
-            self.rect(*(inner if road.axis == 0 else (inner[2], inner[3], inner[0], inner[1])), solid=(VEGETATION, 0.0, 1.0))
+            self.rect(
+                *(inner if road.axis == 0 else (inner[2], inner[3], inner[0], inner[1])), solid=(VEGETATION, 0.0, 1.0)
+            )
         elif style == "trees":
             for a in np.arange(a0 + 4, a1 - 4, rng.uniform(9, 15)):
                 self.tree(*((a, c) if road.axis == 0 else (c, a)))
@@ -546,7 +550,8 @@ class CityPainter:
 
     def roads_in_region(self) -> list[Road]:
         return [
-            r for r in self.net.roads[0] + self.net.roads[1]
+            r
+            for r in self.net.roads[0] + self.net.roads[1]
             if self.lo[1 - r.axis] - r.half_width < r.centre < self.hi[1 - r.axis] + r.half_width
         ]
 
@@ -600,9 +605,7 @@ def paint_city(
     }
 
     for box in painter.blocks():
-        forced = next(
-            (k for k, p in probes.items() if box[0] <= p[0] <= box[1] and box[2] <= p[1] <= box[3]), None
-        )
+        forced = next((k for k, p in probes.items() if box[0] <= p[0] <= box[1] and box[2] <= p[1] <= box[3]), None)
         painter.block_ground(box, TERRAIN)
         if forced is None and rng.random() < 0.12:
             painter.park_block(box)

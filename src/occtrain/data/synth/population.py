@@ -32,7 +32,14 @@ SPEEDS: dict[str, tuple[float, float]] = {
 ACCEL: dict[str, float] = {"car": 2.0, "motorcyclist": 2.5, "cyclist": 1.0}
 HEAVY_ACCEL = 1.0
 #: Kinds spawned in traffic (the kerb lane adds cyclists).
-TRAFFIC = (("car", 0.74), ("truck", 0.07), ("bus", 0.05), ("tractor", 0.04), ("motorcyclist", 0.07), ("construction_vehicle", 0.03))
+TRAFFIC = (
+    ("car", 0.74),
+    ("truck", 0.07),
+    ("bus", 0.05),
+    ("tractor", 0.04),
+    ("motorcyclist", 0.07),
+    ("construction_vehicle", 0.03),
+)
 KERB_TRAFFIC = TRAFFIC + (("cyclist", 0.08),)
 #: Cyclists ride this far to the kerb side of their lane's centre.
 CYCLIST_OFFSET = 0.9
@@ -126,15 +133,33 @@ class TrafficSpawner:
         v_des = np.full(self.steps, rng.uniform(v_lo, v_hi))
         a_max = ACCEL.get(kind, HEAVY_ACCEL)
         mover = Mover(
-            kind, size, path, 0.0, v_des[0] * rng.uniform(0.5, 1.0), v_des, priority,
-            lateral=CYCLIST_OFFSET if kind == "cyclist" else 0.0, a_max=a_max,
+            kind,
+            size,
+            path,
+            0.0,
+            v_des[0] * rng.uniform(0.5, 1.0),
+            v_des,
+            priority,
+            lateral=CYCLIST_OFFSET if kind == "cyclist" else 0.0,
+            a_max=a_max,
             rider=1 if kind in ("cyclist", "motorcyclist") else -1,
         )
         self.movers.append(mover)
         if trailer is not None:
             host = len(self.movers) - 1
             self.movers.append(
-                Mover("trailer", trailer, path, -tow_gap, mover.v0, v_des, priority, a_max=a_max, host=host, host_gap=tow_gap)
+                Mover(
+                    "trailer",
+                    trailer,
+                    path,
+                    -tow_gap,
+                    mover.v0,
+                    v_des,
+                    priority,
+                    a_max=a_max,
+                    host=host,
+                    host_gap=tow_gap,
+                )
             )
         return True
 
@@ -221,7 +246,9 @@ def spawn_walkers(net: RoadNetwork, lo: np.ndarray, hi: np.ndarray, rng: np.rand
     return walkers
 
 
-def _walker(net: RoadNetwork, axis: int, ri: int, line: float, side: float, a: float, rng: np.random.Generator) -> Walker:
+def _walker(
+    net: RoadNetwork, axis: int, ri: int, line: float, side: float, a: float, rng: np.random.Generator
+) -> Walker:
     """One pedestrian on the sidewalk line ``line`` of road ``ri``, at global along coordinate ``a``."""
     k = 0 if axis == 0 else 1
     sign = float(rng.choice([-1.0, 1.0]))
@@ -234,7 +261,9 @@ def _walker(net: RoadNetwork, axis: int, ri: int, line: float, side: float, a: f
     standing = rng.random() < STANDING_SHARE
     crossings = []
     for ci, c in enumerate(net.roads[1 - axis]):
-        ends = sorted((sign * (c.centre - c.half_width - 1.0) - sign * a, sign * (c.centre + c.half_width + 1.0) - sign * a))
+        ends = sorted(
+            (sign * (c.centre - c.half_width - 1.0) - sign * a, sign * (c.centre + c.half_width + 1.0) - sign * a)
+        )
         if ends[1] > 0:
             light = net.light(ri, ci) if axis == 0 else net.light(ci, ri)
             crossings.append((ends[0], ends[1], light, axis))

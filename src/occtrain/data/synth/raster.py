@@ -23,15 +23,15 @@ per-voxel geometry is computed once per process.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import lru_cache
+from functools import cache, lru_cache
 
 import numpy as np
 
+from occtrain.data.geometry import ego_to_global, global_to_ego
 from occtrain.data.synth.catalog import TrackSet
 from occtrain.data.synth.citymap import VEGETATION, StaticMap, column_table
 from occtrain.data.synth.grid import EGO_HEIGHT, GROUND_LAYER, GROUND_LAYERS, GROUND_TOP_Z, column_centres, layer_span
 from occtrain.occ3d import EGO_LENGTH, EGO_WIDTH, FREE, GRID_SHAPE, RANGE_MIN, VOXEL_SIZE, voxel_centers_1d
-from occtrain.data.geometry import ego_to_global, global_to_ego
 
 #: Angular size of a z-buffer bin (both azimuth and elevation).
 BIN_DEG = 0.5
@@ -76,7 +76,7 @@ class _Geometry:
     n_el: int
 
 
-@lru_cache(maxsize=None)
+@cache
 def sensor_geometry(sensor: Sensor) -> _Geometry:
     xs, ys, zs = (voxel_centers_1d(a) for a in range(3))
     zs = zs - (GROUND_TOP_Z + sensor.height)
@@ -194,7 +194,9 @@ def visibility(semantics: np.ndarray, sensor: Sensor, free_nb=None) -> np.ndarra
     first_hit = np.minimum(standing, g.ground)[g.bin]
     # A ray that returns observes the voxel it ends in and the free ones before it.
     returns = np.isfinite(first_hit)
-    seen = np.where(occupied.ravel(), g.rng <= first_hit + VOXEL_SIZE / 2, returns & (g.rng < first_hit)).reshape(GRID_SHAPE)
+    seen = np.where(occupied.ravel(), g.rng <= first_hit + VOXEL_SIZE / 2, returns & (g.rng < first_hit)).reshape(
+        GRID_SHAPE
+    )
     seen[..., :GROUND_LAYERS] = False
     ground_seen = standing[g.column_bin] >= g.column_rng - VOXEL_SIZE / 2
     seen[..., GROUND_LAYER] = ground_seen.reshape(GRID_SHAPE[:2])
@@ -254,7 +256,16 @@ def draw_boxes(sem: np.ndarray, centre: np.ndarray, yaw: np.ndarray, size: np.nd
     keep = np.all(span > 0, axis=1)
     if not keep.any():
         return
-    centre, c, s, hl, hw, lo_i, span, cls = centre[keep], c[keep], s[keep], hl[keep], hw[keep], lo_i[keep], span[keep], cls[keep]
+    centre, c, s, hl, hw, lo_i, span, cls = (
+        centre[keep],
+        c[keep],
+        s[keep],
+        hl[keep],
+        hw[keep],
+        lo_i[keep],
+        span[keep],
+        cls[keep],
+    )
     lo_k, hi_k = layer_span(np.zeros(int(keep.sum())), size[keep, 2])
     counts = span[:, 0] * span[:, 1]
     rep = np.repeat(np.arange(len(counts)), counts)
@@ -310,7 +321,9 @@ def frame_semantics(static: StaticMap, tracks: TrackSet, t: int, pose_xy: np.nda
 OBSERVED_SPREAD = 2
 
 
-def observe_static(static: StaticMap, tracks: TrackSet, poses_xy: np.ndarray, poses_yaw: np.ndarray) -> list[np.ndarray]:
+def observe_static(
+    static: StaticMap, tracks: TrackSet, poses_xy: np.ndarray, poses_yaw: np.ndarray
+) -> list[np.ndarray]:
     """Record in ``static.observed`` the static surfaces the lidar saw from any of the poses
     (Occ3D's aggregation of a scene's sweeps), and return each pose's lidar visibility.
 

@@ -4,8 +4,8 @@ Roads run along global x or y (a Manhattan grid with uneven blocks), traffic kee
 A route is a lane-level path through the grid: straight stretches, lane changes with a
 smooth lateral blend, and quarter-circle turns at intersections from the proper lane
 (right turns from the kerb lane around the rounded kerb corner, left turns from the lane
-next to the centre into the crossing road's lane next to its centre). Paths are resampled at a fixed arc-length step so many of them can be
-interpolated at once.
+next to the centre into the crossing road's lane next to its centre). Paths are resampled at
+a fixed arc-length step so many of them can be interpolated at once.
 """
 
 from __future__ import annotations

@@ -361,7 +361,11 @@ def _compare_counts(objs: _Objects, scope: _Scope, rng: np.random.Generator) -> 
     p1, p2 = _phrase(_VOCAB[a], plural=True), _phrase(_VOCAB[b], plural=True)
     key = ("comparison", scope.clause, kind, _VOCAB[a], _VOCAB[b])
     if kind == "same":
-        return key, f"Are there the same number of {p1} and {p2}{scope.clause}?", "yes" if counts[a] == counts[b] else "no"
+        return (
+            key,
+            f"Are there the same number of {p1} and {p2}{scope.clause}?",
+            "yes" if counts[a] == counts[b] else "no",
+        )
     truth = counts[a] > counts[b] if kind == "more" else counts[a] < counts[b]
     return key, f"Are there {kind} {p1} than {p2}{scope.clause}?", "yes" if truth else "no"
 
@@ -474,7 +478,9 @@ def _ego_motion(frame: FrameAnnotation) -> str:
         return f"{EGO_MOTION_OPENING} stopped" + (" and about to pull away" if meta["speed"] == "accelerate" else "")
     if meta["direction"] == "stop":
         return f"{EGO_MOTION_OPENING} coming to a stop from {speed:.0f} m/s"
-    motion = f"{EGO_MOTION_OPENING} {_CAPTION_MOTION[meta['direction']]} at {speed:.0f} m/s{_CAPTION_SPEED[meta['speed']]}"
+    motion = (
+        f"{EGO_MOTION_OPENING} {_CAPTION_MOTION[meta['direction']]} at {speed:.0f} m/s{_CAPTION_SPEED[meta['speed']]}"
+    )
     turn = frame["command"].removeprefix("turn ")
     if frame["command"] != "go straight" and turn not in meta["direction"]:
         motion += f" before a {turn} turn"
@@ -491,7 +497,9 @@ def caption_for_frame(frame: FrameAnnotation) -> str:
     _check_meta(frame)
     boxes = frame["boxes"]
     vehicles = [text for _, text in _groups(boxes, VEHICLE_CLASSES)]
-    first = _ego_motion(frame) + (f", with {_join(vehicles)} nearby." if vehicles else ", with no other vehicles nearby.")
+    first = _ego_motion(frame) + (
+        f", with {_join(vehicles)} nearby." if vehicles else ", with no other vehicles nearby."
+    )
     rest = _groups(boxes, tuple(c for c in CLASS_NAMES[:11] if c not in VEHICLE_CLASSES))
     if not rest:
         return first
@@ -564,7 +572,9 @@ def _plan(frame: FrameAnnotation) -> str:
         action = f"the ego car should stay stopped for the next {horizon:g} s"
     else:
         lateral = points[-1, 1]
-        side = f", ending {abs(lateral):.1f} m to the {'left' if lateral > 0 else 'right'}" if abs(lateral) >= 0.5 else ""
+        side = (
+            f", ending {abs(lateral):.1f} m to the {'left' if lateral > 0 else 'right'}" if abs(lateral) >= 0.5 else ""
+        )
         action = (
             f"the ego car should cover about {length:.0f} m in the next {horizon:g} s "
             f"(average {length / horizon:.0f} m/s, now {frame['ego_speed']:.0f} m/s){side}"

@@ -83,8 +83,13 @@ class MotionResult:
 
     def subset(self, keep: list[int]) -> MotionResult:
         return MotionResult(
-            [self.movers[i] for i in keep], self.s[keep], self.v[keep], self.a[keep],
-            self.xy[keep], self.yaw[keep], self.curvature[keep],
+            [self.movers[i] for i in keep],
+            self.s[keep],
+            self.v[keep],
+            self.a[keep],
+            self.xy[keep],
+            self.yaw[keep],
+            self.curvature[keep],
         )
 
 
@@ -258,7 +263,9 @@ def _discs(xy: np.ndarray, yaw: np.ndarray, size: np.ndarray) -> tuple[np.ndarra
     return xy[:, None, :] + offs[:, :, None] * u[:, None, :], np.hypot(size[:, 1] / 2, step / 2)
 
 
-def colliding_pairs(xy: np.ndarray, yaw: np.ndarray, size: np.ndarray, ignore: set[tuple[int, int]]) -> list[tuple[int, int]]:
+def colliding_pairs(
+    xy: np.ndarray, yaw: np.ndarray, size: np.ndarray, ignore: set[tuple[int, int]]
+) -> list[tuple[int, int]]:
     """Index pairs (i < j) of agents whose footprints overlap at some sampled time.
 
     ``xy`` (N, T, 2), ``yaw`` (N, T), ``size`` (N, 3); pairs in ``ignore`` never count.

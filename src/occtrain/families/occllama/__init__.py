@@ -39,4 +39,11 @@ OCCLLAMA = register_family(
     )
 )
 
-__all__ = ["OCCLLAMA", "OccLLaMATokenizer", "OccLLaMATokenizerConfig", "OccLLaMAWorldConfig", "OccLLaMAWorldModel", "TaskConfig"]
+__all__ = [
+    "OCCLLAMA",
+    "OccLLaMATokenizer",
+    "OccLLaMATokenizerConfig",
+    "OccLLaMAWorldConfig",
+    "OccLLaMAWorldModel",
+    "TaskConfig",
+]

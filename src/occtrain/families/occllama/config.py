@@ -50,7 +50,9 @@ class OccLLaMATokenizerConfig(QuantizerFields):
             raise ConfigError(f"{where}.swin_heads: {self.swin_heads} must divide the latent channels {dim}")
         window = min(self.window_size, *latent_hw(self))
         if any(side % window for side in latent_hw(self)):
-            raise ConfigError(f"{where}.window_size: {self.window_size} must divide the latent side {latent_hw(self)[0]}")
+            raise ConfigError(
+                f"{where}.window_size: {self.window_size} must divide the latent side {latent_hw(self)[0]}"
+            )
 
 
 #: What a scene's query block is made of ("next_scene" mode): the paper's learnable

@@ -17,8 +17,12 @@ def _figures() -> list[PaperFigure]:
     ]
     f += horizons("val/forecast/occworld_mIoU_{h}", (25.05, 19.49, 15.26, 19.93), where="Table II, Ours-O", **occllama)
     f += horizons("val/forecast/occworld_IoU_{h}", (34.56, 28.53, 24.41, 29.17), where="Table II, Ours-O", **occllama)
-    f += horizons("val/forecast/occworld_mIoU_{h}", (14.91, 10.54, 8.52, 11.33), where="Table II, Copy&Paste baseline", **occllama)
-    f += horizons("val/forecast/occworld_IoU_{h}", (24.47, 19.77, 17.31, 20.52), where="Table II, Copy&Paste baseline", **occllama)
+    f += horizons(
+        "val/forecast/occworld_mIoU_{h}", (14.91, 10.54, 8.52, 11.33), where="Table II, Copy&Paste baseline", **occllama
+    )
+    f += horizons(
+        "val/forecast/occworld_IoU_{h}", (24.47, 19.77, 17.31, 20.52), where="Table II, Copy&Paste baseline", **occllama
+    )
     # Table III: planning, Ours-O.
     plan = dict(paper="OccLLaMA", setting=GT_OCC, convention=PLAN_CONVENTION)
     f += horizons("val/plan/L2_{h}", (0.25, 0.64, 1.50, 0.80), where="Table III, Ours-O", **plan)

@@ -16,8 +16,16 @@ import numpy as np
 
 from occtrain.core import scorers
 from occtrain.core.scorers import last_past_meta_action
-from occtrain.core.tasks import ForecastTaskConfig
-from occtrain.core.tasks import TaskSpec, as_xy, each_question, ego_plan, forecast_after, known_future, questions_after
+from occtrain.core.tasks import (
+    ForecastTaskConfig,
+    TaskSpec,
+    as_xy,
+    each_question,
+    ego_plan,
+    forecast_after,
+    known_future,
+    questions_after,
+)
 from occtrain.data.clips import Actions, Clip, Part, Scene, Text
 from occtrain.data.text_formats import format_meta_action, meta_action_words, parse_meta_action
 from occtrain.errors import ConfigError
@@ -27,7 +35,18 @@ META_ACTION_PRIORS = ("none", "repeat_last")
 PRETRAIN_TASKS = ("detection", "counting", "prediction", "planning", "forecasting")
 INSTRUCT_TASKS = ("qa", "cot_planning")
 #: Box categories the detection and counting tasks talk about (movable objects).
-OBJECT_CLASSES = ("car", "truck", "bus", "trailer", "construction_vehicle", "pedestrian", "motorcycle", "bicycle", "barrier", "traffic_cone")
+OBJECT_CLASSES = (
+    "car",
+    "truck",
+    "bus",
+    "trailer",
+    "construction_vehicle",
+    "pedestrian",
+    "motorcycle",
+    "bicycle",
+    "barrier",
+    "traffic_cone",
+)
 
 
 @dataclass
@@ -46,7 +65,10 @@ class TaskConfig(ForecastTaskConfig):
     def validate(self, key: str) -> None:
         super().validate(key)
         if self.meta_action_prior not in META_ACTION_PRIORS:
-            raise ConfigError(f"{key}.meta_action_prior: {self.meta_action_prior!r} is not one of {', '.join(META_ACTION_PRIORS)} (paper: none)")
+            raise ConfigError(
+                f"{key}.meta_action_prior: {self.meta_action_prior!r} is not one of {', '.join(META_ACTION_PRIORS)} "
+                "(paper: none)"
+            )
 
 
 def _context(clip: Clip, cfg: TaskConfig) -> list[Part]:
@@ -104,7 +126,8 @@ def prediction(clip: Clip, cfg: TaskConfig, rng: np.random.Generator) -> list[Pa
     anchor = clip.anchor
     masks = anchor.get("agent_future_mask", [])
     candidates = [
-        i for i, b in enumerate(anchor.get("boxes", []))
+        i
+        for i, b in enumerate(anchor.get("boxes", []))
         if b.get("attribute") == "moving" and i < len(masks) and all(masks[i])
     ]
     if not candidates:
@@ -129,7 +152,9 @@ def planning(clip: Clip, cfg: TaskConfig, rng: np.random.Generator) -> list[Part
 
 def forecasting(clip: Clip, cfg: TaskConfig, rng: np.random.Generator) -> list[Part] | None:
     """Alternate the next waypoint and the next scene, ``forecast_frames`` times."""
-    return forecast_after([*_context(clip, cfg), Text("Task: forecast the scene.")], clip, cfg.forecast_frames, cfg.plan_prior)
+    return forecast_after(
+        [*_context(clip, cfg), Text("Task: forecast the scene.")], clip, cfg.forecast_frames, cfg.plan_prior
+    )
 
 
 def qa(clip: Clip, cfg: TaskConfig, rng: np.random.Generator) -> list[Part] | None:
@@ -158,7 +183,12 @@ def cot_planning(clip: Clip, cfg: TaskConfig, rng: np.random.Generator) -> list[
         previous = last_past_meta_action(clip)
         prompt.append(Text(f"Last meta action: {meta_action_words(previous) + '.' if previous else 'none known.'}"))
     text = "\n".join([*lines, format_meta_action(clip.anchor["meta_action"], previous)])
-    return [*prompt, Text("Task: describe the scene, then plan."), Text(text, True), ego_plan(future, clip, cfg.plan_prior)]
+    return [
+        *prompt,
+        Text("Task: describe the scene, then plan."),
+        Text(text, True),
+        ego_plan(future, clip, cfg.plan_prior),
+    ]
 
 
 #: The tasks, with what evaluation asks of each and how it is scored (M0-M3: planning
@@ -168,7 +198,9 @@ TASKS = {
     "counting": TaskSpec(counting),
     "prediction": TaskSpec(prediction),
     "planning": TaskSpec(planning, scorer=scorers.plan_scorer("plan_direct", record=True)),
-    "forecasting": TaskSpec(forecasting, scorer=(scorers.ForecastScorer, scorers.plan_scorer("plan_alternate", alternate=True))),
+    "forecasting": TaskSpec(
+        forecasting, scorer=(scorers.ForecastScorer, scorers.plan_scorer("plan_alternate", alternate=True))
+    ),
     "qa": TaskSpec(qa, every_question, scorers.QAScorer),
     "cot_planning": TaskSpec(cot_planning, scorer=(scorers.ChainOfThoughtScorer, scorers.plan_scorer("plan_cot"))),
 }

@@ -73,7 +73,9 @@ class SparseEncoder(nn.Module):
             # A stride x stride conv with equal stride is patch merging: a linear map of each patch.
             stages += [ResnetBlock(widths[i], widths[i]), nn.Conv2d(widths[i], widths[i + 1], stride, stride=stride)]
         self.stages = nn.Sequential(*stages)
-        self.swin = SwinStage(widths[-1], cfg.swin_depth, cfg.swin_heads, cfg.window_size, latent_hw(cfg), cfg.mlp_ratio)
+        self.swin = SwinStage(
+            widths[-1], cfg.swin_depth, cfg.swin_heads, cfg.window_size, latent_hw(cfg), cfg.mlp_ratio
+        )
         self.norm = nn.LayerNorm(widths[-1])
         self.proj = nn.Linear(widths[-1], cfg.code_dim)
 
@@ -110,7 +112,9 @@ class OccLLaMATokenizer(SceneTokenizer):
         self.cfg = cfg
         self.latent_hw = latent_hw(cfg)
         self.encoder = SparseEncoder(cfg)
-        self.quantizer = VectorQuantizer(cfg.num_codes, cfg.code_dim, cfg.beta, cfg.ema_decay, cfg.restart_threshold, cfg.usage_decay)
+        self.quantizer = VectorQuantizer(
+            cfg.num_codes, cfg.code_dim, cfg.beta, cfg.ema_decay, cfg.restart_threshold, cfg.usage_decay
+        )
         self.decoder = ConvDecoder(
             in_ch=cfg.code_dim, ch=cfg.base_channels, channel_mult=list(cfg.channel_mult), strides=list(cfg.strides),
             num_res_blocks=cfg.num_res_blocks, latent_attention=True, out_ch=GRID_SHAPE[2] * cfg.voxel_feature_dim,
@@ -125,7 +129,9 @@ class OccLLaMATokenizer(SceneTokenizer):
         """Status logits (B, 2, X, Y, Z) and semantics logits (B, 17, X, Y, Z) of a quantized latent."""
         feats = self.decoder(z_q)  # (B, Z * C, X, Y)
         b, _, x, y = feats.shape
-        voxels = feats.view(b, GRID_SHAPE[2], self.cfg.voxel_feature_dim, x, y).permute(0, 3, 4, 1, 2)  # (B, X, Y, Z, C)
+        voxels = feats.view(b, GRID_SHAPE[2], self.cfg.voxel_feature_dim, x, y).permute(
+            0, 3, 4, 1, 2
+        )  # (B, X, Y, Z, C)
         status = self.status_head(voxels).permute(0, 4, 1, 2, 3)
         semantic = self.semantic_head(voxels).permute(0, 4, 1, 2, 3)
         return status, semantic
@@ -141,8 +147,12 @@ class OccLLaMATokenizer(SceneTokenizer):
         occupied = semantics != FREE
         status = torch.where(occupied, STATUS_OCCUPIED, STATUS_FREE)
         weights = class_balance_weights(semantics, self.cfg.class_balance)
-        sem_ce, sem_lovasz = ce_lovasz(semantic_logits, semantics, valid=occupied, lovasz_voxels=self.cfg.lovasz_voxels, weights=weights)
-        status_ce, status_lovasz = ce_lovasz(status_logits, status, lovasz_voxels=self.cfg.lovasz_voxels, weights=weights)
+        sem_ce, sem_lovasz = ce_lovasz(
+            semantic_logits, semantics, valid=occupied, lovasz_voxels=self.cfg.lovasz_voxels, weights=weights
+        )
+        status_ce, status_lovasz = ce_lovasz(
+            status_logits, status, lovasz_voxels=self.cfg.lovasz_voxels, weights=weights
+        )
         cfg = self.cfg
         total = (
             cfg.lambda1 * (sem_ce + cfg.lambda3 * sem_lovasz)

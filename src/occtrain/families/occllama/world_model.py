@@ -35,11 +35,16 @@ class OccLLaMAWorldModel(LMWorldModel):
     """The LLM, the joint vocabulary and the occupancy input projection.
 
     ``codebook`` Float[K, code_dim] is the frozen scene tokenizer's codebook (its codebooks
-    stacked, in the vocabulary's order, when it has several); it is a non-persistent buffer (the tokenizer's export owns it), the projection is trained.
+    stacked, in the vocabulary's order, when it has several); it is a non-persistent buffer
+    (the tokenizer's export owns it), the projection is trained.
     """
 
     def __init__(
-        self, llm: nn.Module, vocab: JointVocab, codebook: torch.Tensor, scene_prediction: str = "next_scene",
+        self,
+        llm: nn.Module,
+        vocab: JointVocab,
+        codebook: torch.Tensor,
+        scene_prediction: str = "next_scene",
         cfg: OccLLaMAWorldConfig | None = None,
     ):
         super().__init__(llm, vocab, scene_prediction)
@@ -82,13 +87,21 @@ class OccLLaMAWorldModel(LMWorldModel):
         return {"codebook_sizes": inputs.scene.codebook_sizes, "scene_hw": inputs.scene.latent_hw}
 
     @classmethod
-    def create(cls, llm: nn.Module, vocab: JointVocab, inputs: WorldInputs, scene_prediction: str, world_cfg=None) -> OccLLaMAWorldModel:
+    def create(
+        cls, llm: nn.Module, vocab: JointVocab, inputs: WorldInputs, scene_prediction: str, world_cfg=None
+    ) -> OccLLaMAWorldModel:
         return cls(llm, vocab, torch.cat(inputs.scene.codebooks), scene_prediction, world_cfg)
 
     @classmethod
     def from_export(cls, data: dict, llm: nn.Module, vocab: JointVocab, inputs: WorldInputs) -> OccLLaMAWorldModel:
         # Exports written before the setting existed used the paper's queries.
-        return cls(llm, vocab, torch.cat(inputs.scene.codebooks), data["scene_prediction"], OccLLaMAWorldConfig(**data.get("occllama", {})))
+        return cls(
+            llm,
+            vocab,
+            torch.cat(inputs.scene.codebooks),
+            data["scene_prediction"],
+            OccLLaMAWorldConfig(**data.get("occllama", {})),
+        )
 
     def scene_token_rows(self) -> torch.Tensor:
         """The scene tokens' input embeddings: their rows of an exported LLM's table, so

@@ -41,5 +41,13 @@ OCCLLM = register_family(
 )
 
 __all__ = [
-    "MOVABLE_CLASSES", "MSVAE", "MSVAEConfig", "OCCLLM", "OccLLMWorldConfig", "OccLLMWorldModel", "TaskConfig", "merge", "separate",
+    "MOVABLE_CLASSES",
+    "MSVAE",
+    "MSVAEConfig",
+    "OCCLLM",
+    "OccLLMWorldConfig",
+    "OccLLMWorldModel",
+    "TaskConfig",
+    "merge",
+    "separate",
 ]

@@ -10,7 +10,6 @@ from occtrain.models.tokenizers.occworld_vqvae import OccWorldVQVAEConfig
 from occtrain.occ3d import CLASS_INDEX, FREE, MOVABLE_CLASSES, NUM_CLASSES
 
 
-
 @dataclass
 class MSVAEConfig(OccWorldVQVAEConfig):
     """OccWorld's 2D VAE (height folded into channels) with Occ-LLM's two additions, each
@@ -31,7 +30,9 @@ class MSVAEConfig(OccWorldVQVAEConfig):
         super().validate(where)
         unknown = [c for c in self.movable_classes if c not in CLASS_INDEX or CLASS_INDEX[c] == FREE]
         if unknown:
-            raise ConfigError(f"{where}.movable_classes: '{unknown[0]}' is not an Occ3D class (0..{NUM_CLASSES - 2} by name)")
+            raise ConfigError(
+                f"{where}.movable_classes: '{unknown[0]}' is not an Occ3D class (0..{NUM_CLASSES - 2} by name)"
+            )
         if self.num_codes_motion < 1:
             raise ConfigError(f"{where}.num_codes_motion: must be >= 1, got {self.num_codes_motion}")
 
@@ -57,7 +58,8 @@ class OccLLMWorldConfig:
         latent = tuple(inputs.scene.latent_hw)
         if self.patch_size < 1 or latent[0] % self.patch_size or latent[1] % self.patch_size:
             raise ConfigError(
-                f"{where}.patch_size: {self.patch_size} must divide the tokenizer's latent grid {latent[0]} x {latent[1]}"
+                f"{where}.patch_size: {self.patch_size} must divide the tokenizer's latent grid {latent[0]} x "
+                f"{latent[1]}"
             )
         for key in ("fusion_hidden", "cell_dim"):
             if getattr(self, key) < 1:

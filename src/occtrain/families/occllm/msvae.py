@@ -17,9 +17,9 @@ import torch
 from torch import nn
 
 from occtrain.families.occllm.config import MSVAEConfig
-from occtrain.models.tokenizers.occworld_vqvae import OccWorldVQVAE
 from occtrain.models.tokenizers.base import TokenizerOutput, check_semantics
 from occtrain.models.tokenizers.losses import ce_lovasz, class_balance_weights
+from occtrain.models.tokenizers.occworld_vqvae import OccWorldVQVAE
 from occtrain.models.tokenizers.quantizer import VectorQuantizer
 from occtrain.occ3d import CLASS_INDEX, FREE
 
@@ -51,8 +51,11 @@ class MSVAE(OccWorldVQVAE):
         self.pre3d = nn.Conv3d(e, e, 3, padding=1) if cfg.conv3d else None
         self.post3d = nn.Conv3d(e, e, 3, padding=1) if cfg.conv3d else None
         self.quantizer_motion = (
-            VectorQuantizer(cfg.num_codes_motion, cfg.code_dim, cfg.beta, cfg.ema_decay, cfg.restart_threshold, cfg.usage_decay)
-            if cfg.motion_separation else None
+            VectorQuantizer(
+                cfg.num_codes_motion, cfg.code_dim, cfg.beta, cfg.ema_decay, cfg.restart_threshold, cfg.usage_decay
+            )
+            if cfg.motion_separation
+            else None
         )
         movable = torch.zeros(FREE + 1, dtype=torch.bool)
         movable[[CLASS_INDEX[c] for c in cfg.movable_classes]] = True
@@ -90,9 +93,17 @@ class MSVAE(OccWorldVQVAE):
         latent_m, latent_s = self.encode_latent(torch.cat([moving, static])).chunk(2)
         vq_m, vq_s = self.quantizer_motion(latent_m), self.quantizer(latent_s)
         logits_m, logits_s = self.decode_logits(torch.cat([vq_m.z_q, vq_s.z_q])).chunk(2)
-        ce_m, lov_m = ce_lovasz(logits_m, moving, lovasz_voxels=cfg.lovasz_voxels, weights=class_balance_weights(moving, cfg.class_balance))
-        ce_s, lov_s = ce_lovasz(logits_s, static, lovasz_voxels=cfg.lovasz_voxels, weights=class_balance_weights(static, cfg.class_balance))
-        total = cfg.ce_weight * (ce_m + ce_s) + cfg.lovasz_weight * (lov_m + lov_s) + cfg.vq_weight * (vq_m.loss + vq_s.loss)
+        ce_m, lov_m = ce_lovasz(
+            logits_m, moving, lovasz_voxels=cfg.lovasz_voxels, weights=class_balance_weights(moving, cfg.class_balance)
+        )
+        ce_s, lov_s = ce_lovasz(
+            logits_s, static, lovasz_voxels=cfg.lovasz_voxels, weights=class_balance_weights(static, cfg.class_balance)
+        )
+        total = (
+            cfg.ce_weight * (ce_m + ce_s)
+            + cfg.lovasz_weight * (lov_m + lov_s)
+            + cfg.vq_weight * (vq_m.loss + vq_s.loss)
+        )
         losses = {"loss": total, "ce_motion": ce_m, "ce_static": ce_s, "lovasz_motion": lov_m, "lovasz_static": lov_s,
                   "vq_motion": vq_m.loss, "vq_static": vq_s.loss}  # fmt: skip
         stats = {f"motion_{k}": v for k, v in vq_m.stats.items()} | {f"static_{k}": v for k, v in vq_s.stats.items()}

@@ -16,8 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from occtrain.core import scorers
-from occtrain.core.tasks import ForecastTaskConfig
-from occtrain.core.tasks import TaskSpec, as_xy, each_question, forecast_after, questions_after
+from occtrain.core.tasks import ForecastTaskConfig, TaskSpec, as_xy, each_question, forecast_after, questions_after
 from occtrain.data.clips import Actions, Clip, Part, Scene, Text
 
 FORECAST_PROMPT = "<4-D occupancy forecasting and self-ego planning>"
@@ -58,6 +57,8 @@ def every_question(clip: Clip, cfg: TaskConfig) -> list[list[Part]]:
 
 #: The forecast is scored as a forecast and its waypoints as a plan (the paper's two results).
 TASKS = {
-    "forecasting": TaskSpec(forecasting, scorer=(scorers.ForecastScorer, scorers.plan_scorer("plan_alternate", alternate=True))),
+    "forecasting": TaskSpec(
+        forecasting, scorer=(scorers.ForecastScorer, scorers.plan_scorer("plan_alternate", alternate=True))
+    ),
     "qa": TaskSpec(qa, every_question, scorers.QAScorer),
 }

@@ -71,7 +71,11 @@ class PatchSequenceBuilder(SequenceBuilder):
         cells = world.cells_of(torch.as_tensor(codes).reshape(-1).long().cpu())
         n = v.scene_len
         fusion = self._fusion if self._fusion is not None else torch.zeros(ACTION_DIM)
-        slots = {"cells": cells, "fusion": fusion.expand(n, ACTION_DIM).clone(), "target": torch.full_like(cells, IGNORE)}
+        slots = {
+            "cells": cells,
+            "fusion": fusion.expand(n, ACTION_DIM).clone(),
+            "target": torch.full_like(cells, IGNORE),
+        }
         slot_ids = torch.arange(v.occ_start, v.occ_start + n)
         if world.frame_separation:
             self.add(torch.tensor([v.occ_open_id]), supervise)
@@ -107,7 +111,8 @@ class PatchScene:
         v = self.world.vocab
         ids = torch.arange(v.occ_start + first, v.occ_start + first + n, device=hidden.device)
         payload = {
-            "cells": cells, "fusion": self.fusion.to(hidden.device).expand(n, ACTION_DIM),
+            "cells": cells,
+            "fusion": self.fusion.to(hidden.device).expand(n, ACTION_DIM),
             "target": torch.full_like(cells, IGNORE),
         }
         return ids, payload
@@ -130,8 +135,13 @@ class OccLLMWorldModel(LMWorldModel):
     """
 
     def __init__(
-        self, llm: nn.Module, vocab: JointVocab, codebooks: list[torch.Tensor], scene_prediction: str,
-        cfg: OccLLMWorldConfig, latent_hw: tuple[int, int],
+        self,
+        llm: nn.Module,
+        vocab: JointVocab,
+        codebooks: list[torch.Tensor],
+        scene_prediction: str,
+        cfg: OccLLMWorldConfig,
+        latent_hw: tuple[int, int],
     ):
         super().__init__(llm, vocab, scene_prediction)
         if vocab.patch != cfg.patch_size:
@@ -150,7 +160,9 @@ class OccLLMWorldModel(LMWorldModel):
         self.head = PatchHead(hidden, p, [int(b.shape[0]) for b in codebooks], cfg.cell_dim)
         cells = (p * p, self.num_codebooks)
         self.payload_spec: PayloadSpec = {
-            "cells": (cells, torch.long, 0), "fusion": ((ACTION_DIM,), torch.float32, 0.0), "target": (cells, torch.long, IGNORE),
+            "cells": (cells, torch.long, 0),
+            "fusion": ((ACTION_DIM,), torch.float32, 0.0),
+            "target": (cells, torch.long, IGNORE),
         }
 
     # -- scenes <-> patches
@@ -172,7 +184,10 @@ class OccLLMWorldModel(LMWorldModel):
     def check_prompt(self, prefix):
         """A laid-out prompt: patch tokens need their cells, which bare ids lack."""
         if not isinstance(prefix, TokenSequence) and bool(self.vocab.is_occ(torch.as_tensor(prefix)).any()):
-            raise ValueError("a prompt with patch tokens needs their cells: pass the laid-out sequence (builder().build()), not bare ids")
+            raise ValueError(
+                "a prompt with patch tokens needs their cells: pass the laid-out sequence (builder().build()), not "
+                "bare ids"
+            )
         return prefix
 
     def scene_writer(self, recent: torch.Tensor) -> PatchScene:
@@ -202,7 +217,9 @@ class OccLLMWorldModel(LMWorldModel):
     def forward(self, batch: dict[str, torch.Tensor], output_hidden_states: bool = False) -> WorldModelOutput:
         """One cross-entropy over text/action/marker targets (LM head) and cell codes (patch head)."""
         payload = batch_payload(batch)
-        out = self._run(batch["input_ids"], batch["attention_mask"], batch["position_ids"], hidden=True, payload=payload)
+        out = self._run(
+            batch["input_ids"], batch["attention_mask"], batch["position_ids"], hidden=True, payload=payload
+        )
         logits, hidden = out.logits, out.hidden_states[-1]
         labels = batch["labels"]
         ce = token_ce(logits, labels)
@@ -214,7 +231,9 @@ class OccLLMWorldModel(LMWorldModel):
         heads = self.head(hidden[emits])
         picked = target[emits]
         sums = sum(
-            F.cross_entropy(h.flatten(0, 1).float(), picked[..., i].flatten(), reduction="none").view(picked.shape[:2]).sum(1)
+            F.cross_entropy(h.flatten(0, 1).float(), picked[..., i].flatten(), reduction="none")
+            .view(picked.shape[:2])
+            .sum(1)
             for i, h in enumerate(heads)
         )
         # Summed over a patch's cells and codebooks, at the position that emits the patch.
@@ -224,14 +243,20 @@ class OccLLMWorldModel(LMWorldModel):
         loss = (text_sum.sum() + cell_sum.sum()) / (n_text.sum() + n_cells.sum()).clamp(min=1)
         per_sample = (text_sum + cell_sum) / (n_text + n_cells).clamp(min=1)
         return WorldModelOutput(
-            loss, text_sum.sum() / n_text.sum().clamp(min=1), cell_sum.sum() / n_cells.sum().clamp(min=1), logits,
-            hidden if output_hidden_states else None, per_sample,
+            loss,
+            text_sum.sum() / n_text.sum().clamp(min=1),
+            cell_sum.sum() / n_cells.sum().clamp(min=1),
+            logits,
+            hidden if output_hidden_states else None,
+            per_sample,
         )
 
     # -- export
     def export_config(self) -> dict:
         return {
-            **super().export_config(), "code_dim": int(self.codebook_0.shape[1]), "latent_hw": list(self.latent_hw),
+            **super().export_config(),
+            "code_dim": int(self.codebook_0.shape[1]),
+            "latent_hw": list(self.latent_hw),
             "occllm": {k: getattr(self.cfg, k) for k in self.cfg.__dataclass_fields__},
         }
 
@@ -239,7 +264,11 @@ class OccLLMWorldModel(LMWorldModel):
     def vocab_layout(inputs: WorldInputs, world_cfg: OccLLMWorldConfig | None = None) -> dict:
         """One ``<patch_j>`` token per p x p patch of the latent grid (the patches layout)."""
         cfg = world_cfg or OccLLMWorldConfig()
-        return {"codebook_sizes": inputs.scene.codebook_sizes, "scene_hw": inputs.scene.latent_hw, "patch": cfg.patch_size}
+        return {
+            "codebook_sizes": inputs.scene.codebook_sizes,
+            "scene_hw": inputs.scene.latent_hw,
+            "patch": cfg.patch_size,
+        }
 
     @classmethod
     def create(cls, llm, vocab, inputs: WorldInputs, scene_prediction, world_cfg=None) -> OccLLMWorldModel:
@@ -249,4 +278,6 @@ class OccLLMWorldModel(LMWorldModel):
     @classmethod
     def from_export(cls, data: dict, llm, vocab, inputs: WorldInputs) -> OccLLMWorldModel:
         scene = inputs.scene
-        return cls(llm, vocab, scene.codebooks, data["scene_prediction"], OccLLMWorldConfig(**data["occllm"]), scene.latent_hw)
+        return cls(
+            llm, vocab, scene.codebooks, data["scene_prediction"], OccLLMWorldConfig(**data["occllm"]), scene.latent_hw
+        )

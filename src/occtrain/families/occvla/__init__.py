@@ -31,7 +31,10 @@ OCCVLA = register_family(
             task_config=TaskConfig,
             tasks=TASKS,
             # Stage 1 learns driving scenes in text; stage 2 the meta action with its reasoning.
-            default_tasks={"pretrain": {"caption": 1.0, "qa": 1.0, "meta_action": 1.0}, "instruct": {"meta_action": 1.0}},
+            default_tasks={
+                "pretrain": {"caption": 1.0, "qa": 1.0, "meta_action": 1.0},
+                "instruct": {"meta_action": 1.0},
+            },
             world_config=OccVLAWorldConfig,
             prompt_words=PROMPT_WORDS,
             # The OccWorld VQ-VAE whose decoder its queries train through, and the camera encoder.

@@ -27,7 +27,9 @@ class OccVLAWorldConfig:
         latent = tuple(inputs.scene.latent_hw)
         p = self.query_patch
         if p < 1 or latent[0] % p or latent[1] % p:
-            raise ConfigError(f"{where}.query_patch: {p} must divide the tokenizer's latent grid {latent[0]} x {latent[1]}")
+            raise ConfigError(
+                f"{where}.query_patch: {p} must divide the tokenizer's latent grid {latent[0]} x {latent[1]}"
+            )
         if len(self.image_tokens) != 2 or min(self.image_tokens) < 1:
             raise ConfigError(f"{where}.image_tokens: {list(self.image_tokens)} must be [rows, cols], each >= 1")
         if self.projector_hidden < 1:

@@ -23,8 +23,10 @@ class MetaActionScorer(BaseScorer):
     commonest training one, and repeating the last past one (which the prompt states)."""
 
     metrics = {
-        "meta_action": MetaActionAccuracy, "meta_parsed_fraction": MeanMetric,
-        "baseline_prior_meta_action": MetaActionAccuracy, "baseline_repeat_last_meta_action": MetaActionAccuracy,
+        "meta_action": MetaActionAccuracy,
+        "meta_parsed_fraction": MeanMetric,
+        "baseline_prior_meta_action": MetaActionAccuracy,
+        "baseline_repeat_last_meta_action": MetaActionAccuracy,
     }
 
     def __init__(self) -> None:
@@ -49,7 +51,12 @@ class MetaActionScorer(BaseScorer):
         ev.keep_text("meta_action", item.parts[-2].text, f"{text}  [parsed: {said}]", reference)
         if ev.record:
             ev.predictions["meta_actions"][item.clip.anchor["token"]] = {
-                "prompt": item.parts[-2].text, "generated": text, "parsed": parsed, "reference": reference, "truth": truth, "last_past": last,
+                "prompt": item.parts[-2].text,
+                "generated": text,
+                "parsed": parsed,
+                "reference": reference,
+                "truth": truth,
+                "last_past": last,
             }
 
 
@@ -57,7 +64,10 @@ class OccupancyQueries:
     """OccVLA's query branch on each clip's anchor, when the stage trains it: one forward of
     the images and the queries, decoded by the frozen OccWorld decoder, scored in both conventions."""
 
-    metrics = {"occupancy_occ3d": lambda: OccupancyMetric(OCC3D), "occupancy_occworld": lambda: OccupancyMetric(OCCWORLD)}
+    metrics = {
+        "occupancy_occ3d": lambda: OccupancyMetric(OCC3D),
+        "occupancy_occworld": lambda: OccupancyMetric(OCCWORLD),
+    }
 
     def applies(self, engine: Any) -> bool:
         return engine.tasks.occupancy_weight > 0
@@ -73,5 +83,8 @@ class OccupancyQueries:
             mask = torch.from_numpy(labels["mask_camera"].astype(bool))[None]
             ev.metrics["occupancy_occ3d"].update(pred.to(dev), target.to(dev), mask.to(dev))
             ev.metrics["occupancy_occworld"].update(pred.to(dev), target.to(dev))
-            ev.keep_scene("occupancy", f"occupancy from the queries, sample {token[:8]}: truth and prediction",
-                          [("truth", target[0].numpy()), ("queries", pred[0].numpy())])
+            ev.keep_scene(
+                "occupancy",
+                f"occupancy from the queries, sample {token[:8]}: truth and prediction",
+                [("truth", target[0].numpy()), ("queries", pred[0].numpy())],
+            )

@@ -40,8 +40,12 @@ PROMPT_WORDS = (META_PROMPT, META_QUESTION, CAPTION_PROMPT, "Scene:", "History:"
 #: Past-tense words of the history analysis.
 _SPEED_PAST = {"accelerate": "sped up", "decelerate": "slowed down", "maintain": "kept its speed"}
 _DIRECTION_PAST = {
-    "straight": "went straight", "left": "turned left", "right": "turned right",
-    "bear left": "bore left", "bear right": "bore right", "stop": "stood still",
+    "straight": "went straight",
+    "left": "turned left",
+    "right": "turned right",
+    "bear left": "bore left",
+    "bear right": "bore right",
+    "stop": "stood still",
 }
 
 
@@ -79,12 +83,18 @@ class TaskConfig(BaseTaskConfig):
     def validate(self, key: str) -> None:
         super().validate(key)
         if self.occupancy_weight < 0:
-            raise ConfigError(f"{key}.occupancy_weight: {self.occupancy_weight} is negative (paper: 1; 0 turns the occupancy queries off)")
+            raise ConfigError(
+                f"{key}.occupancy_weight: {self.occupancy_weight} is negative (paper: 1; 0 turns the occupancy queries "
+                "off)"
+            )
         if self.past_meta_actions < 0:
             raise ConfigError(f"{key}.past_meta_actions: {self.past_meta_actions} is negative (paper: 5)")
         self.meta_actions.validate(f"{key}.meta_actions")
         if self.meta_action_prior not in META_ACTION_PRIORS:
-            raise ConfigError(f"{key}.meta_action_prior: {self.meta_action_prior!r} is not one of {', '.join(META_ACTION_PRIORS)} (paper: none)")
+            raise ConfigError(
+                f"{key}.meta_action_prior: {self.meta_action_prior!r} is not one of {', '.join(META_ACTION_PRIORS)} "
+                "(paper: none)"
+            )
         if self.cot_scene not in COT_SCENES:
             raise ConfigError(f"{key}.cot_scene: {self.cot_scene!r} is not one of {', '.join(COT_SCENES)}")
 
@@ -135,7 +145,8 @@ def history_analysis(past: list[MetaAction]) -> str:
     last = past[-1]
     return (
         f"History: over the last {len(past) * FRAME_DT:g} s the ego mostly {_SPEED_PAST[speed]} and "
-        f"{_DIRECTION_PAST[direction]}; lately it {_SPEED_PAST[last['speed']]} and {_DIRECTION_PAST[last['direction']]}."
+        f"{_DIRECTION_PAST[direction]}; lately it {_SPEED_PAST[last['speed']]} and "
+        f"{_DIRECTION_PAST[last['direction']]}."
     )
 
 
@@ -158,7 +169,11 @@ def meta_action(clip: Clip, cfg: TaskConfig, rng: np.random.Generator) -> list[P
     if meta is None:
         return None
     past = past_meta_actions(clip, cfg)
-    return [*context(clip, cfg), Text(f"{describe_past(past)} {META_QUESTION}"), Text(chain_of_thought(clip, cfg, past, meta), True)]
+    return [
+        *context(clip, cfg),
+        Text(f"{describe_past(past)} {META_QUESTION}"),
+        Text(chain_of_thought(clip, cfg, past, meta), True),
+    ]
 
 
 def caption(clip: Clip, cfg: TaskConfig, rng: np.random.Generator) -> list[Part] | None:

@@ -83,7 +83,9 @@ class OccVLAWorldModel(LMWorldModel):
     #: Its prompts hold camera views, not scenes.
     reads_scenes = False
 
-    def __init__(self, llm: nn.Module, vocab: JointVocab, scene_tokenizer: nn.Module, vision_dim: int, cfg: OccVLAWorldConfig):
+    def __init__(
+        self, llm: nn.Module, vocab: JointVocab, scene_tokenizer: nn.Module, vision_dim: int, cfg: OccVLAWorldConfig
+    ):
         super().__init__(llm, vocab, "next_scene")
         if not vocab.image or vocab.patch != cfg.query_patch:
             raise ValueError("OccVLA's vocabulary needs the <image> token and the query patch layout")
@@ -91,7 +93,10 @@ class OccVLAWorldModel(LMWorldModel):
         self.vision_dim = int(vision_dim)
         hidden = llm.get_input_embeddings().embedding_dim
         self.image_proj = nn.Sequential(
-            nn.LayerNorm(vision_dim), nn.Linear(vision_dim, cfg.projector_hidden), nn.GELU(), nn.Linear(cfg.projector_hidden, hidden),
+            nn.LayerNorm(vision_dim),
+            nn.Linear(vision_dim, cfg.projector_hidden),
+            nn.GELU(),
+            nn.Linear(cfg.projector_hidden, hidden),
         )
         self.occ_queries = nn.Parameter(torch.randn(vocab.scene_len, hidden) * 0.02)
         self.code_dim = int(scene_tokenizer.codebook.shape[1])
@@ -118,7 +123,9 @@ class OccVLAWorldModel(LMWorldModel):
         if bool(images.any()) and not payload:
             raise ValueError("image tokens need their features: pass the laid-out sequence, not bare ids")
         if payload:
-            emb = emb.masked_scatter(images[..., None], self.image_proj(payload["image"][images].to(emb.dtype)).to(emb.dtype))
+            emb = emb.masked_scatter(
+                images[..., None], self.image_proj(payload["image"][images].to(emb.dtype)).to(emb.dtype)
+            )
         queries = self.vocab.is_query(input_ids)
         lo = self.vocab.query_range[0]
         rows = F.embedding((input_ids - lo).clamp(0, self.vocab.scene_len - 1), self.occ_queries)
@@ -135,7 +142,13 @@ class OccVLAWorldModel(LMWorldModel):
         """L_text (mean over the answer tokens) + lambda_occ * L_occ (per sequence, mean voxel CE)."""
         with_occ = "voxels" in batch
         ids = batch["input_ids"]
-        out = self._run(ids, batch["attention_mask"], batch["position_ids"], hidden=with_occ or output_hidden_states, payload=batch_payload(batch))
+        out = self._run(
+            ids,
+            batch["attention_mask"],
+            batch["position_ids"],
+            hidden=with_occ or output_hidden_states,
+            payload=batch_payload(batch),
+        )
         logits, labels = out.logits, batch["labels"]
         ce = token_ce(logits, labels)
         valid = labels != IGNORE
@@ -171,7 +184,9 @@ class OccVLAWorldModel(LMWorldModel):
         return pool_views(tokens, grid, views, tuple(self.cfg.image_tokens))
 
     @torch.no_grad()
-    def generate_with_occupancy(self, prefix: TokenSequence, answers: list[Answer], occupancy: bool = False) -> tuple[list, torch.Tensor | None]:
+    def generate_with_occupancy(
+        self, prefix: TokenSequence, answers: list[Answer], occupancy: bool = False
+    ) -> tuple[list, torch.Tensor | None]:
         """Greedy answers after a prompt (images then text, no query block), and with
         ``occupancy`` the voxel logits (1, 18, X, Y, Z) of the query block run after the
         images. The images are fed first either way, so the text sees the same cache."""
@@ -191,7 +206,8 @@ class OccVLAWorldModel(LMWorldModel):
     # -- export
     def export_config(self) -> dict:
         return {
-            **super().export_config(), "vision_dim": self.vision_dim,
+            **super().export_config(),
+            "vision_dim": self.vision_dim,
             "occvla": {k: getattr(self.cfg, k) for k in self.cfg.__dataclass_fields__},
         }
 
@@ -200,7 +216,12 @@ class OccVLAWorldModel(LMWorldModel):
         """A query per p x p patch of the OccWorld latent, and the ``<image>`` token."""
         cfg = world_cfg or OccVLAWorldConfig()
         scene = inputs.scene
-        return {"codebook_sizes": scene.codebook_sizes, "scene_hw": scene.latent_hw, "patch": cfg.query_patch, "image": True}
+        return {
+            "codebook_sizes": scene.codebook_sizes,
+            "scene_hw": scene.latent_hw,
+            "patch": cfg.query_patch,
+            "image": True,
+        }
 
     @classmethod
     def create(cls, llm, vocab, inputs: WorldInputs, scene_prediction, world_cfg=None) -> OccVLAWorldModel:

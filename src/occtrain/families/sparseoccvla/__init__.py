@@ -50,4 +50,11 @@ SPARSEOCCVLA = register_family(
     )
 )
 
-__all__ = ["SPARSEOCCVLA", "SparseOccConfig", "SparseOccEncoder", "SparseOccVLAWorldConfig", "SparseOccVLAWorldModel", "TaskConfig"]
+__all__ = [
+    "SPARSEOCCVLA",
+    "SparseOccConfig",
+    "SparseOccEncoder",
+    "SparseOccVLAWorldConfig",
+    "SparseOccVLAWorldModel",
+    "TaskConfig",
+]

@@ -67,15 +67,33 @@ class SparseOccConfig:
         return len(self.points_per_layer)
 
     def validate(self, where: str) -> None:
-        positive = ("image_height", "image_width", "num_cameras", "frames", "queries", "dim", "heads", "sampling_points",
-                    "mixing_groups", "mixed_points", "ffn_dim", "token_dim", "gt_points")
+        positive = (
+            "image_height",
+            "image_width",
+            "num_cameras",
+            "frames",
+            "queries",
+            "dim",
+            "heads",
+            "sampling_points",
+            "mixing_groups",
+            "mixed_points",
+            "ffn_dim",
+            "token_dim",
+            "gt_points",
+        )
         for key in positive:
             if getattr(self, key) < 1:
                 raise ConfigError(f"{where}.{key}: {getattr(self, key)} must be at least 1")
         if not self.points_per_layer or min(self.points_per_layer) < 1:
-            raise ConfigError(f"{where}.points_per_layer: {list(self.points_per_layer)} must list at least one layer, each >= 1 point")
+            raise ConfigError(
+                f"{where}.points_per_layer: {list(self.points_per_layer)} must list at least one layer, each >= 1 point"
+            )
         if self.dim % self.heads or self.dim % self.mixing_groups:
-            raise ConfigError(f"{where}.dim: {self.dim} must be divisible by heads ({self.heads}) and mixing_groups ({self.mixing_groups})")
+            raise ConfigError(
+                f"{where}.dim: {self.dim} must be divisible by heads ({self.heads}) and mixing_groups "
+                f"({self.mixing_groups})"
+            )
         if len(self.backbone_widths) != len(self.backbone_depths) or not self.backbone_widths:
             raise ConfigError(f"{where}.backbone_widths: one width per backbone stage, as many as backbone_depths")
         if self.offset_scale <= 0:
@@ -112,4 +130,6 @@ class SparseOccVLAWorldConfig:
         if self.forecast_weight < 0:
             raise ConfigError(f"{where}.forecast_weight: {self.forecast_weight} must not be negative")
         if not (self.residual_query or self.residual_token):
-            raise ConfigError(f"{where}: residual_query and residual_token are both off; the forecaster would read nothing")
+            raise ConfigError(
+                f"{where}: residual_query and residual_token are both off; the forecaster would read nothing"
+            )

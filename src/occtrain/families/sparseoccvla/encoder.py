@@ -80,8 +80,11 @@ class ImageBackbone(nn.Module):
             from transformers import ResNetBackbone, ResNetConfig
 
             config = ResNetConfig(
-                embedding_size=cfg.backbone_widths[0], hidden_sizes=list(cfg.backbone_widths), depths=list(cfg.backbone_depths),
-                layer_type="basic", out_features=stages,
+                embedding_size=cfg.backbone_widths[0],
+                hidden_sizes=list(cfg.backbone_widths),
+                depths=list(cfg.backbone_depths),
+                layer_type="basic",
+                out_features=stages,
             )
             self.resnet = ResNetBackbone(config)
         self.lateral = nn.ModuleList(nn.Conv2d(c, cfg.dim, 1) for c in self.resnet.channels)
@@ -101,13 +104,17 @@ def _load_backbone(path: str) -> nn.Module:
     from transformers import AutoBackbone, AutoConfig
 
     if not (Path(path) / "config.json").is_file():
-        raise ConfigError(f"model.sparseocc.backbone_path: {path} is not a local Hugging Face model directory (no config.json)")
+        raise ConfigError(
+            f"model.sparseocc.backbone_path: {path} is not a local Hugging Face model directory (no config.json)"
+        )
     try:
         config = AutoConfig.from_pretrained(path, local_files_only=True)
         stages = list(getattr(config, "stage_names", [])[1:])
         return AutoBackbone.from_pretrained(path, local_files_only=True, out_features=stages)
     except (OSError, ValueError, KeyError) as err:
-        raise ConfigError(f"model.sparseocc.backbone_path: cannot load a backbone from {path} ({str(err).splitlines()[0]})") from None
+        raise ConfigError(
+            f"model.sparseocc.backbone_path: cannot load a backbone from {path} ({str(err).splitlines()[0]})"
+        ) from None
 
 
 class SpatialSelfAttention(nn.Module):
@@ -199,12 +206,16 @@ class EncoderLayer(nn.Module):
         super().__init__()
         self.cfg = cfg
         self.sampling = nn.Linear(cfg.dim, cfg.sampling_points * 3)
-        self.mixing = AdaptiveMixing(cfg.dim, cfg.mixing_groups, cfg.frames * scales * cfg.sampling_points, cfg.mixed_points)
+        self.mixing = AdaptiveMixing(
+            cfg.dim, cfg.mixing_groups, cfg.frames * scales * cfg.sampling_points, cfg.mixed_points
+        )
         self.attention = SpatialSelfAttention(cfg.dim, cfg.heads)
         self.ffn = FeedForward(cfg.dim, cfg.ffn_dim)
         self.head = PointHead(cfg.dim, points, cfg.offset_scale)
 
-    def sample(self, q: torch.Tensor, pos: torch.Tensor, features: list[torch.Tensor], cams: CameraFrames) -> torch.Tensor:
+    def sample(
+        self, q: torch.Tensor, pos: torch.Tensor, features: list[torch.Tensor], cams: CameraFrames
+    ) -> torch.Tensor:
         """The image features (B, N, F * scales * S, D) at S points around each query, in every frame and scale."""
         cfg = self.cfg
         b, n = q.shape[:2]
@@ -215,7 +226,9 @@ class EncoderLayer(nn.Module):
         for f in range(cfg.frames):
             move = cams.current_to_frame[:, f].to(q.dtype)
             in_frame = flat @ move[:, :3, :3].transpose(1, 2) + move[:, None, :3, 3]
-            uv, inside = project(in_frame, cams.intrinsics[:, f], cams.cam_to_ego[:, f], (cfg.image_height, cfg.image_width))
+            uv, inside = project(
+                in_frame, cams.intrinsics[:, f], cams.cam_to_ego[:, f], (cfg.image_height, cfg.image_width)
+            )
             for level in features:
                 sampled, _ = sample_views(level[:, f], uv, inside, (cfg.image_height, cfg.image_width))
                 out.append(sampled.view(b, n, s, -1))
@@ -296,7 +309,9 @@ class SparseOccEncoder(nn.Module):
         return self.cfg.token_dim
 
     # -- the encoder
-    def encode_views(self, cams: CameraFrames) -> tuple[torch.Tensor, torch.Tensor, list[tuple[torch.Tensor, torch.Tensor]]]:
+    def encode_views(
+        self, cams: CameraFrames
+    ) -> tuple[torch.Tensor, torch.Tensor, list[tuple[torch.Tensor, torch.Tensor]]]:
         """Camera frames -> the last queries Q_L (B, N, D), their positions P_L (B, N, 3) and
         every layer's (points (B, N * M_l, 3), logits (B, N * M_l, C)), P_0 first with no logits."""
         b = cams.images.shape[0]
@@ -328,7 +343,9 @@ class SparseOccEncoder(nn.Module):
         return torch.stack([voxelize(p, c, tuple(self.cfg.voxel_extent)) for p, c in zip(points, classes)])
 
     # -- training (the tokenizer stage's protocol for a camera-reading architecture)
-    def forward(self, batch: dict[str, Any], index: DatasetIndex | None, teacher: nn.Module | None = None) -> TokenizerOutput:
+    def forward(
+        self, batch: dict[str, Any], index: DatasetIndex | None, teacher: nn.Module | None = None
+    ) -> TokenizerOutput:
         cfg = self.cfg
         cams = camera_frames(_checked(batch, cfg), index, cfg.frames)
         q, pos, outputs = self.encode_views(cams)
@@ -358,7 +375,10 @@ class SparseOccEncoder(nn.Module):
         cfg = self.cfg
         maps = teacher_features(teacher, cams.images[:, 0])
         if self.distillation is None or self.distillation.proj.out_features != maps.shape[2]:
-            raise ConfigError(f"model.sparseocc: the distillation teacher is {maps.shape[2]} wide; build the encoder with attach_teacher({maps.shape[2]})")
+            raise ConfigError(
+                f"model.sparseocc: the distillation teacher is {maps.shape[2]} wide; build the encoder with "
+                f"attach_teacher({maps.shape[2]})"
+            )
         uv, inside = project(pos, cams.intrinsics[:, 0], cams.cam_to_ego[:, 0], (cfg.image_height, cfg.image_width))
         target, seen = sample_views(maps.to(q.dtype), uv, inside, (cfg.image_height, cfg.image_width))
         return self.distillation(self.tokens(q, pos), target, seen.to(q.dtype))
@@ -378,7 +398,9 @@ class SparseOccEncoder(nn.Module):
         batch = frames_batch(index, samples, cameras=True)
         device = self.queries.device
         cams = camera_frames(_checked(batch, self.cfg), index, self.cfg.frames)
-        cams = CameraFrames(*(t.to(device) for t in (cams.images, cams.intrinsics, cams.cam_to_ego, cams.current_to_frame)))
+        cams = CameraFrames(
+            *(t.to(device) for t in (cams.images, cams.intrinsics, cams.cam_to_ego, cams.current_to_frame))
+        )
         q, pos, _ = self.encode_views(cams)
         return torch.cat([pos, q], -1)
 

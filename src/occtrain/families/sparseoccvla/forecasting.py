@@ -55,7 +55,9 @@ class ForecastHead:
             token, a = clip.anchor["token"], clip.anchor_index
             scene = index.scene_of(token)
             rows = engine.scene_cache[token]
-            steps = world.forecast(engine.encode_parts([*context(clip, engine.tasks), Text(FORECAST_PROMPT)], {a: rows}))
+            steps = world.forecast(
+                engine.encode_parts([*context(clip, engine.tasks), Text(FORECAST_PROMPT)], {a: rows})
+            )
             future = clip.ann["tokens"][a + 1 : a + 1 + FUTURE_STEPS]
             n = min(len(steps), len(future))
             labels = [index.labels(scene, t) for t in [token, *future[:n]]]
@@ -68,7 +70,9 @@ class ForecastHead:
             current = torch.from_numpy(labels[0]["semantics"]).long()
             recon = engine.decode_scenes(rows[None])[0].cpu()
             predictions = {"forecast": pred, **forecast_baselines(current, recon, clip.anchor)}
-            selections = [""] + (["trimmed_"] if paper_frame(index.scenes[scene].index(token), len(index.scenes[scene])) else [])
+            selections = [""] + (
+                ["trimmed_"] if paper_frame(index.scenes[scene].index(token), len(index.scenes[scene])) else []
+            )
             for what, volumes in predictions.items():
                 for sel in selections:
                     ev.metrics[f"{what}_{sel}{OCCWORLD}"].update(volumes.to(dev), target.to(dev), valid.to(dev))
@@ -76,5 +80,8 @@ class ForecastHead:
             mask = torch.from_numpy(labels[0]["mask_camera"].astype(bool))[None]
             ev.metrics["reconstruction_occ3d"].update(recon[None].to(dev), current[None].to(dev), mask.to(dev))
             ev.keep_forecast_picture(token, pred[0].numpy(), target[0].numpy(), n)
-            ev.keep_scene("reconstruction", f"reconstruction from the cameras, sample {token[:8]}: truth and the encoder's points",
-                          [("truth", current.numpy()), ("encoder", recon.numpy())])
+            ev.keep_scene(
+                "reconstruction",
+                f"reconstruction from the cameras, sample {token[:8]}: truth and the encoder's points",
+                [("truth", current.numpy()), ("encoder", recon.numpy())],
+            )

@@ -65,7 +65,9 @@ def camera_frames(batch: dict[str, Any], index: DatasetIndex | None, frames: int
     return CameraFrames(*(torch.stack(v, 1) for v in views), torch.stack(moves, 1))
 
 
-def ground_truth(batch: dict[str, Any], index: DatasetIndex | None, count: int, extended: int, seed: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def ground_truth(
+    batch: dict[str, Any], index: DatasetIndex | None, count: int, extended: int, seed: int
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Each sample's sparsified ground-truth point set: ``count`` occupied voxel centres of
     its frame and, with ``extended`` > 0, of the next ``extended`` frames of its scene moved
     into its ego frame by the poses (the draw seeded by ``seed`` and the sample token).
@@ -86,7 +88,9 @@ def ground_truth(batch: dict[str, Any], index: DatasetIndex | None, count: int, 
     return tuple(torch.stack(t) for t in zip(*out))
 
 
-def _later_points(index: DatasetIndex, meta: dict, count: int, extended: int, rng: np.random.Generator) -> tuple[torch.Tensor, torch.Tensor] | None:
+def _later_points(
+    index: DatasetIndex, meta: dict, count: int, extended: int, rng: np.random.Generator
+) -> tuple[torch.Tensor, torch.Tensor] | None:
     tokens = index.scenes[meta["scene"]]
     later = tokens[int(meta["index"]) + 1 : int(meta["index"]) + 1 + extended]
     points, classes = [], []

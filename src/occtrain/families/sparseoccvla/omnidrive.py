@@ -29,14 +29,18 @@ class OmniDriveText:
     def __init__(self, root: str | Path):
         self.root = Path(root)
         if not self.root.is_dir() or not any((self.root / f).is_dir() for f in FOLDERS):
-            raise DataError(f"{self.root}: not an OmniDrive-nuScenes root (it holds none of {', '.join(f + '/' for f in FOLDERS)})")
+            raise DataError(
+                f"{self.root}: not an OmniDrive-nuScenes root (it holds none of {', '.join(f + '/' for f in FOLDERS)})"
+            )
 
     def _read(self, folder: str, token: str) -> Any:
         for path in sorted((self.root / folder).glob(f"*/{token}.json")):
             try:
                 return json.loads(path.read_text())
             except (OSError, ValueError) as err:
-                raise DataError(f"{path}: unreadable OmniDrive annotation ({err}); restore the file from the release") from None
+                raise DataError(
+                    f"{path}: unreadable OmniDrive annotation ({err}); restore the file from the release"
+                ) from None
         return None
 
     def description(self, token: str) -> str | None:
@@ -45,7 +49,7 @@ class OmniDriveText:
         if data is None:
             return None
         if not isinstance(data, dict) or not isinstance(data.get("description"), str):
-            raise DataError(f"{self.root}/desc/*/{token}.json: expected {{\"description\": \"...\"}}")
+            raise DataError(f'{self.root}/desc/*/{token}.json: expected {{"description": "..."}}')
         return data["description"]
 
     def pairs(self, token: str) -> list[dict[str, str]]:
@@ -53,8 +57,12 @@ class OmniDriveText:
         out = []
         for folder in ("conv", "vqa"):
             data = self._read(folder, token) or []
-            if not isinstance(data, list) or not all(isinstance(p, dict) and {"question", "answer"} <= set(p) for p in data):
-                raise DataError(f"{self.root}/{folder}/*/{token}.json: expected a list of {{\"question\", \"answer\"}} pairs")
+            if not isinstance(data, list) or not all(
+                isinstance(p, dict) and {"question", "answer"} <= set(p) for p in data
+            ):
+                raise DataError(
+                    f'{self.root}/{folder}/*/{token}.json: expected a list of {{"question", "answer"}} pairs'
+                )
             out += [{"question": str(p["question"]), "answer": str(p["answer"])} for p in data]
         return out
 

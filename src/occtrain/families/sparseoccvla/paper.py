@@ -11,13 +11,21 @@ CAPTIONS = "OmniDrive-nuScenes captions (pycocoevalcap; the paper's table gives 
 
 def _figures() -> list[PaperFigure]:
     # Table 1 (right) forecasting from cameras, Table 2 planning, Table 1 (left) captions, Table 5 NuScenes-QA.
-    f = horizons("val/forecast_trimmed/occworld_mIoU_{h}", (15.86, 13.54, 11.72, 13.71), paper="SparseOccVLA",
-                 where="Table 1 right, 600 queries", setting=CAMERA, convention=TRIMMED)
+    f = horizons(
+        "val/forecast_trimmed/occworld_mIoU_{h}",
+        (15.86, 13.54, 11.72, 13.71),
+        paper="SparseOccVLA",
+        where="Table 1 right, 600 queries",
+        setting=CAMERA,
+        convention=TRIMMED,
+    )
     plan = dict(paper="SparseOccVLA", setting=CAMERA, convention=PLAN_CONVENTION)
     f += horizons("val/plan/L2_{h}", (0.14, 0.22, 0.32, 0.23), where="Table 2, SparseOccVLA", **plan)
     f += horizons("val/plan/collision_{h}", (0.03, 0.12, 0.41, 0.19), where="Table 2, SparseOccVLA", **plan)
     for key, value in (("CIDEr", 0.796), ("METEOR", 0.388), ("ROUGE_L", 0.337)):
-        f.append(PaperFigure(f"val/caption_{key}", value, "SparseOccVLA", "Table 1 left, 600 queries", CAMERA, CAPTIONS))
+        f.append(
+            PaperFigure(f"val/caption_{key}", value, "SparseOccVLA", "Table 1 left, 600 queries", CAMERA, CAPTIONS)
+        )
     f.append(PaperFigure("val/qa/overall", 60.8, "SparseOccVLA", "Table 5", CAMERA, "NuScenes-QA accuracy (%)"))
     return f
 

@@ -37,13 +37,13 @@ import torch.nn.functional as F
 from torch import nn
 from torchmetrics import MeanMetric
 
+from occtrain.config import to_object
 from occtrain.core.builder import collate
 from occtrain.core.decoding import TextAnswer
 from occtrain.core.tasks import PLAN_PRIORS, plan_base
 from occtrain.data.clips import Clip, Text, frame_clips, plan_target
 from occtrain.data.layout import DatasetIndex
 from occtrain.errors import ConfigError
-from occtrain.config import to_object
 from occtrain.exports import check_section, load_state_strict, read_export, write_export
 from occtrain.families.sparseoccvla.tasks import PLANNING_PROMPT, context
 from occtrain.families.sparseoccvla.world_model import EGO_FEATURES, ego_state
@@ -96,14 +96,19 @@ class AnchorDiffusionConfig:
             if getattr(self, key) < 1:
                 raise ConfigError(f"{where}: model.{key} {getattr(self, key)} must be at least 1")
         if self.noise_timestep >= self.train_timesteps:
-            raise ConfigError(f"{where}: model.noise_timestep {self.noise_timestep} must be below train_timesteps {self.train_timesteps}")
+            raise ConfigError(
+                f"{where}: model.noise_timestep {self.noise_timestep} must be below train_timesteps "
+                f"{self.train_timesteps}"
+            )
         if self.dim % self.heads:
             raise ConfigError(f"{where}: model.dim {self.dim} must be divisible by heads {self.heads}")
         unknown = [f for f in self.fusions if f not in FUSIONS]
         if unknown:
             raise ConfigError(f"{where}: model.fusions {list(self.fusions)} must name some of {', '.join(FUSIONS)}")
         if self.plan_prior not in PLAN_PRIORS:
-            raise ConfigError(f"{where}: model.plan_prior '{self.plan_prior}' is not one of {', '.join(PLAN_PRIORS)} (paper: none)")
+            raise ConfigError(
+                f"{where}: model.plan_prior '{self.plan_prior}' is not one of {', '.join(PLAN_PRIORS)} (paper: none)"
+            )
         step_spacing(self.noise_timestep, self.denoise_steps, self.train_timesteps, where)
 
     def needs_teacher(self) -> bool:
@@ -117,7 +122,8 @@ def step_spacing(start: int, steps: int, train_timesteps: int, where: str = "mod
     if spacing * steps != start or train_timesteps // (train_timesteps // spacing) != spacing:
         raise ConfigError(
             f"{where}: model.noise_timestep {start} does not split into {steps} DDIM steps of the scheduler's grid; "
-            "choose noise_timestep as a multiple of denoise_steps that divides into train_timesteps (e.g. 30 for 1, 2 or 3 steps)"
+            "choose noise_timestep as a multiple of denoise_steps that divides into train_timesteps (e.g. 30 for 1, 2 "
+            "or 3 steps)"
         )
     return spacing
 
@@ -129,7 +135,9 @@ def ddim_scheduler(cfg: AnchorDiffusionConfig) -> Any:
     return DDIMScheduler(num_train_timesteps=cfg.train_timesteps, prediction_type="sample", clip_sample=False)
 
 
-def ddim_denoise(scheduler: Any, x: torch.Tensor, start: int, spacing: int, train_timesteps: int, predict: Any) -> tuple[torch.Tensor, Any]:
+def ddim_denoise(
+    scheduler: Any, x: torch.Tensor, start: int, spacing: int, train_timesteps: int, predict: Any
+) -> tuple[torch.Tensor, Any]:
     """DDIM from ``x`` (noised to timestep ``start``) down to 0 in steps of ``spacing``,
     each by diffusers' ``scheduler.step`` on ``predict(x, t)``'s clean-sample prediction
     (``predict`` returns it and anything else, of which the last step's is returned)."""
@@ -145,7 +153,9 @@ def offset_bases(clips: list[Clip], prior: str, device: torch.device | str = "cp
     """(B, 6, 2): what each clip's trajectory is written against under ``prior``
     (``core.tasks.plan_base``; zeros for the paper's "none")."""
     bases = [plan_base(c, prior) for c in clips]
-    return torch.stack([torch.zeros(FUTURE_STEPS, 2) if b is None else torch.as_tensor(b, dtype=torch.float32) for b in bases]).to(device)
+    return torch.stack(
+        [torch.zeros(FUTURE_STEPS, 2) if b is None else torch.as_tensor(b, dtype=torch.float32) for b in bases]
+    ).to(device)
 
 
 def kmeans_anchors(index: DatasetIndex, k: int, seed: int = 0, prior: str = "none") -> np.ndarray:
@@ -153,10 +163,16 @@ def kmeans_anchors(index: DatasetIndex, k: int, seed: int = 0, prior: str = "non
     against ``prior`` (see ``offset_bases``)."""
     from sklearn.cluster import KMeans
 
-    clips = [c for c in frame_clips(index, "train", 0, FUTURE_STEPS, partial_history=False)
-             if len(c.anchor.get("ego_future", [])) >= FUTURE_STEPS and all(c.anchor.get("ego_future_mask", [1] * FUTURE_STEPS)[:FUTURE_STEPS])]
+    clips = [
+        c
+        for c in frame_clips(index, "train", 0, FUTURE_STEPS, partial_history=False)
+        if len(c.anchor.get("ego_future", [])) >= FUTURE_STEPS
+        and all(c.anchor.get("ego_future_mask", [1] * FUTURE_STEPS)[:FUTURE_STEPS])
+    ]
     if len(clips) < k:
-        raise ConfigError(f"{index.root}: {len(clips)} training trajectories with a whole 3 s future, fewer than model.anchors {k}")
+        raise ConfigError(
+            f"{index.root}: {len(clips)} training trajectories with a whole 3 s future, fewer than model.anchors {k}"
+        )
     trajs = np.stack([np.asarray(c.anchor["ego_future"], dtype=np.float64)[:FUTURE_STEPS] for c in clips])
     trajs = trajs - offset_bases(clips, prior).double().numpy()
     centres = KMeans(n_clusters=k, n_init=10, random_state=seed).fit(trajs.reshape(len(trajs), -1)).cluster_centers_
@@ -190,7 +206,9 @@ class DecoderLayer(nn.Module):
         self.ffn_norm = nn.LayerNorm(dim)
         self.modulation = nn.Linear(dim, 2 * dim)
 
-    def forward(self, x: torch.Tensor, conditions: dict[str, tuple[torch.Tensor, torch.Tensor | None]], time: torch.Tensor) -> torch.Tensor:
+    def forward(
+        self, x: torch.Tensor, conditions: dict[str, tuple[torch.Tensor, torch.Tensor | None]], time: torch.Tensor
+    ) -> torch.Tensor:
         for name in self.fusions:
             keys, pad = conditions[name]
             attended, _ = self.attend[name](x, keys, keys, key_padding_mask=pad, need_weights=False)
@@ -207,7 +225,15 @@ class AnchorDiffusionPlanner(nn.Module):
     #: What picks the best checkpoint (lower is better).
     monitor = "val/plan_L2_stp3_avg"
 
-    def __init__(self, cfg: AnchorDiffusionConfig, teacher: Any, data_root: str, cache_dir: Path, anchors: np.ndarray | None = None, seed: int = 0):
+    def __init__(
+        self,
+        cfg: AnchorDiffusionConfig,
+        teacher: Any,
+        data_root: str,
+        cache_dir: Path,
+        anchors: np.ndarray | None = None,
+        seed: int = 0,
+    ):
         """``anchors``: (K, 6, 2) in metres; None: the K-means centres of ``data_root``'s training trajectories."""
         super().__init__()
         self.cfg, self.teacher = cfg, teacher
@@ -232,7 +258,9 @@ class AnchorDiffusionPlanner(nn.Module):
             self.scorer = nn.Linear(d, 1)
         self._decisions: dict[str, dict[str, torch.Tensor]] = {}
         self._load_cache()
-        self.metrics = nn.ModuleDict({n: PlanningMetric() for n in ("plan", "plan_top_anchor", "constant_velocity", "baseline_stationary")})
+        self.metrics = nn.ModuleDict(
+            {n: PlanningMetric() for n in ("plan", "plan_top_anchor", "constant_velocity", "baseline_stationary")}
+        )
         self.positive_hit = MeanMetric()
 
     @classmethod
@@ -269,7 +297,9 @@ class AnchorDiffusionPlanner(nn.Module):
 
     def save_cache(self) -> None:
         if is_rank_zero() and self._decisions:
-            atomic_write_safetensors(self._cache_file, {f"{t}/{k}": v.contiguous() for t, d in self._decisions.items() for k, v in d.items()})
+            atomic_write_safetensors(
+                self._cache_file, {f"{t}/{k}": v.contiguous() for t, d in self._decisions.items() for k, v in d.items()}
+            )
 
     @torch.no_grad()
     def decisions(self, clips: list[Clip]) -> list[dict[str, torch.Tensor]]:
@@ -285,22 +315,35 @@ class AnchorDiffusionPlanner(nn.Module):
         rows = [engine.scene_cache[c.anchor["token"]] for c in clips]
         prompts = [[*context(c, engine.tasks), Text(PLANNING_PROMPT)] for c in clips]
         laid = [engine.encode_parts(p, {c.anchor_index: row}) for p, c, row in zip(prompts, clips, rows)]
-        texts = [engine.vocab.decode_text(out[0]) for out in engine.world.generate_batch(laid, [[TextAnswer(engine.max_new_text_tokens)]] * len(laid))]
-        seqs = [engine.encode_parts([*p, Text(t)], {c.anchor_index: row}) for p, t, c, row in zip(prompts, texts, clips, rows)]
-        batch = {k: v.to(engine.world.device) if torch.is_tensor(v) else v for k, v in collate(seqs, engine.vocab.pad_id).items()}
+        texts = [
+            engine.vocab.decode_text(out[0])
+            for out in engine.world.generate_batch(laid, [[TextAnswer(engine.max_new_text_tokens)]] * len(laid))
+        ]
+        seqs = [
+            engine.encode_parts([*p, Text(t)], {c.anchor_index: row})
+            for p, t, c, row in zip(prompts, texts, clips, rows)
+        ]
+        batch = {
+            k: v.to(engine.world.device) if torch.is_tensor(v) else v
+            for k, v in collate(seqs, engine.vocab.pad_id).items()
+        }
         hidden = engine.world(batch, output_hidden_states=True).hidden.float().cpu()
         for b, (clip, start, seq) in enumerate(zip(clips, (len(x) for x in laid), seqs)):
             states = hidden[b, start : len(seq)][:r]
             reason = torch.zeros(r, hidden.shape[-1])
             reason[: len(states)] = states
             self._decisions[clip.anchor["token"]] = {
-                "reason": reason, "mask": torch.arange(r) < len(states), "scene": rows[b].float().cpu(),
+                "reason": reason,
+                "mask": torch.arange(r) < len(states),
+                "scene": rows[b].float().cpu(),
             }
 
     def prepare_training(self, device: torch.device) -> None:
         """The world model's decisions on every training clip, once (validation's come as its batches do)."""
         index = DatasetIndex.open(self.data_root)
-        clips = list(frame_clips(index, "train", self.teacher.tasks.context_frames, FUTURE_STEPS, partial_history=False))
+        clips = list(
+            frame_clips(index, "train", self.teacher.tasks.context_frames, FUTURE_STEPS, partial_history=False)
+        )
         self.teacher.to(device)
         with progress_bar(len(clips), "the world model's decisions on the train split, once") as advance:
             for i in range(0, len(clips), 16):
@@ -309,7 +352,9 @@ class AnchorDiffusionPlanner(nn.Module):
         self.save_cache()
 
     # -- the planner
-    def conditions(self, clips: list[Clip]) -> tuple[dict[str, tuple[torch.Tensor, torch.Tensor | None]], torch.Tensor, torch.Tensor]:
+    def conditions(
+        self, clips: list[Clip]
+    ) -> tuple[dict[str, tuple[torch.Tensor, torch.Tensor | None]], torch.Tensor, torch.Tensor]:
         """The decoder's conditions, the ego embedding (B, d) and the pooled decision (B, hidden)."""
         dec = self.decisions(clips)
         dev = self.device
@@ -370,7 +415,9 @@ class AnchorDiffusionPlanner(nn.Module):
         return l1 + self.cfg.score_weight * bce
 
     @torch.no_grad()
-    def plan(self, clips: list[Clip], steps: int | None = None, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def plan(
+        self, clips: list[Clip], steps: int | None = None, seed: int = 0
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """The plan (B, 6, 2) in metres after ``steps`` DDIM steps (default: the configured
         ones), the top-scored anchor itself (B, 6, 2) and the anchor logits (B, K)."""
         cfg = self.cfg
@@ -379,7 +426,9 @@ class AnchorDiffusionPlanner(nn.Module):
         b = len(clips)
         clean = (self.anchors / self.scale).expand(b, -1, -1, -1)
         noise = torch.stack([clip_noise(c, clean.shape[1:], seed) for c in clips]).to(self.device)
-        x = self.scheduler.add_noise(clean, noise, torch.full((b,), cfg.noise_timestep, dtype=torch.long, device=self.device))
+        x = self.scheduler.add_noise(
+            clean, noise, torch.full((b,), cfg.noise_timestep, dtype=torch.long, device=self.device)
+        )
 
         def predict(x: torch.Tensor, t: int) -> tuple[torch.Tensor, torch.Tensor]:
             return self.denoise(x, torch.full((b,), t, dtype=torch.long, device=self.device), conditions)
@@ -395,8 +444,12 @@ class AnchorDiffusionPlanner(nn.Module):
         anchors = [c.anchor for c in clips]
         gt = plan_target(anchors, self.device)
         plan, top, logits = self.plan(clips)
-        for name, pred in (("plan", plan), ("plan_top_anchor", top), ("constant_velocity", constant_velocity(anchors, self.device)),
-                           ("baseline_stationary", torch.zeros_like(gt.traj))):
+        for name, pred in (
+            ("plan", plan),
+            ("plan_top_anchor", top),
+            ("constant_velocity", constant_velocity(anchors, self.device)),
+            ("baseline_stationary", torch.zeros_like(gt.traj)),
+        ):
             self.metrics[name].update(pred, gt.traj, gt.mask, gt.agents)
         # How often the scorer picks the anchor nearest the ground truth.
         hit = (logits.argmax(-1) == self.positives(gt.traj - self.base(clips), gt.mask)).float()
@@ -407,10 +460,18 @@ class AnchorDiffusionPlanner(nn.Module):
 
     def summary(self) -> tuple[str, dict[str, float]]:
         n = count_parameters(self) - count_parameters(self.teacher)
-        return f"anchor-diffusion planner {n / 1e3:.1f}K params, {self.cfg.anchors} anchors, {self.cfg.denoise_steps} DDIM steps", {"params": float(n)}
+        return (
+            f"anchor-diffusion planner {n / 1e3:.1f}K params, {self.cfg.anchors} anchors, {self.cfg.denoise_steps} "
+            "DDIM steps",
+            {"params": float(n)},
+        )
 
     def export(self, path: Path) -> Path:
         state = {k: v for k, v in self.state_dict().items() if not k.startswith("teacher.")}
-        config = {"stage_kind": "planner", "planner": "anchor_diffusion", "family": "sparseoccvla",
-                  "config": {k: getattr(self.cfg, k) for k in AnchorDiffusionConfig.__dataclass_fields__}}
+        config = {
+            "stage_kind": "planner",
+            "planner": "anchor_diffusion",
+            "family": "sparseoccvla",
+            "config": {k: getattr(self.cfg, k) for k in AnchorDiffusionConfig.__dataclass_fields__},
+        }
         return write_export(path, state, config)

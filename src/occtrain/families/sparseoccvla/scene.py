@@ -55,14 +55,19 @@ class SparseSceneEncoder(nn.Module):
 def _sparse(export_dir: Path) -> SparseSceneEncoder:
     encoder = load_tokenizer(export_dir)
     if getattr(encoder, "arch", "") != ARCH:
-        raise ConfigError(f"{export_dir}: a SparseOccVLA world model reads a '{ARCH}' tokenizer, not '{getattr(encoder, 'arch', '?')}'")
+        raise ConfigError(
+            f"{export_dir}: a SparseOccVLA world model reads a '{ARCH}' tokenizer, not "
+            f"'{getattr(encoder, 'arch', '?')}'"
+        )
     return SparseSceneEncoder(encoder)
 
 
 def sparse_scene_encoder(exports: dict[str, Path], world_cfg: Any = None) -> SparseSceneEncoder:
     """The scene encoder of a pretrain stage: the consumed stage 1's export."""
     if "tokenizer" not in exports:
-        raise ConfigError(f"a SparseOccVLA pretrain stage consumes its stage 1 (a tokenizer stage with model.arch: {ARCH})")
+        raise ConfigError(
+            f"a SparseOccVLA pretrain stage consumes its stage 1 (a tokenizer stage with model.arch: {ARCH})"
+        )
     return _sparse(exports["tokenizer"])
 
 

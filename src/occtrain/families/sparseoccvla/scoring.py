@@ -5,8 +5,9 @@ text; the decision by the meta action it ends with, beside the commonest trainin
 from __future__ import annotations
 
 from collections import Counter
+from collections.abc import Iterable
 from functools import partial
-from typing import Any, Iterable
+from typing import Any
 
 from torchmetrics import MeanMetric
 
@@ -79,7 +80,11 @@ class DecisionScorer(BaseScorer):
     """The meta action the generated decision ends with against the reference's, beside the
     commonest training meta action (the frame sidecar's)."""
 
-    metrics = {"meta_action": MetaActionAccuracy, "meta_parsed_fraction": MeanMetric, "baseline_prior_meta_action": MetaActionAccuracy}
+    metrics = {
+        "meta_action": MetaActionAccuracy,
+        "meta_parsed_fraction": MeanMetric,
+        "baseline_prior_meta_action": MetaActionAccuracy,
+    }
 
     def __init__(self) -> None:
         self.said: Counter = Counter()

@@ -49,7 +49,10 @@ def global_token(j: int) -> str:
 
 def ego_state(anchor: dict) -> tuple[float, ...]:
     """The ego-state token's features from a clip anchor (metres / 10; unknown past waypoints 0)."""
-    past = np.asarray(anchor["ego_past"], dtype=np.float64).reshape(-1, 2) * np.asarray(anchor["ego_past_mask"], dtype=np.float64)[:, None]
+    past = (
+        np.asarray(anchor["ego_past"], dtype=np.float64).reshape(-1, 2)
+        * np.asarray(anchor["ego_past_mask"], dtype=np.float64)[:, None]
+    )
     return tuple(float(v) for v in np.concatenate([current_velocity(anchor), past.reshape(-1)]) / 10.0)
 
 
@@ -117,7 +120,9 @@ class Forecaster(nn.Module):
     """Eq. 6-7: residual fusion of T'_o and Q_L, then one shared layer stepped through the
     future frames with ``embed(x, y, z, t) + Ego`` added, decoding each frame's points."""
 
-    def __init__(self, hidden: int, dim: int, heads: int, ffn: int, points: int, scale: float, cfg: SparseOccVLAWorldConfig):
+    def __init__(
+        self, hidden: int, dim: int, heads: int, ffn: int, points: int, scale: float, cfg: SparseOccVLAWorldConfig
+    ):
         super().__init__()
         self.cfg = cfg
         width = hidden * cfg.residual_token + dim * cfg.residual_query
@@ -128,7 +133,9 @@ class Forecaster(nn.Module):
         self.ffn = FeedForward(dim, ffn)
         self.head = PointHead(dim, points, scale)
 
-    def forward(self, llm_out: torch.Tensor, queries: torch.Tensor, positions: torch.Tensor, ego: torch.Tensor) -> list[tuple[torch.Tensor, torch.Tensor]]:
+    def forward(
+        self, llm_out: torch.Tensor, queries: torch.Tensor, positions: torch.Tensor, ego: torch.Tensor
+    ) -> list[tuple[torch.Tensor, torch.Tensor]]:
         """T'_o (B, N, hidden), Q_L (B, N, D), P_L (B, N, 3) and the ego state (B, E) -> per
         future frame its points (B, N * M, 3) and class logits (B, N * M, C)."""
         parts = ([llm_out] if self.cfg.residual_token else []) + ([queries] if self.cfg.residual_query else [])
@@ -138,7 +145,9 @@ class Forecaster(nn.Module):
         steps = self.cfg.forecast_frames
         for t in range(1, steps + 1):
             time = torch.full((*pos.shape[:-1], 1), t / steps, dtype=q.dtype, device=q.device)
-            q = self.ffn(self.attention(q + self.embed4d(torch.cat([sinusoid(normalized(pos)), time], -1)) + ego_emb, pos))
+            q = self.ffn(
+                self.attention(q + self.embed4d(torch.cat([sinusoid(normalized(pos)), time], -1)) + ego_emb, pos)
+            )
             points, logits = self.head(q, pos)
             out.append((points.flatten(1, 2), logits.flatten(1, 2)))
             pos = points.mean(2).detach()
@@ -159,7 +168,8 @@ class SparseOccVLAWorldModel(LMWorldModel):
         hidden = self.hidden_size
         if hidden != enc.token_dim:
             raise ConfigError(
-                f"model.llm.hidden_size: {hidden} differs from the sparse occupancy encoder's token_dim {enc.token_dim} "
+                f"model.llm.hidden_size: {hidden} differs from the sparse occupancy encoder's token_dim "
+                f"{enc.token_dim} "
                 "(the connector maps the queries to the LLM's width); set them equal"
             )
         self.cfg = cfg
@@ -173,9 +183,12 @@ class SparseOccVLAWorldModel(LMWorldModel):
             self.global_attention = nn.MultiheadAttention(hidden, max(1, hidden // 32), batch_first=True)
             self.global_norm = nn.LayerNorm(hidden)
         self.ego_embed = nn.Sequential(nn.Linear(EGO_FEATURES, hidden), nn.GELU(), nn.Linear(hidden, hidden))
-        self.forecaster = Forecaster(hidden, enc.dim, enc.heads, enc.ffn_dim, enc.points_per_layer[-1], enc.offset_scale, cfg)
+        self.forecaster = Forecaster(
+            hidden, enc.dim, enc.heads, enc.ffn_dim, enc.points_per_layer[-1], enc.offset_scale, cfg
+        )
         self.payload_spec: PayloadSpec = {
-            "scene": ((3 + enc.dim,), torch.float32, 0.0), "ego": ((EGO_FEATURES,), torch.float32, 0.0),
+            "scene": ((3 + enc.dim,), torch.float32, 0.0),
+            "ego": ((EGO_FEATURES,), torch.float32, 0.0),
         }
         # Ground-truth point sets of future frames, read once per sample token (not state).
         self.__dict__["_future_points"] = {}
@@ -215,8 +228,8 @@ class SparseOccVLAWorldModel(LMWorldModel):
         out = self.global_norm(queries + attended)  # (r, G, hidden)
         row_of = torch.full((len(ids),), -1, dtype=torch.long, device=ids.device)
         row_of[rows] = torch.arange(len(rows), device=ids.device)
-        b, l = is_global.nonzero(as_tuple=True)
-        return emb.index_put((b, l), out[row_of[b], ids[b, l] - start].to(emb.dtype))
+        b, pos = is_global.nonzero(as_tuple=True)
+        return emb.index_put((b, pos), out[row_of[b], ids[b, pos] - start].to(emb.dtype))
 
     # -- forecasting
     def future_points(self, inputs: Any, token: str) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -228,7 +241,9 @@ class SparseOccVLAWorldModel(LMWorldModel):
             cache[token] = (points, classes, torch.arange(self.gt_points) < n)
         return cache[token]
 
-    def forecast_inputs(self, batch: dict[str, torch.Tensor], hidden: torch.Tensor, rows: torch.Tensor) -> tuple[torch.Tensor, ...]:
+    def forecast_inputs(
+        self, batch: dict[str, torch.Tensor], hidden: torch.Tensor, rows: torch.Tensor
+    ) -> tuple[torch.Tensor, ...]:
         """For sequences ``rows``: T'_o (r, N, hidden), Q_L (r, N, D), P_L (r, N, 3), ego (r, E)."""
         ids, payload = batch["input_ids"][rows], batch_payload(batch)
         occ = self.vocab.is_occ(ids)
@@ -237,19 +252,31 @@ class SparseOccVLAWorldModel(LMWorldModel):
         scene = payload["scene"][rows][occ].view(r, n, -1)
         return hidden[rows][occ].view(r, n, -1), scene[..., 3:], scene[..., :3], payload["ego"][rows][ego].view(r, -1)
 
-    def forecast_loss(self, steps: list[tuple[torch.Tensor, torch.Tensor]], batch: dict, rows: torch.Tensor) -> torch.Tensor:
+    def forecast_loss(
+        self, steps: list[tuple[torch.Tensor, torch.Tensor]], batch: dict, rows: torch.Tensor
+    ) -> torch.Tensor:
         """Eq. 11 averaged over the frames: Chamfer + lambda_focal * focal against each frame's points."""
         dev = steps[0][0].device
         gt, classes, valid = (batch[k][rows].to(dev) for k in ("forecast_points", "forecast_classes", "forecast_valid"))
         total = steps[0][0].new_zeros(())
         for t, (points, logits) in enumerate(steps):
             distance, match = chamfer_distance(points, gt[:, t], valid[:, t])
-            total = total + distance.mean() + self.focal_weight * sigmoid_focal_loss(logits, torch.gather(classes[:, t], 1, match))
+            total = (
+                total
+                + distance.mean()
+                + self.focal_weight * sigmoid_focal_loss(logits, torch.gather(classes[:, t], 1, match))
+            )
         return total / len(steps)
 
     def forward(self, batch: dict[str, torch.Tensor], output_hidden_states: bool = False) -> WorldModelOutput:
         """L_LM over the text targets + forecast_weight * L_fore over the forecast sequences."""
-        out = self._run(batch["input_ids"], batch["attention_mask"], batch["position_ids"], hidden=True, payload=batch_payload(batch))
+        out = self._run(
+            batch["input_ids"],
+            batch["attention_mask"],
+            batch["position_ids"],
+            hidden=True,
+            payload=batch_payload(batch),
+        )
         logits, labels = out.logits, batch["labels"]
         ce = token_ce(logits, labels)
         valid = labels != IGNORE
@@ -275,7 +302,9 @@ class SparseOccVLAWorldModel(LMWorldModel):
         allowed = torch.ones(1, 1, len(ids[0]), len(ids[0]), dtype=torch.bool, device=self.device).tril()
         out = self._run(ids, allowed, prompt.position_ids[None].to(self.device), hidden=True, payload=payload)
         batch = {"input_ids": ids, **{f"payload_{k}": v for k, v in payload.items()}}
-        steps = self.forecaster(*self.forecast_inputs(batch, out.hidden_states[-1], torch.zeros(1, dtype=torch.long, device=self.device)))
+        steps = self.forecaster(
+            *self.forecast_inputs(batch, out.hidden_states[-1], torch.zeros(1, dtype=torch.long, device=self.device))
+        )
         return [(points[0], logits[0].argmax(-1)) for points, logits in steps]
 
     # -- export

@@ -85,14 +85,20 @@ class SceneTokenizer(nn.Module):
     def decode(self, codes: torch.Tensor) -> torch.Tensor:
         """Class logits (B, 18, 200, 200, 16) of token ids (B, h, w)."""
         if tuple(codes.shape[1:]) != tuple(self.latent_hw):
-            raise DataError(f"codes of shape {tuple(codes.shape)}: this tokenizer decodes (B, {self.latent_hw[0]}, {self.latent_hw[1]}) grids")
+            raise DataError(
+                f"codes of shape {tuple(codes.shape)}: this tokenizer decodes (B, {self.latent_hw[0]}, "
+                f"{self.latent_hw[1]}) grids"
+            )
         return self.decode_logits(self.quantizer.lookup(codes.long()))
 
 
 def check_semantics(semantics: torch.Tensor) -> torch.Tensor:
     """The label volume as long, after checking its (B, 200, 200, 16) shape and integer dtype."""
     if semantics.dim() != 4 or tuple(semantics.shape[1:]) != GRID_SHAPE:
-        raise DataError(f"semantics of shape {tuple(semantics.shape)}: tokenizers take (B, {', '.join(map(str, GRID_SHAPE))}) Occ3D label volumes")
+        raise DataError(
+            f"semantics of shape {tuple(semantics.shape)}: tokenizers take (B, {', '.join(map(str, GRID_SHAPE))}) "
+            "Occ3D label volumes"
+        )
     if semantics.is_floating_point():
         raise DataError(f"semantics of dtype {semantics.dtype}: pass integer class labels in [0, {NUM_CLASSES})")
     return semantics.long()

@@ -118,7 +118,9 @@ class ConvDecoder(nn.Module):
         self.mid = _middle(block_in, latent_attention)
         self.levels = nn.ModuleList()
         for i in reversed(range(len(channel_mult))):
-            stack, block_in = _level_stack(block_in, ch * channel_mult[i], num_res_blocks, latent_attention and i == last)
+            stack, block_in = _level_stack(
+                block_in, ch * channel_mult[i], num_res_blocks, latent_attention and i == last
+            )
             if i > 0:
                 stack.append(Upsample(block_in, strides[i - 1]))
             self.levels.append(stack)

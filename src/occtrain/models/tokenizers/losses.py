@@ -64,7 +64,10 @@ def class_balance_weights(semantics: torch.Tensor, power: float, num_classes: in
 
 
 def ce_lovasz(
-    logits: torch.Tensor, labels: torch.Tensor, valid: torch.Tensor | None = None, lovasz_voxels: int = 0,
+    logits: torch.Tensor,
+    labels: torch.Tensor,
+    valid: torch.Tensor | None = None,
+    lovasz_voxels: int = 0,
     weights: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """(cross-entropy, Lovasz-softmax) of class logits (B, C, *spatial) over the valid voxels.

@@ -60,7 +60,9 @@ class OccWorldVQVAE(SceneTokenizer):
                       num_res_blocks=cfg.num_res_blocks, latent_attention=cfg.latent_attention)  # fmt: skip
         self.encoder = ConvEncoder(in_ch=depth * e, out_ch=cfg.z_channels, **layout)
         self.quant_proj = nn.Conv2d(cfg.z_channels, cfg.code_dim, 1)
-        self.quantizer = VectorQuantizer(cfg.num_codes, cfg.code_dim, cfg.beta, cfg.ema_decay, cfg.restart_threshold, cfg.usage_decay)
+        self.quantizer = VectorQuantizer(
+            cfg.num_codes, cfg.code_dim, cfg.beta, cfg.ema_decay, cfg.restart_threshold, cfg.usage_decay
+        )
         self.post_quant_proj = nn.Conv2d(cfg.code_dim, cfg.z_channels, 1)
         self.decoder = ConvDecoder(in_ch=cfg.z_channels, out_ch=depth * e, **layout)
 
