@@ -208,7 +208,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _add_run_commands(sub: Any) -> None:
-    """``run``, ``eval``, ``table`` and ``config``."""
+    """``run`` and ``validate``, then the commands that read a run (``_add_run_readers``)."""
     p = sub.add_parser("run", help="run a recipe's stages in order (skips done stages, resumes cut-off ones)")
     p.add_argument("recipe", help="recipe YAML, e.g. stages/quickstart.yaml")
     p.add_argument("overrides", nargs="*", help="key=value overrides, e.g. trainer.max_steps=10 trainer.devices=2")
@@ -231,7 +231,11 @@ def _add_run_commands(sub: Any) -> None:
     p.add_argument("--only", metavar="STAGE", help="as for run")
     p.add_argument("--restart", metavar="STAGE", help="as for run")
     p.set_defaults(func=_cmd_validate)
+    _add_run_readers(sub)
 
+
+def _add_run_readers(sub: Any) -> None:
+    """``eval``, ``plan-memory``, ``table`` and ``config``."""
     p = sub.add_parser(
         "eval",
         help="score a stage's export on a split: a tokenizer's reconstruction, a world model's generations "

@@ -80,22 +80,7 @@ def plan_stages(recipe: RecipeConfig, source: str) -> list[PlannedStage]:
     names: list[str] = []
     data = to_container(recipe.data)
     for i, spec in enumerate(recipe.stages):
-        for key in ("name", "kind"):
-            if OmegaConf.is_missing(spec, key):
-                raise ConfigError(
-                    f"stages[{i}] in {source} has no '{key}:'; every stage needs a name and a kind "
-                    f"({', '.join(kind_names())})"
-                )
-        check_name(spec.name, f"stages[{i}].name", source, "a stage")
-        where = f"stages[{i}] ('{spec.name}') in {source}"
-        kind = get_kind(spec.kind)
-        if kind is None:
-            raise ConfigError(f"unknown stage kind '{spec.kind}' for {where}; kinds are {', '.join(kind_names())}")
-        if not (inspect.isclass(kind.module) and issubclass(kind.module, Stage)) or inspect.isabstract(kind.module):
-            raise ConfigError(
-                f"stage kind '{spec.kind}' of {where} is registered with {kind.module!r}, "
-                "which is not a concrete occtrain.stages.Stage (it must subclass Stage and implement export)"
-            )
+        kind, where = _stage_kind(spec, i, source)
         if spec.name in names:
             raise ConfigError(f"stage name '{spec.name}' is used twice in {source}")
         _check_consumes(spec, names, [s.name for s in recipe.stages], where)
@@ -144,6 +129,28 @@ def plan_stages(recipe: RecipeConfig, source: str) -> list[PlannedStage]:
     if not planned:
         raise ConfigError(f"{source} has no stages")
     return planned
+
+
+def _stage_kind(spec: StageSpec, i: int, source: str) -> tuple[StageKind, str]:
+    """The registered kind of the recipe's ``i``-th stage (its name and kind checked first),
+    and how errors name the stage."""
+    for key in ("name", "kind"):
+        if OmegaConf.is_missing(spec, key):
+            raise ConfigError(
+                f"stages[{i}] in {source} has no '{key}:'; every stage needs a name and a kind "
+                f"({', '.join(kind_names())})"
+            )
+    check_name(spec.name, f"stages[{i}].name", source, "a stage")
+    where = f"stages[{i}] ('{spec.name}') in {source}"
+    kind = get_kind(spec.kind)
+    if kind is None:
+        raise ConfigError(f"unknown stage kind '{spec.kind}' for {where}; kinds are {', '.join(kind_names())}")
+    if not (inspect.isclass(kind.module) and issubclass(kind.module, Stage)) or inspect.isabstract(kind.module):
+        raise ConfigError(
+            f"stage kind '{spec.kind}' of {where} is registered with {kind.module!r}, "
+            "which is not a concrete occtrain.stages.Stage (it must subclass Stage and implement export)"
+        )
+    return kind, where
 
 
 def _check_consumes(spec: StageSpec, earlier: list[str], every: list[str], where: str) -> None:
@@ -308,7 +315,7 @@ def _execute(
     import lightning as L
 
     from occtrain.data.datamodule import ShardDataModule
-    from occtrain.stages.common import PeakMemory, StepTimer, build_trainer, checkpoint_step, last_checkpoint
+    from occtrain.stages.common import build_trainer, checkpoint_step, last_checkpoint
 
     L.seed_everything(stage.trainer.seed, workers=True, verbose=False)
     ctx = StageContext(stage.spec, stage.model_cfg, stage.data, stage.trainer, stage_dir, inputs)
@@ -331,14 +338,7 @@ def _execute(
     metrics = {k: float(v) for k, v in (results[0] if results else {}).items()}
     report = module.report()
     metrics.update(report.metrics)
-    timer = next(c for c in trainer.callbacks if isinstance(c, StepTimer))
-    if timer.mean_s is not None:  # of this attempt: a measurement, not a result
-        metrics["train_step_s"] = timer.mean_s
-    memory = next(c for c in trainer.callbacks if isinstance(c, PeakMemory))
-    if memory.peak_mb is not None:  # rank zero's, in this attempt
-        metrics["train_peak_rss_mb"] = memory.peak_mb
-    if memory.peak_gpu_mb is not None:
-        metrics["train_peak_gpu_mb"] = memory.peak_gpu_mb
+    metrics.update(_measurements(trainer.callbacks))
     artifacts: dict[str, str] = {}
     module.prepare_export()  # every rank: a sharded stage gathers its weights for rank zero
     if trainer.is_global_zero:
@@ -358,6 +358,23 @@ def _execute(
     # Under DDP the next stage's processes read this export: none starts before rank zero wrote it.
     trainer.strategy.barrier("export")
     return {"metrics": metrics, "artifacts": artifacts, "summary": report.summary}
+
+
+def _measurements(callbacks: list) -> dict[str, float]:
+    """What this attempt measured (a measurement, not a result): its mean step time and rank
+    zero's peak memory."""
+    from occtrain.stages.common import PeakMemory, StepTimer
+
+    out: dict[str, float] = {}
+    timer = next(c for c in callbacks if isinstance(c, StepTimer))
+    if timer.mean_s is not None:
+        out["train_step_s"] = timer.mean_s
+    memory = next(c for c in callbacks if isinstance(c, PeakMemory))
+    if memory.peak_mb is not None:
+        out["train_peak_rss_mb"] = memory.peak_mb
+    if memory.peak_gpu_mb is not None:
+        out["train_peak_gpu_mb"] = memory.peak_gpu_mb
+    return out
 
 
 def run(

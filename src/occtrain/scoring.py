@@ -11,7 +11,7 @@ from __future__ import annotations
 import argparse
 import json
 from collections.abc import Callable
-from functools import lru_cache
+from functools import lru_cache, partial
 from pathlib import Path
 from typing import Annotated, Any, Literal, NotRequired, TypedDict
 
@@ -387,16 +387,24 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     """Add ``occtrain score {occupancy,forecast,planning,captions,qa}``."""
     score = subparsers.add_parser("score", help="score your own predictions with the papers' metric conventions")
     sub = score.add_subparsers(dest="what", required=True, metavar="WHAT")
+    _add_occupancy_scores(sub)
+    _add_plan_and_text_scores(sub)
 
-    def add(name: str, summary: str, func: Any, pred_help: str) -> argparse.ArgumentParser:
-        p = sub.add_parser(name, help=summary)
-        p.add_argument("--pred", required=True, help=pred_help)
-        p.set_defaults(func=_out_checked_first(func))
-        return p
 
-    def out(p: argparse.ArgumentParser) -> None:
-        p.add_argument("--out", metavar="FILE", help="also write the JSON result to FILE (atomically)")
+def _add_score(sub: argparse._SubParsersAction, name: str, summary: str, func: Any, pred_help: str) -> Any:
+    p = sub.add_parser(name, help=summary)
+    p.add_argument("--pred", required=True, help=pred_help)
+    p.set_defaults(func=_out_checked_first(func))
+    return p
 
+
+def _add_out(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--out", metavar="FILE", help="also write the JSON result to FILE (atomically)")
+
+
+def _add_occupancy_scores(sub: argparse._SubParsersAction) -> None:
+    """``score occupancy`` and ``score forecast``."""
+    add, out = partial(_add_score, sub), _add_out
     p = add(
         "occupancy",
         "semantic occupancy mIoU/IoU (Occ3D convention by default)",
@@ -431,6 +439,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--gt", required=True, help="dataset root: its scene order gives the future frames")
     out(p)
 
+
+def _add_plan_and_text_scores(sub: argparse._SubParsersAction) -> None:
+    """``score planning``, ``score captions`` and ``score qa``."""
+    add, out = partial(_add_score, sub), _add_out
     p = add(
         "planning",
         "planning L2 and collision rate, ST-P3 and UniAD conventions",
