@@ -68,7 +68,7 @@ def test_each_cell_reads_its_stage_beside_the_familys_own_baseline(tool, tmp_pat
     (run / "manifest.json").write_text(json.dumps(manifest))
     scored = []
     monkeypatch.setattr(tool, "_cli", lambda *args: scored.append(args))
-    family = next(f for f in tool.FAMILIES if f.recipe == "sparseoccvla")
+    family = next(f for f in tool.FAMILIES if f.showcase.recipe == "sparseoccvla")
 
     r = tool.row(family, tmp_path)
 

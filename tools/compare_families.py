@@ -25,6 +25,8 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
+from occtrain.core import registry
+from occtrain.core.registry import Showcase
 from occtrain.core.vocab import scene_length
 from occtrain.data.cameras import CAMERA_NAMES
 from occtrain.io import atomic_write_json, atomic_write_text
@@ -34,66 +36,15 @@ REPO = Path(__file__).resolve().parents[1]
 
 @dataclass(frozen=True)
 class Family:
-    """Where the table reads each of a family's numbers: the stage that produces it."""
+    """A family's row: its name and where its numbers come from (its registration's showcase)."""
 
     name: str
-    recipe: str
-    forecast: str | None  # a world-model stage that forecasts occupancy
-    plan: str | None  # the stage whose plans are scored (a planner, or a world model that plans)
-    qa: str | None
-    caption: str | None
-    world: str  # the world-model stage whose export says how many tokens a frame takes
-    plan_metric: str = "plan"  # the metric prefix of the plans the family ends with
-    note: str = ""
+    showcase: Showcase
 
 
-FAMILIES = (
-    # The planning head on the meta action the instruct model generates (not the reference one).
-    Family(
-        "OccLLaMA",
-        "quickstart",
-        forecast="pretrain",
-        plan="planner",
-        qa="instruct",
-        caption=None,
-        world="pretrain",
-        plan_metric="head_generated_meta",
-        note="VQ codes of a 2D VAE",
-    ),
-    # Waypoints generated between the forecast frames, as the paper plans.
-    Family(
-        "Occ-LLM",
-        "occllm",
-        forecast="pretrain",
-        plan="pretrain",
-        qa="instruct",
-        caption=None,
-        world="pretrain",
-        plan_metric="plan_alternate",
-        note="MS-VAE codes, patchified",
-    ),
-    # OccVLA's stage 1 trains on captions, but its evaluation scores meta actions and QA only.
-    Family(
-        "OccVLA",
-        "occvla",
-        forecast=None,
-        plan="stage3",
-        qa="vqa",
-        caption=None,
-        world="stage1",
-        plan_metric="head_generated_meta",
-        note="camera patches (occupancy is an output)",
-    ),
-    Family(
-        "SparseOccVLA",
-        "sparseoccvla",
-        forecast="stage3",
-        plan="planner",
-        qa="stage3",
-        caption="stage3",
-        world="stage3",
-        note="sparse queries + global queries",
-    ),
+#: Every registered family with a showcase, in the registry's order of names.
+FAMILIES = tuple(
+    Family(spec.paper, spec.showcase) for _, spec in sorted(registry.families().items()) if spec.showcase is not None
 )
 
 
@@ -150,23 +101,24 @@ def _stage_costs(run: Path) -> str:
 
 
 def row(family: Family, runs: Path) -> dict:
-    run = runs / family.recipe
+    show = family.showcase
+    run = runs / show.recipe
     out: dict = {
         "family": family.name,
-        "recipe": f"stages/{family.recipe}.yaml",
-        "scene": family.note,
-        "tokens_per_frame": _tokens_per_frame(run / family.world),
+        "recipe": f"stages/{show.recipe}.yaml",
+        "scene": show.note,
+        "tokens_per_frame": _tokens_per_frame(run / show.world),
         "costs": _stage_costs(run),
     }
-    scored = [s for s in (family.forecast, family.plan, family.qa, family.caption) if s]
-    if family.forecast:
-        m = _scored(run / family.forecast)
+    scored = [s for s in (show.forecast, show.plan, show.qa, show.caption) if s]
+    if show.forecast:
+        m = _scored(run / show.forecast)
         out["forecast"] = {h: m.get(f"forecast_occworld_mIoU_{h}") for h in ("1s", "2s", "3s")}
         out["copy_forecast"] = {h: m.get(f"baseline_copy_forecast_occworld_mIoU_{h}") for h in ("1s", "2s", "3s")}
-        out["forecast_stage"] = family.forecast
-    if family.plan:
-        m = _scored(run / family.plan)
-        p = family.plan_metric
+        out["forecast_stage"] = show.forecast
+    if show.plan:
+        m = _scored(run / show.plan)
+        p = show.plan_metric
         cv = next(
             (m[k] for k in ("constant_velocity_L2_stp3_avg", "baseline_constant_velocity_L2_stp3_avg") if k in m), None
         )
@@ -175,17 +127,17 @@ def row(family: Family, runs: Path) -> dict:
             "collision": m.get(f"{p}_collision_stp3_avg"),
             "constant_velocity_L2": cv,
         }
-        out["plan_stage"] = family.plan
-    if family.qa:
-        m = _scored(run / family.qa)
+        out["plan_stage"] = show.plan
+    if show.qa:
+        m = _scored(run / show.qa)
         out["qa"] = m.get("qa_overall")
         out["qa_baseline"] = m.get("baseline_prior_qa_overall")
-        out["qa_stage"] = family.qa
-    if family.caption:
-        m = _scored(run / family.caption)
+        out["qa_stage"] = show.qa
+    if show.caption:
+        m = _scored(run / show.caption)
         out["cider"] = m.get("caption_CIDEr")
         out["cider_baseline"] = m.get("baseline_typical_caption_CIDEr")
-        out["caption_stage"] = family.caption
+        out["caption_stage"] = show.caption
     out["worlds"] = sorted({_world(run / stage) for stage in scored})
     return out
 
@@ -257,7 +209,7 @@ def main() -> int:
     runs = (REPO / args.runs).resolve()
     for family in FAMILIES:
         if not args.no_train:
-            _cli("run", f"stages/{family.recipe}.yaml", "--run-dir", str(runs / family.recipe))
+            _cli("run", f"stages/{family.showcase.recipe}.yaml", "--run-dir", str(runs / family.showcase.recipe))
     rows = [row(f, runs) for f in FAMILIES]
     table = markdown(rows)
     atomic_write_json(runs / "families.json", rows)

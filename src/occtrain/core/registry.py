@@ -100,6 +100,27 @@ class WorldSpec:
 
 
 @dataclass(frozen=True)
+class Showcase:
+    """Where the four-family comparison (``tools/compare_families.py``) reads a family's
+    headline numbers: its shipped recipe (``stages/<recipe>.yaml``) and the stage of that
+    recipe behind each number (None: the family has none)."""
+
+    recipe: str
+    #: The world-model stage whose export says how many tokens a frame takes.
+    world: str
+    #: A stage that forecasts occupancy.
+    forecast: str | None = None
+    #: The stage whose plans are scored (a planner, or a world model that plans), and the
+    #: metric prefix of the plans the family ends with.
+    plan: str | None = None
+    plan_metric: str = "plan"
+    qa: str | None = None
+    caption: str | None = None
+    #: What the LLM reads of a scene, in a few words.
+    note: str = ""
+
+
+@dataclass(frozen=True)
 class FamilySpec:
     """What one paper family contributes to the shared stage kinds."""
 
@@ -111,6 +132,8 @@ class FamilySpec:
     world: WorldSpec | None = None
     #: The paper's published figures (``core.paper.PaperFigure``), shown beside a run's metrics.
     paper_figures: tuple[Any, ...] = ()
+    #: Its row of the four-family comparison, if it has one.
+    showcase: Showcase | None = None
 
 
 _FAMILIES: dict[str, FamilySpec] = {}

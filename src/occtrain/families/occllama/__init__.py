@@ -6,7 +6,7 @@ from __future__ import annotations
 from functools import partial
 
 from occtrain.core.planning import MetaActionPlannerConfig, load_meta_action_planner, meta_action_planner
-from occtrain.core.registry import FamilySpec, TokenizerArch, WorldSpec, register_family
+from occtrain.core.registry import FamilySpec, Showcase, TokenizerArch, WorldSpec, register_family
 from occtrain.core.scene import load_vq_scene_encoder, vq_scene_encoder
 from occtrain.families.occllama.config import OccLLaMATokenizerConfig, OccLLaMAWorldConfig
 from occtrain.families.occllama.operations import OPERATIONS
@@ -36,6 +36,16 @@ OCCLLAMA = register_family(
             operations=OPERATIONS,
         ),
         paper_figures=PAPER_FIGURES,
+        # The planning head on the meta action the instruct model generates (not the reference one).
+        showcase=Showcase(
+            recipe="quickstart",
+            world="pretrain",
+            forecast="pretrain",
+            plan="planner",
+            plan_metric="head_generated_meta",
+            qa="instruct",
+            note="VQ codes of a 2D VAE",
+        ),
     )
 )
 

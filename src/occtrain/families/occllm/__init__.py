@@ -10,7 +10,7 @@ occllm``, settings under ``model.occllm``), on any Occ3D-layout data.
 from __future__ import annotations
 
 from occtrain.core import operations
-from occtrain.core.registry import FamilySpec, TokenizerArch, WorldSpec, register_family
+from occtrain.core.registry import FamilySpec, Showcase, TokenizerArch, WorldSpec, register_family
 from occtrain.core.scene import load_vq_scene_encoder, vq_scene_encoder
 from occtrain.families.occllm.config import MOVABLE_CLASSES, MSVAEConfig, OccLLMWorldConfig
 from occtrain.families.occllm.msvae import MSVAE, merge, separate
@@ -37,6 +37,16 @@ OCCLLM = register_family(
             operations={"answer": operations.answer, "forecast": operations.forecast, "plan": operations.plan},
         ),
         paper_figures=PAPER_FIGURES,
+        # Waypoints generated between the forecast frames, as the paper plans.
+        showcase=Showcase(
+            recipe="occllm",
+            world="pretrain",
+            forecast="pretrain",
+            plan="pretrain",
+            plan_metric="plan_alternate",
+            qa="instruct",
+            note="MS-VAE codes, patchified",
+        ),
     )
 )
 

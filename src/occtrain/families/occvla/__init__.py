@@ -13,7 +13,7 @@ from __future__ import annotations
 from functools import partial
 
 from occtrain.core.planning import MetaActionPlannerConfig, load_meta_action_planner, meta_action_planner
-from occtrain.core.registry import FamilySpec, WorldSpec, register_family
+from occtrain.core.registry import FamilySpec, Showcase, WorldSpec, register_family
 from occtrain.core.scene import load_vq_scene_encoder, vq_scene_encoder
 from occtrain.families.occvla.config import OccVLAWorldConfig
 from occtrain.families.occvla.operations import OPERATIONS
@@ -50,6 +50,15 @@ OCCVLA = register_family(
             operations=OPERATIONS,
         ),
         paper_figures=PAPER_FIGURES,
+        # Stage 1 trains on captions, but the paper's evaluation scores meta actions and QA only.
+        showcase=Showcase(
+            recipe="occvla",
+            world="stage1",
+            plan="stage3",
+            plan_metric="head_generated_meta",
+            qa="vqa",
+            note="camera patches (occupancy is an output)",
+        ),
     )
 )
 

@@ -10,7 +10,7 @@ LoRA) and ``planner`` (the LLM-guided anchor-diffusion planner).
 
 from __future__ import annotations
 
-from occtrain.core.registry import FamilySpec, TokenizerArch, WorldSpec, register_family
+from occtrain.core.registry import FamilySpec, Showcase, TokenizerArch, WorldSpec, register_family
 from occtrain.families.sparseoccvla.config import SparseOccConfig, SparseOccVLAWorldConfig
 from occtrain.families.sparseoccvla.encoder import SparseOccEncoder
 from occtrain.families.sparseoccvla.forecasting import ForecastHead
@@ -47,6 +47,15 @@ SPARSEOCCVLA = register_family(
             operations=OPERATIONS,
         ),
         paper_figures=PAPER_FIGURES,
+        showcase=Showcase(
+            recipe="sparseoccvla",
+            world="stage3",
+            forecast="stage3",
+            plan="planner",
+            qa="stage3",
+            caption="stage3",
+            note="sparse queries + global queries",
+        ),
     )
 )
 
