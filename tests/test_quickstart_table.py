@@ -24,7 +24,8 @@ def tool():
 
 def _run(root: Path, qa: float, world: str = "v4", seed: int = 0) -> Path:
     (root / "manifest.json").parent.mkdir(parents=True)
-    manifest = {"stages": {"instruct": {"code_version": "0.1.0+abc1234", "config": {"trainer": {"seed": seed}}}}}
+    entry = {"code_version": "0.1.0+abc1234", "config": {"trainer": {"seed": seed}}, "wall_time_s": 100.0 + seed}
+    manifest = {"stages": {"instruct": entry}}
     (root / "manifest.json").write_text(json.dumps(manifest))
     out = root / "instruct" / "eval" / "val"
     out.mkdir(parents=True)
@@ -41,6 +42,7 @@ def test_seeds_side_by_side_with_mean_spread_baseline_and_world(tool, tmp_path):
     row = next(line for line in table.splitlines() if "NuScenes-QA accuracy" in line and line.startswith("| instruct"))
     assert "| 50.0 / 60.0 / 55.0 | 55.0 (50.0 to 60.0) | commonest answer per type 43.2 |" in row
     assert "forecast" not in table  # a stage no run scored has no row
+    assert "| instruct | 100 / 101 / 102 | 101 |" in table and "| all stages | 100 / 101 / 102 | 101 |" in table
 
 
 def test_runs_scored_on_different_worlds_are_refused(tool, tmp_path):

@@ -193,6 +193,30 @@ def table(runs: list[Path]) -> str:
         lines.append(
             f"| {row.stage} | {row.label} | {' / '.join(_fmt(v, row.digits) for v in values)} | {spread} | {base} |"
         )
+    return "\n".join(lines) + "\n" + wall_times(runs)
+
+
+def wall_times(runs: list[Path]) -> str:
+    """Each stage's training wall time per run (``manifest.json``: the attempts' sum, not
+    counting the world's synthesis and shards, which come before the first stage)."""
+    manifests = [json.loads((run / "manifest.json").read_text()).get("stages", {}) for run in runs]
+    stages = list(manifests[0])
+    if not stages:
+        return ""
+    lines = [
+        "",
+        f"| stage | training wall time, s: {' / '.join(f'run {i}' for i in range(len(runs)))} | mean |",
+        "|---|---|---|",
+    ]
+    totals = [0.0] * len(runs)
+    for stage in stages:
+        times = [m.get(stage, {}).get("wall_time_s") for m in manifests]
+        have = [t for t in times if isinstance(t, (int, float))]
+        for i, t in enumerate(times):
+            totals[i] += t if isinstance(t, (int, float)) else 0.0
+        shown = " / ".join("-" if t is None else f"{t:.0f}" for t in times)
+        lines.append(f"| {stage} | {shown} | {sum(have) / len(have):.0f} |" if have else f"| {stage} | {shown} | - |")
+    lines.append(f"| all stages | {' / '.join(f'{t:.0f}' for t in totals)} | {sum(totals) / len(totals):.0f} |")
     return "\n".join(lines) + "\n"
 
 
