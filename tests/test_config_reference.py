@@ -4,6 +4,7 @@ written beside the fields, for every registered stage kind, family and tokenizer
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Optional
 
 from omegaconf import MISSING
 
@@ -47,6 +48,22 @@ def test_rows_read_types_defaults_and_comments():
         KeyDoc("model.items", "list of sections", "", "A nested section."),
         KeyDoc("model.items[].count", "int", "3", "How many."),
         KeyDoc("model.flag", "bool", "false", ""),
+    ]
+
+
+@dataclass
+class _Unions:
+    # Both spellings of an optional section, as schemas may write either.
+    old: Optional[_Inner] = None  # noqa: UP045
+    new: _Inner | None = None
+
+
+def test_both_spellings_of_an_optional_section_expand():
+    assert reference_rows(_Unions) == [
+        KeyDoc("old", "section | null", "", "A nested section."),
+        KeyDoc("old.count", "int", "3", "How many."),
+        KeyDoc("new", "section | null", "", "A nested section."),
+        KeyDoc("new.count", "int", "3", "How many."),
     ]
 
 

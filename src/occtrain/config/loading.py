@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import types
 import typing
 from pathlib import Path
 from typing import Any, TypeVar
@@ -32,7 +33,7 @@ def _section_type(tp: Any) -> type | None:
     if dataclasses.is_dataclass(tp):
         return tp
     origin = typing.get_origin(tp)
-    if origin is typing.Union:
+    if origin in (typing.Union, types.UnionType):  # Optional[X] and X | None
         held = [a for a in typing.get_args(tp) if a is not type(None)]
         return _section_type(held[0]) if len(held) == 1 else None
     if origin in (list, tuple):

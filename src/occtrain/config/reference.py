@@ -13,6 +13,7 @@ import inspect
 import io
 import re
 import tokenize
+import types
 import typing
 from dataclasses import dataclass
 from functools import cache
@@ -28,6 +29,10 @@ class KeyDoc:
     type: str
     default: str
     doc: str
+
+
+#: Comments for tools, not readers: a linter's or type checker's or formatter's.
+_PRAGMA = re.compile(r"#\s*(noqa|type:|fmt:|pragma)")
 
 
 @cache
@@ -55,7 +60,7 @@ def field_comments(cls: type) -> dict[str, str]:
                 comments[match.group(1)] = " ".join(pending)
             if not following.strip().startswith("#:"):
                 pending = []
-        elif (match := field_line.match(row)) and row[: tok.start[1]].strip():
+        elif (match := field_line.match(row)) and row[: tok.start[1]].strip() and not _PRAGMA.match(text):
             comments.setdefault(match.group(1), text.lstrip("#").strip())
     return comments
 
@@ -73,7 +78,7 @@ def type_name(hint: object) -> str:
     """A type as a recipe's author reads it: ``int``, ``list[str]``, ``float | null``."""
     origin = typing.get_origin(hint)
     args = typing.get_args(hint)
-    if origin is typing.Union:
+    if origin in (typing.Union, types.UnionType):  # Optional[X] and X | None
         names = [type_name(a) for a in args if a is not type(None)]
         return " | ".join(names) + (" | null" if type(None) in args else "")
     if origin is not None:
