@@ -43,7 +43,7 @@ def quickstart_run(root: Path) -> Path:
     # warm parent (tests/cli_zygote.py), so nothing comes to depend on it.
     args = [
         "run",
-        "stages/quickstart.yaml",
+        "recipes/quickstart.yaml",
         *tiny_overrides(root / "data", steps=PIPELINE_STEPS),
         "--run-dir",
         str(run_dir),

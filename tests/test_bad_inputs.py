@@ -74,7 +74,7 @@ def world(tmp_path_factory) -> Path:
     write_shards(root / "ds", root / "shards", samples_per_shard=4, kinds=["frames"])
     export = root / "run" / "pretrain" / "export"
     export.mkdir(parents=True)
-    recipe = load_config(RecipeConfig, REPO / "stages" / "quickstart.yaml", [f"data.root={root / 'ds'}"])
+    recipe = load_config(RecipeConfig, REPO / "recipes" / "quickstart.yaml", [f"data.root={root / 'ds'}"])
     (root / "run" / "pipeline.yaml").write_text(to_yaml(recipe))
     (root / "run" / "manifest.json").write_text(
         json.dumps({"name": "quickstart", "stages": {"pretrain": {"kind": "pretrain", "status": "done"}}})
@@ -540,7 +540,7 @@ def tokenizer_done(tmp: Path) -> None:
 # -- setups: plan-memory
 
 PLAN = ["plan-memory", RECIPE_FILE]
-SCALE_LLAMA = str(REPO / "stages" / "scale" / "occllama_llama8b.yaml")
+SCALE_LLAMA = str(REPO / "recipes" / "scale" / "occllama_llama8b.yaml")
 LLM_DIR = "{tmp}/llm"
 
 

@@ -22,7 +22,7 @@ def _config(site: Path, **overrides):
 def test_the_readme_is_short_and_holds_the_two_setup_commands():
     readme = (REPO / "README.md").read_text()
     assert readme.count("\n") <= 250
-    assert "pip install -e '.[dev]' && occtrain run stages/quickstart.yaml\npytest\n" in readme
+    assert "pip install -e '.[dev]' && occtrain run recipes/quickstart.yaml\npytest\n" in readme
 
 
 def test_the_site_builds_strict(tmp_path, monkeypatch):

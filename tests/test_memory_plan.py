@@ -105,7 +105,7 @@ def test_the_activation_estimate_is_within_ten_percent_of_what_autograd_keeps():
 def test_plan_memory_plans_the_papers_models(capsys):
     assert (
         main(
-            ["plan-memory", str(REPO / "stages/scale/sparseoccvla_vicuna7b.yaml"), "--gpus", "8", "--gpu-memory", "96"]
+            ["plan-memory", str(REPO / "recipes/scale/sparseoccvla_vicuna7b.yaml"), "--gpus", "8", "--gpu-memory", "96"]
         )
         == 0
     )
@@ -117,7 +117,7 @@ def test_plan_memory_plans_the_papers_models(capsys):
 
 
 def test_plan_memory_refuses_bad_input_in_one_line(tmp_path, capsys):
-    recipe = REPO / "stages/scale/sparseoccvla_vicuna7b.yaml"
+    recipe = REPO / "recipes/scale/sparseoccvla_vicuna7b.yaml"
     assert main(["plan-memory", str(recipe), "--gpus", "0"]) == 2
     assert (
         capsys.readouterr().err.strip()
@@ -129,7 +129,7 @@ def test_plan_memory_refuses_bad_input_in_one_line(tmp_path, capsys):
         err == f"error: stages.stage2.model.llm.path: {tmp_path} has no config.json; "
         "plan-memory reads a model's config.json (weights not needed)"
     )
-    assert main(["plan-memory", str(REPO / "stages/vision.yaml")]) == 2
+    assert main(["plan-memory", str(REPO / "recipes/vision.yaml")]) == 2
     assert "has no pretrain, instruct or distill stage" in capsys.readouterr().err
 
 
@@ -196,7 +196,7 @@ def test_a_config_json_with_head_dim_may_have_heads_that_do_not_divide_hidden(tm
 
 
 def test_an_override_beside_llm_path_is_refused_in_every_stage_form(capsys):
-    recipe = str(REPO / "stages/scale/occllama_llama8b.yaml")
+    recipe = str(REPO / "recipes/scale/occllama_llama8b.yaml")
     for key in (
         "stages.pretrain.model.llm.hidden_size",
         "stages.1.model.llm.hidden_size",

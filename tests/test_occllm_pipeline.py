@@ -1,4 +1,4 @@
-"""stages/occllm.yaml through the real CLI, shrunk to seconds per stage: the MS-VAE, the
+"""recipes/occllm.yaml through the real CLI, shrunk to seconds per stage: the MS-VAE, the
 patch-token world model and its LoRA instruction tuning; ``occtrain eval`` on each world-
 model stage; exports that plain transformers reads; the tokenizer stage resumed after kill -9."""
 
@@ -27,7 +27,7 @@ def overrides(data: Path) -> list[str]:
 def occllm_run(tmp_path_factory) -> Path:
     root = tmp_path_factory.mktemp("occllm")
     run_dir = root / "run"
-    res = run_cli("run", "stages/occllm.yaml", *overrides(root / "data"), "--run-dir", str(run_dir), timeout=900)
+    res = run_cli("run", "recipes/occllm.yaml", *overrides(root / "data"), "--run-dir", str(run_dir), timeout=900)
     assert res.returncode == 0, res.stderr[-3000:]
     return run_dir
 
@@ -105,7 +105,7 @@ def test_the_msvae_tokenizer_resumes_bit_exact_after_kill_9(occllm_run, tmp_path
     run_dir = tmp_path / "run"
     args = [
         "run",
-        "stages/occllm.yaml",
+        "recipes/occllm.yaml",
         *overrides(occllm_run.parent / "data"),
         "--run-dir",
         str(run_dir),
@@ -142,9 +142,9 @@ def test_it_trains_on_a_plain_occ3d_release(synth_dataset, tmp_path):
             f"stages[{i}].trainer.limit_val_batches=1",
         ]
     args += ["stages[1].model.val_samples=2", "stages[1].model.llm.text_vocab_size=300"]
-    res = run_cli("run", "stages/occllm.yaml", *args, "--run-dir", str(run_dir), "--only", "tokenizer")
+    res = run_cli("run", "recipes/occllm.yaml", *args, "--run-dir", str(run_dir), "--only", "tokenizer")
     assert res.returncode == 0, res.stderr[-3000:]
-    res = run_cli("run", "stages/occllm.yaml", *args, "--run-dir", str(run_dir), "--only", "pretrain")
+    res = run_cli("run", "recipes/occllm.yaml", *args, "--run-dir", str(run_dir), "--only", "pretrain")
     assert res.returncode == 0, res.stderr[-3000:]
     metrics = json.loads((run_dir / "pretrain" / "metrics.json").read_text())
     assert metrics["val/forecast_occworld_frames_3s"] > 0 and "val/plan_alternate_L2_stp3_avg" in metrics

@@ -1,4 +1,4 @@
-"""stages/occvla.yaml through the real CLI on a tiny world, a few steps per stage: the camera
+"""recipes/occvla.yaml through the real CLI on a tiny world, a few steps per stage: the camera
 encoder, the OccWorld VQ-VAE, stage 1, stage 2 with adapters and occupancy, the planning
 head on generated meta actions and the VQA branch; ``occtrain eval``; the export reloaded
 and generating the same text with and without its occupancy block."""
@@ -46,7 +46,7 @@ def overrides(root: Path) -> list[str]:
 def occvla_run(tmp_path_factory) -> Path:
     root = tmp_path_factory.mktemp("occvla")
     run_dir = root / "run"
-    res = run_cli("run", "stages/occvla.yaml", *overrides(root), "--run-dir", str(run_dir), timeout=900)
+    res = run_cli("run", "recipes/occvla.yaml", *overrides(root), "--run-dir", str(run_dir), timeout=900)
     assert res.returncode == 0, res.stderr[-3000:]
     return run_dir
 
@@ -147,7 +147,7 @@ def test_distillation_takes_a_camera_reading_teacher(occvla_run, tmp_path):
     teacher's architecture around a smaller LLM; scored like its teacher."""
     from conftest import REPO
 
-    recipe = (REPO / "stages" / "occvla.yaml").read_text().replace("../configs/", f"{REPO}/configs/")
+    recipe = (REPO / "recipes" / "occvla.yaml").read_text().replace("../configs/", f"{REPO}/configs/")
     recipe += """
   - name: student
     kind: distill

@@ -34,7 +34,7 @@ def test_every_stage_is_done_and_exported(pipeline):
             entry["metrics"], nan_ok=True
         )
     # World-model exports hold a Hugging Face directory (the quickstart fine-tunes fully:
-    # no adapter; the LoRA export is checked on stages/occllama.yaml below).
+    # no adapter; the LoRA export is checked on recipes/occllama.yaml below).
     for name in ("pretrain", "instruct", "distill"):
         llm = pipeline / name / "export" / "llm"
         assert json.loads((llm / "config.json").read_text())["model_type"] == "llama"
@@ -55,12 +55,12 @@ def test_every_stage_is_done_and_exported(pipeline):
 
 
 def test_the_occllama_recipe_runs(pipeline, tmp_path):
-    """stages/occllama.yaml (tokenizer -> pretrain -> instruct) end to end, shrunk, on the
+    """recipes/occllama.yaml (tokenizer -> pretrain -> instruct) end to end, shrunk, on the
     pipeline's world (the same data settings: its shards are reused, not made again)."""
     run_dir = tmp_path / "run"
     res = run_cli(
         "run",
-        "stages/occllama.yaml",
+        "recipes/occllama.yaml",
         *tiny_overrides(pipeline.parent / "data", stages=3),
         "--run-dir",
         str(run_dir),
@@ -153,7 +153,7 @@ def test_eval_asks_every_question_and_scores_another_world(pipeline, tmp_path):
 
 
 def test_the_vision_recipe_runs_and_hands_over_a_hugging_face_tower(tmp_path):
-    """stages/vision.yaml on a tiny world with cameras: trained, scored beside the prior,
+    """recipes/vision.yaml on a tiny world with cameras: trained, scored beside the prior,
     and exported as a directory plain transformers loads."""
     import torch
     from transformers import SiglipVisionModel
@@ -163,7 +163,7 @@ def test_the_vision_recipe_runs_and_hands_over_a_hugging_face_tower(tmp_path):
     run_dir = tmp_path / "run"
     res = run_cli(
         "run",
-        "stages/vision.yaml",
+        "recipes/vision.yaml",
         f"data.root={tmp_path / 'data'}",
         "data.synth.train_scenes=1",
         "data.synth.val_scenes=1",

@@ -35,7 +35,7 @@ def test_kill_9_at_a_random_step_of_every_stage_resumes_bit_exact(pipeline, tmp_
     run_dir = tmp_path / "run"
     args = [
         "run",
-        "stages/quickstart.yaml",
+        "recipes/quickstart.yaml",
         *tiny_overrides(pipeline.parent / "data", steps=PIPELINE_STEPS),
         "--run-dir",
         str(run_dir),
@@ -83,7 +83,7 @@ def test_bf16_mixed_trains_every_stage_on_cpu(pipeline, tmp_path):
     trackers = [name for name in ("mlflow", "wandb") if importlib.util.find_spec(name)]
     res = run_cli(
         "run",
-        "stages/quickstart.yaml",
+        "recipes/quickstart.yaml",
         *tiny_overrides(pipeline.parent / "data", steps=2),
         "trainer.precision=bf16-mixed",
         *checkpointing,

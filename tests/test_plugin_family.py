@@ -139,9 +139,8 @@ def test_registering_a_family_leaves_every_existing_stage_hash_unchanged(tmp_pat
     from plugins.tiny_family import TASKS, ColumnTasks, ColumnWorldModel
 
     def hashes(recipe: str) -> dict[str, str]:
-        return {
-            p.spec.name: p.config_hash for p in plan_stages(load_config(RecipeConfig, REPO / "stages" / recipe), recipe)
-        }
+        planned = plan_stages(load_config(RecipeConfig, REPO / "recipes" / recipe), recipe)
+        return {p.spec.name: p.config_hash for p in planned}
 
     recipes = ("quickstart.yaml", "occllm.yaml", "occvla.yaml", "occllama.yaml")
     before = {r: hashes(r) for r in recipes}

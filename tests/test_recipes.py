@@ -10,7 +10,7 @@ from conftest import REPO
 from occtrain.errors import ConfigError
 from occtrain.runner import load_recipe
 
-RECIPES = sorted((REPO / "stages").rglob("*.yaml"))
+RECIPES = sorted((REPO / "recipes").rglob("*.yaml"))
 
 
 def test_there_are_recipes():
@@ -36,7 +36,7 @@ def test_the_docs_list_every_recipe():
     unlisted = []
     for path in RECIPES:
         rel = str(path.relative_to(REPO))
-        # A family's ablations may be listed by their pattern (stages/ablations/occllm_*.yaml).
+        # A family's ablations may be listed by their pattern (recipes/ablations/occllm_*.yaml).
         pattern = f"{rel.rsplit('_', 1)[0]}_*.yaml" if path.parent.name == "ablations" else rel
         if rel not in docs and pattern not in docs:
             unlisted.append(rel)
@@ -46,9 +46,9 @@ def test_the_docs_list_every_recipe():
 def test_the_shipped_gpu_trainer_config_validates_with_every_device():
     # configs/trainer/gpu.yaml asks for every GPU (devices: -1, Lightning's convention); the
     # range check must take it, and still refuse 0 devices in one line.
-    _, planned = load_recipe(REPO / "stages/quickstart.yaml", [f"trainer={REPO / 'configs/trainer/gpu.yaml'}"])
+    _, planned = load_recipe(REPO / "recipes/quickstart.yaml", [f"trainer={REPO / 'configs/trainer/gpu.yaml'}"])
     assert {(p.trainer.accelerator, p.trainer.devices, p.trainer.precision) for p in planned} == {
         ("gpu", -1, "bf16-mixed")
     }
     with pytest.raises(ConfigError, match=r"trainer.devices is 0 in .*: it must be at least 1, or -1 for every device"):
-        load_recipe(REPO / "stages/quickstart.yaml", ["trainer.devices=0"])
+        load_recipe(REPO / "recipes/quickstart.yaml", ["trainer.devices=0"])

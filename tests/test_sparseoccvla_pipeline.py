@@ -1,4 +1,4 @@
-"""stages/sparseoccvla.yaml through the real CLI on a tiny world with an OmniDrive-layout
+"""recipes/sparseoccvla.yaml through the real CLI on a tiny world with an OmniDrive-layout
 text fixture, a few steps per stage: the vision teacher, stage 1 (the sparse occupancy
 encoder from the cameras), stage 2, stage 3 through LoRA and the anchor-diffusion planner;
 ``occtrain eval`` on each stage; kill -9 and resume bit-exact; the stages from stage 1 on
@@ -76,7 +76,7 @@ def world(tmp_path_factory) -> Path:
 @pytest.fixture(scope="module")
 def sparse_run(world) -> Path:
     run_dir = world / "run"
-    res = run_cli("run", "stages/sparseoccvla.yaml", *overrides(world), "--run-dir", str(run_dir), timeout=900)
+    res = run_cli("run", "recipes/sparseoccvla.yaml", *overrides(world), "--run-dir", str(run_dir), timeout=900)
     assert res.returncode == 0, res.stderr[-3000:]
     return run_dir
 
@@ -169,10 +169,10 @@ def test_kill_9_in_stage_1_and_stage_2_resumes_bit_exact(sparse_run, world, tmp_
     from safetensors.torch import load_file
 
     run_dir = tmp_path / "run"
-    args = ["run", "stages/sparseoccvla.yaml", *overrides(world), "--run-dir", str(run_dir)]
+    args = ["run", "recipes/sparseoccvla.yaml", *overrides(world), "--run-dir", str(run_dir)]
     for name in ("stage1", "stage2"):
         kill_at_checkpoint(args, run_dir / name / "checkpoints" / "last.ckpt", step=1)
-    res = run_cli("run", "stages/sparseoccvla.yaml", *overrides(world), "--run-dir", str(run_dir), timeout=900)
+    res = run_cli("run", "recipes/sparseoccvla.yaml", *overrides(world), "--run-dir", str(run_dir), timeout=900)
     assert res.returncode == 0, res.stderr[-3000:]
     stages = json.loads((run_dir / "manifest.json").read_text())["stages"]
     for name in ("stage1", "stage2"):
@@ -195,7 +195,7 @@ def test_the_stages_train_under_ddp_with_every_parameter_getting_a_gradient(spar
     ddp = [f"stages.{s}.trainer.{k}" for s in STAGES[1:] for k in ("devices=2", "strategy=ddp")]
     res = run_cli(
         "run",
-        "stages/sparseoccvla.yaml",
+        "recipes/sparseoccvla.yaml",
         *overrides(world),
         *ddp,
         "--restart",

@@ -3,7 +3,7 @@
     python tools/compare_families.py                 # run what is missing, score, print and write the table
     python tools/compare_families.py --no-train      # only score and tabulate finished runs
 
-Each family trains its shipped recipe (``stages/quickstart.yaml`` is OccLLaMA's) on the
+Each family trains its shipped recipe (``recipes/quickstart.yaml`` is OccLLaMA's) on the
 quickstart world through the real CLI (``occtrain run``: done stages are skipped, cut-off
 ones resume), every stage the table reads is scored on the whole val split with
 ``occtrain eval`` (skipped when its ``eval/val/metrics.json`` is newer than its export),
@@ -105,7 +105,7 @@ def row(family: Family, runs: Path) -> dict:
     run = runs / show.recipe
     out: dict = {
         "family": family.name,
-        "recipe": f"stages/{show.recipe}.yaml",
+        "recipe": f"recipes/{show.recipe}.yaml",
         "scene": show.note,
         "tokens_per_frame": _tokens_per_frame(run / show.world),
         "costs": _stage_costs(run),
@@ -209,7 +209,7 @@ def main() -> int:
     runs = (REPO / args.runs).resolve()
     for family in FAMILIES:
         if not args.no_train:
-            _cli("run", f"stages/{family.showcase.recipe}.yaml", "--run-dir", str(runs / family.showcase.recipe))
+            _cli("run", f"recipes/{family.showcase.recipe}.yaml", "--run-dir", str(runs / family.showcase.recipe))
     rows = [row(f, runs) for f in FAMILIES]
     table = markdown(rows)
     atomic_write_json(runs / "families.json", rows)

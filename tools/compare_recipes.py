@@ -66,7 +66,7 @@ def run(out: Path, recipes: list[str], steps: int) -> int:
     env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1", PYTHONWARNINGS="ignore", PYTHONHASHSEED="0")
     failed = 0
     for name in recipes:
-        recipe = REPO / "stages" / f"{name}.yaml"
+        recipe = REPO / "recipes" / f"{name}.yaml"
         # One world per data config (the OccVLA recipe reads 6 history frames from its own shards).
         data = out / "data"
         cmd = [

@@ -2,7 +2,7 @@
 
     python tools/quickstart_table.py RUN_DIR [RUN_DIR ...]      # e.g. runs of trainer.seed=0, 1, 2
 
-Each RUN_DIR is a finished ``occtrain run stages/quickstart.yaml`` whose stages were scored
+Each RUN_DIR is a finished ``occtrain run recipes/quickstart.yaml`` whose stages were scored
 with ``occtrain eval RUN_DIR/STAGE`` (``STAGE/eval/val/metrics.json``); the table prints one
 column per run in the order given, the mean and the spread (min to max), and each metric's
 baselines on the same samples from the first run. Its first line names the world the evals

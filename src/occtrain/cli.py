@@ -210,7 +210,7 @@ def build_parser() -> argparse.ArgumentParser:
 def _add_run_commands(sub: Any) -> None:
     """``run`` and ``validate``, then the commands that read a run (``_add_run_readers``)."""
     p = sub.add_parser("run", help="run a recipe's stages in order (skips done stages, resumes cut-off ones)")
-    p.add_argument("recipe", help="recipe YAML, e.g. stages/quickstart.yaml")
+    p.add_argument("recipe", help="recipe YAML, e.g. recipes/quickstart.yaml")
     p.add_argument("overrides", nargs="*", help="key=value overrides, e.g. trainer.max_steps=10 trainer.devices=2")
     p.add_argument("--run-dir", help="run directory (default: runs/<recipe name>)")
     p.add_argument("--only", metavar="STAGE", help="run just this stage (its inputs must be done)")
@@ -225,7 +225,7 @@ def _add_run_commands(sub: Any) -> None:
         help="check a recipe end to end (schema, kinds, families, handoffs, ranges, run directory, data) "
         "without writing anything",
     )
-    p.add_argument("recipe", help="recipe YAML, e.g. stages/quickstart.yaml")
+    p.add_argument("recipe", help="recipe YAML, e.g. recipes/quickstart.yaml")
     p.add_argument("overrides", nargs="*", help="key=value overrides, as for run")
     p.add_argument("--run-dir", help="run directory (default: runs/<recipe name>)")
     p.add_argument("--only", metavar="STAGE", help="as for run")
@@ -268,7 +268,7 @@ def _add_run_readers(sub: Any) -> None:
         help="memory per GPU of a recipe's LLM stages under DDP and sharding, from model configs alone "
         "(nothing downloaded or trained)",
     )
-    p.add_argument("recipe", help="recipe YAML, e.g. stages/scale/occllama_llama8b.yaml")
+    p.add_argument("recipe", help="recipe YAML, e.g. recipes/scale/occllama_llama8b.yaml")
     p.add_argument("overrides", nargs="*", help="key=value overrides, as for run (e.g. trainer.precision=bf16-mixed)")
     p.add_argument("--gpus", type=int, default=8, help="ranks to shard over (default 8, the papers' machines)")
     p.add_argument("--seq-len", type=int, default=2048, help="tokens per training sequence (default 2048)")

@@ -79,7 +79,7 @@ def main() -> None:
     args = parser.parse_args()
     if not (Path(args.shards) / "index.json").is_file():
         raise SystemExit(
-            f"{args.shards}: no shards; run `occtrain run stages/quickstart.yaml` (or `occtrain data shards`) first"
+            f"{args.shards}: no shards; run `occtrain run recipes/quickstart.yaml` (or `occtrain data shards`) first"
         )
     print(f"training shards of {args.shards}, global batch {args.global_batch}, {args.epochs:g} epoch(s); MiB per rank")
     print(f"{'kind':<7} {'processes':>9} {'rchar/rank':>11} {'entries/rank':>13} {'vs 1 process':>13} {'1/N':>6}")

@@ -2,7 +2,7 @@
 
     python tools/bench/ddp.py [--steps 40]
 
-Runs ``stages/tokenizer.yaml`` (OccLLaMA's tokenizer at quickstart size, batch 2 per
+Runs ``recipes/tokenizer.yaml`` (OccLLaMA's tokenizer at quickstart size, batch 2 per
 process) through the real CLI twice, back to back, and prints training samples/s of each
 from the manifest's wall time (which includes validation and checkpoints, identical in
 both) and their ratio.
@@ -27,7 +27,7 @@ def samples_per_s(devices: int, steps: int) -> float:
             "-m",
             "occtrain",
             "run",
-            "stages/tokenizer.yaml",
+            "recipes/tokenizer.yaml",
             f"trainer.devices={devices}",
             f"trainer.strategy={'ddp' if devices > 1 else 'auto'}",
             f"stages[0].trainer.max_steps={steps}",

@@ -6,7 +6,7 @@ reconstruction quality after the same training budget.
 1. For each tokenizer at its paper-size default config (OccWorld VQ-VAE: 14.17 M params,
    50x50 latent; OccLLaMA: K=2048, 50x50x256), one forward + backward at 200x200x16, batch
    1, in a fresh process each: wall time and peak resident memory (goal <= 4 GB).
-2. Unless ``--skip-training``: ``stages/ablations/tokenizer_decoupled_vs_vqvae.yaml`` with
+2. Unless ``--skip-training``: ``recipes/ablations/tokenizer_decoupled_vs_vqvae.yaml`` with
    ``--steps`` steps per tokenizer, and the reconstruction mIoU/IoU (OccWorld convention)
    each reaches on the val split.
 """
@@ -58,7 +58,7 @@ def train(steps: int) -> dict[str, dict]:
             "-m",
             "occtrain",
             "run",
-            "stages/ablations/tokenizer_decoupled_vs_vqvae.yaml",
+            "recipes/ablations/tokenizer_decoupled_vs_vqvae.yaml",
             *overrides,
             "--run-dir",
             tmp,

@@ -21,10 +21,12 @@ GROUP_SCHEMAS: dict[str, type] = {
     "data": DataConfig,
     "trainer": TrainerConfig,
     "dataset": DatasetFile,
-    # recipes live in top-level stages/ (and stages/ablations/)
+    # recipes live in top-level recipes/ (and its ablations/, proof/ and scale/)
     "recipe": RecipeConfig,
-    "stages": RecipeConfig,
+    "recipes": RecipeConfig,
     "ablations": RecipeConfig,
+    "proof": RecipeConfig,
+    "scale": RecipeConfig,
 }
 
 

@@ -102,7 +102,7 @@ class WorldSpec:
 @dataclass(frozen=True)
 class Showcase:
     """Where the four-family comparison (``tools/compare_families.py``) reads a family's
-    headline numbers: its shipped recipe (``stages/<recipe>.yaml``) and the stage of that
+    headline numbers: its shipped recipe (``recipes/<recipe>.yaml``) and the stage of that
     recipe behind each number (None: the family has none)."""
 
     recipe: str
