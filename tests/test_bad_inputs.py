@@ -2032,8 +2032,8 @@ CASES: list[Case] = [
         with_plugin("plugins.clashing_kind"),
         RUN,
         2,
-        "stage kind 'pretrain' of plugin plugins.clashing_kind is already registered by occtrain.stages.world_model "
-        "(shipped with occtrain)",
+        "stage kind 'pretrain' of plugin plugins.clashing_kind is already registered by "
+        "occtrain.stages.pretrain_instruct (shipped with occtrain)",
     ),
     # ------------------------------------------------------------------ exports, load and trackers
     Case(

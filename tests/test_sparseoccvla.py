@@ -357,8 +357,8 @@ def test_encoder_settings_are_refused_in_one_line(key, value, says):
 def sparse_world():
     """A tiny SparseOccVLA world model over an untrained encoder (4 queries, 2 global tokens)."""
     from occtrain.config.llm import LLMConfig
+    from occtrain.core.lm_world_model import WorldInputs
     from occtrain.core.vocab import JointVocab
-    from occtrain.core.world_model import WorldInputs
     from occtrain.families.sparseoccvla.config import SparseOccConfig, SparseOccVLAWorldConfig
     from occtrain.families.sparseoccvla.encoder import SparseOccEncoder
     from occtrain.families.sparseoccvla.scene import SparseSceneEncoder

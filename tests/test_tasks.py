@@ -194,7 +194,7 @@ def test_a_packed_draw_generates_one_question_at_a_time(clips):
     became text to generate and every Branch a scene (the QA benchmark's 40x)."""
     from occtrain.core.tasks import unpacked
     from occtrain.data.clips import Branch, clip_rng
-    from occtrain.engine.world_model import WorldModelEngine
+    from occtrain.engine.world_engine import WorldModelEngine
     from occtrain.families.occllama.tasks import qa
 
     clip = next(c for c in clips if len(c.qa) >= 3)

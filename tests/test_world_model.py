@@ -11,9 +11,9 @@ import torch.nn.functional as F
 from occtrain.config.llm import LLMConfig
 from occtrain.core.builder import SequenceBuilder, collate
 from occtrain.core.decoding import QueryBlock
+from occtrain.core.lm_world_model import WorldInputs
 from occtrain.core.sequence import IGNORE
 from occtrain.core.vocab import JointVocab
-from occtrain.core.world_model import WorldInputs
 from occtrain.families.occllama.config import OccLLaMAWorldConfig
 from occtrain.families.occllama.world_model import OccLLaMAWorldModel as OccWorldModel
 from occtrain.models.llm import build_llm, checkpoint_layers
@@ -334,7 +334,7 @@ def test_the_scene_cache_key_follows_the_encoder_export_and_the_dataset(tmp_path
     import shutil
 
     from occtrain.data.layout import DatasetIndex
-    from occtrain.engine.world_model import scene_cache_key
+    from occtrain.engine.world_engine import scene_cache_key
 
     def exported(name: str, weights: bytes) -> torch.nn.Module:
         encoder = torch.nn.Linear(2, 2)

@@ -28,10 +28,10 @@ from torchmetrics import MeanMetric
 
 from occtrain.core import scorers
 from occtrain.core.builder import SequenceBuilder, batch_payload
+from occtrain.core.lm_world_model import LMWorldModel, WorldInputs, WorldModelOutput, token_ce
 from occtrain.core.registry import FamilySpec, WorldSpec, register_family
 from occtrain.core.sequence import IGNORE, TokenSequence
 from occtrain.core.tasks import TaskConfig, TaskSpec, each_question, forecast_after, questions_after
-from occtrain.core.world_model import LMWorldModel, WorldInputs, WorldModelOutput, token_ce
 from occtrain.data.clips import Clip, Part, Scene, Text, plan_target
 from occtrain.exports import write_export
 from occtrain.metrics import PlanningMetric, compute_metrics

@@ -65,7 +65,7 @@ class TokenizerArch:
 class WorldSpec:
     """What a family with a world model brings to the shared world-model stage kinds."""
 
-    #: Its class: a ``core.world_model.LMWorldModel`` (``create``, ``from_export``,
+    #: Its class: a ``core.lm_world_model.LMWorldModel`` (``create``, ``from_export``,
     #: ``vocab_layout``, ``export_config``).
     model: type
     #: Its task settings (extends ``core.tasks.TaskConfig``) and tasks by name.
@@ -156,10 +156,12 @@ def _check(spec: FamilySpec) -> None:
     world = spec.world
     if world is None:
         return
-    from occtrain.core.world_model import LMWorldModel
+    from occtrain.core.lm_world_model import LMWorldModel
 
     if not (inspect.isclass(world.model) and issubclass(world.model, LMWorldModel)):
-        raise ConfigError(f"{where}: its world model {world.model!r} is not an occtrain.core.world_model.LMWorldModel")
+        raise ConfigError(
+            f"{where}: its world model {world.model!r} is not an occtrain.core.lm_world_model.LMWorldModel"
+        )
     if not (inspect.isclass(world.task_config) and issubclass(world.task_config, TaskConfig)):
         raise ConfigError(
             f"{where}: its task settings {world.task_config!r} do not extend occtrain.core.tasks.TaskConfig"

@@ -22,7 +22,7 @@ from occtrain.core.scorers import Item, Priors
 from occtrain.core.tasks import TaskSpec, question_of
 from occtrain.data.clips import Clip, Part, frame_clips, plan_target
 from occtrain.data.layout import DatasetIndex
-from occtrain.engine.world_model import WorldModelEngine
+from occtrain.engine.world_engine import WorldModelEngine
 from occtrain.errors import ConfigError
 from occtrain.io import rank_world
 from occtrain.metrics import compute_metrics

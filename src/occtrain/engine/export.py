@@ -36,13 +36,13 @@ from safetensors.torch import save
 
 from occtrain.config import to_container
 from occtrain.config.llm import MAX_NEW_TEXT_TOKENS, LLMConfig
+from occtrain.core.lm_world_model import WorldInputs
 from occtrain.core.registry import get_world
 from occtrain.core.scene import SCENE_ENCODER_DIR
 from occtrain.core.tasks import TaskConfig, corpus_texts
 from occtrain.core.vocab import JointVocab
-from occtrain.core.world_model import WorldInputs
 from occtrain.data.layout import DatasetIndex
-from occtrain.engine.world_model import WorldModelEngine
+from occtrain.engine.world_engine import WorldModelEngine
 from occtrain.errors import ConfigError
 from occtrain.exports import check_section, load_state_strict, read_export, require_config, write_export
 from occtrain.io import write_error

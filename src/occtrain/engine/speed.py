@@ -16,7 +16,7 @@ import torch
 
 from occtrain.core.sequence import TokenSequence
 from occtrain.data.layout import DatasetIndex
-from occtrain.engine.world_model import WorldModelEngine
+from occtrain.engine.world_engine import WorldModelEngine
 
 #: New tokens generated per timed round (end-of-text ignored, so every round is this long).
 SPEED_TOKENS = 32

@@ -15,8 +15,8 @@ from occtrain.stages.base import Stage, StageContext, StageReport
 #: Built-in kinds and the module that registers each.
 BUILTIN_KINDS = {
     "tokenizer": "occtrain.stages.tokenizer",
-    "pretrain": "occtrain.stages.world_model",
-    "instruct": "occtrain.stages.world_model",
+    "pretrain": "occtrain.stages.pretrain_instruct",
+    "instruct": "occtrain.stages.pretrain_instruct",
     "planner": "occtrain.stages.planner",
     "distill": "occtrain.stages.distill",
     "vision": "occtrain.stages.vision",

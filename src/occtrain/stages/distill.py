@@ -19,8 +19,8 @@ import torch
 
 from occtrain.config import to_object
 from occtrain.config.llm import MAX_NEW_TEXT_TOKENS, LLMConfig
+from occtrain.core.lm_world_model import WorldInputs
 from occtrain.core.tasks import validate_tasks
-from occtrain.core.world_model import WorldInputs
 from occtrain.data.clips import clips_from_batch
 from occtrain.engine import (
     TEXT_ENTRIES,

@@ -26,8 +26,8 @@ import torch.nn.functional as F
 from torch import nn
 
 from occtrain.core.decoding import CodeScene
+from occtrain.core.lm_world_model import LMWorldModel, WorldInputs
 from occtrain.core.vocab import JointVocab
-from occtrain.core.world_model import LMWorldModel, WorldInputs
 from occtrain.families.occllama.config import OccLLaMAWorldConfig
 
 

@@ -23,9 +23,9 @@ import torch.nn.functional as F
 from torch import nn
 
 from occtrain.core.builder import SequenceBuilder, batch_payload
+from occtrain.core.lm_world_model import LMWorldModel, WorldInputs, WorldModelOutput, token_ce
 from occtrain.core.sequence import IGNORE, PayloadSpec, TokenSequence
 from occtrain.core.vocab import JointVocab
-from occtrain.core.world_model import LMWorldModel, WorldInputs, WorldModelOutput, token_ce
 from occtrain.families.occllm.config import OccLLMWorldConfig
 from occtrain.families.occllm.patches import PatchEmbedding, PatchHead, PreFusion
 from occtrain.models.patches import patchify, unpatchify

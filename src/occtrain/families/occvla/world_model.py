@@ -33,9 +33,9 @@ from torch import nn
 
 from occtrain.core.builder import SequenceBuilder, batch_payload
 from occtrain.core.decoding import Answer, Feed, Flush, QueryBlock, decode
+from occtrain.core.lm_world_model import LMWorldModel, WorldInputs, WorldModelOutput, token_ce
 from occtrain.core.sequence import IGNORE, PayloadSpec, TokenSequence, empty_payload, head, tail
 from occtrain.core.vocab import JointVocab
-from occtrain.core.world_model import LMWorldModel, WorldInputs, WorldModelOutput, token_ce
 from occtrain.data.clips import Images, Occupancy, Part
 from occtrain.families.occvla.config import OccVLAWorldConfig
 from occtrain.models.patches import unpatchify

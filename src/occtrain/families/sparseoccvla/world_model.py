@@ -27,9 +27,9 @@ import torch
 from torch import nn
 
 from occtrain.core.builder import SequenceBuilder, batch_payload
+from occtrain.core.lm_world_model import LMWorldModel, WorldInputs, WorldModelOutput, token_ce
 from occtrain.core.sequence import IGNORE, PayloadSpec, TokenSequence, empty_payload
 from occtrain.core.vocab import JointVocab
-from occtrain.core.world_model import LMWorldModel, WorldInputs, WorldModelOutput, token_ce
 from occtrain.data.clips import Part, clip_rng
 from occtrain.errors import ConfigError
 from occtrain.families.sparseoccvla.config import SparseOccVLAWorldConfig

@@ -21,11 +21,11 @@ import torch
 from occtrain.config.llm import MAX_NEW_TEXT_TOKENS
 from occtrain.core.builder import collate
 from occtrain.core.decoding import ActionAnswer, Answer, SceneAnswer, TextAnswer
+from occtrain.core.lm_world_model import LMWorldModel
 from occtrain.core.registry import get_world
 from occtrain.core.sequence import TokenSequence
 from occtrain.core.tasks import TaskConfig, sample_task, unpacked
 from occtrain.core.vocab import JointVocab
-from occtrain.core.world_model import LMWorldModel
 from occtrain.data.clips import Actions, Branch, Clip, Occupancy, Part, Scene, Text, clip_rng
 from occtrain.data.layout import DatasetIndex
 from occtrain.data.shards import dataset_fingerprint
