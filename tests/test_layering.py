@@ -12,7 +12,8 @@ module may import its own layer or lower ones, never a higher one; on top of tha
   no family: they import none, and no string in them is a family's name (they look
   families up in the registry);
 - ``metrics/`` never imports ``data/`` (metrics score anyone's predictions);
-- only the generator's entry point (``data/synthesize.py``) imports ``data/synth``.
+- only the generator's entry point (``data/synthesize.py``) imports ``data/synth``;
+- no module imports the package root (``occtrain/__init__.py`` sits on top: it imports, nothing imports it).
 """
 
 from __future__ import annotations
@@ -55,6 +56,7 @@ LAYERS = {
     "occ3d": 0,
     "nuscenes_qa": 0,
     "__init__": 0,
+    "version": 0,
 }
 #: Modules of ``stages/`` that are infrastructure, not a stage kind.
 STAGE_INFRA = {
@@ -104,6 +106,8 @@ def check_module(me: str, where: str, source: str, is_package: bool = False) -> 
     for line, target in imports(me, is_package, source):
         if target.split(".")[0] in ("lightning", "pytorch_lightning") and mine in LIGHTNING_FREE:
             found.append(f"{where}:{line} imports {target}: {mine}/ must not depend on Lightning")
+        if target == "occtrain" and me != "occtrain.__main__":
+            found.append(f"{where}:{line} imports the package root: import what it needs from the module that holds it")
         if not target.startswith("occtrain."):
             continue
         theirs = top(target)
@@ -180,6 +184,8 @@ def test_imports_point_down():
         ("dashboard/bad.py", "FAMILY = 'OccVLA'\n", "names the family 'OccVLA'"),
         ("core/bad.py", "import lightning\n", "must not depend on Lightning"),
         ("core/bad.py", "from occtrain.families.occllama import OCCLLAMA\n", "points up"),
+        ("manifest.py", "from occtrain import __version__\n", "imports the package root"),
+        ("data/bad.py", "import occtrain\n", "imports the package root"),
     ],
 )
 def test_the_checker_catches(module, source, expected):

@@ -7,8 +7,8 @@ import re
 import sys
 from typing import Any
 
-from occtrain import __version__
 from occtrain.errors import OcctrainError
+from occtrain.version import __version__
 
 
 def _cmd_config_show(args: argparse.Namespace) -> int:

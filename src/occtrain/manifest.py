@@ -4,16 +4,15 @@ from __future__ import annotations
 
 import json
 import os
-import subprocess
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-from occtrain import __version__
 from occtrain.config.recipe import NAME_PATTERN
 from occtrain.errors import OcctrainError
 from occtrain.io import atomic_write_json, remove_inside, write_error
+from occtrain.version import code_version
 
 MANIFEST_FILE = "manifest.json"
 #: Where ``--restart`` keeps the stages it replaces until the new attempt has a checkpoint.
@@ -24,21 +23,6 @@ RESTART_TRACEBACK = "restart-traceback.txt"
 STATUSES = ("pending", "running", "done", "failed", "interrupted")
 #: A stage in one of these states has a checkpoint to resume from (or none yet).
 RESUMABLE = ("running", "failed", "interrupted")
-
-
-def code_version() -> str:
-    """occtrain's version, plus the git commit when running from a checkout."""
-    try:
-        sha = subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"],
-            cwd=Path(__file__).parent,
-            capture_output=True,
-            text=True,
-            timeout=5,
-        ).stdout.strip()
-    except (OSError, subprocess.SubprocessError):
-        sha = ""
-    return f"{__version__}+{sha}" if sha else __version__
 
 
 @dataclass
