@@ -24,7 +24,7 @@ from torch.nn.parallel import DistributedDataParallel
 from occtrain.config.recipe import OptimConfig
 from occtrain.core.registry import build_tokenizer
 from occtrain.models.tokenizers.occworld_vqvae import OccWorldVQVAEConfig
-from occtrain.stages.common import configure_adamw
+from occtrain.stages.optim import configure_adamw
 
 CFG = dict(
     num_codes=16,

@@ -5,8 +5,8 @@ engine -> families -> core -> models / metrics / data -> config and the base mod
 module may import its own layer or lower ones, never a higher one; on top of that:
 
 - nothing in ``models/``, ``core/``, ``families/`` or ``engine/`` imports Lightning;
-- no stage module imports another stage module (they share ``stages/base``, ``stages/common``,
-  ``stages/loggers``, ``stages/sharding``);
+- no stage module imports another stage module (they share the infrastructure modules of
+  ``STAGE_INFRA``: the base, trainer, callbacks, checkpoints, optimizer, loggers, sharding);
 - a family imports no other family (shared code moves down into ``core/`` or ``models/``);
 - ``core``, ``engine``, ``stages``, the runner, ``evaluate``, the API and the dashboard name
   no family: they import none, and no string in them is a family's name (they look
@@ -62,9 +62,15 @@ LAYERS = {
 STAGE_INFRA = {
     "occtrain.stages",
     "occtrain.stages.base",
+    "occtrain.stages.callbacks",
+    "occtrain.stages.checkpoints",
     "occtrain.stages.common",
     "occtrain.stages.loggers",
+    "occtrain.stages.optim",
+    "occtrain.stages.reference",
     "occtrain.stages.sharding",
+    "occtrain.stages.step_progress",
+    "occtrain.stages.trainer",
 }
 LIGHTNING_FREE = ("models", "core", "families", "engine")
 #: What may not name a family: it looks families up in the registry.

@@ -71,7 +71,7 @@ def _resume_and_train(bar, trainer) -> None:
 
 
 def test_training_lines_count_the_stages_steps_after_a_resume(monkeypatch, capsys):
-    from occtrain.stages.common import StepProgress
+    from occtrain.stages.step_progress import StepProgress
 
     monkeypatch.setenv(INTERVAL_ENV, "0")
     bar = StepProgress("tokenizer")
@@ -86,13 +86,13 @@ def test_training_lines_count_the_stages_steps_after_a_resume(monkeypatch, capsy
 
 
 def test_the_terminal_bar_shows_the_stages_steps(monkeypatch):
-    from occtrain.stages import common
+    from occtrain.stages import step_progress
 
     out = io.StringIO()
     terminal = Console(file=out, force_terminal=True, width=120, soft_wrap=True)
     monkeypatch.setattr(progress, "console", terminal)
-    monkeypatch.setattr(common, "console", terminal)
-    bar = common.StepProgress("tokenizer")
+    monkeypatch.setattr(step_progress, "console", terminal)
+    bar = step_progress.StepProgress("tokenizer")
     _resume_and_train(bar, _trainer(8))
     text = out.getvalue()
     assert "step 10/20 (50%)" in text and "loss 2.25" in text
@@ -104,7 +104,8 @@ def test_the_trainer_uses_it_instead_of_lightnings_bar(tmp_path):
     from lightning.pytorch.callbacks import ProgressBar
 
     from occtrain.config.schema import TrainerConfig
-    from occtrain.stages.common import StepProgress, build_trainer
+    from occtrain.stages.step_progress import StepProgress
+    from occtrain.stages.trainer import build_trainer
 
     trainer = build_trainer(TrainerConfig(max_steps=2, accelerator="cpu"), tmp_path / "tokenizer", None)
     bars = [c for c in trainer.callbacks if isinstance(c, ProgressBar)]

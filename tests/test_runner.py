@@ -329,7 +329,7 @@ def test_written_files_have_the_permissions_of_a_plain_write(probe_kind, recipe)
 
 
 def test_an_unreadable_last_checkpoint_falls_back_to_the_one_before(tmp_path, capsys):
-    from occtrain.stages.common import PREVIOUS_CKPT, last_checkpoint
+    from occtrain.stages.checkpoints import PREVIOUS_CKPT, last_checkpoint
 
     ckpt = tmp_path / "checkpoints"
     ckpt.mkdir()

@@ -60,7 +60,7 @@ MUTANTS = (
     Mutant(
         "one-process",
         "trainer.devices=2 runs one process",
-        "src/occtrain/stages/common.py",
+        "src/occtrain/stages/trainer.py",
         "        devices=cfg.devices,\n",
         "        devices=1,\n",
         (
@@ -189,7 +189,7 @@ MUTANTS = (
     Mutant(
         "fsdp-does-not-shard",
         "trainer.strategy=fsdp leaves the world model whole on every rank",
-        "src/occtrain/stages/world_model.py",
+        "src/occtrain/stages/pretrain_instruct.py",
         '        shard_world_model(world, self.device_mesh["data_parallel"])\n',
         "        pass\n",
         ("tests/test_sharded.py::test_sharded_training_equals_ddp_with_the_same_global_batch",),
@@ -222,7 +222,7 @@ MUTANTS = (
         "stage-name-unchecked",
         "a stage's name is not checked to be one folder name",
         "src/occtrain/runner.py",
-        '        check_name(spec.name, f"stages[{i}].name", source, "a stage")\n',
+        '    check_name(spec.name, f"stages[{i}].name", source, "a stage")\n',
         "",
         (
             "tests/test_bad_inputs.py::test_bad_input_is_one_line_and_changes_nothing[stage-name-escapes]",

@@ -315,7 +315,8 @@ def _execute(
     import lightning as L
 
     from occtrain.data.datamodule import ShardDataModule
-    from occtrain.stages.common import build_trainer, checkpoint_step, last_checkpoint
+    from occtrain.stages.checkpoints import checkpoint_step, last_checkpoint
+    from occtrain.stages.trainer import build_trainer
 
     L.seed_everything(stage.trainer.seed, workers=True, verbose=False)
     ctx = StageContext(stage.spec, stage.model_cfg, stage.data, stage.trainer, stage_dir, inputs)
@@ -363,7 +364,7 @@ def _execute(
 def _measurements(callbacks: list) -> dict[str, float]:
     """What this attempt measured (a measurement, not a result): its mean step time and rank
     zero's peak memory."""
-    from occtrain.stages.common import PeakMemory, StepTimer
+    from occtrain.stages.callbacks import PeakMemory, StepTimer
 
     out: dict[str, float] = {}
     timer = next(c for c in callbacks if isinstance(c, StepTimer))
@@ -480,7 +481,7 @@ def check_run(
     for p in planned:  # a checkpoint the run would resume from must load (weights only)
         entry = manifest.stages.get(p.spec.name)
         if entry is not None and entry.status in RESUMABLE and p.spec.name not in restarted:
-            from occtrain.stages.common import last_checkpoint
+            from occtrain.stages.checkpoints import last_checkpoint
 
             last_checkpoint(run_dir / p.spec.name)
     refuse_without_cameras(planned, recipe.data)
@@ -500,9 +501,9 @@ def refuse_unrunnable_trainers(planned: list[PlannedStage]) -> None:
     """A GPU config on a CPU machine, more devices than exist, a strategy the accelerator
     does not take (or ``fsdp`` for a stage kind that does not shard), a logger that is
     unknown or not installed: refused before the first stage writes anything."""
-    from occtrain.stages.common import check_trainer_setup
     from occtrain.stages.loggers import check_loggers
     from occtrain.stages.sharding import SHARDED
+    from occtrain.stages.trainer import check_trainer_setup
 
     keys = ("accelerator", "devices", "num_nodes", "strategy", "precision")
     checked: set[tuple] = set()

@@ -17,7 +17,7 @@ from torch import nn
 
 from occtrain.exports import read_export, write_export
 from occtrain.stages import Stage, StageContext, StageKind, StageReport, register
-from occtrain.stages.common import configure_adamw
+from occtrain.stages.optim import configure_adamw
 
 
 @dataclass

@@ -27,8 +27,9 @@ from occtrain.config import DataConfig, TrainerConfig, load_config  # noqa: E402
 from occtrain.config.recipe import OptimConfig, StageSpec  # noqa: E402
 from occtrain.data.datamodule import ShardDataModule, ensure_data  # noqa: E402
 from occtrain.stages import StageContext  # noqa: E402
-from occtrain.stages.common import build_trainer, configure_adamw  # noqa: E402
+from occtrain.stages.optim import configure_adamw  # noqa: E402
 from occtrain.stages.tokenizer import TokenizerModelConfig, TokenizerStage  # noqa: E402
+from occtrain.stages.trainer import build_trainer  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[2]
 

@@ -40,7 +40,8 @@ from occtrain.models.distill import FeatureProjector, distillation_losses
 from occtrain.models.llm import build_llm, check_llm
 from occtrain.stages import StageKind, register
 from occtrain.stages.base import EvalRequest, EvalResult, Stage, StageContext, StageReport
-from occtrain.stages.common import ValidationMeans, configure_adamw, evaluate_engine, family_schema
+from occtrain.stages.common import ValidationMeans, evaluate_engine, family_schema
+from occtrain.stages.optim import configure_adamw
 
 
 def _student_llm() -> LLMConfig:

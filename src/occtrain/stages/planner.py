@@ -27,7 +27,7 @@ from occtrain.occ3d import FUTURE_STEPS
 from occtrain.progress import progress_bar
 from occtrain.stages import StageKind, register
 from occtrain.stages.base import EvalRequest, EvalResult, Stage, StageContext, StageReport
-from occtrain.stages.common import configure_adamw
+from occtrain.stages.optim import configure_adamw
 
 
 @dataclass

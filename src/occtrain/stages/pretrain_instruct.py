@@ -44,7 +44,8 @@ from occtrain.models.adapters import AdapterConfig, adapters_of, add_adapters
 from occtrain.models.llm import apply_lora, check_llm, checkpoint_layers
 from occtrain.stages import StageKind, register
 from occtrain.stages.base import EvalRequest, EvalResult, Stage, StageContext, StageReport
-from occtrain.stages.common import ValidationMeans, configure_adamw, evaluate_engine, family_schema, freeze_prefixes
+from occtrain.stages.common import ValidationMeans, evaluate_engine, family_schema
+from occtrain.stages.optim import configure_adamw, freeze_prefixes
 from occtrain.stages.sharding import FullCopy, ShardedStrategy, is_sharded, local_numel, shard_world_model
 
 WORLD_MODEL_KINDS = ("pretrain", "instruct", "distill")

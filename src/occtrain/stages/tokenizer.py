@@ -38,7 +38,8 @@ from occtrain.models.vision import load_vision_encoder
 from occtrain.progress import progress_bar
 from occtrain.stages import StageKind, register
 from occtrain.stages.base import EvalRequest, EvalResult, Stage, StageContext, StageReport
-from occtrain.stages.common import ValidationMeans, configure_adamw, freeze_prefixes
+from occtrain.stages.common import ValidationMeans
+from occtrain.stages.optim import configure_adamw, freeze_prefixes
 
 
 @dataclass

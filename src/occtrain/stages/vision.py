@@ -28,7 +28,8 @@ from occtrain.models.llm import checkpoint_layers
 from occtrain.models.vision import DenseHead, MultiViewEncoder, PixelPrior, VisionConfig, export_vision
 from occtrain.stages import StageKind, register
 from occtrain.stages.base import Stage, StageContext, StageReport
-from occtrain.stages.common import ValidationMeans, configure_adamw, freeze_prefixes
+from occtrain.stages.common import ValidationMeans
+from occtrain.stages.optim import configure_adamw, freeze_prefixes
 
 TOWER_PREFIX = "encoder.tower."
 #: What a batch must carry: the camera images and the renderer's dense targets.
