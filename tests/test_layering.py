@@ -243,3 +243,19 @@ def test_no_function_outside_the_generator_runs_over_60_lines():
 def test_every_family_folder_is_a_registered_family():
     folders = sorted(p.name for p in (SRC / "families").iterdir() if (p / "__init__.py").is_file())
     assert folders == list(FAMILIES) and len(FAMILIES) >= 5
+
+
+def test_the_plugins_use_no_private_name_of_occtrain():
+    """A family or stage kind written outside occtrain (tests/plugins/) needs only public names."""
+    private = []
+    for path in sorted((REPO / "tests" / "plugins").glob("*.py")):
+        tree = ast.parse(path.read_text())
+        modules = {a.asname or a.name for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) for a in n.names}
+        modules = {m for m in modules if not m.startswith("_")}
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ImportFrom) and (node.module or "").startswith("occtrain"):
+                private += [f"{path.name}:{node.lineno} {a.name}" for a in node.names if a.name.startswith("_")]
+            elif isinstance(node, ast.Attribute) and node.attr.startswith("_") and not node.attr.startswith("__"):
+                if isinstance(node.value, ast.Name) and node.value.id in modules:
+                    private.append(f"{path.name}:{node.lineno} {node.value.id}.{node.attr}")
+    assert private == []

@@ -354,7 +354,7 @@ def describe_scene(engine: Any, clip: Clip) -> str:
     """An operation of its own for the Python API: the number of car columns it counts."""
     from occtrain.core import operations
 
-    generated, _ = operations._one(engine, "car_columns", clip)
+    generated, _ = operations.generate_one(engine, "car_columns", clip)
     return f"{generated[0].text.strip()} columns hold a car"
 
 

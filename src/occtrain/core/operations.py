@@ -17,8 +17,9 @@ from occtrain.data.clips import Actions, Clip, Scene, Text
 from occtrain.errors import ConfigError
 
 
-def _one(engine: Any, task: str, clip: Clip) -> tuple[list, dict]:
-    """The generated parts (and scenes) of ``task``'s one prompt on ``clip``."""
+def generate_one(engine: Any, task: str, clip: Clip) -> tuple[list, dict]:
+    """The generated parts (and scenes) of ``task``'s one prompt on ``clip``: what a family's
+    own operation (``WorldSpec.operations``) builds its result from."""
     if task not in engine.task_specs:
         raise ConfigError(f"the '{engine.family}' world model has no task '{task}'")
     out = list(engine.rollouts(task, [clip], _batch(engine, clip), batched=False))
@@ -61,15 +62,15 @@ def plan(engine: Any, clip: Clip) -> np.ndarray:
     """The ego's plan (steps, 2) in the anchor's ego frame: the planning task's, or the
     waypoints a forecast alternates with its scenes (a family without a planning task)."""
     if "planning" in engine.task_specs:
-        generated, _ = _one(engine, "planning", clip)
+        generated, _ = generate_one(engine, "planning", clip)
         return np.asarray([p for p in generated if isinstance(p, Actions)][-1].xy)
-    generated, _ = _one(engine, "forecasting", clip)
+    generated, _ = generate_one(engine, "forecasting", clip)
     return np.asarray([pt for p in generated if isinstance(p, Actions) for pt in p.xy])
 
 
 def forecast(engine: Any, clip: Clip) -> np.ndarray:
     """The forecast scenes (T, 200, 200, 16) uint8, decoded by the scene encoder."""
-    generated, scenes = _one(engine, "forecasting", clip)
+    generated, scenes = generate_one(engine, "forecasting", clip)
     rows = torch.stack([scenes[p.frame] for p in generated if isinstance(p, Scene)])
     return engine.decode_scenes(rows).cpu().numpy().astype(np.uint8)
 
@@ -77,7 +78,7 @@ def forecast(engine: Any, clip: Clip) -> np.ndarray:
 def chain_of_thought(engine: Any, clip: Clip) -> tuple[str, np.ndarray | None]:
     """The chain of thought's text and, when the task plans after it, its trajectory (6, 2)."""
     task = "cot_planning" if "cot_planning" in engine.task_specs else "meta_action"
-    generated, _ = _one(engine, task, clip)
+    generated, _ = generate_one(engine, task, clip)
     text = next(p.text for p in generated if isinstance(p, Text))
     actions = [p for p in generated if isinstance(p, Actions)]
     return text, (np.asarray(actions[-1].xy) if actions else None)

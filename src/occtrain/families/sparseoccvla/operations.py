@@ -16,13 +16,13 @@ from occtrain.models.point_sets import voxelize
 
 def caption(engine: Any, clip: Clip) -> str:
     """The model's description of the anchor frame's scene."""
-    generated, _ = operations._one(engine, "caption", clip)
+    generated, _ = operations.generate_one(engine, "caption", clip)
     return generated[0].text.strip()
 
 
 def decision(engine: Any, clip: Clip) -> str:
     """The model's decision with its reasoning (what its planner reads)."""
-    generated, _ = operations._one(engine, "planning", clip)
+    generated, _ = operations.generate_one(engine, "planning", clip)
     return generated[0].text.strip()
 
 
