@@ -30,12 +30,12 @@ block behind a query block (the queries predict it).
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any
 
 import torch
 import torch.nn.functional as F
 
 from occtrain.config.llm import SCENE_PREDICTION_MODES
+from occtrain.core.protocols import PromptInputs
 from occtrain.core.sequence import IGNORE, PayloadSpec, TokenSequence, cat_payload, empty_payload
 from occtrain.core.vocab import JointVocab
 from occtrain.data.clips import Actions, Branch, Part, Scene, Text
@@ -121,7 +121,7 @@ class SequenceBuilder:
         return self._payload[-1]
 
     # -- parts
-    def lay(self, part: Part, inputs: Any, scenes: dict[int, torch.Tensor]) -> SequenceBuilder:
+    def lay(self, part: Part, inputs: PromptInputs, scenes: dict[int, torch.Tensor]) -> SequenceBuilder:
         """Lay one part out: text, a scene (its row in ``scenes``, by clip frame), actions,
         a branch. A family's builder lays its own kinds of part (images, occupancy queries,
         ...) from ``inputs`` (the engine: image tokens, voxel labels by sample token)."""

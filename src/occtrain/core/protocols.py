@@ -9,6 +9,8 @@ shows them in use.
 - :class:`Scorer`: grades one task's generated answers with the papers' metrics and adds
   its baselines; :class:`EvalHook`: family-level scoring that belongs to no task (OccVLA's
   occupancy queries).
+- :class:`PromptInputs`: what a sequence builder reads besides a prompt's parts (the
+  engine's encodings of a dataset's frames), so a family's own part kinds can be laid out.
 - :class:`Planner`: what the ``planner`` stage trains (OccVLA's MLP head on the meta
   action, a diffusion planner, ...), Lightning-free.
 """
@@ -20,6 +22,16 @@ from pathlib import Path
 from typing import Any, Protocol, runtime_checkable
 
 import torch
+
+
+class PromptInputs(Protocol):
+    """What a sequence builder's ``lay`` reads for the parts that hold no values of their
+    own, by sample token: the world-model engine's cached image tokens Float[T, D] of a
+    frame's cameras and its voxel labels Long[X, Y, Z]."""
+
+    def image_tokens(self, token: str) -> torch.Tensor: ...
+
+    def voxels(self, token: str) -> torch.Tensor: ...
 
 
 @runtime_checkable

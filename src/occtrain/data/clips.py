@@ -13,6 +13,7 @@ from __future__ import annotations
 import zlib
 from collections.abc import Iterator
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 import torch
@@ -22,14 +23,29 @@ from occtrain.data.layout import DatasetIndex
 from occtrain.occ3d import FUTURE_STEPS, PAST_STEPS
 
 
+class PromptPart:
+    """One piece of a prompt: a frozen dataclass with a ``supervise`` field (whether it is
+    the answer, trained and generated). A family adds a kind of its own by subclassing this
+    and laying it out in its sequence builder's ``lay``; core and engine need no edit."""
+
+    supervise: bool
+    #: Whether the parts after it read it. One that only trains (OccVLA's occupancy
+    #: queries, seen by nothing after them) is left out of a prompt at inference.
+    read_after: ClassVar[bool] = True
+
+
+#: Any part of a prompt (the name the builders and the engine type their parts with).
+Part = PromptPart
+
+
 @dataclass(frozen=True)
-class Text:
+class Text(PromptPart):
     text: str
     supervise: bool = False
 
 
 @dataclass(frozen=True)
-class Scene:
+class Scene(PromptPart):
     """The occupancy scene of clip frame ``frame`` (0 = oldest history frame)."""
 
     frame: int
@@ -37,7 +53,7 @@ class Scene:
 
 
 @dataclass(frozen=True)
-class Actions:
+class Actions(PromptPart):
     """Waypoints in metres, ego frame of the anchor, shape (N, 2). With ``base`` (N, 2),
     e.g. the constant-velocity plan, the tokens hold each waypoint's offset from it, and a
     generated block is read back as base + offset."""
@@ -48,7 +64,7 @@ class Actions:
 
 
 @dataclass(frozen=True)
-class Branch:
+class Branch(PromptPart):
     """The parts after it, up to the next Branch, form one branch: they see the parts before
     the first Branch (the shared context) and themselves only. Several answers about one
     context then train in one sequence exactly as each would in its own."""
@@ -57,7 +73,7 @@ class Branch:
 
 
 @dataclass(frozen=True)
-class Images:
+class Images(PromptPart):
     """The camera views of sample ``token`` as image tokens (a vision-language model's input)."""
 
     token: str
@@ -65,17 +81,15 @@ class Images:
 
 
 @dataclass(frozen=True)
-class Occupancy:
+class Occupancy(PromptPart):
     """Occupancy queries that read the images before them and are trained, with loss
     weight ``weight``, to give the voxels of sample ``token`` (OccVLA); nothing after them
     sees them, so a prompt leaves them out at inference."""
 
+    read_after: ClassVar[bool] = False
     token: str
     weight: float = 1.0
     supervise: bool = False  # their loss is their own, not the answer's
-
-
-Part = Text | Scene | Actions | Branch | Images | Occupancy
 
 
 @dataclass

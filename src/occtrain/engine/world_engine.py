@@ -26,7 +26,7 @@ from occtrain.core.registry import get_world
 from occtrain.core.sequence import TokenSequence
 from occtrain.core.tasks import TaskConfig, sample_task, unpacked
 from occtrain.core.vocab import JointVocab
-from occtrain.data.clips import Actions, Branch, Clip, Occupancy, Part, Scene, Text, clip_rng
+from occtrain.data.clips import Actions, Branch, Clip, Part, Scene, Text, clip_rng
 from occtrain.data.layout import DatasetIndex
 from occtrain.data.shards import dataset_fingerprint
 from occtrain.errors import DataError
@@ -303,8 +303,8 @@ class WorldModelEngine(torch.nn.Module):
             # One decoder cannot keep branches apart: each would be generated as an answer.
             raise ValueError("a prompt with branches generates one branch at a time (core.tasks.unpacked)")
         first = next(i for i, p in enumerate(parts) if p.supervise)
-        # Occupancy queries are seen by nothing after them: a prompt skips them (OccVLA's Setting 2).
-        prompt = [p for p in parts[:first] if not isinstance(p, Occupancy)]
+        # A part nothing after it reads (OccVLA's occupancy queries) is left out (its Setting 2).
+        prompt = [p for p in parts[:first] if p.read_after]
         plan: list[Answer] = [
             TextAnswer(self.max_new_text_tokens)
             if isinstance(p, Text)

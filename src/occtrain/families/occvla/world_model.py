@@ -25,8 +25,6 @@ L_text + lambda_occ * L_occ, lambda_occ riding with each sequence (``voxel_weigh
 
 from __future__ import annotations
 
-from typing import Any
-
 import torch
 import torch.nn.functional as F
 from torch import nn
@@ -34,6 +32,7 @@ from torch import nn
 from occtrain.core.builder import SequenceBuilder, batch_payload
 from occtrain.core.decoding import Answer, Feed, Flush, QueryBlock, decode
 from occtrain.core.lm_world_model import LMWorldModel, WorldInputs, WorldModelOutput, token_ce
+from occtrain.core.protocols import PromptInputs
 from occtrain.core.sequence import IGNORE, PayloadSpec, TokenSequence, empty_payload, head, tail
 from occtrain.core.vocab import JointVocab
 from occtrain.data.clips import Images, Occupancy, Part
@@ -49,7 +48,7 @@ class VLASequenceBuilder(SequenceBuilder):
         super().__init__(world.vocab, "next_scene", world.payload_spec)
         self._has_queries = False
 
-    def lay(self, part: Part, inputs: Any, scenes: dict[int, torch.Tensor]) -> VLASequenceBuilder:
+    def lay(self, part: Part, inputs: PromptInputs, scenes: dict[int, torch.Tensor]) -> VLASequenceBuilder:
         if isinstance(part, Images):
             return self.images(inputs.image_tokens(part.token))
         if isinstance(part, Occupancy):

@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import copy
 from dataclasses import asdict, dataclass
-from typing import Any
 
 import numpy as np
 import torch
@@ -28,6 +27,7 @@ from torch import nn
 
 from occtrain.core.builder import SequenceBuilder, batch_payload
 from occtrain.core.lm_world_model import LMWorldModel, WorldInputs, WorldModelOutput, token_ce
+from occtrain.core.protocols import PromptInputs
 from occtrain.core.sequence import IGNORE, PayloadSpec, TokenSequence, empty_payload
 from occtrain.core.vocab import JointVocab
 from occtrain.data.clips import Part, clip_rng
@@ -81,7 +81,7 @@ class SparseBuilder(SequenceBuilder):
         super().__init__(world.vocab, "next_scene", world.payload_spec)
         self.world = world
 
-    def lay(self, part: Part, inputs: Any, scenes: dict[int, torch.Tensor]) -> SparseBuilder:
+    def lay(self, part: Part, inputs: PromptInputs, scenes: dict[int, torch.Tensor]) -> SparseBuilder:
         if isinstance(part, Ego):
             return self.ego(part.features)
         if isinstance(part, Forecast):
@@ -106,7 +106,7 @@ class SparseBuilder(SequenceBuilder):
         self.add(torch.tensor([self.vocab.extra_id(EGO)]), False, payload=payload)
         return self
 
-    def forecast(self, tokens: tuple[str, ...], inputs: Any) -> SparseBuilder:
+    def forecast(self, tokens: tuple[str, ...], inputs: PromptInputs) -> SparseBuilder:
         """Per future frame its ground-truth point set (``forecast_points`` (T, K, 3),
         ``forecast_classes`` (T, K), ``forecast_valid`` (T, K))."""
         frames = [self.world.future_points(inputs, t) for t in tokens]
@@ -232,7 +232,7 @@ class SparseOccVLAWorldModel(LMWorldModel):
         return emb.index_put((b, pos), out[row_of[b], ids[b, pos] - start].to(emb.dtype))
 
     # -- forecasting
-    def future_points(self, inputs: Any, token: str) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def future_points(self, inputs: PromptInputs, token: str) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """A future frame's sparsified ground truth (points, classes, real): drawn once per
         sample token (the same subset whichever clip reaches the frame)."""
         cache = self.__dict__["_future_points"]
