@@ -93,11 +93,11 @@ ROWS = (
     Row(
         "instruct",
         "plan after the chain of thought, L2 avg (`stp3`, m)",
-        "cot_plan_L2_stp3_avg",
+        "plan_cot_L2_stp3_avg",
         3,
         baselines=(("constant velocity", "baseline_constant_velocity_L2_stp3_avg"),),
     ),
-    Row("instruct", "chain of thought CIDEr", "cot_CIDEr", 3),
+    Row("instruct", "chain of thought CIDEr", "cot_caption_CIDEr", 3),
     Row(
         "planner",
         "head on true meta actions, L2 avg (`stp3`, m)",
