@@ -17,12 +17,15 @@ from __future__ import annotations
 from collections.abc import Callable
 from functools import partial
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from occtrain.data.clips import Clip, frame_clips
 from occtrain.data.layout import DatasetIndex
 from occtrain.errors import ConfigError, OcctrainError
 from occtrain.occ3d import FUTURE_STEPS
+
+if TYPE_CHECKING:  # the engine imports torch and transformers: only when a model is loaded
+    from occtrain.engine import WorldModelEngine
 
 #: Operations a planner stage reads, not meant for a user.
 _INTERNAL = ("reference_meta_action", "generated_meta_actions", "visual_summary")
@@ -31,7 +34,7 @@ _INTERNAL = ("reference_meta_action", "generated_meta_actions", "visual_summary"
 class TrainedModel:
     """A world model loaded from an export, with its family's operations as methods."""
 
-    def __init__(self, engine: Any):
+    def __init__(self, engine: WorldModelEngine):
         self.engine = engine.eval()
         self._data: str | None = None
 

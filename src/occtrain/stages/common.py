@@ -9,7 +9,7 @@ import torch
 from torchmetrics import MeanMetric
 
 from occtrain.core.registry import get_world
-from occtrain.engine import Evaluator, Priors, scorable
+from occtrain.engine import Evaluator, Priors, WorldModelEngine, scorable
 from occtrain.errors import ConfigError
 from occtrain.metrics import compute_metrics
 from occtrain.progress import console, progress_bar
@@ -49,7 +49,7 @@ def family_schema(base: type, family: str | None, with_world: bool) -> type:
     return make_dataclass(f"{base.__name__}_{family}", fields, bases=(base,))
 
 
-def evaluate_engine(engine: Any, request: EvalRequest) -> EvalResult:
+def evaluate_engine(engine: WorldModelEngine, request: EvalRequest) -> EvalResult:
     """Score ``engine``'s generated answers on ``request``'s split (see ``evaluate_export``)."""
     engine.prepare_inputs(request.data_root, request.cache_dir, request.shared_cache_dir)
     specs = engine.task_specs
