@@ -7,17 +7,17 @@ forecast, reason to a meta action. A family lists the ones its tasks support in
 from __future__ import annotations
 
 from dataclasses import replace
-from typing import Any
 
 import numpy as np
 import torch
 
+from occtrain.core.protocols import WorldEngine
 from occtrain.core.scorers import said_meta_action
 from occtrain.data.clips import Actions, Clip, Scene, Text
 from occtrain.errors import ConfigError
 
 
-def generate_one(engine: Any, task: str, clip: Clip) -> tuple[list, dict]:
+def generate_one(engine: WorldEngine, task: str, clip: Clip) -> tuple[list, dict]:
     """The generated parts (and scenes) of ``task``'s one prompt on ``clip``: what a family's
     own operation (``WorldSpec.operations``) builds its result from."""
     if task not in engine.task_specs:
@@ -31,7 +31,7 @@ def generate_one(engine: Any, task: str, clip: Clip) -> tuple[list, dict]:
     return generated, scenes
 
 
-def answer(engine: Any, clip: Clip, question: str) -> str:
+def answer(engine: WorldEngine, clip: Clip, question: str) -> str:
     """The model's answer to ``question`` about ``clip``'s anchor frame."""
     asked = replace(clip, qa=[{"question": question, "answer": "", "template_type": "exist", "num_hop": 0}])
     spec = engine.task_specs.get("qa")
@@ -42,13 +42,13 @@ def answer(engine: Any, clip: Clip, question: str) -> str:
     return engine.vocab.decode_text(engine.world.generate(prefix, plan)[0]).strip()
 
 
-def _context_scenes(engine: Any, clip: Clip, parts: list) -> dict[int, torch.Tensor]:
+def _context_scenes(engine: WorldEngine, clip: Clip, parts: list) -> dict[int, torch.Tensor]:
     frames = {p.frame for p in parts if isinstance(p, Scene) and not p.supervise}
     rows = engine.scenes(_batch(engine, clip), [frames])
     return {f: rows[(0, f)] for f in frames}
 
 
-def _batch(engine: Any, clip: Clip) -> dict:
+def _batch(engine: WorldEngine, clip: Clip) -> dict:
     batch: dict = {"ann": [clip.ann]}
     if engine.needs_semantics():
         index = engine.data_index
@@ -58,7 +58,7 @@ def _batch(engine: Any, clip: Clip) -> dict:
     return batch
 
 
-def plan(engine: Any, clip: Clip) -> np.ndarray:
+def plan(engine: WorldEngine, clip: Clip) -> np.ndarray:
     """The ego's plan (steps, 2) in the anchor's ego frame: the planning task's, or the
     waypoints a forecast alternates with its scenes (a family without a planning task)."""
     if "planning" in engine.task_specs:
@@ -68,14 +68,14 @@ def plan(engine: Any, clip: Clip) -> np.ndarray:
     return np.asarray([pt for p in generated if isinstance(p, Actions) for pt in p.xy])
 
 
-def forecast(engine: Any, clip: Clip) -> np.ndarray:
+def forecast(engine: WorldEngine, clip: Clip) -> np.ndarray:
     """The forecast scenes (T, 200, 200, 16) uint8, decoded by the scene encoder."""
     generated, scenes = generate_one(engine, "forecasting", clip)
     rows = torch.stack([scenes[p.frame] for p in generated if isinstance(p, Scene)])
     return engine.decode_scenes(rows).cpu().numpy().astype(np.uint8)
 
 
-def chain_of_thought(engine: Any, clip: Clip) -> tuple[str, np.ndarray | None]:
+def chain_of_thought(engine: WorldEngine, clip: Clip) -> tuple[str, np.ndarray | None]:
     """The chain of thought's text and, when the task plans after it, its trajectory (6, 2)."""
     task = "cot_planning" if "cot_planning" in engine.task_specs else "meta_action"
     generated, _ = generate_one(engine, task, clip)
@@ -84,6 +84,6 @@ def chain_of_thought(engine: Any, clip: Clip) -> tuple[str, np.ndarray | None]:
     return text, (np.asarray(actions[-1].xy) if actions else None)
 
 
-def meta_action(engine: Any, clip: Clip) -> dict | None:
+def meta_action(engine: WorldEngine, clip: Clip) -> dict | None:
     """The meta action the chain of thought ends with ({"speed", "direction"}), None if unparsed."""
     return said_meta_action(chain_of_thought(engine, clip)[0], clip)

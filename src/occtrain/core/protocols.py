@@ -9,6 +9,8 @@ shows them in use.
 - :class:`Scorer`: grades one task's generated answers with the papers' metrics and adds
   its baselines; :class:`EvalHook`: family-level scoring that belongs to no task (OccVLA's
   occupancy queries).
+- :class:`WorldEngine`: what family code and the shared operations and scorers may ask of
+  the world-model engine (``engine.WorldModelEngine``), which sits above them.
 - :class:`PromptInputs`: what a sequence builder reads besides a prompt's parts (the
   engine's encodings of a dataset's frames), so a family's own part kinds can be laid out.
 - :class:`Planner`: what the ``planner`` stage trains (OccVLA's MLP head on the meta
@@ -17,11 +19,76 @@ shows them in use.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
-from typing import Any, Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
 import torch
+
+if TYPE_CHECKING:  # types only: these modules import this one's neighbours
+    from occtrain.core.decoding import Answer
+    from occtrain.core.lm_world_model import LMWorldModel
+    from occtrain.core.sequence import TokenSequence
+    from occtrain.core.tasks import TaskConfig, TaskSpec
+    from occtrain.core.vocab import JointVocab
+    from occtrain.data.clips import Clip, Part
+    from occtrain.data.layout import DatasetIndex
+
+
+class WorldEngine(Protocol):
+    """A family's world model as the engine runs it: the model, its vocabulary and task
+    settings, the cached encodings of the dataset it was prepared on, and the rollout of a
+    task's prompts. Families and ``core`` receive the engine typed as this; the engine
+    (a layer above them) implements it."""
+
+    @property
+    def family(self) -> str: ...
+
+    @property
+    def world(self) -> LMWorldModel: ...
+
+    @property
+    def vocab(self) -> JointVocab: ...
+
+    @property
+    def tasks(self) -> TaskConfig: ...
+
+    @property
+    def task_specs(self) -> Mapping[str, TaskSpec]: ...
+
+    @property
+    def max_new_text_tokens(self) -> int: ...
+
+    @property
+    def scene_cache(self) -> Mapping[str, torch.Tensor] | None: ...
+
+    @property
+    def data_index(self) -> DatasetIndex | None: ...
+
+    def needs_semantics(self) -> bool: ...
+
+    def scenes(self, batch: dict, needed: list[set[int]]) -> dict[tuple[int, int], torch.Tensor]: ...
+
+    def decode_scenes(self, scenes: torch.Tensor) -> torch.Tensor: ...
+
+    def encode_parts(self, parts: list[Part], scenes: dict[int, torch.Tensor]) -> TokenSequence: ...
+
+    def prompt_and_plan(
+        self, parts: list[Part], scenes: dict[int, torch.Tensor]
+    ) -> tuple[TokenSequence, list[Answer]]: ...
+
+    def task_items(self, task: str, clip: Clip, seed: int = 0, every: bool = False) -> list[list[Part]]: ...
+
+    def rollouts(
+        self,
+        task: str,
+        clips: list[Clip],
+        batch: dict,
+        seed: int = 0,
+        batched: bool = True,
+        every: bool = False,
+        select: Callable[[Clip, list[Part]], bool] | None = None,
+    ) -> Iterator[tuple[int, list[Part], list[Part], dict[int, torch.Tensor]]]: ...
 
 
 class PromptInputs(Protocol):
@@ -84,9 +151,9 @@ class EvalHook(Protocol):
 
     metrics: dict[str, Callable[[], Any]]
 
-    def applies(self, engine: Any) -> bool: ...
+    def applies(self, engine: WorldEngine) -> bool: ...
 
-    def run(self, evaluator: Any, engine: Any, clips: list) -> None: ...
+    def run(self, evaluator: Any, engine: WorldEngine, clips: list) -> None: ...
 
 
 @runtime_checkable

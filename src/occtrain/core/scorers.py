@@ -20,6 +20,7 @@ import numpy as np
 import torch
 from torchmetrics import MeanMetric
 
+from occtrain.core.protocols import WorldEngine
 from occtrain.core.tasks import question_of
 from occtrain.data.clips import Actions, Clip, Part, PlanTarget, Scene
 from occtrain.data.geometry import moved_scene
@@ -73,7 +74,7 @@ class Item:
     scenes: dict[int, torch.Tensor]
     semantics: torch.Tensor | None
     target: PlanTarget
-    engine: Any
+    engine: WorldEngine
 
 
 class BaseScorer:

@@ -3,21 +3,24 @@ of thought reasons to (what a planner stage reads) and the Python API's operatio
 
 from __future__ import annotations
 
-from typing import Any
-
 import numpy as np
 
 from occtrain.core import operations
+from occtrain.core.protocols import WorldEngine
 from occtrain.core.scorers import said_meta_action
 from occtrain.data.clips import Clip
 
 
-def reference_meta_action(engine: Any, clip: Clip) -> dict | None:
+def reference_meta_action(engine: WorldEngine, clip: Clip) -> dict | None:
     """The clip's meta action: the frame sidecar's (the chain of thought ends with it)."""
     return clip.anchor.get("meta_action")
 
 
-def generated_meta_actions(engine: Any, clips: list[Clip]) -> list[tuple[dict | None, np.ndarray | None] | None]:
+#: Per clip: the parsed meta action and the trajectory generated after it, or None.
+GeneratedMeta = tuple[dict | None, np.ndarray | None] | None
+
+
+def generated_meta_actions(engine: WorldEngine, clips: list[Clip]) -> list[GeneratedMeta]:
     """Per clip, the meta action parsed from the generated chain of thought (None when it
     cannot be parsed) and the trajectory generated after it; None for a clip the chain of
     thought does not apply to (no known future or no narration)."""

@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from occtrain.core.protocols import WorldEngine
 from occtrain.core.scorers import FORECAST_BASELINES, forecast_baselines, forecast_metric
 from occtrain.data.clips import Clip, Text
 from occtrain.families.sparseoccvla.tasks import FORECAST_PROMPT, context
@@ -44,11 +45,11 @@ class ForecastHead:
         "reconstruction_occ3d": lambda: OccupancyMetric(OCC3D),
     }
 
-    def applies(self, engine: Any) -> bool:
+    def applies(self, engine: WorldEngine) -> bool:
         return engine.tasks.weights.get("forecast", 0) > 0
 
     @torch.no_grad()
-    def run(self, ev: Any, engine: Any, clips: list[Clip]) -> None:
+    def run(self, ev: Any, engine: WorldEngine, clips: list[Clip]) -> None:
         index, dev = ev.index, ev.device
         world = engine.world
         for clip in clips:

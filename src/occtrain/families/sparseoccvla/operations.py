@@ -3,31 +3,30 @@ answer a question, describe the scene, state its decision, forecast the occupanc
 
 from __future__ import annotations
 
-from typing import Any
-
 import numpy as np
 import torch
 
 from occtrain.core import operations
+from occtrain.core.protocols import WorldEngine
 from occtrain.data.clips import Clip, Text
 from occtrain.families.sparseoccvla.tasks import FORECAST_PROMPT, context
 from occtrain.models.point_sets import voxelize
 
 
-def caption(engine: Any, clip: Clip) -> str:
+def caption(engine: WorldEngine, clip: Clip) -> str:
     """The model's description of the anchor frame's scene."""
     generated, _ = operations.generate_one(engine, "caption", clip)
     return generated[0].text.strip()
 
 
-def decision(engine: Any, clip: Clip) -> str:
+def decision(engine: WorldEngine, clip: Clip) -> str:
     """The model's decision with its reasoning (what its planner reads)."""
     generated, _ = operations.generate_one(engine, "planning", clip)
     return generated[0].text.strip()
 
 
 @torch.no_grad()
-def forecast(engine: Any, clip: Clip) -> np.ndarray:
+def forecast(engine: WorldEngine, clip: Clip) -> np.ndarray:
     """The forecast occupancy of the next frames (T, 200, 200, 16) uint8, from the forecaster's points."""
     a = clip.anchor_index
     rows = engine.scenes({"ann": [clip.ann]}, [{a}])[(0, a)]
