@@ -36,11 +36,14 @@ __all__ = ["DASHBOARD_FILE", "bev_comparison", "read_samples", "register", "writ
 def write_dashboard(run_dir: Path, out: Path | None = None) -> Path:
     """Write the dashboard of ``run_dir`` (to ``run_dir/dashboard.html`` unless ``out``); returns its path."""
     from occtrain.dashboard.page import render_page
-    from occtrain.dashboard.run_view import load_run
+    from occtrain.dashboard.run_view import load_run, read_data
 
     run = load_run(Path(run_dir))
     out = Path(out) if out is not None else Path(run_dir) / DASHBOARD_FILE
-    check_output(out, "--out")  # before the page is drawn: a run's figures take a while
+    # Before the page is drawn: a run's figures take a while, and counting its dataset
+    # keeps what it counted in the run directory, which a refused --out must leave alone.
+    check_output(out, "--out")
+    run.data = read_data(run.run_dir, run.pipeline_yaml)
     return atomic_write_text(out, render_page(run, generated=time.time()))
 
 

@@ -98,7 +98,7 @@ def read_data(run_dir: Path, pipeline_yaml: str) -> DataView | None:
         if saved.get("world_key") == key and names <= set(saved):
             stats = DatasetStats(**{k: saved[k] for k in names})
         else:
-            stats = dataset_stats(root, "val", DATA_FRAMES)
+            stats = dataset_stats(root, "val", DATA_FRAMES, progress=False)  # the page is the output
             atomic_write_json(cache, {**stats.to_json(), "world_key": key})
         return DataView(root, stats, png_bytes(class_chart(stats)))
     except (OcctrainError, OSError, ValueError, TypeError) as err:
@@ -261,5 +261,4 @@ def load_run(run_dir: Path) -> RunView:
         updated if isinstance(updated, (int, float)) else None,
         pipeline_yaml,
         stages,
-        read_data(run_dir, pipeline_yaml),
     )

@@ -164,11 +164,16 @@ class _Counts:
         )
 
 
-def dataset_stats(root: str | Path, split: str = "val", frames: int = 100) -> DatasetStats:
-    """Count ``frames`` frames of ``split`` of the dataset at ``root`` (-1: all of them)."""
+def dataset_stats(root: str | Path, split: str = "val", frames: int = 100, progress: bool = True) -> DatasetStats:
+    """Count ``frames`` frames of ``split`` of the dataset at ``root`` (-1: all of them),
+    with a progress bar unless ``progress`` is off (a command whose output is not the count)."""
     index = DatasetIndex.open(root)
     picked = pick_frames(index, split, frames)
     counts = _Counts()
+    if not progress:
+        for scene, token in picked:
+            counts.add(index.labels(scene, token))
+        return counts.result(index.root, split, world_version(index.root))
     with progress_bar(len(picked), f"counting the voxels of {len(picked)} {split} frames") as advance:
         for scene, token in picked:
             counts.add(index.labels(scene, token))
