@@ -37,8 +37,8 @@ def _run(root: Path, qa: float, world: str = "v4", seed: int = 0) -> Path:
 def test_seeds_side_by_side_with_mean_spread_baseline_and_world(tool, tmp_path):
     runs = [_run(tmp_path / f"s{i}", qa, seed=i) for i, qa in enumerate((50.0, 60.0, 55.0))]
     table = tool.table(runs)
-    assert table.startswith("World v4 (key k); whole val split")
-    assert f"- run 2: `{runs[2]}`, training seed 2, code 0.1.0+abc1234, scored " in table
+    assert table.startswith("World v4; whole val split")
+    assert f"- run 2: `{runs[2]}`, training seed 2, code 0.1.0+abc1234, data key k, scored " in table
     row = next(line for line in table.splitlines() if "NuScenes-QA accuracy" in line and line.startswith("| instruct"))
     assert "| 50.0 / 60.0 / 55.0 | 55.0 (50.0 to 60.0) | commonest answer per type 43.2 |" in row
     assert "forecast" not in table  # a stage no run scored has no row
