@@ -30,7 +30,7 @@ from occtrain.core.lm_world_model import LMWorldModel, WorldInputs, WorldModelOu
 from occtrain.core.protocols import PromptInputs
 from occtrain.core.sequence import IGNORE, PayloadSpec, TokenSequence, empty_payload
 from occtrain.core.vocab import JointVocab
-from occtrain.data.clips import Part, clip_rng
+from occtrain.data.clips import Part, PromptPart, clip_rng
 from occtrain.errors import ConfigError
 from occtrain.families.sparseoccvla.config import SparseOccVLAWorldConfig
 from occtrain.families.sparseoccvla.encoder import FeedForward, PointHead, SpatialSelfAttention, normalized, sinusoid
@@ -57,7 +57,7 @@ def ego_state(anchor: dict) -> tuple[float, ...]:
 
 
 @dataclass(frozen=True)
-class Ego:
+class Ego(PromptPart):
     """The ego-state token (its features, see ``ego_state``)."""
 
     features: tuple[float, ...]
@@ -65,7 +65,7 @@ class Ego:
 
 
 @dataclass(frozen=True)
-class Forecast:
+class Forecast(PromptPart):
     """The forecast of the future frames ``tokens`` (sample tokens, 0.5 s apart) from the
     occupancy tokens before it: laid out as no token, trained by the forecaster's loss."""
 
