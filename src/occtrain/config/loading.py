@@ -28,14 +28,14 @@ def _dataclass_fields(cls: type) -> dict[str, Any]:
     return {f.name: hints[f.name] for f in dataclasses.fields(cls)}
 
 
-def _section_type(tp: Any) -> type | None:
+def section_type(tp: Any) -> type | None:
     """The dataclass a field holds (``Optional`` too), or the element dataclass of a list field."""
     if dataclasses.is_dataclass(tp):
         return tp
     origin = typing.get_origin(tp)
     if origin in (typing.Union, types.UnionType):  # Optional[X] and X | None
         held = [a for a in typing.get_args(tp) if a is not type(None)]
-        return _section_type(held[0]) if len(held) == 1 else None
+        return section_type(held[0]) if len(held) == 1 else None
     if origin in (list, tuple):
         args = typing.get_args(tp)
         if args and dataclasses.is_dataclass(args[0]):
@@ -82,7 +82,7 @@ def _resolve_includes(raw: Any, cls: type, source: Path, prefix: str) -> Any:
         full = f"{prefix}{key}"
         if key not in fields:
             raise ConfigError(f"unknown key '{full}' in {source}{did_you_mean(str(key), list(fields))}")
-        sub = _section_type(fields[key])
+        sub = section_type(fields[key])
         if sub is None and _is_mapping(fields[key]) and isinstance(value, str) and value.endswith((".yaml", ".yml")):
             value = read_yaml(_find_include(value, source))  # a free-form section kept in its own file
         elif sub is not None and isinstance(value, str) and value.endswith((".yaml", ".yml")):
@@ -126,7 +126,7 @@ def _check_override_key(cls: type, dotted: str, source: str) -> type | None:
             where = ".".join(parts[:depth])
             key = f"{where}.{name}" if where else name
             raise ConfigError(f"unknown key '{key}' in {source}{did_you_mean(name, list(fields))}")
-        cur = _section_type(fields[name])
+        cur = section_type(fields[name])
     return cur
 
 

@@ -20,6 +20,8 @@ from functools import cache
 
 from omegaconf import MISSING
 
+from occtrain.config.loading import section_type
+
 
 @dataclass(frozen=True)
 class KeyDoc:
@@ -110,16 +112,6 @@ def _shown(value: object) -> str:
     return repr(value)
 
 
-def _dataclass_in(hint: object) -> type | None:
-    """The dataclass a key holds, directly, optionally or as list items."""
-    if dataclasses.is_dataclass(hint):
-        return hint  # type: ignore[return-value]
-    for arg in typing.get_args(hint):
-        if dataclasses.is_dataclass(arg):
-            return arg
-    return None
-
-
 def reference_rows(schema: type, prefix: str = "") -> list[KeyDoc]:
     """Every key of ``schema``, nested sections expanded (a list of sections as ``key[]``)."""
     hints = typing.get_type_hints(schema)
@@ -128,7 +120,7 @@ def reference_rows(schema: type, prefix: str = "") -> list[KeyDoc]:
     for f in dataclasses.fields(schema):
         hint = hints.get(f.name, f.type)
         path = f"{prefix}{f.name}"
-        inner = _dataclass_in(hint)
+        inner = section_type(hint)
         doc = docs.get(f.name, "")
         if inner is not None:
             many = typing.get_origin(hint) is list

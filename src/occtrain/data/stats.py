@@ -14,6 +14,7 @@ training-set counts are.
 
 from __future__ import annotations
 
+from contextlib import nullcontext
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -170,11 +171,8 @@ def dataset_stats(root: str | Path, split: str = "val", frames: int = 100, progr
     index = DatasetIndex.open(root)
     picked = pick_frames(index, split, frames)
     counts = _Counts()
-    if not progress:
-        for scene, token in picked:
-            counts.add(index.labels(scene, token))
-        return counts.result(index.root, split, world_version(index.root))
-    with progress_bar(len(picked), f"counting the voxels of {len(picked)} {split} frames") as advance:
+    bar = progress_bar(len(picked), f"counting the voxels of {len(picked)} {split} frames")
+    with bar if progress else nullcontext(lambda n: None) as advance:
         for scene, token in picked:
             counts.add(index.labels(scene, token))
             advance(1)
