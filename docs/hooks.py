@@ -6,7 +6,7 @@ from mkdocs.structure.files import File
 
 
 def on_files(files, config):
-    from occtrain.stages.reference import config_reference
+    from occtrain.stages.registered_schemas import config_reference
 
     files.append(File.generated(config, "reference/config.md", content=config_reference()))
     return files

@@ -29,8 +29,8 @@ import torch  # noqa: F401
 import transformers  # noqa: F401
 
 import occtrain.cli
-import occtrain.evaluate  # noqa: F401
-import occtrain.runner  # noqa: F401
+import occtrain.commands.evaluate  # noqa: F401
+import occtrain.run.runner  # noqa: F401
 
 
 def _child(spec: dict) -> None:

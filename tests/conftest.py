@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 
 from occtrain.data.layout import DatasetWriter
-from occtrain.occ3d import FRAME_DT, FREE, GRID_SHAPE
+from occtrain.formats.occ3d import FRAME_DT, FREE, GRID_SHAPE
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -156,7 +156,7 @@ def test_occvla_takes_a_paligemma_directory_for_its_vision_tower_and_llm(
 ):
     from occtrain.data.clips import Images, Occupancy, Text
     from occtrain.families.occvla import TaskConfig as VLATasks
-    from occtrain.models.vision import DenseHead, MultiViewEncoder, VisionConfig, export_vision
+    from occtrain.models.camera_encoder import DenseHead, MultiViewEncoder, VisionConfig, export_vision
 
     path, original = paligemma_dir
     encoder = MultiViewEncoder(VisionConfig(path=str(path)))

@@ -25,12 +25,12 @@ from occtrain.config.llm import LLMConfig, LoRAConfig
 from occtrain.core.registry import build_tokenizer, load_tokenizer, save_tokenizer
 from occtrain.engine import export_engine, load_world_model, new_world_model
 from occtrain.errors import OcctrainError
-from occtrain.exports import write_export
 from occtrain.families.occllama import TaskConfig
-from occtrain.io import WriteError
+from occtrain.formats.exports import write_export
+from occtrain.formats.io import WriteError
 from occtrain.models.adapters import AdapterConfig, add_adapters
+from occtrain.models.camera_encoder import DenseHead, MultiViewEncoder, VisionConfig, export_vision, load_vision_encoder
 from occtrain.models.llm import apply_lora
-from occtrain.models.vision import DenseHead, MultiViewEncoder, VisionConfig, export_vision, load_vision_encoder
 from test_bad_inputs import snapshot
 
 TINY_TOKENIZER = {
@@ -315,7 +315,7 @@ def test_every_valid_export_loads(exports: Path) -> None:
 
 def test_a_writer_whose_key_the_readers_do_not_know_fails_before_writing(tmp_path: Path) -> None:
     with pytest.raises(
-        ValueError, match="export config key 'new_setting' is missing from occtrain.exports.EXPORT_KEYS"
+        ValueError, match="export config key 'new_setting' is missing from occtrain.formats.exports.EXPORT_KEYS"
     ):
         write_export(tmp_path / "export", {"w": torch.zeros(1)}, {"stage_kind": "tokenizer", "new_setting": 1})
     assert list(tmp_path.iterdir()) == []
@@ -350,12 +350,12 @@ def fail_at(where: str, code: int) -> Callable[[pytest.MonkeyPatch], None]:
     "where, code, says",
     [
         (
-            "occtrain.exports.os.fsync",
+            "occtrain.formats.exports.os.fsync",
             errno.ENOSPC,
             "the disk is full; free space and rerun (a run resumes where it stopped)",
         ),
-        ("occtrain.exports.shutil.copy2", errno.EDQUOT, "the disk quota is exhausted"),
-        ("occtrain.exports.tempfile.mkdtemp", errno.EROFS, "the file system is read-only"),
+        ("occtrain.formats.exports.shutil.copy2", errno.EDQUOT, "the disk quota is exhausted"),
+        ("occtrain.formats.exports.tempfile.mkdtemp", errno.EROFS, "the file system is read-only"),
         ("swap", errno.EACCES, "permission denied"),
     ],
     ids=["weights-fsync-disk-full", "extra-copy-quota", "read-only", "swap-denied"],
@@ -384,7 +384,7 @@ def _write_vision(export: Path) -> None:
     "kind, write, where",
     [
         # The vision stage's export, its Hugging Face tower copied in.
-        ("vision", _write_vision, "occtrain.exports.os.fsync"),
+        ("vision", _write_vision, "occtrain.formats.exports.os.fsync"),
         # A world model stages its LLM directory beside the export: a full disk there names the
         # export (not a SafetensorError from a system temp directory).
         (

@@ -31,7 +31,7 @@ from conftest import REPO, hand_frames, hand_labels, write_hand_dataset
 from occtrain.cli import main
 from occtrain.data.layout import DatasetIndex, quaternion_from_yaw
 from occtrain.data.validate import Len, problems
-from occtrain.occ3d import GRID_SHAPE
+from occtrain.formats.occ3d import GRID_SHAPE
 from test_scoring_cli import planning_files, qa_questions
 
 FRAMES = 8
@@ -293,7 +293,7 @@ def pickled_checkpoint(tmp: Path) -> None:
     archive whose pickle names a class (not what occtrain writes)."""
     import collections
 
-    from occtrain.runner import load_recipe
+    from occtrain.run.runner import load_recipe
 
     recipe()(tmp)
     planned = load_recipe(tmp / "r.yaml")[1]

@@ -10,8 +10,8 @@ from occtrain.core.scorers import FORECAST_BASELINES, forecast_baselines, last_p
 from occtrain.data.clips import Clip
 from occtrain.data.geometry import moved_scene
 from occtrain.data.meta_actions import MetaActionConfig, past_labels
+from occtrain.formats.occ3d import CLASS_INDEX, FRAME_DT, FREE, MOVABLE_CLASSES, VOXEL_SIZE
 from occtrain.metrics import ForecastMetric
-from occtrain.occ3d import CLASS_INDEX, FRAME_DT, FREE, MOVABLE_CLASSES, VOXEL_SIZE
 
 CAR, ROAD = CLASS_INDEX["car"], CLASS_INDEX["driveable_surface"]
 

@@ -11,7 +11,7 @@ import pytest
 
 from occtrain.data.cameras import CAMERA_NAMES, matrix_to_quaternion, nuscenes_rig, quaternion_to_matrix
 from occtrain.data.synth.grid import GROUND_LAYER
-from occtrain.occ3d import CLASS_INDEX, FREE, GRID_SHAPE, RANGE_MIN, VOXEL_SIZE
+from occtrain.formats.occ3d import CLASS_INDEX, FREE, GRID_SHAPE, RANGE_MIN, VOXEL_SIZE
 
 GROUND_CLASSES = [CLASS_INDEX[c] for c in ("driveable_surface", "other_flat", "sidewalk", "terrain")]
 

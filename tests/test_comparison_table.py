@@ -7,11 +7,11 @@ import json
 import pytest
 
 from conftest import run_cli, write_hand_dataset
-from occtrain.comparison import build_table, print_table, to_markdown
+from occtrain.commands.compare import build_table, print_table, to_markdown
 from occtrain.config.recipe import ComparisonTable, TableColumn, TableRow
 from occtrain.errors import ConfigError
-from occtrain.manifest import Manifest, StageEntry
-from occtrain.runner import load_recipe
+from occtrain.run.manifest import Manifest, StageEntry
+from occtrain.run.runner import load_recipe
 
 STAGES = """
 stages:
@@ -146,7 +146,7 @@ def test_the_printed_table_is_not_squeezed_off_a_terminal(monkeypatch, capsys):
 
 
 def test_a_run_writes_the_table_only_when_every_stage_is_done(tmp_path, capsys):
-    from occtrain.runner import _write_table
+    from occtrain.run.runner import _write_table
 
     recipe, _ = load_recipe(write_recipe(tmp_path, TABLE))
     manifest = Manifest(

@@ -14,11 +14,11 @@ from pathlib import Path
 import pytest
 
 from conftest import write_hand_dataset
+from occtrain.commands.evaluate import WORLD_FILE, _save, eval_metrics_file
 from occtrain.data.layout import DatasetIndex
 from occtrain.data.shards import dataset_fingerprint, make_pipeline, shard_urls, world_key, write_shards
 from occtrain.errors import DataError
-from occtrain.evaluate import WORLD_FILE, _save, eval_metrics_file
-from occtrain.stages.base import stage_cache_dir
+from occtrain.stages.stage import stage_cache_dir
 
 
 @pytest.fixture

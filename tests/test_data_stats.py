@@ -13,7 +13,7 @@ from occtrain.cli import main
 from occtrain.data.layout import DatasetIndex
 from occtrain.data.stats import _Counts, class_rows, dataset_stats, pick_frames, reference_class_shares
 from occtrain.errors import DataError
-from occtrain.occ3d import CLASS_INDEX, FREE, GRID_SHAPE, OCC3D_TRAIN_VOXELS
+from occtrain.formats.occ3d import CLASS_INDEX, FREE, GRID_SHAPE, OCC3D_TRAIN_VOXELS
 
 
 def hand_frame() -> dict[str, np.ndarray]:

@@ -1,4 +1,4 @@
-"""occtrain.io: the one door every deletion goes through, and outputs checked before work."""
+"""occtrain.formats.io: the one door every deletion goes through, and outputs checked before work."""
 
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ import os
 
 import pytest
 
-import occtrain.io
-from occtrain.io import OutsideError, WriteError, check_output, remove_inside
+import occtrain.formats.io
+from occtrain.formats.io import OutsideError, WriteError, check_output, remove_inside
 
 
 @pytest.fixture
@@ -89,6 +89,6 @@ def test_an_unwritable_place_is_found_by_a_probe_that_leaves_nothing(tmp_path, m
     def read_only(*args, **kwargs):
         raise OSError(errno.EROFS, "Read-only file system")
 
-    monkeypatch.setattr(occtrain.io.tempfile, "mkstemp", read_only)
+    monkeypatch.setattr(occtrain.formats.io.tempfile, "mkstemp", read_only)
     with pytest.raises(WriteError, match="cannot write .*new: the file system is read-only"):
         check_output(tmp_path / "new", "--out", kind="dir")

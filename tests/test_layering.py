@@ -1,14 +1,14 @@
 """The package's import arrows, read from the source with ``ast``.
 
-Layers, top to bottom: cli -> runner (and the other commands, the Python API) -> stages ->
-engine -> families -> core -> models / metrics / data -> config and the base modules. A
+Layers, top to bottom: cli -> run/ and commands/ (and the Python API, the dashboard) -> stages ->
+engine -> families -> core -> models / metrics / data -> config, formats/ and the base modules. A
 module may import its own layer or lower ones, never a higher one; on top of that:
 
 - nothing in ``models/``, ``core/``, ``families/`` or ``engine/`` imports Lightning;
 - no stage module imports another stage module (they share the infrastructure modules of
   ``STAGE_INFRA``: the base, trainer, callbacks, checkpoints, optimizer, loggers, sharding);
 - a family imports no other family (shared code moves down into ``core/`` or ``models/``);
-- ``core``, ``engine``, ``stages``, the runner, ``evaluate``, the API and the dashboard name
+- ``core``, ``engine``, ``stages``, ``run``, ``commands``, the API and the dashboard name
   no family: they import none, and no string in them is a family's name (they look
   families up in the registry);
 - ``metrics/`` never imports ``data/`` (metrics score anyone's predictions);
@@ -32,14 +32,10 @@ SRC = REPO / "src" / "occtrain"
 LAYERS = {
     "cli": 7,
     "__main__": 7,
-    "comparison": 6,
-    "runner": 6,
-    "evaluate": 6,
-    "scoring": 6,
+    "commands": 6,
+    "run": 6,
     "dashboard": 6,
-    "manifest": 6,
     "api": 6,
-    "memory_plan": 6,
     "stages": 5,
     "engine": 4,
     "families": 3,
@@ -48,33 +44,29 @@ LAYERS = {
     "metrics": 1,
     "data": 1,
     "config": 0,
+    "formats": 0,
     "errors": 0,
-    "io": 0,
-    "run_control": 0,
-    "exports": 0,
     "progress": 0,
-    "occ3d": 0,
-    "nuscenes_qa": 0,
     "__init__": 0,
     "version": 0,
 }
 #: Modules of ``stages/`` that are infrastructure, not a stage kind.
 STAGE_INFRA = {
     "occtrain.stages",
-    "occtrain.stages.base",
+    "occtrain.stages.stage",
     "occtrain.stages.callbacks",
     "occtrain.stages.checkpoints",
     "occtrain.stages.common",
     "occtrain.stages.loggers",
     "occtrain.stages.optim",
-    "occtrain.stages.reference",
+    "occtrain.stages.registered_schemas",
     "occtrain.stages.sharding",
     "occtrain.stages.step_progress",
     "occtrain.stages.trainer",
 }
 LIGHTNING_FREE = ("models", "core", "families", "engine")
 #: What may not name a family: it looks families up in the registry.
-FAMILY_NEUTRAL = ("core", "engine", "stages", "runner", "evaluate", "api", "dashboard", "memory_plan")
+FAMILY_NEUTRAL = ("core", "engine", "stages", "run", "commands", "api", "dashboard")
 #: The families occtrain ships, as the registry finds them.
 FAMILIES = tuple(sorted(name for name in registry.families() if (SRC / "families" / name).is_dir()))
 
@@ -184,13 +176,13 @@ def test_imports_point_down():
             "from occtrain.families.occllama.tasks import TaskConfig\n",
             "a family imports no other family",
         ),
-        ("families/occllm/bad.py", "from occtrain.stages.base import Stage\n", "points up"),
+        ("families/occllm/bad.py", "from occtrain.stages.stage import Stage\n", "points up"),
         ("engine/bad.py", "from occtrain.families.occvla.world_model import OccVLAWorldModel\n", "names no family"),
         ("stages/bad.py", "def f(family):\n    return family == 'occllama'\n", "names the family 'occllama'"),
         ("dashboard/bad.py", "FAMILY = 'OccVLA'\n", "names the family 'OccVLA'"),
         ("core/bad.py", "import lightning\n", "must not depend on Lightning"),
         ("core/bad.py", "from occtrain.families.occllama import OCCLLAMA\n", "points up"),
-        ("manifest.py", "from occtrain import __version__\n", "imports the package root"),
+        ("run/manifest.py", "from occtrain import __version__\n", "imports the package root"),
         ("data/bad.py", "import occtrain\n", "imports the package root"),
     ],
 )
@@ -206,7 +198,7 @@ def test_the_checker_passes_allowed_imports():
         check_module(
             "occtrain.stages.planner",
             "stages/planner.py",
-            "from occtrain.stages.base import Stage\nfrom occtrain.engine import Evaluator\n",
+            "from occtrain.stages.stage import Stage\nfrom occtrain.engine import Evaluator\n",
         )
         == []
     )
@@ -214,7 +206,7 @@ def test_the_checker_passes_allowed_imports():
         check_module(
             "occtrain.families.occllm.tasks",
             "families/occllm/tasks.py",
-            "from occtrain.families.occllm.config import X\nfrom occtrain.core.tasks import TaskSpec\n",
+            "from occtrain.families.occllm.config import X\nfrom occtrain.core.shared_tasks import TaskSpec\n",
         )
         == []
     )

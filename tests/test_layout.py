@@ -9,7 +9,7 @@ import pytest
 from conftest import hand_labels, write_hand_dataset
 from occtrain.data.layout import DatasetIndex, DatasetWriter, load_labels, quaternion_from_yaw, yaw_from_quaternion
 from occtrain.errors import DataError
-from occtrain.occ3d import GRID_SHAPE
+from occtrain.formats.occ3d import GRID_SHAPE
 
 
 def make_real_format(root, tokens=("t2", "t0", "t1")):

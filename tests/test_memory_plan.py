@@ -9,9 +9,17 @@ from transformers import AutoModelForCausalLM
 
 from conftest import REPO
 from occtrain.cli import main
+from occtrain.commands.memory_plan import (
+    MAX_GPU_GIB,
+    MAX_SEQ_LEN,
+    ModelCount,
+    activation_bytes,
+    check_flags,
+    count_llm,
+    plan,
+)
 from occtrain.config.llm import LLMConfig, LoRAConfig, check_llm_sizes
 from occtrain.errors import ConfigError
-from occtrain.memory_plan import MAX_GPU_GIB, MAX_SEQ_LEN, ModelCount, activation_bytes, check_flags, count_llm, plan
 from occtrain.models.adapters import AdapterConfig, add_adapters
 from occtrain.models.llm import apply_lora, build_llm, tiny_config
 

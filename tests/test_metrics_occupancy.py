@@ -13,8 +13,8 @@ import torch
 import torch.distributed as dist
 import torch.multiprocessing as mp
 
+from occtrain.formats.occ3d import CLASS_NAMES, FREE
 from occtrain.metrics import CaptionMetric, ForecastMetric, OccupancyMetric, PlanningMetric, QAMetric, confusion_matrix
-from occtrain.occ3d import CLASS_NAMES, FREE
 
 
 def vol(*labels: int) -> torch.Tensor:
@@ -227,7 +227,7 @@ def run_all(rows: slice) -> dict:
         some["plan_first_three"].update(p[:3], g[:3], m[:3], a[:3])
     some["mean"].update(torch.arange(rows.start, rows.stop, dtype=torch.float32))
     results["some_ranks"] = compute_metrics("val", some)
-    from occtrain.scoring import to_json
+    from occtrain.commands.score import to_json
 
     return to_json(results)
 
@@ -283,7 +283,7 @@ def test_two_process_ddp_equals_single_process(tmp_path):
 def test_the_movable_class_miou_averages_the_classes_that_occur():
     """Three car voxels, two found and one missed, one free voxel called a car: car IoU 2 / 4.
     Pedestrians occur on neither side and do not count (OccWorld's mIoU would score them 100)."""
-    from occtrain.occ3d import CLASS_INDEX
+    from occtrain.formats.occ3d import CLASS_INDEX
 
     gt = torch.full((1, 2, 2, 2), FREE)
     gt[0, 0, 0, 0] = gt[0, 0, 0, 1] = gt[0, 0, 1, 0] = CLASS_INDEX["car"]

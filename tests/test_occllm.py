@@ -11,8 +11,8 @@ import torch
 from occtrain.core.registry import build_tokenizer, tokenizer_config
 from occtrain.errors import ConfigError
 from occtrain.families.occllm import MSVAE, merge, separate
+from occtrain.formats.occ3d import CLASS_INDEX, FREE, GRID_SHAPE, NUM_CLASSES
 from occtrain.models import count_parameters
-from occtrain.occ3d import CLASS_INDEX, FREE, GRID_SHAPE, NUM_CLASSES
 
 TINY = dict(
     num_codes=16,
@@ -89,7 +89,7 @@ def test_the_ablation_switches():
 
 def test_the_tokenizer_stage_trains_it_and_reports_each_codebook(tmp_path, hand_dataset):
     from occtrain.core.registry import load_tokenizer
-    from occtrain.runner import run
+    from occtrain.run.runner import run
 
     recipe = tmp_path / "msvae.yaml"
     recipe.write_text(f"""
@@ -141,7 +141,7 @@ def test_a_patch_size_must_divide_the_grid():
 
 
 def test_the_patch_head_scores_every_cell_in_each_codebook():
-    from occtrain.families.occllm.patches import PatchEmbedding, PatchHead
+    from occtrain.families.occllm.scene_tokens import PatchEmbedding, PatchHead
     from occtrain.models.patches import patchify
 
     latents = torch.randn(2, 4, 10, 10)
@@ -152,7 +152,7 @@ def test_the_patch_head_scores_every_cell_in_each_codebook():
 
 
 def test_pre_fusion_starts_as_the_identity_and_learns_a_per_channel_gate():
-    from occtrain.families.occllm.patches import PreFusion
+    from occtrain.families.occllm.scene_tokens import PreFusion
 
     fuse = PreFusion(action_dim=2, channels=4)
     latents, action = torch.randn(3, 4, 10, 10), torch.randn(3, 2)

@@ -21,11 +21,11 @@ from occtrain.data.meta_actions import KMH_PER_S, MetaActionConfig, label, past_
 from occtrain.errors import ConfigError
 from occtrain.families.occvla import OccVLAWorldConfig, OccVLAWorldModel
 from occtrain.families.occvla.tasks import META_PROMPT, META_QUESTION, TaskConfig, meta_action
+from occtrain.formats.occ3d import GRID_SHAPE
 from occtrain.metrics import MetaActionAccuracy
 from occtrain.models.adapters import AdapterConfig, add_adapters, load_adapters, save_adapters, without_adapters
 from occtrain.models.llm import build_llm
 from occtrain.models.text_tokenizer import train_text_tokenizer
-from occtrain.occ3d import GRID_SHAPE
 
 TEXTS = [
     "Past meta actions: maintain speed, go straight. What is the next meta action?",

@@ -45,7 +45,7 @@ def test_every_stage_is_done_and_exported(pipeline):
     assert "val/teacher_tokens_per_s" in distill and "val/student_tokens_per_s" in distill
     planner = manifest["stages"]["planner"]["metrics"]
     assert "val/constant_velocity_L2_uniad_avg" in planner and "val/head_gt_meta_L2_uniad_avg" in planner
-    from occtrain.models.planner import load_planning_head
+    from occtrain.models.planning_heads import load_planning_head
 
     assert load_planning_head(pipeline / "planner" / "export").steps == 6
     assert (pipeline / "dashboard.html").stat().st_size > 10_000
@@ -127,9 +127,9 @@ def test_eval_asks_every_question_and_scores_another_world(pipeline, tmp_path):
 
     # The same model on worlds synthesized from other seeds, in folders of one name: each has
     # its own eval directory and scene cache, keyed by its content (never the other's).
+    from occtrain.commands.evaluate import eval_metrics_file
     from occtrain.config import SynthConfig
     from occtrain.data.synthesize import synthesize
-    from occtrain.evaluate import eval_metrics_file
 
     scored = {}
     for seed in (5, 6):
@@ -158,7 +158,7 @@ def test_the_vision_recipe_runs_and_hands_over_a_hugging_face_tower(tmp_path):
     import torch
     from transformers import SiglipVisionModel
 
-    from occtrain.models.vision import load_vision_encoder
+    from occtrain.models.camera_encoder import load_vision_encoder
 
     run_dir = tmp_path / "run"
     res = run_cli(

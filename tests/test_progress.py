@@ -103,7 +103,7 @@ def test_the_terminal_bar_shows_the_stages_steps(monkeypatch):
 def test_the_trainer_uses_it_instead_of_lightnings_bar(tmp_path):
     from lightning.pytorch.callbacks import ProgressBar
 
-    from occtrain.config.schema import TrainerConfig
+    from occtrain.config.groups import TrainerConfig
     from occtrain.stages.step_progress import StepProgress
     from occtrain.stages.trainer import build_trainer
 

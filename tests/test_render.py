@@ -1,7 +1,7 @@
 import numpy as np
 
 from occtrain.data.render import render_bev, top_down_classes
-from occtrain.occ3d import CLASS_COLORS, FREE, GRID_SHAPE
+from occtrain.formats.occ3d import CLASS_COLORS, FREE, GRID_SHAPE
 
 
 def test_top_down_takes_highest_occupied_voxel():

@@ -9,8 +9,8 @@ import torch
 
 from conftest import write_hand_dataset
 from occtrain.errors import ConfigError, OcctrainError
-from occtrain.exports import read_export, write_export
-from occtrain.runner import StageFailed, run
+from occtrain.formats.exports import read_export, write_export
+from occtrain.run.runner import StageFailed, run
 from plugins.probe_stage import PROBE
 
 
@@ -175,7 +175,7 @@ def test_a_kind_that_is_not_a_stage_is_refused_before_training(recipe, tmp_path)
 def plan_text(tmp_path, stages: str):
     from occtrain.config import load_config
     from occtrain.config.recipe import RecipeConfig
-    from occtrain.runner import plan_stages
+    from occtrain.run.runner import plan_stages
 
     (tmp_path / "r.yaml").write_text(f"name: r\nstages:\n{stages}")
     return plan_stages(load_config(RecipeConfig, tmp_path / "r.yaml"), "r.yaml")
@@ -215,8 +215,8 @@ def test_a_world_model_stage_reads_only_its_kind_of_export(tmp_path):
 
 def test_checkpoints_load_strictly_by_key(recipe, tmp_path):
     """A checkpoint whose weights do not match the stage is an error naming the key."""
+    from occtrain.config.groups import DataConfig, TrainerConfig
     from occtrain.config.recipe import StageSpec
-    from occtrain.config.schema import DataConfig, TrainerConfig
     from occtrain.stages import StageContext
     from plugins.probe_stage import Probe, ProbeConfig
 
@@ -263,7 +263,7 @@ def test_disk_full_at_a_checkpoint_is_one_line_and_leaves_the_run_consistent(pro
     import errno
     import os
 
-    import occtrain.io
+    import occtrain.formats.io
 
     real_replace = os.replace
 
@@ -272,7 +272,7 @@ def test_disk_full_at_a_checkpoint_is_one_line_and_leaves_the_run_consistent(pro
             raise OSError(errno.ENOSPC, "No space left on device")
         return real_replace(src, dst)
 
-    monkeypatch.setattr(occtrain.io.os, "replace", full)
+    monkeypatch.setattr(occtrain.formats.io.os, "replace", full)
     with pytest.raises(StageFailed) as err:
         run(recipe)
     run_dir = recipe.parent / "runs" / "probe"
@@ -285,7 +285,7 @@ def test_disk_full_at_a_checkpoint_is_one_line_and_leaves_the_run_consistent(pro
     stage = json.loads((run_dir / "manifest.json").read_text())["stages"]["first"]
     assert stage["status"] == "failed" and stage["error"].startswith("cannot write")
 
-    monkeypatch.setattr(occtrain.io.os, "replace", real_replace)  # space freed: the rerun finishes
+    monkeypatch.setattr(occtrain.formats.io.os, "replace", real_replace)  # space freed: the rerun finishes
     run(recipe)
     assert json.loads((run_dir / "manifest.json").read_text())["stages"]["first"]["status"] == "done"
 
@@ -293,7 +293,7 @@ def test_disk_full_at_a_checkpoint_is_one_line_and_leaves_the_run_consistent(pro
 def test_a_read_only_run_directory_is_one_line_and_writes_nothing(probe_kind, recipe, monkeypatch):
     import errno
 
-    import occtrain.io
+    import occtrain.formats.io
 
     run(recipe)
     run_dir = recipe.parent / "runs" / "probe"
@@ -302,7 +302,7 @@ def test_a_read_only_run_directory_is_one_line_and_writes_nothing(probe_kind, re
     def read_only(*args, **kwargs):
         raise OSError(errno.EROFS, "Read-only file system")
 
-    monkeypatch.setattr(occtrain.io.tempfile, "mkstemp", read_only)
+    monkeypatch.setattr(occtrain.formats.io.tempfile, "mkstemp", read_only)
     with pytest.raises(OcctrainError) as err:
         run(recipe, ["stages[1].optim.lr=0.5"], restart="second")
     assert str(err.value) == (
@@ -346,7 +346,7 @@ def test_an_unreadable_last_checkpoint_falls_back_to_the_one_before(tmp_path, ca
 
 
 def test_stages_are_addressed_by_name_or_index(probe_kind, recipe):
-    from occtrain.runner import load_recipe
+    from occtrain.run.runner import load_recipe
 
     for key in ("stages.second.optim.lr=0.125", "stages.1.optim.lr=0.125", "stages[1].optim.lr=0.125"):
         cfg, _ = load_recipe(recipe, [key])
@@ -419,7 +419,7 @@ def test_a_restart_past_its_first_checkpoint_replaces_the_old_stages(probe_kind,
 
 
 def test_a_restart_killed_before_it_settled_is_put_back_by_the_next_run(probe_kind, recipe, capsys):
-    from occtrain.manifest import Manifest
+    from occtrain.run.manifest import Manifest
 
     run_dir = run(recipe)
     tree, entries = _tree(run_dir / "second"), _stages(run_dir)

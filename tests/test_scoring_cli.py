@@ -11,8 +11,8 @@ import pytest
 
 from occtrain.cli import main
 from occtrain.data.layout import DatasetIndex
-from occtrain.io import atomic_write_npz
-from occtrain.occ3d import FREE
+from occtrain.formats.io import atomic_write_npz
+from occtrain.formats.occ3d import FREE
 
 needs_java = pytest.mark.skipif(
     shutil.which("java") is None, reason="pycocoevalcap's PTB tokeniser and METEOR need Java"

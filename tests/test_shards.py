@@ -16,7 +16,7 @@ from occtrain.data.datamodule import COLLATE, ResumableLoader, ShardDataModule
 from occtrain.data.layout import DatasetIndex
 from occtrain.data.shards import decode_sample, make_pipeline, read_index, shard_urls, write_shards
 from occtrain.errors import DataError
-from occtrain.occ3d import GRID_SHAPE
+from occtrain.formats.occ3d import GRID_SHAPE
 
 
 @pytest.fixture(scope="module")
@@ -431,14 +431,14 @@ def test_frames_alone_when_no_clip_fits_and_a_note_says_who_cannot_train(hand_da
 def test_an_unwritable_out_fails_before_any_shard(hand_dataset, tmp_path, capsys, monkeypatch):
     import errno
 
-    import occtrain.io
+    import occtrain.formats.io
     from occtrain.cli import main
 
     def read_only(*args, **kwargs):
         raise OSError(errno.EROFS, "Read-only file system")
 
     opened = []
-    monkeypatch.setattr(occtrain.io.tempfile, "mkstemp", read_only)
+    monkeypatch.setattr(occtrain.formats.io.tempfile, "mkstemp", read_only)
     monkeypatch.setattr(DatasetIndex, "open", lambda *a: opened.append(a))  # the dataset is never even read
     assert main(["data", "shards", str(hand_dataset), "--out", str(tmp_path / "s")]) == 2
     err = capsys.readouterr().err  # what to do after the ';' is io.check_output's to say
@@ -458,7 +458,7 @@ def test_decode_sample_unpacks_masks():
 
 def test_a_world_synthesized_with_other_settings_is_refused(synth_dataset, tmp_path):
     from occtrain.config import SynthConfig
-    from occtrain.config.schema import DataConfig
+    from occtrain.config.groups import DataConfig
     from occtrain.data.datamodule import ensure_data
     from occtrain.errors import DataError
 

@@ -14,9 +14,9 @@ import torch
 
 from occtrain.data.cameras import nuscenes_rig
 from occtrain.errors import ConfigError, DataError
+from occtrain.formats.occ3d import FREE, GRID_SHAPE
 from occtrain.models.point_sets import chamfer_distance, occupied_points, sigmoid_focal_loss, voxel_centres, voxelize
 from occtrain.models.projection import project, sample_views
-from occtrain.occ3d import FREE, GRID_SHAPE
 
 # ----------------------------------------------------------------------------- point sets
 
@@ -179,7 +179,12 @@ def test_forecaster_recursion_and_ego_embedding():
 
 
 def test_ddim_two_steps_equal_the_scheduler_stepped_by_hand():
-    from occtrain.families.sparseoccvla.planner import AnchorDiffusionConfig, ddim_denoise, ddim_scheduler, step_spacing
+    from occtrain.families.sparseoccvla.anchor_diffusion import (
+        AnchorDiffusionConfig,
+        ddim_denoise,
+        ddim_scheduler,
+        step_spacing,
+    )
 
     cfg = AnchorDiffusionConfig(noise_timestep=30, denoise_steps=2)
     scheduler = ddim_scheduler(cfg)
@@ -207,8 +212,8 @@ def stub_planner(dataset, tmp_path, **settings):
     whose decisions are random, as the frozen world model's cache would hold them."""
     from occtrain.data.clips import frame_clips
     from occtrain.data.layout import DatasetIndex
-    from occtrain.families.sparseoccvla.planner import AnchorDiffusionConfig, AnchorDiffusionPlanner
-    from occtrain.occ3d import FUTURE_STEPS
+    from occtrain.families.sparseoccvla.anchor_diffusion import AnchorDiffusionConfig, AnchorDiffusionPlanner
+    from occtrain.formats.occ3d import FUTURE_STEPS
 
     cfg = AnchorDiffusionConfig(anchors=3, dim=16, heads=2, layers=1, decision_tokens=4, **settings)
     world = SimpleNamespace(hidden_size=8, query_dim=6)
@@ -244,8 +249,8 @@ def test_planner_returns_the_top_scored_anchors_trajectory(synth_dataset, tmp_pa
 
 def test_plan_prior_writes_anchors_and_plans_as_offsets_from_constant_velocity(synth_dataset, tmp_path):
     from occtrain.data.layout import DatasetIndex
-    from occtrain.families.sparseoccvla.planner import AnchorDiffusionConfig, kmeans_anchors
-    from occtrain.models.planner import constant_velocity
+    from occtrain.families.sparseoccvla.anchor_diffusion import AnchorDiffusionConfig, kmeans_anchors
+    from occtrain.models.planning_heads import constant_velocity
 
     index = DatasetIndex.open(synth_dataset)
     whole, offsets = kmeans_anchors(index, 3), kmeans_anchors(index, 3, prior="constant_velocity")
@@ -266,7 +271,7 @@ def test_plan_prior_writes_anchors_and_plans_as_offsets_from_constant_velocity(s
 
 def test_kmeans_anchors_cover_the_training_trajectories(synth_dataset):
     from occtrain.data.layout import DatasetIndex
-    from occtrain.families.sparseoccvla.planner import kmeans_anchors
+    from occtrain.families.sparseoccvla.anchor_diffusion import kmeans_anchors
 
     index = DatasetIndex.open(synth_dataset)
     anchors = kmeans_anchors(index, 3)
@@ -361,7 +366,7 @@ def sparse_world():
     from occtrain.core.vocab import JointVocab
     from occtrain.families.sparseoccvla.config import SparseOccConfig, SparseOccVLAWorldConfig
     from occtrain.families.sparseoccvla.encoder import SparseOccEncoder
-    from occtrain.families.sparseoccvla.scene import SparseSceneEncoder
+    from occtrain.families.sparseoccvla.scene_encoder import SparseSceneEncoder
     from occtrain.families.sparseoccvla.world_model import SparseOccVLAWorldModel
     from occtrain.models.llm import build_llm
     from occtrain.models.text_tokenizer import train_text_tokenizer
@@ -461,7 +466,7 @@ def test_forecast_loss_trains_every_part_and_a_batch_without_it_still_reaches_th
 def test_the_encoders_rows_decode_to_its_last_layers_points():
     from occtrain.families.sparseoccvla.config import SparseOccConfig
     from occtrain.families.sparseoccvla.encoder import SparseOccEncoder
-    from occtrain.families.sparseoccvla.scene import SparseSceneEncoder
+    from occtrain.families.sparseoccvla.scene_encoder import SparseSceneEncoder
 
     torch.manual_seed(0)
     enc = SparseOccEncoder(SparseOccConfig(queries=4, dim=8, heads=2, points_per_layer=[2, 3], mixing_groups=2)).eval()

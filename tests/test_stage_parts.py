@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 import torch
 
-from occtrain.core.planning import ego_features, feature_size
+from occtrain.core.meta_action_planner import ego_features, feature_size
 from occtrain.data.schema import COMMANDS, META_DIRECTIONS, META_SPEEDS
 from occtrain.engine.export import _base_names
 from occtrain.metrics import flatten_metrics
-from occtrain.models.distill import distillation_losses
-from occtrain.models.planner import PlanningHead, constant_velocity_plan
+from occtrain.models.distill_losses import distillation_losses
+from occtrain.models.planning_heads import PlanningHead, constant_velocity_plan
 
 
 def test_constant_velocity_drives_straight_at_the_current_speed():

@@ -23,7 +23,7 @@ from occtrain.data.synth import SyntheticScene, generate_scene
 from occtrain.data.synth.annotate import SIDECAR_RULES
 from occtrain.data.synth.grid import GROUND_LAYER, GROUND_LAYERS, GROUND_TOP_Z
 from occtrain.data.synth.raster import LIDAR, masks
-from occtrain.occ3d import (
+from occtrain.formats.occ3d import (
     CLASS_INDEX,
     CLASS_NAMES,
     FRAME_DT,

@@ -7,13 +7,13 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from occtrain.core.tasks import sample_task, validate_tasks
+from occtrain.core.shared_tasks import sample_task, validate_tasks
 from occtrain.data.clips import Actions, Clip, Scene, Text, ego_future
 from occtrain.data.shards import decode_sample, iter_raw, shard_urls, write_shards
 from occtrain.data.text_formats import parse_meta_action
 from occtrain.errors import ConfigError
 from occtrain.families.occllama.tasks import OBJECT_CLASSES, TASKS, TaskConfig
-from occtrain.occ3d import CLASS_INDEX
+from occtrain.formats.occ3d import CLASS_INDEX
 
 
 @pytest.fixture(scope="module")
@@ -192,7 +192,7 @@ def test_a_packed_draw_generates_one_question_at_a_time(clips):
     """Generation asks a packed draw's questions one by one, each as its own prompt: one
     decoder cannot keep branches apart, and generated as one sequence every later question
     became text to generate and every Branch a scene (the QA benchmark's 40x)."""
-    from occtrain.core.tasks import unpacked
+    from occtrain.core.shared_tasks import unpacked
     from occtrain.data.clips import Branch, clip_rng
     from occtrain.engine.world_engine import WorldModelEngine
     from occtrain.families.occllama.tasks import qa
@@ -239,7 +239,7 @@ def test_a_constant_velocity_prior_writes_the_plan_as_offsets_and_reads_it_back(
 
     from occtrain.core.builder import SequenceBuilder
     from occtrain.core.decoding import ActionAnswer
-    from occtrain.models.planner import constant_velocity
+    from occtrain.models.planning_heads import constant_velocity
 
     clip = next(c for c in clips if TASKS["planning"].build(c, TaskConfig(context_frames=2), np.random.default_rng(0)))
     cv = constant_velocity([clip.anchor])[0].numpy()

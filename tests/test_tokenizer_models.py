@@ -14,13 +14,13 @@ from occtrain.config.tokenizer import latent_hw
 from occtrain.core.registry import build_tokenizer
 from occtrain.errors import ConfigError, DataError
 from occtrain.families.occllama import OccLLaMATokenizerConfig
-from occtrain.families.occllama.tokenizer import PillarEncoder, combine_decoupled
+from occtrain.families.occllama.scene_tokenizer import PillarEncoder, combine_decoupled
+from occtrain.formats.occ3d import FREE, GRID_SHAPE, NUM_CLASSES
 from occtrain.models import count_parameters
 from occtrain.models.tokenizers.losses import lovasz_softmax
 from occtrain.models.tokenizers.occworld_vqvae import OccWorldVQVAEConfig
 from occtrain.models.tokenizers.quantizer import VectorQuantizer
 from occtrain.models.tokenizers.swin import shifted_window_mask
-from occtrain.occ3d import FREE, GRID_SHAPE, NUM_CLASSES
 
 TINY = {
     "occworld_vqvae": OccWorldVQVAEConfig(

@@ -12,11 +12,12 @@ from omegaconf import OmegaConf
 from safetensors.torch import load_file, save_file
 from transformers import LlamaConfig, SiglipVisionConfig, SiglipVisionModel
 
+from occtrain.config.groups import DataConfig, TrainerConfig
 from occtrain.config.recipe import OptimConfig, StageSpec
-from occtrain.config.schema import DataConfig, TrainerConfig
 from occtrain.errors import ConfigError, DataError
+from occtrain.formats.occ3d import FREE
 from occtrain.metrics import DepthAbsRelMetric, PixelSegmentationMetric
-from occtrain.models.vision import (
+from occtrain.models.camera_encoder import (
     DenseHead,
     MultiViewEncoder,
     VisionConfig,
@@ -24,9 +25,8 @@ from occtrain.models.vision import (
     load_dense_head,
     load_vision_encoder,
 )
-from occtrain.occ3d import FREE
 from occtrain.stages import get_kind
-from occtrain.stages.base import Stage, StageContext
+from occtrain.stages.stage import Stage, StageContext
 from occtrain.stages.vision import VisionModelConfig, VisionStage
 
 H, W, N = 72, 128, 6
@@ -275,8 +275,8 @@ def test_frozen_tower_trains_only_the_embedding_and_head(tmp_path, saved_siglip)
 
 def test_the_tower_checkpointed_gives_the_same_gradients():
     """The vision stage's model.gradient_checkpointing on the tiny SigLIP tower."""
+    from occtrain.models.camera_encoder import VisionConfig, build_vision_tower
     from occtrain.models.llm import checkpoint_layers
-    from occtrain.models.vision import VisionConfig, build_vision_tower
 
     grads = []
     for checkpointing in (False, True):

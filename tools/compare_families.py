@@ -29,7 +29,7 @@ from occtrain.core import registry
 from occtrain.core.registry import Showcase
 from occtrain.core.vocab import scene_length
 from occtrain.data.cameras import CAMERA_NAMES
-from occtrain.io import atomic_write_json, atomic_write_text
+from occtrain.formats.io import atomic_write_json, atomic_write_text
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -47,7 +47,7 @@ MUTANTS = (
     Mutant(
         "resume-from-scratch",
         "a cut-off stage retrains from step 0 (and still says it resumes)",
-        "src/occtrain/runner.py",
+        "src/occtrain/run/runner.py",
         "trainer.fit(module, datamodule=datamodule, ckpt_path=ckpt, weights_only=True)",
         "trainer.fit(module, datamodule=datamodule, ckpt_path=None, weights_only=True)",
         (
@@ -95,7 +95,7 @@ MUTANTS = (
     Mutant(
         "wrong-1s-frame",
         "the 1 s forecast horizon reads the 0.5 s frame",
-        "src/occtrain/scoring.py",
+        "src/occtrain/commands/score.py",
         "FORECAST_HORIZONS = (1, 3, 5)",
         "FORECAST_HORIZONS = (0, 3, 5)",
         ("tests/test_scoring_cli.py::test_forecast_hand_case",),
@@ -122,7 +122,7 @@ MUTANTS = (
     Mutant(
         "restart-resets-one-stage",
         "--restart retrains the named stage but keeps the later ones",
-        "src/occtrain/runner.py",
+        "src/occtrain/run/runner.py",
         "manifest.set_aside([p.spec.name for p in planned if p.spec.name in restarted])",
         "manifest.set_aside([str(restart)])",
         ("tests/test_runner.py::test_changed_config_is_refused_then_restart_retrains",),
@@ -130,7 +130,7 @@ MUTANTS = (
     Mutant(
         "kl-without-t-squared",
         "the distillation KL is not scaled by T^2",
-        "src/occtrain/models/distill.py",
+        "src/occtrain/models/distill_losses.py",
         'reduction="batchmean") * t * t',
         'reduction="batchmean")',
         ("tests/test_stage_parts.py::test_distillation_losses_by_hand",),
@@ -197,7 +197,7 @@ MUTANTS = (
     Mutant(
         "uniform-task-draw",
         "tasks are drawn uniformly, whatever their weights",
-        "src/occtrain/core/tasks.py",
+        "src/occtrain/core/shared_tasks.py",
         "size=len(names), replace=False, p=p / p.sum())",
         "size=len(names), replace=False)",
         ("tests/test_tasks.py::test_sampling_is_deterministic_and_follows_weights",),
@@ -213,7 +213,7 @@ MUTANTS = (
     Mutant(
         "deletion-escapes-the-run",
         "the one door for deletions no longer checks the target lies inside its directory",
-        "src/occtrain/io.py",
+        "src/occtrain/formats/io.py",
         'if target.name in ("", ".", "..") or where == root_path or not where.is_relative_to(root_path):',
         "if False:",
         ("tests/test_io.py::test_a_deletion_that_reaches_outside_the_run_is_refused",),
@@ -221,7 +221,7 @@ MUTANTS = (
     Mutant(
         "stage-name-unchecked",
         "a stage's name is not checked to be one folder name",
-        "src/occtrain/runner.py",
+        "src/occtrain/run/runner.py",
         '    check_name(spec.name, f"stages[{i}].name", source, "a stage")\n',
         "",
         (
@@ -232,7 +232,7 @@ MUTANTS = (
     Mutant(
         "restart-deletes-at-once",
         "--restart deletes the stages it retrains instead of setting them aside",
-        "src/occtrain/manifest.py",
+        "src/occtrain/run/manifest.py",
         "                    os.rename(run_dir / name, aside / name)\n",
         "                    remove_inside(run_dir / name, run_dir)\n",
         ("tests/test_runner.py::test_a_restart_that_fails_before_its_first_checkpoint_puts_the_old_stages_back",),

@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING, Any
 from occtrain.data.clips import Clip, frame_clips
 from occtrain.data.layout import DatasetIndex
 from occtrain.errors import ConfigError, OcctrainError
-from occtrain.occ3d import FUTURE_STEPS
+from occtrain.formats.occ3d import FUTURE_STEPS
 
 if TYPE_CHECKING:  # the engine imports torch and transformers: only when a model is loaded
     from occtrain.engine import WorldModelEngine
@@ -86,8 +86,8 @@ def load(export_dir: str | Path) -> TrainedModel:
 def _export_dir(path: Path) -> Path:
     """The export ``path`` means: itself, or the ``export/`` of a stage directory; a stage
     without one or a whole run is refused in one line saying what to pass instead."""
-    from occtrain.exports import EXPORT_CONFIG
-    from occtrain.manifest import MANIFEST_FILE
+    from occtrain.formats.exports import EXPORT_CONFIG
+    from occtrain.run.manifest import MANIFEST_FILE
 
     if (path / EXPORT_CONFIG).is_file():
         return path
@@ -104,7 +104,7 @@ def _export_dir(path: Path) -> Path:
 
 def _run_dir_message(run: Path) -> str:
     """What a run directory holds, for a user who passed it to ``load``."""
-    from occtrain.manifest import Manifest
+    from occtrain.run.manifest import Manifest
 
     stages = Manifest.load(run, writable=False).stages
     if not stages:
@@ -124,7 +124,7 @@ def _run_dir_message(run: Path) -> str:
 def _holds_world_model(export: Path) -> bool:
     """Whether ``export`` is a world model's, by its config (a plugin's stage kinds may write
     one too); a broken one is not offered, its own error comes when it is loaded."""
-    from occtrain.exports import EXPORT_CONFIG, export_kind
+    from occtrain.formats.exports import EXPORT_CONFIG, export_kind
 
     try:
         return (export / EXPORT_CONFIG).is_file() and export_kind(export) == "world_model"

@@ -20,7 +20,7 @@ def _cmd_config_show(args: argparse.Namespace) -> int:
 
 
 def _cmd_config_reference(args: argparse.Namespace) -> int:
-    from occtrain.stages.reference import config_reference
+    from occtrain.stages.registered_schemas import config_reference
 
     print(config_reference(), end="")
     return 0
@@ -29,7 +29,7 @@ def _cmd_config_reference(args: argparse.Namespace) -> int:
 def _cmd_run(args: argparse.Namespace) -> int:
     if args.dry_run:
         return _cmd_validate(args)
-    from occtrain.runner import is_rank_zero, run
+    from occtrain.run.runner import is_rank_zero, run
 
     run_dir = run(args.recipe, args.overrides, run_dir=args.run_dir, only=args.only, restart=args.restart)
     if is_rank_zero():
@@ -38,8 +38,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
 
 def _cmd_validate(args: argparse.Namespace) -> int:
-    from occtrain.manifest import Manifest
-    from occtrain.runner import check_run
+    from occtrain.run.manifest import Manifest
+    from occtrain.run.runner import check_run
 
     check = check_run(args.recipe, args.overrides, run_dir=args.run_dir, only=args.only, restart=args.restart)
     manifest = Manifest.load(check.run_dir, writable=False)
@@ -57,7 +57,7 @@ def _cmd_validate(args: argparse.Namespace) -> int:
 
 
 def _cmd_eval(args: argparse.Namespace) -> int:
-    from occtrain.evaluate import eval_metrics_file, evaluate, print_metrics
+    from occtrain.commands.evaluate import eval_metrics_file, evaluate, print_metrics
 
     tasks = [t.strip() for t in args.tasks.split(",") if t.strip()] if args.tasks else None
     metrics = evaluate(
@@ -69,7 +69,7 @@ def _cmd_eval(args: argparse.Namespace) -> int:
 
 
 def _cmd_plan_memory(args: argparse.Namespace) -> int:
-    from occtrain.memory_plan import format_plans, plan_recipe
+    from occtrain.commands.memory_plan import format_plans, plan_recipe
 
     plans = plan_recipe(args.recipe, args.overrides, args.gpus, args.seq_len, args.checkpointing, args.gpu_memory)
     print(format_plans(plans, args.seq_len, args.gpu_memory, args.checkpointing))
@@ -77,7 +77,7 @@ def _cmd_plan_memory(args: argparse.Namespace) -> int:
 
 
 def _cmd_table(args: argparse.Namespace) -> int:
-    from occtrain.comparison import load_run_table, show_table
+    from occtrain.commands.compare import load_run_table, show_table
     from occtrain.progress import console
 
     table, manifest = load_run_table(args.run_dir)
@@ -103,7 +103,7 @@ def _cmd_data_synth(args: argparse.Namespace) -> int:
 
 def _cmd_data_shards(args: argparse.Namespace) -> int:
     from occtrain.data.shards import no_clips_note, write_shards
-    from occtrain.io import check_output
+    from occtrain.formats.io import check_output
     from occtrain.progress import console
 
     check_output(args.out, "--out", kind="dir")  # an unwritable --out fails now, not after minutes of sharding
@@ -142,7 +142,7 @@ def _cmd_data_stats(args: argparse.Namespace) -> int:
     from rich.table import Table
 
     from occtrain.data.stats import CLASS_FACTOR, class_chart, class_rows, dataset_stats, rows
-    from occtrain.io import atomic_write_bytes, atomic_write_json, check_output, png_bytes
+    from occtrain.formats.io import atomic_write_bytes, atomic_write_json, check_output, png_bytes
     from occtrain.progress import console
 
     # The tables are the command's result: stdout, where a pipe takes them whole (a pipe
@@ -199,8 +199,8 @@ def build_parser() -> argparse.ArgumentParser:
     _add_run_commands(sub)
     _add_data_commands(sub)
 
+    from occtrain.commands.score import register as register_score
     from occtrain.dashboard import register as register_dashboard
-    from occtrain.scoring import register as register_score
 
     register_score(sub)
     register_dashboard(sub)
@@ -373,7 +373,7 @@ def main(argv: list[str] | None = None) -> int:
         if not hasattr(args, "overrides") or any(e.startswith("-") for e in extra):
             parser.error(f"unrecognized arguments: {' '.join(extra)}")
         args.overrides = [*(args.overrides or []), *extra]
-    from occtrain.run_control import Interrupted
+    from occtrain.run.control import Interrupted
 
     try:
         return int(args.func(args) or 0)

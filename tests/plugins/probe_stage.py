@@ -15,7 +15,7 @@ from pathlib import Path
 
 from torch import nn
 
-from occtrain.exports import read_export, write_export
+from occtrain.formats.exports import read_export, write_export
 from occtrain.stages import Stage, StageContext, StageKind, StageReport, register
 from occtrain.stages.optim import configure_adamw
 

@@ -31,12 +31,12 @@ from occtrain.core.builder import SequenceBuilder, batch_payload
 from occtrain.core.lm_world_model import LMWorldModel, WorldInputs, WorldModelOutput, token_ce
 from occtrain.core.registry import FamilySpec, WorldSpec, register_family
 from occtrain.core.sequence import IGNORE, TokenSequence
-from occtrain.core.tasks import TaskConfig, TaskSpec, each_question, forecast_after, questions_after
+from occtrain.core.shared_tasks import TaskConfig, TaskSpec, each_question, forecast_after, questions_after
 from occtrain.data.clips import Clip, Part, Scene, Text, plan_target
-from occtrain.exports import write_export
+from occtrain.formats.exports import write_export
+from occtrain.formats.occ3d import CLASS_INDEX, FUTURE_STEPS, GRID_SHAPE, NUM_CLASSES, VOXEL_SIZE
 from occtrain.metrics import PlanningMetric, compute_metrics
-from occtrain.models.planner import constant_velocity, current_velocity
-from occtrain.occ3d import CLASS_INDEX, FUTURE_STEPS, GRID_SHAPE, NUM_CLASSES, VOXEL_SIZE
+from occtrain.models.planning_heads import constant_velocity, current_velocity
 
 CELLS = 10  # columns per side
 SIDE = GRID_SHAPE[0] // CELLS
@@ -352,9 +352,9 @@ class SummaryPlanner(nn.Module):
 
 def describe_scene(engine: Any, clip: Clip) -> str:
     """An operation of its own for the Python API: the number of car columns it counts."""
-    from occtrain.core import operations
+    from occtrain.core import shared_operations
 
-    generated, _ = operations.generate_one(engine, "car_columns", clip)
+    generated, _ = shared_operations.generate_one(engine, "car_columns", clip)
     return f"{generated[0].text.strip()} columns hold a car"
 
 

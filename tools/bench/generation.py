@@ -24,7 +24,7 @@ from occtrain.config.recipe import RecipeConfig  # noqa: E402
 from occtrain.data.clips import clips_from_batch  # noqa: E402
 from occtrain.data.datamodule import ShardDataModule  # noqa: E402
 from occtrain.engine import load_world_model  # noqa: E402
-from occtrain.stages.base import shared_cache_dir  # noqa: E402
+from occtrain.stages.stage import shared_cache_dir  # noqa: E402
 
 
 def timed(engine, task, batches, batched: bool) -> tuple[float, list]:

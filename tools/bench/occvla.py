@@ -28,9 +28,9 @@ from occtrain.config.recipe import RecipeConfig  # noqa: E402
 from occtrain.data.clips import frame_clips  # noqa: E402
 from occtrain.data.layout import DatasetIndex  # noqa: E402
 from occtrain.engine import load_world_model  # noqa: E402
+from occtrain.formats.occ3d import FUTURE_STEPS  # noqa: E402
 from occtrain.metrics import OccupancyMetric  # noqa: E402
-from occtrain.occ3d import FUTURE_STEPS  # noqa: E402
-from occtrain.stages.base import shared_cache_dir  # noqa: E402
+from occtrain.stages.stage import shared_cache_dir  # noqa: E402
 
 
 def main() -> None:

@@ -32,8 +32,8 @@ import torch  # noqa: E402
 import torch.distributed as dist  # noqa: E402
 import torch.multiprocessing as mp  # noqa: E402
 
+from occtrain.commands.memory_plan import GIB, MemoryRow, count_llm, plan  # noqa: E402
 from occtrain.config.llm import LLMConfig  # noqa: E402
-from occtrain.memory_plan import GIB, MemoryRow, count_llm, plan  # noqa: E402
 from occtrain.models.llm import build_llm, checkpoint_layers  # noqa: E402
 
 VOCAB = 8000

@@ -44,9 +44,9 @@ from occtrain.config.recipe import RecipeConfig  # noqa: E402
 from occtrain.data.clips import frame_clips, plan_target  # noqa: E402
 from occtrain.data.layout import DatasetIndex  # noqa: E402
 from occtrain.engine import load_world_model  # noqa: E402
+from occtrain.formats.occ3d import FUTURE_STEPS  # noqa: E402
 from occtrain.metrics import PlanningMetric  # noqa: E402
-from occtrain.occ3d import FUTURE_STEPS  # noqa: E402
-from occtrain.stages.base import shared_cache_dir  # noqa: E402
+from occtrain.stages.stage import shared_cache_dir  # noqa: E402
 
 
 def _recipe(stage: Path) -> RecipeConfig:
@@ -54,8 +54,8 @@ def _recipe(stage: Path) -> RecipeConfig:
 
 
 def bench_planner(stage: Path, steps: list[int], batch: int) -> None:
-    from occtrain.stages.base import EvalRequest
     from occtrain.stages.planner import PlannerStage
+    from occtrain.stages.stage import EvalRequest
 
     recipe = _recipe(stage)
     spec = next(s for s in recipe.stages if s.name == stage.name)

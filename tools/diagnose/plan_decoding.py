@@ -21,10 +21,10 @@ import numpy as np
 import torch
 
 import occtrain
-from occtrain.core.tasks import known_future
+from occtrain.core.shared_tasks import known_future
 from occtrain.data.clips import frame_clips
 from occtrain.data.layout import DatasetIndex
-from occtrain.models.planner import constant_velocity
+from occtrain.models.planning_heads import constant_velocity
 
 
 def main() -> None:

@@ -23,8 +23,8 @@ from occtrain.core.registry import build_tokenizer
 from occtrain.data.frames import frames_batch
 from occtrain.data.layout import DatasetIndex
 from occtrain.families.occllama import OccLLaMATokenizerConfig
+from occtrain.formats.occ3d import CLASS_INDEX, CLASS_NAMES, MOVABLE_CLASSES, NUM_CLASSES
 from occtrain.metrics.occupancy import OccupancyMetric
-from occtrain.occ3d import CLASS_INDEX, CLASS_NAMES, MOVABLE_CLASSES, NUM_CLASSES
 
 
 def main() -> None:

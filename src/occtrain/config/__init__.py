@@ -1,8 +1,8 @@
 """Typed configuration: dataclass schemas, YAML loading, overrides and validation."""
 
+from occtrain.config.groups import DataConfig, DatasetFile, SynthConfig, TrainerConfig
 from occtrain.config.loading import load_config, read_yaml, to_container, to_object, to_yaml
 from occtrain.config.recipe import RecipeConfig
-from occtrain.config.schema import DataConfig, DatasetFile, SynthConfig, TrainerConfig
 
 __all__ = [
     "DataConfig",

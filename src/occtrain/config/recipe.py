@@ -9,7 +9,7 @@ from typing import Any
 
 from omegaconf import MISSING
 
-from occtrain.config.schema import DataConfig, TrainerConfig
+from occtrain.config.groups import DataConfig, TrainerConfig
 from occtrain.errors import ConfigError
 
 #: What a run's or a stage's name may be. Each becomes one directory (``<runs_root>/<run>``,
@@ -118,5 +118,5 @@ class RecipeConfig:
     runs_root: str = "runs"
     #: Importable modules that register extra stage kinds (``occtrain.stages.register``).
     plugins: list[str] = field(default_factory=list)
-    #: Our figures beside the paper's, one row per stage (see occtrain.comparison).
+    #: Our figures beside the paper's, one row per stage (see occtrain.commands.compare).
     table: ComparisonTable | None = None

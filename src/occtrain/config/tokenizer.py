@@ -13,7 +13,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from occtrain.errors import ConfigError
-from occtrain.occ3d import GRID_SHAPE
+from occtrain.formats.occ3d import GRID_SHAPE
 
 
 @dataclass

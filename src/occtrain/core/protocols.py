@@ -29,7 +29,7 @@ if TYPE_CHECKING:  # types only: these modules import this one's neighbours
     from occtrain.core.decoding import Answer
     from occtrain.core.lm_world_model import LMWorldModel
     from occtrain.core.sequence import TokenSequence
-    from occtrain.core.tasks import TaskConfig, TaskSpec
+    from occtrain.core.shared_tasks import TaskConfig, TaskSpec
     from occtrain.core.vocab import JointVocab
     from occtrain.data.clips import Clip, Part
     from occtrain.data.layout import DatasetIndex

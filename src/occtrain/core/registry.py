@@ -30,9 +30,9 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf
 
 from occtrain.core.protocols import EvalHook, Scorer
-from occtrain.core.tasks import TaskConfig, TaskSpec
+from occtrain.core.shared_tasks import TaskConfig, TaskSpec
 from occtrain.errors import ConfigError, OcctrainError, cause_line
-from occtrain.exports import check_section, load_state_strict, read_export, require_config, write_export
+from occtrain.formats.exports import check_section, load_state_strict, read_export, require_config, write_export
 from occtrain.models import count_parameters
 
 #: The package whose sub-packages are the families shipped with occtrain.
@@ -68,7 +68,7 @@ class WorldSpec:
     #: Its class: a ``core.lm_world_model.LMWorldModel`` (``create``, ``from_export``,
     #: ``vocab_layout``, ``export_config``).
     model: type
-    #: Its task settings (extends ``core.tasks.TaskConfig``) and tasks by name.
+    #: Its task settings (extends ``core.shared_tasks.TaskConfig``) and tasks by name.
     task_config: type
     tasks: Mapping[str, TaskSpec]
     #: Stage kind ("pretrain", "instruct") -> the task weights a stage that names none trains.
@@ -130,7 +130,7 @@ class FamilySpec:
     tokenizers: tuple[TokenizerArch, ...] = ()
     #: Its world model, if it has one.
     world: WorldSpec | None = None
-    #: The paper's published figures (``core.paper.PaperFigure``), shown beside a run's metrics.
+    #: The paper's published figures (``core.published.PaperFigure``), shown beside a run's metrics.
     paper_figures: tuple[Any, ...] = ()
     #: Its row of the four-family comparison, if it has one.
     showcase: Showcase | None = None
@@ -164,7 +164,7 @@ def _check(spec: FamilySpec) -> None:
         )
     if not (inspect.isclass(world.task_config) and issubclass(world.task_config, TaskConfig)):
         raise ConfigError(
-            f"{where}: its task settings {world.task_config!r} do not extend occtrain.core.tasks.TaskConfig"
+            f"{where}: its task settings {world.task_config!r} do not extend occtrain.core.shared_tasks.TaskConfig"
         )
     for name, task in world.tasks.items():
         if not isinstance(task, TaskSpec) or not callable(task.build):
@@ -249,7 +249,7 @@ def take(what: str, name: str, origin: str, held_by: str | None) -> None:
 def _note(text: str) -> None:
     from rich.markup import escape
 
-    from occtrain.io import is_rank_zero
+    from occtrain.formats.io import is_rank_zero
     from occtrain.progress import console
 
     if is_rank_zero():  # every rank registers; one note is enough

@@ -1,7 +1,7 @@
 """Scorers several families share: each grades one task's generated answers with the
 papers' metrics and adds the baselines the literature compares with, on the same samples.
 
-A family names a task's scorers in its :class:`~occtrain.core.tasks.TaskSpec`; the
+A family names a task's scorers in its :class:`~occtrain.core.shared_tasks.TaskSpec`; the
 evaluator (``engine.evaluator``) makes one of each per evaluation, makes every metric a
 scorer names once (so scorers share a baseline by naming it alike), and hands each
 generated item to its task's scorers. A family with its own way of grading writes its own
@@ -21,15 +21,15 @@ import torch
 from torchmetrics import MeanMetric
 
 from occtrain.core.protocols import WorldEngine
-from occtrain.core.tasks import question_of
+from occtrain.core.shared_tasks import question_of
 from occtrain.data.clips import Actions, Clip, Part, PlanTarget, Scene
 from occtrain.data.geometry import moved_scene
 from occtrain.data.layout import DatasetIndex
 from occtrain.data.meta_actions import MetaActionConfig, past_labels
 from occtrain.data.text_formats import meta_action_words, parse_meta_action
+from occtrain.formats.occ3d import FREE, FUTURE_STEPS, MOVABLE_CLASSES
 from occtrain.metrics import CaptionMetric, ForecastMetric, MetaActionAccuracy, PlanningMetric, QAMetric
-from occtrain.models.planner import constant_velocity
-from occtrain.occ3d import FREE, FUTURE_STEPS, MOVABLE_CLASSES
+from occtrain.models.planning_heads import constant_velocity
 
 
 @dataclass

@@ -26,7 +26,7 @@ import time
 from pathlib import Path
 
 from occtrain.dashboard.samples import bev_comparison, read_samples, write_samples
-from occtrain.io import atomic_write_text, check_output
+from occtrain.formats.io import atomic_write_text, check_output
 
 DASHBOARD_FILE = "dashboard.html"
 

@@ -7,8 +7,8 @@ import re
 import time
 from html import escape
 
-from occtrain.comparison import TABLE_FILE
-from occtrain.core.paper import REAL_DATA, figures_for, metric_words
+from occtrain.commands.compare import TABLE_FILE
+from occtrain.core.published import REAL_DATA, figures_for, metric_words
 from occtrain.dashboard.run_view import RunView, StageView
 from occtrain.dashboard.svg import line_chart
 from occtrain.metrics.conventions import OCC3D, OCCWORLD, STP3, UNIAD

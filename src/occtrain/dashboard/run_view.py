@@ -18,7 +18,7 @@ from occtrain.dashboard.samples import read_samples
 from occtrain.dashboard.svg import Series
 from occtrain.data.stats import DatasetStats
 from occtrain.errors import OcctrainError
-from occtrain.manifest import MANIFEST_FILE, Manifest, StageEntry
+from occtrain.run.manifest import MANIFEST_FILE, Manifest, StageEntry
 
 METRICS_CSV = Path("logs") / "csv" / "metrics.csv"
 MAX_POINTS = 600  # per series; longer curves are thinned evenly to keep the page light
@@ -78,7 +78,7 @@ def read_data(run_dir: Path, pipeline_yaml: str) -> DataView | None:
 
     from occtrain.data.shards import world_key
     from occtrain.data.stats import class_chart, dataset_stats
-    from occtrain.io import atomic_write_json, png_bytes
+    from occtrain.formats.io import atomic_write_json, png_bytes
 
     try:
         root = str(OmegaConf.create(pipeline_yaml).data.root) if pipeline_yaml else ""

@@ -20,8 +20,8 @@ import numpy as np
 
 from occtrain.data.render import render_bev, strip
 from occtrain.errors import DataError
-from occtrain.io import atomic_write_bytes, atomic_write_json, png_bytes, remove_inside
-from occtrain.occ3d import FREE, GRID_SHAPE
+from occtrain.formats.io import atomic_write_bytes, atomic_write_json, png_bytes, remove_inside
+from occtrain.formats.occ3d import FREE, GRID_SHAPE
 
 SAMPLES_DIR = "samples"
 INDEX_FILE = "index.json"

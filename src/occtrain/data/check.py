@@ -32,7 +32,7 @@ from occtrain.data.schema import FrameAnnotation, Occ3DAnnotations, QAFile
 from occtrain.data.shards import INDEX_FILE, decode_sample, iter_raw, read_index
 from occtrain.data.validate import problems as schema_problems
 from occtrain.errors import OcctrainError
-from occtrain.occ3d import FRAME_DT
+from occtrain.formats.occ3d import FRAME_DT
 
 POSE_TOLERANCE = 0.05  # metres between a sidecar waypoint and the pose it should equal
 # nuScenes keyframes are picked from 20 Hz lidar sweeps, so real gaps are 0.45 or 0.55 s

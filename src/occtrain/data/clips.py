@@ -20,7 +20,7 @@ import torch
 
 from occtrain.data.geometry import global_to_ego
 from occtrain.data.layout import DatasetIndex
-from occtrain.occ3d import FUTURE_STEPS, PAST_STEPS
+from occtrain.formats.occ3d import FUTURE_STEPS, PAST_STEPS
 
 
 class PromptPart:

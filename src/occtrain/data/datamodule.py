@@ -11,7 +11,7 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader
 
-from occtrain.config.schema import DataConfig, check_synth_config
+from occtrain.config.groups import DataConfig, check_synth_config
 from occtrain.data.cameras import CAMERA_NAMES
 from occtrain.data.layout import ANNOTATIONS_FILE, DATASET_FILE, DEPTH_SCALE, DatasetIndex, generator_record
 from occtrain.data.reading import ShardSamples

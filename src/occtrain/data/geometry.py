@@ -9,7 +9,7 @@ import numpy as np
 import torch
 
 from occtrain.data.schema import COMMAND_LATERAL_THRESHOLD
-from occtrain.occ3d import FREE, VOXEL_SIZE
+from occtrain.formats.occ3d import FREE, VOXEL_SIZE
 
 
 def rotate_to_ego(vec: np.ndarray, pose_yaw: float) -> np.ndarray:

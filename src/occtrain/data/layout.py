@@ -31,8 +31,8 @@ from occtrain.data.cameras import CAMERA_NAMES, Camera, matrix_to_quaternion, tr
 from occtrain.data.schema import FrameAnnotation, Occ3DAnnotations, QAFile, QAQuestion
 from occtrain.data.validate import first_problem
 from occtrain.errors import DataError
-from occtrain.io import atomic_write_bytes, atomic_write_json, atomic_write_npz, png_bytes
-from occtrain.occ3d import GRID_SHAPE, NUM_CLASSES
+from occtrain.formats.io import atomic_write_bytes, atomic_write_json, atomic_write_npz, png_bytes
+from occtrain.formats.occ3d import GRID_SHAPE, NUM_CLASSES
 
 ANNOTATIONS_FILE = "annotations.json"
 GTS_DIR = "gts"

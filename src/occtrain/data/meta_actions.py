@@ -21,7 +21,7 @@ import numpy as np
 from occtrain.data.geometry import global_to_ego
 from occtrain.data.schema import META_DIRECTIONS, META_SPEEDS, STOP_SPEED, MetaAction
 from occtrain.errors import ConfigError
-from occtrain.occ3d import FRAME_DT
+from occtrain.formats.occ3d import FRAME_DT
 
 #: km/h per second -> m/s^2.
 KMH_PER_S = 1000.0 / 3600.0

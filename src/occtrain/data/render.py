@@ -7,7 +7,7 @@ from collections.abc import Sequence
 import numpy as np
 from PIL import Image, ImageDraw
 
-from occtrain.occ3d import CLASS_COLORS, CLASS_NAMES, EGO_LENGTH, EGO_WIDTH, FREE, GRID_SHAPE, VOXEL_SIZE
+from occtrain.formats.occ3d import CLASS_COLORS, CLASS_NAMES, EGO_LENGTH, EGO_WIDTH, FREE, GRID_SHAPE, VOXEL_SIZE
 
 UNSEEN_TINT = 0.55  # how dark camera-invisible columns are drawn when a mask is given
 

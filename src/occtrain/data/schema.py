@@ -13,8 +13,8 @@ from __future__ import annotations
 from typing import Annotated, Literal, NotRequired, TypedDict, get_args
 
 from occtrain.data.validate import Len
-from occtrain.nuscenes_qa import TemplateType
-from occtrain.occ3d import CLASS_NAMES, FUTURE_STEPS, PAST_STEPS
+from occtrain.formats.nuscenes_qa import TemplateType
+from occtrain.formats.occ3d import CLASS_NAMES, FUTURE_STEPS, PAST_STEPS
 
 # Each closed vocabulary is a Literal (the schema checks it) and a tuple of its values (code iterates it).
 
@@ -38,7 +38,7 @@ STOP_SPEED = 0.3
 Status = Literal["moving", "parked", "stopped", "standing", "with rider", "without rider"]
 STATUS_VALUES: tuple[str, ...] = get_args(Status)
 
-#: NuScenes-QA question template types (the vocabulary lives in occtrain.nuscenes_qa).
+#: NuScenes-QA question template types (the vocabulary lives in occtrain.formats.nuscenes_qa).
 TEMPLATE_TYPES: tuple[str, ...] = get_args(TemplateType)
 
 #: Box categories: the Occ3D object classes (CLASS_NAMES[0:11]), built from occ3d's list

@@ -48,8 +48,8 @@ from occtrain.data.layout import CLASS_SUFFIX, DEPTH_SUFFIX, FRAMES_DIR, SPLITS,
 from occtrain.data.reading import PAD_KEY, ShardSamples
 from occtrain.data.validate import first_problem
 from occtrain.errors import DataError
-from occtrain.io import atomic_write_json, npz_bytes, rank_world, remove_inside, write_error
-from occtrain.occ3d import GRID_SHAPE
+from occtrain.formats.io import atomic_write_json, npz_bytes, rank_world, remove_inside, write_error
+from occtrain.formats.occ3d import GRID_SHAPE
 from occtrain.progress import progress_bar
 
 INDEX_FILE = "index.json"

@@ -11,7 +11,7 @@ from occtrain.data.clips import pose_anchor
 from occtrain.data.layout import DatasetIndex, load_labels
 from occtrain.data.render import render_bev, strip, surround
 from occtrain.errors import DataError
-from occtrain.occ3d import FRAME_DT, FREE
+from occtrain.formats.occ3d import FRAME_DT, FREE
 from occtrain.progress import console
 
 

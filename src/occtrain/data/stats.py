@@ -3,7 +3,7 @@
 Any release in the Occ3D layout, real or synthesized, is read the same way: the labels of
 a split's frames (all of them, or an evenly spaced subset) are counted, and each figure is
 set beside what a real Occ3D-nuScenes frame or its training set shows
-(:data:`occtrain.occ3d.OCC3D_FRAME` and :data:`occtrain.occ3d.OCC3D_TRAIN_VOXELS`). It is how
+(:data:`occtrain.formats.occ3d.OCC3D_FRAME` and :data:`occtrain.formats.occ3d.OCC3D_TRAIN_VOXELS`). It is how
 a user sees whether data they train on, ours or their own, looks like what the papers
 trained on.
 
@@ -23,7 +23,7 @@ import numpy as np
 
 from occtrain.data.layout import DatasetIndex, world_version
 from occtrain.errors import DataError
-from occtrain.occ3d import CLASS_NAMES, FREE, GRID_SHAPE, OCC3D_FRAME, OCC3D_TRAIN_VOXELS
+from occtrain.formats.occ3d import CLASS_NAMES, FREE, GRID_SHAPE, OCC3D_FRAME, OCC3D_TRAIN_VOXELS
 from occtrain.progress import progress_bar
 
 #: The lowest layers, where a real frame's ground lies (ground, kerbs, the feet of things).
@@ -245,7 +245,7 @@ def class_chart(stats: DatasetStats, width: int = 720) -> np.ndarray:
     (its Occ3D colour) above the Occ3D-nuScenes training set (grey), on one scale."""
     from PIL import Image, ImageDraw
 
-    from occtrain.occ3d import CLASS_COLORS
+    from occtrain.formats.occ3d import CLASS_COLORS
 
     ref = reference_class_shares()
     names = sorted(ref, key=ref.get, reverse=True)

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from occtrain.config.schema import SynthConfig, check_synth_config
+from occtrain.config.groups import SynthConfig, check_synth_config
 from occtrain.data.cameras import nuscenes_rig
 from occtrain.data.layout import DatasetIndex, DatasetWriter
 from occtrain.data.schema import QAQuestion

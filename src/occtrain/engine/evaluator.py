@@ -1,6 +1,6 @@
 """Scoring a world model's generated answers with the papers' metrics, beside baselines.
 
-The evaluator knows no task: a family's :class:`~occtrain.core.tasks.TaskSpec` names the
+The evaluator knows no task: a family's :class:`~occtrain.core.shared_tasks.TaskSpec` names the
 scorers of each task it grades, and its evaluation hooks score what belongs to no task.
 The evaluator picks the clips, rolls the answers out through the engine, hands each item
 to its task's scorers and keeps a few texts and pictures for the dashboard.
@@ -19,14 +19,14 @@ import torch
 
 from occtrain.core.registry import scorer_factories
 from occtrain.core.scorers import Item, Priors
-from occtrain.core.tasks import TaskSpec, question_of
+from occtrain.core.shared_tasks import TaskSpec, question_of
 from occtrain.data.clips import Clip, Part, frame_clips, plan_target
 from occtrain.data.layout import DatasetIndex
 from occtrain.engine.world_engine import WorldModelEngine
 from occtrain.errors import ConfigError
-from occtrain.io import rank_world
+from occtrain.formats.io import rank_world
+from occtrain.formats.occ3d import FRAME_DT, FUTURE_STEPS
 from occtrain.metrics import compute_metrics
-from occtrain.occ3d import FRAME_DT, FUTURE_STEPS
 
 __all__ = ["Evaluator", "Priors", "evaluation_clips", "fixed_subset", "item_key", "scorable"]
 

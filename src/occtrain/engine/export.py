@@ -38,18 +38,18 @@ from occtrain.config import to_container
 from occtrain.config.llm import MAX_NEW_TEXT_TOKENS, LLMConfig
 from occtrain.core.lm_world_model import WorldInputs
 from occtrain.core.registry import get_world
-from occtrain.core.scene import SCENE_ENCODER_DIR
-from occtrain.core.tasks import TaskConfig, corpus_texts
+from occtrain.core.scene_encoders import SCENE_ENCODER_DIR
+from occtrain.core.shared_tasks import TaskConfig, corpus_texts
 from occtrain.core.vocab import JointVocab
 from occtrain.data.layout import DatasetIndex
 from occtrain.engine.world_engine import WorldModelEngine
 from occtrain.errors import ConfigError
-from occtrain.exports import check_section, load_state_strict, read_export, require_config, write_export
-from occtrain.io import write_error
+from occtrain.formats.exports import check_section, load_state_strict, read_export, require_config, write_export
+from occtrain.formats.io import write_error
 from occtrain.models.adapters import has_adapters, load_adapters, save_adapters, without_adapters
+from occtrain.models.camera_encoder import load_vision_encoder
 from occtrain.models.llm import build_llm, load_lora_strict, load_pretrained_strict, load_text_tokenizer
 from occtrain.models.text_tokenizer import train_text_tokenizer
-from occtrain.models.vision import load_vision_encoder
 
 LLM_DIR = "llm"
 ADAPTER_DIR = "adapter"

@@ -24,13 +24,13 @@ from occtrain.core.decoding import ActionAnswer, Answer, SceneAnswer, TextAnswer
 from occtrain.core.lm_world_model import LMWorldModel
 from occtrain.core.registry import get_world
 from occtrain.core.sequence import TokenSequence
-from occtrain.core.tasks import TaskConfig, sample_task, unpacked
+from occtrain.core.shared_tasks import TaskConfig, sample_task, unpacked
 from occtrain.core.vocab import JointVocab
 from occtrain.data.clips import Actions, Branch, Clip, Part, Scene, Text, clip_rng
 from occtrain.data.layout import DatasetIndex
 from occtrain.data.shards import dataset_fingerprint
 from occtrain.errors import DataError
-from occtrain.io import atomic_write_safetensors, is_rank_zero
+from occtrain.formats.io import atomic_write_safetensors, is_rank_zero
 from occtrain.progress import progress_bar
 
 #: The scene cache's file name, completed by the key of what made it (``scene_cache_key``).
@@ -301,7 +301,7 @@ class WorldModelEngine(torch.nn.Module):
         generate after it: text up to end-of-text, as many waypoints as the reference, a scene."""
         if any(isinstance(p, Branch) for p in parts):
             # One decoder cannot keep branches apart: each would be generated as an answer.
-            raise ValueError("a prompt with branches generates one branch at a time (core.tasks.unpacked)")
+            raise ValueError("a prompt with branches generates one branch at a time (core.shared_tasks.unpacked)")
         first = next(i for i, p in enumerate(parts) if p.supervise)
         # A part nothing after it reads (OccVLA's occupancy queries) is left out (its Setting 2).
         prompt = [p for p in parts[:first] if p.read_after]

@@ -6,7 +6,7 @@ CLI, the dashboard and the paper figures can name conventions without loading th
 
 from __future__ import annotations
 
-from occtrain.occ3d import FRAME_DT
+from occtrain.formats.occ3d import FRAME_DT
 
 #: Occupancy: Occ3D's (camera-visible voxels, classes absent from both sides left out) and
 #: OccWorld's (every voxel; an absent class scores 100), by name.

@@ -17,7 +17,7 @@ contributes:
   rule on the binary occupied-vs-free labels.
 
 Values are percent, unrounded (the reference scripts print them rounded to 2 decimals).
-``per_class`` names classes by their label (``occtrain.occ3d.CLASS_NAMES``); the challenge
+``per_class`` names classes by their label (``occtrain.formats.occ3d.CLASS_NAMES``); the challenge
 script prints classes 1-10 under names in another order (car, truck, ... for labels 1-10).
 """
 
@@ -29,8 +29,8 @@ import torch
 from torch import Tensor
 from torchmetrics import Metric
 
+from occtrain.formats.occ3d import CLASS_NAMES, FREE, NUM_CLASSES
 from occtrain.metrics.conventions import CONVENTIONS, OCC3D, OCCWORLD, horizon_label  # noqa: F401 (theirs)
-from occtrain.occ3d import CLASS_NAMES, FREE, NUM_CLASSES
 
 #: The two occupancy conventions (see the module docstring), by name.
 

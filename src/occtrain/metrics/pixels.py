@@ -12,8 +12,8 @@ import torch
 from torch import Tensor
 from torchmetrics import Metric
 
+from occtrain.formats.occ3d import CLASS_NAMES, NUM_CLASSES
 from occtrain.metrics.occupancy import confusion_matrix
-from occtrain.occ3d import CLASS_NAMES, NUM_CLASSES
 
 
 class PixelSegmentationMetric(Metric):

@@ -38,7 +38,7 @@ import torch
 from torch import Tensor
 from torchmetrics import Metric
 
-from occtrain.occ3d import EGO_LENGTH, EGO_WIDTH, FRAME_DT, FUTURE_STEPS
+from occtrain.formats.occ3d import EGO_LENGTH, EGO_WIDTH, FRAME_DT, FUTURE_STEPS
 
 #: The reference's BEV collision grid: 0.5 m cells, +-50 m, cell centres from -49.75 m.
 BEV_CELL = 0.5

@@ -16,7 +16,7 @@ from typing import Any
 import torch
 from torchmetrics import Metric
 
-from occtrain.nuscenes_qa import HOPS, TEMPLATE_TYPES
+from occtrain.formats.nuscenes_qa import HOPS, TEMPLATE_TYPES
 
 
 def answer_text(answer: Any) -> str:

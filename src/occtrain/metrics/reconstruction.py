@@ -5,9 +5,9 @@ from __future__ import annotations
 
 import torch
 
+from occtrain.formats.occ3d import FREE, MOVABLE_CLASSES
 from occtrain.metrics.codebook import CodebookUsage
 from occtrain.metrics.occupancy import OccupancyMetric
-from occtrain.occ3d import FREE, MOVABLE_CLASSES
 
 
 class ReconstructionMetrics(torch.nn.Module):

@@ -21,7 +21,7 @@ from safetensors.torch import load_file, save_file
 from torch import nn
 
 from occtrain.errors import ConfigError
-from occtrain.io import atomic_write_json
+from occtrain.formats.io import atomic_write_json
 from occtrain.models import without_peft
 
 ADAPTER_WEIGHTS = "adapter.safetensors"

@@ -6,7 +6,7 @@ classes rather than as a dense grid. Its encoder's points are supervised with th
 Chamfer distance to the scene's occupied voxel centres (Eq. 1) and each point's class with
 a focal loss against the label of the ground-truth point it is matched to (the nearest);
 the points are voxelized into the 200 x 200 x 16 grid to be scored like any other
-occupancy. Points are in metres in the ego frame (``occtrain.occ3d``'s grid).
+occupancy. Points are in metres in the ego frame (``occtrain.formats.occ3d``'s grid).
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from occtrain.occ3d import FREE, GRID_SHAPE, RANGE_MAX, RANGE_MIN, VOXEL_SIZE
+from occtrain.formats.occ3d import FREE, GRID_SHAPE, RANGE_MAX, RANGE_MIN, VOXEL_SIZE
 
 #: The classes a point can take: every Occ3D class but free (a point is occupied space).
 POINT_CLASSES = FREE

@@ -1,4 +1,4 @@
-"""Stage kinds: each a :class:`~occtrain.stages.base.Stage` (a LightningModule) registered by name.
+"""Stage kinds: each a :class:`~occtrain.stages.stage.Stage` (a LightningModule) registered by name.
 
 ``BUILTIN_KINDS`` is the one list of the kinds occtrain ships; each imports its module on
 first use, so a recipe of tokenizer stages never pays for importing transformers. Plugins
@@ -10,7 +10,7 @@ from __future__ import annotations
 import importlib
 from dataclasses import dataclass
 
-from occtrain.stages.base import Stage, StageContext, StageReport
+from occtrain.stages.stage import Stage, StageContext, StageReport
 
 #: Built-in kinds and the module that registers each.
 BUILTIN_KINDS = {

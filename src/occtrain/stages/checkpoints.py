@@ -14,7 +14,7 @@ import torch
 from lightning.pytorch.plugins.io import TorchCheckpointIO
 
 from occtrain.errors import OcctrainError
-from occtrain.io import atomic_open, remove_inside
+from occtrain.formats.io import atomic_open, remove_inside
 
 LAST_CKPT = "last.ckpt"
 #: The checkpoint ``last.ckpt`` replaced, kept so a damaged ``last.ckpt`` still resumes.

@@ -13,7 +13,7 @@ from occtrain.engine import Evaluator, Priors, WorldModelEngine, scorable
 from occtrain.errors import ConfigError
 from occtrain.metrics import compute_metrics
 from occtrain.progress import console, progress_bar
-from occtrain.stages.base import EvalRequest, EvalResult, lacking_tasks
+from occtrain.stages.stage import EvalRequest, EvalResult, lacking_tasks
 
 
 class ValidationMeans(torch.nn.Module):

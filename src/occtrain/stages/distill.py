@@ -20,7 +20,7 @@ import torch
 from occtrain.config import to_object
 from occtrain.config.llm import MAX_NEW_TEXT_TOKENS, LLMConfig
 from occtrain.core.lm_world_model import WorldInputs
-from occtrain.core.tasks import validate_tasks
+from occtrain.core.shared_tasks import validate_tasks
 from occtrain.data.clips import clips_from_batch
 from occtrain.engine import (
     TEXT_ENTRIES,
@@ -36,12 +36,12 @@ from occtrain.engine import (
 )
 from occtrain.errors import ConfigError
 from occtrain.models import count_parameters
-from occtrain.models.distill import FeatureProjector, distillation_losses
+from occtrain.models.distill_losses import FeatureProjector, distillation_losses
 from occtrain.models.llm import build_llm, check_llm
 from occtrain.stages import StageKind, register
-from occtrain.stages.base import EvalRequest, EvalResult, Stage, StageContext, StageReport
 from occtrain.stages.common import ValidationMeans, evaluate_engine, family_schema
 from occtrain.stages.optim import configure_adamw
+from occtrain.stages.stage import EvalRequest, EvalResult, Stage, StageContext, StageReport
 
 
 def _student_llm() -> LLMConfig:

@@ -20,7 +20,7 @@ from lightning.fabric.loggers.logger import rank_zero_experiment
 from lightning.pytorch.loggers import CSVLogger, Logger, MLFlowLogger, TensorBoardLogger, WandbLogger
 
 from occtrain.errors import ConfigError
-from occtrain.io import atomic_open, atomic_write_text, remove_inside
+from occtrain.formats.io import atomic_open, atomic_write_text, remove_inside
 
 #: The loggers a recipe can name; csv is always written.
 LOGGERS = ("csv", "tensorboard", "mlflow", "wandb")

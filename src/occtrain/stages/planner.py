@@ -22,12 +22,12 @@ from occtrain.data.layout import DatasetIndex
 from occtrain.engine import TEXT_ENTRIES, load_world_model
 from occtrain.engine.evaluator import fixed_subset
 from occtrain.errors import ConfigError
-from occtrain.exports import read_config
-from occtrain.occ3d import FUTURE_STEPS
+from occtrain.formats.exports import read_config
+from occtrain.formats.occ3d import FUTURE_STEPS
 from occtrain.progress import progress_bar
 from occtrain.stages import StageKind, register
-from occtrain.stages.base import EvalRequest, EvalResult, Stage, StageContext, StageReport
 from occtrain.stages.optim import configure_adamw
+from occtrain.stages.stage import EvalRequest, EvalResult, Stage, StageContext, StageReport
 
 
 @dataclass

@@ -25,7 +25,7 @@ import torch
 from occtrain.config import to_object
 from occtrain.config.llm import MAX_NEW_TEXT_TOKENS, LLMConfig, LoRAConfig
 from occtrain.core.registry import get_world, tokenizer_family
-from occtrain.core.tasks import validate_tasks
+from occtrain.core.shared_tasks import validate_tasks
 from occtrain.data.clips import clips_from_batch
 from occtrain.engine import (
     TEXT_ENTRIES,
@@ -38,15 +38,15 @@ from occtrain.engine import (
     scorable,
 )
 from occtrain.errors import ConfigError
-from occtrain.exports import export_kind, read_config
+from occtrain.formats.exports import export_kind, read_config
 from occtrain.models import count_parameters
 from occtrain.models.adapters import AdapterConfig, adapters_of, add_adapters
 from occtrain.models.llm import apply_lora, check_llm, checkpoint_layers
 from occtrain.stages import StageKind, register
-from occtrain.stages.base import EvalRequest, EvalResult, Stage, StageContext, StageReport
 from occtrain.stages.common import ValidationMeans, evaluate_engine, family_schema
 from occtrain.stages.optim import configure_adamw, freeze_prefixes
 from occtrain.stages.sharding import FullCopy, ShardedStrategy, is_sharded, local_numel, shard_world_model
+from occtrain.stages.stage import EvalRequest, EvalResult, Stage, StageContext, StageReport
 
 WORLD_MODEL_KINDS = ("pretrain", "instruct", "distill")
 

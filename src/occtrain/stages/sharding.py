@@ -14,7 +14,7 @@ from typing import Any
 import torch
 from lightning.pytorch.strategies import ModelParallelStrategy
 
-from occtrain.config.schema import TrainerConfig
+from occtrain.config.groups import TrainerConfig
 from occtrain.errors import ConfigError
 
 #: ``trainer.strategy`` that shards parameters, gradients and AdamW state over every rank (FSDP2).

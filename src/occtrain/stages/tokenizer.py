@@ -33,13 +33,13 @@ from occtrain.data.layout import DatasetIndex
 from occtrain.errors import ConfigError
 from occtrain.metrics.reconstruction import ReconstructionMetrics
 from occtrain.models import count_parameters
+from occtrain.models.camera_encoder import load_vision_encoder
 from occtrain.models.tokenizers.base import TokenizerOutput
-from occtrain.models.vision import load_vision_encoder
 from occtrain.progress import progress_bar
 from occtrain.stages import StageKind, register
-from occtrain.stages.base import EvalRequest, EvalResult, Stage, StageContext, StageReport
 from occtrain.stages.common import ValidationMeans
 from occtrain.stages.optim import configure_adamw, freeze_prefixes
+from occtrain.stages.stage import EvalRequest, EvalResult, Stage, StageContext, StageReport
 
 
 @dataclass

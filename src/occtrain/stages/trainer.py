@@ -14,7 +14,7 @@ import torch
 from lightning.fabric.utilities.exceptions import MisconfigurationException
 from lightning.pytorch.callbacks import Callback, LearningRateMonitor, ModelCheckpoint
 
-from occtrain.config.schema import TrainerConfig
+from occtrain.config.groups import TrainerConfig
 from occtrain.errors import ConfigError
 from occtrain.stages.callbacks import AttemptRecord, Heartbeat, PeakMemory, StepSeed, StepTimer, TrackConsumed
 from occtrain.stages.checkpoints import AtomicCheckpointIO

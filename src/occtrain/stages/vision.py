@@ -6,7 +6,7 @@ Losses: cross-entropy over all pixels and L1 on log depth over pixels with a sur
 Validation scores the whole val split against a trivial baseline fitted on the train split
 at the start of fit: each camera pixel's most frequent class and geometric mean depth. The export is
 the tower as a standard Hugging Face directory plus occtrain's parts, which later stages
-load with :func:`occtrain.models.vision.load_vision_encoder`, frozen or fine-tuned.
+load with :func:`occtrain.models.camera_encoder.load_vision_encoder`, frozen or fine-tuned.
 """
 
 from __future__ import annotations
@@ -24,12 +24,12 @@ import torch.nn.functional as F
 from occtrain.errors import ConfigError, DataError
 from occtrain.metrics import DepthAbsRelMetric, PixelSegmentationMetric
 from occtrain.models import count_parameters
+from occtrain.models.camera_encoder import DenseHead, MultiViewEncoder, PixelPrior, VisionConfig, export_vision
 from occtrain.models.llm import checkpoint_layers
-from occtrain.models.vision import DenseHead, MultiViewEncoder, PixelPrior, VisionConfig, export_vision
 from occtrain.stages import StageKind, register
-from occtrain.stages.base import Stage, StageContext, StageReport
 from occtrain.stages.common import ValidationMeans
 from occtrain.stages.optim import configure_adamw, freeze_prefixes
+from occtrain.stages.stage import Stage, StageContext, StageReport
 
 TOWER_PREFIX = "encoder.tower."
 #: What a batch must carry: the camera images and the renderer's dense targets.

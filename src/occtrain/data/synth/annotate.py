@@ -39,7 +39,7 @@ from occtrain.data.schema import (
 )
 from occtrain.data.synth.catalog import TrackSet
 from occtrain.data.synth.grid import GROUND_TOP_Z
-from occtrain.occ3d import CLASS_NAMES, FRAME_DT, FUTURE_STEPS, PAST_STEPS, RANGE_MAX
+from occtrain.formats.occ3d import CLASS_NAMES, FRAME_DT, FUTURE_STEPS, PAST_STEPS, RANGE_MAX
 
 SPEED_WINDOW_S = 1.0
 DIRECTION_WINDOW_S = 3.0

@@ -27,7 +27,7 @@ from occtrain.data.geometry import ego_to_global, rotate_to_ego
 from occtrain.data.synth.citymap import SIGNAL_POLE_M, StaticMap
 from occtrain.data.synth.grid import GROUND_LAYERS, GROUND_TOP_Z
 from occtrain.data.synth.roads import LANE_WIDTH, RoadNetwork, green_left
-from occtrain.occ3d import CLASS_INDEX, FREE, GRID_SHAPE, RANGE_MIN, VOXEL_SIZE
+from occtrain.formats.occ3d import CLASS_INDEX, FREE, GRID_SHAPE, RANGE_MIN, VOXEL_SIZE
 
 #: What each class looks like to a camera (Occ3D class order): asphalt, concrete, grass,
 #: brick and foliage rather than the label palette, so a camera model learns appearance.

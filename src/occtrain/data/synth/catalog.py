@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from occtrain.data.schema import STOP_SPEED
-from occtrain.occ3d import CLASS_INDEX
+from occtrain.formats.occ3d import CLASS_INDEX
 
 
 @dataclass(frozen=True)

@@ -19,7 +19,7 @@ import numpy as np
 from occtrain.data.synth.catalog import CYCLE_CLASSES, KINDS, TrackSet, pick
 from occtrain.data.synth.grid import ABOVE_GRID, layer_span
 from occtrain.data.synth.roads import CURB_RADIUS, HEADINGS, MEDIAN_END, LaneState, Road, RoadNetwork, right_of
-from occtrain.occ3d import CLASS_INDEX, FREE
+from occtrain.formats.occ3d import CLASS_INDEX, FREE
 
 #: Cell size (m) of the global static raster; finer than a voxel so rotated sampling is clean.
 RASTER_RES = 0.2

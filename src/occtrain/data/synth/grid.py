@@ -13,7 +13,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from occtrain.occ3d import GRID_SHAPE, RANGE_MIN, VOXEL_SIZE, voxel_centers_1d
+from occtrain.formats.occ3d import GRID_SHAPE, RANGE_MIN, VOXEL_SIZE, voxel_centers_1d
 
 #: Ego-frame height (m) of the ground surface.
 GROUND_TOP_Z = -0.2

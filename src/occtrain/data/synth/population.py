@@ -17,7 +17,7 @@ from occtrain.data.synth.catalog import KINDS, pick
 from occtrain.data.synth.grid import EGO_HEIGHT
 from occtrain.data.synth.roads import HEADINGS, LaneState, RoadNetwork, build_route
 from occtrain.data.synth.traffic import Mover, Walker
-from occtrain.occ3d import EGO_LENGTH, EGO_WIDTH
+from occtrain.formats.occ3d import EGO_LENGTH, EGO_WIDTH
 
 #: Desired speed ranges (m/s) and acceleration limits (m/s^2) per mover kind.
 SPEEDS: dict[str, tuple[float, float]] = {

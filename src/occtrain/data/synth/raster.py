@@ -31,7 +31,7 @@ from occtrain.data.geometry import ego_to_global, global_to_ego
 from occtrain.data.synth.catalog import TrackSet
 from occtrain.data.synth.citymap import VEGETATION, StaticMap, column_table
 from occtrain.data.synth.grid import EGO_HEIGHT, GROUND_LAYER, GROUND_LAYERS, GROUND_TOP_Z, column_centres, layer_span
-from occtrain.occ3d import EGO_LENGTH, EGO_WIDTH, FREE, GRID_SHAPE, RANGE_MIN, VOXEL_SIZE, voxel_centers_1d
+from occtrain.formats.occ3d import EGO_LENGTH, EGO_WIDTH, FREE, GRID_SHAPE, RANGE_MIN, VOXEL_SIZE, voxel_centers_1d
 
 #: Angular size of a z-buffer bin (both azimuth and elevation).
 BIN_DEG = 0.5

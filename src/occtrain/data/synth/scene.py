@@ -14,7 +14,7 @@ from occtrain.data.synth.population import ego_mover, ego_start, spawn_traffic, 
 from occtrain.data.synth.raster import frame_semantics, masks, observe_static
 from occtrain.data.synth.roads import PATH_DS, RoadNetwork
 from occtrain.data.synth.traffic import SIM_DT, mover_tracks, settle_traffic, walker_tracks
-from occtrain.occ3d import FRAME_DT, FUTURE_STEPS, RANGE_MAX
+from occtrain.formats.occ3d import FRAME_DT, FUTURE_STEPS, RANGE_MAX
 
 #: Margin (m) around the ego's possible route within which traffic is spawned.
 SPAWN_MARGIN = 90.0

@@ -32,7 +32,7 @@ from occtrain.data.schema import (
 )
 from occtrain.data.text_formats import EGO_MOTION_OPENING, format_meta_action
 from occtrain.errors import DataError
-from occtrain.occ3d import CLASS_NAMES, FRAME_DT
+from occtrain.formats.occ3d import CLASS_NAMES, FRAME_DT
 
 # ---------------------------------------------------------------- vocabularies
 

@@ -5,14 +5,14 @@ from __future__ import annotations
 
 from functools import partial
 
-from occtrain.core.planning import MetaActionPlannerConfig, load_meta_action_planner, meta_action_planner
+from occtrain.core.meta_action_planner import MetaActionPlannerConfig, load_meta_action_planner, meta_action_planner
 from occtrain.core.registry import FamilySpec, Showcase, TokenizerArch, WorldSpec, register_family
-from occtrain.core.scene import load_vq_scene_encoder, vq_scene_encoder
+from occtrain.core.scene_encoders import load_vq_scene_encoder, vq_scene_encoder
 from occtrain.families.occllama.config import OccLLaMATokenizerConfig, OccLLaMAWorldConfig
 from occtrain.families.occllama.operations import OPERATIONS
 from occtrain.families.occllama.paper import PAPER_FIGURES
+from occtrain.families.occllama.scene_tokenizer import OccLLaMATokenizer
 from occtrain.families.occllama.tasks import INSTRUCT_TASKS, PRETRAIN_TASKS, TASKS, TaskConfig
-from occtrain.families.occllama.tokenizer import OccLLaMATokenizer
 from occtrain.families.occllama.world_model import OccLLaMAWorldModel
 
 OCCLLAMA = register_family(

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from occtrain.core import operations
+from occtrain.core import shared_operations
 from occtrain.core.protocols import WorldEngine
 from occtrain.core.scorers import said_meta_action
 from occtrain.data.clips import Clip
@@ -31,11 +31,11 @@ def generated_meta_actions(engine: WorldEngine, clips: list[Clip]) -> list[Gener
 
 
 OPERATIONS = {
-    "answer": operations.answer,
-    "plan": operations.plan,
-    "forecast": operations.forecast,
-    "chain_of_thought": operations.chain_of_thought,
-    "meta_action": operations.meta_action,
+    "answer": shared_operations.answer,
+    "plan": shared_operations.plan,
+    "forecast": shared_operations.forecast,
+    "chain_of_thought": shared_operations.chain_of_thought,
+    "meta_action": shared_operations.meta_action,
     "reference_meta_action": reference_meta_action,
     "generated_meta_actions": generated_meta_actions,
 }

@@ -16,7 +16,7 @@ import numpy as np
 
 from occtrain.core import scorers
 from occtrain.core.scorers import last_past_meta_action
-from occtrain.core.tasks import (
+from occtrain.core.shared_tasks import (
     ForecastTaskConfig,
     TaskSpec,
     as_xy,

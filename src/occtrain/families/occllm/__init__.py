@@ -9,9 +9,9 @@ occllm``, settings under ``model.occllm``), on any Occ3D-layout data.
 
 from __future__ import annotations
 
-from occtrain.core import operations
+from occtrain.core import shared_operations
 from occtrain.core.registry import FamilySpec, Showcase, TokenizerArch, WorldSpec, register_family
-from occtrain.core.scene import load_vq_scene_encoder, vq_scene_encoder
+from occtrain.core.scene_encoders import load_vq_scene_encoder, vq_scene_encoder
 from occtrain.families.occllm.config import MOVABLE_CLASSES, MSVAEConfig, OccLLMWorldConfig
 from occtrain.families.occllm.msvae import MSVAE, merge, separate
 from occtrain.families.occllm.paper import PAPER_FIGURES
@@ -34,7 +34,11 @@ OCCLLM = register_family(
             inputs=("tokenizer",),
             scene_encoder=vq_scene_encoder,
             load_scene_encoder=load_vq_scene_encoder,
-            operations={"answer": operations.answer, "forecast": operations.forecast, "plan": operations.plan},
+            operations={
+                "answer": shared_operations.answer,
+                "forecast": shared_operations.forecast,
+                "plan": shared_operations.plan,
+            },
         ),
         paper_figures=PAPER_FIGURES,
         # Waypoints generated between the forecast frames, as the paper plans.

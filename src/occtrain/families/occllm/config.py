@@ -6,8 +6,8 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from occtrain.errors import ConfigError
+from occtrain.formats.occ3d import CLASS_INDEX, FREE, MOVABLE_CLASSES, NUM_CLASSES
 from occtrain.models.tokenizers.occworld_vqvae import OccWorldVQVAEConfig
-from occtrain.occ3d import CLASS_INDEX, FREE, MOVABLE_CLASSES, NUM_CLASSES
 
 
 @dataclass

@@ -17,11 +17,11 @@ import torch
 from torch import nn
 
 from occtrain.families.occllm.config import MSVAEConfig
+from occtrain.formats.occ3d import CLASS_INDEX, FREE
 from occtrain.models.tokenizers.base import TokenizerOutput, check_semantics
 from occtrain.models.tokenizers.losses import ce_lovasz, class_balance_weights
 from occtrain.models.tokenizers.occworld_vqvae import OccWorldVQVAE
 from occtrain.models.tokenizers.quantizer import VectorQuantizer
-from occtrain.occ3d import CLASS_INDEX, FREE
 
 
 def separate(semantics: torch.Tensor, movable: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

@@ -1,8 +1,8 @@
-"""Occ-LLM's published figures (seeds/003), for the dashboard (see ``core.paper``)."""
+"""Occ-LLM's published figures (seeds/003), for the dashboard (see ``core.published``)."""
 
 from __future__ import annotations
 
-from occtrain.core.paper import GT_OCC, OCCWORLD_SETTING, PLAN_CONVENTION, PaperFigure, horizons
+from occtrain.core.published import GT_OCC, OCCWORLD_SETTING, PLAN_CONVENTION, PaperFigure, horizons
 
 
 def _figures() -> list[PaperFigure]:

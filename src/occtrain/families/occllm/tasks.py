@@ -16,7 +16,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from occtrain.core import scorers
-from occtrain.core.tasks import ForecastTaskConfig, TaskSpec, as_xy, each_question, forecast_after, questions_after
+from occtrain.core.shared_tasks import (
+    ForecastTaskConfig,
+    TaskSpec,
+    as_xy,
+    each_question,
+    forecast_after,
+    questions_after,
+)
 from occtrain.data.clips import Actions, Clip, Part, Scene, Text
 
 FORECAST_PROMPT = "<4-D occupancy forecasting and self-ego planning>"

@@ -27,7 +27,7 @@ from occtrain.core.lm_world_model import LMWorldModel, WorldInputs, WorldModelOu
 from occtrain.core.sequence import IGNORE, PayloadSpec, TokenSequence
 from occtrain.core.vocab import JointVocab
 from occtrain.families.occllm.config import OccLLMWorldConfig
-from occtrain.families.occllm.patches import PatchEmbedding, PatchHead, PreFusion
+from occtrain.families.occllm.scene_tokens import PatchEmbedding, PatchHead, PreFusion
 from occtrain.models.patches import patchify, unpatchify
 
 #: The pre-fusion action: one waypoint (x, y).

@@ -12,9 +12,9 @@ from __future__ import annotations
 
 from functools import partial
 
-from occtrain.core.planning import MetaActionPlannerConfig, load_meta_action_planner, meta_action_planner
+from occtrain.core.meta_action_planner import MetaActionPlannerConfig, load_meta_action_planner, meta_action_planner
 from occtrain.core.registry import FamilySpec, Showcase, WorldSpec, register_family
-from occtrain.core.scene import load_vq_scene_encoder, vq_scene_encoder
+from occtrain.core.scene_encoders import load_vq_scene_encoder, vq_scene_encoder
 from occtrain.families.occvla.config import OccVLAWorldConfig
 from occtrain.families.occvla.operations import OPERATIONS
 from occtrain.families.occvla.paper import PAPER_FIGURES

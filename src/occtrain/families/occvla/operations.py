@@ -7,7 +7,7 @@ from typing import Any
 
 import torch
 
-from occtrain.core import operations
+from occtrain.core import shared_operations
 from occtrain.core.builder import collate
 from occtrain.data.clips import Clip, Images
 from occtrain.families.occvla.tasks import read_meta_action
@@ -31,7 +31,7 @@ def generated_meta_actions(engine: Any, clips: list[Clip]) -> list[tuple[dict | 
 
 def meta_action(engine: Any, clip: Clip) -> dict | None:
     """The meta action the generated chain of thought ends with, None if unparsed."""
-    return read_meta_action(operations.chain_of_thought(engine, clip)[0], clip, engine.tasks)
+    return read_meta_action(shared_operations.chain_of_thought(engine, clip)[0], clip, engine.tasks)
 
 
 @torch.no_grad()
@@ -47,8 +47,8 @@ def visual_summary(engine: Any, clips: list[Clip]) -> torch.Tensor:
 
 
 OPERATIONS = {
-    "answer": operations.answer,
-    "chain_of_thought": operations.chain_of_thought,
+    "answer": shared_operations.answer,
+    "chain_of_thought": shared_operations.chain_of_thought,
     "meta_action": meta_action,
     "reference_meta_action": reference_meta_action,
     "generated_meta_actions": generated_meta_actions,

@@ -1,9 +1,9 @@
-"""OccVLA's published figures (seeds/002), for the dashboard (see ``core.paper``): its own,
+"""OccVLA's published figures (seeds/002), for the dashboard (see ``core.published``): its own,
 and OccLLaMA's NuScenes-QA row as OccVLA's Table 3 lists it."""
 
 from __future__ import annotations
 
-from occtrain.core.paper import CAMERA, GT_OCC, PLAN_CONVENTION, PaperFigure, horizons, qa_types
+from occtrain.core.published import CAMERA, GT_OCC, PLAN_CONVENTION, PaperFigure, horizons, qa_types
 
 
 def _figures() -> list[PaperFigure]:

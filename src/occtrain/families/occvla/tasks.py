@@ -19,15 +19,15 @@ import numpy as np
 
 from occtrain.core import scorers
 from occtrain.core.scorers import last_past_meta_action
-from occtrain.core.tasks import TaskConfig as BaseTaskConfig
-from occtrain.core.tasks import TaskSpec, each_question, questions_after
+from occtrain.core.shared_tasks import TaskConfig as BaseTaskConfig
+from occtrain.core.shared_tasks import TaskSpec, each_question, questions_after
 from occtrain.data.clips import Clip, Images, Occupancy, Part, Text
 from occtrain.data.meta_actions import MetaActionConfig, label, past_labels
 from occtrain.data.schema import MetaAction
 from occtrain.data.text_formats import caption_surroundings, format_meta_action, meta_action_words, parse_meta_action
 from occtrain.errors import ConfigError
 from occtrain.families.occvla.scoring import MetaActionScorer
-from occtrain.occ3d import FRAME_DT
+from occtrain.formats.occ3d import FRAME_DT
 
 META_PROMPT = "Past meta actions:"
 META_QUESTION = "What is the next meta action?"

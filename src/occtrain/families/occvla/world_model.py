@@ -37,8 +37,8 @@ from occtrain.core.sequence import IGNORE, PayloadSpec, TokenSequence, empty_pay
 from occtrain.core.vocab import JointVocab
 from occtrain.data.clips import Images, Occupancy, Part
 from occtrain.families.occvla.config import OccVLAWorldConfig
+from occtrain.models.camera_encoder import pool_views
 from occtrain.models.patches import unpatchify
-from occtrain.models.vision import pool_views
 
 
 class VLASequenceBuilder(SequenceBuilder):

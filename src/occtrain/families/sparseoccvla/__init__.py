@@ -11,13 +11,13 @@ LoRA) and ``planner`` (the LLM-guided anchor-diffusion planner).
 from __future__ import annotations
 
 from occtrain.core.registry import FamilySpec, Showcase, TokenizerArch, WorldSpec, register_family
+from occtrain.families.sparseoccvla.anchor_diffusion import AnchorDiffusionConfig, AnchorDiffusionPlanner
 from occtrain.families.sparseoccvla.config import SparseOccConfig, SparseOccVLAWorldConfig
 from occtrain.families.sparseoccvla.encoder import SparseOccEncoder
 from occtrain.families.sparseoccvla.forecasting import ForecastHead
 from occtrain.families.sparseoccvla.operations import OPERATIONS
 from occtrain.families.sparseoccvla.paper import PAPER_FIGURES
-from occtrain.families.sparseoccvla.planner import AnchorDiffusionConfig, AnchorDiffusionPlanner
-from occtrain.families.sparseoccvla.scene import ARCH, load_sparse_scene_encoder, sparse_scene_encoder
+from occtrain.families.sparseoccvla.scene_encoder import ARCH, load_sparse_scene_encoder, sparse_scene_encoder
 from occtrain.families.sparseoccvla.tasks import PROMPT_WORDS, TASKS, TaskConfig
 from occtrain.families.sparseoccvla.world_model import SparseOccVLAWorldModel
 

@@ -30,10 +30,10 @@ from occtrain.data.layout import DatasetIndex
 from occtrain.errors import ConfigError, DataError
 from occtrain.families.sparseoccvla.config import SparseOccConfig
 from occtrain.families.sparseoccvla.inputs import CameraFrames, camera_frames, ground_truth
+from occtrain.formats.occ3d import RANGE_MAX, RANGE_MIN
 from occtrain.models.point_sets import POINT_CLASSES, chamfer_distance, sigmoid_focal_loss, voxelize
 from occtrain.models.projection import project, sample_views
 from occtrain.models.tokenizers.base import TokenizerOutput
-from occtrain.occ3d import RANGE_MAX, RANGE_MIN
 
 #: ImageNet statistics, what a torchvision/Hugging Face ResNet is trained with.
 IMAGENET_MEAN = (0.485, 0.456, 0.406)

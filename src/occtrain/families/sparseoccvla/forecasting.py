@@ -18,10 +18,10 @@ from occtrain.core.protocols import WorldEngine
 from occtrain.core.scorers import FORECAST_BASELINES, forecast_baselines, forecast_metric
 from occtrain.data.clips import Clip, Text
 from occtrain.families.sparseoccvla.tasks import FORECAST_PROMPT, context
+from occtrain.formats.occ3d import FREE, FUTURE_STEPS, MOVABLE_CLASSES
 from occtrain.metrics import OccupancyMetric
 from occtrain.metrics.occupancy import OCC3D, OCCWORLD
 from occtrain.models.point_sets import voxelize
-from occtrain.occ3d import FREE, FUTURE_STEPS, MOVABLE_CLASSES
 
 #: The paper's forecast frames: a scene's first five and last seven are left out (Sec. 4.1).
 SKIP_FIRST, SKIP_LAST = 5, 7

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from occtrain.core import operations
+from occtrain.core import shared_operations
 from occtrain.core.protocols import WorldEngine
 from occtrain.data.clips import Clip, Text
 from occtrain.families.sparseoccvla.tasks import FORECAST_PROMPT, context
@@ -15,13 +15,13 @@ from occtrain.models.point_sets import voxelize
 
 def caption(engine: WorldEngine, clip: Clip) -> str:
     """The model's description of the anchor frame's scene."""
-    generated, _ = operations.generate_one(engine, "caption", clip)
+    generated, _ = shared_operations.generate_one(engine, "caption", clip)
     return generated[0].text.strip()
 
 
 def decision(engine: WorldEngine, clip: Clip) -> str:
     """The model's decision with its reasoning (what its planner reads)."""
-    generated, _ = operations.generate_one(engine, "planning", clip)
+    generated, _ = shared_operations.generate_one(engine, "planning", clip)
     return generated[0].text.strip()
 
 
@@ -34,4 +34,4 @@ def forecast(engine: WorldEngine, clip: Clip) -> np.ndarray:
     return np.stack([voxelize(p, c, engine.world.voxel_extent).cpu().numpy().astype(np.uint8) for p, c in steps])
 
 
-OPERATIONS = {"answer": operations.answer, "caption": caption, "decision": decision, "forecast": forecast}
+OPERATIONS = {"answer": shared_operations.answer, "caption": caption, "decision": decision, "forecast": forecast}

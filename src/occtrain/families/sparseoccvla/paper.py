@@ -1,8 +1,8 @@
-"""SparseOccVLA's published figures (seeds/004), for the dashboard (see ``core.paper``)."""
+"""SparseOccVLA's published figures (seeds/004), for the dashboard (see ``core.published``)."""
 
 from __future__ import annotations
 
-from occtrain.core.paper import CAMERA, PLAN_CONVENTION, PaperFigure, horizons
+from occtrain.core.published import CAMERA, PLAN_CONVENTION, PaperFigure, horizons
 
 #: The paper's forecast frames (Sec. 4.1): no camera mask, a scene's first 5 and last 7 frames left out.
 TRIMMED = "no camera mask (stated); first 5 and last 7 frames of each scene excluded"

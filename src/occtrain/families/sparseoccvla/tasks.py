@@ -16,8 +16,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from occtrain.core import scorers
-from occtrain.core.tasks import TaskConfig as BaseTaskConfig
-from occtrain.core.tasks import TaskSpec, each_question, questions_after
+from occtrain.core.shared_tasks import TaskConfig as BaseTaskConfig
+from occtrain.core.shared_tasks import TaskSpec, each_question, questions_after
 from occtrain.data.clips import Clip, Part, Scene, Text
 from occtrain.families.sparseoccvla.omnidrive import omnidrive
 from occtrain.families.sparseoccvla.scoring import CaptionScorer, ConversationScorer, DecisionScorer

@@ -34,9 +34,9 @@ from occtrain.data.clips import Part, PromptPart, clip_rng
 from occtrain.errors import ConfigError
 from occtrain.families.sparseoccvla.config import SparseOccVLAWorldConfig
 from occtrain.families.sparseoccvla.encoder import FeedForward, PointHead, SpatialSelfAttention, normalized, sinusoid
-from occtrain.models.planner import current_velocity
+from occtrain.formats.occ3d import PAST_STEPS
+from occtrain.models.planning_heads import current_velocity
 from occtrain.models.point_sets import chamfer_distance, occupied_points, sigmoid_focal_loss
-from occtrain.occ3d import PAST_STEPS
 
 EGO = "<ego>"
 #: The ego state's features: current velocity (2) and the past waypoints (PAST_STEPS x 2).

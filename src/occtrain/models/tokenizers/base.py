@@ -8,8 +8,8 @@ import torch
 from torch import nn
 
 from occtrain.errors import DataError
+from occtrain.formats.occ3d import GRID_SHAPE, NUM_CLASSES
 from occtrain.models.tokenizers.quantizer import VectorQuantizer
-from occtrain.occ3d import GRID_SHAPE, NUM_CLASSES
 
 
 @dataclass

@@ -11,7 +11,7 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-from occtrain.occ3d import NUM_CLASSES
+from occtrain.formats.occ3d import NUM_CLASSES
 
 
 def lovasz_softmax(probs: torch.Tensor, labels: torch.Tensor, valid: torch.Tensor | None = None) -> torch.Tensor:

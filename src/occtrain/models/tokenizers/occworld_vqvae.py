@@ -11,11 +11,11 @@ import torch
 from torch import nn
 
 from occtrain.config.tokenizer import QuantizerFields, latent_hw
+from occtrain.formats.occ3d import GRID_SHAPE, NUM_CLASSES
 from occtrain.models.tokenizers.base import SceneTokenizer, TokenizerOutput, check_semantics
 from occtrain.models.tokenizers.conv import ConvDecoder, ConvEncoder
 from occtrain.models.tokenizers.losses import ce_lovasz, class_balance_weights
 from occtrain.models.tokenizers.quantizer import VectorQuantizer
-from occtrain.occ3d import GRID_SHAPE, NUM_CLASSES
 
 
 @dataclass

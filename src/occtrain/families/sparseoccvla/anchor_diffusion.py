@@ -40,18 +40,18 @@ from torchmetrics import MeanMetric
 from occtrain.config import to_object
 from occtrain.core.builder import collate
 from occtrain.core.decoding import TextAnswer
-from occtrain.core.tasks import PLAN_PRIORS, plan_base
+from occtrain.core.shared_tasks import PLAN_PRIORS, plan_base
 from occtrain.data.clips import Clip, Text, frame_clips, plan_target
 from occtrain.data.layout import DatasetIndex
 from occtrain.errors import ConfigError
-from occtrain.exports import check_section, load_state_strict, read_export, write_export
 from occtrain.families.sparseoccvla.tasks import PLANNING_PROMPT, context
 from occtrain.families.sparseoccvla.world_model import EGO_FEATURES, ego_state
-from occtrain.io import atomic_write_safetensors, is_rank_zero
+from occtrain.formats.exports import check_section, load_state_strict, read_export, write_export
+from occtrain.formats.io import atomic_write_safetensors, is_rank_zero
+from occtrain.formats.occ3d import FUTURE_STEPS
 from occtrain.metrics import PlanningMetric, compute_metrics
 from occtrain.models import count_parameters
-from occtrain.models.planner import constant_velocity
-from occtrain.occ3d import FUTURE_STEPS
+from occtrain.models.planning_heads import constant_velocity
 from occtrain.progress import progress_bar
 
 #: The condition each decoder layer's cross-attentions read, in order (Fig. 3).
@@ -151,7 +151,7 @@ def ddim_denoise(
 
 def offset_bases(clips: list[Clip], prior: str, device: torch.device | str = "cpu") -> torch.Tensor:
     """(B, 6, 2): what each clip's trajectory is written against under ``prior``
-    (``core.tasks.plan_base``; zeros for the paper's "none")."""
+    (``core.shared_tasks.plan_base``; zeros for the paper's "none")."""
     bases = [plan_base(c, prior) for c in clips]
     return torch.stack(
         [torch.zeros(FUTURE_STEPS, 2) if b is None else torch.as_tensor(b, dtype=torch.float32) for b in bases]

@@ -32,12 +32,12 @@ from occtrain.data.clips import Clip, frame_clips, plan_target
 from occtrain.data.layout import DatasetIndex
 from occtrain.data.schema import COMMANDS, META_DIRECTIONS, META_SPEEDS
 from occtrain.errors import ConfigError
-from occtrain.exports import write_export
-from occtrain.io import atomic_write_json, atomic_write_safetensors, is_rank_zero
+from occtrain.formats.exports import write_export
+from occtrain.formats.io import atomic_write_json, atomic_write_safetensors, is_rank_zero
+from occtrain.formats.occ3d import FUTURE_STEPS, PAST_STEPS
 from occtrain.metrics import PlanningMetric, compute_metrics
 from occtrain.models import count_parameters
-from occtrain.models.planner import PlanningHead, constant_velocity, current_velocity
-from occtrain.occ3d import FUTURE_STEPS, PAST_STEPS
+from occtrain.models.planning_heads import PlanningHead, constant_velocity, current_velocity
 from occtrain.progress import progress_bar
 
 META_SOURCES = ("ground_truth", "generated")
@@ -362,7 +362,7 @@ def load_meta_action_planner(
     export_dir: Path, teacher: Any, request: Any, sidecar_reference: bool = True
 ) -> MetaActionPlanner:
     """A trained head back from its export, over the consumed world model (``occtrain eval``)."""
-    from occtrain.exports import load_state_strict, read_export
+    from occtrain.formats.exports import load_state_strict, read_export
 
     state, config = read_export(export_dir)
     cfg = MetaActionPlannerConfig(

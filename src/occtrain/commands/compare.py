@@ -17,8 +17,8 @@ from omegaconf import OmegaConf
 from occtrain.config import load_config
 from occtrain.config.recipe import ComparisonTable, RecipeConfig
 from occtrain.errors import ConfigError
-from occtrain.io import atomic_write_text
-from occtrain.manifest import Manifest
+from occtrain.formats.io import atomic_write_text
+from occtrain.run.manifest import Manifest
 
 TABLE_FILE = "table.md"
 #: A cell with no figure: the stage did not log the metric, is not done, or the paper did not report it.

@@ -18,12 +18,12 @@ from torch import nn
 
 from occtrain.config.tokenizer import latent_hw
 from occtrain.families.occllama.config import OccLLaMATokenizerConfig
+from occtrain.formats.occ3d import FREE, GRID_SHAPE
 from occtrain.models.tokenizers.base import SceneTokenizer, TokenizerOutput, check_semantics
 from occtrain.models.tokenizers.conv import ConvDecoder, ResnetBlock
 from occtrain.models.tokenizers.losses import ce_lovasz, class_balance_weights
 from occtrain.models.tokenizers.quantizer import VectorQuantizer
 from occtrain.models.tokenizers.swin import SwinStage
-from occtrain.occ3d import FREE, GRID_SHAPE
 
 #: Status classes of the occupancy-status head h_a.
 STATUS_OCCUPIED, STATUS_FREE = 0, 1

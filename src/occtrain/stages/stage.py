@@ -18,11 +18,11 @@ from typing import Any, ClassVar
 
 import lightning as L
 
+from occtrain.config.groups import DataConfig, TrainerConfig
 from occtrain.config.recipe import StageSpec
-from occtrain.config.schema import DataConfig, TrainerConfig
 from occtrain.data.shards import PAD_KEY, world_key
 from occtrain.errors import ConfigError
-from occtrain.exports import check_loaded_keys
+from occtrain.formats.exports import check_loaded_keys
 from occtrain.models import count_parameters
 
 #: The run directory's folder of caches keyed by their content, shared by its stages.

@@ -21,7 +21,7 @@ from safetensors.torch import load_file, save
 
 from occtrain.config.loading import did_you_mean
 from occtrain.errors import OcctrainError
-from occtrain.io import remove_inside, write_error
+from occtrain.formats.io import remove_inside, write_error
 
 EXPORT_WEIGHTS = "model.safetensors"
 EXPORT_CONFIG = "config.json"
@@ -62,12 +62,12 @@ def write_export(
     """Write ``model.safetensors`` + ``config.json`` (+ extra files/dirs) as one atomic directory swap.
 
     A full disk, a read-only file system or a permission error is a one-line
-    :class:`~occtrain.io.WriteError` naming ``export_dir``, whose previous export is kept.
+    :class:`~occtrain.formats.io.WriteError` naming ``export_dir``, whose previous export is kept.
     """
     export_dir = Path(export_dir)
     unknown = _unknown_key(config)
     if unknown is not None:  # occtrain's own writer and EXPORT_KEYS disagree: its readers would refuse the export
-        raise ValueError(f"export config key '{unknown}' is missing from occtrain.exports.EXPORT_KEYS")
+        raise ValueError(f"export config key '{unknown}' is missing from occtrain.formats.exports.EXPORT_KEYS")
     try:
         export_dir.parent.mkdir(parents=True, exist_ok=True)
         tmp = Path(tempfile.mkdtemp(dir=export_dir.parent, prefix=".export."))

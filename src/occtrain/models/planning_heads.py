@@ -9,8 +9,8 @@ import torch
 from torch import nn
 
 from occtrain.errors import OcctrainError
-from occtrain.exports import load_state_strict, read_export
-from occtrain.occ3d import FRAME_DT, FUTURE_STEPS
+from occtrain.formats.exports import load_state_strict, read_export
+from occtrain.formats.occ3d import FRAME_DT, FUTURE_STEPS
 
 
 class PlanningHead(nn.Module):

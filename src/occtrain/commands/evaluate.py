@@ -19,7 +19,7 @@ import numpy as np
 from occtrain.config import load_config
 from occtrain.config.recipe import RecipeConfig
 from occtrain.errors import ConfigError
-from occtrain.io import atomic_write_json, atomic_write_npz, check_output
+from occtrain.formats.io import atomic_write_json, atomic_write_npz, check_output
 from occtrain.progress import console
 
 
@@ -52,7 +52,7 @@ def evaluate(
     from its own train split."""
     from occtrain.data.layout import world_version
     from occtrain.data.shards import world_key
-    from occtrain.stages.base import EvalRequest, shared_cache_dir, stage_cache_dir
+    from occtrain.stages.stage import EvalRequest, shared_cache_dir, stage_cache_dir
 
     stage_dir = Path(stage_dir)
     recipe, spec, kind = _evaluable_stage(stage_dir, split, samples, batch_size)
@@ -88,8 +88,8 @@ def _evaluable_stage(stage_dir: Path, split: str, samples: int, batch_size: int)
     """The run's recipe, the stage's spec and kind, once the arguments, the stage's kind and
     its status (done: an interrupted stage's export is stale) allow an eval."""
     from occtrain.data.layout import SPLITS
-    from occtrain.manifest import Manifest
-    from occtrain.runner import load_plugins
+    from occtrain.run.manifest import Manifest
+    from occtrain.run.runner import load_plugins
     from occtrain.stages import get_kind, kind_names
 
     pipeline = stage_dir.parent / "pipeline.yaml"
@@ -145,7 +145,7 @@ def _refuse_unscorable(tasks: list[str], root: str) -> None:
     """Named tasks must be scorable on the dataset (the defaults are trimmed later, with a note)."""
     if not tasks:
         return
-    from occtrain.stages.base import lacking_tasks
+    from occtrain.stages.stage import lacking_tasks
 
     for task, why in lacking_tasks(root, tasks).items():
         raise ConfigError(f"--tasks {task}: the task {why} ({root}); score it on a dataset that has it")

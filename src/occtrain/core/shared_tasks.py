@@ -19,7 +19,7 @@ import numpy as np
 
 from occtrain.data.clips import Actions, Branch, Clip, Part, Scene, Text, clip_rng, ego_future
 from occtrain.errors import ConfigError
-from occtrain.models.planner import constant_velocity
+from occtrain.models.planning_heads import constant_velocity
 
 Builder = Callable[[Clip, Any, np.random.Generator], "list[Part] | None"]
 EveryItem = Callable[[Clip, Any], "list[list[Part]]"]

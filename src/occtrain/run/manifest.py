@@ -11,7 +11,7 @@ from typing import Any
 
 from occtrain.config.recipe import NAME_PATTERN
 from occtrain.errors import OcctrainError
-from occtrain.io import atomic_write_json, remove_inside, write_error
+from occtrain.formats.io import atomic_write_json, remove_inside, write_error
 from occtrain.version import code_version
 
 MANIFEST_FILE = "manifest.json"

@@ -23,17 +23,17 @@ from typing import Any
 
 from omegaconf import OmegaConf
 
-from occtrain.comparison import TABLE_FILE, check_table, show_table
+from occtrain.commands.compare import TABLE_FILE, check_table, show_table
 from occtrain.config import load_config, to_container, to_yaml
+from occtrain.config.groups import DataConfig, TrainerConfig
 from occtrain.config.loading import read_yaml, validate_section
 from occtrain.config.recipe import STAGE_DATA_KEYS, RecipeConfig, StageSpec, check_name
-from occtrain.config.schema import DataConfig, TrainerConfig
 from occtrain.core.registry import get_family
 from occtrain.errors import ConfigError, OcctrainError, cause_line
-from occtrain.io import atomic_write_json, atomic_write_text, is_rank_zero, remove_inside
-from occtrain.manifest import RESUMABLE, Manifest
+from occtrain.formats.io import atomic_write_json, atomic_write_text, is_rank_zero, remove_inside
 from occtrain.progress import console
-from occtrain.run_control import Interrupted, run_lock, stop_on_signals
+from occtrain.run.control import Interrupted, run_lock, stop_on_signals
+from occtrain.run.manifest import RESUMABLE, Manifest
 from occtrain.stages import Stage, StageContext, StageKind, get_kind, kind_names
 
 #: Trainer keys that change how often things are written, not what is learned.
@@ -534,7 +534,7 @@ def refuse_missing_tasks(planned: list[PlannedStage], data: DataConfig) -> None:
     """Check each stage's task settings, and refuse a task (weighted above 0) whose sidecar
     the dataset lacks: a plain Occ3D release has occupancy and ego poses only."""
     from occtrain.data.layout import ANNOTATIONS_FILE
-    from occtrain.stages.base import lacking_tasks
+    from occtrain.stages.stage import lacking_tasks
 
     root = Path(data.root)
     exists = (root / ANNOTATIONS_FILE).is_file()  # a world still to be synthesized has every sidecar

@@ -12,7 +12,7 @@ import torch
 from torch import nn
 
 from occtrain.core.registry import load_tokenizer
-from occtrain.core.scene import SCENE_ENCODER_DIR
+from occtrain.core.scene_encoders import SCENE_ENCODER_DIR
 from occtrain.data.layout import DatasetIndex
 from occtrain.errors import ConfigError
 

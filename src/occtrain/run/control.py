@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import IO
 
 from occtrain.errors import OcctrainError
-from occtrain.io import write_error
+from occtrain.formats.io import write_error
 
 LOCK_FILE = ".lock"
 STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT)

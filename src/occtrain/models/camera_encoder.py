@@ -24,9 +24,9 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from occtrain.errors import ConfigError, DataError
-from occtrain.exports import check_section, load_state_strict, read_export, write_export
+from occtrain.formats.exports import check_section, load_state_strict, read_export, write_export
+from occtrain.formats.occ3d import NUM_CLASSES
 from occtrain.models.patches import unpatchify
-from occtrain.occ3d import NUM_CLASSES
 
 #: The export's Hugging Face vision-model directory.
 TOWER_DIR = "vision"

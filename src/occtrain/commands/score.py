@@ -21,11 +21,11 @@ from occtrain.data.layout import ANNOTATIONS_FILE, GTS_DIR, LABELS_FILE, Dataset
 from occtrain.data.schema import QAFile, Vec2
 from occtrain.data.validate import Len, first_problem
 from occtrain.errors import DataError
-from occtrain.io import atomic_write_json, check_output, finite_or_null
+from occtrain.formats.io import atomic_write_json, check_output, finite_or_null
+from occtrain.formats.occ3d import FUTURE_STEPS, GRID_SHAPE, NUM_CLASSES
 
 # The metrics (torch, torchmetrics) load with the first score, not with the CLI's parser.
 from occtrain.metrics.conventions import CONVENTIONS, horizon_label
-from occtrain.occ3d import FUTURE_STEPS, GRID_SHAPE, NUM_CLASSES
 
 FORECAST_FILE = "forecast.npz"
 FORECAST_HORIZONS = (1, 3, 5)
