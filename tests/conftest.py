@@ -275,11 +275,12 @@ def start_cli(
     return _warm_parent.spawn(list(args), cwd or REPO, cli_env(env), session)
 
 
-def run_cli(
+def run_cli_process(
     *args: str, cwd: Path | None = None, timeout: float = 300, env: dict[str, str] | None = None, fresh: bool = False
 ) -> subprocess.CompletedProcess:
     """Run the real ``occtrain`` CLI in another process and wait for it (``env``: variables
-    to add); see :func:`start_cli`."""
+    to add); see :func:`start_cli`. Only for tests where the process is the point (DDP,
+    torchrun, signals, a fresh clone): the others call :func:`run_cli`."""
     proc = start_cli(*args, cwd=cwd, env=env, session=True, fresh=fresh)
     try:
         code = proc.wait(timeout)
@@ -289,6 +290,41 @@ def run_cli(
         raise
     out, err = proc.output()
     return subprocess.CompletedProcess(["occtrain", *args], code, out, err)
+
+
+def run_cli(*args: str, cwd: Path | None = None, env: dict[str, str] | None = None) -> subprocess.CompletedProcess:
+    """``occtrain ARGS`` in this process, through :func:`occtrain.cli.main`: its exit code,
+    stdout and stderr as :func:`run_cli_process` returns them. The working directory (the
+    repository unless ``cwd``), the environment (with ``env`` added), ``sys.argv``, torch's
+    thread count and determinism flag are restored after it. An exception the CLI lets
+    through is raised here, so a traceback fails the test rather than hiding in stderr."""
+    import contextlib
+    import io
+
+    import torch
+
+    from occtrain.cli import main
+
+    saved_cwd, saved_env, saved_argv = os.getcwd(), dict(os.environ), sys.argv
+    saved_threads, saved_deterministic = torch.get_num_threads(), torch.are_deterministic_algorithms_enabled()
+    out, err = io.StringIO(), io.StringIO()
+    try:
+        os.chdir(cwd or REPO)
+        os.environ.update({"PYTHONWARNINGS": "ignore", **(env or {})})
+        sys.argv = ["occtrain", *args]
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            try:
+                code = main(list(args))
+            except SystemExit as stop:  # argparse's usage errors
+                code = stop.code if isinstance(stop.code, int) else 1
+    finally:
+        os.chdir(saved_cwd)
+        os.environ.clear()
+        os.environ.update(saved_env)
+        sys.argv = saved_argv
+        torch.set_num_threads(saved_threads)
+        torch.use_deterministic_algorithms(saved_deterministic)
+    return subprocess.CompletedProcess(["occtrain", *args], code, out.getvalue(), err.getvalue())
 
 
 def kill_at_checkpoint(

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from conftest import built_once, run_cli
+from conftest import built_once, run_cli_process
 
 STAGES = ("tokenizer", "pretrain", "instruct", "planner", "distill")
 #: Optimizer steps per stage of the shared tiny run (a kill test interrupts each in between).
@@ -48,7 +48,7 @@ def quickstart_run(root: Path) -> Path:
         "--run-dir",
         str(run_dir),
     ]
-    res = run_cli(*args, timeout=900, fresh=True)
+    res = run_cli_process(*args, timeout=900, fresh=True)
     assert res.returncode == 0, res.stderr[-3000:]
     return run_dir
 

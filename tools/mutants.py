@@ -12,7 +12,7 @@ fails anyway kills nothing.
     python tools/mutants.py --only scaled-ddp-loss --only one-process
 
 It takes about half an hour on 2 cores (several tests train through the CLI), so it is not
-part of ``pytest``; ``tests/test_mutants.py`` checks that every change still applies to the
+part of ``pytest``; ``tests/tools/test_mutants.py`` checks that every change still applies to the
 current code. Exit status 1 when a mutant survives or a baseline fails.
 """
 
@@ -51,10 +51,10 @@ MUTANTS = (
         "trainer.fit(module, datamodule=datamodule, ckpt_path=ckpt, weights_only=True)",
         "trainer.fit(module, datamodule=datamodule, ckpt_path=None, weights_only=True)",
         (
-            "tests/test_runner_cli.py::test_kill_9_then_resume_gives_the_uninterrupted_weights",
-            "tests/test_runner_cli.py::test_a_stop_signal_interrupts_in_one_line_and_a_rerun_resumes",
-            "tests/test_occllm_pipeline.py::test_the_msvae_tokenizer_resumes_bit_exact_after_kill_9",
-            "tests/test_pipeline_faults.py::test_kill_9_at_a_random_step_of_every_stage_resumes_bit_exact",
+            "tests/e2e/test_interruptions.py::test_kill_9_then_resume_gives_the_uninterrupted_weights",
+            "tests/e2e/test_interruptions.py::test_a_stop_signal_interrupts_in_one_line_and_a_rerun_resumes",
+            "tests/e2e/test_occllm_recipe.py::test_the_msvae_tokenizer_resumes_bit_exact_after_kill_9",
+            "tests/e2e/test_pipeline_faults.py::test_kill_9_at_a_random_step_of_every_stage_resumes_bit_exact",
         ),
     ),
     Mutant(
@@ -64,8 +64,8 @@ MUTANTS = (
         "        devices=cfg.devices,\n",
         "        devices=1,\n",
         (
-            "tests/test_runner_cli.py::test_cpu_ddp_two_processes",
-            "tests/test_distributed.py::test_ddp_validation_of_an_odd_split_equals_one_process",
+            "tests/e2e/test_interruptions.py::test_cpu_ddp_two_processes",
+            "tests/e2e/test_distributed.py::test_ddp_validation_of_an_odd_split_equals_one_process",
         ),
     ),
     Mutant(
@@ -74,7 +74,7 @@ MUTANTS = (
         "src/occtrain/data/reading.py",
         "    mine: list[int | None] = list(range(rank, total, world))\n",
         "    mine: list[int | None] = list(range(total))\n",
-        ("tests/test_distributed.py::test_ddp_validation_of_an_odd_split_equals_one_process",),
+        ("tests/e2e/test_distributed.py::test_ddp_validation_of_an_odd_split_equals_one_process",),
     ),
     Mutant(
         "scaled-ddp-loss",
@@ -82,7 +82,7 @@ MUTANTS = (
         "src/occtrain/models/tokenizers/occworld_vqvae.py",
         'losses = {"loss": total, ',
         'losses = {"loss": total * (1.5 if torch.distributed.is_initialized() else 1.0), ',
-        ("tests/test_ddp_step.py::test_ddp_step_equals_single_process_step",),
+        ("tests/unit/stages/test_optim_ddp_step.py::test_ddp_step_equals_single_process_step",),
     ),
     Mutant(
         "bear-by-heading-flipped",
@@ -90,7 +90,7 @@ MUTANTS = (
         "src/occtrain/data/meta_actions.py",
         'return "bear left" if heading_change_deg > 0 else "bear right"',
         'return "bear right" if heading_change_deg > 0 else "bear left"',
-        ("tests/test_synth_world.py::test_meta_action_follows_the_documented_rule",),
+        ("tests/unit/data/synth/test_synth.py::test_meta_action_follows_the_documented_rule",),
     ),
     Mutant(
         "wrong-1s-frame",
@@ -98,7 +98,7 @@ MUTANTS = (
         "src/occtrain/commands/score.py",
         "FORECAST_HORIZONS = (1, 3, 5)",
         "FORECAST_HORIZONS = (0, 3, 5)",
-        ("tests/test_scoring_cli.py::test_forecast_hand_case",),
+        ("tests/unit/commands/test_score.py::test_forecast_hand_case",),
     ),
     Mutant(
         "empty-generation",
@@ -106,7 +106,7 @@ MUTANTS = (
         "src/occtrain/core/decoding.py",
         "    for _ in range(answer.max_new_tokens):\n        tok = yield from s.pick(s.vocab.text_range)",
         "    for _ in range(0):\n        tok = yield from s.pick(s.vocab.text_range)",
-        ("tests/test_occvla_pipeline.py::test_the_reloaded_model_generates_the_same_text_with_and_without_occupancy",),
+        ("tests/e2e/test_occvla_recipe.py::test_the_reloaded_model_generates_the_same_text_with_and_without_occupancy",),
     ),
     Mutant(
         "check-stops-at-first-problem",
@@ -115,8 +115,8 @@ MUTANTS = (
         "    found = schema_problems(data, schema, limit=MAX_PER_FILE + 1)",
         "    found = schema_problems(data, schema, limit=1)",
         (
-            "tests/test_bad_inputs.py::test_bad_input_is_one_line_and_changes_nothing[check-ann-lists-every-problem]",
-            "tests/test_bad_inputs.py::test_bad_input_is_one_line_and_changes_nothing[check-qa-lists-every-problem]",
+            "tests/e2e/test_bad_inputs.py::test_bad_input_is_one_line_and_changes_nothing[check-ann-lists-every-problem]",
+            "tests/e2e/test_bad_inputs.py::test_bad_input_is_one_line_and_changes_nothing[check-qa-lists-every-problem]",
         ),
     ),
     Mutant(
@@ -125,7 +125,7 @@ MUTANTS = (
         "src/occtrain/run/runner.py",
         "manifest.set_aside([p.spec.name for p in planned if p.spec.name in restarted])",
         "manifest.set_aside([str(restart)])",
-        ("tests/test_runner.py::test_changed_config_is_refused_then_restart_retrains",),
+        ("tests/unit/run/test_runner.py::test_changed_config_is_refused_then_restart_retrains",),
     ),
     Mutant(
         "kl-without-t-squared",
@@ -133,7 +133,7 @@ MUTANTS = (
         "src/occtrain/models/distill_losses.py",
         'reduction="batchmean") * t * t',
         'reduction="batchmean")',
-        ("tests/test_stage_parts.py::test_distillation_losses_by_hand",),
+        ("tests/unit/stages/test_planner_and_distill_parts.py::test_distillation_losses_by_hand",),
     ),
     Mutant(
         "no-shuffle",
@@ -141,7 +141,7 @@ MUTANTS = (
         "src/occtrain/data/reading.py",
         "    if shuffle_buffer <= 1:\n",
         "    if True:\n",
-        ("tests/test_shards.py::test_train_pipeline_streams_forever_and_shuffles",),
+        ("tests/unit/data/test_shards.py::test_train_pipeline_streams_forever_and_shuffles",),
     ),
     Mutant(
         "epochs-unshuffled",
@@ -149,7 +149,7 @@ MUTANTS = (
         "src/occtrain/data/reading.py",
         '        random.Random(f"samples:{seed}:{epoch}").shuffle(order)\n',
         "        pass\n",
-        ("tests/test_shards.py::test_the_default_order_is_a_fresh_permutation_of_every_sample_each_epoch",),
+        ("tests/unit/data/test_shards.py::test_the_default_order_is_a_fresh_permutation_of_every_sample_each_epoch",),
     ),
     Mutant(
         "workers-read-everything",
@@ -157,7 +157,7 @@ MUTANTS = (
         "src/occtrain/data/reading.py",
         "    return mine[worker::workers]\n",
         "    return mine\n",
-        ("tests/test_shards.py::test_frames_round_trip_through_dataloader_with_two_workers",),
+        ("tests/unit/data/test_shards.py::test_frames_round_trip_through_dataloader_with_two_workers",),
     ),
     Mutant(
         "ranks-compute-what-they-saw",
@@ -165,7 +165,7 @@ MUTANTS = (
         "src/occtrain/metrics/__init__.py",
         "    if metrics and dist.is_available() and dist.is_initialized() and dist.get_world_size() > 1:\n",
         "    if False:\n",
-        ("tests/test_metrics_occupancy.py::test_two_process_ddp_equals_single_process",),
+        ("tests/unit/metrics/test_occupancy.py::test_two_process_ddp_equals_single_process",),
     ),
     Mutant(
         "ranks-read-everything",
@@ -173,7 +173,7 @@ MUTANTS = (
         "src/occtrain/data/reading.py",
         "        if within // batch_size == rank and step % workers == worker:\n",
         "        if step % workers == worker:\n",
-        ("tests/test_shards.py::test_two_ranks_of_b_train_on_the_batches_of_one_process_of_2b",),
+        ("tests/unit/data/test_shards.py::test_two_ranks_of_b_train_on_the_batches_of_one_process_of_2b",),
     ),
     Mutant(
         "loader-restarts-its-epoch",
@@ -182,8 +182,8 @@ MUTANTS = (
         "        self.source.start, self._start = self._start, 0\n",
         "        self.source.start, self._start = 0, 0\n",
         (
-            "tests/test_shards.py::test_an_epoch_resumed_mid_way_with_workers_sees_each_sample_once",
-            "tests/test_distributed.py::test_a_ddp_epoch_killed_mid_way_resumes_without_repeating_or_skipping_a_sample",
+            "tests/unit/data/test_shards.py::test_an_epoch_resumed_mid_way_with_workers_sees_each_sample_once",
+            "tests/e2e/test_distributed.py::test_a_ddp_epoch_killed_mid_way_resumes_without_repeating_or_skipping_a_sample",
         ),
     ),
     Mutant(
@@ -192,7 +192,7 @@ MUTANTS = (
         "src/occtrain/stages/pretrain_instruct.py",
         '        shard_world_model(world, self.device_mesh["data_parallel"])\n',
         "        pass\n",
-        ("tests/test_sharded.py::test_sharded_training_equals_ddp_with_the_same_global_batch",),
+        ("tests/e2e/test_sharded.py::test_sharded_training_equals_ddp_with_the_same_global_batch",),
     ),
     Mutant(
         "uniform-task-draw",
@@ -200,7 +200,7 @@ MUTANTS = (
         "src/occtrain/core/shared_tasks.py",
         "size=len(names), replace=False, p=p / p.sum())",
         "size=len(names), replace=False)",
-        ("tests/test_tasks.py::test_sampling_is_deterministic_and_follows_weights",),
+        ("tests/unit/families/occllama/test_tasks.py::test_sampling_is_deterministic_and_follows_weights",),
     ),
     Mutant(
         "cider-as-fraction",
@@ -208,7 +208,7 @@ MUTANTS = (
         "src/occtrain/metrics/captions.py",
         'scores["CIDEr"] = float(Cider().compute_score(gts, res)[0])',
         'scores["CIDEr"] = float(Cider().compute_score(gts, res)[0]) / 10',
-        ("tests/test_metrics_language.py::test_caption_metric_by_hand",),
+        ("tests/unit/metrics/test_qa_and_captions.py::test_caption_metric_by_hand",),
     ),
     Mutant(
         "deletion-escapes-the-run",
@@ -216,7 +216,7 @@ MUTANTS = (
         "src/occtrain/formats/io.py",
         'if target.name in ("", ".", "..") or where == root_path or not where.is_relative_to(root_path):',
         "if False:",
-        ("tests/test_io.py::test_a_deletion_that_reaches_outside_the_run_is_refused",),
+        ("tests/unit/formats/test_io.py::test_a_deletion_that_reaches_outside_the_run_is_refused",),
     ),
     Mutant(
         "stage-name-unchecked",
@@ -225,8 +225,8 @@ MUTANTS = (
         '    check_name(spec.name, f"stages[{i}].name", source, "a stage")\n',
         "",
         (
-            "tests/test_bad_inputs.py::test_bad_input_is_one_line_and_changes_nothing[stage-name-escapes]",
-            "tests/test_bad_inputs.py::test_bad_input_is_one_line_and_changes_nothing[restart-an-escaping-stage]",
+            "tests/e2e/test_bad_inputs.py::test_bad_input_is_one_line_and_changes_nothing[stage-name-escapes]",
+            "tests/e2e/test_bad_inputs.py::test_bad_input_is_one_line_and_changes_nothing[restart-an-escaping-stage]",
         ),
     ),
     Mutant(
@@ -235,7 +235,7 @@ MUTANTS = (
         "src/occtrain/run/manifest.py",
         "                    os.rename(run_dir / name, aside / name)\n",
         "                    remove_inside(run_dir / name, run_dir)\n",
-        ("tests/test_runner.py::test_a_restart_that_fails_before_its_first_checkpoint_puts_the_old_stages_back",),
+        ("tests/unit/run/test_runner.py::test_a_restart_that_fails_before_its_first_checkpoint_puts_the_old_stages_back",),
     ),
 )
 

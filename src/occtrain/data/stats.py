@@ -31,7 +31,7 @@ LOW_LAYERS = 3
 
 #: The ranges a dataset that looks like Occ3D-nuScenes falls in (means over frames), set
 #: around the real frame's figures wide enough for a city's variety: the embedded world
-#: is held to them (tests/test_synth_world.py), and any dataset is shown against them.
+#: is held to them (tests/unit/data/synth/test_synth.py), and any dataset is shown against them.
 TARGETS: dict[str, tuple[float, float]] = {
     "occupied": (0.04, 0.10),
     "occupied_columns": (0.25, 0.60),

@@ -16,7 +16,7 @@ context train in one sequence exactly as each would alone.
 
 Transformers 5.x passes a 4D mask ``[B, 1, Lq, Lk]`` to the attention kernel unchanged.
 "sdpa" takes it boolean (True = attend) or additive float; "eager" adds it to the scores,
-so it must be the additive float (``build_4d_mask``). ``tests/test_attention_mask.py``
+so it must be the additive float (``build_4d_mask``). ``tests/unit/models/test_attention.py``
 checks that the Llama honours it in these three forms. The world model keeps the boolean
 form and converts it per implementation (boolean suits SDPA in any compute dtype).
 """

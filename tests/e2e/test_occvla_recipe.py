@@ -46,7 +46,7 @@ def overrides(root: Path) -> list[str]:
 def occvla_run(tmp_path_factory) -> Path:
     root = tmp_path_factory.mktemp("occvla")
     run_dir = root / "run"
-    res = run_cli("run", "recipes/occvla.yaml", *overrides(root), "--run-dir", str(run_dir), timeout=900)
+    res = run_cli("run", "recipes/occvla.yaml", *overrides(root), "--run-dir", str(run_dir))
     assert res.returncode == 0, res.stderr[-3000:]
     return run_dir
 
@@ -174,7 +174,6 @@ def test_distillation_takes_a_camera_reading_teacher(occvla_run, tmp_path):
         str(occvla_run),
         "--only",
         "student",
-        timeout=900,
     )
     assert res.returncode == 0, res.stderr[-3000:]
     metrics = json.loads((occvla_run / "student" / "metrics.json").read_text())

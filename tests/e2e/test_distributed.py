@@ -14,7 +14,7 @@ import pytest
 import torch
 from safetensors.torch import load_file
 
-from conftest import REPO, kill_at_checkpoint, run_cli, write_hand_dataset
+from conftest import REPO, kill_at_checkpoint, run_cli_process, write_hand_dataset
 
 pytestmark = pytest.mark.slow
 
@@ -119,9 +119,9 @@ def test_ddp_validation_of_an_odd_split_equals_one_process(tmp_path, world):
     # of two rounds differently from two of one). Rank 1 holds 4 of the 9 frames: its
     # first batch is padding alone, which must count for nothing.
     recipe = _recipe(tmp_path, world, lr=0.0)
-    one = run_cli("run", str(recipe), "data.batch_size=1", "--run-dir", str(tmp_path / "one"))
+    one = run_cli_process("run", str(recipe), "data.batch_size=1", "--run-dir", str(tmp_path / "one"))
     assert one.returncode == 0, one.stderr[-3000:]
-    two = run_cli(
+    two = run_cli_process(
         "run",
         str(recipe),
         "data.batch_size=1",
@@ -157,7 +157,7 @@ def test_ddp_validation_of_an_odd_split_equals_one_process(tmp_path, world):
 def test_two_torchrun_nodes_train_like_one_process(tmp_path, world):
     recipe = tmp_path / "probe.yaml"
     recipe.write_text(PROBE_RECIPE.format(runs=tmp_path / "runs", data=world))
-    one = run_cli("run", str(recipe), "--run-dir", str(tmp_path / "one"))
+    one = run_cli_process("run", str(recipe), "--run-dir", str(tmp_path / "one"))
     assert one.returncode == 0, one.stderr[-3000:]
 
     # Two node ranks of one process each, batch 1 per rank: the same global batch of 2.
@@ -194,7 +194,7 @@ def test_two_torchrun_nodes_train_like_one_process(tmp_path, world):
 
     same_batches = gap(weights("two"), weights("one"))
     assert same_batches < 1e-4  # measured 6e-6 to 1e-5 (Adam's normalisation of float-order differences)
-    other = run_cli("run", str(recipe), "data.batch_size=1", "--run-dir", str(tmp_path / "other"))
+    other = run_cli_process("run", str(recipe), "data.batch_size=1", "--run-dir", str(tmp_path / "other"))
     assert other.returncode == 0, other.stderr[-3000:]
     assert gap(weights("other"), weights("one")) > 10 * same_batches
 
@@ -227,7 +227,7 @@ def test_a_ddp_epoch_killed_mid_way_resumes_without_repeating_or_skipping_a_samp
         assert per_rank[0].keys() == per_rank[1].keys()
         return {step: per_rank[0][step] + per_rank[1][step] for step in sorted(per_rank[0])}
 
-    whole = run_cli(
+    whole = run_cli_process(
         *args,
         "--run-dir",
         str(tmp_path / "whole"),
@@ -238,7 +238,7 @@ def test_a_ddp_epoch_killed_mid_way_resumes_without_repeating_or_skipping_a_samp
     last = tmp_path / "cut" / "probe" / "checkpoints" / "last.ckpt"
     cut = {"OCCTRAIN_PROBE_SEEN": str(tmp_path / "cut.seen"), "OCCTRAIN_PROBE_STEP_DELAY": "0.5"}
     killed_at = kill_at_checkpoint([*args, "--run-dir", str(tmp_path / "cut")], last, step=4, env=cut, timeout=300)
-    resumed = run_cli(
+    resumed = run_cli_process(
         *args, "--run-dir", str(tmp_path / "cut"), env={"OCCTRAIN_PROBE_SEEN": str(tmp_path / "cut.seen")}, timeout=600
     )
     assert resumed.returncode == 0, resumed.stderr[-3000:]

@@ -251,3 +251,42 @@ def test_the_plugins_use_no_private_name_of_occtrain():
                 if isinstance(node.value, ast.Name) and node.value.id in modules:
                     private.append(f"{path.name}:{node.lineno} {node.value.id}.{node.attr}")
     assert private == []
+
+
+def unmirrored_tests(unit: Path, src: Path) -> list[str]:
+    """Test files under ``unit`` whose place does not name what they test: each folder must be
+    a package of ``src`` and each ``test_X.py`` (or ``test_X_aspect.py``) must test its
+    module ``X.py``, or the package itself when X is the package's name."""
+    found = []
+    for test in sorted(unit.rglob("test_*.py")):
+        package = src / test.parent.relative_to(unit)
+        name = test.stem.removeprefix("test_")
+        if not (package / "__init__.py").is_file():
+            found.append(f"{test.relative_to(unit)}: no package {package.relative_to(src.parent)}")
+            continue
+        parts = name.split("_")
+        prefixes = {"_".join(parts[:k]) for k in range(1, len(parts) + 1)}
+        if name != package.name and not any((package / f"{p}.py").is_file() for p in prefixes):
+            found.append(f"{test.relative_to(unit)}: names no module of {package.relative_to(src.parent)}")
+    return found
+
+
+def test_unit_tests_mirror_the_package():
+    """A contributor goes from a module to its tests by path: tests/unit/ is laid out like src/occtrain/."""
+    assert unmirrored_tests(REPO / "tests" / "unit", SRC) == []
+
+
+def test_the_mirror_check_catches(tmp_path):
+    src, unit = tmp_path / "src", tmp_path / "unit"
+    for folder in (src / "data", unit / "data", unit / "nowhere"):
+        folder.mkdir(parents=True)
+    (src / "__init__.py").touch()
+    (src / "data" / "__init__.py").touch()
+    (src / "data" / "layout.py").touch()
+    for test in ("data/test_layout.py", "data/test_layout_errors.py", "data/test_data.py", "data/test_shards.py"):
+        (unit / test).touch()
+    (unit / "nowhere" / "test_x.py").touch()
+    assert unmirrored_tests(unit, src) == [
+        "data/test_shards.py: names no module of src/data",
+        "nowhere/test_x.py: no package src/nowhere",
+    ]

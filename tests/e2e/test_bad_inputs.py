@@ -12,7 +12,6 @@ A case is ``Case(id, setup, argv, code, says)``: ``setup(tmp)`` breaks the copy 
 
 from __future__ import annotations
 
-import hashlib
 import json
 import shutil
 import struct
@@ -27,12 +26,12 @@ import pytest
 import torch
 from safetensors.torch import save_file
 
+from builders import planning_files, qa_questions, snapshot
 from conftest import REPO, hand_frames, hand_labels, write_hand_dataset
 from occtrain.cli import main
 from occtrain.data.layout import DatasetIndex, quaternion_from_yaw
 from occtrain.data.validate import Len, problems
 from occtrain.formats.occ3d import GRID_SHAPE
-from test_scoring_cli import planning_files, qa_questions
 
 FRAMES = 8
 SCENES = ("scene-0000", "scene-0001")  # train, val
@@ -82,14 +81,6 @@ def world(tmp_path_factory) -> Path:
     save_file({"w": torch.zeros(4)}, str(export / "model.safetensors"))
     (export / "config.json").write_text(json.dumps({"stage_kind": "world_model"}))
     return root
-
-
-def snapshot(root: Path) -> dict[str, str]:
-    """sha256 of every file under ``root`` (directories as "dir"), by relative path."""
-    return {
-        str(p.relative_to(root)): "dir" if p.is_dir() else hashlib.sha256(p.read_bytes()).hexdigest()
-        for p in sorted(root.rglob("*"))
-    }
 
 
 # ----------------------------------------------------------------------------- breaking things

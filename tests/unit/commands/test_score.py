@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from builders import planning_files, qa_questions, straight
 from occtrain.cli import main
 from occtrain.data.layout import DatasetIndex
 from occtrain.formats.io import atomic_write_npz
@@ -189,23 +190,6 @@ def test_forecast_bad_input(hand_dataset, capsys, tmp_path):
 # ----------------------------------------------------------------------------- planning
 
 
-def straight(dy: float = 0.0) -> list[list[float]]:
-    return [[2.5 * (k + 1), dy] for k in range(6)]
-
-
-def planning_files(tmp_path: Path) -> tuple[Path, Path]:
-    far = [40.0, 40.0, 4.0, 2.0, 0.0]
-    agents = [[far], [[5.0, 3.0, 2.0, 1.0, 0.0]], [far], [[10.0, 0.0, 2.0, 8.0, 0.0]], [far], []]
-    preds = {"tok-a": straight(3.0), "tok-b": straight(1.0)}
-    gts = {
-        "tok-a": {"traj": straight(), "mask": [1] * 6, "agents": agents},
-        "tok-b": {"traj": straight(), "mask": [1, 1, 1, 1, 1, 0]},
-    }
-    (tmp_path / "p.json").write_text(json.dumps(preds))
-    (tmp_path / "g.json").write_text(json.dumps(gts))
-    return tmp_path / "p.json", tmp_path / "g.json"
-
-
 def test_planning_hand_case(capsys, tmp_path):
     p, g = planning_files(tmp_path)
     code, r, _ = score(capsys, "planning", "--pred", p, "--gt", g)
@@ -283,35 +267,6 @@ def test_captions_bad_input(capsys, tmp_path):
 
 
 # ----------------------------------------------------------------------------- QA
-
-
-def qa_questions(path: Path) -> Path:
-    qs = [
-        {
-            "question": "Are there any cars?",
-            "answer": "yes",
-            "sample_token": "t0",
-            "template_type": "exist",
-            "num_hop": 0,
-        },
-        {"question": "How many trucks?", "answer": "2", "sample_token": "t0", "template_type": "count", "num_hop": 0},
-        {
-            "question": "How many moving cars?",
-            "answer": "1",
-            "sample_token": "t1",
-            "template_type": "count",
-            "num_hop": 1,
-        },
-        {
-            "question": "What is the parked thing?",
-            "answer": "car",
-            "sample_token": "t1",
-            "template_type": "object",
-            "num_hop": 1,
-        },
-    ]
-    path.write_text(json.dumps({"info": {}, "questions": qs}))
-    return path
 
 
 def test_qa_hand_case(capsys, tmp_path):

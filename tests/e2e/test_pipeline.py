@@ -64,7 +64,6 @@ def test_the_occllama_recipe_runs(pipeline, tmp_path):
         *tiny_overrides(pipeline.parent / "data", stages=3),
         "--run-dir",
         str(run_dir),
-        timeout=900,
     )
     assert res.returncode == 0, res.stderr[-3000:]
     stages = json.loads((run_dir / "manifest.json").read_text())["stages"]
@@ -176,7 +175,6 @@ def test_the_vision_recipe_runs_and_hands_over_a_hugging_face_tower(tmp_path):
         "stages.vision.model.prior_batches=2",
         "--run-dir",
         str(run_dir),
-        timeout=900,
     )
     assert res.returncode == 0, res.stderr[-3000:]
     metrics = json.loads((run_dir / "vision" / "metrics.json").read_text())

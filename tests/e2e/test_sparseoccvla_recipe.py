@@ -14,8 +14,8 @@ from pathlib import Path
 
 import pytest
 
-from conftest import kill_at_checkpoint, run_cli
-from test_sparseoccvla import write_omnidrive
+from builders import write_omnidrive
+from conftest import kill_at_checkpoint, run_cli, run_cli_process
 
 pytestmark = pytest.mark.slow
 
@@ -66,7 +66,7 @@ def world(tmp_path_factory) -> Path:
     from occtrain.data.layout import DatasetIndex
 
     root = tmp_path_factory.mktemp("sparseoccvla")
-    res = run_cli("data", "synth", "--out", str(root / "data"), *SYNTH, timeout=300)
+    res = run_cli("data", "synth", "--out", str(root / "data"), *SYNTH)
     assert res.returncode == 0, res.stderr[-2000:]
     index = DatasetIndex.open(root / "data")
     write_omnidrive(root / "omnidrive", {t: split for split in ("train", "val") for _, t in index.samples(split)})
@@ -76,7 +76,7 @@ def world(tmp_path_factory) -> Path:
 @pytest.fixture(scope="module")
 def sparse_run(world) -> Path:
     run_dir = world / "run"
-    res = run_cli("run", "recipes/sparseoccvla.yaml", *overrides(world), "--run-dir", str(run_dir), timeout=900)
+    res = run_cli("run", "recipes/sparseoccvla.yaml", *overrides(world), "--run-dir", str(run_dir))
     assert res.returncode == 0, res.stderr[-3000:]
     return run_dir
 
@@ -139,7 +139,7 @@ def test_the_encoder_export_leaves_the_distillation_branch_out(sparse_run):
 
 @pytest.mark.parametrize("stage", ["stage1", "stage2", "planner"])
 def test_eval_scores_each_stage_on_the_whole_split(sparse_run, stage):
-    res = run_cli("eval", str(sparse_run / stage), timeout=600)
+    res = run_cli("eval", str(sparse_run / stage))
     assert res.returncode == 0, res.stderr[-3000:]
     metrics = json.loads((sparse_run / stage / "eval" / "val" / "metrics.json").read_text())
     if stage == "stage1":
@@ -172,7 +172,7 @@ def test_kill_9_in_stage_1_and_stage_2_resumes_bit_exact(sparse_run, world, tmp_
     args = ["run", "recipes/sparseoccvla.yaml", *overrides(world), "--run-dir", str(run_dir)]
     for name in ("stage1", "stage2"):
         kill_at_checkpoint(args, run_dir / name / "checkpoints" / "last.ckpt", step=1)
-    res = run_cli("run", "recipes/sparseoccvla.yaml", *overrides(world), "--run-dir", str(run_dir), timeout=900)
+    res = run_cli("run", "recipes/sparseoccvla.yaml", *overrides(world), "--run-dir", str(run_dir))
     assert res.returncode == 0, res.stderr[-3000:]
     stages = json.loads((run_dir / "manifest.json").read_text())["stages"]
     for name in ("stage1", "stage2"):
@@ -193,7 +193,7 @@ def test_the_stages_train_under_ddp_with_every_parameter_getting_a_gradient(spar
     run_dir = tmp_path / "ddp"
     shutil.copytree(sparse_run, run_dir)
     ddp = [f"stages.{s}.trainer.{k}" for s in STAGES[1:] for k in ("devices=2", "strategy=ddp")]
-    res = run_cli(
+    res = run_cli_process(
         "run",
         "recipes/sparseoccvla.yaml",
         *overrides(world),

@@ -21,6 +21,7 @@ import torch
 from safetensors.torch import load_file, save_file
 
 import occtrain
+from builders import snapshot
 from occtrain.config.llm import LLMConfig, LoRAConfig
 from occtrain.core.registry import build_tokenizer, load_tokenizer, save_tokenizer
 from occtrain.engine import export_engine, load_world_model, new_world_model
@@ -31,7 +32,6 @@ from occtrain.formats.io import WriteError
 from occtrain.models.adapters import AdapterConfig, add_adapters
 from occtrain.models.camera_encoder import DenseHead, MultiViewEncoder, VisionConfig, export_vision, load_vision_encoder
 from occtrain.models.llm import apply_lora
-from test_bad_inputs import snapshot
 
 TINY_TOKENIZER = {
     "num_codes": 16,

@@ -27,7 +27,7 @@ def overrides(data: Path) -> list[str]:
 def occllm_run(tmp_path_factory) -> Path:
     root = tmp_path_factory.mktemp("occllm")
     run_dir = root / "run"
-    res = run_cli("run", "recipes/occllm.yaml", *overrides(root / "data"), "--run-dir", str(run_dir), timeout=900)
+    res = run_cli("run", "recipes/occllm.yaml", *overrides(root / "data"), "--run-dir", str(run_dir))
     assert res.returncode == 0, res.stderr[-3000:]
     return run_dir
 
@@ -113,7 +113,7 @@ def test_the_msvae_tokenizer_resumes_bit_exact_after_kill_9(occllm_run, tmp_path
         "tokenizer",
     ]
     step = kill_at_checkpoint(args, run_dir / "tokenizer" / "checkpoints" / "last.ckpt", step=2)
-    res = run_cli(*args, timeout=900)
+    res = run_cli(*args)
     assert res.returncode == 0, res.stderr[-3000:]
     entry = json.loads((run_dir / "manifest.json").read_text())["stages"]["tokenizer"]
     assert entry["status"] == "done" and entry["attempts"] == 2

@@ -4,7 +4,6 @@ sequence, the DDIM planner, the OmniDrive reader."""
 
 from __future__ import annotations
 
-import json
 import math
 from types import SimpleNamespace
 
@@ -12,6 +11,7 @@ import numpy as np
 import pytest
 import torch
 
+from builders import write_omnidrive
 from occtrain.data.cameras import nuscenes_rig
 from occtrain.errors import ConfigError, DataError
 from occtrain.formats.occ3d import FREE, GRID_SHAPE
@@ -282,20 +282,6 @@ def test_kmeans_anchors_cover_the_training_trajectories(synth_dataset):
 
 
 # ----------------------------------------------------------------------------- OmniDrive
-
-
-def write_omnidrive(root, tokens: dict[str, str]) -> None:
-    """A small OmniDrive-nuScenes tree in the released layout, for ``tokens`` (token -> split)."""
-    for i, (token, split) in enumerate(tokens.items()):
-        for folder, data in (
-            ("desc", {"description": f"A quiet street number {i} with parked cars."}),
-            ("conv", [{"question": "Is the road clear?", "answer": f"Yes, clear {i}."}]),
-            ("vqa", [{"question": "What is ahead?", "answer": "A parked car."}]),
-            ("keywords", "Keep going straight."),
-        ):
-            path = root / folder / split / f"{token}.json"
-            path.parent.mkdir(parents=True, exist_ok=True)
-            path.write_text(json.dumps(data))
 
 
 def test_omnidrive_reader_reads_the_released_layout(tmp_path):

@@ -12,7 +12,7 @@ import pytest
 import torch
 from safetensors.torch import load_file
 
-from conftest import run_cli, start_cli, write_hand_dataset
+from conftest import run_cli, run_cli_process, start_cli, write_hand_dataset
 
 pytestmark = pytest.mark.slow
 
@@ -181,7 +181,7 @@ def test_a_stop_signal_interrupts_in_one_line_and_a_rerun_resumes(recipe, tmp_pa
 
 
 def test_cpu_ddp_two_processes(recipe, tmp_path):
-    res = run_cli(
+    res = run_cli_process(
         "run", str(recipe), "trainer.devices=2", "trainer.strategy=ddp", "--run-dir", str(tmp_path / "ddp"), timeout=600
     )
     assert res.returncode == 0, res.stderr[-3000:]

@@ -19,7 +19,7 @@ import pytest
 import torch
 from safetensors.torch import load_file
 
-from conftest import REPO, kill_at_checkpoint, run_cli
+from conftest import REPO, kill_at_checkpoint, run_cli_process
 from occtrain.config.recipe import OptimConfig
 
 pytestmark = pytest.mark.slow
@@ -89,7 +89,9 @@ def ddp(tmp_path_factory, synth_dataset) -> Path:
             clip=CLIP,
         )
     )
-    res = run_cli("run", str(recipe), *_on_two("ddp"), "--run-dir", str(root / "ddp"), timeout=900, env=ONE_THREAD)
+    res = run_cli_process(
+        "run", str(recipe), *_on_two("ddp"), "--run-dir", str(root / "ddp"), timeout=900, env=ONE_THREAD
+    )
     assert res.returncode == 0, res.stderr[-3000:]
     return root / "ddp"
 
@@ -108,7 +110,7 @@ def _args(run: Path, *more: str) -> list[str]:
 @pytest.fixture(scope="module")
 def fsdp(ddp) -> Path:
     run = _copy(ddp, "fsdp")
-    res = run_cli(*_args(run, "--restart", "pretrain"), timeout=900, env=ONE_THREAD)
+    res = run_cli_process(*_args(run, "--restart", "pretrain"), timeout=900, env=ONE_THREAD)
     assert res.returncode == 0, res.stderr[-3000:]
     return run
 
@@ -201,7 +203,7 @@ def test_a_sharded_stage_killed_mid_way_resumes_bit_exact(ddp, fsdp):
         _args(run, "--restart", "pretrain", "--only", "pretrain"), last, step=2, env=ONE_THREAD
     )
     assert 2 <= killed_at < 4
-    resumed = run_cli(*_args(run, "--only", "pretrain"), timeout=900, env=ONE_THREAD)
+    resumed = run_cli_process(*_args(run, "--only", "pretrain"), timeout=900, env=ONE_THREAD)
     assert resumed.returncode == 0, resumed.stderr[-3000:]
 
     entry = json.loads((run / "manifest.json").read_text())["stages"]["pretrain"]

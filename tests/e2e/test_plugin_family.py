@@ -54,7 +54,7 @@ def tiny_run(synth_dataset, tmp_path_factory) -> Path:
     root = tmp_path_factory.mktemp("plugin")
     recipe = root / "tiny.yaml"
     recipe.write_text(RECIPE.format(runs=root / "runs", data=synth_dataset, shards=root / "shards"))
-    res = run_cli("run", str(recipe), timeout=900)
+    res = run_cli("run", str(recipe))
     assert res.returncode == 0, res.stderr[-3000:]
     return root / "runs" / "tiny"
 
