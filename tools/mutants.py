@@ -106,7 +106,9 @@ MUTANTS = (
         "src/occtrain/core/decoding.py",
         "    for _ in range(answer.max_new_tokens):\n        tok = yield from s.pick(s.vocab.text_range)",
         "    for _ in range(0):\n        tok = yield from s.pick(s.vocab.text_range)",
-        ("tests/e2e/test_occvla_recipe.py::test_the_reloaded_model_generates_the_same_text_with_and_without_occupancy",),
+        (
+            "tests/e2e/test_occvla_recipe.py::test_the_reloaded_model_generates_the_same_text_with_and_without_occupancy",
+        ),
     ),
     Mutant(
         "check-stops-at-first-problem",
@@ -235,7 +237,9 @@ MUTANTS = (
         "src/occtrain/run/manifest.py",
         "                    os.rename(run_dir / name, aside / name)\n",
         "                    remove_inside(run_dir / name, run_dir)\n",
-        ("tests/unit/run/test_runner.py::test_a_restart_that_fails_before_its_first_checkpoint_puts_the_old_stages_back",),
+        (
+            "tests/unit/run/test_runner.py::test_a_restart_that_fails_before_its_first_checkpoint_puts_the_old_stages_back",
+        ),
     ),
 )
 

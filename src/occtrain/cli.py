@@ -199,10 +199,12 @@ def build_parser() -> argparse.ArgumentParser:
     _add_run_commands(sub)
     _add_data_commands(sub)
 
+    from occtrain.commands.report import register as register_report
     from occtrain.commands.score import register as register_score
     from occtrain.dashboard import register as register_dashboard
 
     register_score(sub)
+    register_report(sub)
     register_dashboard(sub)
     return parser
 

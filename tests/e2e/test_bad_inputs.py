@@ -1674,7 +1674,7 @@ CASES: list[Case] = [
         pickled_checkpoint,
         RUN,
         2,
-        "{tmp}/run2/tokenizer/checkpoints/last.ckpt: holds pickled object test_bad_inputs.Evil",
+        "{tmp}/run2/tokenizer/checkpoints/last.ckpt: holds pickled object e2e.test_bad_inputs.Evil",
     ),
     # ------------------------------------------------------------------ trainers this machine cannot run
     Case(

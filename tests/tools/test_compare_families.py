@@ -80,7 +80,9 @@ def test_each_cell_reads_its_stage_beside_the_familys_own_baseline(tool, tmp_pat
     assert "55.0 % vs 44.0 % (stage3)" in table and "0.700 vs 0.800 (stage3)" in table
     assert "stage3 500 ms / 900 MB; planner - ms / - MB" in table
     # The planner's eval was (in this test) scored before evals recorded their world: the table says so.
-    assert table.startswith("World: unrecorded, v4 (")
+    assert table.startswith("# Four families on one world\n\nWorld: unrecorded, v4 (")
+    # Each family's line says what produced its numbers (no seed recorded in this manifest: "?").
+    assert f"- SparseOccVLA: `{run}`: recipe sparseoccvla, training seed ?, code ?, data ?, abc, scored " in table
 
 
 def test_tokens_per_frame_follow_each_layout(tool, tmp_path):

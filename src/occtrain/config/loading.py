@@ -30,7 +30,7 @@ def _dataclass_fields(cls: type) -> dict[str, Any]:
 
 def section_type(tp: Any) -> type | None:
     """The dataclass a field holds (``Optional`` too), or the element dataclass of a list field."""
-    if dataclasses.is_dataclass(tp):
+    if isinstance(tp, type) and dataclasses.is_dataclass(tp):
         return tp
     origin = typing.get_origin(tp)
     if origin in (typing.Union, types.UnionType):  # Optional[X] and X | None
@@ -38,7 +38,7 @@ def section_type(tp: Any) -> type | None:
         return section_type(held[0]) if len(held) == 1 else None
     if origin in (list, tuple):
         args = typing.get_args(tp)
-        if args and dataclasses.is_dataclass(args[0]):
+        if args and isinstance(args[0], type) and dataclasses.is_dataclass(args[0]):
             return args[0]
     return None
 
@@ -106,7 +106,9 @@ def _find_include(name: str, source: Path) -> Path:
 
 def _merge(base: DictConfig, update: Any, source: str) -> DictConfig:
     try:
-        return OmegaConf.merge(base, update)
+        merged = OmegaConf.merge(base, update)
+        assert isinstance(merged, DictConfig)  # a mapping merged into a mapping
+        return merged
     except OmegaConfBaseException as err:
         key = getattr(err, "full_key", None) or "?"
         msg = str(err).splitlines()[0]

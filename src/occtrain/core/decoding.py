@@ -21,13 +21,16 @@ from __future__ import annotations
 
 from collections.abc import Generator
 from dataclasses import dataclass
-from typing import Any, NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import torch
 
 from occtrain.core.sequence import Step, TokenSequence, cat_payload, empty_payload, prompt_of, rows
 from occtrain.core.vocab import JointVocab
 from occtrain.models.attention import allowed_pairs, chunk_allowed, scene_segments
+
+if TYPE_CHECKING:
+    from transformers import Cache
 
 
 class TextAnswer(NamedTuple):
@@ -288,7 +291,7 @@ class Decoder:
                 {k: v[None] for k, v in f.payload.items()},
             )
             self.cache = step.cache
-            if n > keep:
+            if n > keep and self.cache is not None:
                 self.cache.crop(-(n - keep))
         else:
             all_ids, all_seg = torch.cat([self.ids, f.ids]), torch.cat([self.seg, f.seg])
@@ -392,7 +395,15 @@ def decode_batch(world: Any, prefixes: list, answers: list[list[Answer]]) -> lis
         for b, out in zip(group, _decode_group(world, [prefixes[b] for b in group], [answers[b] for b in group])):
             results[b] = out
         start = end
-    return results
+    return _all_decoded(results)
+
+
+def _all_decoded(results: list[list | None]) -> list[list]:
+    """The answers of every prompt; a prompt left without one is a bug of the decoder."""
+    missing = [b for b, r in enumerate(results) if r is None]
+    if missing:
+        raise RuntimeError(f"the decoder left prompts {missing} without an answer")
+    return [r for r in results if r is not None]
 
 
 def _decode_group(world: Any, prefixes: list, answers: list[list[Answer]]) -> list[list]:
@@ -402,20 +413,20 @@ def _decode_group(world: Any, prefixes: list, answers: list[list[Answer]]) -> li
     until the rows beside it catch up or finish."""
     device = world.device
     programs = [program(world, p, a, device) for p, a in zip(prefixes, answers)]
-    feeds: list[Forward | None] = []
+    first: list[Forward | None] = []
     results: list[list | None] = [None] * len(programs)
     for b, prog in enumerate(programs):
         try:
-            feeds.append(next(prog))
+            first.append(next(prog))
         except StopIteration as stop:  # nothing to generate
-            feeds.append(None)
+            first.append(None)
             results[b] = stop.value
     #: The programs still running, by row of the cache; finished ones leave the batch.
-    running_rows = [b for b, f in enumerate(feeds) if f is not None]
-    feeds = [feeds[b] for b in running_rows]
+    running_rows = [b for b, f in enumerate(first) if f is not None]
+    feeds = [f for f in first if f is not None]
     kept = torch.zeros(len(feeds), dtype=torch.long, device=device)  # tokens kept so far: the next position
     alive = torch.zeros(len(feeds), 0, dtype=torch.bool, device=device)
-    cache = None
+    cache: Cache | None = None
     while running_rows:
         limit = WAIT_FACTOR * max(min(len(f.ids) for f in feeds), 1)
         waits = [len(f.ids) > limit for f in feeds]
@@ -424,20 +435,21 @@ def _decode_group(world: Any, prefixes: list, answers: list[list[Answer]]) -> li
         cache = step.cache
         alive = torch.cat([alive, keep], dim=1)
         kept += keep.sum(1)
+        sent: list[Forward | None] = list(feeds)
         for i, f in enumerate(fed):
             if waits[i]:
                 continue
             try:
-                feeds[i] = programs[running_rows[i]].send(
+                sent[i] = programs[running_rows[i]].send(
                     Step(step.logits[i, : len(f.ids)], None, rows(step.hidden, i, slice(None, len(f.ids))))
                 )
             except StopIteration as stop:
-                feeds[i] = None
+                sent[i] = None
                 results[running_rows[i]] = stop.value
-        running = [i for i, f in enumerate(feeds) if f is not None]
-        if len(running) < len(feeds) and running:  # drop finished sequences from the cache
+        running = [i for i, f in enumerate(sent) if f is not None]
+        if len(running) < len(sent) and running and cache is not None:  # drop finished sequences from the cache
             index = torch.tensor(running, device=device)
             cache.batch_select_indices(index)
             alive, kept = alive[index], kept[index]
-        running_rows, feeds = [running_rows[i] for i in running], [feeds[i] for i in running]
-    return results
+        running_rows, feeds = [running_rows[i] for i in running], [f for f in sent if f is not None]
+    return _all_decoded(results)

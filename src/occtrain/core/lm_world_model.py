@@ -18,6 +18,7 @@ from typing import Any
 import torch
 import torch.nn.functional as F
 from torch import nn
+from transformers import PreTrainedModel
 
 from occtrain.config.llm import SCENE_PREDICTION_MODES
 from occtrain.core.builder import SequenceBuilder, batch_payload
@@ -69,8 +70,11 @@ class LMWorldModel(nn.Module):
     #: Under a LoRA adapter its own parts (everything but the LLM) train too; by default
     #: only the adapter does.
     trains_own_parts_with_lora = False
+    #: The causal LM (a transformers model, LoRA-wrapped by peft or not).
+    llm: PreTrainedModel
+    _device_probe: torch.Tensor
 
-    def __init__(self, llm: nn.Module, vocab: JointVocab, scene_prediction: str = "next_scene"):
+    def __init__(self, llm: PreTrainedModel, vocab: JointVocab, scene_prediction: str = "next_scene"):
         super().__init__()
         if scene_prediction not in SCENE_PREDICTION_MODES:
             raise ValueError(f"scene_prediction must be one of {SCENE_PREDICTION_MODES}")
@@ -86,7 +90,9 @@ class LMWorldModel(nn.Module):
 
     @property
     def hidden_size(self) -> int:
-        return self.llm.get_input_embeddings().embedding_dim
+        embeddings = self.llm.get_input_embeddings()
+        assert isinstance(embeddings, nn.Embedding)
+        return embeddings.embedding_dim
 
     # -- what a family overrides
     def builder(self) -> SequenceBuilder:

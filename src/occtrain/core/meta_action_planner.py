@@ -134,7 +134,13 @@ class MetaActionPlanner(nn.Module):
     monitor = "val/head_gt_meta_L2_stp3_avg"
 
     def __init__(
-        self, cfg: Any, teacher: Any, data_root: str, cache_dir: Path, where: str, sidecar_reference: bool = True
+        self,
+        cfg: MetaActionPlannerConfig,
+        teacher: Any,
+        data_root: str,
+        cache_dir: Path,
+        where: str,
+        sidecar_reference: bool = True,
     ):
         """``teacher``: the consumed world model (None when the head reads nothing of it);
         ``sidecar_reference``: its reference meta action is the frame sidecar's (OccVLA
@@ -268,6 +274,7 @@ class MetaActionPlanner(nn.Module):
                 continue
             feats.append(ego_features(clip.anchor, meta, self.inputs))
             if "visual" in self.inputs:
+                assert out is not None  # a head that reads visual tokens has a teacher (checked at build)
                 visual.append(np.asarray(out["visual"], dtype=np.float32))
             velocity.append(current_velocity(clip.anchor).astype(np.float32))
             rows.append(i)
@@ -277,7 +284,7 @@ class MetaActionPlanner(nn.Module):
 
         inputs = {"features": stack(feats, feature_size(self.inputs))}
         if "visual" in self.inputs:
-            inputs["visual"] = stack(visual, self.head.visual[0].normalized_shape[0])
+            inputs["visual"] = stack(visual, self.head.visual_dim)
         if "velocity" in self.inputs:
             inputs["velocity"] = stack(velocity, 2)
         return inputs, rows
@@ -300,7 +307,9 @@ class MetaActionPlanner(nn.Module):
         def record(name: str, pred: torch.Tensor, rows: list[int]) -> None:
             if rows:
                 sub = gt.rows(rows)
-                self.metrics[name].update(pred, sub.traj, sub.mask, sub.agents)
+                metric = self.metrics[name]
+                assert isinstance(metric, PlanningMetric)
+                metric.update(pred, sub.traj, sub.mask, sub.agents)
 
         x, rows = self._features(clips, "ground_truth")
         record("head_gt_meta", self.head(**x), rows)
@@ -341,7 +350,7 @@ class MetaActionPlanner(nn.Module):
         config = {
             "stage_kind": "planner",
             "features": feature_size(self.inputs),
-            "visual_dim": self.head.visual[0].normalized_shape[0] if self.head.visual is not None else 0,
+            "visual_dim": self.head.visual_dim,
             "visual_width": cfg.visual_width,
             "hidden": cfg.hidden,
             "layers": cfg.layers,

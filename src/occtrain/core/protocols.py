@@ -125,6 +125,14 @@ class SceneEncoder(Protocol):
 
 
 @runtime_checkable
+class CameraSceneEncoder(SceneEncoder, Protocol):
+    """A scene encoder that reads the cameras (SparseOccVLA's): rows for ``(scene, token)``
+    samples of a ``DatasetIndex``, encoded once per dataset."""
+
+    def encode_samples(self, index: DatasetIndex, samples: list[tuple[str, str]]) -> torch.Tensor: ...
+
+
+@runtime_checkable
 class Scorer(Protocol):
     """Grades one task's generated answers. ``metrics``: name -> a factory of the
     torchmetrics Metric it updates (an evaluator makes each name once, so scorers share a

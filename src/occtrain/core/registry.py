@@ -25,7 +25,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from importlib.metadata import entry_points
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from omegaconf import DictConfig, OmegaConf
 
@@ -34,6 +34,9 @@ from occtrain.core.shared_tasks import TaskConfig, TaskSpec
 from occtrain.errors import ConfigError, OcctrainError, cause_line
 from occtrain.formats.exports import check_section, load_state_strict, read_export, require_config, write_export
 from occtrain.models import count_parameters
+
+if TYPE_CHECKING:  # imported where it is checked: the world model imports the registry's neighbours
+    from occtrain.core.lm_world_model import LMWorldModel
 
 #: The package whose sub-packages are the families shipped with occtrain.
 BUILTIN_PACKAGE = "occtrain.families"
@@ -67,7 +70,7 @@ class WorldSpec:
 
     #: Its class: a ``core.lm_world_model.LMWorldModel`` (``create``, ``from_export``,
     #: ``vocab_layout``, ``export_config``).
-    model: type
+    model: type[LMWorldModel]
     #: Its task settings (extends ``core.shared_tasks.TaskConfig``) and tasks by name.
     task_config: type
     tasks: Mapping[str, TaskSpec]

@@ -11,6 +11,7 @@ from torch import nn
 
 from occtrain.core.registry import load_tokenizer
 from occtrain.errors import ConfigError
+from occtrain.models.tokenizers.base import SceneTokenizer
 
 #: Where a world-model export keeps a copy of its scene encoder's own export.
 SCENE_ENCODER_DIR = "scene_tokenizer"
@@ -22,7 +23,9 @@ class VQSceneEncoder(nn.Module):
 
     discrete = True
 
-    def __init__(self, tokenizer: nn.Module):
+    tokenizer: SceneTokenizer
+
+    def __init__(self, tokenizer: SceneTokenizer):
         super().__init__()
         self.tokenizer = tokenizer.eval().requires_grad_(False)
         self.export_dir: Path | None = getattr(tokenizer, "export_dir", None)
@@ -38,7 +41,8 @@ class VQSceneEncoder(nn.Module):
 
     @property
     def latent_hw(self) -> tuple[int, int]:
-        return tuple(self.tokenizer.latent_hw)
+        h, w = self.tokenizer.latent_hw
+        return h, w
 
     @property
     def codebooks(self) -> list[torch.Tensor]:

@@ -22,10 +22,11 @@ from torchmetrics import MeanMetric
 
 from occtrain.core.protocols import WorldEngine
 from occtrain.core.shared_tasks import question_of
-from occtrain.data.clips import Actions, Clip, Part, PlanTarget, Scene
+from occtrain.data.clips import Actions, Clip, Part, PlanTarget, Scene, text_of
 from occtrain.data.geometry import moved_scene
 from occtrain.data.layout import DatasetIndex
 from occtrain.data.meta_actions import MetaActionConfig, past_labels
+from occtrain.data.schema import MetaAction
 from occtrain.data.text_formats import meta_action_words, parse_meta_action
 from occtrain.formats.occ3d import FREE, FUTURE_STEPS, MOVABLE_CLASSES
 from occtrain.metrics import CaptionMetric, ForecastMetric, MetaActionAccuracy, PlanningMetric, QAMetric
@@ -169,8 +170,10 @@ class ForecastScorer(BaseScorer):
         scenes = [p for p in item.generated if isinstance(p, Scene)]
         if not scenes:
             return
-        decoded = item.engine.decode_scenes(torch.stack([item.scenes[p.frame] for p in scenes])).cpu()
         semantics, a = item.semantics, item.clip.anchor_index
+        if semantics is None:
+            raise ValueError("the forecast scorer reads the clip's label volumes (needs_semantics)")
+        decoded = item.engine.decode_scenes(torch.stack([item.scenes[p.frame] for p in scenes])).cpu()
         pred = torch.full((1, FUTURE_STEPS, *decoded.shape[1:]), FREE, dtype=torch.long)
         target = torch.full_like(pred, FREE)
         valid = torch.zeros(1, FUTURE_STEPS, dtype=torch.bool)
@@ -202,12 +205,12 @@ class QAScorer(BaseScorer):
     def score(self, ev: Any, item: Item) -> None:
         question = question_of(item.parts)
         q = next(q for q in item.clip.qa if q["question"] == question)
-        answer = item.generated[0].text.strip()
+        answer = text_of(item.generated[0]).strip()
         self.answers[answer] += 1
         ev.metrics["qa"].update([answer], [q["answer"]], [q["template_type"]], [q["num_hop"]])
         prior = ev.priors.qa.get(q["template_type"], "")
         ev.metrics["baseline_prior_qa"].update([prior], [q["answer"]], [q["template_type"]], [q["num_hop"]])
-        ev.keep_text("qa", item.parts[-2].text, answer, q["answer"])
+        ev.keep_text("qa", text_of(item.parts[-2]), answer, q["answer"])
         if ev.record:
             ev.predictions["qa"][f"{item.clip.anchor['token']}|{question}"] = (q, answer)
 
@@ -221,7 +224,7 @@ class QAScorer(BaseScorer):
         self.answers = Counter()
 
 
-def last_past_meta_action(clip: Clip, cfg: MetaActionConfig | None = None) -> dict | None:
+def last_past_meta_action(clip: Clip, cfg: MetaActionConfig | None = None) -> MetaAction | None:
     """The meta action of the frame before the clip's anchor, from the poses up to the
     anchor (what a model that saw the past could repeat); None at a scene's start."""
     poses = np.asarray(clip.ann["ego_poses"], dtype=np.float64).reshape(-1, 3)
@@ -229,7 +232,7 @@ def last_past_meta_action(clip: Clip, cfg: MetaActionConfig | None = None) -> di
     return past[-1] if past else None
 
 
-def said_meta_action(text: str, clip: Clip) -> dict | None:
+def said_meta_action(text: str, clip: Clip) -> MetaAction | None:
     """The meta action a generated text ends with, "as before" read as the clip's last past
     one (what a model trained with ``meta_action_prior: repeat_last`` says)."""
     return parse_meta_action(text, last_past_meta_action(clip))
@@ -256,7 +259,7 @@ class ChainOfThoughtScorer(BaseScorer):
 
     def score(self, ev: Any, item: Item) -> None:
         anchor, token = item.clip.anchor, item.clip.anchor["token"]
-        text, reference = item.generated[0].text, item.parts[-2].text
+        text, reference = text_of(item.generated[0]), text_of(item.parts[-2])
         ev.metrics["cot_caption"].update([text], [[reference]], ids=[token])
         parsed = said_meta_action(text, item.clip)
         said = meta_action_words(parsed) if parsed is not None else "none"

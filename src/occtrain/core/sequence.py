@@ -4,9 +4,12 @@ laid-out token sequence, the per-token payload beside the ids, one generation st
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import torch
+
+if TYPE_CHECKING:
+    from transformers import Cache
 
 IGNORE = -100
 
@@ -56,7 +59,7 @@ class Step(NamedTuple):
     states (what a patch head reads; None for a model that does not read them)."""
 
     logits: torch.Tensor
-    cache: object
+    cache: Cache | None
     hidden: torch.Tensor | None
 
 

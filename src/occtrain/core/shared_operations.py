@@ -14,6 +14,7 @@ import torch
 from occtrain.core.protocols import WorldEngine
 from occtrain.core.scorers import said_meta_action
 from occtrain.data.clips import Actions, Clip, Scene, Text
+from occtrain.data.schema import MetaAction
 from occtrain.errors import ConfigError
 
 
@@ -52,6 +53,8 @@ def _batch(engine: WorldEngine, clip: Clip) -> dict:
     batch: dict = {"ann": [clip.ann]}
     if engine.needs_semantics():
         index = engine.data_index
+        if index is None:
+            raise ValueError("the engine reads label volumes: prepare it on a dataset first (prepare_inputs)")
         batch["semantics"] = [
             torch.from_numpy(np.stack([index.labels(index.scene_of(t), t)["semantics"] for t in clip.ann["tokens"]]))
         ]
@@ -84,6 +87,6 @@ def chain_of_thought(engine: WorldEngine, clip: Clip) -> tuple[str, np.ndarray |
     return text, (np.asarray(actions[-1].xy) if actions else None)
 
 
-def meta_action(engine: WorldEngine, clip: Clip) -> dict | None:
+def meta_action(engine: WorldEngine, clip: Clip) -> MetaAction | None:
     """The meta action the chain of thought ends with ({"speed", "direction"}), None if unparsed."""
     return said_meta_action(chain_of_thought(engine, clip)[0], clip)

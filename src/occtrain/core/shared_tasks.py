@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from occtrain.data.clips import Actions, Branch, Clip, Part, Scene, Text, clip_rng, ego_future
+from occtrain.data.clips import Actions, Branch, Clip, Part, Scene, Text, clip_rng, ego_future, text_of
 from occtrain.errors import ConfigError
 from occtrain.models.planning_heads import constant_velocity
 
@@ -192,7 +192,7 @@ def unpacked(parts: list[Part]) -> list[list[Part]]:
 
 def question_of(parts: list[Part]) -> str:
     """The question of a single-question QA prompt."""
-    return parts[-2].text.removeprefix("Question: ").removesuffix(" Answer:")
+    return text_of(parts[-2]).removeprefix("Question: ").removesuffix(" Answer:")
 
 
 # ----------------------------------------------------------------------------- the text tokenizer's corpus

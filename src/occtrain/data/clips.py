@@ -44,6 +44,13 @@ class Text(PromptPart):
     supervise: bool = False
 
 
+def text_of(part: PromptPart) -> str:
+    """The text of a part a task laid out as text (a question, a reference answer)."""
+    if not isinstance(part, Text):
+        raise TypeError(f"expected a Text part, got {type(part).__name__}")
+    return part.text
+
+
 @dataclass(frozen=True)
 class Scene(PromptPart):
     """The occupancy scene of clip frame ``frame`` (0 = oldest history frame)."""

@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 import torch
+from torchmetrics import Metric
 
 from occtrain.core.registry import scorer_factories
 from occtrain.core.scorers import Item, Priors
@@ -123,7 +124,10 @@ class Evaluator(torch.nn.Module):
     # -- what scorers call
     @property
     def device(self) -> torch.device:
-        return next(iter(self.metrics.values())).device if len(self.metrics) else torch.device("cpu")
+        for metric in self.metrics.values():
+            if isinstance(metric, Metric):
+                return metric.device
+        return torch.device("cpu")
 
     def once(self, key: Any) -> bool:
         """True the first time ``key`` is asked about in this run (e.g. a baseline per clip)."""
@@ -277,14 +281,15 @@ class Evaluator(torch.nn.Module):
     def compute(self, prefix: str) -> dict[str, float]:
         """Every metric that saw samples on any process, flattened under ``prefix`` (e.g.
         ``val/qa_overall``). Every process calls it."""
-        out = compute_metrics(prefix, self.metrics)
+        out = compute_metrics(prefix, dict(self.metrics))
         for scorer in [s for ss in self.scorers.values() for s in ss]:
             out.update(scorer.summary(prefix))
         return out
 
     def reset(self) -> None:
         for metric in self.metrics.values():
-            metric.reset()
+            if isinstance(metric, Metric):
+                metric.reset()
         for scorer in [s for ss in self.scorers.values() for s in ss]:
             scorer.reset()
         self._once = set()

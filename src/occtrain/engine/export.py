@@ -129,18 +129,18 @@ def _stage_and_write(engine: WorldModelEngine, path: Path, stage: str, merge: bo
     from peft import PeftModel
 
     world = engine.world
-    wrapped = isinstance(world.llm, PeftModel)
+    llm = world.llm
     llm_dir = tmp / LLM_DIR
-    if wrapped and merge:
-        base = copy.deepcopy(world.llm).merge_and_unload()
+    if isinstance(llm, PeftModel) and merge:
+        base = copy.deepcopy(llm).merge_and_unload()
         state = base.state_dict()
-    elif wrapped:
-        base = world.llm.get_base_model()
-        state = _base_names(world.llm.state_dict())
+    elif isinstance(llm, PeftModel):
+        base = llm.get_base_model()
+        state = _base_names(llm.state_dict())
         # The base embedding table is in llm/ already; the adapter keeps its own LoRA weights only.
-        world.llm.save_pretrained(str(llm_dir / ADAPTER_DIR), save_embedding_layers=False)
+        llm.save_pretrained(str(llm_dir / ADAPTER_DIR), save_embedding_layers=False)
     else:
-        base = world.llm
+        base = llm
         state = base.state_dict()
     if has_adapters(base):
         # The Hugging Face directory holds the LM's own weights; the adapters sit beside them.
@@ -158,9 +158,11 @@ def _stage_and_write(engine: WorldModelEngine, path: Path, stage: str, merge: bo
         "max_new_text_tokens": engine.max_new_text_tokens,
     }
     extra = {LLM_DIR: llm_dir}
-    if engine.scene_encoder is not None and engine.scene_encoder.export_dir is not None:
-        extra[SCENE_ENCODER_DIR] = Path(engine.scene_encoder.export_dir)
+    if engine.scene_encoder is not None and engine.encoder.export_dir is not None:
+        extra[SCENE_ENCODER_DIR] = Path(engine.encoder.export_dir)
     if engine.vision is not None:
+        if engine.vision.export_dir is None:
+            raise ValueError("a world model's camera encoder comes from a vision export, which it copies")
         extra[VISION_DIR] = Path(engine.vision.export_dir)
     return write_export(path, own, config, extra)
 

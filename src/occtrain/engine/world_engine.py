@@ -22,6 +22,7 @@ from occtrain.config.llm import MAX_NEW_TEXT_TOKENS
 from occtrain.core.builder import collate
 from occtrain.core.decoding import ActionAnswer, Answer, SceneAnswer, TextAnswer
 from occtrain.core.lm_world_model import LMWorldModel
+from occtrain.core.protocols import CameraSceneEncoder, SceneEncoder
 from occtrain.core.registry import get_world
 from occtrain.core.sequence import TokenSequence
 from occtrain.core.shared_tasks import TaskConfig, sample_task, unpacked
@@ -31,6 +32,7 @@ from occtrain.data.layout import DatasetIndex
 from occtrain.data.shards import dataset_fingerprint
 from occtrain.errors import DataError
 from occtrain.formats.io import atomic_write_safetensors, is_rank_zero
+from occtrain.models.camera_encoder import MultiViewEncoder
 from occtrain.progress import progress_bar
 
 #: The scene cache's file name, completed by the key of what made it (``scene_cache_key``).
@@ -102,6 +104,9 @@ class WorldModelEngine(torch.nn.Module):
     model that reads the cameras (None otherwise).
     """
 
+    scene_encoder: torch.nn.Module | None
+    vision: MultiViewEncoder | None
+
     def __init__(
         self,
         scene_encoder: torch.nn.Module | None,
@@ -110,7 +115,7 @@ class WorldModelEngine(torch.nn.Module):
         tasks: TaskConfig,
         max_new_text_tokens: int = MAX_NEW_TEXT_TOKENS,
         family: str = "",
-        vision: torch.nn.Module | None = None,
+        vision: MultiViewEncoder | None = None,
     ):
         super().__init__()
         self.scene_encoder = scene_encoder.eval().requires_grad_(False) if scene_encoder is not None else None
@@ -158,7 +163,14 @@ class WorldModelEngine(torch.nn.Module):
 
     def scenes_from_cameras(self) -> bool:
         """Whether the scene encoder reads the cameras (its rows come from ``encode_samples``)."""
-        return self.scene_encoder is not None and hasattr(self.scene_encoder, "encode_samples")
+        return isinstance(self.scene_encoder, CameraSceneEncoder)
+
+    @property
+    def encoder(self) -> SceneEncoder:
+        """The scene encoder, for a model whose prompts hold scenes."""
+        if not isinstance(self.scene_encoder, SceneEncoder):
+            raise ValueError(f"the '{self.family}' world model has no scene encoder")
+        return self.scene_encoder
 
     @torch.no_grad()
     def scenes(self, batch: dict, needed: list[set[int]]) -> dict[tuple[int, int], torch.Tensor]:
@@ -170,7 +182,7 @@ class WorldModelEngine(torch.nn.Module):
         if self.scene_cache is not None:
             return {(b, f): self.scene_cache[batch["ann"][b]["tokens"][f]] for b, f in keys}
         frames = torch.stack([batch["semantics"][b][f] for b, f in keys]).long()
-        return dict(zip(keys, self.scene_encoder.encode(frames)))
+        return dict(zip(keys, self.encoder.encode(frames)))
 
     def prepare_inputs(
         self, data_root: str | Path, cache_dir: Path | None = None, shared_cache_dir: Path | None = None
@@ -193,8 +205,10 @@ class WorldModelEngine(torch.nn.Module):
         ):
             # The key reads the encoder's export: only when there is a cache file to name.
             where = shared_cache_dir or cache_dir
-            name = SCENE_CACHE.format(key=scene_cache_key(self.scene_encoder, index)) if where is not None else None
-            self.build_scene_cache(data_root, where / name if name is not None else None)
+            encoder = self.scene_encoder
+            assert encoder is not None  # reads_scenes()
+            cache_file = where / SCENE_CACHE.format(key=scene_cache_key(encoder, index)) if where is not None else None
+            self.build_scene_cache(data_root, cache_file)
 
     def _has_scenes_of(self, index: DatasetIndex) -> bool:
         return self.scene_cache is not None and self._scene_cache_root == index.root
@@ -207,10 +221,10 @@ class WorldModelEngine(torch.nn.Module):
         index = DatasetIndex.open(data_root)
         if self._has_scenes_of(index):
             return
-        encoder = self.scene_encoder
+        encoder = self.encoder
 
         def encode(chunk: list[tuple[str, str]]) -> torch.Tensor:
-            if self.scenes_from_cameras():
+            if isinstance(encoder, CameraSceneEncoder):
                 return encoder.encode_samples(index, chunk).float()
             sem = torch.from_numpy(np.stack([index.labels(s, t)["semantics"] for s, t in chunk])).long()
             rows = encoder.encode(sem)
@@ -224,12 +238,14 @@ class WorldModelEngine(torch.nn.Module):
     @torch.no_grad()
     def decode_scenes(self, scenes: torch.Tensor) -> torch.Tensor:
         """Scene rows (N, ...) -> (N, X, Y, Z) class labels through the scene encoder."""
-        return self.scene_encoder.decode(scenes)
+        return self.encoder.decode(scenes)
 
     @torch.no_grad()
     def encode_images(self, images: torch.Tensor) -> torch.Tensor:
         """uint8 views (B, N, H, W, 3) -> the world model's image tokens (B, T, D): the frozen
         encoder's patch tokens, pooled as the world model reads them."""
+        if self.vision is None:
+            raise ValueError(f"the '{self.family}' world model reads no cameras")
         tokens, grid = self.vision(images.to(self.vision.camera_embed.device))
         return self.world.pool_images(tokens, grid, images.shape[1]).float()
 

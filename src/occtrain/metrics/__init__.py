@@ -7,6 +7,7 @@ Every result names its convention: occupancy ``occ3d`` / ``occworld``, planning
 from __future__ import annotations
 
 import importlib
+from collections.abc import Mapping
 from typing import Any
 
 from occtrain.metrics.conventions import CONVENTIONS, horizon_label
@@ -70,7 +71,7 @@ def updated_anywhere(metrics: list[Any]) -> list[bool]:
     return seen
 
 
-def compute_metrics(prefix: str, metrics: dict[str, Any], reset: bool = False) -> dict[str, float]:
+def compute_metrics(prefix: str, metrics: Mapping[str, Any], reset: bool = False) -> dict[str, float]:
     """Every metric of ``metrics`` that saw samples on any process, flattened under
     ``prefix/name`` (a scalar metric's value is ``prefix/name`` itself; no prefix: ``name``); with ``reset``,
     all are reset afterwards. Every process must call it (see :func:`updated_anywhere`)."""

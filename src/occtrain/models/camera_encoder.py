@@ -17,7 +17,7 @@ import tempfile
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
 import torch.nn.functional as F
@@ -27,6 +27,9 @@ from occtrain.errors import ConfigError, DataError
 from occtrain.formats.exports import check_section, load_state_strict, read_export, write_export
 from occtrain.formats.occ3d import NUM_CLASSES
 from occtrain.models.patches import unpatchify
+
+if TYPE_CHECKING:  # transformers loads with the first tower built
+    from transformers import PreTrainedModel
 
 #: The export's Hugging Face vision-model directory.
 TOWER_DIR = "vision"
@@ -90,7 +93,7 @@ def _input_hw(cfg: Any, patch: int) -> tuple[int, int]:
     return (math.ceil(cfg.image_height / patch) * patch, math.ceil(cfg.image_width / patch) * patch)
 
 
-def build_vision_tower(cfg: Any) -> nn.Module:
+def build_vision_tower(cfg: Any) -> PreTrainedModel:
     """The tiny SigLIP vision tower of ``cfg`` (``cfg.path`` empty), or the model in ``cfg.path``.
 
     The tiny tower's position table is square (SigLIP's layout) over the longer image side
@@ -115,7 +118,7 @@ def build_vision_tower(cfg: Any) -> nn.Module:
     return _load_tower(cfg.path)
 
 
-def _load_tower(path: str) -> nn.Module:
+def _load_tower(path: str) -> PreTrainedModel:
     from transformers import AutoConfig
     from transformers.models.auto.modeling_auto import MODEL_MAPPING
 
@@ -188,6 +191,9 @@ class MultiViewEncoder(nn.Module):
     Each camera's image goes through the tower on its own; its P patch tokens (row-major
     over the grid, cameras in the dataset's order) get that camera's learned embedding.
     """
+
+    #: The vision export it was loaded from (a world-model export copies it), None if built here.
+    export_dir: Path | None = None
 
     def __init__(
         self, cfg: Any, image_mean: tuple[float, ...] | None = None, image_std: tuple[float, ...] | None = None

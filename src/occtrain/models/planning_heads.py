@@ -37,6 +37,8 @@ class PlanningHead(nn.Module):
         visual_width: int = 8,
     ):
         super().__init__()
+        #: The width of the visual summary it reads (0: none).
+        self.visual_dim = visual_dim
         self.visual = (
             nn.Sequential(nn.LayerNorm(visual_dim), nn.Dropout(0.5), nn.Linear(visual_dim, visual_width))
             if visual_dim

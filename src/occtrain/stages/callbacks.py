@@ -140,10 +140,15 @@ class StepTimer(Callback):
             self.times.append(now - self._last)
         self._last = now
 
-    def _skip(self, *args: Any) -> None:
+    # Time spent validating or checkpointing is not a step's: the next step starts the clock.
+    def on_validation_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         self._last = None
 
-    on_validation_start = on_save_checkpoint = on_train_end = _skip
+    def on_save_checkpoint(self, trainer: L.Trainer, pl_module: L.LightningModule, checkpoint: dict[str, Any]) -> None:
+        self._last = None
+
+    def on_train_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        self._last = None
 
     @property
     def mean_s(self) -> float | None:

@@ -30,7 +30,9 @@ class ValidationMeans(torch.nn.Module):
         self.means = torch.nn.ModuleList(MeanMetric() for _ in names)
 
     def update(self, name: str, value: torch.Tensor | float, weight: int) -> None:
-        self.means[self.names.index(name)].update(torch.as_tensor(value, dtype=torch.float32).detach(), weight)
+        mean = self.means[self.names.index(name)]
+        assert isinstance(mean, MeanMetric)
+        mean.update(torch.as_tensor(value, dtype=torch.float32).detach(), weight)
 
     def pop(self) -> dict[str, float]:
         """The means of this validation (all ranks must call it), then reset."""

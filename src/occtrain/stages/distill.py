@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
+from lightning.pytorch.utilities.types import OptimizerLRSchedulerConfig
 
 from occtrain.config import to_object
 from occtrain.config.llm import MAX_NEW_TEXT_TOKENS, LLMConfig
@@ -135,7 +136,7 @@ class DistillStage(Stage):
         self.teacher.eval()
         return self
 
-    def training_step(self, batch: dict[str, Any], batch_idx: int) -> torch.Tensor:
+    def training_step(self, batch: dict[str, Any], batch_idx: int) -> torch.Tensor | None:
         cfg = self.ctx.model_cfg
         clips = clips_from_batch(batch)
         model_batch, names = self.student.task_batch(clips, batch, self.step_seed(self.global_step))
@@ -191,7 +192,7 @@ class DistillStage(Stage):
         scores.update(self.val_means.pop())
         self.log_dict(scores)
 
-    def configure_optimizers(self) -> dict:
+    def configure_optimizers(self) -> OptimizerLRSchedulerConfig:
         params = [p for p in self.student.world.parameters() if p.requires_grad] + list(self.projector.parameters())
         return configure_adamw(params, self.ctx.spec.optim, self.ctx.trainer.max_steps)
 

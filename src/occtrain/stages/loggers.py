@@ -13,7 +13,7 @@ import csv
 import io
 import os
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from lightning.fabric.loggers.csv_logs import _ExperimentWriter
 from lightning.fabric.loggers.logger import rank_zero_experiment
@@ -103,7 +103,19 @@ def _kept_id(path: Path) -> str | None:
     return (path.read_text().strip() or None) if path.is_file() else None
 
 
-class _KeepsRunId:
+if TYPE_CHECKING:
+
+    class _TrackerLogger(Logger):
+        """What the mixin sits in front of: a tracker's logger, which has an experiment."""
+
+        @property
+        def experiment(self) -> Any: ...
+
+else:
+    _TrackerLogger = object
+
+
+class _KeepsRunId(_TrackerLogger):
     """A tracker's logger that writes its run id to ``id_file`` once the run exists (the
     ``experiment`` property is read at every log call: the file is checked once)."""
 

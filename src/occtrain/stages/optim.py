@@ -6,14 +6,16 @@ import math
 from typing import Any
 
 import torch
+from lightning.pytorch.utilities.types import OptimizerLRSchedulerConfig
 
 from occtrain.config.recipe import OptimConfig
 from occtrain.errors import OcctrainError
 
 
-def configure_adamw(params: Any, cfg: OptimConfig, max_steps: int) -> dict:
+def configure_adamw(params: Any, cfg: OptimConfig, max_steps: int) -> OptimizerLRSchedulerConfig:
     """AdamW with linear warm-up and cosine decay to ``min_lr_ratio`` (or constant), per step."""
-    opt = torch.optim.AdamW(params, lr=cfg.lr, weight_decay=cfg.weight_decay, betas=tuple(cfg.betas), eps=cfg.eps)
+    betas = (cfg.betas[0], cfg.betas[1])  # two, checked with the recipe
+    opt = torch.optim.AdamW(params, lr=cfg.lr, weight_decay=cfg.weight_decay, betas=betas, eps=cfg.eps)
     if cfg.schedule not in ("cosine", "constant"):
         raise OcctrainError(f"optim.schedule '{cfg.schedule}' is not one of cosine, constant")
 

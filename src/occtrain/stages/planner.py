@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
+from lightning.pytorch.utilities.types import OptimizerLRSchedulerConfig
 
 from occtrain.config import to_object
 from occtrain.core.registry import get_world
@@ -82,7 +83,10 @@ class PlannerStage(Stage):
             teacher.requires_grad_(False).eval()
             teacher.prepare_inputs(ctx.data.root, ctx.cache_dir, ctx.shared_cache_dir)
         family = teacher.family if teacher is not None else str(read_config(export).get("family", ""))
-        self.planner = get_world(family).planner(ctx, teacher)
+        build = get_world(family).planner
+        if build is None:
+            raise ConfigError(f"{where}: the '{family}' family has no planner; leave the planner stage out")
+        self.planner = build(ctx, teacher)
         self.require_tasks(self.planner.sidecar_tasks(), instead="leave the planner stage out of the recipe")
         self.reads_text = teacher is not None
 
@@ -115,7 +119,7 @@ class PlannerStage(Stage):
     def on_train_end(self) -> None:
         self.planner.save_cache()  # clips first met in training (a shorter history) join the cache
 
-    def configure_optimizers(self) -> dict:
+    def configure_optimizers(self) -> OptimizerLRSchedulerConfig:
         params = [p for p in self.planner.parameters() if p.requires_grad]
         return configure_adamw(params, self.ctx.spec.optim, self.ctx.trainer.max_steps)
 

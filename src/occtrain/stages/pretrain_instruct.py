@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
+from lightning.pytorch.utilities.types import OptimizerLRSchedulerConfig
 
 from occtrain.config import to_object
 from occtrain.config.llm import MAX_NEW_TEXT_TOKENS, LLMConfig, LoRAConfig
@@ -199,7 +200,9 @@ class WorldModelStage(Stage):
         if not isinstance(self.trainer.strategy, ShardedStrategy) or is_sharded(world):
             return
         self._full = FullCopy(world)  # before sharding: a copy of the plain module
-        shard_world_model(world, self.device_mesh["data_parallel"])
+        mesh = self.device_mesh
+        assert mesh is not None  # the sharded strategy made one
+        shard_world_model(world, mesh["data_parallel"])
 
     def _gather(self, everywhere: bool) -> None:
         """Fill the unsharded copy (a collective: every rank calls it); see ``FullCopy.gather``."""
@@ -217,7 +220,7 @@ class WorldModelStage(Stage):
         return self._gathered.get("engine", self.engine)
 
     # -- training
-    def training_step(self, batch: dict[str, Any], batch_idx: int) -> torch.Tensor:
+    def training_step(self, batch: dict[str, Any], batch_idx: int) -> torch.Tensor | None:
         clips = clips_from_batch(batch)
         model_batch, names = self.engine.task_batch(clips, batch, self.step_seed(self.global_step))
         self.log("train/skipped_clips", float(names.count(None)), reduce_fx="sum", batch_size=len(clips))
@@ -261,7 +264,7 @@ class WorldModelStage(Stage):
         self.log_dict(self.val_means.pop())
         self.log_dict(self.evaluator.compute("val"))  # texts and pictures stay for report()
 
-    def configure_optimizers(self) -> dict:
+    def configure_optimizers(self) -> OptimizerLRSchedulerConfig:
         params = [p for p in self.engine.world.parameters() if p.requires_grad]
         return configure_adamw(params, self.ctx.spec.optim, self.ctx.trainer.max_steps)
 

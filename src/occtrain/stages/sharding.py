@@ -15,6 +15,7 @@ import torch
 from lightning.pytorch.strategies import ModelParallelStrategy
 
 from occtrain.config.groups import TrainerConfig
+from occtrain.core.lm_world_model import LMWorldModel
 from occtrain.errors import ConfigError
 
 #: ``trainer.strategy`` that shards parameters, gradients and AdamW state over every rank (FSDP2).
@@ -44,7 +45,7 @@ class ShardedStrategy(ModelParallelStrategy):
     def load_checkpoint(self, checkpoint_path: Any, weights_only: bool | None = None) -> dict[str, Any]:
         module = self.lightning_module
         check = getattr(module, "check_checkpoint_keys", None)
-        if check is None:
+        if module is None or check is None:
             return super().load_checkpoint(checkpoint_path, weights_only)
         check(torch.load(checkpoint_path, map_location="cpu", weights_only=True, mmap=True)["state_dict"].keys())
         strict, module.strict_loading = module.strict_loading, False  # the frozen keys are absent by design
@@ -72,7 +73,7 @@ def _decoder_layers(model: torch.nn.Module) -> list[torch.nn.Module]:
     return list(layers.values())
 
 
-def shard_world_model(world: torch.nn.Module, mesh: Any) -> None:
+def shard_world_model(world: LMWorldModel, mesh: Any) -> None:
     """FSDP2 over ``mesh``: each decoder layer of ``world.llm`` (under a peft wrapper too) is
     one unit gathered for its forward and backward, and ``world`` itself the root unit that
     holds the rest (embeddings, lm-head, final norm, the family's own parts). Frozen and
@@ -143,7 +144,7 @@ class FullCopy:
         from torch.distributed.checkpoint.state_dict import StateDictOptions, get_model_state_dict
 
         options = StateDictOptions(full_state_dict=True, cpu_offload=not everywhere)
-        state = get_model_state_dict(sharded, options=options)
+        state: dict[str, torch.Tensor] = get_model_state_dict(sharded, options=options)  # type: ignore[assignment]
         if not state:
             return False
         # The gathered tensors become the copy's parameters (no second copy of the weights);

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import functools
 from abc import ABC, abstractmethod
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar
@@ -142,7 +142,7 @@ class Stage(L.LightningModule, ABC):
     consumes_count: ClassVar[tuple[int, int]] = (0, 0)
     #: Parameter-name prefixes of sub-models that come, frozen, from another stage's export:
     #: checkpoints leave them out and loading does not expect them back.
-    frozen_prefixes: ClassVar[tuple[str, ...]] = ()
+    frozen_prefixes: tuple[str, ...] = ()
     #: Whether its frames batches carry the camera images and their dense targets (``images``, ``cam_class``, ...).
     reads_cameras: ClassVar[bool] = False
     #: Whether ``occtrain eval`` scores its exports (``evaluate_export``).
@@ -252,10 +252,11 @@ class Stage(L.LightningModule, ABC):
         """The seed of training step ``step``: the same on every rank and after a resume."""
         return self.ctx.data.seed * 1_000_003 + step
 
-    def state_dict(self, *args: Any, **kwargs: Any) -> dict[str, Any]:
+    # Module.state_dict is overloaded on its destination; a stage's is always a fresh dict.
+    def state_dict(self, *args: Any, **kwargs: Any) -> dict[str, Any]:  # type: ignore[override]
         return {k: v for k, v in super().state_dict(*args, **kwargs).items() if not k.startswith(self.frozen_prefixes)}
 
-    def load_state_dict(self, state_dict: dict[str, Any], strict: bool = True, **kwargs: Any) -> Any:
+    def load_state_dict(self, state_dict: Mapping[str, Any], strict: bool = True, assign: bool = False) -> Any:
         """Strict except for :attr:`frozen_prefixes`: a missing or unexpected key is an error naming it."""
         missing, unexpected = super().load_state_dict(state_dict, strict=False)
         self._check_keys(missing, unexpected)

@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
+from lightning.pytorch.utilities.types import OptimizerLRSchedulerConfig
 from omegaconf import MISSING
 
 from occtrain.config import to_container
@@ -173,7 +174,7 @@ class TokenizerStage(Stage):
         self.recon.reset()
         self.log_dict(self.val_means.pop())
 
-    def configure_optimizers(self) -> dict:
+    def configure_optimizers(self) -> OptimizerLRSchedulerConfig:
         params = [p for p in self.model.parameters() if p.requires_grad]
         return configure_adamw(params, self.ctx.spec.optim, self.ctx.trainer.max_steps)
 

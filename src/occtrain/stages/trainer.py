@@ -7,7 +7,7 @@ import os
 import warnings
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import lightning as L
 import torch
@@ -129,7 +129,7 @@ def check_trainer_setup(cfg: TrainerConfig, key: str) -> None:
             devices=devices,
             num_nodes=cfg.num_nodes,
             strategy=trainer_strategy(cfg),
-            precision=cfg.precision,
+            precision=cast(Any, cfg.precision),  # Lightning checks it and names a bad value
             logger=False,
             enable_checkpointing=False,
             enable_progress_bar=False,
@@ -166,7 +166,7 @@ def build_trainer(
         devices=cfg.devices,
         num_nodes=cfg.num_nodes,
         strategy=trainer_strategy(cfg),
-        precision=cfg.precision,
+        precision=cast(Any, cfg.precision),  # checked by the dry build above
         max_steps=cfg.max_steps,
         max_epochs=cfg.max_epochs,
         val_check_interval=cfg.val_check_interval,

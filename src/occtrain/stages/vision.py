@@ -20,6 +20,7 @@ from typing import Any
 
 import torch
 import torch.nn.functional as F
+from lightning.pytorch.utilities.types import OptimizerLRSchedulerConfig
 
 from occtrain.errors import ConfigError, DataError
 from occtrain.metrics import DepthAbsRelMetric, PixelSegmentationMetric
@@ -121,7 +122,7 @@ class VisionStage(Stage):
             self.log(f"train/{name}", value, batch_size=bs, prog_bar=name == "loss")
         return losses["loss"]
 
-    def configure_optimizers(self) -> dict:
+    def configure_optimizers(self) -> OptimizerLRSchedulerConfig:
         params = [p for p in self.parameters() if p.requires_grad]
         return configure_adamw(params, self.ctx.spec.optim, self.ctx.trainer.max_steps)
 
@@ -139,7 +140,7 @@ class VisionStage(Stage):
 
     def on_fit_start(self) -> None:
         n = self.ctx.model_cfg.prior_batches
-        datamodule = self.trainer.datamodule
+        datamodule = getattr(self.trainer, "datamodule", None)  # set by Lightning when fit has one
         if not n or datamodule is None:
             return
         # Each rank counts its share of the train stream; the sums are added over ranks, so

@@ -1,0 +1,226 @@
+"""``occtrain report RUN [RUN ...]``: the headline numbers of finished, scored runs as one
+markdown page, each beside its baselines on the same samples, stamped with what produced it.
+
+Every number comes from a stage's whole-split scores (``STAGE/eval/<split>/metrics.json``,
+written by ``occtrain eval``); the page names, per run, the recipe, the training seeds, the
+code version that trained it, the world's key and version (``eval/<split>/world.json``) and
+the date it was scored. Runs scored on different world versions are refused: a table mixes
+no worlds. With several runs of one recipe (training seeds), a column gives the mean and
+the spread (min to max). The docs' result pages are this command's output, never typed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from occtrain.errors import DataError
+from occtrain.formats.io import atomic_write_text
+
+METRICS_FILE = "metrics.json"
+WORLD_FILE = "world.json"
+
+
+@dataclass(frozen=True)
+class Headline:
+    """A kind of headline number: the metric keys it covers (a regular expression over a
+    stage's score keys), what it is, and the baselines it is set beside (keys, where
+    ``{0}``, ``{1}``... are the pattern's groups)."""
+
+    pattern: str
+    label: str
+    digits: int = 1
+    baselines: tuple[tuple[str, str], ...] = ()
+
+
+HEADLINES = (
+    Headline(r"occworld_(mIoU|IoU)", "reconstruction {0} (`occworld`)", 1, (("empty", "baseline_free_occworld_{0}"),)),
+    Headline(r"occworld_movable_mIoU", "reconstruction movable-class mIoU (`occworld`)", 2),
+    Headline(
+        r"forecast_occworld_(mIoU|movable_mIoU)_(1s|3s)",
+        "forecast {0} at {1} (`occworld`)",
+        2,
+        (
+            ("Copy&Paste of the reconstruction", "baseline_copy_reconstruction_forecast_occworld_{0}_{1}"),
+            ("copy the scene", "baseline_copy_forecast_occworld_{0}_{1}"),
+            ("the scene moved at constant velocity", "baseline_cv_moved_forecast_occworld_{0}_{1}"),
+        ),
+    ),
+    Headline(
+        r"(plan_\w+|head_\w+|llm_action_tokens|anchor_\w+)_L2_stp3_avg",
+        "plan `{0}`: L2 avg (`stp3`, m)",
+        3,
+        (
+            ("constant velocity", "baseline_constant_velocity_L2_stp3_avg"),
+            ("constant velocity", "constant_velocity_L2_stp3_avg"),
+            ("standing still", "baseline_stationary_L2_stp3_avg"),
+        ),
+    ),
+    Headline(r"qa_overall", "NuScenes-QA accuracy (%)", 1, (("commonest per type", "baseline_prior_qa_overall"),)),
+    Headline(
+        r"meta_action_overall",
+        "meta action right (%)",
+        1,
+        (
+            ("commonest", "baseline_prior_meta_action_overall"),
+            ("repeat the last past one", "baseline_repeat_last_meta_action_overall"),
+        ),
+    ),
+    Headline(r"(\w*caption)_CIDEr", "`{0}` CIDEr", 3, (("the typical caption", "baseline_prior_{0}_CIDEr"),)),
+)
+
+
+@dataclass(frozen=True)
+class Run:
+    """A run directory as the report reads it."""
+
+    path: Path
+    name: str
+    stages: list[str]
+    manifest: dict
+    scores: dict[str, dict[str, float]]  # stage -> its scores on the split
+    worlds: dict[str, dict]  # stage -> its world.json
+
+    @classmethod
+    def read(cls, path: Path, split: str) -> Run:
+        manifest_file = path / "manifest.json"
+        if not manifest_file.is_file():
+            raise DataError(f"{path}: not a run directory (no manifest.json); pass the --run-dir of an occtrain run")
+        try:
+            manifest = json.loads(manifest_file.read_text())
+            stages = list(manifest.get("stages", {}))
+            scores, worlds = {}, {}
+            for stage in stages:
+                folder = path / stage / "eval" / split
+                if (folder / METRICS_FILE).is_file():
+                    scores[stage] = json.loads((folder / METRICS_FILE).read_text())
+                    world = folder / WORLD_FILE
+                    worlds[stage] = json.loads(world.read_text()) if world.is_file() else {}
+        except (OSError, ValueError, AttributeError) as err:
+            raise DataError(
+                f"{path}: cannot read its manifest or scores ({err}); rerun `occtrain eval` on its stages"
+            ) from None
+        if not scores:
+            raise DataError(f"{path}: no stage is scored on '{split}'; run `occtrain eval {path}/<stage>` first")
+        return cls(path, str(manifest.get("name", path.name)), stages, manifest, scores, worlds)
+
+    def world_versions(self) -> set[str]:
+        return {w.get("world_version") or "unrecorded" for w in self.worlds.values()}
+
+    def stamp(self) -> str:
+        entries = self.manifest.get("stages", {}).values()
+        code = sorted({e.get("code_version") or "?" for e in entries})
+        seeds = sorted({str((e.get("config") or {}).get("trainer", {}).get("seed", "?")) for e in entries})
+        keys = sorted({w.get("world", "?") for w in self.worlds.values()})
+        scored = max((self.path / s / "eval").stat().st_mtime for s in self.scores)
+        return (
+            f"`{self.path}`: recipe {self.name}, training seed {', '.join(seeds)}, code {', '.join(code)}, "
+            f"data {', '.join(keys)}, scored {time.strftime('%Y-%m-%d', time.gmtime(scored))}"
+        )
+
+
+def _fmt(value: float | None, digits: int) -> str:
+    return "-" if value is None else f"{value:.{digits}f}"
+
+
+def _rows(runs: list[Run]) -> list[tuple[str, str, int, list[str | None], list[tuple[str, str]]]]:
+    """(stage, label, digits, score key per run, baselines) of every headline some run has."""
+    stages = list(dict.fromkeys(s for run in runs for s in run.stages))
+    rows = []
+    for stage in stages:
+        keys = list(dict.fromkeys(k for run in runs for k in run.scores.get(stage, {})))
+        for headline in HEADLINES:
+            for key in keys:
+                match = re.fullmatch(headline.pattern, key)
+                if match is None:
+                    continue
+                groups = match.groups()
+                bases = [(label, b.format(*groups)) for label, b in headline.baselines]
+                rows.append((stage, headline.label.format(*groups), headline.digits, [key] * len(runs), bases))
+    return rows
+
+
+def report(runs: list[Run], split: str = "val", command: str = "occtrain report", title: str = "") -> str:
+    """The markdown page (see the module docstring), under ``# title`` when given."""
+    versions = [run.world_versions() for run in runs]
+    if len(set().union(*versions)) > 1:
+        raise DataError(
+            "the runs were scored on different worlds ("
+            + "; ".join(f"{run.path}: {', '.join(sorted(v))}" for run, v in zip(runs, versions))
+            + "); report each world on its own"
+        )
+    seeds_of_one_recipe = len(runs) > 1 and len({run.name for run in runs}) == 1
+    head = [f"run {i}" for i in range(len(runs))]
+    lines = [
+        *([f"# {title}", ""] if title else []),
+        f"World {', '.join(sorted(versions[0]))}; the whole {split} split (`occtrain eval`). "
+        f"Generated by `{command}` from:",
+        "",
+        *(f"- run {i}: {run.stamp()}" for i, run in enumerate(runs)),
+        "",
+        f"| stage | metric | {' / '.join(head)} |{' mean (min to max) |' if seeds_of_one_recipe else ''} baselines "
+        "(run 0's samples) |",
+        f"|---|---|---|{'---|' if seeds_of_one_recipe else ''}---|",
+    ]
+    for stage, label, digits, keys, bases in _rows(runs):
+        values = [run.scores.get(stage, {}).get(key) for run, key in zip(runs, keys)]
+        have = [v for v in values if v is not None]
+        first = next((run.scores[stage] for run in runs if stage in run.scores), {})
+        seen: set[str] = set()
+        shown = []
+        for name, key in bases:
+            if key in first and name not in seen:
+                seen.add(name)
+                shown.append(f"{name} {_fmt(first[key], digits)}")
+        cells = [stage, label, " / ".join(_fmt(v, digits) for v in values)]
+        if seeds_of_one_recipe:
+            mean = sum(have) / len(have)
+            cells.append(f"{_fmt(mean, digits)} ({_fmt(min(have), digits)} to {_fmt(max(have), digits)})")
+        cells.append("; ".join(shown) or "-")
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n" + _wall_times(runs)
+
+
+def _wall_times(runs: list[Run]) -> str:
+    """Each stage's training wall time per run (the manifest's sum over attempts; the world's
+    synthesis and shards come before the first stage and are not counted)."""
+    stages = list(dict.fromkeys(s for run in runs for s in run.stages))
+    lines = ["", f"| stage | training wall time, s: {' / '.join(f'run {i}' for i in range(len(runs)))} |", "|---|---|"]
+    totals = [0.0] * len(runs)
+    for stage in stages:
+        times = [run.manifest["stages"].get(stage, {}).get("wall_time_s") for run in runs]
+        for i, t in enumerate(times):
+            totals[i] += t if isinstance(t, (int, float)) else 0.0
+        lines.append(f"| {stage} | {' / '.join('-' if t is None else f'{t:.0f}' for t in times)} |")
+    lines.append(f"| all stages | {' / '.join(f'{t:.0f}' for t in totals)} |")
+    return "\n".join(lines) + "\n"
+
+
+def run_report(args: argparse.Namespace) -> int:
+    runs = [Run.read(Path(p), args.split) for p in args.runs]
+    split = ["--split", args.split] if args.split != "val" else []
+    title = ["--title", f"'{args.title}'"] if args.title else []
+    command = " ".join(["occtrain report", *map(str, args.runs), *split, *title])
+    page = report(runs, args.split, command, args.title)
+    if args.out:
+        atomic_write_text(Path(args.out), page)
+    else:
+        print(page, end="")
+    return 0
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "report",
+        help="headline numbers of scored runs beside their baselines, as markdown",
+        description=__doc__.split("\n\n")[0].replace("``", "`"),
+    )
+    p.add_argument("runs", nargs="+", metavar="RUN", help="run directories (scored with occtrain eval)")
+    p.add_argument("--split", default="val", help="the split the stages were scored on (default val)")
+    p.add_argument("--title", default="", help="the page's heading (a docs page needs one)")
+    p.add_argument("--out", help="write the page here (atomically) instead of to stdout")
+    p.set_defaults(func=run_report)
