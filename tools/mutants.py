@@ -192,7 +192,7 @@ MUTANTS = (
         "fsdp-does-not-shard",
         "trainer.strategy=fsdp leaves the world model whole on every rank",
         "src/occtrain/stages/pretrain_instruct.py",
-        '        shard_world_model(world, self.device_mesh["data_parallel"])\n',
+        '        shard_world_model(world, mesh["data_parallel"])\n',
         "        pass\n",
         ("tests/e2e/test_sharded.py::test_sharded_training_equals_ddp_with_the_same_global_batch",),
     ),

@@ -5,7 +5,7 @@ frames and, for the moving classes, what their voxels come back as.
     python tools/diagnose/tokenizer_classes.py '{"class_balance": 0.5}' --steps 300
 
 The first argument overrides ``configs/model/occllama_tokenizer_tiny.yaml`` (JSON). It is
-the experiment behind "What the models learn" (docs/families/occllama.md): it trains outside the runner (no
+the experiment behind "Switches beyond the papers" (docs/families/occllama.md): it trains outside the runner (no
 checkpoints, no run directory) so that variants compare on the same frames and steps.
 """
 

@@ -38,7 +38,7 @@ class QuantizerFields:
     #: Cross-entropy weight of a voxel: its class's frequency in the batch to the power
     #: ``-class_balance`` (``tokenizers.losses.class_balance_weights``). 0 is the papers'
     #: unweighted loss, under which a small tokenizer reconstructs no moving object: cars,
-    #: buses and pedestrians are 1.6 % of the voxels (docs/families/occllama.md, "What the models learn").
+    #: buses and pedestrians are 1.6 % of the voxels (docs/families/occllama.md, "Switches beyond the papers").
     class_balance: float = 0.0
 
     @property

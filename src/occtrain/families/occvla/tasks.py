@@ -64,12 +64,12 @@ class TaskConfig(BaseTaskConfig):
     #: ego's own motion, or "caption", the whole caption. That clause states the frame's
     #: meta action, so under teacher forcing the model learns to copy it into the answer,
     #: and at inference it guesses the clause from the cameras and copies the guess over the
-    #: prompt's history (docs/families/occllama.md, "What the models learn").
+    #: prompt's history (docs/families/occllama.md, "Switches beyond the papers").
     cot_scene: str = "surroundings"
     #: How the answer writes its meta action. "none" (the paper): always as speed and
     #: direction. "repeat_last": "as before" when it equals the last past one, which the
     #: prompt lists, so keeping it is one phrase and the model learns when it changes
-    #: (docs/families/occllama.md, "What the models learn").
+    #: (docs/families/occllama.md, "Switches beyond the papers").
     meta_action_prior: str = "none"
     #: Past meta actions in the prompt (t-5 .. t-1; fewer where the clip's history is shorter).
     past_meta_actions: int = 5
