@@ -5,6 +5,8 @@
     python tools/compare_recipes.py run after/
     python tools/compare_recipes.py compare before/ after/
 
+    python tools/compare_recipes.py run before/ --repo ../old-worktree   # an older tree's code and recipes
+
 ``run`` trains each recipe with the same overrides (a 3-scene world, ``--steps`` optimizer
 steps per stage, a small validation) through the real CLI at one thread, so two runs of
 the same code agree bit for bit. ``compare`` lists, stage by stage, every final metric
@@ -26,8 +28,24 @@ from pathlib import Path
 import yaml
 
 REPO = Path(__file__).resolve().parents[1]
-#: The recipes a refactoring must leave unchanged.
-RECIPES = ("quickstart", "occllama", "occllm", "occvla", "vision")
+#: Where the recipes live, newest layout first (they were in stages/ before recipes/).
+RECIPE_DIRS = ("recipes", "stages")
+#: Recipes that only size a stage for ``occtrain plan-memory`` (a 7B LLM): never trained here.
+PLAN_ONLY = "scale/"
+
+
+def shipped_recipes(repo: Path) -> list[str]:
+    """Every recipe a refactoring must leave unchanged: the shipped ones but the plan-only sizes,
+    by name relative to the recipes folder (``quickstart``, ``ablations/occllm_msvae``)."""
+    folder = recipes_dir(repo)
+    names = (str(p.relative_to(folder).with_suffix("")) for p in folder.rglob("*.yaml"))
+    return sorted(n for n in names if not n.startswith(PLAN_ONLY))
+
+
+def recipes_dir(repo: Path) -> Path:
+    return next((repo / d for d in RECIPE_DIRS if (repo / d / "quickstart.yaml").is_file()), repo / RECIPE_DIRS[0])
+
+
 #: Stage kinds that generate answers in validation (they take ``model.val_samples``).
 GENERATING = ("pretrain", "instruct", "distill")
 #: Metrics that measure the machine, not the model.
@@ -62,11 +80,13 @@ def shrink(recipe: Path, data: Path, steps: int) -> list[str]:
     return out
 
 
-def run(out: Path, recipes: list[str], steps: int) -> int:
+def run(out: Path, recipes: list[str], steps: int, repo: Path = REPO) -> int:
+    """Train ``recipes`` of ``repo``, shrunk, with ``repo``'s own code (its ``src`` first on the path)."""
     env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1", PYTHONWARNINGS="ignore", PYTHONHASHSEED="0")
-    failed = 0
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(repo / "src"), os.environ.get("PYTHONPATH", "")]))
+    failed = []
     for name in recipes:
-        recipe = REPO / "recipes" / f"{name}.yaml"
+        recipe = recipes_dir(repo) / f"{name}.yaml"
         # One world per data config (the OccVLA recipe reads 6 history frames from its own shards).
         data = out / "data"
         cmd = [
@@ -77,11 +97,13 @@ def run(out: Path, recipes: list[str], steps: int) -> int:
             str(recipe),
             *shrink(recipe, data, steps),
             "--run-dir",
-            str(out / name),
+            str(out / name.replace("/", "__")),
         ]
         print(f"== {name}", file=sys.stderr, flush=True)
-        res = subprocess.run(cmd, cwd=REPO, env=env)
-        failed += res.returncode != 0
+        if subprocess.run(cmd, cwd=repo, env=env).returncode != 0:
+            failed.append(name)
+    if failed:
+        print(f"failed: {', '.join(failed)}", file=sys.stderr)
     return 1 if failed else 0
 
 
@@ -124,7 +146,7 @@ def compare(before: Path, after: Path) -> int:
                 k for k in set(a_t) & set(b_t) if a_t[k].shape != b_t[k].shape or not torch.equal(a_t[k], b_t[k])
             )
             status = "same" if not (diff or only or changed) else "DIFFERS"
-            print(f"{run_dir.name:11s} {stage:10s} {status:8s} {len(a_m)} metrics, {len(a_t)} tensors")
+            print(f"{run_dir.name:36s} {stage:10s} {status:8s} {len(a_m)} metrics, {len(a_t)} tensors")
             for k in diff[:10]:
                 print(f"    metric {k}: {a_m.get(k)} -> {b_m.get(k)}")
             for k in only[:10]:
@@ -142,14 +164,17 @@ def main(argv: list[str] | None = None) -> int:
     sub = parser.add_subparsers(dest="cmd", required=True)
     r = sub.add_parser("run", help="train the shipped recipes, shrunk, into OUT/<recipe>")
     r.add_argument("out", type=Path)
-    r.add_argument("--recipes", default=",".join(RECIPES))
+    r.add_argument("--recipes", help="comma-separated names (default: every shipped recipe but scale/)")
     r.add_argument("--steps", type=int, default=24)
+    r.add_argument("--repo", type=Path, default=REPO, help="the tree whose code and recipes run (default: this one)")
     c = sub.add_parser("compare", help="compare two OUT directories")
     c.add_argument("before", type=Path)
     c.add_argument("after", type=Path)
     args = parser.parse_args(argv)
     if args.cmd == "run":
-        return run(args.out.resolve(), args.recipes.split(","), args.steps)
+        repo = args.repo.resolve()
+        recipes = args.recipes.split(",") if args.recipes else shipped_recipes(REPO)
+        return run(args.out.resolve(), recipes, args.steps, repo)
     return compare(args.before, args.after)
 
 

@@ -123,6 +123,11 @@ class Run:
         )
 
 
+def _words(group: str) -> str:
+    """A key's part as a reader writes it: ``movable_mIoU`` -> movable-class mIoU, ``1s`` -> 1 s."""
+    return {"movable_mIoU": "movable-class mIoU", "1s": "1 s", "2s": "2 s", "3s": "3 s"}.get(group, group)
+
+
 def _fmt(value: float | None, digits: int) -> str:
     return "-" if value is None else f"{value:.{digits}f}"
 
@@ -140,7 +145,8 @@ def _rows(runs: list[Run]) -> list[tuple[str, str, int, list[str | None], list[t
                     continue
                 groups = match.groups()
                 bases = [(label, b.format(*groups)) for label, b in headline.baselines]
-                rows.append((stage, headline.label.format(*groups), headline.digits, [key] * len(runs), bases))
+                label = headline.label.format(*(_words(g) for g in groups))
+                rows.append((stage, label, headline.digits, [key] * len(runs), bases))
     return rows
 
 

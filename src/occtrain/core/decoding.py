@@ -21,11 +21,11 @@ from __future__ import annotations
 
 from collections.abc import Generator
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple, Protocol
 
 import torch
 
-from occtrain.core.sequence import Step, TokenSequence, cat_payload, empty_payload, prompt_of, rows
+from occtrain.core.sequence import PayloadSpec, Step, TokenSequence, cat_payload, empty_payload, prompt_of, rows
 from occtrain.core.vocab import JointVocab
 from occtrain.models.attention import allowed_pairs, chunk_allowed, scene_segments
 
@@ -71,6 +71,48 @@ class Flush(NamedTuple):
 Answer = TextAnswer | ActionAnswer | SceneAnswer | QueryBlock | Feed | Flush
 
 
+class SceneWriter(Protocol):
+    """How a family writes a generated scene: from a query block's outputs at once or token
+    by token, each giving the scene's ids so far and the extra payload they carry."""
+
+    def from_queries(
+        self, logits: torch.Tensor, hidden: torch.Tensor | None
+    ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]: ...
+
+    def next_token(
+        self, logits: torch.Tensor, hidden: torch.Tensor | None
+    ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]: ...
+
+    def codes(self) -> torch.Tensor: ...
+
+
+class DecodingModel(Protocol):
+    """What the decoder drives, one forward at a time (``core.lm_world_model.LMWorldModel``
+    is one; the decoder sits below it and so names only this)."""
+
+    vocab: JointVocab
+    payload_spec: PayloadSpec
+    frame_separation: bool
+    scene_prediction: str
+
+    @property
+    def device(self) -> torch.device: ...
+
+    def scene_query_ids(self, last_scene: torch.Tensor | None) -> torch.Tensor: ...
+
+    def scene_writer(self, recent: torch.Tensor) -> SceneWriter: ...
+
+    def step(
+        self,
+        input_ids: torch.Tensor,
+        attention_mask: torch.Tensor,
+        position_ids: torch.Tensor,
+        past_key_values: Cache | None = None,
+        use_cache: bool = False,
+        payload: dict[str, torch.Tensor] | None = None,
+    ) -> Step: ...
+
+
 class CodeScene:
     """How a generated scene is written in the joint vocabulary's codes layout: each
     position's code chosen within its codebook's id range, from the query block at once
@@ -112,7 +154,7 @@ Program = Generator[Forward, Step, Any]
 class _State:
     """One sequence's decoding state: what is queued to feed, the last ids, the last output."""
 
-    def __init__(self, world: Any, prefix: torch.Tensor | TokenSequence, device: torch.device):
+    def __init__(self, world: DecodingModel, prefix: torch.Tensor | TokenSequence, device: torch.device):
         self.world, self.vocab, self.spec, self.device = world, world.vocab, world.payload_spec, device
         ids, payload = prompt_of(self.spec, prefix)
         ids = ids.to(device)
@@ -248,7 +290,9 @@ def answer_program(s: _State, answer: Answer) -> Program:
     raise TypeError(f"not an answer kind: {answer!r}")
 
 
-def program(world: Any, prefix: torch.Tensor | TokenSequence, answers: list[Answer], device: torch.device) -> Program:
+def program(
+    world: DecodingModel, prefix: torch.Tensor | TokenSequence, answers: list[Answer], device: torch.device
+) -> Program:
     """One sequence's whole decoding: its answers in order, each after the ones before."""
     state = _State(world, prefix, device)
     results = []
@@ -261,7 +305,7 @@ class Decoder:
     """Drives the program for one sequence, answer by answer, with the KV cache (or, with
     ``use_cache=False``, recomputing the whole sequence at each forward)."""
 
-    def __init__(self, world: Any, prefix: torch.Tensor | TokenSequence, use_cache: bool = True):
+    def __init__(self, world: DecodingModel, prefix: torch.Tensor | TokenSequence, use_cache: bool = True):
         self.world = world
         self.vocab: JointVocab = world.vocab
         self.use_cache = use_cache
@@ -270,7 +314,7 @@ class Decoder:
         self.ids = torch.zeros(0, dtype=torch.long, device=self.device)
         self.seg = torch.zeros(0, dtype=torch.long, device=self.device)
         self.payload = empty_payload(world.payload_spec, 0, self.device)
-        self.cache = None
+        self.cache: Cache | None = None
 
     @property
     def last(self) -> Step | None:
@@ -332,7 +376,9 @@ class Decoder:
 
 
 @torch.no_grad()
-def decode(world: Any, prefix: torch.Tensor | TokenSequence, answers: list[Answer], use_cache: bool = True) -> list:
+def decode(
+    world: DecodingModel, prefix: torch.Tensor | TokenSequence, answers: list[Answer], use_cache: bool = True
+) -> list:
     """Greedy answers after one prompt, in order (see :func:`answer_program`)."""
     decoder = Decoder(world, prefix, use_cache)
     return [decoder.answer(a) for a in answers]
@@ -344,7 +390,7 @@ def _nothing(f: Forward) -> Forward:
 
 
 def _batched_forward(
-    world: Any, feeds: list[Forward], cache: Any, alive: torch.Tensor, kept: torch.Tensor
+    world: DecodingModel, feeds: list[Forward], cache: Any, alive: torch.Tensor, kept: torch.Tensor
 ) -> tuple[Step, torch.Tensor]:
     """One forward of every running sequence's feed, right-padded; the mask of the kept ones."""
     device = alive.device
@@ -375,7 +421,7 @@ PROMPT_SPREAD = 1.25
 
 
 @torch.no_grad()
-def decode_batch(world: Any, prefixes: list, answers: list[list[Answer]]) -> list[list]:
+def decode_batch(world: DecodingModel, prefixes: list, answers: list[list[Answer]]) -> list[list]:
     """Greedy answers for every sequence of the batch: ``prefixes[b]`` (ids Long[L_b], or a
     laid-out sequence with its payload) is its prompt, ``answers[b]`` what to generate after
     it, in order. Returns, per sequence, a list with one entry per answer. A query block's
@@ -406,7 +452,7 @@ def _all_decoded(results: list[list | None]) -> list[list]:
     return [r for r in results if r is not None]
 
 
-def _decode_group(world: Any, prefixes: list, answers: list[list[Answer]]) -> list[list]:
+def _decode_group(world: DecodingModel, prefixes: list, answers: list[list[Answer]]) -> list[list]:
     """:func:`decode_batch` on prompts of similar lengths. A step pads every row to the
     longest feed, so a feed much longer than the shortest (a query block beside one-token
     steps, once texts of different lengths put rows out of step) waits, fed as nothing,

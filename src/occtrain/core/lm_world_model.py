@@ -22,7 +22,16 @@ from transformers import PreTrainedModel
 
 from occtrain.config.llm import SCENE_PREDICTION_MODES
 from occtrain.core.builder import SequenceBuilder, batch_payload
-from occtrain.core.decoding import ActionAnswer, Answer, Decoder, SceneAnswer, TextAnswer, decode, decode_batch
+from occtrain.core.decoding import (
+    ActionAnswer,
+    Answer,
+    Decoder,
+    SceneAnswer,
+    SceneWriter,
+    TextAnswer,
+    decode,
+    decode_batch,
+)
 from occtrain.core.sequence import IGNORE, PayloadSpec, Step, TokenSequence
 from occtrain.core.vocab import JointVocab
 from occtrain.models import without_peft
@@ -104,7 +113,7 @@ class LMWorldModel(nn.Module):
         ``<scene_q_j>`` tokens. Training and generation both ask here."""
         return self.vocab.query_ids()
 
-    def scene_writer(self, recent: torch.Tensor) -> Any:
+    def scene_writer(self, recent: torch.Tensor) -> SceneWriter:
         """What writes the next generated scene; ``recent`` are the last ids before it."""
         raise ValueError(f"the {type(self).__name__} world model generates no scenes")
 

@@ -45,7 +45,7 @@ def test_two_seeds_of_a_recipe_give_the_mean_the_spread_and_the_stamps(tmp_path)
     assert f"- run 0: `{a}`: recipe quickstart, training seed 0, code 0.1.0+abc1234, data key0, scored " in res.stdout
     assert f"- run 1: `{b}`: recipe quickstart, training seed 1, code 0.1.0+abc1234, data key1, scored " in res.stdout
     assert (
-        "| pretrain | forecast mIoU at 1s (`occworld`) | 6.00 / 5.00 | 5.50 (5.00 to 6.00) "
+        "| pretrain | forecast mIoU at 1 s (`occworld`) | 6.00 / 5.00 | 5.50 (5.00 to 6.00) "
         "| Copy&Paste of the reconstruction 7.00 |"
     ) in lines
     assert (
