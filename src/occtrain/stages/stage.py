@@ -14,7 +14,7 @@ from abc import ABC, abstractmethod
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import lightning as L
 
@@ -24,6 +24,9 @@ from occtrain.data.shards import PAD_KEY, world_key
 from occtrain.errors import ConfigError
 from occtrain.formats.exports import check_loaded_keys
 from occtrain.models import count_parameters
+
+if TYPE_CHECKING:  # the registry (stages/__init__.py) imports this module
+    from occtrain.stages import StageKind
 
 #: The run directory's folder of caches keyed by their content, shared by its stages.
 SHARED_CACHE = "cache"
@@ -178,7 +181,7 @@ class Stage(L.LightningModule, ABC):
         return next((p.family for p in consumed.values() if p.family), None)
 
     @classmethod
-    def model_schema(cls, kind: Any, family: str | None, model: dict | None = None) -> type:
+    def model_schema(cls, kind: StageKind, family: str | None, model: dict | None = None) -> type:
         """The dataclass ``model:`` (raw: ``model``) is validated against, and hashed from, for ``family``."""
         return kind.model_schema
 
@@ -230,7 +233,7 @@ class Stage(L.LightningModule, ABC):
         """The shard entries this stage reads on ``split`` ("train", "val"); None: all of them."""
         return None
 
-    def monitored(self, kind: Any) -> tuple[str | None, str]:
+    def monitored(self, kind: StageKind) -> tuple[str | None, str]:
         """The validation metric that picks ``best.ckpt`` and whether higher is better: the
         kind's, unless the stage knows better once built (a family's planner names its own)."""
         return kind.monitor, kind.mode
