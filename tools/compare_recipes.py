@@ -12,7 +12,8 @@ steps per stage, a small validation) through the real CLI at one thread, so two 
 the same code agree bit for bit. ``compare`` lists, stage by stage, every final metric
 that differs (wall-clock timings left out) and every exported tensor that differs or
 exists on one side only (every ``*.safetensors`` under ``export/``, the Hugging Face LLM
-directory included), and exits 1 when anything does.
+directory included), and exits 1 when anything does, or when a stage left no metrics and
+no export on a side (MISSING: it did not run to the end there).
 """
 
 from __future__ import annotations
@@ -145,7 +146,9 @@ def compare(before: Path, after: Path) -> int:
             changed = sorted(
                 k for k in set(a_t) & set(b_t) if a_t[k].shape != b_t[k].shape or not torch.equal(a_t[k], b_t[k])
             )
-            status = "same" if not (diff or only or changed) else "DIFFERS"
+            # A stage that did not finish on a side has nothing to differ in: that is no "same".
+            missing = not (a_m or a_t) or not (b_m or b_t)
+            status = "MISSING" if missing else "same" if not (diff or only or changed) else "DIFFERS"
             print(f"{run_dir.name:36s} {stage:10s} {status:8s} {len(a_m)} metrics, {len(a_t)} tensors")
             for k in diff[:10]:
                 print(f"    metric {k}: {a_m.get(k)} -> {b_m.get(k)}")
