@@ -19,6 +19,7 @@ What it asks of the consumed world model goes through its family's operations
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -28,6 +29,7 @@ import torch
 from torch import nn
 from torchmetrics import MeanMetric
 
+from occtrain.core.protocols import WorldEngine
 from occtrain.data.clips import Clip, frame_clips, plan_target
 from occtrain.data.layout import DatasetIndex
 from occtrain.data.schema import COMMANDS, META_DIRECTIONS, META_SPEEDS
@@ -136,7 +138,7 @@ class MetaActionPlanner(nn.Module):
     def __init__(
         self,
         cfg: MetaActionPlannerConfig,
-        teacher: Any,
+        teacher: WorldEngine | None,
         data_root: str,
         cache_dir: Path,
         where: str,
@@ -151,7 +153,11 @@ class MetaActionPlanner(nn.Module):
         if teacher is not None:
             self._check_teacher(teacher, where)
         self.teacher = teacher
-        visual_dim = teacher.world.hidden_size if "visual" in self.inputs else 0
+        visual_dim = 0
+        if "visual" in self.inputs:
+            if teacher is None:
+                raise ConfigError(f"{where}: model.inputs 'visual' reads a world model's image tokens, and it has none")
+            visual_dim = teacher.world.hidden_size
         self.head = PlanningHead(
             feature_size(self.inputs), cfg.hidden, cfg.layers, FUTURE_STEPS, cfg.dropout, visual_dim, cfg.visual_width
         )
@@ -172,7 +178,7 @@ class MetaActionPlanner(nn.Module):
             }
         )
 
-    def _check_teacher(self, teacher: Any, where: str) -> None:
+    def _check_teacher(self, teacher: WorldEngine, where: str) -> None:
         family = teacher.family
         for op in ("reference_meta_action", "generated_meta_actions"):
             if teacher.operation(op) is None:
@@ -219,23 +225,33 @@ class MetaActionPlanner(nn.Module):
         """The frozen model's outputs for each clip (the generated meta action only with
         ``generate``), from the cache or computed now and kept."""
         outs = [self._teacher_out.setdefault(c.anchor["token"], {}) for c in clips]
-        reference = self.teacher.operation("reference_meta_action")
+        teacher = self.teacher
+        if teacher is None:
+            raise ValueError("this planning head reads no world model: it has no outputs of one")
+        reference = self._operation(teacher, "reference_meta_action")
         for i in [i for i, o in enumerate(outs) if "reference" not in o]:
-            outs[i]["reference"] = reference(self.teacher, clips[i])
+            outs[i]["reference"] = reference(teacher, clips[i])
         todo = [i for i, o in enumerate(outs) if "visual" not in o] if "visual" in self.inputs else []
         if todo:
-            summary = self.teacher.operation("visual_summary")(self.teacher, [clips[i] for i in todo])
+            summary = self._operation(teacher, "visual_summary")(teacher, [clips[i] for i in todo])
             for i, vis in zip(todo, summary.cpu().numpy()):
                 outs[i]["visual"] = vis
         todo = [i for i, o in enumerate(outs) if "generated" not in o] if generate else []
         if todo:
-            for i, gen in zip(
-                todo, self.teacher.operation("generated_meta_actions")(self.teacher, [clips[i] for i in todo])
-            ):
+            generated = self._operation(teacher, "generated_meta_actions")(teacher, [clips[i] for i in todo])
+            for i, gen in zip(todo, generated):
                 outs[i]["generated"] = (
                     None if gen is None else [gen[0], None if gen[1] is None else np.asarray(gen[1]).tolist()]
                 )
         return outs
+
+    @staticmethod
+    def _operation(teacher: WorldEngine, name: str) -> Callable[..., Any]:
+        """The world model's operation ``name`` (checked at build: ``_check_teacher``)."""
+        op = teacher.operation(name)
+        if op is None:
+            raise ValueError(f"the '{teacher.family}' world model has no '{name}' operation")
+        return op
 
     def prepare_training(self, device: torch.device) -> None:
         """The teacher's outputs for the training clips, once, when the head trains on
@@ -361,14 +377,14 @@ class MetaActionPlanner(nn.Module):
         return write_export(path, self.head.state_dict(), config)
 
 
-def meta_action_planner(ctx: Any, teacher: Any, sidecar_reference: bool = True) -> MetaActionPlanner:
+def meta_action_planner(ctx: Any, teacher: WorldEngine | None, sidecar_reference: bool = True) -> MetaActionPlanner:
     """The planner of a planner stage (``WorldSpec.planner``) from its context."""
     where = f"stages '{ctx.spec.name}'"
     return MetaActionPlanner(ctx.model_cfg, teacher, ctx.data.root, ctx.cache_dir, where, sidecar_reference)
 
 
 def load_meta_action_planner(
-    export_dir: Path, teacher: Any, request: Any, sidecar_reference: bool = True
+    export_dir: Path, teacher: WorldEngine | None, request: Any, sidecar_reference: bool = True
 ) -> MetaActionPlanner:
     """A trained head back from its export, over the consumed world model (``occtrain eval``)."""
     from occtrain.formats.exports import load_state_strict, read_export
