@@ -132,8 +132,8 @@ def _fmt(value: float | None, digits: int) -> str:
     return "-" if value is None else f"{value:.{digits}f}"
 
 
-def _rows(runs: list[Run]) -> list[tuple[str, str, int, list[str | None], list[tuple[str, str]]]]:
-    """(stage, label, digits, score key per run, baselines) of every headline some run has."""
+def _rows(runs: list[Run]) -> list[tuple[str, str, int, str, list[tuple[str, str]]]]:
+    """(stage, label, digits, score key, baselines) of every headline some run has."""
     stages = list(dict.fromkeys(s for run in runs for s in run.stages))
     rows = []
     for stage in stages:
@@ -146,7 +146,7 @@ def _rows(runs: list[Run]) -> list[tuple[str, str, int, list[str | None], list[t
                 groups = match.groups()
                 bases = [(label, b.format(*groups)) for label, b in headline.baselines]
                 label = headline.label.format(*(_words(g) for g in groups))
-                rows.append((stage, label, headline.digits, [key] * len(runs), bases))
+                rows.append((stage, label, headline.digits, key, bases))
     return rows
 
 
@@ -172,8 +172,8 @@ def report(runs: list[Run], split: str = "val", command: str = "occtrain report"
         "(run 0's samples) |",
         f"|---|---|---|{'---|' if seeds_of_one_recipe else ''}---|",
     ]
-    for stage, label, digits, keys, bases in _rows(runs):
-        values = [run.scores.get(stage, {}).get(key) for run, key in zip(runs, keys)]
+    for stage, label, digits, key, bases in _rows(runs):
+        values = [run.scores.get(stage, {}).get(key) for run in runs]
         have = [v for v in values if v is not None]
         first = next((run.scores[stage] for run in runs if stage in run.scores), {})
         seen: set[str] = set()
