@@ -51,13 +51,23 @@ HEADLINES = (
         ),
     ),
     Headline(
-        r"(plan_\w+|head_\w+|llm_action_tokens|anchor_\w+)_L2_stp3_avg",
+        r"(?!\w*_departing_)(plan_\w+|head_\w+|llm_action_tokens|anchor_\w+)_L2_stp3_avg",
         "plan `{0}`: L2 avg (`stp3`, m)",
         3,
         (
             ("constant velocity", "baseline_constant_velocity_L2_stp3_avg"),
             ("constant velocity", "constant_velocity_L2_stp3_avg"),
             ("standing still", "baseline_stationary_L2_stp3_avg"),
+        ),
+    ),
+    Headline(
+        r"(plan_\w+|head_\w+|llm_action_tokens|anchor_\w+)_departing_L2_stp3_avg",
+        "plan `{0}` where the truth departs from constant velocity (> 1 m at 3 s): L2 avg (`stp3`, m)",
+        3,
+        (
+            ("constant velocity", "baseline_constant_velocity_departing_L2_stp3_avg"),
+            ("constant velocity", "constant_velocity_departing_L2_stp3_avg"),
+            ("standing still", "baseline_stationary_departing_L2_stp3_avg"),
         ),
     ),
     Headline(r"qa_overall", "NuScenes-QA accuracy (%)", 1, (("commonest per type", "baseline_prior_qa_overall"),)),

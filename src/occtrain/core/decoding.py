@@ -25,6 +25,7 @@ from typing import TYPE_CHECKING, Any, NamedTuple, Protocol
 
 import torch
 
+from occtrain.core.ego_steps import EgoStep, EgoTrack
 from occtrain.core.sequence import PayloadSpec, Step, TokenSequence, cat_payload, empty_payload, prompt_of, rows
 from occtrain.core.vocab import JointVocab
 from occtrain.models.attention import allowed_pairs, chunk_allowed, scene_segments
@@ -98,7 +99,7 @@ class DecodingModel(Protocol):
     @property
     def device(self) -> torch.device: ...
 
-    def scene_query_ids(self, last_scene: torch.Tensor | None) -> torch.Tensor: ...
+    def scene_query_ids(self, last_scene: torch.Tensor | None, step: EgoStep | None = None) -> torch.Tensor: ...
 
     def scene_writer(self, recent: torch.Tensor) -> SceneWriter: ...
 
@@ -168,6 +169,10 @@ class _State:
         self.last: Step | None = None  # the output at the last kept token
         #: The code ids of the last scene fed (what ``world.scene_query_ids`` reads), or None.
         self.last_scene: torch.Tensor | None = None
+        #: The ego at the last scene and its next waypoint, as the sequence builder tracks
+        #: them (a prompt's scenes are the waypoints' frame; a generated one is where its
+        #: generated waypoint put the ego).
+        self.ego = EgoTrack()
         self._see_scenes(ids)
 
     def _see_scenes(self, ids: torch.Tensor) -> None:
@@ -231,7 +236,10 @@ def _actions(s: _State, answer: ActionAnswer) -> Program:
             s.queue(ids[-1:])
     s.queue([v.act_close_id])
     xy = v.actions_from_ids(torch.tensor(ids, dtype=torch.long)).reshape(answer.steps, 2)
-    return xy if answer.base is None else xy + torch.tensor(answer.base, dtype=xy.dtype).reshape(answer.steps, 2)
+    if answer.base is not None:
+        xy = xy + torch.tensor(answer.base, dtype=xy.dtype).reshape(answer.steps, 2)
+    s.ego.planned(xy)
+    return xy
 
 
 def _query_block(s: _State, ids: torch.Tensor) -> Program:
@@ -253,7 +261,7 @@ def _scene(s: _State) -> Program:
     if world.frame_separation and int(s.recent[-1]) != v.occ_open_id:
         s.queue([v.occ_open_id])
     if s.next_scene:
-        out = yield from _query_block(s, world.scene_query_ids(s.last_scene))
+        out = yield from _query_block(s, world.scene_query_ids(s.last_scene, s.ego.step()))
         scene_ids, extra = writer.from_queries(out.logits, out.hidden)
         s.queue(scene_ids, s.next_segment, extra)
         s.next_segment += 1
@@ -264,6 +272,7 @@ def _scene(s: _State) -> Program:
             s.queue(scene_ids, 0, extra)
     if world.frame_separation:
         s.queue([v.occ_close_id])
+    s.ego.scene(predicted=True)
     return writer.codes().cpu()
 
 
@@ -280,7 +289,10 @@ def answer_program(s: _State, answer: Answer) -> Program:
         return (yield from _query_block(s, answer.ids))
     if isinstance(answer, Feed):
         ids, payload = prompt_of(s.spec, answer.tokens)
+        before = s.last_scene
         s.queue(ids, 0, payload)
+        if s.last_scene is not before:  # a prompt's scene: the waypoints' frame again
+            s.ego.scene(predicted=False)
         return None
     if isinstance(answer, Flush):
         if s.queued:

@@ -32,6 +32,8 @@ from occtrain.core.decoding import (
     decode,
     decode_batch,
 )
+from occtrain.core.ego_steps import EgoStep
+from occtrain.core.protocols import SceneMover
 from occtrain.core.sequence import IGNORE, PayloadSpec, Step, TokenSequence
 from occtrain.core.vocab import JointVocab
 from occtrain.models import without_peft
@@ -79,6 +81,9 @@ class LMWorldModel(nn.Module):
     #: Under a LoRA adapter its own parts (everything but the LLM) train too; by default
     #: only the adapter does.
     trains_own_parts_with_lora = False
+    #: Moves a scene by the ego's step through the frozen scene encoder (``SceneMover``),
+    #: for query blocks that read it; the engine that holds the encoder sets it.
+    scene_mover: SceneMover | None = None
     #: The causal LM (a transformers model, LoRA-wrapped by peft or not).
     llm: PreTrainedModel
     _device_probe: torch.Tensor
@@ -107,10 +112,11 @@ class LMWorldModel(nn.Module):
     def builder(self) -> SequenceBuilder:
         return SequenceBuilder(self.vocab, self.scene_prediction, self.payload_spec, self.scene_query_ids)
 
-    def scene_query_ids(self, last_scene: torch.Tensor | None) -> torch.Tensor:
+    def scene_query_ids(self, last_scene: torch.Tensor | None, step: EgoStep | None = None) -> torch.Tensor:
         """The query block of a scene predicted at once ("next_scene" mode), given the code
-        ids of the scene before it in the sequence (None when there is none): the learnable
-        ``<scene_q_j>`` tokens. Training and generation both ask here."""
+        ids of the scene before it in the sequence (None when there is none) and the ego's
+        step since it (``core.ego_steps``; None when no waypoint came between): the
+        learnable ``<scene_q_j>`` tokens. Training and generation both ask here."""
         return self.vocab.query_ids()
 
     def scene_writer(self, recent: torch.Tensor) -> SceneWriter:

@@ -29,6 +29,7 @@ import torch
 from torch import nn
 from torchmetrics import MeanMetric
 
+from occtrain.core.plan_subsets import departing_rows, plan_metrics, update_plans
 from occtrain.core.protocols import WorldEngine
 from occtrain.data.clips import Clip, frame_clips, plan_target
 from occtrain.data.layout import DatasetIndex
@@ -37,7 +38,7 @@ from occtrain.errors import ConfigError
 from occtrain.formats.exports import write_export
 from occtrain.formats.io import atomic_write_json, atomic_write_safetensors, is_rank_zero
 from occtrain.formats.occ3d import FUTURE_STEPS, PAST_STEPS
-from occtrain.metrics import PlanningMetric, compute_metrics
+from occtrain.metrics import compute_metrics
 from occtrain.models import count_parameters
 from occtrain.models.planning_heads import PlanningHead, constant_velocity, current_velocity
 from occtrain.progress import progress_bar
@@ -166,16 +167,9 @@ class MetaActionPlanner(nn.Module):
         self._load_teacher_cache()
         self.parsed = MeanMetric()
         self.metrics = nn.ModuleDict(
-            {
-                name: PlanningMetric()
-                for name in (
-                    "head_gt_meta",
-                    "head_generated_meta",
-                    "llm_action_tokens",
-                    "constant_velocity",
-                    "baseline_stationary",
-                )
-            }
+            plan_metrics(
+                ("head_gt_meta", "head_generated_meta", "llm_action_tokens", "constant_velocity", "baseline_stationary")
+            )
         )
 
     def _check_teacher(self, teacher: WorldEngine, where: str) -> None:
@@ -319,13 +313,10 @@ class MetaActionPlanner(nn.Module):
     def validate(self, clips: list[Clip], batch_idx: int, generate_batches: int = -1) -> None:
         anchors = [c.anchor for c in clips]
         gt = plan_target(anchors, self.device)
+        departing = departing_rows(anchors, gt)
 
         def record(name: str, pred: torch.Tensor, rows: list[int]) -> None:
-            if rows:
-                sub = gt.rows(rows)
-                metric = self.metrics[name]
-                assert isinstance(metric, PlanningMetric)
-                metric.update(pred, sub.traj, sub.mask, sub.agents)
+            update_plans(self.metrics, name, pred, gt, departing, rows)
 
         x, rows = self._features(clips, "ground_truth")
         record("head_gt_meta", self.head(**x), rows)

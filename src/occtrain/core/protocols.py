@@ -11,6 +11,8 @@ shows them in use.
   occupancy queries).
 - :class:`WorldEngine`: what family code and the shared operations and scorers may ask of
   the world-model engine (``engine.WorldModelEngine``), which sits above them.
+- :class:`SceneMover`: the scene before a predicted one moved by the ego's step and
+  re-encoded (what ``moved_last_scene`` query blocks hold); the engine makes it.
 - :class:`PromptInputs`: what a sequence builder reads besides a prompt's parts (the
   engine's encodings of a dataset's frames), so a family's own part kinds can be laid out.
 - :class:`Planner`: what the ``planner`` stage trains (OccVLA's MLP head on the meta
@@ -24,6 +26,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
 import torch
+
+from occtrain.core.ego_steps import EgoStep
 
 if TYPE_CHECKING:  # types only: these modules import this one's neighbours
     from occtrain.core.decoding import Answer
@@ -96,6 +100,14 @@ class WorldEngine(Protocol):
         every: bool = False,
         select: Callable[[Clip, list[Part]], bool] | None = None,
     ) -> Iterator[tuple[int, list[Part], list[Part], dict[int, torch.Tensor]]]: ...
+
+
+class SceneMover(Protocol):
+    """The scene before a predicted one, as the ego would see it after its step: the code ids
+    (S,) of that scene -> the code ids of it moved by ``step`` with everything else standing
+    still, through the frozen scene encoder (decoded, shifted, re-encoded)."""
+
+    def __call__(self, code_ids: torch.Tensor, step: EgoStep) -> torch.Tensor: ...
 
 
 class PromptInputs(Protocol):

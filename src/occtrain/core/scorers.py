@@ -20,6 +20,7 @@ import numpy as np
 import torch
 from torchmetrics import MeanMetric
 
+from occtrain.core.plan_subsets import DEPARTING, departing_rows, update_plans
 from occtrain.core.protocols import WorldEngine
 from occtrain.core.shared_tasks import question_of
 from occtrain.data.clips import Actions, Clip, Part, PlanTarget, Scene, text_of
@@ -94,8 +95,13 @@ class BaseScorer:
         pass
 
 
-#: The plan baselines, scored once on every clip any plan is scored on.
-PLAN_BASELINES = {"baseline_constant_velocity": PlanningMetric, "baseline_stationary": PlanningMetric}
+#: The plan baselines, scored once on every clip any plan is scored on (with their twins on
+#: the clips that depart from constant velocity, ``core.plan_subsets``).
+PLAN_BASELINES = {
+    name + subset: PlanningMetric
+    for name in ("baseline_constant_velocity", "baseline_stationary")
+    for subset in ("", DEPARTING)
+}
 
 
 class PlanScorer(BaseScorer):
@@ -105,17 +111,15 @@ class PlanScorer(BaseScorer):
 
     def __init__(self, name: str, alternate: bool = False, record: bool = False):
         self.name, self.alternate, self.record = name, alternate, record
-        self.metrics = {name: PlanningMetric, **PLAN_BASELINES}
+        self.metrics = {name: PlanningMetric, name + DEPARTING: PlanningMetric, **PLAN_BASELINES}
 
     def score(self, ev: Any, item: Item) -> None:
         target, anchor, token = item.target, item.clip.anchor, item.clip.anchor["token"]
+        departing = departing_rows([anchor], target)
         if ev.once(("plan baselines", token)):  # standing still and constant velocity, once a clip
-            ev.metrics["baseline_constant_velocity"].update(
-                constant_velocity([anchor], ev.device), target.traj, target.mask, target.agents
-            )
-            ev.metrics["baseline_stationary"].update(
-                torch.zeros_like(target.traj), target.traj, target.mask, target.agents
-            )
+            cv = constant_velocity([anchor], ev.device)
+            update_plans(ev.metrics, "baseline_constant_velocity", cv, target, departing)
+            update_plans(ev.metrics, "baseline_stationary", torch.zeros_like(target.traj), target, departing)
         actions = [p for p in item.generated if isinstance(p, Actions)]
         if not actions:
             return
@@ -124,7 +128,7 @@ class PlanScorer(BaseScorer):
         pred[0, : len(xy)] = torch.tensor(xy[: pred.shape[1]], dtype=torch.float32, device=ev.device)
         plan_mask = target.mask.clone()
         plan_mask[0, len(xy) :] = False
-        ev.metrics[self.name].update(pred, target.traj, plan_mask, target.agents)
+        update_plans(ev.metrics, self.name, pred, PlanTarget(target.traj, plan_mask, target.agents), departing)
         ev.keep_plan_picture(self.name, anchor, np.asarray(xy), target.traj[0][target.mask[0]].cpu().numpy())
         if self.record and ev.record:
             ev.predictions["planning"][token] = pred[0].tolist()

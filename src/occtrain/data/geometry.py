@@ -43,11 +43,17 @@ def driving_command(future: np.ndarray, mask: np.ndarray) -> str:
     return "go straight"
 
 
+def voxel_shift(offset_xy: tuple[float, float]) -> tuple[int, int]:
+    """A move of ``offset_xy`` metres in whole voxels, as ``moved_scene`` applies it."""
+    di, dj = (round(float(v) / VOXEL_SIZE) for v in offset_xy)
+    return di, dj
+
+
 def moved_scene(semantics: torch.Tensor, offset_xy: tuple[float, float]) -> torch.Tensor:
     """A label volume (X, Y, Z) as an ego moved by ``offset_xy`` metres (its own axes, same
     heading) would see it if nothing else moved: shifted by whole voxels, free where the
     new view reaches past the old grid."""
-    di, dj = (round(float(v) / VOXEL_SIZE) for v in offset_xy)
+    di, dj = voxel_shift(offset_xy)
     out = torch.full_like(semantics, FREE)
     nx, ny = semantics.shape[:2]
     if abs(di) >= nx or abs(dj) >= ny:

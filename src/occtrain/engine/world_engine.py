@@ -30,6 +30,7 @@ from occtrain.core.vocab import JointVocab
 from occtrain.data.clips import Actions, Branch, Clip, Part, Scene, Text, clip_rng
 from occtrain.data.layout import DatasetIndex
 from occtrain.data.shards import dataset_fingerprint
+from occtrain.engine.moved_scenes import MovedScenes
 from occtrain.errors import DataError
 from occtrain.formats.io import atomic_write_safetensors, is_rank_zero
 from occtrain.models.camera_encoder import MultiViewEncoder
@@ -136,6 +137,10 @@ class WorldModelEngine(torch.nn.Module):
         self.image_cache: dict[str, torch.Tensor] | None = None
         self.data_index: DatasetIndex | None = None
         self._scene_cache_root: Path | None = None
+        self._frame_of_codes: dict[bytes, str] = {}
+        if isinstance(self.scene_encoder, SceneEncoder) and self.scene_encoder.discrete:
+            # What query blocks that move the scene before by the ego's step read through.
+            world.scene_mover = MovedScenes(world.vocab, self.scene_encoder, self.observed_labels)
 
     @property
     def vocab(self) -> JointVocab:
@@ -234,6 +239,18 @@ class WorldModelEngine(torch.nn.Module):
             index, cache_file, "encoding scenes with the frozen scene encoder", encode, batch_size
         )
         self._scene_cache_root = index.root
+
+    def observed_labels(self, codes: torch.Tensor) -> torch.Tensor | None:
+        """The label volume (X, Y, Z) of the dataset frame whose cached scene row is ``codes``
+        (flat), or None (no cache, or codes no frame has: a generated scene)."""
+        if self.scene_cache is None or self.data_index is None:
+            return None
+        if len(self._frame_of_codes) != len(self.scene_cache):
+            self._frame_of_codes = {
+                row.reshape(-1).long().numpy().tobytes(): token for token, row in self.scene_cache.items()
+            }
+        token = self._frame_of_codes.get(codes.reshape(-1).long().cpu().numpy().tobytes())
+        return None if token is None else self.voxels(token).long()
 
     @torch.no_grad()
     def decode_scenes(self, scenes: torch.Tensor) -> torch.Tensor:

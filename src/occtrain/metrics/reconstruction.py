@@ -14,27 +14,45 @@ class ReconstructionMetrics(torch.nn.Module):
     """IoU/mIoU in the ``occworld`` convention (with the movable classes' mIoU, where motion
     separation should show) and the ``occ3d`` one, an empty scene as the trivial baseline,
     and each codebook's usage and perplexity. ``codebooks``: name -> size, in the order of
-    the tokenizer's code grids."""
+    the tokenizer's code grids. With ``oracle``, also the best reconstruction the encoder's
+    budget allows (``baseline_budget_oracle_occworld``: what a point-set encoder's points
+    reach placed on occupied voxels with their true classes), beside what it reaches."""
 
-    def __init__(self, codebooks: dict[str, int]):
+    def __init__(self, codebooks: dict[str, int], oracle: bool = False):
         super().__init__()
+        movable = {"movable": MOVABLE_CLASSES}
         self.scores = torch.nn.ModuleDict(
             {
-                "occworld": OccupancyMetric(convention="occworld", subsets={"movable": MOVABLE_CLASSES}),
+                "occworld": OccupancyMetric(convention="occworld", subsets=movable),
                 "occ3d": OccupancyMetric(convention="occ3d"),
                 "baseline_free_occworld": OccupancyMetric(convention="occworld"),
+                **(
+                    {"baseline_budget_oracle_occworld": OccupancyMetric(convention="occworld", subsets=movable)}
+                    if oracle
+                    else {}
+                ),
             }
         )
         self.usage = torch.nn.ModuleDict({name: CodebookUsage(size) for name, size in codebooks.items()})
 
     def update(
-        self, pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor, codes: torch.Tensor | None = None
+        self,
+        pred: torch.Tensor,
+        target: torch.Tensor,
+        mask: torch.Tensor,
+        codes: torch.Tensor | None = None,
+        oracle: torch.Tensor | None = None,
     ) -> None:
         """Label volumes (B, X, Y, Z), ``mask_camera``, and the codes: (B, h, w) for one
-        codebook, (B, codebooks, h, w) for several, None for a continuous encoder."""
+        codebook, (B, codebooks, h, w) for several, None for a continuous encoder; the
+        budget's oracle reconstruction (B, X, Y, Z) when the metrics report it."""
         self.scores["occworld"].update(pred, target)
         self.scores["occ3d"].update(pred, target, mask)
         self.scores["baseline_free_occworld"].update(torch.full_like(target, FREE), target)
+        if "baseline_budget_oracle_occworld" in self.scores:
+            if oracle is None:
+                raise ValueError("these reconstruction metrics report the budget's oracle: pass its labels")
+            self.scores["baseline_budget_oracle_occworld"].update(oracle, target)
         if codes is None:
             return
         grids = codes if codes.dim() == 4 else codes[:, None]

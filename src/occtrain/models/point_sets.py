@@ -30,22 +30,30 @@ def voxel_centres(indices: torch.Tensor) -> torch.Tensor:
 
 
 def occupied_points(
-    semantics: np.ndarray | torch.Tensor, count: int, rng: np.random.Generator
+    semantics: np.ndarray | torch.Tensor, count: int, rng: np.random.Generator, keep: tuple[int, ...] = ()
 ) -> tuple[torch.Tensor, torch.Tensor, int]:
     """A sparsified ground-truth point set of one label volume (X, Y, Z): the centres of
     ``count`` occupied voxels drawn without replacement (every one when there are fewer),
     their classes, and how many are real (the rest repeat the first, to stack batches).
-    Returns Float[count, 3], Long[count], n."""
+    Voxels of the ``keep`` classes are all taken before any other is drawn (up to
+    ``count``): a uniform draw leaves a car a handful of points among a scene's 10^5
+    voxels. Returns Float[count, 3], Long[count], n."""
     sem = torch.as_tensor(np.asarray(semantics)).long()
     occupied = (sem != FREE).nonzero()
     n = min(count, occupied.shape[0])
     if n == 0:
         return torch.zeros(count, 3), torch.zeros(count, dtype=torch.long), 0
-    pick = (
-        torch.from_numpy(rng.choice(occupied.shape[0], size=n, replace=False))
-        if occupied.shape[0] > count
-        else torch.arange(n)
-    )
+    if occupied.shape[0] <= count:
+        pick = torch.arange(n)
+    else:
+        classes = sem[occupied[:, 0], occupied[:, 1], occupied[:, 2]]
+        kept = torch.isin(classes, torch.tensor(keep, dtype=torch.long)).nonzero().squeeze(1)
+        if len(kept) >= count:
+            pick = kept[torch.from_numpy(rng.choice(len(kept), size=count, replace=False))]
+        else:
+            rest = torch.isin(classes, torch.tensor(keep, dtype=torch.long), invert=True).nonzero().squeeze(1)
+            drawn = rest[torch.from_numpy(rng.choice(len(rest), size=count - len(kept), replace=False))]
+            pick = torch.cat([kept, drawn]) if len(kept) else drawn
     chosen = occupied[pick]
     chosen = torch.cat([chosen, chosen[:1].expand(count - n, 3)]) if n < count else chosen
     return voxel_centres(chosen), sem[chosen[:, 0], chosen[:, 1], chosen[:, 2]], n

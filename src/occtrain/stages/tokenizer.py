@@ -58,7 +58,7 @@ def reconstruction_metrics(model: Any) -> ReconstructionMetrics:
     """Both conventions, an empty scene as the baseline, code use per codebook (motion and
     static for the MS-VAE; none for a continuous encoder)."""
     if not getattr(model, "discrete", True):
-        return ReconstructionMetrics({})
+        return ReconstructionMetrics({}, oracle=bool(getattr(model, "budget_oracle", False)))
     return ReconstructionMetrics(dict(zip(model.codebook_names, model.codebook_sizes)))
 
 
@@ -166,7 +166,7 @@ class TokenizerStage(Stage):
                 (sem[i].to(torch.uint8).cpu().numpy(), pred[i].to(torch.uint8).cpu().numpy())
                 for i in range(min(2, len(sem)))
             ]
-        self.recon.update(pred, sem, batch["mask_camera"], out.codes)
+        self.recon.update(pred, sem, batch["mask_camera"], out.codes, out.oracle)
         self.val_means.update("val/loss", out.losses["loss"], sem.shape[0])
 
     def on_validation_epoch_end(self) -> None:
@@ -208,7 +208,8 @@ class TokenizerStage(Stage):
                 batch = frames_batch(index, frames[i : i + size], cameras=arch.reads_cameras)
                 sem = batch["semantics"].long()
                 if arch.reads_cameras:
-                    recon.update(model(batch, index, None).prediction(), sem, batch["mask_camera"])
+                    out = model(batch, index, None)
+                    recon.update(out.prediction(), sem, batch["mask_camera"], oracle=out.oracle)
                 else:
                     codes = model.encode(sem)
                     recon.update(model.decode(codes).argmax(1), sem, batch["mask_camera"], codes)

@@ -25,6 +25,10 @@ def scored_run(root: Path, seed: int, forecast: float, qa: float, version: str =
             "forecast_occworld_mIoU_1s": forecast,
             "baseline_copy_reconstruction_forecast_occworld_mIoU_1s": 7.0,
             "forecast_occworld_frames_1s": 64.0,  # not a headline
+            "plan_direct_L2_stp3_avg": 0.5,
+            "baseline_constant_velocity_L2_stp3_avg": 0.6,
+            "plan_direct_departing_L2_stp3_avg": 1.5 + seed,
+            "baseline_constant_velocity_departing_L2_stp3_avg": 2.0,
         },
         "instruct": {"qa_overall": qa, "baseline_prior_qa_overall": 41.25},
     }
@@ -51,6 +55,9 @@ def test_two_seeds_of_a_recipe_give_the_mean_the_spread_and_the_stamps(tmp_path)
     assert (
         "| instruct | NuScenes-QA accuracy (%) | 54.0 / 52.0 | 53.0 (52.0 to 54.0) | commonest per type 41.2 |" in lines
     )
+    assert "| pretrain | plan `plan_direct`: L2 avg (`stp3`, m) | 0.500 / 0.500 | 0.500 (0.500 to 0.500) " in res.stdout
+    departing = "plan `plan_direct` where the truth departs from constant velocity (> 1 m at 3 s): L2 avg (`stp3`, m)"
+    assert f"| pretrain | {departing} | 1.500 / 2.500 | 2.000 (1.500 to 2.500) | constant velocity 2.000 |" in lines
     assert "frames" not in res.stdout
     assert "| pretrain | 100 / 101 |" in lines and "| all stages | 150 / 151 |" in lines
 

@@ -56,8 +56,9 @@ class OccLLaMATokenizerConfig(QuantizerFields):
 
 
 #: What a scene's query block is made of ("next_scene" mode): the paper's learnable
-#: ``<scene_q_j>`` tokens, or the code tokens of the scene before it.
-SCENE_QUERIES = ("learned", "last_scene")
+#: ``<scene_q_j>`` tokens, the code tokens of the scene before it, or those of the scene
+#: before it moved by the ego's step.
+SCENE_QUERIES = ("learned", "last_scene", "moved_last_scene")
 
 
 @dataclass
@@ -68,6 +69,11 @@ class OccLLaMAWorldConfig:
     #: ``last_scene`` (not the paper's): query j is the code token at cell j of the scene
     #: before it, at the new scene's positions, so keeping a cell's code is the identity;
     #: the model then learns what changes between scenes rather than each scene anew.
+    #: ``moved_last_scene`` (not the paper's): the scene before, moved by the ego's step to
+    #: the new scene (the waypoint laid out or generated before it) and re-encoded through
+    #: the frozen tokenizer, so the ego's own motion, most of what changes between frames,
+    #: is in the queries rather than left for the model to learn; unmoved when no waypoint
+    #: came between.
     scene_queries: str = "learned"
 
     def validate(self, where: str, inputs: Any) -> None:

@@ -14,7 +14,9 @@ codebook vector, instead of the embedding-table row; the lm-head keeps one row p
 
 Scene queries (``model.occllama.scene_queries``). The paper's query block is learnable
 ``<scene_q_j>`` tokens; ``last_scene`` makes it the code tokens of the scene before it,
-so predicting an unchanged cell is copying its own input.
+so predicting an unchanged cell is copying its own input; ``moved_last_scene`` moves that
+scene by the ego's step first (decoded, shifted, re-encoded by the frozen tokenizer), so
+the ego's own motion needs no learning either.
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from occtrain.core.decoding import CodeScene
+from occtrain.core.ego_steps import EgoStep
 from occtrain.core.lm_world_model import LMWorldModel, WorldInputs
 from occtrain.core.vocab import JointVocab
 from occtrain.families.occllama.config import OccLLaMAWorldConfig
@@ -56,11 +59,20 @@ class OccLLaMAWorldModel(LMWorldModel):
         dim = codebook.shape[1]
         self.occ_proj = nn.Sequential(nn.LayerNorm(dim), nn.Linear(dim, hidden), nn.GELU(), nn.Linear(hidden, hidden))
 
-    def scene_query_ids(self, last_scene: torch.Tensor | None) -> torch.Tensor:
-        """The scene before, under ``last_scene`` queries (the learnable ones when there is none)."""
-        if self.cfg.scene_queries == "last_scene" and last_scene is not None:
-            return last_scene
-        return super().scene_query_ids(last_scene)
+    def scene_query_ids(self, last_scene: torch.Tensor | None, step: EgoStep | None = None) -> torch.Tensor:
+        """The scene before under ``last_scene`` queries, moved by the ego's step under
+        ``moved_last_scene``; the learnable queries when there is no scene before."""
+        mode = self.cfg.scene_queries
+        if mode == "learned" or last_scene is None:
+            return super().scene_query_ids(last_scene, step)
+        if mode == "moved_last_scene" and step is not None:
+            if self.scene_mover is None:
+                raise ValueError(
+                    "moved_last_scene queries move scenes through the frozen tokenizer: "
+                    "build the world model through the engine"
+                )
+            return self.scene_mover(last_scene, step).to(last_scene.device)
+        return last_scene
 
     def scene_writer(self, recent: torch.Tensor) -> CodeScene:
         """What writes the next generated scene; ``recent`` are the last ids before it."""

@@ -54,11 +54,16 @@ class PatchSequenceBuilder(SequenceBuilder):
         super().add(ids, supervise, seg, query_target, payload)
         self._fusion = None
 
-    def actions(self, xy: torch.Tensor, supervise: bool = False) -> PatchSequenceBuilder:
-        super().actions(xy, supervise)
-        # The bin centre, not the raw waypoint: generation fuses what it reads back from its bins.
-        xy = torch.as_tensor(xy, dtype=torch.float32).reshape(-1, 2)
-        self._fusion = self.vocab.actions_from_ids(self.vocab.action_ids(xy))[-1]
+    def actions(
+        self, xy: torch.Tensor, supervise: bool = False, base: tuple[tuple[float, float], ...] | None = None
+    ) -> PatchSequenceBuilder:
+        super().actions(xy, supervise, base)
+        # What was written (the offset from ``base`` when given), read back from its bins:
+        # generation fuses what it reads back from the bins it wrote.
+        written = torch.as_tensor(xy, dtype=torch.float32).reshape(-1, 2)
+        if base is not None:
+            written = written - torch.as_tensor(base, dtype=torch.float32).reshape(-1, 2)
+        self._fusion = self.vocab.actions_from_ids(self.vocab.action_ids(written))[-1]
         return self
 
     def branch(self) -> PatchSequenceBuilder:

@@ -40,6 +40,7 @@ from torchmetrics import MeanMetric
 from occtrain.config import to_object
 from occtrain.core.builder import collate
 from occtrain.core.decoding import TextAnswer
+from occtrain.core.plan_subsets import departing_rows, plan_metrics, update_plans
 from occtrain.core.shared_tasks import PLAN_PRIORS, plan_base
 from occtrain.data.clips import Clip, Text, frame_clips, plan_target
 from occtrain.data.layout import DatasetIndex
@@ -49,7 +50,7 @@ from occtrain.families.sparseoccvla.world_model import EGO_FEATURES, ego_state
 from occtrain.formats.exports import check_section, load_state_strict, read_export, write_export
 from occtrain.formats.io import atomic_write_safetensors, is_rank_zero
 from occtrain.formats.occ3d import FUTURE_STEPS
-from occtrain.metrics import PlanningMetric, compute_metrics
+from occtrain.metrics import compute_metrics
 from occtrain.models import count_parameters
 from occtrain.models.planning_heads import constant_velocity
 from occtrain.progress import progress_bar
@@ -258,9 +259,8 @@ class AnchorDiffusionPlanner(nn.Module):
             self.scorer = nn.Linear(d, 1)
         self._decisions: dict[str, dict[str, torch.Tensor]] = {}
         self._load_cache()
-        self.metrics = nn.ModuleDict(
-            {n: PlanningMetric() for n in ("plan", "plan_top_anchor", "constant_velocity", "baseline_stationary")}
-        )
+        names = ("plan", "plan_top_anchor", "constant_velocity", "baseline_stationary")
+        self.metrics = nn.ModuleDict(plan_metrics(names))
         self.positive_hit = MeanMetric()
 
     @classmethod
@@ -444,13 +444,14 @@ class AnchorDiffusionPlanner(nn.Module):
         anchors = [c.anchor for c in clips]
         gt = plan_target(anchors, self.device)
         plan, top, logits = self.plan(clips)
+        departing = departing_rows(anchors, gt)
         for name, pred in (
             ("plan", plan),
             ("plan_top_anchor", top),
             ("constant_velocity", constant_velocity(anchors, self.device)),
             ("baseline_stationary", torch.zeros_like(gt.traj)),
         ):
-            self.metrics[name].update(pred, gt.traj, gt.mask, gt.agents)
+            update_plans(self.metrics, name, pred, gt, departing)
         # How often the scorer picks the anchor nearest the ground truth.
         hit = (logits.argmax(-1) == self.positives(gt.traj - self.base(clips), gt.mask)).float()
         self.positive_hit.update(100.0 * hit.mean(), len(clips))

@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from occtrain.errors import ConfigError
+from occtrain.formats.occ3d import CLASS_INDEX, MOVABLE_CLASSES
 
 
 @dataclass
@@ -50,6 +51,11 @@ class SparseOccConfig:
     position_encoding: bool = True
     #: Ground-truth points sampled per frame from its occupied voxels (the sparsified G).
     gt_points: int = 2048
+    #: Take every voxel of a movable class (cars, pedestrians, ...) into the ground truth
+    #: before drawing the rest (not the paper's, which supervises with every voxel: a
+    #: uniform draw of a few thousand of a scene's 10^5 leaves a car a handful of points,
+    #: and the encoder learns no movable object). False: the uniform draw.
+    keep_movable: bool = True
     #: Future frames whose occupied voxels, moved into the current frame by the ego poses,
     #: join its ground truth (App. A's extended-range supervision; 0: the current frame only).
     extended_range: int = 0
@@ -65,6 +71,10 @@ class SparseOccConfig:
     @property
     def layers(self) -> int:
         return len(self.points_per_layer)
+
+    def kept_classes(self) -> tuple[int, ...]:
+        """The classes the ground-truth draw takes whole (``keep_movable``)."""
+        return tuple(CLASS_INDEX[name] for name in MOVABLE_CLASSES) if self.keep_movable else ()
 
     def validate(self, where: str) -> None:
         positive = (

@@ -284,6 +284,8 @@ class SparseOccEncoder(nn.Module):
     """The Sparse Occupancy Encoder, its connector and its distillation branch (see the module docstring)."""
 
     discrete = False
+    #: Evaluation reports what its point budget reaches placed on occupied voxels (``oracle``).
+    budget_oracle = True
 
     def __init__(self, cfg: SparseOccConfig):
         super().__init__()
@@ -292,12 +294,21 @@ class SparseOccEncoder(nn.Module):
         self.backbone = ImageBackbone(cfg)
         scales = len(self.backbone.lateral)
         self.queries = nn.Parameter(torch.randn(cfg.queries, cfg.dim) * 0.02)
-        low, high = torch.tensor(RANGE_MIN, dtype=torch.float32), torch.tensor(RANGE_MAX, dtype=torch.float32)
-        self.initial_positions = nn.Parameter(low + torch.rand(cfg.queries, 3) * (high - low))
+        # P_0 in [-1, 1] of the grid's half-ranges about its centre, not in metres: an
+        # optimizer step then moves a query by the learning rate times 40 m, where in
+        # metres it moved by the learning rate (1e-3 m) and the initial layout never left
+        # its random draw; weight decay pulls toward the grid's centre, the ego.
+        self.initial_unit = nn.Parameter(torch.rand(cfg.queries, 3) * 2 - 1)
+        self.register_load_state_dict_pre_hook(_metres_to_unit)
         self.pos_embed = PositionEmbedding(cfg.dim)
         self.layers = nn.ModuleList(EncoderLayer(cfg, scales, m) for m in cfg.points_per_layer)
         self.connector = Connector(cfg.dim, cfg.token_dim, cfg.position_encoding)
         self.distillation: Distillation | None = None
+
+    @property
+    def initial_positions(self) -> torch.Tensor:
+        """P_0 (N, 3) in metres, ego frame."""
+        return _MID.to(self.initial_unit) + self.initial_unit * _HALF.to(self.initial_unit)
 
     # -- what a world model reads
     @property
@@ -349,7 +360,9 @@ class SparseOccEncoder(nn.Module):
         cfg = self.cfg
         cams = camera_frames(_checked(batch, cfg), index, cfg.frames)
         q, pos, outputs = self.encode_views(cams)
-        gt, gt_classes, valid = ground_truth(batch, index, cfg.gt_points, cfg.extended_range, int(batch.get("seed", 0)))
+        gt, gt_classes, valid = ground_truth(
+            batch, index, cfg.gt_points, cfg.extended_range, int(batch.get("seed", 0)), cfg.kept_classes()
+        )
         dev = q.device
         gt, gt_classes, valid = gt.to(dev), gt_classes.to(dev), valid.to(dev)
         chamfer = q.new_zeros(())
@@ -365,10 +378,25 @@ class SparseOccEncoder(nn.Module):
             losses["distill"] = self.distill(q, pos, cams, teacher)
             loss = loss + cfg.distill_weight * losses["distill"]
         losses = {"loss": loss, **losses}
-        labels = None
+        labels = oracle = None
         if not self.training:
             labels = self.voxelize(*self.decode_points(q, pos))
-        return TokenizerOutput(None, losses, {}, None, labels)
+            oracle = self.oracle(batch, int(batch.get("seed", 0))).to(labels.device)
+        return TokenizerOutput(None, losses, {}, None, labels, oracle)
+
+    @property
+    def point_budget(self) -> int:
+        """The points the last layer decodes: queries times its points per query."""
+        return self.cfg.queries * self.cfg.points_per_layer[-1]
+
+    def oracle(self, batch: dict[str, Any], seed: int) -> torch.Tensor:
+        """The budget's oracle reconstruction (B, X, Y, Z): ``point_budget`` occupied voxel
+        centres of each frame (drawn as the ground truth is, movable classes first when
+        kept) with their true classes, voxelized as the decoded points are."""
+        points, classes, real = ground_truth(batch, None, self.point_budget, 0, seed, self.cfg.kept_classes())
+        return torch.stack(
+            [voxelize(p[r], c[r], tuple(self.cfg.voxel_extent)) for p, c, r in zip(points, classes, real)]
+        )
 
     def distill(self, q: torch.Tensor, pos: torch.Tensor, cams: CameraFrames, teacher: nn.Module) -> torch.Tensor:
         """Eq. 3 on the current frame: the teacher's features read at the queries' projections."""
@@ -403,6 +431,17 @@ class SparseOccEncoder(nn.Module):
         )
         q, pos, _ = self.encode_views(cams)
         return torch.cat([pos, q], -1)
+
+
+_MID = (torch.tensor(RANGE_MIN, dtype=torch.float32) + torch.tensor(RANGE_MAX, dtype=torch.float32)) / 2
+_HALF = (torch.tensor(RANGE_MAX, dtype=torch.float32) - torch.tensor(RANGE_MIN, dtype=torch.float32)) / 2
+
+
+def _metres_to_unit(module: nn.Module, state: dict, prefix: str, *args: Any) -> None:
+    """Exports and checkpoints written before P_0 was kept in grid units hold it in metres."""
+    old = state.pop(prefix + "initial_positions", None)
+    if old is not None and prefix + "initial_unit" not in state:
+        state[prefix + "initial_unit"] = (old - _MID.to(old)) / _HALF.to(old)
 
 
 def _checked(batch: dict[str, Any], cfg: SparseOccConfig) -> dict[str, Any]:

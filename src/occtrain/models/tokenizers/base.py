@@ -21,7 +21,9 @@ class TokenizerOutput:
     stats: scalar tensors to log (codebook usage fraction, perplexity);
     codes: (B, h, w) token ids (None for a continuous encoder);
     labels: the reconstruction (B, 200, 200, 16) itself, when it is not the argmax of
-    ``logits`` (a point-set encoder voxelizes its points).
+    ``logits`` (a point-set encoder voxelizes its points);
+    oracle: in evaluation, the best reconstruction the encoder's budget allows (a point-set
+    encoder's point count placed on occupied voxels), for a model with ``budget_oracle``.
     """
 
     logits: torch.Tensor | None
@@ -29,6 +31,7 @@ class TokenizerOutput:
     stats: dict[str, torch.Tensor]
     codes: torch.Tensor | None
     labels: torch.Tensor | None = None
+    oracle: torch.Tensor | None = None
 
     def prediction(self) -> torch.Tensor:
         """The reconstructed label volumes (B, 200, 200, 16)."""

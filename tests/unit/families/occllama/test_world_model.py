@@ -414,3 +414,59 @@ def test_generated_scenes_read_the_queries_training_reads(vocab, queries):
     logits = world(collate([seq], vocab.pad_id)).logits[0][seq.segment_ids < 0]
     picked = torch.cat([vocab.pick_scene(logits[:9]), vocab.pick_scene(logits[9:])]) - vocab.occ_start
     assert torch.equal(picked, torch.cat([first, second]))
+
+
+class ShiftingMover:
+    """A scene mover that records what it is asked and answers each cell's next code."""
+
+    def __init__(self, vocab):
+        self.vocab, self.asked = vocab, []
+
+    def __call__(self, code_ids, step):
+        self.asked.append((self.vocab.codes_from_ids(code_ids).tolist(), step))
+        return self.vocab.occ_ids((self.vocab.codes_from_ids(code_ids.cpu()) + 1) % 16)
+
+
+def test_moved_last_scene_queries_are_the_scene_before_moved_by_the_ego_step(vocab):
+    """``scene_queries: moved_last_scene``: a predicted scene's query block is the scene
+    before it moved by the waypoint laid out between them minus where the ego stood (the
+    anchor's origin, then the last predicted waypoint); unmoved with no waypoint between."""
+    v = vocab
+    world = make_world(vocab, "next_scene", queries="moved_last_scene")
+    world.scene_mover = mover = ShiftingMover(v)
+    seq = (
+        world.builder()
+        .scene(CTX)
+        .actions(XY[1:], False)  # the ego's past: replaced by the plan's first waypoint below
+        .actions(XY[:1], True)
+        .scene(TARGET, True)
+        .actions(XY[1:], True)
+        .scene(CTX, True)
+        .scene(TARGET, True)
+        .build()
+    )
+    assert mover.asked == [(CTX.tolist(), (2.0, -1.0)), (TARGET.tolist(), (2.0, 4.0))]
+    queries = seq.input_ids[seq.segment_ids < 0].reshape(3, 9)
+    assert queries[0].tolist() == v.occ_ids((CTX + 1) % 16).tolist()
+    assert queries[1].tolist() == v.occ_ids((TARGET + 1) % 16).tolist()
+    assert queries[2].tolist() == v.occ_ids(CTX).tolist()  # no waypoint between: the scene as it was
+    world.scene_mover = None
+    with pytest.raises(ValueError, match="through the engine"):
+        world.builder().scene(CTX).actions(XY[:1], True).scene(TARGET, True)
+
+
+def test_generated_scenes_read_the_moved_queries_training_reads(vocab):
+    """Generation moves the scene before by the waypoint it generated, as training moves it
+    by the laid-out one: each generated scene is the greedy pick of the training forward
+    of the generated sequence at its query block."""
+    world = make_world(vocab, "next_scene", seed=5, queries="moved_last_scene").eval()
+    world.scene_mover = mover = ShiftingMover(vocab)
+    d = world.decoder(world.builder().scene(TARGET).scene(CTX).build().input_ids)
+    a1, first, a2, second = d.actions(1), d.scene(), d.actions(1), d.scene()
+    seq = world.builder().scene(TARGET).scene(CTX).actions(a1, True).scene(first, True)
+    seq = seq.actions(a2, True).scene(second, True).build()
+    steps = [step for _, step in mover.asked]
+    assert steps[:2] == [tuple(a1[0].tolist()), tuple((a2[0] - a1[0]).tolist())] and steps[2:] == steps[:2]
+    logits = world(collate([seq], vocab.pad_id)).logits[0][seq.segment_ids < 0]
+    picked = torch.cat([vocab.pick_scene(logits[:9]), vocab.pick_scene(logits[9:])]) - vocab.occ_start
+    assert torch.equal(picked, torch.cat([first, second]))

@@ -76,6 +76,20 @@ def test_occupied_points_are_voxel_centres_of_the_labels():
     assert got == {(3, 4, 5): 4, (100, 50, 2): 11}
 
 
+def test_kept_classes_are_all_drawn_before_the_rest():
+    """A uniform draw of 50 of 10,003 voxels would keep a 3-voxel car about once in 70 draws;
+    with its class kept every car voxel is in, and the rest of the budget is drawn."""
+    sem = np.full(GRID_SHAPE, FREE, np.uint8)
+    sem[:100, :100, 0] = 11  # 10,000 road voxels
+    sem[150, 150, :3] = 4  # a 3-voxel car
+    points, classes, n = occupied_points(sem, 50, np.random.default_rng(0), keep=(4,))
+    assert n == 50 and int((classes == 4).sum()) == 3 and int((classes == 11).sum()) == 47
+    uniform = occupied_points(sem, 50, np.random.default_rng(0))[1]
+    assert int((uniform == 4).sum()) < 3
+    only_cars = occupied_points(sem, 2, np.random.default_rng(0), keep=(4,))[1]
+    assert only_cars.tolist() == [4, 4]  # more kept voxels than the budget: drawn among them
+
+
 # ----------------------------------------------------------------------------- cameras
 
 
@@ -508,3 +522,53 @@ def test_earlier_camera_frames_follow_the_batch_to_its_device(synth_dataset):
         t.device.type == "meta" for t in (frames.images, frames.intrinsics, frames.cam_to_ego, frames.current_to_frame)
     )
     assert frames.images.shape[1] == 2
+
+
+def test_initial_positions_learn_in_grid_units_and_old_exports_read_back_in_metres():
+    """P_0 is kept in [-1, 1] of the grid's half-ranges: one Adam step at lr 1e-2 moves a
+    query by 0.4 m in x (it moved by 1 cm when kept in metres); a state dict that holds P_0
+    in metres (an export from before) loads to the same positions."""
+    from occtrain.families.sparseoccvla.config import SparseOccConfig
+    from occtrain.families.sparseoccvla.encoder import SparseOccEncoder
+
+    torch.manual_seed(0)
+    cfg = SparseOccConfig(queries=4, dim=8, heads=2, points_per_layer=[2, 3], mixing_groups=2)
+    enc = SparseOccEncoder(cfg)
+    before = enc.initial_positions.detach().clone()
+    assert (before[:, :2].abs() <= 40).all() and (before[:, 2] >= -1).all() and (before[:, 2] <= 5.4).all()
+    opt = torch.optim.Adam([enc.initial_unit], lr=1e-2)
+    enc.initial_positions[:, 0].sum().backward()
+    opt.step()
+    moved = (enc.initial_positions.detach() - before)[:, 0]
+    torch.testing.assert_close(moved, torch.full((4,), -0.4), atol=1e-4, rtol=0)
+    old = {k: v for k, v in enc.state_dict().items() if k != "initial_unit"}
+    old["initial_positions"] = enc.initial_positions.detach().clone()
+    again = SparseOccEncoder(cfg)
+    again.load_state_dict(old)
+    torch.testing.assert_close(again.initial_positions, enc.initial_positions)
+
+
+def test_the_budget_oracle_places_the_last_layers_points_on_occupied_voxels():
+    """Evaluation reports the oracle of the encoder's point budget: queries x last-layer
+    points on occupied voxels with their classes, voxelized as the decoded points are: a
+    budget that covers every occupied voxel reconstructs the frame exactly."""
+    from occtrain.families.sparseoccvla.config import SparseOccConfig
+    from occtrain.families.sparseoccvla.encoder import SparseOccEncoder
+    from occtrain.metrics.reconstruction import ReconstructionMetrics
+
+    cfg = SparseOccConfig(queries=4, dim=8, heads=2, points_per_layer=[2, 3], mixing_groups=2, voxel_extent=[1, 1, 1])
+    enc = SparseOccEncoder(cfg)
+    assert enc.point_budget == 12
+    sem = torch.full((1, *GRID_SHAPE), FREE, dtype=torch.uint8)
+    sem[0, 100, 100, :3] = 4
+    sem[0, 10:12, 20:24, 0] = 11  # 3 + 8 = 11 occupied voxels: the budget of 12 covers them
+    batch = {"semantics": sem, "meta": [{"token": "t0"}]}
+    oracle = enc.oracle(batch, seed=0)
+    assert torch.equal(oracle, sem.long())
+    metrics = ReconstructionMetrics({}, oracle=True)
+    metrics.update(torch.full_like(oracle, FREE), sem.long(), torch.ones_like(sem, dtype=torch.bool), oracle=oracle)
+    out = metrics.compute()
+    assert out["baseline_budget_oracle_occworld_IoU"] == 100.0 and out["occworld_IoU"] == 0.0
+    assert out["baseline_budget_oracle_occworld_movable_mIoU"] == 100.0
+    with pytest.raises(ValueError, match="oracle"):
+        metrics.update(oracle, sem.long(), torch.ones_like(sem, dtype=torch.bool))

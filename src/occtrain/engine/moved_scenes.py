@@ -1,0 +1,76 @@
+"""The scene before a predicted one, moved by the ego's step through the frozen scene
+tokenizer: what ``moved_last_scene`` query blocks hold (``core.protocols.SceneMover``).
+
+A scene's labels are shifted by the step in whole voxels (``data.geometry.moved_scene``:
+free where the new view reaches past the old grid, the heading kept) and encoded again.
+The labels are the observed ones when the codes are those of a dataset frame (``observed``:
+a prompt's scenes, and in training every scene before a predicted one), else the scene's
+codes decoded (a generated scene). Decoding costs a dozen encodings, so training, which
+moves only observed scenes, never decodes, and generation decodes only what it generated.
+The results are kept (keyed by the codes and the whole-voxel shift, all they depend on):
+training asks for the same scenes moved by the same true steps every epoch; up to
+``capacity`` entries, the oldest dropped first.
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from collections.abc import Callable
+
+import torch
+
+from occtrain.core.ego_steps import EgoStep
+from occtrain.core.protocols import SceneEncoder
+from occtrain.core.vocab import JointVocab
+from occtrain.data.geometry import moved_scene, voxel_shift
+
+
+class MovedScenes:
+    """A :class:`~occtrain.core.protocols.SceneMover` over a frozen discrete scene encoder."""
+
+    def __init__(
+        self,
+        vocab: JointVocab,
+        encoder: SceneEncoder,
+        observed: Callable[[torch.Tensor], torch.Tensor | None] | None = None,
+        capacity: int = 20_000,
+    ):
+        if not encoder.discrete:
+            raise ValueError("moved scenes re-encode codes: the scene encoder must be a discrete tokenizer")
+        self.vocab = vocab
+        self.encoder = encoder
+        #: Codes (flat) -> the observed labels (X, Y, Z) of the dataset frame they encode, or None.
+        self.observed = observed or (lambda codes: None)
+        self.capacity = capacity
+        self._kept: OrderedDict[tuple[bytes, int, int], torch.Tensor] = OrderedDict()
+        self.computed = 0  # scenes moved through the encoder (the rest came from what is kept)
+        self.decoded = 0  # of which had no observed labels and were decoded first
+
+    @torch.no_grad()
+    def __call__(self, code_ids: torch.Tensor, step: EgoStep) -> torch.Tensor:
+        codes = self.vocab.codes_from_ids(code_ids.detach().cpu())
+        shift = voxel_shift(step)
+        key = (codes.numpy().tobytes(), *shift)
+        moved = self._kept.get(key)
+        if moved is None:
+            device = self._device()
+            labels = self.observed(codes)
+            if labels is None:
+                labels = self.encoder.decode(codes[None].to(device))[0].cpu()
+                self.decoded += 1
+            row = self.encoder.encode(moved_scene(labels, step)[None].to(device))[0].cpu()
+            moved = self.vocab.occ_ids(row)
+            self.computed += 1
+            self._kept[key] = moved
+            if len(self._kept) > self.capacity:
+                self._kept.popitem(last=False)
+        else:
+            self._kept.move_to_end(key)
+        return moved.to(code_ids.device)
+
+    def _device(self) -> torch.device:
+        module = self.encoder
+        assert isinstance(module, torch.nn.Module)
+        for tensor in (*module.parameters(), *module.buffers()):
+            return tensor.device
+        return torch.device("cpu")
