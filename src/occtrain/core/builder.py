@@ -10,9 +10,8 @@ Sequence layout. A sequence starts with ``bos``; then parts, each laid out as
   ("next_token" mode);
 - a supervised scene in "next_scene" mode: ``<occ> q_1 ... q_S c_1 ... c_S </occ>``. The
   query block q (the learnable ``<scene_q_j>`` tokens, or what the world model's
-  ``scene_query_ids`` makes of the scene before it and the ego's step to this one: the
-  first waypoint of the last actions laid out since that scene, minus where the ego stood
-  at it) is bidirectional, sees everything
+  ``scene_query_ids`` makes of the scenes before it and the ego's moves since them,
+  ``core.ego_steps``) is bidirectional, sees everything
   before it, is seen by nothing after it, and its output at ``q_j`` is trained to give
   token ``c_j``: all of the scene from one forward pass. The code block c repeats the
   scene's tokens at the same positions (RoPE) as the queries, and is what later tokens
@@ -37,7 +36,7 @@ import torch
 import torch.nn.functional as F
 
 from occtrain.config.llm import SCENE_PREDICTION_MODES
-from occtrain.core.ego_steps import EgoStep, EgoTrack
+from occtrain.core.ego_steps import SceneContext, SceneTrack
 from occtrain.core.protocols import PromptInputs
 from occtrain.core.sequence import IGNORE, PayloadSpec, TokenSequence, cat_payload, empty_payload
 from occtrain.core.vocab import JointVocab
@@ -49,8 +48,7 @@ class SequenceBuilder:
     """Lays parts out in the joint vocabulary (see the module docstring).
 
     ``scene_prediction``, ``payload_spec`` and ``scene_queries`` (the query block's ids
-    from the code ids of the scene before it, or None, and the ego's step since it, or
-    None when no waypoint was laid out since) must be the model's
+    from the ``SceneContext`` of the scene) must be the model's
     (``world.builder()`` gets them right).
     """
 
@@ -59,16 +57,15 @@ class SequenceBuilder:
         vocab: JointVocab,
         scene_prediction: str = "next_scene",
         payload_spec: PayloadSpec | None = None,
-        scene_queries: Callable[[torch.Tensor | None, EgoStep | None], torch.Tensor] | None = None,
+        scene_queries: Callable[[SceneContext], torch.Tensor] | None = None,
     ):
         if scene_prediction not in SCENE_PREDICTION_MODES:
             raise ValueError(f"scene_prediction must be one of {SCENE_PREDICTION_MODES}")
         self.vocab = vocab
         self.next_scene = scene_prediction == "next_scene"
         self.payload_spec = payload_spec or {}
-        self.scene_queries = scene_queries or (lambda last, step: vocab.query_ids())
-        self._last_scene: torch.Tensor | None = None  # code ids of the last scene laid out
-        self._ego = EgoTrack()
+        self.scene_queries = scene_queries or (lambda context: vocab.query_ids())
+        self._track = SceneTrack()  # the scenes laid out so far and where the ego stands
         #: Per-sequence targets (see ``TokenSequence.targets``), set by a family's parts.
         self.targets: dict[str, torch.Tensor] = {}
         self._payload: list[dict[str, torch.Tensor]] = []
@@ -163,7 +160,7 @@ class SequenceBuilder:
         """Waypoints ``xy`` (N, 2), written as their offsets from ``base`` when given."""
         v = self.vocab
         xy = torch.as_tensor(xy, dtype=torch.float32).cpu()
-        self._ego.planned(xy)
+        self._track.planned(xy)
         written = xy if base is None else xy - torch.as_tensor(base, dtype=torch.float32).reshape(xy.shape)
         ids = torch.cat(
             [
@@ -188,12 +185,11 @@ class SequenceBuilder:
         else:
             block = self.next_block()
             if supervise:
-                queries = self.scene_queries(self._last_scene, self._ego.step())
+                queries = self.scene_queries(self._track.context())
                 self.add(queries, False, seg=-block, query_target=code_ids)
             self.add(code_ids, False, seg=block)
         self.add(torch.tensor([v.occ_close_id]), supervise)
-        self._last_scene = code_ids
-        self._ego.scene(predicted=supervise)
+        self._track.scene(code_ids, predicted=supervise)
         return self
 
     def build(self) -> TokenSequence:

@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING, Any, NamedTuple, Protocol
 
 import torch
 
-from occtrain.core.ego_steps import EgoStep, EgoTrack
+from occtrain.core.ego_steps import SceneContext, SceneTrack
 from occtrain.core.sequence import PayloadSpec, Step, TokenSequence, cat_payload, empty_payload, prompt_of, rows
 from occtrain.core.vocab import JointVocab
 from occtrain.models.attention import allowed_pairs, chunk_allowed, scene_segments
@@ -99,7 +99,7 @@ class DecodingModel(Protocol):
     @property
     def device(self) -> torch.device: ...
 
-    def scene_query_ids(self, last_scene: torch.Tensor | None, step: EgoStep | None = None) -> torch.Tensor: ...
+    def scene_query_ids(self, context: SceneContext) -> torch.Tensor: ...
 
     def scene_writer(self, recent: torch.Tensor) -> SceneWriter: ...
 
@@ -167,21 +167,18 @@ class _State:
         self.next_segment = int(seg.max()) + 1 if seg.numel() else 1
         self.recent = ids[-3:]
         self.last: Step | None = None  # the output at the last kept token
-        #: The code ids of the last scene fed (what ``world.scene_query_ids`` reads), or None.
-        self.last_scene: torch.Tensor | None = None
-        #: The ego at the last scene and its next waypoint, as the sequence builder tracks
-        #: them (a prompt's scenes are the waypoints' frame; a generated one is where its
-        #: generated waypoint put the ego).
-        self.ego = EgoTrack()
-        self._see_scenes(ids)
+        #: The scenes fed and generated and where the ego stands (what
+        #: ``world.scene_query_ids`` reads), tracked as the sequence builder tracks them.
+        self.track = SceneTrack()
+        self.see_prompt(ids)
 
-    def _see_scenes(self, ids: torch.Tensor) -> None:
-        """Keep the last whole scene among ``ids``, the tokens just fed."""
+    def see_prompt(self, ids: torch.Tensor) -> None:
+        """Prompt tokens were fed: their last whole scene, if any, is observed."""
         n = self.vocab.scene_len
-        if n and ids.numel() >= n:  # a single generated token cannot be a scene: skip the mask
+        if n and ids.numel() >= n:
             codes = ids[self.vocab.is_occ(ids)]
             if codes.numel() >= n:
-                self.last_scene = codes[-n:]
+                self.track.scene(codes[-n:], predicted=False)
 
     def queue(self, ids, segment: int | torch.Tensor = 0, payload: dict | None = None) -> None:
         ids = torch.as_tensor(ids, dtype=torch.long, device=self.device).reshape(-1)
@@ -189,7 +186,6 @@ class _State:
         extra = payload or empty_payload(self.spec, ids.numel(), self.device)
         self.queued.append((ids, seg, {k: v.to(self.device) for k, v in extra.items()}))
         self.recent = torch.cat([self.recent, ids])[-3:]
-        self._see_scenes(ids)
 
     def take(self) -> tuple[torch.Tensor, torch.Tensor, dict]:
         ids, segs, extras = zip(*self.queued)
@@ -238,7 +234,7 @@ def _actions(s: _State, answer: ActionAnswer) -> Program:
     xy = v.actions_from_ids(torch.tensor(ids, dtype=torch.long)).reshape(answer.steps, 2)
     if answer.base is not None:
         xy = xy + torch.tensor(answer.base, dtype=xy.dtype).reshape(answer.steps, 2)
-    s.ego.planned(xy)
+    s.track.planned(xy)
     return xy
 
 
@@ -260,19 +256,22 @@ def _scene(s: _State) -> Program:
     writer = world.scene_writer(s.recent)
     if world.frame_separation and int(s.recent[-1]) != v.occ_open_id:
         s.queue([v.occ_open_id])
+    written = []
     if s.next_scene:
-        out = yield from _query_block(s, world.scene_query_ids(s.last_scene, s.ego.step()))
+        out = yield from _query_block(s, world.scene_query_ids(s.track.context()))
         scene_ids, extra = writer.from_queries(out.logits, out.hidden)
         s.queue(scene_ids, s.next_segment, extra)
         s.next_segment += 1
+        written.append(scene_ids)
     else:
         for _ in range(v.scene_len):
             out = yield from s.output()
             scene_ids, extra = writer.next_token(out.logits, out.hidden)
             s.queue(scene_ids, 0, extra)
+            written.append(scene_ids)
     if world.frame_separation:
         s.queue([v.occ_close_id])
-    s.ego.scene(predicted=True)
+    s.track.scene(torch.cat(written), predicted=True)
     return writer.codes().cpu()
 
 
@@ -289,10 +288,8 @@ def answer_program(s: _State, answer: Answer) -> Program:
         return (yield from _query_block(s, answer.ids))
     if isinstance(answer, Feed):
         ids, payload = prompt_of(s.spec, answer.tokens)
-        before = s.last_scene
         s.queue(ids, 0, payload)
-        if s.last_scene is not before:  # a prompt's scene: the waypoints' frame again
-            s.ego.scene(predicted=False)
+        s.see_prompt(ids.to(s.device))
         return None
     if isinstance(answer, Flush):
         if s.queued:

@@ -1,48 +1,66 @@
-"""The ego's step between scenes, as a sequence lays it out: what a predicted scene's
-query block may read (``moved_last_scene`` queries move the scene before by it).
+"""What a predicted scene's query block may read besides its position in the sequence: the
+scene before it, the last observed scene, and how far the ego has moved since each.
 
-Training and generation track it by one rule (:class:`EgoTrack`): training from the true
-waypoints a forecast lays out before each scene, generation from the waypoints it
-generated, so a model sees in generation the queries it was trained on.
+Training and generation track these by one rule (:class:`SceneTrack`): training from the
+scenes and true waypoints a forecast lays out, generation from the prompt's scenes and the
+scenes and waypoints it generated, so a model sees in generation the queries it was
+trained on. ``moved_last_scene`` queries move the scene before by the ego's step;
+``moved_observed_scene`` queries move the last observed scene by the ego's whole move
+since it.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import torch
 
-#: The ego's move from the scene before a predicted scene to that scene: metres, (x, y) in
-#: the axes of the prompt's anchor frame (the planned waypoint minus where the ego stood).
+#: A move of the ego: metres, (x, y) in the axes of the prompt's anchor frame.
 EgoStep = tuple[float, float]
 
 
-class EgoTrack:
-    """Where the ego stands at the last scene of a sequence and where the waypoints laid
-    out since plan it next, so a predicted scene's query block can read the ego's step
-    (training lays the true waypoints out, generation its own: the same rule reads both).
+@dataclass(frozen=True)
+class SceneContext:
+    """What a predicted scene's query block may read (``LMWorldModel.scene_query_ids``).
 
-    A prompt's scene is the frame the waypoints are written in (the ego at the origin); a
-    predicted scene is where its planned waypoint put the ego."""
+    ``last_scene``: the code ids of the scene before it (None: none); ``observed``: those of
+    the last prompt scene, the present the forecast starts from (None: none); ``step``: the
+    ego's move from the scene before to this one, ``offset``: from the observed scene to
+    this one (each None when no waypoint came before this scene)."""
+
+    last_scene: torch.Tensor | None = None
+    observed: torch.Tensor | None = None
+    step: EgoStep | None = None
+    offset: EgoStep | None = None
+
+
+class SceneTrack:
+    """The scenes of a sequence so far and where the ego stands, as they are laid out or
+    generated. A prompt's scene is observed and is the frame the waypoints are written in
+    (the ego at its origin); a predicted scene is where the waypoint before it put the ego."""
 
     def __init__(self) -> None:
+        self.last: torch.Tensor | None = None
+        self.observed: torch.Tensor | None = None
         self.at: EgoStep = (0.0, 0.0)
         self.next: EgoStep | None = None
 
     def planned(self, xy: torch.Tensor) -> None:
         """Waypoints (N, 2) were laid out (or generated): the first is where the ego goes next."""
         if xy.numel():
-            self.next = (float(xy.reshape(-1, 2)[0, 0]), float(xy.reshape(-1, 2)[0, 1]))
+            first = xy.reshape(-1, 2)[0]
+            self.next = (float(first[0]), float(first[1]))
 
-    def step(self) -> EgoStep | None:
-        """The ego's step from the last scene to the next (None: no waypoint since)."""
-        if self.next is None:
-            return None
-        return (self.next[0] - self.at[0], self.next[1] - self.at[1])
+    def context(self) -> SceneContext:
+        """What the next predicted scene's query block reads."""
+        step = None if self.next is None else (self.next[0] - self.at[0], self.next[1] - self.at[1])
+        return SceneContext(self.last, self.observed, step, self.next)
 
-    def scene(self, predicted: bool) -> None:
-        """A scene was laid out: a predicted one where the plan put the ego, a prompt's one
-        at the origin of the waypoints' frame."""
+    def scene(self, code_ids: torch.Tensor | None, predicted: bool) -> None:
+        """A scene (its code ids) was laid out or generated."""
+        self.last = code_ids
         if not predicted:
-            self.at = (0.0, 0.0)
+            self.observed, self.at = code_ids, (0.0, 0.0)
         elif self.next is not None:
             self.at = self.next
         self.next = None

@@ -32,7 +32,7 @@ from occtrain.core.decoding import (
     decode,
     decode_batch,
 )
-from occtrain.core.ego_steps import EgoStep
+from occtrain.core.ego_steps import SceneContext
 from occtrain.core.protocols import SceneMover
 from occtrain.core.sequence import IGNORE, PayloadSpec, Step, TokenSequence
 from occtrain.core.vocab import JointVocab
@@ -112,11 +112,11 @@ class LMWorldModel(nn.Module):
     def builder(self) -> SequenceBuilder:
         return SequenceBuilder(self.vocab, self.scene_prediction, self.payload_spec, self.scene_query_ids)
 
-    def scene_query_ids(self, last_scene: torch.Tensor | None, step: EgoStep | None = None) -> torch.Tensor:
-        """The query block of a scene predicted at once ("next_scene" mode), given the code
-        ids of the scene before it in the sequence (None when there is none) and the ego's
-        step since it (``core.ego_steps``; None when no waypoint came between): the
-        learnable ``<scene_q_j>`` tokens. Training and generation both ask here."""
+    def scene_query_ids(self, context: SceneContext) -> torch.Tensor:
+        """The query block of a scene predicted at once ("next_scene" mode), given what came
+        before it (``core.ego_steps.SceneContext``: the scene before, the last observed
+        scene, the ego's moves since them): the learnable ``<scene_q_j>`` tokens. Training
+        and generation both ask here."""
         return self.vocab.query_ids()
 
     def scene_writer(self, recent: torch.Tensor) -> SceneWriter:

@@ -56,9 +56,10 @@ class OccLLaMATokenizerConfig(QuantizerFields):
 
 
 #: What a scene's query block is made of ("next_scene" mode): the paper's learnable
-#: ``<scene_q_j>`` tokens, the code tokens of the scene before it, or those of the scene
-#: before it moved by the ego's step.
-SCENE_QUERIES = ("learned", "last_scene", "moved_last_scene")
+#: ``<scene_q_j>`` tokens, the code tokens of the scene before it, those of the scene
+#: before it moved by the ego's step, or those of the observed present moved by the ego's
+#: move since it.
+SCENE_QUERIES = ("learned", "last_scene", "moved_last_scene", "moved_observed_scene")
 
 
 @dataclass
@@ -73,7 +74,10 @@ class OccLLaMAWorldConfig:
     #: the new scene (the waypoint laid out or generated before it) and re-encoded through
     #: the frozen tokenizer, so the ego's own motion, most of what changes between frames,
     #: is in the queries rather than left for the model to learn; unmoved when no waypoint
-    #: came between.
+    #: came between. ``moved_observed_scene`` (not the paper's): the last observed scene
+    #: (the prompt's present) moved by the ego's whole move since it (the waypoint before
+    #: the new scene), so no forecast step's queries pass through a generated scene: a
+    #: coarse tokenizer's decode-encode cycle, repeated step after step, would blur them.
     scene_queries: str = "learned"
 
     def validate(self, where: str, inputs: Any) -> None:

@@ -15,8 +15,10 @@ codebook vector, instead of the embedding-table row; the lm-head keeps one row p
 Scene queries (``model.occllama.scene_queries``). The paper's query block is learnable
 ``<scene_q_j>`` tokens; ``last_scene`` makes it the code tokens of the scene before it,
 so predicting an unchanged cell is copying its own input; ``moved_last_scene`` moves that
-scene by the ego's step first (decoded, shifted, re-encoded by the frozen tokenizer), so
-the ego's own motion needs no learning either.
+scene by the ego's step first (shifted and re-encoded by the frozen tokenizer), so the
+ego's own motion needs no learning either; ``moved_observed_scene`` moves the last
+observed scene (the present) by the ego's whole move since it, so every forecast scene's
+queries are one encoding away from what was observed, however far the forecast runs.
 """
 
 from __future__ import annotations
@@ -28,7 +30,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from occtrain.core.decoding import CodeScene
-from occtrain.core.ego_steps import EgoStep
+from occtrain.core.ego_steps import SceneContext
 from occtrain.core.lm_world_model import LMWorldModel, WorldInputs
 from occtrain.core.vocab import JointVocab
 from occtrain.families.occllama.config import OccLLaMAWorldConfig
@@ -59,20 +61,23 @@ class OccLLaMAWorldModel(LMWorldModel):
         dim = codebook.shape[1]
         self.occ_proj = nn.Sequential(nn.LayerNorm(dim), nn.Linear(dim, hidden), nn.GELU(), nn.Linear(hidden, hidden))
 
-    def scene_query_ids(self, last_scene: torch.Tensor | None, step: EgoStep | None = None) -> torch.Tensor:
-        """The scene before under ``last_scene`` queries, moved by the ego's step under
-        ``moved_last_scene``; the learnable queries when there is no scene before."""
+    def scene_query_ids(self, context: SceneContext) -> torch.Tensor:
+        """The query block of ``scene_queries``' kind (see the module docstring): the
+        learnable queries, or a scene before this one, moved by the ego as it says; the
+        learnable queries when there is no such scene, a scene unmoved when no waypoint
+        came before this one."""
         mode = self.cfg.scene_queries
-        if mode == "learned" or last_scene is None:
-            return super().scene_query_ids(last_scene, step)
-        if mode == "moved_last_scene" and step is not None:
-            if self.scene_mover is None:
-                raise ValueError(
-                    "moved_last_scene queries move scenes through the frozen tokenizer: "
-                    "build the world model through the engine"
-                )
-            return self.scene_mover(last_scene, step).to(last_scene.device)
-        return last_scene
+        source = context.observed if mode == "moved_observed_scene" else context.last_scene
+        if mode == "learned" or source is None:
+            return super().scene_query_ids(context)
+        move = context.offset if mode == "moved_observed_scene" else context.step
+        if mode == "last_scene" or move is None:
+            return source
+        if self.scene_mover is None:
+            raise ValueError(
+                f"{mode} queries move scenes through the frozen tokenizer: build the world model through the engine"
+            )
+        return self.scene_mover(source, move).to(source.device)
 
     def scene_writer(self, recent: torch.Tensor) -> CodeScene:
         """What writes the next generated scene; ``recent`` are the last ids before it."""

@@ -455,18 +455,33 @@ def test_moved_last_scene_queries_are_the_scene_before_moved_by_the_ego_step(voc
         world.builder().scene(CTX).actions(XY[:1], True).scene(TARGET, True)
 
 
-def test_generated_scenes_read_the_moved_queries_training_reads(vocab):
-    """Generation moves the scene before by the waypoint it generated, as training moves it
-    by the laid-out one: each generated scene is the greedy pick of the training forward
-    of the generated sequence at its query block."""
-    world = make_world(vocab, "next_scene", seed=5, queries="moved_last_scene").eval()
+def test_moved_observed_scene_queries_are_the_present_moved_by_the_ego_since_it(vocab):
+    """``scene_queries: moved_observed_scene``: every predicted scene's query block is the
+    last prompt scene moved by the ego's whole move since it (the waypoint before the new
+    scene), never a predicted scene."""
+    v = vocab
+    world = make_world(vocab, "next_scene", queries="moved_observed_scene")
+    world.scene_mover = mover = ShiftingMover(v)
+    world.builder().scene(TARGET).scene(CTX).actions(XY[:1], True).scene(TARGET, True).actions(XY[1:], True).scene(
+        TARGET, True
+    ).build()
+    assert mover.asked == [(CTX.tolist(), (2.0, -1.0)), (CTX.tolist(), (4.0, 3.0))]
+
+
+@pytest.mark.parametrize("queries", ["moved_last_scene", "moved_observed_scene"])
+def test_generated_scenes_read_the_moved_queries_training_reads(vocab, queries):
+    """Generation moves the scene by the waypoints it generated, as training moves it by
+    the laid-out ones: each generated scene is the greedy pick of the training forward of
+    the generated sequence at its query block."""
+    world = make_world(vocab, "next_scene", seed=5, queries=queries).eval()
     world.scene_mover = mover = ShiftingMover(vocab)
     d = world.decoder(world.builder().scene(TARGET).scene(CTX).build().input_ids)
     a1, first, a2, second = d.actions(1), d.scene(), d.actions(1), d.scene()
     seq = world.builder().scene(TARGET).scene(CTX).actions(a1, True).scene(first, True)
     seq = seq.actions(a2, True).scene(second, True).build()
-    steps = [step for _, step in mover.asked]
-    assert steps[:2] == [tuple(a1[0].tolist()), tuple((a2[0] - a1[0]).tolist())] and steps[2:] == steps[:2]
+    moves = [move for _, move in mover.asked]
+    second_move = a2[0] - a1[0] if queries == "moved_last_scene" else a2[0]
+    assert moves[:2] == [tuple(a1[0].tolist()), tuple(second_move.tolist())] and moves[2:] == moves[:2]
     logits = world(collate([seq], vocab.pad_id)).logits[0][seq.segment_ids < 0]
     picked = torch.cat([vocab.pick_scene(logits[:9]), vocab.pick_scene(logits[9:])]) - vocab.occ_start
     assert torch.equal(picked, torch.cat([first, second]))
