@@ -129,6 +129,11 @@ class SparseOccVLAWorldConfig:
     residual_token: bool = True
     #: Future frames forecast at 0.5 s (6 = 3 s).
     forecast_frames: int = 6
+    #: Move the forecaster's residual base (the query positions each future frame's points
+    #: are decoded around) back by the ego's constant-velocity step before each frame, so
+    #: what stands still starts where the next frame's ego sees it (not the paper's: its
+    #: forecaster learns the ego's motion from the ego-state embedding alone).
+    moved_base: bool = False
     #: Weight of the forecasting loss beside the language loss (Eq. 12: 1).
     forecast_weight: float = 1.0
 

@@ -34,13 +34,15 @@ from occtrain.data.clips import Part, PromptPart, clip_rng
 from occtrain.errors import ConfigError
 from occtrain.families.sparseoccvla.config import SparseOccVLAWorldConfig
 from occtrain.families.sparseoccvla.encoder import FeedForward, PointHead, SpatialSelfAttention, normalized, sinusoid
-from occtrain.formats.occ3d import PAST_STEPS
+from occtrain.formats.occ3d import FRAME_DT, PAST_STEPS
 from occtrain.models.planning_heads import current_velocity
 from occtrain.models.point_sets import chamfer_distance, occupied_points, sigmoid_focal_loss
 
 EGO = "<ego>"
 #: The ego state's features: current velocity (2) and the past waypoints (PAST_STEPS x 2).
 EGO_FEATURES = 2 + 2 * PAST_STEPS
+#: The ego-state features are metres (per second, for the velocity) over this.
+EGO_SCALE = 10.0
 
 
 def global_token(j: int) -> str:
@@ -53,7 +55,7 @@ def ego_state(anchor: dict) -> tuple[float, ...]:
         np.asarray(anchor["ego_past"], dtype=np.float64).reshape(-1, 2)
         * np.asarray(anchor["ego_past_mask"], dtype=np.float64)[:, None]
     )
-    return tuple(float(v) for v in np.concatenate([current_velocity(anchor), past.reshape(-1)]) / 10.0)
+    return tuple(float(v) for v in np.concatenate([current_velocity(anchor), past.reshape(-1)]) / EGO_SCALE)
 
 
 @dataclass(frozen=True)
@@ -143,7 +145,9 @@ class Forecaster(nn.Module):
         ego_emb = self.ego(ego.to(q.dtype))[:, None]
         pos, out = positions, []
         steps = self.cfg.forecast_frames
+        shift = self.base_shift(ego).to(pos.dtype)
         for t in range(1, steps + 1):
+            pos = pos - shift
             time = torch.full((*pos.shape[:-1], 1), t / steps, dtype=q.dtype, device=q.device)
             q = self.ffn(
                 self.attention(q + self.embed4d(torch.cat([sinusoid(normalized(pos)), time], -1)) + ego_emb, pos)
@@ -152,6 +156,15 @@ class Forecaster(nn.Module):
             out.append((points.flatten(1, 2), logits.flatten(1, 2)))
             pos = points.mean(2).detach()
         return out
+
+    def base_shift(self, ego: torch.Tensor) -> torch.Tensor:
+        """(B, 1, 3): how far the base moves before each future frame: the ego's
+        constant-velocity step (its velocity, the ego state's first two features, times a
+        frame's 0.5 s) with ``moved_base``, else nothing."""
+        shift = torch.zeros(ego.shape[0], 1, 3, dtype=ego.dtype, device=ego.device)
+        if self.cfg.moved_base:
+            shift[:, 0, :2] = ego[:, :2] * EGO_SCALE * FRAME_DT
+        return shift
 
 
 class SparseOccVLAWorldModel(LMWorldModel):

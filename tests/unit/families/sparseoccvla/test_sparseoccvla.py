@@ -189,6 +189,27 @@ def test_forecaster_recursion_and_ego_embedding():
     torch.testing.assert_close(fc2(llm_out, q, p, ego)[0][0], fc2(llm_out * 0, q, p, ego)[0][0])
 
 
+def test_a_moved_base_steps_back_by_the_egos_constant_velocity_step_before_each_frame():
+    """``moved_base``: frame t's points are decoded around the base moved back by the ego's
+    constant-velocity step (velocity times 0.5 s): the static world as the next ego sees it."""
+    from occtrain.families.sparseoccvla.config import SparseOccVLAWorldConfig
+    from occtrain.families.sparseoccvla.world_model import EGO_FEATURES, Forecaster
+
+    torch.manual_seed(0)
+    fc = Forecaster(16, 8, 2, 16, 4, 2.0, SparseOccVLAWorldConfig(forecast_frames=2, moved_base=True))
+    bases = []
+    fc.head.register_forward_hook(lambda module, args, out: bases.append(args[1].detach().clone()))
+    p = torch.randn(1, 5, 3) * 10
+    ego = torch.zeros(1, EGO_FEATURES)
+    ego[0, :2] = torch.tensor([0.8, -0.2])  # 8 m/s forward, 2 m/s to the right (features are / 10)
+    steps = fc(torch.randn(1, 5, 16), torch.randn(1, 5, 8), p, ego)
+    step = torch.tensor([4.0, -1.0, 0.0])  # a frame's 0.5 s of it
+    torch.testing.assert_close(bases[0], p - step)
+    torch.testing.assert_close(bases[1], steps[0][0].view(1, 5, 4, 3).mean(2) - step)
+    still = Forecaster(16, 8, 2, 16, 4, 2.0, SparseOccVLAWorldConfig(forecast_frames=1))
+    assert torch.equal(still.base_shift(ego), torch.zeros(1, 1, 3))
+
+
 # ----------------------------------------------------------------------------- the planner
 
 
