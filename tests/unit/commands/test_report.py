@@ -8,7 +8,7 @@ from pathlib import Path
 from conftest import run_cli
 
 
-def scored_run(root: Path, seed: int, forecast: float, qa: float, version: str = "v4") -> Path:
+def scored_run(root: Path, seed: int, forecast: float, qa: float, version: str = "v4", copy_paste: float = 7.0) -> Path:
     """A run directory as `occtrain run` + `occtrain eval` leave it, reduced to what the report reads."""
     stages = {
         "pretrain": {
@@ -23,7 +23,7 @@ def scored_run(root: Path, seed: int, forecast: float, qa: float, version: str =
     scores = {
         "pretrain": {
             "forecast_occworld_mIoU_1s": forecast,
-            "baseline_copy_reconstruction_forecast_occworld_mIoU_1s": 7.0,
+            "baseline_copy_reconstruction_forecast_occworld_mIoU_1s": copy_paste,
             "forecast_occworld_frames_1s": 64.0,  # not a headline
             "plan_direct_L2_stp3_avg": 0.5,
             "baseline_constant_velocity_L2_stp3_avg": 0.6,
@@ -60,6 +60,18 @@ def test_two_seeds_of_a_recipe_give_the_mean_the_spread_and_the_stamps(tmp_path)
     assert f"| pretrain | {departing} | 1.500 / 2.500 | 2.000 (1.500 to 2.500) | constant velocity 2.000 |" in lines
     assert "frames" not in res.stdout
     assert "| pretrain | 100 / 101 |" in lines and "| all stages | 150 / 151 |" in lines
+
+
+def test_a_baseline_that_differs_between_runs_is_shown_per_run(tmp_path):
+    """Each seed's tokenizer reconstructs differently: its Copy&Paste is its own, shown beside the others."""
+    a = scored_run(tmp_path / "a", 0, 6.0, 54.0, copy_paste=7.0)
+    b = scored_run(tmp_path / "b", 1, 5.0, 52.0, copy_paste=4.5)
+    res = run_cli("report", str(a), str(b))
+    assert res.returncode == 0, res.stderr
+    assert (
+        "| pretrain | forecast mIoU at 1 s (`occworld`) | 6.00 / 5.00 | 5.50 (5.00 to 6.00) "
+        "| Copy&Paste of the reconstruction 7.00 / 4.50 |"
+    ) in res.stdout.splitlines()
 
 
 def test_runs_of_different_recipes_get_no_mean(tmp_path):
