@@ -30,14 +30,19 @@ def voxel_centres(indices: torch.Tensor) -> torch.Tensor:
 
 
 def occupied_points(
-    semantics: np.ndarray | torch.Tensor, count: int, rng: np.random.Generator, keep: tuple[int, ...] = ()
+    semantics: np.ndarray | torch.Tensor,
+    count: int,
+    rng: np.random.Generator,
+    keep: tuple[int, ...] = (),
+    keep_share: float = 1.0,
 ) -> tuple[torch.Tensor, torch.Tensor, int]:
     """A sparsified ground-truth point set of one label volume (X, Y, Z): the centres of
     ``count`` occupied voxels drawn without replacement (every one when there are fewer),
     their classes, and how many are real (the rest repeat the first, to stack batches).
-    Voxels of the ``keep`` classes are all taken before any other is drawn (up to
-    ``count``): a uniform draw leaves a car a handful of points among a scene's 10^5
-    voxels. Returns Float[count, 3], Long[count], n."""
+    Voxels of the ``keep`` classes are taken before any other is drawn, up to
+    ``keep_share`` of ``count`` (a uniform draw leaves a car a handful of points among a
+    scene's 10^5 voxels; all of them can crowd the rest of the scene out). Returns
+    Float[count, 3], Long[count], n."""
     sem = torch.as_tensor(np.asarray(semantics)).long()
     occupied = (sem != FREE).nonzero()
     n = min(count, occupied.shape[0])
@@ -47,13 +52,19 @@ def occupied_points(
         pick = torch.arange(n)
     else:
         classes = sem[occupied[:, 0], occupied[:, 1], occupied[:, 2]]
-        kept = torch.isin(classes, torch.tensor(keep, dtype=torch.long)).nonzero().squeeze(1)
-        if len(kept) >= count:
-            pick = kept[torch.from_numpy(rng.choice(len(kept), size=count, replace=False))]
+        is_kept = torch.isin(classes, torch.tensor(keep, dtype=torch.long))
+        kept = is_kept.nonzero().squeeze(1)
+        cap = min(len(kept), int(count * keep_share))
+        if cap < len(kept):
+            kept = kept[torch.from_numpy(rng.choice(len(kept), size=cap, replace=False))]
+        if cap == count:
+            pick = kept
         else:
-            rest = torch.isin(classes, torch.tensor(keep, dtype=torch.long), invert=True).nonzero().squeeze(1)
-            drawn = rest[torch.from_numpy(rng.choice(len(rest), size=count - len(kept), replace=False))]
-            pick = torch.cat([kept, drawn]) if len(kept) else drawn
+            others = torch.ones(len(classes), dtype=torch.bool)
+            others[kept] = False
+            rest = others.nonzero().squeeze(1)
+            drawn = rest[torch.from_numpy(rng.choice(len(rest), size=count - cap, replace=False))]
+            pick = torch.cat([kept, drawn]) if cap else drawn
     chosen = occupied[pick]
     chosen = torch.cat([chosen, chosen[:1].expand(count - n, 3)]) if n < count else chosen
     return voxel_centres(chosen), sem[chosen[:, 0], chosen[:, 1], chosen[:, 2]], n

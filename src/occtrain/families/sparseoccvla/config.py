@@ -51,11 +51,13 @@ class SparseOccConfig:
     position_encoding: bool = True
     #: Ground-truth points sampled per frame from its occupied voxels (the sparsified G).
     gt_points: int = 2048
-    #: Take every voxel of a movable class (cars, pedestrians, ...) into the ground truth
-    #: before drawing the rest (not the paper's, which supervises with every voxel: a
+    #: The share of ``gt_points`` that voxels of a movable class (cars, pedestrians, ...)
+    #: take before the rest is drawn (not the paper's, which supervises with every voxel: a
     #: uniform draw of a few thousand of a scene's 10^5 leaves a car a handful of points,
-    #: and the encoder learns no movable object). False: the uniform draw.
-    keep_movable: bool = True
+    #: and the encoder learns no movable object). 0: the uniform draw. Taking every movable
+    #: voxel (1.0) gave movable objects at the cost of most of the scene's geometry
+    #: (docs/families/sparseoccvla.md).
+    movable_share: float = 0.0
     #: Future frames whose occupied voxels, moved into the current frame by the ego poses,
     #: join its ground truth (App. A's extended-range supervision; 0: the current frame only).
     extended_range: int = 0
@@ -73,8 +75,8 @@ class SparseOccConfig:
         return len(self.points_per_layer)
 
     def kept_classes(self) -> tuple[int, ...]:
-        """The classes the ground-truth draw takes whole (``keep_movable``)."""
-        return tuple(CLASS_INDEX[name] for name in MOVABLE_CLASSES) if self.keep_movable else ()
+        """The classes the ground-truth draw takes first (up to ``movable_share``)."""
+        return tuple(CLASS_INDEX[name] for name in MOVABLE_CLASSES) if self.movable_share > 0 else ()
 
     def validate(self, where: str) -> None:
         positive = (
@@ -106,6 +108,8 @@ class SparseOccConfig:
             )
         if len(self.backbone_widths) != len(self.backbone_depths) or not self.backbone_widths:
             raise ConfigError(f"{where}.backbone_widths: one width per backbone stage, as many as backbone_depths")
+        if not 0 <= self.movable_share <= 1:
+            raise ConfigError(f"{where}.movable_share: {self.movable_share} must be a share, 0 to 1")
         if self.offset_scale <= 0:
             raise ConfigError(f"{where}.offset_scale: {self.offset_scale} must be positive")
         if self.extended_range < 0 or self.focal_weight < 0 or self.distill_weight < 0:

@@ -361,7 +361,13 @@ class SparseOccEncoder(nn.Module):
         cams = camera_frames(_checked(batch, cfg), index, cfg.frames)
         q, pos, outputs = self.encode_views(cams)
         gt, gt_classes, valid = ground_truth(
-            batch, index, cfg.gt_points, cfg.extended_range, int(batch.get("seed", 0)), cfg.kept_classes()
+            batch,
+            index,
+            cfg.gt_points,
+            cfg.extended_range,
+            int(batch.get("seed", 0)),
+            cfg.kept_classes(),
+            cfg.movable_share,
         )
         dev = q.device
         gt, gt_classes, valid = gt.to(dev), gt_classes.to(dev), valid.to(dev)
@@ -391,9 +397,12 @@ class SparseOccEncoder(nn.Module):
 
     def oracle(self, batch: dict[str, Any], seed: int) -> torch.Tensor:
         """The budget's oracle reconstruction (B, X, Y, Z): ``point_budget`` occupied voxel
-        centres of each frame (drawn as the ground truth is, movable classes first when
-        kept) with their true classes, voxelized as the decoded points are."""
-        points, classes, real = ground_truth(batch, None, self.point_budget, 0, seed, self.cfg.kept_classes())
+        centres of each frame (drawn as the ground truth is) with their true classes,
+        voxelized as the decoded points are."""
+        cfg = self.cfg
+        points, classes, real = ground_truth(
+            batch, None, self.point_budget, 0, seed, cfg.kept_classes(), cfg.movable_share
+        )
         return torch.stack(
             [voxelize(p[r], c[r], tuple(self.cfg.voxel_extent)) for p, c, r in zip(points, classes, real)]
         )

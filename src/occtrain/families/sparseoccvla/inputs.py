@@ -72,18 +72,20 @@ def ground_truth(
     extended: int,
     seed: int,
     keep: tuple[int, ...] = (),
+    keep_share: float = 1.0,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Each sample's sparsified ground-truth point set: ``count`` occupied voxel centres of
     its frame and, with ``extended`` > 0, of the next ``extended`` frames of its scene moved
     into its ego frame by the poses (the draw seeded by ``seed`` and the sample token),
-    every voxel of the ``keep`` classes taken first (``occupied_points``).
+    voxels of the ``keep`` classes taken first, up to ``keep_share`` of the points
+    (``occupied_points``).
     Returns points (B, K, 3), classes (B, K) and which are real (B, K)."""
     out = []
     for b, meta in enumerate(batch["meta"]):
         rng = clip_rng(seed, meta["token"])
-        points, classes, n = occupied_points(batch["semantics"][b].cpu().numpy(), count, rng, keep)
+        points, classes, n = occupied_points(batch["semantics"][b].cpu().numpy(), count, rng, keep, keep_share)
         if extended and index is not None:
-            more = _later_points(index, meta, count, extended, rng, keep)
+            more = _later_points(index, meta, count, extended, rng, keep, keep_share)
             if more is not None:
                 # One draw over the union: the current frame keeps its share of the points,
                 # the kept classes first.
@@ -91,6 +93,7 @@ def ground_truth(
                 all_classes = torch.cat([classes[:n], more[1]])
                 order = torch.from_numpy(rng.permutation(len(all_points)))
                 kept = torch.isin(all_classes[order], torch.tensor(keep, dtype=torch.long))
+                kept &= kept.cumsum(0) <= int(count * keep_share)
                 pick = torch.cat([order[kept], order[~kept]])[:count]
                 points, classes, n = _padded(all_points[pick], all_classes[pick], count)
         out.append((points, classes, torch.arange(count) < n))
@@ -98,13 +101,19 @@ def ground_truth(
 
 
 def _later_points(
-    index: DatasetIndex, meta: dict, count: int, extended: int, rng: np.random.Generator, keep: tuple[int, ...] = ()
+    index: DatasetIndex,
+    meta: dict,
+    count: int,
+    extended: int,
+    rng: np.random.Generator,
+    keep: tuple[int, ...] = (),
+    keep_share: float = 1.0,
 ) -> tuple[torch.Tensor, torch.Tensor] | None:
     tokens = index.scenes[meta["scene"]]
     later = tokens[int(meta["index"]) + 1 : int(meta["index"]) + 1 + extended]
     points, classes = [], []
     for token in later:
-        p, c, n = occupied_points(index.labels(meta["scene"], token)["semantics"], count, rng, keep)
+        p, c, n = occupied_points(index.labels(meta["scene"], token)["semantics"], count, rng, keep, keep_share)
         move = torch.tensor(frame_transform(index, meta["scene"], token, meta["token"]), dtype=torch.float32)
         points.append(p[:n] @ move[:3, :3].T + move[:3, 3])
         classes.append(c[:n])

@@ -188,7 +188,7 @@ class SparseOccVLAWorldModel(LMWorldModel):
         self.cfg = cfg
         self.query_dim = enc.dim
         self.gt_points = enc.gt_points
-        self.gt_keep = enc.kept_classes()
+        self.gt_keep, self.gt_share = enc.kept_classes(), enc.movable_share
         self.voxel_extent = tuple(enc.voxel_extent)
         self.focal_weight = enc.focal_weight
         self.connector = copy.deepcopy(encoder.connector).requires_grad_(True)  # stage 1's, trained on
@@ -252,7 +252,7 @@ class SparseOccVLAWorldModel(LMWorldModel):
         cache = self.__dict__["_future_points"]
         if token not in cache:
             points, classes, n = occupied_points(
-                inputs.voxels(token).numpy(), self.gt_points, clip_rng(0, token), self.gt_keep
+                inputs.voxels(token).numpy(), self.gt_points, clip_rng(0, token), self.gt_keep, self.gt_share
             )
             cache[token] = (points, classes, torch.arange(self.gt_points) < n)
         return cache[token]

@@ -88,6 +88,8 @@ def test_kept_classes_are_all_drawn_before_the_rest():
     assert int((uniform == 4).sum()) < 3
     only_cars = occupied_points(sem, 2, np.random.default_rng(0), keep=(4,))[1]
     assert only_cars.tolist() == [4, 4]  # more kept voxels than the budget: drawn among them
+    shared = occupied_points(sem, 20, np.random.default_rng(0), keep=(4,), keep_share=0.1)[1]
+    assert int((shared == 4).sum()) == 2  # at most a tenth of the budget goes to them first
 
 
 # ----------------------------------------------------------------------------- cameras
