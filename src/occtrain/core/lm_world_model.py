@@ -81,7 +81,7 @@ class LMWorldModel(nn.Module):
     #: Under a LoRA adapter its own parts (everything but the LLM) train too; by default
     #: only the adapter does.
     trains_own_parts_with_lora = False
-    #: Moves a scene by the ego's step through the frozen scene encoder (``SceneMover``),
+    #: Moves a scene by the ego through the frozen scene encoder (``SceneMover``),
     #: for query blocks that read it; the engine that holds the encoder sets it.
     scene_mover: SceneMover | None = None
     #: The causal LM (a transformers model, LoRA-wrapped by peft or not).

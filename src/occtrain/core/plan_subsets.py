@@ -52,7 +52,8 @@ def update_plans(
         return
     sub = target.rows(rows)
     _planning(metrics, name).update(pred, sub.traj, sub.mask, sub.agents)
-    keep = [k for k, r in enumerate(rows) if r in set(departing)]
+    departs = set(departing)
+    keep = [k for k, r in enumerate(rows) if r in departs]
     if keep:
         sub = sub.rows(keep)
         _planning(metrics, name + DEPARTING).update(pred[keep], sub.traj, sub.mask, sub.agents)

@@ -11,8 +11,8 @@ shows them in use.
   occupancy queries).
 - :class:`WorldEngine`: what family code and the shared operations and scorers may ask of
   the world-model engine (``engine.WorldModelEngine``), which sits above them.
-- :class:`SceneMover`: the scene before a predicted one moved by the ego's step and
-  re-encoded (what ``moved_last_scene`` query blocks hold); the engine makes it.
+- :class:`SceneMover`: a scene moved by the ego and re-encoded (what the moved query
+  blocks hold); the engine makes it.
 - :class:`PromptInputs`: what a sequence builder reads besides a prompt's parts (the
   engine's encodings of a dataset's frames), so a family's own part kinds can be laid out.
 - :class:`Planner`: what the ``planner`` stage trains (OccVLA's MLP head on the meta
@@ -103,9 +103,9 @@ class WorldEngine(Protocol):
 
 
 class SceneMover(Protocol):
-    """The scene before a predicted one, as the ego would see it after its step: the code ids
-    (S,) of that scene -> the code ids of it moved by ``step`` with everything else standing
-    still, through the frozen scene encoder (decoded, shifted, re-encoded)."""
+    """A scene as the ego would see it after a move: the code ids (S,) of a scene -> the code
+    ids of it moved by ``step`` with everything else standing still, through the frozen
+    scene encoder (its labels shifted and encoded again)."""
 
     def __call__(self, code_ids: torch.Tensor, step: EgoStep) -> torch.Tensor: ...
 

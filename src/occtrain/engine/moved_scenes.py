@@ -1,5 +1,5 @@
-"""The scene before a predicted one, moved by the ego's step through the frozen scene
-tokenizer: what ``moved_last_scene`` query blocks hold (``core.protocols.SceneMover``).
+"""A scene moved by the ego through the frozen scene tokenizer: what ``moved_last_scene``
+and ``moved_observed_scene`` query blocks hold (``core.protocols.SceneMover``).
 
 A scene's labels are shifted by the step in whole voxels (``data.geometry.moved_scene``:
 free where the new view reaches past the old grid, the heading kept) and encoded again.
@@ -14,6 +14,7 @@ training asks for the same scenes moved by the same true steps every epoch; up t
 
 from __future__ import annotations
 
+import itertools
 from collections import OrderedDict
 from collections.abc import Callable
 
@@ -71,6 +72,5 @@ class MovedScenes:
     def _device(self) -> torch.device:
         module = self.encoder
         assert isinstance(module, torch.nn.Module)
-        for tensor in (*module.parameters(), *module.buffers()):
-            return tensor.device
-        return torch.device("cpu")
+        first = next(itertools.chain(module.parameters(), module.buffers()), None)
+        return torch.device("cpu") if first is None else first.device

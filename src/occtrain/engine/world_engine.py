@@ -137,9 +137,11 @@ class WorldModelEngine(torch.nn.Module):
         self.image_cache: dict[str, torch.Tensor] | None = None
         self.data_index: DatasetIndex | None = None
         self._scene_cache_root: Path | None = None
+        # The scene cache's rows back to their frames, made from the cache it was made from.
         self._frame_of_codes: dict[bytes, str] = {}
+        self._frames_from: dict[str, torch.Tensor] | None = None
         if isinstance(self.scene_encoder, SceneEncoder) and self.scene_encoder.discrete:
-            # What query blocks that move the scene before by the ego's step read through.
+            # What query blocks that hold a scene moved by the ego read through.
             world.scene_mover = MovedScenes(world.vocab, self.scene_encoder, self.observed_labels)
 
     @property
@@ -245,10 +247,11 @@ class WorldModelEngine(torch.nn.Module):
         (flat), or None (no cache, or codes no frame has: a generated scene)."""
         if self.scene_cache is None or self.data_index is None:
             return None
-        if len(self._frame_of_codes) != len(self.scene_cache):
+        if self._frames_from is not self.scene_cache:  # another dataset's cache: map it anew
             self._frame_of_codes = {
                 row.reshape(-1).long().numpy().tobytes(): token for token, row in self.scene_cache.items()
             }
+            self._frames_from = self.scene_cache
         token = self._frame_of_codes.get(codes.reshape(-1).long().cpu().numpy().tobytes())
         return None if token is None else self.voxels(token).long()
 
