@@ -61,7 +61,7 @@ class VQSceneEncoder(nn.Module):
         h, w = self.latent_hw
         k = self.tokenizer.num_codebooks
         grids = scenes.view(-1, h, w) if k == 1 else scenes.view(-1, k, h, w)
-        return self.tokenizer.decode(grids.long().to(self.device)).argmax(1)
+        return self.tokenizer.decode_labels(grids.long().to(self.device))
 
 
 def vq_scene_encoder(exports: dict[str, Path], world_cfg: Any = None) -> VQSceneEncoder:

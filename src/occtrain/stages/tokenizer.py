@@ -212,7 +212,7 @@ class TokenizerStage(Stage):
                     recon.update(out.prediction(), sem, batch["mask_camera"], oracle=out.oracle)
                 else:
                     codes = model.encode(sem)
-                    recon.update(model.decode(codes).argmax(1), sem, batch["mask_camera"], codes)
+                    recon.update(model.decode_labels(codes), sem, batch["mask_camera"], codes)
                 advance(len(frames[i : i + size]))
         return EvalResult({"frames": float(len(frames)), **recon.compute()})
 

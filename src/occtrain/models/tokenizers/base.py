@@ -87,12 +87,23 @@ class SceneTokenizer(nn.Module):
 
     def decode(self, codes: torch.Tensor) -> torch.Tensor:
         """Class logits (B, 18, 200, 200, 16) of token ids (B, h, w)."""
+        return self.decode_logits(self.quantized(codes))
+
+    def decode_labels(self, codes: torch.Tensor) -> torch.Tensor:
+        """The reconstruction (B, 200, 200, 16) of token ids: the argmax of :meth:`decode`.
+
+        What forecasting and evaluation call; a tokenizer whose argmax has a cheaper closed
+        form than its full logits overrides it."""
+        return self.decode(codes).argmax(1)
+
+    def quantized(self, codes: torch.Tensor) -> torch.Tensor:
+        """The quantized latent (B, code_dim, h, w) of token ids (B, h, w), after checking their grid."""
         if tuple(codes.shape[1:]) != tuple(self.latent_hw):
             raise DataError(
                 f"codes of shape {tuple(codes.shape)}: this tokenizer decodes (B, {self.latent_hw[0]}, "
                 f"{self.latent_hw[1]}) grids"
             )
-        return self.decode_logits(self.quantizer.lookup(codes.long()))
+        return self.quantizer.lookup(codes.long())
 
 
 def check_semantics(semantics: torch.Tensor) -> torch.Tensor:

@@ -14,7 +14,7 @@ from occtrain.config.tokenizer import latent_hw
 from occtrain.core.registry import build_tokenizer
 from occtrain.errors import ConfigError, DataError
 from occtrain.families.occllama import OccLLaMATokenizerConfig
-from occtrain.families.occllama.scene_tokenizer import PillarEncoder, combine_decoupled
+from occtrain.families.occllama.scene_tokenizer import PillarEncoder, combine_decoupled, decoupled_labels
 from occtrain.formats.occ3d import FREE, GRID_SHAPE, NUM_CLASSES
 from occtrain.models import count_parameters
 from occtrain.models.tokenizers.losses import lovasz_softmax
@@ -95,7 +95,7 @@ def test_unknown_arch_and_bad_input():
 @pytest.mark.parametrize("arch", ARCHS)
 def test_api_shapes(arch):
     torch.manual_seed(0)
-    model = build_tokenizer(arch, TINY[arch])
+    model = build_tokenizer(arch, TINY[arch]).eval()
     sem = scene(batch=2)
     with torch.no_grad():
         out = model(sem)
@@ -123,6 +123,38 @@ def test_encode_decode_round_trip_equals_forward(arch):
     assert torch.equal(codes, out.codes)
     # forward decodes z + (e - z), equal to e up to float rounding
     torch.testing.assert_close(logits, out.logits, atol=1e-4, rtol=1e-4)
+
+
+@pytest.mark.parametrize("arch", ARCHS)
+def test_decode_labels_is_the_argmax_of_decode(arch):
+    torch.manual_seed(2)
+    model = build_tokenizer(arch, TINY[arch]).eval()
+    codes = torch.randint(0, 32, (2, 10, 10))
+    with torch.no_grad():
+        labels = model.decode_labels(codes)
+        assert torch.equal(labels, model.decode(codes).argmax(1))
+    assert len(labels.unique()) > 1  # not all free: the semantics head was read somewhere
+
+
+def test_occllama_training_forward_skips_the_combined_scores():
+    model = build_tokenizer("occllama_tokenizer", TINY["occllama_tokenizer"]).train()
+    out = model(scene())
+    assert out.logits is None and out.losses["loss"].requires_grad
+
+
+def test_decoupled_labels_break_ties_as_the_scores_argmax():
+    # Voxel 0: random logits. Voxel 1: status tie (occupied wins, as in the scores) and
+    # semantics 2 = 5 exactly. Voxel 2: class 0 one float below class 3; after the
+    # log-softmax both round to the same score, so the scores' argmax is 0, not 3.
+    torch.manual_seed(0)
+    status, sem = torch.randn(1, 2, 3), torch.randn(1, 17, 3)
+    status[0, :, 1] = 0.5
+    sem[0, :, 1], sem[0, 2, 1], sem[0, 5, 1] = -1.0, 2.0, 2.0
+    status[0, :, 2], sem[0, :, 2] = 0.0, 0.0
+    sem[0, 3, 2], sem[0, 0, 2] = 0.25, torch.nextafter(torch.tensor(0.25), torch.tensor(0.0))
+    expected = combine_decoupled(status, sem).argmax(1)
+    assert expected[0, 1] == 2 and expected[0, 2] == 0 and sem.argmax(1)[0, 2] == 3
+    assert torch.equal(decoupled_labels(status, sem), expected)
 
 
 def test_encode_never_updates_the_codebook():
