@@ -103,7 +103,9 @@ def combine_decoupled(status_logits: torch.Tensor, semantic_logits: torch.Tensor
     return torch.cat([semantic_scores, log_status[..., STATUS_FREE : STATUS_FREE + 1]], dim=-1).movedim(-1, 1)
 
 
-def decoupled_labels(status_logits: torch.Tensor, semantic_logits: torch.Tensor, tolerance: float = 1e-4) -> torch.Tensor:
+def decoupled_labels(
+    status_logits: torch.Tensor, semantic_logits: torch.Tensor, tolerance: float = 1e-4
+) -> torch.Tensor:
     """Eq. 8's labels (B, ...) without the 18-class scores: the semantics head's class where
     the status head says occupied, free space elsewhere; exactly the argmax of
     :func:`combine_decoupled`, whose log-softmax over 17 classes of every voxel it skips.
