@@ -9,6 +9,11 @@ reconstruction quality after the same training budget.
 2. Unless ``--skip-training``: ``recipes/ablations/tokenizer_decoupled_vs_vqvae.yaml`` with
    ``--steps`` steps per tokenizer, and the reconstruction mIoU/IoU (OccWorld convention)
    each reaches on the val split.
+3. With ``--decode EXPORT --data ROOT``: decoding a trained tokenizer's codes of every val
+   frame to labels, the argmax of the full class scores (``decode``) vs ``decode_labels``,
+   alternating per batch of 8; the labels compared voxel by voxel.
+
+    python tools/bench/tokenizer.py --decode runs/quickstart/tokenizer/export --data data/quickstart
 """
 
 from __future__ import annotations
@@ -70,11 +75,48 @@ def train(steps: int) -> dict[str, dict]:
         }
 
 
+def decode(export: Path, data: Path, threads: int = 2) -> None:
+    import time
+
+    import torch
+
+    from occtrain.core.registry import load_tokenizer
+    from occtrain.data.frames import frames_batch
+    from occtrain.data.layout import DatasetIndex
+
+    torch.set_num_threads(threads)
+    model = load_tokenizer(export).eval()
+    index = DatasetIndex.open(data)
+    frames = [(scene, token) for scene in index.splits["val"] for token in index.scenes[scene]]
+    seconds = {"decode().argmax(1)": 0.0, "decode_labels": 0.0}
+    differing = voxels = 0
+    with torch.no_grad():
+        for i in range(0, len(frames), 8):
+            codes = model.encode(frames_batch(index, frames[i : i + 8], cameras=False)["semantics"].long())
+            start = time.perf_counter()
+            full = model.decode(codes).argmax(1)
+            seconds["decode().argmax(1)"] += time.perf_counter() - start
+            start = time.perf_counter()
+            labels = model.decode_labels(codes)
+            seconds["decode_labels"] += time.perf_counter() - start
+            differing += int((full != labels).sum())
+            voxels += full.numel()
+    for name, took in seconds.items():
+        print(f"{name:20s} {len(frames)} val frames: {took:6.2f} s, {took / len(frames) * 1e3:6.1f} ms per scene")
+    ratio = seconds["decode().argmax(1)"] / seconds["decode_labels"]
+    print(f"decode_labels is {ratio:.2f}x faster; {differing} of {voxels:,} voxels differ")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--steps", type=int, default=120)
     parser.add_argument("--skip-training", action="store_true")
+    parser.add_argument("--decode", type=Path, help="a tokenizer export: time decoding to labels, nothing else")
+    parser.add_argument("--data", type=Path, default=REPO / "data" / "quickstart")
     args = parser.parse_args()
+    if args.decode:
+        decode(args.decode, args.data)
+        return
     for arch in ("occworld_vqvae", "occllama_tokenizer"):
         params, seconds, gib = probe(arch)
         print(

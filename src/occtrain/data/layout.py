@@ -557,7 +557,45 @@ def read_image(path: Path) -> np.ndarray:
 # ----------------------------------------------------------------------------- writing
 
 
-class DatasetWriter:
+class SceneFiles:
+    """The files of one scene under a dataset root: each frame's labels and camera images,
+    then the scene's frame sidecar, which marks the scene complete. What a synthesis
+    worker process writes; :class:`DatasetWriter` adds the dataset-wide records."""
+
+    def __init__(self, root: str | Path):
+        self.root = Path(root)
+
+    def scene_done(self, scene: str) -> bool:
+        return (self.root / FRAMES_DIR / f"{scene}.json").is_file()
+
+    def write_labels(self, scene: str, token: str, arrays: dict[str, np.ndarray]) -> None:
+        """Validate and atomically write one frame's ``labels.npz``."""
+        path = self.root / GTS_DIR / scene / token / LABELS_FILE
+        validate_labels(arrays, str(path))
+        atomic_write_npz(path, arrays)
+
+    def write_images(self, token: str, views: list[tuple[str, np.ndarray, np.ndarray, np.ndarray]]) -> None:
+        """Write one frame's camera images (name, image (H, W, 3) uint8, classes (H, W) uint8,
+        depth (H, W) metres) as PNGs under ``imgs/<name>/``, before the frame's scene completes."""
+        for name, image, classes, depth in views:
+            folder = self.root / IMGS_DIR / name
+            atomic_write_bytes(folder / f"{token}.png", png_bytes(image))
+            atomic_write_bytes(folder / f"{token}{CLASS_SUFFIX}.png", png_bytes(classes))
+            centimetres = np.clip(np.round(depth * DEPTH_SCALE), 0, 65535).astype(np.uint16)
+            atomic_write_bytes(folder / f"{token}{DEPTH_SUFFIX}.png", png_bytes(centimetres))
+
+    def write_frames(self, scene: str, frames: list[FrameAnnotation]) -> None:
+        """Write the scene's frame sidecar (after its labels): the scene is then complete."""
+        atomic_write_json(self.root / FRAMES_DIR / f"{scene}.json", frames, indent=None)
+
+    def read_scene(self, scene: str) -> list[FrameAnnotation]:
+        """A completed scene's frames."""
+        return _read_json(
+            self.root / FRAMES_DIR / f"{scene}.json", "frame annotations", list[FrameAnnotation], FRAMES_HINT
+        )
+
+
+class DatasetWriter(SceneFiles):
     """Writes a dataset in the Occ3D layout; refuses to mix into a different dataset.
 
     Scene by scene: labels first, then the scene's sidecar (which marks the scene
@@ -566,7 +604,7 @@ class DatasetWriter:
     """
 
     def __init__(self, root: str | Path, fingerprint: dict):
-        self.root = Path(root)
+        super().__init__(root)
         self.fingerprint = fingerprint
         record = self.root / DATASET_FILE
         if record.is_file():
@@ -591,37 +629,12 @@ class DatasetWriter:
     def complete(self) -> bool:
         return (self.root / ANNOTATIONS_FILE).is_file()
 
-    def scene_done(self, scene: str) -> bool:
-        return (self.root / FRAMES_DIR / f"{scene}.json").is_file()
-
-    def write_labels(self, scene: str, token: str, arrays: dict[str, np.ndarray]) -> None:
-        """Validate and atomically write one frame's ``labels.npz``."""
-        path = self.root / GTS_DIR / scene / token / LABELS_FILE
-        validate_labels(arrays, str(path))
-        atomic_write_npz(path, arrays)
-
-    def write_images(self, token: str, views: list[tuple[str, np.ndarray, np.ndarray, np.ndarray]]) -> None:
-        """Write one frame's camera images (name, image (H, W, 3) uint8, classes (H, W) uint8,
-        depth (H, W) metres) as PNGs under ``imgs/<name>/``, before the frame's scene completes."""
-        for name, image, classes, depth in views:
-            folder = self.root / IMGS_DIR / name
-            atomic_write_bytes(folder / f"{token}.png", png_bytes(image))
-            atomic_write_bytes(folder / f"{token}{CLASS_SUFFIX}.png", png_bytes(classes))
-            centimetres = np.clip(np.round(depth * DEPTH_SCALE), 0, 65535).astype(np.uint16)
-            atomic_write_bytes(folder / f"{token}{DEPTH_SUFFIX}.png", png_bytes(centimetres))
-
     def write_scene(
         self, scene: str, split: str, frames: list[FrameAnnotation], cameras: list[Camera] | None = None
     ) -> None:
-        """Write the scene's frame sidecar (after its labels): the scene is then complete."""
-        atomic_write_json(self.root / FRAMES_DIR / f"{scene}.json", frames, indent=None)
+        """Write the scene's frame sidecar (after its labels) and record it for the dataset's records."""
+        self.write_frames(scene, frames)
         self.add_scene_info(scene, split, frames, cameras)
-
-    def read_scene(self, scene: str) -> list[FrameAnnotation]:
-        """A completed scene's frames, for resuming an interrupted write."""
-        return _read_json(
-            self.root / FRAMES_DIR / f"{scene}.json", "frame annotations", list[FrameAnnotation], FRAMES_HINT
-        )
 
     def add_scene_info(
         self, scene: str, split: str, frames: list[FrameAnnotation], cameras: list[Camera] | None = None

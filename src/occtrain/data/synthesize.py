@@ -2,14 +2,17 @@
 
 from __future__ import annotations
 
+import multiprocessing
+import os
 import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 
 import numpy as np
 
 from occtrain.config.groups import SynthConfig, check_synth_config
 from occtrain.data.cameras import nuscenes_rig
-from occtrain.data.layout import DatasetIndex, DatasetWriter
+from occtrain.data.layout import DatasetIndex, DatasetWriter, SceneFiles
 from occtrain.data.schema import QAQuestion
 from occtrain.data.synth import generate_scene
 from occtrain.data.synth.text import caption_for_frame, narration_for_frame, questions_for_frame
@@ -50,11 +53,39 @@ def _fingerprint(cfg: SynthConfig) -> dict:
     }
 
 
-def synthesize(out: str | Path, cfg: SynthConfig, verbose: bool = True) -> DatasetIndex:
+def _write_scene(root: str, name: str, seed: int, cfg: SynthConfig) -> int:
+    """Generate one scene and write its frames (labels, cameras, then the sidecar that marks
+    it complete); the number of frames. Runs in a worker process or in the caller's."""
+    files = SceneFiles(root)
+    scene = generate_scene(name=name, seed=seed, num_frames=cfg.frames_per_scene)
+    frames = scene.frames
+    rig = nuscenes_rig(cfg.camera_height, cfg.camera_width) if cfg.camera_height else []
+    for i, frame in enumerate(frames):
+        frame["caption"] = caption_for_frame(frame)
+        frame["narration"] = narration_for_frame(frame)
+        labels = scene.render(i)
+        files.write_labels(name, frame["token"], labels)
+        if rig:
+            views = scene.cameras(i, labels["semantics"], cfg.camera_height, cfg.camera_width)
+            files.write_images(frame["token"], [(c.name, v.image, v.classes, v.depth) for c, v in zip(rig, views)])
+    files.write_frames(name, frames)
+    return len(frames)
+
+
+def synthesis_workers(frames: int) -> int:
+    """Processes for ``frames`` frames still to render: one per core this process may use,
+    or this process alone below 100 frames, where starting workers (each imports the
+    generator and builds its sensor geometry, a few seconds) costs more than it saves."""
+    return 1 if frames < 100 else max(1, len(os.sched_getaffinity(0)))
+
+
+def synthesize(out: str | Path, cfg: SynthConfig, verbose: bool = True, workers: int | None = None) -> DatasetIndex:
     """Synthesize ``cfg``'s world into ``out``; a complete identical dataset is reused as is.
 
-    An interrupted run resumes at the first scene whose sidecar is missing. A directory
-    holding a different dataset is refused (DatasetWriter), never overwritten.
+    Scenes are independent (each from its own seed), so ``workers`` processes (None: see
+    :func:`synthesis_workers`) write them side by side; the files are the same whatever
+    the number. An interrupted run resumes at the first scene whose sidecar is missing. A
+    directory holding a different dataset is refused (DatasetWriter), never overwritten.
     """
     check_synth_config(cfg)
     writer = DatasetWriter(out, _fingerprint(cfg))
@@ -64,41 +95,39 @@ def synthesize(out: str | Path, cfg: SynthConfig, verbose: bool = True) -> Datas
         return DatasetIndex.open(out)
     cameras = nuscenes_rig(cfg.camera_height, cfg.camera_width) if cfg.camera_height else None
     plan = scene_plan(cfg)
-    questions: dict[str, list[QAQuestion]] = {"train": [], "val": []}
+    todo = [(name, seed) for name, _, seed in plan if not writer.scene_done(name)]
+    workers = min(workers or synthesis_workers(len(todo) * cfg.frames_per_scene), max(1, len(todo)))
     start = time.perf_counter()
-    rendered = 0
     with progress_bar(len(plan) * cfg.frames_per_scene, f"synthesizing {len(plan)} scenes") as advance:
-        for scene_idx, (name, split, seed) in enumerate(plan):
-            if writer.scene_done(name):
-                frames = writer.read_scene(name)
-                advance(len(frames))
-            else:
-                scene = generate_scene(name=name, seed=seed, num_frames=cfg.frames_per_scene)
-                frames = scene.frames
-                for i, frame in enumerate(frames):
-                    frame["caption"] = caption_for_frame(frame)
-                    frame["narration"] = narration_for_frame(frame)
-                    labels = scene.render(i)
-                    writer.write_labels(name, frame["token"], labels)
-                    if cameras:
-                        views = scene.cameras(i, labels["semantics"], cfg.camera_height, cfg.camera_width)
-                        writer.write_images(
-                            frame["token"], [(c.name, v.image, v.classes, v.depth) for c, v in zip(cameras, views)]
-                        )
-                    rendered += 1
-                    advance(1)
-            writer.write_scene(name, split, frames, cameras)
-            # Questions depend only on the frames and a per-scene seed, so a resumed run
-            # regenerates exactly the questions an uninterrupted one would have written.
-            rng = np.random.default_rng([cfg.seed, scene_idx, 7])
-            for frame in frames:
-                questions[split].extend(questions_for_frame(frame, rng))
+        advance((len(plan) - len(todo)) * cfg.frames_per_scene)
+        if workers == 1:
+            for name, seed in todo:
+                advance(_write_scene(str(out), name, seed, cfg))
+        else:
+            # Forked, as torch's DataLoader forks its workers: spawning would re-run the
+            # caller's main module in each worker. The workers run numpy only, never
+            # torch's thread pools, which a fork copies without their threads.
+            context = multiprocessing.get_context("fork")
+            with ProcessPoolExecutor(workers, mp_context=context) as pool:
+                jobs = [pool.submit(_write_scene, str(out), name, seed, cfg) for name, seed in todo]
+                for job in as_completed(jobs):
+                    advance(job.result())
+    # The dataset's records from the sidecars, in the plan's order, however the scenes were written.
+    questions: dict[str, list[QAQuestion]] = {"train": [], "val": []}
+    for scene_idx, (name, split, _) in enumerate(plan):
+        frames = writer.read_scene(name)
+        writer.add_scene_info(name, split, frames, cameras)
+        # Questions depend only on the frames and a per-scene seed, so a resumed run
+        # regenerates exactly the questions an uninterrupted one would have written.
+        rng = np.random.default_rng([cfg.seed, scene_idx, 7])
+        for frame in frames:
+            questions[split].extend(questions_for_frame(frame, rng))
     writer.finalize(questions)
     if verbose:
         secs = time.perf_counter() - start
         console.print(
             f"wrote {len(plan)} scenes ({cfg.train_scenes} train, {cfg.val_scenes} val), "
-            f"{rendered} frames in {secs:.1f}s, "
-            f"{sum(len(q) for q in questions.values())} questions -> {out}"
+            f"{len(todo) * cfg.frames_per_scene} frames in {secs:.1f}s ({workers} process"
+            f"{'es' if workers > 1 else ''}), {sum(len(q) for q in questions.values())} questions -> {out}"
         )
     return DatasetIndex.open(out)
