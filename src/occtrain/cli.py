@@ -7,7 +7,7 @@ import re
 import sys
 from typing import Any
 
-from occtrain.errors import OcctrainError
+from occtrain.errors import ConfigError, OcctrainError
 from occtrain.version import __version__
 
 
@@ -97,7 +97,9 @@ def _cmd_data_synth(args: argparse.Namespace) -> int:
     cfg = SynthConfig(
         train_scenes=args.scenes, val_scenes=args.val_scenes, frames_per_scene=args.frames, seed=args.seed
     )
-    synthesize(args.out, cfg)
+    if args.workers is not None and args.workers < 1:
+        raise ConfigError(f"--workers {args.workers}: give at least 1 process")
+    synthesize(args.out, cfg, workers=args.workers)
     return 0
 
 
@@ -307,6 +309,9 @@ def _add_data_commands(sub: Any) -> None:
     p.add_argument("--val-scenes", type=int, default=2, help="val scenes (default 2)")
     p.add_argument("--frames", type=int, default=40, help="frames per scene at 2 Hz (default 40)")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument(
+        "--workers", type=int, default=None, help="processes writing scenes (default: one per core from 100 frames)"
+    )
     p.set_defaults(func=_cmd_data_synth)
 
     p = data.add_parser("shards", help="write webdataset shards from a dataset")

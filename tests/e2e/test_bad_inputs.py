@@ -1257,6 +1257,13 @@ CASES: list[Case] = [
         "synth needs at least one train scene and one frame per scene",
     ),
     Case(
+        "synth-no-workers",
+        nothing,
+        ["data", "synth", "--out", "{tmp}/new", "--workers", "0"],
+        2,
+        "--workers 0: give at least 1 process",
+    ),
+    Case(
         "show-unknown-scene",
         nothing,
         ["data", "show", DS, "--scene", "scene-9999", "--out", "{tmp}/b.png"],
