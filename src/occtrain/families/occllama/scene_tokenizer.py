@@ -179,12 +179,18 @@ class OccLLaMATokenizer(SceneTokenizer):
         """Reconstruct (B, 200, 200, 16) labels; Eq. 9-10 losses and codebook stats."""
         semantics = check_semantics(semantics)
         vq = self.quantizer(self.encode_latent(semantics))
-        status_logits, semantic_logits = self.decode_heads(vq.z_q)
+        voxels = self.voxel_features(vq.z_q)
+        status_logits = self.status_head(voxels).permute(0, 4, 1, 2, 3)
         occupied = semantics != FREE
         status = torch.where(occupied, STATUS_OCCUPIED, STATUS_FREE)
         weights = class_balance_weights(semantics, self.cfg.class_balance)
+        # The semantics loss reads the occupied voxels only (a few per cent of them), so
+        # the semantics head runs on those alone, as (n, 17) rows.
         sem_ce, sem_lovasz = ce_lovasz(
-            semantic_logits, semantics, valid=occupied, lovasz_voxels=self.cfg.lovasz_voxels, weights=weights
+            self.semantic_head(voxels[occupied]),
+            semantics[occupied],
+            lovasz_voxels=self.cfg.lovasz_voxels,
+            weights=None if weights is None else weights[occupied],
         )
         status_ce, status_lovasz = ce_lovasz(
             status_logits, status, lovasz_voxels=self.cfg.lovasz_voxels, weights=weights
@@ -207,5 +213,6 @@ class OccLLaMATokenizer(SceneTokenizer):
         # and would cost a training step a sixth of its time.
         if self.training:
             return TokenizerOutput(logits=None, losses=losses, stats=vq.stats, codes=vq.codes)
+        semantic_logits = self.semantic_head(voxels).permute(0, 4, 1, 2, 3)
         logits = combine_decoupled(status_logits.detach(), semantic_logits.detach())
         return TokenizerOutput(logits=logits, losses=losses, stats=vq.stats, codes=vq.codes)
