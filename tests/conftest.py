@@ -34,6 +34,40 @@ if os.environ.get("PYTEST_XDIST_WORKER"):
     torch.set_num_threads(1)
 
 
+#: The files that keep a worker busiest, longest first (seconds of one worker in a full run
+#: on 2 cores, `pytest --junitxml`, 2026-11-28: 209, 191, 188, 165, 154, 140, 105, 79, 56,
+#: 48, 31, 30, 29). pytest-xdist hands out whole files (``--dist loadfile``) in collection
+#: order (``--no-loadscope-reorder``): these go first, so that the two workers finish
+#: together. By default it starts with the files holding the most tests, which left these
+#: few-test end-to-end files for last and one worker idle for minutes. Files not named here
+#: follow in their usual order; a stale entry only costs balance, never a test.
+HEAVIEST_FIRST = (
+    "e2e/test_sharded.py",
+    "e2e/test_pipeline.py",
+    "e2e/test_sparseoccvla_recipe.py",
+    "e2e/test_occllm_recipe.py",
+    "e2e/test_pipeline_faults.py",  # after test_pipeline, whose run it waits for (built_once)
+    "e2e/test_distributed.py",
+    "e2e/test_occvla_recipe.py",
+    "e2e/test_interruptions.py",
+    "unit/models/tokenizers/test_tokenizers.py",
+    "unit/stages/test_optim_ddp_step.py",
+    "unit/families/occllm/test_msvae.py",
+    "unit/data/synth/test_synth.py",
+    "e2e/test_bad_inputs.py",
+)
+
+
+def pytest_collection_modifyitems(config, items) -> None:
+    rank = {name: i for i, name in enumerate(HEAVIEST_FIRST)}
+
+    def order(item) -> int:
+        path = Path(str(item.path)).relative_to(REPO / "tests").as_posix()
+        return rank.get(path, len(rank))
+
+    items.sort(key=order)  # stable: each file's tests, and the other files, keep their order
+
+
 def hand_labels(seed: int) -> dict[str, np.ndarray]:
     """A plausible label volume: ground, a box of class 4, masks hiding one corner."""
     rng = np.random.default_rng(seed)
@@ -116,6 +150,31 @@ def synth_dataset(tmp_path_factory) -> Path:
     root = tmp_path_factory.mktemp("synth") / "world"
     synthesize(root, SynthConfig(train_scenes=2, val_scenes=1, frames_per_scene=12, seed=3), verbose=False)
     return root
+
+
+def _one_thread(rank: int, fn: Callable[..., None], *args) -> None:
+    import torch
+
+    torch.set_num_threads(1)
+    fn(rank, *args)
+
+
+def two_ranks(fn: Callable[..., None], *args, timeout: float = 120) -> None:
+    """``fn(rank, *args)`` in two processes (for a gloo group of two), waited for; a test
+    fails, rather than hangs, when one of them waits for ever in a collective the other
+    skipped. Forked from this process, as DataLoader workers are: spawned ones would import
+    this test's module, and with it torch, Lightning and occtrain, again (10-20 s of CPU a
+    test). Like DataLoader workers, each runs torch on one thread: OpenMP's threads are not
+    forked, and a child that reached for them would wait for ever."""
+    import torch.multiprocessing as mp
+
+    ctx = mp.start_processes(_one_thread, args=(fn, *args), nprocs=2, join=False, start_method="fork")
+    deadline = time.monotonic() + timeout
+    while not ctx.join(timeout=1):
+        if time.monotonic() > deadline:
+            for proc in ctx.processes:
+                proc.kill()
+            pytest.fail(f"the two processes of {fn.__name__} hung: one waited in a collective the other skipped")
 
 
 def built_once(tmp_path_factory, name: str, build: Callable[[Path], Path]) -> Path:

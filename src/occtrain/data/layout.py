@@ -16,6 +16,7 @@ synthetic world is written through :class:`DatasetWriter` and read back through
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import posixpath
@@ -150,20 +151,31 @@ def quaternion_from_yaw(yaw: float) -> list[float]:
     return [math.cos(yaw / 2.0), 0.0, 0.0, math.sin(yaw / 2.0)]
 
 
+#: Digests of the JSON texts this process has found to conform to a schema, with the
+#: schema's name. Every stage of a run reads the world's sidecars again (and a test session
+#: reads one world hundreds of times); walking a scene's frames through their schema costs
+#: far more than parsing them, and a text that conformed once conforms again.
+_CONFORMING: set[tuple[str, bytes]] = set()
+
+
 def _read_json(path: Path, what: str, schema: Any = None, hint: str = "re-create the file") -> Any:
     """A JSON file, checked against ``schema`` when given; the first problem is one DataError line."""
     if not path.is_file():
         raise DataError(f"{path}: {what} not found")
     try:
-        data = json.loads(path.read_text())  # NaN/Infinity parse; the schema names the key that holds one
+        text = path.read_text()
+        data = json.loads(text)  # NaN/Infinity parse; the schema names the key that holds one
     except (json.JSONDecodeError, UnicodeDecodeError) as err:
         raise DataError(f"{path}: not valid JSON ({err}); {hint}") from None
     except OSError as err:
         raise DataError(f"{path}: cannot read it ({err.strerror})") from None
     if schema is not None:
-        problem = first_problem(data, schema)
-        if problem:
-            raise DataError(f"{path}: {problem}; {hint}")
+        seen = (repr(schema), hashlib.blake2b(text.encode("utf-8", "surrogatepass")).digest())
+        if seen not in _CONFORMING:
+            problem = first_problem(data, schema)
+            if problem:
+                raise DataError(f"{path}: {problem}; {hint}")
+            _CONFORMING.add(seen)
     return data
 
 

@@ -178,7 +178,37 @@ class CaptionMetric(Metric):
         gathered = self._local_samples()  # compute() runs on synchronised states
         if not gathered:
             raise ValueError("CaptionMetric.compute() called before any update")
-        scores = coco_caption_scores({i: p for i, (p, _) in gathered.items()}, {i: r for i, (_, r) in gathered.items()})
-        out: dict[str, Any] = {k: torch.tensor(v, dtype=torch.float64) for k, v in scores.items()}
+        values = self._scored_once(gathered) if self._is_synced else self._scores(gathered)
+        out: dict[str, Any] = {k: v for k, v in zip(CAPTION_KEYS, values.cpu())}
         out["samples"] = torch.tensor(len(gathered))
         return out
+
+    def _scores(self, gathered: dict[str, tuple[str, list[str]]]) -> Tensor:
+        """pycocoevalcap's scores of ``gathered``, in ``CAPTION_KEYS`` order (float64)."""
+        scores = coco_caption_scores({i: p for i, (p, _) in gathered.items()}, {i: r for i, (_, r) in gathered.items()})
+        return torch.tensor([scores[k] for k in CAPTION_KEYS], dtype=torch.float64, device=self.device)
+
+    def _scored_once(self, gathered: dict[str, tuple[str, list[str]]]) -> Tensor:
+        """After a gather every process holds every sample: the first scores them and the
+        others receive its scores. The scorers are Java programs (METEOR alone loads its
+        paraphrase tables for seconds and takes a 2 GB heap), so N processes would pay that
+        N times for the same numbers. A failure on the first is raised on every process
+        (its own error there, a pointer to it elsewhere) rather than leaving them waiting."""
+        import torch.distributed as dist
+
+        first = 0 if self.process_group is None else dist.get_global_rank(self.process_group, 0)
+        # The scores, then 1 if the first process computed them.
+        values = torch.zeros(len(CAPTION_KEYS) + 1, dtype=torch.float64, device=self.device)
+        error: Exception | None = None
+        if dist.get_rank() == first:
+            try:
+                values[:-1] = self._scores(gathered)
+                values[-1] = 1.0
+            except Exception as exc:  # raised below, once the others know
+                error = exc
+        dist.broadcast(values, src=first, group=self.process_group)
+        if error is not None:
+            raise error
+        if values[-1] != 1.0:
+            raise OcctrainError("caption metrics failed on the first process; its error above says why")
+        return values[:-1]

@@ -138,3 +138,28 @@ def test_writer_refuses_a_different_dataset(tmp_path):
     with pytest.raises(DataError, match="not an occtrain dataset"):
         DatasetWriter(other, {"generator": "tests"})
     assert (other / "mine.txt").read_text() == "keep me"
+
+
+def test_a_sidecar_is_checked_against_its_schema_once_per_text(tmp_path, monkeypatch):
+    """Frames read again (every stage does) are not walked through the schema again while
+    their text is the same; a text changed in place, even to the same length, is checked
+    anew and its problem reported."""
+    from occtrain.data import layout
+
+    root = write_hand_dataset(tmp_path / "ds", train=1, val=0, frames=3)
+    index = DatasetIndex.open(root)
+    scene = index.splits["train"][0]
+    checks = []
+    real = layout.first_problem
+    monkeypatch.setattr(layout, "first_problem", lambda data, schema: checks.append(schema) or real(data, schema))
+    monkeypatch.setattr(layout, "_CONFORMING", set())
+    first = index.frames(scene)
+    assert index.frames(scene) == first and len(checks) == 1
+    sidecar = root / "occtrain" / "frames" / f"{scene}.json"
+    text = sidecar.read_text()
+    bad = text.replace('"ego_speed": 5.0', '"ego_speed": "5"', 1)
+    assert bad != text and len(bad) == len(text)
+    sidecar.write_text(bad)
+    with pytest.raises(DataError, match=r"frames/scene-0000\.json: .*ego_speed"):
+        index.frames(scene)
+    assert len(checks) == 2

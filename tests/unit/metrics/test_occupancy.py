@@ -5,14 +5,13 @@ from __future__ import annotations
 import json
 import math
 import socket
-import time
 
 import numpy as np
 import pytest
 import torch
 import torch.distributed as dist
-import torch.multiprocessing as mp
 
+from conftest import two_ranks
 from occtrain.formats.occ3d import CLASS_NAMES, FREE
 from occtrain.metrics import CaptionMetric, ForecastMetric, OccupancyMetric, PlanningMetric, QAMetric, confusion_matrix
 
@@ -263,13 +262,7 @@ def assert_same(a, b, path: str = "") -> None:
 
 def test_two_process_ddp_equals_single_process(tmp_path):
     out = tmp_path / "ddp.json"
-    ctx = mp.spawn(_worker, args=(free_port(), str(out)), nprocs=2, join=False)
-    deadline = time.monotonic() + 120  # a process left out of a collective hangs the other
-    while not ctx.join(timeout=1):
-        if time.monotonic() > deadline:
-            for proc in ctx.processes:
-                proc.kill()
-            pytest.fail("the two processes hung: one skipped a metric's collective compute")
+    two_ranks(_worker, free_port(), str(out))
     ddp = json.loads(out.read_text())
     single = json.loads(json.dumps(run_all(slice(0, 5))))
     assert_same(ddp, single)

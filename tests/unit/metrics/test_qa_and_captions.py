@@ -163,3 +163,60 @@ def test_caption_metric_by_hand():
     got = {k: v.item() for k, v in m.compute().items()}
     assert got["CIDEr"] == pytest.approx(5.0)
     assert got["samples"] == 2
+
+
+def _two_process_captions(rank: int, port: int, out: str) -> None:
+    """Rank 0 scores PREDS' first two samples, rank 1 the third; first with no Java on rank
+    0 (every process must raise, none wait), then as they are."""
+    import json
+    from unittest import mock
+
+    import torch.distributed as dist
+
+    from occtrain.metrics import captions
+
+    captions._METEOR = None  # a forked process's own, not this test process's
+    dist.init_process_group("gloo", init_method=f"tcp://127.0.0.1:{port}", rank=rank, world_size=2)
+    try:
+        ids = list(PREDS)[:2] if rank == 0 else list(PREDS)[2:]
+        result: dict = {}
+        m = CaptionMetric()
+        m.update([PREDS[i] for i in ids], [REFS[i] for i in ids], ids=ids)
+        with mock.patch.object(shutil, "which", lambda name: None if rank == 0 else "/usr/bin/java"):
+            try:
+                m.compute()
+            except OcctrainError as exc:
+                result["error"] = str(exc)
+        m = CaptionMetric()
+        m.update([PREDS[i] for i in ids], [REFS[i] for i in ids], ids=ids)
+        result["scores"] = {k: v.item() for k, v in m.compute().items()}
+        result["started_meteor"] = captions._METEOR is not None
+        with open(f"{out}.{rank}", "w") as fh:
+            json.dump(result, fh)
+    finally:
+        dist.destroy_process_group()
+
+
+@pytest.mark.slow
+@needs_java
+def test_two_processes_score_captions_once_on_the_first(tmp_path):
+    """Under DDP the gathered captions are scored by the first process alone (one METEOR,
+    not one per process) and every process gets exactly the single-process scores; when
+    the first cannot score, every process raises instead of waiting."""
+    import json
+    import socket
+
+    from conftest import two_ranks
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    out = tmp_path / "rank"
+    two_ranks(_two_process_captions, port, str(out))
+    first, second = (json.loads(out.with_name(f"rank.{r}").read_text()) for r in (0, 1))
+    assert "need Java" in first["error"] and "failed on the first process" in second["error"]
+    single = CaptionMetric()
+    single.update(list(PREDS.values()), list(REFS.values()), ids=list(PREDS))
+    expected = {k: v.item() for k, v in single.compute().items()}
+    assert first["scores"] == second["scores"] == expected
+    assert first["started_meteor"] and not second["started_meteor"]

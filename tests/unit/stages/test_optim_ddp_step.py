@@ -17,10 +17,10 @@ import socket
 
 import torch
 import torch.distributed as dist
-import torch.multiprocessing as mp
 from omegaconf import OmegaConf
 from torch.nn.parallel import DistributedDataParallel
 
+from conftest import two_ranks
 from occtrain.config.recipe import OptimConfig
 from occtrain.core.registry import build_tokenizer
 from occtrain.models.tokenizers.occworld_vqvae import OccWorldVQVAEConfig
@@ -81,7 +81,7 @@ def _free_port() -> int:
 
 def test_ddp_step_equals_single_process_step(tmp_path):
     out = str(tmp_path / "ddp.pt")
-    mp.spawn(_worker, args=(_free_port(), out), nprocs=2, join=True)
+    two_ranks(_worker, _free_port(), out)
     ddp = torch.load(out, weights_only=True)
 
     model = _model()

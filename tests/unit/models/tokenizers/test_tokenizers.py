@@ -10,6 +10,7 @@ import torch.distributed as dist
 import torch.multiprocessing as mp
 from omegaconf import OmegaConf
 
+from conftest import two_ranks
 from occtrain.config.tokenizer import latent_hw
 from occtrain.core.registry import build_tokenizer
 from occtrain.errors import ConfigError, DataError
@@ -368,7 +369,7 @@ def _ddp_restart_worker(rank: int, init_file: str, results: dict) -> None:
 
 def test_ddp_restart_and_ema_stay_identical_across_ranks(tmp_path):
     results = mp.Manager().dict()
-    mp.spawn(_ddp_restart_worker, args=(str(tmp_path / "init"), results), nprocs=2)
+    two_ranks(_ddp_restart_worker, str(tmp_path / "init"), results)
     for a, b in zip(results[0], results[1]):
         assert torch.equal(a, b)
     assert not torch.equal(results[0][0][1:], torch.tensor([[100.0, 100.0], [200.0, 200.0], [300.0, 300.0]]))
