@@ -172,6 +172,12 @@ def _unpadded(collate: Callable[[list[dict]], dict]) -> Callable[[list[dict]], d
     return wrapped
 
 
+#: The keys of a collated batch that hold per-sample records read from the shards' JSON
+#: and text entries (sample tokens, frame metadata, clip annotations, questions, captions),
+#: never a tensor: nothing to move to a device (``Stage.transfer_batch_to_device``).
+RECORD_KEYS = frozenset({"token", "meta", "ann", "qa", "caption", "narration", PAD_KEY})
+
+
 def collate_frames(samples: list[dict]) -> dict[str, Any]:
     """Stack single-frame samples: uint8 semantics (B,X,Y,Z), bool masks, token and meta lists,
     and the cameras when the stage reads them (see :func:`collate_cameras`)."""
