@@ -8,7 +8,7 @@
 dataset as it is: the size-and-mtime fingerprint occtrain uses against hashing the same
 files' bytes, interleaved three times each (the page cache warm for both after the first).
 ``transfer`` times handing a clip batch of the dataset's shards (made by a run of it) to the
-device: Lightning's default walk of the whole batch against ``Stage.transfer_batch_to_device``,
+device: Lightning's default walk of the whole batch against ``ShardDataModule.transfer_batch_to_device``,
 which leaves the per-sample records alone, alternating over the same batches.
 
 Everything is measured in one run, side by side, on the same machine state:
@@ -99,24 +99,15 @@ def bench_fingerprint(root: Path) -> None:
 def bench_transfer(root: Path, batches: int = 20) -> None:
     from lightning.fabric.utilities.apply_func import move_data_to_device
 
-    from occtrain.stages.stage import Stage
-
-    class Bare(Stage):
-        def __init__(self) -> None:  # only the inherited hook is timed
-            torch.nn.Module.__init__(self)
-
-        def export(self, path: Path) -> Path:
-            return path
-
     data = DataConfig(root=str(root))
-    loader = ShardDataModule(data, "clips").train_dataloader()
-    held = [batch for batch, _ in zip(loader, range(batches))]
-    stage, cpu = Bare(), torch.device("cpu")
+    module = ShardDataModule(data, "clips")
+    held = [batch for batch, _ in zip(module.train_dataloader(), range(batches))]
+    cpu = torch.device("cpu")
     walk_s, ours_s = [], []
     for batch in held:
         for move, out in (
             (lambda b: move_data_to_device(b, cpu), walk_s),
-            (lambda b: stage.transfer_batch_to_device(b, cpu, 0), ours_s),
+            (lambda b: module.transfer_batch_to_device(b, cpu, 0), ours_s),
         ):
             start = time.perf_counter()
             move(batch)
@@ -124,7 +115,7 @@ def bench_transfer(root: Path, batches: int = 20) -> None:
     walk, ours = 1e3 * sum(walk_s) / len(held), 1e3 * sum(ours_s) / len(held)
     print(f"{root}: {len(held)} clip batches of {data.batch_size}")
     print(f"Lightning's walk of the whole batch : {walk:7.2f} ms a batch")
-    print(f"Stage.transfer_batch_to_device      : {ours:7.2f} ms a batch   ({walk / ours:.0f}x faster)")
+    print(f"ShardDataModule's transfer          : {ours:7.2f} ms a batch   ({walk / ours:.0f}x faster)")
 
 
 def main() -> None:

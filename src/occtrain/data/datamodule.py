@@ -297,6 +297,17 @@ class ShardDataModule(L.LightningDataModule):
             raise DataError(f"unknown data kind '{kind}'; choose from {', '.join(KINDS)}")
         self.cfg, self.kind, self.entries, self.cameras = cfg, kind, entries or {}, cameras
 
+    def transfer_batch_to_device(self, batch: Any, device: torch.device, dataloader_idx: int) -> Any:
+        """Lightning's move, less the batch's per-sample records (``RECORD_KEYS``): clip
+        annotations with every box and future, questions, captions. Lightning walks a
+        batch item by item looking for tensors; through those records that took 13 ms a
+        quickstart clip batch, every step, to find none (``tools/bench/data.py transfer``)."""
+        if not isinstance(batch, dict):
+            return super().transfer_batch_to_device(batch, device, dataloader_idx)
+        rest = {k: v for k, v in batch.items() if k not in RECORD_KEYS}
+        moved = super().transfer_batch_to_device(rest, device, dataloader_idx)
+        return {k: moved[k] if k in moved else v for k, v in batch.items()}
+
     def prepare_data(self) -> None:
         ensure_data(self.cfg)
 

@@ -17,11 +17,9 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar
 
 import lightning as L
-import torch
 
 from occtrain.config.groups import DataConfig, TrainerConfig
 from occtrain.config.recipe import StageSpec
-from occtrain.data.datamodule import RECORD_KEYS
 from occtrain.data.shards import PAD_KEY, world_key
 from occtrain.errors import ConfigError
 from occtrain.formats.exports import check_loaded_keys
@@ -174,18 +172,6 @@ class Stage(L.LightningModule, ABC):
     def on_validation_end(self) -> None:
         if not self.trainer.sanity_checking:
             self.validated_at = self.trainer.global_step
-
-    def transfer_batch_to_device(self, batch: Any, device: torch.device, dataloader_idx: int) -> Any:
-        """Lightning's move, less the batch's per-sample records (``RECORD_KEYS``): clip
-        annotations with every box and future, questions, captions. Lightning walks a
-        batch item by item looking for tensors; through those records that took 50 ms a
-        batch of the test-size quickstart, every step, to find none."""
-        if not isinstance(batch, dict):
-            return super().transfer_batch_to_device(batch, device, dataloader_idx)
-        records = {k: v for k, v in batch.items() if k in RECORD_KEYS}
-        rest = {k: v for k, v in batch.items() if k not in RECORD_KEYS}
-        moved = super().transfer_batch_to_device(rest, device, dataloader_idx)
-        return {k: records[k] if k in records else moved[k] for k in batch}
 
     # -- what the runner calls before anything is built
     @classmethod

@@ -1,21 +1,11 @@
-"""What every stage kind inherits from ``Stage``: how a batch reaches the device."""
+"""The data module's hand-over of a collated batch to the device."""
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import torch
 
-from occtrain.data.datamodule import RECORD_KEYS
-from occtrain.stages.stage import Stage
-
-
-class _Bare(Stage):
-    def __init__(self) -> None:  # no StageContext: only the inherited hooks are exercised
-        torch.nn.Module.__init__(self)
-
-    def export(self, path: Path) -> Path:
-        return path
+from occtrain.config import DataConfig
+from occtrain.data.datamodule import RECORD_KEYS, ShardDataModule
 
 
 def test_a_batch_moves_its_tensors_and_leaves_its_records_as_they_are():
@@ -31,9 +21,10 @@ def test_a_batch_moves_its_tensors_and_leaves_its_records_as_they_are():
         "extra": {"nested": [torch.ones(2)]},  # not a record key: Lightning's own walk
     }
     assert {"ann", "qa", "token"} <= RECORD_KEYS and "extra" not in RECORD_KEYS
-    moved = _Bare().transfer_batch_to_device(batch, torch.device("meta"), 0)
+    data = ShardDataModule(DataConfig(root="unused"), "clips")
+    moved = data.transfer_batch_to_device(batch, torch.device("meta"), 0)
     assert list(moved) == list(batch)
     assert moved["semantics"].is_meta and moved["extra"]["nested"][0].is_meta
     assert moved["ann"] is ann and moved["qa"] is qa and moved["token"] is batch["token"]
     pair = (torch.ones(1), ["x"])  # a batch that is not a dict: Lightning's default
-    assert _Bare().transfer_batch_to_device(pair, torch.device("meta"), 0)[0].is_meta
+    assert data.transfer_batch_to_device(pair, torch.device("meta"), 0)[0].is_meta
