@@ -152,6 +152,15 @@ def synth_dataset(tmp_path_factory) -> Path:
     return root
 
 
+def free_port() -> int:
+    """A TCP port free on this machine now, for a test's process group to rendezvous on."""
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
 def _one_thread(rank: int, fn: Callable[..., None], *args) -> None:
     import torch
 

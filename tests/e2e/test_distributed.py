@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import json
 import os
-import socket
 import subprocess
 import sys
 from pathlib import Path
@@ -14,7 +13,7 @@ import pytest
 import torch
 from safetensors.torch import load_file
 
-from conftest import REPO, kill_at_checkpoint, run_cli_process, write_hand_dataset
+from conftest import REPO, free_port, kill_at_checkpoint, run_cli_process, write_hand_dataset
 
 pytestmark = pytest.mark.slow
 
@@ -65,12 +64,6 @@ def _recipe(tmp_path: Path, world: Path, lr: float) -> Path:
     path = tmp_path / "dist.yaml"
     path.write_text(RECIPE.format(runs=tmp_path / "runs", data=world, lr=lr))
     return path
-
-
-def _port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def _torchrun(args: list[str], nodes: int, per_node: int, port: int) -> list[subprocess.Popen]:
@@ -170,7 +163,7 @@ def test_two_torchrun_nodes_train_like_one_process(tmp_path, world):
         "--run-dir",
         str(tmp_path / "two"),
     ]
-    results = _finish(_torchrun(args, nodes=2, per_node=1, port=_port()))
+    results = _finish(_torchrun(args, nodes=2, per_node=1, port=free_port()))
     for code, err in results:
         assert code == 0, err[-3000:]
     manifest = json.loads((tmp_path / "two" / "manifest.json").read_text())

@@ -174,7 +174,7 @@ def _unpadded(collate: Callable[[list[dict]], dict]) -> Callable[[list[dict]], d
 
 #: The keys of a collated batch that hold per-sample records read from the shards' JSON
 #: and text entries (sample tokens, frame metadata, clip annotations, questions, captions),
-#: never a tensor: nothing to move to a device (``Stage.transfer_batch_to_device``).
+#: never a tensor: nothing to move to a device (``ShardDataModule.transfer_batch_to_device``).
 RECORD_KEYS = frozenset({"token", "meta", "ann", "qa", "caption", "narration", PAD_KEY})
 
 

@@ -4,14 +4,13 @@ from __future__ import annotations
 
 import json
 import math
-import socket
 
 import numpy as np
 import pytest
 import torch
 import torch.distributed as dist
 
-from conftest import two_ranks
+from conftest import free_port, two_ranks
 from occtrain.formats.occ3d import CLASS_NAMES, FREE
 from occtrain.metrics import CaptionMetric, ForecastMetric, OccupancyMetric, PlanningMetric, QAMetric, confusion_matrix
 
@@ -240,12 +239,6 @@ def _worker(rank: int, port: int, out: str) -> None:
                 json.dump(result, fh)
     finally:
         dist.destroy_process_group()
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def assert_same(a, b, path: str = "") -> None:

@@ -204,15 +204,11 @@ def test_two_processes_score_captions_once_on_the_first(tmp_path):
     not one per process) and every process gets exactly the single-process scores; when
     the first cannot score, every process raises instead of waiting."""
     import json
-    import socket
 
-    from conftest import two_ranks
+    from conftest import free_port, two_ranks
 
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
     out = tmp_path / "rank"
-    two_ranks(_two_process_captions, port, str(out))
+    two_ranks(_two_process_captions, free_port(), str(out))
     first, second = (json.loads(out.with_name(f"rank.{r}").read_text()) for r in (0, 1))
     assert "need Java" in first["error"] and "failed on the first process" in second["error"]
     single = CaptionMetric()

@@ -13,14 +13,13 @@ loss by design, not a synchronisation bug.
 from __future__ import annotations
 
 import os
-import socket
 
 import torch
 import torch.distributed as dist
 from omegaconf import OmegaConf
 from torch.nn.parallel import DistributedDataParallel
 
-from conftest import two_ranks
+from conftest import free_port, two_ranks
 from occtrain.config.recipe import OptimConfig
 from occtrain.core.registry import build_tokenizer
 from occtrain.models.tokenizers.occworld_vqvae import OccWorldVQVAEConfig
@@ -62,7 +61,6 @@ def _step(model: torch.nn.Module, forward, batch: torch.Tensor) -> dict[str, tor
 
 def _worker(rank: int, port: int, out: str) -> None:
     os.environ.update(MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port))
-    torch.set_num_threads(1)
     dist.init_process_group("gloo", rank=rank, world_size=2)
     model = _model()
     ddp = DistributedDataParallel(model)
@@ -73,15 +71,9 @@ def _worker(rank: int, port: int, out: str) -> None:
     dist.destroy_process_group()
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def test_ddp_step_equals_single_process_step(tmp_path):
     out = str(tmp_path / "ddp.pt")
-    two_ranks(_worker, _free_port(), out)
+    two_ranks(_worker, free_port(), out)
     ddp = torch.load(out, weights_only=True)
 
     model = _model()
