@@ -95,8 +95,8 @@ def test_the_tokenizer_stage_trains_it_and_reports_each_codebook(tmp_path, hand_
     recipe.write_text(f"""
 name: msvae
 runs_root: {tmp_path / "runs"}
-data: {{root: {hand_dataset}, batch_size: 2, samples_per_shard: 4, history: 1, future: 1}}
-trainer: {{max_steps: 3, val_check_interval: 3, limit_val_batches: 1, log_every_n_steps: 1}}
+data: {{root: {hand_dataset}, batch_size: 1, samples_per_shard: 4, history: 1, future: 1}}
+trainer: {{max_steps: 2, val_check_interval: 2, limit_val_batches: 1, log_every_n_steps: 1}}
 stages:
   - name: tokenizer
     kind: tokenizer

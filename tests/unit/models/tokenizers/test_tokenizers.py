@@ -378,7 +378,8 @@ def test_ddp_restart_and_ema_stay_identical_across_ranks(tmp_path):
 # -- training signal
 
 
-@pytest.mark.parametrize("arch, steps", [("occworld_vqvae", 12), ("occllama_tokenizer", 20)])
+# Steps with a margin: seeded, the loss halves by step 6 and 9 and ends at 0.33 and 0.31 of its first.
+@pytest.mark.parametrize("arch, steps", [("occworld_vqvae", 8), ("occllama_tokenizer", 12)])
 def test_tiny_model_overfits_one_sample(arch, steps):
     torch.manual_seed(0)
     model = build_tokenizer(arch, TINY[arch])
