@@ -61,7 +61,7 @@ HEADLINES = (
         ),
     ),
     Headline(
-        r"(?!\w*_departing_)(plan_\w+|head_\w+|llm_action_tokens|anchor_\w+)_L2_stp3_avg",
+        r"(?!\w*_departing_)(plan(?:_\w+)?|head_\w+|llm_action_tokens|anchor_\w+)_L2_stp3_avg",
         "plan `{0}`: L2 avg (`stp3`, m)",
         3,
         (
@@ -71,7 +71,7 @@ HEADLINES = (
         ),
     ),
     Headline(
-        r"(plan_\w+|head_\w+|llm_action_tokens|anchor_\w+)_departing_L2_stp3_avg",
+        r"(plan(?:_\w+)?|head_\w+|llm_action_tokens|anchor_\w+)_departing_L2_stp3_avg",
         "plan `{0}` where the truth departs from constant velocity (> 1 m at 3 s): L2 avg (`stp3`, m)",
         3,
         (
