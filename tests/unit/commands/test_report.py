@@ -8,8 +8,17 @@ from pathlib import Path
 from conftest import run_cli
 
 
-def scored_run(root: Path, seed: int, forecast: float, qa: float, version: str = "v4", copy_paste: float = 7.0) -> Path:
-    """A run directory as `occtrain run` + `occtrain eval` leave it, reduced to what the report reads."""
+def scored_run(
+    root: Path,
+    seed: int,
+    forecast: float,
+    qa: float,
+    version: str = "v4",
+    copy_paste: float = 7.0,
+    more: dict[str, dict[str, float]] | None = None,
+) -> Path:
+    """A run directory as `occtrain run` + `occtrain eval` leave it, reduced to what the
+    report reads; ``more``: further stages' eval metrics, each trained for 10 s."""
     stages = {
         "pretrain": {
             "wall_time_s": 100.0 + seed,
@@ -18,6 +27,8 @@ def scored_run(root: Path, seed: int, forecast: float, qa: float, version: str =
         },
         "instruct": {"wall_time_s": 50.0, "code_version": "0.1.0+abc1234", "config": {"trainer": {"seed": seed}}},
     }
+    for stage in more or {}:
+        stages[stage] = {"wall_time_s": 10.0, "code_version": "0.1.0+abc1234", "config": {"trainer": {"seed": seed}}}
     root.mkdir(parents=True)
     (root / "manifest.json").write_text(json.dumps({"name": "quickstart", "stages": stages}))
     scores = {
@@ -31,6 +42,7 @@ def scored_run(root: Path, seed: int, forecast: float, qa: float, version: str =
             "baseline_constant_velocity_departing_L2_stp3_avg": 2.0,
         },
         "instruct": {"qa_overall": qa, "baseline_prior_qa_overall": 41.25},
+        **(more or {}),
     }
     for stage, metrics in scores.items():
         folder = root / stage / "eval" / "val"
@@ -111,23 +123,13 @@ def test_out_writes_the_page_atomically(tmp_path):
 def test_a_plan_named_plain_plan_is_a_headline(tmp_path):
     """SparseOccVLA's planner scores its diffusion plan as `plan`, with no suffix: it is
     reported on the whole split and on the departing clips, beside constant velocity."""
-    run = scored_run(tmp_path / "a", 0, 6.0, 54.0)
-    folder = run / "planner" / "eval" / "val"
-    folder.mkdir(parents=True)
-    (folder / "metrics.json").write_text(
-        json.dumps(
-            {
-                "plan_L2_stp3_avg": 0.478,
-                "plan_departing_L2_stp3_avg": 0.582,
-                "constant_velocity_L2_stp3_avg": 0.505,
-                "constant_velocity_departing_L2_stp3_avg": 0.755,
-            }
-        )
-    )
-    (folder / "world.json").write_text(json.dumps({"world": "key0", "world_version": "v4"}))
-    manifest = json.loads((run / "manifest.json").read_text())
-    manifest["stages"]["planner"] = {"wall_time_s": 10.0, "code_version": "0.1.0+abc1234", "config": {}}
-    (run / "manifest.json").write_text(json.dumps(manifest))
+    plans = {
+        "plan_L2_stp3_avg": 0.478,
+        "plan_departing_L2_stp3_avg": 0.582,
+        "constant_velocity_L2_stp3_avg": 0.505,
+        "constant_velocity_departing_L2_stp3_avg": 0.755,
+    }
+    run = scored_run(tmp_path / "a", 0, 6.0, 54.0, more={"planner": plans})
     res = run_cli("report", str(run))
     assert res.returncode == 0, res.stderr
     lines = res.stdout.splitlines()
