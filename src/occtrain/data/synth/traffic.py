@@ -141,37 +141,47 @@ def _stop_table(movers: list[Mover]) -> tuple[np.ndarray, np.ndarray, np.ndarray
     return s, light, axis
 
 
-def simulate_movers(movers: list[Mover], steps: int, host: np.ndarray) -> MotionResult:
-    """Run the IDM traffic for ``steps`` steps of SIM_DT from t = 0.
+class MoverTraffic:
+    """The movers' IDM traffic, one SIM_DT step at a time.
 
-    ``host[i]`` is the index (in ``movers``) of the tractor towing mover i, or -1.
+    The generator runs it from t = 0 to the end of a scene (``simulate_movers``); closed-loop
+    driving runs the same steps with the ego's state supplied from outside (``pose``, then the
+    ego's row of the returned xy and yaw and of ``v`` overwritten, then ``advance``), so the
+    traffic reacts to wherever the driven ego is exactly as it reacts to the generator's ego.
     """
-    n = len(movers)
-    bank = _PathBank([m.path for m in movers])
-    size = np.array([m.size for m in movers])
-    length, width = size[:, 0], size[:, 1]
-    lateral = np.array([m.lateral for m in movers])
-    a_max = np.array([m.a_max for m in movers])
-    b_comf = np.array([m.b_comf for m in movers])
-    headway = np.array([m.headway for m in movers])
-    v_des = np.stack([m.v_des[:steps] for m in movers])
-    host_gap = np.array([m.host_gap for m in movers])
-    towed = host >= 0
-    free = ~towed
-    stop_s, stop_light, stop_axis = _stop_table(movers)
-    rows = np.arange(n)
 
-    s = np.array([m.s0 for m in movers], dtype=np.float64)
-    v = np.array([m.v0 for m in movers], dtype=np.float64)
-    out = {k: np.zeros((n, steps)) for k in ("s", "v", "a", "yaw", "curvature")}
-    out_xy = np.zeros((n, steps, 2))
-    for step in range(steps):
+    def __init__(self, movers: list[Mover], host: np.ndarray):
+        self.movers = movers
+        self.host = host
+        self.bank = _PathBank([m.path for m in movers])
+        size = np.array([m.size for m in movers])
+        self.length, self.width = size[:, 0], size[:, 1]
+        self.lateral = np.array([m.lateral for m in movers])
+        self.a_max = np.array([m.a_max for m in movers])
+        self.b_comf = np.array([m.b_comf for m in movers])
+        self.headway = np.array([m.headway for m in movers])
+        self.v_des = np.stack([m.v_des for m in movers])
+        self.host_gap = np.array([m.host_gap for m in movers])
+        self.towed = host >= 0
+        self.free = ~self.towed
+        self.stop_s, self.stop_light, self.stop_axis = _stop_table(movers)
+        self.rows = np.arange(len(movers))
+        self.s = np.array([m.s0 for m in movers], dtype=np.float64)
+        self.v = np.array([m.v0 for m in movers], dtype=np.float64)
+
+    def pose(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(xy, yaw, curvature, speed envelope) of every mover now, trailers pulled to their tractors."""
+        towed, host = self.towed, self.host
+        self.s[towed] = self.s[host[towed]] - self.host_gap[towed]
+        self.v[towed] = self.v[host[towed]]
+        return self.bank.lookup(self.s, self.lateral)
+
+    def advance(self, step: int, xy: np.ndarray, yaw: np.ndarray, env: np.ndarray) -> np.ndarray:
+        """One IDM step from the poses ``xy``, ``yaw`` at step ``step``; returns each mover's acceleration."""
+        s, v, rows = self.s, self.v, self.rows
+        width, length = self.width, self.length
+        a_max, b_comf = self.a_max, self.b_comf
         t = step * SIM_DT
-        s[towed] = s[host[towed]] - host_gap[towed]
-        v[towed] = v[host[towed]]
-        xy, yaw, curv, env = bank.lookup(s, lateral)
-        out["s"][:, step], out["v"][:, step], out["yaw"][:, step], out["curvature"][:, step] = s, v, yaw, curv
-        out_xy[:, step] = xy
 
         # Leader: nearest vehicle ahead whose box overlaps ours sideways and heads our way.
         c, si = np.cos(yaw), np.sin(yaw)
@@ -188,22 +198,45 @@ def simulate_movers(movers: list[Mover], steps: int, host: np.ndarray) -> Motion
 
         # Stop line of the next intersection when its light is red (or amber and stoppable).
         front = s + length / 2
-        nxt = np.argmax(stop_s - front[:, None] > -0.5, axis=1)
-        line_gap = stop_s[rows, nxt] - front
-        left = green_left(stop_light[rows, nxt], stop_axis[rows, nxt], t)
+        nxt = np.argmax(self.stop_s - front[:, None] > -0.5, axis=1)
+        line_gap = self.stop_s[rows, nxt] - front
+        left = green_left(self.stop_light[rows, nxt], self.stop_axis[rows, nxt], t)
         can_stop = v**2 / (2 * np.maximum(line_gap, 0.1)) < 1.5 * b_comf
         halt = np.isfinite(line_gap) & (line_gap > -0.5) & ((left < 0) | ((left < AMBER) & can_stop))
 
-        v0 = np.maximum(np.minimum(v_des[:, step], env), 0.1)
+        v0 = np.maximum(np.minimum(self.v_des[:, step], env), 0.1)
         acc = a_max * (1 - (v / v0) ** 4)
         for g_, dv in ((lead_gap, v - lead_v), (np.where(halt, line_gap, np.inf), v)):
-            want = JAM_GAP + np.maximum(0.0, v * headway + v * dv / (2 * np.sqrt(a_max * b_comf)))
+            want = JAM_GAP + np.maximum(0.0, v * self.headway + v * dv / (2 * np.sqrt(a_max * b_comf)))
             acc = acc - np.where(np.isfinite(g_), a_max * (want / np.maximum(g_, 0.1)) ** 2, 0.0)
         acc = np.clip(acc, -MAX_BRAKING, a_max)
         v_new = np.maximum(v + acc * SIM_DT, 0.0)
-        out["a"][:, step] = np.where(free, (v_new - v) / SIM_DT, 0.0)
-        s = np.where(free, s + (v + v_new) / 2 * SIM_DT, s)
-        v = np.where(free, v_new, v)
+        free = self.free
+        self.s = np.where(free, s + (v + v_new) / 2 * SIM_DT, s)
+        self.v = np.where(free, v_new, v)
+        return np.where(free, (v_new - v) / SIM_DT, 0.0)
+
+
+def simulate_movers(movers: list[Mover], steps: int, host: np.ndarray) -> MotionResult:
+    """Run the IDM traffic for ``steps`` steps of SIM_DT from t = 0.
+
+    ``host[i]`` is the index (in ``movers``) of the tractor towing mover i, or -1.
+    """
+    n = len(movers)
+    traffic = MoverTraffic(movers, host)
+    out = {k: np.zeros((n, steps)) for k in ("s", "v", "a", "yaw", "curvature")}
+    out_xy = np.zeros((n, steps, 2))
+    for step in range(steps):
+        xy, yaw, curv, env = traffic.pose()
+        out["s"][:, step], out["v"][:, step], out["yaw"][:, step], out["curvature"][:, step] = (
+            traffic.s,
+            traffic.v,
+            yaw,
+            curv,
+        )
+        out_xy[:, step] = xy
+        out["a"][:, step] = traffic.advance(step, xy, yaw, env)
+    towed = traffic.towed
     out["a"][towed] = out["a"][host[towed]]
     return MotionResult(movers, out["s"], out["v"], out["a"], out_xy, out["yaw"], out["curvature"])
 
