@@ -9,7 +9,8 @@ Sources of each term:
 * **Route completion** (CARLA leaderboard): the share of the route driven, in percent. Here
   a route is the distance the simulator's expert covers in the episode's time, so the expert
   completes 100 %; distance driven off the drivable area or against the lane direction does
-  not count towards it (the leaderboard's "outside route lanes" rule).
+  not count towards it (the leaderboard's "outside route lanes" rule), and an ego that
+  strays from its route ends its episode there (the leaderboard's "route deviation").
 * **Driving score** (CARLA leaderboard): route completion times the product of a penalty
   per infraction, ``p ** count``: collision with a pedestrian 0.50, with a vehicle 0.60, with
   a static object 0.65, running a red light 0.70 (the leaderboard 1.0 coefficients).
@@ -21,9 +22,9 @@ Sources of each term:
   4 s of non-reactive simulation; here the whole reactive episode.
 * **Comfort** (nuPlan ``ego_is_comfortable``): longitudinal acceleration in
   [-4.05, 2.40] m/s^2, |lateral acceleration| <= 4.89 m/s^2, |yaw rate| <= 0.95 rad/s,
-  |yaw acceleration| <= 1.93 rad/s^2, |longitudinal jerk| <= 4.13 m/s^3, |jerk| <= 8.37 m/s^3,
-  from the simulated states by finite differences (nuPlan smooths them with a Savitzky-Golay
-  filter first; the states here are the simulator's own, without sensor noise).
+  |yaw acceleration| <= 1.93 rad/s^2, |longitudinal jerk| <= 4.13 m/s^3, |jerk| <= 8.37 m/s^3.
+  As nuPlan does, each signal and its derivative go through a Savitzky-Golay filter
+  (quadratic, ``SMOOTHING_WINDOW`` steps here) before the bounds are checked.
 * **Collision fault** (NAVSIM's rule): a collision is not the ego's fault when the ego stood
   still or the other hit it from behind.
 """
@@ -34,9 +35,16 @@ from dataclasses import asdict, dataclass, field
 from typing import Literal, get_args
 
 import numpy as np
+from scipy.signal import savgol_filter
 
 InfractionKind = Literal[
-    "collision_vehicle", "collision_pedestrian", "collision_static", "red_light", "off_road", "wrong_way"
+    "collision_vehicle",
+    "collision_pedestrian",
+    "collision_static",
+    "red_light",
+    "off_road",
+    "wrong_way",
+    "route_deviation",
 ]
 
 #: CARLA leaderboard 1.0 penalty per infraction (driving score = completion x product).
@@ -53,6 +61,8 @@ MAX_ABS_YAW_RATE = 0.95
 MAX_ABS_YAW_ACCEL = 1.93
 MAX_ABS_LON_JERK = 4.13
 MAX_ABS_JERK = 8.37
+#: Savitzky-Golay window (steps) of the comfort signals: 1.5 s at the simulator's 10 Hz.
+SMOOTHING_WINDOW = 15
 #: nuPlan's least time to collision (s) and the speed (m/s) under which the ego counts as still.
 TTC_BOUND = 0.95
 STOPPED_SPEED = 0.5
@@ -115,6 +125,7 @@ class DrivingScores:
     red_lights: int
     off_road: int
     wrong_way: int
+    route_deviation: int
     min_ttc: float
     max_abs_lon_accel: float
     max_abs_jerk: float
@@ -123,24 +134,49 @@ class DrivingScores:
         return {k: float(v) for k, v in asdict(self).items()}
 
 
-def _diff(x: np.ndarray, dt: float) -> np.ndarray:
-    return np.diff(x) / dt if len(x) > 1 else np.zeros(0)
+def _smooth(x: np.ndarray, dt: float, deriv: int = 0) -> np.ndarray:
+    """``x`` (or its derivative) through a quadratic Savitzky-Golay filter; short traces use finite differences."""
+    if len(x) >= SMOOTHING_WINDOW:
+        return savgol_filter(x, SMOOTHING_WINDOW, 2, deriv=deriv, delta=dt, mode="interp")
+    if deriv == 0:
+        return np.asarray(x, dtype=np.float64)
+    return np.gradient(x, dt) if len(x) > 1 else np.zeros(len(x))
 
 
-def comfort_within_bounds(trace: EpisodeTrace) -> bool:
-    """nuPlan's six comfort bounds, all held at every step."""
-    lon_jerk = _diff(trace.lon_accel, trace.dt)
-    jerk = np.hypot(lon_jerk, _diff(trace.lat_accel, trace.dt))
-    yaw_accel = _diff(trace.yaw_rate, trace.dt)
-    checks = (
-        np.all((trace.lon_accel >= MIN_LON_ACCEL) & (trace.lon_accel <= MAX_LON_ACCEL)),
-        np.all(np.abs(trace.lat_accel) <= MAX_ABS_LAT_ACCEL),
-        np.all(np.abs(trace.yaw_rate) <= MAX_ABS_YAW_RATE),
-        np.all(np.abs(yaw_accel) <= MAX_ABS_YAW_ACCEL),
-        np.all(np.abs(lon_jerk) <= MAX_ABS_LON_JERK),
-        np.all(jerk <= MAX_ABS_JERK),
-    )
-    return bool(all(checks))
+@dataclass(frozen=True)
+class Comfort:
+    """The smoothed comfort signals of an episode."""
+
+    lon_accel: np.ndarray
+    lat_accel: np.ndarray
+    yaw_rate: np.ndarray
+    yaw_accel: np.ndarray
+    lon_jerk: np.ndarray
+    jerk: np.ndarray
+
+    @staticmethod
+    def of(trace: EpisodeTrace) -> Comfort:
+        lon_jerk = _smooth(trace.lon_accel, trace.dt, 1)
+        return Comfort(
+            lon_accel=_smooth(trace.lon_accel, trace.dt),
+            lat_accel=_smooth(trace.lat_accel, trace.dt),
+            yaw_rate=_smooth(trace.yaw_rate, trace.dt),
+            yaw_accel=_smooth(trace.yaw_rate, trace.dt, 1),
+            lon_jerk=lon_jerk,
+            jerk=np.hypot(lon_jerk, _smooth(trace.lat_accel, trace.dt, 1)),
+        )
+
+    def within_bounds(self) -> bool:
+        """nuPlan's six comfort bounds, all held at every step."""
+        checks = (
+            np.all((self.lon_accel >= MIN_LON_ACCEL) & (self.lon_accel <= MAX_LON_ACCEL)),
+            np.all(np.abs(self.lat_accel) <= MAX_ABS_LAT_ACCEL),
+            np.all(np.abs(self.yaw_rate) <= MAX_ABS_YAW_RATE),
+            np.all(np.abs(self.yaw_accel) <= MAX_ABS_YAW_ACCEL),
+            np.all(np.abs(self.lon_jerk) <= MAX_ABS_LON_JERK),
+            np.all(self.jerk <= MAX_ABS_JERK),
+        )
+        return bool(all(checks))
 
 
 def score_episode(trace: EpisodeTrace) -> DrivingScores:
@@ -164,12 +200,11 @@ def score_episode(trace: EpisodeTrace) -> DrivingScores:
         ep = 1.0
     else:
         ep = float(np.clip(trace.progress / trace.expert_progress, 0.0, 1.0))
-    comfort = 1.0 if comfort_within_bounds(trace) else 0.0
+    smooth = Comfort.of(trace)
+    comfort = 1.0 if smooth.within_bounds() else 0.0
     weighted = PDM_WEIGHTS["ttc"] * ttc_ok + PDM_WEIGHTS["ep"] * ep + PDM_WEIGHTS["comfort"] * comfort
     pdm = nc * dac * weighted / sum(PDM_WEIGHTS.values())
 
-    lon_jerk = _diff(trace.lon_accel, trace.dt)
-    jerk = np.hypot(lon_jerk, _diff(trace.lat_accel, trace.dt))
     collisions = count["collision_vehicle"] + count["collision_pedestrian"] + count["collision_static"]
     return DrivingScores(
         route_completion=completion,
@@ -188,9 +223,10 @@ def score_episode(trace: EpisodeTrace) -> DrivingScores:
         red_lights=count["red_light"],
         off_road=count["off_road"],
         wrong_way=count["wrong_way"],
+        route_deviation=count["route_deviation"],
         min_ttc=min_ttc,
-        max_abs_lon_accel=float(np.abs(trace.lon_accel).max()) if len(trace.lon_accel) else 0.0,
-        max_abs_jerk=float(jerk.max()) if len(jerk) else 0.0,
+        max_abs_lon_accel=float(np.abs(smooth.lon_accel).max()) if len(trace.lon_accel) else 0.0,
+        max_abs_jerk=float(smooth.jerk.max()) if len(trace.lon_accel) else 0.0,
     )
 
 

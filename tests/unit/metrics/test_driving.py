@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from occtrain.metrics.driving import EpisodeTrace, Infraction, aggregate, score_episode
+from occtrain.metrics.driving import MAX_ABS_LON_JERK, MIN_LON_ACCEL, EpisodeTrace, Infraction, aggregate, score_episode
 
 DT = 0.1
 
@@ -81,10 +81,21 @@ def test_time_to_collision_and_comfort_bounds():
     ttc[50] = 0.9  # below nuPlan's 0.95 s while moving
     assert score_episode(cruise(ttc=ttc)).pdm_score == pytest.approx(100.0 * 7 / 12)
     harsh = np.zeros(101)
-    harsh[50:] = -5.0  # braking beyond -4.05 m/s^2 (and a jerk of 50 m/s^3)
+    harsh[50:] = -5.0  # braking beyond -4.05 m/s^2, from nothing within a step
     s = score_episode(cruise(lon_accel=harsh))
     assert s.comfort == 0.0 and s.pdm_score == pytest.approx(100.0 * 10 / 12)
-    assert s.max_abs_jerk == pytest.approx(50.0)
+    assert s.max_abs_lon_accel > -MIN_LON_ACCEL
+    assert s.max_abs_jerk > MAX_ABS_LON_JERK  # smoothed over 1.5 s, still beyond the bound
+
+
+def test_comfort_is_judged_on_smoothed_signals():
+    # One step of 3 m/s^2 (a controller's blip) passes; a second of it does not.
+    blip = np.zeros(101)
+    blip[50] = 3.0
+    assert score_episode(cruise(lon_accel=blip)).comfort == 1.0
+    held = np.zeros(101)
+    held[50:60] = 3.0
+    assert score_episode(cruise(lon_accel=held)).comfort == 0.0
 
 
 def test_the_expert_standing_still_gives_full_progress():

@@ -10,10 +10,10 @@ from occtrain.data.schema import FrameAnnotation
 from occtrain.data.synth.annotate import EgoMotion, frame_annotation
 from occtrain.data.synth.catalog import TrackSet
 from occtrain.data.synth.citymap import StaticMap, paint_city
-from occtrain.data.synth.population import ego_mover, ego_start, spawn_traffic, spawn_walkers
+from occtrain.data.synth.population import EgoPlan, ego_mover, ego_start, spawn_traffic, spawn_walkers
 from occtrain.data.synth.raster import frame_semantics, masks, observe_static
 from occtrain.data.synth.roads import PATH_DS, RoadNetwork
-from occtrain.data.synth.traffic import SIM_DT, mover_tracks, settle_traffic, walker_tracks
+from occtrain.data.synth.traffic import SIM_DT, MotionResult, Walker, mover_tracks, settle_traffic, walker_tracks
 from occtrain.formats.occ3d import FRAME_DT, FUTURE_STEPS, RANGE_MAX
 
 #: Margin (m) around the ego's possible route within which traffic is spawned.
@@ -71,6 +71,40 @@ def prepare_sensors(camera_size: tuple[int, int] | None = None) -> None:
         camera_rays(*camera_size)
 
 
+@dataclass
+class Population:
+    """Who is on the roads of a scene over ``steps`` simulation steps: the network, the
+    ego's plan, the settled traffic (``motion.movers[0]`` is the ego, the route follower
+    that generates the data) and the pedestrians with their walks."""
+
+    net: RoadNetwork
+    plan: EgoPlan
+    motion: MotionResult
+    #: (movers,) index in ``motion.movers`` of each mover's towing tractor, or -1.
+    host: np.ndarray
+    walkers: list[Walker]
+    walk_hist: tuple[np.ndarray, np.ndarray, np.ndarray]
+
+
+def populate(seed: int, steps: int, extent: float = 800.0) -> Population:
+    """The roads (a grid over [-extent, extent]^2), the ego's route and the traffic of scene
+    ``seed``, simulated for ``steps`` steps."""
+    net = RoadNetwork.random(np.random.default_rng([seed, 0]), seed, extent)
+    route_rng = np.random.default_rng([seed, 1])
+    net, plan = ego_start(net, route_rng)
+    ego = ego_mover(net, plan, route_rng, steps, SIM_DT)
+
+    reach = ego.path.xy[: int(ego.v_des.max() * steps * SIM_DT / PATH_DS) + 1]
+    lo, hi = reach.min(0) - SPAWN_MARGIN, reach.max(0) + SPAWN_MARGIN
+    traffic_rng = np.random.default_rng([seed, 2])
+    movers = spawn_traffic(net, plan, ego, lo, hi, traffic_rng, steps, SIM_DT)
+    walkers = spawn_walkers(net, lo, hi, traffic_rng)
+    motion, walkers, walk_hist = settle_traffic(movers, walkers, steps)
+    row = {id(m): k for k, m in enumerate(motion.movers)}
+    host = np.array([row[id(movers[m.host])] if m.host >= 0 else -1 for m in motion.movers], dtype=np.int64)
+    return Population(net, plan, motion, host, walkers, walk_hist)
+
+
 def generate_scene(name: str, seed: int, num_frames: int = 40) -> SyntheticScene:
     """Build scene ``name`` deterministically from ``seed`` (the name only labels it).
 
@@ -84,17 +118,8 @@ def generate_scene(name: str, seed: int, num_frames: int = 40) -> SyntheticScene
     total_frames = num_frames + FUTURE_STEPS
     steps = (total_frames - 1) * stride + 1
 
-    net = RoadNetwork.random(np.random.default_rng([seed, 0]), seed)
-    route_rng = np.random.default_rng([seed, 1])
-    net, plan = ego_start(net, route_rng)
-    ego = ego_mover(net, plan, route_rng, steps, SIM_DT)
-
-    reach = ego.path.xy[: int(ego.v_des.max() * steps * SIM_DT / PATH_DS) + 1]
-    lo, hi = reach.min(0) - SPAWN_MARGIN, reach.max(0) + SPAWN_MARGIN
-    traffic_rng = np.random.default_rng([seed, 2])
-    movers = spawn_traffic(net, plan, ego, lo, hi, traffic_rng, steps, SIM_DT)
-    walkers = spawn_walkers(net, lo, hi, traffic_rng)
-    motion, walkers, walk_hist = settle_traffic(movers, walkers, steps)
+    pop = populate(seed, steps)
+    motion, walkers, walk_hist, net, plan = pop.motion, pop.walkers, pop.walk_hist, pop.net, pop.plan
 
     sl = slice(None, None, stride)
     ego_motion = EgoMotion(

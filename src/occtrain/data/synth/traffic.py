@@ -288,7 +288,7 @@ def simulate_walkers(walkers: list[Walker], steps: int) -> tuple[np.ndarray, np.
 COLLISION_DISCS = 7
 
 
-def _discs(xy: np.ndarray, yaw: np.ndarray, size: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def footprint_discs(xy: np.ndarray, yaw: np.ndarray, size: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Discs covering box footprints: centres (E, D, 2) and radius (E,) for E poses."""
     step = np.maximum(size[:, 0] - size[:, 1], 0.0) / (COLLISION_DISCS - 1)
     offs = (np.arange(COLLISION_DISCS) - (COLLISION_DISCS - 1) / 2)[None, :] * step[:, None]
@@ -315,8 +315,8 @@ def colliding_pairs(
     if len(pair) == 0:
         return []
     a, b = ii[pair], jj[pair]
-    ca, ra = _discs(xy[a, t], yaw[a, t], size[a])
-    cb, rb = _discs(xy[b, t], yaw[b, t], size[b])
+    ca, ra = footprint_discs(xy[a, t], yaw[a, t], size[a])
+    cb, rb = footprint_discs(xy[b, t], yaw[b, t], size[b])
     gap2 = np.sum((ca[:, :, None, :] - cb[:, None, :, :]) ** 2, axis=-1)
     hit = np.any(gap2 < ((ra + rb) ** 2)[:, None, None], axis=(1, 2))
     found = sorted({(int(i), int(j)) for i, j in zip(a[hit], b[hit])})
