@@ -26,11 +26,12 @@ import numpy as np
 from occtrain.data.geometry import driving_command, ego_to_global, global_to_ego
 from occtrain.data.synth.catalog import KINDS, PEDESTRIAN, TrackSet
 from occtrain.data.synth.citymap import DRIVEABLE, paint_city
+from occtrain.data.synth.driving_view import ViewFrame
 from occtrain.data.synth.grid import EGO_HEIGHT
 from occtrain.data.synth.raster import frame_semantics, masks, observe_static
 from occtrain.data.synth.roads import HEADINGS, PATH_DS, RoadNetwork, green_left, right_of
 from occtrain.data.synth.scene import PAINT_MARGIN, Population, populate
-from occtrain.data.synth.traffic import SIM_DT, MoverTraffic, footprint_discs, mover_tracks, walker_tracks
+from occtrain.data.synth.traffic import AMBER, SIM_DT, MoverTraffic, footprint_discs, mover_tracks, walker_tracks
 from occtrain.data.synth.vehicle import WHEELBASE, EgoState, PlanTracker, bicycle_step
 from occtrain.formats.occ3d import EGO_LENGTH, EGO_WIDTH, FRAME_DT, FREE, FUTURE_STEPS
 from occtrain.metrics.driving import STOPPED_SPEED, EpisodeTrace, Infraction, InfractionKind
@@ -224,6 +225,41 @@ class DrivingWorld:
         pts = np.stack([np.interp(s, self._route_s, self.route.xy[:, i]) for i in (0, 1)], axis=1)
         return global_to_ego(pts, self.ego.xy, self.ego.yaw)
 
+    def expert_plan(self) -> np.ndarray:
+        """The expert's next 3 s (its logged positions every FRAME_DT) in the ego frame."""
+        idx = np.minimum(self.step + STRIDE * np.arange(1, FUTURE_STEPS + 1), self.expert.xy.shape[1] - 1)
+        return global_to_ego(self.expert.xy[0, idx], self.ego.xy, self.ego.yaw)
+
+    def view(self, plan: np.ndarray) -> ViewFrame:
+        """The bird's-eye frame of now, with ``plan`` (ego frame) drawn."""
+        agents = self.agents()
+        return ViewFrame(
+            time=self.time,
+            ego_xy=self.ego.xy.copy(),
+            ego_yaw=self.ego.yaw,
+            speed=self.ego.speed,
+            command=self.command(),
+            plan=ego_to_global(np.asarray(plan, dtype=np.float64).reshape(-1, 2), self.ego.xy, self.ego.yaw),
+            route=ego_to_global(self.route_ahead(), self.ego.xy, self.ego.yaw),
+            agents_xy=agents.xy,
+            agents_yaw=agents.yaw,
+            agents_size=agents.size,
+            agents_cls=agents.cls,
+            infractions=[],
+            lights=self._lights_ahead(),
+        )
+
+    def _lights_ahead(self, within: float = 60.0) -> list[tuple[np.ndarray, float, str]]:
+        s = self.log.progress[-1]
+        out = []
+        for stop_s, light, axis in self.route.stops:
+            if s - 5.0 <= stop_s <= s + within:
+                i = min(int(stop_s / PATH_DS), len(self.route.xy) - 1)
+                left = float(green_left(light, axis, self.time))
+                state = "red" if left < 0 else ("amber" if left < AMBER else "green")
+                out.append((self.route.xy[i], float(self.route.heading[i]), state))
+        return out
+
     # ---------------------------------------------------------------- checks
 
     @property
@@ -350,18 +386,27 @@ class DrivingWorld:
 Planner = Callable[["DrivingWorld"], np.ndarray]
 
 
-def drive_episode(world: DrivingWorld, planner: Planner | None) -> EpisodeTrace:
+def drive_episode(world: DrivingWorld, planner: Planner | None, views: list[ViewFrame] | None = None) -> EpisodeTrace:
     """Drive ``world`` to its end: replan every FRAME_DT and track the plan through the
-    kinematic bicycle in between; without a planner the expert drives."""
+    kinematic bicycle in between; without a planner the expert drives. ``views`` collects
+    a bird's-eye frame per planning frame (``driving_view``)."""
     tracker, made_at = None, 0.0
     while not world.done:
         if planner is None:
+            if views is not None and world.at_frame:
+                views.append(world.view(world.expert_plan()))
             world.advance(None)
             continue
         if world.at_frame or tracker is None:
-            tracker, made_at = PlanTracker(planner(world), world.ego, FRAME_DT), world.time
+            plan = np.asarray(planner(world), dtype=np.float64).reshape(-1, 2)
+            if views is not None:
+                views.append(world.view(plan))
+            tracker, made_at = PlanTracker(plan, world.ego, FRAME_DT), world.time
         accel, steer = tracker.controls(world.ego, world.time - made_at)
         world.advance(bicycle_step(world.ego, accel, steer, SIM_DT))
+    if views is not None:
+        for v in views:  # each picture shows what went wrong until the next one
+            v.infractions = [i for i in world.log.infractions if v.time <= i.time < v.time + FRAME_DT]
     return world.trace()
 
 

@@ -13,7 +13,7 @@ from occtrain.data.synth.driving import DrivingWorld, drive_episode, stand_still
 from occtrain.data.synth.roads import PATH_DS, green_left
 from occtrain.data.synth.vehicle import EgoState
 from occtrain.formats.occ3d import EGO_LENGTH, FREE
-from occtrain.metrics.driving import TTC_BOUND, score_episode
+from occtrain.metrics.driving import TTC_BOUND, Infraction, score_episode
 
 SEED = 101  # the ego starts from rest; the light at its first stop line is red for the first 5.5 s
 
@@ -95,3 +95,25 @@ def test_crossing_the_stop_line_on_red_is_running_a_red_light(world):
     assert "red_light" not in kinds(world)
     world.advance(replace(world.ego, xy=world.route.xy[int(stop_s / PATH_DS)]))
     assert "red_light" in kinds(world)
+
+
+def test_the_episode_animation_shows_the_ego_and_rings_it_where_it_went_wrong(world, tmp_path):
+    from PIL import Image
+
+    from occtrain.data.synth.driving_view import ALERT_COLOUR, EGO_AT, EGO_COLOUR, PIXELS, save_gif
+
+    views: list = []
+    drive_episode(world, stand_still, views)
+    assert len(views) == 12  # every 0.5 s of the 6 s
+    views[3].infractions = [Infraction("red_light", views[3].time)]
+    gif = save_gif(world.static, views, tmp_path / "episode.gif", 0.5)
+    with Image.open(gif) as image:
+        assert image.n_frames == 12
+        image.seek(0)
+        first = np.asarray(image.convert("RGB"))
+        image.seek(3)
+        ringed = np.asarray(image.convert("RGB"))
+    centre = (int(PIXELS * EGO_AT), PIXELS // 2)
+    assert tuple(first[centre]) == EGO_COLOUR
+    alert = np.all(ringed == ALERT_COLOUR, axis=-1)
+    assert alert.sum() > 50 and not np.all(first == ALERT_COLOUR, axis=-1).any()
