@@ -68,6 +68,15 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_drive(args: argparse.Namespace) -> int:
+    from occtrain.commands.drive import drive, drive_dir, print_summary
+
+    summary = drive(args.stage_dir, args.scenes, args.seed, args.seconds, args.workers, args.save_videos)
+    print_summary(summary, f"{args.stage_dir}: {args.scenes} routes of {args.seconds:g} s (seed {args.seed})")
+    print(f"results -> {drive_dir(args.stage_dir, args.seed, args.seconds)}")
+    return 0
+
+
 def _cmd_plan_memory(args: argparse.Namespace) -> int:
     from occtrain.commands.memory_plan import format_plans, plan_recipe
 
@@ -239,7 +248,7 @@ def _add_run_commands(sub: Any) -> None:
 
 
 def _add_run_readers(sub: Any) -> None:
-    """``eval``, ``plan-memory``, ``table`` and ``config``."""
+    """``eval``, ``drive``, ``plan-memory``, ``table`` and ``config``."""
     p = sub.add_parser(
         "eval",
         help="score a stage's export on a split: a tokenizer's reconstruction, a world model's generations "
@@ -266,6 +275,21 @@ def _add_run_readers(sub: Any) -> None:
         "--data", metavar="DIR", help="score on this dataset instead of the run's (e.g. a world from another seed)"
     )
     p.set_defaults(func=_cmd_eval)
+
+    p = sub.add_parser(
+        "drive",
+        help="drive a stage's planner closed loop in the synthetic world (reactive traffic) beside the expert, "
+        "constant velocity and standing still; CARLA driving score and NAVSIM PDM score",
+    )
+    p.add_argument("stage_dir", help="RUN_DIR/STAGE (a pretrain, instruct or planner stage)")
+    p.add_argument("--scenes", type=int, default=8, help="routes to drive (default 8)")
+    p.add_argument(
+        "--seed", type=int, default=1000, help="seed the routes are drawn from (default 1000: no training world's)"
+    )
+    p.add_argument("--seconds", type=float, default=20.0, help="length of each episode (default 20, at most 40)")
+    p.add_argument("--workers", type=int, default=1, help="episodes driven side by side in processes (default 1)")
+    p.add_argument("--save-videos", metavar="DIR", help="also write a bird's-eye GIF of every episode")
+    p.set_defaults(func=_cmd_drive)
 
     p = sub.add_parser(
         "plan-memory",

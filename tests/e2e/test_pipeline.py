@@ -209,3 +209,28 @@ def test_the_readme_python_api_example_runs_as_printed(pipeline, capsys):
     model, clip = names["model"], names["clip"]
     assert model.plan(clip).shape == (6, 2) and model.forecast(clip).shape[1:] == (200, 200, 16)
     assert isinstance(model.answer(clip, "Are there any cars?"), str)
+
+
+def test_drive_puts_the_planner_behind_the_wheel_and_resumes(pipeline, tmp_path):
+    # 3 s: the first 2 s are the logged history the planner's clips read (4 frames), the
+    # last second the planner drives.
+    videos = tmp_path / "videos"
+    args = ("drive", str(pipeline / "planner"), "--scenes", "1", "--seconds", "3", "--save-videos", str(videos))
+    res = run_cli(*args)
+    assert res.returncode == 0, res.stderr[-3000:]
+    out = pipeline / "planner" / "drive" / "seed1000-3s"
+    summary = json.loads((out / "summary.json").read_text())
+    assert list(summary["drivers"]) == ["planner", "expert", "constant_velocity", "stand_still"]
+    assert summary["drivers"]["expert"]["driving_score"] >= 95.0
+    assert summary["drivers"]["stand_still"]["route_completion"] < summary["drivers"]["expert"]["route_completion"]
+    assert "CARLA" in summary["conventions"]["driving_score"] and "NAVSIM" in summary["conventions"]["pdm_score"]
+    assert sorted(p.name for p in videos.iterdir()) == [
+        f"{d}-000.gif" for d in ("constant_velocity", "expert", "planner", "stand_still")
+    ]
+    # A killed drive resumes: the missing episode is driven again, to the same scores.
+    episode = out / "episodes" / "planner-000.json"
+    first = json.loads(episode.read_text())
+    episode.unlink()
+    again = run_cli(*args[:-2])
+    assert again.returncode == 0, again.stderr[-3000:]
+    assert json.loads(episode.read_text())["scores"] == first["scores"]

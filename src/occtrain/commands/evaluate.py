@@ -11,6 +11,7 @@ predictions in the formats ``occtrain score`` reads, so both paths give one numb
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -88,13 +89,7 @@ def _evaluable_stage(stage_dir: Path, split: str, samples: int, batch_size: int)
     """The run's recipe, the stage's spec and kind, once the arguments, the stage's kind and
     its status (done: an interrupted stage's export is stale) allow an eval."""
     from occtrain.data.layout import SPLITS
-    from occtrain.run.manifest import Manifest
-    from occtrain.run.runner import load_plugins
-    from occtrain.stages import get_kind, kind_names
 
-    pipeline = stage_dir.parent / "pipeline.yaml"
-    if not pipeline.is_file():
-        raise ConfigError(f"{stage_dir}: not a stage of a run directory (no {pipeline}); pass RUN_DIR/STAGE")
     if split not in SPLITS:
         raise ConfigError(f"--split {split}: a dataset's splits are {', '.join(SPLITS)}")
     if samples == 0 or samples < -1:
@@ -103,6 +98,22 @@ def _evaluable_stage(stage_dir: Path, split: str, samples: int, batch_size: int)
         )
     if batch_size < 1:
         raise ConfigError(f"--batch-size {batch_size}: must be at least 1")
+    return done_stage(stage_dir, "occtrain eval", "scores", lambda module: module.evaluable)
+
+
+def done_stage(
+    stage_dir: Path, command: str, verb: str, capable: Callable[[Any], bool]
+) -> tuple[RecipeConfig, Any, Any]:
+    """The run's recipe, the stage's spec and kind, once the stage is of a kind ``command``
+    serves (``capable`` of its module; ``verb`` says what the command does to it) and done
+    (an interrupted stage's export is stale)."""
+    from occtrain.run.manifest import Manifest
+    from occtrain.run.runner import load_plugins
+    from occtrain.stages import get_kind, kind_names
+
+    pipeline = stage_dir.parent / "pipeline.yaml"
+    if not pipeline.is_file():
+        raise ConfigError(f"{stage_dir}: not a stage of a run directory (no {pipeline}); pass RUN_DIR/STAGE")
     recipe = load_config(RecipeConfig, pipeline)
     load_plugins(list(recipe.plugins), str(pipeline))  # a plugin's stage kinds and families
     spec = next((s for s in recipe.stages if s.name == stage_dir.name), None)
@@ -111,9 +122,9 @@ def _evaluable_stage(stage_dir: Path, split: str, samples: int, batch_size: int)
             f"{pipeline} has no stage '{stage_dir.name}'; stages are {', '.join(s.name for s in recipe.stages)}"
         )
     kind = get_kind(spec.kind)
-    if kind is None or not kind.module.evaluable:
-        scorable = [k for k in kind_names() if (other := get_kind(k)) is not None and other.module.evaluable]
-        raise ConfigError(f"occtrain eval scores {', '.join(scorable)} stages; '{spec.name}' is a {spec.kind} stage")
+    if kind is None or not capable(kind.module):
+        served = [k for k in kind_names() if (other := get_kind(k)) is not None and capable(other.module)]
+        raise ConfigError(f"{command} {verb} {', '.join(served)} stages; '{spec.name}' is a {spec.kind} stage")
     entry = Manifest.load(stage_dir.parent, writable=False).stages.get(spec.name)
     if entry is None or entry.status != "done":
         status = "never run" if entry is None else entry.status

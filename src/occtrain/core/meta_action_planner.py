@@ -344,6 +344,18 @@ class MetaActionPlanner(nn.Module):
                     sum(outs[i]["generated"][0] is not None for i in applies) / len(applies), len(applies)
                 )
 
+    @torch.no_grad()
+    def waypoints(self, clips: list[Clip]) -> np.ndarray:
+        """The head's plan on the meta action it is scored on (``meta_source``); a clip
+        without one (the chain of thought did not end in a meta action) drives on at
+        constant velocity."""
+        plans = constant_velocity([c.anchor for c in clips], self.device)
+        source = "generated" if self.teacher is not None and self.cfg.meta_source == "generated" else "ground_truth"
+        x, rows = self._features(clips, source)
+        if rows:
+            plans[rows] = self.head(**x)
+        return plans.cpu().numpy().astype(np.float64)
+
     def compute(self, prefix: str) -> dict[str, float]:
         """The validation metrics that saw samples, then reset."""
         return compute_metrics(prefix, reset=True, metrics={**self.metrics, "meta_parsed_fraction": self.parsed})

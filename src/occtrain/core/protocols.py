@@ -25,6 +25,7 @@ from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
+import numpy as np
 import torch
 
 from occtrain.core.ego_steps import EgoStep
@@ -191,6 +192,11 @@ class Planner(Protocol):
     def training_loss(self, clips: list) -> torch.Tensor | None: ...
 
     def validate(self, clips: list, batch_idx: int) -> None: ...
+
+    def waypoints(self, clips: list) -> np.ndarray:
+        """The stage's plan for each clip, (B, 6, 2) metres in each anchor's ego frame: what
+        it is scored on and what closed-loop driving follows."""
+        ...
 
     def compute(self, prefix: str) -> dict[str, float]: ...
 

@@ -569,6 +569,26 @@ def read_image(path: Path) -> np.ndarray:
 # ----------------------------------------------------------------------------- writing
 
 
+def scene_infos(scene: str, frames: list[FrameAnnotation], cameras: list[Camera] | None = None) -> dict[str, dict]:
+    """The ``scene_infos`` entry of annotations.json for a scene's frames (as written by SceneFiles)."""
+    infos = {}
+    for i, f in enumerate(frames):
+        x, y = f["ego_pose"]["translation"][:2]
+        pose = {"translation": [x, y, 0.0], "rotation": quaternion_from_yaw(f["ego_pose"]["yaw"])}
+        infos[f["token"]] = {
+            "timestamp": f["timestamp"],
+            "ego_pose": pose,
+            "gt_path": f"{GTS_DIR}/{scene}/{f['token']}/{LABELS_FILE}",
+            "prev": frames[i - 1]["token"] if i > 0 else "",
+            "next": frames[i + 1]["token"] if i + 1 < len(frames) else "",
+        }
+        if cameras:
+            infos[f["token"]]["camera_sensor"] = {
+                cam.name: camera_record(cam, f"{cam.name}/{f['token']}.png", pose) for cam in cameras
+            }
+    return infos
+
+
 class SceneFiles:
     """The files of one scene under a dataset root: each frame's labels and camera images,
     then the scene's frame sidecar, which marks the scene complete. What a synthesis
@@ -651,22 +671,7 @@ class DatasetWriter(SceneFiles):
     def add_scene_info(
         self, scene: str, split: str, frames: list[FrameAnnotation], cameras: list[Camera] | None = None
     ) -> None:
-        infos = {}
-        for i, f in enumerate(frames):
-            x, y = f["ego_pose"]["translation"][:2]
-            pose = {"translation": [x, y, 0.0], "rotation": quaternion_from_yaw(f["ego_pose"]["yaw"])}
-            infos[f["token"]] = {
-                "timestamp": f["timestamp"],
-                "ego_pose": pose,
-                "gt_path": f"{GTS_DIR}/{scene}/{f['token']}/{LABELS_FILE}",
-                "prev": frames[i - 1]["token"] if i > 0 else "",
-                "next": frames[i + 1]["token"] if i + 1 < len(frames) else "",
-            }
-            if cameras:
-                infos[f["token"]]["camera_sensor"] = {
-                    cam.name: camera_record(cam, f"{cam.name}/{f['token']}.png", pose) for cam in cameras
-                }
-        self._scene_infos[scene] = infos
+        self._scene_infos[scene] = scene_infos(scene, frames, cameras)
         self._splits[split].append(scene)
 
     def finalize(self, questions: dict[str, list[QAQuestion]]) -> None:

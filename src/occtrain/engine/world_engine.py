@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import hashlib
 from collections.abc import Callable, Iterator
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -228,19 +229,43 @@ class WorldModelEngine(torch.nn.Module):
         index = DatasetIndex.open(data_root)
         if self._has_scenes_of(index):
             return
-        encoder = self.encoder
-
-        def encode(chunk: list[tuple[str, str]]) -> torch.Tensor:
-            if isinstance(encoder, CameraSceneEncoder):
-                return encoder.encode_samples(index, chunk).float()
-            sem = torch.from_numpy(np.stack([index.labels(s, t)["semantics"] for s, t in chunk])).long()
-            rows = encoder.encode(sem)
-            return rows.to(torch.int32) if encoder.discrete else rows.float()
-
         self.scene_cache = per_sample_cache(
-            index, cache_file, "encoding scenes with the frozen scene encoder", encode, batch_size
+            index,
+            cache_file,
+            "encoding scenes with the frozen scene encoder",
+            partial(self._scene_rows, index),
+            batch_size,
         )
         self._scene_cache_root = index.root
+
+    def _scene_rows(self, index: DatasetIndex, chunk: list[tuple[str, str]]) -> torch.Tensor:
+        """The scene encoder's rows of some samples of ``index`` (as the scene cache keeps them)."""
+        encoder = self.encoder
+        if isinstance(encoder, CameraSceneEncoder):
+            return encoder.encode_samples(index, chunk).float()
+        sem = torch.from_numpy(np.stack([index.labels(s, t)["semantics"] for s, t in chunk])).long()
+        rows = encoder.encode(sem)
+        return rows.to(torch.int32) if encoder.discrete else rows.float()
+
+    def _image_rows(self, index: DatasetIndex, chunk: list[tuple[str, str]]) -> torch.Tensor:
+        return self.encode_images(torch.from_numpy(np.stack([index.images(s, t) for s, t in chunk])))
+
+    @torch.no_grad()
+    def add_samples(self, index: DatasetIndex, samples: list[tuple[str, str]]) -> None:
+        """Encode what the prompts read of these samples of ``index`` through the frozen
+        encoders into the in-memory caches, beside what is there: closed-loop driving meets
+        its frames one planning step at a time, where ``prepare_inputs`` encodes a dataset whole."""
+        self.data_index = index
+        tokens = [t for _, t in samples]
+        if self.vision is not None:
+            cache = self.image_cache if self.image_cache is not None else {}
+            cache.update(zip(tokens, self._image_rows(index, samples).cpu()))
+            self.image_cache = cache
+        if self.reads_scenes():
+            cache = self.scene_cache if self.scene_cache is not None else {}
+            cache.update(zip(tokens, self._scene_rows(index, samples).cpu()))
+            self.scene_cache = cache
+            self._scene_cache_root = index.root
 
     def observed_labels(self, codes: torch.Tensor) -> torch.Tensor | None:
         """The label volume (X, Y, Z) of the dataset frame whose cached scene row is ``codes``
@@ -283,11 +308,12 @@ class WorldModelEngine(torch.nn.Module):
                 f"{data_root}: the dataset has no camera images, which the '{self.family}' world model reads"
             )
 
-        def encode(chunk: list[tuple[str, str]]) -> torch.Tensor:
-            return self.encode_images(torch.from_numpy(np.stack([index.images(s, t) for s, t in chunk])))
-
         self.image_cache = per_sample_cache(
-            index, cache_file, "encoding the cameras with the frozen vision encoder", encode, batch_size
+            index,
+            cache_file,
+            "encoding the cameras with the frozen vision encoder",
+            partial(self._image_rows, index),
+            batch_size,
         )
 
     # -- what a family's parts read (see ``SequenceBuilder.lay``)

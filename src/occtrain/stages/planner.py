@@ -20,7 +20,8 @@ from occtrain.config import to_object
 from occtrain.core.registry import get_world
 from occtrain.data.clips import clips_from_batch, frame_clips
 from occtrain.data.layout import DatasetIndex
-from occtrain.engine import TEXT_ENTRIES, load_world_model
+from occtrain.engine import TEXT_ENTRIES, WorldModelEngine, load_world_model
+from occtrain.engine.closed_loop import StageDriver
 from occtrain.engine.evaluator import fixed_subset
 from occtrain.errors import ConfigError
 from occtrain.formats.exports import read_config
@@ -133,19 +134,39 @@ class PlannerStage(Stage):
     evaluable = True
 
     @staticmethod
-    def rebuild(request: EvalRequest) -> tuple[Any, list]:
-        """A trained planner back from its export over its frozen world model, and the
-        split's clips it plans (every frame with a whole 3 s future)."""
+    def load_planner(request: EvalRequest, what: str) -> tuple[Any, WorldModelEngine]:
+        """A trained planner back from its export over its frozen world model (``what``: the
+        command asking, for the error a planner that cannot be rebuilt gets)."""
         family = read_config(request.consumed[0]).get("family", "")
         world = get_world(family)
         if world.load_planner is None:  # refused before the world model is loaded
             raise ConfigError(
-                f"{request.export}: occtrain eval cannot rebuild a '{family}' planner; its validation metrics are in "
+                f"{request.export}: {what} cannot rebuild a '{family}' planner; its validation metrics are in "
                 "metrics.json"
             )
         teacher = load_world_model(request.consumed[0]).eval()
+        return world.load_planner(request.export, teacher, request), teacher
+
+    drivable = True
+
+    @classmethod
+    def driver(cls, request: EvalRequest) -> StageDriver:
+        """The planner on the world model's outputs for each driven frame (its meta action
+        generated, never the logged one: closed loop has no log to read it from)."""
+        planner, teacher = cls.load_planner(request, "occtrain drive")
+        if getattr(getattr(planner, "cfg", None), "meta_source", "generated") != "generated":
+            raise ConfigError(
+                f"{request.export}: this planning head plans on the logged meta action (model.meta_source: "
+                "ground_truth), which closed-loop driving does not have; train it with meta_source: generated"
+            )
+        return StageDriver(teacher, planner.waypoints)
+
+    @staticmethod
+    def rebuild(request: EvalRequest) -> tuple[Any, list]:
+        """A trained planner back from its export over its frozen world model, and the
+        split's clips it plans (every frame with a whole 3 s future)."""
+        planner, teacher = PlannerStage.load_planner(request, "occtrain eval")
         teacher.prepare_inputs(request.data_root, request.cache_dir, request.shared_cache_dir)
-        planner = world.load_planner(request.export, teacher, request)
         clips = list(
             frame_clips(
                 DatasetIndex.open(request.data_root),

@@ -38,6 +38,7 @@ from occtrain.engine import (
     new_world_model,
     scorable,
 )
+from occtrain.engine.closed_loop import StageDriver, world_model_driver
 from occtrain.errors import ConfigError
 from occtrain.formats.exports import export_kind, read_config
 from occtrain.models import count_parameters
@@ -297,6 +298,13 @@ class WorldModelStage(Stage):
         """The export's answers generated on every item of the split (or a fixed subset),
         scored with its family's scorers: by default the tasks it trained on."""
         return evaluate_engine(load_world_model(request.export).eval(), request)
+
+    drivable = True
+
+    @classmethod
+    def driver(cls, request: EvalRequest) -> StageDriver:
+        """The world model drives by its family's ``plan`` operation."""
+        return world_model_driver(load_world_model(request.export), str(request.export))
 
 
 def _with_world(engine: Any, world: torch.nn.Module) -> Any:

@@ -26,6 +26,7 @@ from occtrain.formats.exports import check_loaded_keys
 from occtrain.models import count_parameters
 
 if TYPE_CHECKING:  # the registry (stages/__init__.py) imports this module
+    from occtrain.engine.closed_loop import StageDriver
     from occtrain.stages import StageKind
 
 #: The run directory's folder of caches keyed by their content, shared by its stages.
@@ -152,6 +153,8 @@ class Stage(L.LightningModule, ABC):
     evaluable: ClassVar[bool] = False
     #: Whether that eval records predictions (``EvalRequest.record``) for ``--save-predictions``.
     saves_predictions: ClassVar[bool] = False
+    #: Whether ``occtrain drive`` can put its exports behind the wheel (``driver``).
+    drivable: ClassVar[bool] = False
     #: Whether it trains under ``trainer.strategy: fsdp`` (it shards itself in
     #: ``configure_model``); a kind that does not is refused that strategy before training.
     shards: ClassVar[bool] = False
@@ -204,6 +207,12 @@ class Stage(L.LightningModule, ABC):
     @classmethod
     def evaluate_export(cls, request: EvalRequest) -> EvalResult:
         """Score an export of this kind (``occtrain eval``); kinds with ``evaluable`` implement it."""
+        raise NotImplementedError
+
+    @classmethod
+    def driver(cls, request: EvalRequest) -> StageDriver:
+        """The export's planner for closed-loop driving (``occtrain drive``); kinds with
+        ``drivable`` implement it. ``request.data_root`` is unused: the frames come as driven."""
         raise NotImplementedError
 
     @classmethod

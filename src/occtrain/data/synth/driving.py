@@ -18,12 +18,15 @@ the expert's, taken along the route (``observe_static``), as every training fram
 
 from __future__ import annotations
 
+import hashlib
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from occtrain.data.geometry import driving_command, ego_to_global, global_to_ego
+from occtrain.data.schema import FrameAnnotation
+from occtrain.data.synth.annotate import EgoMotion, frame_annotation
 from occtrain.data.synth.catalog import KINDS, PEDESTRIAN, TrackSet
 from occtrain.data.synth.citymap import DRIVEABLE, paint_city
 from occtrain.data.synth.driving_view import ViewFrame
@@ -31,6 +34,7 @@ from occtrain.data.synth.grid import EGO_HEIGHT
 from occtrain.data.synth.raster import frame_semantics, masks, observe_static
 from occtrain.data.synth.roads import HEADINGS, PATH_DS, RoadNetwork, green_left, right_of
 from occtrain.data.synth.scene import PAINT_MARGIN, Population, populate
+from occtrain.data.synth.text import caption_for_frame, narration_for_frame
 from occtrain.data.synth.traffic import AMBER, SIM_DT, MoverTraffic, footprint_discs, mover_tracks, walker_tracks
 from occtrain.data.synth.vehicle import WHEELBASE, EgoState, PlanTracker, bicycle_step
 from occtrain.formats.occ3d import EGO_LENGTH, EGO_WIDTH, FRAME_DT, FREE, FUTURE_STEPS
@@ -67,18 +71,19 @@ class Agents:
     xy: np.ndarray  # (N, 2)
     yaw: np.ndarray
     speed: np.ndarray
+    parked: np.ndarray
+    rider: np.ndarray
 
     def tracks(self) -> TrackSet:
-        """A one-frame TrackSet of the agents, for the rasteriser."""
-        n = len(self.cls)
+        """A one-frame TrackSet of the agents, for the rasteriser and the annotator."""
         return TrackSet(
             cls=self.cls,
             size=self.size,
             xy=self.xy[:, None],
             yaw=self.yaw[:, None],
             speed=self.speed[:, None],
-            parked=np.zeros(n, bool),
-            rider=np.full(n, -1, np.int64),
+            parked=self.parked,
+            rider=self.rider,
         )
 
 
@@ -195,6 +200,8 @@ class DrivingWorld:
             xy=np.concatenate([xy[1:], walk_xy, placed.xy[:, 0]]),
             yaw=np.concatenate([yaw[1:], walk_yaw, placed.yaw[:, 0]]),
             speed=np.concatenate([self.traffic.v[1:], walk_v, np.zeros(n_p)]),
+            parked=np.concatenate([np.zeros(n_m + n_w, bool), placed.parked]),
+            rider=np.concatenate([[m.rider for m in movers[1:]], np.full(n_w, -1), placed.rider]).astype(np.int64),
         )
 
     def render(self) -> dict[str, np.ndarray]:
@@ -224,6 +231,42 @@ class DrivingWorld:
         s = self.log.progress[-1] + max(self.ego.speed, 0.0) * np.arange(1, int(seconds / FRAME_DT) + 1) * FRAME_DT
         pts = np.stack([np.interp(s, self._route_s, self.route.xy[:, i]) for i in (0, 1)], axis=1)
         return global_to_ego(pts, self.ego.xy, self.ego.yaw)
+
+    def frame_annotation(self, scene: str) -> FrameAnnotation:
+        """The FrameAnnotation of the planning frame now, by the generator's own annotator,
+        as a stage reads it: the driven ego's pose, speed and past, the agents around it,
+        the route's command, a caption and a narration. What a stage is asked to predict is
+        unknown in closed loop and filled in as driving on at constant velocity (the future
+        waypoints, the meta action, the agents' futures)."""
+        if not self.at_frame:
+            raise ValueError(f"step {self.step} is not a planning frame (every {STRIDE} steps)")
+        i = self.step // STRIDE
+        driven = self.log.states[::STRIDE]
+        heading = np.array([np.cos(self.ego.yaw), np.sin(self.ego.yaw)])
+        ahead = np.arange(1, FUTURE_STEPS + 1) * FRAME_DT * self.ego.speed
+        xy = np.concatenate([[s.xy for s in driven], self.ego.xy + ahead[:, None] * heading])
+        n = len(xy)
+        speed = np.concatenate([[s.speed for s in driven], np.full(FUTURE_STEPS, self.ego.speed)])
+        motion = EgoMotion(
+            xy=xy,
+            yaw=np.concatenate([[s.yaw for s in driven], np.full(FUTURE_STEPS, self.ego.yaw)]),
+            speed=speed,
+            accel=np.concatenate([[s.accel for s in driven], np.zeros(FUTURE_STEPS)]),
+            yaw_rate=np.concatenate([[s.yaw_rate for s in driven], np.zeros(FUTURE_STEPS)]),
+        )
+        now = self.agents().tracks()
+        tracks = replace(
+            now,
+            xy=np.repeat(now.xy, n, axis=1),
+            yaw=np.repeat(now.yaw, n, axis=1),
+            speed=np.repeat(now.speed, n, axis=1),
+        )
+        frame = frame_annotation(scene, self.seed, i, n, motion, tracks)
+        frame["token"] = drive_token(self.seed, i)
+        frame["command"] = self.command()
+        frame["caption"] = caption_for_frame(frame)
+        frame["narration"] = narration_for_frame(frame)
+        return frame
 
     def expert_plan(self) -> np.ndarray:
         """The expert's next 3 s (its logged positions every FRAME_DT) in the ego frame."""
@@ -418,6 +461,12 @@ def constant_velocity(world: DrivingWorld) -> np.ndarray:
 
 def stand_still(world: DrivingWorld) -> np.ndarray:
     return np.zeros((FUTURE_STEPS, 2))
+
+
+def drive_token(seed: int, index: int) -> str:
+    """The sample token of planning frame ``index`` of the episode on scene ``seed``: apart
+    from every dataset's (whose tokens are ``annotate.sample_token``'s)."""
+    return hashlib.md5(f"occtrain-drive/{seed}/{index}".encode()).hexdigest()
 
 
 def _footprint_points(xy: np.ndarray, yaw: float) -> np.ndarray:

@@ -440,6 +440,11 @@ class AnchorDiffusionPlanner(nn.Module):
         base = self.base(clips)
         return x[rows, best] * self.scale + base, self.anchors[best] + base, logits
 
+    @torch.no_grad()
+    def waypoints(self, clips: list[Clip]) -> np.ndarray:
+        """The denoised plan of the top-scored anchor (the family's main plan)."""
+        return self.plan(clips)[0].cpu().numpy().astype(np.float64)
+
     def validate(self, clips: list[Clip], batch_idx: int, generate_batches: int = -1) -> None:
         anchors = [c.anchor for c in clips]
         gt = plan_target(anchors, self.device)

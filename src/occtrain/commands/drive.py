@@ -1,0 +1,247 @@
+"""``occtrain drive RUN/STAGE``: a trained stage's planner behind the wheel of the synthetic world.
+
+Each route is a scene of the synthetic world built from a route seed (drawn from ``--seed``
+as ``occtrain data synth`` draws its scene seeds, so ``--seed`` other than the training
+worlds' gives routes no training saw). On every route the stage drives (its kind's
+``Stage.driver``: a world model's ``plan`` operation, a planner stage's head), and so do the
+baselines: the simulator's own expert (the route follower that generated the data),
+constant velocity and standing still. The ego replans every 0.5 s and follows each plan
+through a kinematic bicycle in between; the traffic reacts to it.
+
+Results go to ``<stage>/drive/seed<S>-<T>s/``: one JSON per episode, written as it ends (a
+killed ``drive`` resumes at the first episode without one), then ``summary.json`` with the
+mean scores of each driver (``metrics.driving``: CARLA's driving score, NAVSIM's PDM score
+and their terms). ``--save-videos DIR`` also writes a bird's-eye GIF of every episode.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import multiprocessing
+import os
+import tempfile
+import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from occtrain.commands.evaluate import done_stage
+from occtrain.errors import ConfigError
+from occtrain.formats.io import atomic_write_json, check_output
+from occtrain.progress import console, progress_bar
+
+#: The baselines every stage is driven beside.
+BASELINES = ("expert", "constant_velocity", "stand_still")
+#: What the scores follow, written into every result.
+CONVENTIONS = {
+    "driving_score": "CARLA leaderboard 1.0 (route completion x infraction penalties)",
+    "pdm_score": "NAVSIM v1 (NC x DAC x (5 TTC + 5 EP + 2 C) / 12), over the whole reactive episode",
+    "comfort": "nuPlan ego_is_comfortable bounds on Savitzky-Golay-smoothed signals",
+}
+
+
+@dataclass(frozen=True)
+class DriveJob:
+    """One episode: who drives which route."""
+
+    driver: str
+    route: int
+    route_seed: int
+    seconds: float
+
+
+def route_seeds(seed: int, routes: int) -> list[int]:
+    """The scene seed of each route, drawn from ``seed`` as the synthesizer draws its scenes'."""
+    return [int(np.random.SeedSequence([seed, i]).generate_state(1)[0]) for i in range(routes)]
+
+
+def drive_dir(stage_dir: str | Path, seed: int, seconds: float) -> Path:
+    return Path(stage_dir) / "drive" / f"seed{seed}-{seconds:g}s"
+
+
+def drive(
+    stage_dir: str | Path,
+    routes: int = 8,
+    seed: int = 1000,
+    seconds: float = 20.0,
+    workers: int = 1,
+    save_videos: str | Path | None = None,
+) -> dict[str, dict[str, float]]:
+    """Drive the stage and the baselines on ``routes`` routes; each driver's mean scores."""
+    from occtrain.data.driving import MAX_SECONDS
+
+    stage_dir = Path(stage_dir)
+    if routes < 1:
+        raise ConfigError(f"--scenes {routes}: drive at least one route")
+    if not 0 < seconds <= MAX_SECONDS:
+        raise ConfigError(f"--seconds {seconds:g}: an episode lasts more than 0 and at most {MAX_SECONDS:g} s")
+    if workers < 1:
+        raise ConfigError(f"--workers {workers}: must be at least 1")
+    recipe, spec, _ = done_stage(stage_dir, "occtrain drive", "drives", lambda module: module.drivable)
+    out = drive_dir(stage_dir, seed, seconds)
+    check_output(out / "summary.json", "the drive results", kind="file")
+    videos = Path(save_videos) if save_videos is not None else None
+    if videos is not None:
+        check_output(videos, "--save-videos", kind="dir")
+    drivers = [spec.name, *BASELINES]
+    jobs = [DriveJob(d, i, s, seconds) for i, s in enumerate(route_seeds(seed, routes)) for d in drivers]
+    todo = [j for j in jobs if not _episode_file(out, j).is_file()]
+    camera = (recipe.data.synth.camera_height, recipe.data.synth.camera_width)
+    context = _EpisodeContext(str(stage_dir), camera, str(out), str(videos) if videos else None)
+    workers = min(workers, max(1, len(todo)))
+    with progress_bar(len(jobs), f"driving {routes} routes of {seconds:g} s: {', '.join(drivers)}") as advance:
+        advance(len(jobs) - len(todo))
+        if workers == 1:
+            for job in todo:
+                _run_episode(context, job)
+                advance(1)
+        else:
+            # Spawned: each worker loads the stage itself; torch's thread pools do not survive a fork.
+            pool = ProcessPoolExecutor(
+                workers,
+                mp_context=multiprocessing.get_context("spawn"),
+                initializer=_init_worker,
+                initargs=(max(1, len(os.sched_getaffinity(0)) // workers),),
+            )
+            with pool:
+                for done in as_completed([pool.submit(_run_episode, context, job) for job in todo]):
+                    done.result()
+                    advance(1)
+    summary = summarize(out, jobs, drivers)
+    atomic_write_json(
+        out / "summary.json",
+        {"stage": spec.name, "routes": routes, "seed": seed, "seconds": seconds, "conventions": CONVENTIONS}
+        | {"drivers": summary},
+    )
+    return summary
+
+
+def summarize(out: Path, jobs: list[DriveJob], drivers: list[str]) -> dict[str, dict[str, float]]:
+    """Each driver's mean scores over its episodes' result files."""
+    from occtrain.metrics.driving import DrivingScores, aggregate
+
+    per: dict[str, list[DrivingScores]] = {d: [] for d in drivers}
+    for job in jobs:
+        record = json.loads(_episode_file(out, job).read_text())
+        scores: dict[str, Any] = record["scores"]  # JSON has no infinity: a time to collision never met is null
+        fields: dict[str, Any] = {
+            k: float("inf") if scores[k] is None else scores[k] for k in DrivingScores.__dataclass_fields__
+        }
+        per[job.driver].append(DrivingScores(**fields))
+    return {d: aggregate(scores) for d, scores in per.items()}
+
+
+@dataclass(frozen=True)
+class _EpisodeContext:
+    stage_dir: str
+    camera: tuple[int, int]
+    out: str
+    videos: str | None
+
+
+def _episode_file(out: Path, job: DriveJob) -> Path:
+    return out / "episodes" / f"{job.driver}-{job.route:03d}.json"
+
+
+_DRIVERS: dict[str, Any] = {}  # the stage's driver, loaded once per process
+_WORLDS: dict[tuple[int, float], Any] = {}  # the route being driven, as built
+
+
+def _init_worker(threads: int) -> None:
+    import torch
+
+    torch.set_num_threads(threads)
+
+
+def _stage_driver(stage_dir: Path) -> Any:
+    if str(stage_dir) not in _DRIVERS:
+        from occtrain.stages import get_kind
+        from occtrain.stages.stage import EvalRequest
+
+        recipe, spec, kind = done_stage(stage_dir, "occtrain drive", "drives", lambda module: module.drivable)
+        cache = tempfile.mkdtemp(prefix="occtrain-drive-cache-")
+        request = EvalRequest(
+            stage_dir / "export",
+            [stage_dir.parent / dep / "export" for dep in spec.consumes],
+            recipe.data.root,
+            cache_dir=Path(cache),
+        )
+        assert get_kind(spec.kind) is kind
+        _DRIVERS[str(stage_dir)] = kind.module.driver(request)  # type: ignore[union-attr]
+    return _DRIVERS[str(stage_dir)]
+
+
+def _run_episode(context: _EpisodeContext, job: DriveJob) -> None:
+    """Drive one episode and write its result (and its animation)."""
+    from occtrain.data.driving import (
+        DrivingWorld,
+        EpisodeRecorder,
+        Planner,
+        constant_velocity,
+        drive_episode,
+        save_gif,
+        stand_still,
+    )
+    from occtrain.metrics.driving import score_episode
+
+    start = time.perf_counter()
+    key = (job.route_seed, job.seconds)
+    if key not in _WORLDS:  # every driver starts from the same world: build it once, copy it per driver
+        _WORLDS.clear()
+        _WORLDS[key] = DrivingWorld(job.route_seed, job.seconds)
+    world = copy.deepcopy(_WORLDS[key])
+    views: list | None = [] if context.videos else None
+    planner: Planner | None
+    with tempfile.TemporaryDirectory(prefix="occtrain-drive-") as frames:
+        if job.driver in BASELINES:
+            planner = {"expert": None, "constant_velocity": constant_velocity, "stand_still": stand_still}[job.driver]
+        else:
+            from occtrain.engine.closed_loop import model_planner
+
+            driver = _stage_driver(Path(context.stage_dir))
+            reads_cameras = driver.engine.vision is not None or driver.engine.scenes_from_cameras()
+            recorder = EpisodeRecorder(frames, world, context.camera if reads_cameras else None)
+            planner = model_planner(driver, recorder)
+        trace = drive_episode(world, planner, views)
+    scores = score_episode(trace)
+    record = {
+        "driver": job.driver,
+        "route": job.route,
+        "route_seed": job.route_seed,
+        "seconds": job.seconds,
+        "scores": scores.as_dict(),
+        "infractions": [asdict(i) for i in trace.infractions],
+        "wall_s": round(time.perf_counter() - start, 2),
+        "conventions": CONVENTIONS,
+    }
+    out = Path(context.out)
+    if context.videos and views:
+        save_gif(world.static, views, Path(context.videos) / f"{job.driver}-{job.route:03d}.gif", 0.5)
+    atomic_write_json(_episode_file(out, job), record)
+
+
+def print_summary(summary: dict[str, dict[str, float]], title: str) -> None:
+    """The drivers' mean scores as a table."""
+    from rich.table import Table
+
+    table = Table(title=title)
+    columns = (
+        ("driving score", "driving_score", "{:.1f}"),
+        ("PDM score", "pdm_score", "{:.1f}"),
+        ("route completion %", "route_completion", "{:.1f}"),
+        ("collisions / route", "collisions", "{:.2f}"),
+        ("red lights / route", "red_lights", "{:.2f}"),
+        ("off road / route", "off_road", "{:.2f}"),
+        ("wrong way / route", "wrong_way", "{:.2f}"),
+        ("left route / route", "route_deviation", "{:.2f}"),
+    )
+    table.add_column("driver")
+    for name, _, _ in columns:
+        table.add_column(name, justify="right")
+    for driver, scores in summary.items():
+        table.add_row(driver, *(fmt.format(scores.get(key, float("nan"))) for _, key, fmt in columns))
+    console.print(table)

@@ -1,0 +1,113 @@
+"""Closed-loop driving's data: the synthetic world driven step by step, and each planning
+frame written as a stage reads a dataset.
+
+The closed loop's entry to the generator (``data/synth``), as ``data/synthesize.py`` is the
+data synthesis's. An :class:`EpisodeRecorder` writes every planning frame of a
+:class:`~occtrain.data.synth.driving.DrivingWorld` into an Occ3D-layout directory with the
+generator's own writers (labels, the six cameras, the frame sidecar) and keeps the
+annotations in memory, so a stage reads a closed-loop frame through exactly the code that
+reads its training frames (``DatasetIndex``, the frozen encoders' ``add_samples``), and
+:meth:`EpisodeRecorder.clip` is the clip a stage plans on: the driven history, the frame
+now, and a future nobody knows yet (driving on at constant velocity stands in for it).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from occtrain.data.cameras import Camera, nuscenes_rig
+from occtrain.data.clips import Clip
+from occtrain.data.layout import DatasetIndex, SceneFiles, scene_infos
+from occtrain.data.schema import FrameAnnotation
+from occtrain.data.synth.driving import (
+    MAX_SECONDS,
+    STRIDE,
+    DrivingWorld,
+    Planner,
+    constant_velocity,
+    drive_episode,
+    stand_still,
+)
+from occtrain.data.synth.driving_view import ViewFrame, save_gif
+from occtrain.formats.occ3d import FRAME_DT, FUTURE_STEPS
+
+#: The scene name of an episode's frames in its directory.
+EPISODE_SCENE = "episode"
+
+
+class EpisodeRecorder:
+    """Writes ``world``'s planning frames under ``root`` and indexes them as one val scene."""
+
+    def __init__(self, root: str | Path, world: DrivingWorld, camera_size: tuple[int, int] | None):
+        self.root = Path(root)
+        self.world = world
+        self.files = SceneFiles(self.root)
+        self.camera_size = camera_size
+        self.rig: list[Camera] = nuscenes_rig(*camera_size) if camera_size else []
+        self.frames: list[FrameAnnotation] = []
+        self.index: DatasetIndex | None = None
+
+    def record(self) -> DatasetIndex:
+        """Write the planning frame now (labels, cameras, annotation) and index the episode so far."""
+        world = self.world
+        frame = world.frame_annotation(EPISODE_SCENE)
+        labels = world.render()
+        self.files.write_labels(EPISODE_SCENE, frame["token"], labels)
+        if self.rig:
+            assert self.camera_size is not None
+            views = world.cameras(labels["semantics"], *self.camera_size)
+            self.files.write_images(
+                frame["token"], [(c.name, v.image, v.classes, v.depth) for c, v in zip(self.rig, views)]
+            )
+        self.frames.append(frame)
+        self.files.write_frames(EPISODE_SCENE, self.frames)
+        annotations = {
+            "train_split": [],
+            "val_split": [EPISODE_SCENE],
+            "scene_infos": {EPISODE_SCENE: scene_infos(EPISODE_SCENE, self.frames, self.rig or None)},
+        }
+        self.index = DatasetIndex(self.root, annotations)
+        return self.index
+
+    @property
+    def token(self) -> str:
+        return self.frames[-1]["token"]
+
+    def clip(self, history: int) -> Clip:
+        """The clip anchored at the last recorded frame with ``history`` frames before it (as
+        many as there are) and FUTURE_STEPS future frames driven on at constant velocity:
+        their tokens name no frame, and no prompt reads a future frame's scene."""
+        if not self.frames:
+            raise ValueError("record a frame before asking for its clip")
+        frames = self.frames[max(0, len(self.frames) - 1 - history) :]
+        anchor = frames[-1]
+        yaw = anchor["ego_pose"]["yaw"]
+        x, y = anchor["ego_pose"]["translation"][:2]
+        step = anchor["ego_speed"] * FRAME_DT
+        future = [[x + k * step * np.cos(yaw), y + k * step * np.sin(yaw), yaw] for k in range(1, FUTURE_STEPS + 1)]
+        ann = {
+            "anchor": anchor,
+            "tokens": [f["token"] for f in frames] + [f"{anchor['token']}+{k}" for k in range(1, FUTURE_STEPS + 1)],
+            "ego_poses": [[*f["ego_pose"]["translation"][:2], f["ego_pose"]["yaw"]] for f in frames] + future,
+            "history": len(frames) - 1,
+            "future": FUTURE_STEPS,
+            "split": "val",
+        }
+        return Clip(ann, [], anchor["narration"])
+
+
+__all__ = [
+    "EPISODE_SCENE",
+    "MAX_SECONDS",
+    "STRIDE",
+    "DrivingWorld",
+    "EpisodeRecorder",
+    "Planner",
+    "ViewFrame",
+    "constant_velocity",
+    "drive_episode",
+    "save_gif",
+    "stand_still",
+]

@@ -1,0 +1,64 @@
+"""A trained stage behind the wheel: the planner closed-loop driving asks at every planning frame.
+
+A drivable stage kind (``Stage.driver``) answers with a :class:`StageDriver`: the world
+model whose frozen encoders read each frame, and the stage's plan for a batch of clips
+(the world model's ``plan`` operation, or a planner stage's ``waypoints``).
+:func:`model_planner` turns it into the closed loop's planner: each planning frame is
+recorded as a dataset frame, encoded into the engine's caches, and planned on as a clip
+with the driven history. Until the world has that many frames, the expert drives, as the
+logged history of an open-loop clip would have it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from occtrain.data.clips import Clip
+from occtrain.data.driving import EPISODE_SCENE, DrivingWorld, EpisodeRecorder, Planner
+from occtrain.engine.world_engine import WorldModelEngine
+from occtrain.errors import ConfigError
+
+
+@dataclass
+class StageDriver:
+    """What closed-loop driving needs of a trained stage."""
+
+    #: The world model whose frozen encoders read the frames (a planner stage's teacher).
+    engine: WorldModelEngine
+    #: Clips -> (B, 6, 2) waypoints in each anchor's ego frame.
+    waypoints: Callable[[list[Clip]], np.ndarray]
+
+    @property
+    def history(self) -> int:
+        """Frames before the current one that the stage's prompts read."""
+        return int(self.engine.tasks.context_frames)
+
+
+def world_model_driver(engine: WorldModelEngine, where: str) -> StageDriver:
+    """A world-model stage drives by its family's ``plan`` operation."""
+    plan = engine.operation("plan")
+    if plan is None:
+        raise ConfigError(
+            f"{where}: the '{engine.family}' world model has no plan operation; drive the run's planner stage instead"
+        )
+
+    def waypoints(clips: list[Clip]) -> np.ndarray:
+        return np.stack([np.asarray(plan(engine, clip), dtype=np.float64).reshape(-1, 2) for clip in clips])
+
+    return StageDriver(engine.eval(), waypoints)
+
+
+def model_planner(driver: StageDriver, recorder: EpisodeRecorder) -> Planner:
+    """The closed loop's planner for ``driver``, recording every planning frame with ``recorder``."""
+
+    def plan(world: DrivingWorld) -> np.ndarray:
+        index = recorder.record()
+        driver.engine.add_samples(index, [(EPISODE_SCENE, recorder.token)])  # later frames read it as history
+        if len(recorder.frames) <= driver.history:
+            return world.expert_plan()
+        return driver.waypoints([recorder.clip(driver.history)])[0]
+
+    return plan
