@@ -227,6 +227,8 @@ def test_drive_puts_the_planner_behind_the_wheel_and_resumes(pipeline, tmp_path)
     assert sorted(p.name for p in videos.iterdir()) == [
         f"{d}-000.gif" for d in ("constant_velocity", "expert", "planner", "stand_still")
     ]
+    dashboard = (pipeline / "dashboard.html").read_text()
+    assert "Closed-loop driving (1 routes of 3 s, seed1000-3s)" in dashboard and "data:image/gif;base64," in dashboard
     # A killed drive resumes: the missing episode is driven again, to the same scores.
     episode = out / "episodes" / "planner-000.json"
     first = json.loads(episode.read_text())

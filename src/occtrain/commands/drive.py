@@ -112,12 +112,25 @@ def drive(
                     done.result()
                     advance(1)
     summary = summarize(out, jobs, drivers)
+    gifs = {f"{j.driver}-{j.route:03d}": videos / f"{j.driver}-{j.route:03d}.gif" for j in jobs} if videos else {}
     atomic_write_json(
         out / "summary.json",
         {"stage": spec.name, "routes": routes, "seed": seed, "seconds": seconds, "conventions": CONVENTIONS}
-        | {"drivers": summary},
+        | {"drivers": summary, "videos": {k: str(p.resolve()) for k, p in gifs.items() if p.is_file()}},
     )
+    _refresh_dashboard(stage_dir.parent)
     return summary
+
+
+def _refresh_dashboard(run_dir: Path) -> None:
+    """The run's dashboard drawn again, now with the drive beside the stage's open-loop numbers."""
+    from occtrain.dashboard import write_dashboard
+    from occtrain.errors import OcctrainError
+
+    try:
+        write_dashboard(run_dir)
+    except OcctrainError as err:  # the results are written; a dashboard that cannot be is said, not fatal
+        console.print(f"[yellow]dashboard not updated[/]: {err}")
 
 
 def summarize(out: Path, jobs: list[DriveJob], drivers: list[str]) -> dict[str, dict[str, float]]:

@@ -9,7 +9,7 @@ from html import escape
 
 from occtrain.commands.compare import TABLE_FILE
 from occtrain.core.published import REAL_DATA, figures_for, metric_words
-from occtrain.dashboard.run_view import RunView, StageView
+from occtrain.dashboard.run_view import DriveView, RunView, StageView
 from occtrain.dashboard.svg import line_chart
 from occtrain.metrics.conventions import OCC3D, OCCWORLD, STP3, UNIAD
 
@@ -218,6 +218,42 @@ def _images(images: list[tuple[str, bytes]]) -> str:
     )
 
 
+#: The closed-loop scores the page shows per driver: (column, key, format).
+DRIVE_COLUMNS = (
+    ("driving score", "driving_score", "{:.1f}"),
+    ("PDM score", "pdm_score", "{:.1f}"),
+    ("route completion %", "route_completion", "{:.1f}"),
+    ("collisions", "collisions", "{:.2f}"),
+    ("red lights", "red_lights", "{:.2f}"),
+    ("off road", "off_road", "{:.2f}"),
+    ("wrong way", "wrong_way", "{:.2f}"),
+    ("left route", "route_deviation", "{:.2f}"),
+)
+
+
+def _drive(drive: DriveView) -> str:
+    """An ``occtrain drive``'s table (infractions per route) and the stage's episodes."""
+    head = "".join(f"<th>{escape(name)}</th>" for name, _, _ in DRIVE_COLUMNS)
+    rows = "".join(
+        f"<tr><td>{escape(driver)}</td>"
+        + "".join(f"<td>{fmt.format(scores.get(key, float('nan')))}</td>" for _, key, fmt in DRIVE_COLUMNS)
+        + "</tr>"
+        for driver, scores in drive.drivers.items()
+    )
+    conventions = "; ".join(f"{escape(k)}: {escape(v)}" for k, v in drive.conventions.items())
+    figures = "".join(
+        f'<figure><img alt="{escape(cap)}" src="data:image/gif;base64,{base64.b64encode(gif).decode()}">'
+        f"<figcaption>{escape(cap)}</figcaption></figure>"
+        for cap, gif in drive.videos
+    )
+    return (
+        f"<h3>Closed-loop driving ({drive.routes} routes of {drive.seconds:g} s, {escape(drive.name)})</h3>"
+        f"<table><tr><th>driver</th>{head}</tr>{rows}</table>"
+        f'<p class="note">infractions are per route; {conventions}</p>'
+        + (f'<div class="figs">{figures}</div>' if figures else "")
+    )
+
+
 def _texts(texts: list[dict[str, str]]) -> str:
     rows = []
     for t in texts:
@@ -258,6 +294,7 @@ def stage_section(stage: StageView) -> str:
         parts.append("<h3>Final metrics</h3>" + metrics_tables(stage.metrics))
     elif e.status == "done":
         parts.append('<p class="note">the stage recorded no final metrics.</p>')
+    parts.extend(_drive(drive) for drive in stage.drives)
     if stage.images:
         parts.append("<h3>Bird's-eye views (validation)</h3>" + _images(stage.images))
     if stage.texts:

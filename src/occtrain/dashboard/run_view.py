@@ -32,6 +32,19 @@ class Chart:
 
 
 @dataclass
+class DriveView:
+    """One ``occtrain drive`` of a stage: each driver's mean scores and the stage's animations."""
+
+    name: str  # the results folder, e.g. seed1000-20s
+    routes: int
+    seconds: float
+    drivers: dict[str, dict[str, float]]
+    conventions: dict[str, str]
+    #: (caption, GIF bytes) of the stage's own episodes, when ``--save-videos`` kept them.
+    videos: list[tuple[str, bytes]] = field(default_factory=list)
+
+
+@dataclass
 class StageView:
     name: str
     entry: StageEntry
@@ -39,6 +52,7 @@ class StageView:
     metrics: dict[str, float] = field(default_factory=dict)
     images: list[tuple[str, bytes]] = field(default_factory=list)
     texts: list[dict[str, str]] = field(default_factory=list)
+    drives: list[DriveView] = field(default_factory=list)
     problems: list[str] = field(default_factory=list)
 
 
@@ -235,7 +249,29 @@ def _read_stage(run_dir: Path, name: str, entry: StageEntry) -> StageView:
         view.images, view.texts = read_samples(stage_dir)
     except OcctrainError as err:
         view.problems.append(str(err))
+    for summary in sorted((stage_dir / "drive").glob("*/summary.json")):
+        try:
+            view.drives.append(read_drive(summary, name))
+        except (OSError, json.JSONDecodeError, KeyError, TypeError, ValueError, AttributeError) as err:
+            view.problems.append(f"{summary}: unreadable closed-loop results ({err})")
     return view
+
+
+#: Animations of the stage's own episodes embedded per drive (the page stays a few MB).
+DRIVE_VIDEOS = 8
+
+
+def read_drive(summary: Path, stage: str) -> DriveView:
+    """An ``occtrain drive`` summary of stage ``stage`` and the GIFs of its own episodes."""
+    raw = json.loads(summary.read_text())
+    drivers = {d: _numbers(scores) for d, scores in raw["drivers"].items()}
+    videos = []
+    for key, path in sorted(raw.get("videos", {}).items()):
+        if key.startswith(f"{stage}-") and Path(path).is_file() and len(videos) < DRIVE_VIDEOS:
+            videos.append((f"route {key.removeprefix(stage + '-')}", Path(path).read_bytes()))
+    return DriveView(
+        summary.parent.name, int(raw["routes"]), float(raw["seconds"]), drivers, dict(raw["conventions"]), videos
+    )
 
 
 def load_run(run_dir: Path) -> RunView:

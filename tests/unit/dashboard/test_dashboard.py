@@ -348,3 +348,29 @@ def test_a_dataset_not_found_is_said_on_the_page(run_dir: Path, tmp_path: Path):
     (run_dir / "pipeline.yaml").write_text(f"name: quick\ndata:\n  root: {tmp_path / 'gone'}\nstages: []\n")
     html = write_dashboard(run_dir).read_text()
     assert "gone: not found from" in html and 'class="problem"' in html
+
+
+def test_a_stage_drive_is_tabled_with_its_animations(run_dir: Path, tmp_path: Path):
+    gif = tmp_path / "tokenizer-000.gif"
+    frames = [Image.new("RGB", (8, 8), c) for c in ((255, 0, 0), (0, 0, 255))]
+    frames[0].save(gif, save_all=True, append_images=frames[1:], duration=500)
+    drive = run_dir / "tokenizer" / "drive" / "seed1000-20s"
+    drive.mkdir(parents=True)
+    scores = {"driving_score": 61.25, "pdm_score": 70.0, "route_completion": 87.5, "collisions": 0.5}
+    (drive / "summary.json").write_text(
+        json.dumps(
+            {
+                "routes": 2,
+                "seconds": 20,
+                "conventions": {"driving_score": "CARLA leaderboard 1.0"},
+                "drivers": {"tokenizer": scores, "expert": {"driving_score": 100.0}},
+                "videos": {"tokenizer-000": str(gif), "expert-000": str(gif)},
+            }
+        )
+    )
+    html = write_dashboard(run_dir).read_text()
+    section = html[html.index("Closed-loop driving (2 routes of 20 s, seed1000-20s)") :]
+    assert "<td>tokenizer</td><td>61.2</td><td>70.0</td><td>87.5</td><td>0.50</td>" in section
+    assert "CARLA leaderboard 1.0" in section
+    gifs = re.findall(r'src="data:image/gif;base64,([^"]*)"', html)
+    assert len(gifs) == 1 and base64.b64decode(gifs[0]) == gif.read_bytes()  # the stage's own episode only
