@@ -265,7 +265,7 @@ def read_drive(summary: Path, stage: str) -> DriveView:
     """An ``occtrain drive`` summary of stage ``stage`` and the GIFs of its own episodes."""
     raw = json.loads(summary.read_text())
     drivers = {d: _numbers(scores) for d, scores in raw["drivers"].items()}
-    videos = []
+    videos: list[tuple[str, bytes]] = []
     for key, path in sorted(raw.get("videos", {}).items()):
         if key.startswith(f"{stage}-") and Path(path).is_file() and len(videos) < DRIVE_VIDEOS:
             videos.append((f"route {key.removeprefix(stage + '-')}", Path(path).read_bytes()))
