@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from occtrain.data.synth.citymap import SIDEWALK
-from occtrain.data.synth.driving import DrivingWorld, drive_episode, stand_still
+from occtrain.data.synth.driving import STRIDE, DrivingWorld, drive_episode, stand_still
 from occtrain.data.synth.roads import PATH_DS, green_left
 from occtrain.data.synth.vehicle import EgoState
 from occtrain.formats.occ3d import EGO_LENGTH, FREE
@@ -117,3 +117,25 @@ def test_the_episode_animation_shows_the_ego_and_rings_it_where_it_went_wrong(wo
     assert tuple(first[centre]) == EGO_COLOUR
     alert = np.all(ringed == ALERT_COLOUR, axis=-1)
     assert alert.sum() > 50 and not np.all(first == ALERT_COLOUR, axis=-1).any()
+
+
+def test_recorded_frames_read_back_as_a_dataset_and_a_clip(world, tmp_path):
+    from occtrain.data.driving import EPISODE_SCENE, EpisodeRecorder
+
+    recorder = EpisodeRecorder(tmp_path, world, camera_size=(18, 32))
+    for _ in range(3):
+        index = recorder.record()
+        labels = world.render()
+        for _ in range(STRIDE):
+            world.advance(None)
+    assert index.scenes[EPISODE_SCENE] == [f["token"] for f in recorder.frames]
+    token = recorder.token
+    np.testing.assert_array_equal(index.labels(EPISODE_SCENE, token)["semantics"], labels["semantics"])
+    assert index.images(EPISODE_SCENE, token).shape == (6, 18, 32, 3)
+    clip = recorder.clip(history=4)  # only two frames before it so far
+    assert clip.ann["history"] == 2 and clip.anchor["token"] == token
+    assert len(clip.ann["tokens"]) == len(clip.ann["ego_poses"]) == 3 + 6
+    # The unknown future is driving on at the current speed: 0.5 s apart along the heading.
+    future = clip.ego_positions()[3:]
+    speed = clip.anchor["ego_speed"]
+    np.testing.assert_allclose(future, [[speed * 0.5 * k, 0.0] for k in range(1, 7)], atol=1e-3)
