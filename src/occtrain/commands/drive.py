@@ -162,6 +162,7 @@ def _episode_file(out: Path, job: DriveJob) -> Path:
 
 _DRIVERS: dict[str, Any] = {}  # the stage's driver, loaded once per process
 _WORLDS: dict[tuple[int, float], Any] = {}  # the route being driven, as built
+_CACHES: list[tempfile.TemporaryDirectory] = []
 
 
 def _init_worker(threads: int) -> None:
@@ -172,19 +173,20 @@ def _init_worker(threads: int) -> None:
 
 def _stage_driver(stage_dir: Path) -> Any:
     if str(stage_dir) not in _DRIVERS:
-        from occtrain.stages import get_kind
         from occtrain.stages.stage import EvalRequest
 
         recipe, spec, kind = done_stage(stage_dir, "occtrain drive", "drives", lambda module: module.drivable)
-        cache = tempfile.mkdtemp(prefix="occtrain-drive-cache-")
+        # A fresh cache directory: a planner's caches are keyed by sample token, and the
+        # stage's own hold its dataset's frames, not these.
+        cache = tempfile.TemporaryDirectory(prefix="occtrain-drive-cache-")  # removed when the process ends
+        _CACHES.append(cache)
         request = EvalRequest(
             stage_dir / "export",
             [stage_dir.parent / dep / "export" for dep in spec.consumes],
             recipe.data.root,
-            cache_dir=Path(cache),
+            cache_dir=Path(cache.name),
         )
-        assert get_kind(spec.kind) is kind
-        _DRIVERS[str(stage_dir)] = kind.module.driver(request)  # type: ignore[union-attr]
+        _DRIVERS[str(stage_dir)] = kind.module.driver(request)
     return _DRIVERS[str(stage_dir)]
 
 
