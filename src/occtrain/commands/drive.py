@@ -36,6 +36,8 @@ from occtrain.progress import console, progress_bar
 
 #: The baselines every stage is driven beside.
 BASELINES = ("expert", "constant_velocity", "stand_still")
+#: The job that scores the plans open loop on the same routes (the expert drives; see ``shadow_episode``).
+OPEN_LOOP = "open-loop"
 #: What the scores follow, written into every result.
 CONVENTIONS = {
     "driving_score": "CARLA leaderboard 1.0 (route completion x infraction penalties)",
@@ -88,7 +90,7 @@ def drive(
     if videos is not None:
         check_output(videos, "--save-videos", kind="dir")
     drivers = [spec.name, *BASELINES]
-    jobs = [DriveJob(d, i, s, seconds) for i, s in enumerate(route_seeds(seed, routes)) for d in drivers]
+    jobs = [DriveJob(d, i, s, seconds) for i, s in enumerate(route_seeds(seed, routes)) for d in [*drivers, OPEN_LOOP]]
     todo = [j for j in jobs if not _episode_file(out, j).is_file()]
     camera = (recipe.data.synth.camera_height, recipe.data.synth.camera_width)
     context = _EpisodeContext(str(stage_dir), camera, str(out), str(videos) if videos else None)
@@ -138,14 +140,36 @@ def summarize(out: Path, jobs: list[DriveJob], drivers: list[str]) -> dict[str, 
     from occtrain.metrics.driving import DrivingScores, aggregate
 
     per: dict[str, list[DrivingScores]] = {d: [] for d in drivers}
+    open_loop: list[dict[str, Any]] = []
     for job in jobs:
         record = json.loads(_episode_file(out, job).read_text())
+        if job.driver == OPEN_LOOP:
+            open_loop.append(record)
+            continue
         scores: dict[str, Any] = record["scores"]  # JSON has no infinity: a time to collision never met is null
         fields: dict[str, Any] = {
             k: float("inf") if scores[k] is None else scores[k] for k in DrivingScores.__dataclass_fields__
         }
         per[job.driver].append(DrivingScores(**fields))
-    return {d: aggregate(scores) for d, scores in per.items()}
+    summary = {d: aggregate(scores) for d, scores in per.items()}
+    for driver, scores in open_loop_means(open_loop).items():
+        summary.setdefault(driver, {}).update(scores)
+    return summary
+
+
+def open_loop_means(records: list[dict[str, Any]]) -> dict[str, dict[str, float]]:
+    """Each planner's open-loop L2 and collision rate (``stp3``) over the routes' frames
+    (weighted by frames); the expert's are 0: its plan is the log."""
+    frames = sum(r["frames"] for r in records)
+    out: dict[str, dict[str, float]] = {"expert": {"open_loop_L2_stp3_avg": 0.0, "open_loop_collision_stp3_avg": 0.0}}
+    if not frames:
+        return out
+    for name in records[0]["planners"]:
+        out[name] = {
+            f"open_loop_{metric}_stp3_avg": sum(r["frames"] * r["planners"][name][metric] for r in records) / frames
+            for metric in ("L2", "collision")
+        }
+    return out
 
 
 @dataclass(frozen=True)
@@ -210,6 +234,9 @@ def _run_episode(context: _EpisodeContext, job: DriveJob) -> None:
         _WORLDS[key] = DrivingWorld(job.route_seed, job.seconds)
     world = copy.deepcopy(_WORLDS[key])
     views: list | None = [] if context.videos else None
+    if job.driver == OPEN_LOOP:
+        _write_open_loop(context, job, world, start)
+        return
     planner: Planner | None
     with tempfile.TemporaryDirectory(prefix="occtrain-drive-") as frames:
         if job.driver in BASELINES:
@@ -239,12 +266,61 @@ def _run_episode(context: _EpisodeContext, job: DriveJob) -> None:
     atomic_write_json(_episode_file(out, job), record)
 
 
+def _write_open_loop(context: _EpisodeContext, job: DriveJob, world: Any, start: float) -> None:
+    """The stage's plans and the baselines' scored open loop on the route (the expert drives;
+    ST-P3's convention, collisions against the agents where they then were)."""
+    import torch
+
+    from occtrain.data.driving import EpisodeRecorder, Planner, constant_velocity, shadow_episode, stand_still
+    from occtrain.engine.closed_loop import model_planner
+    from occtrain.metrics.planning import PlanningMetric
+
+    stage = Path(context.stage_dir).name
+    driver = _stage_driver(Path(context.stage_dir))
+    reads_cameras = driver.engine.vision is not None or driver.engine.scenes_from_cameras()
+    with tempfile.TemporaryDirectory(prefix="occtrain-drive-") as frames:
+        recorder = EpisodeRecorder(frames, world, context.camera if reads_cameras else None)
+        planners: dict[str, Planner] = {
+            stage: model_planner(driver, recorder),
+            "constant_velocity": constant_velocity,
+            "stand_still": stand_still,
+        }
+        # Scored where the stage planned: every planner on the same frames.
+        shadow = [f for f in shadow_episode(world, planners) if f.plans[stage] is not None]
+    scores: dict[str, dict[str, float]] = {}
+    for name in [stage, "constant_velocity", "stand_still"]:
+        metric = PlanningMetric()
+        if shadow:
+            metric.update(
+                torch.from_numpy(np.stack([np.asarray(f.plans[name]) for f in shadow])),
+                torch.from_numpy(np.stack([f.logged for f in shadow])),
+                torch.ones(len(shadow), 6),
+                [f.agents for f in shadow],
+            )
+            result = metric.compute()
+            scores[name] = {"L2": float(result["L2_stp3"]["avg"]), "collision": float(result["collision_stp3"]["avg"])}
+        else:
+            scores[name] = {"L2": float("nan"), "collision": float("nan")}
+    record = {
+        "driver": OPEN_LOOP,
+        "route": job.route,
+        "route_seed": job.route_seed,
+        "seconds": job.seconds,
+        "frames": len(shadow),
+        "planners": scores,
+        "wall_s": round(time.perf_counter() - start, 2),
+        "conventions": {"L2": "stp3 (ST-P3 / VAD)", "collision": "stp3, agents from the simulator"},
+    }
+    atomic_write_json(_episode_file(Path(context.out), job), record)
+
+
 def print_summary(summary: dict[str, dict[str, float]], title: str) -> None:
     """The drivers' mean scores as a table."""
     from rich.table import Table
 
     table = Table(title=title)
     columns = (
+        ("open-loop L2 m", "open_loop_L2_stp3_avg", "{:.2f}"),
         ("driving score", "driving_score", "{:.1f}"),
         ("PDM score", "pdm_score", "{:.1f}"),
         ("route completion %", "route_completion", "{:.1f}"),

@@ -220,6 +220,8 @@ def _images(images: list[tuple[str, bytes]]) -> str:
 
 #: The closed-loop scores the page shows per driver: (column, key, format).
 DRIVE_COLUMNS = (
+    ("open-loop L2 (stp3, m)", "open_loop_L2_stp3_avg", "{:.2f}"),
+    ("open-loop collision (stp3, %)", "open_loop_collision_stp3_avg", "{:.2f}"),
     ("driving score", "driving_score", "{:.1f}"),
     ("PDM score", "pdm_score", "{:.1f}"),
     ("route completion %", "route_completion", "{:.1f}"),

@@ -26,8 +26,10 @@ from occtrain.data.synth.driving import (
     STRIDE,
     DrivingWorld,
     Planner,
+    ShadowFrame,
     constant_velocity,
     drive_episode,
+    shadow_episode,
     stand_still,
 )
 from occtrain.data.synth.driving_view import ViewFrame, save_gif
@@ -105,9 +107,11 @@ __all__ = [
     "DrivingWorld",
     "EpisodeRecorder",
     "Planner",
+    "ShadowFrame",
     "ViewFrame",
     "constant_velocity",
     "drive_episode",
     "save_gif",
+    "shadow_episode",
     "stand_still",
 ]

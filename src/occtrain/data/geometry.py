@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from occtrain.data.schema import COMMAND_LATERAL_THRESHOLD
+from occtrain.data.schema import COMMAND_LATERAL_THRESHOLD, Command
 from occtrain.formats.occ3d import FREE, VOXEL_SIZE
 
 
@@ -30,7 +30,7 @@ def ego_to_global(xy: np.ndarray, pose_xy: np.ndarray, pose_yaw: float) -> np.nd
     return np.stack([c * xy[..., 0] - s * xy[..., 1], s * xy[..., 0] + c * xy[..., 1]], axis=-1) + pose_xy
 
 
-def driving_command(future: np.ndarray, mask: np.ndarray) -> str:
+def driving_command(future: np.ndarray, mask: np.ndarray) -> Command:
     """ST-P3 / UniAD driving command from the lateral offset of the last valid future waypoint."""
     valid = np.flatnonzero(mask)
     if len(valid) == 0:

@@ -54,11 +54,11 @@ def world_model_driver(engine: WorldModelEngine, where: str) -> StageDriver:
 def model_planner(driver: StageDriver, recorder: EpisodeRecorder) -> Planner:
     """The closed loop's planner for ``driver``, recording every planning frame with ``recorder``."""
 
-    def plan(world: DrivingWorld) -> np.ndarray:
+    def plan(world: DrivingWorld) -> np.ndarray | None:
         index = recorder.record()
         driver.engine.add_samples(index, [(EPISODE_SCENE, recorder.token)])  # later frames read it as history
         if len(recorder.frames) <= driver.history:
-            return world.expert_plan()
+            return None  # the expert drives the history the prompts read
         return driver.waypoints([recorder.clip(driver.history)])[0]
 
     return plan

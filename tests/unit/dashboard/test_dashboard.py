@@ -356,7 +356,14 @@ def test_a_stage_drive_is_tabled_with_its_animations(run_dir: Path, tmp_path: Pa
     frames[0].save(gif, save_all=True, append_images=frames[1:], duration=500)
     drive = run_dir / "tokenizer" / "drive" / "seed1000-20s"
     drive.mkdir(parents=True)
-    scores = {"driving_score": 61.25, "pdm_score": 70.0, "route_completion": 87.5, "collisions": 0.5}
+    scores = {
+        "open_loop_L2_stp3_avg": 0.87,
+        "open_loop_collision_stp3_avg": 0.25,
+        "driving_score": 61.25,
+        "pdm_score": 70.0,
+        "route_completion": 87.5,
+        "collisions": 0.5,
+    }
     (drive / "summary.json").write_text(
         json.dumps(
             {
@@ -370,7 +377,7 @@ def test_a_stage_drive_is_tabled_with_its_animations(run_dir: Path, tmp_path: Pa
     )
     html = write_dashboard(run_dir).read_text()
     section = html[html.index("Closed-loop driving (2 routes of 20 s, seed1000-20s)") :]
-    assert "<td>tokenizer</td><td>61.2</td><td>70.0</td><td>87.5</td><td>0.50</td>" in section
+    assert "<td>tokenizer</td><td>0.87</td><td>0.25</td><td>61.2</td><td>70.0</td><td>87.5</td><td>0.50</td>" in section
     assert "CARLA leaderboard 1.0" in section
     gifs = re.findall(r'src="data:image/gif;base64,([^"]*)"', html)
     assert len(gifs) == 1 and base64.b64decode(gifs[0]) == gif.read_bytes()  # the stage's own episode only

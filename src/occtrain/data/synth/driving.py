@@ -25,7 +25,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from occtrain.data.geometry import driving_command, ego_to_global, global_to_ego
-from occtrain.data.schema import FrameAnnotation
+from occtrain.data.schema import Command, FrameAnnotation
 from occtrain.data.synth.annotate import EgoMotion, frame_annotation
 from occtrain.data.synth.catalog import KINDS, PEDESTRIAN, TrackSet
 from occtrain.data.synth.citymap import DRIVEABLE, paint_city
@@ -217,7 +217,7 @@ class DrivingWorld:
         world = FrameWorld(self.static, self.net, self.ego.xy, self.ego.yaw, self.time)
         return render_cameras(semantics, world, height, width)
 
-    def command(self) -> str:
+    def command(self) -> Command:
         """The route's command: where the route goes in the next 3 s at the current speed."""
         s = self.log.progress[-1]
         speed = max(self.ego.speed, 2.0)
@@ -425,8 +425,9 @@ class DrivingWorld:
 
 
 #: A planner in the loop: the world as it is now -> waypoints (FUTURE_STEPS, 2) in the ego
-#: frame, FRAME_DT apart.
-Planner = Callable[["DrivingWorld"], np.ndarray]
+#: frame, FRAME_DT apart, or None for "not yet": the expert drives on (a model waits for
+#: the history its prompts read).
+Planner = Callable[["DrivingWorld"], np.ndarray | None]
 
 
 def drive_episode(world: DrivingWorld, planner: Planner | None, views: list[ViewFrame] | None = None) -> EpisodeTrace:
@@ -441,7 +442,8 @@ def drive_episode(world: DrivingWorld, planner: Planner | None, views: list[View
             world.advance(None)
             continue
         if world.at_frame or tracker is None:
-            plan = np.asarray(planner(world), dtype=np.float64).reshape(-1, 2)
+            answer = planner(world)
+            plan = world.expert_plan() if answer is None else np.asarray(answer, dtype=np.float64).reshape(-1, 2)
             if views is not None:
                 views.append(world.view(plan))
             tracker, made_at = PlanTracker(plan, world.ego, FRAME_DT), world.time
@@ -451,6 +453,49 @@ def drive_episode(world: DrivingWorld, planner: Planner | None, views: list[View
         for v in views:  # each picture shows what went wrong until the next one
             v.infractions = [i for i in world.log.infractions if v.time <= i.time < v.time + FRAME_DT]
     return world.trace()
+
+
+@dataclass
+class ShadowFrame:
+    """One planning frame of a shadow episode: each planner's plan (ego frame; None before
+    it plans), where the expert went next and who was around then, in that frame's ego frame."""
+
+    plans: dict[str, np.ndarray | None]
+    logged: np.ndarray  # (FUTURE_STEPS, 2)
+    #: Per future frame, the agents as (N, 5) rows of x, y, length, width, yaw.
+    agents: list[np.ndarray]
+
+
+def shadow_episode(world: DrivingWorld, planners: dict[str, Planner]) -> list[ShadowFrame]:
+    """Open loop on the route: the expert drives the whole episode, the planners plan at every
+    planning frame without driving, and each plan meets what the expert did next. Frames
+    without FUTURE_STEPS frames after them in the episode are left out."""
+    plans: list[dict[str, np.ndarray | None]] = []
+    poses: list[tuple[np.ndarray, float]] = []
+    around: list[Agents] = []
+    while True:
+        if world.at_frame:
+            answers = {name: planner(world) for name, planner in planners.items()}
+            plans.append(
+                {k: None if a is None else np.asarray(a, dtype=np.float64).reshape(-1, 2) for k, a in answers.items()}
+            )
+            poses.append((world.ego.xy.copy(), world.ego.yaw))
+            around.append(world.agents())
+        if world.done:
+            break
+        world.advance(None)
+    frames = []
+    for k in range(len(plans) - FUTURE_STEPS):
+        xy, yaw = poses[k]
+        later = range(k + 1, k + FUTURE_STEPS + 1)
+        logged = global_to_ego(np.array([poses[j][0] for j in later]), xy, yaw)
+        agents = []
+        for j in later:
+            a = around[j]
+            local = global_to_ego(a.xy, xy, yaw)
+            agents.append(np.column_stack([local, a.size[:, 0], a.size[:, 1], a.yaw - yaw]))
+        frames.append(ShadowFrame(plans[k], logged, agents))
+    return frames
 
 
 def constant_velocity(world: DrivingWorld) -> np.ndarray:
@@ -505,4 +550,13 @@ def _against_lane(net: RoadNetwork, xy: np.ndarray, yaw: float) -> bool:
     return False
 
 
-__all__ = ["Agents", "DrivingWorld", "Planner", "constant_velocity", "drive_episode", "stand_still"]
+__all__ = [
+    "Agents",
+    "DrivingWorld",
+    "Planner",
+    "ShadowFrame",
+    "constant_velocity",
+    "drive_episode",
+    "shadow_episode",
+    "stand_still",
+]

@@ -139,3 +139,16 @@ def test_recorded_frames_read_back_as_a_dataset_and_a_clip(world, tmp_path):
     future = clip.ego_positions()[3:]
     speed = clip.anchor["ego_speed"]
     np.testing.assert_allclose(future, [[speed * 0.5 * k, 0.0] for k in range(1, 7)], atol=1e-3)
+
+
+def test_shadow_episodes_meet_each_plan_with_what_the_expert_did_next(world):
+    from occtrain.data.synth.driving import shadow_episode
+
+    planners = {"expert": lambda w: w.expert_plan(), "still": stand_still, "late": lambda w: None}
+    frames = shadow_episode(world, planners)
+    assert len(frames) == 13 - 6  # 6 s: 13 planning frames, each scored with a whole 3 s after it
+    for f in frames:
+        assert f.plans["late"] is None and len(f.agents) == 6 and f.agents[0].shape[1] == 5
+        np.testing.assert_allclose(f.plans["expert"], f.logged, atol=1e-9)  # the expert's plan is the log
+    moved = np.linalg.norm(frames[-1].logged[-1])
+    assert moved > 5.0 and np.linalg.norm(frames[-1].plans["still"][-1]) == 0.0
