@@ -1,0 +1,70 @@
+"""tools/drive_table.py: every stage's drive beside the baselines of the same routes, and
+whether open-loop L2 orders the drivers as the driving score does."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import sys
+from pathlib import Path
+
+import pytest
+
+from conftest import REPO
+
+
+@pytest.fixture()
+def tool():
+    spec = importlib.util.spec_from_file_location("drive_table", REPO / "tools" / "drive_table.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+def _drive(run: Path, stage: str, l2: float, score: float, routes: int = 2) -> Path:
+    out = run / stage / "drive" / "seed1000-20s"
+    out.mkdir(parents=True)
+    drivers = {
+        stage: {"open_loop_L2_stp3_avg": l2, "driving_score": score, "collisions": 0.5},
+        "expert": {"open_loop_L2_stp3_avg": 0.0, "driving_score": 100.0},
+        "constant_velocity": {"open_loop_L2_stp3_avg": 1.2, "driving_score": 20.0},
+        "stand_still": {"open_loop_L2_stp3_avg": 5.0, "driving_score": 0.0},
+    }
+    summary = {
+        "stage": stage,
+        "routes": routes,
+        "seed": 1000,
+        "seconds": 20,
+        "drivers": drivers,
+        "conventions": {"driving_score": "CARLA", "pdm_score": "NAVSIM"},
+    }
+    (out / "summary.json").write_text(json.dumps(summary))
+    return run / stage
+
+
+def test_the_table_puts_each_stage_beside_the_routes_baselines(tool, tmp_path):
+    stages = [_drive(tmp_path / "a", "planner", 0.4, 60.0), _drive(tmp_path / "b", "instruct", 0.9, 80.0)]
+    table = tool.markdown(tool.summaries(stages, 2, 1000, 20.0, drive=False))
+    rows = [line for line in table.splitlines() if line.startswith("| ")][1:]
+    assert [r.split(" | ")[0] for r in rows] == [
+        "| a/planner",
+        "| b/instruct",
+        "| expert",
+        "| constant_velocity",
+        "| stand_still",
+    ]
+    assert rows[0].startswith("| a/planner | 0.40 | - | 60.0 |")
+    # L2 order: expert, a, b, cv, still; driving-score order: expert, b, a, cv, still: one pair of ten swapped.
+    assert "Kendall's tau 0.80 over 5 drivers" in table
+
+
+def test_stages_driven_on_other_routes_are_refused(tool, tmp_path):
+    stages = [_drive(tmp_path / "a", "planner", 0.4, 60.0), _drive(tmp_path / "b", "planner", 0.9, 80.0, routes=3)]
+    with pytest.raises(SystemExit, match="different routes"):
+        tool.markdown(tool.summaries(stages, 2, 1000, 20.0, drive=False))
+
+
+def test_a_missing_drive_is_said_without_driving(tool, tmp_path):
+    with pytest.raises(SystemExit, match="summary.json is missing"):
+        tool.summaries([tmp_path / "run" / "planner"], 2, 1000, 20.0, drive=False)
