@@ -30,7 +30,7 @@ from occtrain.data.synth.annotate import EgoMotion, frame_annotation
 from occtrain.data.synth.catalog import KINDS, PEDESTRIAN, TrackSet
 from occtrain.data.synth.citymap import DRIVEABLE, paint_city
 from occtrain.data.synth.driving_view import ViewFrame
-from occtrain.data.synth.grid import EGO_HEIGHT
+from occtrain.data.synth.grid import EGO_HEIGHT, layer_span
 from occtrain.data.synth.raster import frame_semantics, masks, observe_static
 from occtrain.data.synth.roads import HEADINGS, PATH_DS, RoadNetwork, green_left, right_of
 from occtrain.data.synth.scene import PAINT_MARGIN, Population, populate
@@ -58,6 +58,8 @@ ROUTE_DEVIATION = 8.0
 #: Driving against the lane: the ego's heading more than 120 degrees from the lane's.
 WRONG_WAY_COS = -0.5
 EGO_SIZE = np.array([EGO_LENGTH, EGO_WIDTH, EGO_HEIGHT])
+#: The first voxel layer above the ego's roof.
+EGO_TOP_LAYER = int(layer_span(0.0, EGO_HEIGHT)[1])
 
 
 @dataclass
@@ -345,10 +347,11 @@ class DrivingWorld:
                 touching.add(name)
                 if name not in self._touching:
                     log.infractions.append(Infraction(agents.kind[k], t, self._at_fault(agents, k), name))
-        # Static structure (buildings, poles, trees, hedges) under the ego's footprint.
+        # Static structure (buildings, poles, trunks, hedges) under the ego's footprint and
+        # below its roof: a tree's crown over the road is above it.
         probe = _footprint_points(ego.xy, ego.yaw)
         ix, iy = self.static.cells(probe)
-        if np.any(self.static.cls[ix, iy] != FREE):
+        if np.any((self.static.cls[ix, iy] != FREE) & (self.static.lo[ix, iy] < EGO_TOP_LAYER)):
             touching.add("structure")
             if "structure" not in self._touching:
                 log.infractions.append(Infraction("collision_static", t, ego.speed >= STOPPED_SPEED, "structure"))
