@@ -245,10 +245,29 @@ def _add_run_commands(sub: Any) -> None:
     p.add_argument("--restart", metavar="STAGE", help="as for run")
     p.set_defaults(func=_cmd_validate)
     _add_run_readers(sub)
+    _add_drive(sub)
+
+
+def _add_drive(sub: Any) -> None:
+    """``drive``."""
+    p = sub.add_parser(
+        "drive",
+        help="drive a stage's planner closed loop in the synthetic world (reactive traffic) beside the expert, "
+        "constant velocity and standing still; CARLA driving score and NAVSIM PDM score",
+    )
+    p.add_argument("stage_dir", help="RUN_DIR/STAGE (a pretrain, instruct or planner stage)")
+    p.add_argument("--scenes", type=int, default=8, help="routes to drive (default 8)")
+    p.add_argument(
+        "--seed", type=int, default=1000, help="seed the routes are drawn from (default 1000: no training world's)"
+    )
+    p.add_argument("--seconds", type=float, default=20.0, help="length of each episode (default 20, at most 40)")
+    p.add_argument("--workers", type=int, default=1, help="episodes driven side by side in processes (default 1)")
+    p.add_argument("--save-videos", metavar="DIR", help="also write a bird's-eye GIF of every episode")
+    p.set_defaults(func=_cmd_drive)
 
 
 def _add_run_readers(sub: Any) -> None:
-    """``eval``, ``drive``, ``plan-memory``, ``table`` and ``config``."""
+    """``eval``, ``plan-memory``, ``table`` and ``config``."""
     p = sub.add_parser(
         "eval",
         help="score a stage's export on a split: a tokenizer's reconstruction, a world model's generations "
@@ -275,21 +294,6 @@ def _add_run_readers(sub: Any) -> None:
         "--data", metavar="DIR", help="score on this dataset instead of the run's (e.g. a world from another seed)"
     )
     p.set_defaults(func=_cmd_eval)
-
-    p = sub.add_parser(
-        "drive",
-        help="drive a stage's planner closed loop in the synthetic world (reactive traffic) beside the expert, "
-        "constant velocity and standing still; CARLA driving score and NAVSIM PDM score",
-    )
-    p.add_argument("stage_dir", help="RUN_DIR/STAGE (a pretrain, instruct or planner stage)")
-    p.add_argument("--scenes", type=int, default=8, help="routes to drive (default 8)")
-    p.add_argument(
-        "--seed", type=int, default=1000, help="seed the routes are drawn from (default 1000: no training world's)"
-    )
-    p.add_argument("--seconds", type=float, default=20.0, help="length of each episode (default 20, at most 40)")
-    p.add_argument("--workers", type=int, default=1, help="episodes driven side by side in processes (default 1)")
-    p.add_argument("--save-videos", metavar="DIR", help="also write a bird's-eye GIF of every episode")
-    p.set_defaults(func=_cmd_drive)
 
     p = sub.add_parser(
         "plan-memory",
