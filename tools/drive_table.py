@@ -25,20 +25,9 @@ from scipy.stats import kendalltau
 
 from occtrain.commands.drive import BASELINES, drive_dir
 from occtrain.formats.io import atomic_write_text
+from occtrain.metrics.driving import TABLE_COLUMNS
 
-#: The table's columns: (header, summary key, format).
-COLUMNS = (
-    ("open-loop L2 (m, `stp3`)", "open_loop_L2_stp3_avg", "{:.2f}"),
-    ("open-loop collision (%, `stp3`)", "open_loop_collision_stp3_avg", "{:.2f}"),
-    ("driving score", "driving_score", "{:.1f}"),
-    ("PDM score", "pdm_score", "{:.1f}"),
-    ("route completion (%)", "route_completion", "{:.1f}"),
-    ("collisions", "collisions", "{:.2f}"),
-    ("red lights", "red_lights", "{:.2f}"),
-    ("off road", "off_road", "{:.2f}"),
-    ("wrong way", "wrong_way", "{:.2f}"),
-    ("left the route", "route_deviation", "{:.2f}"),
-)
+COLUMNS = TABLE_COLUMNS
 
 
 def _fmt(value: float | None, fmt: str) -> str:

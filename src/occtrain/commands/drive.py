@@ -318,18 +318,9 @@ def print_summary(summary: dict[str, dict[str, float]], title: str) -> None:
     """The drivers' mean scores as a table."""
     from rich.table import Table
 
+    from occtrain.metrics.driving import TABLE_COLUMNS as columns
+
     table = Table(title=title)
-    columns = (
-        ("open-loop L2 m", "open_loop_L2_stp3_avg", "{:.2f}"),
-        ("driving score", "driving_score", "{:.1f}"),
-        ("PDM score", "pdm_score", "{:.1f}"),
-        ("route completion %", "route_completion", "{:.1f}"),
-        ("collisions / route", "collisions", "{:.2f}"),
-        ("red lights / route", "red_lights", "{:.2f}"),
-        ("off road / route", "off_road", "{:.2f}"),
-        ("wrong way / route", "wrong_way", "{:.2f}"),
-        ("left route / route", "route_deviation", "{:.2f}"),
-    )
     table.add_column("driver")
     for name, _, _ in columns:
         table.add_column(name, justify="right")

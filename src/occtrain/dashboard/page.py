@@ -12,6 +12,7 @@ from occtrain.core.published import REAL_DATA, figures_for, metric_words
 from occtrain.dashboard.run_view import DriveView, RunView, StageView
 from occtrain.dashboard.svg import line_chart
 from occtrain.metrics.conventions import OCC3D, OCCWORLD, STP3, UNIAD
+from occtrain.metrics.driving import TABLE_COLUMNS
 
 STATUS_COLOURS = {"done": "#2e7d32", "running": "#1565c0", "failed": "#c62828", "pending": "#757575"}
 #: Metric conventions, in the order their tables appear, with what each one means.
@@ -218,19 +219,7 @@ def _images(images: list[tuple[str, bytes]]) -> str:
     )
 
 
-#: The closed-loop scores the page shows per driver: (column, key, format).
-DRIVE_COLUMNS = (
-    ("open-loop L2 (stp3, m)", "open_loop_L2_stp3_avg", "{:.2f}"),
-    ("open-loop collision (stp3, %)", "open_loop_collision_stp3_avg", "{:.2f}"),
-    ("driving score", "driving_score", "{:.1f}"),
-    ("PDM score", "pdm_score", "{:.1f}"),
-    ("route completion %", "route_completion", "{:.1f}"),
-    ("collisions", "collisions", "{:.2f}"),
-    ("red lights", "red_lights", "{:.2f}"),
-    ("off road", "off_road", "{:.2f}"),
-    ("wrong way", "wrong_way", "{:.2f}"),
-    ("left route", "route_deviation", "{:.2f}"),
-)
+DRIVE_COLUMNS = TABLE_COLUMNS
 
 
 def _drive(drive: DriveView) -> str:

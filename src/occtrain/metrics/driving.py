@@ -68,6 +68,20 @@ TTC_BOUND = 0.95
 STOPPED_SPEED = 0.5
 #: NAVSIM scores ego progress as 1 when the expert itself moved less than this (m).
 EP_MIN_PROGRESS = 5.0
+#: How driving results are tabled (the CLI, the dashboard, tools/drive_table.py): (header,
+#: key in a driver's summary, format); open loop first, infractions per route.
+TABLE_COLUMNS = (
+    ("open-loop L2 (m, `stp3`)", "open_loop_L2_stp3_avg", "{:.2f}"),
+    ("open-loop collision (%, `stp3`)", "open_loop_collision_stp3_avg", "{:.2f}"),
+    ("driving score", "driving_score", "{:.1f}"),
+    ("PDM score", "pdm_score", "{:.1f}"),
+    ("route completion (%)", "route_completion", "{:.1f}"),
+    ("collisions", "collisions", "{:.2f}"),
+    ("red lights", "red_lights", "{:.2f}"),
+    ("off road", "off_road", "{:.2f}"),
+    ("wrong way", "wrong_way", "{:.2f}"),
+    ("left the route", "route_deviation", "{:.2f}"),
+)
 #: NAVSIM's PDM score weights.
 PDM_WEIGHTS = {"ttc": 5.0, "ep": 5.0, "comfort": 2.0}
 
