@@ -19,11 +19,13 @@ import json
 import math
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 from scipy.stats import kendalltau
 
 from occtrain.commands.drive import BASELINES, drive_dir
+from occtrain.data.synthesize import FORMAT_VERSION
 from occtrain.formats.io import atomic_write_text
 from occtrain.metrics.driving import TABLE_COLUMNS
 
@@ -74,6 +76,35 @@ def rank_agreement(table: list[tuple[str, dict[str, float]]]) -> tuple[float, in
     return float(tau), len(pairs)
 
 
+def stamp(summary: dict) -> str:
+    """Which run a row comes from: its recipe, training seeds and code, the routes, the date driven."""
+    stage = Path(summary["stage_dir"])
+    manifest = json.loads((stage.parent / "manifest.json").read_text())
+    entries = manifest.get("stages", {}).values()
+    code = sorted({e.get("code_version") or "?" for e in entries})
+    seeds = sorted({str((e.get("config") or {}).get("trainer", {}).get("seed", "?")) for e in entries})
+    path = drive_dir(stage, summary["seed"], summary["seconds"]) / "summary.json"
+    driven = time.strftime("%Y-%m-%d", time.gmtime(path.stat().st_mtime))
+    return (
+        f"`{stage}`: recipe {manifest.get('name', '?')}, training seed {', '.join(seeds)}, code {', '.join(code)}, "
+        f"data the routes of seed {summary['seed']} (world v{FORMAT_VERSION}), scored {driven} (driven)"
+    )
+
+
+def swapped_pairs(table: list[tuple[str, dict[str, float]]]) -> list[str]:
+    """The pairs of drivers open-loop L2 puts one way and the driving score the other."""
+    scored = [(label, s) for label, s in table if not math.isnan(s.get("open_loop_L2_stp3_avg", math.nan))]
+    out = []
+    for i, (a, sa) in enumerate(scored):
+        for b, sb in scored[i + 1 :]:
+            l2 = sa["open_loop_L2_stp3_avg"] - sb["open_loop_L2_stp3_avg"]
+            score = sa["driving_score"] - sb["driving_score"]
+            if l2 * score > 0:  # lower L2 should mean a higher driving score
+                better, worse = (a, b) if l2 < 0 else (b, a)
+                out.append(f"{better} plans closer to the log than {worse} but drives worse")
+    return out
+
+
 def markdown(found: list[dict]) -> str:
     first = found[0]
     routes = {(s["routes"], s["seed"], s["seconds"]) for s in found}
@@ -93,6 +124,8 @@ def markdown(found: list[dict]) -> str:
         + first["conventions"]["pdm_score"]
         + ". Infractions per route; open loop: the expert drives, every planner plans at each frame.",
         "",
+        *(f"- {stamp(s)}" for s in found),
+        "",
         "| driver | " + " | ".join(h for h, _, _ in COLUMNS) + " |",
         "|---|" + "---|" * len(COLUMNS),
     ]
@@ -106,6 +139,9 @@ def markdown(found: list[dict]) -> str:
             f"Open-loop L2 {agree} the driving score does: Kendall's tau {tau:.2f} over {counted} drivers "
             "(1: the same order, 0: unrelated, -1: reversed)."
         )
+        swapped = swapped_pairs(table)
+        if swapped:
+            verdict += " Ordered the other way round closed loop: " + "; ".join(swapped) + "."
     return "\n".join([*lines, "", verdict]) + "\n"
 
 

@@ -40,6 +40,8 @@ def _drive(run: Path, stage: str, l2: float, score: float, routes: int = 2) -> P
         "conventions": {"driving_score": "CARLA", "pdm_score": "NAVSIM"},
     }
     (out / "summary.json").write_text(json.dumps(summary))
+    manifest = {"name": run.name, "stages": {stage: {"code_version": "0.1.0+abc", "config": {"trainer": {"seed": 3}}}}}
+    (run / "manifest.json").write_text(json.dumps(manifest))
     return run / stage
 
 
@@ -55,8 +57,10 @@ def test_the_table_puts_each_stage_beside_the_routes_baselines(tool, tmp_path):
         "| stand_still",
     ]
     assert rows[0].startswith("| a/planner | 0.40 | - | 60.0 |")
+    assert "recipe a, training seed 3, code 0.1.0+abc, data the routes of seed 1000" in table
     # L2 order: expert, a, b, cv, still; driving-score order: expert, b, a, cv, still: one pair of ten swapped.
     assert "Kendall's tau 0.80 over 5 drivers" in table
+    assert "a/planner plans closer to the log than b/instruct but drives worse" in table
 
 
 def test_stages_driven_on_other_routes_are_refused(tool, tmp_path):
