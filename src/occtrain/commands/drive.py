@@ -214,11 +214,21 @@ def _stage_driver(stage_dir: Path) -> Any:
     return _DRIVERS[str(stage_dir)]
 
 
+def _model_planner(context: _EpisodeContext, world: Any, frames: str) -> Any:
+    """The stage's closed-loop planner on ``world``, recording its frames under ``frames``
+    (with the cameras when its encoders read them)."""
+    from occtrain.data.driving import EpisodeRecorder
+    from occtrain.engine.closed_loop import model_planner
+
+    driver = _stage_driver(Path(context.stage_dir))
+    reads_cameras = driver.engine.vision is not None or driver.engine.scenes_from_cameras()
+    return model_planner(driver, EpisodeRecorder(frames, world, context.camera if reads_cameras else None))
+
+
 def _run_episode(context: _EpisodeContext, job: DriveJob) -> None:
     """Drive one episode and write its result (and its animation)."""
     from occtrain.data.driving import (
         DrivingWorld,
-        EpisodeRecorder,
         Planner,
         constant_velocity,
         drive_episode,
@@ -242,12 +252,7 @@ def _run_episode(context: _EpisodeContext, job: DriveJob) -> None:
         if job.driver in BASELINES:
             planner = {"expert": None, "constant_velocity": constant_velocity, "stand_still": stand_still}[job.driver]
         else:
-            from occtrain.engine.closed_loop import model_planner
-
-            driver = _stage_driver(Path(context.stage_dir))
-            reads_cameras = driver.engine.vision is not None or driver.engine.scenes_from_cameras()
-            recorder = EpisodeRecorder(frames, world, context.camera if reads_cameras else None)
-            planner = model_planner(driver, recorder)
+            planner = _model_planner(context, world, frames)
         trace = drive_episode(world, planner, views)
     scores = score_episode(trace)
     record = {
@@ -271,17 +276,13 @@ def _write_open_loop(context: _EpisodeContext, job: DriveJob, world: Any, start:
     ST-P3's convention, collisions against the agents where they then were)."""
     import torch
 
-    from occtrain.data.driving import EpisodeRecorder, Planner, constant_velocity, shadow_episode, stand_still
-    from occtrain.engine.closed_loop import model_planner
+    from occtrain.data.driving import Planner, constant_velocity, shadow_episode, stand_still
     from occtrain.metrics.planning import PlanningMetric
 
     stage = Path(context.stage_dir).name
-    driver = _stage_driver(Path(context.stage_dir))
-    reads_cameras = driver.engine.vision is not None or driver.engine.scenes_from_cameras()
     with tempfile.TemporaryDirectory(prefix="occtrain-drive-") as frames:
-        recorder = EpisodeRecorder(frames, world, context.camera if reads_cameras else None)
         planners: dict[str, Planner] = {
-            stage: model_planner(driver, recorder),
+            stage: _model_planner(context, world, frames),
             "constant_velocity": constant_velocity,
             "stand_still": stand_still,
         }
