@@ -214,15 +214,14 @@ def _stage_driver(stage_dir: Path) -> Any:
     return _DRIVERS[str(stage_dir)]
 
 
-def _model_planner(context: _EpisodeContext, world: Any, frames: str) -> Any:
-    """The stage's closed-loop planner on ``world``, recording its frames under ``frames``
-    (with the cameras when its encoders read them)."""
+def _stage_reader(context: _EpisodeContext, world: Any, frames: str, episode: str) -> tuple[Any, Any]:
+    """The stage's driver and a recorder of ``world``'s planning frames under ``frames``
+    (with the cameras when its encoders read them), tokened apart as ``episode``'s."""
     from occtrain.data.driving import EpisodeRecorder
-    from occtrain.engine.closed_loop import model_planner
 
     driver = _stage_driver(Path(context.stage_dir))
     reads_cameras = driver.engine.vision is not None or driver.engine.scenes_from_cameras()
-    return model_planner(driver, EpisodeRecorder(frames, world, context.camera if reads_cameras else None))
+    return driver, EpisodeRecorder(frames, world, context.camera if reads_cameras else None, episode)
 
 
 def _run_episode(context: _EpisodeContext, job: DriveJob) -> None:
@@ -235,6 +234,7 @@ def _run_episode(context: _EpisodeContext, job: DriveJob) -> None:
         save_gif,
         stand_still,
     )
+    from occtrain.engine.closed_loop import model_planner
     from occtrain.metrics.driving import score_episode
 
     start = time.perf_counter()
@@ -252,7 +252,7 @@ def _run_episode(context: _EpisodeContext, job: DriveJob) -> None:
         if job.driver in BASELINES:
             planner = {"expert": None, "constant_velocity": constant_velocity, "stand_still": stand_still}[job.driver]
         else:
-            planner = _model_planner(context, world, frames)
+            planner = model_planner(*_stage_reader(context, world, frames, job.driver))
         trace = drive_episode(world, planner, views)
     scores = score_episode(trace)
     record = {
@@ -277,17 +277,18 @@ def _write_open_loop(context: _EpisodeContext, job: DriveJob, world: Any, start:
     import torch
 
     from occtrain.data.driving import Planner, constant_velocity, shadow_episode, stand_still
+    from occtrain.engine.closed_loop import OpenLoopPlanner
     from occtrain.metrics.planning import PlanningMetric
 
     stage = Path(context.stage_dir).name
     with tempfile.TemporaryDirectory(prefix="occtrain-drive-") as frames:
-        planners: dict[str, Planner] = {
-            stage: _model_planner(context, world, frames),
-            "constant_velocity": constant_velocity,
-            "stand_still": stand_still,
-        }
-        # Scored where the stage planned: every planner on the same frames.
-        shadow = [f for f in shadow_episode(world, planners) if f.plans[stage] is not None]
+        model = OpenLoopPlanner(*_stage_reader(context, world, frames, OPEN_LOOP))
+        baselines: dict[str, Planner] = {"constant_velocity": constant_velocity, "stand_still": stand_still}
+        shadow = shadow_episode(world, {stage: model, **baselines})
+        for frame, plan in zip(shadow, model.plans()):  # shadow frames are the first planning frames, in order
+            frame.plans[stage] = plan
+    # Scored where the stage planned: every planner on the same frames.
+    shadow = [f for f in shadow if f.plans[stage] is not None]
     scores: dict[str, dict[str, float]] = {}
     for name in [stage, "constant_velocity", "stand_still"]:
         metric = PlanningMetric()

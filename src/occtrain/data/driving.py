@@ -4,8 +4,8 @@ frame written as a stage reads a dataset.
 The closed loop's entry to the generator (``data/synth``), as ``data/synthesize.py`` is the
 data synthesis's. An :class:`EpisodeRecorder` writes every planning frame of a
 :class:`~occtrain.data.synth.driving.DrivingWorld` into an Occ3D-layout directory with the
-generator's own writers (labels, the six cameras, the frame sidecar) and keeps the
-annotations in memory, so a stage reads a closed-loop frame through exactly the code that
+generator's own writers (labels, the six cameras) and keeps the frame annotations in
+memory, so a stage reads a closed-loop frame through exactly the code that
 reads its training frames (``DatasetIndex``, the frozen encoders' ``add_samples``), and
 :meth:`EpisodeRecorder.clip` is the clip a stage plans on: the driven history, the frame
 now, and a future nobody knows yet (driving on at constant velocity stands in for it).
@@ -39,12 +39,32 @@ from occtrain.formats.occ3d import FRAME_DT, FUTURE_STEPS
 EPISODE_SCENE = "episode"
 
 
-class EpisodeRecorder:
-    """Writes ``world``'s planning frames under ``root`` and indexes them as one val scene."""
+class _EpisodeIndex(DatasetIndex):
+    """The episode so far as a dataset whose frame annotations stay in memory: rewriting the
+    whole sidecar at every planning frame made recording quadratic in the episode's length
+    (9 of the 16 s a 20 s route spent recording)."""
 
-    def __init__(self, root: str | Path, world: DrivingWorld, camera_size: tuple[int, int] | None):
+    def __init__(self, root: Path, annotations: dict, frames: list[FrameAnnotation]):
+        super().__init__(root, annotations)
+        self._frames = list(frames)
+
+    def has_frame_annotations(self, scene: str) -> bool:
+        return scene == EPISODE_SCENE
+
+    def frames(self, scene: str) -> list[FrameAnnotation]:
+        if scene != EPISODE_SCENE:
+            return super().frames(scene)
+        return self._frames
+
+
+class EpisodeRecorder:
+    """Writes ``world``'s planning frames under ``root`` and indexes them as one val scene;
+    ``episode`` sets its frames' tokens apart from other episodes' on the same route."""
+
+    def __init__(self, root: str | Path, world: DrivingWorld, camera_size: tuple[int, int] | None, episode: str = ""):
         self.root = Path(root)
         self.world = world
+        self.episode = episode
         self.files = SceneFiles(self.root)
         self.camera_size = camera_size
         self.rig: list[Camera] = nuscenes_rig(*camera_size) if camera_size else []
@@ -54,7 +74,7 @@ class EpisodeRecorder:
     def record(self) -> DatasetIndex:
         """Write the planning frame now (labels, cameras, annotation) and index the episode so far."""
         world = self.world
-        frame = world.frame_annotation(EPISODE_SCENE)
+        frame = world.frame_annotation(EPISODE_SCENE, self.episode)
         labels = world.render()
         self.files.write_labels(EPISODE_SCENE, frame["token"], labels)
         if self.rig:
@@ -64,26 +84,27 @@ class EpisodeRecorder:
                 frame["token"], [(c.name, v.image, v.classes, v.depth) for c, v in zip(self.rig, views)]
             )
         self.frames.append(frame)
-        self.files.write_frames(EPISODE_SCENE, self.frames)
         annotations = {
             "train_split": [],
             "val_split": [EPISODE_SCENE],
             "scene_infos": {EPISODE_SCENE: scene_infos(EPISODE_SCENE, self.frames, self.rig or None)},
         }
-        self.index = DatasetIndex(self.root, annotations)
+        self.index = _EpisodeIndex(self.root, annotations, self.frames)
         return self.index
 
     @property
     def token(self) -> str:
         return self.frames[-1]["token"]
 
-    def clip(self, history: int) -> Clip:
-        """The clip anchored at the last recorded frame with ``history`` frames before it (as
-        many as there are) and FUTURE_STEPS future frames driven on at constant velocity:
-        their tokens name no frame, and no prompt reads a future frame's scene."""
+    def clip(self, history: int, at: int = -1) -> Clip:
+        """The clip anchored at recorded frame ``at`` (the last by default) with ``history``
+        frames before it (as many as there are) and FUTURE_STEPS future frames driven on at
+        constant velocity: their tokens name no frame, and no prompt reads a future frame's
+        scene, so a clip never reads what was recorded after its anchor."""
         if not self.frames:
             raise ValueError("record a frame before asking for its clip")
-        frames = self.frames[max(0, len(self.frames) - 1 - history) :]
+        end = at % len(self.frames) + 1
+        frames = self.frames[max(0, end - 1 - history) : end]
         anchor = frames[-1]
         yaw = anchor["ego_pose"]["yaw"]
         x, y = anchor["ego_pose"]["translation"][:2]

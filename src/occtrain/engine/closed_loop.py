@@ -6,7 +6,9 @@ model whose frozen encoders read each frame, and the stage's plan for a batch of
 :func:`model_planner` turns it into the closed loop's planner: each planning frame is
 recorded as a dataset frame, encoded into the engine's caches, and planned on as a clip
 with the driven history. Until the world has that many frames, the expert drives, as the
-logged history of an open-loop clip would have it.
+logged history of an open-loop clip would have it. :class:`OpenLoopPlanner` is the same
+stage scored open loop: its plans cannot change what the expert drives, so it records every
+frame first and plans them all in one batch.
 """
 
 from __future__ import annotations
@@ -62,3 +64,29 @@ def model_planner(driver: StageDriver, recorder: EpisodeRecorder) -> Planner:
         return driver.waypoints([recorder.clip(driver.history)])[0]
 
     return plan
+
+
+class OpenLoopPlanner:
+    """The stage open loop on an episode the expert drives: a planner that records each
+    planning frame and answers nothing, then :meth:`plans` for every recorded frame in one
+    batch (one batched decode instead of one per frame; each clip reads only the frames up
+    to its anchor, as it would have when it was recorded)."""
+
+    def __init__(self, driver: StageDriver, recorder: EpisodeRecorder):
+        self.driver = driver
+        self.recorder = recorder
+
+    def __call__(self, world: DrivingWorld) -> None:
+        self.recorder.record()
+
+    def plans(self) -> list[np.ndarray | None]:
+        """Per recorded frame, the stage's plan; None for the history frames the expert drives."""
+        recorder, history = self.recorder, self.driver.history
+        if recorder.index is None:
+            return []
+        self.driver.engine.add_samples(recorder.index, [(EPISODE_SCENE, f["token"]) for f in recorder.frames])
+        anchors = range(history, len(recorder.frames))
+        planned: list[np.ndarray | None] = [None] * (len(recorder.frames) - len(anchors))
+        if anchors:
+            planned.extend(self.driver.waypoints([recorder.clip(history, at=k) for k in anchors]))
+        return planned

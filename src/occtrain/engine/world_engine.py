@@ -266,6 +266,7 @@ class WorldModelEngine(torch.nn.Module):
             cache.update(zip(tokens, self._scene_rows(index, samples).cpu()))
             self.scene_cache = cache
             self._scene_cache_root = index.root
+            self._frames_from = None  # the same dict, grown: observed_labels maps its codes anew
 
     def observed_labels(self, codes: torch.Tensor) -> torch.Tensor | None:
         """The label volume (X, Y, Z) of the dataset frame whose cached scene row is ``codes``

@@ -234,7 +234,7 @@ class DrivingWorld:
         pts = np.stack([np.interp(s, self._route_s, self.route.xy[:, i]) for i in (0, 1)], axis=1)
         return global_to_ego(pts, self.ego.xy, self.ego.yaw)
 
-    def frame_annotation(self, scene: str) -> FrameAnnotation:
+    def frame_annotation(self, scene: str, episode: str = "") -> FrameAnnotation:
         """The FrameAnnotation of the planning frame now, by the generator's own annotator,
         as a stage reads it: the driven ego's pose, speed and past, the agents around it,
         the route's command, a caption and a narration. What a stage is asked to predict is
@@ -264,7 +264,7 @@ class DrivingWorld:
             speed=np.repeat(now.speed, n, axis=1),
         )
         frame = frame_annotation(scene, self.seed, i, n, motion, tracks)
-        frame["token"] = drive_token(self.seed, i)
+        frame["token"] = drive_token(self.seed, i, episode)
         frame["command"] = self.command()
         frame["caption"] = caption_for_frame(frame)
         frame["narration"] = narration_for_frame(frame)
@@ -511,10 +511,12 @@ def stand_still(world: DrivingWorld) -> np.ndarray:
     return np.zeros((FUTURE_STEPS, 2))
 
 
-def drive_token(seed: int, index: int) -> str:
-    """The sample token of planning frame ``index`` of the episode on scene ``seed``: apart
-    from every dataset's (whose tokens are ``annotate.sample_token``'s)."""
-    return hashlib.md5(f"occtrain-drive/{seed}/{index}".encode()).hexdigest()
+def drive_token(seed: int, index: int, episode: str = "") -> str:
+    """The sample token of planning frame ``index`` of ``episode`` on scene ``seed``: apart
+    from every dataset's (whose tokens are ``annotate.sample_token``'s) and from every other
+    episode's on the route, whose frame ``index`` saw another scene (a stage's caches are
+    keyed by token)."""
+    return hashlib.md5(f"occtrain-drive/{seed}/{episode}/{index}".encode()).hexdigest()
 
 
 def _footprint_points(xy: np.ndarray, yaw: float) -> np.ndarray:

@@ -129,6 +129,7 @@ def test_recorded_frames_read_back_as_a_dataset_and_a_clip(world, tmp_path):
         for _ in range(STRIDE):
             world.advance(None)
     assert index.scenes[EPISODE_SCENE] == [f["token"] for f in recorder.frames]
+    assert index.frames(EPISODE_SCENE) == recorder.frames and index.has_frame_annotations(EPISODE_SCENE)
     token = recorder.token
     np.testing.assert_array_equal(index.labels(EPISODE_SCENE, token)["semantics"], labels["semantics"])
     assert index.images(EPISODE_SCENE, token).shape == (6, 18, 32, 3)

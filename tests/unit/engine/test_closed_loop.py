@@ -1,0 +1,75 @@
+"""A stage behind the wheel: the per-frame closed-loop planner and the batched open-loop one see the same clips."""
+
+from __future__ import annotations
+
+import copy
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from occtrain.data.clips import Clip
+from occtrain.data.driving import EpisodeRecorder, shadow_episode
+from occtrain.data.synth.driving import DrivingWorld
+from occtrain.engine.closed_loop import OpenLoopPlanner, StageDriver, model_planner
+
+HISTORY = 2
+
+
+class _Encoders:
+    """The engine's side of the seam: what ``add_samples`` was given, and the prompts' history."""
+
+    def __init__(self):
+        self.tasks = SimpleNamespace(context_frames=HISTORY)
+        self.cached: set[str] = set()
+
+    def add_samples(self, index, samples):
+        assert all(token in index.scenes[scene] for scene, token in samples)
+        self.cached.update(token for _, token in samples)
+
+
+def _driver() -> StageDriver:
+    engine = _Encoders()
+
+    def waypoints(clips: list[Clip]) -> np.ndarray:
+        # A plan that reads everything the clip holds: the frames it names must be encoded,
+        # and its history's poses and its anchor's speed decide the answer.
+        out = []
+        for clip in clips:
+            known = clip.ann["tokens"][: clip.ann["history"] + 1]
+            assert set(known) <= engine.cached, "a clip read a frame nobody encoded"
+            poses = np.asarray(clip.ann["ego_poses"], dtype=np.float64)
+            out.append(poses[-6:, :2] - poses[0, :2] + clip.anchor["ego_speed"])
+        return np.stack(out)
+
+    return StageDriver(engine, waypoints)  # type: ignore[arg-type]
+
+
+@pytest.fixture(scope="module")
+def built() -> DrivingWorld:
+    return DrivingWorld(101, 6.0)
+
+
+def test_the_batched_open_loop_plans_what_planning_frame_by_frame_would(built, tmp_path):
+    recorder = EpisodeRecorder(tmp_path / "a", copy.deepcopy(built), None, "a")
+    expected = [f.plans["stage"] for f in shadow_episode(recorder.world, {"stage": model_planner(_driver(), recorder)})]
+    batched = OpenLoopPlanner(_driver(), EpisodeRecorder(tmp_path / "b", copy.deepcopy(built), None, "b"))
+    shadow = shadow_episode(batched.recorder.world, {"stage": batched})
+    assert all(f.plans["stage"] is None for f in shadow)  # nothing planned until asked
+    plans = batched.plans()
+    assert len(plans) == len(batched.recorder.frames) == 13
+    assert plans[:HISTORY] == [None] * HISTORY and expected[:HISTORY] == [None] * HISTORY
+    for got, want in zip(plans, expected):
+        if want is not None:
+            np.testing.assert_allclose(got, want)
+    assert sum(p is not None for p in expected) == len(shadow) - HISTORY
+
+
+def test_episodes_on_one_route_never_share_a_frame_token(built, tmp_path):
+    tokens = {}
+    for name in ("planner", "open-loop", "planner"):
+        recorder = EpisodeRecorder(tmp_path / name, copy.deepcopy(built), None, name)
+        recorder.record()
+        tokens.setdefault(name, set()).add(recorder.token)
+    assert len(tokens["planner"]) == 1  # the same episode again names its frames the same
+    assert tokens["planner"].isdisjoint(tokens["open-loop"])
