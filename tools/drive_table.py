@@ -36,7 +36,7 @@ def _fmt(value: float | None, fmt: str) -> str:
     return "-" if value is None or (isinstance(value, float) and math.isnan(value)) else fmt.format(value)
 
 
-def summaries(stages: list[Path], scenes: int, seed: int, seconds: float, drive: bool) -> list[dict]:
+def summaries(stages: list[Path], scenes: int, seed: int, seconds: float, drive: bool, workers: int = 1) -> list[dict]:
     """Each stage's ``occtrain drive`` summary, driving it first when there is none."""
     out = []
     for stage in stages:
@@ -45,6 +45,7 @@ def summaries(stages: list[Path], scenes: int, seed: int, seconds: float, drive:
             if not drive:
                 raise SystemExit(f"error: {path} is missing; drive {stage} first (leave out --no-drive)")
             cmd = ["drive", str(stage), "--scenes", str(scenes), "--seed", str(seed), "--seconds", f"{seconds:g}"]
+            cmd += ["--workers", str(workers)]
             print("$ occtrain " + " ".join(cmd), file=sys.stderr, flush=True)
             res = subprocess.run([sys.executable, "-m", "occtrain", *cmd])
             if res.returncode:
@@ -85,9 +86,13 @@ def stamp(summary: dict) -> str:
     seeds = sorted({str((e.get("config") or {}).get("trainer", {}).get("seed", "?")) for e in entries})
     path = drive_dir(stage, summary["seed"], summary["seconds"]) / "summary.json"
     driven = time.strftime("%Y-%m-%d", time.gmtime(path.stat().st_mtime))
+    took = ""
+    if "wall_s" in summary and not summary.get("resumed"):
+        minutes, seconds = divmod(round(summary["wall_s"]), 60)
+        took = f" in {minutes} min {seconds:02d} s by {summary['workers']} worker{'s' * (summary['workers'] > 1)}"
     return (
         f"`{stage}`: recipe {manifest.get('name', '?')}, training seed {', '.join(seeds)}, code {', '.join(code)}, "
-        f"data the routes of seed {summary['seed']} (world v{FORMAT_VERSION}), scored {driven} (driven)"
+        f"data the routes of seed {summary['seed']} (world v{FORMAT_VERSION}), scored {driven} (driven{took})"
     )
 
 
@@ -151,10 +156,13 @@ def main() -> int:
     parser.add_argument("--scenes", type=int, default=8)
     parser.add_argument("--seed", type=int, default=1000)
     parser.add_argument("--seconds", type=float, default=20.0)
+    parser.add_argument("--workers", type=int, default=1, help="occtrain drive's --workers for stages not yet driven")
     parser.add_argument("--no-drive", action="store_true", help="only tabulate drives that exist")
     parser.add_argument("--out", help="also write the table here (e.g. docs/results/driving.md)")
     args = parser.parse_args()
-    found = summaries([Path(s) for s in args.stages], args.scenes, args.seed, args.seconds, not args.no_drive)
+    found = summaries(
+        [Path(s) for s in args.stages], args.scenes, args.seed, args.seconds, not args.no_drive, args.workers
+    )
     table = markdown(found)
     if args.out:
         atomic_write_text(Path(args.out), table)

@@ -224,6 +224,7 @@ def test_drive_puts_the_planner_behind_the_wheel_and_resumes(pipeline, tmp_path)
     assert summary["drivers"]["expert"]["driving_score"] >= 95.0
     assert summary["drivers"]["stand_still"]["route_completion"] < summary["drivers"]["expert"]["route_completion"]
     assert "CARLA" in summary["conventions"]["driving_score"] and "NAVSIM" in summary["conventions"]["pdm_score"]
+    assert summary["wall_s"] > 0 and summary["workers"] == 1 and summary["resumed"] == 0
     assert sorted(p.name for p in videos.iterdir()) == [
         f"{d}-000.gif" for d in ("constant_velocity", "expert", "planner", "stand_still")
     ]

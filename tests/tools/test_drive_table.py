@@ -22,7 +22,7 @@ def tool():
     return module
 
 
-def _drive(run: Path, stage: str, l2: float, score: float, routes: int = 2) -> Path:
+def _drive(run: Path, stage: str, l2: float, score: float, routes: int = 2, **timing) -> Path:
     out = run / stage / "drive" / "seed1000-20s"
     out.mkdir(parents=True)
     drivers = {
@@ -38,6 +38,7 @@ def _drive(run: Path, stage: str, l2: float, score: float, routes: int = 2) -> P
         "seconds": 20,
         "drivers": drivers,
         "conventions": {"driving_score": "CARLA", "pdm_score": "NAVSIM"},
+        **timing,
     }
     (out / "summary.json").write_text(json.dumps(summary))
     manifest = {"name": run.name, "stages": {stage: {"code_version": "0.1.0+abc", "config": {"trainer": {"seed": 3}}}}}
@@ -46,7 +47,10 @@ def _drive(run: Path, stage: str, l2: float, score: float, routes: int = 2) -> P
 
 
 def test_the_table_puts_each_stage_beside_the_routes_baselines(tool, tmp_path):
-    stages = [_drive(tmp_path / "a", "planner", 0.4, 60.0), _drive(tmp_path / "b", "instruct", 0.9, 80.0)]
+    stages = [
+        _drive(tmp_path / "a", "planner", 0.4, 60.0, wall_s=252.4, workers=2, resumed=0),
+        _drive(tmp_path / "b", "instruct", 0.9, 80.0, wall_s=30.0, workers=1, resumed=3),
+    ]
     table = tool.markdown(tool.summaries(stages, 2, 1000, 20.0, drive=False))
     rows = [line for line in table.splitlines() if line.startswith("| ")][1:]
     assert [r.split(" | ")[0] for r in rows] == [
@@ -58,6 +62,8 @@ def test_the_table_puts_each_stage_beside_the_routes_baselines(tool, tmp_path):
     ]
     assert rows[0].startswith("| a/planner | 0.40 | - | 60.0 |")
     assert "recipe a, training seed 3, code 0.1.0+abc, data the routes of seed 1000" in table
+    # How long a drive took is told only when it was one whole drive, not a resumed one.
+    assert "(driven in 4 min 12 s by 2 workers)" in table and "driven in 0 min 30 s" not in table
     # L2 order: expert, a, b, cv, still; driving-score order: expert, b, a, cv, still: one pair of ten swapped.
     assert "Kendall's tau 0.80 over 5 drivers" in table
     assert "a/planner plans closer to the log than b/instruct but drives worse" in table

@@ -76,6 +76,7 @@ def drive(
     """Drive the stage and the baselines on ``routes`` routes; each driver's mean scores."""
     from occtrain.data.driving import MAX_SECONDS
 
+    start = time.perf_counter()
     stage_dir = Path(stage_dir)
     if routes < 1:
         raise ConfigError(f"--scenes {routes}: drive at least one route")
@@ -118,7 +119,9 @@ def drive(
     atomic_write_json(
         out / "summary.json",
         {"stage": spec.name, "routes": routes, "seed": seed, "seconds": seconds, "conventions": CONVENTIONS}
-        | {"drivers": summary, "videos": {k: str(p.resolve()) for k, p in gifs.items() if p.is_file()}},
+        | {"drivers": summary, "videos": {k: str(p.resolve()) for k, p in gifs.items() if p.is_file()}}
+        # How long this invocation took: the whole drive only when no episode was resumed.
+        | {"wall_s": round(time.perf_counter() - start, 1), "workers": workers, "resumed": len(jobs) - len(todo)},
     )
     _refresh_dashboard(stage_dir.parent)
     return summary
