@@ -40,6 +40,14 @@ def test_every_stage_is_done_and_exported(pipeline):
         assert json.loads((llm / "config.json").read_text())["model_type"] == "llama"
         assert (llm / "generation_config.json").is_file() and (llm / "tokenizer.json").is_file()
         assert not (llm / "adapter").exists()
+    # Every stage's throughput; the world models' in tokens and model FLOPs too (issue 46).
+    for name in STAGES:
+        metrics = manifest["stages"][name]["metrics"]
+        assert metrics["train_samples_per_s"] > 0 and metrics["train_step_s"] > 0, name
+        has_tokens = name in ("pretrain", "instruct", "distill")
+        assert ("train_tokens_per_s" in metrics) == ("train_mfu" in metrics) == has_tokens, name
+        if has_tokens:
+            assert metrics["train_tokens_per_s"] > metrics["train_samples_per_s"] and 0 < metrics["train_mfu"] < 1
     distill = manifest["stages"]["distill"]["metrics"]
     assert distill["student_params"] < distill["teacher_params"]
     assert "val/teacher_tokens_per_s" in distill and "val/student_tokens_per_s" in distill

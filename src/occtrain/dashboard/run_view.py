@@ -176,6 +176,11 @@ MEASURES = (
 )
 
 
+#: Per-step training throughput charts (``stages.callbacks.StepMeter``'s log).
+THROUGHPUT = "training throughput per second, this device"
+MFU = "model FLOPs utilization"
+
+
 def _measure(name: str) -> tuple[str, str] | None:
     """(chart title, series label) of a validation metric, None for the details."""
     split, _, leaf = name.partition("/")
@@ -192,7 +197,7 @@ def charts_from_curves(curves: dict[str, list[tuple[float, float]]]) -> list[Cha
     """Training losses, validation losses, learning rate, then one chart per measure with a
     line per model and baseline (``MEASURES``); details stay in the final table."""
     fixed = {"train loss": [], "validation loss": [], "learning rate": [], "codebook usage per train batch": [],
-             "codebook perplexity per train batch": [], "train, other": []}  # fmt: skip
+             "codebook perplexity per train batch": [], THROUGHPUT: [], MFU: [], "train, other": []}  # fmt: skip
     measures: dict[str, list[Series]] = defaultdict(list)
     for name, points in sorted(curves.items()):
         if name.startswith("lr-"):
@@ -200,6 +205,10 @@ def charts_from_curves(curves: dict[str, list[tuple[float, float]]]) -> list[Cha
         elif "loss" in name and name.startswith(("train/", "val/")):
             title = "train loss" if name.startswith("train/") else "validation loss"
             fixed[title].append(_series(name.split("/", 1)[1], points))
+        elif name in ("train/tokens_per_s", "train/samples_per_s"):
+            fixed[THROUGHPUT].append(_series(name.split("/", 1)[1].replace("_per_s", ""), points))
+        elif name == "train/mfu":
+            fixed[MFU].append(_series("model FLOPs / peak", points))
         elif name.startswith("train/") and name.endswith(("codebook_usage", "perplexity")):
             kind = "usage" if name.endswith("usage") else "perplexity"
             label = (

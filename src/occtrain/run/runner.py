@@ -362,14 +362,12 @@ def _execute(
 
 
 def _measurements(callbacks: list) -> dict[str, float]:
-    """What this attempt measured (a measurement, not a result): its mean step time and rank
-    zero's peak memory."""
-    from occtrain.stages.callbacks import PeakMemory, StepTimer
+    """What this attempt measured (a measurement, not a result): its mean step time and
+    throughput and rank zero's peak memory."""
+    from occtrain.stages.callbacks import PeakMemory, StepMeter
 
-    out: dict[str, float] = {}
-    timer = next(c for c in callbacks if isinstance(c, StepTimer))
-    if timer.mean_s is not None:
-        out["train_step_s"] = timer.mean_s
+    meter = next(c for c in callbacks if isinstance(c, StepMeter))
+    out: dict[str, float] = meter.summary()
     memory = next(c for c in callbacks if isinstance(c, PeakMemory))
     if memory.peak_mb is not None:
         out["train_peak_rss_mb"] = memory.peak_mb

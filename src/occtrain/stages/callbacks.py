@@ -1,8 +1,9 @@
 """The Lightning callbacks every stage's Trainer carries: the resumable data position, per-step
-seeds, the heartbeat, the attempt record, step timing and peak memory."""
+seeds, the heartbeat, the attempt record, step timing and throughput, and peak memory."""
 
 from __future__ import annotations
 
+import functools
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -14,6 +15,7 @@ from lightning.pytorch.callbacks import Callback
 
 from occtrain.data.datamodule import ResumableLoader
 from occtrain.data.shards import PAD_KEY
+from occtrain.stages.stage import StepWork
 
 
 class TrackConsumed(Callback):
@@ -124,21 +126,59 @@ def _batch_samples(batch: Any) -> int:
     return len(batch.get("token", ()))
 
 
-class StepTimer(Callback):
-    """Mean wall time of a training step, loading its batch included: the time from one
-    batch's start to the next one's, the first ``warmup`` steps of an attempt and the
-    intervals that hold a validation or a checkpoint left out."""
+#: Endings of the metrics that measure the machine rather than the model (step times,
+#: rates, memory): the same training gives other values on another machine or load.
+MEASURED = ("_per_s", "_step_s", "_rss_mb", "_gpu_mb", "_mfu")
+#: The per-step rates in the training log (the dashboard's throughput charts).
+LOGGED_RATES = ("tokens_per_s", "samples_per_s", "mfu")
+
+
+class StepMeter(Callback):
+    """A stage's training steps measured. ``train_step_s``: a step's wall time, loading its
+    batch included (from one batch's start to the next one's; the intervals that hold a
+    validation or a checkpoint left out). The rates: what each step processed (the module's
+    ``step_work``) over its own time, from its batch's start to its end (forward, backward,
+    optimizer; loading, validation and checkpoints outside it), as samples, tokens and model
+    FLOPs per second of this device, and model FLOPs utilization, those FLOPs per second over
+    the device's peak (``device_peak_flops``). The first ``warmup`` steps of an attempt are
+    left out of both. Each step's rates are logged as ``train/tokens_per_s``,
+    ``train/samples_per_s`` and ``train/mfu``.
+
+    Not Lightning's ``ThroughputMonitor``: it times from batch end to batch end, checkpoint
+    writes included, over a sliding window, where these are a stage's whole training; its
+    peak-FLOPs table (``get_available_flops``) gives a CUDA device's peak."""
 
     def __init__(self, warmup: int = 2):
         self.warmup = warmup
-        self.times: list[float] = []
+        self.times: list[float] = []  # batch start to the next batch start
+        self.steps: list[tuple[float, StepWork]] = []  # batch start to its end, and the work done
+        self.peak_flops: float | None = None
         self._last: float | None = None
+        self._began: float | None = None
 
-    def on_train_batch_start(self, *args: Any) -> None:
+    def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        self.peak_flops = device_peak_flops(pl_module.device, str(trainer.precision))
+
+    def on_train_batch_start(self, trainer: L.Trainer, pl_module: L.LightningModule, *args: Any) -> None:
         now = time.perf_counter()
         if self._last is not None:
             self.times.append(now - self._last)
-        self._last = now
+        self._last = self._began = now
+
+    def on_train_batch_end(
+        self, trainer: L.Trainer, pl_module: L.LightningModule, outputs: Any, batch: Any, *args: Any
+    ) -> None:
+        if self._began is None:
+            return
+        if pl_module.device.type == "cuda":
+            torch.cuda.synchronize(pl_module.device)  # the step's kernels are queued, not done
+        seconds = time.perf_counter() - self._began
+        work = getattr(pl_module, "step_work", None)
+        work = work if isinstance(work, StepWork) else StepWork(samples=_batch_samples(batch))
+        self.steps.append((seconds, work))
+        for name, value in self._rates([(seconds, work)]).items():
+            if name in LOGGED_RATES:
+                pl_module.log(f"train/{name}", value, batch_size=max(work.samples, 1))
 
     # Time spent validating or checkpointing is not a step's: the next step starts the clock.
     def on_validation_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
@@ -150,10 +190,70 @@ class StepTimer(Callback):
     def on_train_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         self._last = None
 
+    def _kept(self, measured: list) -> list:
+        return measured[self.warmup :] if len(measured) > self.warmup else measured
+
+    def _rates(self, steps: list[tuple[float, StepWork]]) -> dict[str, float]:
+        elapsed = sum(seconds for seconds, _ in steps)
+        if not elapsed:
+            return {}
+        work = [w for _, w in steps]
+        out = {"samples_per_s": sum(w.samples for w in work) / elapsed}
+        if all(w.tokens is not None for w in work):
+            out["tokens_per_s"] = sum(w.tokens or 0 for w in work) / elapsed
+        if all(w.flops is not None for w in work):
+            flops = sum(w.flops or 0.0 for w in work) / elapsed
+            out["model_flops_per_s"] = flops
+            if self.peak_flops:
+                out["mfu"] = flops / self.peak_flops
+        return out
+
     @property
     def mean_s(self) -> float | None:
-        kept = self.times[self.warmup :] or self.times
-        return sum(kept) / len(kept) if kept else None
+        times = self._kept(self.times)
+        return sum(times) / len(times) if times else None
+
+    def summary(self) -> dict[str, float]:
+        """The stage's mean step time and rates over its kept steps (``train_`` prefixed)."""
+        out = {f"train_{k}": v for k, v in self._rates(self._kept(self.steps)).items()}
+        if self.mean_s is not None:
+            out["train_step_s"] = self.mean_s
+        if self.peak_flops and self.steps:
+            out["train_device_peak_flops_per_s"] = self.peak_flops
+        return out
+
+
+_PRECISION_DTYPES = {"bf16": torch.bfloat16, "16": torch.float16}
+
+
+@functools.cache
+def cpu_matmul_flops(threads: int, size: int = 1024) -> float:
+    """What this CPU does on a large fp32 matmul at ``threads`` threads (FLOP/s, best of
+    five): the peak MFU is measured against on a CPU, where there is no data-sheet figure
+    to look up that holds for a container's share of a machine."""
+    a, b = torch.randn(size, size), torch.randn(size, size)
+    a @ b  # warm-up: allocation, the BLAS's thread pool
+    best = float("inf")
+    for _ in range(5):
+        start = time.perf_counter()
+        a @ b
+        best = min(best, time.perf_counter() - start)
+    return 2.0 * size**3 / best
+
+
+def device_peak_flops(device: torch.device, precision: str) -> float | None:
+    """The peak FLOP/s MFU divides by: Lightning's table of CUDA devices at the training
+    precision's matmul dtype (bf16 / fp16 mixed or true, else fp32 or TF32), or on a CPU
+    a measured fp32 matmul (:func:`cpu_matmul_flops`); None for a device neither covers."""
+    if device.type == "cuda":
+        from lightning.fabric.utilities.throughput import get_available_flops
+
+        dtype = next((d for prefix, d in _PRECISION_DTYPES.items() if precision.startswith(prefix)), torch.float32)
+        flops = get_available_flops(device, dtype)
+        return float(flops) if flops else None
+    if device.type == "cpu":
+        return cpu_matmul_flops(torch.get_num_threads())
+    return None
 
 
 def current_rss_mb() -> float | None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import field, make_dataclass
 from typing import Any
 
@@ -13,7 +14,15 @@ from occtrain.engine import Evaluator, Priors, WorldModelEngine, scorable
 from occtrain.errors import ConfigError
 from occtrain.metrics import compute_metrics
 from occtrain.progress import console, progress_bar
-from occtrain.stages.stage import EvalRequest, EvalResult, lacking_tasks
+from occtrain.stages.stage import EvalRequest, EvalResult, StepWork, lacking_tasks
+
+
+def lm_step_work(input_ids: torch.Tensor, pad_id: int, samples: int, per_token: Callable[[int], float]) -> StepWork:
+    """A language-model step's work: its tokens but padding, and their model FLOPs at the
+    batch's padded length (what attention computes over); read before the batch moves to
+    the device, so counting costs the GPU no synchronization."""
+    tokens = int((input_ids != pad_id).sum())
+    return StepWork(samples, tokens, tokens * per_token(int(input_ids.shape[-1])))
 
 
 class ValidationMeans(torch.nn.Module):

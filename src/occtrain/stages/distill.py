@@ -38,11 +38,12 @@ from occtrain.engine import (
 from occtrain.errors import ConfigError
 from occtrain.models import count_parameters
 from occtrain.models.distill_losses import FeatureProjector, distillation_losses
+from occtrain.models.flops import TransformerFlops
 from occtrain.models.llm import build_llm, check_llm
 from occtrain.stages import StageKind, register
-from occtrain.stages.common import ValidationMeans, evaluate_engine, family_schema
+from occtrain.stages.common import ValidationMeans, evaluate_engine, family_schema, lm_step_work
 from occtrain.stages.optim import configure_adamw
-from occtrain.stages.stage import EvalRequest, EvalResult, Stage, StageContext, StageReport
+from occtrain.stages.stage import EvalRequest, EvalResult, Stage, StageContext, StageReport, StepWork
 
 
 def _student_llm() -> LLMConfig:
@@ -136,13 +137,26 @@ class DistillStage(Stage):
         self.teacher.eval()
         return self
 
+    def on_train_start(self) -> None:
+        self._student_flops = TransformerFlops.of(self.student.world.llm)
+        self._teacher_flops = TransformerFlops.of(self.teacher.world.llm)
+
+    def _flops_per_token(self, seq_len: int) -> float:
+        """The student's training and the frozen teacher's forward, on the same tokens."""
+        return self._student_flops.train_per_token(seq_len) + self._teacher_flops.forward_per_token(seq_len)
+
     def training_step(self, batch: dict[str, Any], batch_idx: int) -> torch.Tensor | None:
         cfg = self.ctx.model_cfg
         clips = clips_from_batch(batch)
         model_batch, names = self.student.task_batch(clips, batch, self.step_seed(self.global_step))
         self.log("train/skipped_clips", float(names.count(None)), reduce_fx="sum", batch_size=len(clips))
+        self.step_work = StepWork(samples=0, tokens=0, flops=0.0)
         if model_batch is None:
             return None  # no clip of the batch has a configured task: no step
+        samples = len(names) - names.count(None)
+        self.step_work = lm_step_work(
+            model_batch["input_ids"], self.student.vocab.pad_id, samples, self._flops_per_token
+        )
         model_batch = move_batch(model_batch, self.device)
         with torch.no_grad():
             t_out = self.teacher.world(model_batch, output_hidden_states=True)

@@ -43,12 +43,13 @@ from occtrain.errors import ConfigError
 from occtrain.formats.exports import export_kind, read_config
 from occtrain.models import count_parameters
 from occtrain.models.adapters import AdapterConfig, adapters_of, add_adapters
+from occtrain.models.flops import TransformerFlops
 from occtrain.models.llm import apply_lora, check_llm, checkpoint_layers
 from occtrain.stages import StageKind, register
-from occtrain.stages.common import ValidationMeans, evaluate_engine, family_schema
+from occtrain.stages.common import ValidationMeans, evaluate_engine, family_schema, lm_step_work
 from occtrain.stages.optim import configure_adamw, freeze_prefixes
 from occtrain.stages.sharding import FullCopy, ShardedStrategy, is_sharded, local_numel, shard_world_model
-from occtrain.stages.stage import EvalRequest, EvalResult, Stage, StageContext, StageReport
+from occtrain.stages.stage import EvalRequest, EvalResult, Stage, StageContext, StageReport, StepWork
 
 WORLD_MODEL_KINDS = ("pretrain", "instruct", "distill")
 
@@ -221,15 +222,22 @@ class WorldModelStage(Stage):
         return self._gathered.get("engine", self.engine)
 
     # -- training
+    def on_train_start(self) -> None:
+        # Counted from the world model as it trains: sharded, with LoRA or adapters.
+        self._flops = TransformerFlops.of(self.engine.world.llm)
+
     def training_step(self, batch: dict[str, Any], batch_idx: int) -> torch.Tensor | None:
         clips = clips_from_batch(batch)
         model_batch, names = self.engine.task_batch(clips, batch, self.step_seed(self.global_step))
         self.log("train/skipped_clips", float(names.count(None)), reduce_fx="sum", batch_size=len(clips))
+        self.step_work = StepWork(samples=0, tokens=0, flops=0.0)
         if model_batch is None:
             return None  # no clip of the batch has a configured task: no step
+        bs = len(names) - names.count(None)
+        pad = self.engine.vocab.pad_id
+        self.step_work = lm_step_work(model_batch["input_ids"], pad, bs, self._flops.train_per_token)
         out = self.engine.world(move_batch(model_batch, self.device))
         loss = out.loss
-        bs = len(names) - names.count(None)
         self.log("train/loss", loss, prog_bar=True, batch_size=bs)
         self.log("train/text_loss", out.text_loss, batch_size=bs)
         self.log("train/scene_loss", out.scene_loss, batch_size=bs)

@@ -133,6 +133,18 @@ def _skipping_padding(step: Callable[..., Any]) -> Callable[..., Any]:
     return wrapped
 
 
+@dataclass(frozen=True)
+class StepWork:
+    """What one training step processed, for the throughput a stage reports
+    (``callbacks.StepMeter``): a stage module sets ``step_work`` in its training step."""
+
+    samples: int
+    #: The LLM's tokens (padding left out); None for a stage without a language model.
+    tokens: int | None = None
+    #: The step's model FLOPs (``models.flops``), None where the stage does not count them.
+    flops: float | None = None
+
+
 class Stage(L.LightningModule, ABC):
     """Base of every stage kind (built-in or plugin).
 
@@ -171,6 +183,8 @@ class Stage(L.LightningModule, ABC):
         #: The optimizer step of the last full validation in this process (None: none yet),
         #: so the runner need not validate again what fit validated at its last step.
         self.validated_at: int | None = None
+        #: What the last training step processed; None: its batch's samples are all it says.
+        self.step_work: StepWork | None = None
 
     def on_validation_end(self) -> None:
         if not self.trainer.sanity_checking:

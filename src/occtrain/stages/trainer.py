@@ -16,7 +16,7 @@ from lightning.pytorch.callbacks import Callback, LearningRateMonitor, ModelChec
 
 from occtrain.config.groups import TrainerConfig
 from occtrain.errors import ConfigError
-from occtrain.stages.callbacks import AttemptRecord, Heartbeat, PeakMemory, StepSeed, StepTimer, TrackConsumed
+from occtrain.stages.callbacks import AttemptRecord, Heartbeat, PeakMemory, StepMeter, StepSeed, TrackConsumed
 from occtrain.stages.checkpoints import AtomicCheckpointIO
 from occtrain.stages.loggers import build_loggers
 from occtrain.stages.sharding import trainer_strategy
@@ -64,7 +64,7 @@ def _callbacks(
         StepSeed(cfg.seed),
         LearningRateMonitor(logging_interval="step"),
         StepProgress(name),
-        StepTimer(),
+        StepMeter(),
         PeakMemory(),
     ]
     if record_time is not None:

@@ -1,0 +1,83 @@
+"""The step meter: a stage's step time, tokens and samples per second and MFU, from what
+each step says it processed, with validation left out of the clock."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import pytest
+import torch
+
+from occtrain.dashboard.run_view import MFU, THROUGHPUT, charts_from_curves
+from occtrain.stages import callbacks
+from occtrain.stages.callbacks import StepMeter, cpu_matmul_flops, device_peak_flops
+from occtrain.stages.stage import StepWork
+
+
+class _Module:
+    def __init__(self):
+        self.device = torch.device("cpu")
+        self.step_work: StepWork | None = None
+        self.logged: list[tuple[str, float]] = []
+
+    def log(self, name, value, batch_size):
+        self.logged.append((name, value))
+
+
+def _run(meter: StepMeter, module: _Module, clock: list[float], steps: list, monkeypatch, loading: float = 0.0):
+    """Steps of the given durations, each ending with the given work, ``loading`` s apart."""
+    monkeypatch.setattr(callbacks.time, "perf_counter", lambda: clock[0])
+    trainer = SimpleNamespace(precision="32-true")
+    for seconds, work in steps:
+        clock[0] += loading
+        meter.on_train_batch_start(trainer, module, None, 0)
+        clock[0] += seconds
+        module.step_work = work
+        meter.on_train_batch_end(trainer, module, None, None, 0)
+
+
+def test_rates_are_the_kept_steps_work_over_their_own_time(monkeypatch):
+    meter, module, clock = StepMeter(warmup=1), _Module(), [100.0]
+    meter.peak_flops = 1000.0
+    steps = [(9.0, StepWork(2, 50, 500.0)), (1.0, StepWork(2, 100, 400.0)), (3.0, StepWork(4, 200, 2000.0))]
+    _run(meter, module, clock, steps, monkeypatch, loading=0.5)
+    summary = meter.summary()
+    # The first (warm-up) step is left out: 6 samples, 300 tokens, 2,400 FLOPs in 4 s of
+    # steps; the step time counts loading the next batch, 0.5 s (intervals 9.5 and 1.5 s:
+    # the first is left out).
+    assert summary["train_step_s"] == pytest.approx(1.5)
+    assert summary["train_samples_per_s"] == pytest.approx(1.5)
+    assert summary["train_tokens_per_s"] == pytest.approx(75.0)
+    assert summary["train_model_flops_per_s"] == pytest.approx(600.0)
+    assert summary["train_mfu"] == pytest.approx(0.6)
+    assert summary["train_device_peak_flops_per_s"] == 1000.0
+    # Each step's own rates are logged as it ends.
+    assert ("train/tokens_per_s", pytest.approx(100.0)) in module.logged
+    assert ("train/mfu", pytest.approx(2000.0 / 3.0 / 1000.0)) in module.logged
+
+
+def test_validation_is_not_a_steps_time_and_a_stage_without_tokens_reports_samples(monkeypatch):
+    meter, module, clock = StepMeter(warmup=0), _Module(), [0.0]
+    _run(meter, module, clock, [(2.0, StepWork(4))], monkeypatch)
+    meter.on_validation_start(None, module)
+    clock[0] += 60.0  # a minute validating
+    _run(meter, module, clock, [(2.0, StepWork(4)), (2.0, StepWork(4))], monkeypatch)
+    summary = meter.summary()
+    assert summary["train_step_s"] == pytest.approx(2.0) and summary["train_samples_per_s"] == pytest.approx(2.0)
+    assert "train_tokens_per_s" not in summary and "train_mfu" not in summary
+
+
+def test_the_cpu_peak_is_a_measured_matmul_and_other_devices_have_none():
+    peak = device_peak_flops(torch.device("cpu"), "32-true")
+    assert peak == cpu_matmul_flops(torch.get_num_threads()) and 1e8 < peak < 1e14
+    assert device_peak_flops(torch.device("meta"), "32-true") is None
+
+
+def test_the_dashboard_charts_throughput_and_mfu_apart_from_other_train_curves():
+    curves = {
+        "train/tokens_per_s": [(1.0, 100.0), (2.0, 120.0)],
+        "train/samples_per_s": [(1.0, 2.0), (2.0, 2.5)],
+        "train/mfu": [(1.0, 0.01), (2.0, 0.02)],
+    }
+    charts = {c.title: [s.label for s in c.series] for c in charts_from_curves(curves)}
+    assert charts == {THROUGHPUT: ["samples", "tokens"], MFU: ["model FLOPs / peak"]}
