@@ -43,7 +43,9 @@ def test_every_stage_is_done_and_exported(pipeline):
     # Every stage's throughput; the world models' in tokens and model FLOPs too (issue 46).
     for name in STAGES:
         metrics = manifest["stages"][name]["metrics"]
-        assert metrics["train_samples_per_s"] > 0 and metrics["train_step_s"] > 0, name
+        # (No train_step_s: every step of the tiny run writes a checkpoint, and a step time
+        # leaves those intervals out; the rates time each step's own work.)
+        assert metrics["train_samples_per_s"] > 0, name
         has_tokens = name in ("pretrain", "instruct", "distill")
         assert ("train_tokens_per_s" in metrics) == ("train_mfu" in metrics) == has_tokens, name
         if has_tokens:
