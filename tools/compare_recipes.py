@@ -28,6 +28,8 @@ from pathlib import Path
 
 import yaml
 
+from occtrain.stages.callbacks import MEASURED
+
 REPO = Path(__file__).resolve().parents[1]
 #: Where the recipes live, newest layout first (they were in stages/ before recipes/).
 RECIPE_DIRS = ("recipes", "stages")
@@ -49,8 +51,9 @@ def recipes_dir(repo: Path) -> Path:
 
 #: Stage kinds that generate answers in validation (they take ``model.val_samples``).
 GENERATING = ("pretrain", "instruct", "distill")
-#: Metrics that measure the machine, not the model.
-TIMINGS = ("train_step_s", "train_peak_rss_mb", "train_peak_gpu_mb", "per_s", "speedup")
+#: Metrics that measure the machine, not the model (the stages' step meter's, and
+#: distillation's generation speedup).
+TIMINGS = ("speedup", *MEASURED)
 
 
 def shrink(recipe: Path, data: Path, steps: int, frames: int = 16) -> list[str]:

@@ -42,8 +42,9 @@ def test_every_shipped_recipe_but_the_plan_only_sizes(tool):
 
 def test_same_differs_and_missing(tool, tmp_path, capsys):
     before, after = tmp_path / "before", tmp_path / "after"
-    for side in (before, after):
-        _stage(side, "quickstart", "tokenizer", {"val/loss": 1.0, "train_step_s": 0.1}, torch.ones(3))
+    for i, side in enumerate((before, after)):
+        timings = {"train_step_s": 0.1 + i, "train_mfu": 0.02 + i, "train_tokens_per_s": 300.0 + i}
+        _stage(side, "quickstart", "tokenizer", {"val/loss": 1.0, **timings}, torch.ones(3))
     _stage(before, "quickstart", "pretrain", {"val/loss": 2.0}, torch.zeros(2))
     _stage(after, "quickstart", "pretrain", {"val/loss": 2.0}, torch.zeros(2))
     assert tool.compare(before, after) == 0  # timings are the machine's, not the model's

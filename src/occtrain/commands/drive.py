@@ -288,7 +288,7 @@ def _write_open_loop(context: _EpisodeContext, job: DriveJob, world: Any, start:
         model = OpenLoopPlanner(*_stage_reader(context, world, frames, OPEN_LOOP))
         baselines: dict[str, Planner] = {"constant_velocity": constant_velocity, "stand_still": stand_still}
         shadow = shadow_episode(world, {stage: model, **baselines})
-        for frame, plan in zip(shadow, model.plans()):  # shadow frames are the first planning frames, in order
+        for frame, plan in zip(shadow, model.plans(len(shadow))):  # the first planning frames, in order
             frame.plans[stage] = plan
     # Scored where the stage planned: every planner on the same frames.
     shadow = [f for f in shadow if f.plans[stage] is not None]

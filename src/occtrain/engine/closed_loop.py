@@ -66,6 +66,10 @@ def model_planner(driver: StageDriver, recorder: EpisodeRecorder) -> Planner:
     return plan
 
 
+#: Frames an open-loop pass encodes and plans in one batch.
+CHUNK = 16
+
+
 class OpenLoopPlanner:
     """The stage open loop on an episode the expert drives: a planner that records each
     planning frame and answers nothing, then :meth:`plans` for every recorded frame in one
@@ -79,14 +83,19 @@ class OpenLoopPlanner:
     def __call__(self, world: DrivingWorld) -> None:
         self.recorder.record()
 
-    def plans(self) -> list[np.ndarray | None]:
-        """Per recorded frame, the stage's plan; None for the history frames the expert drives."""
+    def plans(self, scored: int) -> list[np.ndarray | None]:
+        """The stage's plan at each of the first ``scored`` recorded frames (those with a
+        whole logged future to meet); None for the history frames the expert drives. Frames
+        are encoded and planned ``CHUNK`` at a time: a 40 s route is 81 frames."""
         recorder, history = self.recorder, self.driver.history
-        if recorder.index is None:
+        frames = recorder.frames[:scored]
+        if recorder.index is None or not frames:
             return []
-        self.driver.engine.add_samples(recorder.index, [(EPISODE_SCENE, f["token"]) for f in recorder.frames])
-        anchors = range(history, len(recorder.frames))
-        planned: list[np.ndarray | None] = [None] * (len(recorder.frames) - len(anchors))
-        if anchors:
-            planned.extend(self.driver.waypoints([recorder.clip(history, at=k) for k in anchors]))
+        planned: list[np.ndarray | None] = [None] * min(history, len(frames))
+        for start in range(0, len(frames), CHUNK):
+            chunk = frames[start : start + CHUNK]
+            self.driver.engine.add_samples(recorder.index, [(EPISODE_SCENE, f["token"]) for f in chunk])
+            anchors = [k for k in range(start, start + len(chunk)) if k >= history]
+            if anchors:
+                planned.extend(self.driver.waypoints([recorder.clip(history, at=k) for k in anchors]))
         return planned

@@ -231,7 +231,10 @@ def cpu_matmul_flops(threads: int, size: int = 1024) -> float:
     """What this CPU does on a large fp32 matmul at ``threads`` threads (FLOP/s, best of
     five): the peak MFU is measured against on a CPU, where there is no data-sheet figure
     to look up that holds for a container's share of a machine."""
-    a, b = torch.randn(size, size), torch.randn(size, size)
+    # Its own generator: drawing from the global one would leave a resumed process's random
+    # state unlike an uninterrupted one's (this runs once per process, at training start).
+    generator = torch.Generator().manual_seed(0)
+    a, b = torch.randn(size, size, generator=generator), torch.randn(size, size, generator=generator)
     a @ b  # warm-up: allocation, the BLAS's thread pool
     best = float("inf")
     for _ in range(5):

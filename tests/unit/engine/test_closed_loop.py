@@ -11,6 +11,7 @@ import pytest
 from occtrain.data.clips import Clip
 from occtrain.data.driving import EpisodeRecorder, shadow_episode
 from occtrain.data.synth.driving import DrivingWorld
+from occtrain.engine import closed_loop
 from occtrain.engine.closed_loop import OpenLoopPlanner, StageDriver, model_planner
 
 HISTORY = 2
@@ -50,14 +51,15 @@ def built() -> DrivingWorld:
     return DrivingWorld(101, 6.0)
 
 
-def test_the_batched_open_loop_plans_what_planning_frame_by_frame_would(built, tmp_path):
+def test_the_batched_open_loop_plans_what_planning_frame_by_frame_would(built, tmp_path, monkeypatch):
+    monkeypatch.setattr(closed_loop, "CHUNK", 3)  # several chunks, one straddling the history
     recorder = EpisodeRecorder(tmp_path / "a", copy.deepcopy(built), None, "a")
     expected = [f.plans["stage"] for f in shadow_episode(recorder.world, {"stage": model_planner(_driver(), recorder)})]
     batched = OpenLoopPlanner(_driver(), EpisodeRecorder(tmp_path / "b", copy.deepcopy(built), None, "b"))
     shadow = shadow_episode(batched.recorder.world, {"stage": batched})
     assert all(f.plans["stage"] is None for f in shadow)  # nothing planned until asked
-    plans = batched.plans()
-    assert len(plans) == len(batched.recorder.frames) == 13
+    plans = batched.plans(len(shadow))  # the frames with a whole logged future, in chunks of CHUNK
+    assert len(batched.recorder.frames) == 13 and len(plans) == len(shadow) == 7
     assert plans[:HISTORY] == [None] * HISTORY and expected[:HISTORY] == [None] * HISTORY
     for got, want in zip(plans, expected):
         if want is not None:
