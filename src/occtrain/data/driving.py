@@ -72,7 +72,7 @@ class EpisodeRecorder:
         self.index: DatasetIndex | None = None
 
     def record(self) -> DatasetIndex:
-        """Write the planning frame now (labels, cameras, annotation) and index the episode so far."""
+        """Write the planning frame now (labels, cameras), keep its annotation, and index the episode so far."""
         world = self.world
         frame = world.frame_annotation(EPISODE_SCENE, self.episode)
         labels = world.render()

@@ -8,7 +8,7 @@ recorded as a dataset frame, encoded into the engine's caches, and planned on as
 with the driven history. Until the world has that many frames, the expert drives, as the
 logged history of an open-loop clip would have it. :class:`OpenLoopPlanner` is the same
 stage scored open loop: its plans cannot change what the expert drives, so it records every
-frame first and plans them all in one batch.
+frame first and plans the scored ones afterwards, in batches.
 """
 
 from __future__ import annotations
@@ -72,9 +72,9 @@ CHUNK = 16
 
 class OpenLoopPlanner:
     """The stage open loop on an episode the expert drives: a planner that records each
-    planning frame and answers nothing, then :meth:`plans` for every recorded frame in one
-    batch (one batched decode instead of one per frame; each clip reads only the frames up
-    to its anchor, as it would have when it was recorded)."""
+    planning frame and answers nothing, then :meth:`plans` for the scored frames in batches
+    (one batched decode per ``CHUNK`` frames instead of one per frame; each clip reads only
+    the frames up to its anchor, as it would have when it was recorded)."""
 
     def __init__(self, driver: StageDriver, recorder: EpisodeRecorder):
         self.driver = driver
