@@ -177,12 +177,17 @@ class ForecastScorer(BaseScorer):
         semantics, a = item.semantics, item.clip.anchor_index
         if semantics is None:
             raise ValueError("the forecast scorer reads the clip's label volumes (needs_semantics)")
-        decoded = item.engine.decode_scenes(torch.stack([item.scenes[p.frame] for p in scenes])).cpu()
-        pred = torch.full((1, FUTURE_STEPS, *decoded.shape[1:]), FREE, dtype=torch.long)
+        n = min(len(scenes), FUTURE_STEPS, semantics.shape[0] - a - 1)
+        # Decoding a scene is most of a forecast's scoring: only the scored horizons (and
+        # the pictures, which show them) are decoded, every frame when predictions are kept.
+        horizons = ev.metrics["forecast_occworld"].horizons
+        steps = list(range(n)) if ev.record else [k for k in horizons if k < n]
+        pred = torch.full((1, FUTURE_STEPS, *semantics.shape[1:]), FREE, dtype=torch.long)
+        if steps:
+            decoded = item.engine.decode_scenes(torch.stack([item.scenes[scenes[k].frame] for k in steps])).cpu()
+            pred[0, steps] = decoded
         target = torch.full_like(pred, FREE)
         valid = torch.zeros(1, FUTURE_STEPS, dtype=torch.bool)
-        n = min(len(scenes), FUTURE_STEPS, semantics.shape[0] - a - 1)
-        pred[0, :n] = decoded[:n]
         target[0, :n] = semantics[a + 1 : a + 1 + n].long()
         valid[0, :n] = True
         dev = ev.device
@@ -194,7 +199,7 @@ class ForecastScorer(BaseScorer):
         token = item.clip.anchor["token"]
         ev.keep_forecast_picture(token, pred[0].numpy(), target[0].numpy(), n)
         if ev.record:
-            ev.predictions["forecast"][token] = (item.clip.anchor["scene"], decoded[:n].numpy().astype(np.uint8))
+            ev.predictions["forecast"][token] = (item.clip.anchor["scene"], pred[0, :n].numpy().astype(np.uint8))
 
 
 class QAScorer(BaseScorer):

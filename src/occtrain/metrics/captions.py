@@ -90,6 +90,19 @@ def _stop_meteor(meteor: Any) -> None:
     meteor.meteor_p.wait()
 
 
+def start_meteor() -> None:
+    """Start METEOR's Java program now, in the background, where Java and pycocoevalcap are
+    there: it spends about ten seconds loading its paraphrase tables, which an evaluation
+    can overlap with generating the captions instead of waiting for them at the end."""
+    if _METEOR is not None or shutil.which("java") is None:
+        return
+    try:
+        from pycocoevalcap.meteor.meteor import Meteor
+    except ImportError:
+        return  # coco_caption_scores says what to install, when it is asked for scores
+    _meteor(Meteor)
+
+
 def coco_caption_scores(predictions: dict[str, str], references: dict[str, list[str]]) -> dict[str, float]:
     """pycocoevalcap's BLEU-1..4, METEOR, ROUGE-L and CIDEr-D for ``{id: caption}`` against ``{id: [refs]}``."""
     if shutil.which("java") is None:
