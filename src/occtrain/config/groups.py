@@ -79,6 +79,10 @@ class TrainerConfig:
     gradient_clip_val: float = 1.0
     accumulate_grad_batches: int = 1
     deterministic: bool = False
+    #: Compile the stage's repeated blocks with ``torch.compile`` for its training steps
+    #: (the LLM's decoder layers, a tokenizer's encoder and decoder); evaluation and
+    #: generation stay eager (``models.compiling``).
+    compile: bool = False
     seed: int = 0
     #: Where metrics go: "csv" (always written: the dashboard and a resume read it),
     #: "tensorboard", "mlflow" (a local file store in <run>/mlruns) and "wandb" (offline).

@@ -229,37 +229,77 @@ def _stack_targets(seqs: list[TokenSequence]) -> dict[str, torch.Tensor]:
     return out
 
 
-def collate(seqs: list[TokenSequence], pad_id: int) -> dict[str, torch.Tensor]:
-    """Right-pad sequences into a batch.
+def collate(seqs: list[TokenSequence], pad_id: int, rows: list[list[int]] | None = None) -> dict[str, torch.Tensor]:
+    """Lay sequences into a right-padded batch, one to a row or, packed, several.
 
-    Returns ``input_ids``, ``labels`` (shifted targets, -100 on padding), ``segment_ids``,
-    ``position_ids``, ``pad_mask`` (True on real tokens), ``scene_target_mask`` and
-    ``attention_mask``: Bool[B, 1, L, L], True where attention is allowed (the model turns
-    it into what its attention implementation takes); ``payload_<name>`` per payload field
-    and each per-sequence target by its name.
+    ``rows``: the sequences (indices into ``seqs``) each row holds, joined in that order
+    (``core.packing.pack_rows``); by default one row each, in order. Returns ``input_ids``,
+    ``labels`` (shifted targets, -100 on padding), ``segment_ids``, ``position_ids``,
+    ``pad_mask`` (True on real tokens), ``scene_target_mask`` and ``attention_mask``:
+    Bool[B, 1, L, L], True where attention is allowed (the model turns it into what its
+    attention implementation takes), which keeps each packed sequence to itself;
+    ``sample_index`` Long[B, L], the sequence of each token (-1 on padding) and
+    ``sample_row`` Long[N], the row of each sequence, for per-sequence losses;
+    ``payload_<name>`` per payload field and each per-sequence target by its name (only
+    unpacked: a target belongs to a row).
     """
-    L = max(len(s) for s in seqs)
+    rows = [[i] for i in range(len(seqs))] if rows is None else rows
+    if sorted(i for row in rows for i in row) != list(range(len(seqs))):
+        raise ValueError(f"rows {rows} do not hold each of the {len(seqs)} sequences once")
+    if any(len(row) > 1 for row in rows) and any(s.targets for s in seqs):
+        raise ValueError("sequences with per-sequence targets cannot be packed: each target belongs to its row")
+    lengths = [sum(len(seqs[i]) for i in row) for row in rows]
+    L = max(lengths)
 
-    def pad(name: str, value) -> torch.Tensor:
-        return torch.stack([F.pad(getattr(s, name), (0, L - len(s)), value=value) for s in seqs])
+    def join(name: str, value) -> torch.Tensor:
+        return torch.stack(
+            [
+                F.pad(torch.cat([getattr(seqs[i], name) for i in row]), (0, L - n), value=value)
+                for row, n in zip(rows, lengths)
+            ]
+        )
 
-    pad_mask = torch.stack([torch.arange(L) < len(s) for s in seqs])
-    segment_ids = pad("segment_ids", 0)
-    branch_ids = pad("branch_ids", 0)
+    pad_mask = torch.stack([torch.arange(L) < n for n in lengths])
+    sample_index = torch.stack(
+        [
+            F.pad(torch.cat([torch.full((len(seqs[i]),), i) for i in row]), (0, L - n), value=-1)
+            for row, n in zip(rows, lengths)
+        ]
+    )
+    sample_row = torch.empty(len(seqs), dtype=torch.long)
+    for r, row in enumerate(rows):
+        sample_row[row] = r
+    segment_ids = join("segment_ids", 0)
+    branch_ids = join("branch_ids", 0)
     payload = {}
-    for name in seqs[0].payload:  # padding rows are zeros: pad_mask keeps them out of every loss
-        rows = torch.zeros((len(seqs), L, *seqs[0].payload[name].shape[1:]), dtype=seqs[0].payload[name].dtype)
-        for b, s in enumerate(seqs):
-            rows[b, : len(s)] = s.payload[name]
-        payload[f"payload_{name}"] = rows
+    first = seqs[0].payload
+    for name in first:  # padding rows are zeros: pad_mask keeps them out of every loss
+        field_rows = torch.zeros((len(rows), L, *first[name].shape[1:]), dtype=first[name].dtype)
+        for r, (row, n) in enumerate(zip(rows, lengths)):
+            field_rows[r, :n] = torch.cat([seqs[i].payload[name] for i in row])
+        payload[f"payload_{name}"] = field_rows
+    packed = len(rows) < len(seqs)
     return {
         **payload,
-        "input_ids": pad("input_ids", pad_id),
-        "labels": pad("labels", IGNORE),
+        "input_ids": join("input_ids", pad_id),
+        "labels": join("labels", IGNORE),
         "segment_ids": segment_ids,
-        "position_ids": pad("position_ids", 0),
+        "position_ids": join("position_ids", 0),
         "pad_mask": pad_mask,
-        "scene_target_mask": pad("scene_target", False),
-        "attention_mask": allowed_pairs(segment_ids, pad_mask, branch_ids)[:, None],
-        **_stack_targets(seqs),
+        "scene_target_mask": join("scene_target", False),
+        "attention_mask": allowed_pairs(segment_ids, pad_mask, branch_ids, sample_index if packed else None)[:, None],
+        "sample_index": sample_index,
+        "sample_row": sample_row,
+        **_stack_targets([seqs[row[0]] for row in rows]),
     }
+
+
+def sample_means(sums: torch.Tensor, counts: torch.Tensor, batch: dict[str, torch.Tensor]) -> torch.Tensor:
+    """Float[N]: each sequence's mean of a per-token quantity, packed or not: ``sums`` and
+    ``counts`` are per token (B, L) (a loss summed at a position, the targets it holds)."""
+    index, n = batch["sample_index"].to(sums.device), batch["sample_row"].shape[0]
+    real = (index >= 0).to(sums.dtype)  # padding adds zero to sequence 0: no boolean indexing, no device sync
+    at = index.clamp(min=0).flatten()
+    total = sums.new_zeros(n).index_add(0, at, (sums * real).flatten())
+    count = sums.new_zeros(n).index_add(0, at, (counts.to(sums.dtype) * real).flatten())
+    return total / count.clamp(min=1)

@@ -21,7 +21,7 @@ from torch import nn
 from transformers import PreTrainedModel
 
 from occtrain.config.llm import SCENE_PREDICTION_MODES
-from occtrain.core.builder import SequenceBuilder, batch_payload
+from occtrain.core.builder import SequenceBuilder, batch_payload, sample_means
 from occtrain.core.decoding import (
     ActionAnswer,
     Answer,
@@ -65,7 +65,8 @@ class WorldModelOutput:
     logits: torch.Tensor
     #: Last-layer hidden states (B, L, hidden), when asked for (feature distillation).
     hidden: torch.Tensor | None = None
-    #: Mean cross-entropy of each sequence over its own targets, (B,).
+    #: Mean cross-entropy of each sequence over its own targets, (N,) in the order the
+    #: sequences were collated (a packed row holds several).
     sample_loss: torch.Tensor | None = None
 
 
@@ -78,6 +79,9 @@ class LMWorldModel(nn.Module):
     frame_separation = True
     #: Its prompts hold scenes (through the engine's scene encoder): the engine caches them.
     reads_scenes = True
+    #: Its training sequences may share a batch row (``core.packing``): every loss term is
+    #: per token. Not for a model whose sequences carry per-sequence ``targets``, read by row.
+    packs_sequences = True
     #: Under a LoRA adapter its own parts (everything but the LLM) train too; by default
     #: only the adapter does.
     trains_own_parts_with_lora = False
@@ -188,8 +192,9 @@ class LMWorldModel(nn.Module):
             return (ce * sel).sum() / sel.sum().clamp(min=1)
 
         hidden = out.hidden_states[-1] if output_hidden_states else None
-        per_sample = (ce * valid).sum(1) / valid.sum(1).clamp(min=1)
-        return WorldModelOutput(mean(valid), mean(text), mean(scene), logits, hidden, per_sample)
+        return WorldModelOutput(
+            mean(valid), mean(text), mean(scene), logits, hidden, sample_means(ce * valid, valid, batch)
+        )
 
     @staticmethod
     def token_accuracy(logits: torch.Tensor, labels: torch.Tensor, select: torch.Tensor | None = None) -> torch.Tensor:

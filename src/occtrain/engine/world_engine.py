@@ -23,6 +23,7 @@ from occtrain.config.llm import MAX_NEW_TEXT_TOKENS
 from occtrain.core.builder import collate
 from occtrain.core.decoding import ActionAnswer, Answer, SceneAnswer, TextAnswer
 from occtrain.core.lm_world_model import LMWorldModel
+from occtrain.core.packing import pack_rows
 from occtrain.core.protocols import CameraSceneEncoder, SceneEncoder
 from occtrain.core.registry import get_world
 from occtrain.core.sequence import TokenSequence
@@ -342,11 +343,14 @@ class WorldModelEngine(torch.nn.Module):
             builder.lay(part, self, scenes)
         return builder.build()
 
-    def task_batch(self, clips: list[Clip], batch: dict, seed: int) -> tuple[dict | None, list[str | None]]:
+    def task_batch(
+        self, clips: list[Clip], batch: dict, seed: int, pack: int | None = None
+    ) -> tuple[dict | None, list[str | None]]:
         """Draw a task per clip (by the engine's task weights) and collate the sequences into
-        a model batch. Returns the batch (None when no clip has a task) and per clip the task
-        drawn, None for a clip that no configured task applies to: it is left out, not
-        given a made-up answer."""
+        a model batch, one to a row or, with ``pack``, packed into rows of that many tokens
+        (0: the longest sequence's; see ``core.packing``). Returns the batch (None when no
+        clip has a task) and per clip the task drawn, None for a clip that no configured
+        task applies to: it is left out, not given a made-up answer."""
         drawn = [sample_task(c, self.tasks, seed, c.anchor["token"], self.task_specs) for c in clips]
         needed = [{p.frame for p in d[1] if isinstance(p, Scene)} if d else set() for d in drawn]
         scenes = self.scenes(batch, needed)
@@ -356,7 +360,10 @@ class WorldModelEngine(torch.nn.Module):
             if d is not None
         ]
         names = [d[0] if d else None for d in drawn]
-        return (collate(seqs, pad_id=self.vocab.pad_id) if seqs else None), names
+        if not seqs:
+            return None, names
+        rows = pack_rows([len(q) for q in seqs], pack) if pack is not None else None
+        return collate(seqs, self.vocab.pad_id, rows), names
 
     # -- generation
     def prompt_and_plan(self, parts: list[Part], scenes: dict[int, torch.Tensor]) -> tuple[TokenSequence, list[Answer]]:

@@ -10,9 +10,13 @@ A sequence carries one segment id per token:
   every token outside its block, so the rest of the sequence attends to the scene's real
   codes only (exactly what generation sees after the queries are replaced by codes).
 
-Optionally a branch id per token (packing): ``0`` is the shared trunk, ``k > 0`` branch k.
-A branch sees the trunk and itself, never another branch, so several answers about one
-context train in one sequence exactly as each would alone.
+Optionally a branch id per token (packing answers): ``0`` is the shared trunk, ``k > 0``
+branch k. A branch sees the trunk and itself, never another branch, so several answers
+about one context train in one sequence exactly as each would alone.
+
+Optionally a sample id per token (packing sequences, ``core.packing``): several laid-out
+sequences share one row, and a token sees only the tokens of its own sequence, so each
+trains exactly as it would in a row of its own.
 
 Transformers 5.x passes a 4D mask ``[B, 1, Lq, Lk]`` to the attention kernel unchanged.
 "sdpa" takes it boolean (True = attend) or additive float; "eager" adds it to the scores,
@@ -27,10 +31,14 @@ import torch
 
 
 def allowed_pairs(
-    segment_ids: torch.Tensor, pad_mask: torch.Tensor, branch_ids: torch.Tensor | None = None
+    segment_ids: torch.Tensor,
+    pad_mask: torch.Tensor,
+    branch_ids: torch.Tensor | None = None,
+    sample_ids: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Bool[B, L, L]: may query i attend to key j? ``pad_mask`` is True on real tokens;
-    ``branch_ids`` Long[B, L] (optional) keeps branches apart (see the module docstring).
+    ``branch_ids`` and ``sample_ids`` Long[B, L] (optional) keep branches and packed
+    sequences apart (see the module docstring).
 
     Every token may attend to itself, so a padding row is never empty (no NaN).
     """
@@ -44,6 +52,8 @@ def allowed_pairs(
     if branch_ids is not None:
         br_q, br_k = branch_ids[:, :, None], branch_ids[:, None, :]
         allowed = allowed & ((br_k == 0) | (br_k == br_q))
+    if sample_ids is not None:
+        allowed = allowed & (sample_ids[:, :, None] == sample_ids[:, None, :])
     return allowed | torch.eye(L, dtype=torch.bool, device=segment_ids.device)[None]
 
 

@@ -36,8 +36,10 @@ from occtrain.run.control import Interrupted, run_lock, stop_on_signals
 from occtrain.run.manifest import RESUMABLE, Manifest
 from occtrain.stages import Stage, StageContext, StageKind, get_kind, kind_names
 
-#: Trainer keys that change how often things are written, not what is learned.
-OPERATIONAL_KEYS = ("log_every_n_steps", "ckpt_every_n_steps", "loggers")
+#: Trainer keys that change how often things are written, or how the same steps are
+#: computed (``compile``: the same losses to float tolerance), not what is learned: a done
+#: stage is not refused for them, and a stopped one resumes under them.
+OPERATIONAL_KEYS = ("log_every_n_steps", "ckpt_every_n_steps", "loggers", "compile")
 
 
 class StageFailed(OcctrainError):

@@ -15,6 +15,8 @@ from lightning.pytorch.callbacks import Callback
 
 from occtrain.data.datamodule import ResumableLoader
 from occtrain.data.shards import PAD_KEY
+from occtrain.models.compiling import compile_all
+from occtrain.progress import console
 from occtrain.stages.stage import StepWork
 
 
@@ -127,10 +129,12 @@ def _batch_samples(batch: Any) -> int:
 
 
 #: Endings of the metrics that measure the machine rather than the model (step times,
-#: rates, memory): the same training gives other values on another machine or load.
-MEASURED = ("_per_s", "_step_s", "_rss_mb", "_gpu_mb", "_mfu")
+#: rates, memory): the same training gives other values on another machine or load. The
+#: padding share is the model's, but of the steps one attempt ran (a resumed stage's
+#: differs from an uninterrupted one's), so it is left out of their comparisons too.
+MEASURED = ("_per_s", "_step_s", "_rss_mb", "_gpu_mb", "_mfu", "_padding_share")
 #: The per-step rates in the training log (the dashboard's throughput charts).
-LOGGED_RATES = ("tokens_per_s", "samples_per_s", "mfu")
+LOGGED_RATES = ("tokens_per_s", "samples_per_s", "mfu", "padding_share")
 
 
 class StepMeter(Callback):
@@ -142,7 +146,8 @@ class StepMeter(Callback):
     FLOPs per second of this device, and model FLOPs utilization, those FLOPs per second over
     the device's peak (``device_peak_flops``). The first ``warmup`` steps of an attempt are
     left out of both. Each step's rates are logged as ``train/tokens_per_s``,
-    ``train/samples_per_s`` and ``train/mfu``.
+    ``train/samples_per_s`` and ``train/mfu``, with ``train/padding_share``: of the token
+    positions the LLM computed over, the share that were padding (``core.packing``).
 
     Not Lightning's ``ThroughputMonitor``: it times from batch end to batch end, checkpoint
     writes included, over a sliding window, where these are a stage's whole training; its
@@ -201,6 +206,8 @@ class StepMeter(Callback):
         out = {"samples_per_s": sum(w.samples for w in work) / elapsed}
         if all(w.tokens is not None for w in work):
             out["tokens_per_s"] = sum(w.tokens or 0 for w in work) / elapsed
+        if all(w.tokens is not None and w.positions for w in work):
+            out["padding_share"] = 1.0 - sum(w.tokens or 0 for w in work) / sum(w.positions or 0 for w in work)
         if all(w.flops is not None for w in work):
             flops = sum(w.flops or 0.0 for w in work) / elapsed
             out["model_flops_per_s"] = flops
@@ -268,6 +275,20 @@ def current_rss_mb() -> float | None:
     except OSError:
         return None
     return None
+
+
+class CompileBlocks(Callback):
+    """``trainer.compile``: the stage's :meth:`~occtrain.stages.stage.Stage.compiled_blocks`
+    compiled for training once the model is built (after ``configure_model``: sharded
+    blocks compile as they will run); one log line says what."""
+
+    def on_fit_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        blocks: list[torch.nn.Module] = getattr(pl_module, "compiled_blocks", list)()
+        compiled = compile_all(blocks)
+        if trainer.is_global_zero:
+            kinds = ", ".join(sorted({type(b).__name__ for b in blocks}))
+            what = f"{compiled} block(s) ({kinds}) compiled" if blocks else "this stage kind has no block to compile"
+            console.print(f"trainer.compile: {what} for training steps; evaluation stays eager")
 
 
 class PeakMemory(Callback):

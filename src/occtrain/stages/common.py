@@ -7,6 +7,7 @@ from dataclasses import field, make_dataclass
 from typing import Any
 
 import torch
+from omegaconf import OmegaConf
 from torchmetrics import MeanMetric
 
 from occtrain.core.registry import get_world
@@ -17,12 +18,15 @@ from occtrain.progress import console, progress_bar
 from occtrain.stages.stage import EvalRequest, EvalResult, StepWork, lacking_tasks
 
 
-def lm_step_work(input_ids: torch.Tensor, pad_id: int, samples: int, per_token: Callable[[int], float]) -> StepWork:
-    """A language-model step's work: its tokens but padding, and their model FLOPs at the
-    batch's padded length (what attention computes over); read before the batch moves to
-    the device, so counting costs the GPU no synchronization."""
-    tokens = int((input_ids != pad_id).sum())
-    return StepWork(samples, tokens, tokens * per_token(int(input_ids.shape[-1])))
+def lm_step_work(batch: dict[str, torch.Tensor], samples: int, per_token: Callable[[int], float]) -> StepWork:
+    """A language-model step's work: its real tokens (``pad_mask``: a tokenizer whose
+    padding is its end-of-text token ends real sequences with that id) and their model
+    FLOPs at the batch's row length (what attention computes over), and the positions
+    computed, padding included; read before the batch moves to the device, so counting
+    costs the GPU no synchronization."""
+    pad_mask = batch["pad_mask"]
+    tokens = int(pad_mask.sum())
+    return StepWork(samples, tokens, tokens * per_token(int(pad_mask.shape[-1])), positions=pad_mask.numel())
 
 
 class ValidationMeans(torch.nn.Module):
@@ -57,7 +61,12 @@ def family_schema(base: type, family: str | None, with_world: bool) -> type:
     fields: list[tuple[str, Any, Any]] = [("tasks", world.task_config, field(default_factory=world.task_config))]
     if with_world and world.world_config is not None:
         fields.append((family, world.world_config, field(default_factory=world.world_config)))
-    return make_dataclass(f"{base.__name__}_{family}", fields, bases=(base,))
+    return make_dataclass(f"{base.__name__}_{family}", fields, bases=(base,), namespace={"schema_family": family})
+
+
+def schema_family(model: Any) -> str | None:
+    """The family a validated ``model:`` was typed for by :func:`family_schema` (None: none)."""
+    return getattr(OmegaConf.get_type(model), "schema_family", None)
 
 
 def evaluate_engine(engine: WorldModelEngine, request: EvalRequest) -> EvalResult:

@@ -37,6 +37,7 @@ from occtrain.engine import (
 )
 from occtrain.errors import ConfigError
 from occtrain.models import count_parameters
+from occtrain.models.compiling import decoder_layers
 from occtrain.models.distill_losses import FeatureProjector, distillation_losses
 from occtrain.models.flops import TransformerFlops
 from occtrain.models.llm import build_llm, check_llm
@@ -137,6 +138,10 @@ class DistillStage(Stage):
         self.teacher.eval()
         return self
 
+    def compiled_blocks(self) -> list[torch.nn.Module]:
+        """The student's decoder layers; the teacher's forwards run without gradients, eager."""
+        return decoder_layers(self.student.world.llm)
+
     def on_train_start(self) -> None:
         self._student_flops = TransformerFlops.of(self.student.world.llm)
         self._teacher_flops = TransformerFlops.of(self.teacher.world.llm)
@@ -154,9 +159,7 @@ class DistillStage(Stage):
         if model_batch is None:
             return None  # no clip of the batch has a configured task: no step
         samples = len(names) - names.count(None)
-        self.step_work = lm_step_work(
-            model_batch["input_ids"], self.student.vocab.pad_id, samples, self._flops_per_token
-        )
+        self.step_work = lm_step_work(model_batch, samples, self._flops_per_token)
         model_batch = move_batch(model_batch, self.device)
         with torch.no_grad():
             t_out = self.teacher.world(model_batch, output_hidden_states=True)

@@ -43,10 +43,11 @@ from occtrain.errors import ConfigError
 from occtrain.formats.exports import export_kind, read_config
 from occtrain.models import count_parameters
 from occtrain.models.adapters import AdapterConfig, adapters_of, add_adapters
+from occtrain.models.compiling import decoder_layers
 from occtrain.models.flops import TransformerFlops
 from occtrain.models.llm import apply_lora, check_llm, checkpoint_layers
 from occtrain.stages import StageKind, register
-from occtrain.stages.common import ValidationMeans, evaluate_engine, family_schema, lm_step_work
+from occtrain.stages.common import ValidationMeans, evaluate_engine, family_schema, lm_step_work, schema_family
 from occtrain.stages.optim import configure_adamw, freeze_prefixes
 from occtrain.stages.sharding import FullCopy, ShardedStrategy, is_sharded, local_numel, shard_world_model
 from occtrain.stages.stage import EvalRequest, EvalResult, Stage, StageContext, StageReport, StepWork
@@ -81,6 +82,12 @@ class WorldModelConfig:
     #: every clip at every step (measured in tools/bench/world_model.py).
     cache_codes: bool = True
     max_new_text_tokens: int = MAX_NEW_TEXT_TOKENS
+    #: Pack the training batch's sequences several to a row, each attending only to itself
+    #: (``core.packing``): the same loss over fewer padded positions. Not for a family
+    #: whose sequences carry per-sequence targets (OccVLA, SparseOccVLA).
+    pack_sequences: bool = False
+    #: A packed row's tokens; 0: the batch's longest sequence's (never fewer than that).
+    pack_length: int = 0
     #: Recompute the LLM's (and a trainable vision tower's) layer activations in backward
     #: instead of keeping them: the same gradients, far less activation memory (see
     #: ``occtrain plan-memory --checkpointing``), about a third more compute.
@@ -124,6 +131,8 @@ class WorldModelStage(Stage):
         self.engine.default_tasks("pretrain" if ctx.spec.kind == "pretrain" else "instruct")
         validate_tasks(tasks, f"{where}.tasks", self.engine.task_specs)
         self.require_tasks(t for t, w in tasks.weights.items() if w > 0)
+        #: Training rows: packed to this many tokens (0: the longest sequence's), or None: one sequence each.
+        self._pack: int | None = cfg.pack_length if cfg.pack_sequences else None
         self.train_through(cfg, where)
         if getattr(tasks, "occupancy_weight", 1.0) == 0:
             for p in getattr(self.engine.world, "occupancy_parameters", list)():
@@ -159,6 +168,14 @@ class WorldModelStage(Stage):
             raise ConfigError(f"{key}: use_lora and use_adapters are both on; train through one of them")
         if model.use_adapters:
             to_object(model.adapter).validate(f"{key}.adapter")
+        if model.pack_length < 0:
+            raise ConfigError(f"{key}.pack_length: {model.pack_length} is negative; give a row's tokens, or 0")
+        family = schema_family(model)
+        if model.pack_sequences and family is not None and not get_world(family).model.packs_sequences:
+            raise ConfigError(
+                f"{key}.pack_sequences: the {family} world model's sequences carry per-sequence targets and cannot "
+                "share a row; set it to false"
+            )
 
     def build_engine(self, ctx: StageContext, tasks: Any, where: str):
         """The consumed world model with this stage's task settings (instruct)."""
@@ -222,20 +239,23 @@ class WorldModelStage(Stage):
         return self._gathered.get("engine", self.engine)
 
     # -- training
+    def compiled_blocks(self) -> list[torch.nn.Module]:
+        """The LLM's decoder layers (LoRA's or the adapters' layers inside them included)."""
+        return decoder_layers(self.engine.world.llm)
+
     def on_train_start(self) -> None:
         # Counted from the world model as it trains: sharded, with LoRA or adapters.
         self._flops = TransformerFlops.of(self.engine.world.llm)
 
     def training_step(self, batch: dict[str, Any], batch_idx: int) -> torch.Tensor | None:
         clips = clips_from_batch(batch)
-        model_batch, names = self.engine.task_batch(clips, batch, self.step_seed(self.global_step))
+        model_batch, names = self.engine.task_batch(clips, batch, self.step_seed(self.global_step), self._pack)
         self.log("train/skipped_clips", float(names.count(None)), reduce_fx="sum", batch_size=len(clips))
         self.step_work = StepWork(samples=0, tokens=0, flops=0.0)
         if model_batch is None:
             return None  # no clip of the batch has a configured task: no step
         bs = len(names) - names.count(None)
-        pad = self.engine.vocab.pad_id
-        self.step_work = lm_step_work(model_batch["input_ids"], pad, bs, self._flops.train_per_token)
+        self.step_work = lm_step_work(model_batch, bs, self._flops.train_per_token)
         out = self.engine.world(move_batch(model_batch, self.device))
         loss = out.loss
         self.log("train/loss", loss, prog_bar=True, batch_size=bs)

@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar
 
 import lightning as L
+from torch import nn
 
 from occtrain.config.groups import DataConfig, TrainerConfig
 from occtrain.config.recipe import StageSpec
@@ -143,6 +144,8 @@ class StepWork:
     tokens: int | None = None
     #: The step's model FLOPs (``models.flops``), None where the stage does not count them.
     flops: float | None = None
+    #: The token positions the LLM computed over, padding included (rows x row length).
+    positions: int | None = None
 
 
 class Stage(L.LightningModule, ABC):
@@ -260,6 +263,11 @@ class Stage(L.LightningModule, ABC):
         """The validation metric that picks ``best.ckpt`` and whether higher is better: the
         kind's, unless the stage knows better once built (a family's planner names its own)."""
         return kind.monitor, kind.mode
+
+    def compiled_blocks(self) -> list[nn.Module]:
+        """The modules ``trainer.compile`` compiles for training steps, each on its own
+        (``models.compiling``); none by default."""
+        return []
 
     def report(self) -> StageReport:
         """Summary, extra metrics and samples, asked for after the final validation."""

@@ -148,6 +148,9 @@ class TokenizerStage(Stage):
         return self
 
     # -- training
+    def compiled_blocks(self) -> list[torch.nn.Module]:
+        return self.model.compiled_blocks()
+
     def training_step(self, batch: dict[str, Any], batch_idx: int) -> torch.Tensor:
         out = self({**batch, "seed": self.step_seed(self.global_step)})
         bs = batch["semantics"].shape[0]

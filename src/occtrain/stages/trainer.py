@@ -16,7 +16,15 @@ from lightning.pytorch.callbacks import Callback, LearningRateMonitor, ModelChec
 
 from occtrain.config.groups import TrainerConfig
 from occtrain.errors import ConfigError
-from occtrain.stages.callbacks import AttemptRecord, Heartbeat, PeakMemory, StepMeter, StepSeed, TrackConsumed
+from occtrain.stages.callbacks import (
+    AttemptRecord,
+    CompileBlocks,
+    Heartbeat,
+    PeakMemory,
+    StepMeter,
+    StepSeed,
+    TrackConsumed,
+)
 from occtrain.stages.checkpoints import AtomicCheckpointIO
 from occtrain.stages.loggers import build_loggers
 from occtrain.stages.sharding import trainer_strategy
@@ -67,6 +75,8 @@ def _callbacks(
         StepMeter(),
         PeakMemory(),
     ]
+    if cfg.compile:
+        callbacks.append(CompileBlocks())
     if record_time is not None:
         callbacks.append(Heartbeat(record_time))
     if record_attempt is not None:

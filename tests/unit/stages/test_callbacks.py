@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from occtrain.dashboard.run_view import MFU, THROUGHPUT, charts_from_curves
+from occtrain.models.compiling import is_compiled
 from occtrain.stages import callbacks
 from occtrain.stages.callbacks import StepMeter, cpu_matmul_flops, device_peak_flops
 from occtrain.stages.stage import StepWork
@@ -65,6 +66,29 @@ def test_validation_is_not_a_steps_time_and_a_stage_without_tokens_reports_sampl
     summary = meter.summary()
     assert summary["train_step_s"] == pytest.approx(2.0) and summary["train_samples_per_s"] == pytest.approx(2.0)
     assert "train_tokens_per_s" not in summary and "train_mfu" not in summary
+
+
+def test_the_padding_share_is_of_every_position_the_kept_steps_computed(monkeypatch):
+    meter, module, clock = StepMeter(warmup=1), _Module(), [0.0]
+    steps = [
+        (1.0, StepWork(2, 10, positions=40)),
+        (1.0, StepWork(2, 30, positions=40)),
+        (1.0, StepWork(2, 20, 0.0, 40)),
+    ]
+    _run(meter, module, clock, steps, monkeypatch)
+    assert meter.summary()["train_padding_share"] == pytest.approx(1 - 50 / 80)
+    assert ("train/padding_share", pytest.approx(0.5)) in module.logged  # the last step's own
+
+
+def test_compile_blocks_compiles_what_the_stage_names_and_says_so_once(capsys):
+    block, other = torch.nn.Linear(2, 2), torch.nn.Linear(2, 2)
+    module = SimpleNamespace(compiled_blocks=lambda: [block])
+    trainer = SimpleNamespace(is_global_zero=True)
+    callbacks.CompileBlocks().on_fit_start(trainer, module)
+    assert is_compiled(block) and not is_compiled(other)
+    callbacks.CompileBlocks().on_fit_start(trainer, SimpleNamespace())  # a stage kind with none
+    out = capsys.readouterr().err  # the run's console writes to stderr
+    assert "1 block(s) (Linear) compiled" in out and "has no block to compile" in out
 
 
 def test_the_cpu_peak_is_a_measured_matmul_and_other_devices_have_none():

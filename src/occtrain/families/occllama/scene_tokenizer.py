@@ -145,6 +145,11 @@ class OccLLaMATokenizer(SceneTokenizer):
         self.status_head = _head(cfg.voxel_feature_dim, 2)
         self.semantic_head = _head(cfg.voxel_feature_dim, FREE)
 
+    def compiled_blocks(self) -> list[nn.Module]:
+        """The decoder alone: the sparse encoder gathers each scene's occupied voxels, as
+        many as it has (a new shape every batch)."""
+        return [self.decoder]
+
     def encode_latent(self, semantics: torch.Tensor) -> torch.Tensor:
         return self.encoder(semantics)
 

@@ -22,7 +22,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from occtrain.core.builder import SequenceBuilder, batch_payload
+from occtrain.core.builder import SequenceBuilder, batch_payload, sample_means
 from occtrain.core.lm_world_model import LMWorldModel, WorldInputs, WorldModelOutput, token_ce
 from occtrain.core.sequence import IGNORE, PayloadSpec, TokenSequence
 from occtrain.core.vocab import JointVocab
@@ -246,7 +246,7 @@ class OccLLMWorldModel(LMWorldModel):
         n_text, n_cells = valid.sum(1), emits.sum(1) * per_patch
         text_sum, cell_sum = (ce * valid).sum(1), cell_ce.sum(1)
         loss = (text_sum.sum() + cell_sum.sum()) / (n_text.sum() + n_cells.sum()).clamp(min=1)
-        per_sample = (text_sum + cell_sum) / (n_text + n_cells).clamp(min=1)
+        per_sample = sample_means(ce * valid + cell_ce, valid.long() + emits.long() * per_patch, batch)
         return WorldModelOutput(
             loss,
             text_sum.sum() / n_text.sum().clamp(min=1),

@@ -81,6 +81,8 @@ class OccVLAWorldModel(LMWorldModel):
     frame_separation = False
     #: Its prompts hold camera views, not scenes.
     reads_scenes = False
+    #: Its occupancy queries' voxel targets are per sequence, read by row.
+    packs_sequences = False
 
     def __init__(
         self, llm: nn.Module, vocab: JointVocab, scene_tokenizer: nn.Module, vision_dim: int, cfg: OccVLAWorldConfig

@@ -174,6 +174,8 @@ class SparseOccVLAWorldModel(LMWorldModel):
     frame_separation = False
     #: Stage 3 (Sec. 4.2) trains everything but the LLM, which trains through LoRA.
     trains_own_parts_with_lora = True
+    #: Its forecast targets (points, classes) are per sequence, read by row.
+    packs_sequences = False
 
     def __init__(self, llm: nn.Module, vocab: JointVocab, encoder: nn.Module, cfg: SparseOccVLAWorldConfig):
         super().__init__(llm, vocab, "next_scene")

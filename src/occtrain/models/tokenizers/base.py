@@ -75,6 +75,12 @@ class SceneTokenizer(nn.Module):
         """Names of the codebooks in metrics (``val/<name>_usage``)."""
         return ["codebook"] if self.num_codebooks == 1 else [f"codebook{i}" for i in range(self.num_codebooks)]
 
+    def compiled_blocks(self) -> list[nn.Module]:
+        """What ``trainer.compile`` compiles for training: the dense encoder and decoder
+        (fixed shapes: one graph each). The quantizer stays eager: its nearest-code search
+        and in-place codebook updates gain nothing compiled."""
+        return [m for m in (getattr(self, "encoder", None), getattr(self, "decoder", None)) if isinstance(m, nn.Module)]
+
     def encode_latent(self, semantics: torch.Tensor) -> torch.Tensor:
         raise NotImplementedError
 

@@ -485,3 +485,14 @@ def test_generated_scenes_read_the_moved_queries_training_reads(vocab, queries):
     logits = world(collate([seq], vocab.pad_id)).logits[0][seq.segment_ids < 0]
     picked = torch.cat([vocab.pick_scene(logits[:9]), vocab.pick_scene(logits[9:])]) - vocab.occ_start
     assert torch.equal(picked, torch.cat([first, second]))
+
+
+def test_packed_sequences_train_as_they_would_alone(vocab):
+    world = make_world(vocab, "next_scene")
+    seqs = [full_sequence(world.builder()), prompt(world.builder()).build(), full_sequence(world.builder())]
+    rows = [[0, 1], [2]]
+    with torch.no_grad():
+        padded, packed = world(collate(seqs, vocab.pad_id)), world(collate(seqs, vocab.pad_id, rows))
+    for name in ("loss", "text_loss", "scene_loss", "sample_loss"):
+        torch.testing.assert_close(getattr(packed, name), getattr(padded, name), rtol=1e-5, atol=1e-6)
+    assert collate(seqs, vocab.pad_id, rows)["input_ids"].numel() < collate(seqs, vocab.pad_id)["input_ids"].numel()
