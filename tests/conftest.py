@@ -35,8 +35,8 @@ if os.environ.get("PYTEST_XDIST_WORKER"):
 
 
 #: The files that keep a worker busiest, longest first (seconds of one worker in a full run
-#: on 2 cores, `pytest --junitxml`, 2026-11-28: 209, 191, 188, 165, 154, 140, 105, 79, 56,
-#: 48, 31, 30, 29). pytest-xdist hands out whole files (``--dist loadfile``) in collection
+#: on 2 cores, `pytest --junitxml`, 2026-11-29: 195, 182, 143, 143, 142, 114, 99, 67, 30,
+#: 29, 28, 28, 24, 20, 19). pytest-xdist hands out whole files (``--dist loadfile``) in collection
 #: order (``--no-loadscope-reorder``): these go first, so that the two workers finish
 #: together. By default it starts with the files holding the most tests, which left these
 #: few-test end-to-end files for last and one worker idle for minutes. Files not named here
@@ -50,11 +50,13 @@ HEAVIEST_FIRST = (
     "e2e/test_distributed.py",
     "e2e/test_occvla_recipe.py",
     "e2e/test_interruptions.py",
+    "e2e/test_bad_inputs.py",
+    "unit/data/synth/test_synth.py",
+    "unit/run/test_runner.py",
     "unit/models/tokenizers/test_tokenizers.py",
+    "unit/models/test_compiling.py",  # inductor compiles a decoder layer (about 25 s)
     "unit/stages/test_optim_ddp_step.py",
     "unit/families/occllm/test_msvae.py",
-    "unit/data/synth/test_synth.py",
-    "e2e/test_bad_inputs.py",
 )
 
 

@@ -260,15 +260,7 @@ def collate(seqs: list[TokenSequence], pad_id: int, rows: list[list[int]] | None
         )
 
     pad_mask = torch.stack([torch.arange(L) < n for n in lengths])
-    sample_index = torch.stack(
-        [
-            F.pad(torch.cat([torch.full((len(seqs[i]),), i) for i in row]), (0, L - n), value=-1)
-            for row, n in zip(rows, lengths)
-        ]
-    )
-    sample_row = torch.empty(len(seqs), dtype=torch.long)
-    for r, row in enumerate(rows):
-        sample_row[row] = r
+    sample_index, sample_row = _sample_indices(seqs, rows, L)
     segment_ids = join("segment_ids", 0)
     branch_ids = join("branch_ids", 0)
     payload = {}
@@ -292,6 +284,16 @@ def collate(seqs: list[TokenSequence], pad_id: int, rows: list[list[int]] | None
         "sample_row": sample_row,
         **_stack_targets([seqs[row[0]] for row in rows]),
     }
+
+
+def _sample_indices(seqs: list[TokenSequence], rows: list[list[int]], length: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Each token's sequence, Long[B, length] (-1 on padding), and each sequence's row, Long[N]."""
+    per_row = [torch.cat([torch.full((len(seqs[i]),), i) for i in row]) for row in rows]
+    index = torch.stack([F.pad(ids, (0, length - len(ids)), value=-1) for ids in per_row])
+    row_of = torch.empty(len(seqs), dtype=torch.long)
+    for r, row in enumerate(rows):
+        row_of[row] = r
+    return index, row_of
 
 
 def sample_means(sums: torch.Tensor, counts: torch.Tensor, batch: dict[str, torch.Tensor]) -> torch.Tensor:
