@@ -489,10 +489,15 @@ def test_generated_scenes_read_the_moved_queries_training_reads(vocab, queries):
 
 def test_packed_sequences_train_as_they_would_alone(vocab):
     world = make_world(vocab, "next_scene")
-    seqs = [full_sequence(world.builder()), prompt(world.builder()).build(), full_sequence(world.builder())]
+    # The middle sequence holds two branches (instruct's packed questions): its branch ids
+    # meet the other sequence's tokens in one row and must keep apart all the same.
+    branched = prompt(world.builder())
+    for q, a in [("go straight", "turn left then stop"), ("plan the route", "the car turns left")]:
+        branched.branch().text(q).text(a, True)
+    seqs = [full_sequence(world.builder()), branched.build(), full_sequence(world.builder())]
     rows = [[0, 1], [2]]
     with torch.no_grad():
         padded, packed = world(collate(seqs, vocab.pad_id)), world(collate(seqs, vocab.pad_id, rows))
     for name in ("loss", "text_loss", "scene_loss", "sample_loss"):
         torch.testing.assert_close(getattr(packed, name), getattr(padded, name), rtol=1e-5, atol=1e-6)
-    assert collate(seqs, vocab.pad_id, rows)["input_ids"].numel() < collate(seqs, vocab.pad_id)["input_ids"].numel()
+    assert collate(seqs, vocab.pad_id, rows)["input_ids"].shape[0] == 2  # two rows for three sequences
