@@ -246,7 +246,8 @@ def collate(seqs: list[TokenSequence], pad_id: int, rows: list[list[int]] | None
     rows = [[i] for i in range(len(seqs))] if rows is None else rows
     if sorted(i for row in rows for i in row) != list(range(len(seqs))):
         raise ValueError(f"rows {rows} do not hold each of the {len(seqs)} sequences once")
-    if any(len(row) > 1 for row in rows) and any(s.targets for s in seqs):
+    packed = any(len(row) > 1 for row in rows)
+    if packed and any(s.targets for s in seqs):
         raise ValueError("sequences with per-sequence targets cannot be packed: each target belongs to its row")
     lengths = [sum(len(seqs[i]) for i in row) for row in rows]
     L = max(lengths)
@@ -270,7 +271,6 @@ def collate(seqs: list[TokenSequence], pad_id: int, rows: list[list[int]] | None
         for r, (row, n) in enumerate(zip(rows, lengths)):
             field_rows[r, :n] = torch.cat([seqs[i].payload[name] for i in row])
         payload[f"payload_{name}"] = field_rows
-    packed = len(rows) < len(seqs)
     return {
         **payload,
         "input_ids": join("input_ids", pad_id),

@@ -30,9 +30,3 @@ def pack_rows(lengths: list[int], capacity: int = 0) -> list[list[int]]:
         rows[r].append(i)
         room[r] -= lengths[i]
     return sorted((sorted(row) for row in rows), key=lambda row: row[0])
-
-
-def padding_share(lengths: list[int], rows: list[list[int]]) -> float:
-    """The share of a batch's token positions that are padding, its rows padded to the longest."""
-    used = [sum(lengths[i] for i in row) for row in rows]
-    return 1.0 - sum(used) / (len(rows) * max(used)) if rows else 0.0

@@ -6,18 +6,21 @@ import pytest
 import torch
 
 from occtrain.core.builder import collate, sample_means
-from occtrain.core.packing import pack_rows, padding_share
+from occtrain.core.packing import pack_rows
 from occtrain.core.sequence import IGNORE, TokenSequence
 
 
 def test_first_fit_decreasing_by_hand():
     # Longest first: 6 fills a row; 5 opens one (room 1); 4 opens one (room 2); 3 fits
     # neither and opens one; 2 fits the 4's row. Rows listed by their first sequence.
-    rows = pack_rows([5, 3, 4, 2, 6])
+    lengths = [5, 3, 4, 2, 6]
+    rows = pack_rows(lengths)
     assert rows == [[0], [1], [2, 3], [4]]
-    assert padding_share([5, 3, 4, 2, 6], rows) == pytest.approx(1 - 20 / 24)
+    seqs = [seq(n, 10 * i) for i, n in enumerate(lengths)]
+    padding = 1 - collate(seqs, pad_id=0, rows=rows)["pad_mask"].float().mean().item()
+    assert padding == pytest.approx(1 - 20 / 24)
     # One to a row, the same five pad to 6 each: 1 - 20/30.
-    assert padding_share([5, 3, 4, 2, 6], [[i] for i in range(5)]) == pytest.approx(1 - 20 / 30)
+    assert 1 - collate(seqs, pad_id=0)["pad_mask"].float().mean().item() == pytest.approx(1 - 20 / 30)
 
 
 def test_a_longer_row_takes_more_and_a_longer_sequence_is_never_cut():

@@ -25,7 +25,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from occtrain.core.builder import SequenceBuilder, batch_payload
+from occtrain.core.builder import SequenceBuilder, batch_payload, sample_means
 from occtrain.core.lm_world_model import LMWorldModel, WorldInputs, WorldModelOutput, token_ce
 from occtrain.core.protocols import PromptInputs
 from occtrain.core.sequence import IGNORE, PayloadSpec, TokenSequence, empty_payload
@@ -299,7 +299,7 @@ class SparseOccVLAWorldModel(LMWorldModel):
         ce = token_ce(logits, labels)
         valid = labels != IGNORE
         text_loss = (ce * valid).sum() / valid.sum().clamp(min=1)
-        per_sample = (ce * valid).sum(1) / valid.sum(1).clamp(min=1)
+        per_sample = sample_means(ce * valid, valid, batch)
         hidden = out.hidden_states[-1]
         fore = logits.new_zeros((), dtype=torch.float32)
         if "forecast_valid" in batch:
