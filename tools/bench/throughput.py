@@ -24,20 +24,18 @@ trainer.strategy=fsdp``, ``stages.pretrain.data.batch_size=8``).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import tempfile
 from pathlib import Path
 
 os.environ.setdefault("OMP_NUM_THREADS", "2")
 
-import lightning as L  # noqa: E402
 from omegaconf import OmegaConf  # noqa: E402
 
-from occtrain.data.datamodule import ShardDataModule  # noqa: E402
 from occtrain.progress import console  # noqa: E402
-from occtrain.run.runner import load_recipe  # noqa: E402
+from occtrain.run.runner import build_stage, load_recipe  # noqa: E402
 from occtrain.stages.callbacks import StepMeter  # noqa: E402
-from occtrain.stages.stage import StageContext  # noqa: E402
 from occtrain.stages.trainer import build_trainer  # noqa: E402
 
 #: LLM shapes by name: Llama 3.2 1B and Llama 3.1 8B (their config.json files).
@@ -68,12 +66,9 @@ def measure(recipe: str, stage_name: str, run_dir: Path, overrides: list[str], s
         {"max_steps": steps, "limit_val_batches": 0, "ckpt_every_n_steps": steps + 1, "loggers": ["csv"]},
     )
     with tempfile.TemporaryDirectory(prefix="occtrain-bench-") as scratch:
-        L.seed_everything(cfg.seed, workers=True, verbose=False)
-        ctx = StageContext(stage.spec, stage.model_cfg, stage.data, cfg, Path(scratch) / stage_name, inputs)
-        module = stage.kind.build(ctx)
-        entries = {split: module.entries(split) for split in ("train", "val")}
-        data = ShardDataModule(stage.data, stage.kind.data_kind, entries=entries, cameras=stage.reads_cameras)
-        trainer = build_trainer(cfg, ctx.stage_dir, monitor=None)
+        stage_dir = Path(scratch) / stage_name
+        module, data = build_stage(dataclasses.replace(stage, trainer=cfg), stage_dir, inputs)
+        trainer = build_trainer(cfg, stage_dir, monitor=None)
         trainer.fit(module, datamodule=data)
     meter = next(c for c in trainer.callbacks if isinstance(c, StepMeter))
     meter.warmup = warmup

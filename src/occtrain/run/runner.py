@@ -19,7 +19,7 @@ import traceback
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from omegaconf import OmegaConf
 
@@ -35,6 +35,9 @@ from occtrain.progress import console
 from occtrain.run.control import Interrupted, run_lock, stop_on_signals
 from occtrain.run.manifest import RESUMABLE, Manifest
 from occtrain.stages import Stage, StageContext, StageKind, get_kind, kind_names
+
+if TYPE_CHECKING:  # imported where a stage is built (build_stage), as before
+    from occtrain.data.datamodule import ShardDataModule
 
 #: Trainer keys that change how often things are written, or how the same steps are
 #: computed (``compile``: the same losses to float tolerance), not what is learned: a done
@@ -306,6 +309,20 @@ def load_recipe(path: str | Path, overrides: list[str] | None = None) -> tuple[R
     return recipe, planned
 
 
+def build_stage(stage: PlannedStage, stage_dir: Path, inputs: dict[str, Path]) -> tuple[Stage, ShardDataModule]:
+    """The stage's module over the exports it consumes (``inputs``, by stage name) and the
+    data module of its shards, seeded by its trainer's seed: what a run trains."""
+    import lightning as L
+
+    from occtrain.data.datamodule import ShardDataModule
+
+    L.seed_everything(stage.trainer.seed, workers=True, verbose=False)
+    ctx = StageContext(stage.spec, stage.model_cfg, stage.data, stage.trainer, stage_dir, inputs)
+    module = stage.kind.build(ctx)
+    entries = {split: module.entries(split) for split in ("train", "val")}
+    return module, ShardDataModule(stage.data, stage.kind.data_kind, entries=entries, cameras=stage.reads_cameras)
+
+
 def _execute(
     stage: PlannedStage,
     recipe: RecipeConfig,
@@ -314,17 +331,10 @@ def _execute(
     record_time: Callable[[float], None] | None = None,
     record_attempt: Callable[[dict], None] | None = None,
 ) -> dict:
-    import lightning as L
-
-    from occtrain.data.datamodule import ShardDataModule
     from occtrain.stages.checkpoints import checkpoint_step, last_checkpoint
     from occtrain.stages.trainer import build_trainer
 
-    L.seed_everything(stage.trainer.seed, workers=True, verbose=False)
-    ctx = StageContext(stage.spec, stage.model_cfg, stage.data, stage.trainer, stage_dir, inputs)
-    module = stage.kind.build(ctx)
-    entries = {split: module.entries(split) for split in ("train", "val")}
-    datamodule = ShardDataModule(stage.data, stage.kind.data_kind, entries=entries, cameras=stage.reads_cameras)
+    module, datamodule = build_stage(stage, stage_dir, inputs)
     say = console.print if is_rank_zero() else (lambda line: None)
     ckpt = last_checkpoint(stage_dir, say=lambda line: say(f"[yellow]note[/]: {line}"))
     resume_step = checkpoint_step(ckpt) if ckpt is not None else None
