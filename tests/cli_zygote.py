@@ -27,6 +27,7 @@ import re
 import select
 import subprocess
 import sys
+import tempfile
 
 # The imports a `run` or `eval` spends its start-up on.
 import lightning  # noqa: F401
@@ -60,6 +61,7 @@ def _become_cli(argv: list[str], cwd: str, env: dict[str, str]) -> None:
     os.chdir(cwd)
     os.environ.clear()
     os.environ.update(env)
+    tempfile.tempdir = None  # chosen afresh from this command's TMPDIR, not the parent's
     sys.path[0] = cwd  # what `python -m` puts first, where this script's folder was
     for entry in reversed(env.get("PYTHONPATH", "").split(os.pathsep)):
         if entry and entry not in sys.path:

@@ -32,6 +32,7 @@ from occtrain.core.vocab import scene_length
 from occtrain.data.cameras import CAMERA_NAMES
 from occtrain.errors import DataError
 from occtrain.formats.io import atomic_write_json, atomic_write_text
+from occtrain.formats.metrics_file import read_metrics
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -60,19 +61,27 @@ def _cli(*args: str) -> None:
 
 
 def _scored(stage: Path) -> dict[str, float]:
-    """The stage's whole-val-split metrics, scoring it first when they are missing or stale."""
+    """The stage's whole-val-split metrics, scoring it first when they are missing, stale or
+    of a subset (their provenance says which)."""
     out = stage / "eval" / "val" / "metrics.json"
     export = stage / "export" / "config.json"
-    if not out.is_file() or out.stat().st_mtime < export.stat().st_mtime:
+    measured = read_metrics(out) if out.is_file() else None
+    if (
+        measured is None
+        or measured.provenance is None
+        or measured.provenance.subset
+        or out.stat().st_mtime < export.stat().st_mtime
+    ):
         _cli("eval", str(stage))
-    return json.loads(out.read_text())
+        measured = read_metrics(out)
+    return measured.metrics
 
 
 def _world(stage: Path) -> str:
-    """The world version the stage's whole-split eval was scored on (``eval/val/world.json``)."""
-    path = stage / "eval" / "val" / "world.json"
-    version = json.loads(path.read_text()).get("world_version", "") if path.is_file() else ""
-    return version or "unrecorded"
+    """The world version the stage's whole-split eval was scored on (its metrics' provenance)."""
+    out = stage / "eval" / "val" / "metrics.json"
+    provenance = read_metrics(out).provenance if out.is_file() else None
+    return (provenance.world_version if provenance is not None else "") or "unrecorded"
 
 
 def _tokens_per_frame(stage: Path) -> str:

@@ -372,6 +372,28 @@ PLANNING = ["score", "planning", "--pred", "{tmp}/p.json", "--gt", "{tmp}/g.json
 QA = ["score", "qa", "--pred", "{tmp}/a.json", "--questions", "{tmp}/q.json"]
 CAPTIONS = ["score", "captions", "--pred", "{tmp}/cap.json", "--ref", "{tmp}/ref.json"]
 EVAL = ["eval", "{tmp}/run/pretrain"]
+DRIVE = ["drive", "{tmp}/run/pretrain"]
+#: Stage locks a case holds while its command runs (another process's eval or restart).
+_HELD: list[Any] = []
+
+
+def holding(stage: str, shared: bool) -> Callable[[Path], None]:
+    """Hold the run's lock of ``stage`` as another process would: shared (scoring it) or
+    exclusive (a --restart replacing it). A lock is per open file, so this process's own
+    command meets it as another's."""
+
+    def setup(tmp: Path) -> None:
+        import fcntl
+
+        path = tmp / "run" / ".locks" / f"{stage}.lock"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fh = open(path, "a+")  # noqa: SIM115 (held open past the setup: closed when the case's test ends)
+        fcntl.flock(fh.fileno(), fcntl.LOCK_SH if shared else fcntl.LOCK_EX)
+        _HELD.append(fh)
+
+    return setup
+
+
 EXPORT = "{tmp}/run/pretrain/export/"
 S0 = f"scene_infos.scene-0000.{T0[0]}"
 
@@ -2050,6 +2072,72 @@ CASES: list[Case] = [
         + "config.json: unknown key 'notes' (rename or remove it); valid keys: family, max_new_text_tokens, stage, "
         "stage_kind, tasks, vocab, world",
     ),
+    # ------------------------------------------------------------------ eval and restart, drive
+    Case(
+        "eval-while-a-restart-replaces-the-stage",
+        holding("pretrain", shared=False),
+        EVAL,
+        2,
+        "{tmp}/run/pretrain: the stage is being retrained (`occtrain run --restart`) in another process",
+    ),
+    Case(
+        "restart-while-an-eval-scores-the-stage",
+        both(recipe(), holding("pretrain", shared=True)),
+        ["run", "{tmp}/r.yaml", "--run-dir", "{tmp}/run", "--restart", "pretrain"],
+        2,
+        "{tmp}/run/pretrain is being scored by `occtrain eval` or `occtrain drive` in another process; wait for it",
+    ),
+    Case(
+        "validate-restart-while-an-eval-scores-the-stage",
+        both(recipe(), holding("pretrain", shared=True)),
+        ["validate", "{tmp}/r.yaml", "--run-dir", "{tmp}/run", "--restart", "pretrain"],
+        2,
+        "{tmp}/run/pretrain is being scored by `occtrain eval` or `occtrain drive` in another process",
+    ),
+    Case(
+        "report-out-is-a-directory",
+        nothing,
+        ["report", "{tmp}/run", "--out", "{tmp}/ds"],
+        2,
+        "{tmp}/ds: is a directory; --out takes a file name",
+    ),
+    Case(
+        "drive-seed-negative",
+        nothing,
+        [*DRIVE, "--seed", "-1"],
+        2,
+        "--seed -1: a route seed is a whole number from 0 to 4294967295",
+    ),
+    Case(
+        "drive-scenes-beyond-the-bound",
+        nothing,
+        [*DRIVE, "--scenes", "1000000"],
+        2,
+        "--scenes 1000000: drive 1 to 10000 routes at a time",
+    ),
+    Case(
+        "drive-workers-beyond-the-cores",
+        nothing,
+        [*DRIVE, "--workers", "100000"],
+        2,
+        "--workers 100000: give 1 to ",
+    ),
+    Case(
+        "drive-too-short-for-the-stage-to-plan",
+        export_file("config.json", b'{"stage_kind": "world_model", "tasks": {"context_frames": 4}}'),
+        [*DRIVE, "--seconds", "2"],
+        2,
+        "--seconds 2: the expert drives the first 2 s (the 4 frames of history the stage's prompts read), so the "
+        "stage would never drive; give --seconds 2.5 or more",
+    ),
+    Case(
+        "drive-read-only-run",
+        nothing,
+        [*DRIVE, "--seconds", "3"],
+        2,
+        "the file system is read-only; drive writes its results into {tmp}/run/pretrain; make it writable, or copy",
+        patch=read_only_disk,
+    ),
     # ------------------------------------------------------------------ data
     Case("stats-frames-zero", nothing, ["data", "stats", DS, "--frames", "0"], 2, "--frames 0: count at least 1 frame"),
     Case(
@@ -2192,6 +2280,8 @@ def test_bad_input_is_one_line_and_changes_nothing(
         assert all(s in out for s in says), out
         assert all(str(tmp_path) in line for line in out.splitlines()), out
     assert snapshot(tmp_path) == before
+    while _HELD:
+        _HELD.pop().close()
 
 
 def test_the_table_is_big_and_its_ids_unique() -> None:

@@ -14,10 +14,11 @@ from pathlib import Path
 import pytest
 
 from conftest import write_hand_dataset
-from occtrain.commands.evaluate import WORLD_FILE, _save, eval_metrics_file
+from occtrain.commands.evaluate import _save, eval_metrics_file
 from occtrain.data.layout import DatasetIndex
 from occtrain.data.shards import dataset_fingerprint, make_pipeline, shard_urls, world_key, write_shards
 from occtrain.errors import DataError
+from occtrain.formats.metrics_file import Provenance, StageAttempt, read_metrics
 from occtrain.stages.stage import stage_cache_dir
 
 
@@ -69,14 +70,23 @@ def test_two_worlds_of_one_folder_name_keep_apart(world: Path, tmp_path: Path) -
     assert world_key(world) != key  # the world edited since: a fresh cache directory
 
 
-def test_metrics_of_another_world_are_not_merged(tmp_path: Path) -> None:
+def _provenance(dataset: str, attempt: int = 1, **coverage: list[int]) -> Provenance:
+    return Provenance("occtrain eval", "val", coverage, dataset=dataset, stage=StageAttempt("hash", attempt, 1.0))
+
+
+def test_metrics_of_another_world_or_model_are_not_merged(tmp_path: Path) -> None:
     out = tmp_path / "eval" / "val" / "metrics.json"
-    _save(out, {"qa_accuracy": 0.5}, world="aaa")
-    _save(out, {"cider": 0.9}, world="aaa")
-    assert json.loads(out.read_text()) == {"qa_accuracy": 0.5, "cider": 0.9}
-    _save(out, {"cider": 0.7}, world="bbb")  # the run's dataset changed since the first eval
-    assert json.loads(out.read_text()) == {"cider": 0.7}
-    assert json.loads((out.parent / WORLD_FILE).read_text()) == {"world": "bbb", "world_version": ""}
+    _save(out, {"qa_accuracy": 0.5}, _provenance("aaa", qa=[4, 4]))
+    _save(out, {"cider": 0.9}, _provenance("aaa", cot_planning=[2, 9]))
+    both = read_metrics(out)
+    assert both.metrics == {"qa_accuracy": 0.5, "cider": 0.9}
+    assert both.provenance is not None and both.provenance.coverage == {"qa": [4, 4], "cot_planning": [2, 9]}
+    assert both.provenance.subset and "cot_planning 2 of 9" in both.provenance.describe()
+    _save(out, {"cider": 0.7}, _provenance("bbb"))  # the run's dataset changed since the first eval
+    assert read_metrics(out).metrics == {"cider": 0.7}
+    _save(out, {"qa_accuracy": 0.6}, _provenance("bbb", attempt=2))  # the stage was retrained since
+    assert read_metrics(out).metrics == {"qa_accuracy": 0.6}
+    assert json.loads(out.read_text())["provenance"]["stage"]["attempt"] == 2
 
 
 def test_a_shard_cut_between_members_is_refused_by_its_count(world: Path, tmp_path: Path) -> None:

@@ -13,6 +13,7 @@ from pathlib import Path
 import pytest
 
 from conftest import REPO, run_cli
+from occtrain.formats.metrics_file import read_metrics
 from quickstart_run import STAGES, shared_quickstart_run, tiny_overrides
 
 pytestmark = pytest.mark.slow
@@ -30,9 +31,18 @@ def test_every_stage_is_done_and_exported(pipeline):
         entry = manifest["stages"][name]
         assert entry["status"] == "done" and entry["attempts"] == 1
         assert (pipeline / name / "export" / "model.safetensors").is_file()
-        assert json.loads((pipeline / name / "metrics.json").read_text()) == pytest.approx(
-            entry["metrics"], nan_ok=True
-        )
+        final = read_metrics(pipeline / name / "metrics.json")
+        recorded = {k: float("nan") if v is None else v for k, v in entry["metrics"].items()}  # JSON's null
+        assert final.metrics == pytest.approx(recorded, nan_ok=True)
+        # What the numbers were measured on: this attempt, this world, so many items of the split.
+        provenance = final.provenance
+        assert provenance is not None and provenance.by == "validation at the end of training"
+        assert provenance.stage.config_hash == entry["config_hash"] and provenance.stage.attempt == 1
+        assert provenance.world_name.startswith("occtrain world v") and provenance.code_version == entry["code_version"]
+        validated, held = provenance.coverage["validation"]
+        assert 0 < validated <= held
+        if name in ("pretrain", "instruct", "distill"):  # generation on val_samples=4 items per task: a subset
+            assert provenance.subset and all(n <= 4 for n, _ in provenance.coverage.values() if n != validated)
     # World-model exports hold a Hugging Face directory (the quickstart fine-tunes fully:
     # no adapter; the LoRA export is checked on recipes/occllama.yaml below).
     for name in ("pretrain", "instruct", "distill"):
@@ -111,6 +121,10 @@ def test_eval_and_score_agree(pipeline, tmp_path):
     assert qa.returncode == 0, qa.stderr
     assert json.loads(qa.stdout)["overall"] == pytest.approx(metrics["qa_overall"])
 
+    provenance = read_metrics(pipeline / "instruct" / "eval" / "val" / "metrics.json").provenance
+    assert provenance is not None and provenance.by == "occtrain eval" and not provenance.subset
+    assert set(provenance.coverage) == {"planning", "qa", "cot_planning"}
+    assert provenance.coverage["qa"][0] == metrics["qa_questions"]
     # A later eval of one task keeps what the earlier one wrote for the others.
     one_by_one = tmp_path / "one_by_one"
     again = run_cli(
@@ -122,6 +136,17 @@ def test_eval_and_score_agree(pipeline, tmp_path):
     assert merged["qa_overall"] == pytest.approx(metrics["qa_overall"])
     # Batch size does not change answers: every answer, not only the accuracy.
     assert json.loads((one_by_one / "qa_pred.json").read_text()) == json.loads((preds / "qa_pred.json").read_text())
+
+    # A subset is recorded as one, and the report calls it one.
+    subset = run_cli("eval", str(pipeline / "instruct"), "--tasks", "qa", "--samples", "2")
+    assert subset.returncode == 0, subset.stderr[-3000:]
+    provenance = read_metrics(pipeline / "instruct" / "eval" / "val" / "metrics.json").provenance
+    assert provenance is not None and provenance.coverage["qa"] == [2, metrics["qa_questions"]]
+    page = run_cli("report", str(pipeline))
+    assert page.returncode == 0, page.stderr
+    header = page.stdout.splitlines()[0]
+    assert "a subset of the val split (" in header and f"qa 2 of {metrics['qa_questions']:.0f})" in header
+    assert "scored on the whole val split (`occtrain eval`)" not in page.stdout
 
 
 def test_eval_asks_every_question_and_scores_another_world(pipeline, tmp_path):
@@ -238,6 +263,15 @@ def test_drive_puts_the_planner_behind_the_wheel_and_resumes(pipeline, tmp_path)
     assert sorted(p.name for p in videos.iterdir()) == [
         f"{d}-000.gif" for d in ("constant_velocity", "expert", "planner", "stand_still")
     ]
+    # Who drove the 6 planning frames: the expert the history, the stage (or its fallback) the rest.
+    history = json.loads((pipeline / "instruct" / "export" / "config.json").read_text())["tasks"]["context_frames"]
+    drivers = summary["drivers"]
+    assert all(drivers[d]["planning_frames"] == 6 for d in drivers)
+    assert drivers["planner"]["expert_share"] == pytest.approx(100 * history / 6)
+    assert drivers["planner"]["planned_share"] + drivers["planner"]["fell_back_share"] == pytest.approx(
+        100 * (6 - history) / 6
+    )
+    assert drivers["expert"]["expert_share"] == 100 and drivers["constant_velocity"]["planned_share"] == 100
     dashboard = (pipeline / "dashboard.html").read_text()
     assert "Closed-loop driving (1 routes of 3 s, seed1000-3s)" in dashboard and "data:image/gif;base64," in dashboard
     # A killed drive resumes: the missing episode is driven again, to the same scores.
@@ -247,3 +281,37 @@ def test_drive_puts_the_planner_behind_the_wheel_and_resumes(pipeline, tmp_path)
     again = run_cli(*args[:-2])
     assert again.returncode == 0, again.stderr[-3000:]
     assert json.loads(episode.read_text())["scores"] == first["scores"]
+    # Videos asked of episodes driven earlier: they are driven again for their animations.
+    later = tmp_path / "later"
+    res = run_cli(*args[:-1], str(later))
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert len(list(later.glob("*-000.gif"))) == 4
+    assert json.loads(episode.read_text())["scores"] == first["scores"]
+
+
+def test_a_stopped_drive_ends_in_one_line_and_leaves_no_temporary_files(pipeline, tmp_path):
+    """SIGTERM to the drive's process group (as a scheduler sends it) while two workers drive:
+    exit 143, one line saying what is written and how to go on, the scratch folders gone."""
+    import os
+    import signal
+    import time
+
+    from conftest import start_cli
+
+    scratch = tmp_path / "tmp"
+    scratch.mkdir()
+    args = ("drive", str(pipeline / "planner"), "--scenes", "2", "--seconds", "4", "--seed", "7", "--workers", "2")
+    proc = start_cli(*args, env={"TMPDIR": str(scratch)}, session=True)
+    deadline = time.time() + 120
+    while not list(scratch.glob("occtrain-drive-*/frames-*")) and proc.poll() is None and time.time() < deadline:
+        time.sleep(0.05)  # until a worker is driving an episode
+    assert proc.poll() is None, "the drive ended before the signal"
+    os.killpg(proc.pid, signal.SIGTERM)
+    code = proc.wait(60)
+    out, err = proc.output()
+    lines = [line for line in err.splitlines() if "interrupted" in line or "Traceback" in line or "error" in line]
+    assert code == 143, err[-2000:]
+    assert lines == [lines[-1]] and lines[0].startswith(f"interrupted: occtrain drive of {pipeline / 'planner'} ")
+    assert "episodes are written under" in lines[0]
+    assert lines[0].endswith("run the same command again to drive the rest")
+    assert list(scratch.iterdir()) == []

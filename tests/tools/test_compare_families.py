@@ -13,6 +13,7 @@ from pathlib import Path
 import pytest
 
 from conftest import REPO
+from occtrain.formats.metrics_file import Provenance, write_metrics
 
 
 @pytest.fixture()
@@ -24,14 +25,22 @@ def tool():
     return module
 
 
-def _stage(run: Path, name: str, export: dict | None = None, scores: dict | None = None, stale: bool = False) -> None:
+def _stage(
+    run: Path, name: str, export: dict | None = None, scores: dict | None = None, stale: bool = False, world: str = ""
+) -> None:
+    """A stage with an export and, with ``scores``, a whole-split eval (on ``world``, a
+    version, with its provenance; without one, as evals before provenance wrote them)."""
     stage = run / name
     (stage / "export").mkdir(parents=True)
     (stage / "export" / "config.json").write_text(json.dumps(export or {}))
     if scores is not None:
         out = stage / "eval" / "val" / "metrics.json"
         out.parent.mkdir(parents=True)
-        out.write_text(json.dumps(scores))
+        if world:
+            provenance = Provenance("occtrain eval", "val", {"qa": [4, 4]}, "abc", world, f"occtrain world {world}")
+            write_metrics(out, scores, provenance)
+        else:
+            out.write_text(json.dumps(scores))
         if stale:
             os.utime(out, (1, 1))
 
@@ -53,8 +62,7 @@ def test_each_cell_reads_its_stage_beside_the_familys_own_baseline(tool, tmp_pat
         "baseline_typical_caption_CIDEr": 0.8,
     }
     extra = [f"<global_{j}>" for j in range(12)] + ["<ego>"]
-    _stage(run, "stage3", _vocab(scene_hw=[64, 1], patch=1, codebook_sizes=[], extra=extra), world)
-    (run / "stage3" / "eval" / "val" / "world.json").write_text(json.dumps({"world": "abc", "world_version": "v4"}))
+    _stage(run, "stage3", _vocab(scene_hw=[64, 1], patch=1, codebook_sizes=[], extra=extra), world, world="v4")
     _stage(
         run,
         "planner",
@@ -72,7 +80,8 @@ def test_each_cell_reads_its_stage_beside_the_familys_own_baseline(tool, tmp_pat
 
     r = tool.row(family, tmp_path)
 
-    assert scored == [("eval", str(run / "planner"))]  # stage3's evaluation is newer than its export
+    # stage3's evaluation is newer than its export; the planner's is older, and records no provenance.
+    assert scored == [("eval", str(run / "planner"))]
     assert r["tokens_per_frame"] == "64 + 12 global"
     table = tool.markdown([r])
     assert "3.0 / 2.0 / 1.0 vs 30.0 / 20.0 / 10.0 (stage3)" in table
@@ -82,7 +91,8 @@ def test_each_cell_reads_its_stage_beside_the_familys_own_baseline(tool, tmp_pat
     # The planner's eval was (in this test) scored before evals recorded their world: the table says so.
     assert table.startswith("# Four families on one world\n\nWorld: unrecorded, v4 (")
     # Each family's line says what produced its numbers (no seed recorded in this manifest: "?").
-    assert f"- SparseOccVLA: `{run}`: recipe sparseoccvla, training seed ?, code ?, data ?, abc, scored " in table
+    line = "- SparseOccVLA: recipe sparseoccvla, training seed ?, code ?, world occtrain world v4 [abc], scored "
+    assert line in table
 
 
 def test_tokens_per_frame_follow_each_layout(tool, tmp_path):

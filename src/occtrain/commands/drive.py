@@ -11,28 +11,34 @@ through a kinematic bicycle in between; the traffic reacts to it.
 Results go to ``<stage>/drive/seed<S>-<T>s/``: one JSON per episode, written as it ends (a
 killed ``drive`` resumes at the first episode without one), then ``summary.json`` with the
 mean scores of each driver (``metrics.driving``: CARLA's driving score, NAVSIM's PDM score
-and their terms). ``--save-videos DIR`` also writes a bird's-eye GIF of every episode.
+and their terms) and who drove its planning frames: the stage with a plan of its own, its
+constant-velocity fallback, or the expert (the history its prompts read). An episode too
+short for the stage to plan once is refused. ``--save-videos DIR`` also writes a bird's-eye
+GIF of every episode (an episode driven earlier without one is driven again for it). A stop
+signal ends the drive in one line, its temporary files removed; the episodes written stay.
 """
 
 from __future__ import annotations
 
 import copy
+import functools
 import json
 import multiprocessing
 import os
 import tempfile
 import time
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from occtrain.commands.evaluate import done_stage
+from occtrain.commands.evaluate import DoneStage, done_stage
 from occtrain.errors import ConfigError
 from occtrain.formats.io import atomic_write_json, check_output
 from occtrain.progress import console, progress_bar
+from occtrain.run.control import Interrupted, stop_on_signals
 
 #: The baselines every stage is driven beside.
 BASELINES = ("expert", "constant_velocity", "stand_still")
@@ -65,6 +71,13 @@ def drive_dir(stage_dir: str | Path, seed: int, seconds: float) -> Path:
     return Path(stage_dir) / "drive" / f"seed{seed}-{seconds:g}s"
 
 
+#: The most routes one drive takes (each is five episodes and a JSON file apiece): a bigger
+#: study is several drives over other ``--seed`` values, each resumable on its own.
+MAX_ROUTES = 10_000
+#: Seeds numpy's generators accept.
+MAX_SEED = 2**32 - 1
+
+
 def drive(
     stage_dir: str | Path,
     routes: int = 8,
@@ -73,58 +86,125 @@ def drive(
     workers: int = 1,
     save_videos: str | Path | None = None,
 ) -> dict[str, dict[str, float]]:
-    """Drive the stage and the baselines on ``routes`` routes; each driver's mean scores."""
-    from occtrain.data.driving import MAX_SECONDS
+    """Drive the stage and the baselines on ``routes`` routes; each driver's mean scores. The
+    stage is held (a shared lock: a ``--restart`` of it waits) while its results are written."""
+    from occtrain.commands.evaluate import scoring_lock
 
     start = time.perf_counter()
     stage_dir = Path(stage_dir)
-    if routes < 1:
-        raise ConfigError(f"--scenes {routes}: drive at least one route")
-    if not 0 < seconds <= MAX_SECONDS:
-        raise ConfigError(f"--seconds {seconds:g}: an episode lasts more than 0 and at most {MAX_SECONDS:g} s")
-    if workers < 1:
-        raise ConfigError(f"--workers {workers}: must be at least 1")
-    recipe, spec, _ = done_stage(stage_dir, "occtrain drive", "drives", lambda module: module.drivable)
+    workers = _check_arguments(routes, seed, seconds, workers)
+    done = done_stage(stage_dir, "occtrain drive", "drives", lambda module: module.drivable)
+    _refuse_too_short(stage_dir, done, seconds)
     out = drive_dir(stage_dir, seed, seconds)
-    check_output(out / "summary.json", "the drive results", kind="file")
+    fix = f"drive writes its results into {stage_dir}; make it writable, or copy the run and drive the copy"
+    check_output(out / "summary.json", "the drive results", kind="file", fix=fix)
     videos = Path(save_videos) if save_videos is not None else None
     if videos is not None:
         check_output(videos, "--save-videos", kind="dir")
-    drivers = [spec.name, *BASELINES]
+    drivers = [done.spec.name, *BASELINES]
     jobs = [DriveJob(d, i, s, seconds) for i, s in enumerate(route_seeds(seed, routes)) for d in [*drivers, OPEN_LOOP]]
-    todo = [j for j in jobs if not _episode_file(out, j).is_file()]
-    camera = (recipe.data.synth.camera_height, recipe.data.synth.camera_width)
-    context = _EpisodeContext(str(stage_dir), camera, str(out), str(videos) if videos else None)
+    # An episode driven earlier without its animation is driven again for it (deterministic).
+    todo = [j for j in jobs if not _episode_file(out, j).is_file() or (videos and not _has_video(videos, j))]
+    camera = (done.recipe.data.synth.camera_height, done.recipe.data.synth.camera_width)
     workers = min(workers, max(1, len(todo)))
-    with progress_bar(len(jobs), f"driving {routes} routes of {seconds:g} s: {', '.join(drivers)}") as advance:
+    with (
+        scoring_lock(stage_dir, "occtrain drive"),
+        stop_on_signals(),
+        tempfile.TemporaryDirectory(prefix="occtrain-drive-") as scratch,
+    ):
+        context = _EpisodeContext(str(stage_dir), camera, str(out), str(videos) if videos else None, scratch)
+        try:
+            _drive_jobs(context, jobs, todo, workers, f"driving {routes} routes of {seconds:g} s: {', '.join(drivers)}")
+        except Interrupted as stop:
+            left = sum(not _episode_file(out, j).is_file() for j in jobs)
+            raise stop.with_message(
+                f"occtrain drive of {stage_dir} {stop}; {len(jobs) - left} of {len(jobs)} episodes are written under "
+                f"{out}, run the same command again to drive the rest"
+            ) from None
+        done.refuse_changed("occtrain drive")
+        summary = summarize(out, jobs, drivers)
+        gifs = {f"{j.driver}-{j.route:03d}": videos / f"{j.driver}-{j.route:03d}.gif" for j in jobs} if videos else {}
+        atomic_write_json(
+            out / "summary.json",
+            {"stage": done.spec.name, "routes": routes, "seed": seed, "seconds": seconds, "conventions": CONVENTIONS}
+            | {"drivers": summary, "videos": {k: str(p.resolve()) for k, p in gifs.items() if p.is_file()}}
+            # How long this invocation took: the whole drive only when no episode was resumed.
+            | {"wall_s": round(time.perf_counter() - start, 1), "workers": workers, "resumed": len(jobs) - len(todo)},
+        )
+    _refresh_dashboard(stage_dir.parent)
+    return summary
+
+
+def _check_arguments(routes: int, seed: int, seconds: float, workers: int) -> int:
+    """Refuse arguments no drive can take, in one line each; the workers this machine can run."""
+    from occtrain.data.driving import MAX_SECONDS
+
+    if not 1 <= routes <= MAX_ROUTES:
+        raise ConfigError(
+            f"--scenes {routes}: drive 1 to {MAX_ROUTES} routes at a time (drive more as several drives over other "
+            "--seed values)"
+        )
+    if not 0 <= seed <= MAX_SEED:
+        raise ConfigError(f"--seed {seed}: a route seed is a whole number from 0 to {MAX_SEED}")
+    if not 0 < seconds <= MAX_SECONDS:
+        raise ConfigError(f"--seconds {seconds:g}: an episode lasts more than 0 and at most {MAX_SECONDS:g} s")
+    cores = len(os.sched_getaffinity(0))
+    if not 1 <= workers <= cores:
+        raise ConfigError(
+            f"--workers {workers}: give 1 to {cores} (the cores this process may use; each worker drives on its own)"
+        )
+    return workers
+
+
+def planning_history(stage_dir: Path, consumes: list[str]) -> int:
+    """The frames before the current one the stage's prompts read, from its exports' configs
+    (a world model's, or the world model a planner stage reads): the expert drives them."""
+    from occtrain.formats.exports import read_config
+
+    for export in [stage_dir / "export", *(stage_dir.parent / dep / "export" for dep in consumes)]:
+        config = read_config(export)
+        if config.get("stage_kind") == "world_model":
+            tasks = config.get("tasks")
+            return int(tasks.get("context_frames", 0)) if isinstance(tasks, dict) else 0
+    return 0
+
+
+def _refuse_too_short(stage_dir: Path, done: DoneStage, seconds: float) -> None:
+    """An episode in which the stage never plans scores the expert, not the stage: refused,
+    naming the shortest episode in which it plans and follows its plan at least once."""
+    from occtrain.formats.occ3d import FRAME_DT
+
+    history = planning_history(stage_dir, list(done.spec.consumes))
+    least = (history + 1) * FRAME_DT
+    if seconds < least:
+        raise ConfigError(
+            f"--seconds {seconds:g}: the expert drives the first {history * FRAME_DT:g} s (the {history} frames of "
+            f"history the stage's prompts read), so the stage would never drive; give --seconds {least:g} or more"
+        )
+
+
+def _drive_jobs(context: _EpisodeContext, jobs: list[DriveJob], todo: list[DriveJob], workers: int, what: str) -> None:
+    """Drive ``todo`` (of ``jobs``), in ``workers`` processes, with a progress bar."""
+    with progress_bar(len(jobs), what) as advance:
         advance(len(jobs) - len(todo))
         if workers == 1:
             for job in todo:
                 _run_episode(context, job)
                 advance(1)
-        else:
-            # Spawned: each worker loads the stage itself; torch's thread pools do not survive a fork.
-            pool = ProcessPoolExecutor(
-                workers,
-                mp_context=multiprocessing.get_context("spawn"),
-                initializer=_init_worker,
-                initargs=(max(1, len(os.sched_getaffinity(0)) // workers),),
-            )
-            with pool:
-                for done in as_completed([pool.submit(_run_episode, context, job) for job in todo]):
-                    done.result()
-                    advance(1)
-    summary = summarize(out, jobs, drivers)
-    gifs = {f"{j.driver}-{j.route:03d}": videos / f"{j.driver}-{j.route:03d}.gif" for j in jobs} if videos else {}
-    atomic_write_json(
-        out / "summary.json",
-        {"stage": spec.name, "routes": routes, "seed": seed, "seconds": seconds, "conventions": CONVENTIONS}
-        | {"drivers": summary, "videos": {k: str(p.resolve()) for k, p in gifs.items() if p.is_file()}}
-        # How long this invocation took: the whole drive only when no episode was resumed.
-        | {"wall_s": round(time.perf_counter() - start, 1), "workers": workers, "resumed": len(jobs) - len(todo)},
-    )
-    _refresh_dashboard(stage_dir.parent)
-    return summary
+            return
+        # Spawned: each worker loads the stage itself; torch's thread pools do not survive a
+        # fork. A pool, not an executor: on a stop signal its terminate() ends the workers
+        # at once (they leave their scratch to this process's temporary directory).
+        pool = multiprocessing.get_context("spawn").Pool(
+            workers, initializer=_init_worker, initargs=(max(1, len(os.sched_getaffinity(0)) // workers),)
+        )
+        with pool:
+            for _ in pool.imap_unordered(functools.partial(_run_episode, context), todo):
+                advance(1)
+
+
+def _has_video(videos: Path, job: DriveJob) -> bool:
+    return job.driver == OPEN_LOOP or (videos / f"{job.driver}-{job.route:03d}.gif").is_file()
 
 
 def _refresh_dashboard(run_dir: Path) -> None:
@@ -143,6 +223,7 @@ def summarize(out: Path, jobs: list[DriveJob], drivers: list[str]) -> dict[str, 
     from occtrain.metrics.driving import DrivingScores, aggregate
 
     per: dict[str, list[DrivingScores]] = {d: [] for d in drivers}
+    who: dict[str, dict[str, int] | None] = {d: dict.fromkeys(PLAN_COUNTS, 0) for d in drivers}
     open_loop: list[dict[str, Any]] = []
     for job in jobs:
         record = json.loads(_episode_file(out, job).read_text())
@@ -154,10 +235,28 @@ def summarize(out: Path, jobs: list[DriveJob], drivers: list[str]) -> dict[str, 
             k: float("inf") if scores[k] is None else scores[k] for k in DrivingScores.__dataclass_fields__
         }
         per[job.driver].append(DrivingScores(**fields))
-    summary = {d: aggregate(scores) for d, scores in per.items()}
+        counts, total = record.get("planning_frames"), who[job.driver]
+        if counts is None or total is None:  # an episode driven before drives counted its frames
+            who[job.driver] = None
+        else:
+            who[job.driver] = {k: total[k] + int(counts[k]) for k in PLAN_COUNTS}
+    summary = {d: aggregate(scores) | _plan_shares(who[d]) for d, scores in per.items()}
     for driver, scores in open_loop_means(open_loop).items():
         summary.setdefault(driver, {}).update(scores)
     return summary
+
+
+#: Who drove a driver's planning frames, counted per episode (``engine.closed_loop.PlanCounts``).
+PLAN_COUNTS = ("frames", "planned", "fell_back", "expert")
+
+
+def _plan_shares(counts: dict[str, int] | None) -> dict[str, float]:
+    """The planning frames of a driver's episodes and the share it planned itself, fell back
+    on constant velocity for, and left to the expert (percent); none when not counted."""
+    if counts is None or not counts["frames"]:
+        return {}
+    shares = {f"{k}_share": 100.0 * counts[k] / counts["frames"] for k in PLAN_COUNTS[1:]}
+    return {"planning_frames": float(counts["frames"]), **shares}
 
 
 def open_loop_means(records: list[dict[str, Any]]) -> dict[str, dict[str, float]]:
@@ -181,6 +280,8 @@ class _EpisodeContext:
     camera: tuple[int, int]
     out: str
     videos: str | None
+    #: Where episodes keep their frames and the stage its caches: removed by the drive as it ends.
+    scratch: str
 
 
 def _episode_file(out: Path, job: DriveJob) -> Path:
@@ -189,32 +290,37 @@ def _episode_file(out: Path, job: DriveJob) -> Path:
 
 _DRIVERS: dict[str, Any] = {}  # the stage's driver, loaded once per process
 _WORLDS: dict[tuple[int, float], Any] = {}  # the route being driven, as built
-_CACHES: list[tempfile.TemporaryDirectory] = []
 
 
 def _init_worker(threads: int) -> None:
+    import signal
+
     import torch
 
     torch.set_num_threads(threads)
+    # Ctrl-C reaches the whole process group: the drive stops its workers itself.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
-def _stage_driver(stage_dir: Path) -> Any:
-    if str(stage_dir) not in _DRIVERS:
+def _stage_driver(context: _EpisodeContext) -> Any:
+    key = f"{context.stage_dir}\0{context.scratch}"  # its caches live in this drive's scratch
+    if key not in _DRIVERS:
         from occtrain.stages.stage import EvalRequest
 
-        recipe, spec, kind = done_stage(stage_dir, "occtrain drive", "drives", lambda module: module.drivable)
+        stage_dir = Path(context.stage_dir)
+        done = done_stage(stage_dir, "occtrain drive", "drives", lambda module: module.drivable)
         # A fresh cache directory: a planner's caches are keyed by sample token, and the
         # stage's own hold its dataset's frames, not these.
-        cache = tempfile.TemporaryDirectory(prefix="occtrain-drive-cache-")  # removed when the process ends
-        _CACHES.append(cache)
+        cache = tempfile.mkdtemp(prefix="cache-", dir=context.scratch)
         request = EvalRequest(
             stage_dir / "export",
-            [stage_dir.parent / dep / "export" for dep in spec.consumes],
-            recipe.data.root,
-            cache_dir=Path(cache.name),
+            [stage_dir.parent / dep / "export" for dep in done.spec.consumes],
+            done.recipe.data.root,
+            cache_dir=Path(cache),
         )
-        _DRIVERS[str(stage_dir)] = kind.module.driver(request)
-    return _DRIVERS[str(stage_dir)]
+        _DRIVERS.clear()
+        _DRIVERS[key] = done.kind.module.driver(request)
+    return _DRIVERS[key]
 
 
 def _stage_reader(context: _EpisodeContext, world: Any, frames: str, episode: str) -> tuple[Any, Any]:
@@ -222,22 +328,24 @@ def _stage_reader(context: _EpisodeContext, world: Any, frames: str, episode: st
     (with the cameras when its encoders read them), tokened apart as ``episode``'s."""
     from occtrain.data.driving import EpisodeRecorder
 
-    driver = _stage_driver(Path(context.stage_dir))
+    driver = _stage_driver(context)
     reads_cameras = driver.engine.vision is not None or driver.engine.scenes_from_cameras()
     return driver, EpisodeRecorder(frames, world, context.camera if reads_cameras else None, episode)
 
 
 def _run_episode(context: _EpisodeContext, job: DriveJob) -> None:
     """Drive one episode and write its result (and its animation)."""
-    from occtrain.data.driving import (
-        DrivingWorld,
-        Planner,
-        constant_velocity,
-        drive_episode,
-        save_gif,
-        stand_still,
-    )
-    from occtrain.engine.closed_loop import model_planner
+    from occtrain.engine.closed_loop import NonFinitePlan
+
+    try:
+        _drive_episode(context, job)
+    except NonFinitePlan as err:  # the stage's own fault, said with where it happened
+        raise NonFinitePlan(f"{context.stage_dir}, route {job.route} ({job.driver} episode): {err}") from None
+
+
+def _drive_episode(context: _EpisodeContext, job: DriveJob) -> None:
+    from occtrain.data.driving import STRIDE, DrivingWorld, constant_velocity, drive_episode, save_gif, stand_still
+    from occtrain.engine.closed_loop import PlanCounts, model_planner
     from occtrain.metrics.driving import score_episode
 
     start = time.perf_counter()
@@ -250,13 +358,19 @@ def _run_episode(context: _EpisodeContext, job: DriveJob) -> None:
     if job.driver == OPEN_LOOP:
         _write_open_loop(context, job, world, start)
         return
-    planner: Planner | None
-    with tempfile.TemporaryDirectory(prefix="occtrain-drive-") as frames:
-        if job.driver in BASELINES:
-            planner = {"expert": None, "constant_velocity": constant_velocity, "stand_still": stand_still}[job.driver]
+    with tempfile.TemporaryDirectory(prefix="frames-", dir=context.scratch) as frames:
+        if job.driver == "expert":
+            trace = drive_episode(world, None, views)
+            # It drove every planning frame reached (the loop plans at each until the episode ends).
+            counts = PlanCounts(expert=-(-world.step // STRIDE))
+        elif job.driver in BASELINES:
+            baseline = _Counted({"constant_velocity": constant_velocity, "stand_still": stand_still}[job.driver])
+            trace = drive_episode(world, baseline, views)
+            counts = PlanCounts(planned=baseline.calls)
         else:
-            planner = model_planner(*_stage_reader(context, world, frames, job.driver))
-        trace = drive_episode(world, planner, views)
+            stage = model_planner(*_stage_reader(context, world, frames, job.driver))
+            trace = drive_episode(world, stage, views)
+            counts = stage.counts
     scores = score_episode(trace)
     record = {
         "driver": job.driver,
@@ -264,6 +378,7 @@ def _run_episode(context: _EpisodeContext, job: DriveJob) -> None:
         "route_seed": job.route_seed,
         "seconds": job.seconds,
         "scores": scores.as_dict(),
+        "planning_frames": asdict(counts) | {"frames": counts.frames},
         "infractions": [asdict(i) for i in trace.infractions],
         "wall_s": round(time.perf_counter() - start, 2),
         "conventions": CONVENTIONS,
@@ -272,6 +387,18 @@ def _run_episode(context: _EpisodeContext, job: DriveJob) -> None:
     if context.videos and views:
         save_gif(world.static, views, Path(context.videos) / f"{job.driver}-{job.route:03d}.gif", 0.5)
     atomic_write_json(_episode_file(out, job), record)
+
+
+class _Counted:
+    """A baseline planner that counts the planning frames it was asked."""
+
+    def __init__(self, planner: Callable[[Any], np.ndarray]):
+        self.planner = planner
+        self.calls = 0
+
+    def __call__(self, world: Any) -> np.ndarray:
+        self.calls += 1
+        return self.planner(world)
 
 
 def _write_open_loop(context: _EpisodeContext, job: DriveJob, world: Any, start: float) -> None:
@@ -284,7 +411,7 @@ def _write_open_loop(context: _EpisodeContext, job: DriveJob, world: Any, start:
     from occtrain.metrics.planning import PlanningMetric
 
     stage = Path(context.stage_dir).name
-    with tempfile.TemporaryDirectory(prefix="occtrain-drive-") as frames:
+    with tempfile.TemporaryDirectory(prefix="frames-", dir=context.scratch) as frames:
         model = OpenLoopPlanner(*_stage_reader(context, world, frames, OPEN_LOOP))
         baselines: dict[str, Planner] = {"constant_velocity": constant_velocity, "stand_still": stand_still}
         shadow = shadow_episode(world, {stage: model, **baselines})

@@ -10,18 +10,24 @@ predictions in the formats ``occtrain score`` reads, so both paths give one numb
 
 from __future__ import annotations
 
-import json
+import time
 from collections.abc import Callable
+from contextlib import AbstractContextManager
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from occtrain.config import load_config
-from occtrain.config.recipe import RecipeConfig
+from occtrain.config.recipe import RecipeConfig, StageSpec
 from occtrain.errors import ConfigError
 from occtrain.formats.io import atomic_write_json, atomic_write_npz, check_output
+from occtrain.formats.metrics_file import MetricsFile, Provenance, StageAttempt, read_metrics, write_metrics
 from occtrain.progress import console
+
+if TYPE_CHECKING:  # the stages (Lightning) load where a stage is read, not when the CLI starts
+    from occtrain.stages import StageKind
 
 
 def eval_metrics_file(
@@ -50,44 +56,70 @@ def evaluate(
     """Metrics of ``stage_dir``'s export on ``split`` (see the module docstring) of the run's
     dataset, or of ``data_root`` (e.g. a world synthesized from another seed): then the
     metrics go to ``eval/<its directory name>-<world key>/<split>/`` and its baselines come
-    from its own train split."""
-    from occtrain.data.layout import world_version
+    from its own train split. The metrics file records what they were measured on
+    (``formats.metrics_file``). The stage is held (a shared lock) while it is scored, so a
+    ``--restart`` of it waits its turn, and the scores of a model that changed meanwhile are
+    never written."""
     from occtrain.data.shards import world_key
     from occtrain.stages.stage import EvalRequest, shared_cache_dir, stage_cache_dir
 
     stage_dir = Path(stage_dir)
-    recipe, spec, kind = _evaluable_stage(stage_dir, split, samples, batch_size)
+    done = _evaluable_stage(stage_dir, split, samples, batch_size)
     # Prompts and generation length come from the export: exactly what the model trained with.
     # Inputs encoded by frozen encoders are looked up in the stage's cache of this world (made
     # by the same encoder; built if the stage trained without one). Scenes are in the run's
     # shared cache, keyed by the encoder and the dataset they were made from.
-    root = str(data_root) if data_root is not None else recipe.data.root
+    root = str(data_root) if data_root is not None else done.recipe.data.root
     _refuse_unscorable(tasks or [], root)
     world = world_key(root)
     metrics_file = eval_metrics_file(stage_dir, split, data_root, world)
-    _check_outputs(stage_dir, spec.kind, kind.module.saves_predictions, metrics_file, save_predictions)
-    request = EvalRequest(
-        stage_dir / "export",
-        [stage_dir.parent / dep / "export" for dep in spec.consumes],
-        root,
-        split,
-        tasks,
-        samples,
-        batch_size,
-        stage_cache_dir(stage_dir, root),
-        shared_cache_dir(stage_dir),
-        save_predictions is not None,
-    )
-    result = kind.module.evaluate_export(request)
-    _save(metrics_file, result.metrics, world, world_version(root))
-    if save_predictions is not None:
-        write_predictions(Path(save_predictions), result.predictions)
+    _check_outputs(stage_dir, done.spec.kind, done.kind.module.saves_predictions, metrics_file, save_predictions)
+    with scoring_lock(stage_dir, "occtrain eval"):
+        done.refuse_changed("occtrain eval")  # retrained between the check above and the lock
+        request = EvalRequest(
+            stage_dir / "export",
+            [stage_dir.parent / dep / "export" for dep in done.spec.consumes],
+            root,
+            split,
+            tasks,
+            samples,
+            batch_size,
+            stage_cache_dir(stage_dir, root),
+            shared_cache_dir(stage_dir),
+            save_predictions is not None,
+        )
+        result = done.kind.module.evaluate_export(request)
+        done.refuse_changed("occtrain eval")
+        _save(metrics_file, result.metrics, eval_provenance(done, root, split, result.coverage, world))
+        if save_predictions is not None:
+            write_predictions(Path(save_predictions), result.predictions)
     return result.metrics
 
 
-def _evaluable_stage(stage_dir: Path, split: str, samples: int, batch_size: int) -> tuple[RecipeConfig, Any, Any]:
-    """The run's recipe, the stage's spec and kind, once the arguments, the stage's kind and
-    its status (done: an interrupted stage's export is stale) allow an eval."""
+def eval_provenance(done: DoneStage, root: str, split: str, coverage: dict[str, list[int]], dataset: str) -> Provenance:
+    """What ``occtrain eval``'s numbers of ``done`` on ``root``'s ``split`` were measured on
+    (``dataset``: its ``world_key``)."""
+    from occtrain.data.layout import world_identity
+    from occtrain.version import code_version
+
+    identity = world_identity(root)
+    return Provenance(
+        by="occtrain eval",
+        split=split,
+        coverage=coverage,
+        world=identity.key,
+        world_version=identity.version,
+        world_name=identity.name,
+        dataset=dataset,
+        code_version=code_version(),
+        stage=done.attempt,
+        measured=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+    )
+
+
+def _evaluable_stage(stage_dir: Path, split: str, samples: int, batch_size: int) -> DoneStage:
+    """The run's recipe, the stage's spec, kind and attempt, once the arguments, the stage's
+    kind and its status (done: an interrupted stage's export is stale) allow an eval."""
     from occtrain.data.layout import SPLITS
 
     if split not in SPLITS:
@@ -101,12 +133,45 @@ def _evaluable_stage(stage_dir: Path, split: str, samples: int, batch_size: int)
     return done_stage(stage_dir, "occtrain eval", "scores", lambda module: module.evaluable)
 
 
-def done_stage(
-    stage_dir: Path, command: str, verb: str, capable: Callable[[Any], bool]
-) -> tuple[RecipeConfig, Any, Any]:
-    """The run's recipe, the stage's spec and kind, once the stage is of a kind ``command``
-    serves (``capable`` of its module; ``verb`` says what the command does to it) and done
-    (an interrupted stage's export is stale)."""
+@dataclass(frozen=True)
+class DoneStage:
+    """A done stage as a command that reads it finds it: the run's recipe, the stage's spec
+    and kind, and which attempt trained what it exports."""
+
+    stage_dir: Path
+    recipe: RecipeConfig
+    spec: StageSpec
+    kind: StageKind
+    attempt: StageAttempt
+
+    def refuse_changed(self, command: str) -> None:
+        """Refuse when the stage was retrained (or is being) since this was read."""
+        from occtrain.run.manifest import Manifest
+
+        entry = Manifest.load(self.stage_dir.parent, writable=False).stages.get(self.spec.name)
+        now = None if entry is None else StageAttempt(entry.config_hash, entry.attempts, entry.started)
+        if entry is None or entry.status != "done" or now != self.attempt:
+            raise ConfigError(
+                f"{self.stage_dir}: the stage was retrained while {command} read it, so its results of the model it "
+                f"loaded are not written; run {command} again"
+            )
+
+
+def scoring_lock(stage_dir: Path, command: str) -> AbstractContextManager[None]:
+    """The stage held while ``command`` scores it (see ``run.control.stage_lock``)."""
+    from occtrain.run.control import stage_lock
+
+    busy = (
+        f"{stage_dir}: the stage is being retrained (`occtrain run --restart`) in another process; run {command} "
+        "when that run has finished"
+    )
+    return stage_lock(stage_dir.parent, stage_dir.name, shared=True, busy=busy)
+
+
+def done_stage(stage_dir: Path, command: str, verb: str, capable: Callable[[Any], bool]) -> DoneStage:
+    """The run's recipe, the stage's spec, kind and attempt, once the stage is of a kind
+    ``command`` serves (``capable`` of its module; ``verb`` says what the command does to
+    it) and done (an interrupted stage's export is stale)."""
     from occtrain.run.manifest import Manifest
     from occtrain.run.runner import load_plugins
     from occtrain.stages import get_kind, kind_names
@@ -132,7 +197,7 @@ def done_stage(
             f"{stage_dir}: stage '{spec.name}' is {status}, not done, so its export is missing or stale; "
             f"finish it with `occtrain run {pipeline} --run-dir {stage_dir.parent}` first"
         )
-    return recipe, spec, kind
+    return DoneStage(stage_dir, recipe, spec, kind, StageAttempt(entry.config_hash, entry.attempts, entry.started))
 
 
 def _check_outputs(stage_dir: Path, kind: str, saves: bool, metrics: Path, save_predictions: str | Path | None) -> None:
@@ -162,28 +227,28 @@ def _refuse_unscorable(tasks: list[str], root: str) -> None:
         raise ConfigError(f"--tasks {task}: the task {why} ({root}); score it on a dataset that has it")
 
 
-#: Beside the metrics: the world they were computed on (see ``world_key``).
-WORLD_FILE = "world.json"
+def _save(out_file: Path, metrics: dict[str, float], provenance: Provenance) -> None:
+    """Write ``metrics`` with their provenance, keeping what an earlier eval of the same
+    dataset (as it was on disk) and stage attempt wrote for other tasks: never another
+    world's or model's (the run's dataset may have changed since, the stage been retrained)."""
+    from occtrain.errors import DataError
 
-
-def _save(out_file: Path, metrics: dict[str, float], world: str, version: str = "") -> dict[str, float]:
-    """Write ``metrics``, keeping what an earlier eval of the same world wrote for other
-    tasks (never another world's: the run's dataset may have changed since), and beside
-    them the world's key and version (``data.layout.world_version``); returns them."""
-    try:
-        earlier = json.loads(out_file.read_text()) if out_file.is_file() else {}
-        seen = (
-            json.loads((out_file.parent / WORLD_FILE).read_text()) if (out_file.parent / WORLD_FILE).is_file() else {}
-        )
-    except ValueError:
-        raise ConfigError(
-            f"{out_file.parent}: holds unreadable JSON; move it away to start the stage's eval afresh"
-        ) from None
-    if seen.get("world") != world:
-        earlier = {}
-    atomic_write_json(out_file, {**earlier, **metrics})
-    atomic_write_json(out_file.parent / WORLD_FILE, {"world": world, "world_version": version})
-    return metrics
+    earlier: MetricsFile | None = None
+    if out_file.is_file():
+        try:
+            earlier = read_metrics(out_file)
+        except DataError:
+            raise ConfigError(
+                f"{out_file}: holds unreadable metrics; move it away to start the stage's eval afresh"
+            ) from None
+    before = earlier.provenance if earlier is not None else None
+    if earlier is not None and before is not None and before.same_model_and_data(provenance):
+        write_metrics(out_file, {**earlier.metrics, **metrics}, provenance.merged(before))
+    else:
+        write_metrics(out_file, metrics, provenance)
+    legacy = out_file.parent / "world.json"  # where evaluations before provenance kept the world's key
+    if legacy.is_file():
+        legacy.unlink()
 
 
 def write_predictions(out: Path, predictions: dict[str, dict]) -> None:

@@ -1,12 +1,14 @@
 """``occtrain report RUN [RUN ...]``: the headline numbers of finished, scored runs as one
 markdown page, each beside its baselines on the same samples, stamped with what produced it.
 
-Every number comes from a stage's whole-split scores (``STAGE/eval/<split>/metrics.json``,
-written by ``occtrain eval``); the page names, per run, the recipe, the training seeds, the
-code version that trained it, the world's key and version (``eval/<split>/world.json``) and
-the date it was scored. Runs scored on different world versions are refused: a table mixes
-no worlds. With several runs of one recipe (training seeds), a column gives the mean and
-the spread (min to max). The docs' result pages are this command's output, never typed.
+Every number comes from a stage's scores (``STAGE/eval/<split>/metrics.json``, written by
+``occtrain eval``); the page names, per run, the recipe, the training seeds, the code
+version that trained it, the world (by name and content key) and what of the split was
+scored (the metrics file's provenance: a subset is called one), and the date. Runs scored
+on different world versions are refused; runs of different worlds, subsets or code too,
+unless ``--allow-mixed`` (the page then says what differs). With several runs of one recipe
+(training seeds), a column gives the mean and the spread (min to max). The docs' result
+pages are this command's output, never typed.
 """
 
 from __future__ import annotations
@@ -19,10 +21,10 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from occtrain.errors import DataError
-from occtrain.formats.io import atomic_write_text
+from occtrain.formats.io import atomic_write_text, check_output
+from occtrain.formats.metrics_file import Provenance, read_metrics
 
 METRICS_FILE = "metrics.json"
-WORLD_FILE = "world.json"
 
 
 @dataclass(frozen=True)
@@ -103,7 +105,7 @@ class Run:
     stages: list[str]
     manifest: dict
     scores: dict[str, dict[str, float]]  # stage -> its scores on the split
-    worlds: dict[str, dict]  # stage -> its world.json
+    provenance: dict[str, Provenance | None]  # stage -> what they were measured on (None: not recorded)
 
     @classmethod
     def read(cls, path: Path, split: str) -> Run:
@@ -113,34 +115,64 @@ class Run:
         try:
             manifest = json.loads(manifest_file.read_text())
             stages = list(manifest.get("stages", {}))
-            scores, worlds = {}, {}
-            for stage in stages:
-                folder = path / stage / "eval" / split
-                if (folder / METRICS_FILE).is_file():
-                    scores[stage] = json.loads((folder / METRICS_FILE).read_text())
-                    world = folder / WORLD_FILE
-                    worlds[stage] = json.loads(world.read_text()) if world.is_file() else {}
         except (OSError, ValueError, AttributeError) as err:
-            raise DataError(
-                f"{path}: cannot read its manifest or scores ({err}); rerun `occtrain eval` on its stages"
-            ) from None
+            raise DataError(f"{path}: cannot read its manifest ({err}); rerun `occtrain run` on it") from None
+        scores, provenance = {}, {}
+        for stage in stages:
+            file = path / stage / "eval" / split / METRICS_FILE
+            if file.is_file():
+                measured = read_metrics(file)
+                scores[stage], provenance[stage] = measured.metrics, measured.provenance
         if not scores:
             raise DataError(f"{path}: no stage is scored on '{split}'; run `occtrain eval {path}/<stage>` first")
-        return cls(path, str(manifest.get("name", path.name)), stages, manifest, scores, worlds)
+        return cls(path, str(manifest.get("name", path.name)), stages, manifest, scores, provenance)
+
+    def _recorded(self) -> list[Provenance]:
+        return [p for p in self.provenance.values() if p is not None]
+
+    def worlds(self) -> set[str]:
+        """The worlds its stages were scored on, by name and content key."""
+        return {f"{p.world_name} [{p.world}]" for p in self._recorded()} or {"unrecorded"}
 
     def world_versions(self) -> set[str]:
-        return {w.get("world_version") or "unrecorded" for w in self.worlds.values()}
+        return {p.world_version or "unrecorded" for p in self._recorded()} or {"unrecorded"}
+
+    def coverage(self) -> str:
+        """What its stages were scored on: the whole split, or each subset."""
+        said = {stage: "provenance not recorded" if p is None else p.describe() for stage, p in self.provenance.items()}
+        if len(set(said.values())) == 1:
+            return next(iter(said.values()))
+        return "; ".join(f"{stage}: {what}" for stage, what in said.items())
+
+    def code(self) -> str:
+        entries = self.manifest.get("stages", {}).values()
+        return ", ".join(sorted({e.get("code_version") or "?" for e in entries}))
 
     def stamp(self) -> str:
+        """The run as a page names it: recipe, training seed, code and world, never its path."""
         entries = self.manifest.get("stages", {}).values()
-        code = sorted({e.get("code_version") or "?" for e in entries})
         seeds = sorted({str((e.get("config") or {}).get("trainer", {}).get("seed", "?")) for e in entries})
-        keys = sorted({w.get("world", "?") for w in self.worlds.values()})
         scored = max((self.path / s / "eval").stat().st_mtime for s in self.scores)
         return (
-            f"`{self.path}`: recipe {self.name}, training seed {', '.join(seeds)}, code {', '.join(code)}, "
-            f"data {', '.join(keys)}, scored {time.strftime('%Y-%m-%d', time.gmtime(scored))}"
+            f"recipe {self.name}, training seed {', '.join(seeds)}, code {self.code()}, "
+            f"world {'; '.join(sorted(self.worlds()))}, scored {time.strftime('%Y-%m-%d', time.gmtime(scored))} "
+            f"on {self.coverage()}"
         )
+
+
+def mixed(runs: list[Run]) -> list[str]:
+    """What differs between runs a table would set side by side: the world, what of the
+    split was scored, the code that trained them. Empty when nothing does."""
+    found = []
+    for what, of in (
+        ("world", lambda run: "; ".join(sorted(run.worlds()))),
+        ("what was scored", Run.coverage),
+        ("code", Run.code),
+    ):
+        values = [of(run) for run in runs]
+        if len(set(values)) > 1:
+            found.append(f"{what} ({'; '.join(f'run {i}: {v}' for i, v in enumerate(values))})")
+    return found
 
 
 def _words(group: str) -> str:
@@ -170,23 +202,39 @@ def _rows(runs: list[Run]) -> list[tuple[str, str, int, str, list[tuple[str, str
     return rows
 
 
-def report(runs: list[Run], split: str = "val", command: str = "occtrain report", title: str = "") -> str:
-    """The markdown page (see the module docstring), under ``# title`` when given."""
+def report(
+    runs: list[Run], split: str = "val", command: str = "occtrain report", title: str = "", allow_mixed: bool = False
+) -> str:
+    """The markdown page (see the module docstring), under ``# title`` when given. Runs of
+    different worlds, subsets or code are refused unless ``allow_mixed``; then the page says
+    what differs."""
     versions = [run.world_versions() for run in runs]
     if len(set().union(*versions)) > 1:
         raise DataError(
-            "the runs were scored on different worlds ("
+            "the runs were scored on different world versions ("
             + "; ".join(f"{run.path}: {', '.join(sorted(v))}" for run, v in zip(runs, versions))
             + "); report each world on its own"
         )
+    differ = mixed(runs)
+    if differ and not allow_mixed:
+        raise DataError(
+            f"the runs differ in {differ[0]}"
+            + "".join(f", and in {d}" for d in differ[1:])
+            + "; report them apart, or pass --allow-mixed to set them side by side anyway"
+        )
     seeds_of_one_recipe = len(runs) > 1 and len({run.name for run in runs}) == 1
     head = [f"run {i}" for i in range(len(runs))]
+    scored = runs[0].coverage() if not differ else "what each run states below"
     lines = [
         *([f"# {title}", ""] if title else []),
-        f"World {', '.join(sorted(versions[0]))}; the whole {split} split (`occtrain eval`). "
-        f"Generated by `{command}` from:",
+        f"World {', '.join(sorted(versions[0]))}; scored on {scored} (`occtrain eval`). Generated by `{command}` from:",
         "",
         *(f"- run {i}: {run.stamp()}" for i, run in enumerate(runs)),
+        *(
+            ["", f"**Mixed on purpose (`--allow-mixed`)**: the runs differ in {', and in '.join(differ)}."]
+            if differ
+            else []
+        ),
         "",
         f"| stage | metric | {' / '.join(head)} |{' mean (min to max) |' if seeds_of_one_recipe else ''} baselines "
         "(on the same samples; per run where they differ) |",
@@ -230,11 +278,14 @@ def _wall_times(runs: list[Run]) -> str:
 
 
 def run_report(args: argparse.Namespace) -> int:
+    if args.out:
+        check_output(args.out, "--out")  # before the runs are read
     runs = [Run.read(Path(p), args.split) for p in args.runs]
     split = ["--split", args.split] if args.split != "val" else []
     title = ["--title", f"'{args.title}'"] if args.title else []
-    command = " ".join(["occtrain report", *map(str, args.runs), *split, *title])
-    page = report(runs, args.split, command, args.title)
+    mixed_flag = ["--allow-mixed"] if args.allow_mixed else []
+    command = " ".join(["occtrain report", *map(str, args.runs), *split, *title, *mixed_flag])
+    page = report(runs, args.split, command, args.title, args.allow_mixed)
     if args.out:
         atomic_write_text(Path(args.out), page)
     else:
@@ -252,4 +303,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--split", default="val", help="the split the stages were scored on (default val)")
     p.add_argument("--title", default="", help="the page's heading (a docs page needs one)")
     p.add_argument("--out", help="write the page here (atomically) instead of to stdout")
+    p.add_argument(
+        "--allow-mixed",
+        action="store_true",
+        help="set runs side by side although their worlds, scored subsets or code differ (the page says how)",
+    )
     p.set_defaults(func=run_report)

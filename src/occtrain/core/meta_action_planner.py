@@ -30,7 +30,7 @@ from torch import nn
 from torchmetrics import MeanMetric
 
 from occtrain.core.plan_subsets import departing_rows, plan_metrics, update_plans
-from occtrain.core.protocols import WorldEngine
+from occtrain.core.protocols import Plans, WorldEngine
 from occtrain.data.clips import Clip, frame_clips, plan_target
 from occtrain.data.layout import DatasetIndex
 from occtrain.data.schema import COMMANDS, META_DIRECTIONS, META_SPEEDS
@@ -345,16 +345,18 @@ class MetaActionPlanner(nn.Module):
                 )
 
     @torch.no_grad()
-    def waypoints(self, clips: list[Clip]) -> np.ndarray:
+    def waypoints(self, clips: list[Clip]) -> Plans:
         """The head's plan on the meta action it is scored on (``meta_source``); a clip
         without one (the chain of thought did not end in a meta action) drives on at
-        constant velocity."""
+        constant velocity, and is marked as fallen back."""
         plans = constant_velocity([c.anchor for c in clips], self.device)
         source = "generated" if self.teacher is not None and self.cfg.meta_source == "generated" else "ground_truth"
         x, rows = self._features(clips, source)
         if rows:
             plans[rows] = self.head(**x)
-        return plans.cpu().numpy().astype(np.float64)
+        fell_back = np.ones(len(clips), dtype=bool)
+        fell_back[rows] = False
+        return Plans(plans.cpu().numpy().astype(np.float64), fell_back)
 
     def compute(self, prefix: str) -> dict[str, float]:
         """The validation metrics that saw samples, then reset."""

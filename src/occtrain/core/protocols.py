@@ -16,12 +16,13 @@ shows them in use.
 - :class:`PromptInputs`: what a sequence builder reads besides a prompt's parts (the
   engine's encodings of a dataset's frames), so a family's own part kinds can be laid out.
 - :class:`Planner`: what the ``planner`` stage trains (OccVLA's MLP head on the meta
-  action, a diffusion planner, ...), Lightning-free.
+  action, a diffusion planner, ...), Lightning-free; it answers :class:`Plans`.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator, Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
@@ -184,6 +185,24 @@ class EvalHook(Protocol):
     def run(self, evaluator: Any, engine: WorldEngine, clips: list) -> None: ...
 
 
+@dataclass(frozen=True)
+class Plans:
+    """A planner's answer for a batch of clips: the waypoints it drives, and which of them
+    are not its own (it had nothing to plan from, e.g. no meta action came out of the chain
+    of thought, and drives on at constant velocity): closed loop counts those apart."""
+
+    #: (B, 6, 2) metres in each anchor's ego frame, FRAME_DT apart.
+    xy: np.ndarray
+    #: (B,) bool: the row is the constant-velocity fallback.
+    fell_back: np.ndarray
+
+    @classmethod
+    def own(cls, xy: np.ndarray) -> Plans:
+        """Waypoints that are all the planner's own."""
+        xy = np.asarray(xy, dtype=np.float64)
+        return cls(xy, np.zeros(len(xy), dtype=bool))
+
+
 @runtime_checkable
 class Planner(Protocol):
     """What a ``planner`` stage trains, given the stage's settings and, when it reads one,
@@ -193,9 +212,10 @@ class Planner(Protocol):
 
     def validate(self, clips: list, batch_idx: int) -> None: ...
 
-    def waypoints(self, clips: list) -> np.ndarray:
-        """The stage's plan for each clip, (B, 6, 2) metres in each anchor's ego frame: what
-        it is scored on and what closed-loop driving follows."""
+    def waypoints(self, clips: list) -> Plans:
+        """The stage's plan for each clip (``Plans.xy``: (B, 6, 2) metres in each anchor's
+        ego frame): what it is scored on and what closed-loop driving follows, with the rows
+        it had no plan of its own for."""
         ...
 
     def compute(self, prefix: str) -> dict[str, float]: ...

@@ -11,6 +11,7 @@ from occtrain.commands.compare import TABLE_FILE
 from occtrain.core.published import REAL_DATA, figures_for, metric_words
 from occtrain.dashboard.run_view import DriveView, RunView, StageView
 from occtrain.dashboard.svg import line_chart
+from occtrain.formats.metrics_file import Provenance
 from occtrain.metrics.conventions import OCC3D, OCCWORLD, STP3, UNIAD
 from occtrain.metrics.driving import TABLE_COLUMNS
 
@@ -168,6 +169,15 @@ def _paper_cell(metric: str) -> str:
     return f'<div class="paper"><span class="tag">{REAL_DATA}</span> {items}</div>'
 
 
+def _measured_on(provenance: Provenance | None) -> str:
+    """What the final metrics were measured on, a subset called one (see ``formats.metrics_file``)."""
+    if provenance is None:
+        return '<p class="note">measured on: not recorded (metrics written before occtrain recorded it)</p>'
+    where = f"{escape(provenance.describe())} of {escape(provenance.world_name or 'an unnamed world')}"
+    style = "problem" if provenance.subset else "note"
+    return f'<p class="{style}">{escape(provenance.by)}: {where}; code {escape(provenance.code_version or "-")}</p>'
+
+
 def metrics_tables(metrics: dict[str, float]) -> str:
     """Final metrics grouped by the convention their names carry, the papers' figures beside
     them; per-horizon, per-type and count entries in a folded table below."""
@@ -282,7 +292,7 @@ def stage_section(stage: StageView) -> str:
     elif e.status != "pending":
         parts.append('<p class="note">no training log (logs/csv/metrics.csv) for this stage.</p>')
     if stage.metrics:
-        parts.append("<h3>Final metrics</h3>" + metrics_tables(stage.metrics))
+        parts.append("<h3>Final metrics</h3>" + _measured_on(stage.provenance) + metrics_tables(stage.metrics))
     elif e.status == "done":
         parts.append('<p class="note">the stage recorded no final metrics.</p>')
     parts.extend(_drive(drive) for drive in stage.drives)

@@ -18,6 +18,7 @@ from occtrain.dashboard.samples import read_samples
 from occtrain.dashboard.svg import Series
 from occtrain.data.stats import DatasetStats
 from occtrain.errors import OcctrainError
+from occtrain.formats.metrics_file import Provenance, read_metrics
 from occtrain.run.manifest import MANIFEST_FILE, Manifest, StageEntry
 
 METRICS_CSV = Path("logs") / "csv" / "metrics.csv"
@@ -50,6 +51,8 @@ class StageView:
     entry: StageEntry
     charts: list[Chart] = field(default_factory=list)
     metrics: dict[str, float] = field(default_factory=dict)
+    #: What the final metrics were measured on (None: not recorded, a run before provenance).
+    provenance: Provenance | None = None
     images: list[tuple[str, bytes]] = field(default_factory=list)
     texts: list[dict[str, str]] = field(default_factory=list)
     drives: list[DriveView] = field(default_factory=list)
@@ -250,10 +253,10 @@ def _read_stage(run_dir: Path, name: str, entry: StageEntry) -> StageView:
     metrics_path = stage_dir / "metrics.json"
     if metrics_path.is_file():
         try:
-            raw = json.loads(metrics_path.read_text())
-            view.metrics = _numbers(raw)
-        except (json.JSONDecodeError, AttributeError, TypeError, ValueError, UnicodeDecodeError) as err:
-            view.problems.append(f"{metrics_path}: unreadable final metrics ({err}); showing the manifest's copy")
+            final = read_metrics(metrics_path)
+            view.metrics, view.provenance = final.metrics, final.provenance
+        except OcctrainError as err:
+            view.problems.append(f"{err}; showing the manifest's copy")
     try:
         view.images, view.texts = read_samples(stage_dir)
     except OcctrainError as err:

@@ -236,6 +236,36 @@ def world_version(root: str | Path) -> str:
     return f"v{record['format_version']}" if record.get("generator") == "occtrain.synth" else ""
 
 
+@dataclass(frozen=True)
+class WorldIdentity:
+    """A dataset by what it holds, wherever it lies: ``key`` hashes its annotations and
+    generator record (a world synthesized again from the same settings, or copied to
+    another machine, keeps it; a relabelled or re-split one does not), ``name`` reads."""
+
+    key: str
+    version: str
+    name: str
+
+
+def world_identity(root: str | Path) -> WorldIdentity:
+    """The identity of the dataset at ``root`` (see :class:`WorldIdentity`). Labels are not
+    hashed (gigabytes for a real release): they follow from the generator's settings, and a
+    real release's annotations name every sample."""
+    root = Path(root)
+    record = generator_record(root)
+    h = hashlib.sha256((root / ANNOTATIONS_FILE).read_bytes())
+    h.update(json.dumps(record, sort_keys=True).encode())
+    version = world_version(root)
+    if version and record is not None:
+        name = (
+            f"occtrain world {version}, seed {record.get('seed')} ({record.get('train_scenes')} train + "
+            f"{record.get('val_scenes')} val scenes of {record.get('frames_per_scene')} frames)"
+        )
+    else:
+        name = f"dataset {root.resolve().name}"
+    return WorldIdentity(h.hexdigest()[:12], version, name)
+
+
 def dataset_root(path: str | Path) -> Path:
     """The dataset root that ``path`` names: itself, or the parent of its ``gts/`` directory."""
     path = Path(path)

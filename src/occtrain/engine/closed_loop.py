@@ -18,10 +18,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from occtrain.core.protocols import Plans
 from occtrain.data.clips import Clip
-from occtrain.data.driving import EPISODE_SCENE, DrivingWorld, EpisodeRecorder, Planner
+from occtrain.data.driving import EPISODE_SCENE, DrivingWorld, EpisodeRecorder
 from occtrain.engine.world_engine import WorldModelEngine
-from occtrain.errors import ConfigError
+from occtrain.errors import ConfigError, OcctrainError
+
+
+class NonFinitePlan(OcctrainError):
+    """The stage answered waypoints that are not numbers: its weights, not the world, are at fault."""
 
 
 @dataclass
@@ -30,8 +35,21 @@ class StageDriver:
 
     #: The world model whose frozen encoders read the frames (a planner stage's teacher).
     engine: WorldModelEngine
-    #: Clips -> (B, 6, 2) waypoints in each anchor's ego frame.
-    waypoints: Callable[[list[Clip]], np.ndarray]
+    #: Clips -> their plans (``Plans.xy``: (B, 6, 2) waypoints in each anchor's ego frame).
+    waypoints: Callable[[list[Clip]], Plans]
+
+    def plans(self, clips: list[Clip]) -> Plans:
+        """``waypoints``, refused in one line when one is not a number (NaN weights give NaN
+        plans; followed, they would surface far away, as a frame the world cannot label)."""
+        plans = self.waypoints(clips)
+        bad = [i for i, xy in enumerate(plans.xy) if not np.isfinite(xy).all()]
+        if bad:
+            raise NonFinitePlan(
+                f"the stage planned non-finite waypoints ({plans.xy[bad[0]].reshape(-1)[:4].tolist()}...) for sample "
+                f"{clips[bad[0]].anchor['token']}; its export holds NaN or infinite weights, or they overflow: retrain "
+                "the stage"
+            )
+        return plans
 
     @property
     def history(self) -> int:
@@ -47,23 +65,54 @@ def world_model_driver(engine: WorldModelEngine, where: str) -> StageDriver:
             f"{where}: the '{engine.family}' world model has no plan operation; drive the run's planner stage instead"
         )
 
-    def waypoints(clips: list[Clip]) -> np.ndarray:
-        return np.stack([np.asarray(plan(engine, clip), dtype=np.float64).reshape(-1, 2) for clip in clips])
+    def waypoints(clips: list[Clip]) -> Plans:
+        return Plans.own(np.stack([np.asarray(plan(engine, clip), dtype=np.float64).reshape(-1, 2) for clip in clips]))
 
     return StageDriver(engine.eval(), waypoints)
 
 
-def model_planner(driver: StageDriver, recorder: EpisodeRecorder) -> Planner:
-    """The closed loop's planner for ``driver``, recording every planning frame with ``recorder``."""
+@dataclass
+class PlanCounts:
+    """Who drove an episode's planning frames: the stage with a plan of its own, the stage's
+    constant-velocity fallback (``Plans.fell_back``), or the expert (the history the
+    stage's prompts read, before it plans). A score means little when ``planned`` is small."""
 
-    def plan(world: DrivingWorld) -> np.ndarray | None:
+    planned: int = 0
+    fell_back: int = 0
+    expert: int = 0
+
+    @property
+    def frames(self) -> int:
+        return self.planned + self.fell_back + self.expert
+
+
+class StagePlanner:
+    """The closed loop's planner for a stage (see the module docstring), counting who drove
+    each planning frame (:class:`PlanCounts`)."""
+
+    def __init__(self, driver: StageDriver, recorder: EpisodeRecorder):
+        self.driver = driver
+        self.recorder = recorder
+        self.counts = PlanCounts()
+
+    def __call__(self, world: DrivingWorld) -> np.ndarray | None:
+        driver, recorder = self.driver, self.recorder
         index = recorder.record()
         driver.engine.add_samples(index, [(EPISODE_SCENE, recorder.token)])  # later frames read it as history
         if len(recorder.frames) <= driver.history:
+            self.counts.expert += 1
             return None  # the expert drives the history the prompts read
-        return driver.waypoints([recorder.clip(driver.history)])[0]
+        plans = driver.plans([recorder.clip(driver.history)])
+        if plans.fell_back[0]:
+            self.counts.fell_back += 1
+        else:
+            self.counts.planned += 1
+        return plans.xy[0]
 
-    return plan
+
+def model_planner(driver: StageDriver, recorder: EpisodeRecorder) -> StagePlanner:
+    """The closed loop's planner for ``driver``, recording every planning frame with ``recorder``."""
+    return StagePlanner(driver, recorder)
 
 
 #: Frames an open-loop pass encodes and plans in one batch.
@@ -97,5 +146,5 @@ class OpenLoopPlanner:
             self.driver.engine.add_samples(recorder.index, [(EPISODE_SCENE, f["token"]) for f in chunk])
             anchors = [k for k in range(start, start + len(chunk)) if k >= history]
             if anchors:
-                planned.extend(self.driver.waypoints([recorder.clip(history, at=k) for k in anchors]))
+                planned.extend(self.driver.plans([recorder.clip(history, at=k) for k in anchors]).xy)
         return planned

@@ -111,6 +111,9 @@ class Evaluator(torch.nn.Module):
         #: The baselines a model must beat: the commonest training answers.
         self.priors = priors or Priors()
         self.subset = subset
+        #: Per task (and ``FUTURE_CLIPS`` for the hooks on every future frame): [items
+        #: scored, items the split holds] of the last ``run`` (a metrics file's provenance).
+        self.coverage: dict[str, list[int]] = {}
         self._clip_cache: dict[tuple, list[Clip]] = {}
         self._once: set = set()
         self.texts: list[dict] = []
@@ -241,20 +244,24 @@ class Evaluator(torch.nn.Module):
             clips = evaluation_clips(index, split, FUTURE_CLIPS, engine.tasks.context_frames)
             chosen = fixed_subset([c.anchor["token"] for c in clips], samples, seed)
             self._clip_cache[key] = [c for c in clips if c.anchor["token"] in chosen]
+            self.coverage[FUTURE_CLIPS] = [len(chosen), len(clips)]
         return self._clip_cache[key]
 
     def _task_clips(self, engine, index, split, task, samples, seed) -> list[Clip]:
         key = (split, task, samples, seed, engine.tasks.context_frames)
         if key not in self._clip_cache:
             clips = evaluation_clips(index, split, task, engine.tasks.context_frames)
+            # Every item is keyed, subset or not: the provenance counts how many of them are scored.
+            keys = {
+                c.anchor["token"]: [item_key(task, c, p) for p in engine.task_items(task, c, every=True)] for c in clips
+            }
+            every = [k for ks in keys.values() for k in ks]
+            chosen = set(every) if self.subset is None or task not in self.subset else self.subset[task]
             if samples >= 0:
-                keys = {
-                    c.anchor["token"]: [item_key(task, c, p) for p in engine.task_items(task, c, every=True)]
-                    for c in clips
-                }
-                chosen = fixed_subset([k for ks in keys.values() for k in ks], samples, seed)
+                chosen = fixed_subset(every, samples, seed)
                 self.subset = {**(self.subset or {}), task: chosen}
                 clips = [c for c in clips if chosen.intersection(keys[c.anchor["token"]])]
+            self.coverage[task] = [len(chosen.intersection(every)), len(set(every))]
             self._clip_cache[key] = clips
         return self._clip_cache[key]
 

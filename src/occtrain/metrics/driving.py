@@ -69,8 +69,11 @@ STOPPED_SPEED = 0.5
 #: NAVSIM scores ego progress as 1 when the expert itself moved less than this (m).
 EP_MIN_PROGRESS = 5.0
 #: How driving results are tabled (the CLI, the dashboard, tools/drive_table.py): (header,
-#: key in a driver's summary, format); open loop first, infractions per route.
+#: key in a driver's summary, format); who planned first (a score of frames the driver did
+#: not plan is not its own), then open loop, then closed loop, infractions per route.
 TABLE_COLUMNS = (
+    ("planned itself (% of frames)", "planned_share", "{:.0f}"),
+    ("fell back to constant velocity (%)", "fell_back_share", "{:.0f}"),
     ("open-loop L2 (m, `stp3`)", "open_loop_L2_stp3_avg", "{:.2f}"),
     ("open-loop collision (%, `stp3`)", "open_loop_collision_stp3_avg", "{:.2f}"),
     ("driving score", "driving_score", "{:.1f}"),

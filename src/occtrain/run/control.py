@@ -94,3 +94,41 @@ def run_lock(run_dir: Path) -> Iterator[None]:
         yield
     finally:
         fh.close()  # releases the lock
+
+
+#: Per stage, the lock its readers that write into it (``occtrain eval``, ``drive``) share
+#: and a ``--restart`` of it takes alone: ``RUN/.locks/<stage>.lock``, outside the stage's
+#: directory, which a restart moves aside.
+STAGE_LOCKS = ".locks"
+
+
+class StageBusy(OcctrainError):
+    """A stage is being scored while a restart would replace it, or the other way round."""
+
+
+@contextmanager
+def stage_lock(run_dir: Path, stage: str, shared: bool, busy: str, create: bool = True) -> Iterator[None]:
+    """Hold ``run_dir``'s lock of ``stage``, shared (a process scoring it) or exclusive (a
+    restart replacing it), for the block's life; when another process holds it the other
+    way, raise :class:`StageBusy` with ``busy``, the one line saying who and what to do.
+    Without ``create`` (a check that writes nothing) a lock file nobody made is nobody's."""
+    path = Path(run_dir) / STAGE_LOCKS / f"{stage}.lock"
+    if not create and not path.is_file():
+        yield
+        return
+    try:
+        if create:
+            path.parent.mkdir(parents=True, exist_ok=True)
+        fh: IO[str] = open(path, "a+" if create else "r")
+    except OSError as err:
+        raise write_error(path, err) from None
+    try:
+        try:
+            fcntl.flock(fh.fileno(), (fcntl.LOCK_SH if shared else fcntl.LOCK_EX) | fcntl.LOCK_NB)
+        except OSError as err:
+            if err.errno not in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+                raise
+            raise StageBusy(busy) from None
+        yield
+    finally:
+        fh.close()

@@ -30,9 +30,10 @@ from occtrain.config.loading import read_yaml, validate_section
 from occtrain.config.recipe import STAGE_DATA_KEYS, RecipeConfig, StageSpec, check_name
 from occtrain.core.registry import get_family
 from occtrain.errors import ConfigError, OcctrainError, cause_line
-from occtrain.formats.io import atomic_write_json, atomic_write_text, is_rank_zero, remove_inside
+from occtrain.formats.io import atomic_write_text, is_rank_zero, remove_inside
+from occtrain.formats.metrics_file import Provenance, StageAttempt, write_metrics
 from occtrain.progress import console
-from occtrain.run.control import Interrupted, run_lock, stop_on_signals
+from occtrain.run.control import Interrupted, run_lock, stage_lock, stop_on_signals
 from occtrain.run.manifest import RESUMABLE, Manifest
 from occtrain.stages import Stage, StageContext, StageKind, get_kind, kind_names
 
@@ -330,6 +331,7 @@ def _execute(
     inputs: dict[str, Path],
     record_time: Callable[[float], None] | None = None,
     record_attempt: Callable[[dict], None] | None = None,
+    attempt: StageAttempt | None = None,
 ) -> dict:
     from occtrain.stages.checkpoints import checkpoint_step, last_checkpoint
     from occtrain.stages.trainer import build_trainer
@@ -356,7 +358,8 @@ def _execute(
     module.prepare_export()  # every rank: a sharded stage gathers its weights for rank zero
     if trainer.is_global_zero:
         export_dir = module.export(stage_dir / "export")
-        atomic_write_json(stage_dir / "metrics.json", metrics)
+        provenance = _validation_provenance(stage, trainer.callbacks, report.coverage, attempt or StageAttempt())
+        write_metrics(stage_dir / "metrics.json", metrics, provenance)
         # Stages hand over raw scenes and texts; pictures are drawn here, not in the stages.
         if report.texts or report.scenes:
             from occtrain.dashboard import bev_comparison, write_samples
@@ -371,6 +374,37 @@ def _execute(
     # Under DDP the next stage's processes read this export: none starts before rank zero wrote it.
     trainer.strategy.barrier("export")
     return {"metrics": metrics, "artifacts": artifacts, "summary": report.summary}
+
+
+def _validation_provenance(
+    stage: PlannedStage, callbacks: list, coverage: dict[str, list[int]], attempt: StageAttempt
+) -> Provenance:
+    """What a stage's final validation measured: the val samples its batches held of the
+    split's (``validation``), and the items its generation scored per task (``coverage``:
+    a world model's validation generates on a subset, ``val_samples`` per task)."""
+    from occtrain.data.datamodule import shards_dir
+    from occtrain.data.layout import world_identity
+    from occtrain.data.shards import shard_urls
+    from occtrain.stages.callbacks import AttemptRecord
+    from occtrain.version import code_version
+
+    record = next((c for c in callbacks if isinstance(c, AttemptRecord)), None)
+    validated = {}
+    if record is not None and record.val_samples_per_rank is not None:
+        total = shard_urls(shards_dir(stage.data), stage.kind.data_kind, "val")[1]
+        validated["validation"] = [sum(record.val_samples_per_rank), total]
+    identity = world_identity(stage.data.root)
+    return Provenance(
+        by="validation at the end of training",
+        split="val",
+        coverage={**validated, **coverage},
+        world=identity.key,
+        world_version=identity.version,
+        world_name=identity.name,
+        code_version=code_version(),
+        stage=attempt,
+        measured=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+    )
 
 
 def _measurements(callbacks: list) -> dict[str, float]:
@@ -408,7 +442,11 @@ def run(
     if rank_zero:
         for note in shadowed_overrides(recipe, list(overrides or [])):
             console.print(f"[yellow]note[/]: {note}")
-    with stop_on_signals(), run_lock(run_dir) if rank_zero else contextlib.nullcontext():
+    with (
+        stop_on_signals(),
+        run_lock(run_dir) if rank_zero else contextlib.nullcontext(),
+        contextlib.ExitStack() as held,
+    ):
         # Read again under the lock: the manifest this run writes is the one it checked.
         manifest = Manifest.load(run_dir, writable=rank_zero)
         if rank_zero:  # an earlier --restart killed before it settled
@@ -427,6 +465,8 @@ def run(
 
                 ensure_data(recipe.data)
                 if restarted:  # last before training: nothing else can fail with the stages away
+                    for name in restarted:  # no eval or drive writes into a stage replaced under it
+                        held.enter_context(restart_lock(run_dir, name))
                     manifest.set_aside([p.spec.name for p in planned if p.spec.name in restarted])
             try:
                 _run_stages(planned, manifest, run_dir, recipe, only, rank_zero)
@@ -446,6 +486,16 @@ def run(
                 stop = stop.with_message(f"{stop} before any stage trained; run the same command again to continue")
             raise stop from None
     return run_dir
+
+
+def restart_lock(run_dir: Path, stage: str, create: bool = True) -> contextlib.AbstractContextManager[None]:
+    """The lock a ``--restart`` holds on a stage it replaces: none while the stage is being
+    scored (``occtrain eval`` and ``drive`` share it while they read and write it)."""
+    busy = (
+        f"{run_dir / stage} is being scored by `occtrain eval` or `occtrain drive` in another process; wait for it "
+        f"to finish (or stop it), then --restart {stage}"
+    )
+    return stage_lock(run_dir, stage, shared=False, busy=busy, create=create)
 
 
 def _put_back(err: BaseException, note: str) -> None:
@@ -488,6 +538,9 @@ def check_run(
     restarted = set(names[names.index(restart) :]) if restart is not None else set()
     manifest = Manifest.load(run_dir, writable=False)
     refuse_changed(planned, manifest, restarted, only)
+    for name in restarted:
+        with restart_lock(run_dir, name, create=False):
+            pass
     for p in planned:  # a checkpoint the run would resume from must load (weights only)
         entry = manifest.stages.get(p.spec.name)
         if entry is not None and entry.status in RESUMABLE and p.spec.name not in restarted:
@@ -668,6 +721,7 @@ def _run_stages(
                 {d: exports[d] for d in p.spec.consumes},
                 record_time=lambda seconds, name=name: manifest.record_time(name, seconds),
                 record_attempt=lambda facts, name=name: manifest.record_attempt(name, facts),
+                attempt=StageAttempt(entry.config_hash, entry.attempts, entry.started),
             )
         except Interrupted as stop:
             _record_failure(manifest, name, f"{stop}", time.time() - started, "interrupted")

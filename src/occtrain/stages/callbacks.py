@@ -79,6 +79,8 @@ class AttemptRecord(Callback):
         self.record = record
         self.train_samples = 0
         self.val_samples = 0
+        #: The last validation's samples on each rank (a final metrics file's provenance).
+        self.val_samples_per_rank: list[int] | None = None
         self.started = False
 
     def _report(self, trainer: L.Trainer, facts: dict[str, Any]) -> None:
@@ -118,7 +120,8 @@ class AttemptRecord(Callback):
         self.val_samples += _batch_samples(batch)
 
     def on_validation_epoch_end(self, trainer: L.Trainer, *args: Any) -> None:
-        self._report(trainer, {"val_samples_per_rank": self._per_rank(trainer, self.val_samples)})
+        self.val_samples_per_rank = self._per_rank(trainer, self.val_samples)
+        self._report(trainer, {"val_samples_per_rank": self.val_samples_per_rank})
 
 
 def _batch_samples(batch: Any) -> int:

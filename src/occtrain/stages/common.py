@@ -114,4 +114,4 @@ def evaluate_engine(engine: WorldModelEngine, request: EvalRequest) -> EvalResul
             engine, request.data_root, request.split, request.batch_size, samples=request.samples, advance=advance
         )
     metrics = {k.removeprefix(f"{request.split}/"): v for k, v in evaluator.compute(request.split).items()}
-    return EvalResult(metrics, evaluator.predictions if request.record else {})
+    return EvalResult(metrics, evaluator.predictions if request.record else {}, dict(evaluator.coverage))

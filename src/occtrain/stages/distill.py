@@ -220,6 +220,7 @@ class DistillStage(Stage):
             {"student_params": float(s), "teacher_params": float(t), "param_ratio": s / t},
             texts=list(self.evaluator.texts),
             scenes=list(self.evaluator.scenes),
+            coverage=dict(self.evaluator.coverage),
         )
 
     def export(self, path: Path) -> Path:

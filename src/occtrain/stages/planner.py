@@ -183,15 +183,18 @@ class PlannerStage(Stage):
     def evaluate_export(cls, request: EvalRequest) -> EvalResult:
         """The trained planner on every frame of the split with a whole 3 s future (or a
         fixed subset of ``samples``), over the consumed world model, beside its baselines."""
-        planner, clips = cls.rebuild(request)
-        chosen = fixed_subset([c.anchor["token"] for c in clips], request.samples)
-        clips = [c for c in clips if c.anchor["token"] in chosen]
+        planner, every = cls.rebuild(request)
+        chosen = fixed_subset([c.anchor["token"] for c in every], request.samples)
+        clips = [c for c in every if c.anchor["token"] in chosen]
         with progress_bar(len(clips), f"planning {len(clips)} {request.split} frames") as advance:
             for i in range(0, len(clips), request.batch_size):
                 planner.validate(clips[i : i + request.batch_size], i // request.batch_size)
                 advance(len(clips[i : i + request.batch_size]))
         metrics = planner.compute(request.split)
-        return EvalResult({k.removeprefix(f"{request.split}/"): v for k, v in metrics.items()})
+        return EvalResult(
+            {k.removeprefix(f"{request.split}/"): v for k, v in metrics.items()},
+            coverage={"planning": [len(clips), len(every)]},
+        )
 
 
 PLANNER = register(

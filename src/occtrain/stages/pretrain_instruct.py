@@ -308,7 +308,13 @@ class WorldModelStage(Stage):
         metrics = {"params": float(total), "scene_tokens": float(self.engine.vocab.scene_len)}
         if self._full is not None:  # what this rank holds of the sharded world model
             metrics["params_per_rank"] = float(local_numel(world))
-        return StageReport(summary, metrics, texts=list(self.evaluator.texts), scenes=list(self.evaluator.scenes))
+        return StageReport(
+            summary,
+            metrics,
+            texts=list(self.evaluator.texts),
+            scenes=list(self.evaluator.scenes),
+            coverage=dict(self.evaluator.coverage),
+        )
 
     def prepare_export(self) -> None:
         self._gather(everywhere=False)  # rank zero's copy on the CPU: what export() writes

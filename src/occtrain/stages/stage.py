@@ -79,6 +79,9 @@ class StageReport:
     texts: list[dict] = field(default_factory=list)
     #: ``(caption, [(panel label, semantics (200, 200, 16) uint8)])``: the runner draws them.
     scenes: list[tuple[str, list[tuple[str, Any]]]] = field(default_factory=list)
+    #: Per task its validation generated answers for, [items scored, items the split holds]
+    #: (``Evaluator.coverage``): the metrics file states the subset.
+    coverage: dict[str, list[int]] = field(default_factory=dict)
 
 
 @dataclass
@@ -107,6 +110,9 @@ class EvalResult:
     metrics: dict[str, float]
     #: The recorded predictions (see ``EvalRequest.record``), by kind.
     predictions: dict[str, dict] = field(default_factory=dict)
+    #: Per task (or what else was scored: frames, plans), [items scored, items the split
+    #: holds]: the metrics file's provenance states a subset as one.
+    coverage: dict[str, list[int]] = field(default_factory=dict)
 
 
 #: What a task needs, in the dataset's terms (``DatasetIndex.available_tasks``), where the names differ.

@@ -202,8 +202,8 @@ class TokenizerStage(Stage):
         model = load_tokenizer(request.export)
         arch = tokenizer_archs()[model.arch]
         index = DatasetIndex.open(request.data_root)
-        frames = [(scene, token) for scene in index.splits.get(request.split, []) for token in index.scenes[scene]]
-        frames = frames if request.samples < 0 else frames[: request.samples]
+        every = [(scene, token) for scene in index.splits.get(request.split, []) for token in index.scenes[scene]]
+        frames = every if request.samples < 0 else every[: request.samples]
         recon = reconstruction_metrics(model)
         size = request.batch_size
         with progress_bar(len(frames), f"reconstructing {len(frames)} {request.split} frames") as advance:
@@ -217,7 +217,9 @@ class TokenizerStage(Stage):
                     codes = model.encode(sem)
                     recon.update(model.decode_labels(codes), sem, batch["mask_camera"], codes)
                 advance(len(frames[i : i + size]))
-        return EvalResult({"frames": float(len(frames)), **recon.compute()})
+        return EvalResult(
+            {"frames": float(len(frames)), **recon.compute()}, coverage={"frames": [len(frames), len(every)]}
+        )
 
 
 TOKENIZER = register(

@@ -265,7 +265,7 @@ def test_corrupt_stage_files_are_shown_not_fatal(run_dir: Path):
     (run_dir / "tokenizer" / "metrics.json").write_text("[1, 2")
     (run_dir / "tokenizer" / "samples" / "sample_0.png").write_bytes(b"not a png")
     html = write_dashboard(run_dir).read_text()
-    assert "unreadable final metrics" in html and "not a PNG file" in html
+    assert "metrics.json: unreadable metrics" in html and "not a PNG file" in html
     assert "<td>val/occworld_mIoU</td>" in html  # the manifest's copy of the metrics
 
 
@@ -357,6 +357,8 @@ def test_a_stage_drive_is_tabled_with_its_animations(run_dir: Path, tmp_path: Pa
     drive = run_dir / "tokenizer" / "drive" / "seed1000-20s"
     drive.mkdir(parents=True)
     scores = {
+        "planned_share": 75.0,
+        "fell_back_share": 12.5,
         "open_loop_L2_stp3_avg": 0.87,
         "open_loop_collision_stp3_avg": 0.25,
         "driving_score": 61.25,
@@ -377,7 +379,8 @@ def test_a_stage_drive_is_tabled_with_its_animations(run_dir: Path, tmp_path: Pa
     )
     html = write_dashboard(run_dir).read_text()
     section = html[html.index("Closed-loop driving (2 routes of 20 s, seed1000-20s)") :]
-    assert "<td>tokenizer</td><td>0.87</td><td>0.25</td><td>61.2</td><td>70.0</td><td>87.5</td><td>0.50</td>" in section
+    row = "<td>tokenizer</td><td>75</td><td>12</td><td>0.87</td><td>0.25</td><td>61.2</td><td>70.0</td><td>87.5</td>"
+    assert row + "<td>0.50</td>" in section
     assert "CARLA leaderboard 1.0" in section
     gifs = re.findall(r'src="data:image/gif;base64,([^"]*)"', html)
     assert len(gifs) == 1 and base64.b64decode(gifs[0]) == gif.read_bytes()  # the stage's own episode only

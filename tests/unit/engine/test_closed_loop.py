@@ -8,11 +8,12 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from occtrain.core.protocols import Plans
 from occtrain.data.clips import Clip
 from occtrain.data.driving import EpisodeRecorder, shadow_episode
-from occtrain.data.synth.driving import DrivingWorld
+from occtrain.data.synth.driving import DrivingWorld, drive_episode
 from occtrain.engine import closed_loop
-from occtrain.engine.closed_loop import OpenLoopPlanner, StageDriver, model_planner
+from occtrain.engine.closed_loop import NonFinitePlan, OpenLoopPlanner, StageDriver, model_planner
 
 HISTORY = 2
 
@@ -29,10 +30,13 @@ class _Encoders:
         self.cached.update(token for _, token in samples)
 
 
-def _driver() -> StageDriver:
+def _driver(fall_back_every: int = 0, nan_at: int = -1) -> StageDriver:
+    """A stage whose every ``fall_back_every``-th plan is its constant-velocity fallback and
+    whose plan at recorded frame ``nan_at`` is NaN."""
     engine = _Encoders()
+    asked = []
 
-    def waypoints(clips: list[Clip]) -> np.ndarray:
+    def waypoints(clips: list[Clip]) -> Plans:
         # A plan that reads everything the clip holds: the frames it names must be encoded,
         # and its history's poses and its anchor's speed decide the answer.
         out = []
@@ -41,7 +45,13 @@ def _driver() -> StageDriver:
             assert set(known) <= engine.cached, "a clip read a frame nobody encoded"
             poses = np.asarray(clip.ann["ego_poses"], dtype=np.float64)
             out.append(poses[-6:, :2] - poses[0, :2] + clip.anchor["ego_speed"])
-        return np.stack(out)
+            asked.append(clip.anchor["token"])
+        plans = Plans.own(np.stack(out))
+        if fall_back_every:
+            plans.fell_back[:] = [(len(asked) - len(clips) + i + 1) % fall_back_every == 0 for i in range(len(clips))]
+        if nan_at >= 0 and len(asked) - len(clips) <= nan_at - HISTORY < len(asked):
+            plans.xy[nan_at - HISTORY - (len(asked) - len(clips))] = np.nan
+        return plans
 
     return StageDriver(engine, waypoints)  # type: ignore[arg-type]
 
@@ -75,3 +85,22 @@ def test_episodes_on_one_route_never_share_a_frame_token(built, tmp_path):
         tokens.setdefault(name, set()).add(recorder.token)
     assert len(tokens["planner"]) == 1  # the same episode again names its frames the same
     assert tokens["planner"].isdisjoint(tokens["open-loop"])
+
+
+def test_the_closed_loop_counts_who_drove_each_planning_frame(built, tmp_path):
+    planner = model_planner(_driver(fall_back_every=3), EpisodeRecorder(tmp_path, copy.deepcopy(built), None, "a"))
+    drive_episode(planner.recorder.world, planner)
+    counts, asked = planner.counts, len(planner.recorder.frames) - HISTORY
+    assert counts.frames == len(planner.recorder.frames) and asked >= 3
+    assert counts.expert == HISTORY and counts.fell_back == asked // 3 and counts.planned == asked - asked // 3
+
+
+def test_a_non_finite_plan_is_named_as_the_stages(built, tmp_path):
+    planner = model_planner(_driver(nan_at=5), EpisodeRecorder(tmp_path, copy.deepcopy(built), None, "a"))
+    with pytest.raises(NonFinitePlan, match=r"^the stage planned non-finite waypoints \(\[nan, nan.*retrain the stage"):
+        drive_episode(planner.recorder.world, planner)
+    assert len(planner.recorder.frames) == 6  # refused at the frame it planned NaN, before following it
+    batched = OpenLoopPlanner(_driver(nan_at=5), EpisodeRecorder(tmp_path / "b", copy.deepcopy(built), None, "b"))
+    shadow = shadow_episode(batched.recorder.world, {"stage": batched})
+    with pytest.raises(NonFinitePlan):
+        batched.plans(len(shadow))

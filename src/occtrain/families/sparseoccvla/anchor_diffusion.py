@@ -41,6 +41,7 @@ from occtrain.config import to_object
 from occtrain.core.builder import collate
 from occtrain.core.decoding import TextAnswer
 from occtrain.core.plan_subsets import departing_rows, plan_metrics, update_plans
+from occtrain.core.protocols import Plans
 from occtrain.core.shared_tasks import PLAN_PRIORS, plan_base
 from occtrain.data.clips import Clip, Text, frame_clips, plan_target
 from occtrain.data.layout import DatasetIndex
@@ -441,9 +442,9 @@ class AnchorDiffusionPlanner(nn.Module):
         return x[rows, best] * self.scale + base, self.anchors[best] + base, logits
 
     @torch.no_grad()
-    def waypoints(self, clips: list[Clip]) -> np.ndarray:
-        """The denoised plan of the top-scored anchor (the family's main plan)."""
-        return self.plan(clips)[0].cpu().numpy().astype(np.float64)
+    def waypoints(self, clips: list[Clip]) -> Plans:
+        """The denoised plan of the top-scored anchor (the family's main plan): always its own."""
+        return Plans.own(self.plan(clips)[0].cpu().numpy())
 
     def validate(self, clips: list[Clip], batch_idx: int, generate_batches: int = -1) -> None:
         anchors = [c.anchor for c in clips]
