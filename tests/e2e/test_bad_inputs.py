@@ -2284,6 +2284,32 @@ def test_bad_input_is_one_line_and_changes_nothing(
         _HELD.pop().close()
 
 
+def test_an_eval_of_a_stage_retrained_meanwhile_writes_nothing(world: Path, tmp_path: Path, capsys, monkeypatch):
+    """The manifest says the stage was trained again while the eval ran (another process
+    got past the lock, or wrote the manifest by hand): the old model's scores are not written."""
+    from occtrain.stages.pretrain_instruct import WorldModelStage
+    from occtrain.stages.stage import EvalResult
+
+    shutil.copytree(world, tmp_path, dirs_exist_ok=True)
+
+    def retrained_meanwhile(request: Any) -> EvalResult:
+        manifest = tmp_path / "run" / "manifest.json"
+        edit_json(manifest, lambda m: m["stages"]["pretrain"].update(attempts=2, config_hash="other"))
+        return EvalResult({"qa_overall": 50.0})
+
+    monkeypatch.setattr(
+        WorldModelStage, "evaluate_export", classmethod(lambda cls, request: retrained_meanwhile(request))
+    )
+    code = run_cli(["eval", str(tmp_path / "run" / "pretrain")])
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1, err
+    assert err == (
+        f"error: {tmp_path}/run/pretrain: the stage was retrained while occtrain eval read it, so its results of the "
+        "model it loaded are not written; run occtrain eval again\n"
+    )
+    assert not (tmp_path / "run" / "pretrain" / "eval" / "val" / "metrics.json").exists()
+
+
 def test_the_table_is_big_and_its_ids_unique() -> None:
     assert len(CASES) >= 60
     assert len({c.id for c in CASES}) == len(CASES)
