@@ -253,7 +253,7 @@ def _add_drive(sub: Any) -> None:
     p = sub.add_parser(
         "drive",
         help="drive a stage's planner closed loop in the synthetic world (reactive traffic) beside the expert, "
-        "constant velocity and standing still; CARLA driving score and NAVSIM PDM score",
+        "constant velocity, constant acceleration and standing still; CARLA driving score and NAVSIM PDM score",
     )
     p.add_argument("stage_dir", help="RUN_DIR/STAGE (a pretrain, instruct or planner stage)")
     p.add_argument("--scenes", type=int, default=8, help="routes to drive (default 8)")

@@ -255,13 +255,19 @@ def test_drive_puts_the_planner_behind_the_wheel_and_resumes(pipeline, tmp_path)
     assert res.returncode == 0, res.stderr[-3000:]
     out = pipeline / "planner" / "drive" / "seed1000-3s"
     summary = json.loads((out / "summary.json").read_text())
-    assert list(summary["drivers"]) == ["planner", "expert", "constant_velocity", "stand_still"]
+    assert list(summary["drivers"]) == [
+        "planner",
+        "expert",
+        "constant_velocity",
+        "constant_acceleration",
+        "stand_still",
+    ]
     assert summary["drivers"]["expert"]["driving_score"] >= 95.0
     assert summary["drivers"]["stand_still"]["route_completion"] < summary["drivers"]["expert"]["route_completion"]
     assert "CARLA" in summary["conventions"]["driving_score"] and "NAVSIM" in summary["conventions"]["pdm_score"]
     assert summary["wall_s"] > 0 and summary["workers"] == 1 and summary["resumed"] == 0
     assert sorted(p.name for p in videos.iterdir()) == [
-        f"{d}-000.gif" for d in ("constant_velocity", "expert", "planner", "stand_still")
+        f"{d}-000.gif" for d in ("constant_acceleration", "constant_velocity", "expert", "planner", "stand_still")
     ]
     # Who drove the 6 planning frames: the expert the history, the stage (or its fallback) the rest.
     history = json.loads((pipeline / "instruct" / "export" / "config.json").read_text())["tasks"]["context_frames"]
@@ -285,7 +291,7 @@ def test_drive_puts_the_planner_behind_the_wheel_and_resumes(pipeline, tmp_path)
     later = tmp_path / "later"
     res = run_cli(*args[:-1], str(later))
     assert res.returncode == 0, res.stderr[-3000:]
-    assert len(list(later.glob("*-000.gif"))) == 4
+    assert len(list(later.glob("*-000.gif"))) == 5
     assert json.loads(episode.read_text())["scores"] == first["scores"]
 
 

@@ -50,6 +50,7 @@ LAYERS = {
     "progress": 0,
     "__init__": 0,
     "version": 0,
+    "kinematics": 0,
 }
 #: Modules of ``stages/`` that are infrastructure, not a stage kind.
 STAGE_INFRA = {

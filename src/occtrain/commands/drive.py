@@ -5,7 +5,8 @@ as ``occtrain data synth`` draws its scene seeds, so ``--seed`` other than the t
 worlds' gives routes no training saw). On every route the stage drives (its kind's
 ``Stage.driver``: a world model's ``plan`` operation, a planner stage's head), and so do the
 baselines: the simulator's own expert (the route follower that generated the data),
-constant velocity and standing still. The ego replans every 0.5 s and follows each plan
+constant velocity, constant acceleration (from the ego's past: ``kinematics``) and
+standing still. The ego replans every 0.5 s and follows each plan
 through a kinematic bicycle in between; the traffic reacts to it.
 
 Results go to ``<stage>/drive/seed<S>-<T>s/``: one JSON per episode, written as it ends (a
@@ -41,7 +42,7 @@ from occtrain.progress import console, progress_bar
 from occtrain.run.control import Interrupted, stop_on_signals
 
 #: The baselines every stage is driven beside.
-BASELINES = ("expert", "constant_velocity", "stand_still")
+BASELINES = ("expert", "constant_velocity", "constant_acceleration", "stand_still")
 #: The job that scores the plans open loop on the same routes (the expert drives; see ``shadow_episode``).
 OPEN_LOOP = "open-loop"
 #: What the scores follow, written into every result.
@@ -344,7 +345,15 @@ def _run_episode(context: _EpisodeContext, job: DriveJob) -> None:
 
 
 def _drive_episode(context: _EpisodeContext, job: DriveJob) -> None:
-    from occtrain.data.driving import STRIDE, DrivingWorld, constant_velocity, drive_episode, save_gif, stand_still
+    from occtrain.data.driving import (
+        STRIDE,
+        DrivingWorld,
+        constant_acceleration,
+        constant_velocity,
+        drive_episode,
+        save_gif,
+        stand_still,
+    )
     from occtrain.engine.closed_loop import PlanCounts, model_planner
     from occtrain.metrics.driving import score_episode
 
@@ -364,7 +373,12 @@ def _drive_episode(context: _EpisodeContext, job: DriveJob) -> None:
             # It drove every planning frame reached (the loop plans at each until the episode ends).
             counts = PlanCounts(expert=-(-world.step // STRIDE))
         elif job.driver in BASELINES:
-            baseline = _Counted({"constant_velocity": constant_velocity, "stand_still": stand_still}[job.driver])
+            kinematic = {
+                "constant_velocity": constant_velocity,
+                "constant_acceleration": constant_acceleration,
+                "stand_still": stand_still,
+            }
+            baseline = _Counted(kinematic[job.driver])
             trace = drive_episode(world, baseline, views)
             counts = PlanCounts(planned=baseline.calls)
         else:
@@ -406,21 +420,25 @@ def _write_open_loop(context: _EpisodeContext, job: DriveJob, world: Any, start:
     ST-P3's convention, collisions against the agents where they then were)."""
     import torch
 
-    from occtrain.data.driving import Planner, constant_velocity, shadow_episode, stand_still
+    from occtrain.data.driving import Planner, constant_acceleration, constant_velocity, shadow_episode, stand_still
     from occtrain.engine.closed_loop import OpenLoopPlanner
     from occtrain.metrics.planning import PlanningMetric
 
     stage = Path(context.stage_dir).name
     with tempfile.TemporaryDirectory(prefix="frames-", dir=context.scratch) as frames:
         model = OpenLoopPlanner(*_stage_reader(context, world, frames, OPEN_LOOP))
-        baselines: dict[str, Planner] = {"constant_velocity": constant_velocity, "stand_still": stand_still}
+        baselines: dict[str, Planner] = {
+            "constant_velocity": constant_velocity,
+            "constant_acceleration": constant_acceleration,
+            "stand_still": stand_still,
+        }
         shadow = shadow_episode(world, {stage: model, **baselines})
         for frame, plan in zip(shadow, model.plans(len(shadow))):  # the first planning frames, in order
             frame.plans[stage] = plan
     # Scored where the stage planned: every planner on the same frames.
     shadow = [f for f in shadow if f.plans[stage] is not None]
     scores: dict[str, dict[str, float]] = {}
-    for name in [stage, "constant_velocity", "stand_still"]:
+    for name in [stage, *baselines]:
         metric = PlanningMetric()
         if shadow:
             metric.update(

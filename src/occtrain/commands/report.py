@@ -44,20 +44,33 @@ HEADLINES = (
         r"occworld_(mIoU|IoU)",
         "reconstruction {0} (`occworld`)",
         1,
-        (("empty", "baseline_free_occworld_{0}"), ("the point budget's oracle", "baseline_budget_oracle_occworld_{0}")),
+        (
+            ("the per-voxel prior (no input)", "baseline_prior_occworld_{0}"),
+            ("empty", "baseline_free_occworld_{0}"),
+            ("the point budget's oracle", "baseline_budget_oracle_occworld_{0}"),
+        ),
     ),
     Headline(
         r"occworld_movable_mIoU",
         "reconstruction movable-class mIoU (`occworld`)",
         2,
-        (("the point budget's oracle", "baseline_budget_oracle_occworld_movable_mIoU"),),
+        (
+            ("the per-voxel prior (no input)", "baseline_prior_occworld_movable_mIoU"),
+            ("the point budget's oracle", "baseline_budget_oracle_occworld_movable_mIoU"),
+        ),
     ),
+    Headline(r"occupied_share", "predicted occupied share (% of voxels)", 1, (("true", "true_occupied_share"),)),
     Headline(
         r"forecast_occworld_(mIoU|movable_mIoU)_(1s|3s)",
         "forecast {0} at {1} (`occworld`)",
         2,
         (
+            (
+                "the present moved at constant velocity, through the tokenizer",
+                "baseline_cv_moved_reconstruction_forecast_occworld_{0}_{1}",
+            ),
             ("Copy&Paste of the reconstruction", "baseline_copy_reconstruction_forecast_occworld_{0}_{1}"),
+            ("the per-voxel prior (no input)", "baseline_prior_forecast_occworld_{0}_{1}"),
             ("copy the scene", "baseline_copy_forecast_occworld_{0}_{1}"),
             ("the scene moved at constant velocity", "baseline_cv_moved_forecast_occworld_{0}_{1}"),
         ),
@@ -67,6 +80,8 @@ HEADLINES = (
         "plan `{0}`: L2 avg (`stp3`, m)",
         3,
         (
+            ("constant acceleration", "baseline_constant_acceleration_L2_stp3_avg"),
+            ("constant acceleration", "constant_acceleration_L2_stp3_avg"),
             ("constant velocity", "baseline_constant_velocity_L2_stp3_avg"),
             ("constant velocity", "constant_velocity_L2_stp3_avg"),
             ("standing still", "baseline_stationary_L2_stp3_avg"),
@@ -77,6 +92,8 @@ HEADLINES = (
         "plan `{0}` where the truth departs from constant velocity (> 1 m at 3 s): L2 avg (`stp3`, m)",
         3,
         (
+            ("constant acceleration", "baseline_constant_acceleration_departing_L2_stp3_avg"),
+            ("constant acceleration", "constant_acceleration_departing_L2_stp3_avg"),
             ("constant velocity", "baseline_constant_velocity_departing_L2_stp3_avg"),
             ("constant velocity", "constant_velocity_departing_L2_stp3_avg"),
             ("standing still", "baseline_stationary_departing_L2_stp3_avg"),

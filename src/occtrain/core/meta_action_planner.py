@@ -40,7 +40,7 @@ from occtrain.formats.io import atomic_write_json, atomic_write_safetensors, is_
 from occtrain.formats.occ3d import FUTURE_STEPS, PAST_STEPS
 from occtrain.metrics import compute_metrics
 from occtrain.models import count_parameters
-from occtrain.models.planning_heads import PlanningHead, constant_velocity, current_velocity
+from occtrain.models.planning_heads import PlanningHead, constant_acceleration, constant_velocity, current_velocity
 from occtrain.progress import progress_bar
 
 META_SOURCES = ("ground_truth", "generated")
@@ -168,7 +168,14 @@ class MetaActionPlanner(nn.Module):
         self.parsed = MeanMetric()
         self.metrics = nn.ModuleDict(
             plan_metrics(
-                ("head_gt_meta", "head_generated_meta", "llm_action_tokens", "constant_velocity", "baseline_stationary")
+                (
+                    "head_gt_meta",
+                    "head_generated_meta",
+                    "llm_action_tokens",
+                    "constant_velocity",
+                    "constant_acceleration",
+                    "baseline_stationary",
+                )
             )
         )
 
@@ -322,6 +329,7 @@ class MetaActionPlanner(nn.Module):
         record("head_gt_meta", self.head(**x), rows)
         everyone = list(range(len(anchors)))
         record("constant_velocity", constant_velocity(anchors, gt.traj.device), everyone)
+        record("constant_acceleration", constant_acceleration(anchors, gt.traj.device), everyone)
         record("baseline_stationary", torch.zeros_like(gt.traj), everyone)
         if (
             self.teacher is not None

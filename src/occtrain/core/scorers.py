@@ -11,6 +11,7 @@ scorer against :class:`~occtrain.core.protocols.Scorer`.
 from __future__ import annotations
 
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
@@ -29,9 +30,10 @@ from occtrain.data.layout import DatasetIndex
 from occtrain.data.meta_actions import MetaActionConfig, past_labels
 from occtrain.data.schema import MetaAction
 from occtrain.data.text_formats import meta_action_words, parse_meta_action
+from occtrain.data.voxel_prior import voxel_prior
 from occtrain.formats.occ3d import FREE, FUTURE_STEPS, MOVABLE_CLASSES
 from occtrain.metrics import CaptionMetric, ForecastMetric, MetaActionAccuracy, PlanningMetric, QAMetric
-from occtrain.models.planning_heads import constant_velocity
+from occtrain.models.planning_heads import constant_acceleration, constant_velocity
 
 
 @dataclass
@@ -42,9 +44,22 @@ class Priors:
     qa: dict[str, str] = field(default_factory=dict)
     #: The commonest meta action ({"speed", "direction"}) of the frame sidecars, None without them.
     meta_action: dict | None = None
+    #: The dataset the per-voxel prior is counted on (``voxels``), and where it is kept.
+    data_root: str | None = None
+    cache_dir: Path | None = None
+    _voxels: torch.Tensor | None = field(default=None, repr=False)
+
+    def voxels(self) -> torch.Tensor:
+        """(X, Y, Z) long: each voxel's commonest train label (``data.voxel_prior``), counted
+        at the first call (a forecast scorer's), kept in ``cache_dir``."""
+        if self._voxels is None:
+            if self.data_root is None:
+                raise ValueError("these priors were made without a dataset: no per-voxel prior to count")
+            self._voxels = torch.from_numpy(voxel_prior(self.data_root, self.cache_dir)).long()
+        return self._voxels
 
     @classmethod
-    def of(cls, data_root: str | Path) -> Priors:
+    def of(cls, data_root: str | Path, cache_dir: Path | None = None) -> Priors:
         index = DatasetIndex.open(data_root)
         by_type: dict[str, Counter] = {}
         for q in index.questions("train") or []:
@@ -60,7 +75,7 @@ class Priors:
         if metas:
             speed, direction = metas.most_common(1)[0][0]
             meta = {"speed": speed, "direction": direction}
-        return cls({t: c.most_common(1)[0][0] for t, c in by_type.items()}, meta)
+        return cls({t: c.most_common(1)[0][0] for t, c in by_type.items()}, meta, str(data_root), cache_dir)
 
 
 @dataclass
@@ -99,7 +114,7 @@ class BaseScorer:
 #: the clips that depart from constant velocity, ``core.plan_subsets``).
 PLAN_BASELINES = {
     name + subset: PlanningMetric
-    for name in ("baseline_constant_velocity", "baseline_stationary")
+    for name in ("baseline_constant_velocity", "baseline_constant_acceleration", "baseline_stationary")
     for subset in ("", DEPARTING)
 }
 
@@ -116,9 +131,11 @@ class PlanScorer(BaseScorer):
     def score(self, ev: Any, item: Item) -> None:
         target, anchor, token = item.target, item.clip.anchor, item.clip.anchor["token"]
         departing = departing_rows([anchor], target)
-        if ev.once(("plan baselines", token)):  # standing still and constant velocity, once a clip
+        if ev.once(("plan baselines", token)):  # standing still, constant velocity and acceleration, once a clip
             cv = constant_velocity([anchor], ev.device)
             update_plans(ev.metrics, "baseline_constant_velocity", cv, target, departing)
+            ca = constant_acceleration([anchor], ev.device)
+            update_plans(ev.metrics, "baseline_constant_acceleration", ca, target, departing)
             update_plans(ev.metrics, "baseline_stationary", torch.zeros_like(target.traj), target, departing)
         actions = [p for p in item.generated if isinstance(p, Actions)]
         if not actions:
@@ -140,26 +157,52 @@ class PlanScorer(BaseScorer):
 
 
 #: A forecast's baselines, on the same samples (``forecast_baselines``), and the metric of each.
-FORECAST_BASELINES = ("baseline_copy_forecast", "baseline_copy_reconstruction_forecast", "baseline_cv_moved_forecast")
+FORECAST_BASELINES = (
+    "baseline_copy_forecast",
+    "baseline_copy_reconstruction_forecast",
+    "baseline_cv_moved_forecast",
+    "baseline_cv_moved_reconstruction_forecast",
+    "baseline_prior_forecast",
+)
 #: Forecasts are scored on every class and on the movable ones, where forecasting shows.
 forecast_metric = partial(ForecastMetric, subsets={"movable": MOVABLE_CLASSES})
 
 
 def forecast_baselines(
-    current: torch.Tensor, reconstruction: torch.Tensor, anchor: dict, steps: int = FUTURE_STEPS
+    current: torch.Tensor,
+    reconstruction: torch.Tensor,
+    anchor: dict,
+    steps: int = FUTURE_STEPS,
+    prior: torch.Tensor | None = None,
+    through: Callable[[torch.Tensor], torch.Tensor] | None = None,
+    scored: list[int] | None = None,
 ) -> dict[str, torch.Tensor]:
     """The forecasts a world model must beat, (1, steps, X, Y, Z) each, from the current
     label volume (X, Y, Z) and the scene encoder's reconstruction of it: the exact scene
     copied forward; the reconstruction copied forward (OccWorld's Copy&Paste, which no
     tokenizer error can favour); the exact scene moved by the ego's constant-velocity
-    motion, everything else standing still."""
+    motion, everything else standing still; with ``through`` (labels (N, X, Y, Z) -> their
+    reconstruction by the scene encoder), that moved scene reconstructed, at the ``scored``
+    steps only (what a model given the moved present as its query and copying it scores);
+    with ``prior``, the per-voxel prior of the train split at every step (no input at all)."""
     plan = constant_velocity([anchor])[0]
     moved = torch.stack([moved_scene(current, tuple(plan[t].tolist())) for t in range(steps)])
-    return {
+    out = {
         "baseline_copy_forecast": current[None, None].expand(1, steps, *current.shape),
         "baseline_copy_reconstruction_forecast": reconstruction[None, None].expand(1, steps, *current.shape),
         "baseline_cv_moved_forecast": moved[None],
     }
+    if through is not None:
+        at = list(range(steps)) if scored is None else scored
+        moved_reconstruction = torch.full_like(moved, FREE)
+        if at:
+            moved_reconstruction[at] = through(moved[at]).to(moved.dtype)
+        out["baseline_cv_moved_reconstruction_forecast"] = moved_reconstruction[None]
+    if prior is not None:
+        out["baseline_prior_forecast"] = prior.to(current.device, current.dtype)[None, None].expand(
+            1, steps, *current.shape
+        )
+    return out
 
 
 class ForecastScorer(BaseScorer):
@@ -194,7 +237,20 @@ class ForecastScorer(BaseScorer):
         ev.metrics["forecast_occworld"].update(pred.to(dev), target.to(dev), valid.to(dev))
         current = semantics[a].long()
         reconstruction = item.engine.decode_scenes(item.scenes[a][None])[0].cpu()
-        for name, volumes in forecast_baselines(current, reconstruction, item.clip.anchor).items():
+        engine = item.engine
+
+        def through(labels: torch.Tensor) -> torch.Tensor:
+            return engine.decode_scenes(engine.encode_scenes(labels)).cpu()
+
+        baselines = forecast_baselines(
+            current,
+            reconstruction,
+            item.clip.anchor,
+            prior=ev.priors.voxels() if ev.priors.data_root is not None else None,
+            through=through if engine.encodes_labels() else None,
+            scored=[k for k in horizons if k < n],
+        )
+        for name, volumes in baselines.items():
             ev.metrics[f"{name}_occworld"].update(volumes.to(dev), target.to(dev), valid.to(dev))
         token = item.clip.anchor["token"]
         ev.keep_forecast_picture(token, pred[0].numpy(), target[0].numpy(), n)

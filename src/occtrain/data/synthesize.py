@@ -26,6 +26,8 @@ FORMAT_CHANGES = {
     3: "camera_sensor records in the released files' form (keyed by channel, intrinsics, img_path)",
     4: "surfaces instead of solids, labels only where the scene's lidar sweeps saw a surface, "
     "mask_lidar from 32 beams that return, mask_camera inside it, street-like class areas",
+    5: "ego_accel from the frame and the one before (the speed now against the last move's), no longer the "
+    "acceleration the expert applied after the frame",
 }
 FORMAT_VERSION = max(FORMAT_CHANGES)
 

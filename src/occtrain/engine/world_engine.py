@@ -11,6 +11,7 @@ and the benchmarks all use it; it names no family and never imports Lightning.
 from __future__ import annotations
 
 import hashlib
+import itertools
 from collections.abc import Callable, Iterator
 from functools import partial
 from pathlib import Path
@@ -286,6 +287,21 @@ class WorldModelEngine(torch.nn.Module):
     def decode_scenes(self, scenes: torch.Tensor) -> torch.Tensor:
         """Scene rows (N, ...) -> (N, X, Y, Z) class labels through the scene encoder."""
         return self.encoder.decode(scenes)
+
+    def encodes_labels(self) -> bool:
+        """Whether the scene encoder makes its rows from label volumes (not from the cameras)."""
+        return isinstance(self.scene_encoder, SceneEncoder) and not self.scenes_from_cameras()
+
+    @torch.no_grad()
+    def encode_scenes(self, semantics: torch.Tensor) -> torch.Tensor:
+        """Label volumes (N, X, Y, Z) -> their scene rows through the scene encoder (one that
+        reads labels: ``encodes_labels``)."""
+        if not self.encodes_labels():
+            raise ValueError(f"the '{self.family}' world model's scene encoder does not read label volumes")
+        encoder = self.scene_encoder
+        assert isinstance(encoder, torch.nn.Module)
+        first = next(itertools.chain(encoder.parameters(), encoder.buffers()), None)
+        return self.encoder.encode(semantics.long().to(first.device if first is not None else "cpu"))
 
     @torch.no_grad()
     def encode_images(self, images: torch.Tensor) -> torch.Tensor:

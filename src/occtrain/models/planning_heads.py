@@ -11,6 +11,7 @@ from torch import nn
 from occtrain.errors import OcctrainError
 from occtrain.formats.exports import load_state_strict, read_export
 from occtrain.formats.occ3d import FRAME_DT, FUTURE_STEPS
+from occtrain.kinematics import constant_acceleration_path, past_acceleration
 
 
 class PlanningHead(nn.Module):
@@ -91,6 +92,27 @@ def ego_speed(anchor: dict) -> float:
 def constant_velocity(anchors: list[dict], device: torch.device | str = "cpu") -> torch.Tensor:
     """The constant-velocity baseline of each anchor: straight on at its current speed, (B, 6, 2)."""
     return constant_velocity_plan(torch.tensor([ego_speed(a) for a in anchors], device=device), FUTURE_STEPS)
+
+
+def last_move(anchor: dict) -> float | None:
+    """Metres the ego moved from the previous frame to this one (its last past waypoint), None without one."""
+    past = np.asarray(anchor.get("ego_past", []), dtype=np.float64).reshape(-1, 2)
+    mask = np.asarray(anchor.get("ego_past_mask", []), dtype=bool)
+    return float(np.linalg.norm(past[-1])) if len(past) and mask[-1] else None
+
+
+def constant_acceleration(anchors: list[dict], device: torch.device | str = "cpu") -> torch.Tensor:
+    """The constant-acceleration baseline of each anchor, (B, 6, 2): straight on from its
+    current speed at the acceleration its past shows (``kinematics.past_acceleration``: the
+    speed now against the last move's; no future, no sidecar acceleration), stopping at
+    standstill. On a world where speed changes are smooth it is the kinematic bar a planner
+    must clear, far lower than constant velocity's."""
+    rows = []
+    for anchor in anchors:
+        speed = ego_speed(anchor)
+        x = constant_acceleration_path(speed, past_acceleration(speed, last_move(anchor)), FUTURE_STEPS)
+        rows.append(np.stack([x, np.zeros_like(x)], axis=1))
+    return torch.tensor(np.array(rows), dtype=torch.float32, device=device).reshape(len(anchors), FUTURE_STEPS, 2)
 
 
 def load_planning_head(export_dir: Path) -> PlanningHead:

@@ -16,7 +16,7 @@ import json
 import math
 import time
 import traceback
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -442,11 +442,7 @@ def run(
     if rank_zero:
         for note in shadowed_overrides(recipe, list(overrides or [])):
             console.print(f"[yellow]note[/]: {note}")
-    with (
-        stop_on_signals(),
-        run_lock(run_dir) if rank_zero else contextlib.nullcontext(),
-        contextlib.ExitStack() as held,
-    ):
+    with _holding(run_dir, rank_zero) as held:
         # Read again under the lock: the manifest this run writes is the one it checked.
         manifest = Manifest.load(run_dir, writable=rank_zero)
         if rank_zero:  # an earlier --restart killed before it settled
@@ -465,9 +461,7 @@ def run(
 
                 ensure_data(recipe.data)
                 if restarted:  # last before training: nothing else can fail with the stages away
-                    for name in restarted:  # no eval or drive writes into a stage replaced under it
-                        held.enter_context(restart_lock(run_dir, name))
-                    manifest.set_aside([p.spec.name for p in planned if p.spec.name in restarted])
+                    _set_aside(manifest, run_dir, [p.spec.name for p in planned if p.spec.name in restarted], held)
             try:
                 _run_stages(planned, manifest, run_dir, recipe, only, rank_zero)
             except (Exception, Interrupted) as err:
@@ -486,6 +480,24 @@ def run(
                 stop = stop.with_message(f"{stop} before any stage trained; run the same command again to continue")
             raise stop from None
     return run_dir
+
+
+@contextlib.contextmanager
+def _holding(run_dir: Path, rank_zero: bool) -> Iterator[contextlib.ExitStack]:
+    """Stop signals turned into :class:`Interrupted`, the run directory's lock (rank zero),
+    and a stack the stage locks a restart takes join for the run's life."""
+    with stop_on_signals(), contextlib.ExitStack() as held:
+        if rank_zero:
+            held.enter_context(run_lock(run_dir))
+        yield held
+
+
+def _set_aside(manifest: Manifest, run_dir: Path, names: list[str], held: contextlib.ExitStack) -> None:
+    """The stages a restart replaces, moved aside once no eval or drive scores them (their
+    locks then held in ``held`` for the run's life: none writes into a stage replaced under it)."""
+    for name in names:
+        held.enter_context(restart_lock(run_dir, name))
+    manifest.set_aside(names)
 
 
 def restart_lock(run_dir: Path, stage: str, create: bool = True) -> contextlib.AbstractContextManager[None]:

@@ -97,7 +97,11 @@ def evaluate_engine(engine: WorldModelEngine, request: EvalRequest) -> EvalResul
         )
         tasks = [t for t in tasks if t not in lacking]
     evaluator = Evaluator(
-        tasks, specs, record=request.record, priors=Priors.of(request.data_root), hooks=engine.spec.eval_hooks
+        tasks,
+        specs,
+        record=request.record,
+        priors=Priors.of(request.data_root, request.shared_cache_dir),
+        hooks=engine.spec.eval_hooks,
     )
     torch.manual_seed(0)
     total = evaluator.total(engine, request.data_root, request.split, request.samples)

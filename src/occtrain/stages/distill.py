@@ -113,7 +113,7 @@ class DistillStage(Stage):
             teacher.vision,
         )
         self.projector = FeatureProjector(world.hidden_size, teacher.world.hidden_size)
-        priors, hooks = Priors.of(ctx.data.root), teacher.spec.eval_hooks
+        priors, hooks = Priors.of(ctx.data.root, ctx.shared_cache_dir), teacher.spec.eval_hooks
         names = scorable(teacher.task_specs, tasks.weights)
         self.evaluator = Evaluator(names, teacher.task_specs, priors=priors, hooks=hooks)
         self.teacher_evaluator = Evaluator(names, teacher.task_specs, priors=priors, hooks=hooks)

@@ -142,7 +142,7 @@ class WorldModelStage(Stage):
         self.evaluator = Evaluator(
             scorable(self.engine.task_specs, tasks.weights),
             self.engine.task_specs,
-            priors=Priors.of(ctx.data.root),
+            priors=Priors.of(ctx.data.root, ctx.shared_cache_dir),
             hooks=hooks,
         )
         self.val_means = ValidationMeans("val/loss", "val/token_acc")

@@ -31,6 +31,7 @@ from occtrain.core.registry import (
 )
 from occtrain.data.frames import frames_batch
 from occtrain.data.layout import DatasetIndex
+from occtrain.data.voxel_prior import voxel_prior
 from occtrain.errors import ConfigError
 from occtrain.metrics.reconstruction import ReconstructionMetrics
 from occtrain.models import count_parameters
@@ -54,12 +55,14 @@ def _arch_of(model: Any) -> TokenizerArch | None:
     return tokenizer_archs().get(str(model["arch"] if isinstance(model, dict) else getattr(model, "arch", "")))
 
 
-def reconstruction_metrics(model: Any) -> ReconstructionMetrics:
-    """Both conventions, an empty scene as the baseline, code use per codebook (motion and
-    static for the MS-VAE; none for a continuous encoder)."""
+def reconstruction_metrics(model: Any, root: str | Path, cache_dir: Path | None) -> ReconstructionMetrics:
+    """Both conventions, an empty scene and the per-voxel prior of ``root``'s train split
+    (kept in ``cache_dir``) as the baselines, code use per codebook (motion and static for
+    the MS-VAE; none for a continuous encoder)."""
+    prior = torch.from_numpy(voxel_prior(root, cache_dir))
     if not getattr(model, "discrete", True):
-        return ReconstructionMetrics({}, oracle=bool(getattr(model, "budget_oracle", False)))
-    return ReconstructionMetrics(dict(zip(model.codebook_names, model.codebook_sizes)))
+        return ReconstructionMetrics({}, oracle=bool(getattr(model, "budget_oracle", False)), prior=prior)
+    return ReconstructionMetrics(dict(zip(model.codebook_names, model.codebook_sizes)), prior=prior)
 
 
 class TokenizerStage(Stage):
@@ -121,7 +124,7 @@ class TokenizerStage(Stage):
         if self.teacher is not None:
             self.model.attach_teacher(self.teacher.hidden_size)
         self.index = DatasetIndex.open(ctx.data.root) if self.arch.reads_cameras else None
-        self.recon = reconstruction_metrics(self.model)
+        self.recon = reconstruction_metrics(self.model, ctx.data.root, ctx.shared_cache_dir)
         self.val_means = ValidationMeans("val/loss")
         self._pictures: list[tuple] = []
 
@@ -204,7 +207,7 @@ class TokenizerStage(Stage):
         index = DatasetIndex.open(request.data_root)
         every = [(scene, token) for scene in index.splits.get(request.split, []) for token in index.scenes[scene]]
         frames = every if request.samples < 0 else every[: request.samples]
-        recon = reconstruction_metrics(model)
+        recon = reconstruction_metrics(model, request.data_root, request.shared_cache_dir)
         size = request.batch_size
         with progress_bar(len(frames), f"reconstructing {len(frames)} {request.split} frames") as advance:
             for i in range(0, len(frames), size):

@@ -35,9 +35,26 @@ def test_forecast_baselines_copy_paste_the_reconstruction_and_move_the_exact_sce
     current[30, 2, 0] = CAR
     reconstruction = torch.full_like(current, ROAD)
     speed = 2 * VOXEL_SIZE / FRAME_DT  # two voxels a frame
-    out = forecast_baselines(current, reconstruction, {"ego_speed": speed}, steps=3)
+    prior = torch.full_like(current, ROAD)
+    prior[0, 0, 0] = CAR
+    through = []  # what went through the scene encoder: the moved scenes at the scored steps only
+
+    def tokenizer(labels: torch.Tensor) -> torch.Tensor:
+        through.append(labels.clone())
+        return torch.where(labels == CAR, ROAD, labels)  # a tokenizer that loses cars
+
+    out = forecast_baselines(
+        current, reconstruction, {"ego_speed": speed}, steps=3, prior=prior, through=tokenizer, scored=[0, 2]
+    )
     assert set(out) == set(FORECAST_BASELINES)
     assert all(v.shape == (1, 3, 50, 4, 2) for v in out.values())
+    assert len(through) == 1 and torch.equal(through[0], out["baseline_cv_moved_forecast"][0, [0, 2]])
+    moved_reconstruction = out["baseline_cv_moved_reconstruction_forecast"][0]
+    assert (moved_reconstruction[1] == FREE).all() and not (moved_reconstruction[[0, 2]] == CAR).any()
+    assert all(torch.equal(out["baseline_prior_forecast"][0, t], prior) for t in range(3))  # no input at all
+    assert set(forecast_baselines(current, reconstruction, {"ego_speed": speed}, steps=3)) == set(
+        FORECAST_BASELINES[:3]
+    )
     assert torch.equal(out["baseline_copy_forecast"][0, 2], current)
     assert (out["baseline_copy_reconstruction_forecast"] == ROAD).all()
     for t in range(3):  # after t+1 frames the car is 2 (t+1) voxels nearer

@@ -40,6 +40,7 @@ from occtrain.data.schema import (
 from occtrain.data.synth.catalog import TrackSet
 from occtrain.data.synth.grid import GROUND_TOP_Z
 from occtrain.formats.occ3d import CLASS_NAMES, FRAME_DT, FUTURE_STEPS, PAST_STEPS, RANGE_MAX
+from occtrain.kinematics import past_acceleration
 
 SPEED_WINDOW_S = 1.0
 DIRECTION_WINDOW_S = 3.0
@@ -59,8 +60,18 @@ class EgoMotion:
     xy: np.ndarray  # (T, 2)
     yaw: np.ndarray  # (T,) unwrapped
     speed: np.ndarray
-    accel: np.ndarray  # longitudinal
+    #: Longitudinal, as known at each frame (``past_accels``): never the command about to be applied.
+    accel: np.ndarray
     yaw_rate: np.ndarray
+
+
+def past_accels(xy: np.ndarray, speed: np.ndarray) -> np.ndarray:
+    """(T,) the longitudinal acceleration at each frame from that frame and the one before
+    (``kinematics.past_acceleration``: the speed now against the last move's mean speed), 0
+    at the first. The simulator's own acceleration is the command applied after the frame:
+    a model reading it would read the next half second."""
+    moves = [None, *np.linalg.norm(np.diff(np.asarray(xy, dtype=np.float64), axis=0), axis=1)]
+    return np.array([past_acceleration(float(v), move) for v, move in zip(speed, moves)])
 
 
 def sample_token(seed: int, index: int) -> str:

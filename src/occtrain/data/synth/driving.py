@@ -26,7 +26,7 @@ import numpy as np
 
 from occtrain.data.geometry import driving_command, ego_to_global, global_to_ego
 from occtrain.data.schema import Command, FrameAnnotation
-from occtrain.data.synth.annotate import EgoMotion, frame_annotation
+from occtrain.data.synth.annotate import EgoMotion, frame_annotation, past_accels
 from occtrain.data.synth.catalog import KINDS, PEDESTRIAN, TrackSet
 from occtrain.data.synth.citymap import DRIVEABLE, paint_city
 from occtrain.data.synth.driving_view import ViewFrame
@@ -38,6 +38,7 @@ from occtrain.data.synth.text import caption_for_frame, narration_for_frame
 from occtrain.data.synth.traffic import AMBER, SIM_DT, MoverTraffic, footprint_discs, mover_tracks, walker_tracks
 from occtrain.data.synth.vehicle import WHEELBASE, EgoState, PlanTracker, bicycle_step
 from occtrain.formats.occ3d import EGO_LENGTH, EGO_WIDTH, FRAME_DT, FREE, FUTURE_STEPS
+from occtrain.kinematics import constant_acceleration_path, past_acceleration
 from occtrain.metrics.driving import STOPPED_SPEED, EpisodeTrace, Infraction, InfractionKind
 
 #: The longest episode (s), and the road network's half extent (m) that keeps every route
@@ -253,7 +254,8 @@ class DrivingWorld:
             xy=xy,
             yaw=np.concatenate([[s.yaw for s in driven], np.full(FUTURE_STEPS, self.ego.yaw)]),
             speed=speed,
-            accel=np.concatenate([[s.accel for s in driven], np.zeros(FUTURE_STEPS)]),
+            # As the dataset's: from the driven frames up to now (the future is a filler).
+            accel=np.concatenate([past_accels(xy[: len(driven)], speed[: len(driven)]), np.zeros(FUTURE_STEPS)]),
             yaw_rate=np.concatenate([[s.yaw_rate for s in driven], np.zeros(FUTURE_STEPS)]),
         )
         now = self.agents().tracks()
@@ -505,6 +507,17 @@ def constant_velocity(world: DrivingWorld) -> np.ndarray:
     """Straight ahead at the current speed."""
     t = np.arange(1, FUTURE_STEPS + 1) * FRAME_DT
     return np.stack([world.ego.speed * t, np.zeros_like(t)], axis=1)
+
+
+def constant_acceleration(world: DrivingWorld) -> np.ndarray:
+    """Straight ahead from the current speed at the acceleration of the ego's past
+    (``kinematics.past_acceleration`` over the last planning frame's move), as the
+    open-loop baseline of the same name plans."""
+    frames = world.log.states[::STRIDE]
+    last_move = float(np.linalg.norm(world.ego.xy - frames[-2].xy)) if world.at_frame and len(frames) >= 2 else None
+    speed = world.ego.speed
+    x = constant_acceleration_path(speed, past_acceleration(speed, last_move), FUTURE_STEPS)
+    return np.stack([x, np.zeros_like(x)], axis=1)
 
 
 def stand_still(world: DrivingWorld) -> np.ndarray:

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from occtrain.data.schema import FrameAnnotation
-from occtrain.data.synth.annotate import EgoMotion, frame_annotation
+from occtrain.data.synth.annotate import EgoMotion, frame_annotation, past_accels
 from occtrain.data.synth.catalog import TrackSet
 from occtrain.data.synth.citymap import StaticMap, paint_city
 from occtrain.data.synth.population import EgoPlan, ego_mover, ego_start, spawn_traffic, spawn_walkers
@@ -126,7 +126,7 @@ def generate_scene(name: str, seed: int, num_frames: int = 40) -> SyntheticScene
         xy=motion.xy[0, sl],
         yaw=motion.yaw[0, sl],
         speed=motion.v[0, sl],
-        accel=motion.a[0, sl],
+        accel=past_accels(motion.xy[0, sl], motion.v[0, sl]),
         yaw_rate=motion.v[0, sl] * motion.curvature[0, sl],
     )
     static, placed = paint_city(

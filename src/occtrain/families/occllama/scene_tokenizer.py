@@ -197,9 +197,8 @@ class OccLLaMATokenizer(SceneTokenizer):
             lovasz_voxels=self.cfg.lovasz_voxels,
             weights=None if weights is None else weights[occupied],
         )
-        status_ce, status_lovasz = ce_lovasz(
-            status_logits, status, lovasz_voxels=self.cfg.lovasz_voxels, weights=weights
-        )
+        # Unweighted: the occupied/free decision keeps the data's odds (see class_balance_weights).
+        status_ce, status_lovasz = ce_lovasz(status_logits, status, lovasz_voxels=self.cfg.lovasz_voxels)
         cfg = self.cfg
         total = (
             cfg.lambda1 * (sem_ce + cfg.lambda3 * sem_lovasz)

@@ -53,7 +53,7 @@ from occtrain.formats.io import atomic_write_safetensors, is_rank_zero
 from occtrain.formats.occ3d import FUTURE_STEPS
 from occtrain.metrics import compute_metrics
 from occtrain.models import count_parameters
-from occtrain.models.planning_heads import constant_velocity
+from occtrain.models.planning_heads import constant_acceleration, constant_velocity
 from occtrain.progress import progress_bar
 
 #: The condition each decoder layer's cross-attentions read, in order (Fig. 3).
@@ -260,7 +260,7 @@ class AnchorDiffusionPlanner(nn.Module):
             self.scorer = nn.Linear(d, 1)
         self._decisions: dict[str, dict[str, torch.Tensor]] = {}
         self._load_cache()
-        names = ("plan", "plan_top_anchor", "constant_velocity", "baseline_stationary")
+        names = ("plan", "plan_top_anchor", "constant_velocity", "constant_acceleration", "baseline_stationary")
         self.metrics = nn.ModuleDict(plan_metrics(names))
         self.positive_hit = MeanMetric()
 
@@ -455,6 +455,7 @@ class AnchorDiffusionPlanner(nn.Module):
             ("plan", plan),
             ("plan_top_anchor", top),
             ("constant_velocity", constant_velocity(anchors, self.device)),
+            ("constant_acceleration", constant_acceleration(anchors, self.device)),
             ("baseline_stationary", torch.zeros_like(gt.traj)),
         ):
             update_plans(self.metrics, name, pred, gt, departing)

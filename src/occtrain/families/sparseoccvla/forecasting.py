@@ -4,7 +4,8 @@ voxel: no camera mask, as the paper states), at 1 / 2 / 3 s, on every frame with
 3 s future and, separately, with the paper's frames (the first five and last seven of each
 scene left out); beside the shared forecast baselines (``core.scorers.forecast_baselines``:
 the exact current scene copied, the encoder's own reconstruction of it copied, OccWorld's
-Copy&Paste, and the exact scene moved by the ego's constant velocity), on the same samples. The encoder's
+Copy&Paste, the exact scene moved by the ego's constant velocity, and the per-voxel prior of
+the train split), on the same samples. The encoder's
 reconstruction of the current frame is scored too (Table 8's "Curr")."""
 
 from __future__ import annotations
@@ -70,7 +71,9 @@ class ForecastHead:
                 pred[0, t] = voxelize(points, classes, world.voxel_extent).cpu()
             current = torch.from_numpy(labels[0]["semantics"]).long()
             recon = engine.decode_scenes(rows[None])[0].cpu()
-            predictions = {"forecast": pred, **forecast_baselines(current, recon, clip.anchor)}
+            # No moved reconstruction: the encoder reads cameras, which a moved scene has none of.
+            prior = ev.priors.voxels() if ev.priors.data_root is not None else None
+            predictions = {"forecast": pred, **forecast_baselines(current, recon, clip.anchor, prior=prior)}
             selections = [""] + (
                 ["trimmed_"] if paper_frame(index.scenes[scene].index(token), len(index.scenes[scene])) else []
             )

@@ -11,7 +11,7 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-from occtrain.formats.occ3d import NUM_CLASSES
+from occtrain.formats.occ3d import FREE, NUM_CLASSES
 
 
 def lovasz_softmax(probs: torch.Tensor, labels: torch.Tensor, valid: torch.Tensor | None = None) -> torch.Tensor:
@@ -50,17 +50,30 @@ def _lovasz_grad(fg_sorted: torch.Tensor) -> torch.Tensor:
     return torch.cat([jaccard[:, :1], jaccard[:, 1:] - jaccard[:, :-1]], dim=1)
 
 
-def class_balance_weights(semantics: torch.Tensor, power: float, num_classes: int = NUM_CLASSES) -> torch.Tensor | None:
-    """Per-voxel weights (same shape as ``semantics``) of ``frequency(class) ** -power``, the
-    frequencies counted in this batch, scaled to a mean of 1: 0 weighs every voxel alike; 0.5
-    lets a class 100 times rarer count 10 times more per voxel (small moving objects
-    against buildings and road). None for 0, the unweighted loss."""
+def class_balance_weights(
+    semantics: torch.Tensor, power: float, num_classes: int = NUM_CLASSES, free: int = FREE
+) -> torch.Tensor | None:
+    """Per-voxel weights (same shape as ``semantics``) that rebalance the occupied classes
+    among themselves: ``frequency(class) ** -power`` over the occupied voxels of this batch,
+    scaled to a mean of 1 over them; every ``free`` voxel weighs 1. 0 weighs every voxel
+    alike; 0.5 lets a class 100 times rarer count 10 times more per voxel (small moving
+    objects against buildings and road). None for 0, the unweighted loss.
+
+    Occupied and free keep their unweighted totals, so the loss does not trade free voxels
+    for occupied ones: counting ``free`` among the balanced classes made an occupied voxel of
+    a 93 %-free world weigh about 12 times a free one, and a decoder then called a voxel
+    occupied once it was 8 % sure (12 % predicted occupied where 6.6 % were). A binary
+    occupied/free loss should take no weights at all (its boundary stays at p = 0.5)."""
     if not power:
         return None
-    counts = torch.bincount(semantics.reshape(-1), minlength=num_classes).to(torch.float32)
-    per_class = torch.where(counts > 0, (counts / counts.sum()).clamp_min(1e-12) ** -power, torch.zeros_like(counts))
-    weights = per_class[semantics]
-    return weights / weights.mean()
+    occupied = semantics != free
+    counts = torch.bincount(semantics[occupied].reshape(-1), minlength=num_classes).to(torch.float32)
+    share = counts / counts.sum().clamp_min(1.0)
+    per_class = torch.where(counts > 0, share.clamp_min(1e-12) ** -power, torch.zeros_like(counts))
+    weights = torch.where(occupied, per_class[semantics], torch.ones((), dtype=torch.float32, device=semantics.device))
+    if occupied.any():
+        weights = torch.where(occupied, weights / weights[occupied].mean(), weights)
+    return weights
 
 
 def ce_lovasz(

@@ -395,19 +395,50 @@ def test_tiny_model_overfits_one_sample(arch, steps):
     assert losses[-1] < 0.5 * losses[0], losses
 
 
-def test_class_balance_weighs_a_rare_class_up_and_is_the_plain_loss_at_zero():
+def test_class_balance_weighs_a_rare_class_up_among_the_occupied_and_is_the_plain_loss_at_zero():
     from occtrain.models.tokenizers.losses import ce_lovasz, class_balance_weights
 
+    # 90 free voxels, 8 road (class 11), 2 car (class 4).
     labels = torch.full((1, 10, 10, 1), FREE, dtype=torch.long)
-    labels[0, 0, 0, 0] = 4  # one car voxel among 99 free ones
+    labels.view(-1)[:8] = 11
+    labels.view(-1)[8:10] = 4
     assert class_balance_weights(labels, 0.0) is None
-    w = class_balance_weights(labels, 0.5)
-    assert float(w.mean()) == pytest.approx(1.0)
-    assert float(w[0, 0, 0, 0] / w[0, 1, 1, 0]) == pytest.approx(99**0.5)  # (1/100)^-0.5 over (99/100)^-0.5
+    w = class_balance_weights(labels, 0.5).view(-1)
+    # Among the 10 occupied: road 0.8 ** -0.5 = 1.1180, car 0.2 ** -0.5 = 2.2361, mean 1.3416.
+    assert float(w[0]) == pytest.approx(1.1180 / 1.3416, rel=1e-4) and float(w[9]) == pytest.approx(
+        2.2361 / 1.3416, rel=1e-4
+    )
+    assert float(w[9] / w[0]) == pytest.approx(2.0)  # (0.2 / 0.8) ** -0.5
+    assert torch.all(w[10:] == 1.0)  # free voxels are not among the balanced classes
+    assert float(w[:10].sum()) == pytest.approx(10.0)  # occupied keep their unweighted total: 10 of 100
     logits = torch.randn(1, NUM_CLASSES, 10, 10, 1, generator=torch.Generator().manual_seed(0))
     plain, _ = ce_lovasz(logits, labels)
     ones, _ = ce_lovasz(logits, labels, weights=torch.ones_like(labels, dtype=torch.float32))
     assert float(plain) == pytest.approx(float(ones))
-    nll = torch.nn.functional.cross_entropy(logits, labels, reduction="none")
-    weighted, _ = ce_lovasz(logits, labels, weights=w)
+    nll = torch.nn.functional.cross_entropy(logits, labels, reduction="none").view(-1)
+    weighted, _ = ce_lovasz(logits, labels, weights=w.view(labels.shape))
     assert float(weighted) == pytest.approx(float((nll * w).sum() / w.sum()), rel=1e-5)
+
+
+def test_a_class_balanced_loss_predicts_the_true_occupied_share():
+    """The weighted cross-entropy's optimum for a model with one logit per class (no input):
+    p(class) = its share of the total weight. Free keeps its share of the voxels, 90 %, so
+    the predicted occupied share is the true one, 10 %. (Counting free among the balanced
+    classes gave 31 %: a free voxel weighed 3.4 times less than a road one, 6.7 than a car.)"""
+    from occtrain.models.tokenizers.losses import ce_lovasz, class_balance_weights
+
+    labels = torch.full((1, 10, 10, 1), FREE, dtype=torch.long)
+    labels.view(-1)[:8] = 11
+    labels.view(-1)[8:10] = 4
+    bias = torch.zeros(NUM_CLASSES, requires_grad=True)
+    opt = torch.optim.Adam([bias], lr=0.1)
+    weights = class_balance_weights(labels, 0.5)
+    for _ in range(400):
+        logits = bias.view(1, -1, 1, 1, 1).expand(1, NUM_CLASSES, 10, 10, 1)
+        loss, _ = ce_lovasz(logits, labels, weights=weights)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    p = bias.detach().softmax(0)
+    assert float(1 - p[FREE]) == pytest.approx(0.10, abs=0.005)
+    assert float(p[4] / p[11]) == pytest.approx(2 * 2.2361 / (8 * 1.1180), rel=0.02)  # the cars weighed up
