@@ -2157,6 +2157,42 @@ CASES: list[Case] = [
         2,
         "{tmp}/ds/" + FIRST_IMG + ": cannot read it",
     ),
+    # ------------------------------------------------------------------ issue 58: round four
+    Case(
+        "synth-seed-negative",
+        nothing,
+        ["data", "synth", "--out", "{tmp}/new", "--seed", "-1"],
+        2,
+        "--seed is -1: a seed is an integer from 0 to 4294967295 (2**32 - 1), as numpy's random generators take",
+    ),
+    Case(
+        "validate-synth-seed-negative",
+        recipe(),
+        ["validate", RECIPE_FILE, "data.root={tmp}/new", "data.synth.seed=-1"],
+        2,
+        "data.synth.seed is -1 in " + RECIPE_FILE + ": a seed is an integer from 0 to 4294967295 (2**32 - 1)",
+    ),
+    Case(
+        "validate-trainer-seed-negative",
+        recipe(),
+        ["validate", RECIPE_FILE, "trainer.seed=-1"],
+        2,
+        "trainer.seed is -1 in " + RECIPE_FILE + ": a seed is an integer from 0 to 4294967295 (2**32 - 1)",
+    ),
+    Case(
+        "run-stage-trainer-seed-too-large",
+        recipe(),
+        [*RUN, "stages.tokenizer.trainer.seed=4294967296"],
+        2,
+        "stages.tokenizer.trainer.seed is 4294967296 in " + RECIPE_FILE + ": a seed is an integer from 0 to",
+    ),
+    Case(
+        "validate-data-seed-negative",
+        recipe(),
+        ["validate", RECIPE_FILE, "data.seed=-1"],
+        2,
+        "data.seed is -1 in " + RECIPE_FILE + ": a seed is an integer from 0 to 4294967295 (2**32 - 1)",
+    ),
 ]
 
 

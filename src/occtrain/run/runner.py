@@ -25,7 +25,7 @@ from omegaconf import OmegaConf
 
 from occtrain.commands.compare import TABLE_FILE, check_table, show_table
 from occtrain.config import load_config, to_container, to_yaml
-from occtrain.config.groups import DataConfig, TrainerConfig
+from occtrain.config.groups import DataConfig, TrainerConfig, check_seed
 from occtrain.config.loading import read_yaml, validate_section
 from occtrain.config.recipe import STAGE_DATA_KEYS, RecipeConfig, StageSpec, check_name
 from occtrain.core.registry import get_family
@@ -191,6 +191,9 @@ _LEAST: dict[str, dict[str, float | None]] = {
     },
     "optim": {"lr": 0, "weight_decay": 0, "warmup_steps": 0, "min_lr_ratio": 0, "eps": 0},
 }
+#: Seeds per section (dotted below it): numpy takes 0 to 2**32 - 1 and raises deep in
+#: Lightning's seeding, the synthesis or a loader otherwise.
+_SEEDS: dict[str, tuple[str, ...]] = {"trainer": ("seed",), "data": ("seed", "synth.seed")}
 
 
 def check_ranges(section: str, cfg: Any, stage: str, own: dict | None, source: str) -> None:
@@ -210,6 +213,12 @@ def check_ranges(section: str, cfg: Any, stage: str, own: dict | None, source: s
             if name == "devices":
                 wanted += ", or -1 for every device"
             raise ConfigError(f"{key} is {value} in {source}: it must be {wanted}")
+    for name in _SEEDS.get(section, ()):
+        seed = cfg
+        for part in name.split("."):
+            seed = getattr(seed, part)
+        key = f"stages.{stage}.{section}.{name}" if name in (own or {}) else f"{section}.{name}"
+        check_seed(seed, key, f" in {source}")
     if section == "optim" and (
         len(cfg.betas) != 2 or not all(0 <= b < 1 for b in cfg.betas) or cfg.schedule not in ("cosine", "constant")
     ):
