@@ -609,6 +609,12 @@ REBUILD_COPY = (
 )
 
 
+# -- setups: issue 58, round four
+#: A value nested 100,000 deep, and an integer of 5,016 digits (Python reads at most 4,300).
+DEEP_JSON = '{"scene_infos": ' + "[" * 100_000 + "]" * 100_000 + "}"
+LONG_INT_JSON = '{"scene_infos": {}, "count": ' + "7" * 5016 + "}"
+
+
 CASES: list[Case] = [
     # ------------------------------------------------------------------ annotations.json
     Case("ann-not-json", write_text("ds/annotations.json", "{not json"), SHARDS_FRAMES, 2, f"{ANN}: not valid JSON"),
@@ -2192,6 +2198,41 @@ CASES: list[Case] = [
         ["validate", RECIPE_FILE, "data.seed=-1"],
         2,
         "data.seed is -1 in " + RECIPE_FILE + ": a seed is an integer from 0 to 4294967295 (2**32 - 1)",
+    ),
+    Case(
+        "stats-ann-nested-too-deep",
+        write_text("ds/annotations.json", DEEP_JSON),
+        ["data", "stats", DS],
+        2,
+        f"{ANN}: not valid JSON (nested deeper than Python's JSON reader goes",
+    ),
+    Case(
+        "validate-ann-integer-of-5016-digits",
+        both(recipe(), write_text("ds/annotations.json", LONG_INT_JSON)),
+        ["validate", RECIPE_FILE],
+        2,
+        f"{ANN}: not valid JSON (an integer of 5016 digits, more than Python reads (4300))",
+    ),
+    Case(
+        "check-ann-nested-too-deep",
+        write_text("ds/annotations.json", DEEP_JSON),
+        CHECK,
+        1,
+        f"{ANN}: not valid JSON (nested deeper than Python's JSON reader goes",
+    ),
+    Case(
+        "check-shards-index-nested-too-deep",
+        write_text("shards/index.json", DEEP_JSON),
+        CHECK_SHARDS,
+        1,
+        "{tmp}/shards/index.json: not valid JSON (nested deeper",
+    ),
+    Case(
+        "planning-integer-of-5016-digits",
+        both(planning(lambda p, g: None), write_text("p.json", LONG_INT_JSON)),
+        PLANNING,
+        2,
+        "{tmp}/p.json: planning predictions is not valid JSON (an integer of 5016 digits",
     ),
 ]
 

@@ -10,7 +10,6 @@ predictions in the formats ``occtrain score`` reads, so both paths give one numb
 
 from __future__ import annotations
 
-import json
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -20,7 +19,7 @@ import numpy as np
 from occtrain.config import load_config
 from occtrain.config.recipe import RecipeConfig
 from occtrain.errors import ConfigError
-from occtrain.formats.io import atomic_write_json, atomic_write_npz, check_output
+from occtrain.formats.io import atomic_write_json, atomic_write_npz, check_output, parse_json
 from occtrain.progress import console
 
 
@@ -171,9 +170,9 @@ def _save(out_file: Path, metrics: dict[str, float], world: str, version: str = 
     tasks (never another world's: the run's dataset may have changed since), and beside
     them the world's key and version (``data.layout.world_version``); returns them."""
     try:
-        earlier = json.loads(out_file.read_text()) if out_file.is_file() else {}
+        earlier = parse_json(out_file.read_text()) if out_file.is_file() else {}
         seen = (
-            json.loads((out_file.parent / WORLD_FILE).read_text()) if (out_file.parent / WORLD_FILE).is_file() else {}
+            parse_json((out_file.parent / WORLD_FILE).read_text()) if (out_file.parent / WORLD_FILE).is_file() else {}
         )
     except ValueError:
         raise ConfigError(

@@ -21,7 +21,7 @@ from occtrain.data.layout import ANNOTATIONS_FILE, GTS_DIR, LABELS_FILE, Dataset
 from occtrain.data.schema import QAFile, Vec2
 from occtrain.data.validate import Len, first_problem
 from occtrain.errors import DataError
-from occtrain.formats.io import atomic_write_json, check_output, finite_or_null
+from occtrain.formats.io import atomic_write_json, check_output, finite_or_null, parse_json
 from occtrain.formats.occ3d import FUTURE_STEPS, GRID_SHAPE, NUM_CLASSES
 
 # The metrics (torch, torchmetrics) load with the first score, not with the CLI's parser.
@@ -81,8 +81,8 @@ def read_json(path: str | Path, what: str) -> Any:
     if not path.is_file():
         raise DataError(f"{path}: {what} not found")
     try:
-        return json.loads(path.read_text())  # NaN/Infinity parse here; the declared types refuse them by key
-    except (json.JSONDecodeError, UnicodeDecodeError) as err:
+        return parse_json(path.read_text())  # NaN/Infinity parse here; the declared types refuse them by key
+    except ValueError as err:
         raise DataError(f"{path}: {what} is not valid JSON ({err})") from None
     except OSError as err:
         raise DataError(f"{path}: cannot read the {what} ({err.strerror})") from None

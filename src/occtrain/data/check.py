@@ -7,7 +7,6 @@ cannot train for want of occtrain's sidecars, go to ``note``.
 
 from __future__ import annotations
 
-import json
 import math
 from collections.abc import Callable
 from functools import partial
@@ -32,6 +31,7 @@ from occtrain.data.schema import FrameAnnotation, Occ3DAnnotations, QAFile
 from occtrain.data.shards import INDEX_FILE, decode_sample, iter_raw, read_index
 from occtrain.data.validate import problems as schema_problems
 from occtrain.errors import OcctrainError
+from occtrain.formats.io import parse_json
 from occtrain.formats.occ3d import FRAME_DT
 
 POSE_TOLERANCE = 0.05  # metres between a sidecar waypoint and the pose it should equal
@@ -58,8 +58,8 @@ def _guarded(run: Callable[[list[str]], None], where: str | Path) -> list[str]:
 def _file_problems(path: Path, schema: Any) -> tuple[Any, list[str]]:
     """A JSON file's content and every way it differs from ``schema`` (capped at MAX_PER_FILE)."""
     try:
-        data = json.loads(path.read_text())
-    except (ValueError, OSError) as err:  # JSONDecodeError and UnicodeDecodeError are ValueErrors
+        data = parse_json(path.read_text())
+    except (ValueError, OSError) as err:
         return None, [f"{path}: not valid JSON ({err}); re-create the file"]
     found = schema_problems(data, schema, limit=MAX_PER_FILE + 1)
     lines = [f"{path}: {p}" for p in found[:MAX_PER_FILE]]

@@ -17,7 +17,6 @@ synthetic world is written through :class:`DatasetWriter` and read back through
 from __future__ import annotations
 
 import hashlib
-import json
 import math
 import posixpath
 from collections.abc import Iterator
@@ -32,7 +31,7 @@ from occtrain.data.cameras import CAMERA_NAMES, Camera, matrix_to_quaternion, tr
 from occtrain.data.schema import FrameAnnotation, Occ3DAnnotations, QAFile, QAQuestion
 from occtrain.data.validate import first_problem
 from occtrain.errors import DataError
-from occtrain.formats.io import atomic_write_bytes, atomic_write_json, atomic_write_npz, png_bytes
+from occtrain.formats.io import atomic_write_bytes, atomic_write_json, atomic_write_npz, parse_json, png_bytes
 from occtrain.formats.occ3d import GRID_SHAPE, NUM_CLASSES
 
 ANNOTATIONS_FILE = "annotations.json"
@@ -164,8 +163,8 @@ def _read_json(path: Path, what: str, schema: Any = None, hint: str = "re-create
         raise DataError(f"{path}: {what} not found")
     try:
         text = path.read_text()
-        data = json.loads(text)  # NaN/Infinity parse; the schema names the key that holds one
-    except (json.JSONDecodeError, UnicodeDecodeError) as err:
+        data = parse_json(text)  # NaN/Infinity parse; the schema names the key that holds one
+    except ValueError as err:
         raise DataError(f"{path}: not valid JSON ({err}); {hint}") from None
     except OSError as err:
         raise DataError(f"{path}: cannot read it ({err.strerror})") from None

@@ -48,7 +48,7 @@ from occtrain.data.layout import CLASS_SUFFIX, DEPTH_SUFFIX, FRAMES_DIR, SPLITS,
 from occtrain.data.reading import PAD_KEY, ShardSamples
 from occtrain.data.validate import first_problem
 from occtrain.errors import DataError
-from occtrain.formats.io import atomic_write_json, npz_bytes, rank_world, remove_inside, write_error
+from occtrain.formats.io import atomic_write_json, npz_bytes, parse_json, rank_world, remove_inside, write_error
 from occtrain.formats.occ3d import GRID_SHAPE
 from occtrain.progress import progress_bar
 
@@ -603,8 +603,8 @@ def read_index(shards: str | Path) -> dict:
     if not path.is_file():
         raise DataError(f"{path}: not found; write shards with `occtrain data shards DATASET --out {Path(shards)}`")
     try:
-        idx = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as err:
+        idx = parse_json(path.read_text())
+    except ValueError as err:
         raise DataError(f"{path}: not valid JSON ({err}); write the shards again") from None
     problem = first_problem(idx, ShardIndex)
     if problem:
@@ -656,7 +656,7 @@ def _decode_entry(name: str, data: bytes, where: str) -> Any:
             with np.load(io.BytesIO(data), allow_pickle=False) as npz:
                 return {k: npz[k] for k in npz.files}
         if ext == "json":
-            return json.loads(data)
+            return parse_json(data)
         if ext == "txt":
             return data.decode("utf-8")
         from PIL import Image

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import os
 import time
 from dataclasses import asdict, dataclass, field
@@ -11,7 +10,7 @@ from typing import Any
 
 from occtrain.config.recipe import NAME_PATTERN
 from occtrain.errors import OcctrainError
-from occtrain.formats.io import atomic_write_json, remove_inside, write_error
+from occtrain.formats.io import atomic_write_json, parse_json, remove_inside, write_error
 from occtrain.version import code_version
 
 MANIFEST_FILE = "manifest.json"
@@ -66,9 +65,9 @@ class Manifest:
         if not path.is_file():
             return cls(path=path, writable=writable)
         try:
-            raw = json.loads(path.read_text())
+            raw = parse_json(path.read_text())
             stages = {name: StageEntry(**entry) for name, entry in raw["stages"].items()}
-        except (json.JSONDecodeError, KeyError, TypeError) as err:
+        except (ValueError, KeyError, TypeError, AttributeError) as err:
             raise OcctrainError(f"{path}: unreadable manifest ({err}); move it aside to start the run afresh") from None
         for name in stages:  # each names a directory the runner writes and --restart replaces
             if not NAME_PATTERN.fullmatch(name):
@@ -163,7 +162,7 @@ class Manifest:
         if not aside.is_dir():
             return ""
         try:
-            raw = json.loads((aside / ASIDE_ENTRIES).read_text())
+            raw = parse_json((aside / ASIDE_ENTRIES).read_text())
             restored = {name: StageEntry(**entry) for name, entry in raw.items() if NAME_PATTERN.fullmatch(name)}
         except (OSError, ValueError, TypeError, AttributeError):
             restored = None  # killed before the entries were written: nothing was moved yet
