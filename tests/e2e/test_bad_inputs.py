@@ -2234,6 +2234,55 @@ CASES: list[Case] = [
         2,
         "{tmp}/p.json: planning predictions is not valid JSON (an integer of 5016 digits",
     ),
+    Case(
+        "validate-val-batch-size-zero",
+        recipe(),
+        ["validate", RECIPE_FILE, "stages.pretrain.model.val_batch_size=0"],
+        2,
+        "stages.pretrain.model.val_batch_size is 0 in " + RECIPE_FILE + ": it must be at least 1",
+    ),
+    Case(
+        "run-distill-val-batch-size-negative",
+        recipe(
+            lambda t: (
+                t
+                + "  - {name: instruct, kind: instruct, consumes: [pretrain]}\n"
+                + "  - {name: distill, kind: distill, consumes: [instruct]}\n"
+            )
+        ),
+        [*RUN, "stages.distill.model.val_batch_size=-4"],
+        2,
+        "stages.distill.model.val_batch_size is -4 in " + RECIPE_FILE + ": it must be at least 1",
+    ),
+    Case(
+        "validate-vision-prior-batches-negative",
+        both(recipe(VISION_ONLY), with_cameras()),
+        ["validate", RECIPE_FILE, "stages.vision.model.prior_batches=-1"],
+        2,
+        "stages.vision.model.prior_batches is -1 in " + RECIPE_FILE + ": it must be at least 0",
+    ),
+    Case(
+        "validate-precision-16-true-on-cpu",
+        recipe(),
+        ["validate", RECIPE_FILE, "trainer.precision=16-true"],
+        2,
+        "trainer.precision is 16-true, but on the CPU occtrain's stages train at 32-true or bf16-mixed only",
+    ),
+    Case(
+        "run-stage-precision-16-true-on-cpu",
+        recipe(),
+        [*RUN, "stages.pretrain.trainer.precision=16-true"],
+        2,
+        "stages.pretrain.trainer.precision is 16-true, but on the CPU occtrain's stages train at 32-true or "
+        "bf16-mixed only",
+    ),
+    Case(
+        "validate-precision-bf16-true-on-cpu",
+        recipe(),
+        ["validate", RECIPE_FILE, "trainer.precision=bf16-true"],
+        2,
+        "trainer.precision is bf16-true, but on the CPU occtrain's stages train at 32-true or bf16-mixed only",
+    ),
 ]
 
 

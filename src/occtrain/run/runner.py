@@ -93,6 +93,7 @@ def plan_stages(recipe: RecipeConfig, source: str) -> list[PlannedStage]:
         kind.module.check_consumes(spec.kind, {dep: p.spec.kind for dep, p in consumed.items()}, where)
         family, model_cfg = _model_config(kind, spec, consumed, f"stages[{i}].model", source, where)
         kind.module.check_model(model_cfg, f"stages.{spec.name}.model")
+        check_model_counts(model_cfg, f"stages.{spec.name}.model", source)
         wrong = sorted(set(spec.data or {}) - set(STAGE_DATA_KEYS))
         if wrong:
             raise ConfigError(
@@ -194,6 +195,21 @@ _LEAST: dict[str, dict[str, float | None]] = {
 #: Seeds per section (dotted below it): numpy takes 0 to 2**32 - 1 and raises deep in
 #: Lightning's seeding, the synthesis or a loader otherwise.
 _SEEDS: dict[str, tuple[str, ...]] = {"trainer": ("seed",), "data": ("seed", "synth.seed")}
+
+
+#: Counts in a stage's ``model:`` that size a batch or a loop, whichever kinds have them:
+#: the least each may be. Out of range they fail late and raw (``val_batch_size: 0``:
+#: ``range() arg 3 must not be zero`` once validation generates) or do nothing at all
+#: (a negative one validates no item).
+_MODEL_LEAST = {"val_batch_size": 1, "prior_batches": 0}
+
+
+def check_model_counts(model: Any, key: str, source: str) -> None:
+    """Refuse a ``model:`` count out of range (``_MODEL_LEAST``) in one line naming its key."""
+    for name, least in _MODEL_LEAST.items():
+        value = getattr(model, name, None)
+        if isinstance(value, int) and value < least:
+            raise ConfigError(f"{key}.{name} is {value} in {source}: it must be at least {least}")
 
 
 def check_ranges(section: str, cfg: Any, stage: str, own: dict | None, source: str) -> None:
