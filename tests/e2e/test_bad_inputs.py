@@ -610,6 +610,19 @@ REBUILD_COPY = (
 
 
 # -- setups: issue 58, round four
+def npz_claiming(path: Path, shape: tuple[int, ...]) -> None:
+    """A labels.npz whose 'semantics' header declares ``shape`` over a few bytes of data (the
+    masks as they were): a few hundred bytes on disk, however large the shape it claims."""
+    import io
+
+    header = io.BytesIO()
+    np.lib.format.write_array_header_1_0(header, {"descr": "|u1", "fortran_order": False, "shape": shape})
+    masks = {k: v for k, v in hand_labels(1).items() if k != "semantics"}
+    np.savez_compressed(path, **masks)
+    with zipfile.ZipFile(path, "a", zipfile.ZIP_DEFLATED) as z:
+        z.writestr("semantics.npy", header.getvalue() + bytes(64))
+
+
 #: A value nested 100,000 deep, and an integer of 5,016 digits (Python reads at most 4,300).
 DEEP_JSON = '{"scene_infos": ' + "[" * 100_000 + "]" * 100_000 + "}"
 LONG_INT_JSON = '{"scene_infos": {}, "count": ' + "7" * 5016 + "}"
@@ -2282,6 +2295,13 @@ CASES: list[Case] = [
         ["validate", RECIPE_FILE, "trainer.precision=bf16-true"],
         2,
         "trainer.precision is bf16-true, but on the CPU occtrain's stages train at 32-true or bf16-mixed only",
+    ),
+    Case(
+        "labels-header-claims-a-huge-grid",
+        lambda tmp: npz_claiming(labels_file(tmp), (2000, 2000, 160)),
+        SHARDS_FRAMES,
+        2,
+        f"{LABELS}: 'semantics' has shape (2000, 2000, 160), expected (200, 200, 16)",
     ),
 ]
 

@@ -162,14 +162,19 @@ def score_occupancy(
 # ----------------------------------------------------------------------------- forecasting
 
 
+def _forecast_form(key: str, shape: tuple[int, ...], dtype: np.dtype) -> str | None:
+    """A forecast's shape, from its ``.npy`` header too (see ``read_npz``)."""
+    if len(shape) != 4 or shape[1:] != GRID_SHAPE:
+        return f"'{key}' has shape {shape}, expected (T, {', '.join(map(str, GRID_SHAPE))})"
+    return None
+
+
 def load_forecast(path: Path) -> np.ndarray:
     """A forecast's ``semantics`` (T, 200, 200, 16), validated."""
-    arrays = read_npz(path)
+    arrays = read_npz(path, _forecast_form, ("semantics",))  # its shape checked from the header
     sem = arrays.get("semantics")
     if sem is None:
         raise DataError(f"{path}: missing array 'semantics'")
-    if sem.ndim != 4 or sem.shape[1:] != GRID_SHAPE:
-        raise DataError(f"{path}: 'semantics' has shape {sem.shape}, expected (T, {', '.join(map(str, GRID_SHAPE))})")
     if sem.shape[0] <= max(FORECAST_HORIZONS):
         raise DataError(
             f"{path}: holds {sem.shape[0]} future frames; the 1 s/2 s/3 s horizons need {max(FORECAST_HORIZONS) + 1}"
