@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 import shutil
+import socket
 import struct
 import zipfile
 from collections.abc import Callable
@@ -621,6 +622,22 @@ def npz_claiming(path: Path, shape: tuple[int, ...]) -> None:
     np.savez_compressed(path, **masks)
     with zipfile.ZipFile(path, "a", zipfile.ZIP_DEFLATED) as z:
         z.writestr("semantics.npy", header.getvalue() + bytes(64))
+
+
+#: No process has this pid (Linux's pids are below 2**22), so a rebuild named by it was killed.
+DEAD_PID = 2**22
+HOST = socket.gethostname()
+KILLED_REBUILD = f".shards.rebuild-{DEAD_PID}.{HOST}-x1y2z3"
+
+
+def killed_rebuild(rel: str) -> Callable[[Path], None]:
+    """The half-written shards a `data shards --rebuild` killed with -9 leaves beside its --out."""
+
+    def setup(tmp: Path) -> None:
+        (tmp / rel / "frames").mkdir(parents=True)
+        (tmp / rel / "frames" / "train-000000.tar").write_bytes(b"half a shard")
+
+    return setup
 
 
 #: A value nested 100,000 deep, and an integer of 5,016 digits (Python reads at most 4,300).
@@ -2302,6 +2319,24 @@ CASES: list[Case] = [
         SHARDS_FRAMES,
         2,
         f"{LABELS}: 'semantics' has shape (2000, 2000, 160), expected (200, 200, 16)",
+    ),
+    Case(
+        "check-dataset-names-a-killed-rebuild",
+        killed_rebuild("ds/" + KILLED_REBUILD),
+        CHECK,
+        1,
+        (
+            f"{{tmp}}/ds/{KILLED_REBUILD}: left by an `occtrain data shards --rebuild` of {{tmp}}/ds/shards that was "
+            f"stopped (pid {DEAD_PID} on {HOST} is gone)",
+            f"remove it with `rm -r {{tmp}}/ds/{KILLED_REBUILD}`",
+        ),
+    ),
+    Case(
+        "check-shards-names-a-killed-rebuild",
+        killed_rebuild(KILLED_REBUILD),
+        CHECK_SHARDS,
+        1,
+        f"{{tmp}}/{KILLED_REBUILD}: left by an `occtrain data shards --rebuild` of {{tmp}}/shards that was stopped",
     ),
 ]
 

@@ -28,7 +28,7 @@ from occtrain.data.layout import (
     read_image,
 )
 from occtrain.data.schema import FrameAnnotation, Occ3DAnnotations, QAFile
-from occtrain.data.shards import INDEX_FILE, decode_sample, iter_raw, read_index
+from occtrain.data.shards import INDEX_FILE, decode_sample, iter_raw, leftover_rebuilds, read_index
 from occtrain.data.validate import problems as schema_problems
 from occtrain.errors import OcctrainError
 from occtrain.formats.io import parse_json
@@ -125,6 +125,8 @@ def _check_dataset(root: Path, problems: list[str], note: Callable[[str], None])
     problems.extend(_sidecar_problems(index))
     for split in SPLITS:
         problems.extend(_guarded(partial(_check_questions, index, split), root / qa_file(split)))
+    # Shards usually live inside their dataset (data.shards' default, ROOT/shards).
+    problems.extend(leftover.problem() for leftover in leftover_rebuilds(root) if not leftover.running)
 
 
 def _check_cameras(index: DatasetIndex, scene: str, token: str, problems: list[str]) -> None:
@@ -262,6 +264,11 @@ def check_shards(shards: str | Path) -> list[str]:
 
 
 def _check_shards(shards: Path, problems: list[str]) -> None:
+    problems.extend(
+        leftover.problem()
+        for leftover in leftover_rebuilds(shards.resolve().parent, shards.resolve().name)
+        if not leftover.running
+    )
     idx = read_index(shards)
     for kind, splits in idx["kinds"].items():
         for entries in splits.values():
