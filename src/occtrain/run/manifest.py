@@ -14,6 +14,8 @@ from occtrain.formats.io import atomic_write_json, parse_json, remove_inside, wr
 from occtrain.version import code_version
 
 MANIFEST_FILE = "manifest.json"
+#: The recipe the run's stages were trained with (resolved, with its overrides).
+PIPELINE_FILE = "pipeline.yaml"
 #: Where ``--restart`` keeps the stages it replaces until the new attempt has a checkpoint.
 ASIDE_DIR = ".replaced"
 ASIDE_ENTRIES = "entries.json"
@@ -127,12 +129,13 @@ class Manifest:
         self.save()
 
     # -- --restart replaces stages without losing them: they move to RUN/.replaced/ with their
-    # entries; once a retrained stage has a checkpoint or an export (or the command
-    # succeeded) they are stale and go, and if the attempt fails or is killed before that
-    # they come back as they were.
+    # entries and the run's pipeline.yaml (the recipe they were trained with); once a
+    # retrained stage has a checkpoint or an export (or the command succeeded) they are stale
+    # and go, and if the attempt fails or is killed before that they come back as they were.
 
     def set_aside(self, names: list[str]) -> None:
-        """Move the stages ``--restart`` retrains to ``RUN/.replaced/`` and reset their entries.
+        """Move the stages ``--restart`` retrains to ``RUN/.replaced/`` and reset their entries;
+        ``pipeline.yaml`` goes with them (the caller writes the restart's own after this).
 
         Their entries are written there first, so a kill at any point leaves what
         :meth:`settle_aside` needs to put them back: renames within one directory are atomic.
@@ -146,6 +149,8 @@ class Manifest:
             for name in names:
                 if (run_dir / name).exists():
                     os.rename(run_dir / name, aside / name)
+            if (run_dir / PIPELINE_FILE).is_file():
+                os.rename(run_dir / PIPELINE_FILE, aside / PIPELINE_FILE)
         except OSError as err:
             raise write_error(aside, err) from None
         for name in names:
@@ -177,6 +182,8 @@ class Manifest:
                 os.replace(failed, run_dir / RESTART_TRACEBACK)
             remove_inside(run_dir / name, run_dir)  # the failed attempt's logs; it has no checkpoint
             os.rename(aside / name, run_dir / name)
+        if (aside / PIPELINE_FILE).is_file():  # the recipe of the stages put back, not the failed attempt's
+            os.replace(aside / PIPELINE_FILE, run_dir / PIPELINE_FILE)
         self.stages.update(restored)
         self.save()
         remove_inside(aside, run_dir)

@@ -33,7 +33,7 @@ from occtrain.errors import ConfigError, OcctrainError, cause_line
 from occtrain.formats.io import atomic_write_json, atomic_write_text, is_rank_zero, remove_inside
 from occtrain.progress import console
 from occtrain.run.control import Interrupted, run_lock, stop_on_signals
-from occtrain.run.manifest import RESUMABLE, Manifest
+from occtrain.run.manifest import PIPELINE_FILE, RESUMABLE, Manifest
 from occtrain.stages import Stage, StageContext, StageKind, get_kind, kind_names
 
 if TYPE_CHECKING:  # imported where a stage is built (build_stage), as before
@@ -446,13 +446,17 @@ def run(
             manifest.entry(p.spec.name, p.spec.kind)
         try:
             if rank_zero:
-                atomic_write_text(run_dir / "pipeline.yaml", to_yaml(recipe))
+                if not restarted:
+                    atomic_write_text(run_dir / PIPELINE_FILE, to_yaml(recipe))
                 manifest.save()
                 from occtrain.data.datamodule import ensure_data
 
                 ensure_data(recipe.data)
                 if restarted:  # last before training: nothing else can fail with the stages away
+                    # The old pipeline.yaml goes aside with the stages it describes, and comes
+                    # back with them if this attempt stops before it takes.
                     manifest.set_aside([p.spec.name for p in planned if p.spec.name in restarted])
+                    atomic_write_text(run_dir / PIPELINE_FILE, to_yaml(recipe))
             try:
                 _run_stages(planned, manifest, run_dir, recipe, only, rank_zero)
             except (Exception, Interrupted) as err:
@@ -625,6 +629,20 @@ def refuse_changed(planned: list[PlannedStage], manifest: Manifest, restarted: s
             )
 
 
+def _rerun_starts(stage_dir: Path) -> str:
+    """Where a rerun of a stopped stage starts, as its checkpoints say (the end of its line)."""
+    from occtrain.stages.checkpoints import checkpoint_step, last_checkpoint
+
+    try:
+        ckpt = last_checkpoint(stage_dir)
+        step = checkpoint_step(ckpt) if ckpt is not None else None
+    except Exception:  # noqa: BLE001 - the stop's line comes out whatever the checkpoint holds
+        ckpt = None
+    if ckpt is None:
+        return " before its first checkpoint; rerun the same command to start it over"
+    return f"; rerun the same command to resume it from its checkpoint at step {step} ({ckpt})"
+
+
 def _record_failure(manifest: Manifest, name: str, summary: str, seconds: float, status: str) -> None:
     """Record a stopped stage; when even that write fails (a full disk), the manifest keeps
     its last good state (``running``: a rerun resumes) and the original error is reported."""
@@ -696,8 +714,7 @@ def _run_stages(
             )
         except Interrupted as stop:
             _record_failure(manifest, name, f"{stop}", time.time() - started, "interrupted")
-            resume = f"rerun the same command to resume it from {stage_dir / 'checkpoints'}"
-            raise stop.with_message(f"stage '{name}' of {run_dir} {stop}; {resume}") from None
+            raise stop.with_message(f"stage '{name}' of {run_dir} {stop}{_rerun_starts(stage_dir)}") from None
         except Exception as err:
             line = str(err).splitlines()[0] if str(err) else type(err).__name__
             summary = line if isinstance(err, OcctrainError) else cause_line(err)
