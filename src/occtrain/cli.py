@@ -283,7 +283,9 @@ def _add_run_readers(sub: Any) -> None:
         help="comma-separated tasks of the model's family, e.g. forecasting,qa (default: those the stage trained on)",
     )
     p.add_argument(
-        "--save-predictions", metavar="DIR", help="also write predictions in the formats `occtrain score` reads"
+        "--save-predictions",
+        metavar="DIR",
+        help="also write predictions in the formats `occtrain score` reads (a DIR with an earlier eval's is refused)",
     )
     p.add_argument(
         "--samples",

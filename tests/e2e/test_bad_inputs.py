@@ -640,6 +640,16 @@ def killed_rebuild(rel: str) -> Callable[[Path], None]:
     return setup
 
 
+def earlier_prediction(rel: str) -> Callable[[Path], None]:
+    """A file an earlier ``eval --save-predictions tmp/preds`` wrote."""
+
+    def setup(tmp: Path) -> None:
+        (tmp / "preds" / rel).parent.mkdir(parents=True, exist_ok=True)
+        (tmp / "preds" / rel).write_text("an earlier eval's")
+
+    return setup
+
+
 #: A value nested 100,000 deep, and an integer of 5,016 digits (Python reads at most 4,300).
 DEEP_JSON = '{"scene_infos": ' + "[" * 100_000 + "]" * 100_000 + "}"
 LONG_INT_JSON = '{"scene_infos": {}, "count": ' + "7" * 5016 + "}"
@@ -2337,6 +2347,21 @@ CASES: list[Case] = [
         CHECK_SHARDS,
         1,
         f"{{tmp}}/{KILLED_REBUILD}: left by an `occtrain data shards --rebuild` of {{tmp}}/shards that was stopped",
+    ),
+    Case(
+        "eval-save-predictions-over-earlier-ones",
+        earlier_prediction("qa_pred.json"),
+        [*EVAL, "--save-predictions", "{tmp}/preds"],
+        2,
+        "{tmp}/preds/qa_pred.json: exists, and --save-predictions would overwrite it; choose an empty or new "
+        "directory, or move the earlier predictions away",
+    ),
+    Case(
+        "eval-save-predictions-over-earlier-forecasts",
+        earlier_prediction(f"forecast/{SCENES[1]}/{T1[0]}/forecast.npz"),
+        [*EVAL, "--save-predictions", "{tmp}/preds"],
+        2,
+        f"{{tmp}}/preds/forecast/{SCENES[1]}/{T1[0]}/forecast.npz: exists, and --save-predictions would overwrite it",
     ),
 ]
 
