@@ -28,7 +28,11 @@ from occtrain.stages.callbacks import (
 from occtrain.stages.checkpoints import AtomicCheckpointIO
 from occtrain.stages.loggers import build_loggers
 from occtrain.stages.sharding import trainer_strategy
+from occtrain.stages.stage import shared_cache_dir
 from occtrain.stages.step_progress import StepProgress
+
+#: Where ``trainer.compile``'s inductor cache goes, in the run's shared caches (``RUN/cache/``).
+INDUCTOR_CACHE = "inductor"
 
 
 def quiet_lightning() -> None:
@@ -76,7 +80,7 @@ def _callbacks(
         PeakMemory(),
     ]
     if cfg.compile:
-        callbacks.append(CompileBlocks())
+        callbacks.append(CompileBlocks(shared_cache_dir(ckpt_dir.parent) / INDUCTOR_CACHE))
     if record_time is not None:
         callbacks.append(Heartbeat(record_time))
     if record_attempt is not None:
