@@ -2363,6 +2363,22 @@ CASES: list[Case] = [
         2,
         f"{{tmp}}/preds/forecast/{SCENES[1]}/{T1[0]}/forecast.npz: exists, and --save-predictions would overwrite it",
     ),
+    Case(
+        "plugin-is-a-path",
+        with_plugin("'../../etc/passwd'"),
+        RUN,
+        2,
+        "plugin '../../etc/passwd' in "
+        + RECIPE_FILE
+        + ": a plugin is a Python module name (e.g. my_package.occtrain_plugin), importable on sys.path",
+    ),
+    Case(
+        "validate-plugin-is-a-distribution-name",
+        with_plugin("occtrain-my-plugin"),
+        ["validate", RECIPE_FILE],
+        2,
+        "plugin 'occtrain-my-plugin' in " + RECIPE_FILE + ": a plugin is a Python module name",
+    ),
 ]
 
 

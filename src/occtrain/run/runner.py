@@ -14,6 +14,7 @@ import importlib
 import inspect
 import json
 import math
+import re
 import time
 import traceback
 from collections.abc import Callable
@@ -264,6 +265,10 @@ def _model_config(
     return family, validate_section(kind.module.model_schema(kind, family, raw), spec.model or {}, key, source)
 
 
+#: A dotted Python module name: what ``plugins:`` lists.
+PLUGIN_NAME = re.compile(r"[A-Za-z_]\w*(\.[A-Za-z_]\w*)*")
+
+
 def load_plugins(modules: list[str], source: str) -> None:
     """Import the recipe's plugin modules, which register their stage kinds and families;
     whatever one raises is one line naming it (``core.registry.load_plugin``)."""
@@ -272,6 +277,13 @@ def load_plugins(modules: list[str], source: str) -> None:
     from occtrain.core.registry import load_plugin
 
     for name in modules:
+        if not PLUGIN_NAME.fullmatch(str(name)):
+            # importlib would take a path for a relative import, or a file name for a package
+            # and its module, and say so in its own terms.
+            raise ConfigError(
+                f"plugin '{name}' in {source}: a plugin is a Python module name (e.g. my_package.occtrain_plugin), "
+                "importable on sys.path"
+            )
         load_plugin(partial(importlib.import_module, name), f"plugin '{name}' in {source}", name)
 
 
