@@ -643,7 +643,7 @@ def refuse_changed(planned: list[PlannedStage], manifest: Manifest, restarted: s
 
 def _rerun_starts(stage_dir: Path) -> str:
     """Where a rerun of a stopped stage starts, as its checkpoints say (the end of its line)."""
-    from occtrain.stages.checkpoints import checkpoint_step, last_checkpoint
+    from occtrain.stages.checkpoints import LAST_CKPT, checkpoint_step, last_checkpoint
 
     try:
         ckpt = last_checkpoint(stage_dir)
@@ -651,7 +651,9 @@ def _rerun_starts(stage_dir: Path) -> str:
     except Exception:  # noqa: BLE001 - the stop's line comes out whatever the checkpoint holds
         ckpt = None
     if ckpt is None:
-        return " before its first checkpoint; rerun the same command to start it over"
+        unreadable = (stage_dir / "checkpoints" / LAST_CKPT).is_file()
+        when = " with no readable checkpoint" if unreadable else " before its first checkpoint"
+        return f"{when}; rerun the same command to start it over"
     return f"; rerun the same command to resume it from its checkpoint at step {step} ({ckpt})"
 
 
