@@ -458,17 +458,7 @@ def run(
             manifest.entry(p.spec.name, p.spec.kind)
         try:
             if rank_zero:
-                if not restarted:
-                    atomic_write_text(run_dir / PIPELINE_FILE, to_yaml(recipe))
-                manifest.save()
-                from occtrain.data.datamodule import ensure_data
-
-                ensure_data(recipe.data)
-                if restarted:  # last before training: nothing else can fail with the stages away
-                    # The old pipeline.yaml goes aside with the stages it describes, and comes
-                    # back with them if this attempt stops before it takes.
-                    manifest.set_aside([p.spec.name for p in planned if p.spec.name in restarted])
-                    atomic_write_text(run_dir / PIPELINE_FILE, to_yaml(recipe))
+                _prepare(recipe, manifest, [p.spec.name for p in planned if p.spec.name in restarted])
             try:
                 _run_stages(planned, manifest, run_dir, recipe, only, rank_zero)
             except (Exception, Interrupted) as err:
@@ -487,6 +477,23 @@ def run(
                 stop = stop.with_message(f"{stop} before any stage trained; run the same command again to continue")
             raise stop from None
     return run_dir
+
+
+def _prepare(recipe: RecipeConfig, manifest: Manifest, restarted: list[str]) -> None:
+    """What rank zero writes before training: the recipe, the manifest, the data, and for a
+    restart its stages set aside."""
+    from occtrain.data.datamodule import ensure_data
+
+    pipeline = manifest.path.parent / PIPELINE_FILE
+    if not restarted:
+        atomic_write_text(pipeline, to_yaml(recipe))
+    manifest.save()
+    ensure_data(recipe.data)
+    if restarted:  # last before training: nothing else can fail with the stages away
+        # The old pipeline.yaml goes aside with the stages it describes, and comes back with
+        # them if this attempt stops before it takes.
+        manifest.set_aside(restarted)
+        atomic_write_text(pipeline, to_yaml(recipe))
 
 
 def _put_back(err: BaseException, note: str) -> None:
