@@ -101,8 +101,10 @@ def _cmd_table(args: argparse.Namespace) -> int:
 
 def _cmd_data_synth(args: argparse.Namespace) -> int:
     from occtrain.config import SynthConfig
+    from occtrain.config.groups import check_seed
     from occtrain.data.synthesize import synthesize
 
+    check_seed(args.seed, "--seed")  # named as the user typed it; check_synth_config would say data.synth.seed
     cfg = SynthConfig(
         train_scenes=args.scenes, val_scenes=args.val_scenes, frames_per_scene=args.frames, seed=args.seed
     )
@@ -281,7 +283,9 @@ def _add_run_readers(sub: Any) -> None:
         help="comma-separated tasks of the model's family, e.g. forecasting,qa (default: those the stage trained on)",
     )
     p.add_argument(
-        "--save-predictions", metavar="DIR", help="also write predictions in the formats `occtrain score` reads"
+        "--save-predictions",
+        metavar="DIR",
+        help="also write predictions in the formats `occtrain score` reads (a DIR with an earlier eval's is refused)",
     )
     p.add_argument(
         "--samples",

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 import shutil
+import socket
 import struct
 import zipfile
 from collections.abc import Callable
@@ -629,6 +630,51 @@ REBUILD_COPY = (
     "or replace them with `occtrain data shards {tmp}/ds2 --out {tmp}/s2 --samples-per-shard 4 "
     "--history 1 --future 1 --rebuild`"
 )
+
+
+# -- setups: issue 58, round four
+def npz_claiming(path: Path, shape: tuple[int, ...]) -> None:
+    """A labels.npz whose 'semantics' header declares ``shape`` over a few bytes of data (the
+    masks as they were): a few hundred bytes on disk, however large the shape it claims."""
+    import io
+
+    header = io.BytesIO()
+    np.lib.format.write_array_header_1_0(header, {"descr": "|u1", "fortran_order": False, "shape": shape})
+    masks = {k: v for k, v in hand_labels(1).items() if k != "semantics"}
+    np.savez_compressed(path, **masks)
+    with zipfile.ZipFile(path, "a", zipfile.ZIP_DEFLATED) as z:
+        z.writestr("semantics.npy", header.getvalue() + bytes(64))
+
+
+#: No process has this pid (Linux's pids are below 2**22), so a rebuild named by it was killed.
+DEAD_PID = 2**22
+HOST = socket.gethostname()
+KILLED_REBUILD = f".shards.rebuild-{DEAD_PID}.{HOST}-x1y2z3"
+
+
+def killed_rebuild(rel: str) -> Callable[[Path], None]:
+    """The half-written shards a `data shards --rebuild` killed with -9 leaves beside its --out."""
+
+    def setup(tmp: Path) -> None:
+        (tmp / rel / "frames").mkdir(parents=True)
+        (tmp / rel / "frames" / "train-000000.tar").write_bytes(b"half a shard")
+
+    return setup
+
+
+def earlier_prediction(rel: str) -> Callable[[Path], None]:
+    """A file an earlier ``eval --save-predictions tmp/preds`` wrote."""
+
+    def setup(tmp: Path) -> None:
+        (tmp / "preds" / rel).parent.mkdir(parents=True, exist_ok=True)
+        (tmp / "preds" / rel).write_text("an earlier eval's")
+
+    return setup
+
+
+#: A value nested 100,000 deep, and an integer of 5,016 digits (Python reads at most 4,300).
+DEEP_JSON = '{"scene_infos": ' + "[" * 100_000 + "]" * 100_000 + "}"
+LONG_INT_JSON = '{"scene_infos": {}, "count": ' + "7" * 5016 + "}"
 
 
 CASES: list[Case] = [
@@ -2244,6 +2290,182 @@ CASES: list[Case] = [
         SHARDS_FRAMES,
         2,
         "{tmp}/ds/" + FIRST_IMG + ": cannot read it",
+    ),
+    # ------------------------------------------------------------------ issue 58: round four
+    Case(
+        "synth-seed-negative",
+        nothing,
+        ["data", "synth", "--out", "{tmp}/new", "--seed", "-1"],
+        2,
+        "--seed is -1: a seed is an integer from 0 to 4294967295 (2**32 - 1), as numpy's random generators take",
+    ),
+    Case(
+        "validate-synth-seed-negative",
+        recipe(),
+        ["validate", RECIPE_FILE, "data.root={tmp}/new", "data.synth.seed=-1"],
+        2,
+        "data.synth.seed is -1 in " + RECIPE_FILE + ": a seed is an integer from 0 to 4294967295 (2**32 - 1)",
+    ),
+    Case(
+        "validate-trainer-seed-negative",
+        recipe(),
+        ["validate", RECIPE_FILE, "trainer.seed=-1"],
+        2,
+        "trainer.seed is -1 in " + RECIPE_FILE + ": a seed is an integer from 0 to 4294967295 (2**32 - 1)",
+    ),
+    Case(
+        "run-stage-trainer-seed-too-large",
+        recipe(),
+        [*RUN, "stages.tokenizer.trainer.seed=4294967296"],
+        2,
+        "stages.tokenizer.trainer.seed is 4294967296 in " + RECIPE_FILE + ": a seed is an integer from 0 to",
+    ),
+    Case(
+        "validate-data-seed-negative",
+        recipe(),
+        ["validate", RECIPE_FILE, "data.seed=-1"],
+        2,
+        "data.seed is -1 in " + RECIPE_FILE + ": a seed is an integer from 0 to 4294967295 (2**32 - 1)",
+    ),
+    Case(
+        "stats-ann-nested-too-deep",
+        write_text("ds/annotations.json", DEEP_JSON),
+        ["data", "stats", DS],
+        2,
+        f"{ANN}: not valid JSON (nested deeper than Python's JSON reader goes",
+    ),
+    Case(
+        "validate-ann-integer-of-5016-digits",
+        both(recipe(), write_text("ds/annotations.json", LONG_INT_JSON)),
+        ["validate", RECIPE_FILE],
+        2,
+        f"{ANN}: not valid JSON (an integer of 5016 digits, more than Python reads (4300))",
+    ),
+    Case(
+        "check-ann-nested-too-deep",
+        write_text("ds/annotations.json", DEEP_JSON),
+        CHECK,
+        1,
+        f"{ANN}: not valid JSON (nested deeper than Python's JSON reader goes",
+    ),
+    Case(
+        "check-shards-index-nested-too-deep",
+        write_text("shards/index.json", DEEP_JSON),
+        CHECK_SHARDS,
+        1,
+        "{tmp}/shards/index.json: not valid JSON (nested deeper",
+    ),
+    Case(
+        "planning-integer-of-5016-digits",
+        both(planning(lambda p, g: None), write_text("p.json", LONG_INT_JSON)),
+        PLANNING,
+        2,
+        "{tmp}/p.json: planning predictions is not valid JSON (an integer of 5016 digits",
+    ),
+    Case(
+        "validate-val-batch-size-zero",
+        recipe(),
+        ["validate", RECIPE_FILE, "stages.pretrain.model.val_batch_size=0"],
+        2,
+        "stages.pretrain.model.val_batch_size is 0 in " + RECIPE_FILE + ": it must be at least 1",
+    ),
+    Case(
+        "run-distill-val-batch-size-negative",
+        recipe(
+            lambda t: (
+                t
+                + "  - {name: instruct, kind: instruct, consumes: [pretrain]}\n"
+                + "  - {name: distill, kind: distill, consumes: [instruct]}\n"
+            )
+        ),
+        [*RUN, "stages.distill.model.val_batch_size=-4"],
+        2,
+        "stages.distill.model.val_batch_size is -4 in " + RECIPE_FILE + ": it must be at least 1",
+    ),
+    Case(
+        "validate-vision-prior-batches-negative",
+        both(recipe(VISION_ONLY), with_cameras()),
+        ["validate", RECIPE_FILE, "stages.vision.model.prior_batches=-1"],
+        2,
+        "stages.vision.model.prior_batches is -1 in " + RECIPE_FILE + ": it must be at least 0",
+    ),
+    Case(
+        "validate-precision-16-true-on-cpu",
+        recipe(),
+        ["validate", RECIPE_FILE, "trainer.precision=16-true"],
+        2,
+        "trainer.precision is 16-true, but on the CPU occtrain's stages train at 32-true or bf16-mixed only",
+    ),
+    Case(
+        "run-stage-precision-16-true-on-cpu",
+        recipe(),
+        [*RUN, "stages.pretrain.trainer.precision=16-true"],
+        2,
+        "stages.pretrain.trainer.precision is 16-true, but on the CPU occtrain's stages train at 32-true or "
+        "bf16-mixed only",
+    ),
+    Case(
+        "validate-precision-bf16-true-on-cpu",
+        recipe(),
+        ["validate", RECIPE_FILE, "trainer.precision=bf16-true"],
+        2,
+        "trainer.precision is bf16-true, but on the CPU occtrain's stages train at 32-true or bf16-mixed only",
+    ),
+    Case(
+        "labels-header-claims-a-huge-grid",
+        lambda tmp: npz_claiming(labels_file(tmp), (2000, 2000, 160)),
+        SHARDS_FRAMES,
+        2,
+        f"{LABELS}: 'semantics' has shape (2000, 2000, 160), expected (200, 200, 16)",
+    ),
+    Case(
+        "check-dataset-names-a-killed-rebuild",
+        killed_rebuild("ds/" + KILLED_REBUILD),
+        CHECK,
+        1,
+        (
+            f"{{tmp}}/ds/{KILLED_REBUILD}: left by an `occtrain data shards --rebuild` of {{tmp}}/ds/shards that was "
+            f"stopped (pid {DEAD_PID} on {HOST} is gone)",
+            f"remove it with `rm -r {{tmp}}/ds/{KILLED_REBUILD}`",
+        ),
+    ),
+    Case(
+        "check-shards-names-a-killed-rebuild",
+        killed_rebuild(KILLED_REBUILD),
+        CHECK_SHARDS,
+        1,
+        f"{{tmp}}/{KILLED_REBUILD}: left by an `occtrain data shards --rebuild` of {{tmp}}/shards that was stopped",
+    ),
+    Case(
+        "eval-save-predictions-over-earlier-ones",
+        earlier_prediction("qa_pred.json"),
+        [*EVAL, "--save-predictions", "{tmp}/preds"],
+        2,
+        "{tmp}/preds/qa_pred.json: exists, and --save-predictions would overwrite it; choose an empty or new "
+        "directory, or move the earlier predictions away",
+    ),
+    Case(
+        "eval-save-predictions-over-earlier-forecasts",
+        earlier_prediction(f"forecast/{SCENES[1]}/{T1[0]}/forecast.npz"),
+        [*EVAL, "--save-predictions", "{tmp}/preds"],
+        2,
+        f"{{tmp}}/preds/forecast/{SCENES[1]}/{T1[0]}/forecast.npz: exists, and --save-predictions would overwrite it",
+    ),
+    Case(
+        "plugin-is-a-path",
+        with_plugin("'../../etc/passwd'"),
+        RUN,
+        2,
+        "plugin '../../etc/passwd' in "
+        + RECIPE_FILE
+        + ": a plugin is a Python module name (e.g. my_package.occtrain_plugin), importable on sys.path",
+    ),
+    Case(
+        "validate-plugin-is-a-distribution-name",
+        with_plugin("occtrain-my-plugin"),
+        ["validate", RECIPE_FILE],
+        2,
+        "plugin 'occtrain-my-plugin' in " + RECIPE_FILE + ": a plugin is a Python module name",
     ),
 ]
 

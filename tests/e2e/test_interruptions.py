@@ -158,9 +158,10 @@ def test_a_stop_signal_interrupts_in_one_line_and_a_rerun_resumes(recipe, tmp_pa
     _, err = proc.output()
     assert proc.returncode == code, err[-2000:]
     name = signal.Signals(sig).name
+    saved_step = torch.load(last, weights_only=True, map_location="cpu")["global_step"]
     assert err.splitlines()[-1] == (
         f"interrupted: stage 'only' of {run_dir} interrupted by {name}; rerun the same command to resume it from "
-        f"{run_dir / 'only' / 'checkpoints'}"
+        f"its checkpoint at step {saved_step} ({last})"
     )
     assert (
         sum(name in line for line in err.splitlines()) == 1
@@ -169,7 +170,6 @@ def test_a_stop_signal_interrupts_in_one_line_and_a_rerun_resumes(recipe, tmp_pa
     entry = json.loads((run_dir / "manifest.json").read_text())["stages"]["only"]
     assert entry["status"] == "interrupted" and entry["error"] == f"interrupted by {name}" and entry["wall_time_s"] > 0
     assert last.is_file()
-    saved_step = torch.load(last, weights_only=True, map_location="cpu")["global_step"]
     assert 0 < saved_step < steps
 
     res = run_cli("run", *args)

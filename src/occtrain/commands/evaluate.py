@@ -210,11 +210,27 @@ def _check_outputs(stage_dir: Path, kind: str, saves: bool, metrics: Path, save_
                 "(world-model stages' evals have); leave the flag out"
             )
         check_output(save_predictions, "--save-predictions", kind="dir")
+        earlier = _earlier_prediction(Path(save_predictions))
+        if earlier is not None:
+            raise ConfigError(
+                f"{earlier}: exists, and --save-predictions would overwrite it; choose an empty or new directory, or "
+                "move the earlier predictions away"
+            )
     fix = (
         f"eval writes its metrics into {stage_dir}; make it writable, "
         "or copy the run to a writable place and eval the copy"
     )
     check_output(metrics, "the eval directory", fix=fix)
+
+
+def _earlier_prediction(out: Path) -> Path | None:
+    """A file an earlier eval's predictions left in ``out`` (None: none): this eval would
+    overwrite it, or, a forecast of another sample, leave it among its own for `score` to read."""
+    for name in PREDICTION_FILES:
+        if (out / name).exists():
+            return out / name
+    forecasts = out / FORECAST_DIR
+    return next((p for p in sorted(forecasts.rglob("*")) if not p.is_dir()), None) if forecasts.is_dir() else None
 
 
 def _refuse_unscorable(tasks: list[str], root: str) -> None:
@@ -225,6 +241,20 @@ def _refuse_unscorable(tasks: list[str], root: str) -> None:
 
     for task, why in lacking_tasks(root, tasks).items():
         raise ConfigError(f"--tasks {task}: the task {why} ({root}); score it on a dataset that has it")
+
+
+#: What ``--save-predictions DIR`` writes (those of the tasks evaluated), and the folder of
+#: the forecasts (``forecast/<scene>/<token>/forecast.npz``).
+PREDICTION_FILES = (
+    "planning_pred.json",
+    "planning_gt.json",
+    "qa_questions.json",
+    "qa_pred.json",
+    "captions_pred.json",
+    "captions_ref.json",
+    "meta_actions.json",
+)
+FORECAST_DIR = "forecast"
 
 
 def _save(out_file: Path, metrics: dict[str, float], provenance: Provenance) -> None:
@@ -263,7 +293,7 @@ def write_predictions(out: Path, predictions: dict[str, dict]) -> None:
         atomic_write_json(out / "planning_gt.json", predictions["planning_gt"])
     for token, (scene, semantics) in predictions["forecast"].items():
         atomic_write_npz(
-            out / "forecast" / scene / token / "forecast.npz", {"semantics": np.asarray(semantics, dtype=np.uint8)}
+            out / FORECAST_DIR / scene / token / "forecast.npz", {"semantics": np.asarray(semantics, dtype=np.uint8)}
         )
     if predictions["qa"]:
         # NuScenes-QA's format: answers in the order of a questions file, written beside them.

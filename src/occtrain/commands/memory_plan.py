@@ -29,7 +29,6 @@ against what this machine measures.
 
 from __future__ import annotations
 
-import json
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -40,6 +39,7 @@ from torch import nn
 
 from occtrain.config.llm import TINY_SIZE_KEYS, check_llm_sizes, validate_llm_config
 from occtrain.errors import ConfigError, cause_line
+from occtrain.formats.io import parse_json
 
 GIB = 1024**3
 #: Precision -> (parameter bytes, activation bytes); gradients and moments take the parameter's.
@@ -154,7 +154,7 @@ def _check_config_sizes(path: str) -> None:
     refusals without either."""
     file = Path(path) / "config.json"
     try:
-        raw = json.loads(file.read_text())
+        raw = parse_json(file.read_text())
     except (OSError, ValueError):
         return  # unreadable: AutoConfig's refusal names the directory
     if not isinstance(raw, dict):

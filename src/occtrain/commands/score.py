@@ -21,7 +21,7 @@ from occtrain.data.layout import ANNOTATIONS_FILE, GTS_DIR, LABELS_FILE, Dataset
 from occtrain.data.schema import QAFile, Vec2
 from occtrain.data.validate import Len, first_problem
 from occtrain.errors import DataError
-from occtrain.formats.io import atomic_write_json, check_output, finite_or_null
+from occtrain.formats.io import atomic_write_json, check_output, finite_or_null, parse_json
 from occtrain.formats.occ3d import FUTURE_STEPS, GRID_SHAPE, NUM_CLASSES
 
 # The metrics (torch, torchmetrics) load with the first score, not with the CLI's parser.
@@ -81,8 +81,8 @@ def read_json(path: str | Path, what: str) -> Any:
     if not path.is_file():
         raise DataError(f"{path}: {what} not found")
     try:
-        return json.loads(path.read_text())  # NaN/Infinity parse here; the declared types refuse them by key
-    except (json.JSONDecodeError, UnicodeDecodeError) as err:
+        return parse_json(path.read_text())  # NaN/Infinity parse here; the declared types refuse them by key
+    except ValueError as err:
         raise DataError(f"{path}: {what} is not valid JSON ({err})") from None
     except OSError as err:
         raise DataError(f"{path}: cannot read the {what} ({err.strerror})") from None
@@ -162,14 +162,19 @@ def score_occupancy(
 # ----------------------------------------------------------------------------- forecasting
 
 
+def _forecast_form(key: str, shape: tuple[int, ...], dtype: np.dtype) -> str | None:
+    """A forecast's shape, from its ``.npy`` header too (see ``read_npz``)."""
+    if len(shape) != 4 or shape[1:] != GRID_SHAPE:
+        return f"'{key}' has shape {shape}, expected (T, {', '.join(map(str, GRID_SHAPE))})"
+    return None
+
+
 def load_forecast(path: Path) -> np.ndarray:
     """A forecast's ``semantics`` (T, 200, 200, 16), validated."""
-    arrays = read_npz(path)
+    arrays = read_npz(path, _forecast_form, ("semantics",))  # its shape checked from the header
     sem = arrays.get("semantics")
     if sem is None:
         raise DataError(f"{path}: missing array 'semantics'")
-    if sem.ndim != 4 or sem.shape[1:] != GRID_SHAPE:
-        raise DataError(f"{path}: 'semantics' has shape {sem.shape}, expected (T, {', '.join(map(str, GRID_SHAPE))})")
     if sem.shape[0] <= max(FORECAST_HORIZONS):
         raise DataError(
             f"{path}: holds {sem.shape[0]} future frames; the 1 s/2 s/3 s horizons need {max(FORECAST_HORIZONS) + 1}"

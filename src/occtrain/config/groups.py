@@ -21,8 +21,24 @@ class SynthConfig:
     camera_width: int = 128
 
 
+#: The largest seed numpy's generators take (``np.random.seed``, and Lightning's
+#: ``seed_everything``, which seeds numpy); the smallest is 0.
+SEED_MAX = 2**32 - 1
+
+
+def check_seed(seed: int, key: str, where: str = "") -> None:
+    """Refuse a seed numpy would refuse with a traceback (late, once training or synthesis
+    began), naming ``key`` and ``where`` it is set (e.g. `` in recipes/x.yaml``)."""
+    if not 0 <= seed <= SEED_MAX:
+        raise ConfigError(
+            f"{key} is {seed}{where}: a seed is an integer from 0 to {SEED_MAX} (2**32 - 1), as numpy's random "
+            "generators take"
+        )
+
+
 def check_synth_config(cfg: SynthConfig) -> None:
     """Refuse a world that cannot be synthesized, naming the settings."""
+    check_seed(cfg.seed, "data.synth.seed")
     if cfg.train_scenes < 1 or cfg.val_scenes < 0 or cfg.frames_per_scene < 1:
         raise ConfigError(
             f"synth needs at least one train scene and one frame per scene (got train_scenes={cfg.train_scenes}, "

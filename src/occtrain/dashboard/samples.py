@@ -10,7 +10,6 @@ Layout (written by :func:`write_samples`, read by :func:`read_samples`)::
 
 from __future__ import annotations
 
-import json
 import re
 from collections.abc import Sequence
 from pathlib import Path
@@ -20,7 +19,7 @@ import numpy as np
 
 from occtrain.data.render import render_bev, strip
 from occtrain.errors import DataError
-from occtrain.formats.io import atomic_write_bytes, atomic_write_json, png_bytes, remove_inside
+from occtrain.formats.io import atomic_write_bytes, atomic_write_json, parse_json, png_bytes, remove_inside
 from occtrain.formats.occ3d import FREE, GRID_SHAPE
 
 SAMPLES_DIR = "samples"
@@ -66,11 +65,11 @@ def read_samples(stage_dir: Path) -> tuple[list[tuple[str, bytes]], list[dict[st
     if not path.is_file():
         return [], []
     try:
-        raw = json.loads(path.read_text())
+        raw = parse_json(path.read_text())
         image_entries, text_entries = list(raw.get("images", [])), list(raw.get("texts", []))
         texts = [{k: str(t.get(k, "")) for k in TEXT_KEYS} for t in text_entries]
         names = [(str(e["file"]), str(e.get("caption", ""))) for e in image_entries]
-    except (json.JSONDecodeError, AttributeError, KeyError, TypeError) as err:
+    except (ValueError, AttributeError, KeyError, TypeError) as err:
         raise DataError(
             f"{path}: unreadable samples index ({err}); re-run the stage's validation to rewrite it"
         ) from None

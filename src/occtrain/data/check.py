@@ -7,7 +7,6 @@ cannot train for want of occtrain's sidecars, go to ``note``.
 
 from __future__ import annotations
 
-import json
 import math
 from collections.abc import Callable
 from functools import partial
@@ -29,9 +28,10 @@ from occtrain.data.layout import (
     read_image,
 )
 from occtrain.data.schema import FrameAnnotation, Occ3DAnnotations, QAFile
-from occtrain.data.shards import INDEX_FILE, decode_sample, iter_raw, read_index
+from occtrain.data.shards import INDEX_FILE, decode_sample, iter_raw, leftover_rebuilds, read_index
 from occtrain.data.validate import problems as schema_problems
 from occtrain.errors import OcctrainError
+from occtrain.formats.io import parse_json
 from occtrain.formats.occ3d import FRAME_DT
 
 POSE_TOLERANCE = 0.05  # metres between a sidecar waypoint and the pose it should equal
@@ -58,8 +58,8 @@ def _guarded(run: Callable[[list[str]], None], where: str | Path) -> list[str]:
 def _file_problems(path: Path, schema: Any) -> tuple[Any, list[str]]:
     """A JSON file's content and every way it differs from ``schema`` (capped at MAX_PER_FILE)."""
     try:
-        data = json.loads(path.read_text())
-    except (ValueError, OSError) as err:  # JSONDecodeError and UnicodeDecodeError are ValueErrors
+        data = parse_json(path.read_text())
+    except (ValueError, OSError) as err:
         return None, [f"{path}: not valid JSON ({err}); re-create the file"]
     found = schema_problems(data, schema, limit=MAX_PER_FILE + 1)
     lines = [f"{path}: {p}" for p in found[:MAX_PER_FILE]]
@@ -125,6 +125,8 @@ def _check_dataset(root: Path, problems: list[str], note: Callable[[str], None])
     problems.extend(_sidecar_problems(index))
     for split in SPLITS:
         problems.extend(_guarded(partial(_check_questions, index, split), root / qa_file(split)))
+    # Shards usually live inside their dataset (data.shards' default, ROOT/shards).
+    problems.extend(leftover.problem() for leftover in leftover_rebuilds(root) if not leftover.running)
 
 
 def _check_cameras(index: DatasetIndex, scene: str, token: str, problems: list[str]) -> None:
@@ -262,6 +264,11 @@ def check_shards(shards: str | Path) -> list[str]:
 
 
 def _check_shards(shards: Path, problems: list[str]) -> None:
+    problems.extend(
+        leftover.problem()
+        for leftover in leftover_rebuilds(shards.resolve().parent, shards.resolve().name)
+        if not leftover.running
+    )
     idx = read_index(shards)
     for kind, splits in idx["kinds"].items():
         for entries in splits.values():

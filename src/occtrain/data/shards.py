@@ -28,15 +28,18 @@ shard set without it is incomplete. Reading decodes only an allow-list of format
 
 from __future__ import annotations
 
+import glob
 import hashlib
 import io
 import json
 import os
 import re
 import shlex
+import socket
 import tarfile
 import tempfile
 from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, NotRequired, TypedDict
 
@@ -48,9 +51,9 @@ from occtrain.data.layout import CLASS_SUFFIX, DEPTH_SUFFIX, FRAMES_DIR, SPLITS,
 from occtrain.data.reading import PAD_KEY, ShardSamples
 from occtrain.data.validate import first_problem
 from occtrain.errors import DataError
-from occtrain.formats.io import atomic_write_json, npz_bytes, rank_world, remove_inside, write_error
+from occtrain.formats.io import atomic_write_json, npz_bytes, parse_json, rank_world, remove_inside, write_error
 from occtrain.formats.occ3d import GRID_SHAPE
-from occtrain.progress import progress_bar
+from occtrain.progress import console, progress_bar
 
 INDEX_FILE = "index.json"
 KINDS = ("frames", "clips")
@@ -288,8 +291,10 @@ def write_shards(
     source = shard_source(index, samples_per_shard, history, future, kinds)
     if rebuild:
         _check_rebuildable(out)
+        _remove_killed_rebuilds(out)
     else:
         old = current_shards(index, out, source)
+        _remove_killed_rebuilds(out)
         if old is not None:
             return old
     missing = (
@@ -381,7 +386,7 @@ def _replace_shards(out: Path, write: Callable[[Path], dict]) -> dict:
     out = out.resolve()  # a link to the shards stays a link, to the new ones
     parent = out.parent
     try:
-        staging = Path(tempfile.mkdtemp(dir=parent, prefix=f".{out.name}.rebuild-"))
+        staging = Path(tempfile.mkdtemp(dir=parent, prefix=_rebuild_prefix(out)))
         os.chmod(staging, out.stat().st_mode & 0o7777)  # mkdtemp's 0700 would replace the directory's own mode
     except OSError as err:
         raise write_error(out, err) from None
@@ -400,6 +405,87 @@ def _replace_shards(out: Path, write: Callable[[Path], dict]) -> dict:
         raise write_error(out, err) from None
     remove_inside(retired, parent)
     return result
+
+
+def _rebuild_prefix(out: Path) -> str:
+    """``.OUT.rebuild-PID.HOST-``: a staging folder's name says whose it is, so that once a
+    kill -9 left it behind, a later command can tell it from one a live rebuild is writing."""
+    return f".{out.name}.rebuild-{os.getpid()}.{socket.gethostname()}-"
+
+
+#: A staging folder (or the old shards between the swap's two renames) and its owner.
+_REBUILD_NAME = re.compile(r"\.(?P<out>.+)\.(?:rebuild|replaced)-(?:(?P<pid>\d+)\.(?P<host>.+)-)?[^-]+")
+
+
+@dataclass(frozen=True)
+class LeftoverRebuild:
+    """A folder beside a shard directory that a ``--rebuild`` of it wrote and did not finish."""
+
+    path: Path
+    out: Path
+    #: Its process and machine; None for a folder named before they were recorded.
+    pid: int | None
+    host: str | None
+
+    @property
+    def stopped(self) -> bool:
+        """Its process is gone: nothing will finish or remove the folder."""
+        return self.pid is not None and self.host == socket.gethostname() and not _alive(self.pid)
+
+    @property
+    def running(self) -> bool:
+        """Its process, on this machine, is still there (writing it, or about to remove it)."""
+        return self.pid is not None and self.host == socket.gethostname() and _alive(self.pid)
+
+    def problem(self) -> str:
+        what = f"{self.path}: left by an `occtrain data shards --rebuild` of {self.out} that"
+        remove = f"remove it with `rm -r {shlex.quote(str(self.path))}`"
+        if self.stopped:
+            return (
+                f"{what} was stopped (pid {self.pid} on {self.host} is gone); {remove} (the next `occtrain data "
+                f"shards` of {self.out} removes it too)"
+            )
+        by = f" (pid {self.pid} on {self.host})" if self.pid is not None else ""
+        return f"{what} has not finished; unless that rebuild{by} is still running, {remove}"
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process
+        return True
+    except (OverflowError, ValueError):  # no process can have such a number
+        return False
+    return True
+
+
+def leftover_rebuilds(folder: str | Path, out: str | None = None) -> list[LeftoverRebuild]:
+    """The folders unfinished ``--rebuild`` runs left in ``folder`` (of the shard directory
+    ``folder/out`` alone, when given), stopped or still running, each with its owner."""
+    folder = Path(folder).resolve()
+    if not folder.is_dir():
+        return []
+    found = []
+    for path in sorted(folder.glob(f".{glob.escape(out) if out else '*'}.re*-*")):
+        named = _REBUILD_NAME.fullmatch(path.name)
+        if named and (out is None or named["out"] == out) and path.is_dir() and not path.is_symlink():
+            pid = int(named["pid"]) if named["pid"] else None
+            found.append(LeftoverRebuild(path, folder / named["out"], pid, named["host"]))
+    return found
+
+
+def _remove_killed_rebuilds(out: Path) -> None:
+    """Remove what rebuilds of ``out`` killed on this machine left beside it (a live one's
+    folder, or another machine's, stays), each with a note."""
+    out = out.resolve()  # as _replace_shards names its folders
+    for leftover in leftover_rebuilds(out.parent, out.name):
+        if leftover.stopped and remove_inside(leftover.path, leftover.path.parent):
+            console.print(
+                f"note: removed {leftover.path}, left by a `--rebuild` of {out} that was stopped (pid {leftover.pid})",
+                markup=False,
+            )
 
 
 # ----------------------------------------------------------------------------- which shards are current
@@ -603,8 +689,8 @@ def read_index(shards: str | Path) -> dict:
     if not path.is_file():
         raise DataError(f"{path}: not found; write shards with `occtrain data shards DATASET --out {Path(shards)}`")
     try:
-        idx = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as err:
+        idx = parse_json(path.read_text())
+    except ValueError as err:
         raise DataError(f"{path}: not valid JSON ({err}); write the shards again") from None
     problem = first_problem(idx, ShardIndex)
     if problem:
@@ -656,7 +742,7 @@ def _decode_entry(name: str, data: bytes, where: str) -> Any:
             with np.load(io.BytesIO(data), allow_pickle=False) as npz:
                 return {k: npz[k] for k in npz.files}
         if ext == "json":
-            return json.loads(data)
+            return parse_json(data)
         if ext == "txt":
             return data.decode("utf-8")
         from PIL import Image
@@ -785,7 +871,9 @@ __all__ = [
     "ALLOWED_EXTENSIONS",
     "KINDS",
     "PAD_KEY",
+    "LeftoverRebuild",
     "decode_sample",
+    "leftover_rebuilds",
     "make_pipeline",
     "read_index",
     "read_npz",

@@ -21,7 +21,7 @@ from safetensors.torch import load_file, save
 
 from occtrain.config.loading import did_you_mean
 from occtrain.errors import OcctrainError
-from occtrain.formats.io import remove_inside, write_error
+from occtrain.formats.io import parse_json, remove_inside, write_error
 
 EXPORT_WEIGHTS = "model.safetensors"
 EXPORT_CONFIG = "config.json"
@@ -150,8 +150,8 @@ def read_config(export_dir: Path) -> dict:
     """An export's ``config.json``, weights unread; a key its kind does not have is refused."""
     config = Path(export_dir) / EXPORT_CONFIG
     try:
-        data = json.loads(config.read_text())
-    except (OSError, ValueError) as err:  # JSONDecodeError and UnicodeDecodeError are ValueErrors
+        data = parse_json(config.read_text())
+    except (OSError, ValueError) as err:
         raise OcctrainError(
             f"{config}: unreadable export config ({_first_line(err)}); re-run the stage that wrote it"
         ) from None

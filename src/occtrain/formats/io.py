@@ -4,7 +4,8 @@ Atomic file writes: a temp file in the same directory, fsync, then rename, so a 
 a crash) never sees a half-written manifest, export, metrics file or label. Outputs checked
 before long work (:func:`check_output`), so a bad ``--out`` fails in one line before the
 hour it would take to reach it. And one door for deleting (:func:`remove_inside`): a path
-is removed only when it resolves inside the directory that owns it.
+is removed only when it resolves inside the directory that owns it. And one door for
+reading JSON a user hands over (:func:`parse_json`): whatever the text, a one-line reason.
 """
 
 from __future__ import annotations
@@ -14,7 +15,9 @@ import io
 import json
 import math
 import os
+import re
 import shutil
+import sys
 import tempfile
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -210,6 +213,32 @@ def atomic_write_safetensors(path: str | Path, tensors: dict) -> Path:
     from safetensors.torch import save
 
     return atomic_write_bytes(path, save({k: v.contiguous() for k, v in tensors.items()}))
+
+
+def parse_json(text: str | bytes) -> Any:
+    """``json.loads`` whose every refusal of a text is a ValueError saying why in one line.
+
+    The decoder's own errors (JSONDecodeError, UnicodeDecodeError) are ValueErrors already;
+    two more ways a file fails are not caught by callers that expect those: nesting deeper
+    than the interpreter's stack (a RecursionError) and an integer longer than Python
+    converts (a ValueError whose advice, ``sys.set_int_max_str_digits``, is not the user's
+    to take). Callers catch ValueError and name their file.
+    """
+    try:
+        return json.loads(text)
+    except RecursionError:
+        raise ValueError(
+            f"nested deeper than Python's JSON reader goes (about {sys.getrecursionlimit()} levels)"
+        ) from None
+    except (json.JSONDecodeError, UnicodeDecodeError):
+        raise
+    except ValueError as err:
+        digits = re.search(r"value has (\d+) digits", str(err))
+        if digits is None:
+            raise
+        raise ValueError(
+            f"an integer of {digits.group(1)} digits, more than Python reads ({sys.get_int_max_str_digits()})"
+        ) from None
 
 
 def rank_world() -> tuple[int, int]:

@@ -12,7 +12,6 @@ are, so its Hugging Face directory is written without them and they are saved be
 
 from __future__ import annotations
 
-import json
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -21,7 +20,7 @@ from safetensors.torch import load_file, save_file
 from torch import nn
 
 from occtrain.errors import ConfigError
-from occtrain.formats.io import atomic_write_json
+from occtrain.formats.io import atomic_write_json, parse_json
 from occtrain.models import without_peft
 
 ADAPTER_WEIGHTS = "adapter.safetensors"
@@ -123,7 +122,7 @@ def load_adapters(llm: nn.Module, source: Path) -> AdapterConfig:
     """Hook adapters onto ``llm`` as saved in ``source`` and load their weights (strict)."""
     source = Path(source)
     try:
-        data = json.loads((source / ADAPTER_CONFIG).read_text())
+        data = parse_json((source / ADAPTER_CONFIG).read_text())
         state = load_file(str(source / ADAPTER_WEIGHTS))
     except Exception as err:  # OSError, JSON and safetensors' own errors: a damaged adapter either way
         raise ConfigError(

@@ -25,6 +25,7 @@ from torch import Tensor, nn
 
 from occtrain.errors import ConfigError, DataError
 from occtrain.formats.exports import check_section, load_state_strict, read_export, write_export
+from occtrain.formats.io import parse_json
 from occtrain.formats.occ3d import NUM_CLASSES
 from occtrain.models.patches import unpatchify
 
@@ -179,7 +180,7 @@ def _preprocessor_stats(path: str) -> tuple[tuple[float, ...], tuple[float, ...]
     if file is None or not file.is_file():
         return SIGLIP_MEAN, SIGLIP_STD
     try:
-        pre = json.loads(file.read_text())
+        pre = parse_json(file.read_text())
         return tuple(float(x) for x in pre["image_mean"]), tuple(float(x) for x in pre["image_std"])
     except (ValueError, KeyError, TypeError, OSError) as e:
         raise ConfigError(f"vision.path: {file} has no usable image_mean/image_std ({_first_line(e)})") from None

@@ -10,11 +10,17 @@ only add recompilations.
 
 The module's weights, names and state dict are untouched: checkpoints, exports and a
 resume are the same with compiling on or off.
+
+Inductor keeps what it compiled (kernels and graphs, over 100 MB) in
+``TORCHINDUCTOR_CACHE_DIR``, by default a folder in the system's temp dir where nobody
+looks; :func:`use_cache_dir` points it into the run instead, unless the user chose one.
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+import os
+from collections.abc import Callable, Iterable
+from pathlib import Path
 from typing import Any
 
 import torch
@@ -23,6 +29,35 @@ from torch import nn
 from occtrain.models import without_peft
 
 _COMPILED = "_occtrain_compiled_forward"
+CACHE_ENV = "TORCHINDUCTOR_CACHE_DIR"
+
+
+def use_cache_dir(folder: Path) -> tuple[Path, Callable[[], None]]:
+    """Have inductor cache what it compiles in ``folder`` unless the user set
+    ``TORCHINDUCTOR_CACHE_DIR``; the folder in use, and what puts the variable back.
+
+    Torch writes its default into the variable the first time it looks (``torch.compile``
+    does), so that value is torch's, not a user's choice."""
+    before = os.environ.get(CACHE_ENV)
+    if before and before != _torch_default():
+        return Path(before), lambda: None
+    os.environ[CACHE_ENV] = str(Path(folder).absolute())
+
+    def restore() -> None:
+        if before is None:
+            os.environ.pop(CACHE_ENV, None)
+        else:
+            os.environ[CACHE_ENV] = before
+
+    return Path(os.environ[CACHE_ENV]), restore
+
+
+def _torch_default() -> str | None:
+    try:
+        from torch._inductor.runtime.cache_dir_utils import default_cache_dir
+    except ImportError:  # a torch that keeps it elsewhere: any value set counts as the user's
+        return None
+    return os.path.abspath(default_cache_dir())
 
 
 def compile_for_training(module: nn.Module, **options: Any) -> bool:

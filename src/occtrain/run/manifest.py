@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import os
 import time
 from dataclasses import asdict, dataclass, field
@@ -11,10 +10,12 @@ from typing import Any
 
 from occtrain.config.recipe import NAME_PATTERN
 from occtrain.errors import OcctrainError
-from occtrain.formats.io import atomic_write_json, remove_inside, write_error
+from occtrain.formats.io import atomic_write_json, parse_json, remove_inside, write_error
 from occtrain.version import code_version
 
 MANIFEST_FILE = "manifest.json"
+#: The recipe the run's stages were trained with (resolved, with its overrides).
+PIPELINE_FILE = "pipeline.yaml"
 #: Where ``--restart`` keeps the stages it replaces until the new attempt has a checkpoint.
 ASIDE_DIR = ".replaced"
 ASIDE_ENTRIES = "entries.json"
@@ -66,9 +67,9 @@ class Manifest:
         if not path.is_file():
             return cls(path=path, writable=writable)
         try:
-            raw = json.loads(path.read_text())
+            raw = parse_json(path.read_text())
             stages = {name: StageEntry(**entry) for name, entry in raw["stages"].items()}
-        except (json.JSONDecodeError, KeyError, TypeError) as err:
+        except (ValueError, KeyError, TypeError, AttributeError) as err:
             raise OcctrainError(f"{path}: unreadable manifest ({err}); move it aside to start the run afresh") from None
         for name in stages:  # each names a directory the runner writes and --restart replaces
             if not NAME_PATTERN.fullmatch(name):
@@ -128,12 +129,13 @@ class Manifest:
         self.save()
 
     # -- --restart replaces stages without losing them: they move to RUN/.replaced/ with their
-    # entries; once a retrained stage has a checkpoint or an export (or the command
-    # succeeded) they are stale and go, and if the attempt fails or is killed before that
-    # they come back as they were.
+    # entries and the run's pipeline.yaml (the recipe they were trained with); once a
+    # retrained stage has a checkpoint or an export (or the command succeeded) they are stale
+    # and go, and if the attempt fails or is killed before that they come back as they were.
 
     def set_aside(self, names: list[str]) -> None:
-        """Move the stages ``--restart`` retrains to ``RUN/.replaced/`` and reset their entries.
+        """Move the stages ``--restart`` retrains to ``RUN/.replaced/`` and reset their entries;
+        ``pipeline.yaml`` goes with them (the caller writes the restart's own after this).
 
         Their entries are written there first, so a kill at any point leaves what
         :meth:`settle_aside` needs to put them back: renames within one directory are atomic.
@@ -147,6 +149,8 @@ class Manifest:
             for name in names:
                 if (run_dir / name).exists():
                     os.rename(run_dir / name, aside / name)
+            if (run_dir / PIPELINE_FILE).is_file():
+                os.rename(run_dir / PIPELINE_FILE, aside / PIPELINE_FILE)
         except OSError as err:
             raise write_error(aside, err) from None
         for name in names:
@@ -163,7 +167,7 @@ class Manifest:
         if not aside.is_dir():
             return ""
         try:
-            raw = json.loads((aside / ASIDE_ENTRIES).read_text())
+            raw = parse_json((aside / ASIDE_ENTRIES).read_text())
             restored = {name: StageEntry(**entry) for name, entry in raw.items() if NAME_PATTERN.fullmatch(name)}
         except (OSError, ValueError, TypeError, AttributeError):
             restored = None  # killed before the entries were written: nothing was moved yet
@@ -178,6 +182,8 @@ class Manifest:
                 os.replace(failed, run_dir / RESTART_TRACEBACK)
             remove_inside(run_dir / name, run_dir)  # the failed attempt's logs; it has no checkpoint
             os.rename(aside / name, run_dir / name)
+        if (aside / PIPELINE_FILE).is_file():  # the recipe of the stages put back, not the failed attempt's
+            os.replace(aside / PIPELINE_FILE, run_dir / PIPELINE_FILE)
         self.stages.update(restored)
         self.save()
         remove_inside(aside, run_dir)

@@ -14,6 +14,7 @@ import importlib
 import inspect
 import json
 import math
+import re
 import time
 import traceback
 from collections.abc import Callable, Iterator
@@ -25,7 +26,7 @@ from omegaconf import OmegaConf
 
 from occtrain.commands.compare import TABLE_FILE, check_table, show_table
 from occtrain.config import load_config, to_container, to_yaml
-from occtrain.config.groups import DataConfig, TrainerConfig
+from occtrain.config.groups import DataConfig, TrainerConfig, check_seed
 from occtrain.config.loading import read_yaml, validate_section
 from occtrain.config.recipe import STAGE_DATA_KEYS, RecipeConfig, StageSpec, check_name
 from occtrain.core.registry import get_family
@@ -34,7 +35,7 @@ from occtrain.formats.io import atomic_write_text, is_rank_zero, remove_inside
 from occtrain.formats.metrics_file import Provenance, StageAttempt, write_metrics
 from occtrain.progress import console
 from occtrain.run.control import Interrupted, run_lock, stage_lock, stop_on_signals
-from occtrain.run.manifest import RESUMABLE, Manifest
+from occtrain.run.manifest import PIPELINE_FILE, RESUMABLE, Manifest
 from occtrain.stages import Stage, StageContext, StageKind, get_kind, kind_names
 
 if TYPE_CHECKING:  # imported where a stage is built (build_stage), as before
@@ -94,6 +95,7 @@ def plan_stages(recipe: RecipeConfig, source: str) -> list[PlannedStage]:
         kind.module.check_consumes(spec.kind, {dep: p.spec.kind for dep, p in consumed.items()}, where)
         family, model_cfg = _model_config(kind, spec, consumed, f"stages[{i}].model", source, where)
         kind.module.check_model(model_cfg, f"stages.{spec.name}.model")
+        check_model_counts(model_cfg, f"stages.{spec.name}.model", source)
         wrong = sorted(set(spec.data or {}) - set(STAGE_DATA_KEYS))
         if wrong:
             raise ConfigError(
@@ -192,6 +194,24 @@ _LEAST: dict[str, dict[str, float | None]] = {
     },
     "optim": {"lr": 0, "weight_decay": 0, "warmup_steps": 0, "min_lr_ratio": 0, "eps": 0},
 }
+#: Seeds per section (dotted below it): numpy takes 0 to 2**32 - 1 and raises deep in
+#: Lightning's seeding, the synthesis or a loader otherwise.
+_SEEDS: dict[str, tuple[str, ...]] = {"trainer": ("seed",), "data": ("seed", "synth.seed")}
+
+
+#: Counts in a stage's ``model:`` that size a batch or a loop, whichever kinds have them:
+#: the least each may be. Out of range they fail late and raw (``val_batch_size: 0``:
+#: ``range() arg 3 must not be zero`` once validation generates) or do nothing at all
+#: (a negative one validates no item).
+_MODEL_LEAST = {"val_batch_size": 1, "prior_batches": 0}
+
+
+def check_model_counts(model: Any, key: str, source: str) -> None:
+    """Refuse a ``model:`` count out of range (``_MODEL_LEAST``) in one line naming its key."""
+    for name, least in _MODEL_LEAST.items():
+        value = getattr(model, name, None)
+        if isinstance(value, int) and value < least:
+            raise ConfigError(f"{key}.{name} is {value} in {source}: it must be at least {least}")
 
 
 def check_ranges(section: str, cfg: Any, stage: str, own: dict | None, source: str) -> None:
@@ -211,6 +231,12 @@ def check_ranges(section: str, cfg: Any, stage: str, own: dict | None, source: s
             if name == "devices":
                 wanted += ", or -1 for every device"
             raise ConfigError(f"{key} is {value} in {source}: it must be {wanted}")
+    for name in _SEEDS.get(section, ()):
+        seed = cfg
+        for part in name.split("."):
+            seed = getattr(seed, part)
+        key = f"stages.{stage}.{section}.{name}" if name in (own or {}) else f"{section}.{name}"
+        check_seed(seed, key, f" in {source}")
     if section == "optim" and (
         len(cfg.betas) != 2 or not all(0 <= b < 1 for b in cfg.betas) or cfg.schedule not in ("cosine", "constant")
     ):
@@ -240,6 +266,10 @@ def _model_config(
     return family, validate_section(kind.module.model_schema(kind, family, raw), spec.model or {}, key, source)
 
 
+#: A dotted Python module name: what ``plugins:`` lists.
+PLUGIN_NAME = re.compile(r"[A-Za-z_]\w*(\.[A-Za-z_]\w*)*")
+
+
 def load_plugins(modules: list[str], source: str) -> None:
     """Import the recipe's plugin modules, which register their stage kinds and families;
     whatever one raises is one line naming it (``core.registry.load_plugin``)."""
@@ -248,6 +278,13 @@ def load_plugins(modules: list[str], source: str) -> None:
     from occtrain.core.registry import load_plugin
 
     for name in modules:
+        if not PLUGIN_NAME.fullmatch(str(name)):
+            # importlib would take a path for a relative import, or a file name for a package
+            # and its module, and say so in its own terms.
+            raise ConfigError(
+                f"plugin '{name}' in {source}: a plugin is a Python module name (e.g. my_package.occtrain_plugin), "
+                "importable on sys.path"
+            )
         load_plugin(partial(importlib.import_module, name), f"plugin '{name}' in {source}", name)
 
 
@@ -455,13 +492,7 @@ def run(
             manifest.entry(p.spec.name, p.spec.kind)
         try:
             if rank_zero:
-                atomic_write_text(run_dir / "pipeline.yaml", to_yaml(recipe))
-                manifest.save()
-                from occtrain.data.datamodule import ensure_data
-
-                ensure_data(recipe.data)
-                if restarted:  # last before training: nothing else can fail with the stages away
-                    _set_aside(manifest, run_dir, [p.spec.name for p in planned if p.spec.name in restarted], held)
+                _prepare(recipe, manifest, [p.spec.name for p in planned if p.spec.name in restarted], held)
             try:
                 _run_stages(planned, manifest, run_dir, recipe, only, rank_zero)
             except (Exception, Interrupted) as err:
@@ -492,12 +523,24 @@ def _holding(run_dir: Path, rank_zero: bool) -> Iterator[contextlib.ExitStack]:
         yield held
 
 
-def _set_aside(manifest: Manifest, run_dir: Path, names: list[str], held: contextlib.ExitStack) -> None:
-    """The stages a restart replaces, moved aside once no eval or drive scores them (their
-    locks then held in ``held`` for the run's life: none writes into a stage replaced under it)."""
-    for name in names:
-        held.enter_context(restart_lock(run_dir, name))
-    manifest.set_aside(names)
+def _prepare(recipe: RecipeConfig, manifest: Manifest, restarted: list[str], held: contextlib.ExitStack) -> None:
+    """What rank zero writes before training: the recipe, the manifest, the data, and for a
+    restart its stages set aside, once no eval or drive scores them (their locks then held
+    in ``held`` for the run's life: none writes into a stage replaced under it)."""
+    from occtrain.data.datamodule import ensure_data
+
+    pipeline = manifest.path.parent / PIPELINE_FILE
+    if not restarted:
+        atomic_write_text(pipeline, to_yaml(recipe))
+    manifest.save()
+    ensure_data(recipe.data)
+    if restarted:  # last before training: nothing else can fail with the stages away
+        for name in restarted:
+            held.enter_context(restart_lock(manifest.path.parent, name))
+        # The old pipeline.yaml goes aside with the stages it describes, and comes back with
+        # them if this attempt stops before it takes.
+        manifest.set_aside(restarted)
+        atomic_write_text(pipeline, to_yaml(recipe))
 
 
 def restart_lock(run_dir: Path, stage: str, create: bool = True) -> contextlib.AbstractContextManager[None]:
@@ -665,6 +708,22 @@ def refuse_changed(planned: list[PlannedStage], manifest: Manifest, restarted: s
             )
 
 
+def _rerun_starts(stage_dir: Path) -> str:
+    """Where a rerun of a stopped stage starts, as its checkpoints say (the end of its line)."""
+    from occtrain.stages.checkpoints import LAST_CKPT, checkpoint_step, last_checkpoint
+
+    try:
+        ckpt = last_checkpoint(stage_dir)
+        step = checkpoint_step(ckpt) if ckpt is not None else None
+    except Exception:  # noqa: BLE001 - the stop's line comes out whatever the checkpoint holds
+        ckpt = None
+    if ckpt is None:
+        unreadable = (stage_dir / "checkpoints" / LAST_CKPT).is_file()
+        when = " with no readable checkpoint" if unreadable else " before its first checkpoint"
+        return f"{when}; rerun the same command to start it over"
+    return f"; rerun the same command to resume it from its checkpoint at step {step} ({ckpt})"
+
+
 def _record_failure(manifest: Manifest, name: str, summary: str, seconds: float, status: str) -> None:
     """Record a stopped stage; when even that write fails (a full disk), the manifest keeps
     its last good state (``running``: a rerun resumes) and the original error is reported."""
@@ -737,8 +796,7 @@ def _run_stages(
             )
         except Interrupted as stop:
             _record_failure(manifest, name, f"{stop}", time.time() - started, "interrupted")
-            resume = f"rerun the same command to resume it from {stage_dir / 'checkpoints'}"
-            raise stop.with_message(f"stage '{name}' of {run_dir} {stop}; {resume}") from None
+            raise stop.with_message(f"stage '{name}' of {run_dir} {stop}{_rerun_starts(stage_dir)}") from None
         except Exception as err:
             line = str(err).splitlines()[0] if str(err) else type(err).__name__
             summary = line if isinstance(err, OcctrainError) else cause_line(err)

@@ -15,7 +15,7 @@ from lightning.pytorch.callbacks import Callback
 
 from occtrain.data.datamodule import ResumableLoader
 from occtrain.data.shards import PAD_KEY
-from occtrain.models.compiling import compile_all
+from occtrain.models.compiling import compile_all, use_cache_dir
 from occtrain.progress import console
 from occtrain.stages.stage import StepWork
 
@@ -283,15 +283,30 @@ def current_rss_mb() -> float | None:
 class CompileBlocks(Callback):
     """``trainer.compile``: the stage's :meth:`~occtrain.stages.stage.Stage.compiled_blocks`
     compiled for training once the model is built (after ``configure_model``: sharded
-    blocks compile as they will run); one log line says what."""
+    blocks compile as they will run); one log line says what, and where inductor caches it
+    (``cache_dir``, e.g. ``RUN/cache/inductor``, unless the user set TORCHINDUCTOR_CACHE_DIR)."""
+
+    def __init__(self, cache_dir: Path | None = None):
+        self.cache_dir = cache_dir
+        self._restore: Callable[[], None] = lambda: None
 
     def on_fit_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        cache = ""
+        if self.cache_dir is not None:
+            where, self._restore = use_cache_dir(self.cache_dir)
+            cache = f"; inductor caches in {where}"
         blocks: list[torch.nn.Module] = getattr(pl_module, "compiled_blocks", list)()
         compiled = compile_all(blocks)
         if trainer.is_global_zero:
             kinds = ", ".join(sorted({type(b).__name__ for b in blocks}))
             what = f"{compiled} block(s) ({kinds}) compiled" if blocks else "this stage kind has no block to compile"
-            console.print(f"trainer.compile: {what} for training steps; evaluation stays eager")
+            console.print(f"trainer.compile: {what} for training steps; evaluation stays eager{cache}")
+
+    def teardown(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
+        # Only training forwards compile: a later stage, or the caller's own torch.compile,
+        # is not to write into this run.
+        self._restore()
+        self._restore = lambda: None
 
 
 class PeakMemory(Callback):

@@ -28,7 +28,11 @@ from occtrain.stages.callbacks import (
 from occtrain.stages.checkpoints import AtomicCheckpointIO
 from occtrain.stages.loggers import build_loggers
 from occtrain.stages.sharding import trainer_strategy
+from occtrain.stages.stage import shared_cache_dir
 from occtrain.stages.step_progress import StepProgress
+
+#: Where ``trainer.compile``'s inductor cache goes, in the run's shared caches (``RUN/cache/``).
+INDUCTOR_CACHE = "inductor"
 
 
 def quiet_lightning() -> None:
@@ -76,7 +80,7 @@ def _callbacks(
         PeakMemory(),
     ]
     if cfg.compile:
-        callbacks.append(CompileBlocks())
+        callbacks.append(CompileBlocks(shared_cache_dir(ckpt_dir.parent) / INDUCTOR_CACHE))
     if record_time is not None:
         callbacks.append(Heartbeat(record_time))
     if record_attempt is not None:
@@ -98,6 +102,12 @@ def _callbacks(
 
 def _usable_cores() -> int:
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
+#: The precisions every stage kind trains at on the CPU (Lightning's legacy spellings
+#: included), tried on the quickstart's five kinds: at 16-true the losses turn NaN, and at
+#: bf16-true and 64-true a tokenizer's codebook update and a planner's head mix dtypes.
+CPU_PRECISIONS = ("32-true", "32", "bf16-mixed", "bf16")
 
 
 def check_trainer_setup(cfg: TrainerConfig, key: str) -> None:
@@ -151,6 +161,13 @@ def check_trainer_setup(cfg: TrainerConfig, key: str) -> None:
             "cannot run here "
             f"({str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__})"
         ) from None
+    if on_cpu and str(cfg.precision) not in CPU_PRECISIONS:
+        # Lightning takes it (checked above), and the first stage would fail on it raw, or train NaN.
+        raise ConfigError(
+            f"{key}.precision is {cfg.precision}, but on the CPU occtrain's stages train at 32-true or bf16-mixed "
+            "only (at other precisions a tokenizer's or a planner's step fails, or the losses turn NaN); use one of "
+            "those"
+        )
 
 
 def build_trainer(

@@ -105,6 +105,29 @@ def test_object_array_is_refused_not_unpickled(tmp_path):
         load_labels(path)
 
 
+def test_a_header_claiming_a_huge_array_is_refused_before_anything_is_inflated(tmp_path):
+    """A labels.npz of a few hundred bytes whose 'semantics' header claims 640 MB: refused
+    from the header, without allocating the array (numpy reports its allocations to tracemalloc)."""
+    import io
+    import tracemalloc
+    import zipfile
+
+    path = tmp_path / "labels.npz"
+    header = io.BytesIO()
+    np.lib.format.write_array_header_1_0(header, {"descr": "|u1", "fortran_order": False, "shape": (2000, 2000, 160)})
+    with zipfile.ZipFile(path, "w", zipfile.ZIP_DEFLATED) as z:
+        z.writestr("semantics.npy", header.getvalue() + bytes(64))
+    tracemalloc.start()
+    try:
+        with pytest.raises(DataError) as err:
+            load_labels(path)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert str(err.value) == f"{path}: 'semantics' has shape (2000, 2000, 160), expected (200, 200, 16)"
+    assert peak < 16 * 2**20, f"{peak / 2**20:.0f} MB allocated to refuse it"
+
+
 def test_truncated_npz(tmp_path):
     path = tmp_path / "labels.npz"
     np.savez_compressed(path, **hand_labels(0))

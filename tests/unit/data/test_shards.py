@@ -2,7 +2,9 @@
 
 import io
 import json
+import os
 import pickle
+import socket
 import tarfile
 
 import numpy as np
@@ -372,6 +374,49 @@ def test_rebuild_replaces_the_shards_and_a_failure_leaves_the_old_ones(hand_data
     assert [e["samples"] for e in index["kinds"]["frames"]["train"]] == [7, 7, 7, 3] and check_shards(out) == []
     assert sorted(p.name for p in tmp_path.iterdir()) == ["s"] and out.stat().st_mode & 0o777 == 0o750
     assert write_shards(hand_dataset, out, samples_per_shard=7, history=2, future=3) == index  # current now
+
+
+def test_a_killed_rebuilds_folder_is_named_by_check_and_removed_by_the_next_write(
+    hand_dataset, shards, tmp_path, monkeypatch, capsys
+):
+    """kill -9 leaves a rebuild's staging folder beside --out (its cleanup never runs): `data
+    check` names it while its process is gone, and the next write removes it. The folder of
+    a rebuild whose process lives (here: this one) is neither named nor touched."""
+    import occtrain.data.shards as shard_module
+
+    out = _copy_of(shards, tmp_path)
+
+    def killed(pid: int) -> None:  # a rebuild by process `pid` that dies halfway, leaving its folder
+        with monkeypatch.context() as m:
+            m.setattr(shard_module.os, "getpid", lambda: pid)
+            m.setattr(shard_module, "remove_inside", lambda *args: True)
+            m.setattr(shard_module, "_frame_sample", _raises)
+            with pytest.raises(DataError):
+                write_shards(hand_dataset, out, samples_per_shard=7, history=2, future=3, rebuild=True)
+
+    dead = 2**22  # above Linux's largest pid: no process has it
+    killed(os.getpid())
+    killed(dead)
+    (stale,) = tmp_path.glob(f".s.rebuild-{dead}.*")
+    (live,) = tmp_path.glob(f".s.rebuild-{os.getpid()}.*")
+    unknown = tmp_path / ".s.rebuild-k2j4h1b0"  # named before the owner was: whose it is, nobody knows
+    unknown.mkdir()
+    assert stale.is_dir() and live.is_dir()
+    assert check_shards(out) == [
+        f"{stale}: left by an `occtrain data shards --rebuild` of {out} that was stopped (pid {dead} on "
+        f"{socket.gethostname()} is gone); remove it with `rm -r {stale}` (the next `occtrain data shards` of "
+        f"{out} removes it too)",
+        f"{unknown}: left by an `occtrain data shards --rebuild` of {out} that has not finished; unless that "
+        f"rebuild is still running, remove it with `rm -r {unknown}`",
+    ]
+    capsys.readouterr()
+    write_shards(hand_dataset, out, samples_per_shard=5, history=2, future=3)  # current: nothing else to write
+    assert not stale.exists() and live.is_dir() and unknown.is_dir() and len(check_shards(out)) == 1
+    assert f"removed {stale}" in capsys.readouterr().err
+
+
+def _raises(*args):
+    raise DataError("a bad label halfway")
 
 
 def test_frames_alone_when_no_clip_fits_and_a_note_says_who_cannot_train(hand_dataset, tmp_path, capsys):

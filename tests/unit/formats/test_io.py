@@ -1,4 +1,5 @@
-"""occtrain.formats.io: the one door every deletion goes through, and outputs checked before work."""
+"""occtrain.formats.io: the one door every deletion goes through, outputs checked before work, and JSON read
+in one line whatever it holds."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ import os
 import pytest
 
 import occtrain.formats.io
-from occtrain.formats.io import OutsideError, WriteError, check_output, remove_inside
+from occtrain.formats.io import OutsideError, WriteError, check_output, parse_json, remove_inside
 
 
 @pytest.fixture
@@ -92,3 +93,20 @@ def test_an_unwritable_place_is_found_by_a_probe_that_leaves_nothing(tmp_path, m
     monkeypatch.setattr(occtrain.formats.io.tempfile, "mkstemp", read_only)
     with pytest.raises(WriteError, match="cannot write .*new: the file system is read-only"):
         check_output(tmp_path / "new", "--out", kind="dir")
+
+
+@pytest.mark.parametrize(
+    "text, says",
+    [
+        ("[" * 100_000 + "]" * 100_000, "nested deeper than Python's JSON reader goes"),
+        ('{"n": ' + "9" * 5016 + "}", "an integer of 5016 digits, more than Python reads (4300)"),
+        ("{not json", "Expecting property name enclosed in double quotes"),
+        (b"\xff\xfe{", "can't decode byte"),
+    ],
+    ids=["nested-100000-deep", "integer-of-5016-digits", "syntax", "not-utf8"],
+)
+def test_every_json_a_file_can_hold_parses_or_is_one_value_error_line(text, says):
+    with pytest.raises(ValueError) as err:
+        parse_json(text)
+    assert says in str(err.value) and "\n" not in str(err.value)
+    assert parse_json('{"a": [1, 2.5, NaN]}')["a"][:2] == [1, 2.5]  # as json.loads: NaN is the schemas' to refuse

@@ -305,8 +305,8 @@ def test_a_read_only_run_directory_is_one_line_and_writes_nothing(probe_kind, re
     monkeypatch.setattr(occtrain.formats.io.tempfile, "mkstemp", read_only)
     with pytest.raises(OcctrainError) as err:
         run(recipe, ["stages[1].optim.lr=0.5"], restart="second")
-    assert str(err.value) == (
-        f"cannot write {run_dir / 'pipeline.yaml'}: the file system is read-only; "
+    assert str(err.value) == (  # a restart writes its pipeline.yaml once the old one is set aside
+        f"cannot write {run_dir / 'manifest.json'}: the file system is read-only; "
         "point the run (--run-dir) or --out at a writable place"
     )
     assert _hashes(run_dir) == before
@@ -430,3 +430,60 @@ def test_a_restart_killed_before_it_settled_is_put_back_by_the_next_run(probe_ki
     out = capsys.readouterr().err
     assert "the stages --restart replaced (second) are back as they were" in out
     assert _tree(run_dir / "second") == tree and _stages(run_dir) == entries
+
+
+def test_a_failed_restart_leaves_pipeline_yaml_as_it_was_and_one_that_takes_rewrites_it(probe_kind, recipe):
+    run_dir = run(recipe)
+    before = (run_dir / "pipeline.yaml").read_text()
+    with pytest.raises(StageFailed, match="are back as they were"):
+        run(recipe, ["stages[0].model.fail=true"], restart="first")
+    assert (run_dir / "pipeline.yaml").read_text() == before  # the recipe of the stages that were put back
+    run(recipe, ["stages[0].optim.lr=0.01"], restart="first")
+    assert "lr: 0.01" in (run_dir / "pipeline.yaml").read_text()
+
+
+def test_a_restart_killed_before_it_settled_gets_its_pipeline_yaml_back_too(probe_kind, recipe):
+    from occtrain.run.manifest import Manifest
+
+    run_dir = run(recipe)
+    before = (run_dir / "pipeline.yaml").read_text()
+    Manifest.load(run_dir).set_aside(["second"])  # as `--restart second` does, then:
+    (run_dir / "pipeline.yaml").write_text("name: probe\n# the killed attempt's recipe\n")
+    Manifest.load(run_dir).settle_aside()  # what the next run does first
+    assert (run_dir / "pipeline.yaml").read_text() == before
+
+
+@pytest.mark.parametrize("at_step, says", [(0, "before its first checkpoint"), (3, "at step 2")])
+def test_a_stop_signal_says_where_a_rerun_starts(probe_kind, recipe, monkeypatch, at_step, says):
+    """SIGTERM in the stage's training: the line promises a resume from a checkpoint only
+    when one exists (every 2 steps here), and names its step."""
+    import os
+    import signal
+
+    from occtrain.run.control import Interrupted
+    from plugins.probe_stage import Probe
+
+    real = Probe.training_step
+
+    def step(self, batch, i):
+        if self.global_step == at_step:
+            os.kill(os.getpid(), signal.SIGTERM)
+        return real(self, batch, i)
+
+    monkeypatch.setattr(Probe, "training_step", step)
+    run_dir = recipe.parent / "runs" / "probe"
+    with pytest.raises(Interrupted) as stop:
+        run(recipe, ["trainer.max_steps=6"], only="first")
+    ckpt = run_dir / "first" / "checkpoints" / "last.ckpt"
+    if at_step == 0:
+        assert not ckpt.exists()
+        assert str(stop.value) == (
+            f"stage 'first' of {run_dir} interrupted by SIGTERM before its first checkpoint; rerun the same command "
+            "to start it over"
+        )
+    else:
+        assert str(stop.value) == (
+            f"stage 'first' of {run_dir} interrupted by SIGTERM; rerun the same command to resume it from its "
+            f"checkpoint at step 2 ({ckpt})"
+        )
+    assert says in str(stop.value)

@@ -91,6 +91,33 @@ def test_compile_blocks_compiles_what_the_stage_names_and_says_so_once(capsys):
     assert "1 block(s) (Linear) compiled" in out and "has no block to compile" in out
 
 
+def test_compile_points_inductors_cache_into_the_run_unless_the_user_chose_one(tmp_path, monkeypatch):
+    """trainer.compile's kernels go to RUN/cache/inductor (torch's default: the system's
+    temp dir, over 100 MB nobody sees) for the stage's fit, and TORCHINDUCTOR_CACHE_DIR is put
+    back after; a folder the user set is left alone."""
+    import os
+
+    from occtrain.config.groups import TrainerConfig
+    from occtrain.stages.trainer import build_trainer
+
+    def compile_blocks(compile: bool) -> list:
+        trainer = build_trainer(TrainerConfig(compile=compile, loggers=["csv"]), tmp_path / "run" / "tok", None)
+        return [c for c in trainer.callbacks if isinstance(c, callbacks.CompileBlocks)]
+
+    assert compile_blocks(False) == []
+    (blocks,) = compile_blocks(True)
+    fit = SimpleNamespace(is_global_zero=True)
+    for user in (None, str(tmp_path / "mine")):
+        if user is None:
+            monkeypatch.delenv("TORCHINDUCTOR_CACHE_DIR", raising=False)
+        else:
+            monkeypatch.setenv("TORCHINDUCTOR_CACHE_DIR", user)
+        blocks.on_fit_start(fit, SimpleNamespace(compiled_blocks=lambda: [torch.nn.Linear(2, 2)]))
+        assert os.environ.get("TORCHINDUCTOR_CACHE_DIR") == (user or str(tmp_path / "run" / "cache" / "inductor"))
+        blocks.teardown(fit, None, "fit")
+        assert os.environ.get("TORCHINDUCTOR_CACHE_DIR") == user
+
+
 def test_the_cpu_peak_is_a_measured_matmul_and_other_devices_have_none():
     peak = device_peak_flops(torch.device("cpu"), "32-true")
     assert peak == cpu_matmul_flops(torch.get_num_threads()) and 1e8 < peak < 1e14

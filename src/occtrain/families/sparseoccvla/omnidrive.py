@@ -13,12 +13,12 @@ sample tokens, so a frame of an Occ3D-layout dataset finds its text by token.
 
 from __future__ import annotations
 
-import json
 from functools import lru_cache
 from pathlib import Path
 from typing import Any
 
 from occtrain.errors import DataError
+from occtrain.formats.io import parse_json
 
 FOLDERS = ("desc", "conv", "vqa", "keywords")
 
@@ -36,7 +36,7 @@ class OmniDriveText:
     def _read(self, folder: str, token: str) -> Any:
         for path in sorted((self.root / folder).glob(f"*/{token}.json")):
             try:
-                return json.loads(path.read_text())
+                return parse_json(path.read_text())
             except (OSError, ValueError) as err:
                 raise DataError(
                     f"{path}: unreadable OmniDrive annotation ({err}); restore the file from the release"
