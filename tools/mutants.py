@@ -125,8 +125,8 @@ MUTANTS = (
         "restart-resets-one-stage",
         "--restart retrains the named stage but keeps the later ones",
         "src/occtrain/run/runner.py",
-        "manifest.set_aside([p.spec.name for p in planned if p.spec.name in restarted])",
-        "manifest.set_aside([str(restart)])",
+        "_prepare(recipe, manifest, [p.spec.name for p in planned if p.spec.name in restarted], held)",
+        "_prepare(recipe, manifest, [str(restart)], held)",
         ("tests/unit/run/test_runner.py::test_changed_config_is_refused_then_restart_retrains",),
     ),
     Mutant(

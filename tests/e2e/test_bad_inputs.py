@@ -386,9 +386,8 @@ def holding(stage: str, shared: bool) -> Callable[[Path], None]:
     def setup(tmp: Path) -> None:
         import fcntl
 
-        path = tmp / "run" / ".locks" / f"{stage}.lock"
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fh = open(path, "a+")  # noqa: SIM115 (held open past the setup: closed when the case's test ends)
+        path = tmp / "run" / stage / "export" / "config.json"
+        fh = open(path)  # noqa: SIM115 (held open past the setup: closed when the case's test ends)
         fcntl.flock(fh.fileno(), fcntl.LOCK_SH if shared else fcntl.LOCK_EX)
         _HELD.append(fh)
 

@@ -60,7 +60,7 @@ def test_the_table_puts_each_stage_beside_the_routes_baselines(tool, tmp_path):
         "| constant_velocity",
         "| stand_still",
     ]
-    assert rows[0].startswith("| a/planner | 0.40 | - | 60.0 |")
+    assert rows[0].startswith("| a/planner | - | - | 0.40 | - | 60.0 |")  # who planned: not recorded here
     assert "recipe a, training seed 3, code 0.1.0+abc, data the routes of seed 1000" in table
     # How long a drive took is told only when it was one whole drive, not a resumed one.
     assert "(driven in 4 min 12 s by 2 workers)" in table and "driven in 0 min 30 s" not in table

@@ -96,30 +96,29 @@ def run_lock(run_dir: Path) -> Iterator[None]:
         fh.close()  # releases the lock
 
 
-#: Per stage, the lock its readers that write into it (``occtrain eval``, ``drive``) share
-#: and a ``--restart`` of it takes alone: ``RUN/.locks/<stage>.lock``, outside the stage's
-#: directory, which a restart moves aside.
-STAGE_LOCKS = ".locks"
-
-
 class StageBusy(OcctrainError):
     """A stage is being scored while a restart would replace it, or the other way round."""
 
 
+#: The file of a done stage its readers that write into it (``occtrain eval``, ``drive``)
+#: lock shared and a ``--restart`` of it alone: its export's config, which exists once the
+#: stage is done and moves aside with the stage (a lock belongs to the file, not its path),
+#: so taking it writes nothing.
+STAGE_LOCK_FILE = ("export", "config.json")
+
+
 @contextmanager
-def stage_lock(run_dir: Path, stage: str, shared: bool, busy: str, create: bool = True) -> Iterator[None]:
+def stage_lock(run_dir: Path, stage: str, shared: bool, busy: str) -> Iterator[None]:
     """Hold ``run_dir``'s lock of ``stage``, shared (a process scoring it) or exclusive (a
     restart replacing it), for the block's life; when another process holds it the other
-    way, raise :class:`StageBusy` with ``busy``, the one line saying who and what to do.
-    Without ``create`` (a check that writes nothing) a lock file nobody made is nobody's."""
-    path = Path(run_dir) / STAGE_LOCKS / f"{stage}.lock"
-    if not create and not path.is_file():
+    way, raise :class:`StageBusy` with ``busy``, the one line saying who and what to do. A
+    stage with no export has nothing to protect: nothing is held."""
+    path = Path(run_dir, stage, *STAGE_LOCK_FILE)
+    try:
+        fh: IO[str] = open(path)
+    except FileNotFoundError:
         yield
         return
-    try:
-        if create:
-            path.parent.mkdir(parents=True, exist_ok=True)
-        fh: IO[str] = open(path, "a+" if create else "r")
     except OSError as err:
         raise write_error(path, err) from None
     try:

@@ -543,14 +543,14 @@ def _prepare(recipe: RecipeConfig, manifest: Manifest, restarted: list[str], hel
         atomic_write_text(pipeline, to_yaml(recipe))
 
 
-def restart_lock(run_dir: Path, stage: str, create: bool = True) -> contextlib.AbstractContextManager[None]:
+def restart_lock(run_dir: Path, stage: str) -> contextlib.AbstractContextManager[None]:
     """The lock a ``--restart`` holds on a stage it replaces: none while the stage is being
     scored (``occtrain eval`` and ``drive`` share it while they read and write it)."""
     busy = (
         f"{run_dir / stage} is being scored by `occtrain eval` or `occtrain drive` in another process; wait for it "
         f"to finish (or stop it), then --restart {stage}"
     )
-    return stage_lock(run_dir, stage, shared=False, busy=busy, create=create)
+    return stage_lock(run_dir, stage, shared=False, busy=busy)
 
 
 def _put_back(err: BaseException, note: str) -> None:
@@ -594,7 +594,7 @@ def check_run(
     manifest = Manifest.load(run_dir, writable=False)
     refuse_changed(planned, manifest, restarted, only)
     for name in restarted:
-        with restart_lock(run_dir, name, create=False):
+        with restart_lock(run_dir, name):
             pass
     for p in planned:  # a checkpoint the run would resume from must load (weights only)
         entry = manifest.stages.get(p.spec.name)
