@@ -35,8 +35,9 @@ class QuantizerFields:
     #: Voxels per batch the Lovasz-softmax term is evaluated on (0: all, the exact loss; a
     #: CPU recipe samples, since the exact loss sorts every voxel for every class).
     lovasz_voxels: int = 0
-    #: Cross-entropy weight of a voxel: its class's frequency in the batch to the power
-    #: ``-class_balance`` (``tokenizers.losses.class_balance_weights``). 0 is the papers'
+    #: Cross-entropy weight of an occupied voxel: its class's frequency among the batch's
+    #: occupied voxels to the power ``-class_balance``, the occupied keeping their total;
+    #: free voxels weigh 1 (``tokenizers.losses.class_balance_weights``). 0 is the papers'
     #: unweighted loss, under which a small tokenizer reconstructs no moving object: cars,
     #: buses and pedestrians are 1.6 % of the voxels (docs/families/occllama.md, "Switches beyond the papers").
     class_balance: float = 0.0
