@@ -14,6 +14,7 @@ import torch
 from safetensors.torch import load_file
 
 from conftest import REPO, free_port, kill_at_checkpoint, run_cli_process, write_hand_dataset
+from occtrain.formats.metrics_file import read_metrics
 from occtrain.stages.callbacks import MEASURED
 
 pytestmark = pytest.mark.slow
@@ -131,9 +132,11 @@ def test_ddp_validation_of_an_odd_split_equals_one_process(tmp_path, world):
     (two_attempt,) = json.loads((tmp_path / "two" / "manifest.json").read_text())["stages"]["tokenizer"]["history"]
     assert (one_attempt["world_size"], one_attempt["val_samples_per_rank"]) == (1, [9])
     assert (two_attempt["world_size"], two_attempt["val_samples_per_rank"]) == (2, [5, 4])
-    single = json.loads((tmp_path / "one" / "tokenizer" / "metrics.json").read_text())
-    ddp = json.loads((tmp_path / "two" / "tokenizer" / "metrics.json").read_text())
+    one_file, two_file = (read_metrics(tmp_path / run / "tokenizer" / "metrics.json") for run in ("one", "two"))
+    single, ddp = one_file.metrics, two_file.metrics
     assert single.keys() == ddp.keys()
+    # Both measured every val frame, once: the provenance counts the two ranks' shares together.
+    assert one_file.provenance.coverage["validation"] == two_file.provenance.coverage["validation"] == [9, 9]
     for key in single:
         if key.endswith(MEASURED):
             continue  # measurements of the machine, not results

@@ -266,6 +266,9 @@ def test_drive_puts_the_planner_behind_the_wheel_and_resumes(pipeline, tmp_path)
     assert summary["drivers"]["stand_still"]["route_completion"] < summary["drivers"]["expert"]["route_completion"]
     assert "CARLA" in summary["conventions"]["driving_score"] and "NAVSIM" in summary["conventions"]["pdm_score"]
     assert summary["wall_s"] > 0 and summary["workers"] == 1 and summary["resumed"] == 0
+    manifest = json.loads((pipeline / "manifest.json").read_text())["stages"]["planner"]
+    assert summary["provenance"]["stage"]["config_hash"] == manifest["config_hash"]
+    assert summary["provenance"]["code_version"] == manifest["code_version"]
     assert sorted(p.name for p in videos.iterdir()) == [
         f"{d}-000.gif" for d in ("constant_acceleration", "constant_velocity", "expert", "planner", "stand_still")
     ]

@@ -38,6 +38,7 @@ import numpy as np
 from occtrain.commands.evaluate import DoneStage, done_stage
 from occtrain.errors import ConfigError
 from occtrain.formats.io import atomic_write_json, check_output
+from occtrain.formats.metrics_file import Provenance
 from occtrain.progress import console, progress_bar
 from occtrain.run.control import Interrupted, stop_on_signals
 
@@ -130,10 +131,27 @@ def drive(
             {"stage": done.spec.name, "routes": routes, "seed": seed, "seconds": seconds, "conventions": CONVENTIONS}
             | {"drivers": summary, "videos": {k: str(p.resolve()) for k, p in gifs.items() if p.is_file()}}
             # How long this invocation took: the whole drive only when no episode was resumed.
-            | {"wall_s": round(time.perf_counter() - start, 1), "workers": workers, "resumed": len(jobs) - len(todo)},
+            | {"wall_s": round(time.perf_counter() - start, 1), "workers": workers, "resumed": len(jobs) - len(todo)}
+            | {"provenance": _provenance(done, routes, seed, seconds).to_json()},
         )
     _refresh_dashboard(stage_dir.parent)
     return summary
+
+
+def _provenance(done: DoneStage, routes: int, seed: int, seconds: float) -> Provenance:
+    """What a drive's numbers were measured on: the routes (the world is the route seeds'),
+    the code, and the attempt of the stage that drove."""
+    from occtrain.version import code_version
+
+    return Provenance(
+        by="occtrain drive",
+        split=f"routes of seed {seed}",
+        coverage={"routes": [routes, routes]},
+        world_name=f"{routes} routes of {seconds:g} s drawn from seed {seed}",
+        code_version=code_version(),
+        stage=done.attempt,
+        measured=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+    )
 
 
 def _check_arguments(routes: int, seed: int, seconds: float, workers: int) -> int:
