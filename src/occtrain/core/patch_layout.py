@@ -94,7 +94,14 @@ class PatchSequenceBuilder(SequenceBuilder):
         self.world = world
         self._fusion: torch.Tensor | None = None  # the waypoint that ended the last part, if it was actions
 
-    def add(self, ids, supervise, seg=0, query_target=None, payload=None) -> None:
+    def add(
+        self,
+        ids: torch.Tensor,
+        supervise: bool,
+        seg: int = 0,
+        query_target: torch.Tensor | None = None,
+        payload: dict[str, torch.Tensor] | None = None,
+    ) -> None:
         super().add(ids, supervise, seg, query_target, payload)
         self._fusion = None
 
@@ -152,7 +159,9 @@ class PatchScene:
         self.queries = queries
         self.patches: list[torch.Tensor] = []
 
-    def _write(self, hidden: torch.Tensor, queries: dict[str, torch.Tensor] | None) -> tuple[torch.Tensor, dict]:
+    def _write(
+        self, hidden: torch.Tensor, queries: dict[str, torch.Tensor] | None
+    ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         logits = self.world.patch_logits(hidden, queries)
         cells = torch.stack([scores.argmax(-1) for scores in logits], -1)  # (n, p*p, codebooks)
         first = sum(len(p) for p in self.patches)
@@ -161,11 +170,15 @@ class PatchScene:
         ids = torch.arange(v.occ_start + first, v.occ_start + first + cells.shape[0], device=hidden.device)
         return ids, self.world.patch_payload(cells, self.fusion)
 
-    def from_queries(self, logits: torch.Tensor, hidden: torch.Tensor | None) -> tuple[torch.Tensor, dict]:
+    def from_queries(
+        self, logits: torch.Tensor, hidden: torch.Tensor | None
+    ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         assert hidden is not None  # a model with a payload keeps its hidden states (LMWorldModel.step)
         return self._write(hidden, self.queries)
 
-    def next_token(self, logits: torch.Tensor, hidden: torch.Tensor | None) -> tuple[torch.Tensor, dict]:
+    def next_token(
+        self, logits: torch.Tensor, hidden: torch.Tensor | None
+    ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         assert hidden is not None
         return self._write(hidden.reshape(1, -1), None)
 
