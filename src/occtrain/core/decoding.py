@@ -101,7 +101,13 @@ class DecodingModel(Protocol):
 
     def scene_query_ids(self, context: SceneContext) -> torch.Tensor: ...
 
+    def scene_query_payload(self, context: SceneContext) -> dict[str, torch.Tensor] | None: ...
+
+    def tracked_scene(self, ids: torch.Tensor, payload: dict[str, torch.Tensor]) -> torch.Tensor: ...
+
     def scene_writer(self, recent: torch.Tensor) -> SceneWriter: ...
+
+    def query_scene_writer(self, recent: torch.Tensor, queries: dict[str, torch.Tensor] | None) -> SceneWriter: ...
 
     def step(
         self,
@@ -170,15 +176,16 @@ class _State:
         #: The scenes fed and generated and where the ego stands (what
         #: ``world.scene_query_ids`` reads), tracked as the sequence builder tracks them.
         self.track = SceneTrack()
-        self.see_prompt(ids)
+        self.see_prompt(ids, payload)
 
-    def see_prompt(self, ids: torch.Tensor) -> None:
+    def see_prompt(self, ids: torch.Tensor, payload: dict[str, torch.Tensor]) -> None:
         """Prompt tokens were fed: their last whole scene, if any, is observed."""
         n = self.vocab.scene_len
-        if n and ids.numel() >= n:
-            codes = ids[self.vocab.is_occ(ids)]
-            if codes.numel() >= n:
-                self.track.scene(codes[-n:], predicted=False)
+        at = self.vocab.is_occ(ids).nonzero().squeeze(1)
+        if n and at.numel() >= n:
+            last = at[-n:]
+            held = {k: v.to(self.device)[last] for k, v in payload.items()}
+            self.track.scene(self.world.tracked_scene(ids[last], held), predicted=False)
 
     def queue(self, ids, segment: int | torch.Tensor = 0, payload: dict | None = None) -> None:
         ids = torch.as_tensor(ids, dtype=torch.long, device=self.device).reshape(-1)
@@ -238,14 +245,16 @@ def _actions(s: _State, answer: ActionAnswer) -> Program:
     return xy
 
 
-def _query_block(s: _State, ids: torch.Tensor) -> Program:
-    """Feed what is queued and then ``ids`` as a transient query block; its outputs."""
+def _query_block(s: _State, ids: torch.Tensor, payload: dict[str, torch.Tensor] | None = None) -> Program:
+    """Feed what is queued and then ``ids`` (with their ``payload``, by default the fill
+    values) as a transient query block; its outputs."""
     queued, segs, extras = (
         s.take() if s.queued else (ids[:0].to(s.device), ids[:0].to(s.device), empty_payload(s.spec, 0, s.device))
     )
     ids = ids.to(s.device)
     n = len(ids)
-    extras = cat_payload([extras, empty_payload(s.spec, n, s.device)])
+    given = empty_payload(s.spec, n, s.device) if payload is None else {k: v.to(s.device) for k, v in payload.items()}
+    extras = cat_payload([extras, given])
     step = yield Forward(torch.cat([queued, ids]), torch.cat([segs, torch.full_like(ids, -1)]), extras, n)
     s.last = None  # the kept tokens' last output is not needed again: what follows is fed
     return Step(step.logits[-n:], None, rows(step.hidden, slice(-n, None)))
@@ -253,25 +262,32 @@ def _query_block(s: _State, ids: torch.Tensor) -> Program:
 
 def _scene(s: _State) -> Program:
     v, world = s.vocab, s.world
-    writer = world.scene_writer(s.recent)
+    recent = s.recent  # the ids before the scene (what its writer may read), before <occ>
     if world.frame_separation and int(s.recent[-1]) != v.occ_open_id:
         s.queue([v.occ_open_id])
-    written = []
+    written: list[tuple[torch.Tensor, dict]] = []
+    writer: SceneWriter
     if s.next_scene:
-        out = yield from _query_block(s, world.scene_query_ids(s.track.context()))
+        # The query block the sequence builder lays out for the same context.
+        context = s.track.context()
+        queries = world.scene_query_payload(context)
+        writer = world.query_scene_writer(recent, queries)
+        out = yield from _query_block(s, world.scene_query_ids(context), queries)
         scene_ids, extra = writer.from_queries(out.logits, out.hidden)
         s.queue(scene_ids, s.next_segment, extra)
         s.next_segment += 1
-        written.append(scene_ids)
+        written.append((scene_ids, extra))
     else:
+        writer = world.scene_writer(recent)
         for _ in range(v.scene_len):
             out = yield from s.output()
             scene_ids, extra = writer.next_token(out.logits, out.hidden)
             s.queue(scene_ids, 0, extra)
-            written.append(scene_ids)
+            written.append((scene_ids, extra))
     if world.frame_separation:
         s.queue([v.occ_close_id])
-    s.track.scene(torch.cat(written), predicted=True)
+    ids, extras = zip(*written)
+    s.track.scene(world.tracked_scene(torch.cat(ids), cat_payload(list(extras))), predicted=True)
     return writer.codes().cpu()
 
 
@@ -289,7 +305,7 @@ def answer_program(s: _State, answer: Answer) -> Program:
     if isinstance(answer, Feed):
         ids, payload = prompt_of(s.spec, answer.tokens)
         s.queue(ids, 0, payload)
-        s.see_prompt(ids.to(s.device))
+        s.see_prompt(ids.to(s.device), payload)
         return None
     if isinstance(answer, Flush):
         if s.queued:

@@ -23,10 +23,12 @@ EgoStep = tuple[float, float]
 class SceneContext:
     """What a predicted scene's query block may read (``LMWorldModel.scene_query_ids``).
 
-    ``last_scene``: the code ids of the scene before it (None: none); ``observed``: those of
-    the last prompt scene, the present the forecast starts from (None: none); ``step``: the
-    ego's move from the scene before to this one, ``offset``: from the observed scene to
-    this one (each None when no waypoint came before this scene)."""
+    ``last_scene``: the scene before it as the world model tracks it (``tracked_scene``: its
+    code ids in the codes layout, its raw codes in the patches layout, where an id names
+    only a position; None: none); ``observed``: the same of the last prompt scene, the
+    present the forecast starts from (None: none); ``step``: the ego's move from the scene
+    before to this one, ``offset``: from the observed scene to this one (each None when no
+    waypoint came before this scene)."""
 
     last_scene: torch.Tensor | None = None
     observed: torch.Tensor | None = None
@@ -57,7 +59,7 @@ class SceneTrack:
         return SceneContext(self.last, self.observed, step, self.next)
 
     def scene(self, code_ids: torch.Tensor | None, predicted: bool) -> None:
-        """A scene (its code ids) was laid out or generated."""
+        """A scene (as the world model tracks it: see ``SceneContext``) was laid out or generated."""
         self.last = code_ids
         if not predicted:
             self.observed, self.at = code_ids, (0.0, 0.0)

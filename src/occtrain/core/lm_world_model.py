@@ -5,7 +5,8 @@ joint vocabulary and the scene-prediction mode; it runs the LLM under the boolea
 attention masks the sequences carry, computes the one cross-entropy over every target,
 and generates through the decoding program (``core.decoding``). A family subclasses it,
 calls its ``__init__`` and adds what its own tokens need: how they are embedded
-(``embed``), laid out (``builder``), written when generated (``scene_writer``), what they
+(``embed``), laid out (``builder``), written when generated (``scene_writer``), what a
+predicted scene's query block holds (``scene_query_ids``, ``scene_query_payload``), what they
 carry beside their ids (``payload_spec``), extra loss terms (``forward``), and how it is
 rebuilt from an export (``create``, ``from_export``, ``export_config``).
 """
@@ -123,9 +124,25 @@ class LMWorldModel(nn.Module):
         and generation both ask here."""
         return self.vocab.query_ids()
 
+    def scene_query_payload(self, context: SceneContext) -> dict[str, torch.Tensor] | None:
+        """What the query block of ``scene_query_ids`` carries beside its ids (the patches
+        layout: the cells of a scene it holds, ``core.patch_layout``), or None: every payload
+        field at its fill value. Training and generation both ask here."""
+        return None
+
+    def tracked_scene(self, ids: torch.Tensor, payload: dict[str, torch.Tensor]) -> torch.Tensor:
+        """What ``core.ego_steps.SceneTrack`` keeps of a scene laid out or generated as these
+        tokens (and their payload), for the query blocks after it: its code ids."""
+        return ids
+
     def scene_writer(self, recent: torch.Tensor) -> SceneWriter:
         """What writes the next generated scene; ``recent`` are the last ids before it."""
         raise ValueError(f"the {type(self).__name__} world model generates no scenes")
+
+    def query_scene_writer(self, recent: torch.Tensor, queries: dict[str, torch.Tensor] | None) -> SceneWriter:
+        """What writes the next generated scene from a query block that carried ``queries``
+        (``scene_query_payload``'s): by default the scene writer, which reads only outputs."""
+        return self.scene_writer(recent)
 
     def embed(self, input_ids: torch.Tensor, payload: dict[str, torch.Tensor] | None = None) -> torch.Tensor:
         """Input embeddings: the LLM's own table (a family embeds its own tokens)."""

@@ -109,11 +109,14 @@ class WorldEngine(Protocol):
 
 
 class SceneMover(Protocol):
-    """A scene as the ego would see it after a move: the code ids (S,) of a scene -> the code
-    ids of it moved by ``step`` with everything else standing still, through the frozen
-    scene encoder (its labels shifted and encoded again)."""
+    """A scene as the ego would see it after a move, with everything else standing still,
+    through the frozen scene encoder (its labels shifted and encoded again): the code ids
+    (S,) of a scene in the codes layout -> those of it moved by ``step``; ``codes``: the
+    same on its raw codes (flat, codebook-major), what the patches layout tracks."""
 
     def __call__(self, code_ids: torch.Tensor, step: EgoStep) -> torch.Tensor: ...
+
+    def codes(self, codes: torch.Tensor, step: EgoStep) -> torch.Tensor: ...
 
 
 class PromptInputs(Protocol):

@@ -7,9 +7,10 @@ The labels are the observed ones when the codes are those of a dataset frame (``
 a prompt's scenes, and in training every scene before a predicted one), else the scene's
 codes decoded (a generated scene). Decoding costs a dozen encodings, so training, which
 moves only observed scenes, never decodes, and generation decodes only what it generated.
-The results are kept (keyed by the codes and the whole-voxel shift, all they depend on):
-training asks for the same scenes moved by the same true steps every epoch; up to
-``capacity`` entries, the oldest dropped first.
+Both layouts move raw codes (``codes``; the codes layout's ids go through it by
+``__call__``). The results are kept (keyed by the codes and the whole-voxel shift, all they
+depend on): training asks for the same scenes moved by the same true steps every epoch; up
+to ``capacity`` entries, the oldest dropped first.
 """
 
 from __future__ import annotations
@@ -49,25 +50,31 @@ class MovedScenes:
 
     @torch.no_grad()
     def __call__(self, code_ids: torch.Tensor, step: EgoStep) -> torch.Tensor:
-        codes = self.vocab.codes_from_ids(code_ids.detach().cpu())
+        """The codes layout: a scene's code ids moved by ``step``."""
+        moved = self.codes(self.vocab.codes_from_ids(code_ids.detach().cpu()), step)
+        return self.vocab.occ_ids(moved).to(code_ids.device)
+
+    @torch.no_grad()
+    def codes(self, codes: torch.Tensor, step: EgoStep) -> torch.Tensor:
+        """A scene's raw codes (flat, codebook-major) moved by ``step``: any layout."""
+        flat = codes.detach().reshape(-1).long().cpu()
         shift = voxel_shift(step)
-        key = (codes.numpy().tobytes(), *shift)
+        key = (flat.numpy().tobytes(), *shift)
         moved = self._kept.get(key)
         if moved is None:
             device = self._device()
-            labels = self.observed(codes)
+            labels = self.observed(flat)
             if labels is None:
-                labels = self.encoder.decode(codes[None].to(device))[0].cpu()
+                labels = self.encoder.decode(flat[None].to(device))[0].cpu()
                 self.decoded += 1
-            row = self.encoder.encode(moved_scene(labels, step)[None].to(device))[0].cpu()
-            moved = self.vocab.occ_ids(row)
+            moved = self.encoder.encode(moved_scene(labels, step)[None].to(device))[0].cpu().long()
             self.computed += 1
             self._kept[key] = moved
             if len(self._kept) > self.capacity:
                 self._kept.popitem(last=False)
         else:
             self._kept.move_to_end(key)
-        return moved.to(code_ids.device)
+        return moved.to(codes.device)
 
     def _device(self) -> torch.device:
         module = self.encoder

@@ -78,3 +78,15 @@ def test_observed_labels_are_moved_without_decoding_and_generated_scenes_are_dec
     assert (moved[:2] == 7).all() and mover.decoded == 0  # the labels, not the codes, were moved
     generated = vocab.codes_from_ids(mover(vocab.occ_ids(torch.arange(9).flip(0)), (0.4, 0.0))).reshape(3, 3)
     assert generated[:2].tolist() == torch.arange(9).flip(0).reshape(3, 3)[1:].tolist() and mover.decoded == 1
+
+
+def test_raw_codes_move_as_their_ids_do_and_share_what_is_kept(vocab):
+    """The patches layout moves a scene's raw codes (its ids name only positions): the same
+    scene as the codes layout's ids moves, from the same kept entry."""
+    encoder = Module()
+    mover = MovedScenes(vocab, encoder)
+    codes = torch.arange(9)
+    moved = mover.codes(codes, (0.4, 0.0))
+    assert moved.tolist() == codes.reshape(3, 3)[1:].reshape(-1).tolist() + [FREE] * 3
+    assert torch.equal(vocab.codes_from_ids(mover(vocab.occ_ids(codes), (0.5, 0.1))), moved)
+    assert mover.computed == 1 and encoder.calls == 1

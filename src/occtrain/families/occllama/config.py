@@ -3,6 +3,7 @@ its task settings are in ``tasks``."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -79,8 +80,32 @@ class OccLLaMAWorldConfig:
     #: the new scene), so no forecast step's queries pass through a generated scene: a
     #: coarse tokenizer's decode-encode cycle, repeated step after step, would blur them.
     scene_queries: str = "learned"
+    #: How the LLM reads a scene. 0 (the paper's): one token per latent cell (the joint
+    #: vocabulary's codes layout). p > 0 (not the paper's): one token per p x p patch of the
+    #: latent grid, its cells' codes riding beside the id (the patches layout,
+    #: ``core.patch_layout``): a 25 x 25 latent is 625 tokens a scene, or 25 at p = 5.
+    patch_size: int = 0
+    #: Patches only: where a query carries a scene (``scene_queries`` other than ``learned``),
+    #: the patch head adds this learned per-codebook bias (its initial value) to the logit of
+    #: the code the query's cell holds, so an untrained model writes its queries back (the
+    #: moved present, with ``moved_observed_scene``) and training learns where to differ.
+    #: 0: the copy path starts off.
+    copy_bias: float = 4.0
+    #: Patches only: per-cell feature width of the patch head (``core.patch_layout.PatchHead``).
+    cell_dim: int = 64
 
     def validate(self, where: str, inputs: Any) -> None:
-        """One line naming the key when a setting is unknown."""
+        """One line naming the key when a setting is unknown or cannot work over ``inputs``
+        (a ``WorldInputs``)."""
         if self.scene_queries not in SCENE_QUERIES:
             raise ConfigError(f"{where}.scene_queries: '{self.scene_queries}' is not one of {', '.join(SCENE_QUERIES)}")
+        latent = tuple(inputs.scene.latent_hw)
+        if self.patch_size < 0 or (self.patch_size and (latent[0] % self.patch_size or latent[1] % self.patch_size)):
+            raise ConfigError(
+                f"{where}.patch_size: {self.patch_size} must be 0 (a token per latent cell) or divide the tokenizer's "
+                f"latent grid {latent[0]} x {latent[1]}"
+            )
+        if not math.isfinite(self.copy_bias):
+            raise ConfigError(f"{where}.copy_bias: must be a finite number, got {self.copy_bias}")
+        if self.cell_dim < 1:
+            raise ConfigError(f"{where}.cell_dim: must be >= 1, got {self.cell_dim}")

@@ -19,10 +19,19 @@ scene by the ego's step first (shifted and re-encoded by the frozen tokenizer), 
 ego's own motion needs no learning either; ``moved_observed_scene`` moves the last
 observed scene (the present) by the ego's whole move since it, so every forecast scene's
 queries are one encoding away from what was observed, however far the forecast runs.
+
+Patches (``model.occllama.patch_size``, not the paper's). A scene may instead be read as
+one token per p x p patch of the latent grid (``core.patch_layout``: 25 tokens for a 25 x
+25 latent at p = 5, where the codes layout takes 625), the patch's cells riding beside its
+id: :class:`OccLLaMAPatchWorldModel`, with the same query modes. A query block that holds a
+scene carries its cells (the scene before, or the present, moved as above through the
+frozen tokenizer), and the patch head's copy path (``copy_bias``) starts the model off
+writing that scene back.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import asdict
 
 import torch
@@ -30,10 +39,31 @@ import torch.nn.functional as F
 from torch import nn
 
 from occtrain.core.decoding import CodeScene
-from occtrain.core.ego_steps import SceneContext
+from occtrain.core.ego_steps import EgoStep, SceneContext
 from occtrain.core.lm_world_model import LMWorldModel, WorldInputs
+from occtrain.core.patch_layout import PatchWorldModel
 from occtrain.core.vocab import JointVocab
 from occtrain.families.occllama.config import OccLLaMAWorldConfig
+
+#: Moves a scene (as the world model tracks it) by an ego step: ``core.protocols.SceneMover``'s.
+Move = Callable[[torch.Tensor, EgoStep], torch.Tensor]
+
+
+def query_scene(mode: str, context: SceneContext, move: Move | None) -> torch.Tensor | None:
+    """The scene a query block of ``scene_queries`` mode ``mode`` holds, as the world model
+    tracks scenes (see the module docstring), or None: the learnable queries, also when
+    there is no such scene; a scene unmoved when no waypoint came before this one."""
+    source = context.observed if mode == "moved_observed_scene" else context.last_scene
+    if mode == "learned" or source is None:
+        return None
+    step = context.offset if mode == "moved_observed_scene" else context.step
+    if mode == "last_scene" or step is None:
+        return source
+    if move is None:
+        raise ValueError(
+            f"{mode} queries move scenes through the frozen tokenizer: build the world model through the engine"
+        )
+    return move(source, step).to(source.device)
 
 
 class OccLLaMAWorldModel(LMWorldModel):
@@ -66,18 +96,8 @@ class OccLLaMAWorldModel(LMWorldModel):
         learnable queries, or a scene before this one, moved by the ego as it says; the
         learnable queries when there is no such scene, a scene unmoved when no waypoint
         came before this one."""
-        mode = self.cfg.scene_queries
-        source = context.observed if mode == "moved_observed_scene" else context.last_scene
-        if mode == "learned" or source is None:
-            return super().scene_query_ids(context)
-        move = context.offset if mode == "moved_observed_scene" else context.step
-        if mode == "last_scene" or move is None:
-            return source
-        if self.scene_mover is None:
-            raise ValueError(
-                f"{mode} queries move scenes through the frozen tokenizer: build the world model through the engine"
-            )
-        return self.scene_mover(source, move).to(source.device)
+        scene = query_scene(self.cfg.scene_queries, context, self.scene_mover)
+        return super().scene_query_ids(context) if scene is None else scene
 
     def scene_writer(self, recent: torch.Tensor) -> CodeScene:
         """What writes the next generated scene; ``recent`` are the last ids before it."""
@@ -99,28 +119,69 @@ class OccLLaMAWorldModel(LMWorldModel):
         return {**super().export_config(), "code_dim": int(self.codebook.shape[1]), "occllama": asdict(self.cfg)}
 
     @staticmethod
-    def vocab_layout(inputs: WorldInputs, world_cfg=None) -> dict:
-        """One token per latent cell and codebook (the codes layout)."""
-        return {"codebook_sizes": inputs.scene.codebook_sizes, "scene_hw": inputs.scene.latent_hw}
+    def vocab_layout(inputs: WorldInputs, world_cfg: OccLLaMAWorldConfig | None = None) -> dict:
+        """One token per latent cell and codebook (the codes layout), or with ``patch_size``
+        one per p x p patch of the latent grid (the patches layout)."""
+        cfg = world_cfg or OccLLaMAWorldConfig()
+        return {
+            "codebook_sizes": inputs.scene.codebook_sizes,
+            "scene_hw": inputs.scene.latent_hw,
+            "patch": cfg.patch_size,
+        }
 
     @classmethod
     def create(
-        cls, llm: nn.Module, vocab: JointVocab, inputs: WorldInputs, scene_prediction: str, world_cfg=None
-    ) -> OccLLaMAWorldModel:
-        return cls(llm, vocab, torch.cat(inputs.scene.codebooks), scene_prediction, world_cfg)
+        cls,
+        llm: nn.Module,
+        vocab: JointVocab,
+        inputs: WorldInputs,
+        scene_prediction: str,
+        world_cfg: OccLLaMAWorldConfig | None = None,
+    ) -> LMWorldModel:
+        """The codes layout's model, or with ``patch_size`` the patches layout's."""
+        cfg = world_cfg or OccLLaMAWorldConfig()
+        if cfg.patch_size:
+            return OccLLaMAPatchWorldModel(
+                llm, vocab, inputs.scene.codebooks, scene_prediction, cfg, inputs.scene.latent_hw
+            )
+        return cls(llm, vocab, torch.cat(inputs.scene.codebooks), scene_prediction, cfg)
 
     @classmethod
-    def from_export(cls, data: dict, llm: nn.Module, vocab: JointVocab, inputs: WorldInputs) -> OccLLaMAWorldModel:
-        # Exports written before the setting existed used the paper's queries.
-        return cls(
-            llm,
-            vocab,
-            torch.cat(inputs.scene.codebooks),
-            data["scene_prediction"],
-            OccLLaMAWorldConfig(**data.get("occllama", {})),
-        )
+    def from_export(cls, data: dict, llm: nn.Module, vocab: JointVocab, inputs: WorldInputs) -> LMWorldModel:
+        # Exports written before a setting existed used its default (the paper's queries, codes).
+        return cls.create(llm, vocab, inputs, data["scene_prediction"], OccLLaMAWorldConfig(**data.get("occllama", {})))
 
     def scene_token_rows(self) -> torch.Tensor:
         """The scene tokens' input embeddings: their rows of an exported LLM's table, so
         plain transformers reads them too."""
         return self.occ_proj(self.codebook)
+
+
+class OccLLaMAPatchWorldModel(PatchWorldModel):
+    """OccLLaMA over the patches layout (``patch_size`` > 0; see the module docstring): the
+    patch embedding and head of ``core.patch_layout`` with OccLLaMA's query modes and the
+    copy path. ``OccLLaMAWorldModel.create`` and ``from_export`` build it."""
+
+    def __init__(
+        self,
+        llm: nn.Module,
+        vocab: JointVocab,
+        codebooks: list[torch.Tensor],
+        scene_prediction: str,
+        cfg: OccLLaMAWorldConfig,
+        latent_hw: tuple[int, int],
+    ):
+        super().__init__(
+            llm, vocab, codebooks, scene_prediction, latent_hw, cfg.patch_size, cfg.cell_dim, copy_bias=cfg.copy_bias
+        )
+        self.cfg = cfg
+
+    def query_cells(self, context: SceneContext) -> torch.Tensor | None:
+        """The cells of the scene ``scene_queries`` says the query block holds (the scenes
+        are raw codes here, moved through ``SceneMover.codes``), or None: the learned queries."""
+        move = None if self.scene_mover is None else self.scene_mover.codes
+        scene = query_scene(self.cfg.scene_queries, context, move)
+        return None if scene is None else self.cells_of(scene)
+
+    def export_config(self) -> dict:
+        return {**super().export_config(), "occllama": asdict(self.cfg)}

@@ -396,7 +396,12 @@ def test_last_scene_queries_are_the_scene_before(vocab):
     assert seq.labels[seq.segment_ids < 0].tolist() == v.occ_ids(TARGET).tolist() + v.occ_ids(CTX).tolist()
     first = world.builder().scene(TARGET, True).build()
     assert first.input_ids[first.segment_ids < 0].tolist() == v.query_ids().tolist()
-    assert world.export_config()["occllama"] == {"scene_queries": "last_scene"}
+    assert world.export_config()["occllama"] == {
+        "scene_queries": "last_scene",
+        "patch_size": 0,
+        "copy_bias": 4.0,
+        "cell_dim": 64,
+    }
     inputs = WorldInputs(scene=SimpleNamespace(codebooks=[world.codebook]))
     old = {k: val for k, val in world.export_config().items() if k != "occllama"}  # an export from before the setting
     assert OccWorldModel.from_export(old, world.llm, vocab, inputs).cfg.scene_queries == "learned"
@@ -501,3 +506,213 @@ def test_packed_sequences_train_as_they_would_alone(vocab):
     for name in ("loss", "text_loss", "scene_loss", "sample_loss"):
         torch.testing.assert_close(getattr(packed, name), getattr(padded, name), rtol=1e-5, atol=1e-6)
     assert collate(seqs, vocab.pad_id, rows)["input_ids"].shape[0] == 2  # two rows for three sequences
+
+
+# -- OccLLaMA over the patches layout (model.occllama.patch_size)
+
+PATCH_HW = (4, 4)
+PRESENT = torch.tensor([3, 1, 4, 1, 5, 9, 2, 6, 5, 3, 5, 8, 9, 7, 9, 3])
+FUTURE = torch.tensor([2, 7, 1, 8, 2, 8, 1, 8, 2, 8, 4, 5, 9, 0, 4, 5])
+
+
+@pytest.fixture(scope="module")
+def patch_vocab():
+    return JointVocab(train_text_tokenizer(TEXTS, 300), 16, scene_hw=PATCH_HW, llm_cfg=CFG, patch=2)
+
+
+class ShiftingCodes:
+    """A scene mover over raw codes (the patches layout's) that records what it is asked
+    and answers each cell's next code."""
+
+    def __init__(self):
+        self.asked = []
+
+    def codes(self, codes, step):
+        self.asked.append((codes.tolist(), step))
+        return (codes + 1) % 16
+
+    def __call__(self, code_ids, step):
+        raise AssertionError("the patches layout moves raw codes, not ids")
+
+
+def make_patch_world(vocab, queries="moved_observed_scene", seed=0, copy_bias=4.0, mode="next_scene"):
+    torch.manual_seed(seed)
+    llm = build_llm(CFG, len(vocab))
+    inputs = WorldInputs(scene=SimpleNamespace(codebooks=[torch.randn(16, 8)], latent_hw=PATCH_HW))
+    cfg = OccLLaMAWorldConfig(queries, patch_size=2, copy_bias=copy_bias, cell_dim=8)
+    world = OccWorldModel.create(llm, vocab, inputs, mode, cfg)
+    world.scene_mover = ShiftingCodes()
+    return world
+
+
+def by_hand(codes: torch.Tensor) -> list:
+    """The cells of a 4 x 4 scene's 2 x 2 patches: patch j covers rows 2(j // 2).. and
+    columns 2(j % 2)..; its cells row-major, each with its one codebook's code."""
+    g = codes.reshape(4, 4)
+    rows = lambda j: (2 * (j // 2), 2 * (j // 2) + 1)  # noqa: E731
+    cols = lambda j: (2 * (j % 2), 2 * (j % 2) + 1)  # noqa: E731
+    return [[[int(g[r, c])] for r in rows(j) for c in cols(j)] for j in range(4)]
+
+
+def test_patch_layout_queries_carry_the_moved_present_and_target_the_true_cells(patch_vocab):
+    """``patch_size: 2`` over a 4 x 4 latent: a scene is 4 patch tokens; a predicted
+    scene's query block carries the present moved by the ego's move since it (through the
+    mover's raw codes) and targets the true cells, which the code block after it carries."""
+    v = patch_vocab
+    world = make_patch_world(v)
+    seq = world.builder().scene(PRESENT).actions(XY[:1], True).scene(FUTURE, True).build()
+    patches = list(range(v.occ_start, v.occ_start + 4))
+    OPEN, CLOSE, ACT, END = v.occ_open_id, v.occ_close_id, v.act_open_id, v.act_close_id
+    act = v.action_ids(XY[:1]).tolist()
+    queries = v.query_ids().tolist()
+    assert seq.input_ids.tolist() == [v.bos_id, OPEN, *patches, CLOSE, ACT, *act, END, OPEN, *queries, *patches, CLOSE]
+    assert seq.segment_ids.tolist() == [0, 0] + [1] * 4 + [0] * 6 + [-2] * 4 + [2] * 4 + [0]
+    q, block = seq.segment_ids < 0, seq.segment_ids == 2
+    assert world.scene_mover.asked == [(PRESENT.tolist(), (2.0, -1.0))]
+    assert seq.payload["cells"][q].tolist() == by_hand((PRESENT + 1) % 16)
+    assert seq.payload["target"][q].tolist() == by_hand(FUTURE)
+    assert seq.payload["cells"][block].tolist() == by_hand(FUTURE)
+    assert seq.payload["cells"][seq.segment_ids == 1].tolist() == by_hand(PRESENT)
+    assert bool((seq.payload["target"][~q] == IGNORE).all()) and seq.payload["carries"].tolist() == q.tolist()
+    # The learned queries carry no scene: zero cells, nothing to copy.
+    learned = make_patch_world(v, "learned").builder().scene(PRESENT).actions(XY[:1], True).scene(FUTURE, True).build()
+    lq = learned.segment_ids < 0
+    assert not bool(learned.payload["carries"].any()) and int(learned.payload["cells"][lq].abs().sum()) == 0
+    assert learned.payload["target"][lq].tolist() == by_hand(FUTURE)
+
+
+def test_patch_loss_is_finite_and_falls_under_adamw(patch_vocab):
+    world = make_patch_world(patch_vocab).train()
+    seqs = [
+        world.builder().text("go straight").scene(PRESENT).actions(XY[:1], True).scene(FUTURE, True).build(),
+        world.builder().scene(FUTURE).text("plan the route").actions(XY, True).scene(PRESENT, True).build(),
+    ]
+    batch = collate(seqs, patch_vocab.pad_id)
+    opt = torch.optim.AdamW(world.parameters(), lr=3e-3)
+    losses = []
+    for _ in range(10):
+        out = world(batch)
+        losses.append(float(out.loss.detach()))
+        assert torch.isfinite(out.scene_loss) and float(out.scene_loss.detach()) > 0
+        opt.zero_grad()
+        out.loss.backward()
+        opt.step()
+    assert all(torch.isfinite(torch.tensor(losses))) and losses[-1] < 0.7 * losses[0], losses
+    assert world.copy_bias.grad is not None and float(world.copy_bias.grad.abs().sum()) > 0
+
+
+@pytest.mark.parametrize("queries", ["moved_observed_scene", "moved_last_scene", "last_scene"])
+def test_patch_generation_gives_the_queries_the_cells_training_gives(patch_vocab, queries):
+    """Untrained, exact: generation asks the world model for each query block's payload
+    with the context training lays out (the generated waypoints and scenes standing for
+    the true ones), so the query cells are training's, and each generated scene is the
+    training forward's pick at its query block (no copy bias: the picks follow the hidden
+    states, which the fed query block decides); batched, the same."""
+    from occtrain.core.decoding import ActionAnswer, SceneAnswer
+
+    world = make_patch_world(patch_vocab, queries, seed=5, copy_bias=0.0).eval()
+    seen = []
+    ask = world.scene_query_payload
+    world.scene_query_payload = lambda context: seen.append(ask(context)) or seen[-1]
+    prompt_seq = world.builder().scene(FUTURE).scene(PRESENT).build()
+    d = world.decoder(prompt_seq)
+    a1, first, a2, second = d.actions(1), d.scene(), d.actions(1), d.scene()
+    generated = torch.cat([p["cells"] for p in seen])
+    seen.clear()
+    seq = world.builder().scene(FUTURE).scene(PRESENT).actions(a1, True).scene(first, True)
+    seq = seq.actions(a2, True).scene(second, True).build()
+    q = seq.segment_ids < 0
+    assert torch.equal(generated, seq.payload["cells"][q]) and bool(seq.payload["carries"][q].all())
+    assert generated.abs().sum() > 0 and world.scene_mover.asked[:2] == world.scene_mover.asked[2:]
+    with torch.no_grad():
+        hidden = world(collate([seq], patch_vocab.pad_id), output_hidden_states=True).hidden[0][q]
+        logits = world.patch_logits(hidden, {k: seq.payload[k][q] for k in ("cells", "carries")})
+    picked = torch.stack([scores.argmax(-1) for scores in logits], -1)
+    assert torch.equal(torch.cat([world.codes_of(picked[:4]), world.codes_of(picked[4:])]), torch.cat([first, second]))
+    batched = world.generate_batch([prompt_seq], [[ActionAnswer(1), SceneAnswer(), ActionAnswer(1), SceneAnswer()]])
+    for want, got in zip((a1, first, a2, second), batched[0]):
+        assert torch.equal(want, got)
+
+
+def test_the_copy_path_makes_an_untrained_model_write_its_queries_back(patch_vocab):
+    """With a large ``copy_bias`` an untrained model forecasts its query block's scene (the
+    moved present); without it, it does not; the learned queries carry nothing to copy."""
+
+    def forecast(queries: str, copy_bias: float) -> torch.Tensor:
+        world = make_patch_world(patch_vocab, queries, copy_bias=copy_bias).eval()
+        d = world.decoder(world.builder().scene(FUTURE).scene(PRESENT).build())
+        d.actions(1)
+        return d.scene()
+
+    moved = (PRESENT + 1) % 16
+    assert torch.equal(forecast("moved_observed_scene", 50.0), moved)
+    assert not torch.equal(forecast("moved_observed_scene", 0.0), moved)
+    assert torch.equal(forecast("learned", 50.0), forecast("learned", 0.0))
+
+
+@pytest.mark.parametrize("patch_size", [0, 5], ids=["codes", "patches"])
+def test_an_engine_exports_loads_forecasts_plans_and_scores_in_either_layout(tmp_path, hand_dataset, patch_size):
+    """Through the engine: the export loads back identical (class, settings, vocabulary,
+    weights); forecasts decode through the scene encoder, plans come out, and the
+    evaluator's forecast scorer runs, with moved queries moved through the frozen tokenizer."""
+    from occtrain.core.registry import build_tokenizer, save_tokenizer
+    from occtrain.data.layout import DatasetIndex
+    from occtrain.engine import export_engine, load_world_model, new_world_model
+    from occtrain.engine.evaluator import Evaluator, evaluation_clips
+    from occtrain.engine.moved_scenes import MovedScenes
+    from occtrain.families.occllama import TaskConfig
+    from occtrain.families.occllama.world_model import OccLLaMAPatchWorldModel
+
+    tiny = dict(num_codes=16, code_dim=8, class_embed_dim=4, base_channels=4, channel_mult=[1, 1, 1, 1],
+                strides=[2, 2, 5], num_res_blocks=1, z_channels=8, latent_attention=False)  # fmt: skip
+    torch.manual_seed(0)
+    tok = save_tokenizer(build_tokenizer("occworld_vqvae", tiny).eval(), "occworld_vqvae", tiny, tmp_path / "tok")
+    llm = LLMConfig(hidden_size=32, num_layers=1, num_heads=2, intermediate_size=64, text_vocab_size=300)
+    cfg = OccLLaMAWorldConfig("moved_observed_scene", patch_size=patch_size, copy_bias=2.5, cell_dim=8)
+    tasks = TaskConfig(weights={"forecasting": 1.0}, context_frames=2, forecast_frames=2)
+    engine = new_world_model({"tokenizer": tok}, llm, tasks, hand_dataset, family="occllama", world_cfg=cfg)
+    assert isinstance(engine.world, OccLLaMAPatchWorldModel) == bool(patch_size)
+    assert engine.vocab.scene_len == (4 if patch_size else 100) and isinstance(engine.world.scene_mover, MovedScenes)
+    loaded = load_world_model(export_engine(engine, tmp_path / "export", stage="pretrain")).eval()
+    assert type(loaded.world) is type(engine.world) and loaded.vocab.to_json() == engine.vocab.to_json()
+    assert loaded.world.export_config() == engine.world.export_config()
+    assert loaded.world.export_config()["occllama"] == {
+        "scene_queries": "moved_observed_scene",
+        "patch_size": patch_size,
+        "copy_bias": 2.5,
+        "cell_dim": 8,
+    }
+    saved, back = engine.world.state_dict(), loaded.world.state_dict()
+    assert saved.keys() == back.keys()
+    for name in saved:
+        a, b = saved[name], back[name]
+        if name.endswith("embed_tokens.weight") and not patch_size:
+            # The codes layout's export writes its projected codebook into the scene tokens'
+            # rows, for plain transformers; occtrain embeds them from the codebook.
+            lo, hi = engine.vocab.occ_range
+            a, b = torch.cat([a[:lo], a[hi:]]), torch.cat([b[:lo], b[hi:]])
+        assert torch.equal(a, b), name
+
+    loaded.prepare_inputs(hand_dataset)
+    clip = evaluation_clips(DatasetIndex.open(hand_dataset), "val", "forecasting", 2)[0]
+    assert loaded.operation("plan")(loaded, clip).shape[1] == 2
+    evaluator = Evaluator(["forecasting"], loaded.task_specs, record=True)
+    evaluator.run(loaded, hand_dataset, "val", samples=1)
+    metrics = evaluator.compute("val")
+    assert any(k.startswith("val/forecast_occworld") for k in metrics), sorted(metrics)
+    # The forecast decoded through the scene encoder; its queries moved through the frozen tokenizer.
+    (_, forecast), *_ = evaluator.predictions["forecast"].values()
+    assert forecast.shape == (tasks.forecast_frames, 200, 200, 16) and loaded.world.scene_mover.computed > 0
+
+
+def test_patch_size_must_divide_the_latent_grid():
+    from occtrain.errors import ConfigError
+
+    inputs = WorldInputs(scene=SimpleNamespace(latent_hw=(10, 10)))
+    OccLLaMAWorldConfig(patch_size=5).validate("model.occllama", inputs)
+    OccLLaMAWorldConfig(patch_size=0).validate("model.occllama", inputs)
+    for bad in (3, -1):
+        with pytest.raises(ConfigError, match=rf"^model\.occllama\.patch_size: {bad} must"):
+            OccLLaMAWorldConfig(patch_size=bad).validate("model.occllama", inputs)
+    with pytest.raises(ConfigError, match=r"^model\.occllama\.copy_bias"):
+        OccLLaMAWorldConfig(copy_bias=float("nan")).validate("model.occllama", inputs)

@@ -141,7 +141,7 @@ def test_a_patch_size_must_divide_the_grid():
 
 
 def test_the_patch_head_scores_every_cell_in_each_codebook():
-    from occtrain.families.occllm.scene_tokens import PatchEmbedding, PatchHead
+    from occtrain.core.patch_layout import PatchEmbedding, PatchHead
     from occtrain.models.patches import patchify
 
     latents = torch.randn(2, 4, 10, 10)

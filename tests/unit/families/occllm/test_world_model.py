@@ -290,3 +290,12 @@ def test_packed_sequences_train_as_they_would_alone():
         padded, packed = w(collate(seqs, w.vocab.pad_id)), w(collate(seqs, w.vocab.pad_id, [[0, 1], [2]]))
     for name in ("loss", "text_loss", "scene_loss", "sample_loss"):
         torch.testing.assert_close(getattr(packed, name), getattr(padded, name), rtol=1e-5, atol=1e-6)
+
+
+def test_pre_fusion_comes_before_the_patch_parts_it_feeds():
+    """The patch parts live in core now; pre-fusion is still made and registered first, so a
+    seed gives the same initial weights as before and the parameters keep their order (a
+    checkpoint's optimizer state lists them by position)."""
+    names = [n.split(".")[0] for n, _ in world().named_parameters()]
+    order = [n for i, n in enumerate(names) if n not in names[:i]]
+    assert order == ["llm", "fusion", "patch_embed", "head"]
