@@ -310,7 +310,10 @@ def test_a_stopped_drive_ends_in_one_line_and_leaves_no_temporary_files(pipeline
     scratch = tmp_path / "tmp"
     scratch.mkdir()
     args = ("drive", str(pipeline / "planner"), "--scenes", "2", "--seconds", "4", "--seed", "7", "--workers", "2")
-    proc = start_cli(*args, env={"TMPDIR": str(scratch)}, session=True)
+    # torch makes its compile cache on import, in the temporary directory unless told where:
+    # a cache of torch's, not a temporary folder of the drive's.
+    env = {"TMPDIR": str(scratch), "TORCHINDUCTOR_CACHE_DIR": str(tmp_path / "inductor")}
+    proc = start_cli(*args, env=env, session=True)
     deadline = time.time() + 120
     while not list(scratch.glob("occtrain-drive-*/frames-*")) and proc.poll() is None and time.time() < deadline:
         time.sleep(0.05)  # until a worker is driving an episode
