@@ -19,7 +19,7 @@ import numpy as np
 
 from occtrain.data.clips import Actions, Branch, Clip, Part, Scene, Text, clip_rng, ego_future, text_of
 from occtrain.errors import ConfigError
-from occtrain.models.planning_heads import constant_velocity
+from occtrain.models.planning_heads import constant_acceleration, constant_velocity
 
 Builder = Callable[[Clip, Any, np.random.Generator], "list[Part] | None"]
 EveryItem = Callable[[Clip, Any], "list[list[Part]]"]
@@ -58,6 +58,10 @@ class ForecastTaskConfig(TaskConfig):
     #: positions. "constant_velocity": their offsets from driving on straight at the
     #: current speed (stated in the prompt), so the commonest token, no offset, is that
     #: baseline, and what the model learns is how the ego departs from it.
+    #: "constant_acceleration": their offsets from driving on at the acceleration the past
+    #: shows (``models.planning_heads.constant_acceleration``: from the speed now and the
+    #: last move, no future), the strongest kinematic rule, so "no offset" already plans as
+    #: well as the kinematics do.
     plan_prior: str = "none"
 
     def validate(self, key: str) -> None:
@@ -71,12 +75,16 @@ class ForecastTaskConfig(TaskConfig):
 
 
 #: ``plan_prior`` values, the papers' first.
-PLAN_PRIORS = ("none", "constant_velocity")
+PLAN_PRIORS = ("none", "constant_velocity", "constant_acceleration")
 
 
 def plan_base(clip: Clip, prior: str) -> np.ndarray | None:
     """The (6, 2) waypoints the ego's future is written against under ``prior`` (None: positions)."""
-    return constant_velocity([clip.anchor])[0].numpy() if prior == "constant_velocity" else None
+    if prior == "constant_velocity":
+        return constant_velocity([clip.anchor])[0].numpy()
+    if prior == "constant_acceleration":
+        return constant_acceleration([clip.anchor])[0].numpy()
+    return None
 
 
 def ego_plan(future: np.ndarray, clip: Clip, prior: str, supervise: bool = True) -> Actions:

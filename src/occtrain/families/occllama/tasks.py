@@ -90,6 +90,8 @@ def _context(clip: Clip, cfg: TaskConfig) -> list[Part]:
         state.append(f"Command: {anchor['command']}.")
     if "ego_speed" in anchor:
         state.append(f"Ego speed {anchor['ego_speed']:.1f} m/s.")
+    if "ego_accel" in anchor:  # from the past only (``kinematics.past_acceleration``)
+        state.append(f"Ego acceleration {anchor['ego_accel']:.1f} m/s2.")
     if state:
         parts.append(Text(" ".join(state)))
     if past_mask.any():
