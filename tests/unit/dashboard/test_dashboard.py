@@ -269,6 +269,25 @@ def test_corrupt_stage_files_are_shown_not_fatal(run_dir: Path):
     assert "<td>val/occworld_mIoU</td>" in html  # the manifest's copy of the metrics
 
 
+def test_final_metrics_say_what_they_were_measured_on_and_a_subset_is_called_one(run_dir: Path):
+    from occtrain.formats.metrics_file import Provenance, read_metrics, write_metrics
+
+    path = run_dir / "tokenizer" / "metrics.json"
+    html = write_dashboard(run_dir).read_text()  # written before provenance: said, not guessed
+    assert "measured on: not recorded (metrics written before occtrain recorded it)" in html
+    world = "occtrain world v5, seed 0 (12 train + 2 val scenes of 40 frames)"
+    subset = Provenance("validation at the end of training", "val", {"validation": [4, 80]}, "k", "v5", world)
+    write_metrics(path, read_metrics(path).metrics, subset)
+    html = write_dashboard(run_dir).read_text()
+    said = f"validation at the end of training: a subset of the val split (validation 4 of 80) of {world}"
+    assert f'<p class="problem">{said}; code -</p>' in html
+    whole = Provenance("validation at the end of training", "val", {"validation": [80, 80]}, "k", "v5", world)
+    write_metrics(path, read_metrics(path).metrics, whole)
+    assert f'<p class="note">validation at the end of training: the whole val split of {world}' in (
+        write_dashboard(run_dir).read_text()
+    )
+
+
 def test_cli_command_writes_to_out(run_dir: Path, tmp_path: Path, capsys):
     parser = argparse.ArgumentParser()
     register(parser.add_subparsers(dest="command"))
