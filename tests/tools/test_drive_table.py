@@ -54,19 +54,35 @@ def test_the_table_puts_each_stage_beside_the_routes_baselines(tool, tmp_path):
     table = tool.markdown(tool.summaries(stages, 2, 1000, 20.0, drive=False))
     rows = [line for line in table.splitlines() if line.startswith("| ")][1:]
     assert [r.split(" | ")[0] for r in rows] == [
-        "| a/planner",
-        "| b/instruct",
+        "| a/planner (seed 3)",
+        "| b/instruct (seed 3)",
         "| expert",
         "| constant_velocity",
         "| stand_still",
     ]
-    assert rows[0].startswith("| a/planner | - | - | 0.40 | - | 60.0 |")  # who planned: not recorded here
+    assert rows[0].startswith("| a/planner (seed 3) | - | - | 0.40 | - | 60.0 |")  # who planned: not recorded here
     assert "recipe a, training seed 3, code 0.1.0+abc, data the routes of seed 1000" in table
+    assert str(tmp_path) not in table  # runs are named by recipe and seed, never by a path here
     # How long a drive took is told only when it was one whole drive, not a resumed one.
     assert "(driven in 4 min 12 s by 2 workers)" in table and "driven in 0 min 30 s" not in table
     # L2 order: expert, a, b, cv, still; driving-score order: expert, b, a, cv, still: one pair of ten swapped.
     assert "Kendall's tau 0.80 over 5 drivers" in table
-    assert "a/planner plans closer to the log than b/instruct but drives worse" in table
+    assert "a/planner (seed 3) plans closer to the log than b/instruct (seed 3) but drives worse" in table
+    assert "Constant acceleration drives exactly as" not in table  # no such baseline here
+
+
+def test_constant_acceleration_driving_as_constant_velocity_is_said(tool, tmp_path):
+    stage = _drive(tmp_path / "a", "planner", 0.4, 60.0)
+    summary = json.loads((stage / "drive" / "seed1000-20s" / "summary.json").read_text())
+    cv = summary["drivers"]["constant_velocity"]
+    summary["drivers"]["constant_acceleration"] = cv | {"open_loop_L2_stp3_avg": 0.8}
+    (stage / "drive" / "seed1000-20s" / "summary.json").write_text(json.dumps(summary))
+    table = tool.markdown(tool.summaries([stage], 2, 1000, 20.0, drive=False))
+    assert "Constant acceleration drives exactly as constant velocity closed loop" in table
+    summary["drivers"]["constant_acceleration"]["driving_score"] = 21.0
+    (stage / "drive" / "seed1000-20s" / "summary.json").write_text(json.dumps(summary))
+    table = tool.markdown(tool.summaries([stage], 2, 1000, 20.0, drive=False))
+    assert "Constant acceleration drives exactly as" not in table
 
 
 def test_stages_driven_on_other_routes_are_refused(tool, tmp_path):

@@ -301,7 +301,9 @@ def run_report(args: argparse.Namespace) -> int:
     split = ["--split", args.split] if args.split != "val" else []
     title = ["--title", f"'{args.title}'"] if args.title else []
     mixed_flag = ["--allow-mixed"] if args.allow_mixed else []
-    command = " ".join(["occtrain report", *map(str, args.runs), *split, *title, *mixed_flag])
+    # The runs by their place in the list below, not by where they lie on this machine.
+    named = [f"RUN_{i}" for i in range(len(runs))]
+    command = " ".join(["occtrain report", *named, *split, *title, *mixed_flag])
     page = report(runs, args.split, command, args.title, args.allow_mixed)
     if args.out:
         atomic_write_text(Path(args.out), page)
