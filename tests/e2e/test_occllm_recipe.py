@@ -25,6 +25,10 @@ def overrides(data: Path) -> list[str]:
     return tiny_overrides(data, steps=STEPS, stages=len(STAGES)) + [
         "stages[0].data.batch_size=1",
         "stages[2].model.tasks.forecast_frames=2",
+        # The forecast's queries carry the present moved through the two-codebook MS-VAE
+        # (the engine's SceneMover), with the weight on the cells that change.
+        "stages[1].model.occllm.scene_queries=moved_observed_scene",
+        "stages[1].model.occllm.change_weight=4.0",
     ]
 
 
@@ -69,6 +73,9 @@ def test_the_recipe_trains_every_stage_and_reports_the_papers_metrics(occllm_run
         "pre_fusion": True,
         "fusion_hidden": 64,
         "cell_dim": 64,
+        "scene_queries": "moved_observed_scene",
+        "copy_bias": 4.0,
+        "change_weight": 4.0,
     }
 
 

@@ -147,7 +147,7 @@ class ColumnWorldModel(LMWorldModel):
     def builder(self) -> ColumnBuilder:
         return ColumnBuilder(self.vocab, self.scene_prediction, self.payload_spec)
 
-    def scene_writer(self, recent: torch.Tensor) -> ColumnScene:
+    def scene_writer(self, recent: torch.Tensor, waypoint: torch.Tensor | None = None) -> ColumnScene:
         return ColumnScene(self)
 
     def embed(self, input_ids: torch.Tensor, payload: dict | None = None) -> torch.Tensor:

@@ -105,9 +105,11 @@ class DecodingModel(Protocol):
 
     def tracked_scene(self, ids: torch.Tensor, payload: dict[str, torch.Tensor]) -> torch.Tensor: ...
 
-    def scene_writer(self, recent: torch.Tensor) -> SceneWriter: ...
+    def scene_writer(self, recent: torch.Tensor, waypoint: torch.Tensor | None = None) -> SceneWriter: ...
 
-    def query_scene_writer(self, recent: torch.Tensor, queries: dict[str, torch.Tensor] | None) -> SceneWriter: ...
+    def query_scene_writer(
+        self, recent: torch.Tensor, queries: dict[str, torch.Tensor] | None, waypoint: torch.Tensor | None = None
+    ) -> SceneWriter: ...
 
     def step(
         self,
@@ -271,14 +273,14 @@ def _scene(s: _State) -> Program:
         # The query block the sequence builder lays out for the same context.
         context = s.track.context()
         queries = world.scene_query_payload(context)
-        writer = world.query_scene_writer(recent, queries)
+        writer = world.query_scene_writer(recent, queries, s.track.waypoint)
         out = yield from _query_block(s, world.scene_query_ids(context), queries)
         scene_ids, extra = writer.from_queries(out.logits, out.hidden)
         s.queue(scene_ids, s.next_segment, extra)
         s.next_segment += 1
         written.append((scene_ids, extra))
     else:
-        writer = world.scene_writer(recent)
+        writer = world.scene_writer(recent, s.track.waypoint)
         for _ in range(v.scene_len):
             out = yield from s.output()
             scene_ids, extra = writer.next_token(out.logits, out.hidden)

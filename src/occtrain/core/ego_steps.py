@@ -11,12 +11,21 @@ since it.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
 
 #: A move of the ego: metres, (x, y) in the axes of the prompt's anchor frame.
 EgoStep = tuple[float, float]
+
+#: What a scene's query block is made of ("next_scene" mode): learnable ``<scene_q_j>``
+#: tokens (OccLLaMA's and Occ-LLM's), the scene before it, the scene before it moved by the
+#: ego's step, or the observed present moved by the ego's move since it (see ``query_scene``).
+SCENE_QUERIES = ("learned", "last_scene", "moved_last_scene", "moved_observed_scene")
+
+#: Moves a scene (as the world model tracks it) by an ego step: ``core.protocols.SceneMover``'s.
+Move = Callable[[torch.Tensor, EgoStep], torch.Tensor]
 
 
 @dataclass(frozen=True)
@@ -46,12 +55,15 @@ class SceneTrack:
         self.observed: torch.Tensor | None = None
         self.at: EgoStep = (0.0, 0.0)
         self.next: EgoStep | None = None
+        #: The last waypoint of the last action block (positions, any plan prior added back).
+        self.waypoint: torch.Tensor | None = None
 
     def planned(self, xy: torch.Tensor) -> None:
         """Waypoints (N, 2) were laid out (or generated): the first is where the ego goes next."""
         if xy.numel():
             first = xy.reshape(-1, 2)[0]
             self.next = (float(first[0]), float(first[1]))
+            self.waypoint = xy.reshape(-1, 2)[-1].detach().float().cpu()
 
     def context(self) -> SceneContext:
         """What the next predicted scene's query block reads."""
@@ -66,3 +78,21 @@ class SceneTrack:
         elif self.next is not None:
             self.at = self.next
         self.next = None
+
+
+def query_scene(mode: str, context: SceneContext, move: Move | None) -> torch.Tensor | None:
+    """The scene a query block of ``SCENE_QUERIES`` mode ``mode`` holds, as the world model
+    tracks scenes, or None: the learnable queries, also when there is no such scene; a scene
+    unmoved when no waypoint came before this one. ``moved_*`` modes move through ``move``
+    (the frozen tokenizer's: shifted and re-encoded)."""
+    source = context.observed if mode == "moved_observed_scene" else context.last_scene
+    if mode == "learned" or source is None:
+        return None
+    step = context.offset if mode == "moved_observed_scene" else context.step
+    if mode == "last_scene" or step is None:
+        return source
+    if move is None:
+        raise ValueError(
+            f"{mode} queries move scenes through the frozen tokenizer: build the world model through the engine"
+        )
+    return move(source, step).to(source.device)

@@ -135,14 +135,18 @@ class LMWorldModel(nn.Module):
         tokens (and their payload), for the query blocks after it: its code ids."""
         return ids
 
-    def scene_writer(self, recent: torch.Tensor) -> SceneWriter:
-        """What writes the next generated scene; ``recent`` are the last ids before it."""
+    def scene_writer(self, recent: torch.Tensor, waypoint: torch.Tensor | None = None) -> SceneWriter:
+        """What writes the next generated scene; ``recent`` are the last ids before it,
+        ``waypoint`` the last one laid out or generated, its plan prior added back
+        (``SceneTrack.waypoint``), which bins that wrote an offset cannot say."""
         raise ValueError(f"the {type(self).__name__} world model generates no scenes")
 
-    def query_scene_writer(self, recent: torch.Tensor, queries: dict[str, torch.Tensor] | None) -> SceneWriter:
+    def query_scene_writer(
+        self, recent: torch.Tensor, queries: dict[str, torch.Tensor] | None, waypoint: torch.Tensor | None = None
+    ) -> SceneWriter:
         """What writes the next generated scene from a query block that carried ``queries``
         (``scene_query_payload``'s): by default the scene writer, which reads only outputs."""
-        return self.scene_writer(recent)
+        return self.scene_writer(recent, waypoint)
 
     def embed(self, input_ids: torch.Tensor, payload: dict[str, torch.Tensor] | None = None) -> torch.Tensor:
         """Input embeddings: the LLM's own table (a family embeds its own tokens)."""

@@ -40,7 +40,14 @@ from occtrain.formats.io import atomic_write_json, atomic_write_safetensors, is_
 from occtrain.formats.occ3d import FUTURE_STEPS, PAST_STEPS
 from occtrain.metrics import compute_metrics
 from occtrain.models import count_parameters
-from occtrain.models.planning_heads import PlanningHead, constant_acceleration, constant_velocity, current_velocity
+from occtrain.models.planning_heads import (
+    HEAD_PRIORS,
+    PlanningHead,
+    constant_acceleration,
+    constant_velocity,
+    current_velocity,
+    prior_plan,
+)
 from occtrain.progress import progress_bar
 
 META_SOURCES = ("ground_truth", "generated")
@@ -73,8 +80,16 @@ class MetaActionPlannerConfig:
     #: Where validation takes the meta action from: the annotation, or the consumed
     #: model's generated chain of thought (both are always reported when possible).
     meta_source: str = "generated"
+    #: What the head's waypoints add to (``HEAD_PRIORS``, not the paper's: OccVLA's head
+    #: writes positions): a kinematic plan along the ego's last move, so the head learns
+    #: how the meta action departs from it. Unset: constant velocity when the head reads
+    #: ``velocity`` (as it always did), else none. ``constant_acceleration`` reads the
+    #: past's acceleration, the strongest rule that sees no scene.
+    prior: str | None = None
 
     def validate(self, where: str) -> None:
+        if self.prior is not None and self.prior not in HEAD_PRIORS:
+            raise ConfigError(f"{where}: model.prior '{self.prior}' is not one of {', '.join(HEAD_PRIORS)}")
         if self.loss not in ("mse", "l1"):
             raise ConfigError(f"{where}: model.loss '{self.loss}' is not one of mse, l1")
         for key in ("meta_source", "train_meta"):
@@ -90,6 +105,13 @@ class MetaActionPlannerConfig:
 
     def needs_teacher(self) -> bool:
         return self.meta_source == "generated" or self.train_meta == "generated" or "visual" in self.inputs
+
+
+def head_prior(prior: str | None, inputs: list[str] | tuple[str, ...]) -> str:
+    """A head's ``prior``, or where it is unset what its inputs implied (exports before it)."""
+    if prior is not None:
+        return prior
+    return "constant_velocity" if "velocity" in inputs else "none"
 
 
 def ego_features(anchor: dict, meta: dict, inputs: list[str] | tuple[str, ...]) -> np.ndarray:
@@ -150,6 +172,8 @@ class MetaActionPlanner(nn.Module):
         labels its own from the poses)."""
         super().__init__()
         self.cfg, self.data_root, self.inputs = cfg, data_root, list(cfg.inputs)
+        #: What the head's waypoints add to (``prior_plan``).
+        self.prior = head_prior(cfg.prior, self.inputs)
         self.sidecar_reference = sidecar_reference
         if teacher is not None:
             self._check_teacher(teacher, where)
@@ -279,7 +303,7 @@ class MetaActionPlanner(nn.Module):
         for the clips that have a meta action from ``source``, and their rows."""
         device = self.device
         outs = self.teacher_outputs(clips, source == "generated") if self.teacher is not None else [None] * len(clips)
-        feats, visual, velocity, rows = [], [], [], []
+        feats, visual, rows = [], [], []
         for i, (clip, out) in enumerate(zip(clips, outs)):
             if out is None:
                 meta = clip.anchor.get("meta_action")
@@ -293,7 +317,6 @@ class MetaActionPlanner(nn.Module):
             if "visual" in self.inputs:
                 assert out is not None  # a head that reads visual tokens has a teacher (checked at build)
                 visual.append(np.asarray(out["visual"], dtype=np.float32))
-            velocity.append(current_velocity(clip.anchor).astype(np.float32))
             rows.append(i)
 
         def stack(arrays: list[np.ndarray], width: int) -> torch.Tensor:
@@ -302,8 +325,9 @@ class MetaActionPlanner(nn.Module):
         inputs = {"features": stack(feats, feature_size(self.inputs))}
         if "visual" in self.inputs:
             inputs["visual"] = stack(visual, self.head.visual_dim)
-        if "velocity" in self.inputs:
-            inputs["velocity"] = stack(velocity, 2)
+        base = prior_plan([clips[i].anchor for i in rows], self.prior, device) if rows else None
+        if base is not None:
+            inputs["base"] = base
         return inputs, rows
 
     def training_loss(self, clips: list[Clip]) -> torch.Tensor:
@@ -372,7 +396,8 @@ class MetaActionPlanner(nn.Module):
 
     def summary(self) -> tuple[str, dict[str, float]]:
         n = count_parameters(self.head)
-        return f"planning head {n / 1e3:.1f}K params, inputs {', '.join(self.inputs)}", {"params": float(n)}
+        prior = f", written against {self.prior.replace('_', ' ')}" if self.prior != "none" else ""
+        return f"planning head {n / 1e3:.1f}K params, inputs {', '.join(self.inputs)}{prior}", {"params": float(n)}
 
     def export(self, path: Path) -> Path:
         cfg = self.cfg
@@ -385,6 +410,7 @@ class MetaActionPlanner(nn.Module):
             "layers": cfg.layers,
             "inputs": self.inputs,
             "train_meta": cfg.train_meta,
+            "prior": self.prior,
             "steps": FUTURE_STEPS,
         }
         return write_export(path, self.head.state_dict(), config)
@@ -409,6 +435,7 @@ def load_meta_action_planner(
         inputs=list(config["inputs"]),
         visual_width=config["visual_width"],
         train_meta=config.get("train_meta", "ground_truth"),
+        prior=config.get("prior"),  # unset in exports before it: what the inputs implied
     )
     planner = MetaActionPlanner(cfg, teacher, request.data_root, request.cache_dir, str(export_dir), sidecar_reference)
     load_state_strict(planner.head, state, (), str(export_dir))

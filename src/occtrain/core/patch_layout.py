@@ -109,12 +109,15 @@ class PatchSequenceBuilder(SequenceBuilder):
         self, xy: torch.Tensor, supervise: bool = False, base: tuple[tuple[float, float], ...] | None = None
     ) -> PatchSequenceBuilder:
         super().actions(xy, supervise, base)
-        # What was written (the offset from ``base`` when given), read back from its bins:
-        # generation reads the waypoint back from the bins it wrote.
+        # The position the bins say, as generation has it: the written offset from ``base``
+        # read back from its bins, plus the base. So a scene is fused with the ego's position
+        # whether its waypoint was written as a position (history) or an offset (a forecast
+        # under a plan prior): one input, one meaning.
         written = torch.as_tensor(xy, dtype=torch.float32).reshape(-1, 2)
-        if base is not None:
-            written = written - torch.as_tensor(base, dtype=torch.float32).reshape(-1, 2)
-        self._fusion = self.vocab.actions_from_ids(self.vocab.action_ids(written))[-1]
+        base_xy = (
+            torch.zeros_like(written) if base is None else torch.as_tensor(base, dtype=torch.float32).reshape(-1, 2)
+        )
+        self._fusion = (self.vocab.actions_from_ids(self.vocab.action_ids(written - base_xy)) + base_xy)[-1]
         return self
 
     def branch(self) -> PatchSequenceBuilder:
@@ -194,6 +197,8 @@ class PatchWorldModel(LMWorldModel):
     the latents (through ``prepare_latents``), registered before the patch parts so their
     parameters come first. ``copy_bias``: None, the queries never carry a scene; else the
     initial per-codebook bias of the copy path (and queries may carry a scene).
+    ``change_weight``: the loss weight of a cell whose target differs from the code its
+    query carries (1 for the rest, and everywhere when queries carry nothing).
     """
 
     copy_bias: nn.Parameter | None
@@ -210,6 +215,7 @@ class PatchWorldModel(LMWorldModel):
         frame_separation: bool = True,
         copy_bias: float | None = None,
         latent_parts: dict[str, nn.Module | None] | None = None,
+        change_weight: float = 1.0,
     ):
         super().__init__(llm, vocab, scene_prediction)
         if vocab.patch != patch:
@@ -217,6 +223,7 @@ class PatchWorldModel(LMWorldModel):
         self.patch = int(patch)
         self.latent_hw = (int(latent_hw[0]), int(latent_hw[1]))
         self.frame_separation = frame_separation
+        self.change_weight = float(change_weight)
         self.num_codebooks = len(codebooks)
         self.code_dim = int(codebooks[0].shape[1])
         for i, book in enumerate(codebooks):
@@ -291,12 +298,18 @@ class PatchWorldModel(LMWorldModel):
             )
         return prefix
 
-    def scene_writer(self, recent: torch.Tensor) -> PatchScene:
-        fusion = last_waypoint(self.vocab, recent)
+    def scene_writer(self, recent: torch.Tensor, waypoint: torch.Tensor | None = None) -> PatchScene:
+        """A scene right after an action block carries its last waypoint as ``fusion``: the
+        position, as laid out in training (``PatchSequenceBuilder.actions``), not the offset
+        from a plan prior its bins hold; zeros after anything else."""
+        read = last_waypoint(self.vocab, recent)
+        fusion = None if read is None else (read if waypoint is None else waypoint.reshape(2).float())
         return PatchScene(self, fusion if fusion is not None else torch.zeros(ACTION_DIM))
 
-    def query_scene_writer(self, recent: torch.Tensor, queries: dict[str, torch.Tensor] | None) -> PatchScene:
-        writer = self.scene_writer(recent)
+    def query_scene_writer(
+        self, recent: torch.Tensor, queries: dict[str, torch.Tensor] | None, waypoint: torch.Tensor | None = None
+    ) -> PatchScene:
+        writer = self.scene_writer(recent, waypoint)
         writer.queries = queries
         return writer
 
@@ -360,9 +373,13 @@ class PatchWorldModel(LMWorldModel):
         # The head runs even on zero rows: under DDP every parameter takes part in every step.
         heads = self.patch_logits(hidden[emits], {k: v[emits] for k, v in payload.items() if k in ("cells", "carries")})
         picked = target[emits]
+        weight = self.cell_weights(picked, payload, emits)
         sums = sum(
             (
-                F.cross_entropy(h.flatten(0, 1).float(), picked[..., i].flatten(), reduction="none")
+                (
+                    F.cross_entropy(h.flatten(0, 1).float(), picked[..., i].flatten(), reduction="none")
+                    * weight[..., i].flatten()
+                )
                 .view(picked.shape[:2])
                 .sum(1)
                 for i, h in enumerate(heads)
@@ -383,6 +400,16 @@ class PatchWorldModel(LMWorldModel):
             hidden if output_hidden_states else None,
             per_sample,
         )
+
+    def cell_weights(self, picked: torch.Tensor, payload: dict[str, torch.Tensor], emits: torch.Tensor) -> torch.Tensor:
+        """(M, p*p, codebooks) loss weights of the emitted cells ``picked``: ``change_weight``
+        where a query carried a code the target changes, else 1."""
+        weight = torch.ones(picked.shape, dtype=torch.float32, device=picked.device)
+        if self.change_weight == 1.0 or "carries" not in payload:
+            return weight
+        carried = payload["cells"][emits]
+        changed = payload["carries"][emits].bool()[:, None, None] & (carried != picked)
+        return weight.masked_fill(changed, self.change_weight)
 
     # -- export
     def export_config(self) -> dict:

@@ -51,7 +51,18 @@ EXPORT_KEYS: dict[tuple[str, str], frozenset[str]] = {
     ("world_model", ""): frozenset({"stage_kind", "stage", "family", "vocab", "world", "tasks", "max_new_text_tokens"}),
     ("vision", ""): frozenset({"stage_kind", "stage", "vision", "tower", "image_mean", "image_std", "num_classes"}),
     ("planner", ""): frozenset(
-        {"stage_kind", "features", "visual_dim", "visual_width", "hidden", "layers", "inputs", "train_meta", "steps"}
+        {
+            "stage_kind",
+            "features",
+            "visual_dim",
+            "visual_width",
+            "hidden",
+            "layers",
+            "inputs",
+            "train_meta",
+            "prior",
+            "steps",
+        }
     ),
 }
 

@@ -22,9 +22,10 @@ class PlanningHead(nn.Module):
     With ``visual_dim`` the head also reads a visual summary through a narrow bottleneck
     (LayerNorm, dropout, a linear map to ``visual_width``): a few hundred training clips
     overfit a full-width one (measured: L2 0.57 m with it, 0.48 m through 8 dims). Given
-    the current velocity, the MLP's waypoints are added to the constant-velocity ones, so
-    the head learns how the meta action bends and slows the ego's motion rather than the
-    motion itself (1.27 m L2 without that, against 0.53 m for constant velocity alone).
+    a ``base`` plan (a kinematic prior's: constant velocity or acceleration), the MLP's
+    waypoints are added to it, so the head learns how the meta action bends and slows the
+    ego's motion rather than the motion itself (1.27 m L2 without that, against 0.53 m for
+    constant velocity alone).
     """
 
     def __init__(
@@ -54,16 +55,13 @@ class PlanningHead(nn.Module):
         self.steps = steps
 
     def forward(
-        self, features: torch.Tensor, visual: torch.Tensor | None = None, velocity: torch.Tensor | None = None
+        self, features: torch.Tensor, visual: torch.Tensor | None = None, base: torch.Tensor | None = None
     ) -> torch.Tensor:
-        """(B, features) [+ visual (B, visual_dim)] [+ velocity (B, 2) m/s] -> (B, steps, 2) waypoints in metres."""
+        """(B, features) [+ visual (B, visual_dim)] [+ base (B, steps, 2) m] -> (B, steps, 2) waypoints in metres."""
         if self.visual is not None:
             features = torch.cat([features, self.visual(visual)], dim=1)
         plan = self.mlp(features).view(-1, self.steps, 2).cumsum(1)
-        if velocity is not None:
-            t = torch.arange(1, self.steps + 1, device=plan.device, dtype=plan.dtype) * FRAME_DT
-            plan = plan + velocity.to(plan.dtype)[:, None, :] * t[None, :, None]
-        return plan
+        return plan if base is None else plan + base.to(plan.dtype)
 
 
 def constant_velocity_plan(speed: torch.Tensor, steps: int) -> torch.Tensor:
@@ -115,9 +113,35 @@ def constant_acceleration(anchors: list[dict], device: torch.device | str = "cpu
     return torch.tensor(np.array(rows), dtype=torch.float32, device=device).reshape(len(anchors), FUTURE_STEPS, 2)
 
 
+#: What a planning head's waypoints may be written against (``prior_plan``), plain first.
+HEAD_PRIORS = ("none", "constant_velocity", "constant_acceleration")
+
+
+def prior_plan(anchors: list[dict], prior: str, device: torch.device | str = "cpu") -> torch.Tensor | None:
+    """(B, 6, 2) the kinematic plan a head's waypoints add to under ``prior`` (None for
+    "none"), along the direction of the ego's last move as ``current_velocity``'s: constant
+    velocity, or constant acceleration at the past's acceleration (``constant_acceleration``
+    turned from straight ahead onto that direction)."""
+    if prior == "none":
+        return None
+    if prior not in HEAD_PRIORS:
+        raise ValueError(f"unknown plan prior '{prior}' (one of {', '.join(HEAD_PRIORS)})")
+    heading = []
+    for anchor in anchors:
+        v = current_velocity(anchor)
+        norm = float(np.linalg.norm(v))
+        heading.append(v / norm if norm > 1e-6 else np.array([1.0, 0.0]))
+    if prior == "constant_velocity":
+        ahead = constant_velocity(anchors, device)[..., 0]
+    else:
+        ahead = constant_acceleration(anchors, device)[..., 0]
+    direction = torch.tensor(np.array(heading), dtype=torch.float32, device=device).reshape(len(anchors), 1, 2)
+    return ahead[..., None] * direction
+
+
 def load_planning_head(export_dir: Path) -> PlanningHead:
     """The planning head of a planner stage's export, in eval mode (its config's ``inputs``
-    say what to feed it; with ``velocity`` among them, pass the velocity too)."""
+    say what to feed it, its ``prior`` what to pass as ``base``: ``prior_plan``)."""
     state, config = read_export(export_dir)
     if config.get("stage_kind") != "planner":
         raise OcctrainError(f"{export_dir}: not a planner export (stage kind '{config.get('stage_kind')}')")

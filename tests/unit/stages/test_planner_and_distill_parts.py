@@ -8,12 +8,13 @@ import numpy as np
 import pytest
 import torch
 
-from occtrain.core.meta_action_planner import ego_features, feature_size
+from occtrain.core.meta_action_planner import MetaActionPlannerConfig, ego_features, feature_size, head_prior
 from occtrain.data.schema import COMMANDS, META_DIRECTIONS, META_SPEEDS
 from occtrain.engine.export import _base_names
+from occtrain.errors import ConfigError
 from occtrain.metrics import flatten_metrics
 from occtrain.models.distill_losses import distillation_losses
-from occtrain.models.planning_heads import PlanningHead, constant_velocity_plan
+from occtrain.models.planning_heads import PlanningHead, constant_velocity_plan, prior_plan
 
 
 def test_constant_velocity_drives_straight_at_the_current_speed():
@@ -98,3 +99,33 @@ def test_peft_names_map_back_to_the_plain_model():
 def test_flatten_metrics_names_and_drops_labels():
     flat = flatten_metrics("val/plan", {"convention": "x", "L2_stp3": {"1s": 0.5}, "samples": torch.tensor(3)})
     assert flat == {"val/plan_L2_stp3_1s": 0.5, "val/plan_samples": 3.0}
+
+
+def test_a_heads_prior_is_the_kinematic_plan_along_the_last_move():
+    # Moving up-left at 45 degrees: the last move (-past[-1]) is (1, 1) m; 6 m/s now against
+    # the last move's sqrt(2) m / 0.5 s = 2.83 m/s -> +12.7 m/s^2 (past_acceleration).
+    anchor = {"ego_speed": 6.0, "ego_past": [[-2.0, -2.0], [-1.0, -1.0]], "ego_past_mask": [1, 1]}
+    t = np.arange(1, 7) * 0.5
+    unit = np.array([1.0, 1.0]) / np.sqrt(2.0)
+    cv = prior_plan([anchor], "constant_velocity")[0].numpy()
+    np.testing.assert_allclose(cv, (6.0 * t)[:, None] * unit, rtol=1e-5)
+    accel = (6.0 - np.sqrt(2.0) / 0.5) / 0.25
+    ca = prior_plan([anchor], "constant_acceleration")[0].numpy()
+    np.testing.assert_allclose(ca, (6.0 * t + 0.5 * accel * t**2)[:, None] * unit, rtol=1e-5)
+    assert prior_plan([anchor], "none") is None
+    with pytest.raises(ValueError, match="unknown plan prior"):
+        prior_plan([anchor], "kinematic")
+
+
+def test_a_heads_waypoints_add_to_its_prior_and_its_export_says_which():
+    head = PlanningHead(5, 8, 2, 6)
+    with torch.no_grad():
+        for p in head.parameters():
+            p.zero_()
+    base = torch.arange(12.0).view(1, 6, 2)
+    np.testing.assert_allclose(head(torch.randn(1, 5), base=base).detach(), base)  # a zero head keeps the prior
+    assert head_prior(None, ["meta_action", "velocity"]) == "constant_velocity"  # what the velocity input meant
+    assert head_prior(None, ["meta_action"]) == "none"
+    assert head_prior("constant_acceleration", ["meta_action"]) == "constant_acceleration"
+    with pytest.raises(ConfigError, match="model.prior 'kinematic' is not one of none, constant_velocity"):
+        MetaActionPlannerConfig(prior="kinematic").validate("stages 'planner'")

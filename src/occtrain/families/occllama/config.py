@@ -8,6 +8,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from occtrain.config.tokenizer import QuantizerFields, latent_hw
+from occtrain.core.ego_steps import SCENE_QUERIES
 from occtrain.errors import ConfigError
 
 
@@ -56,13 +57,6 @@ class OccLLaMATokenizerConfig(QuantizerFields):
             )
 
 
-#: What a scene's query block is made of ("next_scene" mode): the paper's learnable
-#: ``<scene_q_j>`` tokens, the code tokens of the scene before it, those of the scene
-#: before it moved by the ego's step, or those of the observed present moved by the ego's
-#: move since it.
-SCENE_QUERIES = ("learned", "last_scene", "moved_last_scene", "moved_observed_scene")
-
-
 @dataclass
 class OccLLaMAWorldConfig:
     """``model.occllama`` of a pretrain stage: OccLLaMA's world model (Sec. III-B)."""
@@ -93,6 +87,11 @@ class OccLLaMAWorldConfig:
     copy_bias: float = 4.0
     #: Patches only: per-cell feature width of the patch head (``core.patch_layout.PatchHead``).
     cell_dim: int = 64
+    #: Patches only, where a query carries a scene: the loss weight of a cell whose target
+    #: code differs from the one its query carries, against 1 for a kept one (not the
+    #: paper's). What the moved present gets wrong is what the model is for, and a few such
+    #: cells among hundreds kept are otherwise a rounding error of the loss. 1: all alike.
+    change_weight: float = 1.0
 
     def validate(self, where: str, inputs: Any) -> None:
         """One line naming the key when a setting is unknown or cannot work over ``inputs``
@@ -107,5 +106,10 @@ class OccLLaMAWorldConfig:
             )
         if not math.isfinite(self.copy_bias):
             raise ConfigError(f"{where}.copy_bias: must be a finite number, got {self.copy_bias}")
+        if not math.isfinite(self.change_weight) or self.change_weight < 1:
+            raise ConfigError(
+                f"{where}.change_weight: must be a number >= 1 (changed cells count at least as kept), got "
+                f"{self.change_weight}"
+            )
         if self.cell_dim < 1:
             raise ConfigError(f"{where}.cell_dim: must be >= 1, got {self.cell_dim}")

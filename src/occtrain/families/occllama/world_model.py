@@ -31,7 +31,6 @@ writing that scene back.
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import asdict
 
 import torch
@@ -39,31 +38,11 @@ import torch.nn.functional as F
 from torch import nn
 
 from occtrain.core.decoding import CodeScene
-from occtrain.core.ego_steps import EgoStep, SceneContext
+from occtrain.core.ego_steps import SceneContext, query_scene
 from occtrain.core.lm_world_model import LMWorldModel, WorldInputs
 from occtrain.core.patch_layout import PatchWorldModel
 from occtrain.core.vocab import JointVocab
 from occtrain.families.occllama.config import OccLLaMAWorldConfig
-
-#: Moves a scene (as the world model tracks it) by an ego step: ``core.protocols.SceneMover``'s.
-Move = Callable[[torch.Tensor, EgoStep], torch.Tensor]
-
-
-def query_scene(mode: str, context: SceneContext, move: Move | None) -> torch.Tensor | None:
-    """The scene a query block of ``scene_queries`` mode ``mode`` holds, as the world model
-    tracks scenes (see the module docstring), or None: the learnable queries, also when
-    there is no such scene; a scene unmoved when no waypoint came before this one."""
-    source = context.observed if mode == "moved_observed_scene" else context.last_scene
-    if mode == "learned" or source is None:
-        return None
-    step = context.offset if mode == "moved_observed_scene" else context.step
-    if mode == "last_scene" or step is None:
-        return source
-    if move is None:
-        raise ValueError(
-            f"{mode} queries move scenes through the frozen tokenizer: build the world model through the engine"
-        )
-    return move(source, step).to(source.device)
 
 
 class OccLLaMAWorldModel(LMWorldModel):
@@ -99,7 +78,7 @@ class OccLLaMAWorldModel(LMWorldModel):
         scene = query_scene(self.cfg.scene_queries, context, self.scene_mover)
         return super().scene_query_ids(context) if scene is None else scene
 
-    def scene_writer(self, recent: torch.Tensor) -> CodeScene:
+    def scene_writer(self, recent: torch.Tensor, waypoint: torch.Tensor | None = None) -> CodeScene:
         """What writes the next generated scene; ``recent`` are the last ids before it."""
         return CodeScene(self.vocab)
 
@@ -172,7 +151,15 @@ class OccLLaMAPatchWorldModel(PatchWorldModel):
         latent_hw: tuple[int, int],
     ):
         super().__init__(
-            llm, vocab, codebooks, scene_prediction, latent_hw, cfg.patch_size, cfg.cell_dim, copy_bias=cfg.copy_bias
+            llm,
+            vocab,
+            codebooks,
+            scene_prediction,
+            latent_hw,
+            cfg.patch_size,
+            cfg.cell_dim,
+            copy_bias=cfg.copy_bias,
+            change_weight=cfg.change_weight,
         )
         self.cfg = cfg
 

@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Any
 
+from occtrain.core.ego_steps import SCENE_QUERIES
 from occtrain.errors import ConfigError
 from occtrain.formats.occ3d import CLASS_INDEX, FREE, MOVABLE_CLASSES, NUM_CLASSES
 from occtrain.models.tokenizers.occworld_vqvae import OccWorldVQVAEConfig
@@ -52,9 +54,32 @@ class OccLLMWorldConfig:
     fusion_hidden: int = 64
     #: Per-cell feature width of the patch head (see ``PatchHead``).
     cell_dim: int = 64
+    #: What a forecast scene's query block carries (``core.ego_steps.SCENE_QUERIES``; not
+    #: the paper's beyond ``learned``, its own). ``moved_observed_scene``: the present moved
+    #: by the ego's position at the new frame (the waypoint before it), as OccLLaMA's can,
+    #: so a forecast starts from the moved present rather than from nothing.
+    scene_queries: str = "learned"
+    #: Where a query carries a scene: the copy path's initial per-codebook bias (see
+    #: ``core.patch_layout.PatchWorldModel``); unused with ``learned`` queries.
+    copy_bias: float = 4.0
+    #: The weight of a cell whose target code differs from the code its query carries,
+    #: against 1 for one that keeps it (not the paper's): what the moved present gets
+    #: wrong (other agents' motion, what the ego's move uncovers) is what the model is
+    #: for, and a handful of such cells among hundreds kept is otherwise a rounding error
+    #: of the loss. 1: every cell alike.
+    change_weight: float = 1.0
 
     def validate(self, where: str, inputs: Any) -> None:
         """One line naming the key when a setting cannot work over ``inputs`` (a ``WorldInputs``)."""
+        if self.scene_queries not in SCENE_QUERIES:
+            raise ConfigError(f"{where}.scene_queries: '{self.scene_queries}' is not one of {', '.join(SCENE_QUERIES)}")
+        for key in ("copy_bias", "change_weight"):
+            if not math.isfinite(getattr(self, key)):
+                raise ConfigError(f"{where}.{key}: must be a finite number, got {getattr(self, key)}")
+        if self.change_weight < 1:
+            raise ConfigError(
+                f"{where}.change_weight: must be >= 1 (changed cells count at least as kept), got {self.change_weight}"
+            )
         latent = tuple(inputs.scene.latent_hw)
         if self.patch_size < 1 or latent[0] % self.patch_size or latent[1] % self.patch_size:
             raise ConfigError(

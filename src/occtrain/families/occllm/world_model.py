@@ -7,9 +7,11 @@ the patch loss and how patches are laid out and generated), wrapped in ``<occ>``
 cell's code vector from every codebook, motion and static with the MS-VAE) are gated per
 channel by the ego action before they are patchified, when pre-fusion is on. The action
 fused into a scene is the last waypoint of the action block right before it (the ego's
-position at that frame, in the anchor's ego frame, in Occ-LLM's tasks); in a forecast that
-is the waypoint the model generated for that step. Its query blocks are the learnable
-queries (they carry no scene).
+position at that frame, in the anchor's ego frame, in Occ-LLM's tasks, also where a plan
+prior writes the forecast's waypoints as offsets: the prior is added back); in a forecast
+that is the waypoint the model generated for that step. Its query blocks are the paper's
+learnable queries, or (``scene_queries``, not the paper's) a scene they carry, the present
+moved by the ego as OccLLaMA's can (``core.ego_steps.query_scene``), with the copy path.
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from occtrain.core.ego_steps import SceneContext, query_scene
 from occtrain.core.lm_world_model import WorldInputs
 from occtrain.core.patch_layout import ACTION_DIM, PatchWorldModel
 from occtrain.core.vocab import JointVocab
@@ -56,9 +59,19 @@ class OccLLMWorldModel(PatchWorldModel):
             cfg.patch_size,
             cfg.cell_dim,
             cfg.frame_separation,
+            # Learned queries carry nothing to copy: no copy path (and an export as before it).
+            copy_bias=None if cfg.scene_queries == "learned" else cfg.copy_bias,
             latent_parts={"fusion": fusion},
+            change_weight=cfg.change_weight,
         )
         self.cfg = cfg
+
+    def query_cells(self, context: SceneContext) -> torch.Tensor | None:
+        """The cells of the scene ``scene_queries`` says the query block holds (raw codes,
+        moved through ``SceneMover.codes``), or None: the learned queries."""
+        move = None if self.scene_mover is None else self.scene_mover.codes
+        scene = query_scene(self.cfg.scene_queries, context, move)
+        return None if scene is None else self.cells_of(scene)
 
     def prepare_latents(
         self, latents: torch.Tensor, payload: dict[str, torch.Tensor], slots: torch.Tensor

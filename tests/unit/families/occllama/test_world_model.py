@@ -401,6 +401,7 @@ def test_last_scene_queries_are_the_scene_before(vocab):
         "patch_size": 0,
         "copy_bias": 4.0,
         "cell_dim": 64,
+        "change_weight": 1.0,
     }
     inputs = WorldInputs(scene=SimpleNamespace(codebooks=[world.codebook]))
     old = {k: val for k, val in world.export_config().items() if k != "occllama"}  # an export from before the setting
@@ -681,6 +682,7 @@ def test_an_engine_exports_loads_forecasts_plans_and_scores_in_either_layout(tmp
         "patch_size": patch_size,
         "copy_bias": 2.5,
         "cell_dim": 8,
+        "change_weight": 1.0,
     }
     saved, back = engine.world.state_dict(), loaded.world.state_dict()
     assert saved.keys() == back.keys()

@@ -13,6 +13,7 @@ from occtrain.config.llm import LLMConfig
 from occtrain.core.builder import collate
 from occtrain.core.decoding import ActionAnswer, SceneAnswer
 from occtrain.core.vocab import JointVocab
+from occtrain.errors import ConfigError
 from occtrain.families.occllama.world_model import OccLLaMAWorldModel as OccWorldModel
 from occtrain.families.occllm import OccLLMWorldConfig, OccLLMWorldModel
 from occtrain.models.llm import build_llm
@@ -299,3 +300,66 @@ def test_pre_fusion_comes_before_the_patch_parts_it_feeds():
     names = [n.split(".")[0] for n, _ in world().named_parameters()]
     order = [n for i, n in enumerate(names) if n not in names[:i]]
     assert order == ["llm", "fusion", "patch_embed", "head"]
+
+
+def test_a_scene_is_fused_with_the_egos_position_also_where_a_prior_writes_offsets():
+    """History waypoints are written as positions, a forecast's under a plan prior as
+    offsets from it: the scene after either carries the position (the bins read back, the
+    prior added), in training and in generation alike."""
+    w = world("next_scene")
+    with torch.no_grad():
+        w.fusion.mlp[-1].weight.normal_()
+    base = ((2.0, 0.0),)
+    position = torch.tensor([[2.6, 0.4]])  # 0.6 m ahead of the prior, 0.4 m left
+    seq = prompt(w).actions(position, True, base).scene(scene_codes(3), True).build()
+    slots = w.vocab.is_occ(seq.input_ids)
+    fused = seq.payload["fusion"][slots][-4:]
+    bins_of_offset = w.vocab.actions_from_ids(w.vocab.action_ids(position - torch.tensor(base)))
+    assert torch.allclose(fused, (bins_of_offset + torch.tensor(base)).expand(4, 2))
+    assert not torch.allclose(fused, bins_of_offset.expand(4, 2))  # not the offset the bins hold
+    d = w.decoder(prompt(w).build())
+    waypoint = d.answer(ActionAnswer(1, base))
+    d.scene()
+    d.flush()
+    generated = d.payload["fusion"][w.vocab.is_occ(d.ids)][-4:]
+    assert torch.allclose(generated, waypoint.expand(4, 2))  # the position, prior added back
+
+
+def test_moved_observed_scene_queries_carry_the_present_moved_by_the_egos_position():
+    moved = []
+
+    class Mover:
+        def codes(self, scene, step):
+            moved.append(step)
+            return torch.roll(scene, 1)
+
+    w = world("next_scene", scene_queries="moved_observed_scene", copy_bias=2.0)
+    w.scene_mover = Mover()
+    present = scene_codes(1)
+    seq = w.builder().actions(XY).scene(present).actions(torch.tensor([[3.0, 1.0]]), True).scene(scene_codes(2), True)
+    payload = seq.build().payload
+    carrying = payload["carries"].bool()
+    assert int(carrying.sum()) == 4  # the one query block
+    assert torch.equal(w.codes_of(payload["cells"][carrying]), torch.roll(present, 1))
+    assert moved == [(3.0, 1.0)]  # the ego's position at the new frame, from the present
+    assert world("next_scene").copy_bias is None  # the paper's learned queries: no copy path
+    with pytest.raises(ConfigError, match="scene_queries: 'moved' is not one of learned"):
+        OccLLMWorldConfig(scene_queries="moved").validate("model.occllm", None)
+
+
+def test_a_cell_the_query_carried_and_the_target_changes_weighs_change_weight():
+    mover = type("Mover", (), {"codes": staticmethod(lambda scene, step: scene)})()
+    present, future = scene_codes(1), scene_codes(1).clone()
+    future[:3] = (future[:3] + 1) % SIZES[0]  # three motion cells change, the rest are kept
+    losses = {}
+    for weight in (1.0, 5.0):
+        w = world("next_scene", scene_queries="moved_observed_scene", change_weight=weight)
+        w.scene_mover = mover
+        seq = w.builder().actions(XY).scene(present).actions(XY, True).scene(future, True).build()
+        payload = seq.payload
+        emits = payload["target"][..., 0, 0] != -100
+        weights = w.cell_weights(payload["target"][emits], payload, emits)
+        assert int((weights == weight).sum()) == (3 if weight > 1 else weights.numel())
+        with torch.no_grad():
+            losses[weight] = w(collate([seq], w.vocab.pad_id)).scene_loss.item()
+    assert losses[5.0] > losses[1.0]
