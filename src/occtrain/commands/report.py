@@ -76,6 +76,11 @@ HEADLINES = (
         ),
     ),
     Headline(
+        r"forecast_gain_over_moved_reconstruction_occworld_(mIoU|movable_mIoU)_(1s|3s)",
+        "forecast {0} at {1} minus the moved reconstruction's (points: what the model adds to its query)",
+        2,
+    ),
+    Headline(
         r"(?!\w*_departing_)(plan(?:_\w+)?|head_\w+|llm_action_tokens|anchor_\w+)_L2_stp3_avg",
         "plan `{0}`: L2 avg (`stp3`, m)",
         3,
@@ -113,6 +118,23 @@ HEADLINES = (
 )
 
 
+#: A forecast's score against the bar of copying its query: the present moved at constant
+#: velocity through the tokenizer (what a model that writes its moved query back scores).
+GAIN_OVER = "baseline_cv_moved_reconstruction_"
+
+
+def with_gains(scores: dict[str, float]) -> dict[str, float]:
+    """``scores`` and each forecast score's gain over the moved reconstruction on the same
+    samples (``forecast_gain_over_moved_reconstruction_*``), overall and on the movable
+    classes apart: the number a forecast that merely copies its query leaves at 0."""
+    gains = {
+        key.replace("forecast_", "forecast_gain_over_moved_reconstruction_", 1): value - scores[GAIN_OVER + key]
+        for key, value in scores.items()
+        if key.startswith("forecast_occworld_") and GAIN_OVER + key in scores
+    }
+    return {**scores, **gains}
+
+
 @dataclass(frozen=True)
 class Run:
     """A run directory as the report reads it."""
@@ -139,7 +161,7 @@ class Run:
             file = path / stage / "eval" / split / METRICS_FILE
             if file.is_file():
                 measured = read_metrics(file)
-                scores[stage], provenance[stage] = measured.metrics, measured.provenance
+                scores[stage], provenance[stage] = with_gains(measured.metrics), measured.provenance
         if not scores:
             raise DataError(f"{path}: no stage is scored on '{split}'; run `occtrain eval {path}/<stage>` first")
         return cls(path, str(manifest.get("name", path.name)), stages, manifest, scores, provenance)

@@ -6,7 +6,7 @@ import json
 from pathlib import Path
 
 from conftest import run_cli
-from occtrain.formats.metrics_file import Provenance, write_metrics
+from occtrain.formats.metrics_file import Provenance, read_metrics, write_metrics
 
 WORLD = "occtrain world v4, seed 0 (12 train + 2 val scenes of 40 frames)"
 
@@ -181,3 +181,27 @@ def test_runs_of_other_worlds_subsets_or_code_are_refused_unless_allowed(tmp_pat
 def test_out_that_is_a_directory_is_one_line_before_any_run_is_read(tmp_path):
     res = run_cli("report", str(tmp_path / "nowhere"), "--out", str(tmp_path))
     assert res.returncode == 2 and res.stderr == f"error: {tmp_path}: is a directory; --out takes a file name\n"
+
+
+def test_a_forecast_is_set_against_its_moved_query_overall_and_on_the_movable_classes(tmp_path):
+    """The gain over the moved reconstruction (what a model that copies its query scores)
+    is its own row, overall and on the movable classes apart, per run and in the mean."""
+    moved = {
+        "forecast_occworld_movable_mIoU_1s": 12.0,
+        "baseline_cv_moved_reconstruction_forecast_occworld_mIoU_1s": 5.5,
+        "baseline_cv_moved_reconstruction_forecast_occworld_movable_mIoU_1s": 13.0,
+    }
+    a = scored_run(tmp_path / "a", 0, 6.0, 54.0)
+    b = scored_run(tmp_path / "b", 1, 5.0, 52.0)
+    for run in (a, b):
+        file = run / "pretrain" / "eval" / "val" / "metrics.json"
+        measured = read_metrics(file)
+        write_metrics(file, {**measured.metrics, **moved}, measured.provenance)
+    page = run_cli("report", str(a), str(b)).stdout
+    rows = {line.split(" | ")[1]: line for line in page.splitlines() if line.startswith("| pretrain")}
+    overall = rows["forecast mIoU at 1 s minus the moved reconstruction's (points: what the model adds to its query)"]
+    assert "| 0.50 / -0.50 | 0.00 (-0.50 to 0.50) |" in overall  # 6.0 and 5.0 against 5.5
+    movable = rows[
+        "forecast movable-class mIoU at 1 s minus the moved reconstruction's (points: what the model adds to its query)"
+    ]
+    assert "| -1.00 / -1.00 | -1.00 (-1.00 to -1.00) |" in movable
