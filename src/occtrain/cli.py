@@ -57,14 +57,22 @@ def _cmd_validate(args: argparse.Namespace) -> int:
 
 
 def _cmd_eval(args: argparse.Namespace) -> int:
-    from occtrain.commands.evaluate import eval_metrics_file, evaluate, print_metrics
+    from occtrain.commands.evaluate import evaluate_into, print_metrics
 
     tasks = [t.strip() for t in args.tasks.split(",") if t.strip()] if args.tasks else None
-    metrics = evaluate(
-        args.stage_dir, args.split, tasks, args.save_predictions, args.samples, args.batch_size, args.data
+    metrics, written = evaluate_into(
+        args.stage_dir,
+        args.split,
+        tasks,
+        args.save_predictions,
+        args.samples,
+        args.batch_size,
+        args.data,
+        args.blank_cameras,
     )
-    print_metrics(metrics, f"{args.stage_dir} on {args.split}" + (f" of {args.data}" if args.data else ""))
-    print(f"metrics -> {eval_metrics_file(args.stage_dir, args.split, args.data)}")
+    where = (f" of {args.data}" if args.data else "") + (", its cameras blanked" if args.blank_cameras else "")
+    print_metrics(metrics, f"{args.stage_dir} on {args.split}{where}")
+    print(f"metrics -> {written}")
     return 0
 
 
@@ -268,8 +276,7 @@ def _add_drive(sub: Any) -> None:
     p.set_defaults(func=_cmd_drive)
 
 
-def _add_run_readers(sub: Any) -> None:
-    """``eval``, ``plan-memory``, ``table`` and ``config``."""
+def _add_eval(sub: Any) -> None:
     p = sub.add_parser(
         "eval",
         help="score a stage's export on a split: a tokenizer's reconstruction, a world model's generations "
@@ -297,8 +304,18 @@ def _add_run_readers(sub: Any) -> None:
     p.add_argument(
         "--data", metavar="DIR", help="score on this dataset instead of the run's (e.g. a world from another seed)"
     )
+    p.add_argument(
+        "--blank-cameras",
+        action="store_true",
+        help="score with every camera image black (a view of the dataset made once in the run's cache): a stage "
+        "that learned from its cameras scores lower",
+    )
     p.set_defaults(func=_cmd_eval)
 
+
+def _add_run_readers(sub: Any) -> None:
+    """``eval``, ``plan-memory``, ``table`` and ``config``."""
+    _add_eval(sub)
     p = sub.add_parser(
         "plan-memory",
         help="memory per GPU of a recipe's LLM stages under DDP and sharding, from model configs alone "

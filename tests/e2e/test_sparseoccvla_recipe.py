@@ -222,3 +222,18 @@ def test_the_python_api_loads_stage_3_and_forecasts(sparse_run, world):
     forecast = model.forecast(clip)
     assert forecast.shape == (6, 200, 200, 16) and forecast.dtype.name == "uint8"
     assert isinstance(model.caption(clip), str) and isinstance(model.answer(clip, "Are there any cars?"), str)
+
+
+def test_eval_with_blanked_cameras_scores_beside_the_real_ones_and_the_report_sets_them_side_by_side(sparse_run):
+    res = run_cli("eval", str(sparse_run / "stage1"), "--blank-cameras")
+    assert res.returncode == 0, res.stderr[-3000:]
+    blanked = sparse_run / "stage1" / "eval" / "val+blank_cameras" / "metrics.json"
+    assert f"metrics -> {blanked}" in res.stdout
+    measured = json.loads(blanked.read_text())
+    assert measured["provenance"]["world_name"].endswith(", its camera images blanked")
+    assert measured["frames"] == 16 and "occworld_mIoU" in measured
+    if not (sparse_run / "stage1" / "eval" / "val" / "metrics.json").is_file():
+        assert run_cli("eval", str(sparse_run / "stage1")).returncode == 0
+    page = run_cli("report", str(sparse_run)).stdout
+    row = next(line for line in page.splitlines() if line.startswith("| stage1 | reconstruction mIoU"))
+    assert f"the same with its cameras blanked {measured['occworld_mIoU']:.1f}" in row

@@ -31,17 +31,24 @@ if TYPE_CHECKING:  # the stages (Lightning) load where a stage is read, not when
 
 
 def eval_metrics_file(
-    stage_dir: str | Path, split: str = "val", data_root: str | Path | None = None, world: str = ""
+    stage_dir: str | Path,
+    split: str = "val",
+    data_root: str | Path | None = None,
+    world: str = "",
+    blank_cameras: bool = False,
 ) -> Path:
     """Where ``evaluate`` writes its metrics: ``eval/<split>/`` on the run's dataset,
     ``eval/<folder>-<world key>/<split>/`` on another (see ``world_key``; ``world`` when the
-    caller has it already), so two worlds in folders of one name never share a file."""
+    caller has it already), so two worlds in folders of one name never share a file; with
+    its cameras blanked, ``<split>+blank_cameras/`` beside the split's own scores."""
+    from occtrain.data.blank_cameras import BLANK_SUFFIX
+
     out = Path(stage_dir) / "eval"
     if data_root is not None:
         from occtrain.data.shards import world_key
 
         out = out / f"{Path(data_root).resolve().name}-{world or world_key(data_root)}"
-    return out / split / "metrics.json"
+    return out / (split + BLANK_SUFFIX if blank_cameras else split) / "metrics.json"
 
 
 def evaluate(
@@ -52,19 +59,40 @@ def evaluate(
     samples: int = -1,
     batch_size: int = 16,
     data_root: str | Path | None = None,
+    blank_cameras: bool = False,
 ) -> dict[str, float]:
+    """``evaluate_into``'s metrics."""
+    return evaluate_into(stage_dir, split, tasks, save_predictions, samples, batch_size, data_root, blank_cameras)[0]
+
+
+def evaluate_into(
+    stage_dir: str | Path,
+    split: str = "val",
+    tasks: list[str] | None = None,
+    save_predictions: str | Path | None = None,
+    samples: int = -1,
+    batch_size: int = 16,
+    data_root: str | Path | None = None,
+    blank_cameras: bool = False,
+) -> tuple[dict[str, float], Path]:
     """Metrics of ``stage_dir``'s export on ``split`` (see the module docstring) of the run's
     dataset, or of ``data_root`` (e.g. a world synthesized from another seed): then the
     metrics go to ``eval/<its directory name>-<world key>/<split>/`` and its baselines come
-    from its own train split. The metrics file records what they were measured on
+    from its own train split. With ``blank_cameras``, of that dataset's view with every
+    camera image black (``data.blank_cameras``, made once in the run's cache): a stage
+    that learned from its cameras scores lower there. The metrics file records what they were measured on
     (``formats.metrics_file``). The stage is held (a shared lock) while it is scored, so a
     ``--restart`` of it waits its turn, and the scores of a model that changed meanwhile are
-    never written."""
+    never written. Returns the metrics and the file they were written to."""
     from occtrain.data.shards import world_key
     from occtrain.stages.stage import EvalRequest, shared_cache_dir, stage_cache_dir
 
     stage_dir = Path(stage_dir)
     done = _evaluable_stage(stage_dir, split, samples, batch_size)
+    # Scored beside the split's own scores on the dataset named, whatever view of it is read.
+    metrics_file = eval_metrics_file(stage_dir, split, data_root, blank_cameras=blank_cameras)
+    if blank_cameras:
+        data_root = blanked_data(done, data_root)
     # Prompts and generation length come from the export: exactly what the model trained with.
     # Inputs encoded by frozen encoders are looked up in the stage's cache of this world (made
     # by the same encoder; built if the stage trained without one). Scenes are in the run's
@@ -72,7 +100,6 @@ def evaluate(
     root = str(data_root) if data_root is not None else done.recipe.data.root
     _refuse_unscorable(tasks or [], root)
     world = world_key(root)
-    metrics_file = eval_metrics_file(stage_dir, split, data_root, world)
     _check_outputs(stage_dir, done.spec.kind, done.kind.module.saves_predictions, metrics_file, save_predictions)
     with scoring_lock(stage_dir, "occtrain eval"):
         done.refuse_changed("occtrain eval")  # retrained between the check above and the lock
@@ -93,7 +120,38 @@ def evaluate(
         _save(metrics_file, result.metrics, eval_provenance(done, root, split, result.coverage, world))
         if save_predictions is not None:
             write_predictions(Path(save_predictions), result.predictions)
-    return result.metrics
+    return result.metrics, metrics_file
+
+
+def blanked_data(done: DoneStage, data_root: str | Path | None) -> Path:
+    """The blanked view of the dataset ``done`` would be scored on, once its stage reads cameras."""
+    from occtrain.data.blank_cameras import blank_camera_view
+    from occtrain.data.shards import world_key
+
+    if not reads_cameras(done):
+        raise ConfigError(
+            f"--blank-cameras: stage '{done.spec.name}' reads no camera images (nor does a stage it consumes); "
+            "leave the flag out"
+        )
+    root = Path(data_root) if data_root is not None else Path(done.recipe.data.root)
+    return blank_camera_view(root, done.stage_dir.parent / "cache" / "blank_cameras" / world_key(root))
+
+
+def reads_cameras(done: DoneStage) -> bool:
+    """Whether the stage, or one it consumes (a frozen camera encoder), reads camera images."""
+    from occtrain.run.runner import plan_stages
+
+    planned = {p.spec.name: p for p in plan_stages(done.recipe, str(done.stage_dir.parent / "pipeline.yaml"))}
+    todo, seen = [done.spec.name], set()
+    while todo:
+        name = todo.pop()
+        if name in seen or name not in planned:
+            continue
+        seen.add(name)
+        if planned[name].reads_cameras:
+            return True
+        todo += list(planned[name].spec.consumes)
+    return False
 
 
 def eval_provenance(done: DoneStage, root: str, split: str, coverage: dict[str, list[int]], dataset: str) -> Provenance:

@@ -20,6 +20,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from occtrain.data.blank_cameras import BLANK_SUFFIX
 from occtrain.errors import DataError
 from occtrain.formats.io import atomic_write_text, check_output
 from occtrain.formats.metrics_file import Provenance, read_metrics
@@ -118,6 +119,8 @@ HEADLINES = (
 )
 
 
+#: The prefix of a stage's scores with its cameras blanked (``occtrain eval --blank-cameras``).
+BLANKED = "blank_cameras/"
 #: A forecast's score against the bar of copying its query: the present moved at constant
 #: velocity through the tokenizer (what a model that writes its moved query back scores).
 GAIN_OVER = "baseline_cv_moved_reconstruction_"
@@ -162,6 +165,9 @@ class Run:
             if file.is_file():
                 measured = read_metrics(file)
                 scores[stage], provenance[stage] = with_gains(measured.metrics), measured.provenance
+                blanked = path / stage / "eval" / (split + BLANK_SUFFIX) / METRICS_FILE
+                if blanked.is_file():  # ``occtrain eval --blank-cameras``: set beside each number
+                    scores[stage].update({BLANKED + k: v for k, v in with_gains(read_metrics(blanked).metrics).items()})
         if not scores:
             raise DataError(f"{path}: no stage is scored on '{split}'; run `occtrain eval {path}/<stage>` first")
         return cls(path, str(manifest.get("name", path.name)), stages, manifest, scores, provenance)
@@ -229,6 +235,7 @@ def _rows(runs: list[Run]) -> list[tuple[str, str, int, str, list[tuple[str, str
     rows = []
     for stage in stages:
         keys = list(dict.fromkeys(k for run in runs for k in run.scores.get(stage, {})))
+        blanked = any(k.startswith(BLANKED) for k in keys)
         for headline in HEADLINES:
             for key in keys:
                 match = re.fullmatch(headline.pattern, key)
@@ -236,6 +243,8 @@ def _rows(runs: list[Run]) -> list[tuple[str, str, int, str, list[tuple[str, str
                     continue
                 groups = match.groups()
                 bases = [(label, b.format(*groups)) for label, b in headline.baselines]
+                if blanked:
+                    bases.insert(0, ("the same with its cameras blanked", BLANKED + key))
                 label = headline.label.format(*(_words(g) for g in groups))
                 rows.append((stage, label, headline.digits, key, bases))
     return rows

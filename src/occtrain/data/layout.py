@@ -310,6 +310,8 @@ def world_identity(root: str | Path) -> WorldIdentity:
         )
     else:
         name = f"dataset {root.resolve().name}"
+    if (record or {}).get("cameras") == "blanked":  # ``data.blank_cameras``: a view, not a world
+        name += ", its camera images blanked"
     return WorldIdentity(h.hexdigest()[:12], version, name)
 
 
