@@ -57,10 +57,10 @@ def _cmd_validate(args: argparse.Namespace) -> int:
 
 
 def _cmd_eval(args: argparse.Namespace) -> int:
-    from occtrain.commands.evaluate import evaluate_into, print_metrics
+    from occtrain.commands.evaluate import eval_metrics_file, evaluate, print_metrics
 
     tasks = [t.strip() for t in args.tasks.split(",") if t.strip()] if args.tasks else None
-    metrics, written = evaluate_into(
+    metrics = evaluate(
         args.stage_dir,
         args.split,
         tasks,
@@ -72,7 +72,7 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     )
     where = (f" of {args.data}" if args.data else "") + (", its cameras blanked" if args.blank_cameras else "")
     print_metrics(metrics, f"{args.stage_dir} on {args.split}{where}")
-    print(f"metrics -> {written}")
+    print(f"metrics -> {eval_metrics_file(args.stage_dir, args.split, args.data, blank_cameras=args.blank_cameras)}")
     return 0
 
 

@@ -1950,6 +1950,13 @@ CASES: list[Case] = [
         "--save-predictions {tmp}/preds: a tokenizer stage's eval has metrics only, no predictions to save",
     ),
     Case(
+        "eval-blank-cameras-of-a-stage-without-cameras",
+        tokenizer_done,
+        ["eval", "{tmp}/run/tokenizer", "--blank-cameras"],
+        2,
+        "--blank-cameras: stage 'tokenizer' reads no camera images (nor does a stage it consumes); leave the flag out",
+    ),
+    Case(
         "eval-read-only-run",
         nothing,
         EVAL,

@@ -61,20 +61,6 @@ def evaluate(
     data_root: str | Path | None = None,
     blank_cameras: bool = False,
 ) -> dict[str, float]:
-    """``evaluate_into``'s metrics."""
-    return evaluate_into(stage_dir, split, tasks, save_predictions, samples, batch_size, data_root, blank_cameras)[0]
-
-
-def evaluate_into(
-    stage_dir: str | Path,
-    split: str = "val",
-    tasks: list[str] | None = None,
-    save_predictions: str | Path | None = None,
-    samples: int = -1,
-    batch_size: int = 16,
-    data_root: str | Path | None = None,
-    blank_cameras: bool = False,
-) -> tuple[dict[str, float], Path]:
     """Metrics of ``stage_dir``'s export on ``split`` (see the module docstring) of the run's
     dataset, or of ``data_root`` (e.g. a world synthesized from another seed): then the
     metrics go to ``eval/<its directory name>-<world key>/<split>/`` and its baselines come
@@ -83,7 +69,7 @@ def evaluate_into(
     that learned from its cameras scores lower there. The metrics file records what they were measured on
     (``formats.metrics_file``). The stage is held (a shared lock) while it is scored, so a
     ``--restart`` of it waits its turn, and the scores of a model that changed meanwhile are
-    never written. Returns the metrics and the file they were written to."""
+    never written."""
     from occtrain.data.shards import world_key
     from occtrain.stages.stage import EvalRequest, shared_cache_dir, stage_cache_dir
 
@@ -120,7 +106,7 @@ def evaluate_into(
         _save(metrics_file, result.metrics, eval_provenance(done, root, split, result.coverage, world))
         if save_predictions is not None:
             write_predictions(Path(save_predictions), result.predictions)
-    return result.metrics, metrics_file
+    return result.metrics
 
 
 def blanked_data(done: DoneStage, data_root: str | Path | None) -> Path:

@@ -35,7 +35,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from occtrain.core.builder import SequenceBuilder, batch_payload, sample_means
-from occtrain.core.ego_steps import SceneContext
+from occtrain.core.ego_steps import SceneContext, query_scene
 from occtrain.core.lm_world_model import LMWorldModel, WorldModelOutput, token_ce
 from occtrain.core.sequence import IGNORE, PayloadSpec, TokenSequence, empty_payload
 from occtrain.core.vocab import JointVocab
@@ -199,6 +199,8 @@ class PatchWorldModel(LMWorldModel):
     initial per-codebook bias of the copy path (and queries may carry a scene).
     ``change_weight``: the loss weight of a cell whose target differs from the code its
     query carries (1 for the rest, and everywhere when queries carry nothing).
+    ``scene_queries``: what a query block carries (``core.ego_steps.SCENE_QUERIES``; a scene
+    only with a copy path).
     """
 
     copy_bias: nn.Parameter | None
@@ -216,6 +218,7 @@ class PatchWorldModel(LMWorldModel):
         copy_bias: float | None = None,
         latent_parts: dict[str, nn.Module | None] | None = None,
         change_weight: float = 1.0,
+        scene_queries: str = "learned",
     ):
         super().__init__(llm, vocab, scene_prediction)
         if vocab.patch != patch:
@@ -224,6 +227,7 @@ class PatchWorldModel(LMWorldModel):
         self.latent_hw = (int(latent_hw[0]), int(latent_hw[1]))
         self.frame_separation = frame_separation
         self.change_weight = float(change_weight)
+        self.scene_queries = scene_queries
         self.num_codebooks = len(codebooks)
         self.code_dim = int(codebooks[0].shape[1])
         for i, book in enumerate(codebooks):
@@ -267,8 +271,11 @@ class PatchWorldModel(LMWorldModel):
     # -- query blocks
     def query_cells(self, context: SceneContext) -> torch.Tensor | None:
         """The cells Long[N, p*p, codebooks] a predicted scene's query block carries, given
-        what came before it (its scenes are raw codes here), or None: the learned queries."""
-        return None
+        what came before it (its scenes are raw codes here, moved through
+        ``SceneMover.codes``): the scene ``scene_queries`` names, or None, the learned queries."""
+        move = None if self.scene_mover is None else self.scene_mover.codes
+        scene = query_scene(self.scene_queries, context, move)
+        return None if scene is None else self.cells_of(scene)
 
     def scene_query_payload(self, context: SceneContext) -> dict[str, torch.Tensor]:
         """The query block's payload: zero cells (the learned queries), or the scene

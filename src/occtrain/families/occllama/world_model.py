@@ -160,15 +160,9 @@ class OccLLaMAPatchWorldModel(PatchWorldModel):
             cfg.cell_dim,
             copy_bias=cfg.copy_bias,
             change_weight=cfg.change_weight,
+            scene_queries=cfg.scene_queries,
         )
         self.cfg = cfg
-
-    def query_cells(self, context: SceneContext) -> torch.Tensor | None:
-        """The cells of the scene ``scene_queries`` says the query block holds (the scenes
-        are raw codes here, moved through ``SceneMover.codes``), or None: the learned queries."""
-        move = None if self.scene_mover is None else self.scene_mover.codes
-        scene = query_scene(self.cfg.scene_queries, context, move)
-        return None if scene is None else self.cells_of(scene)
 
     def export_config(self) -> dict:
         return {**super().export_config(), "occllama": asdict(self.cfg)}

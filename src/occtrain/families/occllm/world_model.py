@@ -19,7 +19,6 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from occtrain.core.ego_steps import SceneContext, query_scene
 from occtrain.core.lm_world_model import WorldInputs
 from occtrain.core.patch_layout import ACTION_DIM, PatchWorldModel
 from occtrain.core.vocab import JointVocab
@@ -63,15 +62,9 @@ class OccLLMWorldModel(PatchWorldModel):
             copy_bias=None if cfg.scene_queries == "learned" else cfg.copy_bias,
             latent_parts={"fusion": fusion},
             change_weight=cfg.change_weight,
+            scene_queries=cfg.scene_queries,
         )
         self.cfg = cfg
-
-    def query_cells(self, context: SceneContext) -> torch.Tensor | None:
-        """The cells of the scene ``scene_queries`` says the query block holds (raw codes,
-        moved through ``SceneMover.codes``), or None: the learned queries."""
-        move = None if self.scene_mover is None else self.scene_mover.codes
-        scene = query_scene(self.cfg.scene_queries, context, move)
-        return None if scene is None else self.cells_of(scene)
 
     def prepare_latents(
         self, latents: torch.Tensor, payload: dict[str, torch.Tensor], slots: torch.Tensor
