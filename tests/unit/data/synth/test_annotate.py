@@ -3,13 +3,17 @@ function of the frames up to the anchor, in the synthesized world and in the clo
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
 from occtrain.data.synth import generate_scene
 from occtrain.data.synth.annotate import EgoMotion, frame_annotation, past_accels
 from occtrain.data.synth.catalog import TrackSet
-from occtrain.data.synth.driving import DrivingWorld, constant_acceleration, drive_episode
+from occtrain.data.synth.driving import STRIDE, DrivingWorld, constant_acceleration, drive_episode
+from occtrain.data.synth.traffic import SIM_DT
+from occtrain.data.synth.vehicle import PlanTracker, bicycle_step
 from occtrain.formats.occ3d import FRAME_DT, FUTURE_STEPS
 from occtrain.kinematics import past_acceleration
 
@@ -90,3 +94,25 @@ def test_the_closed_loop_annotates_a_driven_frame_as_the_dataset_does():
     for before, now in zip(seen, seen[1:]):
         move = float(np.hypot(*np.subtract(now["ego_pose"]["translation"][:2], before["ego_pose"]["translation"][:2])))
         assert now["ego_accel"] == pytest.approx(past_acceleration(now["ego_speed"], move), abs=2e-3)
+
+
+def test_no_input_of_a_driven_frame_is_the_last_plans_command_relabelled():
+    """What the controller commanded to follow the previous plan (each state's ``accel``, the
+    bicycle's acceleration over its last 0.1 s) reaches no input: set to nonsense, every
+    input a model reads of the frame is unchanged. The planner then acts on where the ego
+    went and how fast, as in the dataset, not on what it told the ego to do."""
+    world = DrivingWorld(101, 3.0)
+    while world.time < 1.55 or not world.at_frame:
+        world.advance(None)
+    for _ in range(2):  # a plan that brakes: what the planner commanded is far from 0
+        tracker = PlanTracker(np.stack([np.arange(1, 7) * 1.0, np.zeros(6)], 1), world.ego, FRAME_DT)
+        for _ in range(STRIDE):
+            accel, steer = tracker.controls(world.ego, 0.0)
+            world.advance(bicycle_step(world.ego, accel, steer, SIM_DT))
+    before = world.frame_annotation("episode")
+    assert max(abs(s.accel) for s in world.log.states[-2 * STRIDE :]) > 0.5  # it did command something
+    world.log.states = [replace(s, accel=99.0) for s in world.log.states]
+    world.ego = replace(world.ego, accel=-99.0)
+    after = world.frame_annotation("episode")
+    for key in INPUTS:
+        assert before[key] == after[key], key
