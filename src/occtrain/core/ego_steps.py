@@ -55,7 +55,8 @@ class SceneTrack:
         self.observed: torch.Tensor | None = None
         self.at: EgoStep = (0.0, 0.0)
         self.next: EgoStep | None = None
-        #: The last waypoint of the last action block (positions, any plan prior added back).
+        #: The last waypoint of the action block laid out or generated since the last scene
+        #: (a position, any plan prior added back): what the next scene is fused with.
         self.waypoint: torch.Tensor | None = None
 
     def planned(self, xy: torch.Tensor) -> None:
@@ -77,7 +78,7 @@ class SceneTrack:
             self.observed, self.at = code_ids, (0.0, 0.0)
         elif self.next is not None:
             self.at = self.next
-        self.next = None
+        self.next = self.waypoint = None
 
 
 def query_scene(mode: str, context: SceneContext, move: Move | None) -> torch.Tensor | None:
