@@ -75,17 +75,19 @@ def evaluate(
 
     stage_dir = Path(stage_dir)
     done = _evaluable_stage(stage_dir, split, samples, batch_size)
+    source = str(data_root) if data_root is not None else done.recipe.data.root
+    world = world_key(source)
     # Scored beside the split's own scores on the dataset named, whatever view of it is read.
-    metrics_file = eval_metrics_file(stage_dir, split, data_root, blank_cameras=blank_cameras)
+    metrics_file = eval_metrics_file(stage_dir, split, data_root, world, blank_cameras)
+    root = source
     if blank_cameras:
-        data_root = blanked_data(done, data_root)
+        root = str(blanked_data(done, Path(source), world))
+        world = world_key(root)
     # Prompts and generation length come from the export: exactly what the model trained with.
     # Inputs encoded by frozen encoders are looked up in the stage's cache of this world (made
     # by the same encoder; built if the stage trained without one). Scenes are in the run's
     # shared cache, keyed by the encoder and the dataset they were made from.
-    root = str(data_root) if data_root is not None else done.recipe.data.root
     _refuse_unscorable(tasks or [], root)
-    world = world_key(root)
     _check_outputs(stage_dir, done.spec.kind, done.kind.module.saves_predictions, metrics_file, save_predictions)
     with scoring_lock(stage_dir, "occtrain eval"):
         done.refuse_changed("occtrain eval")  # retrained between the check above and the lock
@@ -109,18 +111,17 @@ def evaluate(
     return result.metrics
 
 
-def blanked_data(done: DoneStage, data_root: str | Path | None) -> Path:
-    """The blanked view of the dataset ``done`` would be scored on, once its stage reads cameras."""
+def blanked_data(done: DoneStage, root: Path, world: str) -> Path:
+    """The blanked view of the dataset at ``root`` (``world``: its ``world_key``), once the
+    stage ``done`` reads cameras."""
     from occtrain.data.blank_cameras import blank_camera_view
-    from occtrain.data.shards import world_key
 
     if not reads_cameras(done):
         raise ConfigError(
             f"--blank-cameras: stage '{done.spec.name}' reads no camera images (nor does a stage it consumes); "
             "leave the flag out"
         )
-    root = Path(data_root) if data_root is not None else Path(done.recipe.data.root)
-    return blank_camera_view(root, done.stage_dir.parent / "cache" / "blank_cameras" / world_key(root))
+    return blank_camera_view(root, done.stage_dir.parent / "cache" / "blank_cameras" / world)
 
 
 def reads_cameras(done: DoneStage) -> bool:

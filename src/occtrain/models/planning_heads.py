@@ -71,15 +71,30 @@ def constant_velocity_plan(speed: torch.Tensor, steps: int) -> torch.Tensor:
     return torch.stack([x, torch.zeros_like(x)], dim=-1)
 
 
-def current_velocity(anchor: dict) -> np.ndarray:
-    """(2,) m/s in the ego frame: the speed (the sidecar's, else the last move's) along the
-    direction of the last move (from the last past waypoint to here; +x without one)."""
+def _last_move(anchor: dict) -> np.ndarray | None:
+    """(2,) metres from the last past waypoint to here in the ego frame; None without one."""
     past = np.asarray(anchor.get("ego_past", []), dtype=np.float64).reshape(-1, 2)
     mask = np.asarray(anchor.get("ego_past_mask", []), dtype=bool)
-    move = -past[-1] if len(past) and mask[-1] else np.zeros(2)
-    norm = float(np.linalg.norm(move))
-    speed = float(anchor["ego_speed"]) if "ego_speed" in anchor else norm / FRAME_DT
-    return speed * (move / norm if norm > 1e-3 else np.array([1.0, 0.0]))
+    return -past[-1] if len(past) and mask[-1] else None
+
+
+def last_move(anchor: dict) -> float | None:
+    """Metres the ego moved from the previous frame to this one (its last past waypoint), None without one."""
+    move = _last_move(anchor)
+    return None if move is None else float(np.linalg.norm(move))
+
+
+def heading(anchor: dict) -> np.ndarray:
+    """(2,) unit vector in the ego frame: the direction of the last move (+x without one)."""
+    move, norm = _last_move(anchor), last_move(anchor)
+    return move / norm if move is not None and norm is not None and norm > 1e-3 else np.array([1.0, 0.0])
+
+
+def current_velocity(anchor: dict) -> np.ndarray:
+    """(2,) m/s in the ego frame: the speed (the sidecar's, else the last move's) along the
+    ``heading``."""
+    speed = float(anchor["ego_speed"]) if "ego_speed" in anchor else (last_move(anchor) or 0.0) / FRAME_DT
+    return speed * heading(anchor)
 
 
 def ego_speed(anchor: dict) -> float:
@@ -90,13 +105,6 @@ def ego_speed(anchor: dict) -> float:
 def constant_velocity(anchors: list[dict], device: torch.device | str = "cpu") -> torch.Tensor:
     """The constant-velocity baseline of each anchor: straight on at its current speed, (B, 6, 2)."""
     return constant_velocity_plan(torch.tensor([ego_speed(a) for a in anchors], device=device), FUTURE_STEPS)
-
-
-def last_move(anchor: dict) -> float | None:
-    """Metres the ego moved from the previous frame to this one (its last past waypoint), None without one."""
-    past = np.asarray(anchor.get("ego_past", []), dtype=np.float64).reshape(-1, 2)
-    mask = np.asarray(anchor.get("ego_past_mask", []), dtype=bool)
-    return float(np.linalg.norm(past[-1])) if len(past) and mask[-1] else None
 
 
 def constant_acceleration(anchors: list[dict], device: torch.device | str = "cpu") -> torch.Tensor:
@@ -119,24 +127,16 @@ HEAD_PRIORS = ("none", "constant_velocity", "constant_acceleration")
 
 def prior_plan(anchors: list[dict], prior: str, device: torch.device | str = "cpu") -> torch.Tensor | None:
     """(B, 6, 2) the kinematic plan a head's waypoints add to under ``prior`` (None for
-    "none"), along the direction of the ego's last move as ``current_velocity``'s: constant
-    velocity, or constant acceleration at the past's acceleration (``constant_acceleration``
-    turned from straight ahead onto that direction)."""
+    "none"): constant velocity, or constant acceleration at the past's acceleration, each
+    turned from straight ahead onto the ``heading`` of the ego's last move."""
     if prior == "none":
         return None
     if prior not in HEAD_PRIORS:
         raise ValueError(f"unknown plan prior '{prior}' (one of {', '.join(HEAD_PRIORS)})")
-    heading = []
-    for anchor in anchors:
-        v = current_velocity(anchor)
-        norm = float(np.linalg.norm(v))
-        heading.append(v / norm if norm > 1e-6 else np.array([1.0, 0.0]))
-    if prior == "constant_velocity":
-        ahead = constant_velocity(anchors, device)[..., 0]
-    else:
-        ahead = constant_acceleration(anchors, device)[..., 0]
-    direction = torch.tensor(np.array(heading), dtype=torch.float32, device=device).reshape(len(anchors), 1, 2)
-    return ahead[..., None] * direction
+    plan = constant_velocity if prior == "constant_velocity" else constant_acceleration
+    ahead = plan(anchors, device)[..., 0]
+    direction = torch.tensor(np.array([heading(a) for a in anchors]), dtype=torch.float32, device=device)
+    return ahead[..., None] * direction.reshape(len(anchors), 1, 2)
 
 
 def load_planning_head(export_dir: Path) -> PlanningHead:
