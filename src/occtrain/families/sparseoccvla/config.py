@@ -13,6 +13,9 @@ from typing import Any
 from occtrain.errors import ConfigError
 from occtrain.formats.occ3d import CLASS_INDEX, MOVABLE_CLASSES
 
+#: How the queries' initial positions are laid out (``SparseOccConfig.query_init``).
+QUERY_INITS = ("random", "grid")
+
 
 @dataclass
 class SparseOccConfig:
@@ -33,6 +36,11 @@ class SparseOccConfig:
     #: Sparse occupancy queries N (paper: 600, a 300 version too) and their width D (1024).
     queries: int = 64
     dim: int = 64
+    #: Where the queries' learnable positions P_0 start: ``random`` (uniform over the grid's
+    #: range, the paper's learnable initialisation) or ``grid`` (a regular bird's-eye lattice
+    #: over the range, 1 m above the ground: every patch of the scene has a query from the
+    #: first step; not the paper's, see docs/families/sparseoccvla.md).
+    query_init: str = "random"
     heads: int = 4  # paper: 32
     #: Points each query decodes after each layer, coarse to fine; one entry per layer
     #: (paper: 6 layers, (2, 4, 16, 32, 56, 112)).
@@ -61,6 +69,17 @@ class SparseOccConfig:
     #: Future frames whose occupied voxels, moved into the current frame by the ego poses,
     #: join its ground truth (App. A's extended-range supervision; 0: the current frame only).
     extended_range: int = 0
+    #: Weight of a dense loss on the backbone: a head on its finest feature map predicts each
+    #: pixel's class (the 18 labels, 17 = sky) and log depth, against the renderer's
+    #: per-pixel targets (0: off, the paper's; not the paper's, whose ResNet-50 comes
+    #: pretrained: a backbone trained from scratch by the Chamfer loss alone learned
+    #: nothing the queries read, docs/families/sparseoccvla.md).
+    dense_weight: float = 0.0
+    #: Each sampling point also reads, in every camera that sees it, that head's class
+    #: probabilities and the gap between its own depth and the pixel's predicted depth (log
+    #: metres): "is there a surface here, and of what", the cue a query needs to place its
+    #: points (not the paper's).
+    depth_cue: bool = False
     #: lambda_focal of Eq. 10 (paper: 0.2) and the weight of the distillation loss (0: off).
     focal_weight: float = 0.2
     distill_weight: float = 1.0
@@ -69,6 +88,11 @@ class SparseOccConfig:
     #: Voxels each decoded point fills when points are voxelized to be scored (x, y, z): a
     #: few thousand points cover a scene's 10^5 occupied voxels only as small boxes.
     voxel_extent: list[int] = field(default_factory=lambda: [3, 3, 2])
+
+    @property
+    def dense_head(self) -> bool:
+        """Whether the encoder has the per-pixel head (trained by ``dense_weight``, read by ``depth_cue``)."""
+        return self.dense_weight > 0 or self.depth_cue
 
     @property
     def layers(self) -> int:
@@ -108,12 +132,16 @@ class SparseOccConfig:
             )
         if len(self.backbone_widths) != len(self.backbone_depths) or not self.backbone_widths:
             raise ConfigError(f"{where}.backbone_widths: one width per backbone stage, as many as backbone_depths")
+        if self.query_init not in QUERY_INITS:
+            raise ConfigError(f"{where}.query_init: {self.query_init!r} is not one of {', '.join(QUERY_INITS)}")
         if not 0 <= self.movable_share <= 1:
             raise ConfigError(f"{where}.movable_share: {self.movable_share} must be a share, 0 to 1")
         if self.offset_scale <= 0:
             raise ConfigError(f"{where}.offset_scale: {self.offset_scale} must be positive")
-        if self.extended_range < 0 or self.focal_weight < 0 or self.distill_weight < 0:
-            raise ConfigError(f"{where}: extended_range, focal_weight and distill_weight must not be negative")
+        if min(self.extended_range, self.focal_weight, self.distill_weight, self.dense_weight) < 0:
+            raise ConfigError(
+                f"{where}: extended_range, focal_weight, distill_weight and dense_weight must not be negative"
+            )
         if len(self.voxel_extent) != 3 or min(self.voxel_extent) < 1:
             raise ConfigError(f"{where}.voxel_extent: {list(self.voxel_extent)} must be [x, y, z] voxels, each >= 1")
 

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import torch
 import torch.nn.functional as F
@@ -30,9 +30,9 @@ from occtrain.data.layout import DatasetIndex
 from occtrain.errors import ConfigError, DataError
 from occtrain.families.sparseoccvla.config import SparseOccConfig
 from occtrain.families.sparseoccvla.inputs import CameraFrames, camera_frames, ground_truth
-from occtrain.formats.occ3d import RANGE_MAX, RANGE_MIN
+from occtrain.formats.occ3d import NUM_CLASSES, RANGE_MAX, RANGE_MIN
 from occtrain.models.point_sets import POINT_CLASSES, chamfer_distance, sigmoid_focal_loss, voxelize
-from occtrain.models.projection import project, sample_views
+from occtrain.models.projection import average_views, in_cameras, project, read_views, sample_views
 from occtrain.models.tokenizers.base import TokenizerOutput
 
 #: ImageNet statistics, what a torchvision/Hugging Face ResNet is trained with.
@@ -40,6 +40,9 @@ IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
 #: Frequencies of the sinusoidal position features.
 PE_FREQUENCIES = 6
+#: The height (metres, ego frame) of a ``grid`` layout's initial positions: most occupied
+#: voxels lie within a query's reach (``offset_scale``) of it, from the ground to the roofs of cars.
+GRID_QUERY_HEIGHT = 1.0
 
 
 def normalized(points: torch.Tensor) -> torch.Tensor:
@@ -182,6 +185,57 @@ class FeedForward(nn.Module):
         return self.norm(q + self.mlp(q))
 
 
+class DenseHead(nn.Module):
+    """Each pixel's class logits (the 18 labels, 17 = sky) and log depth (metres) from a
+    feature map (..., D, h, w) -> (..., 19, h, w), as the vision stage's head predicts them."""
+
+    def __init__(self, dim: int):
+        super().__init__()
+        out = nn.Conv2d(dim, NUM_CLASSES + 1, 1)
+        assert out.bias is not None
+        nn.init.constant_(out.bias[-1:], math.log(10.0))  # depths start near the scene's typical 10 m
+        self.net = nn.Sequential(nn.Conv2d(dim, dim, 3, padding=1), nn.GELU(), out)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        lead = x.shape[:-3]
+        y = self.net(x.reshape(-1, *x.shape[-3:]))
+        return y.reshape(*lead, *y.shape[1:])
+
+
+def dense_loss(dense: torch.Tensor, cam_class: torch.Tensor, cam_depth: torch.Tensor) -> torch.Tensor:
+    """Cross-entropy of the head's classes and L1 on log depth (pixels with a surface) of
+    one frame's maps (B, V, 19, h, w) against the renderer's targets (B, V, H, W), read at
+    each cell's centre pixel."""
+    h, w = dense.shape[-2:]
+    rows = ((torch.arange(h, device=dense.device) + 0.5) * cam_class.shape[-2] / h).long()
+    cols = ((torch.arange(w, device=dense.device) + 0.5) * cam_class.shape[-1] / w).long()
+    target = cam_class.to(dense.device).long()[..., rows, :][..., cols]
+    depth = cam_depth.to(dense.device).float()[..., rows, :][..., cols]
+    logits, log_depth = dense[:, :, :NUM_CLASSES], dense[:, :, NUM_CLASSES]
+    loss = F.cross_entropy(logits.flatten(0, 1), target.flatten(0, 1))
+    surface = depth > 0
+    return loss + ((log_depth - depth.clamp(min=1e-3).log()).abs() * surface).sum() / surface.sum().clamp(min=1)
+
+
+def surface_cue(
+    points: torch.Tensor,
+    dense: torch.Tensor,
+    cam_to_ego: torch.Tensor,
+    uv: torch.Tensor,
+    inside: torch.Tensor,
+    image_hw: tuple[int, int],
+) -> torch.Tensor:
+    """Per point (B, M, 19): in each camera that sees it (its pixel ``uv`` (B, V, M, 2),
+    ``inside`` (B, V, M)), the class probabilities the per-pixel maps ``dense``
+    (B, V, 19, h, w) give there and the point's own depth minus the pixel's predicted depth
+    (log metres), averaged over those cameras: the point lies on a surface of that class
+    where the gap is 0, in front of it where negative, behind it where positive."""
+    read = read_views(dense, uv, image_hw)  # (B, V, M, 19)
+    depth = in_cameras(points, cam_to_ego)[..., 2].clamp(min=1e-3).log().to(read.dtype)
+    cue = torch.cat([read[..., :NUM_CLASSES].softmax(-1), (depth - read[..., NUM_CLASSES])[..., None]], -1)
+    return average_views(cue, inside)[0]
+
+
 class PointHead(nn.Module):
     """A query -> M points around its position (offsets up to ``scale`` metres) and their class logits."""
 
@@ -206,17 +260,27 @@ class EncoderLayer(nn.Module):
         super().__init__()
         self.cfg = cfg
         self.sampling = nn.Linear(cfg.dim, cfg.sampling_points * 3)
+        # The depth cue joins the sampled features as one more "scale".
+        self.cue = nn.Linear(NUM_CLASSES + 1, cfg.dim) if cfg.depth_cue else None
+        reads = scales + (1 if cfg.depth_cue else 0)
         self.mixing = AdaptiveMixing(
-            cfg.dim, cfg.mixing_groups, cfg.frames * scales * cfg.sampling_points, cfg.mixed_points
+            cfg.dim, cfg.mixing_groups, cfg.frames * reads * cfg.sampling_points, cfg.mixed_points
         )
         self.attention = SpatialSelfAttention(cfg.dim, cfg.heads)
         self.ffn = FeedForward(cfg.dim, cfg.ffn_dim)
         self.head = PointHead(cfg.dim, points, cfg.offset_scale)
 
     def sample(
-        self, q: torch.Tensor, pos: torch.Tensor, features: list[torch.Tensor], cams: CameraFrames
+        self,
+        q: torch.Tensor,
+        pos: torch.Tensor,
+        features: list[torch.Tensor],
+        cams: CameraFrames,
+        dense: torch.Tensor | None = None,
     ) -> torch.Tensor:
-        """The image features (B, N, F * scales * S, D) at S points around each query, in every frame and scale."""
+        """The image features (B, N, F * scales * S, D) at S points around each query, in
+        every frame and scale (and with ``depth_cue`` the cue read from ``dense``, the
+        per-pixel head's maps (B, F, V, 19, h, w), as one more scale)."""
         cfg = self.cfg
         b, n = q.shape[:2]
         s = cfg.sampling_points
@@ -232,11 +296,24 @@ class EncoderLayer(nn.Module):
             for level in features:
                 sampled, _ = sample_views(level[:, f], uv, inside, (cfg.image_height, cfg.image_width))
                 out.append(sampled.view(b, n, s, -1))
+            if self.cue is not None and dense is not None:
+                cue = surface_cue(
+                    in_frame, dense[:, f], cams.cam_to_ego[:, f], uv, inside, (cfg.image_height, cfg.image_width)
+                )
+                out.append(self.cue(cue).view(b, n, s, -1))
         return torch.cat(out, 2)
 
-    def forward(self, q, pos, pos_embed, features, cams):
+    def forward(
+        self,
+        q: torch.Tensor,
+        pos: torch.Tensor,
+        pos_embed: PositionEmbedding,
+        features: list[torch.Tensor],
+        cams: CameraFrames,
+        dense: torch.Tensor | None = None,
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         q_in = q + pos_embed(pos)
-        q = self.mixing(q_in, self.sample(q_in, pos, features, cams))
+        q = self.mixing(q_in, self.sample(q_in, pos, features, cams, dense))
         q = self.ffn(self.attention(q + pos_embed(pos), pos))
         points, logits = self.head(q, pos)
         return q, points, logits
@@ -280,6 +357,30 @@ def teacher_features(teacher: nn.Module, images: torch.Tensor) -> torch.Tensor:
     return tokens.view(b, v, gh, gw, -1).permute(0, 1, 4, 2, 3)
 
 
+class EncodedViews(NamedTuple):
+    """What ``SparseOccEncoder.encode_views`` reads from the cameras."""
+
+    queries: torch.Tensor
+    positions: torch.Tensor
+    layers: list[tuple[torch.Tensor, torch.Tensor | None]]
+    dense: torch.Tensor | None
+
+
+def initial_layout(queries: int, how: str) -> torch.Tensor:
+    """P_0 (N, 3) in grid units ([-1, 1] of the half-ranges): uniform draws (``random``) or
+    a regular bird's-eye lattice at ``GRID_QUERY_HEIGHT`` (``grid``; rows of
+    ceil(sqrt(N)) cells, the last row partly filled)."""
+    if how == "random":
+        return torch.rand(queries, 3) * 2 - 1
+    side = math.ceil(math.sqrt(queries))
+    rows = math.ceil(queries / side)
+    i = torch.arange(queries)
+    x = ((i // side).float() + 0.5) / rows * 2 - 1
+    y = ((i % side).float() + 0.5) / side * 2 - 1
+    z = torch.full((queries,), (GRID_QUERY_HEIGHT - float(_MID[2])) / float(_HALF[2]))
+    return torch.stack([x, y, z], -1)
+
+
 class SparseOccEncoder(nn.Module):
     """The Sparse Occupancy Encoder, its connector and its distillation branch (see the module docstring)."""
 
@@ -298,10 +399,11 @@ class SparseOccEncoder(nn.Module):
         # optimizer step then moves a query by the learning rate times 40 m, where in
         # metres it moved by the learning rate (1e-3 m) and the initial layout never left
         # its random draw; weight decay pulls toward the grid's centre, the ego.
-        self.initial_unit = nn.Parameter(torch.rand(cfg.queries, 3) * 2 - 1)
+        self.initial_unit = nn.Parameter(initial_layout(cfg.queries, cfg.query_init))
         self.register_load_state_dict_pre_hook(_metres_to_unit)
         self.pos_embed = PositionEmbedding(cfg.dim)
         self.layers = nn.ModuleList(EncoderLayer(cfg, scales, m) for m in cfg.points_per_layer)
+        self.dense = DenseHead(cfg.dim) if cfg.dense_head else None
         self.connector = Connector(cfg.dim, cfg.token_dim, cfg.position_encoding)
         self.distillation: Distillation | None = None
 
@@ -320,21 +422,21 @@ class SparseOccEncoder(nn.Module):
         return self.cfg.token_dim
 
     # -- the encoder
-    def encode_views(
-        self, cams: CameraFrames
-    ) -> tuple[torch.Tensor, torch.Tensor, list[tuple[torch.Tensor, torch.Tensor]]]:
-        """Camera frames -> the last queries Q_L (B, N, D), their positions P_L (B, N, 3) and
-        every layer's (points (B, N * M_l, 3), logits (B, N * M_l, C)), P_0 first with no logits."""
+    def encode_views(self, cams: CameraFrames) -> EncodedViews:
+        """Camera frames -> the last queries Q_L (B, N, D), their positions P_L (B, N, 3),
+        every layer's (points (B, N * M_l, 3), logits (B, N * M_l, C)), P_0 first with no
+        logits, and the per-pixel head's maps (B, F, V, 19, h, w) where there is one."""
         b = cams.images.shape[0]
         features = self.backbone(cams.images)  # per scale (B, F, V, D, h, w)
+        dense = self.dense(features[0]) if self.dense is not None else None
         q = self.queries.expand(b, -1, -1)
         pos = self.initial_positions.expand(b, -1, -1)
         outputs: list[tuple[torch.Tensor, torch.Tensor | None]] = [(pos, None)]
         for layer in self.layers:
-            q, points, logits = layer(q, pos, self.pos_embed, features, cams)
+            q, points, logits = layer(q, pos, self.pos_embed, features, cams, dense if self.cfg.depth_cue else None)
             outputs.append((points.flatten(1, 2), logits.flatten(1, 2)))
             pos = points.mean(2).detach()  # the query moves to its points; the next layer samples there
-        return q, pos, outputs
+        return EncodedViews(q, pos, outputs, dense)
 
     def tokens(self, queries: torch.Tensor, positions: torch.Tensor) -> torch.Tensor:
         """The occupancy tokens T_o (B, N, token_dim) of the last queries."""
@@ -359,7 +461,7 @@ class SparseOccEncoder(nn.Module):
     ) -> TokenizerOutput:
         cfg = self.cfg
         cams = camera_frames(_checked(batch, cfg), index, cfg.frames)
-        q, pos, outputs = self.encode_views(cams)
+        q, pos, outputs, dense = self.encode_views(cams)
         gt, gt_classes, valid = ground_truth(
             batch,
             index,
@@ -380,6 +482,9 @@ class SparseOccEncoder(nn.Module):
                 focal = focal + sigmoid_focal_loss(logits, torch.gather(gt_classes, 1, match))
         losses = {"chamfer": chamfer, "focal": focal}
         loss = chamfer + cfg.focal_weight * focal
+        if dense is not None and cfg.dense_weight > 0 and "cam_class" in batch:
+            losses["dense"] = dense_loss(dense[:, 0], batch["cam_class"], batch["cam_depth"])
+            loss = loss + cfg.dense_weight * losses["dense"]
         if teacher is not None and cfg.distill_weight > 0:
             losses["distill"] = self.distill(q, pos, cams, teacher)
             loss = loss + cfg.distill_weight * losses["distill"]
@@ -438,8 +543,8 @@ class SparseOccEncoder(nn.Module):
         cams = CameraFrames(
             *(t.to(device) for t in (cams.images, cams.intrinsics, cams.cam_to_ego, cams.current_to_frame))
         )
-        q, pos, _ = self.encode_views(cams)
-        return torch.cat([pos, q], -1)
+        encoded = self.encode_views(cams)
+        return torch.cat([encoded.positions, encoded.queries], -1)
 
 
 _MID = (torch.tensor(RANGE_MIN, dtype=torch.float32) + torch.tensor(RANGE_MAX, dtype=torch.float32)) / 2

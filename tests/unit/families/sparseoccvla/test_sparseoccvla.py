@@ -136,6 +136,53 @@ def test_distillation_reads_the_teacher_feature_where_a_point_projects():
     assert not bool(seen[0, 0]) and nowhere.abs().sum() == 0
 
 
+def test_the_surface_cue_says_where_a_point_meets_the_pixels_predicted_depth():
+    """A point lifted 12 m along CAM_FRONT's ray through a cell whose predicted depth is
+    12 m and whose class is car reads a gap of 0 and car; 6 m along the same ray it reads
+    log(6/12), in front of the surface; a point no camera sees reads zeros."""
+    from occtrain.families.sparseoccvla.encoder import surface_cue
+    from occtrain.formats.occ3d import CLASS_INDEX, NUM_CLASSES
+
+    intr, to_ego, cams = _rig()
+    gh, gw = 9, 16
+    dense = torch.zeros(1, 6, NUM_CLASSES + 1, gh, gw)
+    dense[:, :, CLASS_INDEX["car"]] = 20.0  # every pixel: certainly a car
+    dense[:, :, NUM_CLASSES] = math.log(12.0)  # at 12 m
+    centre = np.array([((9 + 0.5) * 128 / gw, (4 + 0.5) * 72 / gh)])
+    points = torch.tensor(
+        np.concatenate([cams[0].lift(centre, np.array([12.0])), cams[0].lift(centre, np.array([6.0])), [[0, 0, 500]]]),
+        dtype=torch.float32,
+    )[None]
+    uv, inside = project(points, intr, to_ego, (72, 128))
+    cue = surface_cue(points, dense, to_ego, uv, inside, (72, 128))
+    assert cue.shape == (1, 3, NUM_CLASSES + 1)
+    assert cue[0, 0, CLASS_INDEX["car"]] == pytest.approx(1.0, abs=1e-6)
+    assert cue[0, 0, NUM_CLASSES] == pytest.approx(0.0, abs=1e-4)
+    assert cue[0, 1, NUM_CLASSES] == pytest.approx(math.log(0.5), abs=1e-4)
+    assert cue[0, 2].abs().sum() == 0
+
+
+def test_the_dense_loss_reads_each_cells_centre_pixel():
+    """A 2 x 2 map over a 4 x 4 image is scored against pixels (1, 1), (1, 3), (3, 1) and
+    (3, 3): a map that is right there (whatever the other pixels hold) scores near 0, one
+    with every depth doubled scores log 2 more; sky pixels (depth 0) carry no depth loss."""
+    from occtrain.families.sparseoccvla.encoder import dense_loss
+    from occtrain.formats.occ3d import NUM_CLASSES
+
+    cam_class = torch.full((1, 1, 4, 4), 3, dtype=torch.uint8)  # the pixels read are overwritten below
+    cam_depth = torch.full((1, 1, 4, 4), 99.0)
+    for (r, c), (k, d) in zip([(1, 1), (1, 3), (3, 1), (3, 3)], [(0, 5.0), (4, 10.0), (11, 20.0), (17, 0.0)]):
+        cam_class[0, 0, r, c], cam_depth[0, 0, r, c] = k, d
+    right = torch.zeros(1, 1, NUM_CLASSES + 1, 2, 2)
+    for (i, j), (k, d) in zip([(0, 0), (0, 1), (1, 0), (1, 1)], [(0, 5.0), (4, 10.0), (11, 20.0), (17, 1.0)]):
+        right[0, 0, k, i, j] = 50.0
+        right[0, 0, NUM_CLASSES, i, j] = math.log(d)
+    assert dense_loss(right, cam_class, cam_depth).item() == pytest.approx(0.0, abs=1e-6)
+    doubled = right.clone()
+    doubled[:, :, NUM_CLASSES] += math.log(2.0)
+    assert dense_loss(doubled, cam_class, cam_depth).item() == pytest.approx(math.log(2.0), abs=1e-5)
+
+
 # ----------------------------------------------------------------------------- attention and forecaster
 
 
@@ -569,6 +616,31 @@ def test_initial_positions_learn_in_grid_units_and_old_exports_read_back_in_metr
     again = SparseOccEncoder(cfg)
     again.load_state_dict(old)
     torch.testing.assert_close(again.initial_positions, enc.initial_positions)
+
+
+def test_a_grid_layout_puts_one_query_in_each_cell_of_a_birds_eye_lattice():
+    """``query_init: grid``: 16 queries sit at the centres of a 4 x 4 lattice of 20 m cells
+    over the 80 x 80 m range, 1 m above the ground; 10 fill rows of 4 and a half-empty last
+    row; an unknown layout is refused by name."""
+    from occtrain.families.sparseoccvla.config import SparseOccConfig
+    from occtrain.families.sparseoccvla.encoder import SparseOccEncoder
+
+    enc = SparseOccEncoder(
+        SparseOccConfig(queries=16, dim=8, heads=2, points_per_layer=[2], mixing_groups=2, query_init="grid")
+    )
+    p0 = enc.initial_positions.detach()
+    centres = torch.tensor([-30.0, -10.0, 10.0, 30.0])
+    torch.testing.assert_close(p0[:, 0], centres.repeat_interleave(4))
+    torch.testing.assert_close(p0[:, 1], centres.repeat(4))
+    torch.testing.assert_close(p0[:, 2], torch.ones(16))
+    ten = SparseOccEncoder(
+        SparseOccConfig(queries=10, dim=8, heads=2, points_per_layer=[2], mixing_groups=2, query_init="grid")
+    )
+    xy = ten.initial_positions.detach()[:, :2]
+    assert len({tuple(row) for row in xy.tolist()}) == 10
+    torch.testing.assert_close(xy[8:, 1], centres[:2])
+    with pytest.raises(ConfigError, match="query_init: 'rings'"):
+        SparseOccConfig(query_init="rings").validate("model.sparseocc")
 
 
 def test_the_budget_oracle_places_the_last_layers_points_on_occupied_voxels():
