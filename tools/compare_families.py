@@ -25,7 +25,6 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
-from occtrain.commands.report import Run
 from occtrain.core import registry
 from occtrain.core.registry import Showcase
 from occtrain.core.vocab import scene_length
@@ -33,6 +32,7 @@ from occtrain.data.cameras import CAMERA_NAMES
 from occtrain.errors import DataError
 from occtrain.formats.io import atomic_write_json, atomic_write_text
 from occtrain.formats.metrics_file import read_metrics
+from occtrain.report.results import Run
 
 REPO = Path(__file__).resolve().parents[1]
 

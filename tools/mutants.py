@@ -234,7 +234,7 @@ MUTANTS = (
     Mutant(
         "restart-deletes-at-once",
         "--restart deletes the stages it retrains instead of setting them aside",
-        "src/occtrain/run/manifest.py",
+        "src/occtrain/formats/manifest.py",
         "                    os.rename(run_dir / name, aside / name)\n",
         "                    remove_inside(run_dir / name, run_dir)\n",
         (

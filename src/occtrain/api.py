@@ -87,7 +87,7 @@ def _export_dir(path: Path) -> Path:
     """The export ``path`` means: itself, or the ``export/`` of a stage directory; a stage
     without one or a whole run is refused in one line saying what to pass instead."""
     from occtrain.formats.exports import EXPORT_CONFIG
-    from occtrain.run.manifest import MANIFEST_FILE
+    from occtrain.formats.manifest import MANIFEST_FILE
 
     if (path / EXPORT_CONFIG).is_file():
         return path
@@ -104,7 +104,7 @@ def _export_dir(path: Path) -> Path:
 
 def _run_dir_message(run: Path) -> str:
     """What a run directory holds, for a user who passed it to ``load``."""
-    from occtrain.run.manifest import Manifest
+    from occtrain.formats.manifest import Manifest
 
     stages = Manifest.load(run, writable=False).stages
     if not stages:

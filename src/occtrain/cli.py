@@ -38,8 +38,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
 
 def _cmd_validate(args: argparse.Namespace) -> int:
-    from occtrain.run.manifest import Manifest
-    from occtrain.run.runner import check_run
+    from occtrain.formats.manifest import Manifest
+    from occtrain.run.checks import check_run
 
     check = check_run(args.recipe, args.overrides, run_dir=args.run_dir, only=args.only, restart=args.restart)
     manifest = Manifest.load(check.run_dir, writable=False)
@@ -94,8 +94,8 @@ def _cmd_plan_memory(args: argparse.Namespace) -> int:
 
 
 def _cmd_table(args: argparse.Namespace) -> int:
-    from occtrain.commands.compare import load_run_table, show_table
     from occtrain.progress import console
+    from occtrain.report.compare import load_run_table, show_table
 
     table, manifest = load_run_table(args.run_dir)
     pending = [
@@ -220,9 +220,9 @@ def build_parser() -> argparse.ArgumentParser:
     _add_run_commands(sub)
     _add_data_commands(sub)
 
+    from occtrain.commands.dashboard import register as register_dashboard
     from occtrain.commands.report import register as register_report
     from occtrain.commands.score import register as register_score
-    from occtrain.dashboard import register as register_dashboard
 
     register_score(sub)
     register_report(sub)

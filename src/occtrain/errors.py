@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import difflib
+
 
 class OcctrainError(Exception):
     """An error caused by the user's input (a file, a key, an argument).
@@ -38,3 +40,9 @@ def cause_line(err: BaseException) -> str:
 def _first_line(err: BaseException) -> str:
     text = str(err).strip()
     return text.splitlines()[0] if text else ""
+
+
+def did_you_mean(key: str, valid: list[str]) -> str:
+    """The end of an error about an unknown ``key``: the closest valid one, or all of them."""
+    close = difflib.get_close_matches(key, valid, n=1, cutoff=0.6)
+    return f"; did you mean '{close[0]}'?" if close else f"; valid keys: {', '.join(sorted(valid))}"

@@ -285,7 +285,7 @@ def pickled_checkpoint(tmp: Path) -> None:
     archive whose pickle names a class (not what occtrain writes)."""
     import collections
 
-    from occtrain.run.runner import load_recipe
+    from occtrain.run.planning import load_recipe
 
     recipe()(tmp)
     planned = load_recipe(tmp / "r.yaml")[1]

@@ -135,7 +135,7 @@ def test_registering_a_family_leaves_every_existing_stage_hash_unchanged(tmp_pat
     from occtrain.config import load_config
     from occtrain.config.recipe import RecipeConfig
     from occtrain.core.registry import _FAMILIES, _TOKENIZERS, FamilySpec, TokenizerArch, WorldSpec, register_family
-    from occtrain.run.runner import plan_stages
+    from occtrain.run.planning import plan_stages
     from plugins.tiny_family import TASKS, ColumnTasks, ColumnWorldModel
 
     def hashes(recipe: str) -> dict[str, str]:
@@ -254,7 +254,7 @@ def test_an_entry_point_that_overrides_a_shipped_family_says_so_in_one_note(regi
 def test_a_recipe_plugin_that_overrides_a_shipped_family_says_so_once_even_imported_twice(registry, capsys):
     import sys
 
-    from occtrain.run.runner import load_plugins
+    from occtrain.run.planning import load_plugins
 
     load_plugins(["plugins.overriding_family"], "r.yaml")
     assert capsys.readouterr() == ("", NOTE)

@@ -8,7 +8,7 @@ import pytest
 
 from conftest import REPO
 from occtrain.errors import ConfigError
-from occtrain.run.runner import load_recipe
+from occtrain.run.planning import load_recipe
 
 RECIPES = sorted((REPO / "recipes").rglob("*.yaml"))
 

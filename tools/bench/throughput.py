@@ -34,7 +34,8 @@ os.environ.setdefault("OMP_NUM_THREADS", "2")
 from omegaconf import OmegaConf  # noqa: E402
 
 from occtrain.progress import console  # noqa: E402
-from occtrain.run.runner import build_stage, load_recipe  # noqa: E402
+from occtrain.run.planning import load_recipe  # noqa: E402
+from occtrain.run.runner import build_stage  # noqa: E402
 from occtrain.stages.callbacks import StepMeter  # noqa: E402
 from occtrain.stages.trainer import build_trainer  # noqa: E402
 

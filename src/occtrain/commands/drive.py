@@ -35,12 +35,12 @@ from typing import Any
 
 import numpy as np
 
-from occtrain.commands.evaluate import DoneStage, done_stage
 from occtrain.errors import ConfigError
 from occtrain.formats.io import atomic_write_json, check_output
 from occtrain.formats.metrics_file import Provenance
 from occtrain.progress import console, progress_bar
 from occtrain.run.control import Interrupted, stop_on_signals
+from occtrain.run.done_stage import DoneStage, done_stage
 
 #: The baselines every stage is driven beside.
 BASELINES = ("expert", "constant_velocity", "constant_acceleration", "stand_still")
@@ -90,7 +90,7 @@ def drive(
 ) -> dict[str, dict[str, float]]:
     """Drive the stage and the baselines on ``routes`` routes; each driver's mean scores. The
     stage is held (a shared lock: a ``--restart`` of it waits) while its results are written."""
-    from occtrain.commands.evaluate import scoring_lock
+    from occtrain.run.control import scoring_lock
 
     start = time.perf_counter()
     stage_dir = Path(stage_dir)

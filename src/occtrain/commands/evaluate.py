@@ -11,23 +11,20 @@ predictions in the formats ``occtrain score`` reads, so both paths give one numb
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
-from contextlib import AbstractContextManager
-from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from occtrain.config import load_config
-from occtrain.config.recipe import RecipeConfig, StageSpec
 from occtrain.errors import ConfigError
 from occtrain.formats.io import atomic_write_json, atomic_write_npz, check_output
-from occtrain.formats.metrics_file import MetricsFile, Provenance, StageAttempt, read_metrics, write_metrics
+from occtrain.formats.metrics_file import MetricsFile, Provenance, read_metrics, write_metrics
 from occtrain.progress import console
+from occtrain.run.control import scoring_lock
+from occtrain.run.done_stage import DoneStage, done_stage
 
 if TYPE_CHECKING:  # the stages (Lightning) load where a stage is read, not when the CLI starts
-    from occtrain.stages import StageKind
+    pass
 
 
 def eval_metrics_file(
@@ -126,7 +123,7 @@ def blanked_data(done: DoneStage, root: Path, world: str) -> Path:
 
 def reads_cameras(done: DoneStage) -> bool:
     """Whether the stage, or one it consumes (a frozen camera encoder), reads camera images."""
-    from occtrain.run.runner import plan_stages
+    from occtrain.run.planning import plan_stages
 
     planned = {p.spec.name: p for p in plan_stages(done.recipe, str(done.stage_dir.parent / "pipeline.yaml"))}
     todo, seen = [done.spec.name], set()
@@ -176,73 +173,6 @@ def _evaluable_stage(stage_dir: Path, split: str, samples: int, batch_size: int)
     if batch_size < 1:
         raise ConfigError(f"--batch-size {batch_size}: must be at least 1")
     return done_stage(stage_dir, "occtrain eval", "scores", lambda module: module.evaluable)
-
-
-@dataclass(frozen=True)
-class DoneStage:
-    """A done stage as a command that reads it finds it: the run's recipe, the stage's spec
-    and kind, and which attempt trained what it exports."""
-
-    stage_dir: Path
-    recipe: RecipeConfig
-    spec: StageSpec
-    kind: StageKind
-    attempt: StageAttempt
-
-    def refuse_changed(self, command: str) -> None:
-        """Refuse when the stage was retrained (or is being) since this was read."""
-        from occtrain.run.manifest import Manifest
-
-        entry = Manifest.load(self.stage_dir.parent, writable=False).stages.get(self.spec.name)
-        now = None if entry is None else StageAttempt(entry.config_hash, entry.attempts, entry.started)
-        if entry is None or entry.status != "done" or now != self.attempt:
-            raise ConfigError(
-                f"{self.stage_dir}: the stage was retrained while {command} read it, so its results of the model it "
-                f"loaded are not written; run {command} again"
-            )
-
-
-def scoring_lock(stage_dir: Path, command: str) -> AbstractContextManager[None]:
-    """The stage held while ``command`` scores it (see ``run.control.stage_lock``)."""
-    from occtrain.run.control import stage_lock
-
-    busy = (
-        f"{stage_dir}: the stage is being retrained (`occtrain run --restart`) in another process; run {command} "
-        "when that run has finished"
-    )
-    return stage_lock(stage_dir.parent, stage_dir.name, shared=True, busy=busy)
-
-
-def done_stage(stage_dir: Path, command: str, verb: str, capable: Callable[[Any], bool]) -> DoneStage:
-    """The run's recipe, the stage's spec, kind and attempt, once the stage is of a kind
-    ``command`` serves (``capable`` of its module; ``verb`` says what the command does to
-    it) and done (an interrupted stage's export is stale)."""
-    from occtrain.run.manifest import Manifest
-    from occtrain.run.runner import load_plugins
-    from occtrain.stages import get_kind, kind_names
-
-    pipeline = stage_dir.parent / "pipeline.yaml"
-    if not pipeline.is_file():
-        raise ConfigError(f"{stage_dir}: not a stage of a run directory (no {pipeline}); pass RUN_DIR/STAGE")
-    recipe = load_config(RecipeConfig, pipeline)
-    load_plugins(list(recipe.plugins), str(pipeline))  # a plugin's stage kinds and families
-    spec = next((s for s in recipe.stages if s.name == stage_dir.name), None)
-    if spec is None:
-        raise ConfigError(
-            f"{pipeline} has no stage '{stage_dir.name}'; stages are {', '.join(s.name for s in recipe.stages)}"
-        )
-    kind = get_kind(spec.kind)
-    if kind is None or not capable(kind.module):
-        served = [k for k in kind_names() if (other := get_kind(k)) is not None and capable(other.module)]
-        raise ConfigError(f"{command} {verb} {', '.join(served)} stages; '{spec.name}' is a {spec.kind} stage")
-    entry = Manifest.load(stage_dir.parent, writable=False).stages.get(spec.name)
-    if entry is None or entry.status != "done":
-        status = "never run" if entry is None else entry.status
-        raise ConfigError(
-            f"{stage_dir}: stage '{spec.name}' is {status}, not done, so its export is missing or stale; "
-            f"finish it with `occtrain run {pipeline} --run-dir {stage_dir.parent}` first"
-        )
-    return DoneStage(stage_dir, recipe, spec, kind, StageAttempt(entry.config_hash, entry.attempts, entry.started))
 
 
 def _check_outputs(stage_dir: Path, kind: str, saves: bool, metrics: Path, save_predictions: str | Path | None) -> None:

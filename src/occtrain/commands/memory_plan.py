@@ -340,7 +340,7 @@ def _refuse_shadowed(llm_cfg: Any, key: str, written: list[tuple[str, str]]) -> 
 
 def _override_keys(overrides: list[str], names: list[str], recipe_path: str) -> list[tuple[str, str]]:
     """Each override's key as written, and its ``stages.<name>.`` form (what messages name)."""
-    from occtrain.run.runner import stage_override
+    from occtrain.run.planning import stage_override
 
     keys = []
     for item in overrides:
@@ -387,7 +387,7 @@ def plan_recipe(
 ) -> list[StagePlan]:
     """A plan for every LLM stage of the recipe at its batch and precision (``gpu_gib``, the
     GPU a table will be checked against, is only validated here)."""
-    from occtrain.run.runner import load_recipe
+    from occtrain.run.planning import load_recipe
 
     check_flags(gpus, seq, gpu_gib)
     recipe, stages = load_recipe(recipe_path, overrides)

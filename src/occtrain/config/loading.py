@@ -8,7 +8,6 @@ compose the pieces under ``configs/``.
 from __future__ import annotations
 
 import dataclasses
-import difflib
 import types
 import typing
 from pathlib import Path
@@ -18,7 +17,7 @@ import yaml
 from omegaconf import DictConfig, ListConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
-from occtrain.errors import ConfigError
+from occtrain.errors import ConfigError, did_you_mean
 
 T = TypeVar("T")
 
@@ -48,11 +47,6 @@ def _is_mapping(tp: Any) -> bool:
     if typing.get_origin(tp) is dict or tp is dict:
         return True
     return any(typing.get_origin(a) is dict for a in typing.get_args(tp))
-
-
-def did_you_mean(key: str, valid: list[str]) -> str:
-    close = difflib.get_close_matches(key, valid, n=1, cutoff=0.6)
-    return f"; did you mean '{close[0]}'?" if close else f"; valid keys: {', '.join(sorted(valid))}"
 
 
 def read_yaml(path: Path) -> dict:

@@ -3,7 +3,6 @@ optional table of its results beside a paper's figures."""
 
 from __future__ import annotations
 
-import re
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -11,12 +10,7 @@ from omegaconf import MISSING
 
 from occtrain.config.groups import DataConfig, TrainerConfig
 from occtrain.errors import ConfigError
-
-#: What a run's or a stage's name may be. Each becomes one directory (``<runs_root>/<run>``,
-#: ``<run>/<stage>``) that the runner writes into and ``--restart`` deletes, so it is a
-#: single plain path component: no separator, no ``..``, not hidden, never absolute.
-NAME_PATTERN = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.+-]{0,127}")
-NAME_RULE = "letters, digits and _ . + - (first a letter, digit or _), at most 128 characters"
+from occtrain.formats.manifest import NAME_PATTERN, NAME_RULE
 
 
 def check_name(name: Any, key: str, source: str, what: str) -> str:
@@ -118,5 +112,5 @@ class RecipeConfig:
     runs_root: str = "runs"
     #: Importable modules that register extra stage kinds (``occtrain.stages.register``).
     plugins: list[str] = field(default_factory=list)
-    #: Our figures beside the paper's, one row per stage (see occtrain.commands.compare).
+    #: Our figures beside the paper's, one row per stage (see occtrain.report.compare).
     table: ComparisonTable | None = None

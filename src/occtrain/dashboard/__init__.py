@@ -21,7 +21,6 @@ manifest is an error.
 
 from __future__ import annotations
 
-import argparse
 import time
 from pathlib import Path
 
@@ -30,7 +29,7 @@ from occtrain.formats.io import atomic_write_text, check_output
 
 DASHBOARD_FILE = "dashboard.html"
 
-__all__ = ["DASHBOARD_FILE", "bev_comparison", "read_samples", "register", "write_dashboard", "write_samples"]
+__all__ = ["DASHBOARD_FILE", "bev_comparison", "read_samples", "write_dashboard", "write_samples"]
 
 
 def write_dashboard(run_dir: Path, out: Path | None = None) -> Path:
@@ -45,18 +44,3 @@ def write_dashboard(run_dir: Path, out: Path | None = None) -> Path:
     check_output(out, "--out")
     run.data = read_data(run.run_dir, run.pipeline_yaml)
     return atomic_write_text(out, render_page(run, generated=time.time()))
-
-
-def _cmd_dashboard(args: argparse.Namespace) -> int:
-    print(write_dashboard(Path(args.run_dir), Path(args.out) if args.out else None))
-    return 0
-
-
-def register(subparsers: argparse._SubParsersAction) -> None:
-    """Add ``occtrain dashboard RUN_DIR [--out FILE]`` to the CLI."""
-    p = subparsers.add_parser(
-        "dashboard", help="write RUN_DIR/dashboard.html: stages, curves, metrics vs papers, samples"
-    )
-    p.add_argument("run_dir", metavar="RUN_DIR", help="a run directory, e.g. runs/quickstart")
-    p.add_argument("--out", metavar="FILE", help="where to write the page (default: RUN_DIR/dashboard.html)")
-    p.set_defaults(func=_cmd_dashboard)

@@ -18,8 +18,8 @@ from occtrain.dashboard.samples import read_samples
 from occtrain.dashboard.svg import Series
 from occtrain.data.stats import DatasetStats
 from occtrain.errors import OcctrainError
+from occtrain.formats.manifest import MANIFEST_FILE, Manifest, StageEntry
 from occtrain.formats.metrics_file import Provenance, read_metrics
-from occtrain.run.manifest import MANIFEST_FILE, Manifest, StageEntry
 
 METRICS_CSV = Path("logs") / "csv" / "metrics.csv"
 MAX_POINTS = 600  # per series; longer curves are thinned evenly to keep the page light

@@ -19,8 +19,7 @@ from typing import Any
 import torch
 from safetensors.torch import load_file, save
 
-from occtrain.config.loading import did_you_mean
-from occtrain.errors import OcctrainError
+from occtrain.errors import OcctrainError, did_you_mean
 from occtrain.formats.io import parse_json, remove_inside, write_error
 
 EXPORT_WEIGHTS = "model.safetensors"

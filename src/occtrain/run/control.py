@@ -15,7 +15,7 @@ import os
 import signal
 import socket
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import AbstractContextManager, contextmanager
 from pathlib import Path
 from typing import IO
 
@@ -131,3 +131,23 @@ def stage_lock(run_dir: Path, stage: str, shared: bool, busy: str) -> Iterator[N
         yield
     finally:
         fh.close()
+
+
+def restart_lock(run_dir: Path, stage: str) -> AbstractContextManager[None]:
+    """The lock a ``--restart`` holds on a stage it replaces: none while the stage is being
+    scored (``occtrain eval`` and ``drive`` share it while they read and write it)."""
+    busy = (
+        f"{run_dir / stage} is being scored by `occtrain eval` or `occtrain drive` in another process; wait for it "
+        f"to finish (or stop it), then --restart {stage}"
+    )
+    return stage_lock(run_dir, stage, shared=False, busy=busy)
+
+
+def scoring_lock(stage_dir: Path, command: str) -> AbstractContextManager[None]:
+    """The lock ``command`` (``occtrain eval`` or ``drive``) holds on a stage while it
+    scores it: shared with other scorers, none while ``--restart`` replaces the stage."""
+    busy = (
+        f"{stage_dir}: the stage is being retrained (`occtrain run --restart`) in another process; run {command} "
+        "when that run has finished"
+    )
+    return stage_lock(stage_dir.parent, stage_dir.name, shared=True, busy=busy)

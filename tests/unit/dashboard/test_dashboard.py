@@ -17,12 +17,13 @@ import pytest
 from PIL import Image
 
 from conftest import REPO
+from occtrain.commands.dashboard import register
 from occtrain.core.published import REAL_DATA, all_figures, figures_for, metric_words
-from occtrain.dashboard import bev_comparison, read_samples, register, write_dashboard, write_samples
+from occtrain.dashboard import bev_comparison, read_samples, write_dashboard, write_samples
 from occtrain.dashboard.svg import Frame, nice_ticks, tick_labels
 from occtrain.errors import OcctrainError
+from occtrain.formats.manifest import Manifest
 from occtrain.formats.occ3d import CLASS_COLORS, FREE, GRID_SHAPE
-from occtrain.run.manifest import Manifest
 
 CHROMIUM = Path("/usr/bin/chromium")
 SEEDS = REPO.parent / "shared" / "seeds"

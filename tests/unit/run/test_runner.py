@@ -175,7 +175,7 @@ def test_a_kind_that_is_not_a_stage_is_refused_before_training(recipe, tmp_path)
 def plan_text(tmp_path, stages: str):
     from occtrain.config import load_config
     from occtrain.config.recipe import RecipeConfig
-    from occtrain.run.runner import plan_stages
+    from occtrain.run.planning import plan_stages
 
     (tmp_path / "r.yaml").write_text(f"name: r\nstages:\n{stages}")
     return plan_stages(load_config(RecipeConfig, tmp_path / "r.yaml"), "r.yaml")
@@ -346,7 +346,7 @@ def test_an_unreadable_last_checkpoint_falls_back_to_the_one_before(tmp_path, ca
 
 
 def test_stages_are_addressed_by_name_or_index(probe_kind, recipe):
-    from occtrain.run.runner import load_recipe
+    from occtrain.run.planning import load_recipe
 
     for key in ("stages.second.optim.lr=0.125", "stages.1.optim.lr=0.125", "stages[1].optim.lr=0.125"):
         cfg, _ = load_recipe(recipe, [key])
@@ -419,7 +419,7 @@ def test_a_restart_past_its_first_checkpoint_replaces_the_old_stages(probe_kind,
 
 
 def test_a_restart_killed_before_it_settled_is_put_back_by_the_next_run(probe_kind, recipe, capsys):
-    from occtrain.run.manifest import Manifest
+    from occtrain.formats.manifest import Manifest
 
     run_dir = run(recipe)
     tree, entries = _tree(run_dir / "second"), _stages(run_dir)
@@ -443,7 +443,7 @@ def test_a_failed_restart_leaves_pipeline_yaml_as_it_was_and_one_that_takes_rewr
 
 
 def test_a_restart_killed_before_it_settled_gets_its_pipeline_yaml_back_too(probe_kind, recipe):
-    from occtrain.run.manifest import Manifest
+    from occtrain.formats.manifest import Manifest
 
     run_dir = run(recipe)
     before = (run_dir / "pipeline.yaml").read_text()

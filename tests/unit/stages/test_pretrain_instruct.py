@@ -6,7 +6,7 @@ import pytest
 
 from conftest import REPO
 from occtrain.errors import ConfigError
-from occtrain.run.runner import load_recipe
+from occtrain.run.planning import load_recipe
 
 
 def test_packing_is_planned_for_a_family_whose_sequences_can_share_a_row():

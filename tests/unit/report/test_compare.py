@@ -7,11 +7,11 @@ import json
 import pytest
 
 from conftest import run_cli, write_hand_dataset
-from occtrain.commands.compare import build_table, print_table, to_markdown
 from occtrain.config.recipe import ComparisonTable, TableColumn, TableRow
 from occtrain.errors import ConfigError
-from occtrain.run.manifest import Manifest, StageEntry
-from occtrain.run.runner import load_recipe
+from occtrain.formats.manifest import Manifest, StageEntry
+from occtrain.report.compare import build_table, print_table, to_markdown
+from occtrain.run.planning import load_recipe
 
 STAGES = """
 stages:

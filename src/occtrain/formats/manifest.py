@@ -3,15 +3,21 @@
 from __future__ import annotations
 
 import os
+import re
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-from occtrain.config.recipe import NAME_PATTERN
 from occtrain.errors import OcctrainError
 from occtrain.formats.io import atomic_write_json, parse_json, remove_inside, write_error
 from occtrain.version import code_version
+
+#: What a run's or a stage's name may be. Each becomes one directory (``<runs_root>/<run>``,
+#: ``<run>/<stage>``) that the runner writes into and ``--restart`` deletes, so it is a
+#: single plain path component: no separator, no ``..``, not hidden, never absolute.
+NAME_PATTERN = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.+-]{0,127}")
+NAME_RULE = "letters, digits and _ . + - (first a letter, digit or _), at most 128 characters"
 
 MANIFEST_FILE = "manifest.json"
 #: The recipe the run's stages were trained with (resolved, with its overrides).

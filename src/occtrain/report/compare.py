@@ -18,7 +18,7 @@ from occtrain.config import load_config
 from occtrain.config.recipe import ComparisonTable, RecipeConfig
 from occtrain.errors import ConfigError
 from occtrain.formats.io import atomic_write_text
-from occtrain.run.manifest import Manifest
+from occtrain.formats.manifest import Manifest
 
 TABLE_FILE = "table.md"
 #: A cell with no figure: the stage did not log the metric, is not done, or the paper did not report it.
