@@ -223,7 +223,7 @@ MUTANTS = (
     Mutant(
         "stage-name-unchecked",
         "a stage's name is not checked to be one folder name",
-        "src/occtrain/run/runner.py",
+        "src/occtrain/run/planning.py",
         '    check_name(spec.name, f"stages[{i}].name", source, "a stage")\n',
         "",
         (
