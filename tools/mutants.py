@@ -143,7 +143,7 @@ MUTANTS = (
         "src/occtrain/data/reading.py",
         "    if shuffle_buffer <= 1:\n",
         "    if True:\n",
-        ("tests/unit/data/test_shards.py::test_train_pipeline_streams_forever_and_shuffles",),
+        ("tests/unit/data/shards/test_shards.py::test_train_pipeline_streams_forever_and_shuffles",),
     ),
     Mutant(
         "epochs-unshuffled",
@@ -151,7 +151,7 @@ MUTANTS = (
         "src/occtrain/data/reading.py",
         '        random.Random(f"samples:{seed}:{epoch}").shuffle(order)\n',
         "        pass\n",
-        ("tests/unit/data/test_shards.py::test_the_default_order_is_a_fresh_permutation_of_every_sample_each_epoch",),
+        ("tests/unit/data/shards/test_shards.py::test_the_default_order_is_a_fresh_permutation_of_every_sample_each_epoch",),
     ),
     Mutant(
         "workers-read-everything",
@@ -159,7 +159,7 @@ MUTANTS = (
         "src/occtrain/data/reading.py",
         "    return mine[worker::workers]\n",
         "    return mine\n",
-        ("tests/unit/data/test_shards.py::test_frames_round_trip_through_dataloader_with_two_workers",),
+        ("tests/unit/data/shards/test_shards.py::test_frames_round_trip_through_dataloader_with_two_workers",),
     ),
     Mutant(
         "ranks-compute-what-they-saw",
@@ -175,7 +175,7 @@ MUTANTS = (
         "src/occtrain/data/reading.py",
         "        if within // batch_size == rank and step % workers == worker:\n",
         "        if step % workers == worker:\n",
-        ("tests/unit/data/test_shards.py::test_two_ranks_of_b_train_on_the_batches_of_one_process_of_2b",),
+        ("tests/unit/data/shards/test_shards.py::test_two_ranks_of_b_train_on_the_batches_of_one_process_of_2b",),
     ),
     Mutant(
         "loader-restarts-its-epoch",
@@ -184,7 +184,7 @@ MUTANTS = (
         "        self.source.start, self._start = self._start, 0\n",
         "        self.source.start, self._start = 0, 0\n",
         (
-            "tests/unit/data/test_shards.py::test_an_epoch_resumed_mid_way_with_workers_sees_each_sample_once",
+            "tests/unit/data/shards/test_shards.py::test_an_epoch_resumed_mid_way_with_workers_sees_each_sample_once",
             "tests/e2e/test_distributed.py::test_a_ddp_epoch_killed_mid_way_resumes_without_repeating_or_skipping_a_sample",
         ),
     ),

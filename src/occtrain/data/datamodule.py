@@ -14,10 +14,9 @@ from torch.utils.data import DataLoader
 from occtrain.config.groups import DataConfig, check_synth_config
 from occtrain.data.cameras import CAMERA_NAMES
 from occtrain.data.layout import ANNOTATIONS_FILE, DATASET_FILE, DEPTH_SCALE, DatasetIndex, generator_record
-from occtrain.data.reading import ShardSamples
+from occtrain.data.reading import PAD_KEY, ShardSamples
 from occtrain.data.shards import (
     KINDS,
-    PAD_KEY,
     clip_shortfall,
     current_shards,
     make_pipeline,

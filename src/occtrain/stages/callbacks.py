@@ -14,7 +14,7 @@ import torch
 from lightning.pytorch.callbacks import Callback
 
 from occtrain.data.datamodule import ResumableLoader
-from occtrain.data.shards import PAD_KEY
+from occtrain.data.reading import PAD_KEY
 from occtrain.models.compiling import compile_all, use_cache_dir
 from occtrain.progress import console
 from occtrain.stages.stage import StepWork

@@ -21,7 +21,8 @@ from torch import nn
 
 from occtrain.config.groups import DataConfig, TrainerConfig
 from occtrain.config.recipe import StageSpec
-from occtrain.data.shards import PAD_KEY, world_key
+from occtrain.data.reading import PAD_KEY
+from occtrain.data.shards import world_key
 from occtrain.errors import ConfigError
 from occtrain.formats.exports import check_loaded_keys
 from occtrain.models import count_parameters

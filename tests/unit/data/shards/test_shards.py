@@ -203,7 +203,7 @@ def test_validation_is_split_evenly_over_ranks(shards):
 
 
 def test_an_odd_validation_split_pads_the_shorter_rank_once(tmp_path):
-    import occtrain.data.shards as sh
+    import occtrain.data.reading as sh
     from conftest import write_hand_dataset
 
     out = tmp_path / "s"
@@ -348,7 +348,7 @@ def test_shards_indexed_by_an_earlier_fingerprint_stay_current_where_they_were_m
 
 
 def test_rebuild_replaces_the_shards_and_a_failure_leaves_the_old_ones(hand_dataset, shards, tmp_path, monkeypatch):
-    import occtrain.data.shards as shard_module
+    import occtrain.data.shards.writer as shard_module
 
     out = _copy_of(shards, tmp_path)
     before = {p.name: p.read_bytes() for p in out.rglob("*") if p.is_file()}
@@ -382,7 +382,7 @@ def test_a_killed_rebuilds_folder_is_named_by_check_and_removed_by_the_next_writ
     """kill -9 leaves a rebuild's staging folder beside --out (its cleanup never runs): `data
     check` names it while its process is gone, and the next write removes it. The folder of
     a rebuild whose process lives (here: this one) is neither named nor touched."""
-    import occtrain.data.shards as shard_module
+    import occtrain.data.shards.writer as shard_module
 
     out = _copy_of(shards, tmp_path)
 
