@@ -113,7 +113,7 @@ MUTANTS = (
     Mutant(
         "check-stops-at-first-problem",
         "data check reports only a file's first problem",
-        "src/occtrain/data/check.py",
+        "src/occtrain/commands/data_check.py",
         "    found = schema_problems(data, schema, limit=MAX_PER_FILE + 1)",
         "    found = schema_problems(data, schema, limit=1)",
         (
@@ -151,7 +151,9 @@ MUTANTS = (
         "src/occtrain/data/reading.py",
         '        random.Random(f"samples:{seed}:{epoch}").shuffle(order)\n',
         "        pass\n",
-        ("tests/unit/data/shards/test_shards.py::test_the_default_order_is_a_fresh_permutation_of_every_sample_each_epoch",),
+        (
+            "tests/unit/data/shards/test_shards.py::test_the_default_order_is_a_fresh_permutation_of_every_sample_each_epoch",
+        ),
     ),
     Mutant(
         "workers-read-everything",

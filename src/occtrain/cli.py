@@ -143,7 +143,7 @@ def _cmd_data_shards(args: argparse.Namespace) -> int:
 
 
 def _cmd_data_show(args: argparse.Namespace) -> int:
-    from occtrain.data.show import show
+    from occtrain.commands.data_show import show
 
     out = show(
         args.path,
@@ -200,7 +200,7 @@ def _cmd_data_stats(args: argparse.Namespace) -> int:
 
 
 def _cmd_data_check(args: argparse.Namespace) -> int:
-    from occtrain.data.check import check_dataset, check_shards, looks_like_shards
+    from occtrain.commands.data_check import check_dataset, check_shards, looks_like_shards
 
     problems = check_shards(args.path) if looks_like_shards(args.path) else check_dataset(args.path)
     for p in problems:

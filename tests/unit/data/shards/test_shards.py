@@ -12,8 +12,8 @@ import pytest
 import torch
 
 from conftest import hand_labels
+from occtrain.commands.data_check import check_shards
 from occtrain.config import DataConfig
-from occtrain.data.check import check_shards
 from occtrain.data.datamodule import COLLATE, ResumableLoader, ShardDataModule
 from occtrain.data.layout import DatasetIndex
 from occtrain.data.shards import decode_sample, make_pipeline, read_index, shard_urls, write_shards
