@@ -27,7 +27,7 @@ from scipy.stats import kendalltau
 from occtrain.commands.drive import BASELINES, drive_dir
 from occtrain.data.synthesize import FORMAT_VERSION
 from occtrain.formats.io import atomic_write_text
-from occtrain.metrics.driving import TABLE_COLUMNS
+from occtrain.metrics.closed_loop_scores import TABLE_COLUMNS
 
 COLUMNS = TABLE_COLUMNS
 

@@ -15,7 +15,7 @@ module may import its own layer or lower ones, never a higher one; on top of tha
   no family: they import none, and no string in them is a family's name (they look
   families up in the registry);
 - ``metrics/`` never imports ``data/`` (metrics score anyone's predictions);
-- only the generator's entry points (``data/synthesize.py``, ``data/driving.py`` for closed-loop
+- only the generator's entry points (``data/synthesize.py``, ``data/closed_loop_recording.py`` for closed-loop
   driving) import ``data/synth``;
 - no module imports the package root (``occtrain/__init__.py`` sits on top: it imports, nothing imports it).
 """
@@ -72,7 +72,7 @@ STAGE_INFRA = {
 }
 LIGHTNING_FREE = ("models", "core", "families", "engine")
 #: The modules outside ``data/synth`` that may import the generator.
-GENERATOR_ENTRIES = ("occtrain.data.synthesize", "occtrain.data.driving")
+GENERATOR_ENTRIES = ("occtrain.data.synthesize", "occtrain.data.closed_loop_recording")
 #: What may not name a family: it looks families up in the registry.
 FAMILY_NEUTRAL = ("core", "engine", "stages", "run", "commands", "api", "dashboard", "report")
 #: The families occtrain ships, as the registry finds them.
@@ -139,8 +139,8 @@ def check_module(me: str, where: str, source: str, is_package: bool = False) -> 
         if target.startswith("occtrain.data.synth") and not target.startswith("occtrain.data.synthesize"):
             if not (me.startswith("occtrain.data.synth.") or me in ("occtrain.data.synth", *GENERATOR_ENTRIES)):
                 found.append(
-                    f"{where}:{line} imports {target}: only data/synthesize.py and data/driving.py may import the "
-                    "generator"
+                    f"{where}:{line} imports {target}: only data/synthesize.py and data/closed_loop_recording.py "
+                    "may import the generator"
                 )
     if mine in FAMILY_NEUTRAL:
         for node in ast.walk(ast.parse(source)):

@@ -11,7 +11,7 @@ through a kinematic bicycle in between; the traffic reacts to it.
 
 Results go to ``<stage>/drive/seed<S>-<T>s/``: one JSON per episode, written as it ends (a
 killed ``drive`` resumes at the first episode without one), then ``summary.json`` with the
-mean scores of each driver (``metrics.driving``: CARLA's driving score, NAVSIM's PDM score
+mean scores of each driver (``metrics.closed_loop_scores``: CARLA's driving score, NAVSIM's PDM score
 and their terms) and who drove its planning frames: the stage with a plan of its own, its
 constant-velocity fallback, or the expert (the history its prompts read). An episode too
 short for the stage to plan once is refused. ``--save-videos DIR`` also writes a bird's-eye
@@ -156,7 +156,7 @@ def _provenance(done: DoneStage, routes: int, seed: int, seconds: float) -> Prov
 
 def _check_arguments(routes: int, seed: int, seconds: float, workers: int) -> int:
     """Refuse arguments no drive can take, in one line each; the workers this machine can run."""
-    from occtrain.data.driving import MAX_SECONDS
+    from occtrain.data.closed_loop_recording import MAX_SECONDS
 
     if not 1 <= routes <= MAX_ROUTES:
         raise ConfigError(
@@ -239,7 +239,7 @@ def _refresh_dashboard(run_dir: Path) -> None:
 
 def summarize(out: Path, jobs: list[DriveJob], drivers: list[str]) -> dict[str, dict[str, float]]:
     """Each driver's mean scores over its episodes' result files."""
-    from occtrain.metrics.driving import DrivingScores, aggregate
+    from occtrain.metrics.closed_loop_scores import DrivingScores, aggregate
 
     per: dict[str, list[DrivingScores]] = {d: [] for d in drivers}
     who: dict[str, dict[str, int] | None] = {d: dict.fromkeys(PLAN_COUNTS, 0) for d in drivers}
@@ -345,7 +345,7 @@ def _stage_driver(context: _EpisodeContext) -> Any:
 def _stage_reader(context: _EpisodeContext, world: Any, frames: str, episode: str) -> tuple[Any, Any]:
     """The stage's driver and a recorder of ``world``'s planning frames under ``frames``
     (with the cameras when its encoders read them), tokened apart as ``episode``'s."""
-    from occtrain.data.driving import EpisodeRecorder
+    from occtrain.data.closed_loop_recording import EpisodeRecorder
 
     driver = _stage_driver(context)
     reads_cameras = driver.engine.vision is not None or driver.engine.scenes_from_cameras()
@@ -363,7 +363,7 @@ def _run_episode(context: _EpisodeContext, job: DriveJob) -> None:
 
 
 def _drive_episode(context: _EpisodeContext, job: DriveJob) -> None:
-    from occtrain.data.driving import (
+    from occtrain.data.closed_loop_recording import (
         STRIDE,
         DrivingWorld,
         constant_acceleration,
@@ -373,7 +373,7 @@ def _drive_episode(context: _EpisodeContext, job: DriveJob) -> None:
         stand_still,
     )
     from occtrain.engine.closed_loop import PlanCounts, model_planner
-    from occtrain.metrics.driving import score_episode
+    from occtrain.metrics.closed_loop_scores import score_episode
 
     start = time.perf_counter()
     key = (job.route_seed, job.seconds)
@@ -438,7 +438,13 @@ def _write_open_loop(context: _EpisodeContext, job: DriveJob, world: Any, start:
     ST-P3's convention, collisions against the agents where they then were)."""
     import torch
 
-    from occtrain.data.driving import Planner, constant_acceleration, constant_velocity, shadow_episode, stand_still
+    from occtrain.data.closed_loop_recording import (
+        Planner,
+        constant_acceleration,
+        constant_velocity,
+        shadow_episode,
+        stand_still,
+    )
     from occtrain.engine.closed_loop import OpenLoopPlanner
     from occtrain.metrics.planning import PlanningMetric
 
@@ -486,7 +492,7 @@ def print_summary(summary: dict[str, dict[str, float]], title: str) -> None:
     """The drivers' mean scores as a table."""
     from rich.table import Table
 
-    from occtrain.metrics.driving import TABLE_COLUMNS as columns
+    from occtrain.metrics.closed_loop_scores import TABLE_COLUMNS as columns
 
     table = Table(title=title)
     table.add_column("driver")

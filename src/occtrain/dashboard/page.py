@@ -11,8 +11,8 @@ from occtrain.core.published import REAL_DATA, figures_for, metric_words
 from occtrain.dashboard.run_view import DriveView, RunView, StageView
 from occtrain.dashboard.svg import line_chart
 from occtrain.formats.metrics_file import Provenance
+from occtrain.metrics.closed_loop_scores import TABLE_COLUMNS
 from occtrain.metrics.conventions import OCC3D, OCCWORLD, STP3, UNIAD
-from occtrain.metrics.driving import TABLE_COLUMNS
 from occtrain.report.compare import TABLE_FILE
 
 STATUS_COLOURS = {"done": "#2e7d32", "running": "#1565c0", "failed": "#c62828", "pending": "#757575"}

@@ -20,7 +20,7 @@ import numpy as np
 
 from occtrain.core.protocols import Plans
 from occtrain.data.clips import Clip
-from occtrain.data.driving import EPISODE_SCENE, DrivingWorld, EpisodeRecorder
+from occtrain.data.closed_loop_recording import EPISODE_SCENE, DrivingWorld, EpisodeRecorder
 from occtrain.engine.world_engine import WorldModelEngine
 from occtrain.errors import ConfigError, OcctrainError
 

@@ -10,8 +10,8 @@ import pytest
 
 from occtrain.core.protocols import Plans
 from occtrain.data.clips import Clip
-from occtrain.data.driving import EpisodeRecorder, shadow_episode
-from occtrain.data.synth.driving import DrivingWorld, drive_episode
+from occtrain.data.closed_loop_recording import EpisodeRecorder, shadow_episode
+from occtrain.data.synth.closed_loop_world import DrivingWorld, drive_episode
 from occtrain.engine import closed_loop
 from occtrain.engine.closed_loop import NonFinitePlan, OpenLoopPlanner, StageDriver, model_planner
 

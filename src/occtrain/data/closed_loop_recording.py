@@ -3,7 +3,7 @@ frame written as a stage reads a dataset.
 
 The closed loop's entry to the generator (``data/synth``), as ``data/synthesize.py`` is the
 data synthesis's. An :class:`EpisodeRecorder` writes every planning frame of a
-:class:`~occtrain.data.synth.driving.DrivingWorld` into an Occ3D-layout directory with the
+:class:`~occtrain.data.synth.closed_loop_world.DrivingWorld` into an Occ3D-layout directory with the
 generator's own writers (labels, the six cameras) and keeps the frame annotations in
 memory, so a stage reads a closed-loop frame through exactly the code that
 reads its training frames (``DatasetIndex``, the frozen encoders' ``add_samples``), and
@@ -21,7 +21,8 @@ from occtrain.data.cameras import Camera, nuscenes_rig
 from occtrain.data.clips import Clip
 from occtrain.data.layout import DatasetIndex, SceneFiles, scene_infos
 from occtrain.data.schema import FrameAnnotation
-from occtrain.data.synth.driving import (
+from occtrain.data.synth.closed_loop_view import ViewFrame, save_gif
+from occtrain.data.synth.closed_loop_world import (
     MAX_SECONDS,
     STRIDE,
     DrivingWorld,
@@ -33,7 +34,6 @@ from occtrain.data.synth.driving import (
     shadow_episode,
     stand_still,
 )
-from occtrain.data.synth.driving_view import ViewFrame, save_gif
 from occtrain.formats.occ3d import FRAME_DT, FUTURE_STEPS
 
 #: The scene name of an episode's frames in its directory.

@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 
 from occtrain.data.synth.citymap import SIDEWALK
-from occtrain.data.synth.driving import STRIDE, DrivingWorld, drive_episode, stand_still
+from occtrain.data.synth.closed_loop_world import STRIDE, DrivingWorld, drive_episode, stand_still
 from occtrain.data.synth.roads import PATH_DS, green_left
 from occtrain.data.synth.vehicle import EgoState
 from occtrain.formats.occ3d import EGO_LENGTH, FREE
-from occtrain.metrics.driving import TTC_BOUND, Infraction, score_episode
+from occtrain.metrics.closed_loop_scores import TTC_BOUND, Infraction, score_episode
 
 SEED = 101  # the ego starts from rest; the light at its first stop line is red for the first 5.5 s
 
@@ -100,7 +100,7 @@ def test_crossing_the_stop_line_on_red_is_running_a_red_light(world):
 def test_the_episode_animation_shows_the_ego_and_rings_it_where_it_went_wrong(world, tmp_path):
     from PIL import Image
 
-    from occtrain.data.synth.driving_view import ALERT_COLOUR, EGO_AT, EGO_COLOUR, PIXELS, save_gif
+    from occtrain.data.synth.closed_loop_view import ALERT_COLOUR, EGO_AT, EGO_COLOUR, PIXELS, save_gif
 
     views: list = []
     drive_episode(world, stand_still, views)
@@ -120,7 +120,7 @@ def test_the_episode_animation_shows_the_ego_and_rings_it_where_it_went_wrong(wo
 
 
 def test_recorded_frames_read_back_as_a_dataset_and_a_clip(world, tmp_path):
-    from occtrain.data.driving import EPISODE_SCENE, EpisodeRecorder
+    from occtrain.data.closed_loop_recording import EPISODE_SCENE, EpisodeRecorder
 
     recorder = EpisodeRecorder(tmp_path, world, camera_size=(18, 32))
     for _ in range(3):
@@ -143,7 +143,7 @@ def test_recorded_frames_read_back_as_a_dataset_and_a_clip(world, tmp_path):
 
 
 def test_shadow_episodes_meet_each_plan_with_what_the_expert_did_next(world):
-    from occtrain.data.synth.driving import shadow_episode
+    from occtrain.data.synth.closed_loop_world import shadow_episode
 
     planners = {"expert": lambda w: w.expert_plan(), "still": stand_still, "late": lambda w: None}
     frames = shadow_episode(world, planners)

@@ -5,7 +5,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from occtrain.metrics.driving import MAX_ABS_LON_JERK, MIN_LON_ACCEL, EpisodeTrace, Infraction, aggregate, score_episode
+from occtrain.metrics.closed_loop_scores import (
+    MAX_ABS_LON_JERK,
+    MIN_LON_ACCEL,
+    EpisodeTrace,
+    Infraction,
+    aggregate,
+    score_episode,
+)
 
 DT = 0.1
 

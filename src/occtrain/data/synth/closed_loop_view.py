@@ -18,7 +18,7 @@ from PIL import Image, ImageDraw
 from occtrain.data.geometry import ego_to_global, global_to_ego
 from occtrain.data.synth.camera_render import CAMERA_COLOURS, LIGHT_COLOURS
 from occtrain.formats.occ3d import EGO_LENGTH, EGO_WIDTH, FREE
-from occtrain.metrics.driving import Infraction
+from occtrain.metrics.closed_loop_scores import Infraction
 
 #: Pixels across the picture and metres they span; the ego sits a quarter up from the bottom.
 PIXELS = 320

@@ -10,7 +10,7 @@ the driven ego: vehicles behind it follow it and stop for it. Pedestrians keep t
 
 At every step the world checks what the ego did (collisions, leaving the drivable area,
 driving against the lane direction, red lights on its route, time to collision) and keeps
-the trace :func:`occtrain.metrics.driving.score_episode` scores.
+the trace :func:`occtrain.metrics.closed_loop_scores.score_episode` scores.
 
 Occ3D labels a static surface only where some sweep of the scene saw it; here the sweeps are
 the expert's, taken along the route (``observe_static``), as every training frame's were.
@@ -29,7 +29,7 @@ from occtrain.data.schema import Command, FrameAnnotation
 from occtrain.data.synth.annotate import EgoMotion, frame_annotation, past_accels
 from occtrain.data.synth.catalog import KINDS, PEDESTRIAN, TrackSet
 from occtrain.data.synth.citymap import DRIVEABLE, paint_city
-from occtrain.data.synth.driving_view import ViewFrame
+from occtrain.data.synth.closed_loop_view import ViewFrame
 from occtrain.data.synth.grid import EGO_HEIGHT, layer_span
 from occtrain.data.synth.raster import frame_semantics, masks, observe_static
 from occtrain.data.synth.roads import HEADINGS, PATH_DS, RoadNetwork, green_left, right_of
@@ -39,7 +39,7 @@ from occtrain.data.synth.traffic import AMBER, SIM_DT, MoverTraffic, footprint_d
 from occtrain.data.synth.vehicle import WHEELBASE, EgoState, PlanTracker, bicycle_step
 from occtrain.formats.occ3d import EGO_LENGTH, EGO_WIDTH, FRAME_DT, FREE, FUTURE_STEPS
 from occtrain.kinematics import constant_acceleration_path, past_acceleration
-from occtrain.metrics.driving import STOPPED_SPEED, EpisodeTrace, Infraction, InfractionKind
+from occtrain.metrics.closed_loop_scores import STOPPED_SPEED, EpisodeTrace, Infraction, InfractionKind
 
 #: The longest episode (s), and the road network's half extent (m) that keeps every route
 #: of the ego and the traffic on the grid for that long (the generator's 800 m is sized for
@@ -410,7 +410,7 @@ class DrivingWorld:
         return float("inf")
 
     def trace(self) -> EpisodeTrace:
-        """The episode so far, for ``metrics.driving.score_episode``."""
+        """The episode so far, for ``metrics.closed_loop_scores.score_episode``."""
         states = self.log.states
         speed = np.array([s.speed for s in states])
         yaw_rate = np.array([s.yaw_rate for s in states])
