@@ -1,7 +1,7 @@
 """The papers' published figures (real nuScenes / Occ3D-nuScenes), keyed by occtrain's metric names.
 
 Each family lists its paper's numbers (``FamilySpec.paper_figures``, in its ``paper.py``),
-each read off a table of a seed paper (../shared/seeds/); ``where`` names the table and row.
+each read off a table of one of the four papers (linked from the README); ``where`` names the table and row.
 They are what the methods reach on real data with full-size models: the dashboard shows
 them beside a run's metrics for orientation, never as a target for the synthetic world.
 

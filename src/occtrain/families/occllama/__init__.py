@@ -1,4 +1,4 @@
-"""OccLLaMA (seeds/000): scene tokenizer, joint-vocabulary world model with spatial-temporal
+"""OccLLaMA (arXiv:2409.03272): scene tokenizer, joint-vocabulary world model with spatial-temporal
 attention and next-scene prediction, and its pretraining and instruction tasks."""
 
 from __future__ import annotations

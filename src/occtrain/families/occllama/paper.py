@@ -1,4 +1,4 @@
-"""OccLLaMA's published figures (seeds/000), for the dashboard (see ``core.published``)."""
+"""OccLLaMA's published figures (arXiv:2409.03272), for the dashboard (see ``core.published``)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Occ-LLM (seeds/003): the Motion-Separation VAE scene tokenizer, a world model over patch
+"""Occ-LLM (arXiv:2502.06419): the Motion-Separation VAE scene tokenizer, a world model over patch
 tokens of its latents with frame separation and pre-fusion of the ego action, and its
 tasks (4-D occupancy forecasting with self-ego planning, question answering).
 

@@ -1,4 +1,4 @@
-"""Config of Occ-LLM's Motion-Separation VAE (seeds/003, Sec. III-A, Table III)."""
+"""Config of Occ-LLM's Motion-Separation VAE (arXiv:2502.06419, Sec. III-A, Table III)."""
 
 from __future__ import annotations
 

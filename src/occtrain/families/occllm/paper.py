@@ -1,4 +1,4 @@
-"""Occ-LLM's published figures (seeds/003), for the dashboard (see ``core.published``)."""
+"""Occ-LLM's published figures (arXiv:2502.06419), for the dashboard (see ``core.published``)."""
 
 from __future__ import annotations
 

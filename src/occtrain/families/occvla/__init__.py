@@ -1,4 +1,4 @@
-"""OccVLA (seeds/002): a vision-language-action model whose occupancy queries share the
+"""OccVLA (arXiv:2509.05578): a vision-language-action model whose occupancy queries share the
 LLM's weights, read the camera tokens and are supervised through a frozen OccWorld VQ-VAE
 decoder; meta actions with a chain of thought; a planning head on the predicted meta action.
 

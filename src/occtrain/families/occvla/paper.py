@@ -1,4 +1,4 @@
-"""OccVLA's published figures (seeds/002), for the dashboard (see ``core.published``): its own,
+"""OccVLA's published figures (arXiv:2509.05578), for the dashboard (see ``core.published``): its own,
 and OccLLaMA's NuScenes-QA row as OccVLA's Table 3 lists it."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""SparseOccVLA (seeds/004): sparse occupancy queries bridging occupancy and a VLM.
+"""SparseOccVLA (arXiv:2601.06474): sparse occupancy queries bridging occupancy and a VLM.
 
 Its stages are the shared kinds: ``vision`` (the frozen teacher its encoder distils from),
 ``tokenizer`` with ``model.arch: sparseocc`` (stage 1: the sparse occupancy encoder and

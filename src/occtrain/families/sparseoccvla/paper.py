@@ -1,4 +1,4 @@
-"""SparseOccVLA's published figures (seeds/004), for the dashboard (see ``core.published``)."""
+"""SparseOccVLA's published figures (arXiv:2601.06474), for the dashboard (see ``core.published``)."""
 
 from __future__ import annotations
 
