@@ -3,6 +3,7 @@ seeds, the heartbeat, the attempt record, step timing and throughput, and peak m
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import time
 from collections.abc import Callable
@@ -12,6 +13,7 @@ from typing import Any
 import lightning as L
 import torch
 from lightning.pytorch.callbacks import Callback
+from torch.utils.flop_counter import FlopCounterMode
 
 from occtrain.data.datamodule import ResumableLoader
 from occtrain.data.reading import PAD_KEY
@@ -152,6 +154,11 @@ class StepMeter(Callback):
     ``train/samples_per_s`` and ``train/mfu``, with ``train/padding_share``: of the token
     positions the LLM computed over, the share that were padding (``core.packing``).
 
+    A stage kind that ``count_flops`` has its first step of each attempt (a warm-up step,
+    never in the summary) run under torch's ``FlopCounterMode``: that step's forward,
+    backward and optimizer FLOPs over its samples give every later step's FLOPs. Not under
+    ``trainer.compile``: the counter sees the eager operators, not a compiled graph's.
+
     Not Lightning's ``ThroughputMonitor``: it times from batch end to batch end, checkpoint
     writes included, over a sliding window, where these are a stage's whole training; its
     peak-FLOPs table (``get_available_flops``) gives a CUDA device's peak."""
@@ -163,11 +170,17 @@ class StepMeter(Callback):
         self.peak_flops: float | None = None
         self._last: float | None = None
         self._began: float | None = None
+        self._counter: FlopCounterMode | None = None
+        self._flops_per_sample: float | None = None
 
     def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         self.peak_flops = device_peak_flops(pl_module.device, str(trainer.precision))
 
     def on_train_batch_start(self, trainer: L.Trainer, pl_module: L.LightningModule, *args: Any) -> None:
+        if pl_module.count_flops and self._flops_per_sample is None and self._counter is None and not self.steps:
+            if not any(isinstance(cb, CompileBlocks) for cb in trainer.callbacks):
+                self._counter = FlopCounterMode(display=False)
+                self._counter.__enter__()
         now = time.perf_counter()
         if self._last is not None:
             self.times.append(now - self._last)
@@ -183,6 +196,10 @@ class StepMeter(Callback):
         seconds = time.perf_counter() - self._began
         work = getattr(pl_module, "step_work", None)
         work = work if isinstance(work, StepWork) else StepWork(samples=_batch_samples(batch))
+        if self._counter is not None:  # the counted step: slowed by counting, so given no FLOPs
+            self._stop_counting(work.samples)
+        elif work.flops is None and self._flops_per_sample is not None:
+            work = dataclasses.replace(work, flops=self._flops_per_sample * work.samples)
         self.steps.append((seconds, work))
         for name, value in self._rates([(seconds, work)]).items():
             if name in LOGGED_RATES:
@@ -197,6 +214,15 @@ class StepMeter(Callback):
 
     def on_train_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         self._last = None
+        if self._counter is not None:  # a step that never ended (an exception, a stop)
+            self._stop_counting(0)
+
+    def _stop_counting(self, samples: int) -> None:
+        assert self._counter is not None
+        self._counter.__exit__(None, None, None)
+        if samples > 0:
+            self._flops_per_sample = self._counter.get_total_flops() / samples
+        self._counter = None
 
     def _kept(self, measured: list) -> list:
         return measured[self.warmup :] if len(measured) > self.warmup else measured

@@ -46,6 +46,7 @@ class PlannerStageConfig:
 class PlannerStage(Stage):
     """Trains the family's planner; validates it against the baselines with both L2 conventions."""
 
+    count_flops = True
     consumes_kinds = ("pretrain", "instruct", "distill")
     consumes_count = (1, 1)
     frozen_prefixes = ("planner.teacher.",)  # the world model is read-only here: checkpoints hold the planner

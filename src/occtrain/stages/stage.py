@@ -180,6 +180,11 @@ class Stage(L.LightningModule, ABC):
     #: Whether it trains under ``trainer.strategy: fsdp`` (it shards itself in
     #: ``configure_model``); a kind that does not is refused that strategy before training.
     shards: ClassVar[bool] = False
+    #: Whether the step meter counts its training steps' model FLOPs with torch's
+    #: ``FlopCounterMode`` (one step, counted, then per sample): for kinds whose FLOPs no
+    #: formula gives (convolutions, point sets, planner heads). A kind that sets ``step_work``
+    #: FLOPs from a formula (the language models' 6N + 12LSd) leaves it off.
+    count_flops: ClassVar[bool] = False
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)

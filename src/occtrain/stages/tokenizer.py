@@ -68,6 +68,7 @@ def reconstruction_metrics(model: Any, root: str | Path, cache_dir: Path | None)
 class TokenizerStage(Stage):
     """Trains a scene tokenizer with its own losses; validates reconstruction IoU."""
 
+    count_flops = True
     evaluable = True
     #: A vision stage: the distillation teacher of an architecture that takes one.
     consumes_kinds = ("vision",)

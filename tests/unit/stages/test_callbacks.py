@@ -16,6 +16,8 @@ from occtrain.stages.stage import StepWork
 
 
 class _Module:
+    count_flops = False
+
     def __init__(self):
         self.device = torch.device("cpu")
         self.step_work: StepWork | None = None
@@ -78,6 +80,35 @@ def test_the_padding_share_is_of_every_position_the_kept_steps_computed(monkeypa
     _run(meter, module, clock, steps, monkeypatch)
     assert meter.summary()["train_padding_share"] == pytest.approx(1 - 50 / 80)
     assert ("train/padding_share", pytest.approx(0.5)) in module.logged  # the last step's own
+
+
+def test_a_kind_that_counts_flops_gets_every_steps_from_its_first_counted_one(monkeypatch):
+    """A kind with ``count_flops`` (the tokenizer, the planner) has its first step counted by
+    torch's FlopCounterMode: x (2 x 8) @ w (8 x 4) forward is 2 * 2 * 8 * 4 = 128 FLOPs, w's
+    gradient 128 more, 256 for 2 samples. The counted step gets none (counting slowed it);
+    the next ones 256 each: 512 FLOPs over their 2 s at a 1,000 FLOP/s peak is an MFU of 0.256.
+    Under trainer.compile nothing is counted and no MFU is claimed."""
+    clock = [0.0]
+    monkeypatch.setattr(callbacks.time, "perf_counter", lambda: clock[0])
+    for compiled in (False, True):
+        meter, module = StepMeter(warmup=1), _Module()
+        module.count_flops = True
+        meter.peak_flops = 1000.0
+        trainer = SimpleNamespace(precision="32-true", callbacks=[callbacks.CompileBlocks()] if compiled else [])
+        w = torch.randn(8, 4, requires_grad=True)
+        for _ in range(3):
+            meter.on_train_batch_start(trainer, module, None, 0)
+            (torch.randn(2, 8) @ w).sum().backward()
+            clock[0] += 1.0
+            module.step_work = StepWork(samples=2)
+            meter.on_train_batch_end(trainer, module, None, None, 0)
+        summary = meter.summary()
+        if compiled:
+            assert "train_mfu" not in summary and "train_model_flops_per_s" not in summary
+        else:
+            assert [work.flops for _, work in meter.steps] == [None, 256.0, 256.0]
+            assert summary["train_model_flops_per_s"] == pytest.approx(256.0)
+            assert summary["train_mfu"] == pytest.approx(0.256)
 
 
 def test_compile_blocks_compiles_what_the_stage_names_and_says_so_once(capsys):
