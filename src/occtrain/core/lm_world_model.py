@@ -36,6 +36,7 @@ from occtrain.core.decoding import (
 from occtrain.core.ego_steps import SceneContext
 from occtrain.core.protocols import SceneMover
 from occtrain.core.sequence import IGNORE, PayloadSpec, Step, TokenSequence
+from occtrain.core.shared_tasks import TaskConfig as BaseTaskConfig
 from occtrain.core.vocab import JointVocab
 from occtrain.models import without_peft
 from occtrain.models.attention import additive
@@ -261,6 +262,12 @@ class LMWorldModel(nn.Module):
     def generate_scene(self, prefix: torch.Tensor | TokenSequence) -> torch.Tensor:
         """One greedy scene after ``prefix``: its codes, flat."""
         return self.generate(prefix, [SceneAnswer()])[0]
+
+    def unused_parameters(self, tasks: BaseTaskConfig) -> list[nn.Parameter]:
+        """Parameters no loss reaches under these task settings: a stage freezes them, so that
+        DDP waits for no gradient that never comes. None here; a family whose branch a task
+        weight turns off names that branch's."""
+        return []
 
     # -- export
     def base_llm(self) -> nn.Module:

@@ -34,6 +34,7 @@ from occtrain.core.shared_tasks import TaskConfig, TaskSpec
 from occtrain.errors import ConfigError, OcctrainError, cause_line
 from occtrain.formats.exports import check_section, load_state_strict, read_export, require_config, write_export
 from occtrain.models import count_parameters
+from occtrain.models.tokenizers.base import SceneTokenizer, TokenizerModel
 
 if TYPE_CHECKING:  # imported where it is checked: the world model imports the registry's neighbours
     from occtrain.core.lm_world_model import LMWorldModel
@@ -394,11 +395,11 @@ def build_tokenizer(arch: str, cfg: Any) -> Any:
     return _arch(arch).model(tokenizer_config(arch, cfg))
 
 
-def save_tokenizer(model: Any, arch: str, cfg: dict, export_dir: Path) -> Path:
+def save_tokenizer(model: TokenizerModel, arch: str, cfg: dict, export_dir: Path) -> Path:
     """Write a tokenizer export: weights, ``arch`` and its config, and what a world model's
     joint vocabulary is laid out from: the codebooks (sizes, latent grid) of a discrete
     tokenizer, the token count and width of a continuous one."""
-    if getattr(model, "discrete", True):
+    if isinstance(model, SceneTokenizer):
         layout = {
             "num_codes": int(model.num_codes),
             "codebook_sizes": model.codebook_sizes,
@@ -415,7 +416,7 @@ def save_tokenizer(model: Any, arch: str, cfg: dict, export_dir: Path) -> Path:
         "label_convention": "occ3d",
     }
     # A training-only branch (a distillation head) is left out where the model says so.
-    return write_export(export_dir, getattr(model, "export_state_dict", model.state_dict)(), config)
+    return write_export(export_dir, model.export_state_dict(), config)
 
 
 def load_tokenizer(export_dir: Path) -> Any:

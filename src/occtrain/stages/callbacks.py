@@ -163,8 +163,10 @@ class StepMeter(Callback):
     writes included, over a sliding window, where these are a stage's whole training; its
     peak-FLOPs table (``get_available_flops``) gives a CUDA device's peak."""
 
-    def __init__(self, warmup: int = 2):
+    def __init__(self, warmup: int = 2, count_flops: bool = True):
         self.warmup = warmup
+        #: Off under ``trainer.compile`` (see above).
+        self.count_flops = count_flops
         self.times: list[float] = []  # batch start to the next batch start
         self.steps: list[tuple[float, StepWork]] = []  # batch start to its end, and the work done
         self.peak_flops: float | None = None
@@ -177,10 +179,10 @@ class StepMeter(Callback):
         self.peak_flops = device_peak_flops(pl_module.device, str(trainer.precision))
 
     def on_train_batch_start(self, trainer: L.Trainer, pl_module: L.LightningModule, *args: Any) -> None:
-        if pl_module.count_flops and self._flops_per_sample is None and self._counter is None and not self.steps:
-            if not any(isinstance(cb, CompileBlocks) for cb in trainer.callbacks):
-                self._counter = FlopCounterMode(display=False)
-                self._counter.__enter__()
+        counts = self.count_flops and pl_module.count_flops
+        if counts and self._flops_per_sample is None and self._counter is None and not self.steps:
+            self._counter = FlopCounterMode(display=False)
+            self._counter.__enter__()
         now = time.perf_counter()
         if self._last is not None:
             self.times.append(now - self._last)

@@ -134,9 +134,8 @@ class WorldModelStage(Stage):
         #: Training rows: packed to this many tokens (0: the longest sequence's), or None: one sequence each.
         self._pack: int | None = cfg.pack_length if cfg.pack_sequences else None
         self.train_through(cfg, where)
-        if getattr(tasks, "occupancy_weight", 1.0) == 0:
-            for p in getattr(self.engine.world, "occupancy_parameters", list)():
-                p.requires_grad_(False)  # no loss reaches them: DDP must not wait for their gradients
+        for p in self.engine.world.unused_parameters(tasks):
+            p.requires_grad_(False)
         freeze_prefixes(self.engine.world, list(ctx.spec.freeze))
         hooks = self.engine.spec.eval_hooks
         self.evaluator = Evaluator(

@@ -36,7 +36,7 @@ from occtrain.errors import ConfigError
 from occtrain.metrics.reconstruction import ReconstructionMetrics
 from occtrain.models import count_parameters
 from occtrain.models.camera_encoder import load_vision_encoder
-from occtrain.models.tokenizers.base import TokenizerOutput
+from occtrain.models.tokenizers.base import SceneTokenizer, TokenizerModel, TokenizerOutput
 from occtrain.progress import progress_bar
 from occtrain.stages import StageKind, register
 from occtrain.stages.common import ValidationMeans
@@ -55,13 +55,13 @@ def _arch_of(model: Any) -> TokenizerArch | None:
     return tokenizer_archs().get(str(model["arch"] if isinstance(model, dict) else getattr(model, "arch", "")))
 
 
-def reconstruction_metrics(model: Any, root: str | Path, cache_dir: Path | None) -> ReconstructionMetrics:
+def reconstruction_metrics(model: TokenizerModel, root: str | Path, cache_dir: Path | None) -> ReconstructionMetrics:
     """Both conventions, an empty scene and the per-voxel prior of ``root``'s train split
     (kept in ``cache_dir``) as the baselines, code use per codebook (motion and static for
     the MS-VAE; none for a continuous encoder)."""
     prior = torch.from_numpy(voxel_prior(root, cache_dir))
-    if not getattr(model, "discrete", True):
-        return ReconstructionMetrics({}, oracle=bool(getattr(model, "budget_oracle", False)), prior=prior)
+    if not isinstance(model, SceneTokenizer):
+        return ReconstructionMetrics({}, oracle=model.budget_oracle, prior=prior)
     return ReconstructionMetrics(dict(zip(model.codebook_names, model.codebook_sizes)), prior=prior)
 
 

@@ -76,7 +76,7 @@ def _callbacks(
         StepSeed(cfg.seed),
         LearningRateMonitor(logging_interval="step"),
         StepProgress(name),
-        StepMeter(),
+        StepMeter(count_flops=not cfg.compile),
         PeakMemory(),
     ]
     if cfg.compile:

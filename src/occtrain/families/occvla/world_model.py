@@ -34,9 +34,11 @@ from occtrain.core.decoding import Answer, Feed, Flush, QueryBlock, decode
 from occtrain.core.lm_world_model import LMWorldModel, WorldInputs, WorldModelOutput, token_ce
 from occtrain.core.protocols import PromptInputs
 from occtrain.core.sequence import IGNORE, PayloadSpec, TokenSequence, empty_payload, head, tail
+from occtrain.core.shared_tasks import TaskConfig as BaseTaskConfig
 from occtrain.core.vocab import JointVocab
 from occtrain.data.clips import Images, Occupancy, Part
 from occtrain.families.occvla.config import OccVLAWorldConfig
+from occtrain.families.occvla.tasks import TaskConfig
 from occtrain.models.camera_encoder import pool_views
 from occtrain.models.patches import unpatchify
 
@@ -112,9 +114,12 @@ class OccVLAWorldModel(LMWorldModel):
         return VLASequenceBuilder(self)
 
     def occupancy_parameters(self) -> list[nn.Parameter]:
-        """What only the occupancy branch uses (frozen when a stage gives it no weight, so
-        that DDP waits for no gradient that never comes)."""
+        """What only the occupancy branch uses."""
         return [self.occ_queries, *self.occ_proj.parameters()]
+
+    def unused_parameters(self, tasks: BaseTaskConfig) -> list[nn.Parameter]:
+        """The occupancy branch, where the tasks give it no weight (``occupancy_weight: 0``)."""
+        return self.occupancy_parameters() if isinstance(tasks, TaskConfig) and tasks.occupancy_weight == 0 else []
 
     # -- the model
     def embed(self, input_ids: torch.Tensor, payload: dict[str, torch.Tensor] | None = None) -> torch.Tensor:

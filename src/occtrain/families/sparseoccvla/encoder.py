@@ -33,7 +33,7 @@ from occtrain.families.sparseoccvla.inputs import CameraFrames, camera_frames, g
 from occtrain.formats.occ3d import NUM_CLASSES, RANGE_MAX, RANGE_MIN
 from occtrain.models.point_sets import POINT_CLASSES, chamfer_distance, sigmoid_focal_loss, voxelize
 from occtrain.models.projection import average_views, in_cameras, project, read_views, sample_views
-from occtrain.models.tokenizers.base import TokenizerOutput
+from occtrain.models.tokenizers.base import TokenizerModel, TokenizerOutput
 
 #: ImageNet statistics, what a torchvision/Hugging Face ResNet is trained with.
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
@@ -381,7 +381,7 @@ def initial_layout(queries: int, how: str) -> torch.Tensor:
     return torch.stack([x, y, z], -1)
 
 
-class SparseOccEncoder(nn.Module):
+class SparseOccEncoder(TokenizerModel):
     """The Sparse Occupancy Encoder, its connector and its distillation branch (see the module docstring)."""
 
     discrete = False

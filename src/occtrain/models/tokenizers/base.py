@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import ClassVar
 
 import torch
 from torch import nn
@@ -38,7 +39,33 @@ class TokenizerOutput:
         return self.labels if self.labels is not None else self.logits.argmax(1)
 
 
-class SceneTokenizer(nn.Module):
+class TokenizerModel(nn.Module):
+    """What a tokenizer stage trains and exports, whatever it encodes scenes into: codes from
+    codebooks (:class:`SceneTokenizer`) or continuous rows (a camera encoder's queries). Its
+    capabilities are declared here, with their defaults, for the stage and the export to
+    read."""
+
+    #: Scenes become codes of codebooks; False: continuous rows (``num_tokens`` x ``token_dim``).
+    discrete: ClassVar[bool] = True
+    #: Evaluation reports its point budget's oracle beside it (``TokenizerOutput.oracle``).
+    budget_oracle: ClassVar[bool] = False
+
+    def export_state_dict(self) -> dict[str, torch.Tensor]:
+        """The weights an export keeps: all of them, unless a training-only branch is left out."""
+        return self.state_dict()
+
+    @property
+    def num_tokens(self) -> int:
+        """The rows a scene becomes, for a continuous model (a discrete one's is its latent grid)."""
+        raise NotImplementedError(f"{type(self).__name__} encodes scenes to codes; see its latent_hw")
+
+    @property
+    def token_dim(self) -> int:
+        """The width of those rows, for a continuous model."""
+        raise NotImplementedError(f"{type(self).__name__} encodes scenes to codes; see its codebooks")
+
+
+class SceneTokenizer(TokenizerModel):
     """Base of the tokenizers: ``encode`` scenes to codes, ``decode`` codes to class logits.
 
     Subclasses provide ``encode_latent`` (semantics -> continuous latent (B, D, h, w)),

@@ -161,6 +161,19 @@ def test_the_loss_is_text_plus_lambda_times_the_voxel_cross_entropy():
     assert 0.5 < out.scene_loss.item() < 3 * math.log(18)
 
 
+def test_a_stage_that_gives_occupancy_no_weight_freezes_that_branch_alone():
+    """``unused_parameters``: the occupancy queries and projector when ``occupancy_weight``
+    is 0 (no loss reaches them, so DDP must not wait for their gradients), nothing
+    otherwise, and nothing for the base world model's other task settings."""
+    from occtrain.core.shared_tasks import TaskConfig as BaseTaskConfig
+
+    w = world()
+    frozen = {id(p) for p in w.unused_parameters(TaskConfig(occupancy_weight=0.0))}
+    assert frozen == {id(p) for p in [w.occ_queries, *w.occ_proj.parameters()]}
+    assert w.unused_parameters(TaskConfig()) == []
+    assert w.unused_parameters(BaseTaskConfig()) == []
+
+
 def test_bottleneck_adapters_round_trip_through_safetensors_and_json(tmp_path):
     torch.manual_seed(0)
     llm = build_llm(llm_cfg(), 50)
