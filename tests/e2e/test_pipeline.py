@@ -57,9 +57,16 @@ def test_every_stage_is_done_and_exported(pipeline):
         # leaves those intervals out; the rates time each step's own work.)
         assert metrics["train_samples_per_s"] > 0, name
         has_tokens = name in ("pretrain", "instruct", "distill")
-        assert ("train_tokens_per_s" in metrics) == ("train_mfu" in metrics) == has_tokens, name
+        assert ("train_tokens_per_s" in metrics) == has_tokens, name
+        # The language models' FLOPs by formula; the tokenizer's and the planner's counted
+        # by torch on their first step that computes anything (the tiny planner's first
+        # steps may hold no clip with a meta action).
+        assert ("train_mfu" in metrics) >= (has_tokens or name == "tokenizer"), name
+        assert ("train_mfu" in metrics) <= (has_tokens or name in ("tokenizer", "planner")), name
+        if "train_mfu" in metrics:  # (the tiny planner head's MFU rounds to 0 in the manifest; its FLOPs do not)
+            assert metrics["train_model_flops_per_s"] > 0 and 0 <= metrics["train_mfu"] < 1, name
         if has_tokens:
-            assert metrics["train_tokens_per_s"] > metrics["train_samples_per_s"] and 0 < metrics["train_mfu"] < 1
+            assert metrics["train_tokens_per_s"] > metrics["train_samples_per_s"]
     distill = manifest["stages"]["distill"]["metrics"]
     assert distill["student_params"] < distill["teacher_params"]
     assert "val/teacher_tokens_per_s" in distill and "val/student_tokens_per_s" in distill

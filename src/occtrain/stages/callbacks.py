@@ -154,10 +154,13 @@ class StepMeter(Callback):
     ``train/samples_per_s`` and ``train/mfu``, with ``train/padding_share``: of the token
     positions the LLM computed over, the share that were padding (``core.packing``).
 
-    A stage kind that ``count_flops`` has its first step of each attempt (a warm-up step,
-    never in the summary) run under torch's ``FlopCounterMode``: that step's forward,
-    backward and optimizer FLOPs over its samples give every later step's FLOPs. Not under
-    ``trainer.compile``: the counter sees the eager operators, not a compiled graph's.
+    A stage kind that ``count_flops`` has its first step that computes anything (a warm-up
+    step, never in the summary) run under torch's ``FlopCounterMode``: that step's forward,
+    backward and optimizer FLOPs over its samples give every later step's FLOPs. The count
+    rides in the checkpoint, so a resumed attempt reuses it rather than counting a step the
+    uncut run did not (the counter's module hooks move gradients in the last bits: the
+    resumed run would not end bit-exact with an uncut one). Not under ``trainer.compile``:
+    the counter sees the eager operators, not a compiled graph's.
 
     Not Lightning's ``ThroughputMonitor``: it times from batch end to batch end, checkpoint
     writes included, over a sliding window, where these are a stage's whole training; its
@@ -180,7 +183,7 @@ class StepMeter(Callback):
 
     def on_train_batch_start(self, trainer: L.Trainer, pl_module: L.LightningModule, *args: Any) -> None:
         counts = self.count_flops and pl_module.count_flops
-        if counts and self._flops_per_sample is None and self._counter is None and not self.steps:
+        if counts and self._flops_per_sample is None and self._counter is None:
             self._counter = FlopCounterMode(display=False)
             self._counter.__enter__()
         now = time.perf_counter()
@@ -219,11 +222,22 @@ class StepMeter(Callback):
         if self._counter is not None:  # a step that never ended (an exception, a stop)
             self._stop_counting(0)
 
+    def state_dict(self) -> dict[str, Any]:
+        return {"flops_per_sample": self._flops_per_sample}
+
+    def load_state_dict(self, state_dict: dict[str, Any]) -> None:
+        value = state_dict.get("flops_per_sample")
+        self._flops_per_sample = float(value) if value is not None else None
+
     def _stop_counting(self, samples: int) -> None:
+        """Close the counter; a step that computed nothing (no sample, or none the model
+        read: a planner's batch without a meta action) is not a step's cost, so the next
+        one is counted instead."""
         assert self._counter is not None
         self._counter.__exit__(None, None, None)
-        if samples > 0:
-            self._flops_per_sample = self._counter.get_total_flops() / samples
+        total = self._counter.get_total_flops()
+        if samples > 0 and total > 0:
+            self._flops_per_sample = total / samples
         self._counter = None
 
     def _kept(self, measured: list) -> list:

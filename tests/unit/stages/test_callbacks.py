@@ -96,6 +96,14 @@ def test_a_kind_that_counts_flops_gets_every_steps_from_its_first_counted_one(mo
         meter.peak_flops = 1000.0
         trainer = SimpleNamespace(precision="32-true")
         w = torch.randn(8, 4, requires_grad=True)
+        # A step whose batch the model reads none of (a planner's clips without a meta
+        # action) computes nothing: it is not the step's cost, and the next step is counted.
+        meter.on_train_batch_start(trainer, module, None, 0)
+        (torch.randn(0, 8) @ w).sum().backward()
+        clock[0] += 1.0
+        module.step_work = StepWork(samples=2)
+        meter.on_train_batch_end(trainer, module, None, None, 0)
+        meter.steps.clear()
         for _ in range(3):
             meter.on_train_batch_start(trainer, module, None, 0)
             (torch.randn(2, 8) @ w).sum().backward()
@@ -109,6 +117,17 @@ def test_a_kind_that_counts_flops_gets_every_steps_from_its_first_counted_one(mo
             assert [work.flops for _, work in meter.steps] == [None, 256.0, 256.0]
             assert summary["train_model_flops_per_s"] == pytest.approx(256.0)
             assert summary["train_mfu"] == pytest.approx(0.256)
+            # A resumed attempt counts nothing: it reads the count from the checkpoint and
+            # gives its first step those FLOPs.
+            resumed = StepMeter(warmup=0)
+            resumed.load_state_dict(meter.state_dict())
+            later = SimpleNamespace(precision="32-true")
+            resumed.on_train_batch_start(later, module, None, 0)
+            assert resumed._counter is None
+            clock[0] += 1.0
+            module.step_work = StepWork(samples=4)
+            resumed.on_train_batch_end(later, module, None, None, 0)
+            assert [work.flops for _, work in resumed.steps] == [512.0]
 
 
 def test_compile_blocks_compiles_what_the_stage_names_and_says_so_once(capsys):
