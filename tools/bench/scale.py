@@ -11,8 +11,8 @@ the same process's RSS before the model was built (torch and Python themselves):
 
 - 1 process;
 - DDP x 2 (gloo, ``DistributedDataParallel``);
-- sharded x 2: FSDP2's ``fully_shard`` on each decoder layer and the root, over gloo. This
-  is torch's sharding alone: occtrain's stages do not shard yet (issue 28, item 1);
+- sharded x 2: FSDP2's ``fully_shard`` on each decoder layer and the root, over gloo, as
+  the world-model stages shard under ``trainer.strategy: fsdp`` (``stages/sharding.py``);
 - each of them again with the decoder layers checkpointed (``models.llm.checkpoint_layers``).
 
 The plan is ``memory_plan.plan`` for the same model, batch and sequence length.
