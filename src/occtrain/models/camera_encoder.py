@@ -297,6 +297,21 @@ class DenseHead(nn.Module):
         return x[:, :, :-1], x[:, :, -1]
 
 
+def pixel_losses(logits: Tensor, log_depth: Tensor, cam_class: Tensor, cam_depth: Tensor) -> tuple[Tensor, Tensor]:
+    """A dense head's two losses against the renderer's per-pixel targets: cross-entropy of
+    the class logits (B, V, C, H, W) against ``cam_class`` (B, V, H, W), and L1 of the
+    log-depth (B, V, H, W) against log ``cam_depth`` over the pixels with a surface (0 with
+    the graph kept for an all-sky batch, so DDP's gradients stay in step)."""
+    class_loss = F.cross_entropy(logits.flatten(0, 1), cam_class.long().flatten(0, 1))
+    depth = cam_depth.float()
+    surface = depth > 0
+    if surface.any():
+        depth_loss = (log_depth[surface] - depth[surface].log()).abs().mean()
+    else:
+        depth_loss = log_depth.sum() * 0.0
+    return class_loss, depth_loss
+
+
 class PixelPrior(nn.Module):
     """The trivial baseline of dense camera targets: at each pixel of each camera, the most
     frequent class and the geometric mean depth seen in training frames (sums kept for DDP

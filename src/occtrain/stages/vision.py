@@ -19,13 +19,19 @@ from pathlib import Path
 from typing import Any
 
 import torch
-import torch.nn.functional as F
 from lightning.pytorch.utilities.types import OptimizerLRSchedulerConfig
 
 from occtrain.errors import ConfigError, DataError
 from occtrain.metrics import DepthAbsRelMetric, PixelSegmentationMetric
 from occtrain.models import count_parameters
-from occtrain.models.camera_encoder import DenseHead, MultiViewEncoder, PixelPrior, VisionConfig, export_vision
+from occtrain.models.camera_encoder import (
+    DenseHead,
+    MultiViewEncoder,
+    PixelPrior,
+    VisionConfig,
+    export_vision,
+    pixel_losses,
+)
 from occtrain.models.llm import checkpoint_layers
 from occtrain.stages import StageKind, register
 from occtrain.stages.common import ValidationMeans
@@ -103,14 +109,7 @@ class VisionStage(Stage):
                 "with the per-pixel class and depth the synthetic renderer writes"
             )
         logits, log_depth = self(batch["images"])
-        target = batch["cam_class"].long()
-        depth = batch["cam_depth"].float()
-        class_loss = F.cross_entropy(logits.flatten(0, 1), target.flatten(0, 1))
-        surface = depth > 0
-        if surface.any():
-            depth_loss = (log_depth[surface] - depth[surface].log()).abs().mean()
-        else:  # an all-sky batch: keep the graph (DDP) with a zero term
-            depth_loss = log_depth.sum() * 0.0
+        class_loss, depth_loss = pixel_losses(logits, log_depth, batch["cam_class"], batch["cam_depth"])
         loss = cfg.class_weight * class_loss + cfg.depth_weight * depth_loss
         return {"loss": loss, "class_loss": class_loss, "depth_loss": depth_loss}, logits, log_depth
 

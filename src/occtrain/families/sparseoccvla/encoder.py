@@ -31,6 +31,7 @@ from occtrain.errors import ConfigError, DataError
 from occtrain.families.sparseoccvla.config import SparseOccConfig
 from occtrain.families.sparseoccvla.inputs import CameraFrames, camera_frames, ground_truth
 from occtrain.formats.occ3d import NUM_CLASSES, RANGE_MAX, RANGE_MIN
+from occtrain.models.camera_encoder import pixel_losses
 from occtrain.models.point_sets import POINT_CLASSES, chamfer_distance, sigmoid_focal_loss, voxelize
 from occtrain.models.projection import average_views, in_cameras, project, read_views, sample_views
 from occtrain.models.tokenizers.base import TokenizerModel, TokenizerOutput
@@ -185,7 +186,7 @@ class FeedForward(nn.Module):
         return self.norm(q + self.mlp(q))
 
 
-class DenseHead(nn.Module):
+class PixelHead(nn.Module):
     """Each pixel's class logits (the 18 labels, 17 = sky) and log depth (metres) from a
     feature map (..., D, h, w) -> (..., 19, h, w), as the vision stage's head predicts them."""
 
@@ -203,18 +204,16 @@ class DenseHead(nn.Module):
 
 
 def dense_loss(dense: torch.Tensor, cam_class: torch.Tensor, cam_depth: torch.Tensor) -> torch.Tensor:
-    """Cross-entropy of the head's classes and L1 on log depth (pixels with a surface) of
-    one frame's maps (B, V, 19, h, w) against the renderer's targets (B, V, H, W), read at
-    each cell's centre pixel."""
+    """The vision stage's losses (``pixel_losses``, summed) of one frame's maps
+    (B, V, 19, h, w) against the renderer's targets (B, V, H, W), read at each cell's
+    centre pixel."""
     h, w = dense.shape[-2:]
     rows = ((torch.arange(h, device=dense.device) + 0.5) * cam_class.shape[-2] / h).long()
     cols = ((torch.arange(w, device=dense.device) + 0.5) * cam_class.shape[-1] / w).long()
-    target = cam_class.to(dense.device).long()[..., rows, :][..., cols]
-    depth = cam_depth.to(dense.device).float()[..., rows, :][..., cols]
-    logits, log_depth = dense[:, :, :NUM_CLASSES], dense[:, :, NUM_CLASSES]
-    loss = F.cross_entropy(logits.flatten(0, 1), target.flatten(0, 1))
-    surface = depth > 0
-    return loss + ((log_depth - depth.clamp(min=1e-3).log()).abs() * surface).sum() / surface.sum().clamp(min=1)
+    target = cam_class.to(dense.device)[..., rows, :][..., cols]
+    depth = cam_depth.to(dense.device)[..., rows, :][..., cols]
+    class_loss, depth_loss = pixel_losses(dense[:, :, :NUM_CLASSES], dense[:, :, NUM_CLASSES], target, depth)
+    return class_loss + depth_loss
 
 
 def surface_cue(
@@ -403,7 +402,7 @@ class SparseOccEncoder(TokenizerModel):
         self.register_load_state_dict_pre_hook(_metres_to_unit)
         self.pos_embed = PositionEmbedding(cfg.dim)
         self.layers = nn.ModuleList(EncoderLayer(cfg, scales, m) for m in cfg.points_per_layer)
-        self.dense = DenseHead(cfg.dim) if cfg.dense_head else None
+        self.dense = PixelHead(cfg.dim) if cfg.dense_head else None
         self.connector = Connector(cfg.dim, cfg.token_dim, cfg.position_encoding)
         self.distillation: Distillation | None = None
 
@@ -433,7 +432,7 @@ class SparseOccEncoder(TokenizerModel):
         pos = self.initial_positions.expand(b, -1, -1)
         outputs: list[tuple[torch.Tensor, torch.Tensor | None]] = [(pos, None)]
         for layer in self.layers:
-            q, points, logits = layer(q, pos, self.pos_embed, features, cams, dense if self.cfg.depth_cue else None)
+            q, points, logits = layer(q, pos, self.pos_embed, features, cams, dense)
             outputs.append((points.flatten(1, 2), logits.flatten(1, 2)))
             pos = points.mean(2).detach()  # the query moves to its points; the next layer samples there
         return EncodedViews(q, pos, outputs, dense)
