@@ -252,7 +252,7 @@ def collate(seqs: list[TokenSequence], pad_id: int, rows: list[list[int]] | None
     lengths = [sum(len(seqs[i]) for i in row) for row in rows]
     L = max(lengths)
 
-    def join(name: str, value) -> torch.Tensor:
+    def join(name: str, value: int) -> torch.Tensor:
         return torch.stack(
             [
                 F.pad(torch.cat([getattr(seqs[i], name) for i in row]), (0, L - n), value=value)

@@ -189,7 +189,9 @@ class _State:
             held = {k: v.to(self.device)[last] for k, v in payload.items()}
             self.track.scene(self.world.tracked_scene(ids[last], held), predicted=False)
 
-    def queue(self, ids, segment: int | torch.Tensor = 0, payload: dict | None = None) -> None:
+    def queue(
+        self, ids: list[int] | torch.Tensor, segment: int | torch.Tensor = 0, payload: dict | None = None
+    ) -> None:
         ids = torch.as_tensor(ids, dtype=torch.long, device=self.device).reshape(-1)
         seg = segment.to(self.device) if torch.is_tensor(segment) else torch.full_like(ids, segment)
         extra = payload or empty_payload(self.spec, ids.numel(), self.device)

@@ -14,7 +14,7 @@ rebuilt from an export (``create``, ``from_export``, ``export_config``).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
 import torch.nn.functional as F
@@ -40,6 +40,10 @@ from occtrain.core.shared_tasks import TaskConfig as BaseTaskConfig
 from occtrain.core.vocab import JointVocab
 from occtrain.models import without_peft
 from occtrain.models.attention import additive
+
+if TYPE_CHECKING:
+    from transformers import Cache
+    from transformers.modeling_outputs import CausalLMOutputWithPast
 
 
 def token_ce(logits: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
@@ -171,8 +175,15 @@ class LMWorldModel(nn.Module):
         return allowed if impl == "sdpa" else additive(allowed[:, 0], dtype)
 
     def _run(
-        self, input_ids, attention_mask, position_ids, past_key_values=None, use_cache=False, hidden=False, payload=None
-    ):
+        self,
+        input_ids: torch.Tensor,
+        attention_mask: torch.Tensor,
+        position_ids: torch.Tensor,
+        past_key_values: Cache | None = None,
+        use_cache: bool = False,
+        hidden: bool = False,
+        payload: dict[str, torch.Tensor] | None = None,
+    ) -> CausalLMOutputWithPast:
         emb = self.embed(input_ids, payload)
         return self.llm(
             inputs_embeds=emb,
@@ -184,7 +195,13 @@ class LMWorldModel(nn.Module):
         )
 
     def step(
-        self, input_ids, attention_mask, position_ids, past_key_values=None, use_cache=False, payload=None
+        self,
+        input_ids: torch.Tensor,
+        attention_mask: torch.Tensor,
+        position_ids: torch.Tensor,
+        past_key_values: Cache | None = None,
+        use_cache: bool = False,
+        payload: dict[str, torch.Tensor] | None = None,
     ) -> Step:
         """The LLM's output for ``input_ids`` (and their payload) under a boolean 4D mask."""
         # Only a model with a payload emits scenes from hidden states: the others skip keeping every layer's.

@@ -89,7 +89,7 @@ def tail(seq: TokenSequence, n: int) -> TokenSequence:
     )
 
 
-def rows(hidden: torch.Tensor | None, *index) -> torch.Tensor | None:
+def rows(hidden: torch.Tensor | None, *index: int | slice) -> torch.Tensor | None:
     """``hidden[index]``, or None when there are no hidden states."""
     return None if hidden is None else hidden[index]
 

@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 
 from occtrain.data.clips import Actions, Branch, Clip, Part, Scene, Text, clip_rng, ego_future, text_of
 from occtrain.errors import ConfigError
@@ -141,7 +142,7 @@ def sample_task(
 # ----------------------------------------------------------------------------- shared prompt pieces
 
 
-def as_xy(points) -> tuple[tuple[float, float], ...]:
+def as_xy(points: npt.ArrayLike) -> tuple[tuple[float, float], ...]:
     """Waypoints (any (..., 2) array) as the tuples an ``Actions`` part holds."""
     return tuple((float(x), float(y)) for x, y in np.asarray(points, dtype=np.float64).reshape(-1, 2))
 
