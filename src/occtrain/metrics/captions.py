@@ -152,6 +152,9 @@ class CaptionMetric(Metric):
     is_differentiable = False
     higher_is_better = True
     full_state_update = False
+    #: One uint8 tensor of encoded records per update; while synced, torchmetrics has
+    #: concatenated the list into one tensor.
+    text: list[Tensor] | Tensor
 
     def __init__(self, **kwargs: Any):
         super().__init__(**{"dist_sync_fn": _gather_bytes, **kwargs})
@@ -171,6 +174,7 @@ class CaptionMetric(Metric):
             if not refs:
                 raise ValueError(f"sample {k} has no reference text")
             records.append(json.dumps([None if ids is None else str(ids[k]), str(pred), [str(r) for r in refs]]))
+        assert isinstance(self.text, list), "update() runs on the unsynced state"
         self.text.append(_encode(records).to(self.device))
 
     def samples(self) -> dict[str, tuple[str, list[str]]]:

@@ -13,6 +13,7 @@ class CodebookUsage(Metric):
     per-batch figures a quantizer logs in training."""
 
     full_state_update = False
+    counts: torch.Tensor
 
     def __init__(self, num_codes: int, **kwargs):
         super().__init__(**kwargs)

@@ -25,6 +25,10 @@ class MetaActionAccuracy(Metric):
     is_differentiable = False
     higher_is_better = True
     full_state_update = False
+    speed: torch.Tensor
+    direction: torch.Tensor
+    both: torch.Tensor
+    total: torch.Tensor
 
     def __init__(self, **kwargs: Any):
         super().__init__(**kwargs)

@@ -113,6 +113,8 @@ class OccupancyMetric(Metric):
     is_differentiable = False
     higher_is_better = True
     full_state_update = False
+    confmat: Tensor
+    samples: Tensor
 
     def __init__(
         self,
@@ -160,6 +162,9 @@ class ForecastMetric(Metric):
     is_differentiable = False
     higher_is_better = True
     full_state_update = False
+    #: One confusion matrix and one frame count per horizon.
+    confmat: Tensor
+    frames: Tensor
 
     def __init__(
         self, horizons: tuple[int, ...] = (1, 3, 5), subsets: dict[str, tuple[str, ...]] | None = None, **kwargs: Any

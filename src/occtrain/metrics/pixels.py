@@ -28,6 +28,7 @@ class PixelSegmentationMetric(Metric):
     is_differentiable = False
     higher_is_better = True
     full_state_update = False
+    confmat: Tensor
 
     def __init__(self, **kwargs: Any):
         super().__init__(**kwargs)
@@ -52,6 +53,8 @@ class DepthAbsRelMetric(Metric):
     is_differentiable = False
     higher_is_better = False
     full_state_update = False
+    error_sum: Tensor
+    pixels: Tensor
 
     def __init__(self, **kwargs: Any):
         super().__init__(**kwargs)

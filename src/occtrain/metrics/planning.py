@@ -127,6 +127,15 @@ class PlanningMetric(Metric):
     is_differentiable = False
     higher_is_better = False
     full_state_update = False
+    #: Per-step sums (FUTURE_STEPS,) and sample counts.
+    l2_stp3: Tensor
+    l2_uniad: Tensor
+    col_stp3: Tensor
+    col_uniad: Tensor
+    samples: Tensor
+    samples_stp3: Tensor
+    col_samples: Tensor
+    col_samples_stp3: Tensor
 
     def __init__(self, **kwargs: Any):
         super().__init__(**kwargs)

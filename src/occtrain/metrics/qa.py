@@ -35,6 +35,9 @@ class QAMetric(Metric):
     is_differentiable = False
     higher_is_better = True
     full_state_update = False
+    #: Counts by (template type, hop).
+    correct: torch.Tensor
+    asked: torch.Tensor
 
     def __init__(self, **kwargs: Any):
         super().__init__(**kwargs)

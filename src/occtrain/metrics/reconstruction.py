@@ -3,12 +3,23 @@
 
 from __future__ import annotations
 
+from typing import TypeVar
+
 import torch
-from torchmetrics import MeanMetric
+from torchmetrics import MeanMetric, Metric
 
 from occtrain.formats.occ3d import FREE, MOVABLE_CLASSES
 from occtrain.metrics.codebook import CodebookUsage
 from occtrain.metrics.occupancy import OccupancyMetric
+
+M = TypeVar("M", bound=torch.nn.Module)
+
+
+def _member(modules: torch.nn.ModuleDict, name: str, kind: type[M]) -> M:
+    """``modules[name]``, which a ModuleDict types as any Module, as the ``kind`` it holds."""
+    module = modules[name]
+    assert isinstance(module, kind)
+    return module
 
 
 class ReconstructionMetrics(torch.nn.Module):
@@ -22,6 +33,8 @@ class ReconstructionMetrics(torch.nn.Module):
     the baseline that reads no input (``baseline_prior_occworld``). ``occupied_share`` and
     ``true_occupied_share``: the percent of voxels predicted and truly occupied (a loss that
     trades free for occupied voxels shows here first)."""
+
+    prior: torch.Tensor | None
 
     def __init__(self, codebooks: dict[str, int], oracle: bool = False, prior: torch.Tensor | None = None):
         super().__init__()
@@ -58,35 +71,40 @@ class ReconstructionMetrics(torch.nn.Module):
         """Label volumes (B, X, Y, Z), ``mask_camera``, and the codes: (B, h, w) for one
         codebook, (B, codebooks, h, w) for several, None for a continuous encoder; the
         budget's oracle reconstruction (B, X, Y, Z) when the metrics report it."""
-        self.scores["occworld"].update(pred, target)
-        self.scores["occ3d"].update(pred, target, mask)
-        self.scores["baseline_free_occworld"].update(torch.full_like(target, FREE), target)
+        self._score("occworld").update(pred, target)
+        self._score("occ3d").update(pred, target, mask)
+        self._score("baseline_free_occworld").update(torch.full_like(target, FREE), target)
         if self.prior is not None:
-            self.scores["baseline_prior_occworld"].update(self.prior.to(target.device).expand_as(target), target)
+            self._score("baseline_prior_occworld").update(self.prior.to(target.device).expand_as(target), target)
         voxels = target[0].numel()
         for name, volume in (("occupied_share", pred), ("true_occupied_share", target)):
             share = 100.0 * (volume != FREE).flatten(1).sum(1).float() / voxels
-            self.occupied[name].update(share, weight=torch.ones_like(share))
+            _member(self.occupied, name, MeanMetric).update(share, weight=torch.ones_like(share))
         if "baseline_budget_oracle_occworld" in self.scores:
             if oracle is None:
                 raise ValueError("these reconstruction metrics report the budget's oracle: pass its labels")
-            self.scores["baseline_budget_oracle_occworld"].update(oracle, target)
+            self._score("baseline_budget_oracle_occworld").update(oracle, target)
         if codes is None:
             return
         grids = codes if codes.dim() == 4 else codes[:, None]
-        for i, usage in enumerate(self.usage.values()):
-            usage.update(grids[:, i])
+        for i, name in enumerate(self.usage):
+            _member(self.usage, name, CodebookUsage).update(grids[:, i])
 
     def compute(self) -> dict[str, float]:
         """``occworld_mIoU``, ``occworld_movable_mIoU``, ``occ3d_IoU``, ..., ``<codebook>_usage``,
         ``<codebook>_perplexity``."""
         out: dict[str, float] = {}
-        for name, metric in self.scores.items():
-            out |= {f"{name}_{k}": float(v) for k, v in metric.compute().items() if k.endswith("IoU")}
-        for name, usage in self.usage.items():
-            out |= {f"{name}_{k}": v for k, v in usage.compute().items()}
-        return out | {name: float(metric.compute()) for name, metric in self.occupied.items()}
+        for name in self.scores:
+            scores = self._score(name).compute()
+            out |= {f"{name}_{k}": float(v) for k, v in scores.items() if k.endswith("IoU")}
+        for name in self.usage:
+            out |= {f"{name}_{k}": v for k, v in _member(self.usage, name, CodebookUsage).compute().items()}
+        return out | {name: float(_member(self.occupied, name, MeanMetric).compute()) for name in self.occupied}
+
+    def _score(self, name: str) -> OccupancyMetric:
+        return _member(self.scores, name, OccupancyMetric)
 
     def reset(self) -> None:
-        for metric in [*self.scores.values(), *self.usage.values(), *self.occupied.values()]:
-            metric.reset()
+        for metric in self.modules():
+            if isinstance(metric, Metric):
+                metric.reset()
