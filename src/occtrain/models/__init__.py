@@ -3,7 +3,12 @@ the action quantizer, attention masks, the VQ codebook and tokenizer blocks, pla
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 from torch import nn
+
+if TYPE_CHECKING:
+    from transformers import PreTrainedModel
 
 
 def count_parameters(module: nn.Module, trainable: bool = False) -> int:
@@ -11,9 +16,10 @@ def count_parameters(module: nn.Module, trainable: bool = False) -> int:
     return sum(p.numel() for p in module.parameters() if p.requires_grad or not trainable)
 
 
-def without_peft(model: nn.Module) -> nn.Module:
-    """The model inside a peft wrapper (LoRA), or ``model`` itself when it has none."""
-    return model.get_base_model() if hasattr(model, "get_base_model") else model
+def without_peft(model: nn.Module) -> PreTrainedModel:
+    """The Hugging Face model inside a peft wrapper (LoRA), or ``model`` itself when it has none."""
+    get_base_model = getattr(model, "get_base_model", None)
+    return model if get_base_model is None else get_base_model()
 
 
 __all__ = ["count_parameters", "without_peft"]

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import torch
 from safetensors.torch import load_file, save_file
@@ -22,6 +23,9 @@ from torch import nn
 from occtrain.errors import ConfigError
 from occtrain.formats.io import atomic_write_json, parse_json
 from occtrain.models import without_peft
+
+if TYPE_CHECKING:
+    from transformers import PreTrainedModel
 
 ADAPTER_WEIGHTS = "adapter.safetensors"
 ADAPTER_CONFIG = "adapter_config.json"
@@ -45,8 +49,10 @@ class AdapterConfig:
 class BottleneckAdapter(nn.Module):
     """``x + up(gelu(down(LayerNorm(x))))``; ``up`` zero-initialised (identity at the start)."""
 
-    def __init__(self, hidden: int, bottleneck: int):
+    def __init__(self, hidden: int, bottleneck: int, cfg: AdapterConfig):
         super().__init__()
+        #: What it was made from, saved beside its weights.
+        self.cfg = cfg
         self.norm = nn.LayerNorm(hidden)
         self.down = nn.Linear(hidden, bottleneck)
         self.up = nn.Linear(bottleneck, hidden)
@@ -74,7 +80,7 @@ def _layers(llm: nn.Module) -> list[nn.Module]:
     return list(layers)
 
 
-def add_adapters(llm: nn.Module, cfg: AdapterConfig) -> list[BottleneckAdapter]:
+def add_adapters(llm: PreTrainedModel, cfg: AdapterConfig) -> list[BottleneckAdapter]:
     """Hook a fresh adapter onto every decoder layer's ``cfg.module``; returns them (trainable)."""
     hidden = llm.get_input_embeddings().embedding_dim
     width = max(1, hidden // cfg.reduction_factor)
@@ -85,8 +91,7 @@ def add_adapters(llm: nn.Module, cfg: AdapterConfig) -> list[BottleneckAdapter]:
             raise ConfigError(f"adapter.module: decoder layer {i} has no submodule '{cfg.module}'")
         if hasattr(target, ATTRIBUTE):
             raise ValueError(f"decoder layer {i} already has an adapter")
-        adapter = BottleneckAdapter(hidden, width).to(next(target.parameters()).device)
-        adapter.cfg = cfg
+        adapter = BottleneckAdapter(hidden, width, cfg).to(next(target.parameters()).device)
         target.add_module(ATTRIBUTE, adapter)
         target.register_forward_hook(adapter.hook)
         adapters.append(adapter)
@@ -118,7 +123,7 @@ def save_adapters(llm: nn.Module, out: Path) -> Path:
     return out
 
 
-def load_adapters(llm: nn.Module, source: Path) -> AdapterConfig:
+def load_adapters(llm: PreTrainedModel, source: Path) -> AdapterConfig:
     """Hook adapters onto ``llm`` as saved in ``source`` and load their weights (strict)."""
     source = Path(source)
     try:
@@ -140,11 +145,11 @@ def load_adapters(llm: nn.Module, source: Path) -> AdapterConfig:
             f"{source}: adapter weights do not match the model ({'missing' if odd in own else 'unexpected'} tensor "
             f"'{odd}'); re-run the stage that wrote it"
         )
-    odd = next((k for k in own if own[k].shape != state[k].shape), None)
-    if odd is not None:
+    misshapen = next((k for k in own if own[k].shape != state[k].shape), None)
+    if misshapen is not None:
         raise ConfigError(
-            f"{source}: adapter tensor '{odd}' has shape {tuple(state[odd].shape)}, the model wants "
-            f"{tuple(own[odd].shape)}; re-run the stage that wrote it"
+            f"{source}: adapter tensor '{misshapen}' has shape {tuple(state[misshapen].shape)}, the model wants "
+            f"{tuple(own[misshapen].shape)}; re-run the stage that wrote it"
         )
     llm.load_state_dict(state, strict=False)
     return cfg

@@ -195,6 +195,9 @@ class MultiViewEncoder(nn.Module):
 
     #: The vision export it was loaded from (a world-model export copies it), None if built here.
     export_dir: Path | None = None
+    #: (1, 3, 1, 1): the tower's input normalisation.
+    pixel_mean: Tensor
+    pixel_std: Tensor
 
     def __init__(
         self, cfg: Any, image_mean: tuple[float, ...] | None = None, image_std: tuple[float, ...] | None = None
@@ -268,7 +271,7 @@ def pool_views(tokens: Tensor, grid: tuple[int, int], num_cameras: int, out_hw: 
     (B, N * rows * cols, D), cameras in order, row-major within each."""
     b, _, d = tokens.shape
     x = tokens.reshape(b * num_cameras, grid[0], grid[1], d).permute(0, 3, 1, 2)
-    x = F.adaptive_avg_pool2d(x, tuple(out_hw))
+    x = F.adaptive_avg_pool2d(x, (out_hw[0], out_hw[1]))
     return x.permute(0, 2, 3, 1).reshape(b, num_cameras * out_hw[0] * out_hw[1], d)
 
 
@@ -317,6 +320,11 @@ class PixelPrior(nn.Module):
     frequent class and the geometric mean depth seen in training frames (sums kept for DDP
     reduction). Geometric, not arithmetic: a pixel near the horizon sees the road 30 m away
     in one frame and 300 m in the next, and a plain mean would make the baseline a straw man."""
+
+    #: (N, H, W, C) class counts, (N, H, W) log-depth sums and pixels with depth.
+    class_counts: Tensor
+    log_depth_sum: Tensor
+    depth_pixels: Tensor
 
     def __init__(self, num_cameras: int, height: int, width: int, num_classes: int = NUM_CLASSES):
         super().__init__()

@@ -13,8 +13,10 @@ Elementwise work (norms, activations, RoPE, softmax) is not counted, as in PaLM.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
-from torch import nn
+if TYPE_CHECKING:
+    from transformers import PreTrainedModel
 
 
 @dataclass(frozen=True)
@@ -38,7 +40,7 @@ class TransformerFlops:
         return 4.0 * self.weights + 2.0 * self.trainable + 12.0 * self.layers * seq_len * self.attention_width
 
     @classmethod
-    def of(cls, llm: nn.Module) -> TransformerFlops:
+    def of(cls, llm: PreTrainedModel) -> TransformerFlops:
         """Counted from a Hugging Face causal LM (a peft-wrapped one included): its 2-D
         parameters but the input embedding, and the LM head even where it is tied to it."""
         get_input = getattr(llm, "get_input_embeddings", None)

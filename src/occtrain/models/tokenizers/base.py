@@ -36,7 +36,10 @@ class TokenizerOutput:
 
     def prediction(self) -> torch.Tensor:
         """The reconstructed label volumes (B, 200, 200, 16)."""
-        return self.labels if self.labels is not None else self.logits.argmax(1)
+        if self.labels is not None:
+            return self.labels
+        assert self.logits is not None, "an output without labels has logits"
+        return self.logits.argmax(1)
 
 
 class TokenizerModel(nn.Module):

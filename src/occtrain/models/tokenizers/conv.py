@@ -6,6 +6,8 @@ layout serves the paper's 200 -> 50 latent and a CPU recipe's 200 -> 10.
 
 from __future__ import annotations
 
+from typing import TypedDict
+
 import torch
 import torch.nn.functional as F
 from torch import nn
@@ -80,6 +82,17 @@ def _middle(ch: int, attention: bool) -> nn.Sequential:
     return nn.Sequential(ResnetBlock(ch, ch), AttnBlock(ch) if attention else nn.Identity(), ResnetBlock(ch, ch))
 
 
+class ConvLayout(TypedDict):
+    """A :class:`ConvEncoder`'s shape besides its in and out channels (its mirror
+    :class:`ConvDecoder` takes the same)."""
+
+    ch: int
+    channel_mult: list[int]
+    strides: list[int]
+    num_res_blocks: int
+    latent_attention: bool
+
+
 class ConvEncoder(nn.Module):
     """(B, in_ch, H, W) -> (B, out_ch, H / prod(strides), W / prod(strides))."""
 
@@ -101,7 +114,7 @@ class ConvEncoder(nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         h = self.conv_in(x)
         for stack in self.levels:
-            for layer in stack:
+            for layer in stack.children():
                 h = layer(h)
         return self.out(self.mid(h))
 
@@ -129,6 +142,6 @@ class ConvDecoder(nn.Module):
     def forward(self, z: torch.Tensor) -> torch.Tensor:
         h = self.mid(self.conv_in(z))
         for stack in self.levels:
-            for layer in stack:
+            for layer in stack.children():
                 h = layer(h)
         return self.out(h)

@@ -13,7 +13,7 @@ from torch import nn
 from occtrain.config.tokenizer import QuantizerFields, latent_hw
 from occtrain.formats.occ3d import GRID_SHAPE, NUM_CLASSES
 from occtrain.models.tokenizers.base import SceneTokenizer, TokenizerOutput, check_semantics
-from occtrain.models.tokenizers.conv import ConvDecoder, ConvEncoder
+from occtrain.models.tokenizers.conv import ConvDecoder, ConvEncoder, ConvLayout
 from occtrain.models.tokenizers.losses import ce_lovasz, class_balance_weights
 from occtrain.models.tokenizers.quantizer import VectorQuantizer
 
@@ -56,8 +56,8 @@ class OccWorldVQVAE(SceneTokenizer):
         self.latent_hw = latent_hw(cfg)
         depth, e = GRID_SHAPE[2], cfg.class_embed_dim
         self.class_embed = nn.Embedding(NUM_CLASSES, e)
-        layout = dict(ch=cfg.base_channels, channel_mult=list(cfg.channel_mult), strides=list(cfg.strides),
-                      num_res_blocks=cfg.num_res_blocks, latent_attention=cfg.latent_attention)  # fmt: skip
+        layout = ConvLayout(ch=cfg.base_channels, channel_mult=list(cfg.channel_mult), strides=list(cfg.strides),
+                            num_res_blocks=cfg.num_res_blocks, latent_attention=cfg.latent_attention)  # fmt: skip
         self.encoder = ConvEncoder(in_ch=depth * e, out_ch=cfg.z_channels, **layout)
         self.quant_proj = nn.Conv2d(cfg.z_channels, cfg.code_dim, 1)
         self.quantizer = VectorQuantizer(

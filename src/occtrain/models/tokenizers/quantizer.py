@@ -40,6 +40,13 @@ class VectorQuantizer(nn.Module):
     current batch and its count reset to 1.
     """
 
+    #: (K, D): a parameter, or with EMA a buffer like ``ema_count`` (K,) and ``ema_sum`` (K, D).
+    embed: torch.Tensor
+    ema_count: torch.Tensor
+    ema_sum: torch.Tensor
+    #: (K,) running assignments per batch.
+    usage: torch.Tensor
+
     def __init__(
         self,
         num_codes: int,

@@ -15,6 +15,8 @@ from torch import nn
 class WindowAttention(nn.Module):
     """Multi-head self-attention inside each window, with relative-position bias."""
 
+    bias_index: torch.Tensor
+
     def __init__(self, dim: int, heads: int, window: int):
         super().__init__()
         self.heads = heads
@@ -65,6 +67,9 @@ def shifted_window_mask(h: int, w: int, window: int, shift: int) -> torch.Tensor
 
 class SwinBlock(nn.Module):
     """Pre-norm (shifted-)window attention + MLP, both residual, on (B, H, W, C) maps."""
+
+    #: The shifted windows' additive mask; None without a shift.
+    mask: torch.Tensor | None
 
     def __init__(self, dim: int, heads: int, window: int, shift: int, hw: tuple[int, int], mlp_ratio: float):
         super().__init__()
