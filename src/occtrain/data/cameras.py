@@ -13,6 +13,7 @@ from dataclasses import dataclass
 from functools import cached_property
 
 import numpy as np
+import numpy.typing as npt
 
 #: The six nuScenes cameras, in the order every occtrain tensor stacks them.
 CAMERA_NAMES: tuple[str, ...] = (
@@ -64,7 +65,7 @@ def matrix_to_quaternion(r: np.ndarray) -> np.ndarray:
     return np.array([w, x, y, z])
 
 
-def transform(rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
+def transform(rotation: npt.ArrayLike, translation: npt.ArrayLike) -> np.ndarray:
     """The 4 x 4 homogeneous transform of a rotation (3 x 3 or a quaternion) and translation."""
     rot = np.asarray(rotation, dtype=np.float64)
     out = np.eye(4)

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any
 
@@ -10,6 +10,7 @@ import lightning as L
 import numpy as np
 import torch
 from torch.utils.data import DataLoader
+from torch.utils.data.dataloader import _BaseDataLoaderIter
 
 from occtrain.config.groups import DataConfig, check_synth_config
 from occtrain.data.cameras import CAMERA_NAMES
@@ -200,7 +201,8 @@ def collate_cameras(samples: list[dict]) -> dict[str, Any]:
     names = [n.lower() for n in CAMERA_NAMES]
 
     def image(s: dict, stem: str) -> np.ndarray:
-        return s.get(f"{stem}.png", s.get(f"{stem}.jpg"))
+        png = f"{stem}.png"
+        return s[png] if png in s else s[f"{stem}.jpg"]
 
     out: dict[str, Any] = {
         "images": torch.from_numpy(np.stack([np.stack([image(s, n) for n in names]) for s in samples])),
@@ -264,7 +266,7 @@ class ResumableLoader(DataLoader):
             state.get("samples", int(state.get("batches", 0)) * self.source.world * self.source.batch_size)
         )
 
-    def __iter__(self) -> Iterator[Any]:
+    def __iter__(self) -> _BaseDataLoaderIter:
         self.source.start, self._start = self._start, 0
         return super().__iter__()
 
@@ -324,10 +326,12 @@ class ShardDataModule(L.LightningDataModule):
             batch_size=self.cfg.batch_size,
             cameras=self.cameras,
         )
-        kwargs = dict(batch_size=self.cfg.batch_size, num_workers=self.cfg.num_workers, collate_fn=COLLATE[self.kind])
+        batch_size, workers, collate = self.cfg.batch_size, self.cfg.num_workers, COLLATE[self.kind]
         if not train:
-            return DataLoader(pipeline, **kwargs)
-        return ResumableLoader(pipeline.pipeline[0], pipeline, **kwargs)
+            return DataLoader(pipeline, batch_size=batch_size, num_workers=workers, collate_fn=collate)
+        return ResumableLoader(
+            pipeline.pipeline[0], pipeline, batch_size=batch_size, num_workers=workers, collate_fn=collate
+        )
 
     def train_dataloader(self) -> DataLoader:
         return self.loader("train", train=True)

@@ -249,8 +249,8 @@ def _order_samples(scene: str, infos: dict[str, dict], source: Path) -> list[str
             cur = infos[cur].get("next", "")
         if len(order) == len(tokens):
             return order
-    stamps = {t: sample_time(infos[t]) for t in tokens}
-    odd = next((t for t in tokens if stamps[t] is None), None)
+    stamps = {t: stamp for t in tokens if (stamp := sample_time(infos[t])) is not None}
+    odd = next((t for t in tokens if t not in stamps), None)
     if odd is not None:
         raise DataError(
             f"{source}: scene_infos.{scene}.{odd}.timestamp is not a number of microseconds and the scene's "

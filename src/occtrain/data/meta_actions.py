@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from occtrain.data.geometry import global_to_ego
-from occtrain.data.schema import META_DIRECTIONS, META_SPEEDS, STOP_SPEED, MetaAction
+from occtrain.data.schema import META_DIRECTIONS, META_SPEEDS, STOP_SPEED, MetaAction, MetaDirection, MetaSpeed
 from occtrain.errors import ConfigError
 from occtrain.formats.occ3d import FRAME_DT
 
@@ -58,7 +58,7 @@ class MetaActionConfig:
         return max(1, int(round(seconds / FRAME_DT)))
 
 
-def speed_action(accel: float, threshold_ms2: float) -> str:
+def speed_action(accel: float, threshold_ms2: float) -> MetaSpeed:
     """accelerate / decelerate / maintain for a longitudinal acceleration (m/s^2)."""
     if accel > threshold_ms2:
         return "accelerate"
@@ -67,7 +67,9 @@ def speed_action(accel: float, threshold_ms2: float) -> str:
     return "maintain"
 
 
-def direction_action(heading_change_deg: float, lateral_m: float, stopped: bool, cfg: MetaActionConfig) -> str:
+def direction_action(
+    heading_change_deg: float, lateral_m: float, stopped: bool, cfg: MetaActionConfig
+) -> MetaDirection:
     """The direction for a heading change (degrees, left positive) and the end point's
     lateral offset (metres, left positive) over the direction window."""
     if stopped:

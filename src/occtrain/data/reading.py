@@ -59,7 +59,8 @@ def shard_members(url: str) -> list[SampleRef]:
     if cache_key in _MEMBERS:
         return _MEMBERS[cache_key]
     samples: list[SampleRef] = []
-    key, entries = None, []
+    key: str | None = None
+    entries: list[tuple[str, int, int]] = []
     try:
         with tarfile.open(url, "r:") as tar:
             for member in tar:
@@ -225,11 +226,11 @@ class ShardSamples(IterableDataset):
             return
         flat = [(s, ref) for s, refs in enumerate(members) for ref in refs]
         positions = own_val_positions(len(flat), self.rank, self.world, worker, workers)
-        if positions and positions[0] is None:
-            yield {**self.read(*flat[self.rank]), PAD_KEY: True}  # a copy of the rank's first sample
-            positions = positions[1:]
         for p in positions:
-            yield self.read(*flat[p])
+            if p is None:  # the padding sample, only ever first: a copy of the rank's first sample
+                yield {**self.read(*flat[self.rank]), PAD_KEY: True}
+            else:
+                yield self.read(*flat[p])
 
     def read(self, shard: int, ref: SampleRef) -> dict:
         """One sample's wanted entries, as bytes."""

@@ -45,7 +45,7 @@ def render_bev(
         rgb[~seen] *= UNSEEN_TINT
     # Rows: x forward goes up; columns: y left goes left.
     img = Image.fromarray(rgb[::-1, ::-1].astype(np.uint8)).resize(
-        (GRID_SHAPE[1] * scale, GRID_SHAPE[0] * scale), Image.NEAREST
+        (GRID_SHAPE[1] * scale, GRID_SHAPE[0] * scale), Image.Resampling.NEAREST
     )
     draw = ImageDraw.Draw(img)
     corners = np.array([[1, 1], [1, -1], [-1, -1], [-1, 1]]) * [EGO_LENGTH / 2, EGO_WIDTH / 2]
@@ -94,7 +94,10 @@ def surround(views: dict[str, np.ndarray], bev: Image.Image, gap: int = 4) -> Im
     views are scaled so each row spans at least the picture's width."""
     h, w = next(iter(views.values())).shape[:2]
     scale = max(1, int(np.ceil((bev.width - 2 * gap) / (3 * w))))
-    tiles = {name: Image.fromarray(img).resize((w * scale, h * scale), Image.NEAREST) for name, img in views.items()}
+    tiles = {
+        name: Image.fromarray(img).resize((w * scale, h * scale), Image.Resampling.NEAREST)
+        for name, img in views.items()
+    }
     row_w = 3 * w * scale + 2 * gap
     width = max(row_w, bev.width)
     out = Image.new("RGB", (width, 2 * h * scale + bev.height + 2 * gap), (255, 255, 255))

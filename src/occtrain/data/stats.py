@@ -225,7 +225,7 @@ def class_rows(stats: DatasetStats) -> list[tuple[str, str, str, str, str]]:
     ref = reference_class_shares()
     met = stats.targets()
     out = []
-    for name in sorted(ref, key=ref.get, reverse=True):
+    for name in sorted(ref, key=ref.__getitem__, reverse=True):
         ours = stats.class_shares[name]
         ok = met.get(f"class:{name}")
         out.append(
@@ -248,7 +248,7 @@ def class_chart(stats: DatasetStats, width: int = 720) -> np.ndarray:
     from occtrain.formats.occ3d import CLASS_COLORS
 
     ref = reference_class_shares()
-    names = sorted(ref, key=ref.get, reverse=True)
+    names = sorted(ref, key=ref.__getitem__, reverse=True)
     top = max(max(ref.values()), max(stats.class_shares.values()), 1e-9)
     row, label_w, pad = 22, 150, 8
     img = Image.new("RGB", (width, pad * 2 + row * len(names) + 20), "white")

@@ -13,10 +13,14 @@ from __future__ import annotations
 
 import re
 
-from occtrain.data.schema import MetaAction
+from occtrain.data.schema import MetaAction, MetaDirection, MetaSpeed
 
-META_SPEED_WORDS = {"accelerate": "accelerate", "decelerate": "decelerate", "maintain": "maintain speed"}
-META_DIRECTION_WORDS = {
+META_SPEED_WORDS: dict[MetaSpeed, str] = {
+    "accelerate": "accelerate",
+    "decelerate": "decelerate",
+    "maintain": "maintain speed",
+}
+META_DIRECTION_WORDS: dict[MetaDirection, str] = {
     "straight": "go straight",
     "left": "turn left",
     "right": "turn right",

@@ -23,6 +23,7 @@ from typing import (
     Any,
     Literal,
     NotRequired,
+    Protocol,
     Required,
     Union,
     get_args,
@@ -125,8 +126,14 @@ def _ok(tp: Any) -> Callable[[Any], bool]:
     raise TypeError(f"validate: unsupported type {tp!r}")  # a schema bug, not a user error
 
 
+class _TypedDictClass(Protocol):
+    """What a TypedDict class has that ``type`` does not declare."""
+
+    __required_keys__: frozenset[str]
+
+
 @cache
-def _fields(tp: type) -> tuple[dict[str, Any], frozenset[str]]:
+def _fields(tp: _TypedDictClass) -> tuple[dict[str, Any], frozenset[str]]:
     """A TypedDict's field types and required keys."""
     hints = get_type_hints(tp, include_extras=True)
     # Under `from __future__ import annotations`, Python 3.11 files NotRequired[...] fields

@@ -184,9 +184,9 @@ def write_shards(
         _remove_killed_rebuilds(out)
         if old is not None:
             return old
-    missing = (
-        {} if kinds is not None or "clips" in source["kinds"] else {"clips": clip_shortfall(index, history, future)}
-    )
+    # Without kinds named, clips are left out only when none fits: the shortfall says why.
+    shortfall = None if kinds is not None or "clips" in source["kinds"] else clip_shortfall(index, history, future)
+    missing = {} if shortfall is None else {"clips": shortfall}
     written = [k for k in KINDS if k in source["kinds"]]
 
     def write(into: Path, advance: Callable[[int], None]) -> dict:

@@ -34,6 +34,7 @@ from occtrain.data.schema import (
     META_ACCEL_THRESHOLD,
     STOP_SPEED,
     Box,
+    Flag,
     FrameAnnotation,
     MetaAction,
 )
@@ -109,6 +110,10 @@ def _relative(xy: np.ndarray, i: int, num_frames: int, pose_xy: np.ndarray, pose
     return pts, valid.astype(int)
 
 
+def _flags(mask: np.ndarray) -> list[Flag]:
+    return [1 if m else 0 for m in mask]
+
+
 def frame_annotation(
     scene: str, seed: int, i: int, num_frames: int, ego: EgoMotion, tracks: TrackSet
 ) -> FrameAnnotation:
@@ -148,12 +153,12 @@ def frame_annotation(
         "command": driving_command(future, fmask),
         "meta_action": meta_action(ego, i),
         "ego_future": _r(future),
-        "ego_future_mask": [int(m) for m in fmask],
+        "ego_future_mask": _flags(fmask),
         "ego_past": _r(past),
-        "ego_past_mask": [int(m) for m in pmask],
+        "ego_past_mask": _flags(pmask),
         "boxes": boxes,
         "agent_futures": _r(agent_future),
-        "agent_future_mask": [[int(m) for m in amask] for _ in inside],
+        "agent_future_mask": [_flags(amask) for _ in inside],
         "caption": "",
         "narration": "",
     }

@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 
-from occtrain.data.schema import STOP_SPEED
+from occtrain.data.schema import STOP_SPEED, Status
 from occtrain.formats.occ3d import CLASS_INDEX
 
 
@@ -81,7 +82,7 @@ class TrackSet:
         """(N, T, 2) global velocity: speed along the heading."""
         return self.speed[..., None] * np.stack([np.cos(self.yaw), np.sin(self.yaw)], axis=-1)
 
-    def attribute(self, n: int, t: int) -> str:
+    def attribute(self, n: int, t: int) -> Status | Literal[""]:
         """nuScenes-style status of object ``n`` at frame ``t`` (schema.STATUS_VALUES, or "")."""
         c = int(self.cls[n])
         if c in CYCLE_CLASSES:

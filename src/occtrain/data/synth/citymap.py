@@ -381,8 +381,9 @@ class CityPainter:
     def bus_stop(self, box: np.ndarray, side: int, a_mid: float) -> None:
         """A shelter just inside the sidewalk with two or three people standing by it."""
         shelter = self.frontage_rect(box, side, a_mid, 4.0, 1.6)
-        self.clear(*shelter, ground=OTHER_FLAT)  # a raised platform: nuScenes' flat.other
-        self.rect(*shelter, solid=(MANMADE, 0.0, 2.6))
+        x0, x1, y0, y1 = shelter
+        self.clear(x0, x1, y0, y1, ground=OTHER_FLAT)  # a raised platform: nuScenes' flat.other
+        self.rect(x0, x1, y0, y1, solid=(MANMADE, 0.0, 2.6))
         centre = np.array([(shelter[0] + shelter[1]) / 2, (shelter[2] + shelter[3]) / 2])
         along = np.array([1.0, 0.0]) if side < 2 else np.array([0.0, 1.0])
         for k in range(int(self.rng.integers(2, 4))):

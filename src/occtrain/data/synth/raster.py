@@ -132,13 +132,17 @@ def sensor_geometry(sensor: Sensor) -> _Geometry:
     )
 
 
-def _facing_free(occupied: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+#: Per axis (x, y, z): whether the neighbour on the minus side and on the plus side is free.
+FacingFree = tuple[tuple[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
+
+
+def _facing_free(occupied: np.ndarray) -> FacingFree:
     """Whether each voxel's x, y and z neighbours on either side are free (the border counts as free).
 
     Returns (x, y, z) where e.g. x[0] is "the -x neighbour is free" and x[1] "the +x one is".
     """
     free = ~occupied
-    out = []
+    out: list[tuple[np.ndarray, np.ndarray]] = []
     for axis in range(3):
         minus = np.ones_like(free)
         plus = np.ones_like(free)
@@ -148,10 +152,10 @@ def _facing_free(occupied: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarr
         minus[tuple(dst)] = free[tuple(src)]
         plus[tuple(src)] = free[tuple(dst)]
         out.append((minus, plus))
-    return tuple(out)
+    return out[0], out[1], out[2]
 
 
-def _front_surface(occupied: np.ndarray, free_nb, below: int) -> np.ndarray:
+def _front_surface(occupied: np.ndarray, free_nb: FacingFree, below: int) -> np.ndarray:
     """Occupied voxels above the ground with a free neighbour on a side facing the sensor.
 
     Any ray into a voxel enters through a face toward the sensor; if all those
@@ -167,7 +171,7 @@ def _front_surface(occupied: np.ndarray, free_nb, below: int) -> np.ndarray:
     return face
 
 
-def visibility(semantics: np.ndarray, sensor: Sensor, free_nb=None) -> np.ndarray:
+def visibility(semantics: np.ndarray, sensor: Sensor, free_nb: FacingFree | None = None) -> np.ndarray:
     """(X, Y, Z) bool: voxels the sensor observes (see the module docstring).
 
     ``free_nb`` may pass in :func:`_facing_free` of the occupancy when several sensors look

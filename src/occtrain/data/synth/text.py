@@ -15,8 +15,9 @@ decide whether a description ("the moving thing") is unique.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Literal, TypeVar
 
 import numpy as np
 
@@ -272,7 +273,10 @@ class _Scope:
 _QA = tuple[tuple, str, str]
 
 
-def _pick(rng: np.random.Generator, items: list):
+T = TypeVar("T")
+
+
+def _pick(rng: np.random.Generator, items: Sequence[T]) -> T:
     return items[int(rng.integers(len(items)))]
 
 
@@ -438,7 +442,7 @@ def questions_for_frame(frame: FrameAnnotation, rng: np.random.Generator, max_qu
         if len(asked) >= max_questions:
             break
         kind = _pick(rng, list(TEMPLATE_TYPES))
-        hop = int(rng.integers(2)) if refs else 0
+        hop: Literal[0, 1] = 1 if refs and rng.integers(2) == 1 else 0
         scope = _relation_scope(objs, *_pick(rng, refs), rng) if hop else everything
         qa = _ASKERS[kind](objs, scope, rng)
         if qa is None or qa[0] in asked:
@@ -517,7 +521,7 @@ def caption_for_frame(frame: FrameAnnotation) -> str:
 
 
 def _surroundings(frame: FrameAnnotation) -> str:
-    boxes = sorted(frame["boxes"], key=lambda b: float(np.hypot(*b["center"][:2])))
+    boxes = sorted(frame["boxes"], key=lambda b: float(np.hypot(b["center"][0], b["center"][1])))
     if not boxes:
         return "Surroundings: no other road users or objects are around the ego car."
     listed = "; ".join(_describe(b, definite=False) for b in boxes[:NARRATED_OBJECTS])
@@ -541,18 +545,18 @@ def _movers(frame: FrameAnnotation) -> str:
         valid = np.flatnonzero(mask)
         if len(valid) == 0:
             continue
-        fut = np.asarray(fut, dtype=np.float64).reshape(-1, 2)
+        path = np.asarray(fut, dtype=np.float64).reshape(-1, 2)
         last = valid[-1]
-        shift = fut[last] - np.asarray(box["center"][:2], dtype=np.float64)
+        shift = path[last] - np.asarray(box["center"][:2], dtype=np.float64)
         horizon = (last + 1) * FRAME_DT
         if np.hypot(*shift) / horizon < MOVER_MIN_SPEED:
             continue
         heading = _HEADING_WORDS[_sector8(shift)]
         text = f"{_describe(box, definite=True)} will move {np.hypot(*shift):.0f} m {heading} in {horizon:g} s"
         both = np.asarray(mask, dtype=bool) & ego_mask
-        if both.any() and np.hypot(*(fut[both] - ego_future[both]).T).min() < CONFLICT_DISTANCE:
+        if both.any() and np.hypot(*(path[both] - ego_future[both]).T).min() < CONFLICT_DISTANCE:
             text += " and come close to the ego's planned path"
-        found.append((float(np.hypot(*box["center"][:2])), text))
+        found.append((float(np.hypot(box["center"][0], box["center"][1])), text))
     if not found:
         return "Movement: nothing around is expected to move much in the next few seconds."
     found.sort(key=lambda f: f[0])

@@ -360,7 +360,7 @@ def settle_traffic(
                 drop_m |= {i, int(h)}
         keep_w = [k for k in range(len(walkers)) if k + nm not in losers]
         walkers = [walkers[k] for k in keep_w]
-        w_hist = tuple(a[keep_w] for a in w_hist)
+        w_hist = (w_hist[0][keep_w], w_hist[1][keep_w], w_hist[2][keep_w])
         if final:
             motion = motion.subset([i for i in range(nm) if i not in drop_m])
         active = [a for i, a in enumerate(active) if i not in drop_m]
