@@ -113,7 +113,11 @@ def progress_bar(total: int, description: str) -> Iterator[Callable[[int], None]
     :func:`interval_s` seconds and one at the end, so a log shows the work is moving."""
     if plain():
         ticker = Ticker(description, total)
-        yield lambda n=1: ticker.update(ticker.done + n)
+
+        def tick(n: int = 1) -> None:
+            ticker.update(ticker.done + n)
+
+        yield tick
         if total:
             ticker.say(final=True)
         return
@@ -127,4 +131,8 @@ def progress_bar(total: int, description: str) -> Iterator[Callable[[int], None]
         transient=False,
     ) as bar:
         task = bar.add_task(description, total=total)
-        yield lambda n=1: bar.advance(task, n)
+
+        def advance(n: int = 1) -> None:
+            bar.advance(task, n)
+
+        yield advance

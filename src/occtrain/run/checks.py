@@ -113,6 +113,7 @@ def refuse_unrunnable_trainers(planned: list[PlannedStage]) -> None:
 def refuse_missing_tasks(planned: list[PlannedStage], data: DataConfig) -> None:
     """Check each stage's task settings, and refuse a task (weighted above 0) whose sidecar
     the dataset lacks: a plain Occ3D release has occupancy and ego poses only."""
+    from occtrain.core.shared_tasks import TaskConfig
     from occtrain.data.layout import ANNOTATIONS_FILE
     from occtrain.stages.stage import lacking_tasks
 
@@ -124,8 +125,9 @@ def refuse_missing_tasks(planned: list[PlannedStage], data: DataConfig) -> None:
             continue
         key = f"stages.{p.spec.name}.model.tasks"
         settings = OmegaConf.to_object(tasks)
-        if hasattr(settings, "validate"):
-            settings.validate(key)
+        if not isinstance(settings, TaskConfig):  # a family's task settings extend it (the registry checks)
+            continue
+        settings.validate(key)
         weighted = [task for task, weight in (settings.weights or {}).items() if weight > 0]
         for task, why in (lacking_tasks(root, weighted) if exists and weighted else {}).items():
             raise ConfigError(f"task {task} {why} ({root}); add the sidecar or set {key}.weights.{task}=0")

@@ -11,7 +11,8 @@ from __future__ import annotations
 import contextlib
 import time
 import traceback
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from functools import partial
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -29,6 +30,9 @@ from occtrain.run.planning import PlannedStage, shadowed_overrides
 from occtrain.stages import Stage, StageContext
 
 if TYPE_CHECKING:  # imported where a stage is built (build_stage), as before
+    import torch
+    from lightning.pytorch.callbacks import Callback
+
     from occtrain.data.datamodule import ShardDataModule
 
 
@@ -71,6 +75,7 @@ def _execute(
     if ckpt is not None:
         say(f"[yellow]resuming[/] {stage.spec.name} from {ckpt} (step {resume_step})")
     trainer.fit(module, datamodule=datamodule, ckpt_path=ckpt, weights_only=True)
+    results: Sequence[Mapping[str, float | torch.Tensor]]
     if module.validated_at == trainer.global_step and trainer.global_step > 0:
         # fit validated the final weights already (generation makes validation costly).
         results = [{k: v for k, v in trainer.callback_metrics.items() if k.startswith("val/")}]
@@ -79,12 +84,13 @@ def _execute(
     metrics = {k: float(v) for k, v in (results[0] if results else {}).items()}
     report = module.report()
     metrics.update(report.metrics)
-    metrics.update(_measurements(trainer.callbacks))
+    callbacks: list[Callback] = trainer.callbacks  # type: ignore[attr-defined]  # Lightning sets it in its callback connector without declaring it on Trainer
+    metrics.update(_measurements(callbacks))
     artifacts: dict[str, str] = {}
     module.prepare_export()  # every rank: a sharded stage gathers its weights for rank zero
     if trainer.is_global_zero:
         export_dir = module.export(stage_dir / "export")
-        provenance = _validation_provenance(stage, trainer.callbacks, report.coverage, attempt or StageAttempt())
+        provenance = _validation_provenance(stage, callbacks, report.coverage, attempt or StageAttempt())
         write_metrics(stage_dir / "metrics.json", metrics, provenance)
         # Stages hand over raw scenes and texts; pictures are drawn here, not in the stages.
         if report.texts or report.scenes:
@@ -320,8 +326,8 @@ def _run_stages(
                 recipe,
                 stage_dir,
                 {d: exports[d] for d in p.spec.consumes},
-                record_time=lambda seconds, name=name: manifest.record_time(name, seconds),
-                record_attempt=lambda facts, name=name: manifest.record_attempt(name, facts),
+                record_time=partial(manifest.record_time, name),
+                record_attempt=partial(manifest.record_attempt, name),
                 attempt=StageAttempt(entry.config_hash, entry.attempts, entry.started),
             )
         except Interrupted as stop:

@@ -30,7 +30,7 @@ class StageKind:
     name: str
     model_schema: type
     data_kind: str  # "frames" or "clips"
-    module: type
+    module: type[Stage]
     #: Validation metric that picks ``best.ckpt``, and whether higher is better.
     monitor: str | None = None
     mode: str = "max"
