@@ -14,7 +14,7 @@ from occtrain.version import __version__
 def _cmd_config_show(args: argparse.Namespace) -> int:
     from occtrain.config import load_config, schema_for, to_yaml
 
-    cfg = load_config(schema_for(args.file, args.group), args.file, args.overrides)
+    cfg: object = load_config(schema_for(args.file, args.group), args.file, args.overrides)
     print(to_yaml(cfg), end="")
     return 0
 

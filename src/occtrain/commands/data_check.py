@@ -176,7 +176,7 @@ def _timing_problems(index: DatasetIndex, scene: str, tokens: list[str]) -> list
     if len(stamps) < 2 or any(s is None for s in stamps):
         return []  # Occ3D allows a token for a timestamp; the prev/next links gave the order
     ann = index.root / ANNOTATIONS_FILE
-    gaps = np.diff(np.asarray(stamps, dtype=np.int64)) / 1e6
+    gaps = np.diff(np.asarray(stamps, dtype=np.int64)).astype(np.float64) / 1e6
     if (gaps <= 0).any():
         return [f"{ann}: scene '{scene}' timestamps do not increase along its prev/next links"]
     if np.abs(gaps - FRAME_DT).max() > GAP_TOLERANCE:

@@ -280,8 +280,8 @@ def score_planning(pred_file: Path, gt_file: Path, allow_missing: bool = False) 
         with_agents[agents is not None].append((row, agents))
     for has_agents, rows in with_agents.items():
         if rows:
-            pred, gt, mask = (torch.from_numpy(np.stack(col)) for col in zip(*(r for r, _ in rows)))
-            metric.update(pred, gt, mask, [a for _, a in rows] if has_agents else None)
+            pred, gt, valid = (torch.from_numpy(np.stack(col)) for col in zip(*(r for r, _ in rows)))
+            metric.update(pred, gt, valid, [a for _, a in rows] if has_agents else None)
     return {"convention": PLANNING_CONVENTION, **metric.compute()}
 
 

@@ -202,12 +202,12 @@ def _grouped_tables(metrics: dict[str, float], names: list[str]) -> str:
         groups.setdefault(_convention(name), []).append(name)
     out = []
     for key, meaning in (*CONVENTIONS, (OTHER, OTHER)):
-        names = groups.get(key)
-        if not names:
+        group = groups.get(key)
+        if not group:
             continue
         rows = "".join(
             f'<tr><td>{escape(n)}</td><td class="num">{_num(metrics[n])}</td><td>{_paper_cell(n)}</td></tr>'
-            for n in names
+            for n in group
         )
         out.append(
             f"<h3>{escape(meaning if key != OTHER else OTHER)}</h3>"

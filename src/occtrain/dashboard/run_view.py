@@ -199,8 +199,10 @@ def _measure(name: str) -> tuple[str, str] | None:
 def charts_from_curves(curves: dict[str, list[tuple[float, float]]]) -> list[Chart]:
     """Training losses, validation losses, learning rate, then one chart per measure with a
     line per model and baseline (``MEASURES``); details stay in the final table."""
-    fixed = {"train loss": [], "validation loss": [], "learning rate": [], "codebook usage per train batch": [],
-             "codebook perplexity per train batch": [], THROUGHPUT: [], MFU: [], "train, other": []}  # fmt: skip
+    fixed: dict[str, list[Series]] = {
+        "train loss": [], "validation loss": [], "learning rate": [], "codebook usage per train batch": [],
+        "codebook perplexity per train batch": [], THROUGHPUT: [], MFU: [], "train, other": [],
+    }  # fmt: skip
     measures: dict[str, list[Series]] = defaultdict(list)
     for name, points in sorted(curves.items()):
         if name.startswith("lr-"):

@@ -187,7 +187,8 @@ def npz_bytes(arrays: dict[str, np.ndarray], compress: bool = True) -> bytes:
         if arr.dtype == object:
             raise ValueError(f"array '{name}' has object dtype; only plain numeric arrays are stored")
     buf = io.BytesIO()
-    (np.savez_compressed if compress else np.savez)(buf, **arrays)
+    # Named, the flag cannot be taken from an array called "allow_pickle".
+    (np.savez_compressed if compress else np.savez)(buf, allow_pickle=False, **arrays)
     return buf.getvalue()
 
 

@@ -39,8 +39,8 @@ def check_table(table: ComparisonTable | None, stages: list[str], source: str) -
     """Refuse, in one line naming the key, a table this recipe cannot fill."""
     if table is None:
         return
-    for key in ("columns", "rows"):
-        if not table[key]:
+    for key, entries in (("columns", table.columns), ("rows", table.rows)):
+        if not entries:
             raise ConfigError(f"table.{key} in {source} is empty; a table needs at least one column and one row")
     names: list[str] = []
     for i, col in enumerate(table.columns):
