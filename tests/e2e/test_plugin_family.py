@@ -1,7 +1,7 @@
 """Proof by plugin: a family written in tests/ (``plugins/tiny_family.py``: a continuous
-scene encoder, its own task and scorer, its own planner) runs pretrain -> instruct ->
-planner -> distill through the CLI, ``occtrain eval`` and the Python API, with no file of
-occtrain changed. docs/adding-a-family.md follows these steps."""
+scene encoder, an input of its own, its own task and scorer, its own planner) runs
+pretrain -> instruct -> planner -> distill through the CLI, ``occtrain eval`` and the
+Python API, with no file of occtrain changed. docs/adding-a-family.md follows these steps."""
 
 from __future__ import annotations
 
@@ -9,6 +9,7 @@ import json
 from pathlib import Path
 
 import pytest
+import torch
 
 from conftest import run_cli
 
@@ -77,6 +78,15 @@ def test_the_plugin_family_trains_every_stage_kind(tiny_run):
     # Its own planner, beside constant velocity.
     assert "val/head_L2_stp3_avg" in planner and "val/constant_velocity_L2_stp3_avg" in planner
     assert distill["student_params"] < distill["teacher_params"] and "val/teacher_car_columns_acc" in distill
+    # Its own input, which neither core nor the engine names, encoded once into the
+    # stage's cache and read by its Visibility parts: one row of 100 column shares a frame.
+    from safetensors.torch import load_file
+
+    (cached,) = (tiny_run / "pretrain" / "cache").glob("*/visible_columns.safetensors")
+    rows = load_file(str(cached))
+    assert len(rows) == 36 and {tuple(r.shape) for r in rows.values()} == {(100,)}
+    shares = torch.stack(list(rows.values()))
+    assert 0 < shares.mean() < 1 and shares.min() >= 0 and shares.max() <= 1
     # No scene tokenizer to copy: its encoder has no weights.
     assert not (tiny_run / "pretrain" / "export" / "scene_tokenizer").exists()
     assert json.loads((tiny_run / "pretrain" / "export" / "config.json").read_text())["family"] == "tiny_columns"

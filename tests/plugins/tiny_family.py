@@ -9,6 +9,11 @@ payload), predicts a scene's tokens from a query block and regresses their featu
 own task asks how many columns hold a car, graded by its own scorer beside the commonest
 answer; its own planner reads the world model's summary of the anchor scene.
 
+It also needs an input no shipped family reads: how much of each column the cameras see
+(the share of its voxels in the frame's ``mask_camera``). It registers that input with its
+spec (``sample_inputs``); its own prompt part, ``Visibility``, names the frame, and its
+builder reads the values by name. Neither core nor the engine knows the input.
+
 Registered by importing this module (a recipe's ``plugins: [plugins.tiny_family]``, or
 the ``occtrain.families`` entry point of an installed package).
 """
@@ -29,10 +34,13 @@ from torchmetrics import MeanMetric
 from occtrain.core import scorers
 from occtrain.core.builder import SequenceBuilder, batch_payload
 from occtrain.core.lm_world_model import LMWorldModel, WorldInputs, WorldModelOutput, token_ce
+from occtrain.core.protocols import PlannerSettings, PromptInputs
 from occtrain.core.registry import FamilySpec, WorldSpec, register_family
-from occtrain.core.sequence import IGNORE, TokenSequence
+from occtrain.core.sample_inputs import InputSource, SampleInput, Samples
+from occtrain.core.sequence import IGNORE, TokenSequence, empty_payload
 from occtrain.core.shared_tasks import TaskConfig, TaskSpec, each_question, forecast_after, questions_after
-from occtrain.data.clips import Clip, Part, Scene, Text, plan_target
+from occtrain.data.clips import Clip, Part, PromptPart, Scene, Text, plan_target
+from occtrain.data.layout import DatasetIndex
 from occtrain.formats.exports import write_export
 from occtrain.formats.occ3d import CLASS_INDEX, FUTURE_STEPS, GRID_SHAPE, NUM_CLASSES, VOXEL_SIZE
 from occtrain.metrics import PlanningMetric, compute_metrics
@@ -79,11 +87,47 @@ def load_column_encoder(export_dir: Path, config: dict) -> ColumnEncoder:
     return ColumnEncoder()
 
 
+# ----------------------------------------------------------------------------- its own input
+
+
+VISIBLE = "<visible>"
+
+
+def visible_columns(source: InputSource, index: DatasetIndex, samples: Samples) -> torch.Tensor:
+    """The share of each column's voxels the cameras see, (N, CELLS * CELLS)."""
+    masks = np.stack([index.labels(s, t)["mask_camera"] for s, t in samples]).astype(np.float32)
+    cols = masks.reshape(len(samples), CELLS, SIDE, CELLS, SIDE, -1).mean((2, 4, 5))
+    return torch.from_numpy(cols.reshape(len(samples), CELLS * CELLS))
+
+
+#: Encoded once per dataset (it reads every voxel of every frame), into
+#: ``visible_columns.safetensors`` in the stage's cache directory.
+VISIBLE_COLUMNS = SampleInput("visible_columns", visible_columns, encoded=True, what="measuring what the cameras see")
+
+
+@dataclass(frozen=True)
+class Visibility(PromptPart):
+    """How much of each column of sample ``token`` the cameras see (one token)."""
+
+    token: str
+    supervise: bool = False  # never: an input
+
+
 # ----------------------------------------------------------------------------- the world model
 
 
 class ColumnBuilder(SequenceBuilder):
-    """A scene is its 100 slot tokens carrying their features (a query block first when supervised)."""
+    """A scene is its 100 slot tokens carrying their features (a query block first when
+    supervised); the visibility of a frame is one ``<visible>`` token carrying its shares."""
+
+    def lay(self, part: Part, inputs: PromptInputs, scenes: dict[int, torch.Tensor]) -> ColumnBuilder:
+        if isinstance(part, Visibility):
+            payload = empty_payload(self.payload_spec, 1)
+            payload["visible"] = inputs.read(VISIBLE_COLUMNS.name, part.token).float()[None]
+            self.add(torch.tensor([self.vocab.extra_id(VISIBLE)]), False, payload=payload)
+            return self
+        super().lay(part, inputs, scenes)
+        return self
 
     def scene(self, features: torch.Tensor, supervise: bool = False) -> ColumnBuilder:
         v, n = self.vocab, self.vocab.scene_len
@@ -91,18 +135,12 @@ class ColumnBuilder(SequenceBuilder):
         self.add(torch.tensor([v.occ_open_id]), supervise)
         block = self.next_block()
         if supervise:
-            self.add(
-                v.query_ids(),
-                False,
-                seg=-block,
-                payload={"feat": torch.zeros(n, FEATURES), "target": feats, "has_target": torch.ones(n)},
-            )
-        self.add(
-            torch.arange(v.occ_start, v.occ_start + n),
-            False,
-            seg=block,
-            payload={"feat": feats, "target": torch.zeros(n, FEATURES), "has_target": torch.zeros(n)},
-        )
+            queries = empty_payload(self.payload_spec, n)
+            queries["target"], queries["has_target"] = feats, torch.ones(n)
+            self.add(v.query_ids(), False, seg=-block, payload=queries)
+        slots = empty_payload(self.payload_spec, n)
+        slots["feat"] = feats
+        self.add(torch.arange(v.occ_start, v.occ_start + n), False, seg=block, payload=slots)
         self.add(torch.tensor([v.occ_close_id]), supervise)
         return self
 
@@ -117,11 +155,8 @@ class ColumnScene:
         v = self.world.vocab
         self.feats = self.world.predict_features(hidden)
         n = v.scene_len
-        payload = {
-            "feat": self.feats,
-            "target": torch.zeros_like(self.feats),
-            "has_target": torch.zeros(n, device=hidden.device),
-        }
+        payload = empty_payload(self.world.payload_spec, n, hidden.device)
+        payload["feat"] = self.feats
         return torch.arange(v.occ_start, v.occ_start + n, device=hidden.device), payload
 
     def codes(self) -> torch.Tensor:
@@ -140,7 +175,9 @@ class ColumnWorldModel(LMWorldModel):
             "feat": ((FEATURES,), torch.float32, 0.0),
             "target": ((FEATURES,), torch.float32, 0.0),
             "has_target": ((), torch.float32, 0.0),
+            "visible": ((CELLS * CELLS,), torch.float32, 0.0),
         }
+        self.embed_visible = nn.Linear(CELLS * CELLS, hidden)
         centres = ColumnEncoder().centres
         self.register_buffer("centres", centres, persistent=False)
 
@@ -155,7 +192,9 @@ class ColumnWorldModel(LMWorldModel):
         if not payload:
             return emb
         slots = self.vocab.is_occ(input_ids)[..., None]
-        return emb + slots * self.embed_features(payload["feat"]).to(emb.dtype)
+        visible = (input_ids == self.vocab.extra_id(VISIBLE))[..., None]
+        emb = emb + slots * self.embed_features(payload["feat"]).to(emb.dtype)
+        return emb + visible * self.embed_visible(payload["visible"]).to(emb.dtype)
 
     def predict_shares(self, hidden: torch.Tensor) -> torch.Tensor:
         """Hidden states (..., H) -> each height's class shares (..., Z * C)."""
@@ -189,7 +228,7 @@ class ColumnWorldModel(LMWorldModel):
 
     @staticmethod
     def vocab_layout(inputs: WorldInputs, world_cfg: Any = None) -> dict:
-        return {"codebook_sizes": [], "scene_hw": (CELLS, CELLS), "patch": 1}
+        return {"codebook_sizes": [], "scene_hw": (CELLS, CELLS), "patch": 1, "extra": (VISIBLE,)}
 
     @classmethod
     def create(cls, llm, vocab, inputs, scene_prediction, world_cfg=None) -> ColumnWorldModel:
@@ -212,7 +251,7 @@ class ColumnTasks(TaskConfig):
 
 def _context(clip: Clip, cfg: ColumnTasks) -> list[Part]:
     a = clip.anchor_index
-    return [Scene(f) for f in range(max(0, a - cfg.context_frames), a + 1)]
+    return [Visibility(clip.anchor["token"]), *(Scene(f) for f in range(max(0, a - cfg.context_frames), a + 1))]
 
 
 def car_columns(clip: Clip, cfg: ColumnTasks, rng) -> list[Part] | None:
@@ -268,7 +307,7 @@ TASKS = {
 
 
 @dataclass
-class SummaryPlannerConfig:
+class SummaryPlannerConfig(PlannerSettings):
     """The planner's settings (flat in a planner stage's ``model:``)."""
 
     hidden: int = 32
@@ -279,6 +318,9 @@ class SummaryPlanner(nn.Module):
     constant velocity (a ``core.protocols.Planner``)."""
 
     monitor = "val/head_L2_stp3_avg"
+
+    def closed_loop_refusal(self) -> str | None:
+        return None
 
     def __init__(self, ctx: Any, teacher: Any):
         super().__init__()
@@ -372,6 +414,7 @@ TINY = register_family(
             },
             prompt_words=("How many columns hold a car?", "Forecast."),
             inputs=(),
+            sample_inputs=(VISIBLE_COLUMNS,),
             scene_encoder=column_encoder,
             load_scene_encoder=load_column_encoder,
             planner=SummaryPlanner,

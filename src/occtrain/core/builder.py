@@ -126,7 +126,7 @@ class SequenceBuilder:
     def lay(self, part: Part, inputs: PromptInputs, scenes: dict[int, torch.Tensor]) -> SequenceBuilder:
         """Lay one part out: text, a scene (its row in ``scenes``, by clip frame), actions,
         a branch. A family's builder lays its own kinds of part (images, occupancy queries,
-        ...) from ``inputs`` (the engine: image tokens, voxel labels by sample token)."""
+        ...) from ``inputs``: the per-sample inputs its family registers, read by name."""
         if isinstance(part, Text):
             return self.text(part.text, part.supervise)
         if isinstance(part, Scene):

@@ -14,7 +14,8 @@ shows them in use.
 - :class:`SceneMover`: a scene moved by the ego and re-encoded (what the moved query
   blocks hold); the engine makes it.
 - :class:`PromptInputs`: what a sequence builder reads besides a prompt's parts (the
-  engine's encodings of a dataset's frames), so a family's own part kinds can be laid out.
+  per-sample inputs its family registered, served by the engine), so a family's own part
+  kinds can be laid out.
 - :class:`Planner`: what the ``planner`` stage trains (OccVLA's MLP head on the meta
   action, a diffusion planner, ...), Lightning-free; it answers :class:`Plans`.
 """
@@ -121,12 +122,10 @@ class SceneMover(Protocol):
 
 class PromptInputs(Protocol):
     """What a sequence builder's ``lay`` reads for the parts that hold no values of their
-    own, by sample token: the world-model engine's cached image tokens Float[T, D] of a
-    frame's cameras and its voxel labels Long[X, Y, Z]."""
+    own: the input ``name`` of sample ``token``, one its family registered
+    (``core.sample_inputs.SampleInput`` in ``WorldSpec.sample_inputs``)."""
 
-    def image_tokens(self, token: str) -> torch.Tensor: ...
-
-    def voxels(self, token: str) -> torch.Tensor: ...
+    def read(self, name: str, token: str) -> torch.Tensor: ...
 
 
 @runtime_checkable
@@ -178,14 +177,19 @@ class Scorer(Protocol):
     def reset(self) -> None: ...
 
 
+#: Which clips an ``EvalHook`` scores: the first evaluated task's, or every frame with a
+#: whole 3 s future (a forecast head's).
+TASK_CLIPS, FUTURE_CLIPS = "task", "future"
+
+
 @runtime_checkable
 class EvalHook(Protocol):
     """Family-level scoring after the tasks' (e.g. an occupancy query branch), on the
-    clips of the first evaluated task, or with a class attribute ``clips = "future"`` on
-    every frame with a whole 3 s future (a forecast head's). ``applies(engine)``: whether
-    it runs at all."""
+    clips its ``clips`` names (``TASK_CLIPS`` or ``FUTURE_CLIPS``). ``applies(engine)``:
+    whether it runs at all."""
 
     metrics: dict[str, Callable[[], Any]]
+    clips: str
 
     def applies(self, engine: WorldEngine) -> bool: ...
 
@@ -210,10 +214,30 @@ class Plans:
         return cls(xy, np.zeros(len(xy), dtype=bool))
 
 
-@runtime_checkable
+@dataclass
+class PlannerSettings:
+    """Base of a family planner's settings (``WorldSpec.planner_config``, flat in a planner
+    stage's ``model:``): what the planner stage asks of them, with defaults."""
+
+    def validate(self, where: str) -> None:
+        """Refuse settings that cannot work, in one line naming ``where``."""
+
+    def needs_teacher(self) -> bool:
+        """Whether the planner reads the consumed stage's world model (loaded, frozen)."""
+        return True
+
+
 class Planner(Protocol):
     """What a ``planner`` stage trains, given the stage's settings and, when it reads one,
-    the frozen world model of the consumed stage (``teacher``). A ``torch.nn.Module``."""
+    the frozen world model of the consumed stage (``teacher``). A ``torch.nn.Module``.
+    ``monitor``: the validation metric that picks its best checkpoint (lower is better)."""
+
+    monitor: str
+
+    def closed_loop_refusal(self) -> str | None:
+        """Why its plans cannot drive closed loop (e.g. they read a logged input the
+        closed loop does not have), or None."""
+        ...
 
     def training_loss(self, clips: list) -> torch.Tensor | None: ...
 

@@ -29,7 +29,8 @@ from typing import TYPE_CHECKING, Any
 
 from omegaconf import DictConfig, OmegaConf
 
-from occtrain.core.protocols import EvalHook, Scorer
+from occtrain.core.protocols import EvalHook, PlannerSettings, Scorer
+from occtrain.core.sample_inputs import SampleInput
 from occtrain.core.shared_tasks import TaskConfig, TaskSpec
 from occtrain.errors import ConfigError, OcctrainError, cause_line
 from occtrain.formats.exports import check_section, load_state_strict, read_export, require_config, write_export
@@ -89,6 +90,9 @@ class WorldSpec:
     load_scene_encoder: Callable[..., Any] | None = None
     #: It reads the cameras through a vision stage's frozen encoder.
     reads_cameras: bool = False
+    #: The per-sample inputs its prompt parts read by name (``PromptInputs.read``): the
+    #: engine encodes or reads them as each declares, and knows none of them itself.
+    sample_inputs: tuple[SampleInput, ...] = ()
     #: Family-level scoring classes (``core.protocols.EvalHook``), made per evaluator.
     eval_hooks: tuple[type, ...] = ()
     #: ``(stage context, teacher engine or None) -> core.protocols.Planner``: what its
@@ -185,12 +189,27 @@ def _check(spec: FamilySpec) -> None:
         unknown = set(weights) - set(world.tasks)
         if unknown:
             raise ConfigError(f"{where}: default {kind} task '{sorted(unknown)[0]}' is not one of its tasks")
+    for given in world.sample_inputs:
+        if not isinstance(given, SampleInput):
+            raise ConfigError(f"{where}: its input {given!r} is not an occtrain.core.sample_inputs.SampleInput")
+    names = [i.name for i in world.sample_inputs]
+    if len(set(names)) != len(names):
+        raise ConfigError(f"{where}: two of its sample_inputs share a name ({names})")
+    if any(i.reads_cameras for i in world.sample_inputs) and not world.reads_cameras:
+        raise ConfigError(f"{where}: an input reads the cameras, so the world spec needs reads_cameras=True")
     if world.scene_encoder is not None and world.load_scene_encoder is None:
         raise ConfigError(
             f"{where}: a scene encoder built at pretraining needs load_scene_encoder to come back from an export"
         )
     if world.planner is not None and world.planner_config is None:
         raise ConfigError(f"{where}: its planner needs a planner_config dataclass (model.head of a planner stage)")
+    if world.planner_config is not None and not (
+        inspect.isclass(world.planner_config) and issubclass(world.planner_config, PlannerSettings)
+    ):
+        raise ConfigError(
+            f"{where}: its planner_config {world.planner_config!r} does not extend "
+            "occtrain.core.protocols.PlannerSettings"
+        )
 
 
 def scorer_factories(task: TaskSpec) -> tuple[Callable[[], Any], ...]:

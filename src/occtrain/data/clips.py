@@ -79,26 +79,6 @@ class Branch(PromptPart):
     supervise: bool = False  # never: a marker, not an answer
 
 
-@dataclass(frozen=True)
-class Images(PromptPart):
-    """The camera views of sample ``token`` as image tokens (a vision-language model's input)."""
-
-    token: str
-    supervise: bool = False  # never: an input
-
-
-@dataclass(frozen=True)
-class Occupancy(PromptPart):
-    """Occupancy queries that read the images before them and are trained, with loss
-    weight ``weight``, to give the voxels of sample ``token`` (OccVLA); nothing after them
-    sees them, so a prompt leaves them out at inference."""
-
-    read_after: ClassVar[bool] = False
-    token: str
-    weight: float = 1.0
-    supervise: bool = False  # their loss is their own, not the answer's
-
-
 @dataclass
 class Clip:
     """One clip sample as the stages receive it (see ``collate_clips``)."""

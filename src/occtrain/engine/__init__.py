@@ -7,10 +7,9 @@ from __future__ import annotations
 from occtrain.engine.evaluator import Evaluator, Priors, evaluation_clips, scorable
 from occtrain.engine.export import export_engine, load_world_model, new_world_model
 from occtrain.engine.speed import compare_generation_speed, speed_prompt
-from occtrain.engine.world_engine import IMAGE_CACHE, SCENE_CACHE, TEXT_ENTRIES, WorldModelEngine, move_batch
+from occtrain.engine.world_engine import SCENE_CACHE, TEXT_ENTRIES, WorldModelEngine, move_batch
 
 __all__ = [
-    "IMAGE_CACHE",
     "SCENE_CACHE",
     "TEXT_ENTRIES",
     "Evaluator",

@@ -18,6 +18,7 @@ import numpy as np
 import torch
 from torchmetrics import Metric
 
+from occtrain.core.protocols import FUTURE_CLIPS
 from occtrain.core.registry import scorer_factories
 from occtrain.core.scorers import Item, Priors
 from occtrain.core.shared_tasks import TaskSpec, question_of
@@ -65,7 +66,6 @@ def scorable(tasks: dict[str, TaskSpec], weights: dict[str, float] | None = None
 
 
 #: What a hook sets ``clips`` to for every frame with a whole 3 s future (not the first task's clips).
-FUTURE_CLIPS = "future"
 
 #: Dashboard samples kept per validation: texts per task (chains of thought are long),
 #: pictures per kind.
@@ -232,12 +232,12 @@ class Evaluator(torch.nn.Module):
     def _hooks(self, engine: WorldModelEngine) -> list:
         """The hooks that run: those that apply, and that have clips (a hook on the first
         task's clips runs only beside a task)."""
-        return [h for h in self.hooks if h.applies(engine) and (self.tasks or getattr(h, "clips", "") == FUTURE_CLIPS)]
+        return [h for h in self.hooks if h.applies(engine) and (self.tasks or h.clips == FUTURE_CLIPS)]
 
     def _hook_clips(self, engine, index, split, hook, samples, seed) -> list[Clip]:
         """A hook's clips: with ``clips = "future"`` every frame with a whole 3 s future (a
         fixed subset of ``samples`` of them), else the first evaluated task's."""
-        if getattr(hook, "clips", "") != FUTURE_CLIPS:
+        if hook.clips != FUTURE_CLIPS:
             return self._task_clips(engine, index, split, self.tasks[0], samples, seed)
         key = (split, FUTURE_CLIPS, samples, seed, engine.tasks.context_frames)
         if key not in self._clip_cache:

@@ -2,7 +2,8 @@
 through and the text tokenizer, used as one with the task settings the model is trained with.
 
 It encodes what the prompts read through a frozen encoder once per dataset (scenes
-through the scene encoder, camera views through the vision encoder; cached on disk),
+through the scene encoder, and the per-sample inputs the family registered as encoded,
+such as camera views through the vision encoder; cached on disk),
 turns clips into token sequences through the family's tasks, and rolls answers out by
 generation. Training stages, ``occtrain eval``, the planner, distillation, the Python API
 and the benchmarks all use it; it names no family and never imports Lightning.
@@ -27,6 +28,7 @@ from occtrain.core.lm_world_model import LMWorldModel
 from occtrain.core.packing import pack_rows
 from occtrain.core.protocols import CameraSceneEncoder, SceneEncoder
 from occtrain.core.registry import get_world
+from occtrain.core.sample_inputs import SampleInput
 from occtrain.core.sequence import TokenSequence
 from occtrain.core.shared_tasks import TaskConfig, sample_task, unpacked
 from occtrain.core.vocab import JointVocab
@@ -41,8 +43,6 @@ from occtrain.progress import progress_bar
 
 #: The scene cache's file name, completed by the key of what made it (``scene_cache_key``).
 SCENE_CACHE = "scenes-{key}.safetensors"
-#: The file of the image-token cache (a vision-language world model's frozen camera features).
-IMAGE_CACHE = "image_tokens.safetensors"
 #: The shard entries a world-model stage trains on when scenes come from the cache.
 TEXT_ENTRIES = ("ann.json", "qa.json", "narration.txt")
 
@@ -134,10 +134,13 @@ class WorldModelEngine(torch.nn.Module):
         self.spec = get_world(family, "family")
         #: The family's tasks (builders, evaluation items, scorers), by name.
         self.task_specs = dict(self.spec.tasks)
-        #: Sample token -> the scene encoder's row / the pooled image tokens, when the
-        #: dataset was encoded ahead (see ``prepare_inputs``); the dataset they come from.
+        #: The per-sample inputs the family's parts read (``PromptInputs.read``), by name.
+        self.sample_inputs: dict[str, SampleInput] = {i.name: i for i in self.spec.sample_inputs}
+        #: Sample token -> the scene encoder's row, when the dataset was encoded ahead (see
+        #: ``prepare_inputs``); input name -> sample token -> row, for the encoded inputs;
+        #: the dataset they come from.
         self.scene_cache: dict[str, torch.Tensor] | None = None
-        self.image_cache: dict[str, torch.Tensor] | None = None
+        self.input_caches: dict[str, dict[str, torch.Tensor]] = {}
         self.data_index: DatasetIndex | None = None
         self._scene_cache_root: Path | None = None
         # The scene cache's rows back to their frames, made from the cache it was made from.
@@ -163,6 +166,10 @@ class WorldModelEngine(torch.nn.Module):
         return self.spec.operations.get(name)
 
     # -- what the prompts read through frozen encoders
+    def encoded_inputs(self) -> list[SampleInput]:
+        """The family's inputs made through a frozen encoder (encoded once per dataset)."""
+        return [i for i in self.sample_inputs.values() if i.encoded]
+
     def reads_scenes(self) -> bool:
         """Whether the world model's prompts hold scenes (through the scene encoder)."""
         return self.scene_encoder is not None and self.world.reads_scenes
@@ -197,17 +204,17 @@ class WorldModelEngine(torch.nn.Module):
     def prepare_inputs(
         self, data_root: str | Path, cache_dir: Path | None = None, shared_cache_dir: Path | None = None
     ) -> None:
-        """Encode once what the prompts read through a frozen encoder (the camera views of a
-        model that reads them; the scenes of one whose prompts hold scenes), cached in
-        ``cache_dir`` (in memory only without one; scenes only with one, unless the scene
-        encoder reads the cameras: its scenes are always encoded ahead).
+        """Encode once what the prompts read through a frozen encoder (the family's encoded
+        inputs, such as camera views; the scenes of a model whose prompts hold scenes),
+        cached in ``cache_dir`` (in memory only without one; scenes only with one, unless
+        the scene encoder reads the cameras: its scenes are always encoded ahead).
 
         The scenes go to ``shared_cache_dir`` when given (else ``cache_dir``) under a name
         keyed by their content (``scene_cache_key``), so the stages of a run that read one
         scene encoder encode the dataset once between them."""
         self.data_index = index = DatasetIndex.open(data_root)
-        if self.vision is not None:
-            self.prepare_images(data_root, cache_dir / IMAGE_CACHE if cache_dir is not None else None)
+        for given in self.encoded_inputs():
+            self.prepare_input(given, index, cache_dir / given.cache_file if cache_dir is not None else None)
         if (
             self.reads_scenes()
             and (cache_dir is not None or self.scenes_from_cameras())
@@ -249,9 +256,6 @@ class WorldModelEngine(torch.nn.Module):
         rows = encoder.encode(sem)
         return rows.to(torch.int32) if encoder.discrete else rows.float()
 
-    def _image_rows(self, index: DatasetIndex, chunk: list[tuple[str, str]]) -> torch.Tensor:
-        return self.encode_images(torch.from_numpy(np.stack([index.images(s, t) for s, t in chunk])))
-
     @torch.no_grad()
     def add_samples(self, index: DatasetIndex, samples: list[tuple[str, str]]) -> None:
         """Encode what the prompts read of these samples of ``index`` through the frozen
@@ -259,10 +263,9 @@ class WorldModelEngine(torch.nn.Module):
         its frames one planning step at a time, where ``prepare_inputs`` encodes a dataset whole."""
         self.data_index = index
         tokens = [t for _, t in samples]
-        if self.vision is not None:
-            cache = self.image_cache if self.image_cache is not None else {}
-            cache.update(zip(tokens, self._image_rows(index, samples).cpu()))
-            self.image_cache = cache
+        for given in self.encoded_inputs():
+            cache = self.input_caches.setdefault(given.name, {})
+            cache.update(zip(tokens, given.rows(self, index, samples).cpu()))
         if self.reads_scenes():
             cache = self.scene_cache if self.scene_cache is not None else {}
             cache.update(zip(tokens, self._scene_rows(index, samples).cpu()))
@@ -281,7 +284,10 @@ class WorldModelEngine(torch.nn.Module):
             }
             self._frames_from = self.scene_cache
         token = self._frame_of_codes.get(codes.reshape(-1).long().cpu().numpy().tobytes())
-        return None if token is None else self.voxels(token).long()
+        if token is None:
+            return None
+        index = self.data_index
+        return torch.from_numpy(index.labels(index.scene_of(token), token)["semantics"]).long()
 
     @torch.no_grad()
     def decode_scenes(self, scenes: torch.Tensor) -> torch.Tensor:
@@ -312,44 +318,40 @@ class WorldModelEngine(torch.nn.Module):
         tokens, grid = self.vision(images.to(self.vision.camera_embed.device))
         return self.world.pool_images(tokens, grid, images.shape[1]).float()
 
-    def prepare_images(self, data_root: str | Path, cache_file: Path | None = None, batch_size: int = 8) -> None:
-        """Encode every frame's cameras once (the encoder is frozen), kept in ``cache_file``
-        (safetensors, written atomically; in memory only without one). A no-op for a world
-        model without cameras."""
-        if self.vision is None:
+    def prepare_input(
+        self, given: SampleInput, index: DatasetIndex, cache_file: Path | None = None, batch_size: int = 8
+    ) -> None:
+        """Encode one of the family's encoded inputs for every frame of ``index`` once (its
+        encoder is frozen), kept in ``cache_file`` (safetensors, written atomically; in
+        memory only without one). A no-op when it is encoded already."""
+        if given.name in self.input_caches:
             return
-        self.data_index = index = DatasetIndex.open(data_root)
-        if self.image_cache is not None:
-            return
-        if not index.has_cameras and (cache_file is None or not cache_file.is_file()):
+        if given.reads_cameras and not index.has_cameras and (cache_file is None or not cache_file.is_file()):
             raise DataError(
-                f"{data_root}: the dataset has no camera images, which the '{self.family}' world model reads"
+                f"{index.root}: the dataset has no camera images, which the '{self.family}' world model reads"
             )
-
-        self.image_cache = per_sample_cache(
-            index,
-            cache_file,
-            "encoding the cameras with the frozen vision encoder",
-            partial(self._image_rows, index),
-            batch_size,
+        self.input_caches[given.name] = per_sample_cache(
+            index, cache_file, given.what or f"encoding {given.name}", partial(given.rows, self, index), batch_size
         )
 
     # -- what a family's parts read (see ``SequenceBuilder.lay``)
     def scene(self, frame: int, scenes: dict[int, torch.Tensor]) -> torch.Tensor:
         return scenes[frame]
 
-    def image_tokens(self, token: str) -> torch.Tensor:
-        """The pooled image tokens of sample ``token`` (``prepare_inputs`` first)."""
-        if self.image_cache is None:
-            raise RuntimeError("prepare_inputs(data_root) before laying out images")
-        return self.image_cache[token]
-
-    def voxels(self, token: str) -> torch.Tensor:
-        """The occupancy labels uint8 (X, Y, Z) of sample ``token``, from the dataset."""
+    def read(self, name: str, token: str) -> torch.Tensor:
+        """The family's input ``name`` of sample ``token`` (``PromptInputs``): an encoded
+        one from its cache, another read from the dataset (``prepare_inputs`` first)."""
+        given = self.sample_inputs.get(name)
+        if given is None:
+            raise KeyError(f"the '{self.family}' family registers no input '{name}' (WorldSpec.sample_inputs)")
+        if given.encoded:
+            if name not in self.input_caches:
+                raise RuntimeError(f"prepare_inputs(data_root) before laying out a part that reads '{name}'")
+            return self.input_caches[name][token]
         if self.data_index is None:
-            raise RuntimeError("prepare_inputs(data_root) before laying out occupancy targets")
+            raise RuntimeError(f"prepare_inputs(data_root) before laying out a part that reads '{name}'")
         index = self.data_index
-        return torch.from_numpy(index.labels(index.scene_of(token), token)["semantics"])
+        return given.rows(self, index, [(index.scene_of(token), token)])[0]
 
     # -- sequences
     def encode_parts(self, parts: list[Part], scenes: dict[int, torch.Tensor]) -> TokenSequence:

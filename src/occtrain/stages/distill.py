@@ -120,10 +120,10 @@ class DistillStage(Stage):
         self.val_means = ValidationMeans("val/loss", "val/token_acc")
         self._teacher_scores: dict[str, float] | None = None
         self._entries: dict[str, tuple[str, ...] | None] = {}
-        if teacher.vision is not None or (cfg.cache_codes and teacher.reads_scenes()):
+        if teacher.encoded_inputs() or (cfg.cache_codes and teacher.reads_scenes()):
             # One cache, shared: teacher and student read the same scenes and views.
             self.teacher.prepare_inputs(ctx.data.root, ctx.cache_dir, ctx.shared_cache_dir)
-            self.student.scene_cache, self.student.image_cache = self.teacher.scene_cache, self.teacher.image_cache
+            self.student.scene_cache, self.student.input_caches = self.teacher.scene_cache, self.teacher.input_caches
             self.student.data_index = self.teacher.data_index
             self._entries = (
                 {"train": TEXT_ENTRIES} if teacher.reads_scenes() else {"train": TEXT_ENTRIES, "val": TEXT_ENTRIES}
@@ -236,7 +236,8 @@ class DistillStage(Stage):
         if not (teacher_export / "config.json").is_file():
             raise ConfigError(f"{teacher_export}: the distill stage's teacher export is missing; its speedup needs it")
         teacher = load_world_model(teacher_export).eval()
-        teacher.scene_cache, teacher.image_cache = student.scene_cache, student.image_cache  # the same frozen encoders
+        # The same frozen encoders: the student's encodings serve the teacher.
+        teacher.scene_cache, teacher.input_caches = student.scene_cache, student.input_caches
         speed = compare_generation_speed(
             {"teacher": teacher, "student": student}, speed_prompt(student, request.data_root, request.split)
         )

@@ -151,7 +151,7 @@ class WorldModelStage(Stage):
         self._full: FullCopy | None = None
         self._gathered: dict[str, Any] = {}
         engine = self.engine
-        if engine.vision is not None or (cfg.cache_codes and engine.reads_scenes()):
+        if engine.encoded_inputs() or (cfg.cache_codes and engine.reads_scenes()):
             engine.prepare_inputs(ctx.data.root, ctx.cache_dir, ctx.shared_cache_dir)
             # Training then reads no occupancy; validation still scores forecasts against it.
             # A model whose prompts hold no scenes takes its occupancy targets from the

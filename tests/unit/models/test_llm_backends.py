@@ -154,8 +154,9 @@ def paligemma_dir(tmp_path_factory):
 def test_occvla_takes_a_paligemma_directory_for_its_vision_tower_and_llm(
     paligemma_dir, tmp_path, synth_dataset, tokenizer_export
 ):
-    from occtrain.data.clips import Images, Occupancy, Text
+    from occtrain.data.clips import Text
     from occtrain.families.occvla import TaskConfig as VLATasks
+    from occtrain.families.occvla.parts import Images, Occupancy
     from occtrain.models.camera_encoder import DenseHead, MultiViewEncoder, VisionConfig, export_vision
 
     path, original = paligemma_dir

@@ -14,6 +14,7 @@ from functools import partial
 
 from occtrain.core.meta_action_planner import MetaActionPlannerConfig, load_meta_action_planner, meta_action_planner
 from occtrain.core.registry import FamilySpec, Showcase, WorldSpec, register_family
+from occtrain.core.sample_inputs import IMAGE_TOKENS, VOXELS
 from occtrain.core.scene_encoders import load_vq_scene_encoder, vq_scene_encoder
 from occtrain.families.occvla.config import OccVLAWorldConfig
 from occtrain.families.occvla.operations import OPERATIONS
@@ -42,6 +43,8 @@ OCCVLA = register_family(
             scene_encoder=vq_scene_encoder,
             load_scene_encoder=load_vq_scene_encoder,
             reads_cameras=True,
+            # What its parts read (parts.Images, parts.Occupancy).
+            sample_inputs=(IMAGE_TOKENS, VOXELS),
             eval_hooks=(OccupancyQueries,),
             # Stage 3: the MLP head on the meta action it labels from the poses.
             planner=partial(meta_action_planner, sidecar_reference=False),

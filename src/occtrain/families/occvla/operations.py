@@ -9,7 +9,8 @@ import torch
 
 from occtrain.core import shared_operations
 from occtrain.core.builder import collate
-from occtrain.data.clips import Clip, Images
+from occtrain.data.clips import Clip
+from occtrain.families.occvla.parts import Images
 from occtrain.families.occvla.tasks import read_meta_action
 
 

@@ -9,10 +9,12 @@ from typing import Any
 import torch
 from torchmetrics import MeanMetric
 
+from occtrain.core.protocols import TASK_CLIPS
 from occtrain.core.scorers import BaseScorer, Item, last_past_meta_action
-from occtrain.data.clips import Clip, Images
+from occtrain.data.clips import Clip
 from occtrain.data.meta_actions import commonest
 from occtrain.data.text_formats import meta_action_words, parse_meta_action
+from occtrain.families.occvla.parts import Images
 from occtrain.metrics import MetaActionAccuracy, OccupancyMetric
 from occtrain.metrics.occupancy import OCC3D, OCCWORLD
 
@@ -64,6 +66,7 @@ class OccupancyQueries:
     """OccVLA's query branch on each clip's anchor, when the stage trains it: one forward of
     the images and the queries, decoded by the frozen OccWorld decoder, scored in both conventions."""
 
+    clips = TASK_CLIPS
     metrics = {
         "occupancy_occ3d": lambda: OccupancyMetric(OCC3D),
         "occupancy_occworld": lambda: OccupancyMetric(OCCWORLD),

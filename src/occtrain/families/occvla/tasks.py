@@ -21,11 +21,12 @@ from occtrain.core import scorers
 from occtrain.core.scorers import last_past_meta_action
 from occtrain.core.shared_tasks import TaskConfig as BaseTaskConfig
 from occtrain.core.shared_tasks import TaskSpec, each_question, questions_after
-from occtrain.data.clips import Clip, Images, Occupancy, Part, Text
+from occtrain.data.clips import Clip, Part, Text
 from occtrain.data.meta_actions import MetaActionConfig, label, past_labels
 from occtrain.data.schema import MetaAction
 from occtrain.data.text_formats import caption_surroundings, format_meta_action, meta_action_words, parse_meta_action
 from occtrain.errors import ConfigError
+from occtrain.families.occvla.parts import Images, Occupancy
 from occtrain.families.occvla.scoring import MetaActionScorer
 from occtrain.formats.occ3d import FRAME_DT
 

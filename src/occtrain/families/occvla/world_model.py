@@ -36,8 +36,9 @@ from occtrain.core.protocols import PromptInputs
 from occtrain.core.sequence import IGNORE, PayloadSpec, TokenSequence, empty_payload, head, tail
 from occtrain.core.shared_tasks import TaskConfig as BaseTaskConfig
 from occtrain.core.vocab import JointVocab
-from occtrain.data.clips import Images, Occupancy, Part
+from occtrain.data.clips import Part
 from occtrain.families.occvla.config import OccVLAWorldConfig
+from occtrain.families.occvla.parts import Images, Occupancy
 from occtrain.families.occvla.tasks import TaskConfig
 from occtrain.models.camera_encoder import pool_views
 from occtrain.models.patches import unpatchify
@@ -52,9 +53,9 @@ class VLASequenceBuilder(SequenceBuilder):
 
     def lay(self, part: Part, inputs: PromptInputs, scenes: dict[int, torch.Tensor]) -> VLASequenceBuilder:
         if isinstance(part, Images):
-            return self.images(inputs.image_tokens(part.token))
+            return self.images(inputs.read("image_tokens", part.token))
         if isinstance(part, Occupancy):
-            return self.occupancy(inputs.voxels(part.token), part.weight)
+            return self.occupancy(inputs.read("voxels", part.token), part.weight)
         return super().lay(part, inputs, scenes)
 
     def images(self, features: torch.Tensor) -> VLASequenceBuilder:

@@ -11,6 +11,7 @@ LoRA) and ``planner`` (the LLM-guided anchor-diffusion planner).
 from __future__ import annotations
 
 from occtrain.core.registry import FamilySpec, Showcase, TokenizerArch, WorldSpec, register_family
+from occtrain.core.sample_inputs import VOXELS
 from occtrain.families.sparseoccvla.anchor_diffusion import AnchorDiffusionConfig, AnchorDiffusionPlanner
 from occtrain.families.sparseoccvla.config import SparseOccConfig, SparseOccVLAWorldConfig
 from occtrain.families.sparseoccvla.encoder import SparseOccEncoder
@@ -38,6 +39,8 @@ SPARSEOCCVLA = register_family(
             world_config=SparseOccVLAWorldConfig,
             prompt_words=PROMPT_WORDS,
             inputs=("tokenizer",),
+            # A forecast's targets: the future frame's points, drawn from its voxels.
+            sample_inputs=(VOXELS,),
             scene_encoder=sparse_scene_encoder,
             load_scene_encoder=load_sparse_scene_encoder,
             eval_hooks=(ForecastHead,),

@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from occtrain.core.protocols import WorldEngine
+from occtrain.core.protocols import FUTURE_CLIPS, WorldEngine
 from occtrain.core.scorers import FORECAST_BASELINES, forecast_baselines, forecast_metric
 from occtrain.data.clips import Clip, Text
 from occtrain.families.sparseoccvla.tasks import FORECAST_PROMPT, context
@@ -39,7 +39,7 @@ def paper_frame(position: int, scene_frames: int) -> bool:
 class ForecastHead:
     """The forecaster on every frame with a whole future (see the module docstring)."""
 
-    clips = "future"
+    clips = FUTURE_CLIPS
     metrics = {
         **{f"{what}_{sel}{OCCWORLD}": forecast_metric for what in PREDICTIONS for sel in SELECTIONS},
         "reconstruction_occworld": lambda: OccupancyMetric(OCCWORLD, subsets={"movable": MOVABLE_CLASSES}),

@@ -254,7 +254,7 @@ class SparseOccVLAWorldModel(LMWorldModel):
         cache = self.__dict__["_future_points"]
         if token not in cache:
             points, classes, n = occupied_points(
-                inputs.voxels(token).numpy(), self.gt_points, clip_rng(0, token), self.gt_keep, self.gt_share
+                inputs.read("voxels", token).numpy(), self.gt_points, clip_rng(0, token), self.gt_keep, self.gt_share
             )
             cache[token] = (points, classes, torch.arange(self.gt_points) < n)
         return cache[token]

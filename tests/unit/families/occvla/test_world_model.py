@@ -16,10 +16,11 @@ from occtrain.core.builder import collate
 from occtrain.core.decoding import TextAnswer
 from occtrain.core.registry import build_tokenizer
 from occtrain.core.vocab import JointVocab
-from occtrain.data.clips import Clip, Images, Occupancy, Text
+from occtrain.data.clips import Clip, Text
 from occtrain.data.meta_actions import KMH_PER_S, MetaActionConfig, label, past_labels
 from occtrain.errors import ConfigError
 from occtrain.families.occvla import OccVLAWorldConfig, OccVLAWorldModel
+from occtrain.families.occvla.parts import Images, Occupancy
 from occtrain.families.occvla.tasks import META_PROMPT, META_QUESTION, TaskConfig, meta_action
 from occtrain.formats.occ3d import GRID_SHAPE
 from occtrain.metrics import MetaActionAccuracy

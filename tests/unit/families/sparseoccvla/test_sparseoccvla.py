@@ -458,9 +458,10 @@ def sparse_world():
 
 
 class _Voxels:
-    """What the builder reads future frames' labels from (the engine's ``voxels``)."""
+    """What the builder reads future frames' labels from (the engine's ``voxels`` input)."""
 
-    def voxels(self, token: str) -> torch.Tensor:
+    def read(self, name: str, token: str) -> torch.Tensor:
+        assert name == "voxels"
         sem = torch.full(GRID_SHAPE, FREE, dtype=torch.uint8)
         sem[100 + len(token), 100, 2] = 4
         sem[90, 95:99, 3] = 11
