@@ -30,7 +30,7 @@ from torch import nn
 from torchmetrics import MeanMetric
 
 from occtrain.core.plan_subsets import departing_rows, plan_metrics, update_plans
-from occtrain.core.protocols import Plans, WorldEngine
+from occtrain.core.protocols import PlannerSettings, Plans, WorldEngine
 from occtrain.data.clips import Clip, frame_clips, plan_target
 from occtrain.data.layout import DatasetIndex
 from occtrain.data.schema import COMMANDS, META_DIRECTIONS, META_SPEEDS
@@ -58,7 +58,7 @@ TEACHER_CACHE = "teacher_outputs"
 
 
 @dataclass
-class MetaActionPlannerConfig:
+class MetaActionPlannerConfig(PlannerSettings):
     """The planning head's settings (flat in ``model:`` of a planner stage)."""
 
     hidden: int = 256
@@ -157,6 +157,14 @@ class MetaActionPlanner(nn.Module):
 
     #: What picks the best checkpoint (lower is better): the head on the reference meta action.
     monitor = "val/head_gt_meta_L2_stp3_avg"
+
+    def closed_loop_refusal(self) -> str | None:
+        if self.cfg.meta_source == "generated":
+            return None
+        return (
+            "this planning head plans on the logged meta action (model.meta_source: ground_truth), which "
+            "closed-loop driving does not have; train it with meta_source: generated"
+        )
 
     def __init__(
         self,

@@ -8,7 +8,7 @@ import functools
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol, runtime_checkable
 
 import lightning as L
 import torch
@@ -20,6 +20,23 @@ from occtrain.data.reading import PAD_KEY
 from occtrain.models.compiling import compile_all, use_cache_dir
 from occtrain.progress import console
 from occtrain.stages.stage import StepWork
+
+
+@runtime_checkable
+class MeteredStep(Protocol):
+    """What ``StepMeter`` reads of the module it times; ``Stage`` declares both."""
+
+    #: Whether the meter may count its first computing step's FLOPs (``FlopCounterMode``).
+    count_flops: bool
+    #: What its last step processed, or None: the batch's samples alone.
+    step_work: StepWork | None
+
+
+@runtime_checkable
+class CompilesBlocks(Protocol):
+    """What ``CompileBlocks`` reads of the module it compiles; ``Stage`` declares it."""
+
+    def compiled_blocks(self) -> list[torch.nn.Module]: ...
 
 
 class TrackConsumed(Callback):
@@ -182,7 +199,7 @@ class StepMeter(Callback):
         self.peak_flops = device_peak_flops(pl_module.device, str(trainer.precision))
 
     def on_train_batch_start(self, trainer: L.Trainer, pl_module: L.LightningModule, *args: Any) -> None:
-        counts = self.count_flops and pl_module.count_flops
+        counts = self.count_flops and isinstance(pl_module, MeteredStep) and pl_module.count_flops
         if counts and self._flops_per_sample is None and self._counter is None:
             self._counter = FlopCounterMode(display=False)
             self._counter.__enter__()
@@ -199,8 +216,8 @@ class StepMeter(Callback):
         if pl_module.device.type == "cuda":
             torch.cuda.synchronize(pl_module.device)  # the step's kernels are queued, not done
         seconds = time.perf_counter() - self._began
-        work = getattr(pl_module, "step_work", None)
-        work = work if isinstance(work, StepWork) else StepWork(samples=_batch_samples(batch))
+        work = pl_module.step_work if isinstance(pl_module, MeteredStep) else None
+        work = work if work is not None else StepWork(samples=_batch_samples(batch))
         if self._counter is not None:  # the counted step: slowed by counting, so given no FLOPs
             self._stop_counting(work.samples)
         elif work.flops is None and self._flops_per_sample is not None:
@@ -337,7 +354,7 @@ class CompileBlocks(Callback):
         if self.cache_dir is not None:
             where, self._restore = use_cache_dir(self.cache_dir)
             cache = f"; inductor caches in {where}"
-        blocks: list[torch.nn.Module] = getattr(pl_module, "compiled_blocks", list)()
+        blocks = pl_module.compiled_blocks() if isinstance(pl_module, CompilesBlocks) else []
         compiled = compile_all(blocks)
         if trainer.is_global_zero:
             kinds = ", ".join(sorted({type(b).__name__ for b in blocks}))

@@ -17,6 +17,7 @@ import torch
 from lightning.pytorch.utilities.types import OptimizerLRSchedulerConfig
 
 from occtrain.config import to_object
+from occtrain.core.protocols import PlannerSettings
 from occtrain.core.registry import get_world
 from occtrain.data.clips import clips_from_batch, frame_clips
 from occtrain.data.layout import DatasetIndex
@@ -33,8 +34,9 @@ from occtrain.stages.stage import EvalRequest, EvalResult, Stage, StageContext, 
 
 
 @dataclass
-class PlannerStageConfig:
-    """What every planner stage takes, whatever its family's planner."""
+class PlannerStageConfig(PlannerSettings):
+    """What every planner stage takes, whatever its family's planner (whose settings,
+    ``PlannerSettings`` too, a stage's schema joins to these)."""
 
     #: Validation batches that run the world model's generation (-1: all of them). The
     #: model is frozen, so each clip's outputs are generated once and reused.
@@ -74,11 +76,12 @@ class PlannerStage(Stage):
         super().__init__(ctx)
         cfg = to_object(ctx.model_cfg)
         where = f"stages '{ctx.spec.name}'"
-        if hasattr(cfg, "validate"):
-            cfg.validate(where)
+        if not isinstance(cfg, PlannerStageConfig):  # the family's settings joined to the stage's
+            raise ConfigError(f"{where}: the planner's settings {type(cfg).__name__} are not a planner stage's")
+        cfg.validate(where)
         export = next(iter(ctx.inputs.values()))
         teacher = None
-        if getattr(cfg, "needs_teacher", lambda: True)():
+        if cfg.needs_teacher():
             teacher = load_world_model(export)
             if cfg.max_new_text_tokens > 0:
                 teacher.with_settings(max_new_text_tokens=cfg.max_new_text_tokens)
@@ -94,7 +97,7 @@ class PlannerStage(Stage):
 
     def monitored(self, kind: StageKind) -> tuple[str | None, str]:
         """The planner's own metric (``monitor``, lower is better), else the kind's."""
-        return getattr(self.planner, "monitor", kind.monitor), "min"
+        return self.planner.monitor, "min"
 
     def entries(self, split: str) -> tuple[str, ...] | None:
         # The world model's prompts read the text entries; its scenes or images come from its caches.
@@ -155,11 +158,9 @@ class PlannerStage(Stage):
         """The planner on the world model's outputs for each driven frame (its meta action
         generated, never the logged one: closed loop has no log to read it from)."""
         planner, teacher = cls.load_planner(request, "occtrain drive")
-        if getattr(getattr(planner, "cfg", None), "meta_source", "generated") != "generated":
-            raise ConfigError(
-                f"{request.export}: this planning head plans on the logged meta action (model.meta_source: "
-                "ground_truth), which closed-loop driving does not have; train it with meta_source: generated"
-            )
+        refusal = planner.closed_loop_refusal()
+        if refusal is not None:
+            raise ConfigError(f"{request.export}: {refusal}")
         return StageDriver(teacher, planner.waypoints)
 
     @staticmethod

@@ -17,6 +17,7 @@ from lightning.pytorch.strategies import ModelParallelStrategy
 from occtrain.config.groups import TrainerConfig
 from occtrain.core.lm_world_model import LMWorldModel
 from occtrain.errors import ConfigError
+from occtrain.stages.stage import Stage
 
 #: ``trainer.strategy`` that shards parameters, gradients and AdamW state over every rank (FSDP2).
 SHARDED = "fsdp"
@@ -44,10 +45,11 @@ class ShardedStrategy(ModelParallelStrategy):
 
     def load_checkpoint(self, checkpoint_path: Any, weights_only: bool | None = None) -> dict[str, Any]:
         module = self.lightning_module
-        check = getattr(module, "check_checkpoint_keys", None)
-        if module is None or check is None:
+        if not isinstance(module, Stage):
             return super().load_checkpoint(checkpoint_path, weights_only)
-        check(torch.load(checkpoint_path, map_location="cpu", weights_only=True, mmap=True)["state_dict"].keys())
+        module.check_checkpoint_keys(
+            torch.load(checkpoint_path, map_location="cpu", weights_only=True, mmap=True)["state_dict"].keys()
+        )
         strict, module.strict_loading = module.strict_loading, False  # the frozen keys are absent by design
         try:
             return super().load_checkpoint(checkpoint_path, weights_only)

@@ -171,6 +171,9 @@ class Stage(L.LightningModule, ABC):
     frozen_prefixes: tuple[str, ...] = ()
     #: Whether its frames batches carry the camera images and their dense targets (``images``, ``cam_class``, ...).
     reads_cameras: ClassVar[bool] = False
+    #: What its last training step processed, set by a stage that counts more than the
+    #: batch's samples (tokens, FLOPs); None: ``callbacks.StepMeter`` counts the samples.
+    step_work: StepWork | None = None
     #: Whether ``occtrain eval`` scores its exports (``evaluate_export``).
     evaluable: ClassVar[bool] = False
     #: Whether that eval records predictions (``EvalRequest.record``) for ``--save-predictions``.

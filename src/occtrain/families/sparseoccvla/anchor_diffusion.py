@@ -41,7 +41,7 @@ from occtrain.config import to_object
 from occtrain.core.builder import collate
 from occtrain.core.decoding import TextAnswer
 from occtrain.core.plan_subsets import departing_rows, plan_metrics, update_plans
-from occtrain.core.protocols import Plans
+from occtrain.core.protocols import PlannerSettings, Plans
 from occtrain.core.shared_tasks import PLAN_PRIORS, plan_base
 from occtrain.data.clips import Clip, Text, frame_clips, plan_target
 from occtrain.data.layout import DatasetIndex
@@ -63,7 +63,7 @@ DECISION_CACHE = "decisions.safetensors"
 
 
 @dataclass
-class AnchorDiffusionConfig:
+class AnchorDiffusionConfig(PlannerSettings):
     """The planner's settings (flat in a planner stage's ``model:``)."""
 
     #: K-means anchors K (Table 11: 15, 18, 21; the paper's 18).
@@ -112,9 +112,6 @@ class AnchorDiffusionConfig:
                 f"{where}: model.plan_prior '{self.plan_prior}' is not one of {', '.join(PLAN_PRIORS)} (paper: none)"
             )
         step_spacing(self.noise_timestep, self.denoise_steps, self.train_timesteps, where)
-
-    def needs_teacher(self) -> bool:
-        return True
 
 
 def step_spacing(start: int, steps: int, train_timesteps: int, where: str = "model") -> int:
@@ -226,6 +223,9 @@ class AnchorDiffusionPlanner(nn.Module):
 
     #: What picks the best checkpoint (lower is better).
     monitor = "val/plan_L2_stp3_avg"
+
+    def closed_loop_refusal(self) -> str | None:
+        return None  # it reads the world model's decision, which closed loop generates too
 
     def __init__(
         self,
