@@ -95,7 +95,7 @@ MUTANTS = (
     Mutant(
         "wrong-1s-frame",
         "the 1 s forecast horizon reads the 0.5 s frame",
-        "src/occtrain/commands/score.py",
+        "src/occtrain/metrics/conventions.py",
         "FORECAST_HORIZONS = (1, 3, 5)",
         "FORECAST_HORIZONS = (0, 3, 5)",
         ("tests/unit/commands/test_score.py::test_forecast_hand_case",),

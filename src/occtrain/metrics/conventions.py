@@ -19,3 +19,10 @@ STP3, UNIAD = "stp3", "uniad"
 def horizon_label(index: int) -> str:
     """Future frame index -> seconds label: 1 -> '1s', 0 -> '0.5s' (frames at 2 Hz)."""
     return f"{(index + 1) * FRAME_DT:g}s"
+
+
+#: The future frames a forecast is scored at (1, 2 and 3 s at 2 Hz), and the file of one
+#: sample's forecast that ``occtrain score forecast`` reads and ``occtrain eval
+#: --save-predictions`` writes (``<scene>/<token>/forecast.npz``, 'semantics' (T, X, Y, Z)).
+FORECAST_HORIZONS = (1, 3, 5)
+FORECAST_FILE = "forecast.npz"

@@ -17,7 +17,7 @@ import pytest
 from PIL import Image
 
 from conftest import REPO
-from occtrain.commands.dashboard import register
+from occtrain.cli.dashboard import register
 from occtrain.core.published import REAL_DATA, all_figures, figures_for, metric_words
 from occtrain.dashboard import bev_comparison, read_samples, write_dashboard, write_samples
 from occtrain.dashboard.svg import Frame, nice_ticks, tick_labels

@@ -11,7 +11,7 @@ from occtrain.report import results
 from occtrain.report.results import Run, report
 
 
-def run_report(args: argparse.Namespace) -> int:
+def _cmd_report(args: argparse.Namespace) -> int:
     if args.out:
         check_output(args.out, "--out")  # before the runs are read
     runs = [Run.read(Path(p), args.split) for p in args.runs]
@@ -44,4 +44,4 @@ def register(sub: argparse._SubParsersAction) -> None:
         action="store_true",
         help="set runs side by side although their worlds, scored subsets or code differ (the page says how)",
     )
-    p.set_defaults(func=run_report)
+    p.set_defaults(func=_cmd_report)
