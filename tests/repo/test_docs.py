@@ -84,3 +84,33 @@ def test_every_results_page_is_a_commands_output_with_its_stamp():
         # A run by recipe, seed, code and world: never by where it lay on the machine that made it.
         absolute = MACHINE_PATH.search(page.read_text())
         assert absolute is None, f"{page.name}: names a path of the machine that made it ({absolute.group(0)!r})"
+
+
+#: What a lab notebook leaves in prose and a reader cannot use: issue numbers, commit
+#: hashes, dates and "this stop". Stamped result pages carry code versions and dates by
+#: design (their stamp), so they are left out.
+NOTEBOOK_MARKER = re.compile(
+    r"\b[Ii]ssues? #?\d+|#\d{2,}\b|\bthis (?:stop|session)\b|\b20\d\d-\d\d-\d\d\b"
+    r"|\b(?=[0-9a-f]*[a-f])(?=[0-9a-f]*\d)[0-9a-f]{7,40}\b"
+)
+
+
+def notebook_markers(text: str) -> list[str]:
+    return [m.group(0) for m in NOTEBOOK_MARKER.finditer(text)]
+
+
+def test_no_page_reads_like_a_lab_notebook():
+    """The docs say what holds now; who changed what when is git's and the issues' record."""
+    pages = [REPO / "README.md", *sorted((REPO / "docs").rglob("*.md"))]
+    found = [
+        f"{page.relative_to(REPO)}: {marker!r}"
+        for page in pages
+        if "results" not in page.relative_to(REPO).parts
+        for marker in notebook_markers(page.read_text())
+    ]
+    assert found == []
+
+
+def test_the_notebook_check_catches_each_marker():
+    text = "fixed in issue 42 (#57) at 985fb17 on 2026-11-29, this stop; 0.1.0 at 1,593 s and 2.13 GiB"
+    assert notebook_markers(text) == ["issue 42", "#57", "985fb17", "2026-11-29", "this stop"]
