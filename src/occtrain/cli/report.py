@@ -15,12 +15,7 @@ def _cmd_report(args: argparse.Namespace) -> int:
     if args.out:
         check_output(args.out, "--out")  # before the runs are read
     runs = [Run.read(Path(p), args.split) for p in args.runs]
-    split = ["--split", args.split] if args.split != "val" else []
-    title = ["--title", f"'{args.title}'"] if args.title else []
-    mixed_flag = ["--allow-mixed"] if args.allow_mixed else []
-    # The runs by their place in the list below, not by where they lie on this machine.
-    named = [f"RUN_{i}" for i in range(len(runs))]
-    command = " ".join(["occtrain report", *named, *split, *title, *mixed_flag])
+    command = results.command_line(len(runs), args.split, args.title, args.allow_mixed)
     page = report(runs, args.split, command, args.title, args.allow_mixed)
     if args.out:
         atomic_write_text(Path(args.out), page)

@@ -248,6 +248,15 @@ def _rows(runs: list[Run]) -> list[tuple[str, str, int, str, list[tuple[str, str
     return rows
 
 
+def command_line(runs: int, split: str = "val", title: str = "", allow_mixed: bool = False) -> str:
+    """The ``occtrain report`` command a page says wrote it, naming its runs by their place
+    in the page's list (``RUN_0`` ...), never by where they lay on the machine that made it."""
+    split_flag = ["--split", split] if split != "val" else []
+    title_flag = ["--title", f"'{title}'"] if title else []
+    mixed_flag = ["--allow-mixed"] if allow_mixed else []
+    return " ".join(["occtrain report", *(f"RUN_{i}" for i in range(runs)), *split_flag, *title_flag, *mixed_flag])
+
+
 def report(
     runs: list[Run], split: str = "val", command: str = "occtrain report", title: str = "", allow_mixed: bool = False
 ) -> str:

@@ -1,0 +1,205 @@
+"""Regenerate every results page from a set of run directories.
+
+    python tools/results_pages.py RUNS... [--only PAGE] [--out docs/results]
+
+``docs/results/pages.yaml`` declares each page: its file, its title, and the runs it is
+made from, each named by its recipe and training seed (``quickstart@1``, or
+``quickstart@1/planner`` for a drive table's stage; ``quickstart@1@9683d16`` where the code
+that trained it tells it from another), never by a directory. RUNS are run
+directories, or folders holding them; a run is found by what its manifest records (the
+recipe's name, the training seed and the code that trained it), so the same pages come
+from run directories anywhere, on any machine. A page's runs must be scored already
+(``occtrain eval`` of each stage it reports; ``--data FOLDER`` for a page on another
+world, which names that folder as ``world:``; ``occtrain drive`` of a drive table's stages).
+
+Each page is written by the command its own first lines name (``occtrain report`` or
+``tools/drive_table.py``), so a regenerated page is that command's output, stamped with its
+runs. A page whose runs are not all among RUNS is left as it is and listed; a recipe and
+seed found twice (two codes) must be told apart by the code.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import json
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import yaml
+
+from occtrain.formats.io import atomic_write_text
+from occtrain.report.results import Run, command_line, report
+
+REPO = Path(__file__).resolve().parents[1]
+PAGES = REPO / "docs" / "results" / "pages.yaml"
+
+
+@dataclass(frozen=True)
+class Page:
+    """One results page as ``pages.yaml`` declares it."""
+
+    file: str
+    title: str = ""
+    #: Runs of an ``occtrain report`` page, ``recipe@seed``.
+    runs: tuple[str, ...] = ()
+    #: Stages of a drive table, ``recipe@seed/stage``.
+    drive: tuple[str, ...] = ()
+    #: The folder name of the world the runs were scored on with ``occtrain eval --data``
+    #: (empty: the runs' own val split).
+    world: str = ""
+    #: The code version every run must carry (to tell apart runs of one recipe and seed).
+    code: str = ""
+    allow_mixed: bool = False
+    #: A paragraph set under the heading (e.g. why the page is superseded).
+    note: str = ""
+
+    @classmethod
+    def of(cls, entry: dict) -> Page:
+        known = set(cls.__dataclass_fields__)
+        unknown = sorted(set(entry) - known)
+        if unknown or "file" not in entry or bool(entry.get("runs")) == bool(entry.get("drive")):
+            raise SystemExit(
+                f"error: page {entry.get('file', '?')}: give file and either runs or drive"
+                + (f" (unknown keys: {', '.join(unknown)})" if unknown else "")
+            )
+        return cls(
+            **{k: tuple(v) if k in ("runs", "drive") else v for k, v in entry.items()},
+        )
+
+
+@dataclass(frozen=True)
+class FoundRun:
+    path: Path
+    recipe: str
+    seed: str
+    code: str
+
+
+def find_runs(roots: list[Path]) -> list[FoundRun]:
+    """Every run directory in ``roots`` (a run directory or a folder of them), with what
+    its manifest says trained it."""
+    found = []
+    for root in roots:
+        candidates = [root] if (root / "manifest.json").is_file() else sorted(root.glob("*/manifest.json"))
+        for manifest_file in [c / "manifest.json" if c.is_dir() else c for c in candidates]:
+            manifest = json.loads(manifest_file.read_text())
+            stages = manifest.get("stages", {}).values()
+            seeds = {str((e.get("config") or {}).get("trainer", {}).get("seed", "?")) for e in stages}
+            codes = {e.get("code_version") or "?" for e in stages}
+            found.append(
+                FoundRun(
+                    manifest_file.parent,
+                    str(manifest.get("name", "")),
+                    ",".join(sorted(seeds)),
+                    ",".join(sorted(codes)),
+                )
+            )
+    return found
+
+
+def resolve(name: str, page: Page, runs: list[FoundRun]) -> Path | None:
+    """The run directory ``recipe@seed[@code]`` names among ``runs`` (None: not among them)."""
+    recipe, _, rest = name.partition("@")
+    seed, _, code = rest.partition("@")
+    code = code or page.code
+    matches = [r for r in runs if r.recipe == recipe and r.seed == seed and (not code or code in r.code)]
+    if len(matches) > 1:
+        raise SystemExit(
+            f"error: {page.file}: {name} is {len(matches)} runs ({', '.join(sorted(r.code for r in matches))}); "
+            "name the code in the page's code:"
+        )
+    return matches[0].path if matches else None
+
+
+def split_of(page: Page, runs: list[Path]) -> str:
+    """The eval split a page reports: ``val``, or that of the world folder it names."""
+    if not page.world:
+        return "val"
+    keys = {
+        d.parent.name
+        for run in runs
+        for d in run.glob(f"*/eval/{page.world}-*/val")
+        if not d.parent.name.endswith("+blank_cameras")
+    }
+    if len(keys) != 1:
+        raise SystemExit(
+            f"error: {page.file}: its runs hold {len(keys)} evaluations on a world folder named "
+            f"{page.world!r} ({', '.join(sorted(keys)) or 'none'}); score each stage with "
+            f"`occtrain eval RUN/STAGE --data {page.world}` of one world"
+        )
+    return f"{keys.pop()}/val"
+
+
+def with_note(text: str, note: str) -> str:
+    if not note:
+        return text
+    head, _, rest = text.partition("\n\n")
+    return f"{head}\n\n> {note.strip()}\n\n{rest}"
+
+
+def _drive_table():
+    spec = importlib.util.spec_from_file_location("drive_table", REPO / "tools" / "drive_table.py")
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+def render(page: Page, runs: list[FoundRun]) -> tuple[str | None, list[str]]:
+    """The page's text, or None and the runs it lacks."""
+    if page.runs:
+        paths = [resolve(name, page, runs) for name in page.runs]
+        missing = [name for name, path in zip(page.runs, paths) if path is None]
+        if missing:
+            return None, missing
+        found = [p for p in paths if p is not None]
+        split = split_of(page, found)
+        scored = [Run.read(path, split) for path in found]
+        command = command_line(len(scored), split, page.title, page.allow_mixed)
+        return with_note(report(scored, split, command, page.title, page.allow_mixed), page.note), []
+    stages, missing = [], []
+    for name in page.drive:
+        run_name, _, stage = name.partition("/")
+        path = resolve(run_name, page, runs)
+        if path is None:
+            missing.append(name)
+        else:
+            stages.append(path / stage)
+    if missing:
+        return None, missing
+    table = _drive_table()
+    return with_note(table.markdown(table.summaries(stages, 8, 1000, 20.0, drive=False)), page.note), []
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
+    parser.add_argument("runs", nargs="+", type=Path, help="run directories, or folders holding them")
+    parser.add_argument("--only", action="append", default=[], metavar="PAGE", help="regenerate this page alone")
+    parser.add_argument("--out", type=Path, default=PAGES.parent, help="where the pages go (default docs/results)")
+    parser.add_argument("--pages", type=Path, default=PAGES, help="the page list (default docs/results/pages.yaml)")
+    args = parser.parse_args(argv)
+    pages = [Page.of(entry) for entry in yaml.safe_load(args.pages.read_text())["pages"]]
+    unknown = set(args.only) - {p.file for p in pages}
+    if unknown:
+        raise SystemExit(f"error: --only {sorted(unknown)[0]}: no such page in {args.pages.name}")
+    runs = find_runs(args.runs)
+    written, left = 0, []
+    for page in pages:
+        if args.only and page.file not in args.only:
+            continue
+        text, missing = render(page, runs)
+        if text is None:
+            left.append(f"{page.file} (needs {', '.join(missing)})")
+            continue
+        atomic_write_text(args.out / page.file, text)
+        print(f"{page.file} <- {', '.join(page.runs or page.drive)}")
+        written += 1
+    print(f"{written} page(s) written; {len(left)} left as they are" + "".join(f"\n  {p}" for p in left))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
