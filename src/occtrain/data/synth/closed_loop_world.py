@@ -18,6 +18,7 @@ the expert's, taken along the route (``observe_static``), as every training fram
 
 from __future__ import annotations
 
+import copy
 import hashlib
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
@@ -276,6 +277,24 @@ class DrivingWorld:
         """The expert's next 3 s (its logged positions every FRAME_DT) in the ego frame."""
         idx = np.minimum(self.step + STRIDE * np.arange(1, FUTURE_STEPS + 1), self.expert.xy.shape[1] - 1)
         return global_to_ego(self.expert.xy[0, idx], self.ego.xy, self.ego.yaw)
+
+    def expert_from_here(self) -> np.ndarray:
+        """What the expert would drive from the ego's state now (ego frame, every FRAME_DT
+        for FUTURE_STEPS frames): its controller (the IDM on its route, stopping at red
+        lights and behind leaders) takes over at the ego's projection on the route and its
+        speed, in a copy of the reactive traffic run forward; the world itself is untouched.
+        Unlike ``expert_plan`` (where the expert went in the logged episode), it answers
+        from any state the planner drives into, the label DAgger asks of an expert."""
+        traffic = copy.copy(self.traffic)  # only the arc lengths and speeds change as it runs
+        traffic.s, traffic.v = self.traffic.s.copy(), self.traffic.v.copy()
+        traffic.s[0], traffic.v[0] = self.log.progress[-1], self.ego.speed
+        ahead = []
+        for k in range(FUTURE_STEPS * STRIDE):
+            xy, yaw, _, env = traffic.pose()
+            traffic.advance(self.step + k, xy, yaw, env)
+            if (k + 1) % STRIDE == 0:
+                ahead.append(traffic.pose()[0][0].copy())
+        return global_to_ego(np.array(ahead), self.ego.xy, self.ego.yaw)
 
     def view(self, plan: np.ndarray) -> ViewFrame:
         """The bird's-eye frame of now, with ``plan`` (ego frame) drawn."""

@@ -153,3 +153,21 @@ def test_shadow_episodes_meet_each_plan_with_what_the_expert_did_next(world):
         np.testing.assert_allclose(f.plans["expert"], f.logged, atol=1e-9)  # the expert's plan is the log
     moved = np.linalg.norm(frames[-1].logged[-1])
     assert moved > 5.0 and np.linalg.norm(frames[-1].plans["still"][-1]) == 0.0
+
+
+def test_the_expert_answers_from_wherever_the_ego_is(world):
+    # At 5 s, half a second before its light turns green, on its own episode: the expert
+    # from here moves off as the logged expert did (to the IDM's float noise).
+    while world.time < 5.0:
+        world.advance(None)
+    logged, here = world.expert_plan(), world.expert_from_here()
+    assert logged[-1, 0] > 2.0  # it does move off within the 3 s
+    np.testing.assert_allclose(here, logged, atol=0.05)
+    # Put 2 m left of its route, the expert's plan leads back onto it, to the right, and
+    # asking leaves the world as it was.
+    left = np.array([-np.sin(world.ego.yaw), np.cos(world.ego.yaw)])
+    world.advance(replace(world.ego, xy=world.ego.xy + 2.0 * left))
+    arcs, speeds, step = world.traffic.s.copy(), world.traffic.v.copy(), world.step
+    plan = world.expert_from_here()
+    assert plan[-1, 1] == pytest.approx(-2.0, abs=0.3) and plan[-1, 0] > 2.0
+    assert np.array_equal(world.traffic.s, arcs) and np.array_equal(world.traffic.v, speeds) and world.step == step
