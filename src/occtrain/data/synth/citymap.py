@@ -340,12 +340,16 @@ class CityPainter:
         x0, x1, y0, y1 = box
         # Side 0: south (y0), 1: north (y1), 2: west (x0), 3: east (x1); "out" points to the road.
         a0, a1 = (x0, x1) if side < 2 else (y0, y1)
-        edge = (y0, y1, x0, x1)[side]
+        # A known bug, kept as is until the world version is bumped (fixing it changes every
+        # synthesized world): this coordinate used to overwrite the ``edge`` argument, so the
+        # ``edge == "hedge"`` / ``"fence"`` / ``"open"`` tests below compare it with a string
+        # and never fire. They read ``road_edge`` to keep exactly that.
+        road_edge = (y0, y1, x0, x1)[side]
         out = -1.0 if side in (0, 2) else 1.0
 
         def at(a: float, depth: float) -> np.ndarray:
             """Point ``depth`` metres inside the block from the road edge, at along-side ``a``."""
-            p = edge - out * depth
+            p = road_edge - out * depth
             return np.array([a, p]) if side < 2 else np.array([p, a])
 
         a = a0 + CURB_RADIUS + rng.uniform(2, 8)
@@ -356,16 +360,16 @@ class CityPainter:
             else:
                 self.rect(x - 0.15, x + 0.15, y - 0.15, y + 0.15, solid=(MANMADE, 0.0, LAMP_POST_M))
             a += rng.uniform(6.0, 10.0)
-        if edge == "hedge":
+        if road_edge == "hedge":
             p0, p1 = at(a0 + w + 1, w + 0.2), at(a1 - w - 1, w + 1.0)
             self.rect(p0[0], p1[0], p0[1], p1[1], solid=(VEGETATION, 0.0, rng.uniform(1.0, 2.0)))
-        elif edge == "fence":
+        elif road_edge == "fence":
             p0, p1 = at(a0 + w + 1, w + 0.2), at(a1 - w - 1, w + 0.5)
             self.rect(p0[0], p1[0], p0[1], p1[1], solid=(MANMADE, 0.0, rng.uniform(1.2, 2.2)))
         for a in rng.uniform(a0 + 8, a1 - 8, size=int(rng.integers(0, 3))):
             c = at(a, 0.5)
             self.rect(c[0] - 0.3, c[0] + 0.3, c[1] - 0.3, c[1] + 0.3, solid=(OTHERS, 0.0, rng.uniform(0.9, 1.3)))
-        if furnished and edge == "open" and rng.random() < 0.5:
+        if furnished and road_edge == "open" and rng.random() < 0.5:
             self.bike_rack(side, at(rng.uniform(a0 + 12, a1 - 12), w + 0.6))
 
     def bike_rack(self, side: int, centre: np.ndarray) -> None:
