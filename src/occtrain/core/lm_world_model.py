@@ -13,6 +13,7 @@ rebuilt from an export (``create``, ``from_export``, ``export_config``).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -259,7 +260,9 @@ class LMWorldModel(nn.Module):
         return decode(self, self.check_prompt(prefix), answers)
 
     @torch.no_grad()
-    def generate_batch(self, prefixes: list[torch.Tensor | TokenSequence], answers: list[list[Answer]]) -> list[list]:
+    def generate_batch(
+        self, prefixes: Sequence[torch.Tensor | TokenSequence], answers: list[list[Answer]]
+    ) -> list[list]:
         """Greedy answers for a batch of prompts at once."""
         return decode_batch(self, [self.check_prompt(p) for p in prefixes], answers)
 

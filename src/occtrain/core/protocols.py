@@ -10,7 +10,9 @@ shows them in use.
   its baselines; :class:`EvalHook`: family-level scoring that belongs to no task (OccVLA's
   occupancy queries).
 - :class:`WorldEngine`: what family code and the shared operations and scorers may ask of
-  the world-model engine (``engine.WorldModelEngine``), which sits above them.
+  the world-model engine (``engine.WorldModelEngine``), which sits above them;
+  :func:`family_world` and :func:`family_tasks` read its world model and task settings as
+  the family's own classes.
 - :class:`SceneMover`: a scene moved by the ego and re-encoded (what the moved query
   blocks hold); the engine makes it.
 - :class:`PromptInputs`: what a sequence builder reads besides a prompt's parts (the
@@ -25,7 +27,7 @@ from __future__ import annotations
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Any, Protocol, TypeVar, runtime_checkable
 
 import numpy as np
 import torch
@@ -40,6 +42,9 @@ if TYPE_CHECKING:  # types only: these modules import this one's neighbours
     from occtrain.core.vocab import JointVocab
     from occtrain.data.clips import Clip, Part
     from occtrain.data.layout import DatasetIndex
+
+World = TypeVar("World", bound="LMWorldModel")
+Tasks = TypeVar("Tasks", bound="TaskConfig")
 
 
 class WorldEngine(Protocol):
@@ -107,6 +112,27 @@ class WorldEngine(Protocol):
         every: bool = False,
         select: Callable[[Clip, list[Part]], bool] | None = None,
     ) -> Iterator[tuple[int, list[Part], list[Part], dict[int, torch.Tensor]]]: ...
+
+
+def family_world(engine: WorldEngine, cls: type[World]) -> World:
+    """The engine's world model as its family's class ``cls``. A family's operations,
+    scorers and hooks are only given an engine of their own family (looked up by it), whose
+    world model that family's ``WorldSpec.model`` made."""
+    world = engine.world
+    if not isinstance(world, cls):
+        raise TypeError(f"the '{engine.family}' engine's world model is a {type(world).__name__}, not a {cls.__name__}")
+    return world
+
+
+def family_tasks(engine: WorldEngine, cls: type[Tasks]) -> Tasks:
+    """The engine's task settings as its family's class ``cls`` (its ``WorldSpec.task_config``),
+    for the same reason as :func:`family_world`."""
+    tasks = engine.tasks
+    if not isinstance(tasks, cls):
+        raise TypeError(
+            f"the '{engine.family}' engine's task settings are a {type(tasks).__name__}, not a {cls.__name__}"
+        )
+    return tasks
 
 
 class SceneMover(Protocol):

@@ -39,6 +39,7 @@ from occtrain.models.tokenizers.base import SceneTokenizer, TokenizerModel
 
 if TYPE_CHECKING:  # imported where it is checked: the world model imports the registry's neighbours
     from occtrain.core.lm_world_model import LMWorldModel
+    from occtrain.core.published import PaperFigure
 
 #: The package whose sub-packages are the families shipped with occtrain.
 BUILTIN_PACKAGE = "occtrain.families"
@@ -74,7 +75,7 @@ class WorldSpec:
     #: ``vocab_layout``, ``export_config``).
     model: type[LMWorldModel]
     #: Its task settings (extends ``core.shared_tasks.TaskConfig``) and tasks by name.
-    task_config: type
+    task_config: type[TaskConfig]
     tasks: Mapping[str, TaskSpec]
     #: Stage kind ("pretrain", "instruct") -> the task weights a stage that names none trains.
     default_tasks: Mapping[str, Mapping[str, float]] = field(default_factory=dict)
@@ -99,7 +100,7 @@ class WorldSpec:
     #: planner stage trains; None: the family has no planner.
     planner: Callable[..., Any] | None = None
     #: The planner's settings (``model.head`` of a planner stage), a dataclass.
-    planner_config: type | None = None
+    planner_config: type[PlannerSettings] | None = None
     #: ``(export dir, teacher engine, eval request) -> Planner``: a trained planner back from
     #: its export, for ``occtrain eval`` (None: its planner stages are not scored by eval).
     load_planner: Callable[..., Any] | None = None
@@ -139,7 +140,7 @@ class FamilySpec:
     #: Its world model, if it has one.
     world: WorldSpec | None = None
     #: The paper's published figures (``core.published.PaperFigure``), shown beside a run's metrics.
-    paper_figures: tuple[Any, ...] = ()
+    paper_figures: tuple[PaperFigure, ...] = ()
     #: Its row of the four-family comparison, if it has one.
     showcase: Showcase | None = None
 

@@ -34,7 +34,18 @@ def generate_one(engine: WorldEngine, task: str, clip: Clip) -> tuple[list, dict
 
 def answer(engine: WorldEngine, clip: Clip, question: str) -> str:
     """The model's answer to ``question`` about ``clip``'s anchor frame."""
-    asked = replace(clip, qa=[{"question": question, "answer": "", "template_type": "exist", "num_hop": 0}])
+    asked = replace(
+        clip,
+        qa=[
+            {
+                "question": question,
+                "answer": "",
+                "sample_token": clip.anchor["token"],
+                "template_type": "exist",
+                "num_hop": 0,
+            }
+        ],
+    )
     spec = engine.task_specs.get("qa")
     if spec is None or spec.every_item is None:
         raise ConfigError(f"the '{engine.family}' world model answers no questions")

@@ -19,6 +19,7 @@ import numpy as np
 import numpy.typing as npt
 
 from occtrain.data.clips import Actions, Branch, Clip, Part, Scene, Text, clip_rng, ego_future, text_of
+from occtrain.data.schema import QAQuestion
 from occtrain.errors import ConfigError
 from occtrain.models.planning_heads import constant_acceleration, constant_velocity
 
@@ -168,7 +169,7 @@ def forecast_after(prompt: list[Part], clip: Clip, frames: int, prior: str = "no
     return parts
 
 
-def question_parts(q: dict) -> list[Part]:
+def question_parts(q: QAQuestion) -> list[Part]:
     return [Text(f"Question: {q['question']} Answer:"), Text(q["answer"], True)]
 
 

@@ -20,6 +20,7 @@ import torch
 
 from occtrain.data.geometry import global_to_ego
 from occtrain.data.layout import DatasetIndex
+from occtrain.data.schema import QAQuestion
 from occtrain.formats.occ3d import FUTURE_STEPS, PAST_STEPS
 
 
@@ -84,7 +85,7 @@ class Clip:
     """One clip sample as the stages receive it (see ``collate_clips``)."""
 
     ann: dict
-    qa: list[dict]
+    qa: list[QAQuestion]
     narration: str
 
     @property

@@ -18,7 +18,7 @@ import numpy as np
 import torch
 from torchmetrics import Metric
 
-from occtrain.core.protocols import FUTURE_CLIPS
+from occtrain.core.protocols import FUTURE_CLIPS, EvalHook
 from occtrain.core.registry import scorer_factories
 from occtrain.core.scorers import Item, Priors
 from occtrain.core.shared_tasks import TaskSpec, question_of
@@ -229,12 +229,14 @@ class Evaluator(torch.nn.Module):
             if advance is not None:
                 advance(len(clips))
 
-    def _hooks(self, engine: WorldModelEngine) -> list:
+    def _hooks(self, engine: WorldModelEngine) -> list[EvalHook]:
         """The hooks that run: those that apply, and that have clips (a hook on the first
         task's clips runs only beside a task)."""
         return [h for h in self.hooks if h.applies(engine) and (self.tasks or h.clips == FUTURE_CLIPS)]
 
-    def _hook_clips(self, engine, index, split, hook, samples, seed) -> list[Clip]:
+    def _hook_clips(
+        self, engine: WorldModelEngine, index: DatasetIndex, split: str, hook: EvalHook, samples: int, seed: int
+    ) -> list[Clip]:
         """A hook's clips: with ``clips = "future"`` every frame with a whole 3 s future (a
         fixed subset of ``samples`` of them), else the first evaluated task's."""
         if hook.clips != FUTURE_CLIPS:
@@ -247,7 +249,9 @@ class Evaluator(torch.nn.Module):
             self.coverage[FUTURE_CLIPS] = [len(chosen), len(clips)]
         return self._clip_cache[key]
 
-    def _task_clips(self, engine, index, split, task, samples, seed) -> list[Clip]:
+    def _task_clips(
+        self, engine: WorldModelEngine, index: DatasetIndex, split: str, task: str, samples: int, seed: int
+    ) -> list[Clip]:
         key = (split, task, samples, seed, engine.tasks.context_frames)
         if key not in self._clip_cache:
             clips = evaluation_clips(index, split, task, engine.tasks.context_frames)
