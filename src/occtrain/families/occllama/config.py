@@ -5,11 +5,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING
 
 from occtrain.config.tokenizer import QuantizerFields, latent_hw
 from occtrain.core.ego_steps import SCENE_QUERIES
 from occtrain.errors import ConfigError
+
+if TYPE_CHECKING:
+    from occtrain.core.lm_world_model import WorldInputs
 
 
 @dataclass
@@ -93,7 +96,7 @@ class OccLLaMAWorldConfig:
     #: cells among hundreds kept are otherwise a rounding error of the loss. 1: all alike.
     change_weight: float = 1.0
 
-    def validate(self, where: str, inputs: Any) -> None:
+    def validate(self, where: str, inputs: WorldInputs) -> None:
         """One line naming the key when a setting is unknown or cannot work over ``inputs``
         (a ``WorldInputs``)."""
         if self.scene_queries not in SCENE_QUERIES:

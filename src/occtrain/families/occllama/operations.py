@@ -3,34 +3,39 @@ of thought reasons to (what a planner stage reads) and the Python API's operatio
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from typing import Any
+
 import numpy as np
 
 from occtrain.core import shared_operations
 from occtrain.core.protocols import WorldEngine
 from occtrain.core.scorers import said_meta_action
-from occtrain.data.clips import Clip
+from occtrain.data.clips import Actions, Clip, Text
+from occtrain.data.schema import MetaAction
 
 
-def reference_meta_action(engine: WorldEngine, clip: Clip) -> dict | None:
+def reference_meta_action(engine: WorldEngine, clip: Clip) -> MetaAction | None:
     """The clip's meta action: the frame sidecar's (the chain of thought ends with it)."""
     return clip.anchor.get("meta_action")
 
 
 #: Per clip: the parsed meta action and the trajectory generated after it, or None.
-GeneratedMeta = tuple[dict | None, np.ndarray | None] | None
+GeneratedMeta = tuple[MetaAction | None, np.ndarray | None] | None
 
 
 def generated_meta_actions(engine: WorldEngine, clips: list[Clip]) -> list[GeneratedMeta]:
     """Per clip, the meta action parsed from the generated chain of thought (None when it
     cannot be parsed) and the trajectory generated after it; None for a clip the chain of
     thought does not apply to (no known future or no narration)."""
-    out: list = [None] * len(clips)
+    out: list[GeneratedMeta] = [None] * len(clips)
     for b, _, (text, traj), _ in engine.rollouts("cot_planning", clips, {"ann": [c.ann for c in clips]}):
+        assert isinstance(text, Text) and isinstance(traj, Actions)  # cot_planning's answer: narration, then plan
         out[b] = (said_meta_action(text.text, clips[b]), np.asarray(traj.xy))
     return out
 
 
-OPERATIONS = {
+OPERATIONS: dict[str, Callable[..., Any]] = {
     "answer": shared_operations.answer,
     "plan": shared_operations.plan,
     "forecast": shared_operations.forecast,

@@ -32,6 +32,7 @@ writing that scene back.
 from __future__ import annotations
 
 from dataclasses import asdict
+from typing import TYPE_CHECKING
 
 import torch
 import torch.nn.functional as F
@@ -44,6 +45,9 @@ from occtrain.core.patch_layout import PatchWorldModel
 from occtrain.core.vocab import JointVocab
 from occtrain.families.occllama.config import OccLLaMAWorldConfig
 
+if TYPE_CHECKING:
+    from transformers import PreTrainedModel
+
 
 class OccLLaMAWorldModel(LMWorldModel):
     """The LLM, the joint vocabulary and the occupancy input projection.
@@ -53,9 +57,11 @@ class OccLLaMAWorldModel(LMWorldModel):
     (the tokenizer's export owns it), the projection is trained.
     """
 
+    codebook: torch.Tensor
+
     def __init__(
         self,
-        llm: nn.Module,
+        llm: PreTrainedModel,
         vocab: JointVocab,
         codebook: torch.Tensor,
         scene_prediction: str = "next_scene",

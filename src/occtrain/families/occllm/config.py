@@ -4,12 +4,15 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING
 
 from occtrain.core.ego_steps import SCENE_QUERIES
 from occtrain.errors import ConfigError
 from occtrain.formats.occ3d import CLASS_INDEX, FREE, MOVABLE_CLASSES, NUM_CLASSES
 from occtrain.models.tokenizers.occworld_vqvae import OccWorldVQVAEConfig
+
+if TYPE_CHECKING:
+    from occtrain.core.lm_world_model import WorldInputs
 
 
 @dataclass
@@ -69,7 +72,7 @@ class OccLLMWorldConfig:
     #: of the loss. 1: every cell alike.
     change_weight: float = 1.0
 
-    def validate(self, where: str, inputs: Any) -> None:
+    def validate(self, where: str, inputs: WorldInputs) -> None:
         """One line naming the key when a setting cannot work over ``inputs`` (a ``WorldInputs``)."""
         if self.scene_queries not in SCENE_QUERIES:
             raise ConfigError(f"{where}.scene_queries: '{self.scene_queries}' is not one of {', '.join(SCENE_QUERIES)}")

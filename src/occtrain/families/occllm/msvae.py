@@ -44,6 +44,9 @@ class MSVAE(OccWorldVQVAE):
     have one grid per scene, else two: (B, 2, h, w), motion first.
     """
 
+    #: (18,) bool: which classes the motion grid keeps.
+    movable: torch.Tensor
+
     def __init__(self, cfg: MSVAEConfig):
         super().__init__(cfg)
         e = cfg.class_embed_dim

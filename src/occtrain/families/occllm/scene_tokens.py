@@ -24,9 +24,10 @@ class PreFusion(nn.Module):
 
     def __init__(self, action_dim: int, channels: int, hidden: int = 64):
         super().__init__()
-        self.mlp = nn.Sequential(nn.Linear(action_dim, hidden), nn.GELU(), nn.Linear(hidden, channels))
-        nn.init.zeros_(self.mlp[-1].weight)
-        nn.init.zeros_(self.mlp[-1].bias)
+        first, last = nn.Linear(action_dim, hidden), nn.Linear(hidden, channels)
+        nn.init.zeros_(last.weight)
+        nn.init.zeros_(last.bias)
+        self.mlp = nn.Sequential(first, nn.GELU(), last)
 
     def forward(self, latents: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
         gate = 2.0 * torch.sigmoid(self.mlp(action))  # (B, C)

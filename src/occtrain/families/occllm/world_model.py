@@ -89,12 +89,19 @@ class OccLLMWorldModel(PatchWorldModel):
         }
 
     @classmethod
-    def create(cls, llm, vocab, inputs: WorldInputs, scene_prediction, world_cfg=None) -> OccLLMWorldModel:
+    def create(
+        cls,
+        llm: nn.Module,
+        vocab: JointVocab,
+        inputs: WorldInputs,
+        scene_prediction: str,
+        world_cfg: OccLLMWorldConfig | None = None,
+    ) -> OccLLMWorldModel:
         scene = inputs.scene
         return cls(llm, vocab, scene.codebooks, scene_prediction, world_cfg or OccLLMWorldConfig(), scene.latent_hw)
 
     @classmethod
-    def from_export(cls, data: dict, llm, vocab, inputs: WorldInputs) -> OccLLMWorldModel:
+    def from_export(cls, data: dict, llm: nn.Module, vocab: JointVocab, inputs: WorldInputs) -> OccLLMWorldModel:
         scene = inputs.scene
         return cls(
             llm, vocab, scene.codebooks, data["scene_prediction"], OccLLMWorldConfig(**data["occllm"]), scene.latent_hw

@@ -3,9 +3,12 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING
 
 from occtrain.errors import ConfigError
+
+if TYPE_CHECKING:
+    from occtrain.core.lm_world_model import WorldInputs
 
 
 @dataclass
@@ -22,7 +25,7 @@ class OccVLAWorldConfig:
     #: Hidden width of the two-layer image projector (vision width -> LLM width).
     projector_hidden: int = 256
 
-    def validate(self, where: str, inputs: Any) -> None:
+    def validate(self, where: str, inputs: WorldInputs) -> None:
         """One line naming the key when a setting cannot work over ``inputs`` (a ``WorldInputs``)."""
         latent = tuple(inputs.scene.latent_hw)
         p = self.query_patch

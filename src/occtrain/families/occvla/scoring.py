@@ -9,10 +9,11 @@ from typing import Any
 import torch
 from torchmetrics import MeanMetric
 
-from occtrain.core.protocols import TASK_CLIPS
+from occtrain.core.protocols import TASK_CLIPS, WorldEngine, family_tasks, family_world
 from occtrain.core.scorers import BaseScorer, Item, last_past_meta_action
-from occtrain.data.clips import Clip
+from occtrain.data.clips import Clip, text_of
 from occtrain.data.meta_actions import commonest
+from occtrain.data.schema import MetaAction
 from occtrain.data.text_formats import meta_action_words, parse_meta_action
 from occtrain.families.occvla.parts import Images
 from occtrain.metrics import MetaActionAccuracy, OccupancyMetric
@@ -32,11 +33,13 @@ class MetaActionScorer(BaseScorer):
     }
 
     def __init__(self) -> None:
-        self._prior: dict[tuple, dict | None] = {}
+        self._prior: dict[tuple, MetaAction | None] = {}
 
     def score(self, ev: Any, item: Item) -> None:
-        text, reference = item.generated[0].text, item.parts[-1].text
-        cfg = item.engine.tasks.meta_actions
+        from occtrain.families.occvla.tasks import TaskConfig  # imported here: the tasks module imports this one
+
+        text, reference = text_of(item.generated[0]), text_of(item.parts[-1])
+        cfg = family_tasks(item.engine, TaskConfig).meta_actions
         last = last_past_meta_action(item.clip, cfg)  # what "as before" means (meta_action_prior)
         truth, parsed = parse_meta_action(reference, last), parse_meta_action(text, last)
         ev.metrics["meta_action"].update([parsed], [truth])
@@ -50,10 +53,11 @@ class MetaActionScorer(BaseScorer):
         # The last one the prompt lists; none (a scene's start) scores as a wrong answer.
         ev.metrics["baseline_repeat_last_meta_action"].update([last], [truth])
         said = meta_action_words(parsed) if parsed is not None else "none"
-        ev.keep_text("meta_action", item.parts[-2].text, f"{text}  [parsed: {said}]", reference)
+        prompt = text_of(item.parts[-2])
+        ev.keep_text("meta_action", prompt, f"{text}  [parsed: {said}]", reference)
         if ev.record:
             ev.predictions["meta_actions"][item.clip.anchor["token"]] = {
-                "prompt": item.parts[-2].text,
+                "prompt": prompt,
                 "generated": text,
                 "parsed": parsed,
                 "reference": reference,
@@ -72,15 +76,20 @@ class OccupancyQueries:
         "occupancy_occworld": lambda: OccupancyMetric(OCCWORLD),
     }
 
-    def applies(self, engine: Any) -> bool:
-        return engine.tasks.occupancy_weight > 0
+    def applies(self, engine: WorldEngine) -> bool:
+        from occtrain.families.occvla.tasks import TaskConfig  # imported here: the tasks module imports this one
+
+        return family_tasks(engine, TaskConfig).occupancy_weight > 0
 
     @torch.no_grad()
-    def run(self, ev: Any, engine: Any, clips: list[Clip]) -> None:
+    def run(self, ev: Any, engine: WorldEngine, clips: list[Clip]) -> None:
+        from occtrain.families.occvla.world_model import OccVLAWorldModel  # it imports the tasks, which import this
+
         index, dev = ev.index, ev.device
+        world = family_world(engine, OccVLAWorldModel)
         for clip in clips:
             token = clip.anchor["token"]
-            pred = engine.world.predict_occupancy(engine.encode_parts([Images(token)], {})).argmax(1).cpu()
+            pred = world.predict_occupancy(engine.encode_parts([Images(token)], {})).argmax(1).cpu()
             labels = index.labels(index.scene_of(token), token)
             target = torch.from_numpy(labels["semantics"]).long()[None]
             mask = torch.from_numpy(labels["mask_camera"].astype(bool))[None]

@@ -25,6 +25,8 @@ L_text + lambda_occ * L_occ, lambda_occ riding with each sequence (``voxel_weigh
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import torch
 import torch.nn.functional as F
 from torch import nn
@@ -42,6 +44,10 @@ from occtrain.families.occvla.parts import Images, Occupancy
 from occtrain.families.occvla.tasks import TaskConfig
 from occtrain.models.camera_encoder import pool_views
 from occtrain.models.patches import unpatchify
+from occtrain.models.tokenizers.base import SceneTokenizer
+
+if TYPE_CHECKING:
+    from transformers import PreTrainedModel
 
 
 class VLASequenceBuilder(SequenceBuilder):
@@ -51,7 +57,7 @@ class VLASequenceBuilder(SequenceBuilder):
         super().__init__(world.vocab, "next_scene", world.payload_spec)
         self._has_queries = False
 
-    def lay(self, part: Part, inputs: PromptInputs, scenes: dict[int, torch.Tensor]) -> VLASequenceBuilder:
+    def lay(self, part: Part, inputs: PromptInputs, scenes: dict[int, torch.Tensor]) -> SequenceBuilder:
         if isinstance(part, Images):
             return self.images(inputs.read("image_tokens", part.token))
         if isinstance(part, Occupancy):
@@ -86,9 +92,16 @@ class OccVLAWorldModel(LMWorldModel):
     reads_scenes = False
     #: Its occupancy queries' voxel targets are per sequence, read by row.
     packs_sequences = False
+    #: The frozen OccWorld VQ-VAE whose decoder turns the queries' latent into voxels.
+    decoder_model: SceneTokenizer
 
     def __init__(
-        self, llm: nn.Module, vocab: JointVocab, scene_tokenizer: nn.Module, vision_dim: int, cfg: OccVLAWorldConfig
+        self,
+        llm: PreTrainedModel,
+        vocab: JointVocab,
+        scene_tokenizer: SceneTokenizer,
+        vision_dim: int,
+        cfg: OccVLAWorldConfig,
     ):
         super().__init__(llm, vocab, "next_scene")
         if not vocab.image or vocab.patch != cfg.query_patch:
@@ -104,7 +117,8 @@ class OccVLAWorldModel(LMWorldModel):
         )
         self.occ_queries = nn.Parameter(torch.randn(vocab.scene_len, hidden) * 0.02)
         self.code_dim = int(scene_tokenizer.codebook.shape[1])
-        self.latent_hw = tuple(scene_tokenizer.latent_hw)
+        h, w = scene_tokenizer.latent_hw
+        self.latent_hw = (h, w)
         p = cfg.query_patch
         self.occ_proj = nn.Linear(hidden, self.code_dim * p * p)
         # A plain attribute, not a submodule: the engine owns (and checkpoints skip) the tokenizer.
@@ -188,7 +202,8 @@ class OccVLAWorldModel(LMWorldModel):
 
     def pool_images(self, tokens: torch.Tensor, grid: tuple[int, int], views: int) -> torch.Tensor:
         """Each camera's patch grid average-pooled to ``image_tokens`` (rows, cols)."""
-        return pool_views(tokens, grid, views, tuple(self.cfg.image_tokens))
+        rows, cols = self.cfg.image_tokens  # validated: [rows, cols]
+        return pool_views(tokens, grid, views, (rows, cols))
 
     @torch.no_grad()
     def generate_with_occupancy(
@@ -208,7 +223,9 @@ class OccVLAWorldModel(LMWorldModel):
         """Voxel logits (1, 18, X, Y, Z) of the query block after a prompt's images: one
         forward of bos, the images and the queries."""
         n = self._split(prefix)
-        return self.generate_with_occupancy(head(prefix, n), [], occupancy=True)[1]
+        voxels = self.generate_with_occupancy(head(prefix, n), [], occupancy=True)[1]
+        assert voxels is not None  # asked for with occupancy=True
+        return voxels
 
     # -- export
     def export_config(self) -> dict:
@@ -231,11 +248,18 @@ class OccVLAWorldModel(LMWorldModel):
         }
 
     @classmethod
-    def create(cls, llm, vocab, inputs: WorldInputs, scene_prediction, world_cfg=None) -> OccVLAWorldModel:
+    def create(
+        cls,
+        llm: nn.Module,
+        vocab: JointVocab,
+        inputs: WorldInputs,
+        scene_prediction: str,
+        world_cfg: OccVLAWorldConfig | None = None,
+    ) -> OccVLAWorldModel:
         if inputs.vision is None:
             raise ValueError("OccVLA needs a camera encoder")
         return cls(llm, vocab, inputs.scene.tokenizer, inputs.vision.hidden_size, world_cfg or OccVLAWorldConfig())
 
     @classmethod
-    def from_export(cls, data: dict, llm, vocab, inputs: WorldInputs) -> OccVLAWorldModel:
+    def from_export(cls, data: dict, llm: nn.Module, vocab: JointVocab, inputs: WorldInputs) -> OccVLAWorldModel:
         return cls(llm, vocab, inputs.scene.tokenizer, data["vision_dim"], OccVLAWorldConfig(**data["occvla"]))

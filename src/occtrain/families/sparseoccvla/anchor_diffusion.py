@@ -27,9 +27,10 @@ from __future__ import annotations
 
 import math
 import zlib
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 import torch
@@ -41,13 +42,13 @@ from occtrain.config import to_object
 from occtrain.core.builder import collate
 from occtrain.core.decoding import TextAnswer
 from occtrain.core.plan_subsets import departing_rows, plan_metrics, update_plans
-from occtrain.core.protocols import PlannerSettings, Plans
+from occtrain.core.protocols import PlannerSettings, Plans, WorldEngine
 from occtrain.core.shared_tasks import PLAN_PRIORS, plan_base
 from occtrain.data.clips import Clip, Text, frame_clips, plan_target
 from occtrain.data.layout import DatasetIndex
 from occtrain.errors import ConfigError
 from occtrain.families.sparseoccvla.tasks import PLANNING_PROMPT, context
-from occtrain.families.sparseoccvla.world_model import EGO_FEATURES, ego_state
+from occtrain.families.sparseoccvla.world_model import EGO_FEATURES, SparseOccVLAWorldModel, ego_state, scene_rows
 from occtrain.formats.exports import check_section, load_state_strict, read_export, write_export
 from occtrain.formats.io import atomic_write_safetensors, is_rank_zero
 from occtrain.formats.occ3d import FUTURE_STEPS
@@ -135,7 +136,12 @@ def ddim_scheduler(cfg: AnchorDiffusionConfig) -> Any:
 
 
 def ddim_denoise(
-    scheduler: Any, x: torch.Tensor, start: int, spacing: int, train_timesteps: int, predict: Any
+    scheduler: Any,
+    x: torch.Tensor,
+    start: int,
+    spacing: int,
+    train_timesteps: int,
+    predict: Callable[[torch.Tensor, int], tuple[torch.Tensor, Any]],
 ) -> tuple[torch.Tensor, Any]:
     """DDIM from ``x`` (noised to timestep ``start``) down to 0 in steps of ``spacing``,
     each by diffusers' ``scheduler.step`` on ``predict(x, t)``'s clean-sample prediction
@@ -217,12 +223,25 @@ class DecoderLayer(nn.Module):
         return x * (1 + scale) + shift
 
 
+class SparseEngine(WorldEngine, Protocol):
+    """The engine the planner reads its decisions from: a SparseOccVLA world model's (the
+    planner stage builds the planner of its teacher's family)."""
+
+    @property
+    def world(self) -> SparseOccVLAWorldModel: ...
+
+
 class AnchorDiffusionPlanner(nn.Module):
     """The planner, the frozen world model's decisions it reads (cached per clip) and its
     validation metrics (see the module docstring)."""
 
     #: What picks the best checkpoint (lower is better).
     monitor = "val/plan_L2_stp3_avg"
+    #: (K, 6, 2) metres, and the metres per unit of the diffused trajectories (2,).
+    anchors: torch.Tensor
+    scale: torch.Tensor
+    #: The anchor scorer: on the decision and the ego state, or on the decoder's own features.
+    scorer: nn.Module
 
     def closed_loop_refusal(self) -> str | None:
         return None  # it reads the world model's decision, which closed loop generates too
@@ -230,7 +249,7 @@ class AnchorDiffusionPlanner(nn.Module):
     def __init__(
         self,
         cfg: AnchorDiffusionConfig,
-        teacher: Any,
+        teacher: SparseEngine,
         data_root: str,
         cache_dir: Path,
         anchors: np.ndarray | None = None,
@@ -265,12 +284,12 @@ class AnchorDiffusionPlanner(nn.Module):
         self.positive_hit = MeanMetric()
 
     @classmethod
-    def from_stage(cls, ctx: Any, teacher: Any) -> AnchorDiffusionPlanner:
+    def from_stage(cls, ctx: Any, teacher: SparseEngine) -> AnchorDiffusionPlanner:
         """The planner a planner stage trains (``WorldSpec.planner``)."""
         return cls(to_object(ctx.model_cfg), teacher, ctx.data.root, ctx.cache_dir, seed=ctx.data.seed)
 
     @classmethod
-    def from_export(cls, export_dir: Path, teacher: Any, request: Any) -> AnchorDiffusionPlanner:
+    def from_export(cls, export_dir: Path, teacher: SparseEngine, request: Any) -> AnchorDiffusionPlanner:
         """A trained planner back from its export (``WorldSpec.load_planner``)."""
         state, config = read_export(export_dir)
         check_section(AnchorDiffusionConfig, config["config"], "config", export_dir)
@@ -313,7 +332,7 @@ class AnchorDiffusionPlanner(nn.Module):
 
     def _decide(self, clips: list[Clip]) -> None:
         engine, r = self.teacher, self.cfg.decision_tokens
-        rows = [engine.scene_cache[c.anchor["token"]] for c in clips]
+        rows = [scene_rows(engine)[c.anchor["token"]] for c in clips]
         prompts = [[*context(c, engine.tasks), Text(PLANNING_PROMPT)] for c in clips]
         laid = [engine.encode_parts(p, {c.anchor_index: row}) for p, c, row in zip(prompts, clips, rows)]
         texts = [
@@ -467,6 +486,7 @@ class AnchorDiffusionPlanner(nn.Module):
         return compute_metrics(prefix, reset=True, metrics={**self.metrics, "scorer_top1": self.positive_hit})
 
     def summary(self) -> tuple[str, dict[str, float]]:
+        assert isinstance(self.teacher, nn.Module)  # the engine, a submodule: its parameters are among self's
         n = count_parameters(self) - count_parameters(self.teacher)
         return (
             f"anchor-diffusion planner {n / 1e3:.1f}K params, {self.cfg.anchors} anchors, {self.cfg.denoise_steps} "

@@ -8,10 +8,13 @@ each key.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING
 
 from occtrain.errors import ConfigError
 from occtrain.formats.occ3d import CLASS_INDEX, MOVABLE_CLASSES
+
+if TYPE_CHECKING:
+    from occtrain.core.lm_world_model import WorldInputs
 
 #: How the queries' initial positions are laid out (``SparseOccConfig.query_init``).
 QUERY_INITS = ("random", "grid")
@@ -88,6 +91,12 @@ class SparseOccConfig:
     #: Voxels each decoded point fills when points are voxelized to be scored (x, y, z): a
     #: few thousand points cover a scene's 10^5 occupied voxels only as small boxes.
     voxel_extent: list[int] = field(default_factory=lambda: [3, 3, 2])
+
+    @property
+    def extent(self) -> tuple[int, int, int]:
+        """``voxel_extent`` as ``voxelize`` takes it: (x, y, z)."""
+        x, y, z = self.voxel_extent
+        return x, y, z
 
     @property
     def dense_head(self) -> bool:
@@ -169,7 +178,7 @@ class SparseOccVLAWorldConfig:
     #: Weight of the forecasting loss beside the language loss (Eq. 12: 1).
     forecast_weight: float = 1.0
 
-    def validate(self, where: str, inputs: Any) -> None:
+    def validate(self, where: str, inputs: WorldInputs) -> None:
         if self.global_queries < 0:
             raise ConfigError(f"{where}.global_queries: {self.global_queries} must not be negative")
         if not 1 <= self.forecast_frames <= 6:

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import torch
 import torch.nn.functional as F
@@ -35,6 +35,9 @@ from occtrain.models.camera_encoder import pixel_losses
 from occtrain.models.point_sets import POINT_CLASSES, chamfer_distance, sigmoid_focal_loss, voxelize
 from occtrain.models.projection import average_views, in_cameras, project, read_views, sample_views
 from occtrain.models.tokenizers.base import TokenizerModel, TokenizerOutput
+
+if TYPE_CHECKING:
+    from transformers import PreTrainedModel
 
 #: ImageNet statistics, what a torchvision/Hugging Face ResNet is trained with.
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
@@ -75,6 +78,12 @@ class ImageBackbone(nn.Module):
     """A Hugging Face ResNet (built from config, or a local directory) and a 1 x 1
     projection of each of its stages to the query width: multi-scale feature maps."""
 
+    #: (1, 3, 1, 1): the backbone's input normalisation.
+    mean: torch.Tensor
+    std: torch.Tensor
+    #: A transformers backbone (``channels``, ``feature_maps``).
+    resnet: PreTrainedModel
+
     def __init__(self, cfg: SparseOccConfig):
         super().__init__()
         stages = [f"stage{i + 1}" for i in range(len(cfg.backbone_widths))]
@@ -104,7 +113,7 @@ class ImageBackbone(nn.Module):
         return [(y := proj(m)).reshape(*lead, *y.shape[1:]) for proj, m in zip(self.lateral, maps)]
 
 
-def _load_backbone(path: str) -> nn.Module:
+def _load_backbone(path: str) -> PreTrainedModel:
     from transformers import AutoBackbone, AutoConfig
 
     if not (Path(path) / "config.json").is_file():
@@ -444,7 +453,9 @@ class SparseOccEncoder(TokenizerModel):
     def decode_points(self, queries: torch.Tensor, positions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """The last layer's points (B, N * M, 3) and classes (B, N * M) from Q_L and P_L (its
         points' mean, from which their offsets' mean is taken back)."""
-        head = self.layers[-1].head
+        last = self.layers[-1]
+        assert isinstance(last, EncoderLayer)
+        head = last.head
         offsets = head.offsets_of(queries)
         points = positions[..., None, :] - offsets.mean(-2, keepdim=True) + offsets
         logits = head.classes(queries).view(*queries.shape[:-1], head.points, POINT_CLASSES)
@@ -452,7 +463,7 @@ class SparseOccEncoder(TokenizerModel):
 
     def voxelize(self, points: torch.Tensor, classes: torch.Tensor) -> torch.Tensor:
         """Points (B, M, 3) with classes (B, M) -> label volumes (B, X, Y, Z)."""
-        return torch.stack([voxelize(p, c, tuple(self.cfg.voxel_extent)) for p, c in zip(points, classes)])
+        return torch.stack([voxelize(p, c, self.cfg.extent) for p, c in zip(points, classes)])
 
     # -- training (the tokenizer stage's protocol for a camera-reading architecture)
     def forward(
@@ -507,9 +518,7 @@ class SparseOccEncoder(TokenizerModel):
         points, classes, real = ground_truth(
             batch, None, self.point_budget, 0, seed, cfg.kept_classes(), cfg.movable_share
         )
-        return torch.stack(
-            [voxelize(p[r], c[r], tuple(self.cfg.voxel_extent)) for p, c, r in zip(points, classes, real)]
-        )
+        return torch.stack([voxelize(p[r], c[r], self.cfg.extent) for p, c, r in zip(points, classes, real)])
 
     def distill(self, q: torch.Tensor, pos: torch.Tensor, cams: CameraFrames, teacher: nn.Module) -> torch.Tensor:
         """Eq. 3 on the current frame: the teacher's features read at the queries' projections."""

@@ -15,10 +15,11 @@ from typing import Any
 import numpy as np
 import torch
 
-from occtrain.core.protocols import FUTURE_CLIPS, WorldEngine
+from occtrain.core.protocols import FUTURE_CLIPS, WorldEngine, family_world
 from occtrain.core.scorers import FORECAST_BASELINES, forecast_baselines, forecast_metric
 from occtrain.data.clips import Clip, Text
 from occtrain.families.sparseoccvla.tasks import FORECAST_PROMPT, context
+from occtrain.families.sparseoccvla.world_model import SparseOccVLAWorldModel, scene_rows
 from occtrain.formats.occ3d import FREE, FUTURE_STEPS, MOVABLE_CLASSES
 from occtrain.metrics import OccupancyMetric
 from occtrain.metrics.occupancy import OCC3D, OCCWORLD
@@ -52,11 +53,11 @@ class ForecastHead:
     @torch.no_grad()
     def run(self, ev: Any, engine: WorldEngine, clips: list[Clip]) -> None:
         index, dev = ev.index, ev.device
-        world = engine.world
+        world = family_world(engine, SparseOccVLAWorldModel)
         for clip in clips:
             token, a = clip.anchor["token"], clip.anchor_index
             scene = index.scene_of(token)
-            rows = engine.scene_cache[token]
+            rows = scene_rows(engine)[token]
             steps = world.forecast(
                 engine.encode_parts([*context(clip, engine.tasks), Text(FORECAST_PROMPT)], {a: rows})
             )

@@ -62,7 +62,8 @@ def camera_frames(batch: dict[str, Any], index: DatasetIndex | None, frames: int
         for slot, key in zip(views, ("images", "intrinsics", "cam_to_ego")):
             slot.append(cams[key].to(dev))
         moves.append(torch.tensor(np.stack(transforms), dtype=torch.float32, device=dev))
-    return CameraFrames(*(torch.stack(v, 1) for v in views), torch.stack(moves, 1))
+    images, intrinsics, cam_to_ego = (torch.stack(v, 1) for v in views)
+    return CameraFrames(images, intrinsics, cam_to_ego, torch.stack(moves, 1))
 
 
 def ground_truth(
@@ -97,7 +98,8 @@ def ground_truth(
                 pick = torch.cat([order[kept], order[~kept]])[:count]
                 points, classes, n = _padded(all_points[pick], all_classes[pick], count)
         out.append((points, classes, torch.arange(count) < n))
-    return tuple(torch.stack(t) for t in zip(*out))
+    points, classes, real = (torch.stack(t) for t in zip(*out))
+    return points, classes, real
 
 
 def _later_points(

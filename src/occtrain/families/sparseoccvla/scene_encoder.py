@@ -6,7 +6,6 @@ layer's points."""
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
 
 import torch
 from torch import nn
@@ -15,6 +14,8 @@ from occtrain.core.registry import load_tokenizer
 from occtrain.core.scene_encoders import SCENE_ENCODER_DIR
 from occtrain.data.layout import DatasetIndex
 from occtrain.errors import ConfigError
+from occtrain.families.sparseoccvla.config import SparseOccVLAWorldConfig
+from occtrain.families.sparseoccvla.encoder import SparseOccEncoder
 
 ARCH = "sparseocc"
 
@@ -24,7 +25,7 @@ class SparseSceneEncoder(nn.Module):
 
     discrete = False
 
-    def __init__(self, encoder: nn.Module):
+    def __init__(self, encoder: SparseOccEncoder):
         super().__init__()
         self.encoder = encoder.eval().requires_grad_(False)
         self.export_dir: Path | None = getattr(encoder, "export_dir", None)
@@ -62,7 +63,9 @@ def _sparse(export_dir: Path) -> SparseSceneEncoder:
     return SparseSceneEncoder(encoder)
 
 
-def sparse_scene_encoder(exports: dict[str, Path], world_cfg: Any = None) -> SparseSceneEncoder:
+def sparse_scene_encoder(
+    exports: dict[str, Path], world_cfg: SparseOccVLAWorldConfig | None = None
+) -> SparseSceneEncoder:
     """The scene encoder of a pretrain stage: the consumed stage 1's export."""
     if "tokenizer" not in exports:
         raise ConfigError(

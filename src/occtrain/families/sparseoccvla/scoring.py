@@ -12,6 +12,7 @@ from typing import Any
 from torchmetrics import MeanMetric
 
 from occtrain.core.scorers import BaseScorer, Item
+from occtrain.data.clips import text_of
 from occtrain.data.text_formats import meta_action_words, parse_meta_action
 from occtrain.metrics import CaptionMetric, MetaActionAccuracy
 
@@ -48,11 +49,12 @@ class TextScorer(BaseScorer):
         return self._typical
 
     def score(self, ev: Any, item: Item) -> None:
-        text, reference = item.generated[0].text.strip(), item.parts[-1].text
-        key = f"{item.clip.anchor['token']}|{item.parts[-2].text}"
+        text, reference = text_of(item.generated[0]).strip(), text_of(item.parts[-1])
+        prompt = text_of(item.parts[-2])
+        key = f"{item.clip.anchor['token']}|{prompt}"
         ev.metrics[self.name].update([text], [[reference]], ids=[key])
         ev.metrics[f"baseline_typical_{self.name}"].update([self.baseline(item, ev)], [[reference]], ids=[key])
-        ev.keep_text(self.name, item.parts[-2].text, text, reference)
+        ev.keep_text(self.name, prompt, text, reference)
         if ev.record and self.name == "caption":
             ev.predictions["captions"][item.clip.anchor["token"]] = text
             ev.predictions["captions_gt"][item.clip.anchor["token"]] = [reference]
@@ -66,7 +68,7 @@ def _training_answers(item: Item, ev: Any) -> list[str]:
     answers: list[str] = []
     for clip in frame_clips(ev.index, "train", engine.tasks.context_frames):
         for parts in engine.task_items(task, clip, every=True):
-            answers.append(parts[-1].text)
+            answers.append(text_of(parts[-1]))
         if len(answers) >= 4 * TYPICAL_POOL:
             break
     return answers
@@ -90,7 +92,7 @@ class DecisionScorer(BaseScorer):
         self.said: Counter = Counter()
 
     def score(self, ev: Any, item: Item) -> None:
-        text, reference = item.generated[0].text, item.parts[-1].text
+        text, reference = text_of(item.generated[0]), text_of(item.parts[-1])
         truth, parsed = parse_meta_action(reference), parse_meta_action(text)
         if truth is None:
             return
@@ -100,7 +102,7 @@ class DecisionScorer(BaseScorer):
             ev.metrics["baseline_prior_meta_action"].update([ev.priors.meta_action], [truth])
         said = meta_action_words(parsed) if parsed is not None else "none"
         self.said[said] += 1
-        ev.keep_text("planning", item.parts[-2].text, f"{text}  [parsed: {said}]", reference)
+        ev.keep_text("planning", text_of(item.parts[-2]), f"{text}  [parsed: {said}]", reference)
 
     def reset(self) -> None:
         self.said = Counter()

@@ -44,8 +44,9 @@ class TaskConfig(BaseTaskConfig):
     forecast_frames: int = 6
 
 
-def context(clip: Clip, cfg: TaskConfig) -> list[Part]:
-    """The anchor's occupancy tokens (with the global tokens) and the ego-state token."""
+def context(clip: Clip, cfg: BaseTaskConfig) -> list[Part]:
+    """The anchor's occupancy tokens (with the global tokens) and the ego-state token
+    (whatever the task settings: none of them changes the context)."""
     return [Scene(clip.anchor_index), Ego(ego_state(clip.anchor))]
 
 

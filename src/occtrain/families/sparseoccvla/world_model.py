@@ -19,7 +19,9 @@ that frame's ground truth (Eq. 11).
 from __future__ import annotations
 
 import copy
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -27,16 +29,26 @@ from torch import nn
 
 from occtrain.core.builder import SequenceBuilder, batch_payload, sample_means
 from occtrain.core.lm_world_model import LMWorldModel, WorldInputs, WorldModelOutput, token_ce
-from occtrain.core.protocols import PromptInputs
+from occtrain.core.protocols import PromptInputs, WorldEngine
 from occtrain.core.sequence import IGNORE, PayloadSpec, TokenSequence, empty_payload
 from occtrain.core.vocab import JointVocab
 from occtrain.data.clips import Part, PromptPart, clip_rng
 from occtrain.errors import ConfigError
 from occtrain.families.sparseoccvla.config import SparseOccVLAWorldConfig
-from occtrain.families.sparseoccvla.encoder import FeedForward, PointHead, SpatialSelfAttention, normalized, sinusoid
+from occtrain.families.sparseoccvla.encoder import (
+    FeedForward,
+    PointHead,
+    SparseOccEncoder,
+    SpatialSelfAttention,
+    normalized,
+    sinusoid,
+)
 from occtrain.formats.occ3d import FRAME_DT, PAST_STEPS
 from occtrain.models.planning_heads import current_velocity
 from occtrain.models.point_sets import chamfer_distance, occupied_points, sigmoid_focal_loss
+
+if TYPE_CHECKING:
+    from transformers import PreTrainedModel
 
 EGO = "<ego>"
 #: The ego state's features: current velocity (2) and the past waypoints (PAST_STEPS x 2).
@@ -83,7 +95,7 @@ class SparseBuilder(SequenceBuilder):
         super().__init__(world.vocab, "next_scene", world.payload_spec)
         self.world = world
 
-    def lay(self, part: Part, inputs: PromptInputs, scenes: dict[int, torch.Tensor]) -> SparseBuilder:
+    def lay(self, part: Part, inputs: PromptInputs, scenes: dict[int, torch.Tensor]) -> SequenceBuilder:
         if isinstance(part, Ego):
             return self.ego(part.features)
         if isinstance(part, Forecast):
@@ -177,7 +189,9 @@ class SparseOccVLAWorldModel(LMWorldModel):
     #: Its forecast targets (points, classes) are per sequence, read by row.
     packs_sequences = False
 
-    def __init__(self, llm: nn.Module, vocab: JointVocab, encoder: nn.Module, cfg: SparseOccVLAWorldConfig):
+    def __init__(
+        self, llm: PreTrainedModel, vocab: JointVocab, encoder: SparseOccEncoder, cfg: SparseOccVLAWorldConfig
+    ):
         super().__init__(llm, vocab, "next_scene")
         enc = encoder.cfg
         hidden = self.hidden_size
@@ -191,7 +205,7 @@ class SparseOccVLAWorldModel(LMWorldModel):
         self.query_dim = enc.dim
         self.gt_points = enc.gt_points
         self.gt_keep, self.gt_share = enc.kept_classes(), enc.movable_share
-        self.voxel_extent = tuple(enc.voxel_extent)
+        self.voxel_extent = enc.extent
         self.focal_weight = enc.focal_weight
         self.connector = copy.deepcopy(encoder.connector).requires_grad_(True)  # stage 1's, trained on
         if cfg.global_queries:
@@ -217,8 +231,10 @@ class SparseOccVLAWorldModel(LMWorldModel):
         emb = self.llm.get_input_embeddings()(input_ids)
         occ = self.vocab.is_occ(input_ids)
         ego = input_ids == self.vocab.extra_id(EGO)
-        if bool(occ.any() or ego.any()) and not payload:
-            raise ValueError("occupancy and ego tokens need their rows: pass the laid-out sequence, not bare ids")
+        if not payload:
+            if bool(occ.any() or ego.any()):
+                raise ValueError("occupancy and ego tokens need their rows: pass the laid-out sequence, not bare ids")
+            payload = {}
         if bool(occ.any()):
             rows = payload["scene"][occ].to(emb.dtype)
             emb = emb.masked_scatter(occ[..., None], self.connector(rows[:, 3:], rows[:, :3]).to(emb.dtype))
@@ -337,9 +353,25 @@ class SparseOccVLAWorldModel(LMWorldModel):
         return {"codebook_sizes": [], "scene_hw": (inputs.scene.num_tokens, 1), "patch": 1, "extra": extra}
 
     @classmethod
-    def create(cls, llm, vocab, inputs: WorldInputs, scene_prediction, world_cfg=None) -> SparseOccVLAWorldModel:
+    def create(
+        cls,
+        llm: nn.Module,
+        vocab: JointVocab,
+        inputs: WorldInputs,
+        scene_prediction: str,
+        world_cfg: SparseOccVLAWorldConfig | None = None,
+    ) -> SparseOccVLAWorldModel:
         return cls(llm, vocab, inputs.scene.encoder, world_cfg or SparseOccVLAWorldConfig())
 
     @classmethod
-    def from_export(cls, data: dict, llm, vocab, inputs: WorldInputs) -> SparseOccVLAWorldModel:
+    def from_export(cls, data: dict, llm: nn.Module, vocab: JointVocab, inputs: WorldInputs) -> SparseOccVLAWorldModel:
         return cls(llm, vocab, inputs.scene.encoder, SparseOccVLAWorldConfig(**data["sparseoccvla"]))
+
+
+def scene_rows(engine: WorldEngine) -> Mapping[str, torch.Tensor]:
+    """The engine's encoder rows by sample token: a SparseOccVLA engine encodes every
+    frame from the cameras ahead (``prepare_inputs``)."""
+    rows = engine.scene_cache
+    if rows is None:
+        raise ValueError("the scenes are encoded from the cameras ahead: prepare the engine on a dataset first")
+    return rows
