@@ -90,6 +90,27 @@ def _resolve_includes(raw: Any, cls: type, source: Path, prefix: str) -> Any:
     return out
 
 
+def read_resolved(path: str | Path, schema: type) -> dict:
+    """A config file's keys as ``load_config`` reads them (includes inlined, an extended
+    recipe merged), before defaults and overrides."""
+    return _resolved(Path(path), schema, ())
+
+
+def _resolved(path: Path, schema: type, seen: tuple[Path, ...]) -> dict:
+    """The file's keys with its includes inlined and, for a schema with ``extends``, the
+    recipe it extends merged under it: that recipe's stages first, its other keys replaced
+    by this file's."""
+    raw = _resolve_includes(read_yaml(path), schema, path, "")
+    base_name = raw.pop("extends", "") if "extends" in _dataclass_fields(schema) else ""
+    if not base_name:
+        return raw
+    base_path = _find_include(str(base_name), path)
+    if base_path.resolve() in seen:
+        raise ConfigError(f"{path}: extends {base_name}, which extends it back; extend a recipe that does not")
+    base = _resolved(base_path, schema, (*seen, path.resolve()))
+    return {**base, **raw, "stages": [*base.get("stages", []), *raw.get("stages", [])]}
+
+
 def _find_include(name: str, source: Path) -> Path:
     """Includes resolve against the current directory, then the including file's directory."""
     for candidate in (Path(name), source.parent / name):
@@ -134,7 +155,7 @@ def load_config(schema: type[T], path: str | Path | None = None, overrides: list
     cfg = OmegaConf.structured(schema)
     if path is not None:
         path = Path(path)
-        raw = _resolve_includes(read_yaml(path), schema, path, "")
+        raw = _resolved(path, schema, ())
         cfg = _merge(cfg, raw, str(path))
     for item in overrides or []:
         if "=" not in item:

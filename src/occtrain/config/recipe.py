@@ -105,6 +105,10 @@ class RecipeConfig:
     """What ``occtrain run`` reads."""
 
     name: str = MISSING
+    #: Another recipe this one builds on: its stages come first, then this one's, and what
+    #: this one sets beside ``stages`` replaces that recipe's (e.g. the quickstart chain
+    #: and one more stage, in the quickstart's run directory).
+    extends: str = ""
     data: DataConfig = field(default_factory=DataConfig)
     trainer: TrainerConfig = field(default_factory=TrainerConfig)
     stages: list[StageSpec] = field(default_factory=list)

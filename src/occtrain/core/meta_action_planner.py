@@ -233,13 +233,15 @@ class MetaActionPlanner(nn.Module):
 
     # -- the teacher's outputs, computed once per clip and kept on disk
     def _load_teacher_cache(self) -> None:
-        """Per sample token: ``reference`` (meta action), ``generated`` ([meta action or None,
-        waypoints or None], or None where the chain of thought does not apply) and ``visual``."""
+        """Per sample token: ``generated`` ([meta action or None, waypoints or None], or None
+        where the chain of thought does not apply) and ``visual``."""
         if self.teacher is None or not self._cache_file.is_file():
             return
         from safetensors.torch import load_file
 
-        self._teacher_out = json.loads(self._cache_file.read_text())
+        # Reference meta actions are read from each clip as it comes (caches before kept them).
+        kept = json.loads(self._cache_file.read_text())
+        self._teacher_out = {t: {k: v for k, v in o.items() if k != "reference"} for t, o in kept.items()}
         visual_file = self._cache_file.with_suffix(".safetensors")
         for token, vis in (load_file(str(visual_file)) if visual_file.is_file() else {}).items():
             self._teacher_out.setdefault(token, {})["visual"] = vis.numpy()
@@ -256,14 +258,14 @@ class MetaActionPlanner(nn.Module):
 
     def teacher_outputs(self, clips: list[Clip], generate: bool) -> list[dict]:
         """The frozen model's outputs for each clip (the generated meta action only with
-        ``generate``), from the cache or computed now and kept."""
+        ``generate``), from the cache or computed now and kept; and the clip's reference meta
+        action, read afresh: it comes from the clip's annotated future, and a frame met in
+        closed loop (its future unknown) is labelled later under the same token."""
         outs = [self._teacher_out.setdefault(c.anchor["token"], {}) for c in clips]
         teacher = self.teacher
         if teacher is None:
             raise ValueError("this planning head reads no world model: it has no outputs of one")
         reference = self._operation(teacher, "reference_meta_action")
-        for i in [i for i, o in enumerate(outs) if "reference" not in o]:
-            outs[i]["reference"] = reference(teacher, clips[i])
         todo = [i for i, o in enumerate(outs) if "visual" not in o] if "visual" in self.inputs else []
         if todo:
             summary = self._operation(teacher, "visual_summary")(teacher, [clips[i] for i in todo])
@@ -276,7 +278,7 @@ class MetaActionPlanner(nn.Module):
                 outs[i]["generated"] = (
                     None if gen is None else [gen[0], None if gen[1] is None else np.asarray(gen[1]).tolist()]
                 )
-        return outs
+        return [{**out, "reference": reference(teacher, clip)} for out, clip in zip(outs, clips)]
 
     @staticmethod
     def _operation(teacher: WorldEngine, name: str) -> Callable[..., Any]:

@@ -182,6 +182,9 @@ MEASURES = (
 #: Per-step training throughput charts (``stages.callbacks.StepMeter``'s log).
 THROUGHPUT = "training throughput per second, this device"
 MFU = "model FLOPs utilization"
+#: Closed-loop training's rounds (a ``dagger`` stage's ``dagger/rollout_*``): the mixture of
+#: planner and expert that drove each round's routes, in percent, and its collisions.
+ROUND_SCORES, ROUND_COLLISIONS = "closed-loop rounds: driving (%)", "closed-loop rounds: collisions per route"
 
 
 def _measure(name: str) -> tuple[str, str] | None:
@@ -202,6 +205,7 @@ def charts_from_curves(curves: dict[str, list[tuple[float, float]]]) -> list[Cha
     fixed: dict[str, list[Series]] = {
         "train loss": [], "validation loss": [], "learning rate": [], "codebook usage per train batch": [],
         "codebook perplexity per train batch": [], THROUGHPUT: [], MFU: [], "train, other": [],
+        ROUND_SCORES: [], ROUND_COLLISIONS: [],
     }  # fmt: skip
     measures: dict[str, list[Series]] = defaultdict(list)
     for name, points in sorted(curves.items()):
@@ -212,6 +216,12 @@ def charts_from_curves(curves: dict[str, list[tuple[float, float]]]) -> list[Cha
             fixed[title].append(_series(name.split("/", 1)[1], points))
         elif name in ("train/tokens_per_s", "train/samples_per_s"):
             fixed[THROUGHPUT].append(_series(name.split("/", 1)[1].replace("_per_s", ""), points))
+        elif name.startswith("dagger/rollout_"):
+            what = name.removeprefix("dagger/rollout_")
+            if what in ("driving_score", "route_completion", "policy_share"):
+                fixed[ROUND_SCORES].append(_series(what.replace("_", " "), points))
+            elif what == "collisions":
+                fixed[ROUND_COLLISIONS].append(_series(what, points))
         elif name == "train/mfu":
             fixed[MFU].append(_series("model FLOPs / peak", points))
         elif name.startswith("train/") and name.endswith(("codebook_usage", "perplexity")):

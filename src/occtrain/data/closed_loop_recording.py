@@ -13,13 +13,14 @@ now, and a future nobody knows yet (driving on at constant velocity stands in fo
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
 
 from occtrain.data.cameras import Camera, nuscenes_rig
 from occtrain.data.clips import Clip
-from occtrain.data.layout import DatasetIndex, SceneFiles, scene_infos
+from occtrain.data.layout import ANNOTATIONS_FILE, FRAMES_DIR, DatasetIndex, SceneFiles, scene_infos
 from occtrain.data.schema import FrameAnnotation
 from occtrain.data.synth.closed_loop_view import ViewFrame, save_gif
 from occtrain.data.synth.closed_loop_world import (
@@ -34,6 +35,7 @@ from occtrain.data.synth.closed_loop_world import (
     shadow_episode,
     stand_still,
 )
+from occtrain.formats.io import atomic_write_json
 from occtrain.formats.occ3d import FRAME_DT, FUTURE_STEPS
 
 #: The scene name of an episode's frames in its directory.
@@ -45,27 +47,36 @@ class _EpisodeIndex(DatasetIndex):
     whole sidecar at every planning frame made recording quadratic in the episode's length
     (9 of the 16 s a 20 s route spent recording)."""
 
-    def __init__(self, root: Path, annotations: dict, frames: list[FrameAnnotation]):
+    def __init__(self, root: Path, annotations: dict, scene: str, frames: list[FrameAnnotation]):
         super().__init__(root, annotations)
+        self._scene = scene
         self._frames = list(frames)
 
     def has_frame_annotations(self, scene: str) -> bool:
-        return scene == EPISODE_SCENE
+        return scene == self._scene or super().has_frame_annotations(scene)
 
     def frames(self, scene: str) -> list[FrameAnnotation]:
-        if scene != EPISODE_SCENE:
+        if scene != self._scene:
             return super().frames(scene)
         return self._frames
 
 
 class EpisodeRecorder:
-    """Writes ``world``'s planning frames under ``root`` and indexes them as one val scene;
-    ``episode`` sets its frames' tokens apart from other episodes' on the same route."""
+    """Writes ``world``'s planning frames under ``root`` and indexes them as one val scene
+    (``scene``); ``episode`` sets its frames' tokens apart from other episodes' on the same route."""
 
-    def __init__(self, root: str | Path, world: DrivingWorld, camera_size: tuple[int, int] | None, episode: str = ""):
+    def __init__(
+        self,
+        root: str | Path,
+        world: DrivingWorld,
+        camera_size: tuple[int, int] | None,
+        episode: str = "",
+        scene: str = EPISODE_SCENE,
+    ):
         self.root = Path(root)
         self.world = world
         self.episode = episode
+        self.scene = scene
         self.files = SceneFiles(self.root)
         self.camera_size = camera_size
         self.rig: list[Camera] = nuscenes_rig(*camera_size) if camera_size else []
@@ -75,9 +86,9 @@ class EpisodeRecorder:
     def record(self) -> DatasetIndex:
         """Write the planning frame now (labels, cameras), keep its annotation, and index the episode so far."""
         world = self.world
-        frame = world.frame_annotation(EPISODE_SCENE, self.episode)
+        frame = world.frame_annotation(self.scene, self.episode)
         labels = world.render()
-        self.files.write_labels(EPISODE_SCENE, frame["token"], labels)
+        self.files.write_labels(self.scene, frame["token"], labels)
         if self.rig:
             assert self.camera_size is not None
             views = world.cameras(labels["semantics"], *self.camera_size)
@@ -87,10 +98,10 @@ class EpisodeRecorder:
         self.frames.append(frame)
         annotations = {
             "train_split": [],
-            "val_split": [EPISODE_SCENE],
-            "scene_infos": {EPISODE_SCENE: scene_infos(EPISODE_SCENE, self.frames, self.rig or None)},
+            "val_split": [self.scene],
+            "scene_infos": {self.scene: scene_infos(self.scene, self.frames, self.rig or None)},
         }
-        self.index = _EpisodeIndex(self.root, annotations, self.frames)
+        self.index = _EpisodeIndex(self.root, annotations, self.scene, self.frames)
         return self.index
 
     @property
@@ -122,7 +133,44 @@ class EpisodeRecorder:
         return Clip(ann, [], anchor["narration"])
 
 
+class RecordedDataset:
+    """Frames a policy drove into, kept as one dataset in the Occ3D layout under ``root``:
+    one train scene per driven route, its labels and cameras written as it is driven (an
+    :class:`EpisodeRecorder` with the route's scene name), its frame sidecar when it ends
+    (which marks it complete), and ``annotations.json`` listing the complete scenes,
+    rewritten atomically after each. Closed-loop training's aggregate, read back as any
+    dataset is (``DatasetIndex``, ``frame_clips``)."""
+
+    def __init__(self, root: str | Path, rig: list[Camera] | None = None):
+        self.root = Path(root)
+        self.files = SceneFiles(self.root)
+        self.rig = rig
+
+    def has(self, scene: str) -> bool:
+        return self.files.scene_done(scene)
+
+    def add(self, scene: str, frames: list[FrameAnnotation], complete: list[str]) -> DatasetIndex:
+        """Complete ``scene`` with its frame annotations; the dataset then lists ``complete``
+        (the scenes it holds, this one included, in order), and is returned opened."""
+        self.files.write_frames(scene, frames)
+        return self.write_index(complete)
+
+    def write_index(self, scenes: list[str]) -> DatasetIndex:
+        """``annotations.json`` of ``scenes`` (each complete), written atomically; the dataset opened."""
+        infos = {}
+        for scene in scenes:
+            frames = json.loads((self.root / FRAMES_DIR / f"{scene}.json").read_text())
+            infos[scene] = scene_infos(scene, frames, self.rig or None)
+        atomic_write_json(
+            self.root / ANNOTATIONS_FILE,
+            {"train_split": list(scenes), "val_split": [], "scene_infos": infos},
+            indent=None,
+        )
+        return DatasetIndex.open(self.root)
+
+
 __all__ = [
+    "RecordedDataset",
     "EPISODE_SCENE",
     "MAX_SECONDS",
     "STRIDE",

@@ -20,7 +20,7 @@ import numpy as np
 
 from occtrain.core.protocols import Plans
 from occtrain.data.clips import Clip
-from occtrain.data.closed_loop_recording import EPISODE_SCENE, DrivingWorld, EpisodeRecorder
+from occtrain.data.closed_loop_recording import DrivingWorld, EpisodeRecorder
 from occtrain.engine.world_engine import WorldModelEngine
 from occtrain.errors import ConfigError, OcctrainError
 
@@ -98,7 +98,7 @@ class StagePlanner:
     def __call__(self, world: DrivingWorld) -> np.ndarray | None:
         driver, recorder = self.driver, self.recorder
         index = recorder.record()
-        driver.engine.add_samples(index, [(EPISODE_SCENE, recorder.token)])  # later frames read it as history
+        driver.engine.add_samples(index, [(recorder.scene, recorder.token)])  # later frames read it as history
         if len(recorder.frames) <= driver.history:
             self.counts.expert += 1
             return None  # the expert drives the history the prompts read
@@ -143,7 +143,7 @@ class OpenLoopPlanner:
         planned: list[np.ndarray | None] = [None] * min(history, len(frames))
         for start in range(0, len(frames), CHUNK):
             chunk = frames[start : start + CHUNK]
-            self.driver.engine.add_samples(recorder.index, [(EPISODE_SCENE, f["token"]) for f in chunk])
+            self.driver.engine.add_samples(recorder.index, [(recorder.scene, f["token"]) for f in chunk])
             anchors = [k for k in range(start, start + len(chunk)) if k >= history]
             if anchors:
                 planned.extend(self.driver.plans([recorder.clip(history, at=k) for k in anchors]).xy)

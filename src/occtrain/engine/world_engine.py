@@ -141,6 +141,9 @@ class WorldModelEngine(torch.nn.Module):
         #: the dataset they come from.
         self.scene_cache: dict[str, torch.Tensor] | None = None
         self.input_caches: dict[str, dict[str, torch.Tensor]] = {}
+        # The dataset of each sample met one at a time (``add_samples``): the caches may hold
+        # frames of several (a run's dataset and the frames closed-loop training drove into).
+        self._index_of: dict[str, DatasetIndex] = {}
         self.data_index: DatasetIndex | None = None
         self._scene_cache_root: Path | None = None
         # The scene cache's rows back to their frames, made from the cache it was made from.
@@ -263,6 +266,7 @@ class WorldModelEngine(torch.nn.Module):
         its frames one planning step at a time, where ``prepare_inputs`` encodes a dataset whole."""
         self.data_index = index
         tokens = [t for _, t in samples]
+        self._index_of.update(dict.fromkeys(tokens, index))
         for given in self.encoded_inputs():
             cache = self.input_caches.setdefault(given.name, {})
             cache.update(zip(tokens, given.rows(self, index, samples).cpu()))
@@ -286,7 +290,7 @@ class WorldModelEngine(torch.nn.Module):
         token = self._frame_of_codes.get(codes.reshape(-1).long().cpu().numpy().tobytes())
         if token is None:
             return None
-        index = self.data_index
+        index = self.index_of(token)
         return torch.from_numpy(index.labels(index.scene_of(token), token)["semantics"]).long()
 
     @torch.no_grad()
@@ -350,8 +354,15 @@ class WorldModelEngine(torch.nn.Module):
             return self.input_caches[name][token]
         if self.data_index is None:
             raise RuntimeError(f"prepare_inputs(data_root) before laying out a part that reads '{name}'")
-        index = self.data_index
+        index = self.index_of(token)
         return given.rows(self, index, [(index.scene_of(token), token)])[0]
+
+    def index_of(self, token: str) -> DatasetIndex:
+        """The dataset sample ``token`` is of: the one it was added from, else the prepared one."""
+        index = self._index_of.get(token, self.data_index)
+        if index is None:
+            raise RuntimeError("prepare_inputs(data_root) before reading a sample's dataset")
+        return index
 
     # -- sequences
     def encode_parts(self, parts: list[Part], scenes: dict[int, torch.Tensor]) -> TokenSequence:

@@ -17,7 +17,7 @@ from omegaconf import OmegaConf
 
 from occtrain.config import load_config, to_container
 from occtrain.config.groups import DataConfig, TrainerConfig, check_seed
-from occtrain.config.loading import read_yaml, validate_section
+from occtrain.config.loading import read_resolved, validate_section
 from occtrain.config.recipe import STAGE_DATA_KEYS, RecipeConfig, StageSpec, check_name
 from occtrain.core.registry import get_family
 from occtrain.errors import ConfigError
@@ -97,6 +97,7 @@ def plan_stages(recipe: RecipeConfig, source: str) -> list[PlannedStage]:
                 f"{key} is {trainer.max_steps} in {source}: a stage trains for a positive number of optimizer steps "
                 "(training streams data without end, so there is no 'until the data runs out')"
             )
+        kind.module.check_trainer(model_cfg, trainer, f"stages.{spec.name}")
         for section, value, own in (
             ("trainer", trainer, spec.trainer),
             ("data", stage_data, spec.data),
@@ -272,8 +273,9 @@ def load_plugins(modules: list[str], source: str) -> None:
 
 
 def _stage_names(path: str | Path) -> list[str]:
-    """Stage names of a recipe file as written (for addressing stages in overrides)."""
-    stages = read_yaml(Path(path)).get("stages") or []
+    """Stage names of a recipe file as written, with those of the recipe it extends (for
+    addressing stages in overrides)."""
+    stages = read_resolved(path, RecipeConfig).get("stages") or []
     return [str(s.get("name")) for s in stages if isinstance(s, dict)] if isinstance(stages, list) else []
 
 

@@ -18,6 +18,7 @@ BUILTIN_KINDS = {
     "pretrain": "occtrain.stages.pretrain_instruct",
     "instruct": "occtrain.stages.pretrain_instruct",
     "planner": "occtrain.stages.planner",
+    "dagger": "occtrain.stages.planner",
     "distill": "occtrain.stages.distill",
     "vision": "occtrain.stages.vision",
 }

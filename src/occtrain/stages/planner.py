@@ -1,28 +1,37 @@
-"""Stage kind ``planner``: the planner of the consumed world model's family.
+"""Stage kinds ``planner`` and ``dagger``: the planner of the consumed world model's
+family, and its fine-tuning in closed loop.
 
 The family's registration says what a planner stage trains (``WorldSpec.planner``: OccVLA's
 MLP head on the meta action, or a family's own) and what settings it takes
 (``WorldSpec.planner_config``, flat in ``model:`` beside this stage's own). The planner
 reads the consumed world model, frozen, when its settings ask for it; this module only
-wires it into Lightning.
+wires it into Lightning. A ``dagger`` stage takes a trained planner on and drives it
+between its training steps (``engine.dagger``): one kind of the other, so they share this
+module as pretrain and instruct share theirs.
 """
 
 from __future__ import annotations
 
+import contextlib
+from collections.abc import Iterator
 from dataclasses import dataclass, make_dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
+import numpy as np
 import torch
 from lightning.pytorch.utilities.types import OptimizerLRSchedulerConfig
 
 from occtrain.config import to_object
 from occtrain.core.protocols import PlannerSettings
 from occtrain.core.registry import get_world
+from occtrain.data.cameras import nuscenes_rig
 from occtrain.data.clips import clips_from_batch, frame_clips
+from occtrain.data.closed_loop_recording import RecordedDataset
 from occtrain.data.layout import DatasetIndex
 from occtrain.engine import TEXT_ENTRIES, WorldModelEngine, load_world_model
 from occtrain.engine.closed_loop import StageDriver
+from occtrain.engine.dagger import Aggregate, DaggerSettings, drive_route, policy_key, route_seed, scene_name
 from occtrain.engine.evaluator import fixed_subset
 from occtrain.errors import ConfigError
 from occtrain.formats.exports import read_config
@@ -49,7 +58,7 @@ class PlannerStage(Stage):
     """Trains the family's planner; validates it against the baselines with both L2 conventions."""
 
     count_flops = True
-    consumes_kinds = ("pretrain", "instruct", "distill")
+    consumes_kinds: ClassVar[tuple[str, ...]] = ("pretrain", "instruct", "distill")
     consumes_count = (1, 1)
     frozen_prefixes = ("planner.teacher.",)  # the world model is read-only here: checkpoints hold the planner
 
@@ -205,6 +214,186 @@ PLANNER = register(
         model_schema=PlannerStageConfig,
         data_kind="clips",
         module=PlannerStage,
+        monitor="val/head_gt_meta_L2_stp3_avg",
+        mode="min",
+    )
+)
+
+
+@dataclass
+class DaggerStageConfig(DaggerSettings):
+    """A ``dagger`` stage's settings: how it drives and aggregates (``engine.dagger``), and
+    the planner stage's own (the planner's architecture is the consumed export's)."""
+
+    generate_batches: int = -1
+    max_new_text_tokens: int = 0
+
+
+class DaggerStage(PlannerStage):
+    """A trained planner fine-tuned on the frames it drives into, each labelled by the world's
+    expert (``engine.dagger``): before each round's ``steps_per_round`` optimizer steps its
+    routes are driven with the weights of that moment, and every batch then mixes the
+    dataset's clips with clips of every frame aggregated so far."""
+
+    consumes_kinds = ("pretrain", "instruct", "distill", "planner")
+    consumes_count = (2, 2)
+
+    @classmethod
+    def model_schema(cls, kind: StageKind, family: str | None, model: dict | None = None) -> type:
+        return kind.model_schema  # the planner's own settings come with its export
+
+    @classmethod
+    def check_consumes(cls, kind: str, consumed: dict[str, str], where: str) -> None:
+        super().check_consumes(kind, consumed, where)
+        kinds = list(consumed.values())
+        if kinds[0] == "planner" or kinds[1] != "planner":
+            raise ConfigError(
+                f"{where}: a dagger stage consumes the world model its planner reads, then the planner "
+                "(consumes: [<its world model stage>, <planner stage>])"
+            )
+
+    @classmethod
+    def check_model(cls, model: Any, key: str) -> None:
+        to_object(model).validate(key)
+
+    @classmethod
+    def check_trainer(cls, model: Any, trainer: Any, where: str) -> None:
+        rounds, steps = model.rounds, model.steps_per_round
+        if trainer.max_steps != rounds * steps:
+            raise ConfigError(
+                f"{where}.trainer.max_steps is {trainer.max_steps}, but model.rounds x model.steps_per_round is "
+                f"{rounds} x {steps} = {rounds * steps}; set them so they agree"
+            )
+
+    def __init__(self, ctx: StageContext):
+        Stage.__init__(self, ctx)
+        cfg: DaggerStageConfig = to_object(ctx.model_cfg)
+        self.settings = cfg
+        world_export, planner_export = ctx.inputs.values()
+        request = EvalRequest(
+            planner_export, [world_export], str(ctx.data.root), cache_dir=ctx.cache_dir, shared_cache_dir=None
+        )
+        planner, teacher = PlannerStage.load_planner(request, "a dagger stage")
+        refusal = planner.closed_loop_refusal()
+        if refusal is not None:
+            raise ConfigError(f"stages '{ctx.spec.name}': {planner_export}: {refusal}")
+        if cfg.max_new_text_tokens > 0:
+            teacher.with_settings(max_new_text_tokens=cfg.max_new_text_tokens)
+        teacher.requires_grad_(False).eval()
+        teacher.prepare_inputs(ctx.data.root, ctx.cache_dir, ctx.shared_cache_dir)
+        # The head fine-tunes as the planner stage trained it (dropout on); its world model stays frozen.
+        planner.train()
+        teacher.eval()
+        self.planner, self.teacher, self.reads_text = planner, teacher, True
+        synth = ctx.data.synth
+        reads_cameras = teacher.vision is not None or teacher.scenes_from_cameras()
+        self.camera = (synth.camera_height, synth.camera_width) if reads_cameras else None
+        root = ctx.stage_dir / "dagger"
+        self.aggregate = Aggregate(
+            root, cfg, RecordedDataset(root / "frames", nuscenes_rig(*self.camera) if self.camera else None)
+        )
+        #: Rounds whose frames the batches draw from, and their clips (futures: the expert's labels).
+        self._rounds = 0
+        self._aggregated: list = []
+        #: Each round's rollouts in the mean (``Aggregate.round_scores``), for the report.
+        self.round_scores: dict[int, dict[str, float]] = {}
+
+    @property
+    def history(self) -> int:
+        return int(self.teacher.tasks.context_frames)
+
+    @contextlib.contextmanager
+    def _in_eval(self) -> Iterator[None]:
+        """The planner in eval mode (no dropout) for driving and the world model's outputs;
+        back to training after, its world model staying frozen in eval mode."""
+        was_training = self.planner.training
+        self.planner.eval()
+        try:
+            yield
+        finally:
+            self.planner.train(was_training)
+            self.teacher.eval()
+
+    def on_train_batch_start(self, batch: Any, batch_idx: int) -> None:
+        round_ = self.global_step // self.settings.steps_per_round
+        if round_ < self._rounds:
+            return
+        for r in range(self._rounds, round_ + 1):
+            if not self.aggregate.complete(r):
+                if r != round_ or self.global_step != r * self.settings.steps_per_round:
+                    raise RuntimeError(
+                        f"round {r}'s routes are missing at step {self.global_step}: they are driven at step "
+                        f"{r * self.settings.steps_per_round}; retrain the stage with --restart {self.ctx.spec.name}"
+                    )
+                self._drive(r)
+        index = self.aggregate.index(round_ + 1)
+        self._aggregated = self.aggregate.clips(index, self.history)
+        new = self.aggregate.scenes(round_ + 1)[self._rounds * self.settings.routes_per_round :]
+        # One route at a time, whether met as it was driven or after a resume: an encoder's
+        # float sums depend on the batch, and a cut must not change what it encodes. Then
+        # what the frozen world model says of each new clip is computed once, in eval mode
+        # and outside the training steps' random stream (as the planner stage's train split
+        # is, before it trains): a training step never runs the world model, so a resumed
+        # run's steps draw what an uncut run's drew.
+        with self._in_eval(), torch.no_grad(), torch.random.fork_rng():
+            for scene in new:
+                self.teacher.add_samples(index, [(scene, t) for t in index.scenes[scene]])
+                route = [c for c in self._aggregated if index.scene_of(c.anchor["token"]) == scene]
+                if route:
+                    self.planner.training_loss(route)
+        for r in range(self._rounds, round_ + 1):
+            scores = self.aggregate.round_scores(r)
+            self.round_scores[r] = scores
+            self.log_dict({f"dagger/{k}": v for k, v in scores.items()}, batch_size=1)
+        self._rounds = round_ + 1
+
+    @torch.no_grad()
+    def _drive(self, round_: int) -> None:
+        """Drive round ``round_``'s routes with the weights of now (those already driven by
+        the same weights, before a cut, are kept)."""
+        cfg, aggregate = self.settings, self.aggregate
+        key, beta = policy_key(self.planner), cfg.beta_at(round_)
+        driver = StageDriver(self.teacher, self.planner.waypoints)
+        with self._in_eval():
+            what = f"round {round_}: driving {cfg.routes_per_round} routes (beta {beta:.2f})"
+            with progress_bar(cfg.routes_per_round, what) as advance:
+                for k in range(cfg.routes_per_round):
+                    if not aggregate.driven(round_, k, key):
+                        seed = route_seed(cfg, round_, k)
+                        labelled, result = drive_route(
+                            driver, aggregate.dataset, scene_name(round_, k), seed, cfg.seconds, beta, self.camera, key
+                        )
+                        aggregate.record(labelled, result, round_)
+                    advance(1)
+
+    def training_step(self, batch: dict[str, Any], batch_idx: int) -> torch.Tensor:
+        clips = self._clips(batch)
+        share = self.settings.aggregate_share
+        if self._aggregated and share > 0:
+            extra = len(clips) if share >= 1 else max(1, round(len(clips) * share / (1 - share)))
+            rng = np.random.default_rng([self.ctx.trainer.seed, self.global_step])
+            drawn = [self._aggregated[i] for i in rng.integers(0, len(self._aggregated), extra)]
+            clips = drawn if share >= 1 else clips + drawn
+        loss = self.planner.training_loss(clips)
+        self.log("train/loss", loss, prog_bar=True, batch_size=len(clips))
+        return loss
+
+    def report(self) -> StageReport:
+        summary, metrics = self.planner.summary()
+        for r, scores in sorted(self.round_scores.items()):
+            metrics.update({f"round{r}_{k}": v for k, v in scores.items()})
+        frames = sum(int(s["rollout_frames"]) for s in self.round_scores.values())
+        return StageReport(
+            f"{summary}; closed loop: {len(self.round_scores)} rounds, {frames} frames aggregated", metrics
+        )
+
+
+DAGGER = register(
+    StageKind(
+        name="dagger",
+        model_schema=DaggerStageConfig,
+        data_kind="clips",
+        module=DaggerStage,
         monitor="val/head_gt_meta_L2_stp3_avg",
         mode="min",
     )

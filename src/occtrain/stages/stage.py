@@ -225,6 +225,11 @@ class Stage(L.LightningModule, ABC):
         """Refuse, before anything runs, a stage whose family cannot do what it is asked."""
 
     @classmethod
+    def check_trainer(cls, model: Any, trainer: TrainerConfig, where: str) -> None:
+        """Refuse trainer settings that the stage's model settings contradict (``where``:
+        ``stages.<name>``); by default none."""
+
+    @classmethod
     def check_model(cls, model: Any, key: str) -> None:
         """Refuse, before anything is written, a validated ``model:`` (under ``key``) that
         building the stage's model would refuse: what ``occtrain validate`` shares with

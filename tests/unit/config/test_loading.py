@@ -82,3 +82,36 @@ def test_override_may_name_a_section_file(tmp_path):
         ConfigError, match=r"unknown key 'trainer.acelerator' in .*bad.yaml; did you mean 'accelerator'\?"
     ):
         load_config(RecipeConfig, None, ["name=x", f"trainer={bad}"])
+
+
+def test_a_recipe_extends_another_with_its_stages_after_that_ones(tmp_path):
+    from occtrain.config.recipe import RecipeConfig
+    from occtrain.run.planning import load_recipe
+
+    sub = tmp_path / "base"
+    sub.mkdir()
+    (sub / "data.yaml").write_text("root: somewhere\nbatch_size: 3\n")
+    (sub / "base.yaml").write_text(
+        "name: base\ndata: data.yaml\ntrainer: {max_steps: 7}\nstages:\n"
+        "  - {name: a, kind: tokenizer, model: {arch: occworld_vqvae}}\n"
+    )
+    (tmp_path / "more.yaml").write_text(
+        "extends: base/base.yaml\nname: more\ntrainer: {max_steps: 9}\nstages:\n"
+        "  - {name: b, kind: tokenizer, model: {arch: occworld_vqvae}}\n"
+    )
+    cfg = load_config(RecipeConfig, tmp_path / "more.yaml")
+    assert [s.name for s in cfg.stages] == ["a", "b"] and cfg.name == "more"
+    # The base's includes resolve against the base's own folder; this recipe's keys win.
+    assert cfg.data.root == "somewhere" and cfg.data.batch_size == 3 and cfg.trainer.max_steps == 9
+    # Stages of the extended recipe are addressed by name in overrides like the recipe's own.
+    recipe, _ = load_recipe(tmp_path / "more.yaml", ["stages.a.trainer.max_steps=2"])
+    assert recipe.stages[0].trainer["max_steps"] == 2
+
+
+def test_a_recipe_that_extends_itself_round_about_is_one_line(tmp_path):
+    from occtrain.config.recipe import RecipeConfig
+
+    (tmp_path / "x.yaml").write_text("extends: y.yaml\nname: x\n")
+    (tmp_path / "y.yaml").write_text("extends: x.yaml\nname: y\n")
+    with pytest.raises(ConfigError, match="extends x.yaml, which extends it back"):
+        load_config(RecipeConfig, tmp_path / "x.yaml")

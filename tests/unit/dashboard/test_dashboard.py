@@ -404,3 +404,20 @@ def test_a_stage_drive_is_tabled_with_its_animations(run_dir: Path, tmp_path: Pa
     assert "CARLA leaderboard 1.0" in section
     gifs = re.findall(r'src="data:image/gif;base64,([^"]*)"', html)
     assert len(gifs) == 1 and base64.b64decode(gifs[0]) == gif.read_bytes()  # the stage's own episode only
+
+
+def test_closed_loop_rounds_are_charted_apart_from_the_training_curves():
+    from occtrain.dashboard.run_view import ROUND_COLLISIONS, ROUND_SCORES, charts_from_curves
+
+    charts = charts_from_curves(
+        {
+            "dagger/rollout_driving_score": [(0, 48.0), (100, 61.0)],
+            "dagger/rollout_policy_share": [(0, 50.0), (100, 75.0)],
+            "dagger/rollout_collisions": [(0, 0.75), (100, 0.5)],
+            "dagger/rollout_beta": [(0, 0.5), (100, 0.25)],  # a setting, not a score: not charted
+            "train/loss": [(0, 1.0), (1, 0.5)],
+        }
+    )
+    by_title = {c.title: sorted(s.label for s in c.series) for c in charts}
+    assert by_title[ROUND_SCORES] == ["driving score", "policy share"]
+    assert by_title[ROUND_COLLISIONS] == ["collisions"] and "train loss" in by_title

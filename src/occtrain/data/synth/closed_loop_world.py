@@ -236,24 +236,41 @@ class DrivingWorld:
         pts = np.stack([np.interp(s, self._route_s, self.route.xy[:, i]) for i in (0, 1)], axis=1)
         return global_to_ego(pts, self.ego.xy, self.ego.yaw)
 
-    def frame_annotation(self, scene: str, episode: str = "") -> FrameAnnotation:
+    def frame_annotation(self, scene: str, episode: str = "", future: np.ndarray | None = None) -> FrameAnnotation:
         """The FrameAnnotation of the planning frame now, by the generator's own annotator,
         as a stage reads it: the driven ego's pose, speed and past, the agents around it,
         the route's command, a caption and a narration. What a stage is asked to predict is
         unknown in closed loop and filled in as driving on at constant velocity (the future
-        waypoints, the meta action, the agents' futures)."""
+        waypoints, the meta action, the agents' futures), or, given ``future`` (FUTURE_STEPS
+        waypoints, ego frame), as driving those: the ego's future and meta action then say
+        what that plan does (how closed-loop training labels a frame with its expert's plan)."""
         if not self.at_frame:
             raise ValueError(f"step {self.step} is not a planning frame (every {STRIDE} steps)")
         i = self.step // STRIDE
         driven = self.log.states[::STRIDE]
-        heading = np.array([np.cos(self.ego.yaw), np.sin(self.ego.yaw)])
-        ahead = np.arange(1, FUTURE_STEPS + 1) * FRAME_DT * self.ego.speed
-        xy = np.concatenate([[s.xy for s in driven], self.ego.xy + ahead[:, None] * heading])
+        if future is None:
+            heading = np.array([np.cos(self.ego.yaw), np.sin(self.ego.yaw)])
+            ahead_xy = self.ego.xy + (np.arange(1, FUTURE_STEPS + 1) * FRAME_DT * self.ego.speed)[:, None] * heading
+            ahead_speed = np.full(FUTURE_STEPS, self.ego.speed)
+            ahead_yaw = np.full(FUTURE_STEPS, self.ego.yaw)
+        else:
+            ahead_xy = ego_to_global(
+                np.asarray(future, dtype=np.float64).reshape(FUTURE_STEPS, 2), self.ego.xy, self.ego.yaw
+            )
+            moves = np.diff(np.concatenate([self.ego.xy[None], ahead_xy]), axis=0)
+            ahead_speed = np.linalg.norm(moves, axis=1) / FRAME_DT
+            # A heading where the plan moves; where it stands, the heading it had.
+            ahead_yaw = np.empty(FUTURE_STEPS)
+            yaw = self.ego.yaw
+            for k, (dx, dy) in enumerate(moves):
+                yaw = float(np.arctan2(dy, dx)) if np.hypot(dx, dy) > 0.05 else yaw
+                ahead_yaw[k] = yaw
+        xy = np.concatenate([[s.xy for s in driven], ahead_xy])
         n = len(xy)
-        speed = np.concatenate([[s.speed for s in driven], np.full(FUTURE_STEPS, self.ego.speed)])
+        speed = np.concatenate([[s.speed for s in driven], ahead_speed])
         motion = EgoMotion(
             xy=xy,
-            yaw=np.concatenate([[s.yaw for s in driven], np.full(FUTURE_STEPS, self.ego.yaw)]),
+            yaw=np.concatenate([[s.yaw for s in driven], ahead_yaw]),
             speed=speed,
             # As the dataset's: from the driven frames up to now (the future is a filler).
             accel=np.concatenate([past_accels(xy[: len(driven)], speed[: len(driven)]), np.zeros(FUTURE_STEPS)]),
