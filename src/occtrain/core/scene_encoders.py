@@ -28,7 +28,7 @@ class VQSceneEncoder(nn.Module):
     def __init__(self, tokenizer: SceneTokenizer):
         super().__init__()
         self.tokenizer = tokenizer.eval().requires_grad_(False)
-        self.export_dir: Path | None = getattr(tokenizer, "export_dir", None)
+        self.export_dir: Path | None = tokenizer.export_dir
 
     def train(self, mode: bool = True) -> VQSceneEncoder:
         super().train(mode)

@@ -58,7 +58,7 @@ def scene_cache_key(encoder: torch.nn.Module, index: DatasetIndex) -> str:
     and fingerprint). Stages and evaluations that read the same encoder on the same data
     find one file; another encoder or another world never does."""
     h = hashlib.sha256(type(encoder).__name__.encode())
-    export_dir = getattr(encoder, "export_dir", None)
+    export_dir = encoder.export_dir if isinstance(encoder, SceneEncoder) else None
     if export_dir is not None:
         for path in sorted(p for p in Path(export_dir).rglob("*") if p.is_file()):
             h.update(str(path.relative_to(export_dir)).encode())

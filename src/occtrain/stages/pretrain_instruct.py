@@ -205,7 +205,7 @@ class WorldModelStage(Stage):
             checkpoint_layers(world.llm)
             vision = self.engine.vision
             if vision is not None and any(p.requires_grad for p in vision.parameters()):
-                checkpoint_layers(getattr(vision, "tower", vision))
+                checkpoint_layers(vision.tower)
 
     def entries(self, split: str) -> tuple[str, ...] | None:
         return self._entries.get(split)

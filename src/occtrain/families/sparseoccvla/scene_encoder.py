@@ -28,7 +28,7 @@ class SparseSceneEncoder(nn.Module):
     def __init__(self, encoder: SparseOccEncoder):
         super().__init__()
         self.encoder = encoder.eval().requires_grad_(False)
-        self.export_dir: Path | None = getattr(encoder, "export_dir", None)
+        self.export_dir: Path | None = encoder.export_dir
 
     def train(self, mode: bool = True) -> SparseSceneEncoder:
         super().train(mode)

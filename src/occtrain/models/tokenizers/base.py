@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 from typing import ClassVar
 
 import torch
@@ -52,6 +53,9 @@ class TokenizerModel(nn.Module):
     discrete: ClassVar[bool] = True
     #: Evaluation reports its point budget's oracle beside it (``TokenizerOutput.oracle``).
     budget_oracle: ClassVar[bool] = False
+    #: The export it was loaded from (``core.registry.load_tokenizer``), which a world-model
+    #: export copies; None for one built in this process.
+    export_dir: Path | None = None
 
     def export_state_dict(self) -> dict[str, torch.Tensor]:
         """The weights an export keeps: all of them, unless a training-only branch is left out."""
