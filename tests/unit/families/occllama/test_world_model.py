@@ -336,8 +336,19 @@ def test_the_scene_cache_key_follows_the_encoder_export_and_the_dataset(tmp_path
     from occtrain.data.layout import DatasetIndex
     from occtrain.engine.world_engine import scene_cache_key
 
+    class Encoder(torch.nn.Linear):
+        """A scene encoder (``core.protocols.SceneEncoder``) loaded from an export."""
+
+        discrete = True
+
+        def encode(self, semantics: torch.Tensor) -> torch.Tensor:
+            return semantics
+
+        def decode(self, scenes: torch.Tensor) -> torch.Tensor:
+            return scenes
+
     def exported(name: str, weights: bytes) -> torch.nn.Module:
-        encoder = torch.nn.Linear(2, 2)
+        encoder = Encoder(2, 2)
         encoder.export_dir = tmp_path / name
         encoder.export_dir.mkdir()
         (encoder.export_dir / "config.json").write_text('{"arch": "x"}')
