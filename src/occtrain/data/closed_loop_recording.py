@@ -146,15 +146,6 @@ class RecordedDataset:
         self.files = SceneFiles(self.root)
         self.rig = rig
 
-    def has(self, scene: str) -> bool:
-        return self.files.scene_done(scene)
-
-    def add(self, scene: str, frames: list[FrameAnnotation], complete: list[str]) -> DatasetIndex:
-        """Complete ``scene`` with its frame annotations; the dataset then lists ``complete``
-        (the scenes it holds, this one included, in order), and is returned opened."""
-        self.files.write_frames(scene, frames)
-        return self.write_index(complete)
-
     def write_index(self, scenes: list[str]) -> DatasetIndex:
         """``annotations.json`` of ``scenes`` (each complete), written atomically; the dataset opened."""
         infos = {}

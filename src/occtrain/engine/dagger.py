@@ -192,7 +192,7 @@ class Aggregate:
     def complete(self, round_: int) -> bool:
         return all(self.result(round_, k) is not None for k in range(self.settings.routes_per_round))
 
-    def record(self, labelled: list[FrameAnnotation], result: RouteResult, round_: int) -> None:
+    def record(self, labelled: list[FrameAnnotation], result: RouteResult) -> None:
         """A driven route's frame sidecar, then its record (which marks it driven)."""
         self.dataset.files.write_frames(result.scene, labelled)
         atomic_write_json(self.route_file(result.scene), asdict(result))

@@ -363,7 +363,7 @@ class DaggerStage(PlannerStage):
                         labelled, result = drive_route(
                             driver, aggregate.dataset, scene_name(round_, k), seed, cfg.seconds, beta, self.camera, key
                         )
-                        aggregate.record(labelled, result, round_)
+                        aggregate.record(labelled, result)
                     advance(1)
 
     def training_step(self, batch: dict[str, Any], batch_idx: int) -> torch.Tensor:
