@@ -54,6 +54,9 @@ class Page:
     allow_mixed: bool = False
     #: A paragraph set under the heading (e.g. why the page is superseded).
     note: str = ""
+    #: Pictures of the same runs set under the table, ``FOLDER/NAME`` of ``docs/img``
+    #: (drawn by ``tools/docs_pictures.py``; ``docs/hooks.py`` places each with its caption).
+    pictures: tuple[str, ...] = ()
 
     @classmethod
     def of(cls, entry: dict) -> Page:
@@ -65,7 +68,7 @@ class Page:
                 + (f" (unknown keys: {', '.join(unknown)})" if unknown else "")
             )
         return cls(
-            **{k: tuple(v) if k in ("runs", "drive") else v for k, v in entry.items()},
+            **{k: tuple(v) if k in ("runs", "drive", "pictures") else v for k, v in entry.items()},
         )
 
 
@@ -139,6 +142,13 @@ def with_note(text: str, note: str) -> str:
     return f"{head}\n\n> {note.strip()}\n\n{rest}"
 
 
+def with_pictures(text: str, pictures: tuple[str, ...]) -> str:
+    """``text`` and, under it, a marker for each picture (``docs/hooks.py`` draws them in)."""
+    if not pictures:
+        return text
+    return text.rstrip("\n") + "\n\n## Pictures\n\n" + "\n\n".join(f"<!-- picture: {p} -->" for p in pictures) + "\n"
+
+
 def _drive_table():
     spec = importlib.util.spec_from_file_location("drive_table", REPO / "tools" / "drive_table.py")
     assert spec is not None and spec.loader is not None
@@ -159,7 +169,8 @@ def render(page: Page, runs: list[FoundRun]) -> tuple[str | None, list[str]]:
         split = split_of(page, found)
         scored = [Run.read(path, split) for path in found]
         command = command_line(len(scored), split, page.title, page.allow_mixed)
-        return with_note(report(scored, split, command, page.title, page.allow_mixed), page.note), []
+        text = report(scored, split, command, page.title, page.allow_mixed)
+        return with_pictures(with_note(text, page.note), page.pictures), []
     stages, missing = [], []
     for name in page.drive:
         run_name, _, stage = name.partition("/")
@@ -171,7 +182,8 @@ def render(page: Page, runs: list[FoundRun]) -> tuple[str | None, list[str]]:
     if missing:
         return None, missing
     table = _drive_table()
-    return with_note(table.markdown(table.summaries(stages, 8, 1000, 20.0, drive=False)), page.note), []
+    text = table.markdown(table.summaries(stages, 8, 1000, 20.0, drive=False))
+    return with_pictures(with_note(text, page.note), page.pictures), []
 
 
 def main(argv: list[str] | None = None) -> int:

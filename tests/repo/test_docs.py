@@ -4,6 +4,7 @@ exists, and the API reference renders from the docstrings."""
 
 from __future__ import annotations
 
+import json
 import re
 from pathlib import Path
 
@@ -114,3 +115,70 @@ def test_no_page_reads_like_a_lab_notebook():
 def test_the_notebook_check_catches_each_marker():
     text = "fixed in issue 42 (#57) at 985fb17 on 2026-11-29, this stop; 0.1.0 at 1,593 s and 2.13 GiB"
     assert notebook_markers(text) == ["issue 42", "#57", "985fb17", "2026-11-29", "this stop"]
+
+
+# ----------------------------------------------------------------------------- pictures
+
+#: What every picture in the repository may weigh together.
+PICTURES_BUDGET = 3 * 1024 * 1024
+
+
+def _picture_site(tmp_path: Path, pictures: dict) -> Path:
+    docs = tmp_path / "docs"
+    (docs / "img" / "run" / "sub").mkdir(parents=True)
+    from PIL import Image
+
+    Image.new("RGB", (8, 8), (200, 30, 30)).save(docs / "img" / "run" / "world.png")
+    (docs / "img" / "run" / "pictures.json").write_text(json.dumps({"pictures": pictures}))
+    (docs / "index.md").write_text("# Home\n\n<!-- picture: run/world -->\n")
+    (docs / "sub").mkdir()
+    (docs / "sub" / "page.md").write_text("# Deeper\n\n<!-- picture: run/world -->\n")
+    return docs
+
+
+def test_a_picture_marker_becomes_the_image_with_its_alt_text_and_caption(tmp_path, monkeypatch):
+    monkeypatch.chdir(REPO)
+    monkeypatch.setenv("NO_MKDOCS_2_WARNING", "1")
+    entry = {"file": "world.png", "alt": "a red square", "caption": "The world. recipe r, training seed 0"}
+    docs = _picture_site(tmp_path, {"world": entry})
+    nav = [{"Home": "index.md"}, {"Deeper": "sub/page.md"}]
+    build(_config(tmp_path / "site", docs_dir=str(docs), nav=nav))
+    home = (tmp_path / "site" / "index.html").read_text()
+    deeper = (tmp_path / "site" / "sub" / "page" / "index.html").read_text()
+    assert 'alt="a red square" src="img/run/world.png"' in home
+    assert "<em>The world. recipe r, training seed 0</em>" in home
+    assert 'src="../../img/run/world.png"' in deeper  # relative to each page, wherever it lies
+    assert (tmp_path / "site" / "img" / "run" / "world.png").is_file()
+
+
+def test_a_marker_naming_a_picture_not_drawn_fails_the_build(tmp_path, monkeypatch, caplog):
+    monkeypatch.chdir(REPO)
+    monkeypatch.setenv("NO_MKDOCS_2_WARNING", "1")
+    docs = _picture_site(tmp_path, {"drive": {"file": "drive.gif", "alt": "a drive", "caption": "c"}})
+    with pytest.raises(Abort):
+        build(_config(tmp_path / "site", docs_dir=str(docs), nav=[{"Home": "index.md"}]))
+    assert "index.md: run has no picture 'world'; it has drive" in caplog.text
+    (docs / "img" / "run" / "pictures.json").write_text(
+        json.dumps({"pictures": {"world": {"file": "gone.png", "alt": "a", "caption": "c"}}})
+    )
+    with pytest.raises(Abort):
+        build(_config(tmp_path / "site", docs_dir=str(docs), nav=[{"Home": "index.md"}]))
+    assert "run/gone.png is missing; draw it again" in caplog.text
+
+
+def test_the_pictures_are_generated_small_and_described():
+    """Every image in docs/img is one a run's pictures.json names (drawn by
+    tools/docs_pictures.py, with its alt text and stamped caption), all of them together
+    under the budget; every picture a page shows is placed by a marker, never linked by hand."""
+    img = REPO / "docs" / "img"
+    files = sorted(p for p in img.rglob("*") if p.is_file() and p.name != "pictures.json")
+    named = set()
+    for index in img.rglob("pictures.json"):
+        for name, entry in json.loads(index.read_text())["pictures"].items():
+            named.add(index.parent / entry["file"])
+            assert entry["alt"].strip() and "recipe " in entry["caption"] and "world " in entry["caption"], name
+    assert set(files) == named
+    assert files, "no pictures: draw them with tools/docs_pictures.py"
+    assert sum(p.stat().st_size for p in files) < PICTURES_BUDGET
+    hand_linked = [p for p in (REPO / "docs").rglob("*.md") if re.search(r"!\[[^\]]*\]\(", p.read_text())]
+    assert hand_linked == []

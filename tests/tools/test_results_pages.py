@@ -60,6 +60,19 @@ def test_a_page_whose_runs_are_absent_is_left_as_it_is(tool, tmp_path, capsys):
     assert new.startswith("# t\n\n> **Superseded.** Why.\n\nWorld v4;")
 
 
+def test_a_pages_pictures_are_placed_under_its_table(tool, tmp_path):
+    scored_run(tmp_path / "runs" / "a", 0, 12.0, 50.0)
+    out = tmp_path / "out"
+    out.mkdir()
+    pictures = ["quickstart/reconstruction", "quickstart/forecast"]
+    pages = _pages(tmp_path, {"file": "p.md", "title": "t", "runs": ["quickstart@0"], "pictures": pictures})
+    tool.main([str(tmp_path / "runs"), "--pages", str(pages), "--out", str(out)])
+    text = (out / "p.md").read_text()
+    table, _, under = text.partition("\n## Pictures\n\n")
+    assert "| all stages | 150 |" in table  # the report is whole, the pictures after it
+    assert under == "<!-- picture: quickstart/reconstruction -->\n\n<!-- picture: quickstart/forecast -->\n"
+
+
 def test_one_recipe_and_seed_of_two_codes_must_be_told_apart(tool, tmp_path):
     scored_run(tmp_path / "runs" / "a", 0, 12.0, 50.0, code="0.1.0+aaa1111")
     scored_run(tmp_path / "runs" / "b", 0, 14.0, 50.0, code="0.1.0+bbb2222")
