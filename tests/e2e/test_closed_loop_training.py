@@ -20,8 +20,9 @@ from quickstart_run import export_tensors, shared_quickstart_run, tiny_overrides
 
 pytestmark = pytest.mark.slow
 
-#: Two rounds of one 3 s route and two steps each; the planning head trained on the logged
-#: meta action (the tiny instruct model generates none that parses), so its loss moves.
+#: Two rounds of two 3 s routes, driven in two worker processes, and two steps each; the
+#: planning head trained on the logged meta action (the tiny instruct model generates none
+#: that parses), so its loss moves.
 DAGGER = [
     "stages[3].model.train_meta=ground_truth",
     "stages[5].trainer.max_steps=4",
@@ -29,7 +30,8 @@ DAGGER = [
     "stages[5].trainer.limit_val_batches=1",
     "stages[5].model.rounds=2",
     "stages[5].model.steps_per_round=2",
-    "stages[5].model.routes_per_round=1",
+    "stages[5].model.routes_per_round=2",
+    "stages[5].model.workers=2",
     "stages[5].model.seconds=3",
     "stages[5].model.aggregate_share=0.5",
     "stages[5].model.max_new_text_tokens=32",
@@ -74,15 +76,20 @@ def test_the_stage_trains_alone_over_the_quickstart_and_aggregates_a_dataset(clo
         assert stages[name]["config_hash"] == before[name]["config_hash"] and stages[name]["attempts"] == 1
     stage = run_dir / "closed_loop"
     routes = sorted((stage / "dagger" / "routes").glob("*.json"))
-    assert [r.stem for r in routes] == ["round00-route00", "round01-route00"]
-    first, second = (json.loads(r.read_text()) for r in routes)
-    assert (first["beta"], second["beta"]) == (0.5, 0.25) and first["policy"] != second["policy"]
-    assert first["frames"] == first["policy_frames"] + first["expert_frames"] == 6
+    scenes = ["round00-route00", "round00-route01", "round01-route00", "round01-route01"]
+    assert [r.stem for r in routes] == scenes
+    records = [json.loads(r.read_text()) for r in routes]
+    assert [r["beta"] for r in records] == [0.5, 0.5, 0.25, 0.25]
+    # Each round's routes were driven by that round's weights, in the workers that loaded them.
+    assert records[0]["policy"] == records[1]["policy"] != records[2]["policy"] == records[3]["policy"]
+    assert records[0]["route_seed"] != records[1]["route_seed"]
+    assert all(r["frames"] == r["policy_frames"] + r["expert_frames"] == 6 for r in records)
+    assert not list((stage / "dagger" / "policies").glob("*"))  # the weights handed to the workers are gone
     # The aggregate is a dataset: every frame's labels on disk, its future the expert's plan.
     from occtrain.data.layout import DatasetIndex
 
     index = DatasetIndex.open(stage / "dagger" / "frames")
-    assert index.splits["train"] == ["round00-route00", "round01-route00"]
+    assert index.splits["train"] == scenes
     for scene in index.splits["train"]:
         frames = index.frames(scene)
         assert len(frames) == 6 and all(len(f["ego_future"]) == 6 and all(f["ego_future_mask"]) for f in frames)
@@ -117,7 +124,7 @@ def test_a_kill_during_a_rounds_driving_resumes_bit_exact(closed_loop, tmp_path)
     assert res.returncode == 0, res.stderr[-3000:]
     ref, got = export_tensors(reference / "closed_loop"), export_tensors(run_dir / "closed_loop")
     assert ref.keys() == got.keys() and all(torch.equal(ref[k], got[k]) for k in ref)
-    for name in ("round00-route00", "round01-route00"):
+    for name in ("round00-route00", "round00-route01", "round01-route00", "round01-route01"):
         theirs = json.loads((reference / "closed_loop" / "dagger" / "routes" / f"{name}.json").read_text())
         ours = json.loads((run_dir / "closed_loop" / "dagger" / "routes" / f"{name}.json").read_text())
         assert {k: v for k, v in ours.items() if k != "wall_s"} == {k: v for k, v in theirs.items() if k != "wall_s"}

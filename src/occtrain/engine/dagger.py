@@ -65,9 +65,12 @@ class DaggerSettings:
     route_seed: int = DEFAULT_ROUTE_SEED
     #: Share of each training batch drawn from the aggregated frames (the rest: the dataset's).
     aggregate_share: float = 0.5
+    #: Processes a round's routes are driven in (1: in the training process, one after
+    #: another; more: spawned workers of one thread each, as ``occtrain drive --workers``).
+    workers: int = 1
 
     def validate(self, where: str) -> None:
-        for key in ("rounds", "steps_per_round", "routes_per_round"):
+        for key in ("rounds", "steps_per_round", "routes_per_round", "workers"):
             if getattr(self, key) < 1:
                 raise ConfigError(f"{where}.{key}: {getattr(self, key)} must be at least 1")
         if not 0 < self.seconds <= 40:

@@ -13,8 +13,10 @@ module as pretrain and instruct share theirs.
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Iterator
-from dataclasses import dataclass, make_dataclass
+import shutil
+import tempfile
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, fields, make_dataclass
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -38,6 +40,7 @@ from occtrain.formats.exports import read_config
 from occtrain.formats.occ3d import FUTURE_STEPS
 from occtrain.progress import progress_bar
 from occtrain.stages import StageKind, register
+from occtrain.stages.dagger_rollouts import POLICIES_DIR, RolloutJob, drive_in_workers, write_policy
 from occtrain.stages.optim import configure_adamw
 from occtrain.stages.stage import EvalRequest, EvalResult, Stage, StageContext, StageReport
 
@@ -350,21 +353,54 @@ class DaggerStage(PlannerStage):
     @torch.no_grad()
     def _drive(self, round_: int) -> None:
         """Drive round ``round_``'s routes with the weights of now (those already driven by
-        the same weights, before a cut, are kept)."""
+        the same weights, before a cut, are kept), in process or in ``workers`` processes."""
         cfg, aggregate = self.settings, self.aggregate
         key, beta = policy_key(self.planner), cfg.beta_at(round_)
-        driver = StageDriver(self.teacher, self.planner.waypoints)
-        with self._in_eval():
-            what = f"round {round_}: driving {cfg.routes_per_round} routes (beta {beta:.2f})"
-            with progress_bar(cfg.routes_per_round, what) as advance:
-                for k in range(cfg.routes_per_round):
-                    if not aggregate.driven(round_, k, key):
-                        seed = route_seed(cfg, round_, k)
-                        labelled, result = drive_route(
-                            driver, aggregate.dataset, scene_name(round_, k), seed, cfg.seconds, beta, self.camera, key
-                        )
-                        aggregate.record(labelled, result)
-                    advance(1)
+        todo = [k for k in range(cfg.routes_per_round) if not aggregate.driven(round_, k, key)]
+        what = f"round {round_}: driving {cfg.routes_per_round} routes (beta {beta:.2f})"
+        with self._in_eval(), progress_bar(cfg.routes_per_round, what) as advance:
+            advance(cfg.routes_per_round - len(todo))
+            if cfg.workers > 1 and len(todo) > 1:
+                self._drive_in_workers(round_, key, todo, advance)
+                return
+            driver = StageDriver(self.teacher, self.planner.waypoints)
+            for k in todo:
+                seed = route_seed(cfg, round_, k)
+                labelled, result = drive_route(
+                    driver, aggregate.dataset, scene_name(round_, k), seed, cfg.seconds, beta, self.camera, key
+                )
+                aggregate.record(labelled, result)
+                advance(1)
+
+    def _drive_in_workers(self, round_: int, key: str, todo: list[int], advance: Callable[[int], None]) -> None:
+        world_export, planner_export = self.ctx.inputs.values()
+        root = self.aggregate.root
+        weights = write_policy(self.planner, root, key)
+        settings = DaggerSettings(**{f.name: getattr(self.settings, f.name) for f in fields(DaggerSettings)})
+        trainable = tuple(n for n, p in self.planner.named_parameters() if p.requires_grad)
+        with tempfile.TemporaryDirectory(prefix="occtrain-dagger-") as scratch:
+            jobs = [
+                RolloutJob(
+                    str(world_export),
+                    str(planner_export),
+                    str(self.ctx.data.root),
+                    str(weights),
+                    key,
+                    trainable,
+                    str(root),
+                    settings,
+                    self.settings.max_new_text_tokens,
+                    self.camera,
+                    round_,
+                    k,
+                    scratch,
+                )
+                for k in todo
+            ]
+            drive_in_workers(jobs, self.settings.workers, advance)
+        # The round is recorded: no route is left to drive by these weights (nor by those of a
+        # round cut short before, whose file a resumed run in process would leave).
+        shutil.rmtree(root / POLICIES_DIR, ignore_errors=True)
 
     def training_step(self, batch: dict[str, Any], batch_idx: int) -> torch.Tensor:
         clips = self._clips(batch)
