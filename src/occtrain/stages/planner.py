@@ -31,16 +31,17 @@ from occtrain.data.cameras import nuscenes_rig
 from occtrain.data.clips import clips_from_batch, frame_clips
 from occtrain.data.closed_loop_recording import RecordedDataset
 from occtrain.data.layout import DatasetIndex
-from occtrain.engine import TEXT_ENTRIES, WorldModelEngine, load_world_model
+from occtrain.engine import TEXT_ENTRIES, load_world_model
 from occtrain.engine.closed_loop import StageDriver
 from occtrain.engine.dagger import Aggregate, DaggerSettings, drive_route, policy_key, route_seed, scene_name
+from occtrain.engine.dagger_rollouts import POLICIES_DIR, RolloutJob, drive_in_workers, write_policy
 from occtrain.engine.evaluator import fixed_subset
+from occtrain.engine.trained_planner import load_planner
 from occtrain.errors import ConfigError
 from occtrain.formats.exports import read_config
 from occtrain.formats.occ3d import FUTURE_STEPS
 from occtrain.progress import progress_bar
 from occtrain.stages import StageKind, register
-from occtrain.stages.dagger_rollouts import POLICIES_DIR, RolloutJob, drive_in_workers, write_policy
 from occtrain.stages.optim import configure_adamw
 from occtrain.stages.stage import EvalRequest, EvalResult, Stage, StageContext, StageReport
 
@@ -149,27 +150,13 @@ class PlannerStage(Stage):
 
     evaluable = True
 
-    @staticmethod
-    def load_planner(request: EvalRequest, what: str) -> tuple[Any, WorldModelEngine]:
-        """A trained planner back from its export over its frozen world model (``what``: the
-        command asking, for the error a planner that cannot be rebuilt gets)."""
-        family = read_config(request.consumed[0]).get("family", "")
-        world = get_world(family)
-        if world.load_planner is None:  # refused before the world model is loaded
-            raise ConfigError(
-                f"{request.export}: {what} cannot rebuild a '{family}' planner; its validation metrics are in "
-                "metrics.json"
-            )
-        teacher = load_world_model(request.consumed[0]).eval()
-        return world.load_planner(request.export, teacher, request), teacher
-
     drivable = True
 
     @classmethod
     def driver(cls, request: EvalRequest) -> StageDriver:
         """The planner on the world model's outputs for each driven frame (its meta action
         generated, never the logged one: closed loop has no log to read it from)."""
-        planner, teacher = cls.load_planner(request, "occtrain drive")
+        planner, teacher = load_planner(request, "occtrain drive")
         refusal = planner.closed_loop_refusal()
         if refusal is not None:
             raise ConfigError(f"{request.export}: {refusal}")
@@ -179,7 +166,7 @@ class PlannerStage(Stage):
     def rebuild(request: EvalRequest) -> tuple[Any, list]:
         """A trained planner back from its export over its frozen world model, and the
         split's clips it plans (every frame with a whole 3 s future)."""
-        planner, teacher = PlannerStage.load_planner(request, "occtrain eval")
+        planner, teacher = load_planner(request, "occtrain eval")
         teacher.prepare_inputs(request.data_root, request.cache_dir, request.shared_cache_dir)
         clips = list(
             frame_clips(
@@ -276,7 +263,7 @@ class DaggerStage(PlannerStage):
         request = EvalRequest(
             planner_export, [world_export], str(ctx.data.root), cache_dir=ctx.cache_dir, shared_cache_dir=None
         )
-        planner, teacher = PlannerStage.load_planner(request, "a dagger stage")
+        planner, teacher = load_planner(request, "a dagger stage")
         refusal = planner.closed_loop_refusal()
         if refusal is not None:
             raise ConfigError(f"stages '{ctx.spec.name}': {planner_export}: {refusal}")

@@ -25,10 +25,20 @@ import torch
 from occtrain.data.closed_loop_recording import RecordedDataset
 from occtrain.engine.closed_loop import StageDriver
 from occtrain.engine.dagger import Aggregate, DaggerSettings, drive_route, policy_key, route_seed, scene_name
+from occtrain.engine.trained_planner import load_planner
 from occtrain.formats.io import atomic_write_safetensors
-from occtrain.stages.stage import EvalRequest
 
 POLICIES_DIR = "policies"
+
+
+@dataclass(frozen=True)
+class _Request:
+    """What rebuilding the planner reads (a ``PlannerRequest``)."""
+
+    export: Path
+    consumed: list[Path]
+    data_root: str
+    cache_dir: Path | None
 
 
 @dataclass(frozen=True)
@@ -72,12 +82,10 @@ def _init_worker() -> None:
 def _driver(job: RolloutJob) -> StageDriver:
     from safetensors.torch import load_file
 
-    from occtrain.stages.planner import PlannerStage
-
     if job.policy not in _DRIVERS:
         cache = tempfile.mkdtemp(prefix="cache-", dir=job.scratch)
-        request = EvalRequest(Path(job.planner_export), [Path(job.world_export)], job.data_root, cache_dir=Path(cache))
-        planner, teacher = PlannerStage.load_planner(request, "a dagger stage")
+        request = _Request(Path(job.planner_export), [Path(job.world_export)], job.data_root, Path(cache))
+        planner, teacher = load_planner(request, "a dagger stage")
         planner.load_state_dict(load_file(job.weights), strict=True)
         for name, param in planner.named_parameters():  # as the stage trains them: what the key hashes
             param.requires_grad_(name in job.trainable)
