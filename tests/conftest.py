@@ -25,6 +25,20 @@ from occtrain.formats.occ3d import FRAME_DT, FREE, GRID_SHAPE
 
 REPO = Path(__file__).resolve().parents[1]
 
+
+def load_tool(name: str):
+    """``tools/<name>.py`` as a module (the tools are scripts, not a package), registered in
+    ``sys.modules`` under ``name``, where dataclasses look their module up."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(name, REPO / "tools" / f"{name}.py")
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
 if os.environ.get("PYTEST_XDIST_WORKER"):
     # The workers (one per core) share the cores: one thread each, for the worker and for
     # the CLI processes it starts, so that they do not oversubscribe them.

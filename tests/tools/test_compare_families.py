@@ -4,25 +4,19 @@ export is scored again; tokens per frame come from the world model's export."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import os
-import sys
 from pathlib import Path
 
 import pytest
 
-from conftest import REPO
+from conftest import load_tool
 from occtrain.formats.metrics_file import Provenance, write_metrics
 
 
 @pytest.fixture()
 def tool():
-    spec = importlib.util.spec_from_file_location("compare_families", REPO / "tools" / "compare_families.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up there
-    spec.loader.exec_module(module)
-    return module
+    return load_tool("compare_families")
 
 
 def _stage(

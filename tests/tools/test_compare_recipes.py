@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
 
@@ -10,15 +9,12 @@ import pytest
 import torch
 from safetensors.torch import save_file
 
-from conftest import REPO
+from conftest import REPO, load_tool
 
 
 @pytest.fixture(scope="module")
 def tool():
-    spec = importlib.util.spec_from_file_location("compare_recipes", REPO / "tools" / "compare_recipes.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_tool("compare_recipes")
 
 
 def _stage(root: Path, run: str, stage: str, metrics: dict | None, weight: torch.Tensor | None) -> None:

@@ -3,25 +3,19 @@ and a caption stamped with the run (recipe, seed, code, world), never its path."
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
 
 import numpy as np
 import pytest
 from PIL import Image
 
-from conftest import REPO
+from conftest import load_tool
 from quickstart_run import shared_quickstart_run
 
 
 @pytest.fixture(scope="module")
 def tool():
-    spec = importlib.util.spec_from_file_location("docs_pictures", REPO / "tools" / "docs_pictures.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
+    return load_tool("docs_pictures")
 
 
 @pytest.mark.slow

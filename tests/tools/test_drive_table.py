@@ -3,23 +3,17 @@ whether open-loop L2 orders the drivers as the driving score does."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
 from pathlib import Path
 
 import pytest
 
-from conftest import REPO
+from conftest import load_tool
 
 
 @pytest.fixture()
 def tool():
-    spec = importlib.util.spec_from_file_location("drive_table", REPO / "tools" / "drive_table.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
+    return load_tool("drive_table")
 
 
 def _drive(run: Path, stage: str, l2: float, score: float, routes: int = 2, **timing) -> Path:

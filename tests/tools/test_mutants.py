@@ -4,17 +4,12 @@ and names tests that exist (running the mutants is the tool's job: it takes half
 from __future__ import annotations
 
 import ast
-import importlib.util
-import sys
 
 import pytest
 
-from conftest import REPO
+from conftest import REPO, load_tool
 
-spec = importlib.util.spec_from_file_location("mutants", REPO / "tools" / "mutants.py")
-mutants = importlib.util.module_from_spec(spec)
-sys.modules["mutants"] = mutants  # dataclasses look their module up there
-spec.loader.exec_module(mutants)
+mutants = load_tool("mutants")
 
 
 @pytest.mark.parametrize("mutant", mutants.MUTANTS, ids=[m.name for m in mutants.MUTANTS])

@@ -3,24 +3,18 @@ manifests record, each page the very output of the command it names."""
 
 from __future__ import annotations
 
-import importlib.util
-import sys
 from pathlib import Path
 
 import pytest
 import yaml
 
-from conftest import REPO, run_cli
+from conftest import REPO, load_tool, run_cli
 from unit.report.test_results import scored_run
 
 
 @pytest.fixture()
 def tool():
-    spec = importlib.util.spec_from_file_location("results_pages", REPO / "tools" / "results_pages.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
+    return load_tool("results_pages")
 
 
 def _pages(tmp_path: Path, *pages: dict) -> Path:
