@@ -9,9 +9,10 @@ said) it renders:
 - ``reconstruction.png``: that frame and the tokenizer stage's reconstruction of it;
 - ``forecast.png``: the pretrain stage's forecast 1, 2 and 3 s ahead beside the truth and
   Copy&Paste (the present copied forward, what a forecast must beat where nothing moves);
-- ``drive.gif``: one closed-loop route of the run's planner beside the world's expert on the
-  same route (``occtrain drive --save-videos`` of one route; its results are kept in the
-  stage's ``drive/`` as every drive's are);
+- ``drive.gif``: one closed-loop route of the run's planner (its last planner or dagger stage,
+  or ``--drive-stage``) beside the world's expert on the same route (``occtrain drive
+  --save-videos`` of one route; its results are kept in the stage's ``drive/`` as every
+  drive's are);
 - ``dashboard.png``: the top of the run's dashboard, in headless Chromium (skipped, and said,
   where ``/usr/bin/chromium`` is missing).
 
@@ -230,10 +231,14 @@ def forecast_picture(run: RunFacts, frame: int, out: Path) -> Picture:
     )
 
 
-def drive_picture(run: RunFacts, seconds: float, seed: int, out: Path) -> Picture:
+def drive_picture(run: RunFacts, seconds: float, seed: int, out: Path, stage: str | None = None) -> Picture:
     from occtrain.commands.drive import drive
 
-    stage = run.stage("planner", "dagger")
+    stage = stage or run.stage("planner", "dagger")
+    if stage not in run.kinds:
+        raise SystemExit(
+            f"error: --drive-stage {stage}: the run has no done stage of that name; it has {', '.join(run.kinds)}"
+        )
     with tempfile.TemporaryDirectory() as tmp:
         drive(run.path / stage, routes=1, seed=seed, seconds=seconds, workers=1, save_videos=tmp)
         episodes = [Image.open(Path(tmp) / f"{who}-000.gif") for who in (stage, "expert")]
@@ -315,7 +320,13 @@ def dashboard_picture(run: RunFacts, out: Path) -> Picture:
 
 
 def render(
-    run: RunFacts, out: Path, only: list[str], frame: int = 8, seconds: float = 10.0, seed: int = 1000
+    run: RunFacts,
+    out: Path,
+    only: list[str],
+    frame: int = 8,
+    seconds: float = 10.0,
+    seed: int = 1000,
+    drive_stage: str | None = None,
 ) -> dict[str, Picture]:
     """Render ``only`` of the pictures into ``out``; ``pictures.json`` keeps the others'
     entries. Returns what was drawn."""
@@ -323,7 +334,7 @@ def render(
         "world": lambda: world_picture(run, frame, out),
         "reconstruction": lambda: reconstruction_picture(run, frame, out),
         "forecast": lambda: forecast_picture(run, frame, out),
-        "drive": lambda: drive_picture(run, seconds, seed, out),
+        "drive": lambda: drive_picture(run, seconds, seed, out, drive_stage),
         "dashboard": lambda: dashboard_picture(run, out),
     }
     out.mkdir(parents=True, exist_ok=True)
@@ -351,6 +362,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--frame", type=int, default=8, help="which frame of the first val scene (default 8)")
     parser.add_argument("--seconds", type=float, default=10.0, help="how long the drive animation runs (default 10)")
     parser.add_argument("--seed", type=int, default=1000, help="the route seed of the drive (default 1000)")
+    parser.add_argument("--drive-stage", help="the stage that drives (default: the run's last planner or dagger stage)")
     args = parser.parse_args(argv)
     only = [p.strip() for p in args.only.split(",") if p.strip()]
     unknown = [p for p in only if p not in PICTURES]
@@ -358,7 +370,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--only {','.join(unknown)}: the pictures are {', '.join(PICTURES)}")
     run = RunFacts.read(args.run, args.data)
     try:
-        render(run, args.out, only, args.frame, args.seconds, args.seed)
+        render(run, args.out, only, args.frame, args.seconds, args.seed, args.drive_stage)
     except OcctrainError as err:
         print(f"error: {err}", file=sys.stderr)
         return 1
