@@ -171,6 +171,7 @@ def reconstruction_picture(run: RunFacts, frame: int, out: Path) -> Picture:
         else:
             pred = model.decode_labels(model.encode(batch["semantics"].long()))[0]
     pred = pred.to(torch.uint8).numpy()
+    source = "from the six cameras alone" if tokenizer_archs()[model.arch].reads_cameras else "from its scene tokens"
     mask = batch["mask_camera"][0].numpy()
     panels = [render_bev(truth, mask, scale=2, title="truth"), render_bev(pred, mask, scale=2, title="reconstruction")]
     classes = sorted({int(c) for c in np.unique(np.concatenate([truth.ravel(), pred.ravel()]))} - {FREE})
@@ -179,7 +180,7 @@ def reconstruction_picture(run: RunFacts, frame: int, out: Path) -> Picture:
         "reconstruction.png",
         "Two bird's-eye views side by side: the true occupancy of a frame and the scene tokenizer's reconstruction",
         f"What the `{stage}` stage ({model.arch}) keeps of a scene: frame {i} of val scene {scene}, truth (left) and "
-        "its reconstruction from the scene tokens (right). " + run.stamp,
+        f"its reconstruction {source} (right). " + run.stamp,
     )
 
 
