@@ -163,15 +163,16 @@ def reconstruction_picture(run: RunFacts, frame: int, out: Path) -> Picture:
     model = load_tokenizer(run.path / stage / "export")
     index = DatasetIndex.open(run.data)
     scene, token, i = first_val_frame(index, frame)
-    batch = frames_batch(index, [(scene, token)], cameras=tokenizer_archs()[model.arch].reads_cameras)
+    reads_cameras = tokenizer_archs()[model.arch].reads_cameras
+    batch = frames_batch(index, [(scene, token)], cameras=reads_cameras)
     truth = batch["semantics"][0].numpy()
     with torch.no_grad():
-        if tokenizer_archs()[model.arch].reads_cameras:
+        if reads_cameras:
             pred = model(batch, index, None).prediction()[0]
         else:
             pred = model.decode_labels(model.encode(batch["semantics"].long()))[0]
     pred = pred.to(torch.uint8).numpy()
-    source = "from the six cameras alone" if tokenizer_archs()[model.arch].reads_cameras else "from its scene tokens"
+    source = "from the six cameras alone" if reads_cameras else "from its scene tokens"
     mask = batch["mask_camera"][0].numpy()
     panels = [render_bev(truth, mask, scale=2, title="truth"), render_bev(pred, mask, scale=2, title="reconstruction")]
     classes = sorted({int(c) for c in np.unique(np.concatenate([truth.ravel(), pred.ravel()]))} - {FREE})
@@ -291,18 +292,15 @@ def _gif_frames(gif: Image.Image) -> list[Image.Image]:
 
 
 def dashboard_picture(run: RunFacts, out: Path) -> Picture:
-    from occtrain.dashboard.page import render_page
-    from occtrain.dashboard.run_view import load_run, read_data
+    from occtrain.dashboard import write_dashboard
 
     if not CHROMIUM.exists():
         raise Skipped(f"{CHROMIUM} is missing (Debian's chromium package draws the page)")
-    view = load_run(run.path)
-    view.data = read_data(view.run_dir, view.pipeline_yaml)
-    # The page names the run by where it lies; the docs name it as its recipe's runs/NAME.
-    page = render_page(view).replace(html.escape(str(view.run_dir)), f"runs/{html.escape(run.name)}")
     with tempfile.TemporaryDirectory() as tmp:
         file, shot = Path(tmp) / "dashboard.html", Path(tmp) / "dashboard.png"
-        file.write_text(page)
+        # The page names the run by where it lies; the docs name it as its recipe's runs/NAME.
+        page = write_dashboard(run.path, out=file).read_text()
+        file.write_text(page.replace(html.escape(str(run.path)), f"runs/{html.escape(run.name)}"))
         cmd = [str(CHROMIUM), "--headless", "--no-sandbox", "--disable-gpu", "--hide-scrollbars"]
         cmd += [f"--user-data-dir={Path(tmp) / 'profile'}", f"--screenshot={shot}", "--window-size=1200,900"]
         proc = subprocess.run([*cmd, file.as_uri()], capture_output=True, text=True, timeout=120)

@@ -25,6 +25,7 @@ import json
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -34,6 +35,8 @@ from occtrain.data.closed_loop_recording import DrivingWorld, EpisodeRecorder, R
 from occtrain.data.layout import DatasetIndex
 from occtrain.data.schema import FrameAnnotation
 from occtrain.engine.closed_loop import StageDriver, StagePlanner
+from occtrain.engine.trained_planner import PlannerRequest, load_planner
+from occtrain.engine.world_engine import WorldModelEngine
 from occtrain.errors import ConfigError
 from occtrain.formats.io import atomic_write_json
 from occtrain.metrics.closed_loop_scores import score_episode
@@ -101,6 +104,20 @@ def policy_key(policy: torch.nn.Module) -> str:
             h.update(name.encode())
             h.update(tensor.detach().cpu().contiguous().view(-1).view(torch.uint8).numpy().tobytes())
     return h.hexdigest()[:16]
+
+
+def load_policy(request: PlannerRequest, where: str, max_new_text_tokens: int) -> tuple[Any, WorldModelEngine]:
+    """The planner a dagger stage drives and fine-tunes, over its frozen world model (eval
+    mode, no gradients), as the stage and its rollout workers both load it: refused in one
+    line (``where``: whose) when it cannot drive closed loop; the world model's generation
+    capped at ``max_new_text_tokens`` (0: its export's)."""
+    planner, teacher = load_planner(request, "a dagger stage")
+    refusal = planner.closed_loop_refusal()
+    if refusal is not None:
+        raise ConfigError(f"{where}: {request.export}: {refusal}")
+    if max_new_text_tokens > 0:
+        teacher.with_settings(max_new_text_tokens=max_new_text_tokens)
+    return planner, teacher.requires_grad_(False).eval()
 
 
 class MixedPlanner:
@@ -229,6 +246,7 @@ __all__ = [
     "MixedPlanner",
     "RouteResult",
     "drive_route",
+    "load_policy",
     "policy_key",
     "route_seed",
     "scene_name",

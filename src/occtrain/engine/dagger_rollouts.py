@@ -24,8 +24,15 @@ import torch
 
 from occtrain.data.closed_loop_recording import RecordedDataset
 from occtrain.engine.closed_loop import StageDriver
-from occtrain.engine.dagger import Aggregate, DaggerSettings, drive_route, policy_key, route_seed, scene_name
-from occtrain.engine.trained_planner import load_planner
+from occtrain.engine.dagger import (
+    Aggregate,
+    DaggerSettings,
+    drive_route,
+    load_policy,
+    policy_key,
+    route_seed,
+    scene_name,
+)
 from occtrain.formats.io import atomic_write_safetensors
 
 POLICIES_DIR = "policies"
@@ -85,16 +92,14 @@ def _driver(job: RolloutJob) -> StageDriver:
     if job.policy not in _DRIVERS:
         cache = tempfile.mkdtemp(prefix="cache-", dir=job.scratch)
         request = _Request(Path(job.planner_export), [Path(job.world_export)], job.data_root, Path(cache))
-        planner, teacher = load_planner(request, "a dagger stage")
+        planner, teacher = load_policy(request, "a dagger rollout worker", job.max_new_text_tokens)
         planner.load_state_dict(load_file(job.weights), strict=True)
         for name, param in planner.named_parameters():  # as the stage trains them: what the key hashes
             param.requires_grad_(name in job.trainable)
         if policy_key(planner) != job.policy:
             raise RuntimeError(f"{job.weights}: the weights hash to {policy_key(planner)}, not {job.policy}")
-        if job.max_new_text_tokens > 0:
-            teacher.with_settings(max_new_text_tokens=job.max_new_text_tokens)
         _DRIVERS.clear()
-        _DRIVERS[job.policy] = StageDriver(teacher.requires_grad_(False).eval(), planner.eval().waypoints)
+        _DRIVERS[job.policy] = StageDriver(teacher, planner.eval().waypoints)
     return _DRIVERS[job.policy]
 
 

@@ -33,7 +33,15 @@ from occtrain.data.closed_loop_recording import RecordedDataset
 from occtrain.data.layout import DatasetIndex
 from occtrain.engine import TEXT_ENTRIES, load_world_model
 from occtrain.engine.closed_loop import StageDriver
-from occtrain.engine.dagger import Aggregate, DaggerSettings, drive_route, policy_key, route_seed, scene_name
+from occtrain.engine.dagger import (
+    Aggregate,
+    DaggerSettings,
+    drive_route,
+    load_policy,
+    policy_key,
+    route_seed,
+    scene_name,
+)
 from occtrain.engine.dagger_rollouts import POLICIES_DIR, RolloutJob, drive_in_workers, write_policy
 from occtrain.engine.evaluator import fixed_subset
 from occtrain.engine.trained_planner import load_planner
@@ -263,13 +271,7 @@ class DaggerStage(PlannerStage):
         request = EvalRequest(
             planner_export, [world_export], str(ctx.data.root), cache_dir=ctx.cache_dir, shared_cache_dir=None
         )
-        planner, teacher = load_planner(request, "a dagger stage")
-        refusal = planner.closed_loop_refusal()
-        if refusal is not None:
-            raise ConfigError(f"stages '{ctx.spec.name}': {planner_export}: {refusal}")
-        if cfg.max_new_text_tokens > 0:
-            teacher.with_settings(max_new_text_tokens=cfg.max_new_text_tokens)
-        teacher.requires_grad_(False).eval()
+        planner, teacher = load_policy(request, f"stages '{ctx.spec.name}'", cfg.max_new_text_tokens)
         teacher.prepare_inputs(ctx.data.root, ctx.cache_dir, ctx.shared_cache_dir)
         # The head fine-tunes as the planner stage trained it (dropout on); its world model stays frozen.
         planner.train()
@@ -363,6 +365,8 @@ class DaggerStage(PlannerStage):
         world_export, planner_export = self.ctx.inputs.values()
         root = self.aggregate.root
         weights = write_policy(self.planner, root, key)
+        # The engine's own settings, not this module's subclass: unpickling that in a worker
+        # would import the stages, and Lightning with them.
         settings = DaggerSettings(**{f.name: getattr(self.settings, f.name) for f in fields(DaggerSettings)})
         trainable = tuple(n for n, p in self.planner.named_parameters() if p.requires_grad)
         with tempfile.TemporaryDirectory(prefix="occtrain-dagger-") as scratch:
