@@ -32,6 +32,7 @@ from pathlib import Path
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import torch  # noqa: E402
+from records import Row, record  # noqa: E402
 
 from occtrain.config import DataConfig, SynthConfig  # noqa: E402
 from occtrain.data.datamodule import ShardDataModule  # noqa: E402
@@ -94,6 +95,17 @@ def bench_fingerprint(root: Path) -> None:
         f"sha256 of every byte       : {' / '.join(f'{t:.2f}' for t in hash_s)} s   "
         f"({min(hash_s) / min(stat_s):.1f}x the fingerprint, best of three)"
     )
+    record(
+        [
+            Row(
+                f"what every stage start pays to know its shards and caches are of the dataset as it is "
+                f"({len(files):,} source files, {size / 1e6:.0f} MB): occtrain's size + mtime fingerprint vs a "
+                "sha256 of every byte, three interleaved runs",
+                f"{min(stat_s):.2f}-{max(stat_s):.2f} s vs {min(hash_s):.2f}-{max(hash_s):.2f} s (the first hash "
+                "reads cold files; later ones from the page cache)",
+            )
+        ]
+    )
 
 
 def bench_transfer(root: Path, batches: int = 20) -> None:
@@ -116,6 +128,16 @@ def bench_transfer(root: Path, batches: int = 20) -> None:
     print(f"{root}: {len(held)} clip batches of {data.batch_size}")
     print(f"Lightning's walk of the whole batch : {walk:7.2f} ms a batch")
     print(f"ShardDataModule's transfer          : {ours:7.2f} ms a batch   ({walk / ours:.0f}x faster)")
+    record(
+        [
+            Row(
+                f"handing a clip batch (batch {data.batch_size}, {len(held)} batches of the training shards) to the "
+                "device: Lightning's walk of the whole batch vs `ShardDataModule.transfer_batch_to_device`, which "
+                "leaves the per-sample records alone, alternating per batch",
+                f"{walk:.2f} vs {ours:.2f} ms a batch ({walk / ours:.0f}x)",
+            )
+        ]
+    )
 
 
 def main() -> None:
@@ -163,6 +185,25 @@ def main() -> None:
     )
     print(f"shard read, num_workers=0 : {read0:7.1f} samples/s  (goal >= 200)")
     print(f"shard read, num_workers=2 : {read2:7.1f} samples/s  ({read2 / read0:.2f}x workers=0)")
+    record(
+        [
+            Row(
+                f"world synthesis in memory, one core ({args.frames} frames: scenes, lidar, labels with both masks, "
+                "annotation, text): without vs with the six cameras (72 x 128, class and depth maps)",
+                f"{plain:.1f} vs {with_cams:.1f} frames/s: the cameras cost {plain / with_cams:.2f}x the time "
+                "(goal <= 3x); goal >= 15 frames/s with the cameras",
+            ),
+            Row(
+                f"a 4-scene world written to disk (labels, six images and twelve maps a frame) by one process vs "
+                f"one worker process per core ({cores})",
+                f"{disk_fps[1]:.1f} vs {disk_fps[cores]:.1f} frames/s ({disk_fps[cores] / disk_fps[1]:.2f}x)",
+            ),
+            Row(
+                "reading frame shards with decoding through a DataLoader, num_workers 0 vs 2",
+                f"{read0:.0f} vs {read2:.0f} samples/s (goal >= 200)",
+            ),
+        ]
+    )
 
 
 if __name__ == "__main__":

@@ -28,6 +28,7 @@ from pathlib import Path
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import torch.multiprocessing as mp  # noqa: E402
+from records import Row, record  # noqa: E402
 from torch.utils.data import DataLoader  # noqa: E402
 
 from occtrain.data.shards import make_pipeline, shard_urls  # noqa: E402
@@ -83,6 +84,7 @@ def main() -> None:
         )
     print(f"training shards of {args.shards}, global batch {args.global_batch}, {args.epochs:g} epoch(s); MiB per rank")
     print(f"{'kind':<7} {'processes':>9} {'rchar/rank':>11} {'entries/rank':>13} {'vs 1 process':>13} {'1/N':>6}")
+    shares: dict[str, list[str]] = {}
     for kind in ("frames", "clips"):
         urls, total = shard_urls(args.shards, kind, "train")
         steps = max(2, int(total * args.epochs) // args.global_batch)
@@ -97,6 +99,16 @@ def main() -> None:
                 f"{kind:<7} {world:>9} {rchar / 2**20:>11.1f} {entries / 2**20:>13.1f} {rchar / one:>13.3f} "
                 f"{1 / world:>6.3f}"
             )
+            shares.setdefault(kind, []).append(f"{rchar / 2**20:.1f}")
+    record(
+        [
+            Row(
+                f"bytes each rank reads (`/proc/self/io` rchar) of {args.epochs:g} epoch of the training shards, "
+                f"global batch {args.global_batch}, at 1 / 2 / 4 fresh processes",
+                "; ".join(f"{kind} {' / '.join(mib)} MiB a rank" for kind, mib in shares.items()),
+            )
+        ]
+    )
 
 
 if __name__ == "__main__":

@@ -17,6 +17,8 @@ import sys
 import tempfile
 from pathlib import Path
 
+from records import Row, record
+
 REPO = Path(__file__).resolve().parents[2]
 
 
@@ -52,6 +54,15 @@ def main() -> None:
     print(
         f"tokenizer stage, {args.steps} steps: 1 process {one:.2f} samples/s, 2 DDP processes {two:.2f} samples/s "
         f"-> {two / one:.2f}x"
+    )
+    record(
+        [
+            Row(
+                f"the tokenizer stage ({args.steps} steps, batch 2 a process) in one process vs two DDP processes "
+                "over gloo on the same cores, through the CLI",
+                f"{one:.2f} vs {two:.2f} samples/s ({two / one:.2f}x)",
+            )
+        ]
     )
 
 

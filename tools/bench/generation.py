@@ -18,6 +18,7 @@ os.environ.setdefault("OMP_NUM_THREADS", "2")
 
 import torch  # noqa: E402
 from omegaconf import OmegaConf  # noqa: E402
+from records import Row, record  # noqa: E402
 
 from occtrain.config import load_config  # noqa: E402
 from occtrain.config.recipe import RecipeConfig  # noqa: E402
@@ -53,6 +54,7 @@ def main() -> None:
         recipe.data.root, stage / "cache", shared_cache_dir(stage)
     )  # time generation, not the frozen encoders
     torch.manual_seed(0)
+    rows = []
     for task in args.tasks.split(","):
         timed(engine, task, batches[:1], True)  # warm-up
         t_one, one = timed(engine, task, batches, batched=False)
@@ -64,6 +66,15 @@ def main() -> None:
             f"{n / t_batch:.2f} seq/s "
             f"-> {t_one / t_batch:.1f}x; identical answers {same}/{n}"
         )
+        rows.append(
+            Row(
+                f"greedy generation of `{task}` on {n} val prompts of a trained instruct export: one prompt at a "
+                f"time vs a batch's {args.batch_size} together",
+                f"{n / t_one:.2f} vs {n / t_batch:.2f} sequences/s ({t_one / t_batch:.1f}x); identical answers "
+                f"{same}/{n}",
+            )
+        )
+    record(rows)
 
 
 if __name__ == "__main__":

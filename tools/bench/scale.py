@@ -31,6 +31,7 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 import torch  # noqa: E402
 import torch.distributed as dist  # noqa: E402
 import torch.multiprocessing as mp  # noqa: E402
+from records import Row, record  # noqa: E402
 
 from occtrain.commands.memory_plan import GIB, MemoryRow, count_llm, plan  # noqa: E402
 from occtrain.config.llm import LLMConfig  # noqa: E402
@@ -162,6 +163,7 @@ def main() -> None:
         f"LLM {count.params / 1e6:.0f} M parameters, batch {args.batch} x {args.seq} tokens, fp32, AdamW; GiB per rank"
     )
     print(f"{'setting':<30} {'measured (each rank)':>22} {'planned':>9} {'measured / planned':>19}")
+    rows = []
     for checkpointing in (False, True):
         args.checkpointing = checkpointing
         ddp, sharded = plan(count, "32-true", args.batch, args.seq, 2, checkpointing)
@@ -171,6 +173,16 @@ def main() -> None:
             name = mode + (", checkpointing" if checkpointing else "")
             shown = " / ".join(f"{p / GIB:.2f}" for p in peaks)
             print(f"{name:<30} {shown:>22} {planned / GIB:>9.2f} {max(peaks) / planned:>19.2f}", flush=True)
+            rows.append(f"{name} {max(peaks) / GIB:.2f} GiB ({max(peaks) / planned:.2f} of the plan)")
+    record(
+        [
+            Row(
+                f"peak RSS a rank of two AdamW steps of a {count.params / 1e6:.0f} M Llama (fp32, {args.batch} x "
+                f"{args.seq} tokens) in fresh processes, beside `occtrain plan-memory`'s plan",
+                "; ".join(rows),
+            )
+        ]
+    )
 
 
 if __name__ == "__main__":

@@ -32,6 +32,7 @@ from pathlib import Path
 os.environ.setdefault("OMP_NUM_THREADS", "2")
 
 from omegaconf import OmegaConf  # noqa: E402
+from records import Row, record  # noqa: E402
 
 from occtrain.progress import console  # noqa: E402
 from occtrain.run.planning import load_recipe  # noqa: E402
@@ -99,6 +100,7 @@ def main() -> None:
     print(f"\n{args.stage} of {args.recipe}, LLM {args.size}, {args.steps} steps ({args.warmup} warm-up) per variant")
     print("| variant | tokens/s | x first | MFU % | padding % | step s |")
     print("|---|---|---|---|---|---|")
+    shown = []
     for name, m in rows:
         tps = m.get("train_tokens_per_s", float("nan"))
         ratio = tps / base if base else float("nan")
@@ -106,9 +108,20 @@ def main() -> None:
         pad = 100 * m.get("train_padding_share", float("nan"))
         step = m.get("train_step_s", float("nan"))
         print(f"| {name} | {tps:,.0f} | {ratio:.2f} | {mfu:.1f} | {pad:.1f} | {step:.3f} |")
+        shown.append(f"{name} {tps:,.0f} tokens/s ({ratio:.2f}x, MFU {mfu:.1f} %, padding {pad:.0f} %)")
     peak = rows[0][1].get("train_device_peak_flops_per_s")
     if peak:
         print(f"\npeak the MFU divides by: {peak / 1e12:.3f} TFLOP/s")
+    record(
+        [
+            Row(
+                f"training throughput of {args.recipe}'s {args.stage} stage (LLM {args.size}"
+                + (", " + " ".join(args.set) if args.set else "")
+                + f"), {args.steps} steps after {args.warmup} of warm-up, eager vs compiled x padded vs packed",
+                "; ".join(shown) + (f"; the MFU's peak {peak / 1e12:.3f} TFLOP/s" if peak else ""),
+            )
+        ]
+    )
 
 
 if __name__ == "__main__":

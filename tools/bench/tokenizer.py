@@ -25,6 +25,8 @@ import sys
 import tempfile
 from pathlib import Path
 
+from records import Row, record
+
 REPO = Path(__file__).resolve().parents[2]
 
 PROBE = """
@@ -105,6 +107,18 @@ def decode(export: Path, data: Path, threads: int = 2) -> None:
         print(f"{name:20s} {len(frames)} val frames: {took:6.2f} s, {took / len(frames) * 1e3:6.1f} ms per scene")
     ratio = seconds["decode().argmax(1)"] / seconds["decode_labels"]
     print(f"decode_labels is {ratio:.2f}x faster; {differing} of {voxels:,} voxels differ")
+    per_scene = {k: 1e3 * v / len(frames) for k, v in seconds.items()}
+    record(
+        [
+            Row(
+                f"decoding a trained tokenizer's codes of the {len(frames)} val frames to labels, batches of 8, "
+                f"{threads} threads: the argmax of the full class scores vs `decode_labels` (the semantics head read "
+                "only where the status head says occupied)",
+                f"{per_scene['decode().argmax(1)']:.0f} vs {per_scene['decode_labels']:.0f} ms per scene "
+                f"({ratio:.2f}x); {differing} of {voxels:,} voxels differ",
+            )
+        ]
+    )
 
 
 def main() -> None:
@@ -117,19 +131,37 @@ def main() -> None:
     if args.decode:
         decode(args.decode, args.data)
         return
+    probed = []
     for arch in ("occworld_vqvae", "occllama_tokenizer"):
         params, seconds, gib = probe(arch)
+        probed.append(f"{arch} ({params / 1e6:.2f} M) {seconds:.1f} s, {gib:.2f} GiB")
         print(
             f"{arch:20s} paper size: {params / 1e6:6.2f} M params, fwd+bwd batch 1 {seconds:5.2f} s, peak RSS "
             f"{gib:.2f} GiB"
         )
+    rows = [
+        Row(
+            "the two scene tokenizers at paper size (200 x 200 x 16), one forward and backward at batch 1 in a fresh "
+            "process each: wall time and peak RSS",
+            "; ".join(probed) + " (goal <= 4 GB)",
+        )
+    ]
     if not args.skip_training:
-        for name, m in train(args.steps).items():
+        trained = train(args.steps)
+        for name, m in trained.items():
             print(
                 f"{name:20s} after {args.steps} steps ({m['wall_s']:.0f} s): val occworld mIoU "
                 f"{m['val/occworld_mIoU']:.1f}, "
                 f"IoU {m['val/occworld_IoU']:.1f}; occ3d mIoU {m['val/occ3d_mIoU']:.1f}"
             )
+        rows.append(
+            Row(
+                f"both tokenizers after {args.steps} steps of "
+                "`recipes/ablations/tokenizer_decoupled_vs_vqvae.yaml`: val reconstruction, `occworld` convention",
+                "; ".join(f"{n} mIoU {m['val/occworld_mIoU']:.1f} ({m['wall_s']:.0f} s)" for n, m in trained.items()),
+            )
+        )
+    record(rows)
 
 
 if __name__ == "__main__":

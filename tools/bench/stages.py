@@ -1,0 +1,60 @@
+"""What each stage of a finished run measured of its own training: throughput and MFU.
+
+    python tools/bench/stages.py [--run runs/quickstart]
+
+Every stage's ``metrics.json`` carries its training steps' rates (rank zero, the first two
+steps of an attempt left out; see the page's "Training throughput"): samples/s, tokens/s
+for the world-model stages, step time and model FLOPs over the device's peak (MFU),
+counted by formula for the LLM stages and by torch's ``FlopCounterMode`` for the others.
+This reads them; it trains nothing.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from records import Row, record
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--run", type=Path, default=Path("runs/quickstart"))
+    args = parser.parse_args()
+    manifest = json.loads((args.run / "manifest.json").read_text())
+    measured = {
+        stage: json.loads(path.read_text())
+        for stage in manifest["stages"]
+        if (path := args.run / stage / "metrics.json").is_file()
+    }
+    codes = sorted({m.get("provenance", {}).get("code_version", "?") for m in measured.values()})
+    peak = next(
+        (m["train_device_peak_flops_per_s"] for m in measured.values() if "train_device_peak_flops_per_s" in m), 0
+    )
+    shown = []
+    for stage, metrics in measured.items():
+        if "train_samples_per_s" not in metrics:
+            continue
+        parts = [f"{metrics['train_samples_per_s']:.1f} samples/s"]
+        if "train_tokens_per_s" in metrics:
+            parts.append(f"{metrics['train_tokens_per_s']:,.0f} tokens/s")
+        if "train_mfu" in metrics:
+            parts.append(f"MFU {100 * metrics['train_mfu']:.1f} %")
+        parts.append(f"step {metrics['train_step_s']:.3f} s")
+        shown.append(f"{stage} " + ", ".join(parts))
+        print(shown[-1])
+    record(
+        [
+            Row(
+                f"each stage's training steps of a {manifest['name']} run (its `metrics.json`, trained by code "
+                + ", ".join(codes)
+                + ")",
+                "; ".join(shown) + (f" (the MFU's peak: {peak / 1e12:.3f} TFLOP/s)" if peak else ""),
+            )
+        ]
+    )
+
+
+if __name__ == "__main__":
+    main()
