@@ -79,11 +79,15 @@ BENCHMARKS = (
         "python tools/bench/throughput.py recipes/quickstart.yaml --stage pretrain --steps 24 --warmup 8",
         (f"{QUICKSTART}/tokenizer",),
     ),
-    Benchmark("occvla", "python tools/bench/occvla.py --samples -1", ("runs/occvla/stage2",)),
+    Benchmark(
+        "occvla", "python tools/bench/occvla.py --stage runs/occvla_proof/stage2 --samples -1", ("runs/occvla_proof",)
+    ),
     Benchmark("sparse-planner", "python tools/bench/sparseoccvla.py planner", ("runs/sparseoccvla/planner",)),
     Benchmark("chamfer", "python tools/bench/sparseoccvla.py chamfer"),
     Benchmark(
-        "sparse-tokens", "python tools/bench/sparseoccvla.py tokens", ("runs/sparseoccvla/stage2", "runs/occvla/stage1")
+        "sparse-tokens",
+        "python tools/bench/sparseoccvla.py tokens --dense runs/occvla_proof/stage1",
+        ("runs/sparseoccvla/stage2", "runs/occvla_proof/stage1"),
     ),
     Benchmark("scale", "python tools/bench/scale.py"),
     Benchmark("suite", "python tools/bench/suite.py"),
