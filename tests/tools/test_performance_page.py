@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import json
+import runpy
 import sys
 
 import pytest
 
 from conftest import REPO, load_tool
+from quickstart_run import shared_quickstart_run
 
 page = load_tool("performance_page")
 sys.path.insert(0, str(REPO / "tools" / "bench"))
@@ -71,3 +73,21 @@ def test_every_benchmark_is_placed_on_the_page_and_exists():
 def test_the_committed_page_is_the_committed_records_rendering():
     """docs/performance.md is regenerated, never edited: it equals what `page` writes now."""
     assert page.PAGE.read_text() == page.render(page.TEMPLATE.read_text(), page.RECORDS)
+
+
+@pytest.mark.slow
+def test_the_stages_benchmark_records_every_stages_rates_and_mfu(tmp_path_factory, tmp_path, monkeypatch):
+    """Every stage's rates are on the page's row, with an MFU where its steps counted FLOPs:
+    the LLM stages by formula, the tokenizer by ``FlopCounterMode`` (the tiny planner's few
+    steps end before a counted one is followed by a measured one)."""
+    run = shared_quickstart_run(tmp_path_factory)
+    monkeypatch.setenv(records.ENV, str(tmp_path))
+    monkeypatch.setenv(records.NAME_ENV, "stages")
+    script = REPO / "tools" / "bench" / "stages.py"
+    monkeypatch.setattr(sys, "argv", [str(script), "--run", str(run)])
+    runpy.run_path(str(script), run_name="__main__")
+    measured = json.loads((tmp_path / "stages.json").read_text())["rows"][0]["measured"]
+    by_stage = dict(part.split(" ", 1) for part in measured.split(" (the MFU's peak")[0].split("; "))
+    assert {"tokenizer", "pretrain", "instruct", "planner", "distill"} <= set(by_stage)
+    assert all("samples/s" in rates for rates in by_stage.values()), by_stage
+    assert all("MFU" in by_stage[s] for s in ("tokenizer", "pretrain", "instruct", "distill")), by_stage

@@ -41,7 +41,8 @@ def main() -> None:
             parts.append(f"{metrics['train_tokens_per_s']:,.0f} tokens/s")
         if "train_mfu" in metrics:
             parts.append(f"MFU {100 * metrics['train_mfu']:.1f} %")
-        parts.append(f"step {metrics['train_step_s']:.3f} s")
+        if "train_step_s" in metrics:
+            parts.append(f"step {metrics['train_step_s']:.3f} s")
         shown.append(f"{stage} " + ", ".join(parts))
         print(shown[-1])
     record(
