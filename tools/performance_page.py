@@ -72,7 +72,9 @@ BENCHMARKS = (
     Benchmark(
         "generation", f"python tools/bench/generation.py --stage {QUICKSTART}/instruct", (f"{QUICKSTART}/instruct",)
     ),
-    Benchmark("stages", "python tools/bench/stages.py", (QUICKSTART,)),
+    Benchmark(
+        "stages", "python tools/bench/stages.py --stages tokenizer,pretrain,instruct,planner,distill", (QUICKSTART,)
+    ),
     Benchmark("evaluation", "python tools/bench/evaluation.py", (f"{QUICKSTART}/distill",)),
     Benchmark(
         "throughput",

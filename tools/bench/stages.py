@@ -1,6 +1,6 @@
 """What each stage of a finished run measured of its own training: throughput and MFU.
 
-    python tools/bench/stages.py [--run runs/quickstart]
+    python tools/bench/stages.py [--run runs/quickstart] [--stages tokenizer,pretrain,...]
 
 Every stage's ``metrics.json`` carries its training steps' rates (rank zero, the first two
 steps of an attempt left out; see the page's "Training throughput"): samples/s, tokens/s
@@ -21,12 +21,14 @@ from records import Row, record
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--run", type=Path, default=Path("runs/quickstart"))
+    parser.add_argument("--stages", default="", help="comma-separated (default: every stage of the run)")
     args = parser.parse_args()
     manifest = json.loads((args.run / "manifest.json").read_text())
     measured = {
         stage: json.loads(path.read_text())
         for stage in manifest["stages"]
         if (path := args.run / stage / "metrics.json").is_file()
+        and (not args.stages or stage in args.stages.split(","))
     }
     codes = sorted({m.get("provenance", {}).get("code_version", "?") for m in measured.values()})
     peak = next(

@@ -227,6 +227,17 @@ class StepMeter(Callback):
             if name in LOGGED_RATES:
                 pl_module.log(f"train/{name}", value, batch_size=max(work.samples, 1))
 
+    def restart_step(self) -> None:
+        """What ran since this batch started is not the step's (a dagger round's driving and
+        its world-model outputs, in the module's ``on_train_batch_start``, which Lightning
+        calls after this callback's): the step's clock, and the interval to the next batch's
+        start, start now, and a step being counted counts afresh."""
+        self._last = self._began = time.perf_counter()
+        if self._counter is not None:
+            self._counter.__exit__(None, None, None)
+            self._counter = FlopCounterMode(display=False)
+            self._counter.__enter__()
+
     # Time spent validating or checkpointing is not a step's: the next step starts the clock.
     def on_validation_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         self._last = None

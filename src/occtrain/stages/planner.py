@@ -50,6 +50,7 @@ from occtrain.formats.exports import read_config
 from occtrain.formats.occ3d import FUTURE_STEPS
 from occtrain.progress import progress_bar
 from occtrain.stages import StageKind, register
+from occtrain.stages.callbacks import StepMeter
 from occtrain.stages.optim import configure_adamw
 from occtrain.stages.stage import EvalRequest, EvalResult, Stage, StageContext, StageReport
 
@@ -338,6 +339,11 @@ class DaggerStage(PlannerStage):
             self.round_scores[r] = scores
             self.log_dict({f"dagger/{k}": v for k, v in scores.items()}, batch_size=1)
         self._rounds = round_ + 1
+        # Driving a round and the world model's outputs for its frames are not this step's
+        # time, nor its FLOPs (they would make the stage's MFU and step time the rollouts').
+        callbacks = self.trainer.callbacks  # type: ignore[attr-defined]  # Lightning sets it per instance
+        for meter in (cb for cb in callbacks if isinstance(cb, StepMeter)):
+            meter.restart_step()
 
     @torch.no_grad()
     def _drive(self, round_: int) -> None:

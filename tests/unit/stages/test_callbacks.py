@@ -130,6 +130,32 @@ def test_a_kind_that_counts_flops_gets_every_steps_from_its_first_counted_one(mo
             assert [work.flops for _, work in resumed.steps] == [512.0]
 
 
+def test_work_a_stage_does_before_its_step_is_neither_the_steps_time_nor_its_flops(monkeypatch):
+    """A dagger stage drives a round and runs its world model on the new frames in its
+    ``on_train_batch_start`` (after the meter's): ``restart_step`` leaves that work out of
+    the step's clock, of the interval to the next batch, and of the counted FLOPs (the
+    step's own 256 here, not the 2 x 64 x 64 x 64 of the work before it)."""
+    clock = [0.0]
+    monkeypatch.setattr(callbacks.time, "perf_counter", lambda: clock[0])
+    meter, module = StepMeter(warmup=0), _Module()
+    module.count_flops = True
+    trainer = SimpleNamespace(precision="32-true")
+    w = torch.randn(8, 4, requires_grad=True)
+    for step in range(2):
+        meter.on_train_batch_start(trainer, module, None, 0)
+        if step == 0:
+            torch.randn(64, 64) @ torch.randn(64, 64)  # the round's work
+            clock[0] += 60.0
+            meter.restart_step()
+        (torch.randn(2, 8) @ w).sum().backward()
+        clock[0] += 1.0
+        module.step_work = StepWork(samples=2)
+        meter.on_train_batch_end(trainer, module, None, None, 0)
+    assert [seconds for seconds, _ in meter.steps] == [1.0, 1.0]
+    assert meter.times == [1.0]
+    assert meter.state_dict()["flops_per_sample"] == pytest.approx(128.0)
+
+
 def test_compile_blocks_compiles_what_the_stage_names_and_says_so_once(capsys):
     block, other = torch.nn.Linear(2, 2), torch.nn.Linear(2, 2)
     module = SimpleNamespace(compiled_blocks=lambda: [block])
