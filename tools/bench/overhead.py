@@ -29,16 +29,16 @@ from occtrain.config.recipe import OptimConfig, StageSpec  # noqa: E402
 from occtrain.data.datamodule import ShardDataModule, ensure_data  # noqa: E402
 from occtrain.stages import StageContext  # noqa: E402
 from occtrain.stages.optim import configure_adamw  # noqa: E402
-from occtrain.stages.tokenizer import TokenizerModelConfig, TokenizerStage  # noqa: E402
+from occtrain.stages.tokenizer import TOKENIZER, TokenizerStage  # noqa: E402
 from occtrain.stages.trainer import build_trainer  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[2]
 
 
 def context(data: DataConfig, steps: int, stage_dir: Path) -> StageContext:
-    model_cfg = OmegaConf.merge(
-        OmegaConf.structured(TokenizerModelConfig), OmegaConf.load(REPO / "configs/model/occworld_vqvae_tiny.yaml")
-    )
+    raw = OmegaConf.load(REPO / "configs/model/occworld_vqvae_tiny.yaml")
+    schema = TokenizerStage.model_schema(TOKENIZER, None, OmegaConf.to_container(raw))  # as the runner builds it
+    model_cfg = OmegaConf.merge(OmegaConf.structured(schema), raw)
     trainer = TrainerConfig(
         max_steps=steps, val_check_interval=10_000, limit_val_batches=0, ckpt_every_n_steps=10, log_every_n_steps=5
     )
