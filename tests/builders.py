@@ -73,3 +73,16 @@ def snapshot(root: Path) -> dict[str, str]:
         str(p.relative_to(root)): "dir" if p.is_dir() else hashlib.sha256(p.read_bytes()).hexdigest()
         for p in sorted(root.rglob("*"))
     }
+
+
+def read_only_disk(mp) -> None:
+    """Every new file refused as on a read-only file system, through ``mp`` (a
+    ``pytest.MonkeyPatch``): tests run as root, where chmod would not stop them. Atomic
+    writes and ``check_output``'s probe both start with ``tempfile.mkstemp``."""
+    import errno
+    import tempfile
+
+    def refuse(*args, **kwargs):
+        raise OSError(errno.EROFS, "Read-only file system")
+
+    mp.setattr(tempfile, "mkstemp", refuse)

@@ -16,20 +16,25 @@ Each page is written by the command its own first lines name (``occtrain report`
 ``tools/drive_table.py``), so a regenerated page is that command's output, stamped with its
 runs. A page whose runs are not all among RUNS is left as it is and listed; a recipe and
 seed found twice (two codes) must be told apart by the code.
+
+A mistake (a run directory that is not there, a broken page list or manifest, an unscored
+run, an ``--out`` that cannot be written) is one line, ``error: ...`` naming the file, with
+exit status 2, and no page is written: every page is rendered before the first is written.
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib.util
-import json
 import sys
 from dataclasses import dataclass
 from pathlib import Path
+from typing import NotRequired, TypedDict
 
-import yaml
-
-from occtrain.formats.io import atomic_write_text
+from occtrain.config.loading import read_yaml
+from occtrain.data.validate import first_problem
+from occtrain.errors import ConfigError, DataError, OcctrainError, cause_line
+from occtrain.formats.io import atomic_write_text, check_output, parse_json
 from occtrain.report.results import Run, command_line, report
 
 REPO = Path(__file__).resolve().parents[1]
@@ -60,16 +65,47 @@ class Page:
 
     @classmethod
     def of(cls, entry: dict) -> Page:
-        known = set(cls.__dataclass_fields__)
-        unknown = sorted(set(entry) - known)
-        if unknown or "file" not in entry or bool(entry.get("runs")) == bool(entry.get("drive")):
-            raise SystemExit(
-                f"error: page {entry.get('file', '?')}: give file and either runs or drive"
-                + (f" (unknown keys: {', '.join(unknown)})" if unknown else "")
-            )
         return cls(
             **{k: tuple(v) if k in ("runs", "drive", "pictures") else v for k, v in entry.items()},
         )
+
+
+class PageEntry(TypedDict):
+    """A page of ``pages.yaml`` as it is checked (:class:`Page` says what each key means)."""
+
+    file: str
+    title: NotRequired[str]
+    runs: NotRequired[list[str]]
+    drive: NotRequired[list[str]]
+    world: NotRequired[str]
+    code: NotRequired[str]
+    allow_mixed: NotRequired[bool]
+    note: NotRequired[str]
+    pictures: NotRequired[list[str]]
+
+
+class PagesFile(TypedDict):
+    pages: list[PageEntry]
+
+
+def read_pages(path: Path) -> list[Page]:
+    """The pages ``path`` declares; a file that cannot be read or declares them wrongly is
+    refused in one line naming it and the key."""
+    raw = read_yaml(path)
+    problem = first_problem(raw, PagesFile)
+    if problem is None:
+        for n, entry in enumerate(raw["pages"]):
+            unknown = sorted(set(entry) - set(Page.__dataclass_fields__))
+            if unknown:
+                problem = f"pages[{n}] has unknown keys {', '.join(unknown)}"
+            elif bool(entry.get("runs")) == bool(entry.get("drive")):
+                which = "both runs and drive" if entry.get("runs") else "neither runs nor drive"
+                problem = f"pages[{n}] ({entry['file']}) gives {which}"
+            if problem:
+                break
+    if problem:
+        raise ConfigError(f"{path}: {problem}; each page gives file and either runs or drive")
+    return [Page.of(entry) for entry in raw["pages"]]
 
 
 @dataclass(frozen=True)
@@ -85,21 +121,30 @@ def find_runs(roots: list[Path]) -> list[FoundRun]:
     its manifest says trained it."""
     found = []
     for root in roots:
-        candidates = [root] if (root / "manifest.json").is_file() else sorted(root.glob("*/manifest.json"))
-        for manifest_file in [c / "manifest.json" if c.is_dir() else c for c in candidates]:
-            manifest = json.loads(manifest_file.read_text())
-            stages = manifest.get("stages", {}).values()
-            seeds = {str((e.get("config") or {}).get("trainer", {}).get("seed", "?")) for e in stages}
-            codes = {e.get("code_version") or "?" for e in stages}
-            found.append(
-                FoundRun(
-                    manifest_file.parent,
-                    str(manifest.get("name", "")),
-                    ",".join(sorted(seeds)),
-                    ",".join(sorted(codes)),
-                )
-            )
+        if not root.is_dir():
+            what = "is a file" if root.exists() else "no such directory"
+            raise DataError(f"{root}: {what}; pass run directories, or folders holding them")
+        manifests = [root / "manifest.json"]
+        if not manifests[0].is_file():
+            manifests = sorted(root.glob("*/manifest.json"))
+        if not manifests:
+            raise DataError(f"{root}: holds no run (no manifest.json in it or its folders); pass run directories")
+        found += [read_run(manifest_file) for manifest_file in manifests]
     return found
+
+
+def read_run(manifest_file: Path) -> FoundRun:
+    try:
+        manifest = parse_json(manifest_file.read_bytes())
+        stages = manifest.get("stages", {}).values()
+        seeds = {str((e.get("config") or {}).get("trainer", {}).get("seed", "?")) for e in stages}
+        codes = {e.get("code_version") or "?" for e in stages}
+    except (OSError, ValueError, AttributeError, TypeError) as err:
+        # AttributeError, TypeError: valid JSON of another shape (a list, a stage that is not an object).
+        fix = "rerun `occtrain run` on it"
+        raise DataError(f"{manifest_file}: not a run manifest ({cause_line(err)}); {fix}") from None
+    name = str(manifest.get("name", ""))
+    return FoundRun(manifest_file.parent, name, ",".join(sorted(seeds)), ",".join(sorted(codes)))
 
 
 def resolve(name: str, page: Page, runs: list[FoundRun]) -> Path | None:
@@ -109,8 +154,8 @@ def resolve(name: str, page: Page, runs: list[FoundRun]) -> Path | None:
     code = code or page.code
     matches = [r for r in runs if r.recipe == recipe and r.seed == seed and (not code or code in r.code)]
     if len(matches) > 1:
-        raise SystemExit(
-            f"error: {page.file}: {name} is {len(matches)} runs ({', '.join(sorted(r.code for r in matches))}); "
+        raise ConfigError(
+            f"{page.file}: {name} is {len(matches)} runs ({', '.join(sorted(r.code for r in matches))}); "
             "name the code in the page's code:"
         )
     return matches[0].path if matches else None
@@ -127,8 +172,8 @@ def split_of(page: Page, runs: list[Path]) -> str:
         if not d.parent.name.endswith("+blank_cameras")
     }
     if len(keys) != 1:
-        raise SystemExit(
-            f"error: {page.file}: its runs hold {len(keys)} evaluations on a world folder named "
+        raise DataError(
+            f"{page.file}: its runs hold {len(keys)} evaluations on a world folder named "
             f"{page.world!r} ({', '.join(sorted(keys)) or 'none'}); score each stage with "
             f"`occtrain eval RUN/STAGE --data {page.world}` of one world"
         )
@@ -193,23 +238,33 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=PAGES.parent, help="where the pages go (default docs/results)")
     parser.add_argument("--pages", type=Path, default=PAGES, help="the page list (default docs/results/pages.yaml)")
     args = parser.parse_args(argv)
-    pages = [Page.of(entry) for entry in yaml.safe_load(args.pages.read_text())["pages"]]
-    unknown = set(args.only) - {p.file for p in pages}
+    try:
+        return regenerate(args.runs, args.pages, args.out, args.only)
+    except OcctrainError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+
+
+def regenerate(roots: list[Path], pages_file: Path, out: Path, only: list[str]) -> int:
+    pages = read_pages(pages_file)
+    unknown = set(only) - {p.file for p in pages}
     if unknown:
-        raise SystemExit(f"error: --only {sorted(unknown)[0]}: no such page in {args.pages.name}")
-    runs = find_runs(args.runs)
-    written, left = 0, []
+        raise ConfigError(f"--only {sorted(unknown)[0]}: no such page in {pages_file}")
+    check_output(out, "--out", kind="dir")
+    runs = find_runs(roots)
+    texts, left = [], []
     for page in pages:
-        if args.only and page.file not in args.only:
+        if only and page.file not in only:
             continue
         text, missing = render(page, runs)
         if text is None:
             left.append(f"{page.file} (needs {', '.join(missing)})")
-            continue
-        atomic_write_text(args.out / page.file, text)
+        else:
+            texts.append((page, text))
+    for page, text in texts:
+        atomic_write_text(out / page.file, text)
         print(f"{page.file} <- {', '.join(page.runs or page.drive)}")
-        written += 1
-    print(f"{written} page(s) written; {len(left)} left as they are" + "".join(f"\n  {p}" for p in left))
+    print(f"{len(texts)} page(s) written; {len(left)} left as they are" + "".join(f"\n  {p}" for p in left))
     return 0
 
 
