@@ -19,7 +19,15 @@ from dataclasses import dataclass
 import numpy as np
 
 from occtrain.data.geometry import global_to_ego
-from occtrain.data.schema import META_DIRECTIONS, META_SPEEDS, STOP_SPEED, MetaAction, MetaDirection, MetaSpeed
+from occtrain.data.schema import (
+    META_ACCEL_THRESHOLD,
+    META_DIRECTIONS,
+    META_SPEEDS,
+    STOP_SPEED,
+    MetaAction,
+    MetaDirection,
+    MetaSpeed,
+)
 from occtrain.errors import ConfigError
 from occtrain.formats.occ3d import FRAME_DT
 
@@ -109,6 +117,45 @@ def label(poses: np.ndarray, i: int, cfg: MetaActionConfig, end: int | None = No
     return {"speed": speed, "direction": direction_action(heading, lateral, stopped, cfg)}
 
 
+#: The rule that writes a frame's ``meta_action`` in occtrain's sidecar, for the synthetic
+#: world and for an imported release alike: the speed action from the speed change over the
+#: next SIDECAR_SPEED_WINDOW_S against schema.META_ACCEL_THRESHOLD, "stop" while the speed
+#: stays at or below STOP_SPEED over that window, and the direction over the next
+#: SIDECAR_DIRECTION_WINDOW_S by these thresholds (turn above 30 degrees, bear above 8
+#: degrees or 1 m sideways).
+SIDECAR_SPEED_WINDOW_S = 1.0
+SIDECAR_DIRECTION_WINDOW_S = 3.0
+SIDECAR_RULES = MetaActionConfig(
+    direction_window_s=SIDECAR_DIRECTION_WINDOW_S, turn_heading_deg=30.0, bear_heading_deg=8.0, bear_lateral_m=1.0
+)
+
+
+def sidecar_label(xy: np.ndarray, yaw: np.ndarray, speed: np.ndarray, i: int) -> MetaAction:
+    """The sidecar's meta action at frame ``i`` of an ego's global positions (T, 2), unwrapped
+    headings (T,) and speeds (T,) at the frames (see SIDECAR_RULES).
+
+    The windows end at the last frame given: the synthetic world simulates past a scene's
+    end so they never do there, while a release ends where its scene does, so its frames
+    within 3 s of the end look only as far as the scene goes. The last frame, with nothing
+    ahead, carries the label of the frame before it (a one-frame scene: "maintain", and
+    "stop" or "straight" by its speed)."""
+    last = len(speed) - 1
+    if i >= last:
+        if last > 0:
+            return sidecar_label(xy, yaw, speed, last - 1)
+        return {"speed": "maintain", "direction": "stop" if speed[0] <= STOP_SPEED else "straight"}
+    n1 = min(SIDECAR_RULES.steps(SIDECAR_SPEED_WINDOW_S), last - i)
+    n3 = min(SIDECAR_RULES.steps(SIDECAR_DIRECTION_WINDOW_S), last - i)
+    accel = (speed[i + n1] - speed[i]) / (n1 * FRAME_DT)
+    stopped = bool(np.all(speed[i : i + n1 + 1] <= STOP_SPEED))
+    turn = float(np.rad2deg(yaw[i + n3] - yaw[i]))
+    lateral = float(global_to_ego(xy[i + n3], xy[i], yaw[i])[1])
+    return {
+        "speed": speed_action(accel, META_ACCEL_THRESHOLD),
+        "direction": direction_action(turn, lateral, stopped, SIDECAR_RULES),
+    }
+
+
 def past_labels(poses: np.ndarray, anchor: int, window: int, cfg: MetaActionConfig) -> list[MetaAction]:
     """The meta actions at frames ``anchor - window`` .. ``anchor - 1``, oldest first, each
     from the poses up to ``anchor`` (see the module docstring); frames too early to label
@@ -136,10 +183,14 @@ def commonest(index, split: str, cfg: MetaActionConfig) -> MetaAction | None:
 __all__ = [
     "META_DIRECTIONS",
     "META_SPEEDS",
+    "SIDECAR_DIRECTION_WINDOW_S",
+    "SIDECAR_RULES",
+    "SIDECAR_SPEED_WINDOW_S",
     "MetaActionConfig",
     "commonest",
     "direction_action",
     "label",
     "past_labels",
+    "sidecar_label",
     "speed_action",
 ]

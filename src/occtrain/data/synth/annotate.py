@@ -29,26 +29,17 @@ from dataclasses import dataclass
 import numpy as np
 
 from occtrain.data.geometry import driving_command, global_to_ego, rotate_to_ego
-from occtrain.data.meta_actions import MetaActionConfig, direction_action, speed_action
-from occtrain.data.schema import (
-    META_ACCEL_THRESHOLD,
-    STOP_SPEED,
-    Box,
-    Flag,
-    FrameAnnotation,
-    MetaAction,
-)
+from occtrain.data.meta_actions import SIDECAR_DIRECTION_WINDOW_S, SIDECAR_SPEED_WINDOW_S, sidecar_label
+from occtrain.data.meta_actions import SIDECAR_RULES as SIDECAR_RULES  # its direction thresholds, named here too
+from occtrain.data.schema import Box, Flag, FrameAnnotation, MetaAction
 from occtrain.data.synth.catalog import TrackSet
 from occtrain.data.synth.grid import GROUND_TOP_Z
 from occtrain.formats.occ3d import CLASS_NAMES, FRAME_DT, FUTURE_STEPS, PAST_STEPS, RANGE_MAX
 from occtrain.kinematics import past_acceleration
 
-SPEED_WINDOW_S = 1.0
-DIRECTION_WINDOW_S = 3.0
-#: The direction thresholds (turn above 30 degrees, bear above 8 degrees or 1 m sideways).
-SIDECAR_RULES = MetaActionConfig(
-    direction_window_s=DIRECTION_WINDOW_S, turn_heading_deg=30.0, bear_heading_deg=8.0, bear_lateral_m=1.0
-)
+#: The meta action's windows, shared with an imported release's sidecar (``data.meta_actions``).
+SPEED_WINDOW_S = SIDECAR_SPEED_WINDOW_S
+DIRECTION_WINDOW_S = SIDECAR_DIRECTION_WINDOW_S
 #: Scene start times are spread by seed so timestamps of different scenes do not overlap.
 EPOCH_US = 1_600_000_000_000_000
 SCENE_SLOT_US = 100_000_000
@@ -87,17 +78,9 @@ def _r(x, nd: int = 4) -> list:
 
 def meta_action(ego: EgoMotion, i: int) -> MetaAction:
     """OccVLA meta action of frame ``i`` (thresholds in the module docstring), by the
-    shared rules of ``data.meta_actions`` over the simulated motion."""
-    n1 = int(round(SPEED_WINDOW_S / FRAME_DT))
-    n3 = int(round(DIRECTION_WINDOW_S / FRAME_DT))
-    accel = (ego.speed[i + n1] - ego.speed[i]) / SPEED_WINDOW_S
-    stopped = bool(np.all(ego.speed[i : i + n1 + 1] <= STOP_SPEED))
-    turn = float(np.rad2deg(ego.yaw[i + n3] - ego.yaw[i]))
-    lateral = float(global_to_ego(ego.xy[i + n3], ego.xy[i], ego.yaw[i])[1])
-    return {
-        "speed": speed_action(accel, META_ACCEL_THRESHOLD),
-        "direction": direction_action(turn, lateral, stopped, SIDECAR_RULES),
-    }
+    sidecar's rule of ``data.meta_actions`` over the simulated motion (which runs past the
+    scene's end, so no window is cut)."""
+    return sidecar_label(ego.xy, ego.yaw, ego.speed, i)
 
 
 def _relative(xy: np.ndarray, i: int, num_frames: int, pose_xy: np.ndarray, pose_yaw: float, offsets: range):
