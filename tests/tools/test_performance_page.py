@@ -5,10 +5,15 @@ from __future__ import annotations
 import json
 import runpy
 import sys
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
 
 import pytest
 
+from builders import read_only_disk, snapshot
 from conftest import REPO, load_tool
+from occtrain.errors import OcctrainError
 from quickstart_run import shared_quickstart_run
 
 page = load_tool("performance_page")
@@ -56,10 +61,10 @@ def test_a_marker_becomes_the_records_table_stamps_and_what_was_not_measured(tmp
 
 
 def test_a_marker_naming_no_benchmark_and_a_machine_path_are_refused(tmp_path):
-    with pytest.raises(SystemExit, match="no benchmark named nope"):
+    with pytest.raises(OcctrainError, match="no benchmark named nope"):
         page.render("<!-- benchmarks: nope -->\n", tmp_path)
     _write(tmp_path, "ddp", command="python tools/bench/ddp.py --run /home/me/runs/quickstart")
-    with pytest.raises(SystemExit, match="names a path of the machine"):
+    with pytest.raises(OcctrainError, match="names a path of the machine"):
         page.render("<!-- benchmarks: ddp -->\n", tmp_path)
 
 
@@ -73,6 +78,82 @@ def test_every_benchmark_is_placed_on_the_page_and_exists():
 def test_the_committed_page_is_the_committed_records_rendering():
     """docs/performance.md is regenerated, never edited: it equals what `page` writes now."""
     assert page.PAGE.read_text() == page.render(page.TEMPLATE.read_text(), page.RECORDS)
+
+
+@dataclass(frozen=True)
+class Case:
+    """One mistake of ``page``: ``setup(tmp)`` breaks a copy of a records folder holding the
+    synthesis record and a docs/performance.md (the default --out); ``argv`` has ``{tmp}``."""
+
+    id: str
+    says: str
+    argv: list[str]
+    setup: Callable[[Path], None] = lambda tmp: None
+    patch: Callable[[pytest.MonkeyPatch], None] | None = None
+
+
+def _edit_record(tmp: Path, edit: Callable[[dict], None]) -> None:
+    file = tmp / "records" / "synthesis.json"
+    rec = json.loads(file.read_text())
+    edit(rec)
+    file.write_text(json.dumps(rec))
+
+
+RECORDS_ARGS = ["page", "--records", "{tmp}/records"]
+CASES = [
+    Case("missing records folder", "{tmp}/nosuchdir: no such directory", ["page", "--records", "{tmp}/nosuchdir"]),
+    Case(
+        "a file as the records folder",
+        "{tmp}/records/synthesis.json: is a file",
+        ["page", "--records", "{tmp}/records/synthesis.json"],
+    ),
+    Case("--out onto a directory", "{tmp}/docs: is a directory", [*RECORDS_ARGS, "--out", "{tmp}/docs"]),
+    Case(
+        "--out read-only",
+        "cannot write {tmp}/docs/performance.md: the file system is read-only",
+        RECORDS_ARGS,
+        patch=read_only_disk,
+    ),
+    Case(
+        "a record that is not JSON",
+        "{tmp}/records/synthesis.json: not a benchmark record (Expecting",
+        RECORDS_ARGS,
+        setup=lambda tmp: (tmp / "records" / "synthesis.json").write_text('{"command": '),
+    ),
+    Case(
+        "a record without rows",
+        "{tmp}/records/synthesis.json: not a benchmark record (rows is missing",
+        RECORDS_ARGS,
+        setup=lambda tmp: _edit_record(tmp, lambda rec: rec.pop("rows")),
+    ),
+    Case(
+        "a record whose load is not a pair",
+        "{tmp}/records/synthesis.json: not a benchmark record (load holds 3 items, expected a list of 2 numbers",
+        RECORDS_ARGS,
+        setup=lambda tmp: _edit_record(tmp, lambda rec: rec.update(load=[0.1, 0.2, 0.3])),
+    ),
+]
+
+
+@pytest.mark.parametrize("case", CASES, ids=[c.id for c in CASES])
+def test_a_mistake_is_one_line_naming_its_file_and_leaves_the_page(case, tmp_path, capsys, monkeypatch):
+    (tmp_path / "records").mkdir()
+    _write(tmp_path / "records", "synthesis")
+    (tmp_path / "docs").mkdir()
+    (tmp_path / "docs" / "performance.md").write_text("kept")
+    monkeypatch.setattr(page, "PAGE", tmp_path / "docs" / "performance.md")  # the default --out
+    case.setup(tmp_path)
+    before = snapshot(tmp_path)
+    if case.patch is not None:
+        case.patch(monkeypatch)
+    code = page.main([a.format(tmp=tmp_path) for a in case.argv])
+    out, err = capsys.readouterr()
+    assert "Traceback" not in out + err
+    assert code == 2, out + err
+    assert err.startswith("error: ") and err.count("\n") == 1, err
+    assert case.says.format(tmp=tmp_path) in err, err
+    assert out == ""
+    assert snapshot(tmp_path) == before
 
 
 @pytest.mark.slow

@@ -20,6 +20,9 @@ import shlex
 import sys
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Annotated, TypedDict
+
+from occtrain.data.validate import Len
 
 REPO = Path(__file__).resolve().parents[2]
 ENV = "OCCTRAIN_BENCH_RECORDS"
@@ -33,6 +36,24 @@ class Row:
 
     what: str
     measured: str
+
+
+class RowRecord(TypedDict):
+    what: str
+    measured: str
+
+
+class Record(TypedDict):
+    """A record file as :func:`record` writes it (and ``tools/performance_page.py`` checks it)."""
+
+    command: str
+    code: str
+    day: str
+    machine: str
+    torch: str
+    #: The 1-minute load average at the benchmark's start and at its end.
+    load: Annotated[list[float], Len(2)]
+    rows: list[RowRecord]
 
 
 def _cpu() -> str:
@@ -83,4 +104,4 @@ def record(rows: list[Row]) -> Path | None:
     return atomic_write_json(path, {**stamp, "rows": [asdict(r) for r in rows]})
 
 
-__all__ = ["ENV", "NAME_ENV", "Row", "record", "record_name"]
+__all__ = ["ENV", "NAME_ENV", "Record", "Row", "record", "record_name"]
