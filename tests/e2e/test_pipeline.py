@@ -156,6 +156,39 @@ def test_eval_and_score_agree(pipeline, tmp_path):
     assert "scored on the whole val split (`occtrain eval`)" not in page.stdout
 
 
+def test_evals_of_other_subsets_keep_each_number_with_its_items(pipeline):
+    """The plan of a forecast scored on 4 clips, then constant velocity re-scored on 1: the
+    file keeps each number with the items it was scored on, and the report refuses to set
+    them side by side as if they were scored on the same samples."""
+    metrics_file = pipeline / "pretrain" / "eval" / "val" / "metrics.json"
+    res = run_cli("eval", str(pipeline / "pretrain"), "--samples", "4")
+    assert res.returncode == 0, res.stderr[-3000:]
+    first = read_metrics(metrics_file)
+    assert first.provenance is not None
+    plan = first.provenance.sample_set("plan_alternate_L2_stp3_avg")
+    velocity = first.provenance.sample_set("baseline_constant_velocity_L2_stp3_avg")
+    assert plan is not None and velocity is not None and plan.digest == velocity.digest and plan.items == 4
+    assert run_cli("report", str(pipeline)).returncode == 0
+
+    res = run_cli("eval", str(pipeline / "pretrain"), "--tasks", "planning", "--samples", "1")
+    assert res.returncode == 0, res.stderr[-3000:]
+    merged = read_metrics(metrics_file)
+    assert merged.provenance is not None
+    kept = merged.provenance.sample_set("plan_alternate_L2_stp3_avg")
+    rescored = merged.provenance.sample_set("baseline_constant_velocity_L2_stp3_avg")
+    assert kept is not None and kept.digest == plan.digest and merged.metrics["plan_alternate_L2_stp3_avg"] == (
+        first.metrics["plan_alternate_L2_stp3_avg"]
+    )
+    assert rescored is not None and rescored.items == 1 and rescored.digest != plan.digest
+    page = run_cli("report", str(pipeline))
+    assert page.returncode == 2 and page.stderr.count("\n") == 1, page.stderr
+    assert "plan_alternate_L2_stp3_avg (forecasting 4 of " in page.stderr and "constant velocity" in page.stderr
+    allowed = run_cli("report", str(pipeline), "--allow-mixed")
+    assert allowed.returncode == 0, allowed.stderr
+    row = next(line for line in allowed.stdout.splitlines() if "plan `plan_alternate`: L2 avg" in line)
+    assert "constant velocity" in row and "(on other items: planning 1 of " in row
+
+
 def test_eval_asks_every_question_and_scores_another_world(pipeline, tmp_path):
     from occtrain.data.layout import DatasetIndex
 
@@ -290,13 +323,18 @@ def test_drive_puts_the_planner_behind_the_wheel_and_resumes(pipeline, tmp_path)
     assert drivers["expert"]["expert_share"] == 100 and drivers["constant_velocity"]["planned_share"] == 100
     dashboard = (pipeline / "dashboard.html").read_text()
     assert "Closed-loop driving (1 routes of 3 s, seed1000-3s)" in dashboard and "data:image/gif;base64," in dashboard
-    # A killed drive resumes: the missing episode is driven again, to the same scores.
+    # A killed drive resumes: the missing episode is driven again, to the same scores. Its
+    # other episodes were driven by another checkout: the summary names both codes.
     episode = out / "episodes" / "planner-000.json"
     first = json.loads(episode.read_text())
     episode.unlink()
+    elsewhere = out / "episodes" / "expert-000.json"
+    elsewhere.write_text(json.dumps(json.loads(elsewhere.read_text()) | {"code_version": "0.0.9+elsewhere"}))
     again = run_cli(*args[:-2])
     assert again.returncode == 0, again.stderr[-3000:]
     assert json.loads(episode.read_text())["scores"] == first["scores"]
+    codes = json.loads((out / "summary.json").read_text())["provenance"]["code_version"]
+    assert codes == f"0.0.9+elsewhere, {manifest['code_version']}"
     # Videos asked of episodes driven earlier: they are driven again for their animations.
     later = tmp_path / "later"
     res = run_cli(*args[:-1], str(later))

@@ -91,6 +91,7 @@ def drive(
     """Drive the stage and the baselines on ``routes`` routes; each driver's mean scores. The
     stage is held (a shared lock: a ``--restart`` of it waits) while its results are written."""
     from occtrain.run.control import scoring_lock
+    from occtrain.version import code_version
 
     start = time.perf_counter()
     stage_dir = Path(stage_dir)
@@ -114,7 +115,9 @@ def drive(
         stop_on_signals(),
         tempfile.TemporaryDirectory(prefix="occtrain-drive-") as scratch,
     ):
-        context = _EpisodeContext(str(stage_dir), camera, str(out), str(videos) if videos else None, scratch)
+        context = _EpisodeContext(
+            str(stage_dir), camera, str(out), str(videos) if videos else None, scratch, code_version()
+        )
         try:
             _drive_jobs(context, jobs, todo, workers, f"driving {routes} routes of {seconds:g} s: {', '.join(drivers)}")
         except Interrupted as stop:
@@ -132,23 +135,27 @@ def drive(
             | {"drivers": summary, "videos": {k: str(p.resolve()) for k, p in gifs.items() if p.is_file()}}
             # How long this invocation took: the whole drive only when no episode was resumed.
             | {"wall_s": round(time.perf_counter() - start, 1), "workers": workers, "resumed": len(jobs) - len(todo)}
-            | {"provenance": _provenance(done, routes, seed, seconds).to_json()},
+            | {"provenance": _provenance(done, routes, seed, seconds, _codes(out, jobs)).to_json()},
         )
     _refresh_dashboard(stage_dir.parent)
     return summary
 
 
-def _provenance(done: DoneStage, routes: int, seed: int, seconds: float) -> Provenance:
-    """What a drive's numbers were measured on: the routes (the world is the route seeds'),
-    the code, and the attempt of the stage that drove."""
-    from occtrain.version import code_version
+def _codes(out: Path, jobs: list[DriveJob]) -> str:
+    """The code that drove the episodes, every version where a resumed drive's differ."""
+    codes = {json.loads(_episode_file(out, job).read_text()).get("code_version", "not recorded") for job in jobs}
+    return ", ".join(sorted(codes))
 
+
+def _provenance(done: DoneStage, routes: int, seed: int, seconds: float, code: str) -> Provenance:
+    """What a drive's numbers were measured on: the routes (the world is the route seeds'),
+    the code that drove them, and the attempt of the stage that drove."""
     return Provenance(
         by="occtrain drive",
         split=f"routes of seed {seed}",
         coverage={"routes": [routes, routes]},
         world_name=f"{routes} routes of {seconds:g} s drawn from seed {seed}",
-        code_version=code_version(),
+        code_version=code,
         stage=done.attempt,
         measured=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
     )
@@ -301,6 +308,8 @@ class _EpisodeContext:
     videos: str | None
     #: Where episodes keep their frames and the stage its caches: removed by the drive as it ends.
     scratch: str
+    #: The code driving, recorded with each episode (a drive resumed by other code names both).
+    code: str
 
 
 def _episode_file(out: Path, job: DriveJob) -> Path:
@@ -414,6 +423,7 @@ def _drive_episode(context: _EpisodeContext, job: DriveJob) -> None:
         "infractions": [asdict(i) for i in trace.infractions],
         "wall_s": round(time.perf_counter() - start, 2),
         "conventions": CONVENTIONS,
+        "code_version": context.code,
     }
     out = Path(context.out)
     if context.videos and views:
@@ -484,6 +494,7 @@ def _write_open_loop(context: _EpisodeContext, job: DriveJob, world: Any, start:
         "planners": scores,
         "wall_s": round(time.perf_counter() - start, 2),
         "conventions": {"L2": "stp3 (ST-P3 / VAD)", "collision": "stp3, agents from the simulator"},
+        "code_version": context.code,
     }
     atomic_write_json(_episode_file(Path(context.out), job), record)
 

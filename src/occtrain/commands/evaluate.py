@@ -24,7 +24,7 @@ from occtrain.run.control import scoring_lock
 from occtrain.run.done_stage import DoneStage, done_stage
 
 if TYPE_CHECKING:  # the stages (Lightning) load where a stage is read, not when the CLI starts
-    pass
+    from occtrain.stages.stage import EvalResult
 
 
 def eval_metrics_file(
@@ -102,7 +102,7 @@ def evaluate(
         )
         result = done.kind.module.evaluate_export(request)
         done.refuse_changed("occtrain eval")
-        _save(metrics_file, result.metrics, eval_provenance(done, root, split, result.coverage, world))
+        _save(metrics_file, result.metrics, eval_provenance(done, root, split, result, world))
         if save_predictions is not None:
             write_predictions(Path(save_predictions), result.predictions)
     return result.metrics
@@ -138,9 +138,9 @@ def reads_cameras(done: DoneStage) -> bool:
     return False
 
 
-def eval_provenance(done: DoneStage, root: str, split: str, coverage: dict[str, list[int]], dataset: str) -> Provenance:
+def eval_provenance(done: DoneStage, root: str, split: str, result: EvalResult, dataset: str) -> Provenance:
     """What ``occtrain eval``'s numbers of ``done`` on ``root``'s ``split`` were measured on
-    (``dataset``: its ``world_key``)."""
+    (``dataset``: its ``world_key``): the items of each task and of each number (``result``'s)."""
     from occtrain.data.layout import world_identity
     from occtrain.version import code_version
 
@@ -148,7 +148,7 @@ def eval_provenance(done: DoneStage, root: str, split: str, coverage: dict[str, 
     return Provenance(
         by="occtrain eval",
         split=split,
-        coverage=coverage,
+        coverage=result.coverage,
         world=identity.key,
         world_version=identity.version,
         world_name=identity.name,
@@ -156,6 +156,7 @@ def eval_provenance(done: DoneStage, root: str, split: str, coverage: dict[str, 
         code_version=code_version(),
         stage=done.attempt,
         measured=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        sample_sets=list(result.sample_sets),
     )
 
 

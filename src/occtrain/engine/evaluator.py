@@ -27,6 +27,7 @@ from occtrain.data.layout import DatasetIndex
 from occtrain.engine.world_engine import WorldModelEngine
 from occtrain.errors import ConfigError
 from occtrain.formats.io import rank_world
+from occtrain.formats.metrics_file import SampleSet, digest_items
 from occtrain.formats.occ3d import FRAME_DT, FUTURE_STEPS
 from occtrain.metrics import compute_metrics
 from occtrain.metrics.captions import CaptionMetric, start_meteor
@@ -114,6 +115,11 @@ class Evaluator(torch.nn.Module):
         #: Per task (and ``FUTURE_CLIPS`` for the hooks on every future frame): [items
         #: scored, items the split holds] of the last ``run`` (a metrics file's provenance).
         self.coverage: dict[str, list[int]] = {}
+        #: Per task (and ``FUTURE_CLIPS``): the keys of the items it scored, and of every
+        #: item the split holds for it: which numbers were scored on the same items.
+        self.items: dict[str, set[str]] = {}
+        self.universe: dict[str, set[str]] = {}
+        self.sample_sets: list[SampleSet] = []
         self._clip_cache: dict[tuple, list[Clip]] = {}
         self._once: set = set()
         self.texts: list[dict] = []
@@ -247,6 +253,7 @@ class Evaluator(torch.nn.Module):
             chosen = fixed_subset([c.anchor["token"] for c in clips], samples, seed)
             self._clip_cache[key] = [c for c in clips if c.anchor["token"] in chosen]
             self.coverage[FUTURE_CLIPS] = [len(chosen), len(clips)]
+            self.items[FUTURE_CLIPS], self.universe[FUTURE_CLIPS] = chosen, {c.anchor["token"] for c in clips}
         return self._clip_cache[key]
 
     def _task_clips(
@@ -266,6 +273,7 @@ class Evaluator(torch.nn.Module):
                 self.subset = {**(self.subset or {}), task: chosen}
                 clips = [c for c in clips if chosen.intersection(keys[c.anchor["token"]])]
             self.coverage[task] = [len(chosen.intersection(every)), len(set(every))]
+            self.items[task], self.universe[task] = chosen.intersection(every), set(every)
             self._clip_cache[key] = clips
         return self._clip_cache[key]
 
@@ -294,11 +302,44 @@ class Evaluator(torch.nn.Module):
 
     def compute(self, prefix: str) -> dict[str, float]:
         """Every metric that saw samples on any process, flattened under ``prefix`` (e.g.
-        ``val/qa_overall``). Every process calls it."""
-        out = compute_metrics(prefix, dict(self.metrics))
-        for scorer in [s for ss in self.scorers.values() for s in ss]:
-            out.update(scorer.summary(prefix))
+        ``val/qa_overall``). Every process calls it. ``sample_sets`` then says which items
+        each was scored on."""
+        out: dict[str, float] = {}
+        fed = self._feeders()
+        self.sample_sets = []
+        by_feeders: dict[tuple[str, ...], list[str]] = defaultdict(list)
+        for name, metric in self.metrics.items():  # one at a time: each key knows its metric
+            computed = compute_metrics(prefix, {name: metric})
+            out.update(computed)
+            by_feeders[fed.get(name, ())] += list(computed)
+        for task, scorers in self.scorers.items():
+            for scorer in scorers:
+                summary = scorer.summary(prefix)
+                out.update(summary)
+                by_feeders[(task,)] += list(summary)
+        for feeders, keys in by_feeders.items():
+            if keys:
+                self.sample_sets.append(self._sample_set(feeders, keys))
         return out
+
+    def _feeders(self) -> dict[str, tuple[str, ...]]:
+        """Metric name -> the tasks (or ``FUTURE_CLIPS``) whose items update it: a baseline
+        several scorers name is fed by each of their tasks."""
+        fed: dict[str, set[str]] = defaultdict(set)
+        for task, scorers in self.scorers.items():
+            for scorer in scorers:
+                for name in scorer.metrics:
+                    fed[name].add(task)
+        for hook in self.hooks:
+            feeder = FUTURE_CLIPS if hook.clips == FUTURE_CLIPS or not self.tasks else self.tasks[0]
+            for name in hook.metrics:
+                fed[name].add(feeder)
+        return {name: tuple(sorted(tasks)) for name, tasks in fed.items()}
+
+    def _sample_set(self, feeders: tuple[str, ...], keys: list[str]) -> SampleSet:
+        scored = {i for f in feeders for i in self.items.get(f, ())}
+        every = {i for f in feeders for i in self.universe.get(f, ())}
+        return SampleSet(digest_items(scored), len(scored), len(every), list(feeders), sorted(keys))
 
     def reset(self) -> None:
         for metric in self.metrics.values():
@@ -309,3 +350,4 @@ class Evaluator(torch.nn.Module):
         self._once = set()
         self.scenes = []
         self.texts = []
+        self.sample_sets = []

@@ -3,12 +3,14 @@ markdown page, each beside its baselines on the same samples, stamped with what 
 
 Every number comes from a stage's scores (``STAGE/eval/<split>/metrics.json``, written by
 ``occtrain eval``); the page names, per run, the recipe, the training seeds, the code
-version that trained it, the world (by name and content key) and what of the split was
-scored (the metrics file's provenance: a subset is called one), and the date. Runs scored
-on different world versions are refused; runs of different worlds, subsets or code too,
-unless ``--allow-mixed`` (the page then says what differs). With several runs of one recipe
-(training seeds), a column gives the mean and the spread (min to max). The docs' result
-pages are this command's output, never typed.
+version that trained it and the code that scored it, the world (by name and content key)
+and what of the split was scored (the metrics file's provenance: a subset is called one),
+and the date. Runs scored on different world versions are refused; runs of different
+worlds, subsets or code too, and a number set beside a baseline, a blanked twin or another
+run's number scored on other items (each number's sample set, ``formats.metrics_file``),
+unless ``--allow-mixed`` (the page then says what differs, at the number). With several
+runs of one recipe (training seeds), a column gives the mean and the spread (min to max).
+The docs' result pages are this command's output, never typed.
 """
 
 from __future__ import annotations
@@ -21,7 +23,7 @@ from pathlib import Path
 
 from occtrain.data.blank_cameras import BLANK_SUFFIX
 from occtrain.errors import DataError
-from occtrain.formats.metrics_file import Provenance, read_metrics
+from occtrain.formats.metrics_file import Provenance, SampleSet, read_metrics
 
 METRICS_FILE = "metrics.json"
 
@@ -124,16 +126,35 @@ BLANKED = "blank_cameras/"
 GAIN_OVER = "baseline_cv_moved_reconstruction_"
 
 
-def with_gains(scores: dict[str, float]) -> dict[str, float]:
+def same_items(provenance: Provenance | None, a: str, b: str) -> bool | None:
+    """Whether keys ``a`` and ``b`` of one metrics file were scored on the same items (None:
+    the file does not record it)."""
+    first, second = _sample_set(provenance, a), _sample_set(provenance, b)
+    if first is None or second is None:
+        return None
+    return first.digest == second.digest
+
+
+def _sample_set(provenance: Provenance | None, key: str) -> SampleSet | None:
+    return None if provenance is None else provenance.sample_set(key)
+
+
+def with_gains(scores: dict[str, float], provenance: Provenance | None = None) -> dict[str, float]:
     """``scores`` and each forecast score's gain over the moved reconstruction on the same
     samples (``forecast_gain_over_moved_reconstruction_*``), overall and on the movable
-    classes apart: the number a forecast that merely copies its query leaves at 0."""
+    classes apart: the number a forecast that merely copies its query leaves at 0. No gain
+    where the two were scored on other items (an eval merged over another's)."""
     gains = {
         key.replace("forecast_", "forecast_gain_over_moved_reconstruction_", 1): value - scores[GAIN_OVER + key]
         for key, value in scores.items()
-        if key.startswith("forecast_occworld_") and GAIN_OVER + key in scores
+        if key.startswith("forecast_occworld_")
+        and GAIN_OVER + key in scores
+        and same_items(provenance, key, GAIN_OVER + key) is not False
     }
     return {**scores, **gains}
+
+
+GAIN = "forecast_gain_over_moved_reconstruction_"
 
 
 @dataclass(frozen=True)
@@ -146,6 +167,8 @@ class Run:
     manifest: dict
     scores: dict[str, dict[str, float]]  # stage -> its scores on the split
     provenance: dict[str, Provenance | None]  # stage -> what they were measured on (None: not recorded)
+    #: stage -> what its ``--blank-cameras`` twin was measured on, where it has one.
+    blanked: dict[str, Provenance | None]
 
     @classmethod
     def read(cls, path: Path, split: str) -> Run:
@@ -157,18 +180,35 @@ class Run:
             stages = list(manifest.get("stages", {}))
         except (OSError, ValueError, AttributeError) as err:
             raise DataError(f"{path}: cannot read its manifest ({err}); rerun `occtrain run` on it") from None
-        scores, provenance = {}, {}
+        scores, provenance, blanked = {}, {}, {}
         for stage in stages:
             file = path / stage / "eval" / split / METRICS_FILE
             if file.is_file():
                 measured = read_metrics(file)
-                scores[stage], provenance[stage] = with_gains(measured.metrics), measured.provenance
-                blanked = path / stage / "eval" / (split + BLANK_SUFFIX) / METRICS_FILE
-                if blanked.is_file():  # ``occtrain eval --blank-cameras``: set beside each number
-                    scores[stage].update({BLANKED + k: v for k, v in with_gains(read_metrics(blanked).metrics).items()})
+                scores[stage] = with_gains(measured.metrics, measured.provenance)
+                provenance[stage] = measured.provenance
+                twin = path / stage / "eval" / (split + BLANK_SUFFIX) / METRICS_FILE
+                if twin.is_file():  # ``occtrain eval --blank-cameras``: set beside each number
+                    dark = read_metrics(twin)
+                    blanked[stage] = dark.provenance
+                    scores[stage].update({BLANKED + k: v for k, v in with_gains(dark.metrics, dark.provenance).items()})
         if not scores:
             raise DataError(f"{path}: no stage is scored on '{split}'; run `occtrain eval {path}/<stage>` first")
-        return cls(path, str(manifest.get("name", path.name)), stages, manifest, scores, provenance)
+        return cls(path, str(manifest.get("name", path.name)), stages, manifest, scores, provenance, blanked)
+
+    def items(self, stage: str, key: str) -> SampleSet | None:
+        """The items ``key`` of ``stage`` was scored on (its blanked twin's for a ``BLANKED``
+        key; a gain's are its forecast's); None where the metrics file does not record it."""
+        if key.startswith(BLANKED):
+            return self.blanked_items(stage, key.removeprefix(BLANKED))
+        if key.startswith(GAIN):
+            key = "forecast_" + key.removeprefix(GAIN)
+        return _sample_set(self.provenance.get(stage), key)
+
+    def blanked_items(self, stage: str, key: str) -> SampleSet | None:
+        if key.startswith(GAIN):
+            key = "forecast_" + key.removeprefix(GAIN)
+        return _sample_set(self.blanked.get(stage), key)
 
     def _recorded(self) -> list[Provenance]:
         return [p for p in self.provenance.values() if p is not None]
@@ -181,15 +221,24 @@ class Run:
         return {p.world_version or "unrecorded" for p in self._recorded()} or {"unrecorded"}
 
     def coverage(self) -> str:
-        """What its stages were scored on: the whole split, or each subset."""
-        said = {stage: "provenance not recorded" if p is None else p.describe() for stage, p in self.provenance.items()}
+        """What its stages were scored on: the whole split, or each subset (and where the
+        items of each number are not recorded, that they are not)."""
+        said = {
+            stage: "provenance not recorded"
+            if p is None
+            else p.describe() + ("" if p.sample_sets else " (the items of each number not recorded)")
+            for stage, p in self.provenance.items()
+        }
         if len(set(said.values())) == 1:
             return next(iter(said.values()))
         return "; ".join(f"{stage}: {what}" for stage, what in said.items())
 
     def code(self) -> str:
+        """The code that trained its stages, and, where another, the code that scored them."""
         entries = self.manifest.get("stages", {}).values()
-        return ", ".join(sorted({e.get("code_version") or "?" for e in entries}))
+        trained = sorted({e.get("code_version") or "?" for e in entries})
+        scored = sorted({p.code_version or "?" for p in self._recorded()} - set(trained))
+        return ", ".join(trained) + (f"; scored by {', '.join(scored)}" if scored else "")
 
     def stamp(self) -> str:
         """The run as a page names it: recipe, training seed, code and world, never its path."""
@@ -205,7 +254,9 @@ class Run:
 
 def mixed(runs: list[Run]) -> list[str]:
     """What differs between runs a table would set side by side: the world, what of the
-    split was scored, the code that trained them. Empty when nothing does."""
+    split was scored, the code that trained or scored them, and any number set beside a
+    baseline, its blanked twin or another run's that was scored on other items. Empty when
+    nothing does."""
     found = []
     for what, of in (
         ("world", lambda run: "; ".join(sorted(run.worlds()))),
@@ -214,8 +265,31 @@ def mixed(runs: list[Run]) -> list[str]:
     ):
         values = [of(run) for run in runs]
         if len(set(values)) > 1:
-            found.append(f"{what} ({'; '.join(f'run {i}: {v}' for i, v in enumerate(values))})")
-    return found
+            found.append(f"the runs differ in {what} ({'; '.join(f'run {i}: {v}' for i, v in enumerate(values))})")
+    return found + other_items(runs)
+
+
+def other_items(runs: list[Run]) -> list[str]:
+    """Each table cell whose number and what it is set beside were scored on other items:
+    ``stage key (its items) beside name (their items)``. Numbers of a file that does not
+    record its items are not compared (its stamp says so)."""
+    found = []
+    for stage, _, _, key, bases in _rows(runs):
+        for i, run in enumerate(runs):
+            mine = run.items(stage, key)
+            if mine is None:
+                continue
+            for name, base in bases:
+                theirs = run.items(stage, base)
+                if base in run.scores.get(stage, {}) and theirs is not None and theirs.digest != mine.digest:
+                    found.append(
+                        f"run {i}'s {stage} {key} ({mine.describe()}) would stand beside {name} scored on other "
+                        f"items ({theirs.describe()})"
+                    )
+        digests = {items.digest for run in runs if (items := run.items(stage, key)) is not None}
+        if len(digests) > 1:
+            found.append(f"{stage} {key} was scored on other items in each run")
+    return list(dict.fromkeys(found))
 
 
 def _words(group: str) -> str:
@@ -272,10 +346,10 @@ def report(
         )
     differ = mixed(runs)
     if differ and not allow_mixed:
+        more = f" (and {len(differ) - 1} more)" if len(differ) > 1 else ""
         raise DataError(
-            f"the runs differ in {differ[0]}"
-            + "".join(f", and in {d}" for d in differ[1:])
-            + "; report them apart, or pass --allow-mixed to set them side by side anyway"
+            f"{differ[0]}{more}; score them alike (the same --tasks and --samples of occtrain eval, by one checkout) "
+            "or report them apart, or pass --allow-mixed to set them side by side anyway"
         )
     seeds_of_one_recipe = len(runs) > 1 and len({run.name for run in runs}) == 1
     head = [f"run {i}" for i in range(len(runs))]
@@ -286,7 +360,7 @@ def report(
         "",
         *(f"- run {i}: {run.stamp()}" for i, run in enumerate(runs)),
         *(
-            ["", f"**Mixed on purpose (`--allow-mixed`)**: the runs differ in {', and in '.join(differ)}."]
+            ["", f"**Mixed on purpose (`--allow-mixed`)**: {'; '.join(differ)}."]
             if differ
             else []
         ),
@@ -295,8 +369,8 @@ def report(
         "(on the same samples; per run where they differ) |",
         f"|---|---|---|{'---|' if seeds_of_one_recipe else ''}---|",
     ]
-    for stage, label, digits, key, bases in _rows(runs):
-        values = [run.scores.get(stage, {}).get(key) for run in runs]
+    for stage, label, digits, row_key, bases in _rows(runs):
+        values = [run.scores.get(stage, {}).get(row_key) for run in runs]
         have = [v for v in values if v is not None]
         seen: set[str] = set()
         shown = []
@@ -307,7 +381,17 @@ def report(
             seen.add(name)
             # Each run's own where they differ (another tokenizer copies another reconstruction).
             texts = [_fmt(v, digits) for v in per_run]
-            shown.append(f"{name} {texts[0] if len(set(texts)) == 1 else ' / '.join(texts)}")
+            other = sorted(
+                {
+                    theirs.describe()
+                    for run in runs
+                    if (theirs := run.items(stage, key)) is not None
+                    and (mine := run.items(stage, row_key)) is not None
+                    and theirs.digest != mine.digest
+                }
+            )
+            warn = f" (on other items: {', '.join(other)})" if other else ""
+            shown.append(f"{name} {texts[0] if len(set(texts)) == 1 else ' / '.join(texts)}{warn}")
         cells = [stage, label, " / ".join(_fmt(v, digits) for v in values)]
         if seeds_of_one_recipe:
             mean = sum(have) / len(have)

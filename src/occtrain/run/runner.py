@@ -27,7 +27,7 @@ from occtrain.report.compare import TABLE_FILE, show_table
 from occtrain.run.checks import check_run, refuse_changed
 from occtrain.run.control import Interrupted, restart_lock, run_lock, stop_on_signals
 from occtrain.run.planning import PlannedStage, shadowed_overrides
-from occtrain.stages import Stage, StageContext
+from occtrain.stages import Stage, StageContext, StageReport
 
 if TYPE_CHECKING:  # imported where a stage is built (build_stage), as before
     import torch
@@ -90,7 +90,7 @@ def _execute(
     module.prepare_export()  # every rank: a sharded stage gathers its weights for rank zero
     if trainer.is_global_zero:
         export_dir = module.export(stage_dir / "export")
-        provenance = _validation_provenance(stage, callbacks, report.coverage, attempt or StageAttempt())
+        provenance = _validation_provenance(stage, callbacks, report, module.split_items(), attempt or StageAttempt())
         write_metrics(stage_dir / "metrics.json", metrics, provenance)
         # Stages hand over raw scenes and texts; pictures are drawn here, not in the stages.
         if report.texts or report.scenes:
@@ -109,11 +109,13 @@ def _execute(
 
 
 def _validation_provenance(
-    stage: PlannedStage, callbacks: list, coverage: dict[str, list[int]], attempt: StageAttempt
+    stage: PlannedStage, callbacks: list, report: StageReport, split_items: int | None, attempt: StageAttempt
 ) -> Provenance:
-    """What a stage's final validation measured: the val samples its batches held of the
-    split's (``validation``), and the items its generation scored per task (``coverage``:
-    a world model's validation generates on a subset, ``val_samples`` per task)."""
+    """What a stage's final validation measured: the val samples its batches held of what
+    the split holds (``validation``: the shards' samples, or ``split_items`` where the stage
+    validates fewer than the split holds), and the items its generation scored per task
+    (the report's coverage and sample sets: a world model's validation generates on a
+    subset, ``val_samples`` per task)."""
     from occtrain.data.datamodule import shards_dir
     from occtrain.data.layout import world_identity
     from occtrain.data.shards import shard_urls
@@ -123,19 +125,24 @@ def _validation_provenance(
     record = next((c for c in callbacks if isinstance(c, AttemptRecord)), None)
     validated = {}
     if record is not None and record.val_samples_per_rank is not None:
-        total = shard_urls(shards_dir(stage.data), stage.kind.data_kind, "val")[1]
+        total = (
+            split_items
+            if split_items is not None
+            else shard_urls(shards_dir(stage.data), stage.kind.data_kind, "val")[1]
+        )
         validated["validation"] = [sum(record.val_samples_per_rank), total]
     identity = world_identity(stage.data.root)
     return Provenance(
         by="validation at the end of training",
         split="val",
-        coverage={**validated, **coverage},
+        coverage={**validated, **report.coverage},
         world=identity.key,
         world_version=identity.version,
         world_name=identity.name,
         code_version=code_version(),
         stage=attempt,
         measured=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        sample_sets=list(report.sample_sets),
     )
 
 

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import field, make_dataclass
+from dataclasses import field, make_dataclass, replace
 from typing import Any
 
 import torch
@@ -117,5 +117,7 @@ def evaluate_engine(engine: WorldModelEngine, request: EvalRequest) -> EvalResul
         evaluator.run(
             engine, request.data_root, request.split, request.batch_size, samples=request.samples, advance=advance
         )
-    metrics = {k.removeprefix(f"{request.split}/"): v for k, v in evaluator.compute(request.split).items()}
-    return EvalResult(metrics, evaluator.predictions if request.record else {}, dict(evaluator.coverage))
+    prefix = f"{request.split}/"
+    metrics = {k.removeprefix(prefix): v for k, v in evaluator.compute(request.split).items()}
+    sets = [replace(s, keys=[k.removeprefix(prefix) for k in s.keys]) for s in evaluator.sample_sets]
+    return EvalResult(metrics, evaluator.predictions if request.record else {}, dict(evaluator.coverage), sets)

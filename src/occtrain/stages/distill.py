@@ -11,7 +11,7 @@ eval`` and later stages read it like the teacher.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -36,6 +36,7 @@ from occtrain.engine import (
     speed_prompt,
 )
 from occtrain.errors import ConfigError
+from occtrain.formats.metrics_file import SampleSet
 from occtrain.models import count_parameters
 from occtrain.models.compiling import decoder_layers
 from occtrain.models.distill_losses import FeatureProjector, distillation_losses
@@ -221,7 +222,17 @@ class DistillStage(Stage):
             texts=list(self.evaluator.texts),
             scenes=list(self.evaluator.scenes),
             coverage=dict(self.evaluator.coverage),
+            sample_sets=self._sample_sets(),
         )
+
+    def _sample_sets(self) -> list[SampleSet]:
+        """Which items the student's and the teacher's scores were scored on (the teacher's
+        were computed once, its keys renamed ``val/teacher_*``)."""
+        teacher = [
+            replace(s, keys=[k.replace("val/", "val/teacher_", 1) for k in s.keys])
+            for s in self.teacher_evaluator.sample_sets
+        ]
+        return list(self.evaluator.sample_sets) + teacher
 
     def export(self, path: Path) -> Path:
         return export_engine(self.student, path, stage=self.ctx.spec.name)

@@ -28,7 +28,7 @@ from occtrain.config import to_object
 from occtrain.core.protocols import PlannerSettings
 from occtrain.core.registry import get_world
 from occtrain.data.cameras import nuscenes_rig
-from occtrain.data.clips import clips_from_batch, frame_clips
+from occtrain.data.clips import Clip, clips_from_batch, frame_clips
 from occtrain.data.closed_loop_recording import RecordedDataset
 from occtrain.data.layout import DatasetIndex
 from occtrain.engine import TEXT_ENTRIES, load_world_model
@@ -47,6 +47,7 @@ from occtrain.engine.evaluator import fixed_subset
 from occtrain.engine.trained_planner import load_planner
 from occtrain.errors import ConfigError
 from occtrain.formats.exports import read_config
+from occtrain.formats.metrics_file import SampleSet, digest_items
 from occtrain.formats.occ3d import FUTURE_STEPS
 from occtrain.progress import progress_bar
 from occtrain.stages import StageKind, register
@@ -65,6 +66,11 @@ class PlannerStageConfig(PlannerSettings):
     generate_batches: int = -1
     #: The world model's generation length; 0: what it trained with.
     max_new_text_tokens: int = 0
+
+
+def split_plans(index: DatasetIndex, split: str, context: int) -> list[Clip]:
+    """A split's plans: a clip at every frame with ``context`` frames of history and a whole 3 s future."""
+    return list(frame_clips(index, split, context, FUTURE_STEPS, partial_history=False))
 
 
 class PlannerStage(Stage):
@@ -116,6 +122,8 @@ class PlannerStage(Stage):
         self.planner = build(ctx, teacher)
         self.require_tasks(self.planner.sidecar_tasks(), instead="leave the planner stage out of the recipe")
         self.reads_text = teacher is not None
+        #: The world model's history, which ``occtrain eval`` gives every plan it scores.
+        self.context_frames = teacher.tasks.context_frames if teacher is not None else 0
 
     def monitored(self, kind: StageKind) -> tuple[str | None, str]:
         """The planner's own metric (``monitor``, lower is better), else the kind's."""
@@ -142,6 +150,12 @@ class PlannerStage(Stage):
 
     def on_validation_epoch_end(self) -> None:
         self.log_dict(self.planner.compute("val"))
+
+    def split_items(self) -> int | None:
+        """The plans ``occtrain eval`` scores on the val split (every frame with a whole 3 s
+        future and the world model's context): the shards' clips need the planner's longer
+        history, so a validation over them sees fewer."""
+        return len(split_plans(DatasetIndex.open(self.ctx.data.root), "val", self.context_frames))
 
     def on_train_end(self) -> None:
         self.planner.save_cache()  # clips first met in training (a shorter history) join the cache
@@ -177,16 +191,7 @@ class PlannerStage(Stage):
         split's clips it plans (every frame with a whole 3 s future)."""
         planner, teacher = load_planner(request, "occtrain eval")
         teacher.prepare_inputs(request.data_root, request.cache_dir, request.shared_cache_dir)
-        clips = list(
-            frame_clips(
-                DatasetIndex.open(request.data_root),
-                request.split,
-                teacher.tasks.context_frames,
-                FUTURE_STEPS,
-                partial_history=False,
-            )
-        )
-        return planner, clips
+        return planner, split_plans(DatasetIndex.open(request.data_root), request.split, teacher.tasks.context_frames)
 
     @classmethod
     @torch.no_grad()
@@ -201,9 +206,11 @@ class PlannerStage(Stage):
                 planner.validate(clips[i : i + request.batch_size], i // request.batch_size)
                 advance(len(clips[i : i + request.batch_size]))
         metrics = planner.compute(request.split)
-        return EvalResult(
+        return EvalResult.on_items(
             {k.removeprefix(f"{request.split}/"): v for k, v in metrics.items()},
-            coverage={"planning": [len(clips), len(every)]},
+            "planning",
+            [c.anchor["token"] for c in clips],
+            [c.anchor["token"] for c in every],
         )
 
 
@@ -413,11 +420,20 @@ class DaggerStage(PlannerStage):
 
     def report(self) -> StageReport:
         summary, metrics = self.planner.summary()
+        rollouts = []  # driven on training routes: not the val split the validation scored
         for r, scores in sorted(self.round_scores.items()):
-            metrics.update({f"round{r}_{k}": v for k, v in scores.items()})
+            keys = [f"round{r}_{k}" for k in scores]
+            metrics.update(dict(zip(keys, scores.values())))
+            routes = [route_seed(self.settings, r, k) for k in range(self.settings.routes_per_round)]
+            on = (
+                f"round {r}'s {len(routes)} training routes driven closed loop ({int(scores['rollout_frames'])} frames)"
+            )
+            rollouts.append(SampleSet(digest_items(map(str, routes)), len(routes), len(routes), ["rollouts"], keys, on))
         frames = sum(int(s["rollout_frames"]) for s in self.round_scores.values())
         return StageReport(
-            f"{summary}; closed loop: {len(self.round_scores)} rounds, {frames} frames aggregated", metrics
+            f"{summary}; closed loop: {len(self.round_scores)} rounds, {frames} frames aggregated",
+            metrics,
+            sample_sets=rollouts,
         )
 
 

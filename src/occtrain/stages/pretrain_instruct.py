@@ -313,6 +313,7 @@ class WorldModelStage(Stage):
             texts=list(self.evaluator.texts),
             scenes=list(self.evaluator.scenes),
             coverage=dict(self.evaluator.coverage),
+            sample_sets=list(self.evaluator.sample_sets),
         )
 
     def prepare_export(self) -> None:

@@ -25,6 +25,7 @@ from occtrain.data.reading import PAD_KEY
 from occtrain.data.shards import world_key
 from occtrain.errors import ConfigError
 from occtrain.formats.exports import check_loaded_keys
+from occtrain.formats.metrics_file import SampleSet, digest_items
 from occtrain.models import count_parameters
 
 if TYPE_CHECKING:  # the registry (stages/__init__.py) imports this module
@@ -83,6 +84,8 @@ class StageReport:
     #: Per task its validation generated answers for, [items scored, items the split holds]
     #: (``Evaluator.coverage``): the metrics file states the subset.
     coverage: dict[str, list[int]] = field(default_factory=dict)
+    #: Which items each of ``metrics``' generated scores was scored on (``Evaluator.sample_sets``).
+    sample_sets: list[SampleSet] = field(default_factory=list)
 
 
 @dataclass
@@ -114,6 +117,15 @@ class EvalResult:
     #: Per task (or what else was scored: frames, plans), [items scored, items the split
     #: holds]: the metrics file's provenance states a subset as one.
     coverage: dict[str, list[int]] = field(default_factory=dict)
+    #: Which items each number was scored on (see ``formats.metrics_file.SampleSet``).
+    sample_sets: list[SampleSet] = field(default_factory=list)
+
+    @classmethod
+    def on_items(cls, metrics: dict[str, float], what: str, scored: list[str], every: list[str]) -> EvalResult:
+        """Numbers all scored on one set of items (``what``: frames, planning, ...; item keys
+        are sample tokens), of ``every`` item the split holds."""
+        sample_set = SampleSet(digest_items(scored), len(set(scored)), len(set(every)), [what], sorted(metrics))
+        return cls(metrics, coverage={what: [sample_set.items, sample_set.total]}, sample_sets=[sample_set])
 
 
 #: What a task needs, in the dataset's terms (``DatasetIndex.available_tasks``), where the names differ.
@@ -283,6 +295,12 @@ class Stage(L.LightningModule, ABC):
         """The validation metric that picks ``best.ckpt`` and whether higher is better: the
         kind's, unless the stage knows better once built (a family's planner names its own)."""
         return kind.monitor, kind.mode
+
+    def split_items(self) -> int | None:
+        """How many items the val split holds for what this stage validates, where that is not
+        the number of its val shards' samples (None: it is): a final validation's provenance
+        says how many of them it saw."""
+        return None
 
     def compiled_blocks(self) -> list[nn.Module]:
         """The modules ``trainer.compile`` compiles for training steps, each on its own

@@ -221,8 +221,8 @@ class TokenizerStage(Stage):
                     codes = model.encode(sem)
                     recon.update(model.decode_labels(codes), sem, batch["mask_camera"], codes)
                 advance(len(frames[i : i + size]))
-        return EvalResult(
-            {"frames": float(len(frames)), **recon.compute()}, coverage={"frames": [len(frames), len(every)]}
+        return EvalResult.on_items(
+            {"frames": float(len(frames)), **recon.compute()}, "frames", [t for _, t in frames], [t for _, t in every]
         )
 
 

@@ -3,12 +3,20 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 from conftest import run_cli
-from occtrain.formats.metrics_file import Provenance, read_metrics, write_metrics
+from occtrain.formats.metrics_file import Provenance, SampleSet, digest_items, read_metrics, write_metrics
 
 WORLD = "occtrain world v4, seed 0 (12 train + 2 val scenes of 40 frames)"
+
+
+def items_of(metrics: dict[str, float], **coverage: list[int]) -> SampleSet:
+    """One sample set holding every key of ``metrics``, of the items ``coverage`` counts (one
+    task: items ``i0`` ... of its split)."""
+    ((task, (scored, total)),) = coverage.items()
+    return SampleSet(digest_items(f"i{i}" for i in range(scored)), scored, total, [task], sorted(metrics))
 
 
 def scored_run(
@@ -49,14 +57,16 @@ def scored_run(
     }
     coverage = {"pretrain": {"forecasting": [64, 64]}, "instruct": {"qa": list(qa_items)}}
     for stage, metrics in scores.items():
+        covered = coverage.get(stage, {"planning": [80, 80]})
         provenance = Provenance(
             "occtrain eval",
             "val",
-            coverage.get(stage, {"planning": [80, 80]}),
+            covered,
             world,
             version,
             WORLD,
             code_version=code,
+            sample_sets=[items_of(metrics, **covered)],
         )
         write_metrics(root / stage / "eval" / "val" / "metrics.json", metrics, provenance)
     return root
@@ -205,3 +215,44 @@ def test_a_forecast_is_set_against_its_moved_query_overall_and_on_the_movable_cl
         "forecast movable-class mIoU at 1 s minus the moved reconstruction's (points: what the model adds to its query)"
     ]
     assert "| -1.00 / -1.00 | -1.00 (-1.00 to -1.00) |" in movable
+
+
+def _rescore(run: Path, stage: str, folder: str = "val", items: int | None = None, code: str | None = None) -> None:
+    """Write ``stage``'s scores again into ``eval/<folder>``, on ``items`` items or by other code."""
+    measured = read_metrics(run / stage / "eval" / "val" / "metrics.json")
+    provenance = measured.provenance
+    assert provenance is not None
+    ((task, (scored, total)),) = provenance.coverage.items()
+    scored = scored if items is None else items
+    provenance = replace(
+        provenance,
+        coverage={task: [scored, total]},
+        sample_sets=[items_of(measured.metrics, **{task: [scored, total]})],
+        code_version=code or provenance.code_version,
+    )
+    write_metrics(run / stage / "eval" / folder / "metrics.json", measured.metrics, provenance)
+
+
+def test_a_blanked_twin_scored_on_other_items_is_not_set_beside_the_score(tmp_path):
+    run = scored_run(tmp_path / "a", 0, 6.0, 54.0)
+    _rescore(run, "instruct", "val+blank_cameras")
+    assert "the same with its cameras blanked 54.0" in run_cli("report", str(run)).stdout
+
+    _rescore(run, "instruct", "val+blank_cameras", items=100)
+    res = run_cli("report", str(run))
+    assert res.returncode == 2 and res.stderr.count("\n") == 1, res.stderr
+    assert res.stderr.startswith("error: run 0's instruct qa_overall (qa 412 of 412) would stand beside the same with ")
+    assert "scored on other items (qa 100 of 412)" in res.stderr
+    allowed = run_cli("report", str(run), "--allow-mixed").stdout
+    assert "the same with its cameras blanked 54.0 (on other items: qa 100 of 412)" in allowed
+
+
+def test_a_run_scored_by_other_code_than_trained_it_says_so_and_is_not_mixed_with_others(tmp_path):
+    a, b = scored_run(tmp_path / "a", 0, 6.0, 54.0), scored_run(tmp_path / "b", 1, 5.0, 52.0)
+    for stage in ("pretrain", "instruct"):
+        _rescore(b, stage, code="0.1.0+fff0000")
+    alone = run_cli("report", str(b))
+    assert alone.returncode == 0 and "code 0.1.0+abc1234; scored by 0.1.0+fff0000," in alone.stdout
+    res = run_cli("report", str(a), str(b))
+    assert res.returncode == 2 and res.stderr.startswith("error: the runs differ in code (run 0: 0.1.0+abc1234; ")
+    assert "run 1: 0.1.0+abc1234; scored by 0.1.0+fff0000)" in res.stderr
