@@ -416,6 +416,23 @@ stages:
     consumes: [tokenizer]
     model: {{family: occllama}}
 """
+
+
+def with_dagger(text: str) -> str:
+    """The tiny recipe, its pretrain reading 2 frames of history, then a planner and a dagger stage."""
+    text = text.replace(
+        "    model: {family: occllama}\n", "    model: {family: occllama, tasks: {context_frames: 2}}\n"
+    )
+    return text + (
+        "  - {name: planner, kind: planner, consumes: [pretrain]}\n"
+        "  - name: closed_loop\n"
+        "    kind: dagger\n"
+        "    consumes: [pretrain, planner]\n"
+        "    model: {rounds: 1, steps_per_round: 2, routes_per_round: 1, seconds: 3}\n"
+        "    trainer: {max_steps: 2}\n"
+    )
+
+
 RUN = ["run", "{tmp}/r.yaml", "--run-dir", "{tmp}/run2"]
 RECIPE_FILE = "{tmp}/r.yaml"
 
@@ -1913,6 +1930,56 @@ CASES: list[Case] = [
         "stages.distill.model.student.num_heads is 5, which does not divide hidden_size 96",
     ),
     Case(
+        "validate-refuses-dagger-episodes-shorter-than-the-history",
+        recipe(with_dagger),
+        ["validate", "{tmp}/r.yaml", "stages.closed_loop.model.seconds=1"],
+        2,
+        "stages.closed_loop.model.seconds 1: the expert drives the first 1 s (the 2 frames of history the stage's "
+        "prompts read), so the stage would never drive; give stages.closed_loop.model.seconds 1.5 or more",
+    ),
+    Case(
+        "validate-refuses-a-negative-route-seed",
+        recipe(with_dagger),
+        ["validate", "{tmp}/r.yaml", "stages.closed_loop.model.route_seed=-1"],
+        2,
+        "stages.closed_loop.model.route_seed is -1: a seed is an integer from 0 to 4294967295",
+    ),
+    Case(
+        "validate-refuses-more-rollout-workers-than-cores",
+        recipe(with_dagger),
+        ["validate", "{tmp}/r.yaml", "stages.closed_loop.model.workers=1000"],
+        2,
+        "stages.closed_loop.model.workers: 1000 is more than the ",
+    ),
+    Case(
+        "validate-refuses-a-negative-generation-length",
+        recipe(with_dagger),
+        ["validate", "{tmp}/r.yaml", "stages.closed_loop.model.max_new_text_tokens=-5"],
+        2,
+        "stages.closed_loop.model.max_new_text_tokens is -5 in {tmp}/r.yaml: it must be at least 0",
+    ),
+    Case(
+        "validate-refuses-a-world-model-generating-nothing",
+        recipe(),
+        ["validate", "{tmp}/r.yaml", "stages.pretrain.model.max_new_text_tokens=0"],
+        2,
+        "stages.pretrain.model.max_new_text_tokens: 0; a validation generates at least 1 token of text per answer",
+    ),
+    Case(
+        "validate-refuses-scenes-longer-than-the-world-holds",
+        recipe(),
+        ["validate", "{tmp}/r.yaml", "data.root={tmp}/new", "data.synth.frames_per_scene=100000"],
+        2,
+        "data.synth.frames_per_scene=100000",
+    ),
+    Case(
+        "synth-refuses-scenes-longer-than-the-world-holds",
+        nothing,
+        ["data", "synth", "--out", "{tmp}/w", "--scenes", "1", "--val-scenes", "1", "--frames", "100000"],
+        2,
+        "frames_per_scene=100000",
+    ),
+    Case(
         "stage-consumes-itself",
         recipe(lambda t: t.replace("consumes: [tokenizer]", "consumes: [pretrain]")),
         RUN,
@@ -1965,6 +2032,17 @@ CASES: list[Case] = [
             "cannot write {tmp}/run/pretrain/eval/val/metrics.json: the file system is read-only; eval writes its "
             "metrics into {tmp}/run/pretrain",
             "copy the run to a writable place",
+        ),
+        patch=read_only_disk,
+    ),
+    Case(
+        "eval-blank-cameras-read-only-run",
+        nothing,
+        [*EVAL, "--blank-cameras"],
+        2,
+        (
+            "cannot write {tmp}/run/pretrain/eval/val+blank_cameras/metrics.json: the file system is read-only; eval "
+            "writes its metrics into {tmp}/run/pretrain",
         ),
         patch=read_only_disk,
     ),

@@ -176,8 +176,10 @@ def test_evals_of_other_subsets_keep_each_number_with_its_items(pipeline):
     assert merged.provenance is not None
     kept = merged.provenance.sample_set("plan_alternate_L2_stp3_avg")
     rescored = merged.provenance.sample_set("baseline_constant_velocity_L2_stp3_avg")
-    assert kept is not None and kept.digest == plan.digest and merged.metrics["plan_alternate_L2_stp3_avg"] == (
-        first.metrics["plan_alternate_L2_stp3_avg"]
+    assert (
+        kept is not None
+        and kept.digest == plan.digest
+        and merged.metrics["plan_alternate_L2_stp3_avg"] == (first.metrics["plan_alternate_L2_stp3_avg"])
     )
     assert rescored is not None and rescored.items == 1 and rescored.digest != plan.digest
     page = run_cli("report", str(pipeline))

@@ -196,17 +196,10 @@ def planning_history(stage_dir: Path, consumes: list[str]) -> int:
 
 
 def _refuse_too_short(stage_dir: Path, done: DoneStage, seconds: float) -> None:
-    """An episode in which the stage never plans scores the expert, not the stage: refused,
-    naming the shortest episode in which it plans and follows its plan at least once."""
-    from occtrain.formats.occ3d import FRAME_DT
+    """An episode in which the stage never plans scores the expert, not the stage: refused."""
+    from occtrain.engine.closed_loop import refuse_short_episodes
 
-    history = planning_history(stage_dir, list(done.spec.consumes))
-    least = (history + 1) * FRAME_DT
-    if seconds < least:
-        raise ConfigError(
-            f"--seconds {seconds:g}: the expert drives the first {history * FRAME_DT:g} s (the {history} frames of "
-            f"history the stage's prompts read), so the stage would never drive; give --seconds {least:g} or more"
-        )
+    refuse_short_episodes(seconds, planning_history(stage_dir, list(done.spec.consumes)), "--seconds")
 
 
 def _drive_jobs(context: _EpisodeContext, jobs: list[DriveJob], todo: list[DriveJob], workers: int, what: str) -> None:

@@ -76,6 +76,7 @@ def evaluate(
     world = world_key(source)
     # Scored beside the split's own scores on the dataset named, whatever view of it is read.
     metrics_file = eval_metrics_file(stage_dir, split, data_root, world, blank_cameras)
+    _check_outputs(stage_dir, done.spec.kind, done.kind.module.saves_predictions, metrics_file, save_predictions)
     root = source
     if blank_cameras:
         root = str(blanked_data(done, Path(source), world))
@@ -85,7 +86,6 @@ def evaluate(
     # by the same encoder; built if the stage trained without one). Scenes are in the run's
     # shared cache, keyed by the encoder and the dataset they were made from.
     _refuse_unscorable(tasks or [], root)
-    _check_outputs(stage_dir, done.spec.kind, done.kind.module.saves_predictions, metrics_file, save_predictions)
     with scoring_lock(stage_dir, "occtrain eval"):
         done.refuse_changed("occtrain eval")  # retrained between the check above and the lock
         request = EvalRequest(

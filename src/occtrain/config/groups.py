@@ -36,6 +36,12 @@ def check_seed(seed: int, key: str, where: str = "") -> None:
         )
 
 
+#: The longest scene the world synthesizes (60 s at 2 Hz; nuScenes' are 20 s): its road grid
+#: grows with the scene (``data.synth.scene.grid_extent``), checked on several seeds up to
+#: here, and a scene's synthesis time grows faster than its length (120 frames: 10-16 s).
+MAX_FRAMES_PER_SCENE = 120
+
+
 def check_synth_config(cfg: SynthConfig) -> None:
     """Refuse a world that cannot be synthesized, naming the settings."""
     check_seed(cfg.seed, "data.synth.seed")
@@ -44,6 +50,12 @@ def check_synth_config(cfg: SynthConfig) -> None:
             f"synth needs at least one train scene and one frame per scene (got train_scenes={cfg.train_scenes}, "
             f"val_scenes={cfg.val_scenes}, frames_per_scene={cfg.frames_per_scene}); set --scenes/--frames (or a "
             "recipe's data.synth) to at least 1"
+        )
+    if cfg.frames_per_scene > MAX_FRAMES_PER_SCENE:
+        raise ConfigError(
+            f"data.synth.frames_per_scene={cfg.frames_per_scene}: a synthesized scene holds at most "
+            f"{MAX_FRAMES_PER_SCENE} frames ({MAX_FRAMES_PER_SCENE // 2} s at 2 Hz); set --frames (or a recipe's "
+            "data.synth.frames_per_scene) lower, and --scenes higher for more frames"
         )
     if (cfg.camera_height > 0) != (cfg.camera_width > 0) or min(cfg.camera_height, cfg.camera_width) < 0:
         raise ConfigError(

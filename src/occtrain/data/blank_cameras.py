@@ -20,6 +20,7 @@ from pathlib import Path
 
 from occtrain.data.layout import ANNOTATIONS_FILE, DATASET_FILE, DatasetIndex, generator_record
 from occtrain.errors import DataError
+from occtrain.formats.io import write_error
 
 #: Appended to the source folder's name: the view's folder, and so the eval directory of its scores.
 BLANK_SUFFIX = "+blank_cameras"
@@ -35,7 +36,9 @@ def camera_images(index: DatasetIndex) -> set[Path]:
 def blank_camera_view(root: str | Path, into: str | Path) -> Path:
     """The view of the dataset at ``root`` with its cameras blanked, made once under ``into``
     (a folder per source world: the caller keys it) and reused: ``into/<name>+blank_cameras``.
-    Made in a temporary folder and renamed into place, so a cut-off build leaves no half view."""
+    Made in a temporary folder and renamed into place, so a cut-off build leaves no half view,
+    and two builds at once both end with the one view (the first rename wins). A place that
+    cannot be written or an image that cannot be read is one line naming it."""
     index = DatasetIndex.open(root)
     source = index.root.resolve()
     if not index.has_cameras:
@@ -50,16 +53,26 @@ def blank_camera_view(root: str | Path, into: str | Path) -> Path:
         raise DataError(
             f"{outside[0]}: a camera image outside the dataset root {source}; a blanked view mirrors the root"
         )
-    into.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(dir=into, prefix=".blank."))
+    try:
+        into.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(dir=into, prefix=".blank."))
+    except OSError as err:
+        raise write_error(view, err) from None
     try:
         _mirror(source, tmp, {p.resolve() for p in images}, (source / DATASET_FILE).resolve(), top=True)
         record = {**(generator_record(source) or {}), "cameras": "blanked"}
         (tmp / DATASET_FILE).parent.mkdir(parents=True, exist_ok=True)
         (tmp / DATASET_FILE).write_text(json.dumps(record, indent=2))
-        tmp.rename(view)
-    except BaseException:
+        try:
+            tmp.rename(view)
+        except OSError:
+            if not (view / ANNOTATIONS_FILE).is_file():
+                raise
+            shutil.rmtree(tmp, ignore_errors=True)  # another build of the same view renamed first
+    except BaseException as err:
         shutil.rmtree(tmp, ignore_errors=True)
+        if isinstance(err, OSError):
+            raise write_error(view, err) from None
         raise
     return view
 
@@ -84,8 +97,14 @@ def _mirror(src: Path, dst: Path, images: set[Path], record: Path, top: bool = F
 
 def _write_black(image: Path, target: Path) -> None:
     """A black image of ``image``'s size, mode and format at ``target``."""
-    from PIL import Image
+    from PIL import Image, UnidentifiedImageError
 
-    with Image.open(image) as img:
-        size, mode, fmt = img.size, img.mode, img.format
+    try:
+        with Image.open(image) as img:
+            img.load()  # a truncated file opens; its pixels do not
+            size, mode, fmt = img.size, img.mode, img.format
+    except (UnidentifiedImageError, OSError, ValueError, SyntaxError) as err:
+        raise DataError(
+            f"{image}: unreadable camera image ({err}); re-create or re-download the dataset's images"
+        ) from None
     Image.new(mode, size, 0).save(target, format=fmt)

@@ -23,6 +23,19 @@ from occtrain.data.clips import Clip
 from occtrain.data.closed_loop_recording import DrivingWorld, EpisodeRecorder
 from occtrain.engine.world_engine import WorldModelEngine
 from occtrain.errors import ConfigError, OcctrainError
+from occtrain.formats.occ3d import FRAME_DT
+
+
+def refuse_short_episodes(seconds: float, history: int, key: str) -> None:
+    """An episode in which a stage never plans scores (and, in training, labels) the expert,
+    not the stage: the expert drives its ``history`` frames first. Refused in one line naming
+    ``key``, with the shortest episode in which the stage plans and follows its plan once."""
+    least = (history + 1) * FRAME_DT
+    if seconds < least:
+        raise ConfigError(
+            f"{key} {seconds:g}: the expert drives the first {history * FRAME_DT:g} s (the {history} frames of history "
+            f"the stage's prompts read), so the stage would never drive; give {key} {least:g} or more"
+        )
 
 
 class NonFinitePlan(OcctrainError):

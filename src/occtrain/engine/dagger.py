@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -30,6 +31,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from occtrain.config.groups import check_seed
 from occtrain.data.clips import Clip, frame_clips
 from occtrain.data.closed_loop_recording import DrivingWorld, EpisodeRecorder, RecordedDataset, drive_episode
 from occtrain.data.layout import DatasetIndex
@@ -76,6 +78,13 @@ class DaggerSettings:
         for key in ("rounds", "steps_per_round", "routes_per_round", "workers"):
             if getattr(self, key) < 1:
                 raise ConfigError(f"{where}.{key}: {getattr(self, key)} must be at least 1")
+        cores = len(os.sched_getaffinity(0))
+        if self.workers > cores:
+            raise ConfigError(
+                f"{where}.workers: {self.workers} is more than the {cores} cores this process may use (each worker "
+                f"drives on its own); give 1 to {cores}"
+            )
+        check_seed(self.route_seed, f"{where}.route_seed")
         if not 0 < self.seconds <= 40:
             raise ConfigError(f"{where}.seconds: {self.seconds:g} must be in (0, 40]")
         for key in ("beta", "beta_decay", "aggregate_share"):

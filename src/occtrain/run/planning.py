@@ -78,6 +78,7 @@ def plan_stages(recipe: RecipeConfig, source: str) -> list[PlannedStage]:
         kind.module.check_consumes(spec.kind, {dep: p.spec.kind for dep, p in consumed.items()}, where)
         family, model_cfg = _model_config(kind, spec, consumed, f"stages[{i}].model", source, where)
         kind.module.check_model(model_cfg, f"stages.{spec.name}.model")
+        kind.module.check_against_consumed(model_cfg, consumed, f"stages.{spec.name}.model")
         check_model_counts(model_cfg, f"stages.{spec.name}.model", source)
         wrong = sorted(set(spec.data or {}) - set(STAGE_DATA_KEYS))
         if wrong:
@@ -186,8 +187,9 @@ _SEEDS: dict[str, tuple[str, ...]] = {"trainer": ("seed",), "data": ("seed", "sy
 #: Counts in a stage's ``model:`` that size a batch or a loop, whichever kinds have them:
 #: the least each may be. Out of range they fail late and raw (``val_batch_size: 0``:
 #: ``range() arg 3 must not be zero`` once validation generates) or do nothing at all
-#: (a negative one validates no item).
-_MODEL_LEAST = {"val_batch_size": 1, "prior_batches": 0}
+#: (a negative one validates no item). A planner's ``max_new_text_tokens`` of 0 keeps its
+#: world model's own (a world model stage asks for at least 1 itself).
+_MODEL_LEAST = {"val_batch_size": 1, "prior_batches": 0, "max_new_text_tokens": 0, "generate_batches": -1}
 
 
 def check_model_counts(model: Any, key: str, source: str) -> None:

@@ -88,6 +88,11 @@ class DistillStage(Stage):
     def check_model(cls, model: Any, key: str) -> None:
         """The student's LLM, through the checks its build makes (the backend's own included)."""
         check_llm(to_object(model.student), f"{key}.student")
+        if model.max_new_text_tokens < 1:
+            raise ConfigError(
+                f"{key}.max_new_text_tokens: {model.max_new_text_tokens}; a validation generates at least 1 token of "
+                "text per answer"
+            )
 
     def __init__(self, ctx: StageContext):
         super().__init__(ctx)

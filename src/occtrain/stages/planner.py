@@ -15,7 +15,7 @@ from __future__ import annotations
 import contextlib
 import shutil
 import tempfile
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, fields, make_dataclass
 from pathlib import Path
 from typing import Any, ClassVar
@@ -32,7 +32,7 @@ from occtrain.data.clips import Clip, clips_from_batch, frame_clips
 from occtrain.data.closed_loop_recording import RecordedDataset
 from occtrain.data.layout import DatasetIndex
 from occtrain.engine import TEXT_ENTRIES, load_world_model
-from occtrain.engine.closed_loop import StageDriver
+from occtrain.engine.closed_loop import StageDriver, refuse_short_episodes
 from occtrain.engine.dagger import (
     Aggregate,
     DaggerSettings,
@@ -263,6 +263,14 @@ class DaggerStage(PlannerStage):
         to_object(model).validate(key)
 
     @classmethod
+    def check_against_consumed(cls, model: Any, consumed: Mapping[str, Any], key: str) -> None:
+        """An episode no longer than the world model's history is the expert's alone: the
+        policy would drive none of its frames and the stage train on the expert's driving."""
+        tasks = getattr(next(iter(consumed.values())).model_cfg, "tasks", None)
+        if tasks is not None and "context_frames" in tasks:
+            refuse_short_episodes(model.seconds, int(tasks.context_frames), f"{key}.seconds")
+
+    @classmethod
     def check_trainer(cls, model: Any, trainer: Any, where: str) -> None:
         rounds, steps = model.rounds, model.steps_per_round
         if trainer.max_steps != rounds * steps:
@@ -280,6 +288,7 @@ class DaggerStage(PlannerStage):
             planner_export, [world_export], str(ctx.data.root), cache_dir=ctx.cache_dir, shared_cache_dir=None
         )
         planner, teacher = load_policy(request, f"stages '{ctx.spec.name}'", cfg.max_new_text_tokens)
+        refuse_short_episodes(cfg.seconds, teacher.tasks.context_frames, f"stages.{ctx.spec.name}.model.seconds")
         teacher.prepare_inputs(ctx.data.root, ctx.cache_dir, ctx.shared_cache_dir)
         # The head fine-tunes as the planner stage trained it (dropout on); its world model stays frozen.
         planner.train()

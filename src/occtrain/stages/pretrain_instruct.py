@@ -167,6 +167,11 @@ class WorldModelStage(Stage):
             raise ConfigError(f"{key}: use_lora and use_adapters are both on; train through one of them")
         if model.use_adapters:
             to_object(model.adapter).validate(f"{key}.adapter")
+        if model.max_new_text_tokens < 1:
+            raise ConfigError(
+                f"{key}.max_new_text_tokens: {model.max_new_text_tokens}; a validation generates at least 1 token of "
+                "text per answer"
+            )
         if model.pack_length < 0:
             raise ConfigError(f"{key}.pack_length: {model.pack_length} is negative; give a row's tokens, or 0")
         family = schema_family(model)

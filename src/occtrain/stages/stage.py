@@ -248,6 +248,12 @@ class Stage(L.LightningModule, ABC):
         ``run``. By default nothing beyond the schema."""
 
     @classmethod
+    def check_against_consumed(cls, model: Any, consumed: Mapping[str, Any], key: str) -> None:
+        """Refuse a validated ``model:`` that cannot work with what the stage consumes (the
+        consumed stages' planned configs, by name, each with ``model_cfg``): a check
+        ``occtrain validate`` can make before those stages have trained. Nothing by default."""
+
+    @classmethod
     def camera_input(cls, model: Any) -> bool:
         """Whether a stage of this kind with the validated ``model:`` reads the camera
         images (its batches then carry them): by default the kind's ``reads_cameras``."""

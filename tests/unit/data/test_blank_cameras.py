@@ -3,6 +3,8 @@ else linked, an identity and caches of its own, and no half view after a failure
 
 from __future__ import annotations
 
+import shutil
+
 import numpy as np
 import pytest
 
@@ -10,6 +12,7 @@ from occtrain.data.blank_cameras import BLANK_SUFFIX, blank_camera_view, camera_
 from occtrain.data.layout import DatasetIndex, generator_record, world_identity
 from occtrain.data.shards import world_key
 from occtrain.errors import DataError
+from occtrain.formats.io import WriteError
 
 
 def test_every_camera_image_is_black_at_its_size_and_the_rest_is_the_sources(synth_dataset, tmp_path):
@@ -53,3 +56,49 @@ def test_the_view_is_made_once_and_a_failed_build_leaves_nothing(synth_dataset, 
 def test_a_dataset_without_cameras_is_refused(hand_dataset, tmp_path):
     with pytest.raises(DataError, match="has no camera images to blank"):
         blank_camera_view(hand_dataset, tmp_path)
+
+
+def test_a_view_that_cannot_be_written_is_one_line_naming_it(synth_dataset, tmp_path, monkeypatch):
+    import errno
+    import tempfile
+
+    def read_only(*args, **kwargs):
+        raise OSError(errno.EROFS, "Read-only file system")
+
+    monkeypatch.setattr(tempfile, "mkdtemp", read_only)
+    with pytest.raises(WriteError) as err:
+        blank_camera_view(synth_dataset, tmp_path / "blank")
+    view = tmp_path / "blank" / (synth_dataset.name + BLANK_SUFFIX)
+    assert str(err.value) == (
+        f"cannot write {view}: the file system is read-only; point the run (--run-dir) or --out at a writable place"
+    )
+
+
+def test_an_unreadable_camera_image_is_one_line_naming_it_and_leaves_nothing(synth_dataset, tmp_path):
+    source = tmp_path / "world"
+    shutil.copytree(synth_dataset, source, symlinks=True)
+    index = DatasetIndex.open(source)
+    broken = sorted(camera_images(index))[3]
+    broken.write_bytes(broken.read_bytes()[:100])  # cut off mid-file, as a failed copy leaves it
+    with pytest.raises(DataError) as err:
+        blank_camera_view(source, tmp_path / "blank")
+    assert str(err.value).startswith(f"{broken}: unreadable camera image (") and "\n" not in str(err.value)
+    assert list((tmp_path / "blank").iterdir()) == []
+
+
+def test_two_builds_at_once_both_end_with_the_one_view(synth_dataset, tmp_path, monkeypatch):
+    """Another eval renames its view into place while this one builds: this one's is dropped."""
+    import occtrain.data.blank_cameras as blank
+
+    into = tmp_path / "blank"
+    other = blank_camera_view(synth_dataset, tmp_path / "first")
+    real_mirror = blank._mirror
+
+    def meanwhile(src, dst, images, record, top=False):
+        real_mirror(src, dst, images, record, top)
+        if top:  # the other build finishes first
+            shutil.copytree(other, into / other.name, symlinks=True)
+
+    monkeypatch.setattr(blank, "_mirror", meanwhile)
+    view = blank_camera_view(synth_dataset, into)
+    assert view == into / other.name and sorted(p.name for p in into.iterdir()) == [other.name]

@@ -33,8 +33,9 @@ def test_a_merged_eval_keeps_each_number_with_its_own_items(tmp_path: Path) -> N
     )
     merged = now.merged(earlier)
     assert merged.coverage == {"forecasting": [4, 64], "planning": [1, 64]}
-    plan, velocity = merged.sample_set("plan_alternate_L2_stp3_avg"), merged.sample_set(
-        "baseline_constant_velocity_L2_stp3_avg"
+    plan, velocity = (
+        merged.sample_set("plan_alternate_L2_stp3_avg"),
+        merged.sample_set("baseline_constant_velocity_L2_stp3_avg"),
     )
     assert plan is not None and velocity is not None
     assert plan.digest == digest_items(four) and velocity.digest == digest_items(one)
@@ -54,7 +55,9 @@ def test_scores_of_other_code_are_not_merged() -> None:
 
 def test_numbers_of_other_items_than_the_split_say_what_they_are() -> None:
     rollouts = SampleSet("d", 4, 4, ["rollouts"], ["round0_rollout_score"], on="round 0's 4 training routes")
-    provenance = Provenance("validation at the end of training", "val", {"validation": [60, 64]}, sample_sets=[rollouts])
+    provenance = Provenance(
+        "validation at the end of training", "val", {"validation": [60, 64]}, sample_sets=[rollouts]
+    )
     assert provenance.describe() == (
         "a subset of the val split (validation 60 of 64); rollouts: round 0's 4 training routes"
     )

@@ -86,10 +86,21 @@ class Population:
     walk_hist: tuple[np.ndarray, np.ndarray, np.ndarray]
 
 
-def populate(seed: int, steps: int, extent: float = 800.0) -> Population:
-    """The roads (a grid over [-extent, extent]^2), the ego's route and the traffic of scene
-    ``seed``, simulated for ``steps`` steps."""
-    net = RoadNetwork.random(np.random.default_rng([seed, 0]), seed, extent)
+#: Half the side of the road grid (m) for scenes up to ``GRID_SECONDS`` long (40 frames and
+#: their future); a longer scene's routes reach further, so its grid grows in proportion
+#: (a route that ran out of crossings would have nowhere to go).
+GRID_EXTENT, GRID_SECONDS = 800.0, 23.0
+
+
+def grid_extent(steps: int) -> float:
+    """The road grid's half side for a scene simulated ``steps`` steps."""
+    return GRID_EXTENT * max(1.0, steps * SIM_DT / GRID_SECONDS)
+
+
+def populate(seed: int, steps: int, extent: float | None = None) -> Population:
+    """The roads (a grid over [-extent, extent]^2, by default ``grid_extent(steps)``), the
+    ego's route and the traffic of scene ``seed``, simulated for ``steps`` steps."""
+    net = RoadNetwork.random(np.random.default_rng([seed, 0]), seed, extent or grid_extent(steps))
     route_rng = np.random.default_rng([seed, 1])
     net, plan = ego_start(net, route_rng)
     ego = ego_mover(net, plan, route_rng, steps, SIM_DT)

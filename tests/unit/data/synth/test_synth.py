@@ -396,3 +396,17 @@ def test_surfaces_not_solids(world_stats):
     assert world_stats.per_layer[0] == 0  # under the ground surface
     assert world_stats.voxels_per_column < 3.5
     assert world_stats.camera_inside_lidar == 1.0
+
+
+def test_a_longer_scene_gets_a_larger_road_grid_and_the_quickstarts_keeps_its_own():
+    """A route of an 80-frame scene ran off the 800 m grid (no crossing left ahead: a raw
+    StopIteration); the grid grows with the scene, and a 40-frame scene's is unchanged."""
+    from occtrain.data.synth.scene import GRID_EXTENT, generate_scene, grid_extent
+    from occtrain.data.synth.traffic import SIM_DT
+    from occtrain.formats.occ3d import FRAME_DT, FUTURE_STEPS
+
+    def steps(frames: int) -> int:
+        return (frames + FUTURE_STEPS - 1) * round(FRAME_DT / SIM_DT) + 1
+
+    assert grid_extent(steps(40)) == GRID_EXTENT and grid_extent(steps(80)) > 1.5 * GRID_EXTENT
+    assert len(generate_scene("long", 0, 80).frames) == 80
