@@ -18,10 +18,15 @@ said) it renders:
 
 Beside them ``pictures.json`` holds each picture's file, alt text and caption; every caption
 ends with the run's stamp (recipe, training seed, code, world: what ``occtrain report``
-names a run by, never its path). The docs place a picture with a marker line
+names a run by, never its path), and a picture of frames from ``--data`` that is not the
+run's own world names the world it shows as such. The docs place a picture with a marker line
 ``<!-- picture: NAME/world -->``, which ``docs/hooks.py`` replaces with the image and its
 caption at build time, so no caption is typed by hand and a marker naming a missing picture
 fails the strict build. ``--only`` redraws some pictures and keeps the others' entries.
+
+A mistake (a run directory without its manifest or recipe, an ``--out`` that cannot be
+written, a broken ``pictures.json``) is one line, ``error: ...`` naming the file, with exit
+status 2, before any picture is drawn.
 """
 
 from __future__ import annotations
@@ -29,22 +34,24 @@ from __future__ import annotations
 import argparse
 import html
 import io
-import json
 import subprocess
 import sys
 import tempfile
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import TypedDict
 
 import numpy as np
-import yaml
 from PIL import Image, ImageDraw
 
-from occtrain.data.layout import DatasetIndex, world_identity
+from occtrain.config.loading import read_yaml
+from occtrain.data.layout import ANNOTATIONS_FILE, DatasetIndex, world_identity
 from occtrain.data.render import render_bev, strip
-from occtrain.errors import OcctrainError
-from occtrain.formats.io import atomic_write_bytes, atomic_write_json
+from occtrain.data.validate import first_problem
+from occtrain.errors import ConfigError, DataError, OcctrainError, cause_line
+from occtrain.formats.io import atomic_write_bytes, atomic_write_json, check_output, parse_json
+from occtrain.formats.manifest import MANIFEST_FILE, PIPELINE_FILE
 from occtrain.formats.occ3d import FRAME_DT, FREE
 
 PICTURES = ("world", "reconstruction", "forecast", "drive", "dashboard")
@@ -63,44 +70,76 @@ class Picture:
     caption: str
 
 
+class PictureEntry(TypedDict):
+    """A :class:`Picture` as ``pictures.json`` holds it."""
+
+    file: str
+    alt: str
+    caption: str
+
+
+class PicturesIndex(TypedDict):
+    pictures: dict[str, PictureEntry]
+
+
 class Skipped(Exception):
     """A picture the run cannot give (no such stage), said and left out."""
 
 
 @dataclass(frozen=True)
 class RunFacts:
-    """What the pictures need of a run: its stages by kind, its data and its stamp."""
+    """What the pictures need of a run: its stages by kind, the dataset its frames are drawn
+    from and its stamps."""
 
     path: Path
     name: str
     kinds: dict[str, str]  # stage -> kind, in the recipe's order
     data: Path
+    #: The run: recipe, training seed, code and the world it trained on (when that lies here).
     stamp: str
+    #: The stamp of a picture drawn from ``data``: the run's, and the world drawn when
+    #: ``--data`` names one other than the run's own.
+    drawn: str
 
     @classmethod
     def read(cls, run: Path, data: Path | None) -> RunFacts:
-        manifest_file = run / "manifest.json"
+        manifest_file, pipeline_file = run / MANIFEST_FILE, run / PIPELINE_FILE
         if not manifest_file.is_file():
-            raise SystemExit(f"error: {run}: not a run directory (no manifest.json); pass the directory of a run")
-        manifest = json.loads(manifest_file.read_text())
-        stages = manifest.get("stages", {})
-        done = {s: e for s, e in stages.items() if e.get("status") == "done"}
+            raise DataError(f"{run}: not a run directory (no {MANIFEST_FILE}); pass the directory of a run")
+        try:
+            manifest = parse_json(manifest_file.read_bytes())
+            done = {s: e for s, e in manifest.get("stages", {}).items() if e.get("status") == "done"}
+            seeds = sorted({str(e.get("config", {}).get("trainer", {}).get("seed", "?")) for e in done.values()})
+            codes = sorted({e.get("code_version") or "?" for e in done.values()})
+        except (OSError, ValueError, AttributeError, TypeError) as err:
+            # AttributeError, TypeError: valid JSON of another shape (a list, a stage that is not an object).
+            raise DataError(f"{manifest_file}: not a run manifest ({cause_line(err)}); rerun `occtrain run`") from None
         if not done:
-            raise SystemExit(f"error: {run}: no stage is done; finish the run first")
-        if data is None:
-            pipeline = yaml.safe_load((run / "pipeline.yaml").read_text())
-            data = Path(pipeline["data"]["root"])
-        if not (data / "annotations.json").is_file():
-            raise SystemExit(f"error: {data}: not the run's dataset (no annotations.json); pass it with --data")
-        seeds = sorted({str(e.get("config", {}).get("trainer", {}).get("seed", "?")) for e in done.values()})
-        codes = sorted({e.get("code_version") or "?" for e in done.values()})
-        world = world_identity(data)
+            raise DataError(f"{run}: no stage is done; finish the run first")
+        if not pipeline_file.is_file():
+            raise DataError(f"{run}: no {PIPELINE_FILE} (the recipe a run keeps); pass the directory of a run")
+        section = read_yaml(pipeline_file).get("data")
+        if not isinstance(section, dict) or not isinstance(section.get("root"), str):
+            raise DataError(f"{pipeline_file}: no data.root; it is not the recipe of an occtrain run")
+        own_root = Path(section["root"])
+        own = world_identity(own_root) if (own_root / ANNOTATIONS_FILE).is_file() else None
+        if data is not None and not (data / ANNOTATIONS_FILE).is_file():
+            raise DataError(f"{data}: not a dataset (no {ANNOTATIONS_FILE}); --data takes the root of one")
+        if data is None and own is None:
+            raise DataError(f"{own_root}: not the run's dataset (no {ANNOTATIONS_FILE}); pass it with --data")
+        data = own_root if data is None else data
+        drawn = world_identity(data)
         name = str(manifest.get("name", run.name))
-        stamp = (
-            f"recipe {name}, training seed {', '.join(seeds)}, code {', '.join(codes)}, "
-            f"world {world.name} [{world.key}]"
-        )
-        return cls(run, name, {s: str(e.get("kind")) for s, e in done.items()}, data, stamp)
+        stamp = f"recipe {name}, training seed {', '.join(seeds)}, code {', '.join(codes)}"
+        stamp += f", world {own.name} [{own.key}]" if own is not None else ""
+        if own is not None and own.key == drawn.key:
+            drawn_stamp = stamp
+        else:
+            # --data names another world, or one the run's own cannot be compared with: the
+            # picture says which it shows, and never passes it off as the run's.
+            which = ", not the run's own" if own is not None else " (the run's own world is not here to compare)"
+            drawn_stamp = f"{stamp}; drawn on world {drawn.name} [{drawn.key}] given with --data{which}"
+        return cls(run, name, {s: str(e.get("kind")) for s, e in done.items()}, data, stamp, drawn_stamp)
 
     def stage(self, *kinds: str) -> str:
         """The last done stage of one of ``kinds`` (the recipe's order), or Skipped."""
@@ -148,8 +187,8 @@ def world_picture(run: RunFacts, frame: int, out: Path) -> Picture:
         "world.png",
         "A bird's-eye view of a street scene in class colours, the ego car at the centre with its future path, "
         "the six camera images around it",
-        f"The embedded world: frame {i} of val scene {scene}, its occupancy from above (the ego's next 3 s in green, "
-        "columns no camera sees darkened) among the six cameras (`occtrain data show`). " + run.stamp,
+        f"The world: frame {i} of val scene {scene}, its occupancy from above (the ego's next 3 s in green, "
+        "columns no camera sees darkened) among the six cameras (`occtrain data show`). " + run.drawn,
     )
 
 
@@ -181,7 +220,7 @@ def reconstruction_picture(run: RunFacts, frame: int, out: Path) -> Picture:
         "reconstruction.png",
         "Two bird's-eye views side by side: the true occupancy of a frame and the scene tokenizer's reconstruction",
         f"What the `{stage}` stage ({model.arch}) keeps of a scene: frame {i} of val scene {scene}, truth (left) and "
-        f"its reconstruction {source} (right). " + run.stamp,
+        f"its reconstruction {source} (right). " + run.drawn,
     )
 
 
@@ -229,7 +268,7 @@ def forecast_picture(run: RunFacts, frame: int, out: Path) -> Picture:
         "and the present copied forward",
         f"The `{stage}` stage's {model.family} world model forecasting val scene {scene} from frame {i}: the truth "
         f"(left), its forecast (middle) and Copy&Paste, the present copied forward (right), {horizons} s ahead. "
-        + run.stamp,
+        + run.drawn,
     )
 
 
@@ -237,10 +276,6 @@ def drive_picture(run: RunFacts, seconds: float, seed: int, out: Path, stage: st
     from occtrain.commands.drive import drive
 
     stage = stage or run.stage("planner", "dagger")
-    if stage not in run.kinds:
-        raise SystemExit(
-            f"error: --drive-stage {stage}: the run has no done stage of that name; it has {', '.join(run.kinds)}"
-        )
     with tempfile.TemporaryDirectory() as tmp:
         drive(run.path / stage, routes=1, seed=seed, seconds=seconds, workers=1, save_videos=tmp)
         episodes = [Image.open(Path(tmp) / f"{who}-000.gif") for who in (stage, "expert")]
@@ -318,6 +353,18 @@ def dashboard_picture(run: RunFacts, out: Path) -> Picture:
 # ----------------------------------------------------------------------------- command
 
 
+def read_index(index_file: Path) -> dict[str, dict]:
+    """The entries of an existing ``pictures.json``, whose pictures ``--only`` keeps."""
+    try:
+        raw = parse_json(index_file.read_bytes())
+        problem = first_problem(raw, PicturesIndex)
+    except (OSError, ValueError) as err:
+        problem = str(err)
+    if problem:
+        raise DataError(f"{index_file}: not a pictures index ({problem}); move it aside to draw every picture anew")
+    return raw["pictures"]
+
+
 def render(
     run: RunFacts,
     out: Path,
@@ -338,7 +385,7 @@ def render(
     }
     out.mkdir(parents=True, exist_ok=True)
     index_file = out / INDEX_FILE
-    kept = json.loads(index_file.read_text())["pictures"] if index_file.is_file() else {}
+    kept = read_index(index_file) if index_file.is_file() else {}
     drawn = {}
     for name in only:
         try:
@@ -367,12 +414,18 @@ def main(argv: list[str] | None = None) -> int:
     unknown = [p for p in only if p not in PICTURES]
     if unknown:
         parser.error(f"--only {','.join(unknown)}: the pictures are {', '.join(PICTURES)}")
-    run = RunFacts.read(args.run, args.data)
     try:
+        run = RunFacts.read(args.run, args.data)
+        if args.drive_stage and "drive" in only and args.drive_stage not in run.kinds:
+            raise ConfigError(
+                f"--drive-stage {args.drive_stage}: the run has no done stage of that name; "
+                f"it has {', '.join(run.kinds)}"
+            )
+        check_output(args.out, "--out", kind="dir")
         render(run, args.out, only, args.frame, args.seconds, args.seed, args.drive_stage)
     except OcctrainError as err:
         print(f"error: {err}", file=sys.stderr)
-        return 1
+        return 2
     return 0
 
 
