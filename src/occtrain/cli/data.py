@@ -1,11 +1,13 @@
-"""``occtrain data synth | shards | show | stats | check``: datasets synthesized, sharded,
-drawn, measured and checked (the bodies in ``data`` and ``commands.data_*``)."""
+"""``occtrain data synth | shards | show | stats | check | import | export``: datasets synthesized,
+sharded, drawn, measured, checked, imported from the public releases and exported as them (the
+bodies in ``data`` and ``commands.data_*``)."""
 
 from __future__ import annotations
 
 import argparse
 import sys
 
+from occtrain.cli import data_import
 from occtrain.errors import ConfigError
 
 
@@ -139,3 +141,4 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = data.add_parser("check", help="validate a dataset or shard directory")
     p.add_argument("path")
     p.set_defaults(func=_cmd_check)
+    data_import.register(data)

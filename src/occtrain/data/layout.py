@@ -586,9 +586,15 @@ class DatasetIndex:
         )
         sidecar = f"needs the {FRAMES_DIR}/<scene>.json sidecar, which {who}"
         tasks = {"reconstruction": "", "forecasting": "", "planning": ""}
-        for task in ("detection", "counting", "prediction", "chain_of_thought", "meta_action"):
+        for task in ("detection", "counting", "prediction", "chain_of_thought", "meta_action", "caption"):
             tasks[task] = "" if has_frames else sidecar
         tasks["qa"] = "" if has_qa else f"needs {QA_DIR}/NuScenes_<split>_questions.json, which this dataset lacks"
+        # An imported release's sidecars leave the text no release holds empty, and its
+        # record says so (``absent``): a task that reads that text is not trained on "".
+        absent = (self.generator or {}).get("absent") or {}
+        for task, key in (("chain_of_thought", "narration"), ("caption", "caption")):
+            if has_frames and key in absent:
+                tasks[task] = f"needs the frames' {key}, which {FRAMES_DIR}/ leaves empty here ({absent[key]})"
         return tasks
 
 

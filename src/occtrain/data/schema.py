@@ -49,6 +49,9 @@ if TYPE_CHECKING:
 else:
     Category = Literal[CLASS_NAMES[:11]]
 
+#: nuScenes' visibility levels of an annotated object (percent of it visible in the cameras).
+Visibility = Literal["v0-40", "v40-60", "v60-80", "v80-100"]
+
 Vec2 = Annotated[list[float], Len(2)]
 Vec3 = Annotated[list[float], Len(3)]
 Quaternion = Annotated[list[float], Len(4)]  # w, x, y, z, as nuScenes stores rotations
@@ -76,6 +79,8 @@ class Box(TypedDict):
     yaw: float  # ego frame
     velocity: Vec2  # [vx, vy] m/s, ego frame
     attribute: Status | Literal[""]  # "" for static objects (barrier, cone)
+    #: nuScenes' visibility level (share visible in the six cameras), where a release gives it.
+    visibility: NotRequired[Visibility]
 
 
 class FrameAnnotation(TypedDict):
