@@ -62,7 +62,7 @@ from occtrain.data.layout import (
     yaw_from_quaternion,
 )
 from occtrain.data.meta_actions import sidecar_label
-from occtrain.data.releases.categories import VISIBILITY_LEVELS, box_class, status
+from occtrain.data.releases.categories import box_class, status
 from occtrain.data.releases.nuscenes_tables import LIDAR, NuScenesTables, read_can_bus
 from occtrain.data.schema import Box, Flag, FrameAnnotation
 from occtrain.errors import DataError
@@ -363,12 +363,7 @@ def _boxes(
             continue
         instance = tables.get("instance", ann["instance_token"])
         category = tables.get("category", instance["category_token"])["name"]
-        cls = box_class(category)
-        if cls is None:
-            raise DataError(
-                f"{tables.path('category')}: category '{instance['category_token']}'.name '{category}' is not a "
-                "nuScenes v1.0 category, so it has no Occ3D class; use the release's own category.json"
-            )
+        cls = box_class(category) or "others"  # NuScenesTables.check refused any category without one
         w, length, h = ann["size"]
         attrs = [tables.get("attribute", a)["name"] for a in ann["attribute_tokens"]]
         box: Box = {
@@ -380,14 +375,8 @@ def _boxes(
             "velocity": _r(rotate_to_ego(_velocity(tables, ann), ego_yaw)),
             "attribute": status(attrs[0]) if attrs else "",  # type: ignore[typeddict-item]
         }
-        if ann["visibility_token"]:
-            level = tables.get("visibility", ann["visibility_token"])["level"]
-            if level not in VISIBILITY_LEVELS.values():
-                raise DataError(
-                    f"{tables.path('visibility')}: visibility '{ann['visibility_token']}'.level '{level}' is not one "
-                    f"of nuScenes' levels ({', '.join(VISIBILITY_LEVELS.values())}); use the release's own file"
-                )
-            box["visibility"] = level  # type: ignore[typeddict-item]
+        if ann["visibility_token"]:  # its level was checked on opening
+            box["visibility"] = tables.get("visibility", ann["visibility_token"])["level"]  # type: ignore[typeddict-item]
         # The instance's positions at the next samples, along its next links.
         points, valid = np.zeros((FUTURE_STEPS, 2)), np.zeros(FUTURE_STEPS, dtype=bool)
         cur = ann

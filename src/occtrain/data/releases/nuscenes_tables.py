@@ -25,6 +25,7 @@ from functools import cached_property
 from pathlib import Path
 from typing import Any, NotRequired, TypedDict
 
+from occtrain.data.releases.categories import VISIBILITY_LEVELS, box_class
 from occtrain.data.schema import Quaternion, Vec3
 from occtrain.data.validate import first_problem
 from occtrain.errors import DataError
@@ -291,6 +292,19 @@ class NuScenesTables:
                         f"{self.path(table)}: {table} '{rec['token']}'.rotation is {rec['rotation']}, a zero "
                         "quaternion and no rotation; fix that record (w, x, y, z) or remove it"
                     )
+        for level in t["visibility"].values():
+            if level["level"] not in VISIBILITY_LEVELS.values():
+                raise DataError(
+                    f"{self.path('visibility')}: visibility '{level['token']}'.level '{level['level']}' is not one of "
+                    f"nuScenes' levels ({', '.join(VISIBILITY_LEVELS.values())}); {FIX}"
+                )
+        for used in sorted({inst["category_token"] for inst in t["instance"].values()}):
+            name = t["category"][used]["name"]
+            if box_class(name) is None:
+                raise DataError(
+                    f"{self.path('category')}: category '{used}'.name '{name}', which instances use, is not a nuScenes "
+                    f"v1.0 annotation category, so it has no Occ3D class; {FIX}"
+                )
         for sample in t["sample"].values():  # every sample has the pose the import reads
             if LIDAR not in self.key_frames.get(sample["token"], {}):
                 raise DataError(
