@@ -363,8 +363,17 @@ class CompileBlocks(Callback):
     def on_fit_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         cache = ""
         if self.cache_dir is not None:
-            where, self._restore = use_cache_dir(self.cache_dir)
-            cache = f"; inductor caches in {where}"
+            # Rank zero vets the cache before any rank writes into it.
+            use = use_cache_dir(self.cache_dir, vet=trainer.is_global_zero)
+            if trainer.world_size > 1:
+                trainer.strategy.barrier("inductor cache")
+            self._restore = use.restore
+            cache = f"; inductor caches in {use.folder}"
+            if use.emptied and trainer.is_global_zero:
+                console.print(
+                    f"[yellow]note[/]: {use.folder} was not made there (a run copied from elsewhere): inductor "
+                    "unpickles its cache, so it was emptied and compiles afresh"
+                )
         blocks = pl_module.compiled_blocks() if isinstance(pl_module, CompilesBlocks) else []
         compiled = compile_all(blocks)
         if trainer.is_global_zero:

@@ -182,7 +182,7 @@ def test_compile_points_inductors_cache_into_the_run_unless_the_user_chose_one(t
 
     assert compile_blocks(False) == []
     (blocks,) = compile_blocks(True)
-    fit = SimpleNamespace(is_global_zero=True)
+    fit = SimpleNamespace(is_global_zero=True, world_size=1)
     for user in (None, str(tmp_path / "mine")):
         if user is None:
             monkeypatch.delenv("TORCHINDUCTOR_CACHE_DIR", raising=False)
