@@ -4,7 +4,7 @@ tested by a round trip (``occtrain data export nuscenes DIR --out OUT``)::
     OUT/nuscenes/<version>/*.json          the nuScenes v1.0 tables (all thirteen)
     OUT/nuscenes/can_bus/<scene>_pose.json the CAN bus expansion's pose messages, one per sample
     OUT/occ3d/annotations.json             the dataset's own (it is Occ3D's layout already)
-    OUT/occ3d/gts/<scene>, OUT/occ3d/imgs  symbolic links to the dataset's
+    OUT/occ3d/gts/<scene>, OUT/occ3d/imgs  the dataset's, hard-linked (``files.place``)
     OUT/omnidrive/{desc,vqa,keywords}/<split>/<token>.json   OmniDrive-nuScenes' layout
     OUT/drivelm/v1_1_<split>_nus.json      DriveLM's layout
     OUT/nuscenes_qa/NuScenes_<split>_questions.json          NuScenes-QA's
@@ -41,6 +41,7 @@ import numpy as np
 from occtrain.data.geometry import ego_to_global
 from occtrain.data.layout import ANNOTATIONS_FILE, GTS_DIR, IMGS_DIR, SPLITS, DatasetIndex, quaternion_from_yaw
 from occtrain.data.releases.categories import ATTRIBUTES, CLASS_TO_CATEGORY, VISIBILITY_LEVELS, attribute_name
+from occtrain.data.releases.files import place_tree
 from occtrain.data.releases.nuscenes_tables import CAN_BUS_DIR, LIDAR, TABLES
 from occtrain.data.releases.text_import import DRIVELM_BEHAVIOR_QUESTION, drivelm_file, omnidrive_file
 from occtrain.data.schema import FrameAnnotation
@@ -266,12 +267,6 @@ def _instances(t: _Tables, scene: str, frames: list[FrameAnnotation]) -> None:
         )
 
 
-def _link(target: Path, link: Path) -> None:
-    link.parent.mkdir(parents=True, exist_ok=True)
-    if not link.is_symlink() and not link.exists():
-        link.symlink_to(target.resolve(), target_is_directory=target.is_dir())
-
-
 def export_nuscenes(root: str | Path, out: str | Path, version: str = "v1.0-trainval", verbose: bool = True) -> dict:
     """Write the dataset at ``root`` as the releases (see the module docstring); counts of what was written."""
     start = time.perf_counter()
@@ -306,9 +301,9 @@ def export_nuscenes(root: str | Path, out: str | Path, version: str = "v1.0-trai
     occ3d.mkdir(parents=True)
     shutil.copy2(index.root / ANNOTATIONS_FILE, occ3d / ANNOTATIONS_FILE)
     for scene in scenes:
-        _link(index.root / GTS_DIR / scene, occ3d / GTS_DIR / scene)
+        place_tree(index.root / GTS_DIR / scene, occ3d / GTS_DIR / scene)
     if (index.root / IMGS_DIR).is_dir():
-        _link(index.root / IMGS_DIR, occ3d / IMGS_DIR)
+        place_tree(index.root / IMGS_DIR, occ3d / IMGS_DIR)
     counts = _text_releases(index, staging, scenes, frames, split_of)
     if out.exists():
         _move_into(staging, out)

@@ -3,16 +3,21 @@
 ``occtrain data import nuscenes --nuscenes ROOT --version V --occ3d OCC3D --out DIR`` writes::
 
     DIR/annotations.json             Occ3D's records of the version's scenes, verbatim, and its splits
-    DIR/gts/<scene>                  a symbolic link to Occ3D's gts/<scene> (``copy=True``: a copy)
-    DIR/imgs                         a link to Occ3D's imgs/ when it has one; else DIR/samples, a link
-                                     to nuScenes' samples/, and camera records built from its tables
+    DIR/gts/...                      Occ3D's labels of those samples, where their gt_path puts them
+    DIR/imgs/...                     Occ3D's camera images of those samples, where it has them; else
+                                     DIR/samples/CAM_*/..., nuScenes' key-frame images, and camera
+                                     records built from its tables
     DIR/occtrain/dataset.json        what was imported from where, and which sidecar keys are absent
     DIR/occtrain/frames/<scene>.json FrameAnnotation per sample, from the nuScenes tables
 
+Labels and images are hard links to the release's files (``files.place``: no second copy on
+the disk, and inside the dataset's root, where a reader follows no link out of it), copies
+where the filesystem refuses a hard link or ``copy=True`` asks.
+
 Everything is read and checked first (every table, every reference the import follows, that
 Occ3D's sample tokens are nuScenes' scene by scene, that every scene is in a split and has
-its gts/), so a broken release is one line and nothing is written. Then scene by scene, each
-sidecar written atomically after its gts link, so an interrupted import resumes at the first
+its labels), so a broken release is one line and nothing is written. Then scene by scene,
+each sidecar written atomically after its labels and images, so an interrupted import resumes at the first
 scene without one; annotations.json is written last. The frames of a scene are a function of
 the tables alone: the same release gives the same files.
 
@@ -42,8 +47,6 @@ holds them: ``occtrain data import omnidrive`` brings captions), and what the ma
 from __future__ import annotations
 
 import math
-import os
-import shutil
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -52,17 +55,10 @@ from typing import Any
 import numpy as np
 
 from occtrain.data.geometry import driving_command, global_to_ego, rotate_to_ego
-from occtrain.data.layout import (
-    ANNOTATIONS_FILE,
-    DATASET_FILE,
-    FRAMES_DIR,
-    GTS_DIR,
-    IMGS_DIR,
-    DatasetIndex,
-    yaw_from_quaternion,
-)
+from occtrain.data.layout import ANNOTATIONS_FILE, DATASET_FILE, FRAMES_DIR, DatasetIndex, yaw_from_quaternion
 from occtrain.data.meta_actions import sidecar_label
 from occtrain.data.releases.categories import box_class, status
+from occtrain.data.releases.files import place_files
 from occtrain.data.releases.nuscenes_tables import LIDAR, NuScenesTables, read_can_bus
 from occtrain.data.schema import Box, Flag, FrameAnnotation
 from occtrain.errors import DataError
@@ -83,7 +79,6 @@ ABSENT = {
 CAN_BUS_TOLERANCE_S = 0.1
 #: As nuScenes' devkit: no velocity from annotations further apart than this (seconds).
 VELOCITY_MAX_DT_S = 1.5
-SAMPLES_DIR = "samples"
 CAMERA_PREFIX = "CAM_"
 
 
@@ -413,22 +408,24 @@ def camera_sensor(tables: NuScenesTables, sample_token: str) -> dict[str, dict]:
 # ----------------------------------------------------------------------------- writing
 
 
-def _link(target: Path, link: Path, copy: bool) -> None:
-    """``link`` -> ``target`` (a symbolic link, or a copy), made under a temporary name and
-    renamed, so it appears whole or not at all."""
-    if link.is_symlink() or link.exists():
-        return
-    link.parent.mkdir(parents=True, exist_ok=True)
-    tmp = link.with_name(f".{link.name}.tmp{os.getpid()}")
-    if tmp.is_symlink() or tmp.is_file():
-        tmp.unlink()
-    elif tmp.exists():
-        shutil.rmtree(tmp)
-    if copy:
-        shutil.copytree(target, tmp) if target.is_dir() else shutil.copy2(target, tmp)
-    else:
-        tmp.symlink_to(target.resolve(), target_is_directory=target.is_dir())
-    tmp.rename(link)
+def _scene_files(release: Release, scene: str, out: Path) -> list[tuple[Path, Path]]:
+    """(release file, its place in ``out``) of a scene's labels and camera images."""
+    index, tables = release.occ3d, release.tables
+    pairs = []
+    for token in index.scenes[scene]:
+        src = index.labels_path(scene, token)
+        pairs.append((src, out / src.relative_to(index.root)))
+        if release.cameras_from_tables:
+            for sd in tables.key_frames[token].values():
+                image = tables.root / sd["filename"]
+                if tables.channel(sd).startswith(CAMERA_PREFIX) and image.is_file():
+                    pairs.append((image, out / sd["filename"]))
+            continue
+        for record in (index.info(scene, token).get("camera_sensor") or {}).values():
+            image = index.image_path(record["img_path"])
+            if image.is_file():
+                pairs.append((image, out / image.relative_to(index.root)))
+    return pairs
 
 
 def _prepare_out(out: Path, fingerprint: dict) -> None:
@@ -467,19 +464,16 @@ def import_nuscenes(
     fingerprint = release.fingerprint
     _prepare_out(out, fingerprint)
     tables, index = release.tables, release.occ3d
-    record = dict(fingerprint, links="copies" if copy else "symbolic links", absent=dict(ABSENT))
+    record = dict(fingerprint, files="copies" if copy else "hard links (copies across devices)", absent=dict(ABSENT))
     atomic_write_json(out / DATASET_FILE, record)
-    if (index.root / IMGS_DIR).is_dir():
-        _link(index.root / IMGS_DIR, out / IMGS_DIR, copy=False)
-    elif release.cameras_from_tables and (tables.root / SAMPLES_DIR).is_dir():
-        _link(tables.root / SAMPLES_DIR, out / SAMPLES_DIR, copy=False)
     sources: dict[str, str] = {}
+    placed = 0
     todo = [j for j in release.jobs if not (out / FRAMES_DIR / f"{j.name}.json").is_file()]
     total = sum(len(index.scenes[j.name]) for j in release.jobs)
     with progress_bar(total, f"importing {len(release.jobs)} scenes of nuScenes {version}") as advance:
         advance(total - sum(len(index.scenes[j.name]) for j in todo))
         for job in todo:
-            _link(index.root / GTS_DIR / job.name, out / GTS_DIR / job.name, copy)
+            placed += place_files(_scene_files(release, job.name, out), copy)
             frames, sources[job.name] = scene_frames(tables, job.token, read_can_bus(tables.root, job.name))
             atomic_write_json(out / FRAMES_DIR / f"{job.name}.json", frames, indent=None)
             advance(len(frames))
@@ -499,9 +493,8 @@ def import_nuscenes(
         "frames": total,
         "speeds_from_can_bus": sum(1 for s in sources.values() if s == "can_bus"),
         "speeds_from_poses": sum(1 for s in sources.values() if s == "poses"),
-        "cameras": "Occ3D's records"
-        if not release.cameras_from_tables
-        else ("nuScenes' tables" if (out / SAMPLES_DIR).exists() else "none"),
+        "files_placed": placed,
+        "cameras": "nuScenes' tables" if release.cameras_from_tables else "Occ3D's records",
     }
     if verbose:
         console.print(
