@@ -126,6 +126,18 @@ def labels_file(tmp: Path, scene: int = 0, i: int = 1) -> Path:
 LABELS = "{tmp}/ds/gts/scene-0000/" + T0[1] + "/labels.npz"
 
 
+def link_out(rel: str) -> Callable[[Path], None]:
+    """``rel`` moved out of the dataset root to ``tmp/outside/`` and a symbolic link left in its place."""
+
+    def setup(tmp: Path) -> None:
+        (tmp / "outside").mkdir(exist_ok=True)
+        moved = tmp / "outside" / Path(rel).name
+        (tmp / rel).rename(moved)
+        (tmp / rel).symlink_to(moved)
+
+    return setup
+
+
 def save_labels(**change: Any) -> Callable[[Path], None]:
     """Overwrite frame 1's labels.npz with valid arrays, some replaced (None drops one)."""
 
@@ -721,6 +733,43 @@ CASES: list[Case] = [
         f"{ANN}: {S0}.ego_pose.translation[0] is NaN, expected a number",
     ),
     Case(
+        "ann-rotation-zero-quaternion",
+        edit_sample(0, 2, lambda s: s["ego_pose"].update(rotation=[0.0, 0.0, 0.0, 0.0])),
+        ["data", "stats", DS],
+        2,
+        f"{ANN}: scene_infos.scene-0000.{T0[2]}.ego_pose.rotation [0.0, 0.0, 0.0, 0.0] is not a unit quaternion "
+        "(its norm is 0)",
+    ),
+    Case(
+        "ann-translation-far-beyond-any-map",
+        edit_sample(0, 2, lambda s: s["ego_pose"]["translation"].__setitem__(0, 1e308)),
+        ["data", "shards", DS, "--out", "{tmp}/out", "--kinds", "frames"],
+        2,
+        f"{ANN}: scene_infos.scene-0000.{T0[2]}.ego_pose.translation [1e+308, 0.0, 0.0] is not within 1e+06 m",
+    ),
+    Case(
+        "ann-pose-jumps-500-m",
+        edit_sample(0, 3, lambda s: s["ego_pose"]["translation"].__setitem__(1, 500.0)),
+        SHARDS_FRAMES,
+        2,
+        f"{ANN}: scene_infos.scene-0000.{T0[3]}.ego_pose is 500.0 m from the sample before it ({T0[2]}) after 0.5 s, "
+        "faster than 70 m/s",
+    ),
+    Case(
+        "labels-link-out-of-the-root",
+        link_out("ds/gts/scene-0000/" + T0[1] + "/labels.npz"),
+        ["data", "stats", DS, "--split", "train"],
+        2,
+        (LABELS + ": a link out of the dataset root {tmp}/ds (to {tmp}/outside/labels.npz)", "link the whole root"),
+    ),
+    Case(
+        "sidecar-link-out-of-the-root",
+        link_out("ds/occtrain/frames/scene-0000.json"),
+        SHARDS_CLIPS,
+        2,
+        SIDECAR + ": a link out of the dataset root {tmp}/ds",
+    ),
+    Case(
         "ann-rotation-bool",
         edit_sample(0, 0, lambda s: s["ego_pose"]["rotation"].__setitem__(0, True)),
         ["data", "show", DS, "--out", "{tmp}/b.png"],
@@ -831,7 +880,7 @@ CASES: list[Case] = [
         edit_sample(0, 3, lambda s: s["ego_pose"].update(rotation=[0.0, 0.0, 0.0, 0.0])),
         CHECK,
         1,
-        f"{ANN}: scene_infos.scene-0000.{T0[3]}.ego_pose.rotation is not a unit quaternion",
+        f"{ANN}: scene_infos.scene-0000.{T0[3]}.ego_pose.rotation [0.0, 0.0, 0.0, 0.0] is not a unit quaternion",
     ),
     # ------------------------------------------------------------------ labels.npz
     Case(
@@ -1436,6 +1485,28 @@ CASES: list[Case] = [
         RUN,
         2,
         "stages[0].data.root in " + RECIPE_FILE + ": a stage sets only batch_size, num_workers, shuffle_buffer",
+    ),
+    Case(
+        "recipe-alias-bomb-in-plugins",
+        recipe(
+            lambda t: (
+                t
+                + "x: &a [m, m, m, m, m, m, m, m, m, m]\n"
+                + "y: &b [*a, *a, *a, *a, *a, *a, *a, *a, *a, *a]\n"
+                + "z: &c [*b, *b, *b, *b, *b, *b, *b, *b, *b, *b]\n"
+                + "plugins: [*c, *c, *c, *c, *c, *c, *c, *c, *c, *c]\n"
+            )
+        ),
+        ["validate", "{tmp}/r.yaml"],
+        2,
+        "{tmp}/r.yaml: its YAML aliases expand to over 10000 values (an alias bomb?)",
+    ),
+    Case(
+        "override-alias-refers-to-itself",
+        recipe(),
+        ["validate", "{tmp}/r.yaml", "plugins=&x [*x]"],
+        2,
+        "override 'plugins=&x [*x]': a YAML alias refers to the value that holds it",
     ),
     Case(
         "plugin-missing",

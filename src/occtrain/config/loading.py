@@ -49,12 +49,50 @@ def _is_mapping(tp: Any) -> bool:
     return any(typing.get_origin(a) is dict for a in typing.get_args(tp))
 
 
+#: The most values a YAML text may hold once its aliases are expanded: a recipe holds a few
+#: hundred, while ``a: &a [x, x, ...]`` / ``b: &b [*a, *a, ...]`` nested a few deep holds
+#: billions (an alias bomb: seconds and gigabytes at the first copy of the tree).
+MAX_YAML_VALUES = 10_000
+
+
+def safe_yaml(text: str, where: str) -> Any:
+    """``yaml.safe_load`` of ``text``, refused in one line naming ``where`` when its aliases
+    expand past ``MAX_YAML_VALUES`` values or refer to themselves: counted on the parsed
+    node graph, where an alias is one node however often it is used, before anything is
+    built from it."""
+    node = yaml.compose(text, Loader=yaml.SafeLoader)
+    if node is None:
+        return None
+    sizes: dict[int, int] = {}
+
+    def expanded(n: yaml.Node, open_: frozenset[int]) -> int:
+        if id(n) in open_:
+            raise ConfigError(f"{where}: a YAML alias refers to the value that holds it; write the value out")
+        if id(n) not in sizes:
+            children: list[yaml.Node] = []
+            if isinstance(n, yaml.SequenceNode):
+                children = list(n.value)
+            elif isinstance(n, yaml.MappingNode):
+                children = [x for pair in n.value for x in pair]
+            inner = open_ | {id(n)}
+            sizes[id(n)] = 1 + sum(expanded(c, inner) for c in children)
+            if sizes[id(n)] > MAX_YAML_VALUES:
+                raise ConfigError(
+                    f"{where}: its YAML aliases expand to over {MAX_YAML_VALUES} values (an alias bomb?); write the "
+                    "values out, or use fewer aliases of aliases"
+                )
+        return sizes[id(n)]
+
+    expanded(node, frozenset())
+    return yaml.SafeLoader(text).get_single_data()
+
+
 def read_yaml(path: Path) -> dict:
     """Read one YAML mapping; a missing file or bad YAML is a one-line ConfigError."""
     if not path.is_file():
         raise ConfigError(f"config file not found: {path}")
     try:
-        data = yaml.safe_load(path.read_text())
+        data = safe_yaml(path.read_text(), str(path))
     except yaml.YAMLError as err:
         mark = getattr(err, "problem_mark", None)
         where = f" line {mark.line + 1}" if mark is not None else ""
@@ -164,7 +202,7 @@ def load_config(schema: type[T], path: str | Path | None = None, overrides: list
         section = _check_override_key(schema, key, f"override '{item}'")
         raw_value = item.split("=", 1)[1]
         try:
-            value = yaml.safe_load(raw_value) if raw_value.strip() else ""
+            value = safe_yaml(raw_value, f"override '{item}'") if raw_value.strip() else ""
         except yaml.YAMLError:
             value = raw_value  # not YAML: take the text as a string
         if section is not None and isinstance(value, str) and value.endswith((".yaml", ".yml")):

@@ -34,7 +34,7 @@ from occtrain.data.schema import FrameAnnotation, Occ3DAnnotations, QAFile, QAQu
 from occtrain.data.validate import first_problem
 from occtrain.errors import DataError
 from occtrain.formats.io import atomic_write_bytes, atomic_write_json, atomic_write_npz, parse_json, png_bytes
-from occtrain.formats.occ3d import GRID_SHAPE, NUM_CLASSES
+from occtrain.formats.occ3d import FRAME_DT, GRID_SHAPE, NUM_CLASSES
 
 ANNOTATIONS_FILE = "annotations.json"
 GTS_DIR = "gts"
@@ -198,6 +198,53 @@ def quaternion_from_yaw(yaw: float) -> list[float]:
     return [math.cos(yaw / 2.0), 0.0, 0.0, math.sin(yaw / 2.0)]
 
 
+#: What a pose of a real log can be: a rotation is a unit quaternion (to this tolerance), a
+#: translation lies within this many metres of the map's origin (nuScenes' maps are a few km
+#: across), and the ego moves between consecutive samples at most this fast (m/s, 250 km/h):
+#: a larger jump is a teleport, two logs spliced or a unit slip, and every trajectory, box and
+#: moved scene built across it would be garbage.
+QUATERNION_TOLERANCE = 1e-3
+MAX_TRANSLATION = 1.0e6
+MAX_EGO_SPEED = 70.0
+
+
+def pose_problem(pose: dict) -> str | None:
+    """What is wrong with a ``{"translation", "rotation"}`` pose: ``rotation [...] is not a
+    unit quaternion ...`` (a key and what it holds), or None."""
+    q = np.asarray(pose["rotation"], np.float64)
+    norm = float(np.sqrt((q * q).sum()))
+    if not math.isfinite(norm) or abs(norm - 1.0) > QUATERNION_TOLERANCE:
+        return f"rotation {pose['rotation']} is not a unit quaternion (its norm is {norm:.4g})"
+    t = np.asarray(pose["translation"], np.float64)
+    if not np.isfinite(t).all() or np.abs(t).max() > MAX_TRANSLATION:
+        return f"translation {pose['translation']} is not within {MAX_TRANSLATION:g} m of the origin"
+    return None
+
+
+def ego_pose_problems(scenes: dict[str, list[str]], infos: dict[str, dict[str, dict]], src: Path) -> Iterator[str]:
+    """Every ego pose of ``scenes`` (samples in order) that is not a unit rotation and a
+    finite, bounded translation, and every jump between consecutive samples faster than
+    ``MAX_EGO_SPEED``: one line each, naming the sample in ``src``."""
+    for scene, tokens in scenes.items():
+        for token in tokens:
+            problem = pose_problem(infos[scene][token]["ego_pose"])
+            if problem:
+                yield f"{src}: scene_infos.{scene}.{token}.ego_pose.{problem}; {ANNOTATIONS_HINT}"
+        for before, token in zip(tokens, tokens[1:]):
+            a, b = infos[scene][before], infos[scene][token]
+            if pose_problem(a["ego_pose"]) or pose_problem(b["ego_pose"]):
+                continue
+            moved = math.dist(a["ego_pose"]["translation"][:2], b["ego_pose"]["translation"][:2])
+            t0, t1 = sample_time(a), sample_time(b)
+            seconds = max((t1 - t0) / 1e6 if t0 is not None and t1 is not None else 0.0, FRAME_DT)
+            if moved > MAX_EGO_SPEED * seconds:
+                yield (
+                    f"{src}: scene_infos.{scene}.{token}.ego_pose is {moved:.1f} m from the sample before it "
+                    f"({before}) after {seconds:g} s, faster than {MAX_EGO_SPEED:g} m/s: a jump no car makes; "
+                    f"{ANNOTATIONS_HINT}"
+                )
+
+
 #: Digests of the JSON texts this process has found to conform to a schema, with the
 #: schema's name. Every stage of a run reads the world's sidecars again (and a test session
 #: reads one world hundreds of times); walking a scene's frames through their schema costs
@@ -262,8 +309,8 @@ def _order_samples(scene: str, infos: dict[str, dict], source: Path) -> list[str
 def inside_root(rel: str) -> bool:
     """Whether a path read from a data file stays inside the directory it is relative to.
 
-    Lexical (no symlinks are followed): a root whose ``gts/`` links to another disk is a
-    common and legitimate layout; an absolute path or ``..`` out of the root is not."""
+    Lexical: links are checked where each file is read (``DatasetIndex.within``), so opening
+    a release of many files stats none of them."""
     if not rel or rel.startswith(("/", "\\")) or (len(rel) > 1 and rel[1] == ":"):
         return False
     return not posixpath.normpath(rel.replace("\\", "/")).startswith("..")
@@ -324,7 +371,9 @@ def dataset_root(path: str | Path) -> Path:
 class DatasetIndex:
     """An Occ3D-layout dataset on disk: scene order, splits, labels and the optional sidecars."""
 
-    def __init__(self, root: Path, annotations: dict):
+    def __init__(self, root: Path, annotations: dict, check_poses: bool = True):
+        """``check_poses``: refuse the first ego pose that is not one (``ego_pose_problems``);
+        ``data check``, which lists them all, opens without."""
         self.root = root
         src = root / ANNOTATIONS_FILE
         if not isinstance(annotations, dict) or "scene_infos" not in annotations:
@@ -347,6 +396,10 @@ class DatasetIndex:
             self.splits[split] = list(names)
         self._scene_of = {tok: scene for scene, toks in self.scenes.items() for tok in toks}
         self._check_paths(src)
+        if check_poses:
+            problem = next(ego_pose_problems(self.scenes, self.scene_infos, src), None)
+            if problem:
+                raise DataError(problem)
 
     def _check_paths(self, src: Path) -> None:
         """Every gt_path and img_path names a file inside the root: one that points out of it
@@ -367,7 +420,7 @@ class DatasetIndex:
                         )
 
     @classmethod
-    def open(cls, path: str | Path) -> DatasetIndex:
+    def open(cls, path: str | Path, check_poses: bool = True) -> DatasetIndex:
         """Open a dataset root (or its ``gts/`` directory)."""
         path = dataset_root(path)
         if not path.is_dir():
@@ -378,7 +431,12 @@ class DatasetIndex:
         ann = path / ANNOTATIONS_FILE
         if not ann.is_file():
             raise DataError(f"{ann}: annotations file not found; an Occ3D root holds annotations.json and gts/")
-        return cls(path, _read_json(ann, "annotations file"))
+        if not ann.resolve().is_relative_to(path.resolve()):
+            raise DataError(
+                f"{ann}: a link out of the dataset root (to {ann.resolve()}); copy the file into the root, or link "
+                "the whole root"
+            )
+        return cls(path, _read_json(ann, "annotations file"), check_poses)
 
     # -- structure
     def scene_of(self, token: str) -> str:
@@ -393,7 +451,22 @@ class DatasetIndex:
 
     def labels_path(self, scene: str, token: str) -> Path:
         rel = self.info(scene, token).get("gt_path") or f"{GTS_DIR}/{scene}/{token}/{LABELS_FILE}"
-        return self.root / rel
+        return self.within(self.root / rel)
+
+    def within(self, path: Path) -> Path:
+        """``path``, refused in one line when a link takes it out of the root: as a gt_path
+        outside it is (a dataset kept on another disk links its root, which may be a link)."""
+        real = path.resolve()
+        if not real.is_relative_to(self._real_root):
+            raise DataError(
+                f"{path}: a link out of the dataset root {self.root} (to {real}); copy the file into the root, or "
+                "link the whole root (data.root may itself be a link)"
+            )
+        return path
+
+    @cached_property
+    def _real_root(self) -> Path:
+        return self.root.resolve()
 
     def labels(self, scene: str, token: str) -> dict[str, np.ndarray]:
         return load_labels(self.labels_path(scene, token))
@@ -464,8 +537,8 @@ class DatasetIndex:
         direct = self.root / img_path
         in_imgs = self.root / IMGS_DIR / img_path
         if direct.is_file():
-            return direct
-        return in_imgs if in_imgs.is_file() else self._image_base / img_path
+            return self.within(direct)
+        return self.within(in_imgs if in_imgs.is_file() else self._image_base / img_path)
 
     def cameras(self, scene: str, token: str) -> list[CameraRecord]:
         """The sample's six cameras in CAMERA_NAMES order: records keyed by channel (the
@@ -481,6 +554,12 @@ class DatasetIndex:
         by_name = {}
         for key, r in records.items():  # the schema checked every record's keys on opening
             name = key if key in CAMERA_NAMES else Path(r["img_path"]).parent.name
+            for pose in ("extrinsic", "ego_pose"):
+                problem = pose_problem(r[pose])
+                if problem:
+                    raise DataError(
+                        f"{src}: scene_infos.{scene}.{token}.camera_sensor.{key}.{pose} {problem}; {ANNOTATIONS_HINT}"
+                    )
             intrinsic = r.get("intrinsics", r.get("intrinsic"))
             if intrinsic is None:
                 raise DataError(
@@ -550,7 +629,7 @@ class DatasetIndex:
             raise DataError(
                 f"{path}: no frame annotations for scene '{scene}' (trajectories, boxes, text are occtrain sidecars)"
             )
-        frames = _read_json(path, "frame annotations", list[FrameAnnotation], FRAMES_HINT)
+        frames = _read_json(self.within(path), "frame annotations", list[FrameAnnotation], FRAMES_HINT)
         tokens = [f["token"] for f in frames]
         if tokens != self.scenes.get(scene):
             raise DataError(
@@ -564,7 +643,7 @@ class DatasetIndex:
         path = self.root / qa_file(split)
         if not path.is_file():
             return None
-        return _read_json(path, "NuScenes-QA file", QAFile, QA_HINT)["questions"]
+        return _read_json(self.within(path), "NuScenes-QA file", QAFile, QA_HINT)["questions"]
 
     def questions_by_sample(self, split: str) -> dict[str, list[QAQuestion]]:
         """A split's NuScenes-QA questions grouped by sample token (empty without the sidecar)."""
