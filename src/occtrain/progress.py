@@ -7,6 +7,7 @@ import os
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from typing import Any
 
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
@@ -14,6 +15,22 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 #: Lines are never hard-wrapped (a terminal wraps them for the eye; a log file or a grep
 #: needs each message on one line).
 console = Console(stderr=True, soft_wrap=True)
+
+
+def print_wide(table: Any, to: Console | None = None) -> None:
+    """A rich table on ``to`` (the console): fitted to a terminal, and at its full width in
+    a log file or CI output, which have no width to fit (rich would cut it to 80 columns)."""
+    to = to or console
+    if to.is_terminal:
+        to.print(table)
+        return
+    width = to.width
+    to.width = max(to.measure(table, options=to.options.update_width(10_000)).maximum, 1)
+    try:
+        to.print(table)
+    finally:
+        to.width = width
+
 
 #: Seconds between two plain progress lines when stderr is not a terminal.
 INTERVAL_ENV = "OCCTRAIN_PROGRESS_INTERVAL"

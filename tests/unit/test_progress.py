@@ -110,3 +110,22 @@ def test_the_trainer_uses_it_instead_of_lightnings_bar(tmp_path):
     trainer = build_trainer(TrainerConfig(max_steps=2, accelerator="cpu"), tmp_path / "tokenizer", None)
     bars = [c for c in trainer.callbacks if isinstance(c, ProgressBar)]
     assert len(bars) == 1 and isinstance(bars[0], StepProgress) and bars[0].name == "tokenizer"
+
+
+def test_a_table_in_a_log_is_printed_at_its_full_width(monkeypatch, capsys):
+    """occtrain drive's and eval's tables on stderr in CI (no terminal): rich would cut them
+    to 80 columns, "…" in every cell; a log has no width to fit."""
+    from rich.table import Table
+
+    from occtrain.progress import console, print_wide
+
+    monkeypatch.setenv("COLUMNS", "30")
+    table = Table(title="driving")
+    for name in ("driver", "driving score", "route completion %", "collisions a route", "red lights a route"):
+        table.add_column(name)
+    table.add_row("constant_acceleration", "64.3", "96.5", "0.38", "0.50")
+    width = console.width
+    print_wide(table)
+    err = capsys.readouterr().err
+    assert "constant_acceleration" in err and "red lights a route" in err and "…" not in err
+    assert console.width == width

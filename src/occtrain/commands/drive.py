@@ -38,7 +38,7 @@ import numpy as np
 from occtrain.errors import ConfigError
 from occtrain.formats.io import atomic_write_json, check_output
 from occtrain.formats.metrics_file import Provenance
-from occtrain.progress import console, progress_bar
+from occtrain.progress import console, print_wide, progress_bar
 from occtrain.run.control import Interrupted, stop_on_signals
 from occtrain.run.done_stage import DoneStage, done_stage
 
@@ -504,4 +504,4 @@ def print_summary(summary: dict[str, dict[str, float]], title: str) -> None:
         table.add_column(name, justify="right")
     for driver, scores in summary.items():
         table.add_row(driver, *(fmt.format(scores.get(key, float("nan"))) for _, key, fmt in columns))
-    console.print(table)
+    print_wide(table)

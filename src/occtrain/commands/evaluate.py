@@ -19,7 +19,7 @@ import numpy as np
 from occtrain.errors import ConfigError
 from occtrain.formats.io import atomic_write_json, atomic_write_npz, check_output
 from occtrain.formats.metrics_file import MetricsFile, Provenance, read_metrics, write_metrics
-from occtrain.progress import console
+from occtrain.progress import print_wide
 from occtrain.run.control import scoring_lock
 from occtrain.run.done_stage import DoneStage, done_stage
 
@@ -312,4 +312,4 @@ def print_metrics(metrics: dict[str, float], title: str) -> None:
             continue  # shown in the samples column
         n = sample_count(name, metrics)
         table.add_row(name, f"{metrics[name]:.4g}", "" if n is None else f"{n:.0f}")
-    console.print(table)
+    print_wide(table)

@@ -19,6 +19,7 @@ from occtrain.config.recipe import ComparisonTable, RecipeConfig
 from occtrain.errors import ConfigError
 from occtrain.formats.io import atomic_write_text
 from occtrain.formats.manifest import Manifest
+from occtrain.progress import print_wide
 
 TABLE_FILE = "table.md"
 #: A cell with no figure: the stage did not log the metric, is not done, or the paper did not report it.
@@ -144,11 +145,8 @@ def print_table(table: ComparisonTable, rows: list[Row], console: Any = None) ->
         view.add_column(Text(name), justify="right")
     for cells in body:
         view.add_row(*map(Text, cells))
-    if console is None:
-        console = Console(soft_wrap=True)
-        if not console.is_terminal:  # a log file has no width to fit: never squeeze the figures
-            console.width = console.measure(view, options=console.options.update_width(10_000)).maximum
-    console.print(view)
+    console = console or Console(soft_wrap=True)
+    print_wide(view, console)
     if table.note.strip():
         console.print(Text(table.note.strip()), soft_wrap=True)
 
