@@ -2289,6 +2289,14 @@ CASES: list[Case] = [
         "{tmp}/run/pretrain is being scored by `occtrain eval` or `occtrain drive` in another process; wait for it",
     ),
     Case(
+        "restart-of-an-earlier-stage-while-an-eval-scores-a-later-one",
+        both(recipe(), holding("pretrain", shared=True)),
+        ["validate", "{tmp}/r.yaml", "--run-dir", "{tmp}/run", "--restart", "tokenizer"],
+        2,
+        "{tmp}/run/pretrain is being scored by `occtrain eval` or `occtrain drive` in another process; wait for it "
+        "to finish (or stop it), then --restart tokenizer",
+    ),
+    Case(
         "validate-restart-while-an-eval-scores-the-stage",
         both(recipe(), holding("pretrain", shared=True)),
         ["validate", "{tmp}/r.yaml", "--run-dir", "{tmp}/run", "--restart", "pretrain"],

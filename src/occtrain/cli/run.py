@@ -19,14 +19,18 @@ def _cmd_run(args: argparse.Namespace) -> int:
 def _cmd_validate(args: argparse.Namespace) -> int:
     from occtrain.formats.manifest import Manifest
     from occtrain.run.checks import check_run
+    from occtrain.run.control import lock_holder
 
     check = check_run(args.recipe, args.overrides, run_dir=args.run_dir, only=args.only, restart=args.restart)
     manifest = Manifest.load(check.run_dir, writable=False)
+    # A --restart killed midway: its stages are aside until the next run settles them.
+    killed = manifest.after_a_killed_restart() if lock_holder(check.run_dir) is None else {}
     n = len(check.planned)
     print(f"{args.recipe}: ok, {n} stage{'' if n == 1 else 's'}; nothing was written")
     for p in check.planned:
         entry = manifest.stages.get(p.spec.name)
         status = "to retrain" if p.spec.name in check.restarted else entry.status if entry else "pending"
+        status = killed.get(p.spec.name, status) if p.spec.name not in check.restarted else status
         family = f", {p.family}" if p.family else ""
         consumes = f", consumes {', '.join(p.spec.consumes)}" if p.spec.consumes else ""
         print(f"  {p.spec.name:12s} {p.spec.kind}{family}: {p.trainer.max_steps} steps{consumes} [{status}]")

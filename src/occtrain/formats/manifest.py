@@ -164,6 +164,25 @@ class Manifest:
                 self.stages[name] = StageEntry(kind=self.stages[name].kind)
         self.save()
 
+    def set_aside_by_a_restart(self) -> list[str]:
+        """The stages a ``--restart`` set aside and has not settled (none: []): while it runs,
+        or after it was killed, until the next run settles them. Reads, writes nothing."""
+        try:
+            raw = parse_json((self.path.parent / ASIDE_DIR / ASIDE_ENTRIES).read_text())
+        except (OSError, ValueError):
+            return []
+        return [name for name in raw if NAME_PATTERN.fullmatch(name)] if isinstance(raw, dict) else []
+
+    def after_a_killed_restart(self) -> dict[str, str]:
+        """What the next run makes of the stages a ``--restart`` set aside and was killed with
+        (call it when nobody holds the run: ``run.control.lock_holder``): each stage's status
+        as it will be, said so (``settle_aside`` does it)."""
+        run_dir = self.path.parent
+        aside = self.set_aside_by_a_restart()
+        if any(_progressed(run_dir / name) for name in aside):
+            return {name: "interrupted: a killed --restart; the next run resumes it" for name in aside}
+        return {name: "done: a killed --restart set it aside; the next run puts it back" for name in aside}
+
     def settle_aside(self, succeeded: bool = False) -> str:
         """End a restart's set-aside: discard the old stages once the command succeeded or a
         retrained stage has a checkpoint, else put them back (directories and entries) as

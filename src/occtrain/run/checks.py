@@ -56,7 +56,7 @@ def check_run(
     manifest = Manifest.load(run_dir, writable=False)
     refuse_changed(planned, manifest, restarted, only)
     for name in restarted:
-        with restart_lock(run_dir, name):
+        with restart_lock(run_dir, name, str(restart)):
             pass
     for p in planned:  # a checkpoint the run would resume from must load (weights only)
         entry = manifest.stages.get(p.spec.name)

@@ -96,6 +96,21 @@ def run_lock(run_dir: Path) -> Iterator[None]:
         fh.close()  # releases the lock
 
 
+def lock_holder(run_dir: Path) -> str | None:
+    """Who holds ``run_dir``'s lock (as its lock file names them), or None when nobody does:
+    found by asking for a shared lock, which writes nothing."""
+    try:
+        fh = open(Path(run_dir) / LOCK_FILE)
+    except OSError:
+        return None
+    with fh:
+        try:
+            fcntl.flock(fh.fileno(), fcntl.LOCK_SH | fcntl.LOCK_NB)
+        except OSError:
+            return fh.read().strip() or "an unknown process"
+        return None
+
+
 class StageBusy(OcctrainError):
     """A stage is being scored while a restart would replace it, or the other way round."""
 
@@ -133,12 +148,13 @@ def stage_lock(run_dir: Path, stage: str, shared: bool, busy: str) -> Iterator[N
         fh.close()
 
 
-def restart_lock(run_dir: Path, stage: str) -> AbstractContextManager[None]:
-    """The lock a ``--restart`` holds on a stage it replaces: none while the stage is being
-    scored (``occtrain eval`` and ``drive`` share it while they read and write it)."""
+def restart_lock(run_dir: Path, stage: str, restart: str) -> AbstractContextManager[None]:
+    """The lock ``--restart restart`` holds on a stage it replaces (``restart`` itself or one
+    after it): none while the stage is being scored (``occtrain eval`` and ``drive`` share it
+    while they read and write it)."""
     busy = (
         f"{run_dir / stage} is being scored by `occtrain eval` or `occtrain drive` in another process; wait for it "
-        f"to finish (or stop it), then --restart {stage}"
+        f"to finish (or stop it), then --restart {restart}"
     )
     return stage_lock(run_dir, stage, shared=False, busy=busy)
 

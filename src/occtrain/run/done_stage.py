@@ -12,8 +12,9 @@ from typing import TYPE_CHECKING, Any
 from occtrain.config import load_config
 from occtrain.config.recipe import RecipeConfig, StageSpec
 from occtrain.errors import ConfigError
-from occtrain.formats.manifest import Manifest
+from occtrain.formats.manifest import ASIDE_DIR, Manifest
 from occtrain.formats.metrics_file import StageAttempt
+from occtrain.run.control import lock_holder
 from occtrain.run.planning import load_plugins
 
 if TYPE_CHECKING:  # the stages (Lightning) load where a stage is read, not when the CLI starts
@@ -62,7 +63,16 @@ def done_stage(stage_dir: Path, command: str, verb: str, capable: Callable[[Any]
     if kind is None or not capable(kind.module):
         served = [k for k in kind_names() if (other := get_kind(k)) is not None and capable(other.module)]
         raise ConfigError(f"{command} {verb} {', '.join(served)} stages; '{spec.name}' is a {spec.kind} stage")
-    entry = Manifest.load(stage_dir.parent, writable=False).stages.get(spec.name)
+    manifest = Manifest.load(stage_dir.parent, writable=False)
+    entry = manifest.stages.get(spec.name)
+    killed = manifest.after_a_killed_restart() if lock_holder(stage_dir.parent) is None else {}
+    if entry is not None and entry.status != "done" and killed.get(spec.name, "").startswith("done"):
+        raise ConfigError(
+            f"{stage_dir}: a --restart of the run was killed before its first checkpoint and set stage "
+            f"'{spec.name}' aside in {stage_dir.parent / ASIDE_DIR}; the next `occtrain run` over "
+            f"{stage_dir.parent} puts it back as it was (any recipe: the run settles it first), or rerun the "
+            "--restart to retrain it"
+        )
     if entry is None or entry.status != "done":
         status = "never run" if entry is None else entry.status
         raise ConfigError(

@@ -233,16 +233,44 @@ def _prepare(recipe: RecipeConfig, manifest: Manifest, restarted: list[str], hel
 
     pipeline = manifest.path.parent / PIPELINE_FILE
     if not restarted:
-        atomic_write_text(pipeline, to_yaml(recipe))
+        atomic_write_text(pipeline, _pipeline_text(recipe, pipeline, manifest))
     manifest.save()
     ensure_data(recipe.data)
     if restarted:  # last before training: nothing else can fail with the stages away
         for name in restarted:
-            held.enter_context(restart_lock(manifest.path.parent, name))
+            held.enter_context(restart_lock(manifest.path.parent, name, restarted[0]))
         # The old pipeline.yaml goes aside with the stages it describes, and comes back with
         # them if this attempt stops before it takes.
         manifest.set_aside(restarted)
         atomic_write_text(pipeline, to_yaml(recipe))
+
+
+def _pipeline_text(recipe: RecipeConfig, pipeline: Path, manifest: Manifest) -> str:
+    """The run's ``pipeline.yaml``: the recipe, and the stages an earlier recipe trained in
+    this directory that this one does not hold (a base recipe run again over a directory it
+    shares with one that extends it: ``eval`` and ``drive`` of those stages read their spec
+    here). Kept when the manifest records them and what they consume is still described."""
+    from omegaconf import OmegaConf
+
+    text = to_yaml(recipe)
+    try:
+        earlier = OmegaConf.to_container(OmegaConf.create(pipeline.read_text())) if pipeline.is_file() else {}
+    except Exception:  # noqa: BLE001 - an unreadable earlier pipeline keeps nothing of it
+        return text
+    stages = (earlier or {}).get("stages") if isinstance(earlier, dict) else None
+    if not isinstance(stages, list):
+        return text
+    written = OmegaConf.to_container(OmegaConf.create(text))
+    assert isinstance(written, dict)
+    names = [s["name"] for s in written["stages"]]
+    for stage in stages:
+        name = stage.get("name") if isinstance(stage, dict) else None
+        if name in names or name not in manifest.stages or not set(stage.get("consumes") or []) <= set(names):
+            continue
+        written["stages"].append(stage)
+        names.append(name)
+        console.print(f"[yellow]note[/]: {pipeline} keeps stage '{name}', which an earlier recipe trained here")
+    return to_yaml(written)
 
 
 def _put_back(err: BaseException, note: str) -> None:

@@ -487,3 +487,53 @@ def test_a_stop_signal_says_where_a_rerun_starts(probe_kind, recipe, monkeypatch
             f"checkpoint at step 2 ({ckpt})"
         )
     assert says in str(stop.value)
+
+
+def test_a_base_recipe_run_again_keeps_the_stages_a_recipe_extending_it_trained(probe_kind, recipe, tmp_path, capsys):
+    """recipes/closed_loop.yaml extends the quickstart in its run directory: the quickstart run
+    again over it kept only its own stages in pipeline.yaml, and eval of the extending recipe's
+    stage then found no spec for it."""
+    from occtrain.config import load_config
+    from occtrain.config.recipe import RecipeConfig
+    from occtrain.run.done_stage import done_stage
+
+    extended = tmp_path / "extended.yaml"
+    extended.write_text(
+        f"extends: {recipe.name}\nstages:\n  - {{name: third, kind: probe, consumes: [second], model: {{width: 4}}}}\n"
+    )
+    run_dir = run(extended)
+    run(recipe)
+    assert "pipeline.yaml keeps stage 'third', which an earlier recipe trained here" in capsys.readouterr().err
+    kept = load_config(RecipeConfig, run_dir / "pipeline.yaml")
+    assert [s.name for s in kept.stages] == ["first", "second", "third"]
+    assert done_stage(run_dir / "third", "occtrain eval", "scores", lambda module: True).spec.consumes == ["second"]
+    run(extended)  # and the extending recipe still finds its stages as it left them
+    assert json.loads((run_dir / "manifest.json").read_text())["stages"]["third"]["attempts"] == 1
+
+
+def test_a_restart_killed_before_its_first_checkpoint_is_said_so_by_validate_and_eval(probe_kind, recipe, capsys):
+    """kill -9 during `--restart second`: the done stage lies aside until the next run puts it
+    back. validate said [running], eval advised finishing the killed attempt's pipeline."""
+    from occtrain.cli import main
+    from occtrain.formats.manifest import Manifest
+    from occtrain.run.done_stage import done_stage
+
+    run_dir = run(recipe)
+    manifest = Manifest.load(run_dir)
+    manifest.set_aside(["second"])  # what `--restart second` does before it trains ...
+    manifest.mark_running("second", "0123456789abcdef", {})  # ... and it was killed in its first step
+    (run_dir / "pipeline.yaml").write_text(recipe.read_text())
+    capsys.readouterr()
+    assert main(["validate", str(recipe)]) == 0
+    assert "[done: a killed --restart set it aside; the next run puts it back]" in capsys.readouterr().out
+    with pytest.raises(ConfigError) as err:
+        done_stage(run_dir / "second", "occtrain eval", "scores", lambda module: True)
+    assert str(err.value) == (
+        f"{run_dir / 'second'}: a --restart of the run was killed before its first checkpoint and set stage 'second' "
+        f"aside in {run_dir / '.replaced'}; the next `occtrain run` over {run_dir} puts it back as it was (any "
+        "recipe: the run settles it first), or rerun the --restart to retrain it"
+    )
+    run(recipe)
+    entry = json.loads((run_dir / "manifest.json").read_text())["stages"]["second"]
+    assert entry["status"] == "done" and entry["attempts"] == 1
+    assert done_stage(run_dir / "second", "occtrain eval", "scores", lambda module: True).spec.name == "second"
