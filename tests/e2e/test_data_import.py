@@ -169,6 +169,45 @@ def test_data_check_passes_on_the_import(trip: Path, capsys) -> None:
     assert capsys.readouterr().out.strip().endswith(": ok")
 
 
+# ----------------------------------------------------------------------------- the real recipes
+
+
+@pytest.fixture(scope="module")
+def long_trip(tmp_path_factory) -> Path:
+    """A world of 1 train + 1 val scene of 14 frames (OccVLA's clips span 6 + 1 + 6),
+    exported and imported with its text: a tiny imported release."""
+    from occtrain.config import SynthConfig
+    from occtrain.data.synthesize import synthesize
+
+    root = tmp_path_factory.mktemp("long")
+    synthesize(root / "world", SynthConfig(train_scenes=1, val_scenes=1, frames_per_scene=14, seed=2), verbose=False)
+    assert cli("data", "export", "nuscenes", root / "world", "--out", root / "rel") == 0
+    import_all(root / "rel", root / "ds")
+    return root / "ds"
+
+
+@pytest.mark.parametrize("family", ["occllama", "occvla", "occllm", "sparseoccvla"])
+def test_the_real_recipes_validate_on_an_imported_release(family: str, long_trip: Path, capsys, monkeypatch) -> None:
+    from conftest import REPO
+
+    monkeypatch.chdir(REPO)
+    capsys.readouterr()
+    assert cli("validate", f"recipes/real/{family}.yaml", f"data.root={long_trip}") == 0, capsys.readouterr().err
+    out = capsys.readouterr().out
+    assert f"recipes/real/{family}.yaml: ok" in out and str(long_trip) in out
+
+
+def test_a_real_recipe_weighting_the_narration_is_refused_on_an_import(long_trip: Path, capsys, monkeypatch) -> None:
+    from conftest import REPO
+
+    monkeypatch.chdir(REPO)
+    capsys.readouterr()
+    weight = "stages.instruct.model.tasks.weights.cot_planning=1"
+    assert cli("validate", "recipes/real/occllama.yaml", f"data.root={long_trip}", weight) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: task cot_planning needs the frames' narration") and err.count("\n") == 1
+
+
 # ----------------------------------------------------------------------------- bad input
 
 

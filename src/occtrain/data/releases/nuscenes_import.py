@@ -4,7 +4,8 @@
 
     DIR/annotations.json             Occ3D's records of the version's scenes, verbatim, and its splits
     DIR/gts/...                      Occ3D's labels of those samples, where their gt_path puts them
-    DIR/imgs/...                     Occ3D's camera images of those samples, where it has them; else
+    DIR/imgs/...                     Occ3D's camera images of those samples, where it has them (with the
+                                     synthetic renderer's class and depth maps, for an exported world); else
                                      DIR/samples/CAM_*/..., nuScenes' key-frame images, and camera
                                      records built from its tables
     DIR/occtrain/dataset.json        what was imported from where, and which sidecar keys are absent
@@ -55,7 +56,15 @@ from typing import Any
 import numpy as np
 
 from occtrain.data.geometry import driving_command, global_to_ego, rotate_to_ego
-from occtrain.data.layout import ANNOTATIONS_FILE, DATASET_FILE, FRAMES_DIR, DatasetIndex, yaw_from_quaternion
+from occtrain.data.layout import (
+    ANNOTATIONS_FILE,
+    CLASS_SUFFIX,
+    DATASET_FILE,
+    DEPTH_SUFFIX,
+    FRAMES_DIR,
+    DatasetIndex,
+    yaw_from_quaternion,
+)
 from occtrain.data.meta_actions import sidecar_label
 from occtrain.data.releases.categories import box_class, status
 from occtrain.data.releases.files import place_files
@@ -423,8 +432,11 @@ def _scene_files(release: Release, scene: str, out: Path) -> list[tuple[Path, Pa
             continue
         for record in (index.info(scene, token).get("camera_sensor") or {}).values():
             image = index.image_path(record["img_path"])
-            if image.is_file():
-                pairs.append((image, out / image.relative_to(index.root)))
+            # With the renderer's per-pixel class and depth beside it where the root has them
+            # (an exported synthetic world; no real release does).
+            for path in (image, *(image.with_name(f"{image.stem}{s}.png") for s in (CLASS_SUFFIX, DEPTH_SUFFIX))):
+                if path.is_file():
+                    pairs.append((path, out / path.relative_to(index.root)))
     return pairs
 
 
