@@ -111,6 +111,10 @@ def test_the_round_trip_reproduces_the_worlds_sidecars(synth_dataset: Path, trip
 
 
 def test_the_record_says_what_an_import_leaves_absent_and_the_tasks_follow(trip: Path) -> None:
+    rel, ds = trip / "rel", trip / "ds"
+    before = snapshot(ds)  # imported again: nothing to do, and the captions stay present
+    assert cli("data", "import", "nuscenes", "--nuscenes", rel / "nuscenes", "--occ3d", rel / "occ3d", "--out", ds) == 0
+    assert snapshot(ds) == before
     record = json.loads((trip / "ds" / "occtrain" / "dataset.json").read_text())
     assert record["generator"] == "occtrain.import.nuscenes" and record["nuscenes_version"] == VERSION
     assert set(record["absent"]) == set(ABSENT) - {"caption"}  # the OmniDrive import brought the captions
@@ -279,6 +283,12 @@ CASES = [
         remove(f"rel/nuscenes/{VERSION}/ego_pose.json"),
         IMPORT,
         (f"{TABLES}/ego_pose.json", "not found"),
+    ),
+    Case(
+        "unknown version",
+        lambda tmp: None,
+        [*NUS[:-1], "v1.0-test", "--occ3d", "{tmp}/rel/occ3d", "--out", "{tmp}/out"],
+        ("--version v1.0-test", "v1.0-mini or v1.0-trainval"),
     ),
     Case(
         "missing version",

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import argparse
 
-VERSION_HELP = "the tables' folder under the root: v1.0-mini, v1.0-trainval (default) or v1.0-test"
+VERSION_HELP = "the tables' folder under the root: v1.0-mini or v1.0-trainval (default)"
 
 
 def _cmd_import_nuscenes(args: argparse.Namespace) -> int:

@@ -15,7 +15,9 @@ def import_nuscenes(nuscenes: str, version: str, occ3d: str, out: str, copy: boo
     from occtrain.data.releases.nuscenes_tables import VERSIONS
 
     if version not in VERSIONS:
-        raise ConfigError(f"--version {version}: nuScenes v1.0 releases are {', '.join(VERSIONS)}")
+        raise ConfigError(
+            f"--version {version}: occtrain imports {' or '.join(VERSIONS)} (Occ3D-nuScenes labels those two)"
+        )
     check_output(out, "--out", kind="dir")
     return run(nuscenes, version, occ3d, out, copy=copy)
 
@@ -38,6 +40,6 @@ def export_nuscenes(root: str, out: str, version: str) -> dict:
     from occtrain.data.releases.nuscenes_tables import VERSIONS
 
     if version not in VERSIONS:
-        raise ConfigError(f"--version {version}: nuScenes v1.0 releases are {', '.join(VERSIONS)}")
+        raise ConfigError(f"--version {version}: write one of {' or '.join(VERSIONS)}")
     check_output(out, "--out", kind="dir")
     return run(root, out, version)

@@ -476,8 +476,9 @@ def import_nuscenes(
     fingerprint = release.fingerprint
     _prepare_out(out, fingerprint)
     tables, index = release.tables, release.occ3d
-    record = dict(fingerprint, files="copies" if copy else "hard links (copies across devices)", absent=dict(ABSENT))
-    atomic_write_json(out / DATASET_FILE, record)
+    if not (out / DATASET_FILE).is_file():  # a resumed import keeps what a text import has filled since
+        files = "copies" if copy else "hard links (copies across devices)"
+        atomic_write_json(out / DATASET_FILE, dict(fingerprint, files=files, absent=dict(ABSENT)))
     sources: dict[str, str] = {}
     placed = 0
     todo = [j for j in release.jobs if not (out / FRAMES_DIR / f"{j.name}.json").is_file()]
