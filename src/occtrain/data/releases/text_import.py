@@ -3,14 +3,14 @@ layout and key names (``occtrain data import omnidrive|drivelm|nuscenes-qa SRC -
 
 - **OmniDrive-nuScenes** (SRC: its root): ``{desc,conv,vqa,keywords}/<split>/<token>.json``,
   with ``{"description": ...}``, lists of ``{"question", "answer"}`` and the action string.
-  Written to ``DIR/omnidrive/`` in the same layout (SparseOccVLA's ``tasks.omnidrive`` reads
-  it: caption, conversation), and each description becomes its frame's ``caption`` in the
-  sidecar (OccVLA's and SparseOccVLA's caption tasks read that).
+  Written to ``DIR/omnidrive/`` in the same layout (a family's ``tasks.omnidrive`` setting
+  reads it: descriptions, conversations), and each description becomes its frame's
+  ``caption`` in the sidecar (what every caption task reads).
 - **DriveLM-nuScenes** (SRC: a ``v1_1_<split>_nus.json``-style file): scene token ->
   ``{"key_frames": {sample token: {"QA": {"perception", "prediction", "planning", "behavior"}}}}``,
   each QA item ``{"Q", "A", ...}``. Written, items as they are, to
   ``DIR/drivelm/DriveLM_<split>_qa.json`` (``{"info", "frames": {token: {category: [items]}}}``,
-  the split the dataset's): Occ-LLM's QA comparison reads DriveLM; no occtrain task reads it yet.
+  the split the dataset's): no occtrain task reads it yet (docs/real-data.md).
 - **NuScenes-QA** (SRC: ``NuScenes_<split>_questions.json`` or the folder holding both):
   ``{"questions": [...]}``, each question as :class:`~occtrain.data.schema.QAQuestion`.
   Written to ``DIR/nuscenes_qa/NuScenes_<split>_questions.json``, where every QA task reads.
