@@ -573,6 +573,17 @@ def read_only_disk(mp: pytest.MonkeyPatch) -> None:
     mp.setattr(tempfile, "mkstemp", refuse)
 
 
+def full_disk(mp: pytest.MonkeyPatch) -> None:
+    """A disk with room for a file's name but none for its bytes."""
+    import errno
+    import os
+
+    def refuse(fd: int, data: bytes) -> int:
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    mp.setattr(os, "write", refuse)
+
+
 def tokenizer_done(tmp: Path) -> None:
     edit_json(
         tmp / "run" / "manifest.json", lambda m: m["stages"].update(tokenizer={"kind": "tokenizer", "status": "done"})
@@ -2304,6 +2315,20 @@ CASES: list[Case] = [
         "{tmp}/run/pretrain is being scored by `occtrain eval` or `occtrain drive` in another process",
     ),
     Case(
+        "report-split-climbs-out-of-eval",
+        nothing,
+        ["report", "{tmp}/run", "--split", ".."],
+        2,
+        "--split ..: a split (train, val), or the folder `occtrain eval --data` wrote under a stage's eval/",
+    ),
+    Case(
+        "report-split-not-a-split",
+        nothing,
+        ["report", "{tmp}/run", "--split", "world-abc/../../x/val"],
+        2,
+        "--split world-abc/../../x/val: a split (train, val)",
+    ),
+    Case(
         "report-out-is-a-directory",
         nothing,
         ["report", "{tmp}/run", "--out", "{tmp}/ds"],
@@ -2600,6 +2625,23 @@ CASES: list[Case] = [
         f"{{tmp}}/{KILLED_REBUILD}: left by an `occtrain data shards --rebuild` of {{tmp}}/shards that was stopped",
     ),
     Case(
+        "shards-one-cut-short",
+        truncate("shards/frames/train-000001.tar", 512),
+        ["data", "shards", DS, "--out", "{tmp}/shards", "--kinds", "frames", "--samples-per-shard", "4"],
+        2,
+        (
+            "{tmp}/shards/frames/train-000001.tar: 512 bytes where index.json recorded ",
+            "--rebuild`",
+        ),
+    ),
+    Case(
+        "shards-one-missing",
+        lambda tmp: (tmp / "shards" / "frames" / "val-000000.tar").unlink(),
+        ["data", "shards", DS, "--out", "{tmp}/shards", "--kinds", "frames", "--samples-per-shard", "4"],
+        2,
+        ("{tmp}/shards/frames/val-000000.tar: a shard index.json lists is missing", "--rebuild`"),
+    ),
+    Case(
         "eval-save-predictions-over-earlier-ones",
         earlier_prediction("qa_pred.json"),
         [*EVAL, "--save-predictions", "{tmp}/preds"],
@@ -2613,6 +2655,22 @@ CASES: list[Case] = [
         [*EVAL, "--save-predictions", "{tmp}/preds"],
         2,
         f"{{tmp}}/preds/forecast/{SCENES[1]}/{T1[0]}/forecast.npz: exists, and --save-predictions would overwrite it",
+    ),
+    Case(
+        "eval-save-predictions-into-a-folder-of-other-files",
+        earlier_prediction("notes.txt"),
+        [*EVAL, "--save-predictions", "{tmp}/preds"],
+        2,
+        "--save-predictions {tmp}/preds: holds notes.txt; the predictions go in whole into an empty or new "
+        "directory: choose one",
+    ),
+    Case(
+        "eval-on-a-full-disk",
+        nothing,
+        EVAL,
+        2,
+        "cannot write {tmp}/run/pretrain/eval/val/metrics.json: the disk is full; eval writes its metrics into",
+        patch=full_disk,
     ),
     Case(
         "plugin-is-a-path",

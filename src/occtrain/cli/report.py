@@ -14,6 +14,7 @@ from occtrain.report.results import Run, report
 def _cmd_report(args: argparse.Namespace) -> int:
     if args.out:
         check_output(args.out, "--out")  # before the runs are read
+    results.check_split(args.split)
     runs = [Run.read(Path(p), args.split) for p in args.runs]
     command = results.command_line(len(runs), args.split, args.title, args.allow_mixed)
     page = report(runs, args.split, command, args.title, args.allow_mixed)

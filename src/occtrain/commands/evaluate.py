@@ -10,6 +10,7 @@ predictions in the formats ``occtrain score`` reads, so both paths give one numb
 
 from __future__ import annotations
 
+import os
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -17,7 +18,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from occtrain.errors import ConfigError
-from occtrain.formats.io import atomic_write_json, atomic_write_npz, check_output
+from occtrain.formats.io import atomic_write_json, atomic_write_npz, check_output, remove_inside
 from occtrain.formats.metrics_file import MetricsFile, Provenance, read_metrics, write_metrics
 from occtrain.progress import print_wide
 from occtrain.run.control import scoring_lock
@@ -192,6 +193,13 @@ def _check_outputs(stage_dir: Path, kind: str, saves: bool, metrics: Path, save_
                 f"{earlier}: exists, and --save-predictions would overwrite it; choose an empty or new directory, or "
                 "move the earlier predictions away"
             )
+        out = Path(save_predictions)
+        other = next((p for p in out.rglob("*") if not p.is_dir()), None) if out.is_dir() else None
+        if other is not None:
+            raise ConfigError(
+                f"--save-predictions {save_predictions}: holds {other.relative_to(out)}; the predictions go in whole "
+                "into an empty or new directory: choose one"
+            )
     fix = (
         f"eval writes its metrics into {stage_dir}; make it writable, "
         "or copy the run to a writable place and eval the copy"
@@ -258,7 +266,21 @@ def _save(out_file: Path, metrics: dict[str, float], provenance: Provenance) -> 
 
 
 def write_predictions(out: Path, predictions: dict[str, dict]) -> None:
-    """The evaluator's recorded predictions in ``occtrain score``'s input formats."""
+    """The evaluator's recorded predictions in ``occtrain score``'s input formats, all at
+    once: written into ``.<out>.partial`` beside ``out`` and renamed into place, so a kill
+    midway leaves a folder named partial, never an ``out`` that looks whole."""
+    partial = out.with_name(f".{out.name}.partial")
+    if partial.exists():
+        remove_inside(partial, out.parent)  # an earlier eval's, killed while it wrote
+    _write_predictions(partial, predictions)
+    if out.is_dir():
+        if any(not p.is_dir() for p in out.rglob("*")):  # a file put there while the eval ran
+            raise ConfigError(f"{out}: files appeared in it while eval ran; the predictions are in {partial}")
+        remove_inside(out, out.parent)  # empty folders at most
+    os.replace(partial, out)
+
+
+def _write_predictions(out: Path, predictions: dict[str, dict]) -> None:
     out.mkdir(parents=True, exist_ok=True)
     predictions = {
         k: predictions.get(k, {})

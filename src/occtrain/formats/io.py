@@ -85,13 +85,17 @@ def atomic_open(path: str | Path) -> Iterator[IO[bytes]]:
             Path(tmp).unlink(missing_ok=True)
 
 
+#: What the probe of ``check_output`` writes: enough that a full disk refuses it.
+PROBE_BYTES = 64 * 1024
+
+
 def check_output(path: str | Path, flag: str, kind: str = "file", overwrite: bool = True, fix: str = "") -> Path:
     """Refuse, before any work, an output the command could not write at its end.
 
     ``kind`` is "file" or "dir" (a directory the command fills). Refused in one line naming
     ``path`` and ``flag``: a file where a directory goes or the reverse, an existing file
     without ``overwrite``, a parent that is a file, and a place that cannot be written
-    (read-only, permissions, disk full), found by creating and removing a probe file in the
+    (read-only, permissions, disk full), found by writing and removing a probe file in the
     nearest directory that exists, which is what the real write will need. ``fix`` says
     what to do then (default: choose another ``flag``).
     """
@@ -107,15 +111,21 @@ def check_output(path: str | Path, flag: str, kind: str = "file", overwrite: boo
         parent = parent.parent
     if not parent.is_dir():
         raise WriteError(f"cannot write {path}: {parent} is a file, not a directory; choose another {flag}")
+    probe = None
     try:
         fd, probe = tempfile.mkstemp(dir=parent, prefix=".occtrain-probe.", suffix=".tmp")
+        try:
+            os.write(fd, bytes(PROBE_BYTES))  # a full disk still creates an empty file
+        finally:
+            os.close(fd)
     except OSError as err:
         what = _WRITE_ERRORS.get(err.errno or 0)
         if what is None:
             raise
         raise WriteError(f"cannot write {path}: {what[0]}; {fix or f'choose another {flag}'}") from None
-    os.close(fd)
-    os.unlink(probe)
+    finally:
+        if probe is not None:
+            os.unlink(probe)
     return path
 
 

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from occtrain.data.blank_cameras import BLANK_SUFFIX
+from occtrain.data.layout import SPLITS
 from occtrain.errors import DataError
 from occtrain.formats.metrics_file import Provenance, SampleSet, read_metrics
 
@@ -124,6 +125,19 @@ BLANKED = "blank_cameras/"
 #: A forecast's score against the bar of copying its query: the present moved at constant
 #: velocity through the tokenizer (what a model that writes its moved query back scores).
 GAIN_OVER = "baseline_cv_moved_reconstruction_"
+
+
+def check_split(split: str) -> None:
+    """Refuse a ``--split`` that is not a split (``val``) or the folder an ``occtrain eval
+    --data`` wrote and its split (``world_seed1-<key>/val``): a path that climbs out of the
+    stage's ``eval/`` (``..``) or names anything else is one line."""
+    parts = split.split("/")
+    if len(parts) <= 2 and parts[-1] in SPLITS and all(p and p not in (".", "..") and "\\" not in p for p in parts):
+        return
+    raise DataError(
+        f"--split {split}: a split ({', '.join(SPLITS)}), or the folder `occtrain eval --data` wrote under a stage's "
+        "eval/ and its split (WORLD-KEY/val)"
+    )
 
 
 def same_items(provenance: Provenance | None, a: str, b: str) -> bool | None:

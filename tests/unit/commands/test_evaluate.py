@@ -32,3 +32,29 @@ def test_every_file_save_predictions_writes_is_one_a_later_eval_refuses_to_overw
             _check_outputs(tmp_path, "pretrain", True, tmp_path / "metrics.json", out)
         (out / name).unlink()
     _check_outputs(tmp_path, "pretrain", True, tmp_path / "metrics.json", out)  # emptied: accepted
+
+
+def test_predictions_appear_whole_or_under_a_partial_name(tmp_path, monkeypatch):
+    """A kill while the predictions are written (here: a failure after the first file) leaves
+    no folder that looks like a whole set; the next eval's replaces the partial one."""
+    import occtrain.commands.evaluate as evaluate
+
+    predictions = {"qa": {"t|q": ({"question": "q"}, "yes")}, "meta_actions": {"t": {"truth": "maintain"}}}
+    out = tmp_path / "preds"
+    real = evaluate.atomic_write_json
+    calls = []
+
+    def dies_after_one(path, data):
+        calls.append(path)
+        if len(calls) > 1:
+            raise KeyboardInterrupt  # stands for the kill
+        return real(path, data)
+
+    monkeypatch.setattr(evaluate, "atomic_write_json", dies_after_one)
+    with pytest.raises(KeyboardInterrupt):
+        evaluate.write_predictions(out, predictions)
+    assert not out.exists() and (tmp_path / ".preds.partial" / "qa_questions.json").is_file()
+    monkeypatch.setattr(evaluate, "atomic_write_json", real)
+    evaluate.write_predictions(out, predictions)
+    assert sorted(p.name for p in out.iterdir()) == ["meta_actions.json", "qa_pred.json", "qa_questions.json"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["preds"]

@@ -72,13 +72,31 @@ def current_shards(index: DatasetIndex, out: Path, source: dict) -> dict | None:
     if (out / INDEX_FILE).is_file():
         old = read_index(out)
         made = old.get("source", {})
-        if _same_content(index, made, source):
-            return old
-        raise DataError(_why_not_current(index, out, made, source))
+        if not _same_content(index, made, source):
+            raise DataError(_why_not_current(index, out, made, source))
+        damaged = _damaged_shard(out, old)
+        if damaged:
+            raise DataError(f"{damaged}; {_redo(index, out, source)}")
+        return old
     if out.exists() and any(p.suffix == ".tar" for p in out.rglob("*.tar")):
         raise DataError(
             f"{out}: holds shards without an {INDEX_FILE} (an interrupted write?); {_redo(index, out, source)}"
         )
+    return None
+
+
+def _damaged_shard(out: Path, index: dict) -> str | None:
+    """The first shard ``index`` lists that is gone or not the size it was written at (an
+    index of shards from before sizes were recorded: only whether it is there)."""
+    for kind, splits in index.get("kinds", {}).items():
+        for entries in splits.values():
+            for entry in entries:
+                path = out / kind / entry["file"]
+                if not path.is_file():
+                    return f"{path}: a shard {INDEX_FILE} lists is missing"
+                size = path.stat().st_size
+                if "bytes" in entry and size != entry["bytes"]:
+                    return f"{path}: {size} bytes where {INDEX_FILE} recorded {entry['bytes']} (cut short or changed)"
     return None
 
 

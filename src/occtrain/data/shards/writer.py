@@ -53,6 +53,8 @@ class _ShardSink:
         if self._writer is not None:
             self._writer.close()
             self._tmp.replace(self.out_dir / self.shards[-1]["file"])
+            # Its size: a shard cut short or gone since is found before a run reads it.
+            self.shards[-1]["bytes"] = (self.out_dir / self.shards[-1]["file"]).stat().st_size
             self._writer = None
 
     def close(self) -> list[dict]:
