@@ -135,11 +135,20 @@ def load_pretrained_strict(
     may hold more than the model (a full image-text model read for its vision tower)."""
     from transformers.utils import logging as hf_logging
 
+    pickled = sorted(p.name for p in Path(path).glob("*.bin"))
+    if pickled and not any(Path(path).glob("*.safetensors")):
+        raise ConfigError(
+            f"{what}: {path} holds its weights as {pickled[0]}, a pickle, which occtrain never loads (unpickling "
+            "runs whatever the file says); convert them to safetensors where you trust the file (transformers' "
+            "save_pretrained writes them), or use a release that ships model.safetensors"
+        )
     verbosity = hf_logging.get_verbosity()
     hf_logging.set_verbosity_error()  # its load report is replaced by the check below
     hf_logging.disable_progress_bar()  # a bar per load says nothing in a run's log
     try:
-        model, info = auto.from_pretrained(str(path), local_files_only=True, output_loading_info=True, **kwargs)
+        model, info = auto.from_pretrained(
+            str(path), local_files_only=True, output_loading_info=True, use_safetensors=True, **kwargs
+        )
     except Exception as e:  # safetensors, OSError, ValueError, RuntimeError (shapes): a broken directory either way
         raise ConfigError(
             f"{what}: cannot load the model in {path} ({type(e).__name__}: {_first_line(e)}); {hint}"

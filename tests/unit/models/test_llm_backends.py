@@ -5,6 +5,8 @@ directory for its vision tower and its LLM; other model types are refused in one
 
 from __future__ import annotations
 
+import collections
+
 import pytest
 import torch
 
@@ -118,6 +120,24 @@ def test_other_model_types_are_refused_in_one_line(tmp_path):
     ) as err:
         build_llm(LLMConfig(path=str(tmp_path)), 100)
     assert "\n" not in str(err.value) and str(tmp_path) in str(err.value)
+
+
+def test_a_pickled_checkpoint_is_refused_without_advice_to_unpickle_it(tmp_path):
+    """A directory whose weights are pytorch_model.bin: transformers' own refusal repeats
+    PyTorch's advice to load it with weights_only=False, which runs what the pickle says."""
+    from transformers import LlamaConfig, LlamaForCausalLM
+
+    model = LlamaForCausalLM(
+        LlamaConfig(vocab_size=64, hidden_size=16, intermediate_size=32, num_hidden_layers=1, num_attention_heads=2)
+    )
+    model.config.save_pretrained(str(tmp_path))
+    # A pickle that names a class besides the tensors (it could name any, and run code through it).
+    torch.save({**model.state_dict(), "extra": collections.OrderedDict}, tmp_path / "pytorch_model.bin")
+    with pytest.raises(ConfigError) as err:
+        build_llm(LLMConfig(path=str(tmp_path)), 64)
+    line = str(err.value)
+    assert "\n" not in line and f"{tmp_path} holds its weights as pytorch_model.bin, a pickle" in line
+    assert "weights_only" not in line
 
 
 @pytest.fixture(scope="module")
