@@ -26,6 +26,7 @@ from scipy.stats import kendalltau
 
 from occtrain.commands.drive import BASELINES, drive_dir
 from occtrain.data.synthesize import FORMAT_VERSION
+from occtrain.errors import DataError, OcctrainError
 from occtrain.formats.io import atomic_write_text
 from occtrain.metrics.closed_loop_scores import TABLE_COLUMNS
 
@@ -43,13 +44,13 @@ def summaries(stages: list[Path], scenes: int, seed: int, seconds: float, drive:
         path = drive_dir(stage, seed, seconds) / "summary.json"
         if not path.is_file():
             if not drive:
-                raise SystemExit(f"error: {path} is missing; drive {stage} first (leave out --no-drive)")
+                raise DataError(f"{path} is missing; drive {stage} first (leave out --no-drive)")
             cmd = ["drive", str(stage), "--scenes", str(scenes), "--seed", str(seed), "--seconds", f"{seconds:g}"]
             cmd += ["--workers", str(workers)]
             print("$ occtrain " + " ".join(cmd), file=sys.stderr, flush=True)
             res = subprocess.run([sys.executable, "-m", "occtrain", *cmd])
             if res.returncode:
-                raise SystemExit(f"error: `occtrain {' '.join(cmd)}` exited {res.returncode}")
+                raise DataError(f"`occtrain {' '.join(cmd)}` exited {res.returncode}")
         out.append(json.loads(path.read_text()) | {"stage_dir": str(stage)})
     return out
 
@@ -124,7 +125,7 @@ def markdown(found: list[dict]) -> str:
     first = found[0]
     routes = {(s["routes"], s["seed"], s["seconds"]) for s in found}
     if len(routes) != 1:
-        raise SystemExit(f"error: the stages were driven on different routes {sorted(routes)}; drive them alike")
+        raise DataError(f"the stages were driven on different routes {sorted(routes)}; drive them alike")
     table = rows(found)
     tau, counted = rank_agreement(table)
     lines = [
@@ -194,10 +195,14 @@ def main() -> int:
     parser.add_argument("--no-drive", action="store_true", help="only tabulate drives that exist")
     parser.add_argument("--out", help="also write the table here (e.g. docs/results/driving.md)")
     args = parser.parse_args()
-    found = summaries(
-        [Path(s) for s in args.stages], args.scenes, args.seed, args.seconds, not args.no_drive, args.workers
-    )
-    table = markdown(found)
+    try:
+        found = summaries(
+            [Path(s) for s in args.stages], args.scenes, args.seed, args.seconds, not args.no_drive, args.workers
+        )
+        table = markdown(found)
+    except OcctrainError as err:  # one line and exit 2, as occtrain's own commands
+        print(f"error: {err}", file=sys.stderr)
+        return 2
     if args.out:
         atomic_write_text(Path(args.out), table)
     print(table)

@@ -32,6 +32,7 @@ from pathlib import Path
 from typing import NotRequired, TypedDict
 
 from occtrain.config.loading import read_yaml
+from occtrain.data.layout import inside_root
 from occtrain.data.validate import first_problem
 from occtrain.errors import ConfigError, DataError, OcctrainError, cause_line
 from occtrain.formats.io import atomic_write_text, check_output, parse_json
@@ -98,6 +99,8 @@ def read_pages(path: Path) -> list[Page]:
             unknown = sorted(set(entry) - set(Page.__dataclass_fields__))
             if unknown:
                 problem = f"pages[{n}] has unknown keys {', '.join(unknown)}"
+            elif not inside_root(entry["file"]):
+                problem = f"pages[{n}].file '{entry['file']}' lies outside --out; name a page inside it"
             elif bool(entry.get("runs")) == bool(entry.get("drive")):
                 which = "both runs and drive" if entry.get("runs") else "neither runs nor drive"
                 problem = f"pages[{n}] ({entry['file']}) gives {which}"

@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 
 from conftest import load_tool
+from occtrain.errors import DataError
 
 
 @pytest.fixture()
@@ -81,10 +82,14 @@ def test_constant_acceleration_driving_as_constant_velocity_is_said(tool, tmp_pa
 
 def test_stages_driven_on_other_routes_are_refused(tool, tmp_path):
     stages = [_drive(tmp_path / "a", "planner", 0.4, 60.0), _drive(tmp_path / "b", "planner", 0.9, 80.0, routes=3)]
-    with pytest.raises(SystemExit, match="different routes"):
+    with pytest.raises(DataError, match="different routes"):
         tool.markdown(tool.summaries(stages, 2, 1000, 20.0, drive=False))
 
 
-def test_a_missing_drive_is_said_without_driving(tool, tmp_path):
-    with pytest.raises(SystemExit, match="summary.json is missing"):
+def test_a_missing_drive_is_said_without_driving(tool, tmp_path, monkeypatch, capsys):
+    with pytest.raises(DataError, match="summary.json is missing"):
         tool.summaries([tmp_path / "run" / "planner"], 2, 1000, 20.0, drive=False)
+    monkeypatch.setattr("sys.argv", ["drive_table.py", str(tmp_path / "run" / "planner"), "--no-drive"])
+    assert tool.main() == 2  # one line and exit 2, as occtrain's commands (it was SystemExit's 1)
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and err.count("\n") == 1 and "summary.json is missing" in err

@@ -154,6 +154,12 @@ CASES = [
         setup=lambda tmp: (tmp / "pages.yaml").write_text("pages:\n- {file: q.md, title: t}\n"),
     ),
     Case(
+        "a page outside --out",
+        "{tmp}/pages.yaml: pages[0].file '../q.md' lies outside --out",
+        {},
+        setup=lambda tmp: (tmp / "pages.yaml").write_text("pages:\n- {file: ../q.md, runs: [quickstart@0]}\n"),
+    ),
+    Case(
         "an unscored run (after a page that is written first)",
         "{tmp}/runs/b: no stage is scored on 'val'",
         {},
