@@ -27,7 +27,7 @@ import pytest
 import torch
 from safetensors.torch import save_file
 
-from builders import planning_files, qa_questions, snapshot
+from builders import planning_files, qa_questions, read_only_disk, snapshot
 from conftest import REPO, hand_frames, hand_labels, write_hand_dataset
 from occtrain.cli import main
 from occtrain.data.layout import DatasetIndex, quaternion_from_yaw
@@ -560,17 +560,6 @@ def finished_run(tmp: Path) -> None:
 
 
 # -- setups: eval and outputs
-
-
-def read_only_disk(mp: pytest.MonkeyPatch) -> None:
-    """Every new file refused as on a read-only file system (tests run as root: chmod would not stop them)."""
-    import errno
-    import tempfile
-
-    def refuse(*args: Any, **kwargs: Any) -> Any:
-        raise OSError(errno.EROFS, "Read-only file system")
-
-    mp.setattr(tempfile, "mkstemp", refuse)
 
 
 def full_disk(mp: pytest.MonkeyPatch) -> None:
