@@ -3,9 +3,9 @@ layout and key names (``occtrain data import omnidrive|drivelm|nuscenes-qa SRC -
 
 - **OmniDrive-nuScenes** (SRC: its root): ``{desc,conv,vqa,keywords}/<split>/<token>.json``,
   with ``{"description": ...}``, lists of ``{"question", "answer"}`` and the action string.
-  Written to ``DIR/omnidrive/`` in the same layout (a family's ``tasks.omnidrive`` setting
-  reads it: descriptions, conversations), and each description becomes its frame's
-  ``caption`` in the sidecar (what every caption task reads).
+  Placed in ``DIR/omnidrive/`` in the same layout, the files as they are (hard links; a
+  family's ``tasks.omnidrive`` setting reads it: descriptions, conversations), and each
+  description becomes its frame's ``caption`` in the sidecar (what every caption task reads).
 - **DriveLM-nuScenes** (SRC: a ``v1_1_<split>_nus.json``-style file): scene token ->
   ``{"key_frames": {sample token: {"QA": {"perception", "prediction", "planning", "behavior"}}}}``,
   each QA item ``{"Q", "A", ...}``. Written, items as they are, to
@@ -33,6 +33,7 @@ from pathlib import Path
 from typing import Any, TypedDict
 
 from occtrain.data.layout import DATASET_FILE, FRAMES_DIR, QA_DIR, SPLITS, DatasetIndex, qa_file
+from occtrain.data.releases.files import place
 from occtrain.data.releases.nuscenes_tables import read_json
 from occtrain.data.schema import FrameAnnotation, QAQuestion
 from occtrain.data.validate import first_problem
@@ -169,7 +170,7 @@ def import_omnidrive(src: str | Path, into: str | Path) -> ImportReport:
         )
     ds = _Frames(into)
     report = ImportReport("omnidrive", str(src))
-    keep: list[tuple[str, str, str, Any]] = []  # folder, split, token, data
+    keep: list[tuple[str, str, str, Any, Path]] = []  # folder, split, token, data, file
     for folder in OMNIDRIVE_FOLDERS:
         for path in sorted((src / folder).glob("*/*.json")):
             token, split = path.stem, path.parent.name
@@ -182,14 +183,14 @@ def import_omnidrive(src: str | Path, into: str | Path) -> ImportReport:
                 report.skip(f"{folder}: empty")
             else:
                 report.matched += 1
-                keep.append((folder, split, token, data))
+                keep.append((folder, split, token, data, path))
     # Write: the layout under a staging folder swapped in whole, then each scene's captions.
     target = ds.root / OMNIDRIVE_DIR
     staging = ds.root / f".{OMNIDRIVE_DIR}.partial"
     if staging.exists():
         shutil.rmtree(staging)
-    for folder, split, token, data in keep:
-        atomic_write_json(omnidrive_file(staging, folder, split, token), data)
+    for folder, split, token, _, path in keep:  # the release's own bytes, hard-linked
+        place(path, omnidrive_file(staging, folder, split, token))
     staging.mkdir(exist_ok=True)
     old = ds.root / f".{OMNIDRIVE_DIR}.old"
     if target.exists():
@@ -197,7 +198,7 @@ def import_omnidrive(src: str | Path, into: str | Path) -> ImportReport:
     staging.rename(target)
     if old.exists():
         shutil.rmtree(old)
-    captions = {token: data["description"] for folder, _, token, data in keep if folder == "desc"}
+    captions = {token: data["description"] for folder, _, token, data, _ in keep if folder == "desc"}
     _set_frame_text(ds, "caption", captions)
     report.written.append(str(target))
     return _finish(report, ds.root)
