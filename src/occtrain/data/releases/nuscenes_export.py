@@ -106,23 +106,9 @@ def _ego_pose(frame: FrameAnnotation) -> dict:
     }
 
 
-def _scene_tables(
-    t: _Tables, index: DatasetIndex, scene: str, frames: list[FrameAnnotation], sensors: dict[str, str]
-) -> list[dict]:
-    """The scene's log, scene, samples, sample_data, ego poses, calibrations, instances and
-    annotations; its CAN bus messages."""
-    log = t.add(
-        "log",
-        {
-            "token": token("log", scene),
-            "logfile": scene,
-            "vehicle": "occtrain",
-            "date_captured": "",
-            "location": "occtrain",
-        },
-    )
-    scene_token = token("scene", scene)
-    cams = index.info(scene, frames[0]["token"]).get("camera_sensor") or {}
+def _calibrations(t: _Tables, scene: str, cams: dict[str, dict], sensors: dict[str, str]) -> dict[str, str]:
+    """One calibrated_sensor per channel of the scene (the lidar at the ego's origin, each
+    camera as its camera_sensor record holds it); their tokens by channel."""
     calib = {
         LIDAR: t.add(
             "calibrated_sensor",
@@ -146,58 +132,38 @@ def _scene_tables(
                 "camera_intrinsic": rec.get("intrinsics", rec.get("intrinsic")),
             },
         )
-    tokens = [f["token"] for f in frames]
-    for k, frame in enumerate(frames):
-        sample = frame["token"]
-        t.add(
-            "sample",
-            {
-                "token": sample,
-                "timestamp": frame["timestamp"],
-                "prev": tokens[k - 1] if k > 0 else "",
-                "next": tokens[k + 1] if k + 1 < len(tokens) else "",
-                "scene_token": scene_token,
-            },
-        )
-        records = index.info(scene, sample).get("camera_sensor") or {}
-        for channel in calib:
-            sd = token("sample_data", sample, channel)
-            pose = t.add(
-                "ego_pose", {"token": token("ego_pose", sd), "timestamp": frame["timestamp"], **_ego_pose(frame)}
-            )
-            image = records.get(channel, {}).get("img_path", "")
-            t.add(
-                "sample_data",
-                {
-                    "token": sd,
-                    "sample_token": sample,
-                    "ego_pose_token": pose,
-                    "calibrated_sensor_token": calib[channel],
-                    "timestamp": frame["timestamp"],
-                    "fileformat": "pcd" if channel == LIDAR else Path(image).suffix.lstrip("."),
-                    "is_key_frame": True,
-                    "height": 0,
-                    "width": 0,
-                    "filename": f"samples/{LIDAR}/{sample}.pcd.bin"
-                    if channel == LIDAR
-                    else f"samples/{channel}/{Path(image).name}",
-                    "prev": token("sample_data", tokens[k - 1], channel) if k > 0 else "",
-                    "next": token("sample_data", tokens[k + 1], channel) if k + 1 < len(tokens) else "",
-                },
-            )
-    _instances(t, scene, frames)
+    return calib
+
+
+def _sample_data(t: _Tables, frame: FrameAnnotation, channel: str, calib: str, image: str, near: tuple) -> None:
+    """One key-frame sample_data of a sample and its ego pose; ``near`` the tokens of the
+    samples before and after it ("" at the scene's ends)."""
+    sample = frame["token"]
+    sd = token("sample_data", sample, channel)
+    pose = t.add("ego_pose", {"token": token("ego_pose", sd), "timestamp": frame["timestamp"], **_ego_pose(frame)})
     t.add(
-        "scene",
+        "sample_data",
         {
-            "token": scene_token,
-            "log_token": log,
-            "nbr_samples": len(frames),
-            "first_sample_token": tokens[0],
-            "last_sample_token": tokens[-1],
-            "name": scene,
-            "description": "",
+            "token": sd,
+            "sample_token": sample,
+            "ego_pose_token": pose,
+            "calibrated_sensor_token": calib,
+            "timestamp": frame["timestamp"],
+            "fileformat": "pcd" if channel == LIDAR else Path(image).suffix.lstrip("."),
+            "is_key_frame": True,
+            "height": 0,
+            "width": 0,
+            "filename": f"samples/{LIDAR}/{sample}.pcd.bin"
+            if channel == LIDAR
+            else f"samples/{channel}/{Path(image).name}",
+            "prev": token("sample_data", near[0], channel) if near[0] else "",
+            "next": token("sample_data", near[1], channel) if near[1] else "",
         },
     )
+
+
+def _can_bus(frames: list[FrameAnnotation]) -> list[dict]:
+    """A CAN bus pose message at each sample: the ego's speed, acceleration and yaw rate."""
     return [
         {
             "utime": f["timestamp"],
@@ -209,6 +175,47 @@ def _scene_tables(
         }
         for f in frames
     ]
+
+
+def _scene_tables(
+    t: _Tables, index: DatasetIndex, scene: str, frames: list[FrameAnnotation], sensors: dict[str, str]
+) -> list[dict]:
+    """The scene's log, scene, samples, sample_data, ego poses, calibrations, instances and
+    annotations; its CAN bus messages."""
+    log = {"token": token("log", scene), "logfile": scene, "vehicle": "occtrain", "date_captured": ""}
+    t.add("log", log | {"location": "occtrain"})
+    scene_token = token("scene", scene)
+    calib = _calibrations(t, scene, index.info(scene, frames[0]["token"]).get("camera_sensor") or {}, sensors)
+    tokens = [f["token"] for f in frames]
+    for k, frame in enumerate(frames):
+        near = (tokens[k - 1] if k > 0 else "", tokens[k + 1] if k + 1 < len(tokens) else "")
+        t.add(
+            "sample",
+            {
+                "token": tokens[k],
+                "timestamp": frame["timestamp"],
+                "prev": near[0],
+                "next": near[1],
+                "scene_token": scene_token,
+            },
+        )
+        records = index.info(scene, tokens[k]).get("camera_sensor") or {}
+        for channel, cs in calib.items():
+            _sample_data(t, frame, channel, cs, records.get(channel, {}).get("img_path", ""), near)
+    _instances(t, scene, frames)
+    t.add(
+        "scene",
+        {
+            "token": scene_token,
+            "log_token": log["token"],
+            "nbr_samples": len(frames),
+            "first_sample_token": tokens[0],
+            "last_sample_token": tokens[-1],
+            "name": scene,
+            "description": "",
+        },
+    )
+    return _can_bus(frames)
 
 
 def _instances(t: _Tables, scene: str, frames: list[FrameAnnotation]) -> None:
