@@ -21,20 +21,20 @@ signal ends the drive in one line, its temporary files removed; the episodes wri
 
 from __future__ import annotations
 
-import copy
 import functools
 import json
-import multiprocessing
 import os
 import tempfile
 import time
-from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from occtrain.engine.closed_loop.baselines import BASELINES
+from occtrain.engine.closed_loop.planners import refuse_short_episodes
+from occtrain.engine.closed_loop.workers import driver_for, run_jobs
 from occtrain.errors import ConfigError
 from occtrain.formats.io import atomic_write_json, check_output
 from occtrain.formats.metrics_file import Provenance
@@ -42,8 +42,6 @@ from occtrain.progress import console, print_wide, progress_bar
 from occtrain.run.control import Interrupted, stop_on_signals
 from occtrain.run.done_stage import DoneStage, done_stage
 
-#: The baselines every stage is driven beside.
-BASELINES = ("expert", "constant_velocity", "constant_acceleration", "stand_still")
 #: The job that scores the plans open loop on the same routes (the expert drives; see ``shadow_episode``).
 OPEN_LOOP = "open-loop"
 #: What the scores follow, written into every result.
@@ -80,6 +78,9 @@ MAX_ROUTES = 10_000
 MAX_SEED = 2**32 - 1
 
 
+_WRITABLE = "drive writes its results into {stage_dir}; make it writable, or copy the run and drive the copy"
+
+
 def drive(
     stage_dir: str | Path,
     routes: int = 8,
@@ -97,17 +98,15 @@ def drive(
     stage_dir = Path(stage_dir)
     workers = _check_arguments(routes, seed, seconds, workers)
     done = done_stage(stage_dir, "occtrain drive", "drives", lambda module: module.drivable)
-    _refuse_too_short(stage_dir, done, seconds)
+    history = planning_history(stage_dir, list(done.spec.consumes))
+    refuse_short_episodes(seconds, history, "--seconds")
     out = drive_dir(stage_dir, seed, seconds)
-    fix = f"drive writes its results into {stage_dir}; make it writable, or copy the run and drive the copy"
-    check_output(out / "summary.json", "the drive results", kind="file", fix=fix)
-    videos = Path(save_videos) if save_videos is not None else None
-    if videos is not None:
-        check_output(videos, "--save-videos", kind="dir")
+    check_output(out / "summary.json", "the drive results", kind="file", fix=_WRITABLE.format(stage_dir=stage_dir))
+    videos = None if save_videos is None else check_output(save_videos, "--save-videos", kind="dir")
     drivers = [done.spec.name, *BASELINES]
     jobs = [DriveJob(d, i, s, seconds) for i, s in enumerate(route_seeds(seed, routes)) for d in [*drivers, OPEN_LOOP]]
-    # An episode driven earlier without its animation is driven again for it (deterministic).
-    todo = [j for j in jobs if not _episode_file(out, j).is_file() or (videos and not _has_video(videos, j))]
+    # An episode driven earlier without its animation, or from another start, is driven again.
+    todo = [j for j in jobs if not _episode_done(out, j, history) or (videos is not None and not _has_video(videos, j))]
     camera = (done.recipe.data.synth.camera_height, done.recipe.data.synth.camera_width)
     workers = min(workers, max(1, len(todo)))
     with (
@@ -116,10 +115,12 @@ def drive(
         tempfile.TemporaryDirectory(prefix="occtrain-drive-") as scratch,
     ):
         context = _EpisodeContext(
-            str(stage_dir), camera, str(out), str(videos) if videos else None, scratch, code_version()
+            str(stage_dir), camera, str(out), str(videos) if videos else None, scratch, code_version(), history
         )
         try:
-            _drive_jobs(context, jobs, todo, workers, f"driving {routes} routes of {seconds:g} s: {', '.join(drivers)}")
+            with progress_bar(len(jobs), f"driving {routes} routes of {seconds:g} s: {', '.join(drivers)}") as advance:
+                advance(len(jobs) - len(todo))
+                run_jobs(functools.partial(_run_episode, context), todo, workers, advance)
         except Interrupted as stop:
             left = sum(not _episode_file(out, j).is_file() for j in jobs)
             raise stop.with_message(
@@ -135,6 +136,7 @@ def drive(
             | {"drivers": summary, "videos": {k: str(p.resolve()) for k, p in gifs.items() if p.is_file()}}
             # How long this invocation took: the whole drive only when no episode was resumed.
             | {"wall_s": round(time.perf_counter() - start, 1), "workers": workers, "resumed": len(jobs) - len(todo)}
+            | {"expert_start_frames": history}
             | {"provenance": _provenance(done, routes, seed, seconds, _codes(out, jobs)).to_json()},
         )
     _refresh_dashboard(stage_dir.parent)
@@ -193,33 +195,6 @@ def planning_history(stage_dir: Path, consumes: list[str]) -> int:
             tasks = config.get("tasks")
             return int(tasks.get("context_frames", 0)) if isinstance(tasks, dict) else 0
     return 0
-
-
-def _refuse_too_short(stage_dir: Path, done: DoneStage, seconds: float) -> None:
-    """An episode in which the stage never plans scores the expert, not the stage: refused."""
-    from occtrain.engine.closed_loop import refuse_short_episodes
-
-    refuse_short_episodes(seconds, planning_history(stage_dir, list(done.spec.consumes)), "--seconds")
-
-
-def _drive_jobs(context: _EpisodeContext, jobs: list[DriveJob], todo: list[DriveJob], workers: int, what: str) -> None:
-    """Drive ``todo`` (of ``jobs``), in ``workers`` processes, with a progress bar."""
-    with progress_bar(len(jobs), what) as advance:
-        advance(len(jobs) - len(todo))
-        if workers == 1:
-            for job in todo:
-                _run_episode(context, job)
-                advance(1)
-            return
-        # Spawned: each worker loads the stage itself; torch's thread pools do not survive a
-        # fork. A pool, not an executor: on a stop signal its terminate() ends the workers
-        # at once (they leave their scratch to this process's temporary directory).
-        pool = multiprocessing.get_context("spawn").Pool(
-            workers, initializer=_init_worker, initargs=(max(1, len(os.sched_getaffinity(0)) // workers),)
-        )
-        with pool:
-            for _ in pool.imap_unordered(functools.partial(_run_episode, context), todo):
-                advance(1)
 
 
 def _has_video(videos: Path, job: DriveJob) -> bool:
@@ -303,45 +278,49 @@ class _EpisodeContext:
     scratch: str
     #: The code driving, recorded with each episode (a drive resumed by other code names both).
     code: str
+    #: Planning frames the expert drives first, for every driver: what the stage's prompts read.
+    history: int
+
+
+@dataclass(frozen=True)
+class _StageSpec:
+    """The stage's driver as a worker builds it (``workers.DriverSpec``): its caches in the
+    drive's scratch, fresh (a planner's caches are keyed by sample token, and the stage's own
+    hold its dataset's frames, not these)."""
+
+    stage_dir: str
+    scratch: str
+
+    @property
+    def key(self) -> str:
+        return f"{self.stage_dir}\0{self.scratch}"
+
+    def build(self) -> Any:
+        from occtrain.stages.stage import EvalRequest
+
+        stage_dir = Path(self.stage_dir)
+        done = done_stage(stage_dir, "occtrain drive", "drives", lambda module: module.drivable)
+        request = EvalRequest(
+            stage_dir / "export",
+            [stage_dir.parent / dep / "export" for dep in done.spec.consumes],
+            done.recipe.data.root,
+            cache_dir=Path(tempfile.mkdtemp(prefix="cache-", dir=self.scratch)),
+        )
+        return done.kind.module.driver(request)
 
 
 def _episode_file(out: Path, job: DriveJob) -> Path:
     return out / "episodes" / f"{job.driver}-{job.route:03d}.json"
 
 
-_DRIVERS: dict[str, Any] = {}  # the stage's driver, loaded once per process
-_WORLDS: dict[tuple[int, float], Any] = {}  # the route being driven, as built
-
-
-def _init_worker(threads: int) -> None:
-    import signal
-
-    import torch
-
-    torch.set_num_threads(threads)
-    # Ctrl-C reaches the whole process group: the drive stops its workers itself.
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-
-
-def _stage_driver(context: _EpisodeContext) -> Any:
-    key = f"{context.stage_dir}\0{context.scratch}"  # its caches live in this drive's scratch
-    if key not in _DRIVERS:
-        from occtrain.stages.stage import EvalRequest
-
-        stage_dir = Path(context.stage_dir)
-        done = done_stage(stage_dir, "occtrain drive", "drives", lambda module: module.drivable)
-        # A fresh cache directory: a planner's caches are keyed by sample token, and the
-        # stage's own hold its dataset's frames, not these.
-        cache = tempfile.mkdtemp(prefix="cache-", dir=context.scratch)
-        request = EvalRequest(
-            stage_dir / "export",
-            [stage_dir.parent / dep / "export" for dep in done.spec.consumes],
-            done.recipe.data.root,
-            cache_dir=Path(cache),
-        )
-        _DRIVERS.clear()
-        _DRIVERS[key] = done.kind.module.driver(request)
-    return _DRIVERS[key]
+def _episode_done(out: Path, job: DriveJob, history: int) -> bool:
+    """Whether the episode was driven already, from the same start (an earlier drive's
+    baselines planned from frame 0: theirs is another episode)."""
+    file = _episode_file(out, job)
+    try:
+        return file.is_file() and json.loads(file.read_text()).get("expert_start_frames") == history
+    except ValueError:
+        return False
 
 
 def _stage_reader(context: _EpisodeContext, world: Any, frames: str, episode: str) -> tuple[Any, Any]:
@@ -349,7 +328,7 @@ def _stage_reader(context: _EpisodeContext, world: Any, frames: str, episode: st
     (with the cameras when its encoders read them), tokened apart as ``episode``'s."""
     from occtrain.data.closed_loop_recording import EpisodeRecorder
 
-    driver = _stage_driver(context)
+    driver = driver_for(_StageSpec(context.stage_dir, context.scratch))
     reads_cameras = driver.engine.vision is not None or driver.engine.scenes_from_cameras()
     return driver, EpisodeRecorder(frames, world, context.camera if reads_cameras else None, episode)
 
@@ -365,42 +344,25 @@ def _run_episode(context: _EpisodeContext, job: DriveJob) -> None:
 
 
 def _drive_episode(context: _EpisodeContext, job: DriveJob) -> None:
-    from occtrain.data.closed_loop_recording import (
-        STRIDE,
-        DrivingWorld,
-        constant_acceleration,
-        constant_velocity,
-        drive_episode,
-        save_gif,
-        stand_still,
-    )
-    from occtrain.engine.closed_loop import PlanCounts, model_planner
+    from occtrain.data.closed_loop_recording import STRIDE, save_gif
+    from occtrain.engine.closed_loop.baselines import baseline_planner
+    from occtrain.engine.closed_loop.episodes import drive_episode
+    from occtrain.engine.closed_loop.planners import PlanCounts, model_planner
+    from occtrain.engine.closed_loop.workers import fresh_world
     from occtrain.metrics.closed_loop_scores import score_episode
 
     start = time.perf_counter()
-    key = (job.route_seed, job.seconds)
-    if key not in _WORLDS:  # every driver starts from the same world: build it once, copy it per driver
-        _WORLDS.clear()
-        _WORLDS[key] = DrivingWorld(job.route_seed, job.seconds)
-    world = copy.deepcopy(_WORLDS[key])
+    world = fresh_world(job.route_seed, job.seconds)
     views: list | None = [] if context.videos else None
     if job.driver == OPEN_LOOP:
         _write_open_loop(context, job, world, start)
         return
     with tempfile.TemporaryDirectory(prefix="frames-", dir=context.scratch) as frames:
-        if job.driver == "expert":
-            trace = drive_episode(world, None, views)
-            # It drove every planning frame reached (the loop plans at each until the episode ends).
-            counts = PlanCounts(expert=-(-world.step // STRIDE))
-        elif job.driver in BASELINES:
-            kinematic = {
-                "constant_velocity": constant_velocity,
-                "constant_acceleration": constant_acceleration,
-                "stand_still": stand_still,
-            }
-            baseline = _Counted(kinematic[job.driver])
-            trace = drive_episode(world, baseline, views)
-            counts = PlanCounts(planned=baseline.calls)
+        if job.driver in BASELINES:
+            planner = baseline_planner(job.driver, context.history)
+            trace = drive_episode(world, planner, views)
+            # The expert drove every planning frame reached (the loop plans at each until the episode ends).
+            counts = PlanCounts(expert=-(-world.step // STRIDE)) if planner is None else planner.counts
         else:
             stage = model_planner(*_stage_reader(context, world, frames, job.driver))
             trace = drive_episode(world, stage, views)
@@ -417,6 +379,7 @@ def _drive_episode(context: _EpisodeContext, job: DriveJob) -> None:
         "wall_s": round(time.perf_counter() - start, 2),
         "conventions": CONVENTIONS,
         "code_version": context.code,
+        "expert_start_frames": context.history,
     }
     out = Path(context.out)
     if context.videos and views:
@@ -424,41 +387,20 @@ def _drive_episode(context: _EpisodeContext, job: DriveJob) -> None:
     atomic_write_json(_episode_file(out, job), record)
 
 
-class _Counted:
-    """A baseline planner that counts the planning frames it was asked."""
-
-    def __init__(self, planner: Callable[[Any], np.ndarray]):
-        self.planner = planner
-        self.calls = 0
-
-    def __call__(self, world: Any) -> np.ndarray:
-        self.calls += 1
-        return self.planner(world)
-
-
 def _write_open_loop(context: _EpisodeContext, job: DriveJob, world: Any, start: float) -> None:
     """The stage's plans and the baselines' scored open loop on the route (the expert drives;
     ST-P3's convention, collisions against the agents where they then were)."""
     import torch
 
-    from occtrain.data.closed_loop_recording import (
-        Planner,
-        constant_acceleration,
-        constant_velocity,
-        shadow_episode,
-        stand_still,
-    )
-    from occtrain.engine.closed_loop import OpenLoopPlanner
+    from occtrain.engine.closed_loop.baselines import RULES
+    from occtrain.engine.closed_loop.episodes import shadow_episode
+    from occtrain.engine.closed_loop.planners import OpenLoopPlanner
     from occtrain.metrics.planning import PlanningMetric
 
     stage = Path(context.stage_dir).name
     with tempfile.TemporaryDirectory(prefix="frames-", dir=context.scratch) as frames:
         model = OpenLoopPlanner(*_stage_reader(context, world, frames, OPEN_LOOP))
-        baselines: dict[str, Planner] = {
-            "constant_velocity": constant_velocity,
-            "constant_acceleration": constant_acceleration,
-            "stand_still": stand_still,
-        }
+        baselines = dict(RULES)
         shadow = shadow_episode(world, {stage: model, **baselines})
         for frame, plan in zip(shadow, model.plans(len(shadow))):  # the first planning frames, in order
             frame.plans[stage] = plan
@@ -488,6 +430,7 @@ def _write_open_loop(context: _EpisodeContext, job: DriveJob, world: Any, start:
         "wall_s": round(time.perf_counter() - start, 2),
         "conventions": {"L2": "stp3 (ST-P3 / VAD)", "collision": "stp3, agents from the simulator"},
         "code_version": context.code,
+        "expert_start_frames": context.history,
     }
     atomic_write_json(_episode_file(Path(context.out), job), record)
 

@@ -1,5 +1,6 @@
-"""Closed-loop driving's data: the synthetic world driven step by step, and each planning
-frame written as a stage reads a dataset.
+"""Closed-loop driving's data: the synthetic world driven step by step (the simulator, its
+ego's controller and vehicle model), and each planning frame written as a stage reads a
+dataset. The loop that drives it is the engine's (``engine.closed_loop``).
 
 The closed loop's entry to the generator (``data/synth``), as ``data/synthesize.py`` is the
 data synthesis's. An :class:`EpisodeRecorder` writes every planning frame of a
@@ -23,18 +24,9 @@ from occtrain.data.clips import Clip
 from occtrain.data.layout import ANNOTATIONS_FILE, FRAMES_DIR, DatasetIndex, SceneFiles, scene_infos
 from occtrain.data.schema import FrameAnnotation
 from occtrain.data.synth.closed_loop_view import ViewFrame, save_gif
-from occtrain.data.synth.closed_loop_world import (
-    MAX_SECONDS,
-    STRIDE,
-    DrivingWorld,
-    Planner,
-    ShadowFrame,
-    constant_acceleration,
-    constant_velocity,
-    drive_episode,
-    shadow_episode,
-    stand_still,
-)
+from occtrain.data.synth.closed_loop_world import MAX_SECONDS, STRIDE, Agents, DrivingWorld
+from occtrain.data.synth.traffic import SIM_DT
+from occtrain.data.synth.vehicle import PlanTracker, bicycle_step
 from occtrain.formats.io import atomic_write_json
 from occtrain.formats.occ3d import FRAME_DT, FUTURE_STEPS
 
@@ -161,19 +153,16 @@ class RecordedDataset:
 
 
 __all__ = [
-    "RecordedDataset",
     "EPISODE_SCENE",
     "MAX_SECONDS",
+    "SIM_DT",
     "STRIDE",
+    "Agents",
     "DrivingWorld",
     "EpisodeRecorder",
-    "Planner",
-    "ShadowFrame",
+    "PlanTracker",
+    "RecordedDataset",
     "ViewFrame",
-    "constant_acceleration",
-    "constant_velocity",
-    "drive_episode",
+    "bicycle_step",
     "save_gif",
-    "shadow_episode",
-    "stand_still",
 ]

@@ -382,33 +382,39 @@ def report(
     for stage, label, digits, row_key, bases in _rows(runs):
         values = [run.scores.get(stage, {}).get(row_key) for run in runs]
         have = [v for v in values if v is not None]
-        seen: set[str] = set()
-        shown = []
-        for name, key in bases:
-            per_run = [run.scores.get(stage, {}).get(key) for run in runs]
-            if name in seen or all(v is None for v in per_run):
-                continue
-            seen.add(name)
-            # Each run's own where they differ (another tokenizer copies another reconstruction).
-            texts = [_fmt(v, digits) for v in per_run]
-            other = sorted(
-                {
-                    theirs.describe()
-                    for run in runs
-                    if (theirs := run.items(stage, key)) is not None
-                    and (mine := run.items(stage, row_key)) is not None
-                    and theirs.digest != mine.digest
-                }
-            )
-            warn = f" (on other items: {', '.join(other)})" if other else ""
-            shown.append(f"{name} {texts[0] if len(set(texts)) == 1 else ' / '.join(texts)}{warn}")
         cells = [stage, label, " / ".join(_fmt(v, digits) for v in values)]
         if seeds_of_one_recipe:
             mean = sum(have) / len(have)
             cells.append(f"{_fmt(mean, digits)} ({_fmt(min(have), digits)} to {_fmt(max(have), digits)})")
-        cells.append("; ".join(shown) or "-")
+        cells.append(_baselines_cell(runs, stage, row_key, bases, digits))
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n" + _wall_times(runs)
+
+
+def _baselines_cell(runs: list[Run], stage: str, row_key: str, bases: list[tuple[str, str]], digits: int) -> str:
+    """The baselines a row's number stands beside, each run's own where they differ, and a
+    baseline scored on other items than the number said so (``--allow-mixed`` lets it in)."""
+    seen: set[str] = set()
+    shown = []
+    for name, key in bases:
+        per_run = [run.scores.get(stage, {}).get(key) for run in runs]
+        if name in seen or all(v is None for v in per_run):
+            continue
+        seen.add(name)
+        # Each run's own where they differ (another tokenizer copies another reconstruction).
+        texts = [_fmt(v, digits) for v in per_run]
+        other = sorted(
+            {
+                theirs.describe()
+                for run in runs
+                if (theirs := run.items(stage, key)) is not None
+                and (mine := run.items(stage, row_key)) is not None
+                and theirs.digest != mine.digest
+            }
+        )
+        warn = f" (on other items: {', '.join(other)})" if other else ""
+        shown.append(f"{name} {texts[0] if len(set(texts)) == 1 else ' / '.join(texts)}{warn}")
+    return "; ".join(shown) or "-"
 
 
 def _wall_times(runs: list[Run]) -> str:

@@ -6,7 +6,7 @@ MLP head on the meta action, or a family's own) and what settings it takes
 (``WorldSpec.planner_config``, flat in ``model:`` beside this stage's own). The planner
 reads the consumed world model, frozen, when its settings ask for it; this module only
 wires it into Lightning. A ``dagger`` stage takes a trained planner on and drives it
-between its training steps (``engine.dagger``): one kind of the other, so they share this
+between its training steps (``engine.closed_loop.dagger``): one kind of the other, so they share this
 module as pretrain and instruct share theirs.
 """
 
@@ -33,7 +33,7 @@ from occtrain.data.closed_loop_recording import RecordedDataset
 from occtrain.data.layout import DatasetIndex
 from occtrain.engine import TEXT_ENTRIES, load_world_model
 from occtrain.engine.closed_loop import StageDriver, refuse_short_episodes
-from occtrain.engine.dagger import (
+from occtrain.engine.closed_loop.dagger import (
     Aggregate,
     DaggerSettings,
     drive_route,
@@ -42,7 +42,7 @@ from occtrain.engine.dagger import (
     route_seed,
     scene_name,
 )
-from occtrain.engine.dagger_rollouts import POLICIES_DIR, RolloutJob, drive_in_workers, write_policy
+from occtrain.engine.closed_loop.rollouts import POLICIES_DIR, PolicySpec, RolloutJob, drive_in_workers, write_policy
 from occtrain.engine.evaluator import fixed_subset
 from occtrain.engine.trained_planner import load_planner
 from occtrain.errors import ConfigError
@@ -228,7 +228,7 @@ PLANNER = register(
 
 @dataclass
 class DaggerStageConfig(DaggerSettings):
-    """A ``dagger`` stage's settings: how it drives and aggregates (``engine.dagger``), and
+    """A ``dagger`` stage's settings: how it drives and aggregates (``engine.closed_loop.dagger``), and
     the planner stage's own (the planner's architecture is the consumed export's)."""
 
     generate_batches: int = -1
@@ -237,7 +237,7 @@ class DaggerStageConfig(DaggerSettings):
 
 class DaggerStage(PlannerStage):
     """A trained planner fine-tuned on the frames it drives into, each labelled by the world's
-    expert (``engine.dagger``): before each round's ``steps_per_round`` optimizer steps its
+    expert (``engine.closed_loop.dagger``): before each round's ``steps_per_round`` optimizer steps its
     routes are driven with the weights of that moment, and every batch then mixes the
     dataset's clips with clips of every frame aggregated so far."""
 
@@ -294,6 +294,7 @@ class DaggerStage(PlannerStage):
         planner.train()
         teacher.eval()
         self.planner, self.teacher, self.reads_text = planner, teacher, True
+        self.context_frames = teacher.tasks.context_frames
         synth = ctx.data.synth
         reads_cameras = teacher.vision is not None or teacher.scenes_from_cameras()
         self.camera = (synth.camera_height, synth.camera_width) if reads_cameras else None
@@ -392,24 +393,17 @@ class DaggerStage(PlannerStage):
         settings = DaggerSettings(**{f.name: getattr(self.settings, f.name) for f in fields(DaggerSettings)})
         trainable = tuple(n for n, p in self.planner.named_parameters() if p.requires_grad)
         with tempfile.TemporaryDirectory(prefix="occtrain-dagger-") as scratch:
-            jobs = [
-                RolloutJob(
-                    str(world_export),
-                    str(planner_export),
-                    str(self.ctx.data.root),
-                    str(weights),
-                    key,
-                    trainable,
-                    str(root),
-                    settings,
-                    self.settings.max_new_text_tokens,
-                    self.camera,
-                    round_,
-                    k,
-                    scratch,
-                )
-                for k in todo
-            ]
+            spec = PolicySpec(
+                str(world_export),
+                str(planner_export),
+                str(self.ctx.data.root),
+                str(weights),
+                key,
+                trainable,
+                self.settings.max_new_text_tokens,
+                scratch,
+            )
+            jobs = [RolloutJob(spec, str(root), settings, self.camera, round_, k) for k in todo]
             drive_in_workers(jobs, self.settings.workers, advance)
         # The round is recorded: no route is left to drive by these weights (nor by those of a
         # round cut short before, whose file a resumed run in process would leave).

@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import copy
 import hashlib
-from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -37,9 +36,8 @@ from occtrain.data.synth.roads import HEADINGS, PATH_DS, RoadNetwork, green_left
 from occtrain.data.synth.scene import PAINT_MARGIN, Population, populate
 from occtrain.data.synth.text import caption_for_frame, narration_for_frame
 from occtrain.data.synth.traffic import AMBER, SIM_DT, MoverTraffic, footprint_discs, mover_tracks, walker_tracks
-from occtrain.data.synth.vehicle import WHEELBASE, EgoState, PlanTracker, bicycle_step
+from occtrain.data.synth.vehicle import WHEELBASE, EgoState
 from occtrain.formats.occ3d import EGO_LENGTH, EGO_WIDTH, FRAME_DT, FREE, FUTURE_STEPS
-from occtrain.kinematics import constant_acceleration_path, past_acceleration
 from occtrain.metrics.closed_loop_scores import STOPPED_SPEED, EpisodeTrace, Infraction, InfractionKind
 
 #: The longest episode (s), and the road network's half extent (m) that keeps every route
@@ -465,101 +463,6 @@ class DrivingWorld:
         )
 
 
-#: A planner in the loop: the world as it is now -> waypoints (FUTURE_STEPS, 2) in the ego
-#: frame, FRAME_DT apart, or None for "not yet": the expert drives on (a model waits for
-#: the history its prompts read).
-Planner = Callable[["DrivingWorld"], np.ndarray | None]
-
-
-def drive_episode(world: DrivingWorld, planner: Planner | None, views: list[ViewFrame] | None = None) -> EpisodeTrace:
-    """Drive ``world`` to its end: replan every FRAME_DT and track the plan through the
-    kinematic bicycle in between; without a planner the expert drives. ``views`` collects
-    a bird's-eye frame per planning frame (``driving_view``)."""
-    tracker, made_at = None, 0.0
-    while not world.done:
-        if planner is None:
-            if views is not None and world.at_frame:
-                views.append(world.view(world.expert_plan()))
-            world.advance(None)
-            continue
-        if world.at_frame or tracker is None:
-            answer = planner(world)
-            plan = world.expert_plan() if answer is None else np.asarray(answer, dtype=np.float64).reshape(-1, 2)
-            if views is not None:
-                views.append(world.view(plan))
-            tracker, made_at = PlanTracker(plan, world.ego, FRAME_DT), world.time
-        accel, steer = tracker.controls(world.ego, world.time - made_at)
-        world.advance(bicycle_step(world.ego, accel, steer, SIM_DT))
-    if views is not None:
-        for v in views:  # each picture shows what went wrong until the next one
-            v.infractions = [i for i in world.log.infractions if v.time <= i.time < v.time + FRAME_DT]
-    return world.trace()
-
-
-@dataclass
-class ShadowFrame:
-    """One planning frame of a shadow episode: each planner's plan (ego frame; None before
-    it plans), where the expert went next and who was around then, in that frame's ego frame."""
-
-    plans: dict[str, np.ndarray | None]
-    logged: np.ndarray  # (FUTURE_STEPS, 2)
-    #: Per future frame, the agents as (N, 5) rows of x, y, length, width, yaw.
-    agents: list[np.ndarray]
-
-
-def shadow_episode(world: DrivingWorld, planners: dict[str, Planner]) -> list[ShadowFrame]:
-    """Open loop on the route: the expert drives the whole episode, the planners plan at every
-    planning frame without driving, and each plan meets what the expert did next. Frames
-    without FUTURE_STEPS frames after them in the episode are left out."""
-    plans: list[dict[str, np.ndarray | None]] = []
-    poses: list[tuple[np.ndarray, float]] = []
-    around: list[Agents] = []
-    while True:
-        if world.at_frame:
-            answers = {name: planner(world) for name, planner in planners.items()}
-            plans.append(
-                {k: None if a is None else np.asarray(a, dtype=np.float64).reshape(-1, 2) for k, a in answers.items()}
-            )
-            poses.append((world.ego.xy.copy(), world.ego.yaw))
-            around.append(world.agents())
-        if world.done:
-            break
-        world.advance(None)
-    frames = []
-    for k in range(len(plans) - FUTURE_STEPS):
-        xy, yaw = poses[k]
-        later = range(k + 1, k + FUTURE_STEPS + 1)
-        logged = global_to_ego(np.array([poses[j][0] for j in later]), xy, yaw)
-        agents = []
-        for j in later:
-            a = around[j]
-            local = global_to_ego(a.xy, xy, yaw)
-            agents.append(np.column_stack([local, a.size[:, 0], a.size[:, 1], a.yaw - yaw]))
-        frames.append(ShadowFrame(plans[k], logged, agents))
-    return frames
-
-
-def constant_velocity(world: DrivingWorld) -> np.ndarray:
-    """Straight ahead at the current speed."""
-    t = np.arange(1, FUTURE_STEPS + 1) * FRAME_DT
-    return np.stack([world.ego.speed * t, np.zeros_like(t)], axis=1)
-
-
-def constant_acceleration(world: DrivingWorld) -> np.ndarray:
-    """Straight ahead from the current speed at the acceleration of the ego's past
-    (``kinematics.past_acceleration`` over the last planning frame's move), as the
-    open-loop baseline of the same name plans."""
-    frames = world.log.states[::STRIDE]
-    last_move = float(np.linalg.norm(world.ego.xy - frames[-2].xy)) if world.at_frame and len(frames) >= 2 else None
-    speed = world.ego.speed
-    x = constant_acceleration_path(speed, past_acceleration(speed, last_move), FUTURE_STEPS)
-    return np.stack([x, np.zeros_like(x)], axis=1)
-
-
-def stand_still(world: DrivingWorld) -> np.ndarray:
-    return np.zeros((FUTURE_STEPS, 2))
-
-
 def drive_token(seed: int, index: int, episode: str = "") -> str:
     """The sample token of planning frame ``index`` of ``episode`` on scene ``seed``: apart
     from every dataset's (whose tokens are ``annotate.sample_token``'s) and from every other
@@ -604,13 +507,4 @@ def _against_lane(net: RoadNetwork, xy: np.ndarray, yaw: float) -> bool:
     return False
 
 
-__all__ = [
-    "Agents",
-    "DrivingWorld",
-    "Planner",
-    "ShadowFrame",
-    "constant_velocity",
-    "drive_episode",
-    "shadow_episode",
-    "stand_still",
-]
+__all__ = ["Agents", "DrivingWorld", "drive_token"]

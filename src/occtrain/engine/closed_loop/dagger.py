@@ -33,10 +33,11 @@ import torch
 
 from occtrain.config.groups import check_seed
 from occtrain.data.clips import Clip, frame_clips
-from occtrain.data.closed_loop_recording import DrivingWorld, EpisodeRecorder, RecordedDataset, drive_episode
+from occtrain.data.closed_loop_recording import DrivingWorld, EpisodeRecorder, RecordedDataset
 from occtrain.data.layout import DatasetIndex
 from occtrain.data.schema import FrameAnnotation
-from occtrain.engine.closed_loop import StageDriver, StagePlanner
+from occtrain.engine.closed_loop.episodes import drive_episode
+from occtrain.engine.closed_loop.planners import StageDriver, StagePlanner
 from occtrain.engine.trained_planner import PlannerRequest, load_planner
 from occtrain.engine.world_engine import WorldModelEngine
 from occtrain.errors import ConfigError

@@ -11,9 +11,11 @@ import pytest
 from occtrain.data.synth import generate_scene
 from occtrain.data.synth.annotate import EgoMotion, frame_annotation, past_accels
 from occtrain.data.synth.catalog import TrackSet
-from occtrain.data.synth.closed_loop_world import STRIDE, DrivingWorld, constant_acceleration, drive_episode
+from occtrain.data.synth.closed_loop_world import STRIDE, DrivingWorld
 from occtrain.data.synth.traffic import SIM_DT
 from occtrain.data.synth.vehicle import PlanTracker, bicycle_step
+from occtrain.engine.closed_loop.baselines import constant_acceleration
+from occtrain.engine.closed_loop.episodes import drive_episode
 from occtrain.formats.occ3d import FRAME_DT, FUTURE_STEPS
 from occtrain.kinematics import past_acceleration
 

@@ -9,9 +9,11 @@ import numpy as np
 import pytest
 
 from occtrain.data.synth.citymap import SIDEWALK
-from occtrain.data.synth.closed_loop_world import STRIDE, DrivingWorld, drive_episode, stand_still
+from occtrain.data.synth.closed_loop_world import STRIDE, DrivingWorld
 from occtrain.data.synth.roads import PATH_DS, green_left
 from occtrain.data.synth.vehicle import EgoState
+from occtrain.engine.closed_loop.baselines import stand_still
+from occtrain.engine.closed_loop.episodes import drive_episode
 from occtrain.formats.occ3d import EGO_LENGTH, FREE
 from occtrain.metrics.closed_loop_scores import TTC_BOUND, Infraction, score_episode
 
@@ -143,7 +145,7 @@ def test_recorded_frames_read_back_as_a_dataset_and_a_clip(world, tmp_path):
 
 
 def test_shadow_episodes_meet_each_plan_with_what_the_expert_did_next(world):
-    from occtrain.data.synth.closed_loop_world import shadow_episode
+    from occtrain.engine.closed_loop.episodes import shadow_episode
 
     planners = {"expert": lambda w: w.expert_plan(), "still": stand_still, "late": lambda w: None}
     frames = shadow_episode(world, planners)

@@ -9,8 +9,9 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from occtrain.data.synth.closed_loop_world import DrivingWorld, drive_episode
-from occtrain.engine.dagger import DaggerSettings, MixedPlanner, route_seed, scene_name
+from occtrain.data.closed_loop_recording import DrivingWorld
+from occtrain.engine.closed_loop.dagger import DaggerSettings, MixedPlanner, route_seed, scene_name
+from occtrain.engine.closed_loop.episodes import drive_episode
 from occtrain.errors import ConfigError
 
 

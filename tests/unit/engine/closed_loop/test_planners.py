@@ -10,10 +10,9 @@ import pytest
 
 from occtrain.core.protocols import Plans
 from occtrain.data.clips import Clip
-from occtrain.data.closed_loop_recording import EpisodeRecorder, shadow_episode
-from occtrain.data.synth.closed_loop_world import DrivingWorld, drive_episode
-from occtrain.engine import closed_loop
-from occtrain.engine.closed_loop import NonFinitePlan, OpenLoopPlanner, StageDriver, model_planner
+from occtrain.data.closed_loop_recording import DrivingWorld, EpisodeRecorder
+from occtrain.engine.closed_loop import NonFinitePlan, OpenLoopPlanner, StageDriver, model_planner, planners
+from occtrain.engine.closed_loop.episodes import drive_episode, shadow_episode
 
 HISTORY = 2
 
@@ -62,7 +61,7 @@ def built() -> DrivingWorld:
 
 
 def test_the_batched_open_loop_plans_what_planning_frame_by_frame_would(built, tmp_path, monkeypatch):
-    monkeypatch.setattr(closed_loop, "CHUNK", 3)  # several chunks, one straddling the history
+    monkeypatch.setattr(planners, "CHUNK", 3)  # several chunks, one straddling the history
     recorder = EpisodeRecorder(tmp_path / "a", copy.deepcopy(built), None, "a")
     expected = [f.plans["stage"] for f in shadow_episode(recorder.world, {"stage": model_planner(_driver(), recorder)})]
     batched = OpenLoopPlanner(_driver(), EpisodeRecorder(tmp_path / "b", copy.deepcopy(built), None, "b"))
