@@ -2818,7 +2818,7 @@ def test_a_real_release_reads_unchanged_and_checks_ok(tmp_path: Path, capsys, re
     notes = out.splitlines()[:-1]
     assert len(notes) == 3 and all(n.startswith(f"note: {root}: no ") for n in notes)
     assert (
-        "detection, counting, prediction, chain_of_thought, meta_action training" in notes[0]
+        "detection, counting, prediction, chain_of_thought, meta_action, caption training" in notes[0]
         and "occtrain/frames/<scene>.json" in notes[0]
     )
     assert "no qa training" in notes[1] and "NuScenes_<split>_questions.json" in notes[1]
