@@ -29,7 +29,7 @@ import torch
 from torch import nn
 from torchmetrics import MeanMetric
 
-from occtrain.core.plan_subsets import departing_rows, plan_metrics, update_plans
+from occtrain.core.plan_subsets import plan_metrics, subset_rows, update_plans
 from occtrain.core.protocols import PlannerSettings, Plans, WorldEngine
 from occtrain.data.clips import Clip, frame_clips, plan_target
 from occtrain.data.layout import DatasetIndex
@@ -41,18 +41,39 @@ from occtrain.formats.occ3d import FUTURE_STEPS, PAST_STEPS
 from occtrain.metrics import compute_metrics
 from occtrain.models import count_parameters
 from occtrain.models.planning_heads import (
+    ALONG_ROUTE,
     HEAD_PRIORS,
+    ROUTE_ARC,
     PlanningHead,
     constant_acceleration,
     constant_velocity,
     current_velocity,
     prior_plan,
+    route_of,
+    route_prior,
 )
 from occtrain.progress import progress_bar
 
 META_SOURCES = ("ground_truth", "generated")
-#: What the head may read, in the order its input vector lays them out.
-HEAD_INPUTS = ("meta_action", "ego_state", "command", "velocity", "past", "visual")
+#: What the head may read, in the order its input vector lays them out. ``route`` to
+#: ``curvature`` are what a map and a tracker give (the frame's ``road``, see
+#: ``data.schema.RoadContext``): what the expert's plan depends on.
+HEAD_INPUTS = (
+    "meta_action",
+    "ego_state",
+    "command",
+    "velocity",
+    "past",
+    "route",
+    "lead",
+    "pedestrian",
+    "stop_line",
+    "curvature",
+    "visual",
+)
+#: The route points the head reads (m of arc along the route, of ``ROUTE_ARC``).
+ROUTE_INPUT_ARC = (2.5, 5.0, 10.0, 15.0, 20.0, 30.0, 40.0)
+LOSSES = ("mse", "l1", "huber")
 #: Where the cached teacher outputs live in the stage directory.
 TEACHER_CACHE = "teacher_outputs"
 
@@ -70,7 +91,9 @@ class MetaActionPlannerConfig(PlannerSettings):
     #: ``visual``, the consumed world model's outputs at its image tokens, averaged
     #: (OccVLA: meta action, velocity, visual tokens and past trajectory; no command).
     inputs: list[str] = field(default_factory=lambda: ["meta_action", "ego_state", "command"])
-    loss: str = "mse"  # mse | l1
+    #: ``mse`` (OccVLA's), ``l1`` or ``huber`` (quadratic within 1 m, linear beyond: a
+    #: junction frame's large error does not outweigh a hundred ordinary ones).
+    loss: str = "mse"
     #: The meta action the head trains on: the reference (``ground_truth``) or the one the
     #: consumed model generates for each training clip (``generated``, OccVLA's stage 3;
     #: generated once and cached in the stage directory).
@@ -85,13 +108,15 @@ class MetaActionPlannerConfig(PlannerSettings):
     #: how the meta action departs from it. Unset: constant velocity when the head reads
     #: ``velocity`` (as it always did), else none. ``constant_acceleration`` reads the
     #: past's acceleration, the strongest rule that sees no scene.
+    #: ``constant_acceleration_along_route``: that rule laid along the frame's route, and the
+    #: head writes how far along it each waypoint lies and how far to its side.
     prior: str | None = None
 
     def validate(self, where: str) -> None:
         if self.prior is not None and self.prior not in HEAD_PRIORS:
             raise ConfigError(f"{where}: model.prior '{self.prior}' is not one of {', '.join(HEAD_PRIORS)}")
-        if self.loss not in ("mse", "l1"):
-            raise ConfigError(f"{where}: model.loss '{self.loss}' is not one of mse, l1")
+        if self.loss not in LOSSES:
+            raise ConfigError(f"{where}: model.loss '{self.loss}' is not one of {', '.join(LOSSES)}")
         for key in ("meta_source", "train_meta"):
             if getattr(self, key) not in META_SOURCES:
                 raise ConfigError(
@@ -100,10 +125,10 @@ class MetaActionPlannerConfig(PlannerSettings):
         unknown = [n for n in self.inputs if n not in HEAD_INPUTS]
         if unknown or not self.inputs:
             raise ConfigError(f"{where}: model.inputs {list(self.inputs)} must name some of {', '.join(HEAD_INPUTS)}")
-        if "meta_action" not in self.inputs:
-            raise ConfigError(f"{where}: model.inputs must include meta_action: the head plans from it")
 
     def needs_teacher(self) -> bool:
+        if "meta_action" not in self.inputs:
+            return "visual" in self.inputs
         return self.meta_source == "generated" or self.train_meta == "generated" or "visual" in self.inputs
 
 
@@ -114,7 +139,7 @@ def head_prior(prior: str | None, inputs: list[str] | tuple[str, ...]) -> str:
     return "constant_velocity" if "velocity" in inputs else "none"
 
 
-def ego_features(anchor: dict, meta: dict, inputs: list[str] | tuple[str, ...]) -> np.ndarray:
+def ego_features(anchor: dict, meta: dict | None, inputs: list[str] | tuple[str, ...]) -> np.ndarray:
     """The head's input vector: the ``inputs`` in ``HEAD_INPUTS`` order (the visual summary
     goes in apart, through the head's bottleneck)."""
     parts = []
@@ -122,6 +147,8 @@ def ego_features(anchor: dict, meta: dict, inputs: list[str] | tuple[str, ...]) 
         if name not in inputs:
             continue
         if name == "meta_action":
+            if meta is None:
+                raise ValueError("a head that reads the meta action needs one for every frame it plans")
             parts += [
                 np.eye(len(META_SPEEDS))[META_SPEEDS.index(meta["speed"])],
                 np.eye(len(META_DIRECTIONS))[META_DIRECTIONS.index(meta["direction"])],
@@ -135,7 +162,46 @@ def ego_features(anchor: dict, meta: dict, inputs: list[str] | tuple[str, ...]) 
         elif name == "past":
             past = np.asarray(anchor["ego_past"], dtype=np.float64).reshape(-1) / 10.0
             parts.append(past * np.repeat(np.asarray(anchor["ego_past_mask"], dtype=np.float64), 2))
+        elif name in ROAD_INPUTS:
+            parts.append(road_features(anchor, name))
     return np.concatenate(parts).astype(np.float32)
+
+
+#: The head's inputs read from the frame's ``road``, and their widths.
+ROAD_INPUTS = {"route": 2 * len(ROUTE_INPUT_ARC), "lead": 3, "pedestrian": 4, "stop_line": 6, "curvature": 1}
+#: Beyond these the road's distances read as "nothing ahead" (m), its speeds are scaled by 10 m/s.
+_FAR, _SPEED = 60.0, 10.0
+
+
+def road_features(anchor: dict, name: str) -> np.ndarray:
+    """One road input of a frame, scaled to about unit size, each with a flag saying there
+    is one (a frame without ``road``, or with no lead, reads as none there): the route's
+    points (ego frame); the lead's gap and speed; the nearest pedestrian in the corridor
+    (distance, side offset, speed); the next stop line (distance, light one-hot, green left);
+    the largest curvature ahead."""
+    road = anchor.get("road")
+    if name == "route":
+        route = route_of(anchor)
+        index = [ROUTE_ARC.index(a) for a in ROUTE_INPUT_ARC]
+        return (route[index] / 10.0).reshape(-1)
+    if name == "curvature":
+        return np.array([10.0 * float(road["curvature"]) if road is not None else 0.0])
+    item = None if road is None else road.get(name)
+    if name == "lead":
+        values = [1.0, min(item["gap"], _FAR) / _FAR, item["speed"] / _SPEED] if item else [0.0, 1.0, 0.0]
+    elif name == "pedestrian":
+        values = (
+            [1.0, min(item["distance"], _FAR) / _FAR, item["offset"] / 3.0, item["speed"] / _SPEED]
+            if item
+            else [0.0, 1.0, 0.0, 0.0]
+        )
+    else:  # stop_line
+        if item:
+            light = [float(item["light"] == state) for state in ("green", "amber", "red")]
+            values = [1.0, min(item["distance"], _FAR) / _FAR, *light, max(item["green_left"], -1.0) / 10.0]
+        else:
+            values = [0.0, 1.0, 0.0, 0.0, 0.0, 0.0]
+    return np.asarray(values, dtype=np.float64)
 
 
 def feature_size(inputs: list[str] | tuple[str, ...]) -> int:
@@ -146,6 +212,7 @@ def feature_size(inputs: list[str] | tuple[str, ...]) -> int:
         "command": len(COMMANDS),
         "velocity": 2,
         "past": 2 * PAST_STEPS,
+        **ROAD_INPUTS,
         "visual": 0,
     }
     return sum(sizes[n] for n in HEAD_INPUTS if n in inputs)
@@ -155,11 +222,8 @@ class MetaActionPlanner(nn.Module):
     """The head, the frozen world model's outputs it reads (cached per clip), and its
     validation metrics (see the module docstring)."""
 
-    #: What picks the best checkpoint (lower is better): the head on the reference meta action.
-    monitor = "val/head_gt_meta_L2_stp3_avg"
-
     def closed_loop_refusal(self) -> str | None:
-        if self.cfg.meta_source == "generated":
+        if self.cfg.meta_source == "generated" or "meta_action" not in self.inputs:
             return None
         return (
             "this planning head plans on the logged meta action (model.meta_source: ground_truth), which "
@@ -192,20 +256,32 @@ class MetaActionPlanner(nn.Module):
                 raise ConfigError(f"{where}: model.inputs 'visual' reads a world model's image tokens, and it has none")
             visual_dim = teacher.world.hidden_size
         self.head = PlanningHead(
-            feature_size(self.inputs), cfg.hidden, cfg.layers, FUTURE_STEPS, cfg.dropout, visual_dim, cfg.visual_width
+            feature_size(self.inputs),
+            cfg.hidden,
+            cfg.layers,
+            FUTURE_STEPS,
+            cfg.dropout,
+            visual_dim,
+            cfg.visual_width,
+            along_route=self.prior == ALONG_ROUTE,
         )
         self._teacher_out: dict[str, dict] = {}  # sample token -> the frozen model's outputs
         self._cache_file = cache_dir / f"{TEACHER_CACHE}.json"
         self._load_teacher_cache()
         self.parsed = MeanMetric()
+        #: The head's metric: on the reference meta action (and ``head_generated_meta`` on the
+        #: generated one), or plain ``head`` when it reads no meta action.
+        self.head_name = "head_gt_meta" if "meta_action" in self.inputs else "head"
+        self.monitor = f"val/{self.head_name}_L2_stp3_avg"
         self.metrics = nn.ModuleDict(
             plan_metrics(
                 (
-                    "head_gt_meta",
+                    self.head_name,
                     "head_generated_meta",
                     "llm_action_tokens",
                     "constant_velocity",
                     "constant_acceleration",
+                    "constant_acceleration_along_route",
                     "baseline_stationary",
                 )
             )
@@ -312,16 +388,20 @@ class MetaActionPlanner(nn.Module):
         """The head's inputs (``features``, and ``visual`` / ``velocity`` where it reads them)
         for the clips that have a meta action from ``source``, and their rows."""
         device = self.device
-        outs = self.teacher_outputs(clips, source == "generated") if self.teacher is not None else [None] * len(clips)
+        reads_meta = "meta_action" in self.inputs
+        teacher = self.teacher is not None and (reads_meta or "visual" in self.inputs)
+        outs = self.teacher_outputs(clips, reads_meta and source == "generated") if teacher else [None] * len(clips)
         feats, visual, rows = [], [], []
         for i, (clip, out) in enumerate(zip(clips, outs)):
-            if out is None:
+            if not reads_meta:
+                meta = None
+            elif out is None:
                 meta = clip.anchor.get("meta_action")
             elif source == "generated":
                 meta = out["generated"][0] if out["generated"] is not None else None
             else:
                 meta = out["reference"]
-            if meta is None:
+            if reads_meta and meta is None:
                 continue
             feats.append(ego_features(clip.anchor, meta, self.inputs))
             if "visual" in self.inputs:
@@ -332,11 +412,13 @@ class MetaActionPlanner(nn.Module):
         def stack(arrays: list[np.ndarray], width: int) -> torch.Tensor:
             return torch.from_numpy(np.stack(arrays)).to(device) if arrays else torch.zeros(0, width, device=device)
 
-        inputs = {"features": stack(feats, feature_size(self.inputs))}
+        inputs: dict[str, Any] = {"features": stack(feats, feature_size(self.inputs))}
         if "visual" in self.inputs:
             inputs["visual"] = stack(visual, self.head.visual_dim)
-        base = prior_plan([clips[i].anchor for i in rows], self.prior, device) if rows else None
-        if base is not None:
+        anchors = [clips[i].anchor for i in rows]
+        if self.prior == ALONG_ROUTE:
+            inputs["route"] = route_prior(anchors, device)
+        elif rows and (base := prior_plan(anchors, self.prior, device)) is not None:
             inputs["base"] = base
         return inputs, rows
 
@@ -345,28 +427,37 @@ class MetaActionPlanner(nn.Module):
         has one: DDP's gradients stay in step)."""
         x, rows = self._features(clips, self.cfg.train_meta)
         if not rows:
-            return self.head(**x).sum() * 0.0
+            return self.head(**x).sum() * 0.0 if self.prior != ALONG_ROUTE else x["features"].sum() * 0.0
         gt = plan_target([clips[i].anchor for i in rows], x["features"].device)
         err = self.head(**x) - gt.traj
-        per_point = err.pow(2).sum(-1) if self.cfg.loss == "mse" else err.abs().sum(-1)
+        if self.cfg.loss == "mse":
+            per_point = err.pow(2).sum(-1)
+        elif self.cfg.loss == "l1":
+            per_point = err.abs().sum(-1)
+        else:
+            per_point = torch.nn.functional.huber_loss(err, torch.zeros_like(err), reduction="none", delta=1.0).sum(-1)
         return (per_point * gt.mask).sum() / gt.mask.sum().clamp(min=1)
 
     def validate(self, clips: list[Clip], batch_idx: int, generate_batches: int = -1) -> None:
         anchors = [c.anchor for c in clips]
         gt = plan_target(anchors, self.device)
-        departing = departing_rows(anchors, gt)
+        subsets = subset_rows(anchors, gt)
 
         def record(name: str, pred: torch.Tensor, rows: list[int]) -> None:
-            update_plans(self.metrics, name, pred, gt, departing, rows)
+            update_plans(self.metrics, name, pred, gt, subsets, rows)
 
         x, rows = self._features(clips, "ground_truth")
-        record("head_gt_meta", self.head(**x), rows)
+        record(self.head_name, self.head(**x), rows)
         everyone = list(range(len(anchors)))
         record("constant_velocity", constant_velocity(anchors, gt.traj.device), everyone)
         record("constant_acceleration", constant_acceleration(anchors, gt.traj.device), everyone)
+        along = prior_plan(anchors, ALONG_ROUTE, gt.traj.device)
+        assert along is not None
+        record("constant_acceleration_along_route", along, everyone)
         record("baseline_stationary", torch.zeros_like(gt.traj), everyone)
         if (
             self.teacher is not None
+            and "meta_action" in self.inputs
             and self.cfg.meta_source == "generated"
             and (generate_batches < 0 or batch_idx < generate_batches)
         ):
@@ -392,7 +483,8 @@ class MetaActionPlanner(nn.Module):
         without one (the chain of thought did not end in a meta action) drives on at
         constant velocity, and is marked as fallen back."""
         plans = constant_velocity([c.anchor for c in clips], self.device)
-        source = "generated" if self.teacher is not None and self.cfg.meta_source == "generated" else "ground_truth"
+        generated = self.teacher is not None and self.cfg.meta_source == "generated" and "meta_action" in self.inputs
+        source = "generated" if generated else "ground_truth"
         x, rows = self._features(clips, source)
         if rows:
             plans[rows] = self.head(**x)

@@ -21,7 +21,7 @@ import numpy as np
 import torch
 from torchmetrics import MeanMetric
 
-from occtrain.core.plan_subsets import DEPARTING, departing_rows, update_plans
+from occtrain.core.plan_subsets import SUBSETS, subset_rows, update_plans
 from occtrain.core.protocols import WorldEngine
 from occtrain.core.shared_tasks import question_of
 from occtrain.data.clips import Actions, Clip, Part, PlanTarget, Scene, text_of
@@ -33,7 +33,7 @@ from occtrain.data.text_formats import meta_action_words, parse_meta_action
 from occtrain.data.voxel_prior import voxel_prior
 from occtrain.formats.occ3d import FREE, FUTURE_STEPS, MOVABLE_CLASSES
 from occtrain.metrics import CaptionMetric, ForecastMetric, MetaActionAccuracy, PlanningMetric, QAMetric
-from occtrain.models.planning_heads import constant_acceleration, constant_velocity
+from occtrain.models.planning_heads import ALONG_ROUTE, constant_acceleration, constant_velocity, prior_plan
 
 
 @dataclass
@@ -114,8 +114,13 @@ class BaseScorer:
 #: the clips that depart from constant velocity, ``core.plan_subsets``).
 PLAN_BASELINES = {
     name + subset: PlanningMetric
-    for name in ("baseline_constant_velocity", "baseline_constant_acceleration", "baseline_stationary")
-    for subset in ("", DEPARTING)
+    for name in (
+        "baseline_constant_velocity",
+        "baseline_constant_acceleration",
+        "baseline_constant_acceleration_along_route",
+        "baseline_stationary",
+    )
+    for subset in ("", *SUBSETS)
 }
 
 
@@ -126,17 +131,20 @@ class PlanScorer(BaseScorer):
 
     def __init__(self, name: str, alternate: bool = False, record: bool = False):
         self.name, self.alternate, self.record = name, alternate, record
-        self.metrics = {name: PlanningMetric, name + DEPARTING: PlanningMetric, **PLAN_BASELINES}
+        self.metrics = {n: PlanningMetric for n in (name, *(name + subset for subset in SUBSETS))} | PLAN_BASELINES
 
     def score(self, ev: Any, item: Item) -> None:
         target, anchor, token = item.target, item.clip.anchor, item.clip.anchor["token"]
-        departing = departing_rows([anchor], target)
+        subsets = subset_rows([anchor], target)
         if ev.once(("plan baselines", token)):  # standing still, constant velocity and acceleration, once a clip
             cv = constant_velocity([anchor], ev.device)
-            update_plans(ev.metrics, "baseline_constant_velocity", cv, target, departing)
+            update_plans(ev.metrics, "baseline_constant_velocity", cv, target, subsets)
             ca = constant_acceleration([anchor], ev.device)
-            update_plans(ev.metrics, "baseline_constant_acceleration", ca, target, departing)
-            update_plans(ev.metrics, "baseline_stationary", torch.zeros_like(target.traj), target, departing)
+            update_plans(ev.metrics, "baseline_constant_acceleration", ca, target, subsets)
+            along = prior_plan([anchor], ALONG_ROUTE, ev.device)
+            assert along is not None
+            update_plans(ev.metrics, "baseline_constant_acceleration_along_route", along, target, subsets)
+            update_plans(ev.metrics, "baseline_stationary", torch.zeros_like(target.traj), target, subsets)
         actions = [p for p in item.generated if isinstance(p, Actions)]
         if not actions:
             return
@@ -145,7 +153,7 @@ class PlanScorer(BaseScorer):
         pred[0, : len(xy)] = torch.tensor(xy[: pred.shape[1]], dtype=torch.float32, device=ev.device)
         plan_mask = target.mask.clone()
         plan_mask[0, len(xy) :] = False
-        update_plans(ev.metrics, self.name, pred, PlanTarget(target.traj, plan_mask, target.agents), departing)
+        update_plans(ev.metrics, self.name, pred, PlanTarget(target.traj, plan_mask, target.agents), subsets)
         ev.keep_plan_picture(self.name, anchor, np.asarray(xy), target.traj[0][target.mask[0]].cpu().numpy())
         if self.record and ev.record:
             ev.predictions["planning"][token] = pred[0].tolist()

@@ -108,6 +108,7 @@ HEADLINE = (
     "val/plan_cot_L2_stp3_avg",
     "val/head_generated_meta_L2_stp3_avg",
     "val/head_gt_meta_L2_stp3_avg",
+    "val/head_L2_stp3_avg",
     "val/occworld_mIoU",
     "val/occ3d_mIoU",
     "val/pixel_mIoU",

@@ -83,10 +83,12 @@ HEADLINES = (
         2,
     ),
     Headline(
-        r"(?!\w*_departing_)(plan(?:_\w+)?|head_\w+|llm_action_tokens|anchor_\w+)_L2_stp3_avg",
+        r"(?!\w*_(?:departing|turning|stopping)_)(plan(?:_\w+)?|head(?:_\w+)?|llm_action_tokens|anchor_\w+)_L2_stp3_avg",
         "plan `{0}`: L2 avg (`stp3`, m)",
         3,
         (
+            ("constant acceleration along the route", "constant_acceleration_along_route_L2_stp3_avg"),
+            ("constant acceleration along the route", "baseline_constant_acceleration_along_route_L2_stp3_avg"),
             ("constant acceleration", "baseline_constant_acceleration_L2_stp3_avg"),
             ("constant acceleration", "constant_acceleration_L2_stp3_avg"),
             ("constant velocity", "baseline_constant_velocity_L2_stp3_avg"),
@@ -94,17 +96,29 @@ HEADLINES = (
             ("standing still", "baseline_stationary_L2_stp3_avg"),
         ),
     ),
-    Headline(
-        r"(plan(?:_\w+)?|head_\w+|llm_action_tokens|anchor_\w+)_departing_L2_stp3_avg",
-        "plan `{0}` where the truth departs from constant velocity (> 1 m at 3 s): L2 avg (`stp3`, m)",
-        3,
-        (
-            ("constant acceleration", "baseline_constant_acceleration_departing_L2_stp3_avg"),
-            ("constant acceleration", "constant_acceleration_departing_L2_stp3_avg"),
-            ("constant velocity", "baseline_constant_velocity_departing_L2_stp3_avg"),
-            ("constant velocity", "constant_velocity_departing_L2_stp3_avg"),
-            ("standing still", "baseline_stationary_departing_L2_stp3_avg"),
-        ),
+    *(
+        Headline(
+            rf"(plan(?:_\w+)?|head(?:_\w+)?|llm_action_tokens|anchor_\w+)_{subset}_L2_stp3_avg",
+            f"plan `{{0}}` {where}: L2 avg (`stp3`, m)",
+            3,
+            tuple(
+                (name, f"{key}_{subset}_L2_stp3_avg")
+                for name, key in (
+                    ("constant acceleration along the route", "constant_acceleration_along_route"),
+                    ("constant acceleration along the route", "baseline_constant_acceleration_along_route"),
+                    ("constant acceleration", "baseline_constant_acceleration"),
+                    ("constant acceleration", "constant_acceleration"),
+                    ("constant velocity", "baseline_constant_velocity"),
+                    ("constant velocity", "constant_velocity"),
+                    ("standing still", "baseline_stationary"),
+                )
+            ),
+        )
+        for subset, where in (
+            ("departing", "where the truth departs from constant velocity (> 1 m at 3 s)"),
+            ("turning", "where the route turns (the command)"),
+            ("stopping", "where the truth stands still at 3 s"),
+        )
     ),
     Headline(r"qa_overall", "NuScenes-QA accuracy (%)", 1, (("commonest per type", "baseline_prior_qa_overall"),)),
     Headline(

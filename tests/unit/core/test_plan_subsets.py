@@ -1,11 +1,12 @@
-"""The departing subset: clips where constant velocity is more than 1 m off at 3 s."""
+"""The subsets every plan is also scored on: clips where constant velocity is more than 1 m
+off at 3 s, where the route turns, where the truth stands still at 3 s."""
 
 from __future__ import annotations
 
 import numpy as np
 import torch
 
-from occtrain.core.plan_subsets import DEPARTING, departing_rows, plan_metrics, update_plans
+from occtrain.core.plan_subsets import DEPARTING, SUBSETS, departing_rows, plan_metrics, subset_rows, update_plans
 from occtrain.data.clips import PlanTarget
 from occtrain.formats.occ3d import FRAME_DT
 
@@ -32,11 +33,21 @@ def test_a_plan_counts_on_the_whole_split_and_on_the_departing_rows():
     anchors = [{"ego_speed": 2.0}] * 3
     gt = target((6.0, 0.0), (3.0, 0.0), (6.0, 0.0))
     metrics = plan_metrics(["plan"])
-    assert set(metrics) == {"plan", "plan" + DEPARTING}
+    assert set(metrics) == {"plan", "plan_departing", "plan_turning", "plan_stopping"}
     pred = gt.traj.clone()
     pred[:, -1] += torch.tensor([1.0, 0.0])  # 1 m off at 3 s on every row
-    update_plans(metrics, "plan", pred[1:], gt, departing_rows(anchors, gt), rows=[1, 2])
+    update_plans(metrics, "plan", pred[1:], gt, {DEPARTING: departing_rows(anchors, gt)}, rows=[1, 2])
     whole, dep = metrics["plan"].compute(), metrics["plan" + DEPARTING].compute()
     assert int(whole["samples"]) == 2 and int(dep["samples"]) == 1  # row 1 departs (3 m short at 3 s)
     assert abs(float(whole["L2_uniad"]["3s"]) - 1.0) < 1e-9 and abs(float(dep["L2_uniad"]["3s"]) - 1.0) < 1e-9
     assert float(whole["L2_uniad"]["1s"]) == 0.0
+
+
+def test_the_turning_and_stopping_subsets_read_the_command_and_the_truths_last_step():
+    anchors = [{"ego_speed": 2.0, "command": c} for c in ("go straight", "turn left", "go straight", "turn right")]
+    gt = target((6.0, 0.0), (6.0, 0.0), (5.0, 0.0), (5.0, 0.0))
+    gt.traj[3, -1] = gt.traj[3, -2]  # row 3 stands still between 2.5 and 3 s
+    gt.traj[2, -2] = gt.traj[2, -1] - torch.tensor([0.1, 0.0])  # row 2 creeps at 0.2 m/s: stopped
+    rows = subset_rows(anchors, gt)
+    assert list(rows) == list(SUBSETS)
+    assert rows["_turning"] == [1, 3] and rows["_stopping"] == [2, 3]

@@ -41,7 +41,7 @@ from torchmetrics import MeanMetric
 from occtrain.config import to_object
 from occtrain.core.builder import collate
 from occtrain.core.decoding import TextAnswer
-from occtrain.core.plan_subsets import departing_rows, plan_metrics, update_plans
+from occtrain.core.plan_subsets import plan_metrics, subset_rows, update_plans
 from occtrain.core.protocols import PlannerSettings, Plans, WorldEngine
 from occtrain.core.shared_tasks import PLAN_PRIORS, plan_base
 from occtrain.data.clips import Clip, Text, frame_clips, plan_target
@@ -469,7 +469,7 @@ class AnchorDiffusionPlanner(nn.Module):
         anchors = [c.anchor for c in clips]
         gt = plan_target(anchors, self.device)
         plan, top, logits = self.plan(clips)
-        departing = departing_rows(anchors, gt)
+        subsets = subset_rows(anchors, gt)
         for name, pred in (
             ("plan", plan),
             ("plan_top_anchor", top),
@@ -477,7 +477,7 @@ class AnchorDiffusionPlanner(nn.Module):
             ("constant_acceleration", constant_acceleration(anchors, self.device)),
             ("baseline_stationary", torch.zeros_like(gt.traj)),
         ):
-            update_plans(self.metrics, name, pred, gt, departing)
+            update_plans(self.metrics, name, pred, gt, subsets)
         # How often the scorer picks the anchor nearest the ground truth.
         hit = (logits.argmax(-1) == self.positives(gt.traj - self.base(clips), gt.mask)).float()
         self.positive_hit.update(100.0 * hit.mean(), len(clips))
