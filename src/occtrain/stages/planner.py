@@ -39,6 +39,7 @@ from occtrain.engine.closed_loop.dagger import (
     drive_route,
     load_policy,
     policy_key,
+    replay_weights,
     route_seed,
     scene_name,
 )
@@ -305,6 +306,8 @@ class DaggerStage(PlannerStage):
         #: Rounds whose frames the batches draw from, and their clips (futures: the expert's labels).
         self._rounds = 0
         self._aggregated: list = []
+        #: How likely each aggregated clip is drawn (critical frames favoured: ``replay_weights``).
+        self._replay = np.zeros(0)
         #: Each round's rollouts in the mean (``Aggregate.round_scores``), for the report.
         self.round_scores: dict[int, dict[str, float]] = {}
 
@@ -338,6 +341,7 @@ class DaggerStage(PlannerStage):
                 self._drive(r)
         index = self.aggregate.index(round_ + 1)
         self._aggregated = self.aggregate.clips(index, self.history)
+        self._replay = replay_weights(self._aggregated, self.settings.critical_weight)
         new = self.aggregate.scenes(round_ + 1)[self._rounds * self.settings.routes_per_round :]
         # One route at a time, whether met as it was driven or after a resume: an encoder's
         # float sums depend on the batch, and a cut must not change what it encodes. Then
@@ -415,7 +419,7 @@ class DaggerStage(PlannerStage):
         if self._aggregated and share > 0:
             extra = len(clips) if share >= 1 else max(1, round(len(clips) * share / (1 - share)))
             rng = np.random.default_rng([self.ctx.trainer.seed, self.global_step])
-            drawn = [self._aggregated[i] for i in rng.integers(0, len(self._aggregated), extra)]
+            drawn = [self._aggregated[i] for i in rng.choice(len(self._aggregated), extra, p=self._replay)]
             clips = drawn if share >= 1 else clips + drawn
         loss = self.planner.training_loss(clips)
         self.log("train/loss", loss, prog_bar=True, batch_size=len(clips))

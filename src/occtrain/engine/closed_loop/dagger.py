@@ -71,6 +71,9 @@ class DaggerSettings:
     route_seed: int = DEFAULT_ROUTE_SEED
     #: Share of each training batch drawn from the aggregated frames (the rest: the dataset's).
     aggregate_share: float = 0.5
+    #: How much likelier a critical aggregated frame is drawn than an ordinary one
+    #: (``critical``: a turn, a stop line or a lead close ahead); 1: all alike.
+    critical_weight: float = 3.0
     #: Processes a round's routes are driven in (1: in the training process, one after
     #: another; more: spawned workers of one thread each, as ``occtrain drive --workers``).
     workers: int = 1
@@ -91,9 +94,39 @@ class DaggerSettings:
         for key in ("beta", "beta_decay", "aggregate_share"):
             if not 0 <= getattr(self, key) <= 1:
                 raise ConfigError(f"{where}.{key}: {getattr(self, key):g} must be within [0, 1]")
+        if not self.critical_weight >= 1:
+            raise ConfigError(f"{where}.critical_weight: {self.critical_weight:g} must be at least 1")
 
     def beta_at(self, round_: int) -> float:
         return self.beta * self.beta_decay**round_
+
+
+#: Within these (m) a stop line whose light is not green, or a lead vehicle, makes a frame
+#: critical: where the expert brakes, and where a planner that cannot see it collides.
+CRITICAL_STOP_M, CRITICAL_LEAD_M = 30.0, 20.0
+
+
+def critical(anchor: FrameAnnotation) -> bool:
+    """Whether an aggregated frame is one DAgger must not dilute: the route turns (its
+    command), a stop line not green lies close ahead, or a lead vehicle does."""
+    if anchor.get("command", "go straight") != "go straight":
+        return True
+    road = anchor.get("road")
+    if road is None:
+        return False
+    stop, lead = road.get("stop_line"), road.get("lead")
+    return bool(
+        (stop is not None and stop["light"] != "green" and stop["distance"] < CRITICAL_STOP_M)
+        or (lead is not None and lead["gap"] < CRITICAL_LEAD_M)
+    )
+
+
+def replay_weights(clips: list[Clip], critical_weight: float) -> np.ndarray:
+    """How likely each aggregated clip is drawn (summing to 1): critical ones ``critical_weight``
+    times an ordinary one, so the few frames where the expert does something are not lost
+    among the many where it cruises."""
+    w = np.array([critical_weight if critical(c.anchor) else 1.0 for c in clips], dtype=np.float64)
+    return w / w.sum()
 
 
 def route_seed(settings: DaggerSettings, round_: int, route: int) -> int:
@@ -253,6 +286,8 @@ class Aggregate:
 __all__ = [
     "Aggregate",
     "DaggerSettings",
+    "critical",
+    "replay_weights",
     "MixedPlanner",
     "RouteResult",
     "drive_route",

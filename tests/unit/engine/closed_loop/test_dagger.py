@@ -78,3 +78,28 @@ def test_settings_are_checked_and_beta_decays():
     seeds = {route_seed(settings, r, k) for r in range(3) for k in range(4)}
     assert len(seeds) == 12 and route_seed(settings, 1, 2) == route_seed(DaggerSettings(beta=0.8), 1, 2)
     assert scene_name(1, 2) == "round01-route02"
+
+
+def test_critical_frames_are_replayed_more_often_than_cruising_ones():
+    """A turn, a stop line not green or a lead close ahead: where the expert does something,
+    and where an aggregate of mostly cruising frames would dilute it."""
+    from occtrain.data.clips import Clip
+    from occtrain.engine.closed_loop.dagger import critical, replay_weights
+
+    def frame(command="go straight", stop=None, lead=None) -> dict:
+        return {"command": command, "road": {"stop_line": stop, "lead": lead}}
+
+    frames = [
+        frame(),
+        frame(command="turn left"),
+        frame(stop={"distance": 12.0, "light": "red", "green_left": -1.0}),
+        frame(stop={"distance": 12.0, "light": "green", "green_left": 8.0}),
+        frame(lead={"gap": 9.0, "speed": 3.0}),
+        frame(lead={"gap": 45.0, "speed": 9.0}),
+        {"command": "go straight"},  # a frame without road: only its command can say
+    ]
+    assert [critical(f) for f in frames] == [False, True, True, False, True, False, False]
+    weights = replay_weights([Clip({"anchor": f}, [], "") for f in frames], 3.0)
+    assert weights.sum() == pytest.approx(1.0) and weights[1] == pytest.approx(3 * weights[0])
+    with pytest.raises(ConfigError, match="critical_weight: 0.5 must be at least 1"):
+        DaggerSettings(critical_weight=0.5).validate("stages.closed_loop.model")
