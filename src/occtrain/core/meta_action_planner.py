@@ -70,7 +70,11 @@ HEAD_INPUTS = (
     "stop_line",
     "curvature",
     "visual",
+    "scene",
 )
+#: The inputs read from the world model's own outputs, averaged, through the head's
+#: bottleneck, and the family operation that gives each (a head reads at most one).
+SUMMARIES = {"visual": "visual_summary", "scene": "scene_summary"}
 #: The route points the head reads (m of arc along the route, of ``ROUTE_ARC``).
 ROUTE_INPUT_ARC = (2.5, 5.0, 10.0, 15.0, 20.0, 30.0, 40.0)
 LOSSES = ("mse", "l1", "huber")
@@ -125,11 +129,14 @@ class MetaActionPlannerConfig(PlannerSettings):
         unknown = [n for n in self.inputs if n not in HEAD_INPUTS]
         if unknown or not self.inputs:
             raise ConfigError(f"{where}: model.inputs {list(self.inputs)} must name some of {', '.join(HEAD_INPUTS)}")
+        if sum(n in self.inputs for n in SUMMARIES) > 1:
+            raise ConfigError(f"{where}: model.inputs reads one of {', '.join(SUMMARIES)}, not both")
 
     def needs_teacher(self) -> bool:
         if "meta_action" not in self.inputs:
-            return "visual" in self.inputs
-        return self.meta_source == "generated" or self.train_meta == "generated" or "visual" in self.inputs
+            return any(n in self.inputs for n in SUMMARIES)
+        generated = self.meta_source == "generated" or self.train_meta == "generated"
+        return generated or any(n in self.inputs for n in SUMMARIES)
 
 
 def head_prior(prior: str | None, inputs: list[str] | tuple[str, ...]) -> str:
@@ -214,6 +221,7 @@ def feature_size(inputs: list[str] | tuple[str, ...]) -> int:
         "past": 2 * PAST_STEPS,
         **ROAD_INPUTS,
         "visual": 0,
+        "scene": 0,
     }
     return sum(sizes[n] for n in HEAD_INPUTS if n in inputs)
 
@@ -250,10 +258,14 @@ class MetaActionPlanner(nn.Module):
         if teacher is not None:
             self._check_teacher(teacher, where)
         self.teacher = teacher
+        #: The world model's summary the head reads (``SUMMARIES``), if any.
+        self.reads_summary = next((n for n in SUMMARIES if n in self.inputs), None)
         visual_dim = 0
-        if "visual" in self.inputs:
+        if self.reads_summary is not None:
             if teacher is None:
-                raise ConfigError(f"{where}: model.inputs 'visual' reads a world model's image tokens, and it has none")
+                raise ConfigError(
+                    f"{where}: model.inputs '{self.reads_summary}' reads a world model's outputs, and it has none"
+                )
             visual_dim = teacher.world.hidden_size
         self.head = PlanningHead(
             feature_size(self.inputs),
@@ -294,7 +306,9 @@ class MetaActionPlanner(nn.Module):
                 raise ConfigError(
                     f"{where}: the '{family}' world model generates no meta action; set model.meta_source=ground_truth"
                 )
-        if "visual" in self.inputs and (teacher.vision is None or teacher.operation("visual_summary") is None):
+        if self.reads_summary == "scene" and teacher.operation("scene_summary") is None:
+            raise ConfigError(f"{where}: model.inputs 'scene': the '{family}' world model offers no scene_summary")
+        if self.reads_summary == "visual" and (teacher.vision is None or teacher.operation("visual_summary") is None):
             raise ConfigError(
                 f"{where}: model.inputs 'visual' reads image tokens, which the '{family}' world model has none of"
             )
@@ -342,9 +356,9 @@ class MetaActionPlanner(nn.Module):
         if teacher is None:
             raise ValueError("this planning head reads no world model: it has no outputs of one")
         reference = self._operation(teacher, "reference_meta_action")
-        todo = [i for i, o in enumerate(outs) if "visual" not in o] if "visual" in self.inputs else []
-        if todo:
-            summary = self._operation(teacher, "visual_summary")(teacher, [clips[i] for i in todo])
+        todo = [i for i, o in enumerate(outs) if "visual" not in o] if self.reads_summary is not None else []
+        if todo and self.reads_summary is not None:
+            summary = self._operation(teacher, SUMMARIES[self.reads_summary])(teacher, [clips[i] for i in todo])
             for i, vis in zip(todo, summary.cpu().numpy()):
                 outs[i]["visual"] = vis
         todo = [i for i, o in enumerate(outs) if "generated" not in o] if generate else []
@@ -368,7 +382,7 @@ class MetaActionPlanner(nn.Module):
         """The teacher's outputs for the training clips, once, when the head trains on
         generated meta actions or reads visual tokens (validation's come as its batches do)."""
         generate = self.cfg.train_meta == "generated"
-        if self.teacher is None or not (generate or "visual" in self.inputs):
+        if self.teacher is None or not (generate or self.reads_summary is not None):
             return
         index = DatasetIndex.open(self.data_root)
         clips = list(
@@ -389,7 +403,7 @@ class MetaActionPlanner(nn.Module):
         for the clips that have a meta action from ``source``, and their rows."""
         device = self.device
         reads_meta = "meta_action" in self.inputs
-        teacher = self.teacher is not None and (reads_meta or "visual" in self.inputs)
+        teacher = self.teacher is not None and (reads_meta or self.reads_summary is not None)
         outs = self.teacher_outputs(clips, reads_meta and source == "generated") if teacher else [None] * len(clips)
         feats, visual, rows = [], [], []
         for i, (clip, out) in enumerate(zip(clips, outs)):
@@ -404,8 +418,8 @@ class MetaActionPlanner(nn.Module):
             if reads_meta and meta is None:
                 continue
             feats.append(ego_features(clip.anchor, meta, self.inputs))
-            if "visual" in self.inputs:
-                assert out is not None  # a head that reads visual tokens has a teacher (checked at build)
+            if self.reads_summary is not None:
+                assert out is not None  # a head that reads a summary has a teacher (checked at build)
                 visual.append(np.asarray(out["visual"], dtype=np.float32))
             rows.append(i)
 
@@ -413,7 +427,7 @@ class MetaActionPlanner(nn.Module):
             return torch.from_numpy(np.stack(arrays)).to(device) if arrays else torch.zeros(0, width, device=device)
 
         inputs: dict[str, Any] = {"features": stack(feats, feature_size(self.inputs))}
-        if "visual" in self.inputs:
+        if self.reads_summary is not None:
             inputs["visual"] = stack(visual, self.head.visual_dim)
         anchors = [clips[i].anchor for i in rows]
         if self.prior == ALONG_ROUTE:

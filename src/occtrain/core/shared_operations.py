@@ -11,9 +11,10 @@ from dataclasses import replace
 import numpy as np
 import torch
 
+from occtrain.core.builder import collate
 from occtrain.core.protocols import WorldEngine
 from occtrain.core.scorers import said_meta_action
-from occtrain.data.clips import Actions, Clip, Scene, Text
+from occtrain.data.clips import Actions, Clip, PromptPart, Scene, Text
 from occtrain.data.schema import MetaAction
 from occtrain.errors import ConfigError
 
@@ -101,3 +102,18 @@ def chain_of_thought(engine: WorldEngine, clip: Clip) -> tuple[str, np.ndarray |
 def meta_action(engine: WorldEngine, clip: Clip) -> MetaAction | None:
     """The meta action the chain of thought ends with ({"speed", "direction"}), None if unparsed."""
     return said_meta_action(chain_of_thought(engine, clip)[0], clip)
+
+
+def scene_summary(engine: WorldEngine, clips: list[Clip]) -> torch.Tensor:
+    """(B, hidden): the world model's last-layer outputs at each anchor's scene tokens,
+    averaged: what a planning head reads of the occupancy the world model sees (as OccVLA's
+    reads its image tokens, ``visual_summary``)."""
+    seqs = []
+    for clip in clips:
+        parts: list[PromptPart] = [Scene(clip.anchor_index)]
+        seqs.append(engine.encode_parts(parts, _context_scenes(engine, clip, parts)))
+    batch = collate(seqs, engine.vocab.pad_id)
+    batch = {k: v.to(engine.world.device) if torch.is_tensor(v) else v for k, v in batch.items()}
+    hidden = engine.world(batch, output_hidden_states=True).hidden.float()
+    scene = engine.vocab.is_occ(batch["input_ids"]).float()[..., None]
+    return (hidden * scene).sum(1) / scene.sum(1).clamp(min=1)

@@ -106,7 +106,7 @@ class DaggerSettings:
 CRITICAL_STOP_M, CRITICAL_LEAD_M = 30.0, 20.0
 
 
-def critical(anchor: FrameAnnotation) -> bool:
+def critical(anchor: dict) -> bool:
     """Whether an aggregated frame is one DAgger must not dilute: the route turns (its
     command), a stop line not green lies close ahead, or a lead vehicle does."""
     if anchor.get("command", "go straight") != "go straight":

@@ -43,4 +43,5 @@ OPERATIONS: dict[str, Callable[..., Any]] = {
     "meta_action": shared_operations.meta_action,
     "reference_meta_action": reference_meta_action,
     "generated_meta_actions": generated_meta_actions,
+    "scene_summary": shared_operations.scene_summary,
 }

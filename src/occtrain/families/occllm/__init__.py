@@ -38,6 +38,7 @@ OCCLLM = register_family(
                 "answer": shared_operations.answer,
                 "forecast": shared_operations.forecast,
                 "plan": shared_operations.plan,
+                "scene_summary": shared_operations.scene_summary,
             },
         ),
         paper_figures=PAPER_FIGURES,
