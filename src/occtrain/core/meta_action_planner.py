@@ -527,6 +527,7 @@ class MetaActionPlanner(nn.Module):
             "inputs": self.inputs,
             "train_meta": cfg.train_meta,
             "prior": self.prior,
+            "loss": cfg.loss,  # what a dagger stage fine-tunes it with
             "steps": FUTURE_STEPS,
         }
         return write_export(path, self.head.state_dict(), config)
@@ -552,6 +553,7 @@ def load_meta_action_planner(
         visual_width=config["visual_width"],
         train_meta=config.get("train_meta", "ground_truth"),
         prior=config.get("prior"),  # unset in exports before it: what the inputs implied
+        loss=config.get("loss", "mse"),
     )
     planner = MetaActionPlanner(cfg, teacher, request.data_root, request.cache_dir, str(export_dir), sidecar_reference)
     load_state_strict(planner.head, state, (), str(export_dir))

@@ -60,6 +60,7 @@ EXPORT_KEYS: dict[tuple[str, str], frozenset[str]] = {
             "inputs",
             "train_meta",
             "prior",
+            "loss",
             "steps",
         }
     ),
