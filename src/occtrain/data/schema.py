@@ -18,8 +18,11 @@ from occtrain.formats.occ3d import CLASS_NAMES, FUTURE_STEPS, PAST_STEPS
 
 # Each closed vocabulary is a Literal (the schema checks it) and a tuple of its values (code iterates it).
 
-#: High-level driving command, as in ST-P3 / UniAD (decided from the future
-#: trajectory's lateral offset at the last waypoint; see COMMAND_LATERAL_THRESHOLD).
+#: High-level driving command, as in ST-P3 / UniAD: the lateral offset of a point 3 s ahead
+#: against COMMAND_LATERAL_THRESHOLD. The synthetic world (dataset and closed loop alike)
+#: takes that point on the route at the current speed (``data/synth/road_context.py``,
+#: ``route_command``); an import of a real release, which has no route, takes the logged
+#: future pose, as ST-P3 does (``data.geometry.driving_command``).
 Command = Literal["turn right", "turn left", "go straight"]
 COMMANDS: tuple[str, ...] = get_args(Command)
 COMMAND_LATERAL_THRESHOLD = 2.0  # metres of lateral offset at +3 s
@@ -48,6 +51,19 @@ if TYPE_CHECKING:
     Category = str
 else:
     Category = Literal[CLASS_NAMES[:11]]
+
+#: A traffic light's state as the ego sees it: amber is the last AMBER seconds of green.
+LightState = Literal["green", "amber", "red"]
+LIGHT_STATES: tuple[str, ...] = get_args(LightState)
+
+#: The road context (``RoadContext``): arc lengths (m) along the route, from the ego's
+#: projection on it, of the centreline points ``route`` holds (0, 2.5, ..., 60).
+ROUTE_ARC: tuple[float, ...] = tuple(2.5 * k for k in range(25))
+#: How far along the route (m) the road context looks for curvature, a lead vehicle and a stop line.
+ROAD_REACH = 60.0
+#: The pedestrian corridor: this far along the route (m) and this far either side of its centreline.
+PEDESTRIAN_REACH = 40.0
+PEDESTRIAN_CORRIDOR = 3.0
 
 #: nuScenes' visibility levels of an annotated object (percent of it visible in the cameras).
 Visibility = Literal["v0-40", "v40-60", "v60-80", "v80-100"]
@@ -83,6 +99,47 @@ class Box(TypedDict):
     visibility: NotRequired[Visibility]
 
 
+class LeadVehicle(TypedDict):
+    """The vehicle the ego follows: the nearest vehicle or cycle whose centre lies on the route
+    ahead (0 < its arc length from the ego's projection <= ROAD_REACH), whose box overlaps the
+    ego's sideways (|offset from the centreline| < (ego width + its width) / 2 + 0.2 m) and
+    which heads the route's way there (cos of the angle > 0.5): the synthetic expert's leader
+    test (``MoverTraffic.advance``), measured along the route instead of the ego's axis."""
+
+    gap: float  # m along the route, the ego's front bumper to the lead's rear (ego length / 2 + its length / 2 off)
+    speed: float  # m/s along the route (its speed x cos of its heading against the route's)
+
+
+class CorridorAgent(TypedDict):
+    """The nearest pedestrian in the route's corridor: 0 <= arc length from the ego's projection
+    <= PEDESTRIAN_REACH and |offset| <= PEDESTRIAN_CORRIDOR."""
+
+    distance: float  # m along the route from the ego's projection to its centre's
+    offset: float  # m left of the centreline (negative: right)
+    speed: float  # m/s, its own (any direction)
+
+
+class StopLine(TypedDict):
+    """The route's next stop line: the first that the ego's front bumper has not passed by more
+    than 0.5 m (the expert still stops for it), if it lies within ROAD_REACH."""
+
+    distance: float  # m along the route from the ego's front bumper, as the expert measures its line gap
+    light: LightState  # red when green_left < 0, amber when it is below AMBER (3 s), else green
+    green_left: float  # s until the light turns red (amber included), -1 while red (roads.green_left's convention)
+
+
+class RoadContext(TypedDict):
+    """What a map and a tracker tell a planner about the road ahead of the frame. The route is
+    the one the ego follows; every distance along it is measured from the ego's projection
+    on it (the ego's own arc length when it drives on it). Ego frame, metres, m/s."""
+
+    route: Annotated[list[Vec2], Len(len(ROUTE_ARC))]  # centreline points at ROUTE_ARC, current ego frame
+    curvature: float  # the largest |curvature| (1/m) of the route in the next ROAD_REACH m
+    lead: LeadVehicle | None
+    pedestrian: CorridorAgent | None
+    stop_line: StopLine | None
+
+
 class FrameAnnotation(TypedDict):
     scene: str
     token: str  # sample token, unique in the dataset
@@ -101,6 +158,10 @@ class FrameAnnotation(TypedDict):
     boxes: list[Box]  # agents and objects inside the grid's x-y range
     agent_futures: list[Annotated[list[Vec2], Len(FUTURE_STEPS)]]  # per box, current ego frame
     agent_future_mask: list[Annotated[list[Flag], Len(FUTURE_STEPS)]]  # per box
+    #: The route ahead, the lead vehicle, the pedestrian in the corridor and the next stop
+    #: line (synthetic world v6 on, in the dataset and the closed loop alike); absent on real
+    #: data (a map and a tracker would give it) and on older worlds: every reader copes.
+    road: NotRequired[RoadContext]
     caption: str
     narration: str  # chain-of-thought: surroundings -> movers -> ego plan -> meta action
 

@@ -28,6 +28,9 @@ FORMAT_CHANGES = {
     "mask_lidar from 32 beams that return, mask_camera inside it, street-like class areas",
     5: "ego_accel from the frame and the one before (the speed now against the last move's), no longer the "
     "acceleration the expert applied after the frame",
+    6: "each frame's road (the route ahead, the lead vehicle, the pedestrian in the corridor, the next stop line "
+    "and its light, the curvature ahead), the driving command from the route as the closed loop takes it (no "
+    "longer from the expert's own future)",
 }
 FORMAT_VERSION = max(FORMAT_CHANGES)
 

@@ -3,8 +3,10 @@
 Trajectory conventions: ``ego_future[k]`` is the ego's position k+1 frames ahead in the
 current ego frame and ``ego_past`` the last PAST_STEPS positions, oldest first. A waypoint
 that falls outside the scene (before its first or after its last frame) has mask 0 and
-is filled with [0, 0]; agent futures follow the same rule. The command comes from the
-last valid future waypoint (schema.COMMAND_LATERAL_THRESHOLD; "go straight" when none).
+is filled with [0, 0]; agent futures follow the same rule. The driving command and the
+road context (``road``) are the caller's: both come from the ego's route
+(``road_context.route_command`` and ``road_context.road_context``), in the synthesized
+scene and in the closed loop alike.
 
 The meta action looks at the ego's simulated motion, which runs FUTURE_STEPS frames past
 the scene's end, so the last frames get labels too:
@@ -28,10 +30,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from occtrain.data.geometry import driving_command, global_to_ego, rotate_to_ego
+from occtrain.data.geometry import global_to_ego, rotate_to_ego
 from occtrain.data.meta_actions import SIDECAR_DIRECTION_WINDOW_S, SIDECAR_SPEED_WINDOW_S, sidecar_label
 from occtrain.data.meta_actions import SIDECAR_RULES as SIDECAR_RULES  # its direction thresholds, named here too
-from occtrain.data.schema import Box, Flag, FrameAnnotation, MetaAction
+from occtrain.data.schema import Box, Command, Flag, FrameAnnotation, MetaAction, RoadContext
 from occtrain.data.synth.catalog import TrackSet
 from occtrain.data.synth.grid import GROUND_TOP_Z
 from occtrain.formats.occ3d import CLASS_NAMES, FRAME_DT, FUTURE_STEPS, PAST_STEPS, RANGE_MAX
@@ -98,9 +100,18 @@ def _flags(mask: np.ndarray) -> list[Flag]:
 
 
 def frame_annotation(
-    scene: str, seed: int, i: int, num_frames: int, ego: EgoMotion, tracks: TrackSet
+    scene: str,
+    seed: int,
+    i: int,
+    num_frames: int,
+    ego: EgoMotion,
+    tracks: TrackSet,
+    *,
+    command: Command,
+    road: RoadContext | None,
 ) -> FrameAnnotation:
-    """The FrameAnnotation of frame ``i`` (caption and narration left empty for the text module)."""
+    """The FrameAnnotation of frame ``i`` (caption and narration left empty for the text module),
+    with the route's ``command`` and ``road`` context (none: the key is left out)."""
     pxy, pyaw = ego.xy[i], float(ego.yaw[i])
     future, fmask = _relative(ego.xy, i, num_frames, pxy, pyaw, range(1, FUTURE_STEPS + 1))
     past, pmask = _relative(ego.xy, i, num_frames, pxy, pyaw, range(-PAST_STEPS, 0))
@@ -124,7 +135,7 @@ def frame_annotation(
             }
         )
     agent_future, amask = _relative(tracks.xy[inside], i, num_frames, pxy, pyaw, range(1, FUTURE_STEPS + 1))
-    return {
+    frame: FrameAnnotation = {
         "scene": scene,
         "token": sample_token(seed, i),
         "index": i,
@@ -133,7 +144,7 @@ def frame_annotation(
         "ego_speed": round(float(ego.speed[i]), 4),
         "ego_accel": round(float(ego.accel[i]), 4),
         "ego_yaw_rate": round(float(ego.yaw_rate[i]), 5),
-        "command": driving_command(future, fmask),
+        "command": command,
         "meta_action": meta_action(ego, i),
         "ego_future": _r(future),
         "ego_future_mask": _flags(fmask),
@@ -145,3 +156,6 @@ def frame_annotation(
         "caption": "",
         "narration": "",
     }
+    if road is not None:
+        frame["road"] = road
+    return frame

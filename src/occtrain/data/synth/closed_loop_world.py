@@ -24,7 +24,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from occtrain.data.geometry import driving_command, ego_to_global, global_to_ego
+from occtrain.data.geometry import ego_to_global, global_to_ego
 from occtrain.data.schema import Command, FrameAnnotation
 from occtrain.data.synth.annotate import EgoMotion, frame_annotation, past_accels
 from occtrain.data.synth.catalog import KINDS, PEDESTRIAN, TrackSet
@@ -32,6 +32,7 @@ from occtrain.data.synth.citymap import DRIVEABLE, paint_city
 from occtrain.data.synth.closed_loop_view import ViewFrame
 from occtrain.data.synth.grid import EGO_HEIGHT, layer_span
 from occtrain.data.synth.raster import frame_semantics, masks, observe_static
+from occtrain.data.synth.road_context import road_context, route_command
 from occtrain.data.synth.roads import HEADINGS, PATH_DS, RoadNetwork, green_left, right_of
 from occtrain.data.synth.scene import PAINT_MARGIN, Population, populate
 from occtrain.data.synth.text import caption_for_frame, narration_for_frame
@@ -220,13 +221,9 @@ class DrivingWorld:
         return render_cameras(semantics, world, height, width)
 
     def command(self) -> Command:
-        """The route's command: where the route goes in the next 3 s at the current speed."""
-        s = self.log.progress[-1]
-        speed = max(self.ego.speed, 2.0)
-        ahead = s + speed * FRAME_DT * np.arange(1, FUTURE_STEPS + 1)
-        pts = np.stack([np.interp(ahead, self._route_s, self.route.xy[:, i]) for i in (0, 1)], axis=1)
-        local = global_to_ego(pts, self.ego.xy, self.ego.yaw)
-        return driving_command(local, np.ones(FUTURE_STEPS))
+        """The route's command: where the route goes in the next 3 s at the current speed, from
+        the ego's projection on it (``road_context.route_command``, as the dataset's)."""
+        return route_command(self.route, self.log.progress[-1], self.ego.xy, self.ego.yaw, self.ego.speed)
 
     def route_ahead(self, seconds: float = 3.0) -> np.ndarray:
         """Route points in the ego frame every FRAME_DT at the current speed (for the dashboard)."""
@@ -237,11 +234,14 @@ class DrivingWorld:
     def frame_annotation(self, scene: str, episode: str = "", future: np.ndarray | None = None) -> FrameAnnotation:
         """The FrameAnnotation of the planning frame now, by the generator's own annotator,
         as a stage reads it: the driven ego's pose, speed and past, the agents around it,
-        the route's command, a caption and a narration. What a stage is asked to predict is
-        unknown in closed loop and filled in as driving on at constant velocity (the future
-        waypoints, the meta action, the agents' futures), or, given ``future`` (FUTURE_STEPS
-        waypoints, ego frame), as driving those: the ego's future and meta action then say
-        what that plan does (how closed-loop training labels a frame with its expert's plan)."""
+        the route's command and road context (the route ahead from the ego's projection on
+        it, the lead vehicle, the pedestrian in the corridor, the next stop line and its
+        light: ``road_context``, as the dataset's), a caption and a narration. What a stage
+        is asked to predict is unknown in closed loop and filled in as driving on at constant
+        velocity (the future waypoints, the meta action, the agents' futures), or, given
+        ``future`` (FUTURE_STEPS waypoints, ego frame), as driving those: the ego's future
+        and meta action then say what that plan does (how closed-loop training labels a
+        frame with its expert's plan)."""
         if not self.at_frame:
             raise ValueError(f"step {self.step} is not a planning frame (every {STRIDE} steps)")
         i = self.step // STRIDE
@@ -281,9 +281,9 @@ class DrivingWorld:
             yaw=np.repeat(now.yaw, n, axis=1),
             speed=np.repeat(now.speed, n, axis=1),
         )
-        frame = frame_annotation(scene, self.seed, i, n, motion, tracks)
+        road = road_context(self.route, self.log.progress[-1], self.ego.xy, self.ego.yaw, self.time, now, 0)
+        frame = frame_annotation(scene, self.seed, i, n, motion, tracks, command=self.command(), road=road)
         frame["token"] = drive_token(self.seed, i, episode)
-        frame["command"] = self.command()
         frame["caption"] = caption_for_frame(frame)
         frame["narration"] = narration_for_frame(frame)
         return frame

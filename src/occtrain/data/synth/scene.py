@@ -6,13 +6,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from occtrain.data.schema import FrameAnnotation
+from occtrain.data.schema import Command, FrameAnnotation, RoadContext
 from occtrain.data.synth.annotate import EgoMotion, frame_annotation, past_accels
 from occtrain.data.synth.catalog import TrackSet
 from occtrain.data.synth.citymap import StaticMap, paint_city
 from occtrain.data.synth.population import EgoPlan, ego_mover, ego_start, spawn_traffic, spawn_walkers
 from occtrain.data.synth.raster import frame_semantics, masks, observe_static
-from occtrain.data.synth.roads import PATH_DS, RoadNetwork
+from occtrain.data.synth.road_context import road_context, route_command
+from occtrain.data.synth.roads import PATH_DS, Path, RoadNetwork
 from occtrain.data.synth.traffic import SIM_DT, MotionResult, Walker, mover_tracks, settle_traffic, walker_tracks
 from occtrain.formats.occ3d import FRAME_DT, FUTURE_STEPS, RANGE_MAX
 
@@ -36,6 +37,10 @@ class SyntheticScene:
     net: RoadNetwork
     #: (frames, X, Y, Z) bool lidar visibility of each frame, from ``observe_static``.
     lidar: np.ndarray
+    #: The ego's route and its arc length on it at each frame (what the command and the
+    #: road context are read from).
+    route: Path
+    progress: np.ndarray
 
     def render(self, i: int) -> dict[str, np.ndarray]:
         """Occ3D labels of frame ``i``: semantics, mask_lidar, mask_camera ((200, 200, 16) uint8)."""
@@ -116,6 +121,22 @@ def populate(seed: int, steps: int, extent: float | None = None) -> Population:
     return Population(net, plan, motion, host, walkers, walk_hist)
 
 
+def route_labels(
+    motion: MotionResult, tracks: TrackSet, num_frames: int, stride: int
+) -> list[tuple[Command, RoadContext]]:
+    """The driving command and the road context of each of the first ``num_frames`` frames
+    (every ``stride`` steps) of the ego (``motion``'s row 0, on its route ``motion.movers[0].path``)
+    among ``tracks`` (sampled at the frames), by the functions the closed loop calls."""
+    route = motion.movers[0].path
+    out = []
+    for i in range(num_frames):
+        step = i * stride
+        s, xy, yaw = float(motion.s[0, step]), motion.xy[0, step], float(motion.yaw[0, step])
+        command = route_command(route, s, xy, yaw, float(motion.v[0, step]))
+        out.append((command, road_context(route, s, xy, yaw, step * SIM_DT, tracks, i)))
+    return out
+
+
 def generate_scene(name: str, seed: int, num_frames: int = 40) -> SyntheticScene:
     """Build scene ``name`` deterministically from ``seed`` (the name only labels it).
 
@@ -151,5 +172,12 @@ def generate_scene(name: str, seed: int, num_frames: int = 40) -> SyntheticScene
     )
     tracks = TrackSet.concat([mover_tracks(motion, stride), walker_tracks(walkers, walk_hist, stride), placed])
     lidar = observe_static(static, tracks, ego_motion.xy[:num_frames], ego_motion.yaw[:num_frames])
-    frames = [frame_annotation(name, seed, i, num_frames, ego_motion, tracks) for i in range(num_frames)]
-    return SyntheticScene(name, seed, frames, static, tracks, ego_motion, net, np.stack(lidar))
+    labels = route_labels(motion, tracks, num_frames, stride)
+    frames = [
+        frame_annotation(name, seed, i, num_frames, ego_motion, tracks, command=command, road=road)
+        for i, (command, road) in enumerate(labels)
+    ]
+    progress = motion.s[0, : num_frames * stride : stride]
+    return SyntheticScene(
+        name, seed, frames, static, tracks, ego_motion, net, np.stack(lidar), pop.motion.movers[0].path, progress
+    )

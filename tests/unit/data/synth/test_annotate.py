@@ -24,8 +24,9 @@ INPUTS = ("ego_pose", "ego_speed", "ego_accel", "ego_yaw_rate", "ego_past", "ego
 #: What a model is asked to predict: made of the future by definition.
 TARGETS = ("ego_future", "ego_future_mask", "meta_action", "agent_futures")
 #: ``command`` is neither: the route's intent, which navigation knows ahead (nuScenes and the
-#: papers derive it from the logged future as this annotator does; the closed loop reads it
-#: off the route it drives).
+#: papers derive it from the logged future; the synthetic world, dataset and closed loop
+#: alike, reads it off the route: ``road_context.route_command``). ``road`` is an input of
+#: the frame now (the route as a map holds it, the agents and the light as they are).
 
 FRAMES, ANCHOR = 12, 5
 
@@ -55,7 +56,10 @@ def test_every_input_is_the_same_whatever_the_future_holds():
     braking = steady.copy()
     braking[ANCHOR + 1 :] = np.linspace(6.0, 0.0, len(braking) - ANCHOR - 1)  # the next frames brake hard
     n = FRAMES + FUTURE_STEPS
-    a, b = (frame_annotation("s", 0, ANCHOR, FRAMES, _motion(v), _tracks(n)) for v in (steady, braking))
+    a, b = (
+        frame_annotation("s", 0, ANCHOR, FRAMES, _motion(v), _tracks(n), command="go straight", road=None)
+        for v in (steady, braking)
+    )
     for key in INPUTS:
         assert a[key] == b[key], key
     assert any(a[key] != b[key] for key in TARGETS)  # the test sees a future that changed
@@ -116,5 +120,5 @@ def test_no_input_of_a_driven_frame_is_the_last_plans_command_relabelled():
     world.log.states = [replace(s, accel=99.0) for s in world.log.states]
     world.ego = replace(world.ego, accel=-99.0)
     after = world.frame_annotation("episode")
-    for key in INPUTS:
+    for key in (*INPUTS, "road", "command"):
         assert before[key] == after[key], key

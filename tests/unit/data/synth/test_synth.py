@@ -15,6 +15,7 @@ from occtrain.data.schema import (
     META_ACCEL_THRESHOLD,
     META_DIRECTIONS,
     META_SPEEDS,
+    ROUTE_ARC,
     STATUS_VALUES,
     STOP_SPEED,
     FrameAnnotation,
@@ -23,6 +24,7 @@ from occtrain.data.synth import SyntheticScene, generate_scene
 from occtrain.data.synth.annotate import SIDECAR_RULES
 from occtrain.data.synth.grid import GROUND_LAYER, GROUND_LAYERS, GROUND_TOP_Z
 from occtrain.data.synth.raster import LIDAR, masks
+from occtrain.data.synth.roads import PATH_DS
 from occtrain.formats.occ3d import (
     CLASS_INDEX,
     CLASS_NAMES,
@@ -242,9 +244,25 @@ def test_ego_future_and_past_are_the_poses_seen_from_the_current_frame(scene):
             assert m == int(j >= 0)
             want = to_ego(f, frames[j]["ego_pose"]["translation"][:2]) if j >= 0 else np.zeros(2)
             assert np.allclose(wp, want, atol=2e-3)
-        valid = [wp for wp, m in zip(f["ego_future"], f["ego_future_mask"]) if m]
-        y = valid[-1][1] if valid else 0.0
-        assert f["command"] == ("turn left" if y > 2 else "turn right" if y < -2 else "go straight")
+
+
+def test_the_command_and_the_road_come_from_the_egos_route(scene):
+    """The command is ST-P3's rule on the route's point max(speed, 2 m/s) x 3 s of arc ahead
+    (as the closed loop takes it), not on the ego's own future; the road's points are the
+    route's at ROUTE_ARC from the ego's arc length on it, seen from the ego."""
+    for i, f in enumerate(scene.frames):
+        s = float(scene.progress[i])
+        ahead = s + max(f["ego_speed"], 2.0) * 3.0
+        k = int(ahead / PATH_DS)
+        point = scene.route.xy[k] + (ahead / PATH_DS - k) * (scene.route.xy[k + 1] - scene.route.xy[k])
+        y = to_ego(f, point)[1]
+        assert f["command"] == ("turn left" if y > 2 else "turn right" if y < -2 else "go straight"), i
+        road = f["road"]
+        arc = (s + np.asarray(ROUTE_ARC)) / PATH_DS
+        k = arc.astype(int)
+        want = scene.route.xy[k] + (arc - k)[:, None] * (scene.route.xy[k + 1] - scene.route.xy[k])
+        assert np.allclose(to_global(f, road["route"]), want, atol=2e-3), i
+        assert np.allclose(road["route"][0], 0.0, atol=2e-3)  # the expert drives on its route
 
 
 def test_agents_move_by_their_velocity_and_futures_match_later_boxes(scene):
