@@ -15,6 +15,7 @@ from occtrain.data.cameras import nuscenes_rig
 from occtrain.data.layout import DatasetIndex, DatasetWriter, SceneFiles
 from occtrain.data.schema import QAQuestion
 from occtrain.data.synth import generate_scene
+from occtrain.data.synth.scene import scene_events
 from occtrain.data.synth.text import caption_for_frame, narration_for_frame, questions_for_frame
 from occtrain.progress import console, progress_bar
 
@@ -30,19 +31,58 @@ FORMAT_CHANGES = {
     "acceleration the expert applied after the frame",
     6: "each frame's road (the route ahead, the lead vehicle, the pedestrian in the corridor, the next stop line "
     "and its light, the curvature ahead), the driving command from the route as the closed loop takes it (no "
-    "longer from the expert's own future)",
+    "longer from the expert's own future), val scenes drawn until they hold a turn, a red-light stop and a lead",
 }
 FORMAT_VERSION = max(FORMAT_CHANGES)
 
 
+#: A val scene's seed is redrawn at most this many times (see ``scene_plan``).
+VAL_DRAWS = 32
+
+
+def _scene_seed(cfg: SynthConfig, i: int, draw: int = 0) -> int:
+    words = [cfg.seed, i] if draw == 0 else [cfg.seed, i, draw]
+    return int(np.random.SeedSequence(words).generate_state(1)[0])
+
+
+def _val_seed(cfg: SynthConfig, i: int, taken: set[int]) -> int:
+    """The first of scene ``i``'s seeds (``_scene_seed``'s draws, none in ``taken``) whose scene
+    holds a turn command, a red-light stop and a lead vehicle (``scene_events``), else the
+    first of VAL_DRAWS that holds the most of them, in that order of importance. A draw whose
+    ego, driving alone, could not do better than the best so far is not simulated in traffic."""
+    best, best_score = -1, (False, False, False)
+    for draw in range(VAL_DRAWS):
+        seed = _scene_seed(cfg, i, draw)
+        if seed in taken:
+            continue
+        alone = scene_events(seed, cfg.frames_per_scene, traffic=False)
+        if best >= 0 and (alone.turns > 0, alone.red_stops > 0, True) <= best_score:
+            continue
+        events = scene_events(seed, cfg.frames_per_scene)
+        score = (events.turns > 0, events.red_stops > 0, events.leads > 0)
+        if best < 0 or score > best_score:
+            best, best_score = seed, score
+        if all(score):
+            break
+    return best
+
+
 def scene_plan(cfg: SynthConfig) -> list[tuple[str, str, int]]:
-    """(scene name, split, scene seed) for every scene; train and val scenes are disjoint."""
-    plan = []
-    total = cfg.train_scenes + cfg.val_scenes
-    for i in range(total):
-        seed = int(np.random.SeedSequence([cfg.seed, i]).generate_state(1)[0])
-        plan.append((f"scene-{i:04d}", "train" if i < cfg.train_scenes else "val", seed))
-    return plan
+    """(scene name, split, scene seed) for every scene; train and val scenes are disjoint.
+
+    Train scene ``i``'s seed is drawn from (seed, i). A val scene must show open-loop
+    scoring what closed loop shows, so its seed is redrawn (deterministically: (seed, i,
+    draw)) until its route turns within its frames, the ego stands at a red light and
+    follows a lead vehicle (``_val_seed``): the plan is the same on every run, so a resumed
+    synthesis writes the scenes an uninterrupted one would have.
+    """
+    splits = ["train"] * cfg.train_scenes + ["val"] * cfg.val_scenes
+    seeds = [_scene_seed(cfg, i) for i in range(cfg.train_scenes)]
+    taken = set(seeds)
+    for i in range(cfg.train_scenes, len(splits)):
+        seeds.append(_val_seed(cfg, i, taken))
+        taken.add(seeds[-1])
+    return [(f"scene-{i:04d}", split, seed) for i, (split, seed) in enumerate(zip(splits, seeds))]
 
 
 def _fingerprint(cfg: SynthConfig) -> dict:

@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from occtrain.data.schema import Command, FrameAnnotation, RoadContext
+from occtrain.data.schema import STOP_SPEED, Command, FrameAnnotation, RoadContext
 from occtrain.data.synth.annotate import EgoMotion, frame_annotation, past_accels
 from occtrain.data.synth.catalog import TrackSet
 from occtrain.data.synth.citymap import StaticMap, paint_city
@@ -14,7 +14,16 @@ from occtrain.data.synth.population import EgoPlan, ego_mover, ego_start, spawn_
 from occtrain.data.synth.raster import frame_semantics, masks, observe_static
 from occtrain.data.synth.road_context import road_context, route_command
 from occtrain.data.synth.roads import PATH_DS, Path, RoadNetwork
-from occtrain.data.synth.traffic import SIM_DT, MotionResult, Walker, mover_tracks, settle_traffic, walker_tracks
+from occtrain.data.synth.traffic import (
+    SIM_DT,
+    MotionResult,
+    Mover,
+    Walker,
+    mover_tracks,
+    settle_traffic,
+    simulate_movers,
+    walker_tracks,
+)
 from occtrain.formats.occ3d import FRAME_DT, FUTURE_STEPS, RANGE_MAX
 
 #: Margin (m) around the ego's possible route within which traffic is spawned.
@@ -102,14 +111,18 @@ def grid_extent(steps: int) -> float:
     return GRID_EXTENT * max(1.0, steps * SIM_DT / GRID_SECONDS)
 
 
-def populate(seed: int, steps: int, extent: float | None = None) -> Population:
-    """The roads (a grid over [-extent, extent]^2, by default ``grid_extent(steps)``), the
-    ego's route and the traffic of scene ``seed``, simulated for ``steps`` steps."""
+def _ego_on_roads(seed: int, steps: int, extent: float | None) -> tuple[RoadNetwork, EgoPlan, Mover]:
+    """Scene ``seed``'s roads, the ego's start and the ego (its route and speed plan)."""
     net = RoadNetwork.random(np.random.default_rng([seed, 0]), seed, extent or grid_extent(steps))
     route_rng = np.random.default_rng([seed, 1])
     net, plan = ego_start(net, route_rng)
-    ego = ego_mover(net, plan, route_rng, steps, SIM_DT)
+    return net, plan, ego_mover(net, plan, route_rng, steps, SIM_DT)
 
+
+def populate(seed: int, steps: int, extent: float | None = None) -> Population:
+    """The roads (a grid over [-extent, extent]^2, by default ``grid_extent(steps)``), the
+    ego's route and the traffic of scene ``seed``, simulated for ``steps`` steps."""
+    net, plan, ego = _ego_on_roads(seed, steps, extent)
     reach = ego.path.xy[: int(ego.v_des.max() * steps * SIM_DT / PATH_DS) + 1]
     lo, hi = reach.min(0) - SPAWN_MARGIN, reach.max(0) + SPAWN_MARGIN
     traffic_rng = np.random.default_rng([seed, 2])
@@ -135,6 +148,55 @@ def route_labels(
         command = route_command(route, s, xy, yaw, float(motion.v[0, step]))
         out.append((command, road_context(route, s, xy, yaw, step * SIM_DT, tracks, i)))
     return out
+
+
+#: A "red-light stop" frame: the ego stands (speed at most STOP_SPEED) this close (m) to a stop
+#: line whose light is not green.
+STOP_LINE_NEAR = 10.0
+
+
+@dataclass
+class SceneEvents:
+    """How many of a scene's frames with a full future inside it (a clip's anchors; all of
+    them in a scene too short to have one) show each situation a planner must read off the road."""
+
+    turns: int  # the command turns
+    red_stops: int  # the ego stands at a red or amber stop line (STOP_LINE_NEAR)
+    leads: int  # a lead vehicle within ROAD_REACH
+
+
+def count_events(labels: list[tuple[Command, RoadContext]], speed: np.ndarray) -> SceneEvents:
+    """SceneEvents of frames labelled ``labels`` (``route_labels``) with ego speeds ``speed``."""
+    n = len(labels)
+    frames = range(n - FUTURE_STEPS) if n > FUTURE_STEPS else range(n)
+    turns = stops = leads = 0
+    for i in frames:
+        command, road = labels[i]
+        line = road["stop_line"]
+        turns += command != "go straight"
+        leads += road["lead"] is not None
+        stops += bool(
+            speed[i] <= STOP_SPEED and line and line["light"] != "green" and line["distance"] <= STOP_LINE_NEAR
+        )
+    return SceneEvents(turns, stops, leads)
+
+
+def scene_events(seed: int, num_frames: int, traffic: bool = True) -> SceneEvents:
+    """SceneEvents of scene ``seed`` at ``num_frames`` frames, from its traffic (a fraction of
+    the scene's cost: no city, no rendering; the city's placed objects, parked off the lanes,
+    are left out of the lead test). Without ``traffic``, of the ego driving its route alone,
+    a fifth of that cost again: no lead then, and the turns and stops of an ego that no
+    vehicle holds up (traffic only ever took some away, in 40 draws measured)."""
+    stride = int(round(FRAME_DT / SIM_DT))
+    steps = (num_frames + FUTURE_STEPS - 1) * stride + 1
+    if traffic:
+        pop = populate(int(seed), steps)
+        motion = pop.motion
+        tracks = TrackSet.concat([mover_tracks(motion, stride), walker_tracks(pop.walkers, pop.walk_hist, stride)])
+    else:
+        motion = simulate_movers([_ego_on_roads(int(seed), steps, None)[2]], steps, np.array([-1]))
+        tracks = mover_tracks(motion, stride)  # nobody
+    return count_events(route_labels(motion, tracks, num_frames, stride), motion.v[0, ::stride])
 
 
 def generate_scene(name: str, seed: int, num_frames: int = 40) -> SyntheticScene:
