@@ -37,6 +37,7 @@ import torch.nn.functional as F
 
 from occtrain.config.llm import SCENE_PREDICTION_MODES
 from occtrain.core.ego_steps import SceneContext, SceneTrack
+from occtrain.core.forecast_targets import ForecastTarget
 from occtrain.core.protocols import PromptInputs
 from occtrain.core.sequence import IGNORE, PayloadSpec, TokenSequence, cat_payload, empty_payload
 from occtrain.core.vocab import JointVocab
@@ -47,9 +48,9 @@ from occtrain.models.attention import allowed_pairs
 class SequenceBuilder:
     """Lays parts out in the joint vocabulary (see the module docstring).
 
-    ``scene_prediction``, ``payload_spec`` and ``scene_queries`` (the query block's ids
-    from the ``SceneContext`` of the scene) must be the model's
-    (``world.builder()`` gets them right).
+    ``scene_prediction``, ``payload_spec``, ``scene_queries`` (the query block's ids
+    from the ``SceneContext`` of the scene) and ``forecast_target`` (what a predicted scene
+    is trained to give) must be the model's (``world.builder()`` gets them right).
     """
 
     def __init__(
@@ -58,6 +59,7 @@ class SequenceBuilder:
         scene_prediction: str = "next_scene",
         payload_spec: PayloadSpec | None = None,
         scene_queries: Callable[[SceneContext], torch.Tensor] | None = None,
+        forecast_target: Callable[[SceneContext, torch.Tensor], ForecastTarget] | None = None,
     ):
         if scene_prediction not in SCENE_PREDICTION_MODES:
             raise ValueError(f"scene_prediction must be one of {SCENE_PREDICTION_MODES}")
@@ -65,6 +67,8 @@ class SequenceBuilder:
         self.next_scene = scene_prediction == "next_scene"
         self.payload_spec = payload_spec or {}
         self.scene_queries = scene_queries or (lambda context: vocab.query_ids())
+        #: What a predicted scene is trained to give (``core.forecast_targets``): as it is by default.
+        self.forecast_target = forecast_target or (lambda context, codes: ForecastTarget(codes, None))
         self._track = SceneTrack()  # the scenes laid out so far and where the ego stands
         #: Per-sequence targets (see ``TokenSequence.targets``), set by a family's parts.
         self.targets: dict[str, torch.Tensor] = {}
@@ -185,8 +189,9 @@ class SequenceBuilder:
         else:
             block = self.next_block()
             if supervise:
-                queries = self.scene_queries(self._track.context())
-                self.add(queries, False, seg=-block, query_target=code_ids)
+                context = self._track.context()
+                target = v.occ_ids(self.forecast_target(context, codes).codes)
+                self.add(self.scene_queries(context), False, seg=-block, query_target=target)
             self.add(code_ids, False, seg=block)
         self.add(torch.tensor([v.occ_close_id]), supervise)
         self._track.scene(code_ids, predicted=supervise)

@@ -81,16 +81,27 @@ class SceneTrack:
         self.next = self.waypoint = None
 
 
+def query_source(mode: str, context: SceneContext) -> tuple[torch.Tensor, EgoStep | None] | None:
+    """What a query block of ``SCENE_QUERIES`` mode ``mode`` is made from: the scene (as the
+    world model tracks it) and the ego's move it is moved by (None: unmoved); None for the
+    learnable queries, also when there is no such scene."""
+    source = context.observed if mode == "moved_observed_scene" else context.last_scene
+    if mode == "learned" or source is None:
+        return None
+    step = context.offset if mode == "moved_observed_scene" else context.step
+    return source, None if mode == "last_scene" else step
+
+
 def query_scene(mode: str, context: SceneContext, move: Move | None) -> torch.Tensor | None:
     """The scene a query block of ``SCENE_QUERIES`` mode ``mode`` holds, as the world model
     tracks scenes, or None: the learnable queries, also when there is no such scene; a scene
     unmoved when no waypoint came before this one. ``moved_*`` modes move through ``move``
     (the frozen tokenizer's: shifted and re-encoded)."""
-    source = context.observed if mode == "moved_observed_scene" else context.last_scene
-    if mode == "learned" or source is None:
+    made = query_source(mode, context)
+    if made is None:
         return None
-    step = context.offset if mode == "moved_observed_scene" else context.step
-    if mode == "last_scene" or step is None:
+    source, step = made
+    if step is None:
         return source
     if move is None:
         raise ValueError(

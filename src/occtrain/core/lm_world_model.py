@@ -34,7 +34,8 @@ from occtrain.core.decoding import (
     decode,
     decode_batch,
 )
-from occtrain.core.ego_steps import SceneContext
+from occtrain.core.ego_steps import SceneContext, query_source
+from occtrain.core.forecast_targets import ForecastTarget, canonical_codes, mover_cells
 from occtrain.core.protocols import SceneMover
 from occtrain.core.sequence import IGNORE, PayloadSpec, Step, TokenSequence
 from occtrain.core.shared_tasks import TaskConfig as BaseTaskConfig
@@ -95,6 +96,8 @@ class LMWorldModel(nn.Module):
     #: Moves a scene by the ego through the frozen scene encoder (``SceneMover``),
     #: for query blocks that read it; the engine that holds the encoder sets it.
     scene_mover: SceneMover | None = None
+    #: What a predicted scene's query block carries (``core.ego_steps.SCENE_QUERIES``).
+    scene_queries: str = "learned"
     #: The causal LM (a transformers model, LoRA-wrapped by peft or not).
     llm: PreTrainedModel
     _device_probe: torch.Tensor
@@ -121,7 +124,9 @@ class LMWorldModel(nn.Module):
 
     # -- what a family overrides
     def builder(self) -> SequenceBuilder:
-        return SequenceBuilder(self.vocab, self.scene_prediction, self.payload_spec, self.scene_query_ids)
+        return SequenceBuilder(
+            self.vocab, self.scene_prediction, self.payload_spec, self.scene_query_ids, self.forecast_target
+        )
 
     def scene_query_ids(self, context: SceneContext) -> torch.Tensor:
         """The query block of a scene predicted at once ("next_scene" mode), given what came
@@ -135,6 +140,31 @@ class LMWorldModel(nn.Module):
         layout: the cells of a scene it holds, ``core.patch_layout``), or None: every payload
         field at its fill value. Training and generation both ask here."""
         return None
+
+    def raw_codes(self, tracked: torch.Tensor) -> torch.Tensor:
+        """A scene as ``tracked_scene`` keeps it -> its raw codes (flat, codebook-major)."""
+        return self.vocab.codes_from_ids(tracked.detach().cpu())
+
+    def forecast_target(self, context: SceneContext, target: torch.Tensor) -> ForecastTarget:
+        """What a predicted scene (raw codes ``target``) is trained to give, given what its
+        query block carries (``core.forecast_targets``): its codes with the query's wherever
+        the scene under a cell did not change, and the cells where an agent moved; as it is
+        (no movers known) when the query carries no scene or either has no labels."""
+        made = query_source(self.scene_queries, context)
+        mover = self.scene_mover
+        if made is None or mover is None:
+            return ForecastTarget(target, None)
+        source, step = made
+        if step is None:  # an unmoved query: nothing of the ego's move to separate
+            return ForecastTarget(target, None)
+        raw = self.raw_codes(source)
+        query_labels, target_labels = mover.labels(raw, step), mover.labels(target, None)
+        if query_labels is None or target_labels is None:
+            return ForecastTarget(target, None)
+        hw = self.vocab.scene_hw
+        query = mover.codes(raw, step)
+        codes = canonical_codes(query, target, query_labels, target_labels, self.vocab.num_codebooks, hw)
+        return ForecastTarget(codes.to(target.device), mover_cells(query_labels, target_labels, hw))
 
     def tracked_scene(self, ids: torch.Tensor, payload: dict[str, torch.Tensor]) -> torch.Tensor:
         """What ``core.ego_steps.SceneTrack`` keeps of a scene laid out or generated as these

@@ -90,7 +90,9 @@ class PatchSequenceBuilder(SequenceBuilder):
     """Lays scenes out as patch tokens with their cells and the waypoint before them as payload."""
 
     def __init__(self, world: PatchWorldModel):
-        super().__init__(world.vocab, world.scene_prediction, world.payload_spec, world.scene_query_ids)
+        super().__init__(
+            world.vocab, world.scene_prediction, world.payload_spec, world.scene_query_ids, world.forecast_target
+        )
         self.world = world
         self._fusion: torch.Tensor | None = None  # the waypoint that ended the last part, if it was actions
 
@@ -138,7 +140,11 @@ class PatchSequenceBuilder(SequenceBuilder):
             if supervise:
                 context = self._track.context()
                 queries = world.scene_query_payload(context)
-                queries["target"] = cells
+                target = self.forecast_target(context, codes)
+                queries["target"] = world.cells_of(target.codes)
+                if target.movers is not None:  # (h, w) -> each patch's cells, as its codes lie
+                    flat = target.movers.reshape(1, -1).expand(world.num_codebooks, -1).reshape(-1).long()
+                    queries["mover"] = world.cells_of(flat)[..., 0].bool()
                 self.add(self.scene_queries(context), False, seg=-block, payload=queries)
             self.add(slot_ids, False, seg=block, payload=slots)
         else:
@@ -219,6 +225,7 @@ class PatchWorldModel(LMWorldModel):
         latent_parts: dict[str, nn.Module | None] | None = None,
         change_weight: float = 1.0,
         scene_queries: str = "learned",
+        mover_weight: float = 1.0,
     ):
         super().__init__(llm, vocab, scene_prediction)
         if vocab.patch != patch:
@@ -227,6 +234,7 @@ class PatchWorldModel(LMWorldModel):
         self.latent_hw = (int(latent_hw[0]), int(latent_hw[1]))
         self.frame_separation = frame_separation
         self.change_weight = float(change_weight)
+        self.mover_weight = float(mover_weight)
         self.scene_queries = scene_queries
         self.num_codebooks = len(codebooks)
         self.code_dim = int(codebooks[0].shape[1])
@@ -248,6 +256,8 @@ class PatchWorldModel(LMWorldModel):
         }
         if copy_bias is not None:  # True at a query that carries a scene
             self.payload_spec["carries"] = ((), torch.bool, False)
+            # True at a query's cell where an agent moved (``core.forecast_targets.mover_cells``).
+            self.payload_spec["mover"] = ((self.patch * self.patch,), torch.bool, False)
 
     # -- scenes <-> patches
     def cells_of(self, codes: torch.Tensor) -> torch.Tensor:
@@ -292,6 +302,10 @@ class PatchWorldModel(LMWorldModel):
     def tracked_scene(self, ids: torch.Tensor, payload: dict[str, torch.Tensor]) -> torch.Tensor:
         """A scene's raw codes (what a patch id cannot say), from its patches' cells."""
         return self.codes_of(payload["cells"])
+
+    def raw_codes(self, tracked: torch.Tensor) -> torch.Tensor:
+        """The patches layout tracks scenes as their raw codes already."""
+        return tracked.detach().reshape(-1).long().cpu()
 
     def builder(self) -> PatchSequenceBuilder:
         return PatchSequenceBuilder(self)
@@ -409,14 +423,20 @@ class PatchWorldModel(LMWorldModel):
         )
 
     def cell_weights(self, picked: torch.Tensor, payload: dict[str, torch.Tensor], emits: torch.Tensor) -> torch.Tensor:
-        """(M, p*p, codebooks) loss weights of the emitted cells ``picked``: ``change_weight``
-        where a query carried a code the target changes, else 1."""
+        """(M, p*p, codebooks) loss weights of the emitted cells ``picked``: ``mover_weight``
+        where an agent moved (the query's ``mover`` cells), ``change_weight`` where a query
+        carried a code the target changes (the larger where both), else 1."""
         weight = torch.ones(picked.shape, dtype=torch.float32, device=picked.device)
-        if self.change_weight == 1.0 or "carries" not in payload:
+        if "carries" not in payload:
             return weight
-        carried = payload["cells"][emits]
-        changed = payload["carries"][emits].bool()[:, None, None] & (carried != picked)
-        return weight.masked_fill(changed, self.change_weight)
+        if self.change_weight != 1.0:
+            carried = payload["cells"][emits]
+            changed = payload["carries"][emits].bool()[:, None, None] & (carried != picked)
+            weight = weight.masked_fill(changed, self.change_weight)
+        if self.mover_weight != 1.0:
+            movers = payload["mover"][emits].bool()[..., None].expand_as(weight)
+            weight = torch.where(movers, weight.clamp(min=self.mover_weight), weight)
+        return weight
 
     # -- export
     def export_config(self) -> dict:

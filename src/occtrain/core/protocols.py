@@ -145,6 +145,11 @@ class SceneMover(Protocol):
 
     def codes(self, codes: torch.Tensor, step: EgoStep) -> torch.Tensor: ...
 
+    def labels(self, codes: torch.Tensor, step: EgoStep | None) -> torch.Tensor | None:
+        """The label volume of the dataset frame whose raw codes these are, moved by
+        ``step`` (None: as it is); None when they are no dataset frame's (a generated scene)."""
+        ...
+
 
 class PromptInputs(Protocol):
     """What a sequence builder's ``lay`` reads for the parts that hold no values of their

@@ -76,6 +76,15 @@ class MovedScenes:
             self._kept.move_to_end(key)
         return moved.to(codes.device)
 
+    @torch.no_grad()
+    def labels(self, codes: torch.Tensor, step: EgoStep | None) -> torch.Tensor | None:
+        """The observed labels of the dataset frame these raw codes encode, moved by ``step``
+        (None: as they are); None for codes of no dataset frame (nothing is decoded)."""
+        labels = self.observed(codes.detach().reshape(-1).long().cpu())
+        if labels is None or step is None:
+            return labels
+        return moved_scene(labels, step)
+
     def _device(self) -> torch.device:
         module = self.encoder
         assert isinstance(module, torch.nn.Module)

@@ -95,6 +95,11 @@ class OccLLaMAWorldConfig:
     #: paper's). What the moved present gets wrong is what the model is for, and a few such
     #: cells among hundreds kept are otherwise a rounding error of the loss. 1: all alike.
     change_weight: float = 1.0
+    #: Where a query carries a scene: the loss weight of a cell where an agent moved (a
+    #: movable-class voxel differs between the moved present and the future: where it came
+    #: from and went to; ``core.forecast_targets``), against 1 for the rest (not the paper's).
+    #: What the moved present cannot say is where the others went. 1: every cell alike.
+    mover_weight: float = 1.0
 
     def validate(self, where: str, inputs: WorldInputs) -> None:
         """One line naming the key when a setting is unknown or cannot work over ``inputs``
@@ -109,10 +114,11 @@ class OccLLaMAWorldConfig:
             )
         if not math.isfinite(self.copy_bias):
             raise ConfigError(f"{where}.copy_bias: must be a finite number, got {self.copy_bias}")
-        if not math.isfinite(self.change_weight) or self.change_weight < 1:
-            raise ConfigError(
-                f"{where}.change_weight: must be a number >= 1 (changed cells count at least as kept), got "
-                f"{self.change_weight}"
-            )
+        for key in ("change_weight", "mover_weight"):
+            if not math.isfinite(getattr(self, key)) or getattr(self, key) < 1:
+                raise ConfigError(
+                    f"{where}.{key}: must be a number >= 1 (those cells count at least as the rest), got "
+                    f"{getattr(self, key)}"
+                )
         if self.cell_dim < 1:
             raise ConfigError(f"{where}.cell_dim: must be >= 1, got {self.cell_dim}")

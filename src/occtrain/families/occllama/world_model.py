@@ -69,6 +69,7 @@ class OccLLaMAWorldModel(LMWorldModel):
     ):
         super().__init__(llm, vocab, scene_prediction)
         self.cfg = cfg or OccLLaMAWorldConfig()
+        self.scene_queries = self.cfg.scene_queries
         if codebook.shape[0] != vocab.num_codes:
             raise ValueError(f"codebook has {codebook.shape[0]} codes, the vocabulary {vocab.num_codes}")
         self.register_buffer("codebook", codebook.detach().float().clone(), persistent=False)
@@ -81,7 +82,7 @@ class OccLLaMAWorldModel(LMWorldModel):
         learnable queries, or a scene before this one, moved by the ego as it says; the
         learnable queries when there is no such scene, a scene unmoved when no waypoint
         came before this one."""
-        scene = query_scene(self.cfg.scene_queries, context, self.scene_mover)
+        scene = query_scene(self.scene_queries, context, self.scene_mover)
         return super().scene_query_ids(context) if scene is None else scene
 
     def scene_writer(self, recent: torch.Tensor, waypoint: torch.Tensor | None = None) -> CodeScene:
@@ -167,6 +168,7 @@ class OccLLaMAPatchWorldModel(PatchWorldModel):
             copy_bias=cfg.copy_bias,
             change_weight=cfg.change_weight,
             scene_queries=cfg.scene_queries,
+            mover_weight=cfg.mover_weight,
         )
         self.cfg = cfg
 

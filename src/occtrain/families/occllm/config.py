@@ -71,18 +71,24 @@ class OccLLMWorldConfig:
     #: for, and a handful of such cells among hundreds kept is otherwise a rounding error
     #: of the loss. 1: every cell alike.
     change_weight: float = 1.0
+    #: Where a query carries a scene: the loss weight of a cell where an agent moved (a
+    #: movable-class voxel differs between the moved present and the future: where it came
+    #: from and went to; ``core.forecast_targets``), against 1 for the rest (not the paper's).
+    #: What the moved present cannot say is where the others went. 1: every cell alike.
+    mover_weight: float = 1.0
 
     def validate(self, where: str, inputs: WorldInputs) -> None:
         """One line naming the key when a setting cannot work over ``inputs`` (a ``WorldInputs``)."""
         if self.scene_queries not in SCENE_QUERIES:
             raise ConfigError(f"{where}.scene_queries: '{self.scene_queries}' is not one of {', '.join(SCENE_QUERIES)}")
-        for key in ("copy_bias", "change_weight"):
+        for key in ("copy_bias", "change_weight", "mover_weight"):
             if not math.isfinite(getattr(self, key)):
                 raise ConfigError(f"{where}.{key}: must be a finite number, got {getattr(self, key)}")
-        if self.change_weight < 1:
-            raise ConfigError(
-                f"{where}.change_weight: must be >= 1 (changed cells count at least as kept), got {self.change_weight}"
-            )
+        for key in ("change_weight", "mover_weight"):
+            if getattr(self, key) < 1:
+                raise ConfigError(
+                    f"{where}.{key}: must be >= 1 (those cells count at least as the rest), got {getattr(self, key)}"
+                )
         latent = tuple(inputs.scene.latent_hw)
         if self.patch_size < 1 or latent[0] % self.patch_size or latent[1] % self.patch_size:
             raise ConfigError(

@@ -63,6 +63,7 @@ class OccLLMWorldModel(PatchWorldModel):
             latent_parts={"fusion": fusion},
             change_weight=cfg.change_weight,
             scene_queries=cfg.scene_queries,
+            mover_weight=cfg.mover_weight,
         )
         self.cfg = cfg
 

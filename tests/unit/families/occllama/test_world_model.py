@@ -413,6 +413,7 @@ def test_last_scene_queries_are_the_scene_before(vocab):
         "copy_bias": 4.0,
         "cell_dim": 64,
         "change_weight": 1.0,
+        "mover_weight": 1.0,
     }
     inputs = WorldInputs(scene=SimpleNamespace(codebooks=[world.codebook]))
     old = {k: val for k, val in world.export_config().items() if k != "occllama"}  # an export from before the setting
@@ -442,6 +443,9 @@ class ShiftingMover:
     def __call__(self, code_ids, step):
         self.asked.append((self.vocab.codes_from_ids(code_ids).tolist(), step))
         return self.vocab.occ_ids((self.vocab.codes_from_ids(code_ids.cpu()) + 1) % 16)
+
+    def labels(self, codes, step):
+        return None  # its scenes are no dataset frame's: targets stay as they are
 
 
 def test_moved_last_scene_queries_are_the_scene_before_moved_by_the_ego_step(vocab):
@@ -545,6 +549,9 @@ class ShiftingCodes:
 
     def __call__(self, code_ids, step):
         raise AssertionError("the patches layout moves raw codes, not ids")
+
+    def labels(self, codes, step):
+        return None
 
 
 def make_patch_world(vocab, queries="moved_observed_scene", seed=0, copy_bias=4.0, mode="next_scene"):
@@ -694,6 +701,7 @@ def test_an_engine_exports_loads_forecasts_plans_and_scores_in_either_layout(tmp
         "copy_bias": 2.5,
         "cell_dim": 8,
         "change_weight": 1.0,
+        "mover_weight": 1.0,
     }
     saved, back = engine.world.state_dict(), loaded.world.state_dict()
     assert saved.keys() == back.keys()

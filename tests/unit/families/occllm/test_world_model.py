@@ -333,6 +333,9 @@ def test_moved_observed_scene_queries_carry_the_present_moved_by_the_egos_positi
             moved.append(step)
             return torch.roll(scene, 1)
 
+        def labels(self, codes, step):
+            return None
+
     w = world("next_scene", scene_queries="moved_observed_scene", copy_bias=2.0)
     w.scene_mover = Mover()
     present = scene_codes(1)
@@ -348,7 +351,9 @@ def test_moved_observed_scene_queries_carry_the_present_moved_by_the_egos_positi
 
 
 def test_a_cell_the_query_carried_and_the_target_changes_weighs_change_weight():
-    mover = type("Mover", (), {"codes": staticmethod(lambda scene, step: scene)})()
+    mover = type(
+        "Mover", (), {"codes": staticmethod(lambda scene, step: scene), "labels": staticmethod(lambda c, s: None)}
+    )()
     present, future = scene_codes(1), scene_codes(1).clone()
     future[:3] = (future[:3] + 1) % SIZES[0]  # three motion cells change, the rest are kept
     losses = {}
@@ -363,3 +368,39 @@ def test_a_cell_the_query_carried_and_the_target_changes_weighs_change_weight():
         with torch.no_grad():
             losses[weight] = w(collate([seq], w.vocab.pad_id)).scene_loss.item()
     assert losses[5.0] > losses[1.0]
+
+
+def test_a_forecast_target_keeps_its_querys_code_where_the_scene_did_not_change_and_weighs_movers():
+    """Over dataset frames (their labels known): a future code that differs from the moved
+    present's where the voxels under the cell are the same is a synonym and becomes the
+    query's; the cells where a car came and went weigh mover_weight (core.forecast_targets)."""
+    from occtrain.formats.occ3d import CLASS_INDEX, FREE
+
+    present, future = scene_codes(1), scene_codes(2)  # every cell's code may differ
+    labels = {}
+    for codes, car_at in ((present, 0), (future, 50)):
+        volume = torch.full((200, 200, 16), FREE, dtype=torch.long)
+        volume[car_at : car_at + 50, 0:50, 1:3] = CLASS_INDEX["car"]  # fills cell (0, 0), then (1, 0)
+        labels[codes.numpy().tobytes()] = volume
+
+    class Mover:
+        def codes(self, scene, step):
+            return scene  # the query carries the present as it is, codes and all
+
+        def labels(self, codes, step):
+            return labels.get(codes.reshape(-1).numpy().tobytes())
+
+    w = world("next_scene", scene_queries="moved_observed_scene", mover_weight=4.0)
+    w.scene_mover = Mover()
+    seq = w.builder().actions(XY).scene(present).actions(XY, True).scene(future, True).build()
+    payload = seq.payload
+    carried = payload["carries"].bool()
+    target = w.codes_of(payload["target"][carried]).reshape(len(SIZES), *HW)
+    want = present.reshape(len(SIZES), *HW).clone()
+    want[:, :2, 0] = future.reshape(len(SIZES), *HW)[:, :2, 0]  # the cells the car left and reached
+    assert torch.equal(target, want)
+    movers = w.codes_of(payload["mover"][carried].long()[..., None].expand(-1, -1, len(SIZES)))
+    assert movers.reshape(len(SIZES), *HW)[0].nonzero().tolist() == [[0, 0], [1, 0]]
+    emits = payload["target"][..., 0, 0] != -100
+    weights = w.cell_weights(payload["target"][emits], payload, emits)
+    assert int((weights == 4.0).sum()) == 2 * len(SIZES) and int((weights == 1.0).sum()) == weights.numel() - 4
