@@ -9,13 +9,11 @@ import numpy as np
 import torch
 from torch import nn
 
+from occtrain.data.schema import ROUTE_ARC
 from occtrain.errors import OcctrainError
 from occtrain.formats.exports import load_state_strict, read_export
 from occtrain.formats.occ3d import FRAME_DT, FUTURE_STEPS
 from occtrain.kinematics import constant_acceleration_path, past_acceleration
-
-#: Arc lengths (m) of a frame's ``road.route`` points along its route (TODO: data.schema's).
-ROUTE_ARC = tuple(2.5 * i for i in range(25))
 
 
 class PlanningHead(nn.Module):

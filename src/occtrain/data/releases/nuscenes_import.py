@@ -82,7 +82,7 @@ FORMAT_VERSION = 1
 ABSENT = {
     "caption": "no nuScenes table holds one; `occtrain data import omnidrive` brings OmniDrive's descriptions",
     "narration": "no release holds occtrain's chain-of-thought narration",
-    "map": "route ahead, lead vehicle and stop lines would come from the map expansion, which is not read",
+    "road": "route ahead, lead vehicle and stop lines would come from the map expansion, which is not read",
 }
 #: The CAN bus message nearest a sample must lie this close to it (seconds).
 CAN_BUS_TOLERANCE_S = 0.1

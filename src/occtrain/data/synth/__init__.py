@@ -8,7 +8,9 @@ changes, and per-frame annotations at 2 Hz. ``SyntheticScene.render(i)`` rasteri
 per-process sensor geometry up front. Modules: ``grid`` (vertical convention),
 ``catalog`` (object kinds, tracks), ``roads`` (network, lights, routes), ``citymap``
 (static raster and objects), ``population`` and ``traffic`` (agents and their motion),
-``raster`` (voxels, masks), ``annotate`` (FrameAnnotation), ``scene`` (the whole);
+``raster`` (voxels, masks), ``annotate`` (FrameAnnotation), ``road_context`` (what a map
+and a tracker would say of the route ahead: its points, the lead, the stop line, the
+command), ``scene`` (the whole);
 ``text`` writes the captions, narrations and questions.
 """
 
