@@ -59,6 +59,10 @@ LIGHT_STATES: tuple[str, ...] = get_args(LightState)
 #: The road context (``RoadContext``): arc lengths (m) along the route, from the ego's
 #: projection on it, of the centreline points ``route`` holds (0, 2.5, ..., 60).
 ROUTE_ARC: tuple[float, ...] = tuple(2.5 * k for k in range(25))
+#: How fast an ego's sideways offset from its route fades (s) in a label or a prior laid
+#: along the route: the expert's label from an ego off its lane returns to the lane this way
+#: (not a jump onto it), and a planning head's route prior keeps the ego's offset this way.
+LATERAL_DECAY_S = 1.0
 #: How far along the route (m) the road context looks for curvature, a lead vehicle and a stop line.
 ROAD_REACH = 60.0
 #: The pedestrian corridor: this far along the route (m) and this far either side of its centreline.

@@ -9,7 +9,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from occtrain.data.schema import ROUTE_ARC
+from occtrain.data.schema import LATERAL_DECAY_S, ROUTE_ARC
 from occtrain.errors import OcctrainError
 from occtrain.formats.exports import load_state_strict, read_export
 from occtrain.formats.occ3d import FRAME_DT, FUTURE_STEPS
@@ -180,9 +180,6 @@ def constant_acceleration(anchors: list[dict], device: torch.device | str = "cpu
 #: the last is along the route ahead (``route_prior``), where the head writes progress.
 HEAD_PRIORS = ("none", "constant_velocity", "constant_acceleration", "constant_acceleration_along_route")
 ALONG_ROUTE = "constant_acceleration_along_route"
-#: How fast the ego's sideways offset from its route fades in the route prior (s): the
-#: expert's label returns to the lane this way too (``engine.closed_loop.dagger``).
-LATERAL_DECAY_S = 1.0
 
 
 def route_of(anchor: dict) -> np.ndarray:

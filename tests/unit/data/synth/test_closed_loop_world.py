@@ -8,6 +8,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from occtrain.data.schema import LATERAL_DECAY_S
 from occtrain.data.synth.citymap import SIDEWALK
 from occtrain.data.synth.closed_loop_world import STRIDE, DrivingWorld
 from occtrain.data.synth.roads import PATH_DS, green_left
@@ -172,4 +173,6 @@ def test_the_expert_answers_from_wherever_the_ego_is(world):
     arcs, speeds, step = world.traffic.s.copy(), world.traffic.v.copy(), world.step
     plan = world.expert_from_here()
     assert plan[-1, 1] == pytest.approx(-2.0, abs=0.3) and plan[-1, 0] > 2.0
+    # ... by fading its offset from the route (LATERAL_DECAY_S), not jumping onto it at once.
+    assert plan[0, 1] == pytest.approx(-2.0 + 2.0 * np.exp(-0.5 / LATERAL_DECAY_S), abs=0.15)
     assert np.array_equal(world.traffic.s, arcs) and np.array_equal(world.traffic.v, speeds) and world.step == step
