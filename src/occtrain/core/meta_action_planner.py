@@ -175,7 +175,7 @@ def ego_features(anchor: dict, meta: dict | None, inputs: list[str] | tuple[str,
 
 
 #: The head's inputs read from the frame's ``road``, and their widths.
-ROAD_INPUTS = {"route": 2 * len(ROUTE_INPUT_ARC), "lead": 3, "pedestrian": 4, "stop_line": 6, "curvature": 1}
+ROAD_INPUTS = {"route": 2 * len(ROUTE_INPUT_ARC), "lead": 4, "pedestrian": 4, "stop_line": 7, "curvature": 1}
 #: Beyond these the road's distances read as "nothing ahead" (m), its speeds are scaled by 10 m/s.
 _FAR, _SPEED = 60.0, 10.0
 
@@ -187,6 +187,7 @@ def road_features(anchor: dict, name: str) -> np.ndarray:
     (distance, side offset, speed); the next stop line (distance, light one-hot, green left);
     the largest curvature ahead."""
     road = anchor.get("road")
+    speed = float(anchor.get("ego_speed", 0.0))
     if name == "route":
         route = route_of(anchor)
         index = [ROUTE_ARC.index(a) for a in ROUTE_INPUT_ARC]
@@ -195,7 +196,11 @@ def road_features(anchor: dict, name: str) -> np.ndarray:
         return np.array([10.0 * float(road["curvature"]) if road is not None else 0.0])
     item = None if road is None else road.get(name)
     if name == "lead":
-        values = [1.0, min(item["gap"], _FAR) / _FAR, item["speed"] / _SPEED] if item else [0.0, 1.0, 0.0]
+        values = (
+            [1.0, min(item["gap"], _FAR) / _FAR, item["speed"] / _SPEED, _braking(speed - item["speed"], item["gap"])]
+            if item
+            else [0.0, 1.0, 0.0, 0.0]
+        )
     elif name == "pedestrian":
         values = (
             [1.0, min(item["distance"], _FAR) / _FAR, item["offset"] / 3.0, item["speed"] / _SPEED]
@@ -205,10 +210,23 @@ def road_features(anchor: dict, name: str) -> np.ndarray:
     else:  # stop_line
         if item:
             light = [float(item["light"] == state) for state in ("green", "amber", "red")]
-            values = [1.0, min(item["distance"], _FAR) / _FAR, *light, max(item["green_left"], -1.0) / 10.0]
+            values = [
+                1.0,
+                min(item["distance"], _FAR) / _FAR,
+                *light,
+                max(item["green_left"], -1.0) / 10.0,
+                _braking(speed, item["distance"]),
+            ]
         else:
-            values = [0.0, 1.0, 0.0, 0.0, 0.0, 0.0]
+            values = [0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0]
     return np.asarray(values, dtype=np.float64)
+
+
+def _braking(closing: float, gap: float) -> float:
+    """The deceleration (in units of 5 m/s^2, at most 2) that stops a closing speed within a
+    gap: how hard the expert must brake for a line or a lead, which the distance and the
+    speed alone make the head work out."""
+    return min(max(closing, 0.0) ** 2 / (2 * max(gap, 0.5)) / 5.0, 2.0)
 
 
 def feature_size(inputs: list[str] | tuple[str, ...]) -> int:
