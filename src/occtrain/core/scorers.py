@@ -31,7 +31,7 @@ from occtrain.data.meta_actions import MetaActionConfig, past_labels
 from occtrain.data.schema import MetaAction
 from occtrain.data.text_formats import meta_action_words, parse_meta_action
 from occtrain.data.voxel_prior import voxel_prior
-from occtrain.formats.occ3d import FREE, FUTURE_STEPS, MOVABLE_CLASSES
+from occtrain.formats.occ3d import CLASS_NAMES, FREE, FUTURE_STEPS, MOVABLE_CLASSES
 from occtrain.metrics import CaptionMetric, ForecastMetric, MetaActionAccuracy, PlanningMetric, QAMetric
 from occtrain.models.planning_heads import ALONG_ROUTE, constant_acceleration, constant_velocity, prior_plan
 
@@ -171,7 +171,24 @@ FORECAST_BASELINES = (
     "baseline_cv_moved_forecast",
     "baseline_cv_moved_reconstruction_forecast",
     "baseline_prior_forecast",
+    # The ceilings: what a forecast in this tokenizer's codes can reach.
+    "baseline_true_future_reconstruction_forecast",
+    "baseline_cv_moved_movers_reconstruction_forecast",
 )
+MOVABLE_IDS = torch.tensor(sorted(CLASS_NAMES.index(c) for c in MOVABLE_CLASSES))
+
+
+def with_movers(moved: torch.Tensor, future: torch.Tensor) -> torch.Tensor:
+    """The moved present (X, Y, Z) with its movable-class voxels cleared and the future's
+    pasted in: the scene a forecast that moves every agent right and keeps the rest would
+    draw."""
+    out = moved.clone()
+    out[torch.isin(out, MOVABLE_IDS.to(out.device))] = FREE
+    agents = torch.isin(future, MOVABLE_IDS.to(future.device))
+    out[agents] = future[agents].to(out.dtype)
+    return out
+
+
 #: Forecasts are scored on every class and on the movable ones, where forecasting shows.
 forecast_metric = partial(ForecastMetric, subsets={"movable": MOVABLE_CLASSES})
 
@@ -184,6 +201,8 @@ def forecast_baselines(
     prior: torch.Tensor | None = None,
     through: Callable[[torch.Tensor], torch.Tensor] | None = None,
     scored: list[int] | None = None,
+    future: torch.Tensor | None = None,
+    future_reconstruction: torch.Tensor | None = None,
 ) -> dict[str, torch.Tensor]:
     """The forecasts a world model must beat, (1, steps, X, Y, Z) each, from the current
     label volume (X, Y, Z) and the scene encoder's reconstruction of it: the exact scene
@@ -192,7 +211,12 @@ def forecast_baselines(
     motion, everything else standing still; with ``through`` (labels (N, X, Y, Z) -> their
     reconstruction by the scene encoder), that moved scene reconstructed, at the ``scored``
     steps only (what a model given the moved present as its query and copying it scores);
-    with ``prior``, the per-voxel prior of the train split at every step (no input at all)."""
+    with ``prior``, the per-voxel prior of the train split at every step (no input at all).
+
+    And the ceilings, given the ``future`` labels (steps, X, Y, Z) and ``through``: the moved
+    present with the future's agents pasted in, reconstructed (a forecast that moves every
+    agent right); and ``future_reconstruction``, the future through the scene encoder (a
+    perfect forecast in its codes), both at the ``scored`` steps."""
     plan = constant_velocity([anchor])[0]
     moved = torch.stack([moved_scene(current, tuple(plan[t].tolist())) for t in range(steps)])
     out = {
@@ -203,9 +227,20 @@ def forecast_baselines(
     if through is not None:
         at = list(range(steps)) if scored is None else scored
         moved_reconstruction = torch.full_like(moved, FREE)
+        pasted = torch.full_like(moved, FREE)
         if at:
-            moved_reconstruction[at] = through(moved[at]).to(moved.dtype)
+            # One pass through the encoder for every volume of the clip (the largest cost of a forecast's scoring).
+            volumes = [moved[at]] + (
+                [torch.stack([with_movers(moved[k], future[k]) for k in at])] if future is not None else []
+            )
+            back = through(torch.cat(volumes)).to(moved.dtype)
+            moved_reconstruction[at] = back[: len(at)]
+            pasted[at] = back[len(at) :] if future is not None else pasted[at]
         out["baseline_cv_moved_reconstruction_forecast"] = moved_reconstruction[None]
+        if future is not None:
+            out["baseline_cv_moved_movers_reconstruction_forecast"] = pasted[None]
+    if future_reconstruction is not None:
+        out["baseline_true_future_reconstruction_forecast"] = future_reconstruction.to(current.dtype)[None]
     if prior is not None:
         out["baseline_prior_forecast"] = prior.to(current.device, current.dtype)[None, None].expand(
             1, steps, *current.shape
@@ -244,19 +279,29 @@ class ForecastScorer(BaseScorer):
         dev = ev.device
         ev.metrics["forecast_occworld"].update(pred.to(dev), target.to(dev), valid.to(dev))
         current = semantics[a].long()
-        reconstruction = item.engine.decode_scenes(item.scenes[a][None])[0].cpu()
         engine = item.engine
+        tokens = item.clip.ann["tokens"]
+        reconstruction = ev.reconstructed(tokens[a], lambda: engine.decode_scenes(item.scenes[a][None])[0].cpu())
 
         def through(labels: torch.Tensor) -> torch.Tensor:
             return engine.decode_scenes(engine.encode_scenes(labels)).cpu()
 
+        scored = [k for k in horizons if k < n]
+        encodes = engine.encodes_labels()
+        future = None
+        if encodes:  # each dataset frame through the encoder once per evaluation, whichever clip asks
+            future = torch.full((FUTURE_STEPS, *semantics.shape[1:]), FREE, dtype=torch.long)
+            for k in scored:
+                future[k] = ev.reconstructed(tokens[a + 1 + k], lambda k=k: through(target[0, k][None])[0])
         baselines = forecast_baselines(
             current,
             reconstruction,
             item.clip.anchor,
             prior=ev.priors.voxels() if ev.priors.data_root is not None else None,
-            through=through if engine.encodes_labels() else None,
-            scored=[k for k in horizons if k < n],
+            through=through if encodes else None,
+            scored=scored,
+            future=target[0] if encodes else None,
+            future_reconstruction=future,
         )
         for name, volumes in baselines.items():
             ev.metrics[f"{name}_occworld"].update(volumes.to(dev), target.to(dev), valid.to(dev))

@@ -20,6 +20,7 @@ from occtrain.data.stats import DatasetStats
 from occtrain.errors import OcctrainError
 from occtrain.formats.manifest import MANIFEST_FILE, Manifest, StageEntry
 from occtrain.formats.metrics_file import Provenance, read_metrics
+from occtrain.report.results import with_gains
 
 METRICS_CSV = Path("logs") / "csv" / "metrics.csv"
 MAX_POINTS = 600  # per series; longer curves are thinned evenly to keep the page light
@@ -269,6 +270,7 @@ def _read_stage(run_dir: Path, name: str, entry: StageEntry) -> StageView:
             view.metrics, view.provenance = final.metrics, final.provenance
         except OcctrainError as err:
             view.problems.append(f"{err}; showing the manifest's copy")
+    view.metrics = _with_forecast_gains(view.metrics)
     try:
         view.images, view.texts = read_samples(stage_dir)
     except OcctrainError as err:
@@ -279,6 +281,14 @@ def _read_stage(run_dir: Path, name: str, entry: StageEntry) -> StageView:
         except (OSError, json.JSONDecodeError, KeyError, TypeError, ValueError, AttributeError) as err:
             view.problems.append(f"{summary}: unreadable closed-loop results ({err})")
     return view
+
+
+def _with_forecast_gains(metrics: dict[str, float]) -> dict[str, float]:
+    """A stage's validation metrics with each forecast's gain over its moved query and its
+    share of the reachable gain (``report.results.with_gains``, on the ``val/`` keys)."""
+    plain = {k.removeprefix("val/"): v for k, v in metrics.items()}
+    derived = {f"val/{k}": v for k, v in with_gains(plain).items() if k not in plain}
+    return {**metrics, **derived}
 
 
 #: Animations of the stage's own episodes embedded per drive (the page stays a few MB).

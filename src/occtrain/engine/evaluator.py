@@ -122,6 +122,7 @@ class Evaluator(torch.nn.Module):
         self.sample_sets: list[SampleSet] = []
         self._clip_cache: dict[tuple, list[Clip]] = {}
         self._once: set = set()
+        self._reconstructed: dict[str, torch.Tensor] = {}
         self.texts: list[dict] = []
         #: A few pictures for the dashboard: (caption, [(label, semantics, trajectories)]).
         self.scenes: list[tuple[str, list[tuple]]] = []
@@ -145,6 +146,13 @@ class Evaluator(torch.nn.Module):
             return False
         self._once.add(key)
         return True
+
+    def reconstructed(self, token: str, make: Callable[[], torch.Tensor]) -> torch.Tensor:
+        """Dataset frame ``token``'s labels through the scene encoder, made once per run by
+        ``make`` whichever clip asks (a frame is the future of six clips and the present of one)."""
+        if token not in self._reconstructed:
+            self._reconstructed[token] = make()
+        return self._reconstructed[token]
 
     def keep_text(self, task: str, prompt: str, prediction: str, reference: str) -> None:
         if sum(t["task"] == task for t in self.texts) < TEXTS_PER_TASK.get(task, 2):
@@ -348,6 +356,7 @@ class Evaluator(torch.nn.Module):
         for scorer in [s for ss in self.scorers.values() for s in ss]:
             scorer.reset()
         self._once = set()
+        self._reconstructed = {}
         self.scenes = []
         self.texts = []
         self.sample_sets = []

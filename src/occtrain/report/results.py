@@ -63,10 +63,18 @@ HEADLINES = (
     ),
     Headline(r"occupied_share", "predicted occupied share (% of voxels)", 1, (("true", "true_occupied_share"),)),
     Headline(
-        r"forecast_occworld_(mIoU|movable_mIoU)_(1s|3s)",
+        r"forecast_occworld_(mIoU|movable_mIoU)_(1s|2s|3s)",
         "forecast {0} at {1} (`occworld`)",
         2,
         (
+            (
+                "ceiling: the true future through the tokenizer",
+                "baseline_true_future_reconstruction_forecast_occworld_{0}_{1}",
+            ),
+            (
+                "ceiling: the moved present with the true agents pasted, through the tokenizer",
+                "baseline_cv_moved_movers_reconstruction_forecast_occworld_{0}_{1}",
+            ),
             (
                 "the present moved at constant velocity, through the tokenizer",
                 "baseline_cv_moved_reconstruction_forecast_occworld_{0}_{1}",
@@ -78,9 +86,14 @@ HEADLINES = (
         ),
     ),
     Headline(
-        r"forecast_gain_over_moved_reconstruction_occworld_(mIoU|movable_mIoU)_(1s|3s)",
+        r"forecast_gain_over_moved_reconstruction_occworld_(mIoU|movable_mIoU)_(1s|2s|3s)",
         "forecast {0} at {1} minus the moved reconstruction's (points: what the model adds to its query)",
         2,
+    ),
+    Headline(
+        r"forecast_share_of_reachable_gain_occworld_(mIoU|movable_mIoU)_(1s|2s|3s)",
+        "forecast {0} at {1}: its gain over the moved reconstruction as a share of the true future's (%)",
+        1,
     ),
     Headline(
         r"(?!\w*_(?:departing|turning|stopping)_)(plan(?:_\w+)?|head(?:_\w+)?|llm_action_tokens|anchor_\w+)_L2_stp3_avg",
@@ -139,6 +152,8 @@ BLANKED = "blank_cameras/"
 #: A forecast's score against the bar of copying its query: the present moved at constant
 #: velocity through the tokenizer (what a model that writes its moved query back scores).
 GAIN_OVER = "baseline_cv_moved_reconstruction_"
+#: What a perfect forecast in the tokenizer's codes scores: the true future through it.
+CEILING = "baseline_true_future_reconstruction_"
 
 
 def check_split(split: str) -> None:
@@ -179,7 +194,22 @@ def with_gains(scores: dict[str, float], provenance: Provenance | None = None) -
         and GAIN_OVER + key in scores
         and same_items(provenance, key, GAIN_OVER + key) is not False
     }
-    return {**scores, **gains}
+    # What the model takes of what was there to take: the true future through the tokenizer
+    # is what a perfect forecast in its codes scores.
+    shares = {}
+    for key, gain in gains.items():
+        forecast = "forecast_" + key.removeprefix("forecast_gain_over_moved_reconstruction_")
+        ceiling = scores.get(CEILING + forecast)
+        reachable = None if ceiling is None else ceiling - scores[GAIN_OVER + forecast]
+        if (
+            reachable is not None
+            and reachable > 0
+            and same_items(provenance, forecast, CEILING + forecast) is not False
+        ):
+            shares[key.replace("gain_over_moved_reconstruction", "share_of_reachable_gain", 1)] = (
+                100.0 * gain / reachable
+            )
+    return {**scores, **gains, **shares}
 
 
 GAIN = "forecast_gain_over_moved_reconstruction_"

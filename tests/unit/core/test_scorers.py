@@ -46,7 +46,10 @@ def test_forecast_baselines_copy_paste_the_reconstruction_and_move_the_exact_sce
     out = forecast_baselines(
         current, reconstruction, {"ego_speed": speed}, steps=3, prior=prior, through=tokenizer, scored=[0, 2]
     )
-    assert set(out) == set(FORECAST_BASELINES)
+    assert set(out) == set(FORECAST_BASELINES) - {
+        "baseline_true_future_reconstruction_forecast",
+        "baseline_cv_moved_movers_reconstruction_forecast",
+    }  # the ceilings need the future
     assert all(v.shape == (1, 3, 50, 4, 2) for v in out.values())
     assert len(through) == 1 and torch.equal(through[0], out["baseline_cv_moved_forecast"][0, [0, 2]])
     moved_reconstruction = out["baseline_cv_moved_reconstruction_forecast"][0]
@@ -95,3 +98,32 @@ def test_repeating_the_last_past_meta_action_reads_the_poses_up_to_the_anchor_on
     assert last["speed"] == "maintain"
     start = Clip({"anchor": {"token": "t"}, "ego_poses": poses.tolist(), "history": 0}, [], "")
     assert last_past_meta_action(start) is None
+
+
+def test_the_ceilings_are_the_true_future_through_the_tokenizer_and_the_moved_present_with_the_true_agents():
+    """What a forecast in the tokenizer's codes can reach: the future through it; and the
+    moved present (static world right) with the future's agents pasted in, through it."""
+    current = torch.full((50, 4, 2), FREE, dtype=torch.long)
+    current[30, 2, 0], current[10, 1, 0] = CAR, ROAD
+    future = current[None].repeat(3, 1, 1, 1)
+    future[:, 30, 2, 0], future[:, 40, 3, 0] = FREE, CAR  # the car drove off to (40, 3)
+    through = []
+
+    def tokenizer(labels: torch.Tensor) -> torch.Tensor:
+        through.append(len(labels))
+        return labels  # a perfect tokenizer
+
+    out = forecast_baselines(
+        current,
+        current,
+        {"ego_speed": 0.0},  # the ego stands: the moved present is the present
+        steps=3,
+        through=tokenizer,
+        scored=[0, 2],
+        future=future,
+        future_reconstruction=future,
+    )
+    assert through == [4]  # the moved and the pasted volumes of both scored steps, in one pass
+    pasted = out["baseline_cv_moved_movers_reconstruction_forecast"][0]
+    assert torch.equal(pasted[[0, 2]], future[[0, 2]]) and (pasted[1] == FREE).all()
+    assert torch.equal(out["baseline_true_future_reconstruction_forecast"][0], future)

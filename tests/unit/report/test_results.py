@@ -256,3 +256,22 @@ def test_a_run_scored_by_other_code_than_trained_it_says_so_and_is_not_mixed_wit
     res = run_cli("report", str(a), str(b))
     assert res.returncode == 2 and res.stderr.startswith("error: the runs differ in code (run 0: 0.1.0+abc1234; ")
     assert "run 1: 0.1.0+abc1234; scored by 0.1.0+fff0000)" in res.stderr
+
+
+def test_a_forecast_is_set_beside_its_ceilings_and_the_share_of_the_reachable_gain_it_takes(tmp_path):
+    moved = {
+        "baseline_cv_moved_reconstruction_forecast_occworld_mIoU_1s": 5.5,
+        "baseline_true_future_reconstruction_forecast_occworld_mIoU_1s": 7.5,
+        "baseline_cv_moved_movers_reconstruction_forecast_occworld_mIoU_1s": 7.0,
+    }
+    run = scored_run(tmp_path / "a", 0, 6.0, 54.0)
+    file = run / "pretrain" / "eval" / "val" / "metrics.json"
+    measured = read_metrics(file)
+    write_metrics(file, {**measured.metrics, **moved}, measured.provenance)
+    page = run_cli("report", str(run)).stdout
+    rows = {line.split(" | ")[1]: line for line in page.splitlines() if line.startswith("| pretrain")}
+    forecast = rows["forecast mIoU at 1 s (`occworld`)"]
+    assert "ceiling: the true future through the tokenizer 7.50" in forecast
+    assert "ceiling: the moved present with the true agents pasted, through the tokenizer 7.00" in forecast
+    share = rows["forecast mIoU at 1 s: its gain over the moved reconstruction as a share of the true future's (%)"]
+    assert "| 25.0 |" in share  # (6.0 - 5.5) of (7.5 - 5.5)
