@@ -15,6 +15,7 @@ import pytest
 
 from conftest import REPO, run_cli
 from occtrain.formats.metrics_file import read_metrics
+from occtrain.stages.phases import PHASES
 from quickstart_run import STAGES, shared_quickstart_run, tiny_overrides
 
 pytestmark = pytest.mark.slow
@@ -68,6 +69,11 @@ def test_every_stage_is_done_and_exported(pipeline):
             assert metrics["train_model_flops_per_s"] > 0 and 0 <= metrics["train_mfu"] < 1, name
         if has_tokens:
             assert metrics["train_tokens_per_s"] > metrics["train_samples_per_s"]
+        # Where the stage's time went (issue 75): every step computed forward and backward,
+        # validated once at its end and wrote a checkpoint a step.
+        phases = {k: v for k, v in metrics.items() if k.startswith("time_")}
+        assert set(phases) == {f"time_{p}_s" for p in PHASES}, name
+        assert all(phases[f"time_{p}_s"] > 0 for p in ("forward", "backward", "validation", "checkpoints", "export"))
     distill = manifest["stages"]["distill"]["metrics"]
     assert distill["student_params"] < distill["teacher_params"]
     assert "val/teacher_tokens_per_s" in distill and "val/student_tokens_per_s" in distill

@@ -6,7 +6,9 @@ Every stage's ``metrics.json`` carries its training steps' rates (rank zero, the
 steps of an attempt left out; see the page's "Training throughput"): samples/s, tokens/s
 for the world-model stages, step time and model FLOPs over the device's peak (MFU),
 counted by formula for the LLM stages and by torch's ``FlopCounterMode`` for the others.
-This reads them; it trains nothing.
+With them, where each stage's time went (``occtrain.stages.phases``): loading, forward,
+backward, the optimizer, validation, checkpoints, the export and the first step's excess,
+in seconds and as shares of the stage's wall time. This reads them; it trains nothing.
 """
 
 from __future__ import annotations
@@ -16,6 +18,8 @@ import json
 from pathlib import Path
 
 from records import Row, record
+
+from occtrain.stages.phases import PHASES
 
 
 def main() -> None:
@@ -47,16 +51,28 @@ def main() -> None:
             parts.append(f"step {metrics['train_step_s']:.3f} s")
         shown.append(f"{stage} " + ", ".join(parts))
         print(shown[-1])
-    record(
-        [
-            Row(
-                f"each stage's training steps of a {manifest['name']} run (its `metrics.json`, trained by code "
-                + ", ".join(codes)
-                + ")",
-                "; ".join(shown) + (f" (the MFU's peak: {peak / 1e12:.3f} TFLOP/s)" if peak else ""),
-            )
-        ]
-    )
+    where = []
+    for stage, metrics in measured.items():
+        wall = manifest["stages"][stage].get("wall_time_s")
+        phases = {p: metrics[f"time_{p}_s"] for p in PHASES if f"time_{p}_s" in metrics}
+        if not phases or not wall:
+            continue
+        parts = [f"{p.replace('_', ' ')} {s:.0f} s ({100 * s / wall:.0f} %)" for p, s in phases.items()]
+        where.append(f"{stage} {wall:.0f} s: " + ", ".join(parts))
+        print(where[-1])
+    what = f"a {manifest['name']} run (its `metrics.json`, trained by code " + ", ".join(codes) + ")"
+    rows = [
+        Row(
+            f"each stage's training steps of {what}",
+            "; ".join(shown) + (f" (the MFU's peak: {peak / 1e12:.3f} TFLOP/s)" if peak else ""),
+        )
+    ]
+    if where:
+        # The phases overlap nowhere but in the first step's excess (its forward and
+        # backward are in theirs too); what they leave of the wall time is the stage's
+        # building, data setup and the runner's own work.
+        rows.append(Row(f"where each stage's time went in {what}, of its wall time", "; ".join(where)))
+    record(rows)
 
 
 if __name__ == "__main__":

@@ -64,6 +64,7 @@ def _execute(
     attempt: StageAttempt | None = None,
 ) -> dict:
     from occtrain.stages.checkpoints import checkpoint_step, last_checkpoint
+    from occtrain.stages.phases import phase_seconds
     from occtrain.stages.trainer import build_trainer
 
     module, datamodule = build_stage(stage, stage_dir, inputs)
@@ -86,10 +87,13 @@ def _execute(
     metrics.update(report.metrics)
     callbacks: list[Callback] = trainer.callbacks  # type: ignore[attr-defined]  # Lightning sets it in its callback connector without declaring it on Trainer
     metrics.update(_measurements(callbacks))
+    metrics.update(phase_seconds(trainer.profiler))  # type: ignore[attr-defined]  # set in its __init__, undeclared
     artifacts: dict[str, str] = {}
+    exporting = time.perf_counter()
     module.prepare_export()  # every rank: a sharded stage gathers its weights for rank zero
     if trainer.is_global_zero:
         export_dir = module.export(stage_dir / "export")
+        metrics["time_export_s"] = time.perf_counter() - exporting
         provenance = _validation_provenance(stage, callbacks, report, module.split_items(), attempt or StageAttempt())
         write_metrics(stage_dir / "metrics.json", metrics, provenance)
         # Stages hand over raw scenes and texts; pictures are drawn here, not in the stages.

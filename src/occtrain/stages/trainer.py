@@ -27,6 +27,7 @@ from occtrain.stages.callbacks import (
 )
 from occtrain.stages.checkpoints import AtomicCheckpointIO
 from occtrain.stages.loggers import build_loggers
+from occtrain.stages.phases import PhaseProfiler
 from occtrain.stages.sharding import trainer_strategy
 from occtrain.stages.stage import shared_cache_dir
 from occtrain.stages.step_progress import StepProgress
@@ -209,4 +210,5 @@ def build_trainer(
         enable_model_summary=False,
         num_sanity_val_steps=0,
         plugins=[AtomicCheckpointIO()],
+        profiler=PhaseProfiler(),
     )
