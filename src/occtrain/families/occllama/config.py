@@ -95,7 +95,7 @@ class OccLLaMAWorldConfig:
     #: paper's). What the moved present gets wrong is what the model is for, and a few such
     #: cells among hundreds kept are otherwise a rounding error of the loss. 1: all alike.
     change_weight: float = 1.0
-    #: Where a query carries a scene: the loss weight of a cell where an agent moved (a
+    #: Patches only, where a query carries a scene: the loss weight of a cell where an agent moved (a
     #: movable-class voxel differs between the moved present and the future: where it came
     #: from and went to; ``core.forecast_targets``), against 1 for the rest (not the paper's).
     #: What the moved present cannot say is where the others went. 1: every cell alike.
@@ -122,3 +122,10 @@ class OccLLaMAWorldConfig:
                 )
         if self.cell_dim < 1:
             raise ConfigError(f"{where}.cell_dim: must be >= 1, got {self.cell_dim}")
+        for key in ("change_weight", "mover_weight"):
+            if not self.patch_size and getattr(self, key) != 1:
+                # The codes layout's loss is the LLM's own cross-entropy over scene tokens.
+                raise ConfigError(
+                    f"{where}.{key}: weighs the patch head's cells, but patch_size is 0 (a token per latent cell, "
+                    "the LLM's own loss); set patch_size (e.g. 5) or leave the weight at 1"
+                )

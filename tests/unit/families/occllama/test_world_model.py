@@ -737,3 +737,15 @@ def test_patch_size_must_divide_the_latent_grid():
             OccLLaMAWorldConfig(patch_size=bad).validate("model.occllama", inputs)
     with pytest.raises(ConfigError, match=r"^model\.occllama\.copy_bias"):
         OccLLaMAWorldConfig(copy_bias=float("nan")).validate("model.occllama", inputs)
+
+
+def test_cell_weights_need_the_patch_head():
+    """The codes layout's loss is the LLM's own cross-entropy: a cell weight there would be
+    silently ignored, so the key is refused."""
+    from occtrain.errors import ConfigError
+
+    inputs = WorldInputs(scene=SimpleNamespace(latent_hw=(10, 10)))
+    OccLLaMAWorldConfig(patch_size=5, mover_weight=4.0, change_weight=2.0).validate("model.occllama", inputs)
+    for key in ("change_weight", "mover_weight"):
+        with pytest.raises(ConfigError, match=rf"^model\.occllama\.{key}: weighs the patch head's cells"):
+            OccLLaMAWorldConfig(patch_size=0, **{key: 4.0}).validate("model.occllama", inputs)
