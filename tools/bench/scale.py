@@ -15,7 +15,7 @@ the same process's RSS before the model was built (torch and Python themselves):
   the world-model stages shard under ``trainer.strategy: fsdp`` (``stages/sharding.py``);
 - each of them again with the decoder layers checkpointed (``models.llm.checkpoint_layers``).
 
-The plan is ``memory_plan.plan`` for the same model, batch and sequence length.
+The plan is ``plan_memory.plan`` for the same model, batch and sequence length.
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ import torch.distributed as dist  # noqa: E402
 import torch.multiprocessing as mp  # noqa: E402
 from records import Row, record  # noqa: E402
 
-from occtrain.commands.memory_plan import GIB, MemoryRow, count_llm, plan  # noqa: E402
+from occtrain.commands.plan_memory import GIB, MemoryRow, count_llm, plan  # noqa: E402
 from occtrain.config.llm import LLMConfig  # noqa: E402
 from occtrain.models.llm import build_llm, checkpoint_layers  # noqa: E402
 

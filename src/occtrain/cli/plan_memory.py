@@ -1,4 +1,4 @@
-"""``occtrain plan-memory``: memory per GPU of a recipe's LLM stages (``commands.memory_plan``)."""
+"""``occtrain plan-memory``: memory per GPU of a recipe's LLM stages (``commands.plan_memory``)."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import argparse
 
 
 def _cmd_plan_memory(args: argparse.Namespace) -> int:
-    from occtrain.commands.memory_plan import format_plans, plan_recipe
+    from occtrain.commands.plan_memory import format_plans, plan_recipe
 
     plans = plan_recipe(args.recipe, args.overrides, args.gpus, args.seq_len, args.checkpointing, args.gpu_memory)
     print(format_plans(plans, args.seq_len, args.gpu_memory, args.checkpointing))

@@ -9,7 +9,7 @@ from transformers import AutoModelForCausalLM
 
 from conftest import REPO
 from occtrain.cli import main
-from occtrain.commands.memory_plan import (
+from occtrain.commands.plan_memory import (
     MAX_GPU_GIB,
     MAX_SEQ_LEN,
     ModelCount,
