@@ -120,6 +120,37 @@ def test_the_notebook_check_catches_each_marker():
     assert notebook_markers(text) == ["issue 42", "#57", "985fb17", "2026-11-29", "this stop"]
 
 
+# ----------------------------------------------------------------------------- the layout page
+
+
+def unnamed_in_layout(src: Path, text: str) -> list[str]:
+    """The packages (``name/``) and modules (``name.py``) under ``src`` that ``text`` (the
+    layout page) never names."""
+    names = set(re.findall(r"[A-Za-z_][A-Za-z0-9_]*(?:\.py|/)", text))
+    out = []
+    for path in sorted(src.rglob("*")):
+        if "__pycache__" in path.parts or path.name == "__init__.py":
+            continue
+        if path.is_dir() and f"{path.name}/" not in names:
+            out.append(f"{path.relative_to(src)}/")
+        elif path.suffix == ".py" and path.name not in names:
+            out.append(str(path.relative_to(src)))
+    return out
+
+
+def test_the_layout_page_names_every_package_and_module():
+    """A reader finds every room of the house on docs/layout.md."""
+    assert unnamed_in_layout(REPO / "src" / "occtrain", (REPO / "docs" / "layout.md").read_text()) == []
+
+
+def test_the_layout_check_finds_a_room_left_out(tmp_path):
+    (tmp_path / "pkg" / "inner").mkdir(parents=True)
+    for f in ("pkg/__init__.py", "pkg/named.py", "pkg/inner/__init__.py", "pkg/inner/left_out.py", "top.py"):
+        (tmp_path / f).write_text("")
+    text = "top.py, pkg/ (named.py, and unnamed_module.pyc is not a module)"
+    assert unnamed_in_layout(tmp_path, text) == ["pkg/inner/", "pkg/inner/left_out.py"]
+
+
 # ----------------------------------------------------------------------------- pictures
 
 #: What every picture in the repository may weigh together.
