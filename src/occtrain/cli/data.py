@@ -1,48 +1,26 @@
 """``occtrain data synth | shards | show | stats | check | import | export``: datasets synthesized,
 sharded, drawn, measured, checked, imported from the public releases and exported as them (the
-bodies in ``data`` and ``commands.data_*``)."""
+bodies in ``commands.data_*``)."""
 
 from __future__ import annotations
 
 import argparse
-import sys
 
 from occtrain.cli import data_import
-from occtrain.errors import ConfigError
 
 
 def _cmd_synth(args: argparse.Namespace) -> int:
-    from occtrain.config import SynthConfig
-    from occtrain.config.groups import check_seed
-    from occtrain.data.synthesize import synthesize
+    from occtrain.commands.data_synth import synth
 
-    check_seed(args.seed, "--seed")  # named as the user typed it; check_synth_config would say data.synth.seed
-    cfg = SynthConfig(
-        train_scenes=args.scenes, val_scenes=args.val_scenes, frames_per_scene=args.frames, seed=args.seed
-    )
-    if args.workers is not None and args.workers < 1:
-        raise ConfigError(f"--workers {args.workers}: give at least 1 process")
-    synthesize(args.out, cfg, workers=args.workers)
+    synth(args.out, args.scenes, args.val_scenes, args.frames, args.seed, args.workers)
     return 0
 
 
 def _cmd_shards(args: argparse.Namespace) -> int:
-    from occtrain.data.shards import no_clips_note, write_shards
-    from occtrain.formats.io import check_output
-    from occtrain.progress import console
+    from occtrain.commands.data_shards import shards
 
-    check_output(args.out, "--out", kind="dir")  # an unwritable --out fails now, not after minutes of sharding
     kinds = None if args.kinds is None else [k.strip() for k in args.kinds.split(",") if k.strip()]
-    index = write_shards(
-        args.dataset, args.out, args.samples_per_shard, args.history, args.future, kinds, rebuild=args.rebuild
-    )
-    if "clips" in index.get("missing", {}):
-        console.print(f"note: {no_clips_note(index['missing']['clips'])}", markup=False)
-    for kind, splits in index["kinds"].items():
-        for split, entries in splits.items():
-            n = sum(e["samples"] for e in entries)
-            console.print(f"{kind:6s} {split:5s}: {n:5d} samples in {len(entries)} shards")
-    console.print(f"shards -> {args.out}")
+    shards(args.dataset, args.out, args.samples_per_shard, args.history, args.future, kinds, args.rebuild)
     return 0
 
 
@@ -70,17 +48,9 @@ def _cmd_stats(args: argparse.Namespace) -> int:
 
 
 def _cmd_check(args: argparse.Namespace) -> int:
-    from occtrain.commands.data_check import check_dataset, check_shards, looks_like_shards
+    from occtrain.commands.data_check import check
 
-    problems = check_shards(args.path) if looks_like_shards(args.path) else check_dataset(args.path)
-    for p in problems:
-        print(p)
-    what = "shards" if looks_like_shards(args.path) else "dataset"
-    if problems:
-        print(f"{len(problems)} problem(s) in {what} {args.path}", file=sys.stderr)
-        return 1
-    print(f"{what} {args.path}: ok")
-    return 0
+    return check(args.path)
 
 
 def register(sub: argparse._SubParsersAction) -> None:

@@ -1,4 +1,4 @@
-"""``occtrain run`` and ``occtrain validate``: a recipe's stages, run or checked."""
+"""``occtrain run`` and ``occtrain validate``: a recipe's stages, run or checked (``commands.run``)."""
 
 from __future__ import annotations
 
@@ -8,34 +8,16 @@ import argparse
 def _cmd_run(args: argparse.Namespace) -> int:
     if args.dry_run:
         return _cmd_validate(args)
-    from occtrain.run.runner import is_rank_zero, run
+    from occtrain.commands.run import run
 
-    run_dir = run(args.recipe, args.overrides, run_dir=args.run_dir, only=args.only, restart=args.restart)
-    if is_rank_zero():
-        print(f"run directory: {run_dir}")
+    run(args.recipe, args.overrides, args.run_dir, args.only, args.restart)
     return 0
 
 
 def _cmd_validate(args: argparse.Namespace) -> int:
-    from occtrain.formats.manifest import Manifest
-    from occtrain.run.checks import check_run
-    from occtrain.run.control import lock_holder
+    from occtrain.commands.run import validate
 
-    check = check_run(args.recipe, args.overrides, run_dir=args.run_dir, only=args.only, restart=args.restart)
-    manifest = Manifest.load(check.run_dir, writable=False)
-    # A --restart killed midway: its stages are aside until the next run settles them.
-    killed = manifest.after_a_killed_restart() if lock_holder(check.run_dir) is None else {}
-    n = len(check.planned)
-    print(f"{args.recipe}: ok, {n} stage{'' if n == 1 else 's'}; nothing was written")
-    for p in check.planned:
-        entry = manifest.stages.get(p.spec.name)
-        status = "to retrain" if p.spec.name in check.restarted else entry.status if entry else "pending"
-        status = killed.get(p.spec.name, status) if p.spec.name not in check.restarted else status
-        family = f", {p.family}" if p.family else ""
-        consumes = f", consumes {', '.join(p.spec.consumes)}" if p.spec.consumes else ""
-        print(f"  {p.spec.name:12s} {p.spec.kind}{family}: {p.trainer.max_steps} steps{consumes} [{status}]")
-    print(check.data)
-    print(f"run directory: {check.run_dir}")
+    validate(args.recipe, args.overrides, args.run_dir, args.only, args.restart)
     return 0
 
 

@@ -1,4 +1,4 @@
-"""``occtrain table``: a run's comparison table (``report.compare``)."""
+"""``occtrain table``: a run's comparison table (``commands.table``)."""
 
 from __future__ import annotations
 
@@ -6,16 +6,9 @@ import argparse
 
 
 def _cmd_table(args: argparse.Namespace) -> int:
-    from occtrain.progress import console
-    from occtrain.report.compare import load_run_table, show_table
+    from occtrain.commands.table import table
 
-    table, manifest = load_run_table(args.run_dir)
-    pending = [
-        r.stage for r in table.rows if r.stage not in manifest.stages or manifest.stages[r.stage].status != "done"
-    ]
-    if pending:
-        console.print(f"[yellow]note[/]: not done yet, shown as –: {', '.join(dict.fromkeys(pending))}")
-    console.print(f"table -> {show_table(args.run_dir, table, manifest)}")
+    table(args.run_dir)
     return 0
 
 

@@ -294,3 +294,20 @@ def looks_like_shards(path: str | Path) -> bool:
 
 
 __all__ = ["check_dataset", "check_shards", "looks_like_shards"]
+
+
+def check(path: str | Path) -> int:
+    """``occtrain data check PATH``: every problem of a dataset or shard directory printed,
+    one a line, and the exit code: 0 when there is none, 1 otherwise."""
+    import sys
+
+    is_shards = looks_like_shards(path)
+    problems = check_shards(path) if is_shards else check_dataset(path)
+    for p in problems:
+        print(p)
+    what = "shards" if is_shards else "dataset"
+    if problems:
+        print(f"{len(problems)} problem(s) in {what} {path}", file=sys.stderr)
+        return 1
+    print(f"{what} {path}: ok")
+    return 0
