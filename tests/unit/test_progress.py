@@ -107,7 +107,7 @@ def test_the_trainer_uses_it_instead_of_lightnings_bar(tmp_path):
     from occtrain.stages.step_progress import StepProgress
     from occtrain.stages.trainer import build_trainer
 
-    trainer = build_trainer(TrainerConfig(max_steps=2, accelerator="cpu"), tmp_path / "tokenizer", None)
+    trainer, _ = build_trainer(TrainerConfig(max_steps=2, accelerator="cpu"), tmp_path / "tokenizer", None)
     bars = [c for c in trainer.callbacks if isinstance(c, ProgressBar)]
     assert len(bars) == 1 and isinstance(bars[0], StepProgress) and bars[0].name == "tokenizer"
 

@@ -70,7 +70,7 @@ def lightning(data: DataConfig, steps: int) -> float:
     with tempfile.TemporaryDirectory() as tmp:
         ctx = context(data, steps, Path(tmp))
         module = TokenizerStage(ctx)
-        trainer = build_trainer(ctx.trainer, Path(tmp), monitor=None)
+        trainer, _ = build_trainer(ctx.trainer, Path(tmp), monitor=None)
         dm = ShardDataModule(data, "frames")
         start = time.perf_counter()
         trainer.fit(module, datamodule=dm)

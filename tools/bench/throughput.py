@@ -37,7 +37,6 @@ from records import Row, record  # noqa: E402
 from occtrain.progress import console  # noqa: E402
 from occtrain.run.planning import load_recipe  # noqa: E402
 from occtrain.run.runner import build_stage  # noqa: E402
-from occtrain.stages.callbacks import StepMeter  # noqa: E402
 from occtrain.stages.trainer import build_trainer  # noqa: E402
 
 #: LLM shapes by name: Llama 3.2 1B and Llama 3.1 8B (their config.json files).
@@ -70,9 +69,9 @@ def measure(recipe: str, stage_name: str, run_dir: Path, overrides: list[str], s
     with tempfile.TemporaryDirectory(prefix="occtrain-bench-") as scratch:
         stage_dir = Path(scratch) / stage_name
         module, data = build_stage(dataclasses.replace(stage, trainer=cfg), stage_dir, inputs)
-        trainer = build_trainer(cfg, stage_dir, monitor=None)
+        trainer, meters = build_trainer(cfg, stage_dir, monitor=None)
         trainer.fit(module, datamodule=data)
-    meter = next(c for c in trainer.callbacks if isinstance(c, StepMeter))
+    meter = meters.steps
     meter.warmup = warmup
     return meter.summary()
 

@@ -31,9 +31,9 @@ from occtrain.stages import Stage, StageContext, StageReport
 
 if TYPE_CHECKING:  # imported where a stage is built (build_stage), as before
     import torch
-    from lightning.pytorch.callbacks import Callback
 
     from occtrain.data.datamodule import ShardDataModule
+    from occtrain.stages.trainer import StageMeters
 
 
 class StageFailed(OcctrainError):
@@ -64,7 +64,6 @@ def _execute(
     attempt: StageAttempt | None = None,
 ) -> dict:
     from occtrain.stages.checkpoints import checkpoint_step, last_checkpoint
-    from occtrain.stages.phases import phase_seconds
     from occtrain.stages.trainer import build_trainer
 
     module, datamodule = build_stage(stage, stage_dir, inputs)
@@ -72,7 +71,7 @@ def _execute(
     ckpt = last_checkpoint(stage_dir, say=lambda line: say(f"[yellow]note[/]: {line}"))
     resume_step = checkpoint_step(ckpt) if ckpt is not None else None
     monitor, mode = module.monitored(stage.kind)
-    trainer = build_trainer(stage.trainer, stage_dir, monitor, mode, resume_step, record_time, record_attempt)
+    trainer, meters = build_trainer(stage.trainer, stage_dir, monitor, mode, resume_step, record_time, record_attempt)
     if ckpt is not None:
         say(f"[yellow]resuming[/] {stage.spec.name} from {ckpt} (step {resume_step})")
     trainer.fit(module, datamodule=datamodule, ckpt_path=ckpt, weights_only=True)
@@ -85,16 +84,14 @@ def _execute(
     metrics = {k: float(v) for k, v in (results[0] if results else {}).items()}
     report = module.report()
     metrics.update(report.metrics)
-    callbacks: list[Callback] = trainer.callbacks  # type: ignore[attr-defined]  # Lightning sets it in its callback connector without declaring it on Trainer
-    metrics.update(_measurements(callbacks))
-    metrics.update(phase_seconds(trainer.profiler))  # type: ignore[attr-defined]  # set in its __init__, undeclared
+    metrics.update(_measurements(meters))
     artifacts: dict[str, str] = {}
     exporting = time.perf_counter()
     module.prepare_export()  # every rank: a sharded stage gathers its weights for rank zero
     if trainer.is_global_zero:
         export_dir = module.export(stage_dir / "export")
         metrics["time_export_s"] = time.perf_counter() - exporting
-        provenance = _validation_provenance(stage, callbacks, report, module.split_items(), attempt or StageAttempt())
+        provenance = _validation_provenance(stage, meters, report, module.split_items(), attempt or StageAttempt())
         write_metrics(stage_dir / "metrics.json", metrics, provenance)
         # Stages hand over raw scenes and texts; pictures are drawn here, not in the stages.
         if report.texts or report.scenes:
@@ -113,7 +110,7 @@ def _execute(
 
 
 def _validation_provenance(
-    stage: PlannedStage, callbacks: list, report: StageReport, split_items: int | None, attempt: StageAttempt
+    stage: PlannedStage, meters: StageMeters, report: StageReport, split_items: int | None, attempt: StageAttempt
 ) -> Provenance:
     """What a stage's final validation measured: the val samples its batches held of what
     the split holds (``validation``: the shards' samples, or ``split_items`` where the stage
@@ -123,10 +120,9 @@ def _validation_provenance(
     from occtrain.data.datamodule import shards_dir
     from occtrain.data.layout import world_identity
     from occtrain.data.shards import shard_urls
-    from occtrain.stages.callbacks import AttemptRecord
     from occtrain.version import code_version
 
-    record = next((c for c in callbacks if isinstance(c, AttemptRecord)), None)
+    record = meters.attempt
     validated = {}
     if record is not None and record.val_samples_per_rank is not None:
         total = (
@@ -150,14 +146,14 @@ def _validation_provenance(
     )
 
 
-def _measurements(callbacks: list) -> dict[str, float]:
+def _measurements(meters: StageMeters) -> dict[str, float]:
     """What this attempt measured (a measurement, not a result): its mean step time and
-    throughput and rank zero's peak memory."""
-    from occtrain.stages.callbacks import PeakMemory, StepMeter
+    throughput, where its time went and rank zero's peak memory."""
+    from occtrain.stages.phases import phase_seconds
 
-    meter = next(c for c in callbacks if isinstance(c, StepMeter))
-    out: dict[str, float] = meter.summary()
-    memory = next(c for c in callbacks if isinstance(c, PeakMemory))
+    out: dict[str, float] = meters.steps.summary()
+    out.update(phase_seconds(meters.phases))
+    memory = meters.memory
     if memory.peak_mb is not None:
         out["train_peak_rss_mb"] = memory.peak_mb
     if memory.peak_gpu_mb is not None:

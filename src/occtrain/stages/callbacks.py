@@ -19,7 +19,7 @@ from occtrain.data.datamodule import ResumableLoader
 from occtrain.data.reading import PAD_KEY
 from occtrain.models.compiling import compile_all, use_cache_dir
 from occtrain.progress import console
-from occtrain.stages.stage import StepWork
+from occtrain.stages.stage import Stage, StepWork
 
 
 @runtime_checkable
@@ -194,6 +194,10 @@ class StepMeter(Callback):
         self._began: float | None = None
         self._counter: FlopCounterMode | None = None
         self._flops_per_sample: float | None = None
+
+    def setup(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
+        if isinstance(pl_module, Stage):
+            pl_module.step_meter = self
 
     def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         self.peak_flops = device_peak_flops(pl_module.device, str(trainer.precision))

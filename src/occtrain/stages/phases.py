@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 
-from lightning.pytorch.profilers import Profiler, SimpleProfiler
+from lightning.pytorch.profilers import SimpleProfiler
 
 #: The phases, in the order a table shows them, and what each holds.
 PHASES = {
@@ -41,16 +41,13 @@ def _matching(durations: Mapping[str, list[float]], *parts: str, but: str = "\0"
     return sum(sum(v) for k, v in durations.items() if any(p in k for p in parts) and but not in k)
 
 
-def phase_seconds(profiler: Profiler) -> dict[str, float]:
+def phase_seconds(profiler: SimpleProfiler) -> dict[str, float]:
     """The seconds of each of :data:`PHASES` the profiler timed, as ``time_<phase>_s``.
 
     Lightning runs a step's forward and backward inside the optimizer step's closure, so
     the optimizer's share is the optimizer step's time less theirs. ``first_step`` is the
     first training batch's time less the median batch's: it overlaps the other phases
-    (the first step's forward and backward are in theirs too). Nothing from a profiler
-    that keeps no durations (a Trainer not built by ``build_trainer``)."""
-    if not isinstance(profiler, SimpleProfiler):
-        return {}
+    (the first step's forward and backward are in theirs too)."""
     durations: Mapping[str, list[float]] = profiler.recorded_durations
     forward = _hook(durations, "Strategy", "training_step")
     backward = _hook(durations, "Strategy", "backward")

@@ -52,7 +52,6 @@ from occtrain.formats.metrics_file import SampleSet, digest_items
 from occtrain.formats.occ3d import FUTURE_STEPS
 from occtrain.progress import progress_bar
 from occtrain.stages import StageKind, register
-from occtrain.stages.callbacks import StepMeter
 from occtrain.stages.optim import configure_adamw
 from occtrain.stages.stage import EvalRequest, EvalResult, Stage, StageContext, StageReport
 
@@ -362,9 +361,8 @@ class DaggerStage(PlannerStage):
         self._rounds = round_ + 1
         # Driving a round and the world model's outputs for its frames are not this step's
         # time, nor its FLOPs (they would make the stage's MFU and step time the rollouts').
-        callbacks = self.trainer.callbacks  # type: ignore[attr-defined]  # Lightning sets it per instance
-        for meter in (cb for cb in callbacks if isinstance(cb, StepMeter)):
-            meter.restart_step()
+        if self.step_meter is not None:
+            self.step_meter.restart_step()
 
     @torch.no_grad()
     def _drive(self, round_: int) -> None:

@@ -31,6 +31,7 @@ from occtrain.models import count_parameters
 if TYPE_CHECKING:  # the registry (stages/__init__.py) imports this module
     from occtrain.engine.closed_loop import StageDriver
     from occtrain.stages import StageKind
+    from occtrain.stages.callbacks import StepMeter
 
 #: The run directory's folder of caches keyed by their content, shared by its stages.
 SHARED_CACHE = "cache"
@@ -186,6 +187,9 @@ class Stage(L.LightningModule, ABC):
     #: What its last training step processed, set by a stage that counts more than the
     #: batch's samples (tokens, FLOPs); None: ``callbacks.StepMeter`` counts the samples.
     step_work: StepWork | None = None
+    #: The step meter timing its training steps (``callbacks.StepMeter`` sets it when the
+    #: fit begins), for a stage that does work in a step's hooks that is not the step's.
+    step_meter: StepMeter | None = None
     #: Whether ``occtrain eval`` scores its exports (``evaluate_export``).
     evaluable: ClassVar[bool] = False
     #: Whether that eval records predictions (``EvalRequest.record``) for ``--save-predictions``.

@@ -6,6 +6,7 @@ import logging
 import os
 import warnings
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, cast
 
@@ -52,17 +53,29 @@ def quiet_lightning() -> None:
     warnings.filterwarnings("ignore", message=r".*module\(s\) in eval mode.*")
 
 
+@dataclass(frozen=True)
+class StageMeters:
+    """What a stage's Trainer measures, held where the runner reads it: Lightning keeps its
+    callbacks and profiler on attributes its ``Trainer`` does not declare."""
+
+    steps: StepMeter
+    memory: PeakMemory
+    phases: PhaseProfiler
+    #: None: no ``record_attempt`` was given.
+    attempt: AttemptRecord | None
+
+
 def _callbacks(
     cfg: TrainerConfig,
     name: str,
     ckpt_dir: Path,
     monitor: str | None,
     mode: str,
+    meters: StageMeters,
     record_time: Callable[[float], None] | None,
-    record_attempt: Callable[[dict[str, Any]], None] | None,
 ) -> list[Callback]:
     """Checkpoints (last every N steps, best by ``monitor``), the resumable data position,
-    per-step seeds, the learning rate, the progress bar, step times and the manifest's records."""
+    per-step seeds, the learning rate, the progress bar, the ``meters`` and the heartbeat."""
     callbacks: list[Callback] = [
         ModelCheckpoint(
             dirpath=ckpt_dir,
@@ -77,15 +90,15 @@ def _callbacks(
         StepSeed(cfg.seed),
         LearningRateMonitor(logging_interval="step"),
         StepProgress(name),
-        StepMeter(count_flops=not cfg.compile),
-        PeakMemory(),
+        meters.steps,
+        meters.memory,
     ]
     if cfg.compile:
         callbacks.append(CompileBlocks(shared_cache_dir(ckpt_dir.parent) / INDUCTOR_CACHE))
     if record_time is not None:
         callbacks.append(Heartbeat(record_time))
-    if record_attempt is not None:
-        callbacks.append(AttemptRecord(record_attempt))
+    if meters.attempt is not None:
+        callbacks.append(meters.attempt)
     if monitor:
         callbacks.append(
             ModelCheckpoint(
@@ -179,17 +192,24 @@ def build_trainer(
     resume_step: int | None = None,
     record_time: Callable[[float], None] | None = None,
     record_attempt: Callable[[dict[str, Any]], None] | None = None,
-) -> L.Trainer:
-    """A Trainer writing ``checkpoints/`` (last.ckpt every N steps, best by ``monitor``) and ``logs/``.
+) -> tuple[L.Trainer, StageMeters]:
+    """A Trainer writing ``checkpoints/`` (last.ckpt every N steps, best by ``monitor``) and
+    ``logs/``, and what it measures.
 
     ``resume_step``: the step of the checkpoint the stage resumes from (its CSV log keeps
     the rows before it); ``record_time`` gets the attempt's elapsed seconds now and then;
     ``record_attempt`` what the attempt did (see :class:`AttemptRecord`).
     """
     quiet_lightning()
-    callbacks = _callbacks(cfg, stage_dir.name, stage_dir / "checkpoints", monitor, mode, record_time, record_attempt)
+    meters = StageMeters(
+        steps=StepMeter(count_flops=not cfg.compile),
+        memory=PeakMemory(),
+        phases=PhaseProfiler(),
+        attempt=AttemptRecord(record_attempt) if record_attempt is not None else None,
+    )
+    callbacks = _callbacks(cfg, stage_dir.name, stage_dir / "checkpoints", monitor, mode, meters, record_time)
     loggers = build_loggers(list(cfg.loggers), stage_dir, resume_step)
-    return L.Trainer(
+    trainer = L.Trainer(
         accelerator=cfg.accelerator,
         devices=cfg.devices,
         num_nodes=cfg.num_nodes,
@@ -210,5 +230,6 @@ def build_trainer(
         enable_model_summary=False,
         num_sanity_val_steps=0,
         plugins=[AtomicCheckpointIO()],
-        profiler=PhaseProfiler(),
+        profiler=meters.phases,
     )
+    return trainer, meters

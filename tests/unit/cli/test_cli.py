@@ -31,7 +31,12 @@ def test_each_cli_module_registers_its_commands_and_the_parser_lists_them_all():
     assert all(callable(c.register) for c in cli.COMMANDS)
     leaves = _leaves(cli.build_parser())
     assert {"run", "validate", "eval", "drive", "report", "dashboard"} <= {p[0] for p in leaves}
-    assert ("data", "synth") in leaves and ("data", "import", "nuscenes") in leaves and ("score", "qa") in leaves and ("config", "reference") in leaves
+    assert (
+        ("data", "synth") in leaves
+        and ("data", "import", "nuscenes") in leaves
+        and ("score", "qa") in leaves
+        and ("config", "reference") in leaves
+    )
     # Each runnable command names its body, in the module that registered it.
     for path, func in leaves.items():
         assert callable(func) and func.__module__.startswith("occtrain.cli."), (path, func)

@@ -177,7 +177,7 @@ def test_compile_points_inductors_cache_into_the_run_unless_the_user_chose_one(t
     from occtrain.stages.trainer import build_trainer
 
     def compile_blocks(compile: bool) -> list:
-        trainer = build_trainer(TrainerConfig(compile=compile, loggers=["csv"]), tmp_path / "run" / "tok", None)
+        trainer, _ = build_trainer(TrainerConfig(compile=compile, loggers=["csv"]), tmp_path / "run" / "tok", None)
         return [c for c in trainer.callbacks if isinstance(c, callbacks.CompileBlocks)]
 
     assert compile_blocks(False) == []
