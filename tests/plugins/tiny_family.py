@@ -34,7 +34,7 @@ from torchmetrics import MeanMetric
 from occtrain.core import scorers
 from occtrain.core.builder import SequenceBuilder, batch_payload
 from occtrain.core.lm_world_model import LMWorldModel, WorldInputs, WorldModelOutput, token_ce
-from occtrain.core.protocols import PlannerSettings, PromptInputs
+from occtrain.core.protocols import PlannerSettings, PromptInputs, ScoringContext
 from occtrain.core.registry import FamilySpec, WorldSpec, register_family
 from occtrain.core.sample_inputs import InputSource, SampleInput, Samples
 from occtrain.core.sequence import IGNORE, TokenSequence, empty_payload
@@ -284,11 +284,11 @@ class CarColumnScorer(scorers.BaseScorer):
     def __init__(self) -> None:
         self.answers: Counter = Counter()
 
-    def score(self, ev: Any, item: scorers.Item) -> None:
+    def score(self, ev: ScoringContext, item: scorers.Item) -> None:
         truth, said = item.parts[-1].text, item.generated[0].text.strip()
         self.answers[truth] += 1
-        ev.metrics["car_columns_acc"].update(100.0 * (said == truth))
-        ev.metrics["baseline_commonest_car_columns_acc"].update(
+        ev.metric("car_columns_acc").update(100.0 * (said == truth))
+        ev.metric("baseline_commonest_car_columns_acc").update(
             100.0 * (truth == "0")
         )  # the synthetic world's commonest
         ev.keep_text("car_columns", item.parts[-2].text, said, truth)

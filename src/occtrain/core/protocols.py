@@ -24,7 +24,7 @@ shows them in use.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Callable, Hashable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol, TypeVar, runtime_checkable
@@ -35,8 +35,11 @@ import torch
 from occtrain.core.ego_steps import EgoStep
 
 if TYPE_CHECKING:  # types only: these modules import this one's neighbours
+    from torchmetrics import Metric
+
     from occtrain.core.decoding import Answer
     from occtrain.core.lm_world_model import LMWorldModel
+    from occtrain.core.scorers import Item, Priors
     from occtrain.core.sequence import TokenSequence
     from occtrain.core.shared_tasks import TaskConfig, TaskSpec
     from occtrain.core.vocab import JointVocab
@@ -190,6 +193,39 @@ class CameraSceneEncoder(SceneEncoder, Protocol):
     def encode_samples(self, index: DatasetIndex, samples: list[tuple[str, str]]) -> torch.Tensor: ...
 
 
+class ScoringContext(Protocol):
+    """What a scorer or an eval hook reads and writes of the evaluator running it
+    (``engine.evaluator.Evaluator``): the metrics by name, the baselines' priors, the
+    dataset, caches made once a run, and what it keeps for the dashboard and the
+    predictions file."""
+
+    #: Every metric its scorers and hooks declared, by name (``metric`` gives one typed).
+    metrics: torch.nn.ModuleDict
+    priors: Priors
+    #: The dataset the clips come from (None before a run).
+    index: DatasetIndex | None
+    #: Whether every prediction is kept, by kind, in ``predictions``.
+    record: bool
+    predictions: dict[str, dict]
+
+    @property
+    def device(self) -> torch.device: ...
+
+    def metric(self, name: str) -> Metric: ...
+
+    def once(self, key: Hashable) -> bool: ...
+
+    def reconstructed(self, token: str, make: Callable[[], torch.Tensor]) -> torch.Tensor: ...
+
+    def keep_text(self, task: str, prompt: str, prediction: str, reference: str) -> None: ...
+
+    def keep_scene(self, kind: str, caption: str, panels: list[tuple]) -> None: ...
+
+    def keep_forecast_picture(self, token: str, pred: np.ndarray, target: np.ndarray, n: int) -> None: ...
+
+    def keep_plan_picture(self, name: str, anchor: dict, plan: np.ndarray, truth: np.ndarray) -> None: ...
+
+
 @runtime_checkable
 class Scorer(Protocol):
     """Grades one task's generated answers. ``metrics``: name -> a factory of the
@@ -201,7 +237,7 @@ class Scorer(Protocol):
     metrics: dict[str, Callable[[], Any]]
     needs_semantics: bool
 
-    def score(self, evaluator: Any, item: Any) -> None: ...
+    def score(self, evaluator: ScoringContext, item: Item) -> None: ...
 
     def summary(self, prefix: str) -> dict[str, float]: ...
 
@@ -224,7 +260,7 @@ class EvalHook(Protocol):
 
     def applies(self, engine: WorldEngine) -> bool: ...
 
-    def run(self, evaluator: Any, engine: WorldEngine, clips: list) -> None: ...
+    def run(self, evaluator: ScoringContext, engine: WorldEngine, clips: list[Clip]) -> None: ...
 
 
 @dataclass(frozen=True)

@@ -22,7 +22,7 @@ import torch
 from torchmetrics import MeanMetric
 
 from occtrain.core.plan_subsets import SUBSETS, subset_rows, update_plans
-from occtrain.core.protocols import WorldEngine
+from occtrain.core.protocols import ScoringContext, WorldEngine
 from occtrain.core.shared_tasks import question_of
 from occtrain.data.clips import Actions, Clip, Part, PlanTarget, Scene, text_of
 from occtrain.data.geometry import moved_scene
@@ -100,7 +100,7 @@ class BaseScorer:
     metrics: dict[str, Any] = {}
     needs_semantics = False
 
-    def score(self, evaluator: Any, item: Item) -> None:
+    def score(self, evaluator: ScoringContext, item: Item) -> None:
         raise NotImplementedError
 
     def summary(self, prefix: str) -> dict[str, float]:
@@ -133,7 +133,7 @@ class PlanScorer(BaseScorer):
         self.name, self.alternate, self.record = name, alternate, record
         self.metrics = {n: PlanningMetric for n in (name, *(name + subset for subset in SUBSETS))} | PLAN_BASELINES
 
-    def score(self, ev: Any, item: Item) -> None:
+    def score(self, ev: ScoringContext, item: Item) -> None:
         target, anchor, token = item.target, item.clip.anchor, item.clip.anchor["token"]
         subsets = subset_rows([anchor], target)
         if ev.once(("plan baselines", token)):  # standing still, constant velocity and acceleration, once a clip
@@ -256,7 +256,7 @@ class ForecastScorer(BaseScorer):
     metrics = {f"{name}_occworld": forecast_metric for name in ("forecast", *FORECAST_BASELINES)}
     needs_semantics = True
 
-    def score(self, ev: Any, item: Item) -> None:
+    def score(self, ev: ScoringContext, item: Item) -> None:
         scenes = [p for p in item.generated if isinstance(p, Scene)]
         if not scenes:
             return
@@ -266,7 +266,9 @@ class ForecastScorer(BaseScorer):
         n = min(len(scenes), FUTURE_STEPS, semantics.shape[0] - a - 1)
         # Decoding a scene is most of a forecast's scoring: only the scored horizons (and
         # the pictures, which show them) are decoded, every frame when predictions are kept.
-        horizons = ev.metrics["forecast_occworld"].horizons
+        forecast = ev.metric("forecast_occworld")
+        assert isinstance(forecast, ForecastMetric)
+        horizons = forecast.horizons
         steps = list(range(n)) if ev.record else [k for k in horizons if k < n]
         pred = torch.full((1, FUTURE_STEPS, *semantics.shape[1:]), FREE, dtype=torch.long)
         if steps:
@@ -277,7 +279,7 @@ class ForecastScorer(BaseScorer):
         target[0, :n] = semantics[a + 1 : a + 1 + n].long()
         valid[0, :n] = True
         dev = ev.device
-        ev.metrics["forecast_occworld"].update(pred.to(dev), target.to(dev), valid.to(dev))
+        ev.metric("forecast_occworld").update(pred.to(dev), target.to(dev), valid.to(dev))
         current = semantics[a].long()
         engine = item.engine
         tokens = item.clip.ann["tokens"]
@@ -286,13 +288,16 @@ class ForecastScorer(BaseScorer):
         def through(labels: torch.Tensor) -> torch.Tensor:
             return engine.decode_scenes(engine.encode_scenes(labels)).cpu()
 
+        def through_target(k: int) -> torch.Tensor:
+            return through(target[0, k][None])[0]
+
         scored = [k for k in horizons if k < n]
         encodes = engine.encodes_labels()
         future = None
         if encodes:  # each dataset frame through the encoder once per evaluation, whichever clip asks
             future = torch.full((FUTURE_STEPS, *semantics.shape[1:]), FREE, dtype=torch.long)
             for k in scored:
-                future[k] = ev.reconstructed(tokens[a + 1 + k], lambda k=k: through(target[0, k][None])[0])
+                future[k] = ev.reconstructed(tokens[a + 1 + k], partial(through_target, k))
         baselines = forecast_baselines(
             current,
             reconstruction,
@@ -304,7 +309,7 @@ class ForecastScorer(BaseScorer):
             future_reconstruction=future,
         )
         for name, volumes in baselines.items():
-            ev.metrics[f"{name}_occworld"].update(volumes.to(dev), target.to(dev), valid.to(dev))
+            ev.metric(f"{name}_occworld").update(volumes.to(dev), target.to(dev), valid.to(dev))
         token = item.clip.anchor["token"]
         ev.keep_forecast_picture(token, pred[0].numpy(), target[0].numpy(), n)
         if ev.record:
@@ -320,14 +325,14 @@ class QAScorer(BaseScorer):
     def __init__(self) -> None:
         self.answers: Counter = Counter()
 
-    def score(self, ev: Any, item: Item) -> None:
+    def score(self, ev: ScoringContext, item: Item) -> None:
         question = question_of(item.parts)
         q = next(q for q in item.clip.qa if q["question"] == question)
         answer = text_of(item.generated[0]).strip()
         self.answers[answer] += 1
-        ev.metrics["qa"].update([answer], [q["answer"]], [q["template_type"]], [q["num_hop"]])
+        ev.metric("qa").update([answer], [q["answer"]], [q["template_type"]], [q["num_hop"]])
         prior = ev.priors.qa.get(q["template_type"], "")
-        ev.metrics["baseline_prior_qa"].update([prior], [q["answer"]], [q["template_type"]], [q["num_hop"]])
+        ev.metric("baseline_prior_qa").update([prior], [q["answer"]], [q["template_type"]], [q["num_hop"]])
         ev.keep_text("qa", text_of(item.parts[-2]), answer, q["answer"])
         if ev.record:
             ev.predictions["qa"][f"{item.clip.anchor['token']}|{question}"] = (q, answer)
@@ -375,23 +380,21 @@ class ChainOfThoughtScorer(BaseScorer):
     def __init__(self) -> None:
         self.scored = 0
 
-    def score(self, ev: Any, item: Item) -> None:
+    def score(self, ev: ScoringContext, item: Item) -> None:
         anchor, token = item.clip.anchor, item.clip.anchor["token"]
         text, reference = text_of(item.generated[0]), text_of(item.parts[-2])
-        ev.metrics["cot_caption"].update([text], [[reference]], ids=[token])
+        ev.metric("cot_caption").update([text], [[reference]], ids=[token])
         parsed = said_meta_action(text, item.clip)
         said = meta_action_words(parsed) if parsed is not None else "none"
         ev.keep_text("cot", "Task: describe the scene, then plan.", f"{text}  [parsed meta action: {said}]", reference)
-        ev.metrics["meta_parsed_fraction"].update(100.0 * (parsed is not None))
-        ev.metrics["meta_action_acc"].update(100.0 * (parsed == anchor["meta_action"]))
-        ev.metrics["meta_action"].update([parsed], [anchor["meta_action"]])
+        ev.metric("meta_parsed_fraction").update(100.0 * (parsed is not None))
+        ev.metric("meta_action_acc").update(100.0 * (parsed == anchor["meta_action"]))
+        ev.metric("meta_action").update([parsed], [anchor["meta_action"]])
         self.scored += 1
         if ev.priors.meta_action is not None:
-            ev.metrics["baseline_prior_meta_action_acc"].update(
-                100.0 * (ev.priors.meta_action == anchor["meta_action"])
-            )
-            ev.metrics["baseline_prior_meta_action"].update([ev.priors.meta_action], [anchor["meta_action"]])
-        ev.metrics["baseline_repeat_last_meta_action"].update(
+            ev.metric("baseline_prior_meta_action_acc").update(100.0 * (ev.priors.meta_action == anchor["meta_action"]))
+            ev.metric("baseline_prior_meta_action").update([ev.priors.meta_action], [anchor["meta_action"]])
+        ev.metric("baseline_repeat_last_meta_action").update(
             [last_past_meta_action(item.clip)], [anchor["meta_action"]]
         )
         if ev.record:

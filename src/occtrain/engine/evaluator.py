@@ -10,9 +10,8 @@ from __future__ import annotations
 
 import zlib
 from collections import defaultdict
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Hashable, Iterable
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import torch
@@ -140,7 +139,13 @@ class Evaluator(torch.nn.Module):
                 return metric.device
         return torch.device("cpu")
 
-    def once(self, key: Any) -> bool:
+    def metric(self, name: str) -> Metric:
+        """The metric a scorer or hook declared as ``name``."""
+        metric = self.metrics[name]
+        assert isinstance(metric, Metric), name  # every declared factory makes a torchmetrics Metric
+        return metric
+
+    def once(self, key: Hashable) -> bool:
         """True the first time ``key`` is asked about in this run (e.g. a baseline per clip)."""
         if key in self._once:
             return False

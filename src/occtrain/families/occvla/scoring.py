@@ -4,12 +4,10 @@ occupancy query branch, decoded and scored in both conventions."""
 
 from __future__ import annotations
 
-from typing import Any
-
 import torch
 from torchmetrics import MeanMetric
 
-from occtrain.core.protocols import TASK_CLIPS, WorldEngine, family_tasks, family_world
+from occtrain.core.protocols import TASK_CLIPS, ScoringContext, WorldEngine, family_tasks, family_world
 from occtrain.core.scorers import BaseScorer, Item, last_past_meta_action
 from occtrain.data.clips import Clip, text_of
 from occtrain.data.meta_actions import commonest
@@ -35,23 +33,23 @@ class MetaActionScorer(BaseScorer):
     def __init__(self) -> None:
         self._prior: dict[tuple, MetaAction | None] = {}
 
-    def score(self, ev: Any, item: Item) -> None:
+    def score(self, ev: ScoringContext, item: Item) -> None:
         from occtrain.families.occvla.tasks import TaskConfig  # imported here: the tasks module imports this one
 
         text, reference = text_of(item.generated[0]), text_of(item.parts[-1])
         cfg = family_tasks(item.engine, TaskConfig).meta_actions
         last = last_past_meta_action(item.clip, cfg)  # what "as before" means (meta_action_prior)
         truth, parsed = parse_meta_action(reference, last), parse_meta_action(text, last)
-        ev.metrics["meta_action"].update([parsed], [truth])
-        ev.metrics["meta_parsed_fraction"].update(100.0 * (parsed is not None))
+        ev.metric("meta_action").update([parsed], [truth])
+        ev.metric("meta_parsed_fraction").update(100.0 * (parsed is not None))
         key = tuple(sorted(vars(cfg).items()))
         if key not in self._prior and ev.index is not None:
             self._prior[key] = commonest(ev.index, "train", cfg)
         prior = self._prior.get(key)
         if prior is not None:
-            ev.metrics["baseline_prior_meta_action"].update([prior], [truth])
+            ev.metric("baseline_prior_meta_action").update([prior], [truth])
         # The last one the prompt lists; none (a scene's start) scores as a wrong answer.
-        ev.metrics["baseline_repeat_last_meta_action"].update([last], [truth])
+        ev.metric("baseline_repeat_last_meta_action").update([last], [truth])
         said = meta_action_words(parsed) if parsed is not None else "none"
         prompt = text_of(item.parts[-2])
         ev.keep_text("meta_action", prompt, f"{text}  [parsed: {said}]", reference)
@@ -82,10 +80,11 @@ class OccupancyQueries:
         return family_tasks(engine, TaskConfig).occupancy_weight > 0
 
     @torch.no_grad()
-    def run(self, ev: Any, engine: WorldEngine, clips: list[Clip]) -> None:
+    def run(self, ev: ScoringContext, engine: WorldEngine, clips: list[Clip]) -> None:
         from occtrain.families.occvla.world_model import OccVLAWorldModel  # it imports the tasks, which import this
 
         index, dev = ev.index, ev.device
+        assert index is not None  # an evaluator's run sets it before its hooks run
         world = family_world(engine, OccVLAWorldModel)
         for clip in clips:
             token = clip.anchor["token"]
@@ -93,8 +92,8 @@ class OccupancyQueries:
             labels = index.labels(index.scene_of(token), token)
             target = torch.from_numpy(labels["semantics"]).long()[None]
             mask = torch.from_numpy(labels["mask_camera"].astype(bool))[None]
-            ev.metrics["occupancy_occ3d"].update(pred.to(dev), target.to(dev), mask.to(dev))
-            ev.metrics["occupancy_occworld"].update(pred.to(dev), target.to(dev))
+            ev.metric("occupancy_occ3d").update(pred.to(dev), target.to(dev), mask.to(dev))
+            ev.metric("occupancy_occworld").update(pred.to(dev), target.to(dev))
             ev.keep_scene(
                 "occupancy",
                 f"occupancy from the queries, sample {token[:8]}: truth and prediction",

@@ -10,12 +10,10 @@ reconstruction of the current frame is scored too (Table 8's "Curr")."""
 
 from __future__ import annotations
 
-from typing import Any
-
 import numpy as np
 import torch
 
-from occtrain.core.protocols import FUTURE_CLIPS, WorldEngine, family_world
+from occtrain.core.protocols import FUTURE_CLIPS, ScoringContext, WorldEngine, family_world
 from occtrain.core.scorers import FORECAST_BASELINES, forecast_baselines, forecast_metric
 from occtrain.data.clips import Clip, Text
 from occtrain.families.sparseoccvla.tasks import FORECAST_PROMPT, context
@@ -51,8 +49,9 @@ class ForecastHead:
         return engine.tasks.weights.get("forecast", 0) > 0
 
     @torch.no_grad()
-    def run(self, ev: Any, engine: WorldEngine, clips: list[Clip]) -> None:
+    def run(self, ev: ScoringContext, engine: WorldEngine, clips: list[Clip]) -> None:
         index, dev = ev.index, ev.device
+        assert index is not None  # an evaluator's run sets it before its hooks run
         world = family_world(engine, SparseOccVLAWorldModel)
         for clip in clips:
             token, a = clip.anchor["token"], clip.anchor_index
@@ -80,10 +79,10 @@ class ForecastHead:
             )
             for what, volumes in predictions.items():
                 for sel in selections:
-                    ev.metrics[f"{what}_{sel}{OCCWORLD}"].update(volumes.to(dev), target.to(dev), valid.to(dev))
-            ev.metrics["reconstruction_occworld"].update(recon[None].to(dev), current[None].to(dev))
+                    ev.metric(f"{what}_{sel}{OCCWORLD}").update(volumes.to(dev), target.to(dev), valid.to(dev))
+            ev.metric("reconstruction_occworld").update(recon[None].to(dev), current[None].to(dev))
             mask = torch.from_numpy(labels[0]["mask_camera"].astype(bool))[None]
-            ev.metrics["reconstruction_occ3d"].update(recon[None].to(dev), current[None].to(dev), mask.to(dev))
+            ev.metric("reconstruction_occ3d").update(recon[None].to(dev), current[None].to(dev), mask.to(dev))
             ev.keep_forecast_picture(token, pred[0].numpy(), target[0].numpy(), n)
             ev.keep_scene(
                 "reconstruction",

@@ -11,6 +11,7 @@ from typing import Any
 
 from torchmetrics import MeanMetric
 
+from occtrain.core.protocols import ScoringContext
 from occtrain.core.scorers import BaseScorer, Item
 from occtrain.data.clips import text_of
 from occtrain.data.text_formats import meta_action_words, parse_meta_action
@@ -48,12 +49,12 @@ class TextScorer(BaseScorer):
             self._typical = typical(_training_answers(item, ev))
         return self._typical
 
-    def score(self, ev: Any, item: Item) -> None:
+    def score(self, ev: ScoringContext, item: Item) -> None:
         text, reference = text_of(item.generated[0]).strip(), text_of(item.parts[-1])
         prompt = text_of(item.parts[-2])
         key = f"{item.clip.anchor['token']}|{prompt}"
-        ev.metrics[self.name].update([text], [[reference]], ids=[key])
-        ev.metrics[f"baseline_typical_{self.name}"].update([self.baseline(item, ev)], [[reference]], ids=[key])
+        ev.metric(self.name).update([text], [[reference]], ids=[key])
+        ev.metric(f"baseline_typical_{self.name}").update([self.baseline(item, ev)], [[reference]], ids=[key])
         ev.keep_text(self.name, prompt, text, reference)
         if ev.record and self.name == "caption":
             ev.predictions["captions"][item.clip.anchor["token"]] = text
@@ -91,15 +92,15 @@ class DecisionScorer(BaseScorer):
     def __init__(self) -> None:
         self.said: Counter = Counter()
 
-    def score(self, ev: Any, item: Item) -> None:
+    def score(self, ev: ScoringContext, item: Item) -> None:
         text, reference = text_of(item.generated[0]), text_of(item.parts[-1])
         truth, parsed = parse_meta_action(reference), parse_meta_action(text)
         if truth is None:
             return
-        ev.metrics["meta_action"].update([parsed], [truth])
-        ev.metrics["meta_parsed_fraction"].update(100.0 * (parsed is not None))
+        ev.metric("meta_action").update([parsed], [truth])
+        ev.metric("meta_parsed_fraction").update(100.0 * (parsed is not None))
         if ev.priors.meta_action is not None:
-            ev.metrics["baseline_prior_meta_action"].update([ev.priors.meta_action], [truth])
+            ev.metric("baseline_prior_meta_action").update([ev.priors.meta_action], [truth])
         said = meta_action_words(parsed) if parsed is not None else "none"
         self.said[said] += 1
         ev.keep_text("planning", text_of(item.parts[-2]), f"{text}  [parsed: {said}]", reference)
