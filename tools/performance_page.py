@@ -71,6 +71,7 @@ BENCHMARKS = (
     Benchmark("ddp", "python tools/bench/ddp.py --steps 40"),
     Benchmark("world-model", "python tools/bench/world_model.py"),
     Benchmark("tokenizers", "python tools/bench/tokenizer.py --skip-training"),
+    Benchmark("allocator", "python tools/bench/allocator.py", ("data/quickstart",)),
     Benchmark(
         "decode",
         f"python tools/bench/tokenizer.py --decode {QUICKSTART}/tokenizer/export",

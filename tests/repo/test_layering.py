@@ -53,6 +53,7 @@ LAYERS = {
     "kinematics": 1,
     "formats": 0,
     "errors": 0,
+    "allocator": 0,
     "__init__": 0,
     "version": 0,
 }
@@ -65,6 +66,7 @@ STAGE_INFRA = {
     "occtrain.stages.common",
     "occtrain.stages.loggers",
     "occtrain.stages.optim",
+    "occtrain.stages.phases",
     "occtrain.stages.registered_schemas",
     "occtrain.stages.sharding",
     "occtrain.stages.step_progress",

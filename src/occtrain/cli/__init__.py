@@ -69,8 +69,10 @@ def main(argv: list[str] | None = None) -> int:
         if not hasattr(args, "overrides") or any(e.startswith("-") for e in extra):
             parser.error(f"unrecognized arguments: {' '.join(extra)}")
         args.overrides = [*(args.overrides or []), *extra]
+    from occtrain.allocator import keep_freed_memory
     from occtrain.run.control import Interrupted
 
+    keep_freed_memory()  # before anything allocates a tensor (occtrain.allocator says why)
     try:
         return int(args.func(args) or 0)
     except Interrupted as stop:
