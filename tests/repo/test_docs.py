@@ -120,6 +120,15 @@ def test_the_notebook_check_catches_each_marker():
     assert notebook_markers(text) == ["issue 42", "#57", "985fb17", "2026-11-29", "this stop"]
 
 
+def test_the_recipes_page_reads_as_prose():
+    """One heading a concept, and lines a reader's editor shows whole (a table of long
+    cells became a list)."""
+    text = (REPO / "docs" / "recipes.md").read_text()
+    headings = [line for line in text.splitlines() if line.startswith("## ")]
+    assert len(headings) == len(set(headings))
+    assert [n for n, line in enumerate(text.splitlines(), 1) if len(line) > 200] == []
+
+
 # ----------------------------------------------------------------------------- the layout page
 
 
