@@ -273,11 +273,11 @@ class MetaActionPlanner(nn.Module):
         #: What the head's waypoints add to (``prior_plan``).
         self.prior = head_prior(cfg.prior, self.inputs)
         self.sidecar_reference = sidecar_reference
+        #: The world model's summary the head reads (``SUMMARIES``), if any.
+        self.reads_summary = next((n for n in SUMMARIES if n in self.inputs), None)
         if teacher is not None:
             self._check_teacher(teacher, where)
         self.teacher = teacher
-        #: The world model's summary the head reads (``SUMMARIES``), if any.
-        self.reads_summary = next((n for n in SUMMARIES if n in self.inputs), None)
         visual_dim = 0
         if self.reads_summary is not None:
             if teacher is None:
@@ -319,7 +319,7 @@ class MetaActionPlanner(nn.Module):
 
     def _check_teacher(self, teacher: WorldEngine, where: str) -> None:
         family = teacher.family
-        for op in ("reference_meta_action", "generated_meta_actions"):
+        for op in ("reference_meta_action", "generated_meta_actions") if "meta_action" in self.inputs else ():
             if teacher.operation(op) is None:
                 raise ConfigError(
                     f"{where}: the '{family}' world model generates no meta action; set model.meta_source=ground_truth"
