@@ -76,6 +76,7 @@ def test_the_recipe_trains_every_stage_and_reports_the_papers_metrics(occllm_run
         "scene_queries": "moved_observed_scene",
         "copy_bias": 4.0,
         "change_weight": 4.0,
+        "mover_weight": 1.0,
     }
 
 

@@ -184,7 +184,8 @@ def test_a_picture_marker_becomes_the_image_with_its_alt_text_and_caption(tmp_pa
     monkeypatch.setenv("NO_MKDOCS_2_WARNING", "1")
     entry = {"file": "world.png", "alt": "a red square", "caption": "The world. recipe r, training seed 0"}
     docs = _picture_site(tmp_path, {"world": entry})
-    nav = [{"Home": "index.md"}, {"Deeper": "sub/page.md"}]
+    # (the configuration reference is a page the docs' hook generates into every site)
+    nav = [{"Home": "index.md"}, {"Deeper": "sub/page.md"}, {"Reference": "reference/config.md"}]
     build(_config(tmp_path / "site", docs_dir=str(docs), nav=nav))
     home = (tmp_path / "site" / "index.html").read_text()
     deeper = (tmp_path / "site" / "sub" / "page" / "index.html").read_text()

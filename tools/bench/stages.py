@@ -54,7 +54,7 @@ def main() -> None:
     where = []
     for stage, metrics in measured.items():
         wall = manifest["stages"][stage].get("wall_time_s")
-        phases = {p: metrics[f"time_{p}_s"] for p in PHASES if f"time_{p}_s" in metrics}
+        phases = {p: metrics[f"{p}_phase_s"] for p in PHASES if f"{p}_phase_s" in metrics}
         if not phases or not wall:
             continue
         parts = [f"{p.replace('_', ' ')} {s:.0f} s ({100 * s / wall:.0f} %)" for p, s in phases.items()]

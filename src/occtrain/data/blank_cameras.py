@@ -19,6 +19,7 @@ import tempfile
 from pathlib import Path
 
 from occtrain.data.layout import ANNOTATIONS_FILE, DATASET_FILE, DatasetIndex, generator_record
+from occtrain.data.releases.files import place
 from occtrain.errors import DataError
 from occtrain.formats.io import write_error
 
@@ -79,7 +80,9 @@ def blank_camera_view(root: str | Path, into: str | Path) -> Path:
 
 def _mirror(src: Path, dst: Path, images: set[Path], record: Path, top: bool = False) -> None:
     """``dst`` as ``src`` with ``images`` written black and ``record`` left out (the caller
-    writes its own); a folder holding neither is one link."""
+    writes its own); every other file the same bytes under a hard link (a copy where the
+    filesystem has none): a dataset's files lie inside its root, and a symbolic link out of
+    it is refused where it is read."""
     dst.mkdir(exist_ok=True)
     for entry in sorted(src.iterdir()):
         if top and entry.name in NOT_TAKEN:
@@ -89,10 +92,10 @@ def _mirror(src: Path, dst: Path, images: set[Path], record: Path, top: bool = F
             continue
         if path in images:
             _write_black(path, target)
-        elif entry.is_dir() and (path in record.parents or any(path in i.parents for i in images)):
+        elif entry.is_dir():
             _mirror(entry, target, images, record)
         else:
-            target.symlink_to(path, target_is_directory=entry.is_dir())
+            place(path, target)
 
 
 def _write_black(image: Path, target: Path) -> None:

@@ -90,7 +90,7 @@ def _execute(
     module.prepare_export()  # every rank: a sharded stage gathers its weights for rank zero
     if trainer.is_global_zero:
         export_dir = module.export(stage_dir / "export")
-        metrics["time_export_s"] = time.perf_counter() - exporting
+        metrics["export_phase_s"] = time.perf_counter() - exporting
         provenance = _validation_provenance(stage, meters, report, module.split_items(), attempt or StageAttempt())
         write_metrics(stage_dir / "metrics.json", metrics, provenance)
         # Stages hand over raw scenes and texts; pictures are drawn here, not in the stages.

@@ -154,7 +154,7 @@ def _batch_samples(batch: Any) -> int:
 #: rates, memory): the same training gives other values on another machine or load. The
 #: padding share is the model's, but of the steps one attempt ran (a resumed stage's
 #: differs from an uninterrupted one's), so it is left out of their comparisons too.
-MEASURED = ("_per_s", "_step_s", "_rss_mb", "_gpu_mb", "_mfu", "_padding_share")
+MEASURED = ("_per_s", "_step_s", "_rss_mb", "_gpu_mb", "_mfu", "_padding_share", "_phase_s")
 #: The per-step rates in the training log (the dashboard's throughput charts).
 LOGGED_RATES = ("tokens_per_s", "samples_per_s", "mfu", "padding_share")
 

@@ -3,7 +3,7 @@ the optimizer, beside its validations, checkpoint writes and first step.
 
 Lightning's ``SimpleProfiler`` already times each of the loops' actions (a perf counter
 around each, a few microseconds a step); this reads its durations into a stage's
-``metrics.json`` as ``time_<phase>_s`` rather than printing its hundred-line report.
+``metrics.json`` as ``<phase>_phase_s`` rather than printing its hundred-line report.
 """
 
 from __future__ import annotations
@@ -42,7 +42,7 @@ def _matching(durations: Mapping[str, list[float]], *parts: str, but: str = "\0"
 
 
 def phase_seconds(profiler: SimpleProfiler) -> dict[str, float]:
-    """The seconds of each of :data:`PHASES` the profiler timed, as ``time_<phase>_s``.
+    """The seconds of each of :data:`PHASES` the profiler timed, as ``<phase>_phase_s``.
 
     Lightning runs a step's forward and backward inside the optimizer step's closure, so
     the optimizer's share is the optimizer step's time less theirs. ``first_step`` is the
@@ -57,11 +57,11 @@ def phase_seconds(profiler: SimpleProfiler) -> dict[str, float]:
     # A checkpoint callback's validation hooks write checkpoints, counted under their own phase.
     validating = _matching(durations, "validation_step", "val_next", "on_validation_", but="ModelCheckpoint")
     return {
-        "time_data_s": _matching(durations, "train_dataloader_next"),
-        "time_forward_s": forward,
-        "time_backward_s": backward,
-        "time_optimizer_s": max(stepping - forward - backward, 0.0),
-        "time_validation_s": validating,
-        "time_checkpoints_s": _matching(durations, "save_checkpoint"),
-        "time_first_step_s": max(batches[0] - typical, 0.0) if batches else 0.0,
+        "data_phase_s": _matching(durations, "train_dataloader_next"),
+        "forward_phase_s": forward,
+        "backward_phase_s": backward,
+        "optimizer_phase_s": max(stepping - forward - backward, 0.0),
+        "validation_phase_s": validating,
+        "checkpoints_phase_s": _matching(durations, "save_checkpoint"),
+        "first_step_phase_s": max(batches[0] - typical, 0.0) if batches else 0.0,
     }

@@ -32,25 +32,25 @@ def test_the_phases_of_three_steps_and_a_validation():
         }
     )
     phases = phase_seconds(profiler)
-    assert set(phases) == {f"time_{p}_s" for p in PHASES} - {"time_export_s"}  # the runner times the export
-    assert phases["time_data_s"] == pytest.approx(0.6)
-    assert phases["time_forward_s"] == pytest.approx(2.7)
-    assert phases["time_backward_s"] == pytest.approx(3.6)
-    assert phases["time_optimizer_s"] == pytest.approx(6.9 - 2.7 - 3.6)
-    assert phases["time_validation_s"] == pytest.approx(0.7 + 0.8 + 0.1 + 0.4)
-    assert phases["time_checkpoints_s"] == pytest.approx(0.35)
-    assert phases["time_first_step_s"] == pytest.approx(5.0 - 1.2)  # over the median step
+    assert set(phases) == {f"{p}_phase_s" for p in PHASES} - {"export_phase_s"}  # the runner times the export
+    assert phases["data_phase_s"] == pytest.approx(0.6)
+    assert phases["forward_phase_s"] == pytest.approx(2.7)
+    assert phases["backward_phase_s"] == pytest.approx(3.6)
+    assert phases["optimizer_phase_s"] == pytest.approx(6.9 - 2.7 - 3.6)
+    assert phases["validation_phase_s"] == pytest.approx(0.7 + 0.8 + 0.1 + 0.4)
+    assert phases["checkpoints_phase_s"] == pytest.approx(0.35)
+    assert phases["first_step_phase_s"] == pytest.approx(5.0 - 1.2)  # over the median step
 
 
 def test_a_profiler_that_timed_nothing_gives_zeros():
     assert phase_seconds(_profiled({})) == {
-        "time_data_s": 0.0,
-        "time_forward_s": 0.0,
-        "time_backward_s": 0.0,
-        "time_optimizer_s": 0.0,
-        "time_validation_s": 0.0,
-        "time_checkpoints_s": 0.0,
-        "time_first_step_s": 0.0,
+        "data_phase_s": 0.0,
+        "forward_phase_s": 0.0,
+        "backward_phase_s": 0.0,
+        "optimizer_phase_s": 0.0,
+        "validation_phase_s": 0.0,
+        "checkpoints_phase_s": 0.0,
+        "first_step_phase_s": 0.0,
     }
 
 
