@@ -116,7 +116,7 @@ class Ticker:
             self.say(extra)
 
     def say(self, extra: str = "", final: bool = False) -> None:
-        from occtrain.formats.io import is_rank_zero
+        from occtrain.ranks import is_rank_zero
 
         if not is_rank_zero():  # every rank writes the same log: one set of lines says it all
             return

@@ -54,6 +54,7 @@ LAYERS = {
     "formats": 0,
     "errors": 0,
     "allocator": 0,
+    "ranks": 0,
     "__init__": 0,
     "version": 0,
 }

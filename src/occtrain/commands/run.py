@@ -8,7 +8,7 @@ from pathlib import Path
 
 def run(recipe: str, overrides: list[str], run_dir: str | None, only: str | None, restart: str | None) -> Path:
     """Run (or continue) the recipe; rank zero prints the run directory."""
-    from occtrain.formats.io import is_rank_zero
+    from occtrain.ranks import is_rank_zero
     from occtrain.run.runner import run as run_recipe
 
     out = run_recipe(recipe, overrides, run_dir=run_dir, only=only, restart=restart)

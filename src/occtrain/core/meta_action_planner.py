@@ -36,7 +36,7 @@ from occtrain.data.layout import DatasetIndex
 from occtrain.data.schema import COMMANDS, META_DIRECTIONS, META_SPEEDS
 from occtrain.errors import ConfigError
 from occtrain.formats.exports import write_export
-from occtrain.formats.io import atomic_write_json, atomic_write_safetensors, is_rank_zero
+from occtrain.formats.io import atomic_write_json, atomic_write_safetensors
 from occtrain.formats.occ3d import FUTURE_STEPS, PAST_STEPS
 from occtrain.metrics import compute_metrics
 from occtrain.models import count_parameters
@@ -53,6 +53,7 @@ from occtrain.models.planning_heads import (
     route_prior,
 )
 from occtrain.progress import progress_bar
+from occtrain.ranks import is_rank_zero
 
 META_SOURCES = ("ground_truth", "generated")
 #: What the head may read, in the order its input vector lays them out. ``route`` to

@@ -273,8 +273,8 @@ def take(what: str, name: str, origin: str, held_by: str | None) -> None:
 def _note(text: str) -> None:
     from rich.markup import escape
 
-    from occtrain.formats.io import is_rank_zero
     from occtrain.progress import console
+    from occtrain.ranks import is_rank_zero
 
     if is_rank_zero():  # every rank registers; one note is enough
         console.print(f"[yellow]note[/]: {escape(text)}")

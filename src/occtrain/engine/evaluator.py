@@ -25,11 +25,11 @@ from occtrain.data.clips import Clip, Part, frame_clips, plan_target
 from occtrain.data.layout import DatasetIndex
 from occtrain.engine.world_engine import WorldModelEngine
 from occtrain.errors import ConfigError
-from occtrain.formats.io import rank_world
 from occtrain.formats.metrics_file import SampleSet, digest_items
 from occtrain.formats.occ3d import FRAME_DT, FUTURE_STEPS
 from occtrain.metrics import compute_metrics
 from occtrain.metrics.captions import CaptionMetric, start_meteor
+from occtrain.ranks import rank_world
 
 __all__ = ["Evaluator", "Priors", "evaluation_clips", "fixed_subset", "item_key", "scorable"]
 

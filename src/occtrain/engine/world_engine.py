@@ -37,9 +37,10 @@ from occtrain.data.layout import DatasetIndex
 from occtrain.data.shards import dataset_fingerprint
 from occtrain.engine.moved_scenes import MovedScenes
 from occtrain.errors import DataError
-from occtrain.formats.io import atomic_write_safetensors, is_rank_zero
+from occtrain.formats.io import atomic_write_safetensors
 from occtrain.models.camera_encoder import MultiViewEncoder
 from occtrain.progress import progress_bar
+from occtrain.ranks import is_rank_zero
 
 #: The scene cache's file name, completed by the key of what made it (``scene_cache_key``).
 SCENE_CACHE = "scenes-{key}.safetensors"

@@ -19,10 +19,11 @@ from typing import TYPE_CHECKING
 from occtrain.config import to_yaml
 from occtrain.config.recipe import RecipeConfig
 from occtrain.errors import ConfigError, OcctrainError, cause_line
-from occtrain.formats.io import atomic_write_text, is_rank_zero, remove_inside
+from occtrain.formats.io import atomic_write_text, remove_inside
 from occtrain.formats.manifest import PIPELINE_FILE, Manifest
 from occtrain.formats.metrics_file import Provenance, StageAttempt, write_metrics
 from occtrain.progress import console
+from occtrain.ranks import is_rank_zero
 from occtrain.report.compare import TABLE_FILE, show_table
 from occtrain.run.checks import check_run, refuse_changed
 from occtrain.run.control import Interrupted, restart_lock, run_lock, stop_on_signals

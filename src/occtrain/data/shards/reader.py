@@ -24,8 +24,9 @@ from occtrain.data.shards.entries import (
 )
 from occtrain.data.validate import first_problem
 from occtrain.errors import DataError
-from occtrain.formats.io import parse_json, rank_world
+from occtrain.formats.io import parse_json
 from occtrain.formats.occ3d import GRID_SHAPE
+from occtrain.ranks import rank_world
 
 
 def read_index(shards: str | Path) -> dict:

@@ -50,12 +50,13 @@ from occtrain.errors import ConfigError
 from occtrain.families.sparseoccvla.tasks import PLANNING_PROMPT, context
 from occtrain.families.sparseoccvla.world_model import EGO_FEATURES, SparseOccVLAWorldModel, ego_state, scene_rows
 from occtrain.formats.exports import check_section, load_state_strict, read_export, write_export
-from occtrain.formats.io import atomic_write_safetensors, is_rank_zero
+from occtrain.formats.io import atomic_write_safetensors
 from occtrain.formats.occ3d import FUTURE_STEPS
 from occtrain.metrics import compute_metrics
 from occtrain.models import count_parameters
 from occtrain.models.planning_heads import constant_acceleration, constant_velocity
 from occtrain.progress import progress_bar
+from occtrain.ranks import is_rank_zero
 
 #: The condition each decoder layer's cross-attentions read, in order (Fig. 3).
 FUSIONS = ("scene", "ego", "reason")
