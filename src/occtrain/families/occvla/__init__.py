@@ -16,11 +16,11 @@ from occtrain.core.meta_action_planner import MetaActionPlannerConfig, load_meta
 from occtrain.core.registry import FamilySpec, Showcase, WorldSpec, register_family
 from occtrain.core.sample_inputs import IMAGE_TOKENS, VOXELS
 from occtrain.core.scene_encoders import load_vq_scene_encoder, vq_scene_encoder
-from occtrain.families.occvla.config import OccVLAWorldConfig
+from occtrain.families.occvla.config import OccVLAWorldConfig, TaskConfig
 from occtrain.families.occvla.operations import OPERATIONS
 from occtrain.families.occvla.paper import PAPER_FIGURES
 from occtrain.families.occvla.scoring import OccupancyQueries
-from occtrain.families.occvla.tasks import PROMPT_WORDS, TASKS, TaskConfig
+from occtrain.families.occvla.tasks import PROMPT_WORDS, TASKS
 from occtrain.families.occvla.world_model import OccVLAWorldModel
 
 OCCVLA = register_family(

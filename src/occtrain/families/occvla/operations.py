@@ -13,8 +13,9 @@ from occtrain.core.builder import collate
 from occtrain.core.protocols import WorldEngine, family_tasks
 from occtrain.data.clips import Clip, text_of
 from occtrain.data.schema import MetaAction
+from occtrain.families.occvla.config import TaskConfig
 from occtrain.families.occvla.parts import Images
-from occtrain.families.occvla.tasks import TaskConfig, read_meta_action
+from occtrain.families.occvla.tasks import read_meta_action
 
 
 def reference_meta_action(engine: WorldEngine, clip: Clip) -> MetaAction | None:

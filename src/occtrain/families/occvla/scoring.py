@@ -13,7 +13,9 @@ from occtrain.data.clips import Clip, text_of
 from occtrain.data.meta_actions import commonest
 from occtrain.data.schema import MetaAction
 from occtrain.data.text_formats import meta_action_words, parse_meta_action
+from occtrain.families.occvla.config import TaskConfig
 from occtrain.families.occvla.parts import Images
+from occtrain.families.occvla.world_model import OccVLAWorldModel
 from occtrain.metrics import MetaActionAccuracy, OccupancyMetric
 from occtrain.metrics.occupancy import OCC3D, OCCWORLD
 
@@ -34,7 +36,6 @@ class MetaActionScorer(BaseScorer):
         self._prior: dict[tuple, MetaAction | None] = {}
 
     def score(self, ev: ScoringContext, item: Item) -> None:
-        from occtrain.families.occvla.tasks import TaskConfig  # imported here: the tasks module imports this one
 
         text, reference = text_of(item.generated[0]), text_of(item.parts[-1])
         cfg = family_tasks(item.engine, TaskConfig).meta_actions
@@ -75,13 +76,11 @@ class OccupancyQueries:
     }
 
     def applies(self, engine: WorldEngine) -> bool:
-        from occtrain.families.occvla.tasks import TaskConfig  # imported here: the tasks module imports this one
 
         return family_tasks(engine, TaskConfig).occupancy_weight > 0
 
     @torch.no_grad()
     def run(self, ev: ScoringContext, engine: WorldEngine, clips: list[Clip]) -> None:
-        from occtrain.families.occvla.world_model import OccVLAWorldModel  # it imports the tasks, which import this
 
         index, dev = ev.index, ev.device
         assert index is not None  # an evaluator's run sets it before its hooks run

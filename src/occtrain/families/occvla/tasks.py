@@ -13,19 +13,17 @@ poses by ``data.meta_actions`` with the task settings' rules.
 from __future__ import annotations
 
 from collections import Counter
-from dataclasses import dataclass, field
 
 import numpy as np
 
 from occtrain.core import scorers
 from occtrain.core.scorers import last_past_meta_action
-from occtrain.core.shared_tasks import TaskConfig as BaseTaskConfig
 from occtrain.core.shared_tasks import TaskSpec, each_question, questions_after
 from occtrain.data.clips import Clip, Part, Text
-from occtrain.data.meta_actions import MetaActionConfig, label, past_labels
+from occtrain.data.meta_actions import label, past_labels
 from occtrain.data.schema import MetaAction
 from occtrain.data.text_formats import caption_surroundings, format_meta_action, meta_action_words, parse_meta_action
-from occtrain.errors import ConfigError
+from occtrain.families.occvla.config import TaskConfig
 from occtrain.families.occvla.parts import Images, Occupancy
 from occtrain.families.occvla.scoring import MetaActionScorer
 from occtrain.formats.occ3d import FRAME_DT
@@ -33,9 +31,6 @@ from occtrain.formats.occ3d import FRAME_DT
 META_PROMPT = "Past meta actions:"
 META_QUESTION = "What is the next meta action?"
 CAPTION_PROMPT = "Describe the driving scene."
-COT_SCENES = ("surroundings", "caption")
-#: ``meta_action_prior`` values, the paper's first.
-META_ACTION_PRIORS = ("none", "repeat_last")
 PROMPT_WORDS = (META_PROMPT, META_QUESTION, CAPTION_PROMPT, "Scene:", "History:", "none known")
 
 #: Past-tense words of the history analysis.
@@ -48,56 +43,6 @@ _DIRECTION_PAST = {
     "bear right": "bore right",
     "stop": "stood still",
 }
-
-
-@dataclass
-class TaskConfig(BaseTaskConfig):
-    """OccVLA's task settings: its prompts, the chain of thought and the occupancy loss."""
-
-    #: History frames of a clip (the past meta actions t-5 .. t-1 read the poses back to t-6).
-    context_frames: int = 6
-    #: lambda_occ (Eq. 3): the weight of the occupancy-query loss beside the text loss in
-    #: every sequence; 0 leaves the queries out.
-    occupancy_weight: float = 1.0
-    #: The answer reasons (scene, history) before the meta action (Table 7).
-    chain_of_thought: bool = True
-    #: The chain's scene step: "surroundings", the caption without its opening clause on the
-    #: ego's own motion, or "caption", the whole caption. That clause states the frame's
-    #: meta action, so under teacher forcing the model learns to copy it into the answer,
-    #: and at inference it guesses the clause from the cameras and copies the guess over the
-    #: prompt's history (docs/families/occllama.md, "Switches beyond the papers").
-    cot_scene: str = "surroundings"
-    #: How the answer writes its meta action. "none" (the paper): always as speed and
-    #: direction. "repeat_last": "as before" when it equals the last past one, which the
-    #: prompt lists, so keeping it is one phrase and the model learns when it changes
-    #: (docs/families/occllama.md, "Switches beyond the papers").
-    meta_action_prior: str = "none"
-    #: Past meta actions in the prompt (t-5 .. t-1; fewer where the clip's history is shorter).
-    past_meta_actions: int = 5
-    #: How meta actions are labelled from the ego poses.
-    meta_actions: MetaActionConfig = field(default_factory=MetaActionConfig)
-
-    def __post_init__(self) -> None:
-        if isinstance(self.meta_actions, dict):  # as an export's config.json holds it
-            self.meta_actions = MetaActionConfig(**self.meta_actions)
-
-    def validate(self, key: str) -> None:
-        super().validate(key)
-        if self.occupancy_weight < 0:
-            raise ConfigError(
-                f"{key}.occupancy_weight: {self.occupancy_weight} is negative (paper: 1; 0 turns the occupancy queries "
-                "off)"
-            )
-        if self.past_meta_actions < 0:
-            raise ConfigError(f"{key}.past_meta_actions: {self.past_meta_actions} is negative (paper: 5)")
-        self.meta_actions.validate(f"{key}.meta_actions")
-        if self.meta_action_prior not in META_ACTION_PRIORS:
-            raise ConfigError(
-                f"{key}.meta_action_prior: {self.meta_action_prior!r} is not one of {', '.join(META_ACTION_PRIORS)} "
-                "(paper: none)"
-            )
-        if self.cot_scene not in COT_SCENES:
-            raise ConfigError(f"{key}.cot_scene: {self.cot_scene!r} is not one of {', '.join(COT_SCENES)}")
 
 
 def context(clip: Clip, cfg: TaskConfig) -> list[Part]:

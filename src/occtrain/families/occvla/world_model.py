@@ -39,9 +39,8 @@ from occtrain.core.sequence import IGNORE, PayloadSpec, TokenSequence, empty_pay
 from occtrain.core.shared_tasks import TaskConfig as BaseTaskConfig
 from occtrain.core.vocab import JointVocab
 from occtrain.data.clips import Part
-from occtrain.families.occvla.config import OccVLAWorldConfig
+from occtrain.families.occvla.config import OccVLAWorldConfig, TaskConfig
 from occtrain.families.occvla.parts import Images, Occupancy
-from occtrain.families.occvla.tasks import TaskConfig
 from occtrain.models.camera_encoder import pool_views
 from occtrain.models.patches import unpatchify
 from occtrain.models.tokenizers.base import SceneTokenizer

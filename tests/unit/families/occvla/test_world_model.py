@@ -21,7 +21,8 @@ from occtrain.data.meta_actions import KMH_PER_S, MetaActionConfig, label, past_
 from occtrain.errors import ConfigError
 from occtrain.families.occvla import OccVLAWorldConfig, OccVLAWorldModel
 from occtrain.families.occvla.parts import Images, Occupancy
-from occtrain.families.occvla.tasks import META_PROMPT, META_QUESTION, TaskConfig, meta_action
+from occtrain.families.occvla.config import TaskConfig
+from occtrain.families.occvla.tasks import META_PROMPT, META_QUESTION, meta_action
 from occtrain.formats.occ3d import GRID_SHAPE
 from occtrain.metrics import MetaActionAccuracy
 from occtrain.models.adapters import AdapterConfig, add_adapters, load_adapters, save_adapters, without_adapters
