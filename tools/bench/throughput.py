@@ -35,8 +35,8 @@ from omegaconf import OmegaConf  # noqa: E402
 from records import Row, record  # noqa: E402
 
 from occtrain.progress import console  # noqa: E402
+from occtrain.run.execution import build_stage  # noqa: E402
 from occtrain.run.planning import load_recipe  # noqa: E402
-from occtrain.run.runner import build_stage  # noqa: E402
 from occtrain.stages.trainer import build_trainer  # noqa: E402
 
 #: LLM shapes by name: Llama 3.2 1B and Llama 3.1 8B (their config.json files).

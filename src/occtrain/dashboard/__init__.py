@@ -1,6 +1,6 @@
 """The run dashboard: ``RUN_DIR/dashboard.html``, one self-contained page (no network, no CDN).
 
-What it reads from a run directory (see DESIGN.md):
+What it reads from a run directory (the layout ``formats.manifest`` and docs/recipes.md describe):
 
 - ``manifest.json`` (status, attempts, wall time, metrics, code version per stage) and ``pipeline.yaml``;
 - ``<stage>/logs/csv/metrics.csv``: Lightning's CSVLogger file (columns ``step``, ``epoch``,

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 from omegaconf import OmegaConf
 
@@ -16,9 +15,6 @@ from occtrain.errors import ConfigError
 from occtrain.formats.manifest import RESUMABLE, Manifest
 from occtrain.run.control import restart_lock
 from occtrain.run.planning import PlannedStage, changed_keys, load_recipe
-
-if TYPE_CHECKING:  # imported where a stage is built (build_stage), as before
-    pass
 
 
 @dataclass

@@ -11,7 +11,7 @@ import math
 import re
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from omegaconf import OmegaConf
 
@@ -23,10 +23,6 @@ from occtrain.core.registry import get_family
 from occtrain.errors import ConfigError
 from occtrain.report.compare import check_table
 from occtrain.stages import Stage, StageKind, get_kind, kind_names
-
-if TYPE_CHECKING:  # imported where a stage is built (build_stage), as before
-    pass
-
 
 #: Trainer keys that change how often things are written, or how the same steps are
 #: computed (``compile``: the same losses to float tolerance), not what is learned: a done
