@@ -52,6 +52,8 @@ class Page:
     runs: tuple[str, ...] = ()
     #: Stages of a drive table, ``recipe@seed/stage``.
     drive: tuple[str, ...] = ()
+    #: A drive table's routes (``occtrain drive --scenes``), from seed 1000, 20 s each.
+    scenes: int = 8
     #: The folder name of the world the runs were scored on with ``occtrain eval --data``
     #: (empty: the runs' own val split).
     world: str = ""
@@ -78,6 +80,7 @@ class PageEntry(TypedDict):
     title: NotRequired[str]
     runs: NotRequired[list[str]]
     drive: NotRequired[list[str]]
+    scenes: NotRequired[int]
     world: NotRequired[str]
     code: NotRequired[str]
     allow_mixed: NotRequired[bool]
@@ -230,7 +233,7 @@ def render(page: Page, runs: list[FoundRun]) -> tuple[str | None, list[str]]:
     if missing:
         return None, missing
     table = _drive_table()
-    text = table.markdown(table.summaries(stages, 8, 1000, 20.0, drive=False))
+    text = table.markdown(table.summaries(stages, page.scenes, 1000, 20.0, drive=False))
     return with_pictures(with_note(text, page.note), page.pictures), []
 
 
