@@ -47,7 +47,7 @@ MUTANTS = (
     Mutant(
         "resume-from-scratch",
         "a cut-off stage retrains from step 0 (and still says it resumes)",
-        "src/occtrain/run/runner.py",
+        "src/occtrain/run/execution.py",
         "trainer.fit(module, datamodule=datamodule, ckpt_path=ckpt, weights_only=True)",
         "trainer.fit(module, datamodule=datamodule, ckpt_path=None, weights_only=True)",
         (

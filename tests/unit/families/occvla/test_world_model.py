@@ -20,8 +20,8 @@ from occtrain.data.clips import Clip, Text
 from occtrain.data.meta_actions import KMH_PER_S, MetaActionConfig, label, past_labels
 from occtrain.errors import ConfigError
 from occtrain.families.occvla import OccVLAWorldConfig, OccVLAWorldModel
-from occtrain.families.occvla.parts import Images, Occupancy
 from occtrain.families.occvla.config import TaskConfig
+from occtrain.families.occvla.parts import Images, Occupancy
 from occtrain.families.occvla.tasks import META_PROMPT, META_QUESTION, meta_action
 from occtrain.formats.occ3d import GRID_SHAPE
 from occtrain.metrics import MetaActionAccuracy
