@@ -20,6 +20,7 @@ import math
 import subprocess
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 from scipy.stats import kendalltau
@@ -107,8 +108,23 @@ def stamp(summary: dict) -> str:
     )
 
 
-def swapped_pairs(table: list[tuple[str, dict[str, float]]]) -> list[str]:
-    """The pairs of drivers open-loop L2 puts one way and the driving score the other."""
+#: How many of the pairs open-loop L2 and the driving score order apart a page shows.
+WIDEST_SWAPS = 5
+
+
+@dataclass(frozen=True)
+class Swap:
+    """Two drivers open-loop L2 puts one way and the driving score the other."""
+
+    closer: str  # the lower open-loop L2
+    drives_better: str
+    l2_gap: float  # metres, >= 0
+    score_gap: float  # driving-score points, >= 0
+
+
+def swapped_pairs(table: list[tuple[str, dict[str, float]]]) -> list[Swap]:
+    """The pairs of drivers open-loop L2 puts one way and the driving score the other, the
+    widest driving-score gap first."""
     scored = [(label, s) for label, s in table if not math.isnan(s.get("open_loop_L2_stp3_avg", math.nan))]
     out = []
     for i, (a, sa) in enumerate(scored):
@@ -116,9 +132,19 @@ def swapped_pairs(table: list[tuple[str, dict[str, float]]]) -> list[str]:
             l2 = sa["open_loop_L2_stp3_avg"] - sb["open_loop_L2_stp3_avg"]
             score = sa["driving_score"] - sb["driving_score"]
             if l2 * score > 0:  # lower L2 should mean a higher driving score
-                better, worse = (a, b) if l2 < 0 else (b, a)
-                out.append(f"{better} plans closer to the log than {worse} but drives worse")
-    return out
+                closer, other = (a, b) if l2 < 0 else (b, a)
+                out.append(Swap(closer, other, abs(l2), abs(score)))
+    return sorted(out, key=lambda s: -s.score_gap)
+
+
+def swaps_table(swaps: list[Swap], pairs: int) -> str:
+    """How many pairs the two orders disagree on, and the widest few as a table."""
+    shown = swaps[:WIDEST_SWAPS]
+    head = f"{len(swaps)} of {pairs} pairs are ordered the other way round closed loop"
+    head += ":" if len(swaps) <= WIDEST_SWAPS else f"; the {len(shown)} with the widest driving-score gap:"
+    lines = [head, "", "| plans closer to the log | drives better | L2 gap (m) | score gap |", "|---|---|---|---|"]
+    lines += [f"| {s.closer} | {s.drives_better} | {s.l2_gap:.2f} | {s.score_gap:.1f} |" for s in shown]
+    return "\n".join(lines)
 
 
 def markdown(found: list[dict]) -> str:
@@ -156,7 +182,7 @@ def markdown(found: list[dict]) -> str:
         )
         swapped = swapped_pairs(table)
         if swapped:
-            verdict += " Ordered the other way round closed loop: " + "; ".join(swapped) + "."
+            verdict += "\n\n" + swaps_table(swapped, counted * (counted - 1) // 2)
     notes = [verdict]
     same = same_drive(table, "constant_velocity", "constant_acceleration")
     if same:

@@ -47,7 +47,7 @@ def test_the_table_puts_each_stage_beside_the_routes_baselines(tool, tmp_path):
         _drive(tmp_path / "b", "instruct", 0.9, 80.0, wall_s=30.0, workers=1, resumed=3),
     ]
     table = tool.markdown(tool.summaries(stages, 2, 1000, 20.0, drive=False))
-    rows = [line for line in table.splitlines() if line.startswith("| ")][1:]
+    rows = [line for line in table.split("Open-loop L2")[0].splitlines() if line.startswith("| ")][1:]
     assert [r.split(" | ")[0] for r in rows] == [
         "| a/planner (seed 3)",
         "| b/instruct (seed 3)",
@@ -62,7 +62,8 @@ def test_the_table_puts_each_stage_beside_the_routes_baselines(tool, tmp_path):
     assert "(driven in 4 min 12 s by 2 workers)" in table and "driven in 0 min 30 s" not in table
     # L2 order: expert, a, b, cv, still; driving-score order: expert, b, a, cv, still: one pair of ten swapped.
     assert "Kendall's tau 0.80 over 5 drivers" in table
-    assert "a/planner (seed 3) plans closer to the log than b/instruct (seed 3) but drives worse" in table
+    assert "1 of 10 pairs are ordered the other way round closed loop:" in table
+    assert "| a/planner (seed 3) | b/instruct (seed 3) | 0.50 | 20.0 |" in table
     assert "Constant acceleration drives exactly as" not in table  # no such baseline here
 
 
@@ -93,3 +94,13 @@ def test_a_missing_drive_is_said_without_driving(tool, tmp_path, monkeypatch, ca
     assert tool.main() == 2  # one line and exit 2, as occtrain's commands (it was SystemExit's 1)
     err = capsys.readouterr().err
     assert err.startswith("error: ") and err.count("\n") == 1 and "summary.json is missing" in err
+
+
+def test_many_swapped_pairs_are_counted_and_the_widest_shown(tool):
+    # Seven drivers whose L2 order is the driving score's reversed: all 21 pairs disagree.
+    table = [(f"d{i}", {"open_loop_L2_stp3_avg": 0.1 * i, "driving_score": 10.0 * i}) for i in range(7)]
+    swaps = tool.swapped_pairs(table)
+    assert len(swaps) == 21 and swaps[0].score_gap == 60.0 and (swaps[0].closer, swaps[0].drives_better) == ("d0", "d6")
+    text = tool.swaps_table(swaps, 21)
+    assert text.startswith("21 of 21 pairs are ordered the other way round closed loop; the 5 with the widest")
+    assert len([line for line in text.splitlines() if line.startswith("| d")]) == tool.WIDEST_SWAPS
