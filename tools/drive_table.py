@@ -1,4 +1,4 @@
-"""Planners closed loop and open loop on the same routes, one table (issue 45's comparison).
+"""Planners closed loop and open loop on the same routes, one table.
 
     python tools/drive_table.py runs/quickstart/planner runs/occllm_proof/instruct ... --out docs/results/driving.md
 
