@@ -71,7 +71,7 @@ MUTANTS = (
     Mutant(
         "every-rank-validates-everything",
         "each DDP rank validates the whole split",
-        "src/occtrain/data/reading.py",
+        "src/occtrain/data/shards/positions.py",
         "    mine: list[int | None] = list(range(rank, total, world))\n",
         "    mine: list[int | None] = list(range(total))\n",
         ("tests/e2e/test_distributed.py::test_ddp_validation_of_an_odd_split_equals_one_process",),
@@ -140,7 +140,7 @@ MUTANTS = (
     Mutant(
         "no-shuffle",
         "the training stream is not shuffled",
-        "src/occtrain/data/reading.py",
+        "src/occtrain/data/shards/positions.py",
         "    if shuffle_buffer <= 1:\n",
         "    if True:\n",
         ("tests/unit/data/shards/test_shards.py::test_train_pipeline_streams_forever_and_shuffles",),
@@ -148,7 +148,7 @@ MUTANTS = (
     Mutant(
         "epochs-unshuffled",
         "the default epoch order is the samples as stored",
-        "src/occtrain/data/reading.py",
+        "src/occtrain/data/shards/positions.py",
         '        random.Random(f"samples:{seed}:{epoch}").shuffle(order)\n',
         "        pass\n",
         (
@@ -158,7 +158,7 @@ MUTANTS = (
     Mutant(
         "workers-read-everything",
         "each validation loader worker reads every sample",
-        "src/occtrain/data/reading.py",
+        "src/occtrain/data/shards/positions.py",
         "    return mine[worker::workers]\n",
         "    return mine\n",
         ("tests/unit/data/shards/test_shards.py::test_frames_round_trip_through_dataloader_with_two_workers",),
@@ -174,7 +174,7 @@ MUTANTS = (
     Mutant(
         "ranks-read-everything",
         "each DDP rank trains on every sample of the global batch",
-        "src/occtrain/data/reading.py",
+        "src/occtrain/data/shards/positions.py",
         "        if within // batch_size == rank and step % workers == worker:\n",
         "        if step % workers == worker:\n",
         ("tests/unit/data/shards/test_shards.py::test_two_ranks_of_b_train_on_the_batches_of_one_process_of_2b",),

@@ -160,13 +160,13 @@ def test_the_layout_check_finds_a_room_left_out(tmp_path):
     assert unnamed_in_layout(tmp_path, text) == ["pkg/inner/", "pkg/inner/left_out.py"]
 
 
-
 def test_the_tools_index_names_every_script():
     """tools/README.md lists every script under tools/ by its path there."""
     tools = REPO / "tools"
     index = (tools / "README.md").read_text()
     scripts = [p.relative_to(tools).as_posix() for p in sorted(tools.rglob("*.py")) if p.name != "__init__.py"]
     assert scripts and [s for s in scripts if f"`{s}`" not in index] == []
+
 
 # ----------------------------------------------------------------------------- pictures
 

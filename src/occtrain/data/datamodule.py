@@ -15,7 +15,6 @@ from torch.utils.data.dataloader import _BaseDataLoaderIter
 from occtrain.config.groups import DataConfig, check_synth_config
 from occtrain.data.cameras import CAMERA_NAMES
 from occtrain.data.layout import ANNOTATIONS_FILE, DATASET_FILE, DEPTH_SCALE, DatasetIndex, generator_record
-from occtrain.data.reading import PAD_KEY, ShardSamples
 from occtrain.data.shards import (
     KINDS,
     clip_shortfall,
@@ -26,6 +25,7 @@ from occtrain.data.shards import (
     shard_urls,
     write_shards,
 )
+from occtrain.data.shards.positions import PAD_KEY, ShardSamples
 from occtrain.errors import DataError
 
 
@@ -247,7 +247,7 @@ class ResumableLoader(DataLoader):
     batch ahead, times the global batch). On resume, ``__iter__`` starts the reader at that
     sample without reading what comes before: with any number of workers, and with another
     split of the same global batch over ranks, training continues on exactly the samples an
-    uninterrupted run would have seen (see :mod:`occtrain.data.reading`).
+    uninterrupted run would have seen (see :mod:`occtrain.data.shards.positions`).
     """
 
     def __init__(self, source: ShardSamples, *args: Any, **kwargs: Any):

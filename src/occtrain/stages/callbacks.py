@@ -16,7 +16,7 @@ from lightning.pytorch.callbacks import Callback
 from torch.utils.flop_counter import FlopCounterMode
 
 from occtrain.data.datamodule import ResumableLoader
-from occtrain.data.reading import PAD_KEY
+from occtrain.data.shards.positions import PAD_KEY
 from occtrain.models.compiling import compile_all, use_cache_dir
 from occtrain.progress import console
 from occtrain.stages.stage import Stage, StepWork

@@ -21,8 +21,8 @@ from torch import nn
 
 from occtrain.config.groups import DataConfig, TrainerConfig
 from occtrain.config.recipe import StageSpec
-from occtrain.data.reading import PAD_KEY
 from occtrain.data.shards import world_key
+from occtrain.data.shards.positions import PAD_KEY
 from occtrain.errors import ConfigError
 from occtrain.formats.exports import check_loaded_keys
 from occtrain.formats.metrics_file import SampleSet, digest_items

@@ -26,7 +26,8 @@ shard set without it is incomplete. Reading decodes only an allow-list of format
 (npy/npz without pickle, json, txt, png); anything else in a shard is refused.
 
 The package: ``entries`` (what a shard holds), ``freshness`` (whether a set is current),
-``writer`` and ``reader``.
+``writer``, ``reader`` and ``positions`` (which samples a rank and loader worker read,
+and reading them alone).
 """
 
 from __future__ import annotations

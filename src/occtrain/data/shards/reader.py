@@ -13,7 +13,6 @@ from typing import Any
 import numpy as np
 import webdataset as wds
 
-from occtrain.data.reading import PAD_KEY, ShardSamples
 from occtrain.data.shards.entries import (
     ALLOWED_EXTENSIONS,
     CAMERA_ENTRY_PREFIX,
@@ -22,6 +21,7 @@ from occtrain.data.shards.entries import (
     ShardIndex,
     unpack_mask,
 )
+from occtrain.data.shards.positions import PAD_KEY, ShardSamples
 from occtrain.data.validate import first_problem
 from occtrain.errors import DataError
 from occtrain.formats.io import parse_json
@@ -160,7 +160,7 @@ def make_pipeline(
     rank_and_world: tuple[int, int] | None = None,
 ) -> wds.DataPipeline:
     """Decoded samples of shards, each rank and loader worker reading only its own (see
-    :mod:`occtrain.data.reading`).
+    :mod:`occtrain.data.shards.positions`).
 
     ``train=True``: the endless seeded training order, this rank's batches of
     ``batch_size``. ``train=False``: every sample once, in order, strided over ranks and

@@ -96,7 +96,7 @@ def test_the_default_order_is_a_fresh_permutation_of_every_sample_each_epoch():
     give batches from across the whole split, which a buffer of a few shards does not."""
     from itertools import islice
 
-    from occtrain.data.reading import train_order
+    from occtrain.data.shards.positions import train_order
 
     counts = [5, 0, 7, 4]
     positions = {(shard, i) for shard, n in enumerate(counts) for i in range(n)}
@@ -203,7 +203,7 @@ def test_validation_is_split_evenly_over_ranks(shards):
 
 
 def test_an_odd_validation_split_pads_the_shorter_rank_once(tmp_path):
-    import occtrain.data.reading as sh
+    import occtrain.data.shards.positions as sh
     from conftest import write_hand_dataset
 
     out = tmp_path / "s"
