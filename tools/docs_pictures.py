@@ -195,7 +195,8 @@ def world_picture(run: RunFacts, frame: int, out: Path) -> Picture:
 def reconstruction_picture(run: RunFacts, frame: int, out: Path) -> Picture:
     import torch
 
-    from occtrain.core.registry import load_tokenizer, tokenizer_archs
+    from occtrain.core.registry import tokenizer_archs
+    from occtrain.core.tokenizer_exports import load_tokenizer
     from occtrain.data.frames import frames_batch
 
     stage = run.stage("tokenizer")

@@ -27,7 +27,7 @@ import resource, sys, time, torch
 from occtrain.allocator import keep_freed_memory
 keep_freed_memory()
 from omegaconf import OmegaConf
-from occtrain.core.registry import build_tokenizer
+from occtrain.core.tokenizer_exports import build_tokenizer
 from occtrain.data.layout import DatasetIndex
 from occtrain.families.occllama import OccLLaMATokenizerConfig
 torch.set_num_threads(2)

@@ -32,7 +32,7 @@ REPO = Path(__file__).resolve().parents[2]
 PROBE = """
 import resource, time, torch
 from omegaconf import OmegaConf
-from occtrain.core.registry import build_tokenizer
+from occtrain.core.tokenizer_exports import build_tokenizer
 from occtrain.families.occllama import OccLLaMATokenizerConfig
 from occtrain.models.tokenizers.occworld_vqvae import OccWorldVQVAEConfig
 from occtrain.models import count_parameters
@@ -82,7 +82,7 @@ def decode(export: Path, data: Path, threads: int = 2) -> None:
 
     import torch
 
-    from occtrain.core.registry import load_tokenizer
+    from occtrain.core.tokenizer_exports import load_tokenizer
     from occtrain.data.frames import frames_batch
     from occtrain.data.layout import DatasetIndex
 

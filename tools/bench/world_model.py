@@ -25,8 +25,8 @@ from records import Row, record  # noqa: E402
 
 from occtrain.config import DataConfig, load_config  # noqa: E402
 from occtrain.config.llm import LLMConfig  # noqa: E402
-from occtrain.core.registry import build_tokenizer  # noqa: E402
 from occtrain.core.scene_encoders import VQSceneEncoder  # noqa: E402
+from occtrain.core.tokenizer_exports import build_tokenizer  # noqa: E402
 from occtrain.core.vocab import JointVocab  # noqa: E402
 from occtrain.data.clips import clips_from_batch  # noqa: E402
 from occtrain.data.datamodule import ShardDataModule, ensure_data  # noqa: E402

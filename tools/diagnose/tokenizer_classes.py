@@ -19,7 +19,7 @@ import numpy as np
 import torch
 from omegaconf import OmegaConf
 
-from occtrain.core.registry import build_tokenizer
+from occtrain.core.tokenizer_exports import build_tokenizer
 from occtrain.data.frames import frames_batch
 from occtrain.data.layout import DatasetIndex
 from occtrain.families.occllama import OccLLaMATokenizerConfig

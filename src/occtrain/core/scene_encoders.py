@@ -9,7 +9,7 @@ from typing import Any
 import torch
 from torch import nn
 
-from occtrain.core.registry import load_tokenizer
+from occtrain.core.tokenizer_exports import load_tokenizer
 from occtrain.errors import ConfigError
 from occtrain.models.tokenizers.base import SceneTokenizer
 

@@ -21,14 +21,8 @@ from lightning.pytorch.utilities.types import OptimizerLRSchedulerConfig
 from omegaconf import MISSING
 
 from occtrain.config import to_container
-from occtrain.core.registry import (
-    TokenizerArch,
-    load_tokenizer,
-    save_tokenizer,
-    tokenizer_archs,
-    tokenizer_config,
-    tokenizer_family,
-)
+from occtrain.core.registry import TokenizerArch, tokenizer_archs, tokenizer_family
+from occtrain.core.tokenizer_exports import load_tokenizer, save_tokenizer, tokenizer_config
 from occtrain.data.frames import frames_batch
 from occtrain.data.layout import DatasetIndex
 from occtrain.data.voxel_prior import voxel_prior

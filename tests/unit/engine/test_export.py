@@ -13,7 +13,7 @@ import pytest
 import torch
 
 from occtrain.config.llm import LLMConfig, LoRAConfig
-from occtrain.core.registry import build_tokenizer, save_tokenizer
+from occtrain.core.tokenizer_exports import build_tokenizer, save_tokenizer
 from occtrain.engine import export_engine, load_world_model, new_world_model
 from occtrain.families.occllama import TaskConfig
 from occtrain.models.attention import allowed_pairs

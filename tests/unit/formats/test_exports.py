@@ -23,7 +23,7 @@ from safetensors.torch import load_file, save_file
 import occtrain
 from builders import snapshot
 from occtrain.config.llm import LLMConfig, LoRAConfig
-from occtrain.core.registry import build_tokenizer, load_tokenizer, save_tokenizer
+from occtrain.core.tokenizer_exports import build_tokenizer, load_tokenizer, save_tokenizer
 from occtrain.engine import export_engine, load_world_model, new_world_model
 from occtrain.errors import OcctrainError
 from occtrain.families.occllama import TaskConfig

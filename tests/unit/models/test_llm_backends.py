@@ -13,7 +13,7 @@ import torch
 from occtrain.config.llm import LLMConfig, LoRAConfig
 from occtrain.core.builder import collate
 from occtrain.core.decoding import ActionAnswer, TextAnswer
-from occtrain.core.registry import build_tokenizer, save_tokenizer
+from occtrain.core.tokenizer_exports import build_tokenizer, save_tokenizer
 from occtrain.engine import export_engine, load_world_model, new_world_model
 from occtrain.errors import ConfigError
 from occtrain.families.occllama import TaskConfig

@@ -21,7 +21,7 @@ from torch.nn.parallel import DistributedDataParallel
 
 from conftest import free_port, two_ranks
 from occtrain.config.recipe import OptimConfig
-from occtrain.core.registry import build_tokenizer
+from occtrain.core.tokenizer_exports import build_tokenizer
 from occtrain.models.tokenizers.occworld_vqvae import OccWorldVQVAEConfig
 from occtrain.stages.optim import configure_adamw
 

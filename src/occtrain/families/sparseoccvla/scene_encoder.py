@@ -10,8 +10,8 @@ from pathlib import Path
 import torch
 from torch import nn
 
-from occtrain.core.registry import load_tokenizer
 from occtrain.core.scene_encoders import SCENE_ENCODER_DIR
+from occtrain.core.tokenizer_exports import load_tokenizer
 from occtrain.data.layout import DatasetIndex
 from occtrain.errors import ConfigError
 from occtrain.families.sparseoccvla.config import SparseOccVLAWorldConfig

@@ -53,7 +53,7 @@ class TokenizerModel(nn.Module):
     discrete: ClassVar[bool] = True
     #: Evaluation reports its point budget's oracle beside it (``TokenizerOutput.oracle``).
     budget_oracle: ClassVar[bool] = False
-    #: The export it was loaded from (``core.registry.load_tokenizer``), which a world-model
+    #: The export it was loaded from (``core.tokenizer_exports.load_tokenizer``), which a world-model
     #: export copies; None for one built in this process.
     export_dir: Path | None = None
 

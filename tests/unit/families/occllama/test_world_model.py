@@ -674,7 +674,7 @@ def test_an_engine_exports_loads_forecasts_plans_and_scores_in_either_layout(tmp
     """Through the engine: the export loads back identical (class, settings, vocabulary,
     weights); forecasts decode through the scene encoder, plans come out, and the
     evaluator's forecast scorer runs, with moved queries moved through the frozen tokenizer."""
-    from occtrain.core.registry import build_tokenizer, save_tokenizer
+    from occtrain.core.tokenizer_exports import build_tokenizer, save_tokenizer
     from occtrain.data.layout import DatasetIndex
     from occtrain.engine import export_engine, load_world_model, new_world_model
     from occtrain.engine.evaluator import Evaluator, evaluation_clips

@@ -8,7 +8,7 @@ import json
 import pytest
 import torch
 
-from occtrain.core.registry import build_tokenizer, tokenizer_config
+from occtrain.core.tokenizer_exports import build_tokenizer, tokenizer_config
 from occtrain.errors import ConfigError
 from occtrain.families.occllm import MSVAE, merge, separate
 from occtrain.formats.occ3d import CLASS_INDEX, FREE, GRID_SHAPE, NUM_CLASSES
@@ -88,7 +88,7 @@ def test_the_ablation_switches():
 
 
 def test_the_tokenizer_stage_trains_it_and_reports_each_codebook(tmp_path, hand_dataset):
-    from occtrain.core.registry import load_tokenizer
+    from occtrain.core.tokenizer_exports import load_tokenizer
     from occtrain.run.runner import run
 
     recipe = tmp_path / "msvae.yaml"

@@ -193,7 +193,7 @@ def test_two_codebooks_in_the_codes_layout_pick_within_their_own_range():
 
 
 def test_two_codebook_scenes_round_trip_through_the_code_cache(tmp_path, hand_dataset):
-    from occtrain.core.registry import build_tokenizer, save_tokenizer
+    from occtrain.core.tokenizer_exports import build_tokenizer, save_tokenizer
     from occtrain.data.layout import DatasetIndex
     from occtrain.engine import new_world_model
     from occtrain.families.occllm.tasks import TaskConfig

@@ -14,7 +14,7 @@ from omegaconf import OmegaConf
 from occtrain.config.llm import LLMConfig
 from occtrain.core.builder import collate
 from occtrain.core.decoding import TextAnswer
-from occtrain.core.registry import build_tokenizer
+from occtrain.core.tokenizer_exports import build_tokenizer
 from occtrain.core.vocab import JointVocab
 from occtrain.data.clips import Clip, Text
 from occtrain.data.meta_actions import KMH_PER_S, MetaActionConfig, label, past_labels

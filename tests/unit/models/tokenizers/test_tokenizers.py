@@ -12,7 +12,7 @@ from omegaconf import OmegaConf
 
 from conftest import two_ranks
 from occtrain.config.tokenizer import latent_hw
-from occtrain.core.registry import build_tokenizer
+from occtrain.core.tokenizer_exports import build_tokenizer
 from occtrain.errors import ConfigError, DataError
 from occtrain.families.occllama import OccLLaMATokenizerConfig
 from occtrain.families.occllama.scene_tokenizer import PillarEncoder, combine_decoupled, decoupled_labels
