@@ -34,7 +34,7 @@ from torchmetrics import MeanMetric
 from occtrain.core import scorers
 from occtrain.core.builder import SequenceBuilder, batch_payload
 from occtrain.core.lm_world_model import LMWorldModel, WorldInputs, WorldModelOutput, token_ce
-from occtrain.core.protocols import PlannerSettings, PromptInputs, ScoringContext
+from occtrain.core.protocols import Planner, PlannerSettings, Plans, PromptInputs, ScoringContext
 from occtrain.core.registry import FamilySpec, WorldSpec, register_family
 from occtrain.core.sample_inputs import InputSource, SampleInput, Samples
 from occtrain.core.sequence import IGNORE, TokenSequence, empty_payload
@@ -313,9 +313,9 @@ class SummaryPlannerConfig(PlannerSettings):
     hidden: int = 32
 
 
-class SummaryPlanner(nn.Module):
+class SummaryPlanner(Planner):
     """Waypoints from the world model's mean output over the anchor scene's tokens, added to
-    constant velocity (a ``core.protocols.Planner``)."""
+    constant velocity."""
 
     monitor = "val/head_L2_stp3_avg"
 
@@ -372,14 +372,15 @@ class SummaryPlanner(nn.Module):
             constant_velocity([c.anchor for c in clips], self.device), gt.traj, gt.mask, gt.agents
         )
 
+    @torch.no_grad()
+    def waypoints(self, clips: list[Clip]) -> Plans:
+        return Plans.own(self._plan(clips).cpu().numpy())
+
     def compute(self, prefix: str) -> dict[str, float]:
         return compute_metrics(prefix, self.metrics, reset=True)
 
     def prepare_training(self, device: torch.device) -> None:
         self.teacher.to(device)
-
-    def save_cache(self) -> None:
-        pass
 
     def sidecar_tasks(self) -> list[str]:
         return []

@@ -22,7 +22,7 @@ import json
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import torch
@@ -30,7 +30,7 @@ from torch import nn
 from torchmetrics import MeanMetric
 
 from occtrain.core.plan_subsets import plan_metrics, subset_rows, update_plans
-from occtrain.core.protocols import PlannerSettings, Plans, WorldEngine
+from occtrain.core.protocols import Planner, PlannerContext, PlannerSettings, Plans, WorldEngine
 from occtrain.data.clips import Clip, frame_clips, plan_target
 from occtrain.data.layout import DatasetIndex
 from occtrain.data.schema import COMMANDS, META_DIRECTIONS, META_SPEEDS
@@ -245,7 +245,7 @@ def feature_size(inputs: list[str] | tuple[str, ...]) -> int:
     return sum(sizes[n] for n in HEAD_INPUTS if n in inputs)
 
 
-class MetaActionPlanner(nn.Module):
+class MetaActionPlanner(Planner):
     """The head, the frozen world model's outputs it reads (cached per clip), and its
     validation metrics (see the module docstring)."""
 
@@ -552,14 +552,18 @@ class MetaActionPlanner(nn.Module):
         return write_export(path, self.head.state_dict(), config)
 
 
-def meta_action_planner(ctx: Any, teacher: WorldEngine | None, sidecar_reference: bool = True) -> MetaActionPlanner:
+def meta_action_planner(
+    ctx: PlannerContext, teacher: WorldEngine | None, sidecar_reference: bool = True
+) -> MetaActionPlanner:
     """The planner of a planner stage (``WorldSpec.planner``) from its context."""
     where = f"stages '{ctx.spec.name}'"
-    return MetaActionPlanner(ctx.model_cfg, teacher, ctx.data.root, ctx.cache_dir, where, sidecar_reference)
+    # The stage's structured config, read by attribute as the dataclass it was made from.
+    cfg = cast(MetaActionPlannerConfig, ctx.model_cfg)
+    return MetaActionPlanner(cfg, teacher, ctx.data.root, ctx.cache_dir, where, sidecar_reference)
 
 
 def load_meta_action_planner(
-    export_dir: Path, teacher: WorldEngine | None, request: Any, sidecar_reference: bool = True
+    export_dir: Path, teacher: WorldEngine, data_root: str, cache_dir: Path, sidecar_reference: bool = True
 ) -> MetaActionPlanner:
     """A trained head back from its export, over the consumed world model (``occtrain eval``)."""
     from occtrain.formats.exports import load_state_strict, read_export
@@ -574,6 +578,6 @@ def load_meta_action_planner(
         prior=config.get("prior"),  # unset in exports before it: what the inputs implied
         loss=config.get("loss", "mse"),
     )
-    planner = MetaActionPlanner(cfg, teacher, request.data_root, request.cache_dir, str(export_dir), sidecar_reference)
+    planner = MetaActionPlanner(cfg, teacher, data_root, cache_dir, str(export_dir), sidecar_reference)
     load_state_strict(planner.head, state, (), str(export_dir))
     return planner.eval()

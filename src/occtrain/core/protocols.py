@@ -24,6 +24,7 @@ shows them in use.
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
 from collections.abc import Callable, Hashable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -31,7 +32,11 @@ from typing import TYPE_CHECKING, Any, Protocol, TypeVar, runtime_checkable
 
 import numpy as np
 import torch
+from omegaconf import DictConfig
+from torch import nn
 
+from occtrain.config.groups import DataConfig
+from occtrain.config.recipe import StageSpec
 from occtrain.core.ego_steps import EgoStep
 
 if TYPE_CHECKING:  # types only: these modules import this one's neighbours
@@ -294,28 +299,78 @@ class PlannerSettings:
         return True
 
 
-class Planner(Protocol):
+class PlannerContext(Protocol):
+    """What a family's planner is built from in a ``planner`` stage (``stages.StageContext``
+    is one): the stage's name, its planner settings (``model:``, the family's
+    ``WorldSpec.planner_config`` joined to the stage's), the run's dataset and the stage's
+    own cache folder."""
+
+    @property
+    def spec(self) -> StageSpec: ...
+    @property
+    def model_cfg(self) -> DictConfig: ...
+    @property
+    def data(self) -> DataConfig: ...
+    @property
+    def cache_dir(self) -> Path: ...
+
+
+class PlannerSource(Protocol):
+    """Where a trained planner rebuilt from its export reads and caches its inputs
+    (``stages.EvalRequest`` is one)."""
+
+    @property
+    def data_root(self) -> str: ...
+    @property
+    def cache_dir(self) -> Path | None: ...
+
+
+class Planner(nn.Module, ABC):
     """What a ``planner`` stage trains, given the stage's settings and, when it reads one,
-    the frozen world model of the consumed stage (``teacher``). A ``torch.nn.Module``.
-    ``monitor``: the validation metric that picks its best checkpoint (lower is better)."""
+    the frozen world model of the consumed stage (``teacher``): a torch module, so the
+    stage's optimizer, checkpoints and devices treat it as any other. ``monitor``: the
+    validation metric that picks its best checkpoint (lower is better)."""
 
     monitor: str
 
+    @abstractmethod
     def closed_loop_refusal(self) -> str | None:
         """Why its plans cannot drive closed loop (e.g. they read a logged input the
         closed loop does not have), or None."""
-        ...
 
-    def training_loss(self, clips: list) -> torch.Tensor | None: ...
+    @abstractmethod
+    def sidecar_tasks(self) -> list[str]:
+        """The frame-sidecar annotations it reads (the stage refuses a dataset without them)."""
 
-    def validate(self, clips: list, batch_idx: int) -> None: ...
+    def prepare_training(self, device: torch.device) -> None:
+        """Work done once before the first step (e.g. the world model's outputs for the
+        training clips); nothing by default."""
 
-    def waypoints(self, clips: list) -> Plans:
+    @abstractmethod
+    def training_loss(self, clips: list[Clip]) -> torch.Tensor: ...
+
+    @abstractmethod
+    def validate(self, clips: list[Clip], batch_idx: int, generate_batches: int = -1) -> None:
+        """Score a validation batch (``generate_batches``: how many batches may generate
+        text, -1 every one)."""
+
+    @abstractmethod
+    def waypoints(self, clips: list[Clip]) -> Plans:
         """The stage's plan for each clip (``Plans.xy``: (B, 6, 2) metres in each anchor's
         ego frame): what it is scored on and what closed-loop driving follows, with the rows
         it had no plan of its own for."""
-        ...
 
-    def compute(self, prefix: str) -> dict[str, float]: ...
+    @abstractmethod
+    def compute(self, prefix: str) -> dict[str, float]:
+        """The validation metrics gathered since the last call, keys under ``prefix``."""
 
-    def export(self, path: Path) -> Path: ...
+    def save_cache(self) -> None:
+        """Keep what it computed once (the world model's outputs) for the next attempt; nothing by default."""
+
+    @abstractmethod
+    def summary(self) -> tuple[str, dict[str, float]]:
+        """The finished stage's one-line summary and metrics to add (its size, ...)."""
+
+    @abstractmethod
+    def export(self, path: Path) -> Path:
+        """Write the trained planner (weights and config) into ``path``."""

@@ -24,9 +24,19 @@ import sys
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from importlib.metadata import entry_points
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from occtrain.core.protocols import EvalHook, PlannerSettings, Scorer
+from torch import nn
+
+from occtrain.core.protocols import (
+    EvalHook,
+    Planner,
+    PlannerContext,
+    PlannerSettings,
+    Scorer,
+    WorldEngine,
+)
 from occtrain.core.sample_inputs import SampleInput
 from occtrain.core.shared_tasks import TaskConfig, TaskSpec
 from occtrain.errors import ConfigError, OcctrainError, cause_line
@@ -39,6 +49,21 @@ if TYPE_CHECKING:  # imported where it is checked: the world model imports the r
 BUILTIN_PACKAGE = "occtrain.families"
 #: The entry-point group through which an installed package adds a family.
 ENTRY_POINT_GROUP = "occtrain.families"
+
+
+#: ``(consumed exports by stage kind, the world model's settings) -> its scene encoder``
+#: (a torch module that is a ``core.protocols.SceneEncoder``: the engine freezes it), at
+#: pretraining (None: the world model reads no scene).
+SceneEncoderBuilder = Callable[[dict[str, Path], object], nn.Module | None]
+#: ``(a world-model export, its config.json) -> the scene encoder it holds``.
+SceneEncoderLoader = Callable[[Path, dict[str, object]], nn.Module | None]
+#: ``(the planner stage's context, its frozen world model or None) -> the planner it trains``.
+PlannerBuilder = Callable[[PlannerContext, WorldEngine | None], Planner]
+#: ``(a planner export, its frozen world model, the dataset root, a cache folder) -> the
+#: trained planner`` (eval mode).
+PlannerLoader = Callable[[Path, WorldEngine, str, Path], Planner]
+#: An operation of the Python API: ``(engine, **its own keyword arguments) -> its answer``.
+Operation = Callable[..., object]
 
 
 @dataclass(frozen=True)
@@ -81,8 +106,8 @@ class WorldSpec:
     inputs: tuple[str, ...] = ("tokenizer",)
     #: ``(exports by kind, world settings) -> SceneEncoder | None`` at pretraining, and
     #: ``(export dir, export config) -> SceneEncoder | None`` when an export is loaded.
-    scene_encoder: Callable[..., Any] | None = None
-    load_scene_encoder: Callable[..., Any] | None = None
+    scene_encoder: SceneEncoderBuilder | None = None
+    load_scene_encoder: SceneEncoderLoader | None = None
     #: It reads the cameras through a vision stage's frozen encoder.
     reads_cameras: bool = False
     #: The per-sample inputs its prompt parts read by name (``PromptInputs.read``): the
@@ -90,16 +115,15 @@ class WorldSpec:
     sample_inputs: tuple[SampleInput, ...] = ()
     #: Family-level scoring classes (``core.protocols.EvalHook``), made per evaluator.
     eval_hooks: tuple[type, ...] = ()
-    #: ``(stage context, teacher engine or None) -> core.protocols.Planner``: what its
-    #: planner stage trains; None: the family has no planner.
-    planner: Callable[..., Any] | None = None
+    #: What its planner stage trains; None: the family has no planner.
+    planner: PlannerBuilder | None = None
     #: The planner's settings (``model.head`` of a planner stage), a dataclass.
     planner_config: type[PlannerSettings] | None = None
-    #: ``(export dir, teacher engine, eval request) -> Planner``: a trained planner back from
-    #: its export, for ``occtrain eval`` (None: its planner stages are not scored by eval).
-    load_planner: Callable[..., Any] | None = None
+    #: A trained planner back from its export, for ``occtrain eval``, ``drive`` and a
+    #: ``dagger`` stage (None: its planner stages are not scored by eval).
+    load_planner: PlannerLoader | None = None
     #: Operations of the Python API (``occtrain.load``), name -> ``(engine, **kwargs) -> result``.
-    operations: Mapping[str, Callable[..., Any]] = field(default_factory=dict)
+    operations: Mapping[str, Operation] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)

@@ -4,7 +4,6 @@ of the world models that read discrete codes, and where a world-model export kee
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
 
 import torch
 from torch import nn
@@ -64,7 +63,7 @@ class VQSceneEncoder(nn.Module):
         return self.tokenizer.decode_labels(grids.long().to(self.device))
 
 
-def vq_scene_encoder(exports: dict[str, Path], world_cfg: Any = None) -> VQSceneEncoder:
+def vq_scene_encoder(exports: dict[str, Path], world_cfg: object = None) -> VQSceneEncoder:
     """The scene encoder of a pretrain stage: the consumed tokenizer stage's export."""
     if "tokenizer" not in exports:
         raise ConfigError("a pretrain stage of this family consumes a tokenizer stage; add one to consumes")

@@ -5,8 +5,9 @@ what its rollout workers drive. Each family rebuilds its own (``WorldSpec.load_p
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Protocol
 
+from occtrain.core.protocols import Planner
 from occtrain.core.registry import get_world
 from occtrain.engine.export import load_world_model
 from occtrain.engine.world_engine import WorldModelEngine
@@ -28,7 +29,7 @@ class PlannerRequest(Protocol):
     def cache_dir(self) -> Path | None: ...
 
 
-def load_planner(request: PlannerRequest, what: str) -> tuple[Any, WorldModelEngine]:
+def load_planner(request: PlannerRequest, what: str) -> tuple[Planner, WorldModelEngine]:
     """The planner of ``request.export`` over the world model of ``request.consumed[0]``,
     both in eval mode (``what``: the command asking, for the error a family that cannot
     rebuild its planner gets)."""
@@ -38,8 +39,10 @@ def load_planner(request: PlannerRequest, what: str) -> tuple[Any, WorldModelEng
         raise ConfigError(
             f"{request.export}: {what} cannot rebuild a '{family}' planner; its validation metrics are in metrics.json"
         )
+    if request.cache_dir is None:  # every request for a planner names its stage's cache
+        raise ValueError(f"{request.export}: a planner is rebuilt with the cache folder of its stage")
     teacher = load_world_model(request.consumed[0]).eval()
-    return world.load_planner(request.export, teacher, request), teacher
+    return world.load_planner(request.export, teacher, request.data_root, request.cache_dir), teacher
 
 
 __all__ = ["PlannerRequest", "load_planner"]

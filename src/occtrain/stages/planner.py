@@ -25,7 +25,7 @@ import torch
 from lightning.pytorch.utilities.types import OptimizerLRSchedulerConfig
 
 from occtrain.config import to_object
-from occtrain.core.protocols import PlannerSettings
+from occtrain.core.protocols import Planner, PlannerSettings
 from occtrain.core.registry import get_world
 from occtrain.data.cameras import nuscenes_rig
 from occtrain.data.clips import Clip, clips_from_batch, frame_clips
@@ -119,7 +119,13 @@ class PlannerStage(Stage):
         build = get_world(family).planner
         if build is None:
             raise ConfigError(f"{where}: the '{family}' family has no planner; leave the planner stage out")
-        self.planner = build(ctx, teacher)
+        planner = build(ctx, teacher)
+        if not isinstance(planner, Planner):  # a plugin's builder may return anything
+            raise ConfigError(
+                f"{where}: the '{family}' family's planner is a {type(planner).__name__}, not a subclass of "
+                "occtrain.core.protocols.Planner"
+            )
+        self.planner: Planner = planner
         self.require_tasks(self.planner.sidecar_tasks(), instead="leave the planner stage out of the recipe")
         self.reads_text = teacher is not None
         #: The world model's history, which ``occtrain eval`` gives every plan it scores.
@@ -186,7 +192,7 @@ class PlannerStage(Stage):
         return StageDriver(teacher, planner.waypoints)
 
     @staticmethod
-    def rebuild(request: EvalRequest) -> tuple[Any, list]:
+    def rebuild(request: EvalRequest) -> tuple[Planner, list[Clip]]:
         """A trained planner back from its export over its frozen world model, and the
         split's clips it plans (every frame with a whole 3 s future)."""
         planner, teacher = load_planner(request, "occtrain eval")

@@ -26,12 +26,12 @@ import os
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import torch
 
 from occtrain.config.groups import check_seed
+from occtrain.core.protocols import Planner
 from occtrain.data.clips import Clip, frame_clips
 from occtrain.data.closed_loop_recording import DrivingWorld, EpisodeRecorder, RecordedDataset
 from occtrain.data.layout import DatasetIndex
@@ -149,7 +149,7 @@ def policy_key(policy: torch.nn.Module) -> str:
     return h.hexdigest()[:16]
 
 
-def load_policy(request: PlannerRequest, where: str, max_new_text_tokens: int) -> tuple[Any, WorldModelEngine]:
+def load_policy(request: PlannerRequest, where: str, max_new_text_tokens: int) -> tuple[Planner, WorldModelEngine]:
     """The planner a dagger stage drives and fine-tunes, over its frozen world model (eval
     mode, no gradients), as the stage and its rollout workers both load it: refused in one
     line (``where``: whose) when it cannot drive closed loop; the world model's generation

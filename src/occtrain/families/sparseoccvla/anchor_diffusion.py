@@ -30,7 +30,7 @@ import zlib
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any, Protocol, cast
 
 import numpy as np
 import torch
@@ -42,7 +42,7 @@ from occtrain.config import to_object
 from occtrain.core.builder import collate
 from occtrain.core.decoding import TextAnswer
 from occtrain.core.plan_subsets import plan_metrics, subset_rows, update_plans
-from occtrain.core.protocols import PlannerSettings, Plans, WorldEngine
+from occtrain.core.protocols import Planner, PlannerContext, PlannerSettings, Plans, WorldEngine, family_world
 from occtrain.core.shared_tasks import PLAN_PRIORS, plan_base
 from occtrain.data.clips import Clip, Text, frame_clips, plan_target
 from occtrain.data.layout import DatasetIndex
@@ -232,7 +232,16 @@ class SparseEngine(WorldEngine, Protocol):
     def world(self) -> SparseOccVLAWorldModel: ...
 
 
-class AnchorDiffusionPlanner(nn.Module):
+def sparse_engine(teacher: WorldEngine | None, where: str) -> SparseEngine:
+    """``teacher`` as the SparseOccVLA engine the planner reads, checked: the planner stage
+    builds the planner of its teacher's family, so another is a bug, not a user's mistake."""
+    if teacher is None:
+        raise ConfigError(f"{where}: SparseOccVLA's planner reads its world model's decisions; consume its stage")
+    family_world(teacher, SparseOccVLAWorldModel)
+    return cast(SparseEngine, teacher)
+
+
+class AnchorDiffusionPlanner(Planner):
     """The planner, the frozen world model's decisions it reads (cached per clip) and its
     validation metrics (see the module docstring)."""
 
@@ -285,17 +294,21 @@ class AnchorDiffusionPlanner(nn.Module):
         self.positive_hit = MeanMetric()
 
     @classmethod
-    def from_stage(cls, ctx: Any, teacher: SparseEngine) -> AnchorDiffusionPlanner:
+    def from_stage(cls, ctx: PlannerContext, teacher: WorldEngine | None) -> AnchorDiffusionPlanner:
         """The planner a planner stage trains (``WorldSpec.planner``)."""
-        return cls(to_object(ctx.model_cfg), teacher, ctx.data.root, ctx.cache_dir, seed=ctx.data.seed)
+        engine = sparse_engine(teacher, f"stages '{ctx.spec.name}'")
+        return cls(to_object(ctx.model_cfg), engine, ctx.data.root, ctx.cache_dir, seed=ctx.data.seed)
 
     @classmethod
-    def from_export(cls, export_dir: Path, teacher: SparseEngine, request: Any) -> AnchorDiffusionPlanner:
+    def from_export(
+        cls, export_dir: Path, teacher: WorldEngine, data_root: str, cache_dir: Path
+    ) -> AnchorDiffusionPlanner:
         """A trained planner back from its export (``WorldSpec.load_planner``)."""
         state, config = read_export(export_dir)
         check_section(AnchorDiffusionConfig, config["config"], "config", export_dir)
         cfg = AnchorDiffusionConfig(**config["config"])
-        planner = cls(cfg, teacher, request.data_root, request.cache_dir, anchors=state["anchors"].numpy())
+        engine = sparse_engine(teacher, str(export_dir))
+        planner = cls(cfg, engine, data_root, cache_dir, anchors=state["anchors"].numpy())
         load_state_strict(planner, state, ("teacher.",), str(export_dir))
         return planner.eval()
 

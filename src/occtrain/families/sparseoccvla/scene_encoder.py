@@ -14,7 +14,6 @@ from occtrain.core.scene_encoders import SCENE_ENCODER_DIR
 from occtrain.core.tokenizer_exports import load_tokenizer
 from occtrain.data.layout import DatasetIndex
 from occtrain.errors import ConfigError
-from occtrain.families.sparseoccvla.config import SparseOccVLAWorldConfig
 from occtrain.families.sparseoccvla.encoder import SparseOccEncoder
 
 ARCH = "sparseocc"
@@ -63,9 +62,7 @@ def _sparse(export_dir: Path) -> SparseSceneEncoder:
     return SparseSceneEncoder(encoder)
 
 
-def sparse_scene_encoder(
-    exports: dict[str, Path], world_cfg: SparseOccVLAWorldConfig | None = None
-) -> SparseSceneEncoder:
+def sparse_scene_encoder(exports: dict[str, Path], world_cfg: object = None) -> SparseSceneEncoder:
     """The scene encoder of a pretrain stage: the consumed stage 1's export."""
     if "tokenizer" not in exports:
         raise ConfigError(
