@@ -28,7 +28,7 @@ from abc import ABC, abstractmethod
 from collections.abc import Callable, Hashable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Protocol, TypeVar, runtime_checkable
+from typing import TYPE_CHECKING, Protocol, TypeVar, runtime_checkable
 
 import numpy as np
 import torch
@@ -70,7 +70,7 @@ class WorldEngine(Protocol):
     @property
     def vision(self) -> torch.nn.Module | None: ...
 
-    def operation(self, name: str) -> Callable[..., Any] | None: ...
+    def operation(self, name: str) -> Callable[..., object] | None: ...
 
     def to(self, device: torch.device) -> torch.nn.Module: ...
 
@@ -239,7 +239,7 @@ class Scorer(Protocol):
     ``score(evaluator, item)`` updates metrics through ``evaluator.metrics[name]``;
     ``summary(prefix)`` adds derived numbers; ``reset()`` clears its own state."""
 
-    metrics: dict[str, Callable[[], Any]]
+    metrics: dict[str, Callable[[], Metric]]
     needs_semantics: bool
 
     def score(self, evaluator: ScoringContext, item: Item) -> None: ...
@@ -260,7 +260,7 @@ class EvalHook(Protocol):
     clips its ``clips`` names (``TASK_CLIPS`` or ``FUTURE_CLIPS``). ``applies(engine)``:
     whether it runs at all."""
 
-    metrics: dict[str, Callable[[], Any]]
+    metrics: dict[str, Callable[[], Metric]]
     clips: str
 
     def applies(self, engine: WorldEngine) -> bool: ...
