@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from occtrain.data.layout import DatasetWriter
+from occtrain.data.dataset_writer import DatasetWriter
 from occtrain.formats.occ3d import FRAME_DT, FREE, GRID_SHAPE
 
 REPO = Path(__file__).resolve().parents[1]

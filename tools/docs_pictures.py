@@ -46,7 +46,8 @@ import numpy as np
 from PIL import Image, ImageDraw
 
 from occtrain.config.loading import read_yaml
-from occtrain.data.layout import ANNOTATIONS_FILE, DatasetIndex, world_identity
+from occtrain.data.identity import world_identity
+from occtrain.data.layout import ANNOTATIONS_FILE, DatasetIndex
 from occtrain.data.render import render_bev, strip
 from occtrain.data.validate import first_problem
 from occtrain.errors import ConfigError, DataError, OcctrainError, cause_line

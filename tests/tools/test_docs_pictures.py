@@ -15,7 +15,7 @@ from PIL import Image
 
 from builders import read_only_disk, snapshot
 from conftest import load_tool, write_hand_dataset
-from occtrain.data.layout import world_identity
+from occtrain.data.identity import world_identity
 from quickstart_run import shared_quickstart_run
 
 

@@ -14,7 +14,9 @@ from typing import Any
 
 import numpy as np
 
+from occtrain.data.camera_records import read_image
 from occtrain.data.geometry import global_to_ego
+from occtrain.data.labels import load_labels
 from occtrain.data.layout import (
     ANNOTATIONS_FILE,
     FRAMES_DIR,
@@ -24,9 +26,7 @@ from occtrain.data.layout import (
     DatasetIndex,
     dataset_root,
     ego_pose_problems,
-    load_labels,
     qa_file,
-    read_image,
 )
 from occtrain.data.schema import FrameAnnotation, Occ3DAnnotations, QAFile
 from occtrain.data.shards import INDEX_FILE, decode_sample, iter_raw, leftover_rebuilds, read_index

@@ -8,7 +8,8 @@ import numpy as np
 
 from occtrain.data.cameras import CAMERA_NAMES
 from occtrain.data.clips import pose_anchor
-from occtrain.data.layout import DatasetIndex, load_labels
+from occtrain.data.labels import load_labels
+from occtrain.data.layout import DatasetIndex
 from occtrain.data.render import render_bev, strip, surround
 from occtrain.errors import DataError
 from occtrain.formats.occ3d import FRAME_DT, FREE

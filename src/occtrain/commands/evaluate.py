@@ -142,7 +142,7 @@ def reads_cameras(done: DoneStage) -> bool:
 def eval_provenance(done: DoneStage, root: str, split: str, result: EvalResult, dataset: str) -> Provenance:
     """What ``occtrain eval``'s numbers of ``done`` on ``root``'s ``split`` were measured on
     (``dataset``: its ``world_key``): the items of each task and of each number (``result``'s)."""
-    from occtrain.data.layout import world_identity
+    from occtrain.data.identity import world_identity
     from occtrain.version import code_version
 
     identity = world_identity(root)

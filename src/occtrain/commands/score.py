@@ -15,7 +15,8 @@ from typing import Annotated, Any, Literal, NotRequired, TypedDict
 
 import numpy as np
 
-from occtrain.data.layout import ANNOTATIONS_FILE, GTS_DIR, LABELS_FILE, DatasetIndex, load_labels, read_npz
+from occtrain.data.labels import load_labels, read_npz
+from occtrain.data.layout import ANNOTATIONS_FILE, GTS_DIR, LABELS_FILE, DatasetIndex
 from occtrain.data.schema import QAFile, Vec2
 from occtrain.data.validate import Len, first_problem
 from occtrain.errors import DataError

@@ -6,7 +6,7 @@ that scores the same reads its other inputs (the ego's motion, the past) or a pr
 view is a dataset directory of its own, so every cache and shard keyed by a dataset (its
 resolved path and fingerprint, ``data.shards.world_key``) keeps apart from the real one's:
 the camera images are written black at their size and format, the generator record says
-``"cameras": "blanked"`` (so the world's identity and name differ, ``layout.world_identity``),
+``"cameras": "blanked"`` (so the world's identity and name differ, ``data.identity.world_identity``),
 and everything else (labels, annotations, sidecars, the synthetic class and depth maps, which
 are training targets, not inputs) is a symbolic link to the source. Shards are built anew.
 """

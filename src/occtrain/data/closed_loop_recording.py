@@ -21,7 +21,8 @@ import numpy as np
 
 from occtrain.data.cameras import Camera, nuscenes_rig
 from occtrain.data.clips import Clip
-from occtrain.data.layout import ANNOTATIONS_FILE, FRAMES_DIR, DatasetIndex, SceneFiles, scene_infos
+from occtrain.data.dataset_writer import SceneFiles, scene_infos
+from occtrain.data.layout import ANNOTATIONS_FILE, FRAMES_DIR, DatasetIndex
 from occtrain.data.schema import FrameAnnotation
 from occtrain.data.synth.closed_loop_view import ViewFrame, save_gif
 from occtrain.data.synth.closed_loop_world import MAX_SECONDS, STRIDE, Agents, DrivingWorld

@@ -13,8 +13,9 @@ from torch.utils.data import DataLoader
 from torch.utils.data.dataloader import _BaseDataLoaderIter
 
 from occtrain.config.groups import DataConfig, check_synth_config
+from occtrain.data.camera_records import DEPTH_SCALE
 from occtrain.data.cameras import CAMERA_NAMES
-from occtrain.data.layout import ANNOTATIONS_FILE, DATASET_FILE, DEPTH_SCALE, DatasetIndex, generator_record
+from occtrain.data.layout import ANNOTATIONS_FILE, DATASET_FILE, DatasetIndex, generator_record
 from occtrain.data.shards import (
     KINDS,
     clip_shortfall,

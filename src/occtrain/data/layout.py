@@ -1,4 +1,4 @@
-"""The Occ3D-nuScenes directory layout: reading it, validating it, and writing it.
+"""The Occ3D-nuScenes directory layout: its paths, and reading it (``DatasetIndex``).
 
 ```
 ROOT/
@@ -10,31 +10,33 @@ ROOT/
 ```
 
 A real Occ3D-nuScenes download has the first two; the sidecars are occtrain's own. The
-synthetic world is written through :class:`DatasetWriter` and read back through
-:class:`DatasetIndex`, exactly like real data.
+synthetic world is written through ``data.dataset_writer.DatasetWriter`` and read back through
+:class:`DatasetIndex`, exactly like real data. Its neighbours: ``data.labels`` (the label
+files), ``data.camera_records`` (a camera's record and images), ``data.identity`` (which
+world a dataset is) and ``data.geometry`` (poses as nuScenes stores them).
 """
 
 from __future__ import annotations
 
 import hashlib
-import json
 import math
 import posixpath
-import zipfile
-from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from collections.abc import Iterator
 from functools import cached_property
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from occtrain.data.cameras import CAMERA_NAMES, Camera, matrix_to_quaternion, transform
+from occtrain.data.camera_records import DEPTH_SCALE, CameraRecord, read_image
+from occtrain.data.cameras import CAMERA_NAMES
+from occtrain.data.geometry import pose_matrix, yaw_from_quaternion
+from occtrain.data.labels import load_labels
 from occtrain.data.schema import FrameAnnotation, Occ3DAnnotations, QAFile, QAQuestion
 from occtrain.data.validate import first_problem
 from occtrain.errors import DataError
-from occtrain.formats.io import atomic_write_bytes, atomic_write_json, atomic_write_npz, parse_json, png_bytes
-from occtrain.formats.occ3d import FRAME_DT, GRID_SHAPE, NUM_CLASSES
+from occtrain.formats.io import parse_json
+from occtrain.formats.occ3d import FRAME_DT
 
 ANNOTATIONS_FILE = "annotations.json"
 GTS_DIR = "gts"
@@ -45,11 +47,6 @@ FRAMES_DIR = f"{SIDECAR_DIR}/frames"
 QA_DIR = "nuscenes_qa"
 SPLITS = ("train", "val")
 IMGS_DIR = "imgs"
-#: Beside each synthetic image: per-pixel class (uint8, FREE for sky) and camera-z depth
-#: (uint16 centimetres, 0 for sky), e.g. imgs/CAM_FRONT/<token>.png and <token>_class.png.
-CLASS_SUFFIX, DEPTH_SUFFIX = "_class", "_depth"
-DEPTH_SCALE = 100.0
-LABEL_KEYS = ("semantics", "mask_lidar", "mask_camera")
 
 
 #: What to do about a bad file, after its one-line problem.
@@ -63,139 +60,7 @@ def qa_file(split: str) -> str:
     return f"{QA_DIR}/NuScenes_{split}_questions.json"
 
 
-# ----------------------------------------------------------------------------- labels
-
-
-def label_form_problem(key: str, shape: tuple[int, ...], dtype: np.dtype) -> str | None:
-    """What is wrong with the shape or dtype of an Occ3D label array ``key`` (None: nothing,
-    or not a label array); read from a ``.npy`` header, it refuses before the data inflates."""
-    if key not in LABEL_KEYS:
-        return None
-    if shape != GRID_SHAPE:
-        return f"'{key}' has shape {shape}, expected {GRID_SHAPE}"
-    if key == "semantics" and dtype != np.uint8:
-        return f"'semantics' has dtype {dtype}, expected uint8"
-    if key != "semantics" and dtype not in (np.uint8, np.bool_):
-        return f"'{key}' has dtype {dtype}, expected uint8 or bool"
-    return None
-
-
-def validate_labels(arrays: dict[str, np.ndarray], source: str, require_masks: bool = True) -> None:
-    """Raise DataError naming ``source`` if an Occ3D label set has a wrong key, shape, dtype or value."""
-    keys = LABEL_KEYS if require_masks else LABEL_KEYS[:1]
-    for key in keys:
-        if key not in arrays:
-            raise DataError(f"{source}: missing array '{key}' (expected {', '.join(keys)})")
-        arr = arrays[key]
-        problem = label_form_problem(key, arr.shape, arr.dtype)
-        if problem:
-            raise DataError(f"{source}: {problem}")
-        if key == "semantics":
-            top = int(arr.max())
-            if top >= NUM_CLASSES:
-                raise DataError(f"{source}: 'semantics' holds class {top}; Occ3D classes are 0..{NUM_CLASSES - 1}")
-        elif arr.dtype == np.uint8 and int(arr.max()) > 1:
-            raise DataError(f"{source}: '{key}' holds values other than 0/1")
-
-
-#: Says what is wrong with an array of an ``.npz`` from its name, shape and dtype (None: nothing).
-FormCheck = Callable[[str, tuple[int, ...], np.dtype], str | None]
-
-
-def read_npz(path: Path, form: FormCheck | None = None, keys: tuple[str, ...] | None = None) -> dict[str, np.ndarray]:
-    """Load the arrays of an ``.npz`` (only ``keys``, when given) without unpickling; a
-    corrupt or pickled file raises DataError.
-
-    Each member's ``.npy`` header is read first, and an array whose shape or dtype ``form``
-    refuses is refused from it: inflated, a header claiming (2000, 2000, 160) over a few
-    bytes of data would have numpy allocate its 640 MB first."""
-    if not path.is_file():
-        raise DataError(f"{path}: file not found")
-    with open(path, "rb") as fh:
-        magic = fh.read(4)
-    if magic != b"PK\x03\x04":  # np.load would take any other bytes for a pickle
-        raise DataError(f"{path}: corrupt or truncated .npz (not a zip archive); re-create it")
-    pickled = f"{path}: holds an object (pickled) array; refusing to load it — re-save with plain arrays"
-    try:
-        # Members are inflated here, inside the try: a corrupt deflate stream raises
-        # zlib.error only when an array is read, not when the archive is opened.
-        for key, (shape, dtype) in _npy_headers(path, keys).items():
-            if dtype.hasobject:
-                raise DataError(pickled)
-            problem = form(key, shape, dtype) if form else None
-            if problem:
-                raise DataError(f"{path}: {problem}")
-        with np.load(path, allow_pickle=False) as npz:
-            return {key: npz[key] for key in npz.files if keys is None or key in keys}
-    except DataError:
-        raise
-    except ValueError as err:
-        if "allow_pickle" in str(err):
-            raise DataError(pickled) from None
-        raise DataError(f"{path}: not a readable .npz ({_first_line(err)}); re-create it") from None
-    except Exception as err:  # zlib.error, BadZipFile, EOFError, OSError, ...: all mean a damaged file
-        raise DataError(
-            f"{path}: corrupt or truncated .npz ({_error_name(err)}: {_first_line(err)}); re-create it"
-        ) from None
-
-
-def _npy_headers(path: Path, keys: tuple[str, ...] | None) -> dict[str, tuple[tuple[int, ...], np.dtype]]:
-    """(shape, dtype) of each array of an ``.npz`` (of ``keys``), as its header declares:
-    only the first bytes of each member are inflated."""
-    fmt = np.lib.format
-    found = {}
-    with zipfile.ZipFile(path) as archive:
-        for info in archive.infolist():
-            key = info.filename.removesuffix(".npy")
-            if keys is not None and key not in keys:
-                continue
-            with archive.open(info) as member:
-                version = fmt.read_magic(member)
-                if version not in ((1, 0), (2, 0)):  # 3.0 is for non-latin-1 field names: no label has them
-                    raise ValueError(f"member {info.filename}: .npy format version {version} is not read here")
-                read = fmt.read_array_header_1_0 if version == (1, 0) else fmt.read_array_header_2_0
-                shape, _, dtype = read(member)
-            found[key] = (tuple(shape), dtype)
-    return found
-
-
-def _first_line(err: BaseException) -> str:
-    return str(err).splitlines()[0] if str(err) else type(err).__name__
-
-
-def _error_name(err: BaseException) -> str:
-    """``zlib.error``, ``BadZipFile``: qualified where the bare name says nothing."""
-    kind = type(err)
-    return kind.__name__ if kind.__module__ in ("builtins", "zipfile") else f"{kind.__module__}.{kind.__name__}"
-
-
-def load_labels(path: str | Path, require_masks: bool = True) -> dict[str, np.ndarray]:
-    """Load and validate one Occ3D ``labels.npz``; masks come back as uint8 0/1."""
-    path = Path(path)
-    arrays = read_npz(path, label_form_problem, LABEL_KEYS)
-    validate_labels(arrays, str(path), require_masks)
-    out = {"semantics": arrays["semantics"]}
-    for key in LABEL_KEYS[1:]:
-        if key in arrays:
-            out[key] = arrays[key].astype(np.uint8, copy=False)
-    return out
-
-
 # ----------------------------------------------------------------------------- reading
-
-
-def _pose_matrix(pose: dict) -> np.ndarray:
-    return transform(np.asarray(pose["rotation"], np.float64), np.asarray(pose["translation"], np.float64))
-
-
-def yaw_from_quaternion(q: list[float]) -> float:
-    """Heading of a (w, x, y, z) quaternion, as nuScenes stores rotations."""
-    w, x, y, z = q
-    return math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
-
-
-def quaternion_from_yaw(yaw: float) -> list[float]:
-    return [math.cos(yaw / 2.0), 0.0, 0.0, math.sin(yaw / 2.0)]
 
 
 #: What a pose of a real log can be: a rotation is a unit quaternion (to this tolerance), a
@@ -252,7 +117,7 @@ def ego_pose_problems(scenes: dict[str, list[str]], infos: dict[str, dict[str, d
 _CONFORMING: set[tuple[str, bytes]] = set()
 
 
-def _read_json(path: Path, what: str, schema: Any = None, hint: str = "re-create the file") -> Any:
+def read_json(path: Path, what: str, schema: Any = None, hint: str = "re-create the file") -> Any:
     """A JSON file, checked against ``schema`` when given; the first problem is one DataError line."""
     if not path.is_file():
         raise DataError(f"{path}: {what} not found")
@@ -320,46 +185,7 @@ def generator_record(root: Path) -> dict | None:
     """occtrain's record of what generated the directory ``root`` (``occtrain/dataset.json``),
     if any; it is written first, so a synthesis cut off halfway has it too."""
     path = Path(root) / DATASET_FILE
-    return _read_json(path, "dataset record", dict[str, Any]) if path.is_file() else None
-
-
-def world_version(root: str | Path) -> str:
-    """The version ("v<N>") of a world occtrain synthesized (its ``occtrain/dataset.json``), else "": the
-    name every table measured on the world states."""
-    record = generator_record(Path(root)) or {}
-    return f"v{record['format_version']}" if record.get("generator") == "occtrain.synth" else ""
-
-
-@dataclass(frozen=True)
-class WorldIdentity:
-    """A dataset by what it holds, wherever it lies: ``key`` hashes its annotations and
-    generator record (a world synthesized again from the same settings, or copied to
-    another machine, keeps it; a relabelled or re-split one does not), ``name`` reads."""
-
-    key: str
-    version: str
-    name: str
-
-
-def world_identity(root: str | Path) -> WorldIdentity:
-    """The identity of the dataset at ``root`` (see :class:`WorldIdentity`). Labels are not
-    hashed (gigabytes for a real release): they follow from the generator's settings, and a
-    real release's annotations name every sample."""
-    root = Path(root)
-    record = generator_record(root)
-    h = hashlib.sha256((root / ANNOTATIONS_FILE).read_bytes())
-    h.update(json.dumps(record, sort_keys=True).encode())
-    version = world_version(root)
-    if version and record is not None:
-        name = (
-            f"occtrain world {version}, seed {record.get('seed')} ({record.get('train_scenes')} train + "
-            f"{record.get('val_scenes')} val scenes of {record.get('frames_per_scene')} frames)"
-        )
-    else:
-        name = f"dataset {root.resolve().name}"
-    if (record or {}).get("cameras") == "blanked":  # ``data.blank_cameras``: a view, not a world
-        name += ", its camera images blanked"
-    return WorldIdentity(h.hexdigest()[:12], version, name)
+    return read_json(path, "dataset record", dict[str, Any]) if path.is_file() else None
 
 
 def dataset_root(path: str | Path) -> Path:
@@ -436,7 +262,7 @@ class DatasetIndex:
                 f"{ann}: a link out of the dataset root (to {ann.resolve()}); copy the file into the root, or link "
                 "the whole root"
             )
-        return cls(path, _read_json(ann, "annotations file"), check_poses)
+        return cls(path, read_json(ann, "annotations file"), check_poses)
 
     # -- structure
     def scene_of(self, token: str) -> str:
@@ -570,8 +396,8 @@ class DatasetIndex:
                 name,
                 self.image_path(r["img_path"]),
                 np.asarray(intrinsic, np.float64),
-                _pose_matrix(r["extrinsic"]),
-                _pose_matrix(r["ego_pose"]),
+                pose_matrix(r["extrinsic"]),
+                pose_matrix(r["ego_pose"]),
             )
         missing = [n for n in CAMERA_NAMES if n not in by_name]
         if missing:
@@ -629,7 +455,7 @@ class DatasetIndex:
             raise DataError(
                 f"{path}: no frame annotations for scene '{scene}' (trajectories, boxes, text are occtrain sidecars)"
             )
-        frames = _read_json(self.within(path), "frame annotations", list[FrameAnnotation], FRAMES_HINT)
+        frames = read_json(self.within(path), "frame annotations", list[FrameAnnotation], FRAMES_HINT)
         tokens = [f["token"] for f in frames]
         if tokens != self.scenes.get(scene):
             raise DataError(
@@ -643,7 +469,7 @@ class DatasetIndex:
         path = self.root / qa_file(split)
         if not path.is_file():
             return None
-        return _read_json(self.within(path), "NuScenes-QA file", QAFile, QA_HINT)["questions"]
+        return read_json(self.within(path), "NuScenes-QA file", QAFile, QA_HINT)["questions"]
 
     def questions_by_sample(self, split: str) -> dict[str, list[QAQuestion]]:
         """A split's NuScenes-QA questions grouped by sample token (empty without the sidecar)."""
@@ -675,177 +501,3 @@ class DatasetIndex:
             if has_frames and key in absent:
                 tasks[task] = f"needs the frames' {key}, which {FRAMES_DIR}/ leaves empty here ({absent[key]})"
         return tasks
-
-
-# ----------------------------------------------------------------------------- cameras
-
-
-def camera_record(cam: Camera, img_path: str, ego_pose: dict) -> dict:
-    """A ``camera_sensor`` record as the released Occ3D files hold it (keyed by its channel;
-    ``img_path`` relative to ``imgs/``)."""
-    return {
-        "img_path": img_path,
-        "intrinsics": cam.intrinsic.tolist(),
-        "extrinsic": {
-            "translation": cam.cam_to_ego[:3, 3].tolist(),
-            "rotation": matrix_to_quaternion(cam.cam_to_ego[:3, :3]).tolist(),
-        },
-        "ego_pose": ego_pose,
-    }
-
-
-@dataclass(frozen=True)
-class CameraRecord:
-    """One camera of one sample, read back: its image file and its calibration."""
-
-    name: str  # CAM_FRONT, ... (the folder of its image)
-    image: Path
-    intrinsic: np.ndarray  # (3, 3)
-    cam_to_ego: np.ndarray  # (4, 4)
-    ego_to_global: np.ndarray  # (4, 4)
-
-    @property
-    def maps(self) -> tuple[Path, Path]:
-        """Where the renderer's per-pixel class and depth maps of this image lie (synthetic data)."""
-        return (
-            self.image.with_name(f"{self.image.stem}{CLASS_SUFFIX}.png"),
-            self.image.with_name(f"{self.image.stem}{DEPTH_SUFFIX}.png"),
-        )
-
-    def camera(self, height: int, width: int) -> Camera:
-        return Camera(self.name, height, width, self.intrinsic, self.cam_to_ego)
-
-
-def read_image(path: Path) -> np.ndarray:
-    """An image file as uint8 (H, W, 3), or a single-channel PNG as its own dtype (H, W)."""
-    from PIL import Image, UnidentifiedImageError
-
-    if not path.is_file():
-        raise DataError(f"{path}: image not found; the dataset's camera_sensor records name it")
-    try:
-        with Image.open(path) as img:
-            arr = np.asarray(img.convert("RGB") if img.mode in ("P", "RGBA", "CMYK", "YCbCr", "LA") else img)
-    except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as err:
-        raise DataError(f"{path}: not a readable image ({err}); re-create it") from None
-    return arr
-
-
-# ----------------------------------------------------------------------------- writing
-
-
-def scene_infos(scene: str, frames: list[FrameAnnotation], cameras: list[Camera] | None = None) -> dict[str, dict]:
-    """The ``scene_infos`` entry of annotations.json for a scene's frames (as written by SceneFiles)."""
-    infos = {}
-    for i, f in enumerate(frames):
-        x, y = f["ego_pose"]["translation"][:2]
-        pose = {"translation": [x, y, 0.0], "rotation": quaternion_from_yaw(f["ego_pose"]["yaw"])}
-        infos[f["token"]] = {
-            "timestamp": f["timestamp"],
-            "ego_pose": pose,
-            "gt_path": f"{GTS_DIR}/{scene}/{f['token']}/{LABELS_FILE}",
-            "prev": frames[i - 1]["token"] if i > 0 else "",
-            "next": frames[i + 1]["token"] if i + 1 < len(frames) else "",
-        }
-        if cameras:
-            infos[f["token"]]["camera_sensor"] = {
-                cam.name: camera_record(cam, f"{cam.name}/{f['token']}.png", pose) for cam in cameras
-            }
-    return infos
-
-
-class SceneFiles:
-    """The files of one scene under a dataset root: each frame's labels and camera images,
-    then the scene's frame sidecar, which marks the scene complete. What a synthesis
-    worker process writes; :class:`DatasetWriter` adds the dataset-wide records."""
-
-    def __init__(self, root: str | Path):
-        self.root = Path(root)
-
-    def scene_done(self, scene: str) -> bool:
-        return (self.root / FRAMES_DIR / f"{scene}.json").is_file()
-
-    def write_labels(self, scene: str, token: str, arrays: dict[str, np.ndarray]) -> None:
-        """Validate and atomically write one frame's ``labels.npz``."""
-        path = self.root / GTS_DIR / scene / token / LABELS_FILE
-        validate_labels(arrays, str(path))
-        atomic_write_npz(path, arrays)
-
-    def write_images(self, token: str, views: list[tuple[str, np.ndarray, np.ndarray, np.ndarray]]) -> None:
-        """Write one frame's camera images (name, image (H, W, 3) uint8, classes (H, W) uint8,
-        depth (H, W) metres) as PNGs under ``imgs/<name>/``, before the frame's scene completes."""
-        for name, image, classes, depth in views:
-            folder = self.root / IMGS_DIR / name
-            atomic_write_bytes(folder / f"{token}.png", png_bytes(image))
-            atomic_write_bytes(folder / f"{token}{CLASS_SUFFIX}.png", png_bytes(classes))
-            centimetres = np.clip(np.round(depth * DEPTH_SCALE), 0, 65535).astype(np.uint16)
-            atomic_write_bytes(folder / f"{token}{DEPTH_SUFFIX}.png", png_bytes(centimetres))
-
-    def write_frames(self, scene: str, frames: list[FrameAnnotation]) -> None:
-        """Write the scene's frame sidecar (after its labels): the scene is then complete."""
-        atomic_write_json(self.root / FRAMES_DIR / f"{scene}.json", frames, indent=None)
-
-    def read_scene(self, scene: str) -> list[FrameAnnotation]:
-        """A completed scene's frames."""
-        return _read_json(
-            self.root / FRAMES_DIR / f"{scene}.json", "frame annotations", list[FrameAnnotation], FRAMES_HINT
-        )
-
-
-class DatasetWriter(SceneFiles):
-    """Writes a dataset in the Occ3D layout; refuses to mix into a different dataset.
-
-    Scene by scene: labels first, then the scene's sidecar (which marks the scene
-    complete), and ``annotations.json`` last (which marks the dataset complete), so an
-    interrupted write resumes where it stopped and never leaves a readable half-dataset.
-    """
-
-    def __init__(self, root: str | Path, fingerprint: dict):
-        super().__init__(root)
-        self.fingerprint = fingerprint
-        record = self.root / DATASET_FILE
-        if record.is_file():
-            existing = _read_json(
-                record, "dataset record", dict[str, Any], "delete that directory or choose another --out"
-            )
-            if existing != fingerprint:
-                diff = sorted(k for k in set(existing) | set(fingerprint) if existing.get(k) != fingerprint.get(k))
-                raise DataError(
-                    f"{self.root}: already holds a different dataset (differs in {', '.join(diff)}); "
-                    "choose another --out or delete that directory"
-                )
-        elif self.root.exists() and any(self.root.iterdir()):
-            raise DataError(
-                f"{self.root}: exists and is not an occtrain dataset; choose an empty or new --out directory"
-            )
-        atomic_write_json(record, fingerprint)
-        self._scene_infos: dict[str, dict] = {}
-        self._splits: dict[str, list[str]] = {s: [] for s in SPLITS}
-
-    @property
-    def complete(self) -> bool:
-        return (self.root / ANNOTATIONS_FILE).is_file()
-
-    def write_scene(
-        self, scene: str, split: str, frames: list[FrameAnnotation], cameras: list[Camera] | None = None
-    ) -> None:
-        """Write the scene's frame sidecar (after its labels) and record it for the dataset's records."""
-        self.write_frames(scene, frames)
-        self.add_scene_info(scene, split, frames, cameras)
-
-    def add_scene_info(
-        self, scene: str, split: str, frames: list[FrameAnnotation], cameras: list[Camera] | None = None
-    ) -> None:
-        self._scene_infos[scene] = scene_infos(scene, frames, cameras)
-        self._splits[split].append(scene)
-
-    def finalize(self, questions: dict[str, list[QAQuestion]]) -> None:
-        """Write the QA files and, last, annotations.json."""
-        for split, qs in questions.items():
-            atomic_write_json(
-                self.root / qa_file(split), {"info": {"generator": "occtrain.synth", "split": split}, "questions": qs}
-            )
-        atomic_write_json(
-            self.root / ANNOTATIONS_FILE,
-            {f"{s}_split": names for s, names in self._splits.items()} | {"scene_infos": self._scene_infos},
-            indent=None,
-        )

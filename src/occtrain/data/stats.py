@@ -21,7 +21,8 @@ from typing import Any
 
 import numpy as np
 
-from occtrain.data.layout import DatasetIndex, world_version
+from occtrain.data.identity import world_version
+from occtrain.data.layout import DatasetIndex
 from occtrain.errors import DataError
 from occtrain.formats.occ3d import CLASS_NAMES, FREE, GRID_SHAPE, OCC3D_FRAME, OCC3D_TRAIN_VOXELS
 from occtrain.progress import progress_bar

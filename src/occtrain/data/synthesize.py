@@ -12,7 +12,8 @@ import numpy as np
 
 from occtrain.config.groups import SynthConfig, check_synth_config
 from occtrain.data.cameras import nuscenes_rig
-from occtrain.data.layout import DatasetIndex, DatasetWriter, SceneFiles
+from occtrain.data.dataset_writer import DatasetWriter, SceneFiles
+from occtrain.data.layout import DatasetIndex
 from occtrain.data.schema import QAQuestion
 from occtrain.data.synth import generate_scene
 from occtrain.data.synth.scene import scene_events

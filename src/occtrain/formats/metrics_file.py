@@ -74,7 +74,7 @@ class Provenance:
     split: str
     #: Per task (or ``frames``, ``clips``): [items scored, items the split holds].
     coverage: dict[str, list[int]] = field(default_factory=dict)
-    #: The world by content (``data.layout.world_identity``), its version and a readable name.
+    #: The world by content (``data.identity.world_identity``), its version and a readable name.
     world: str = ""
     world_version: str = ""
     world_name: str = ""

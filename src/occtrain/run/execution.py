@@ -106,7 +106,7 @@ def _validation_provenance(
     (the report's coverage and sample sets: a world model's validation generates on a
     subset, ``val_samples`` per task)."""
     from occtrain.data.datamodule import shards_dir
-    from occtrain.data.layout import world_identity
+    from occtrain.data.identity import world_identity
     from occtrain.data.shards import shard_urls
     from occtrain.version import code_version
 

@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from occtrain.data.blank_cameras import BLANK_SUFFIX, blank_camera_view, camera_images
-from occtrain.data.layout import DatasetIndex, generator_record, world_identity
+from occtrain.data.identity import world_identity
+from occtrain.data.layout import DatasetIndex, generator_record
 from occtrain.data.shards import world_key
 from occtrain.errors import DataError
 from occtrain.formats.io import WriteError

@@ -10,7 +10,8 @@ import shlex
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 
-from occtrain.data.layout import CLASS_SUFFIX, DEPTH_SUFFIX, FRAMES_DIR, SPLITS, DatasetIndex, qa_file
+from occtrain.data.camera_records import CLASS_SUFFIX, DEPTH_SUFFIX
+from occtrain.data.layout import FRAMES_DIR, SPLITS, DatasetIndex, qa_file
 from occtrain.data.shards.entries import DEFAULT_LAYOUT, FINGERPRINT_VERSION, INDEX_FILE, KINDS
 from occtrain.data.shards.reader import read_index
 from occtrain.errors import DataError
