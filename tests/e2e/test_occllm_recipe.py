@@ -11,6 +11,7 @@ from pathlib import Path
 import pytest
 
 from conftest import kill_at_checkpoint, run_cli
+from family_contract import check_contract
 from quickstart_run import export_tensors, tiny_overrides, train_rows
 
 pytestmark = pytest.mark.slow
@@ -161,3 +162,9 @@ def test_it_trains_on_a_plain_occ3d_release(synth_dataset, tmp_path):
     assert res.returncode == 0, res.stderr[-3000:]
     metrics = json.loads((run_dir / "pretrain" / "metrics.json").read_text())
     assert metrics["val/forecast_occworld_frames_3s"] > 0 and "val/plan_alternate_L2_stp3_avg" in metrics
+
+
+def test_the_family_keeps_the_contract(occllm_run, tmp_path):
+    """Its tasks build, its scorers score, its export round-trips, its inputs are served and
+    a few steps lower its loss, checked as every family's are (tests/family_contract.py)."""
+    check_contract(occllm_run, "pretrain", tmp_path)

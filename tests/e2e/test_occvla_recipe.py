@@ -12,6 +12,7 @@ from pathlib import Path
 import pytest
 
 from conftest import run_cli
+from family_contract import check_contract
 
 pytestmark = pytest.mark.slow
 
@@ -183,3 +184,9 @@ def test_distillation_takes_a_camera_reading_teacher(occvla_run, tmp_path):
     assert "val/occupancy_occworld_mIoU" in metrics  # the student's query branch, through the same frozen decoder
     export = json.loads((occvla_run / "student" / "export" / "config.json").read_text())
     assert export["family"] == "occvla" and (occvla_run / "student" / "export" / "vision_encoder").is_dir()
+
+
+def test_the_family_keeps_the_contract(occvla_run, tmp_path):
+    """Its tasks build, its scorers score, its export round-trips, its inputs are served and
+    a few steps lower its loss, checked as every family's are (tests/family_contract.py)."""
+    check_contract(occvla_run, "stage1", tmp_path)

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from conftest import REPO, run_cli
+from family_contract import check_contract
 from occtrain.formats.metrics_file import read_metrics
 from occtrain.stages.phases import PHASES
 from quickstart_run import STAGES, shared_quickstart_run, tiny_overrides
@@ -384,3 +385,9 @@ def test_a_stopped_drive_ends_in_one_line_and_leaves_no_temporary_files(pipeline
     assert "episodes are written under" in lines[0]
     assert lines[0].endswith("run the same command again to drive the rest")
     assert list(scratch.iterdir()) == []
+
+
+def test_the_family_keeps_the_contract(pipeline, tmp_path):
+    """Its tasks build, its scorers score, its export round-trips, its inputs are served and
+    a few steps lower its loss, checked as every family's are (tests/family_contract.py)."""
+    check_contract(pipeline, "pretrain", tmp_path)

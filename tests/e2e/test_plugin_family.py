@@ -12,6 +12,7 @@ import pytest
 import torch
 
 from conftest import run_cli
+from family_contract import check_contract
 
 RECIPE = """
 name: tiny
@@ -330,3 +331,11 @@ def test_a_stage_kind_of_another_module_is_refused_unless_overridden(registry, m
         f"note: plugin {__name__} overrides the stage kind 'tokenizer' of occtrain.stages.tokenizer (shipped with "
         "occtrain)\n"
     )
+
+
+def test_the_family_keeps_the_contract(tiny_run, tmp_path):
+    """Its tasks build, its scorers score, its export round-trips, its inputs are served and
+    a few steps lower its loss, checked as every family's are (tests/family_contract.py)."""
+    import plugins.tiny_family  # noqa: F401 - registers the family in this process
+
+    check_contract(tiny_run, "pretrain", tmp_path)

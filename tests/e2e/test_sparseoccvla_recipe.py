@@ -16,6 +16,7 @@ import pytest
 
 from builders import write_omnidrive
 from conftest import kill_at_checkpoint, run_cli, run_cli_process
+from family_contract import check_contract
 
 pytestmark = pytest.mark.slow
 
@@ -237,3 +238,9 @@ def test_eval_with_blanked_cameras_scores_beside_the_real_ones_and_the_report_se
     page = run_cli("report", str(sparse_run)).stdout
     row = next(line for line in page.splitlines() if line.startswith("| stage1 | reconstruction mIoU"))
     assert f"the same with its cameras blanked {measured['occworld_mIoU']:.1f}" in row
+
+
+def test_the_family_keeps_the_contract(sparse_run, tmp_path):
+    """Its tasks build, its scorers score, its export round-trips, its inputs are served and
+    a few steps lower its loss, checked as every family's are (tests/family_contract.py)."""
+    check_contract(sparse_run, "stage2", tmp_path)
