@@ -14,7 +14,7 @@ from abc import ABC, abstractmethod
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar, Protocol
 
 import lightning as L
 from torch import nn
@@ -31,7 +31,13 @@ from occtrain.models import count_parameters
 if TYPE_CHECKING:  # the registry (stages/__init__.py) imports this module
     from occtrain.engine.closed_loop import StageDriver
     from occtrain.stages import StageKind
-    from occtrain.stages.callbacks import StepMeter
+
+class StepClock(Protocol):
+    """What a stage asks of the meter timing its steps (``callbacks.StepMeter``, which
+    imports this module): to start the step's clock again after work that is not the step's."""
+
+    def restart_step(self) -> None: ...
+
 
 #: The run directory's folder of caches keyed by their content, shared by its stages.
 SHARED_CACHE = "cache"
@@ -189,7 +195,7 @@ class Stage(L.LightningModule, ABC):
     step_work: StepWork | None = None
     #: The step meter timing its training steps (``callbacks.StepMeter`` sets it when the
     #: fit begins), for a stage that does work in a step's hooks that is not the step's.
-    step_meter: StepMeter | None = None
+    step_meter: StepClock | None = None
     #: Whether ``occtrain eval`` scores its exports (``evaluate_export``).
     evaluable: ClassVar[bool] = False
     #: Whether that eval records predictions (``EvalRequest.record``) for ``--save-predictions``.
