@@ -36,13 +36,19 @@ from torch import nn
 
 from occtrain.core.builder import SequenceBuilder, batch_payload, sample_means
 from occtrain.core.ego_steps import SceneContext, query_scene
-from occtrain.core.lm_world_model import LMWorldModel, WorldModelOutput, token_ce
+from occtrain.core.lm_world_model import LMWorldModel, WorldInputs, WorldModelOutput, token_ce
 from occtrain.core.sequence import IGNORE, PayloadSpec, TokenSequence, empty_payload
 from occtrain.core.vocab import JointVocab
 from occtrain.models.patches import patchify, unpatchify
 
 #: The waypoint a scene's patches carry: (x, y).
 ACTION_DIM = 2
+
+
+def scene_vocab_layout(inputs: WorldInputs, patch: int) -> dict:
+    """The joint vocabulary's scene part over a discrete scene encoder: its codebooks and
+    latent grid, one token per cell and codebook (``patch`` 0) or per p x p patch."""
+    return {"codebook_sizes": inputs.scene.codebook_sizes, "scene_hw": inputs.scene.latent_hw, "patch": patch}
 
 
 class PatchEmbedding(nn.Module):

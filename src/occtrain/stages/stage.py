@@ -32,6 +32,7 @@ if TYPE_CHECKING:  # the registry (stages/__init__.py) imports this module
     from occtrain.engine.closed_loop import StageDriver
     from occtrain.stages import StageKind
 
+
 class StepClock(Protocol):
     """What a stage asks of the meter timing its steps (``callbacks.StepMeter``, which
     imports this module): to start the step's clock again after work that is not the step's."""

@@ -41,7 +41,7 @@ from torch import nn
 from occtrain.core.decoding import CodeScene
 from occtrain.core.ego_steps import SceneContext, query_scene
 from occtrain.core.lm_world_model import LMWorldModel, WorldInputs
-from occtrain.core.patch_layout import PatchWorldModel
+from occtrain.core.patch_layout import PatchWorldModel, scene_vocab_layout
 from occtrain.core.vocab import JointVocab
 from occtrain.families.occllama.config import OccLLaMAWorldConfig
 
@@ -108,12 +108,7 @@ class OccLLaMAWorldModel(LMWorldModel):
     def vocab_layout(inputs: WorldInputs, world_cfg: OccLLaMAWorldConfig | None = None) -> dict:
         """One token per latent cell and codebook (the codes layout), or with ``patch_size``
         one per p x p patch of the latent grid (the patches layout)."""
-        cfg = world_cfg or OccLLaMAWorldConfig()
-        return {
-            "codebook_sizes": inputs.scene.codebook_sizes,
-            "scene_hw": inputs.scene.latent_hw,
-            "patch": cfg.patch_size,
-        }
+        return scene_vocab_layout(inputs, (world_cfg or OccLLaMAWorldConfig()).patch_size)
 
     @classmethod
     def create(

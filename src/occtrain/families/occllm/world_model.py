@@ -20,7 +20,7 @@ import torch
 from torch import nn
 
 from occtrain.core.lm_world_model import WorldInputs
-from occtrain.core.patch_layout import ACTION_DIM, PatchWorldModel
+from occtrain.core.patch_layout import ACTION_DIM, PatchWorldModel, scene_vocab_layout
 from occtrain.core.vocab import JointVocab
 from occtrain.families.occllm.config import OccLLMWorldConfig
 from occtrain.families.occllm.scene_tokens import PreFusion
@@ -82,12 +82,7 @@ class OccLLMWorldModel(PatchWorldModel):
     @staticmethod
     def vocab_layout(inputs: WorldInputs, world_cfg: OccLLMWorldConfig | None = None) -> dict:
         """One ``<patch_j>`` token per p x p patch of the latent grid (the patches layout)."""
-        cfg = world_cfg or OccLLMWorldConfig()
-        return {
-            "codebook_sizes": inputs.scene.codebook_sizes,
-            "scene_hw": inputs.scene.latent_hw,
-            "patch": cfg.patch_size,
-        }
+        return scene_vocab_layout(inputs, (world_cfg or OccLLMWorldConfig()).patch_size)
 
     @classmethod
     def create(
