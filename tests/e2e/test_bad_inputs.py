@@ -30,8 +30,8 @@ from safetensors.torch import save_file
 from builders import planning_files, qa_questions, read_only_disk, snapshot
 from conftest import REPO, hand_frames, hand_labels, write_hand_dataset
 from occtrain.cli import main
-from occtrain.data.geometry import quaternion_from_yaw
 from occtrain.data.layout import DatasetIndex
+from occtrain.data.poses import quaternion_from_yaw
 from occtrain.data.validate import Len, problems
 from occtrain.formats.occ3d import GRID_SHAPE
 

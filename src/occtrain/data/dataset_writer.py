@@ -11,7 +11,6 @@ import numpy as np
 
 from occtrain.data.camera_records import CLASS_SUFFIX, DEPTH_SCALE, DEPTH_SUFFIX, camera_record
 from occtrain.data.cameras import Camera
-from occtrain.data.geometry import quaternion_from_yaw
 from occtrain.data.labels import validate_labels
 from occtrain.data.layout import (
     ANNOTATIONS_FILE,
@@ -25,6 +24,7 @@ from occtrain.data.layout import (
     qa_file,
     read_json,
 )
+from occtrain.data.poses import quaternion_from_yaw
 from occtrain.data.schema import FrameAnnotation, QAQuestion
 from occtrain.errors import DataError
 from occtrain.formats.io import atomic_write_bytes, atomic_write_json, atomic_write_npz, png_bytes

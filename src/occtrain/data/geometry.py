@@ -5,12 +5,9 @@ Ego frame: x forward, y left, origin at the ego; yaw counter-clockwise from glob
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import torch
 
-from occtrain.data.cameras import transform
 from occtrain.data.schema import COMMAND_LATERAL_THRESHOLD, Command
 from occtrain.formats.occ3d import FREE, VOXEL_SIZE
 
@@ -66,22 +63,3 @@ def moved_scene(semantics: torch.Tensor, offset_xy: tuple[float, float]) -> torc
     src_j, dst_j = slice(max(dj, 0), ny + min(dj, 0)), slice(max(-dj, 0), ny - max(dj, 0))
     out[dst_i, dst_j] = semantics[src_i, src_j]
     return out
-
-
-# ----------------------------------------------------------------------------- poses as nuScenes stores them
-
-
-def pose_matrix(pose: dict) -> np.ndarray:
-    """The 4x4 transform of a ``{"rotation": (w, x, y, z), "translation": (x, y, z)}`` pose."""
-    return transform(np.asarray(pose["rotation"], np.float64), np.asarray(pose["translation"], np.float64))
-
-
-def yaw_from_quaternion(q: list[float]) -> float:
-    """Heading of a (w, x, y, z) quaternion, as nuScenes stores rotations."""
-    w, x, y, z = q
-    return math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
-
-
-def quaternion_from_yaw(yaw: float) -> list[float]:
-    """The (w, x, y, z) quaternion of a heading about the z axis."""
-    return [math.cos(yaw / 2.0), 0.0, 0.0, math.sin(yaw / 2.0)]

@@ -13,7 +13,7 @@ A real Occ3D-nuScenes download has the first two; the sidecars are occtrain's ow
 synthetic world is written through ``data.dataset_writer.DatasetWriter`` and read back through
 :class:`DatasetIndex`, exactly like real data. Its neighbours: ``data.labels`` (the label
 files), ``data.camera_records`` (a camera's record and images), ``data.identity`` (which
-world a dataset is) and ``data.geometry`` (poses as nuScenes stores them).
+world a dataset is) and ``data.poses`` (poses as nuScenes stores them).
 """
 
 from __future__ import annotations
@@ -30,8 +30,8 @@ import numpy as np
 
 from occtrain.data.camera_records import DEPTH_SCALE, CameraRecord, read_image
 from occtrain.data.cameras import CAMERA_NAMES
-from occtrain.data.geometry import pose_matrix, yaw_from_quaternion
 from occtrain.data.labels import load_labels
+from occtrain.data.poses import pose_matrix, yaw_from_quaternion
 from occtrain.data.schema import FrameAnnotation, Occ3DAnnotations, QAFile, QAQuestion
 from occtrain.data.validate import first_problem
 from occtrain.errors import DataError

@@ -8,9 +8,9 @@ import pytest
 
 from conftest import hand_labels, write_hand_dataset
 from occtrain.data.dataset_writer import DatasetWriter
-from occtrain.data.geometry import quaternion_from_yaw, yaw_from_quaternion
 from occtrain.data.labels import load_labels
 from occtrain.data.layout import DatasetIndex
+from occtrain.data.poses import quaternion_from_yaw, yaw_from_quaternion
 from occtrain.errors import DataError
 from occtrain.formats.occ3d import GRID_SHAPE
 

@@ -38,8 +38,9 @@ from typing import Any
 
 import numpy as np
 
-from occtrain.data.geometry import ego_to_global, quaternion_from_yaw
+from occtrain.data.geometry import ego_to_global
 from occtrain.data.layout import ANNOTATIONS_FILE, GTS_DIR, IMGS_DIR, SPLITS, DatasetIndex
+from occtrain.data.poses import quaternion_from_yaw
 from occtrain.data.releases.categories import ATTRIBUTES, CLASS_TO_CATEGORY, VISIBILITY_LEVELS, attribute_name
 from occtrain.data.releases.files import place_tree
 from occtrain.data.releases.nuscenes_tables import CAN_BUS_DIR, LIDAR, TABLES

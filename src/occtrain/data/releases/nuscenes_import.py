@@ -56,9 +56,10 @@ from typing import Any
 import numpy as np
 
 from occtrain.data.camera_records import CLASS_SUFFIX, DEPTH_SUFFIX
-from occtrain.data.geometry import driving_command, global_to_ego, rotate_to_ego, yaw_from_quaternion
+from occtrain.data.geometry import driving_command, global_to_ego, rotate_to_ego
 from occtrain.data.layout import ANNOTATIONS_FILE, DATASET_FILE, FRAMES_DIR, DatasetIndex
 from occtrain.data.meta_actions import sidecar_label
+from occtrain.data.poses import yaw_from_quaternion
 from occtrain.data.releases.categories import box_class, status
 from occtrain.data.releases.files import place_files
 from occtrain.data.releases.nuscenes_tables import LIDAR, NuScenesTables, read_can_bus

@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 
 from conftest import hand_labels
-from occtrain.data.geometry import quaternion_from_yaw
 from occtrain.data.layout import DatasetIndex
 from occtrain.data.meta_actions import sidecar_label
+from occtrain.data.poses import quaternion_from_yaw
 from occtrain.data.releases.nuscenes_import import import_nuscenes, read_release, scene_frames
 from occtrain.data.releases.nuscenes_tables import NuScenesTables, read_can_bus
 from occtrain.errors import DataError
