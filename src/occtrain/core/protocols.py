@@ -315,16 +315,6 @@ class PlannerContext(Protocol):
     def cache_dir(self) -> Path: ...
 
 
-class PlannerSource(Protocol):
-    """Where a trained planner rebuilt from its export reads and caches its inputs
-    (``stages.EvalRequest`` is one)."""
-
-    @property
-    def data_root(self) -> str: ...
-    @property
-    def cache_dir(self) -> Path | None: ...
-
-
 class Planner(nn.Module, ABC):
     """What a ``planner`` stage trains, given the stage's settings and, when it reads one,
     the frozen world model of the consumed stage (``teacher``): a torch module, so the
