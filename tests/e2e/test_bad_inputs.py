@@ -1398,6 +1398,20 @@ CASES: list[Case] = [
         "--workers 0: give at least 1 process",
     ),
     Case(
+        "synth-camera-size-not-hxw",
+        nothing,
+        ["data", "synth", "--out", "{tmp}/new", "--cameras", "144by256"],
+        2,
+        "--cameras 144by256: give the image size as HxW pixels",
+    ),
+    Case(
+        "synth-camera-size-half-zero",
+        nothing,
+        ["data", "synth", "--out", "{tmp}/new", "--cameras", "144x0"],
+        2,
+        "synth.camera_height=144, synth.camera_width=0: both positive, or both 0",
+    ),
+    Case(
         "show-unknown-scene",
         nothing,
         ["data", "show", DS, "--scene", "scene-9999", "--out", "{tmp}/b.png"],

@@ -12,7 +12,7 @@ from occtrain.cli import data_import
 def _cmd_synth(args: argparse.Namespace) -> int:
     from occtrain.commands.data_synth import synth
 
-    synth(args.out, args.scenes, args.val_scenes, args.frames, args.seed, args.workers)
+    synth(args.out, args.scenes, args.val_scenes, args.frames, args.seed, args.workers, args.cameras)
     return 0
 
 
@@ -63,6 +63,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--val-scenes", type=int, default=2, help="val scenes (default 2)")
     p.add_argument("--frames", type=int, default=40, help="frames per scene at 2 Hz (default 40)")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument(
+        "--cameras",
+        default="72x128",
+        metavar="HxW",
+        help="the six cameras' image size, height x width pixels (default 72x128; 0x0: no cameras)",
+    )
     p.add_argument(
         "--workers", type=int, default=None, help="processes writing scenes (default: one per core from 100 frames)"
     )

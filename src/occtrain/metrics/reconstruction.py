@@ -26,9 +26,10 @@ class ReconstructionMetrics(torch.nn.Module):
     """IoU/mIoU in the ``occworld`` convention (with the movable classes' mIoU, where motion
     separation should show) and the ``occ3d`` one, an empty scene as the trivial baseline,
     and each codebook's usage and perplexity. ``codebooks``: name -> size, in the order of
-    the tokenizer's code grids. With ``oracle``, also the best reconstruction the encoder's
-    budget allows (``baseline_budget_oracle_occworld``: what a point-set encoder's points
-    reach placed on occupied voxels with their true classes), beside what it reaches. With
+    the tokenizer's code grids. With ``oracles``, also the reconstructions that bound what the
+    encoder can reach (``baseline_<name>_occworld``: ``budget_oracle``, what a point-set
+    encoder's points reach placed on occupied voxels with their true classes;
+    ``lifted_pixels``, what a perfect reader of its cameras' pixels lifts into the grid). With
     ``prior`` (X, Y, Z), the per-voxel prior of the train split (``data.voxel_prior``) as
     the baseline that reads no input (``baseline_prior_occworld``). ``occupied_share`` and
     ``true_occupied_share``: the percent of voxels predicted and truly occupied (a loss that
@@ -36,7 +37,7 @@ class ReconstructionMetrics(torch.nn.Module):
 
     prior: torch.Tensor | None
 
-    def __init__(self, codebooks: dict[str, int], oracle: bool = False, prior: torch.Tensor | None = None):
+    def __init__(self, codebooks: dict[str, int], oracles: tuple[str, ...] = (), prior: torch.Tensor | None = None):
         super().__init__()
         movable = {"movable": MOVABLE_CLASSES}
         self.scores = torch.nn.ModuleDict(
@@ -49,13 +50,13 @@ class ReconstructionMetrics(torch.nn.Module):
                     if prior is not None
                     else {}
                 ),
-                **(
-                    {"baseline_budget_oracle_occworld": OccupancyMetric(convention="occworld", subsets=movable)}
-                    if oracle
-                    else {}
-                ),
+                **{
+                    f"baseline_{name}_occworld": OccupancyMetric(convention="occworld", subsets=movable)
+                    for name in oracles
+                },
             }
         )
+        self.oracles = tuple(oracles)
         self.register_buffer("prior", None if prior is None else prior.long(), persistent=False)
         self.occupied = torch.nn.ModuleDict({"occupied_share": MeanMetric(), "true_occupied_share": MeanMetric()})
         self.usage = torch.nn.ModuleDict({name: CodebookUsage(size) for name, size in codebooks.items()})
@@ -66,11 +67,11 @@ class ReconstructionMetrics(torch.nn.Module):
         target: torch.Tensor,
         mask: torch.Tensor,
         codes: torch.Tensor | None = None,
-        oracle: torch.Tensor | None = None,
+        oracles: dict[str, torch.Tensor] | None = None,
     ) -> None:
         """Label volumes (B, X, Y, Z), ``mask_camera``, and the codes: (B, h, w) for one
-        codebook, (B, codebooks, h, w) for several, None for a continuous encoder; the
-        budget's oracle reconstruction (B, X, Y, Z) when the metrics report it."""
+        codebook, (B, codebooks, h, w) for several, None for a continuous encoder; each
+        oracle's reconstruction (B, X, Y, Z) that the metrics report."""
         self._score("occworld").update(pred, target)
         self._score("occ3d").update(pred, target, mask)
         self._score("baseline_free_occworld").update(torch.full_like(target, FREE), target)
@@ -80,10 +81,11 @@ class ReconstructionMetrics(torch.nn.Module):
         for name, volume in (("occupied_share", pred), ("true_occupied_share", target)):
             share = 100.0 * (volume != FREE).flatten(1).sum(1).float() / voxels
             _member(self.occupied, name, MeanMetric).update(share, weight=torch.ones_like(share))
-        if "baseline_budget_oracle_occworld" in self.scores:
-            if oracle is None:
-                raise ValueError("these reconstruction metrics report the budget's oracle: pass its labels")
-            self._score("baseline_budget_oracle_occworld").update(oracle, target)
+        missing = [name for name in self.oracles if name not in (oracles or {})]
+        if missing:
+            raise ValueError(f"these reconstruction metrics report the oracles {', '.join(missing)}: pass their labels")
+        for name in self.oracles:
+            self._score(f"baseline_{name}_occworld").update((oracles or {})[name], target)
         if codes is None:
             return
         grids = codes if codes.dim() == 4 else codes[:, None]

@@ -39,6 +39,23 @@ def project(
     return uv, inside
 
 
+def lift(depth: torch.Tensor, intrinsics: torch.Tensor, cam_to_ego: torch.Tensor, beyond: float = 0.0) -> torch.Tensor:
+    """Every pixel centre of V cameras at its camera-z ``depth`` (B, V, H, W) -> ego-frame
+    points (B, V, H, W, 3): the inverse of :func:`project`. ``beyond`` (metres) moves each
+    point that far further along its ray: a depth map's surface is a voxel's face, and a
+    point just past it lies inside the voxel it shows."""
+    b, v, h, w = depth.shape
+    dev = depth.device
+    vv, uu = torch.meshgrid(torch.arange(h, device=dev) + 0.5, torch.arange(w, device=dev) + 0.5, indexing="ij")
+    pixels = torch.stack([uu, vv, torch.ones_like(uu)], -1)  # (H, W, 3)
+    rays = torch.einsum("bvij,hwj->bvhwi", torch.linalg.inv(intrinsics.float()), pixels)  # camera z = 1
+    length = rays.norm(dim=-1)  # metres along the ray per metre of camera z
+    z = depth.float() + beyond / length
+    cam = rays * z[..., None]
+    rot, shift = cam_to_ego[..., :3, :3].float(), cam_to_ego[..., :3, 3].float()
+    return torch.einsum("bvij,bvhwj->bvhwi", rot, cam) + shift[:, :, None, None]
+
+
 def read_views(features: torch.Tensor, uv: torch.Tensor, image_hw: tuple[int, int]) -> torch.Tensor:
     """Bilinear samples (B, V, N, C) of per-camera feature maps ``features`` (B, V, C, h, w),
     which cover the ``image_hw`` image, at pixels ``uv`` (B, V, N, 2) of each camera."""
@@ -70,4 +87,4 @@ def sample_views(
     return average_views(read_views(features, uv, image_hw), inside)
 
 
-__all__ = ["average_views", "in_cameras", "project", "read_views", "sample_views"]
+__all__ = ["average_views", "in_cameras", "lift", "project", "read_views", "sample_views"]

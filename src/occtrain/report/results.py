@@ -50,6 +50,7 @@ HEADLINES = (
             ("the per-voxel prior (no input)", "baseline_prior_occworld_{0}"),
             ("empty", "baseline_free_occworld_{0}"),
             ("the point budget's oracle", "baseline_budget_oracle_occworld_{0}"),
+            ("ceiling: its cameras' pixels lifted at their true depth", "baseline_lifted_pixels_occworld_{0}"),
         ),
     ),
     Headline(
@@ -59,6 +60,10 @@ HEADLINES = (
         (
             ("the per-voxel prior (no input)", "baseline_prior_occworld_movable_mIoU"),
             ("the point budget's oracle", "baseline_budget_oracle_occworld_movable_mIoU"),
+            (
+                "ceiling: its cameras' pixels lifted at their true depth",
+                "baseline_lifted_pixels_occworld_movable_mIoU",
+            ),
         ),
     ),
     Headline(r"occupied_share", "predicted occupied share (% of voxels)", 1, (("true", "true_occupied_share"),)),

@@ -51,11 +51,11 @@ def _arch_of(model: Any) -> TokenizerArch | None:
 
 def reconstruction_metrics(model: TokenizerModel, root: str | Path, cache_dir: Path | None) -> ReconstructionMetrics:
     """Both conventions, an empty scene and the per-voxel prior of ``root``'s train split
-    (kept in ``cache_dir``) as the baselines, code use per codebook (motion and static for
-    the MS-VAE; none for a continuous encoder)."""
+    (kept in ``cache_dir``) as the baselines, the model's oracles, code use per codebook
+    (motion and static for the MS-VAE; none for a continuous encoder)."""
     prior = torch.from_numpy(voxel_prior(root, cache_dir))
     if not isinstance(model, SceneTokenizer):
-        return ReconstructionMetrics({}, oracle=model.budget_oracle, prior=prior)
+        return ReconstructionMetrics({}, oracles=model.oracles, prior=prior)
     return ReconstructionMetrics(dict(zip(model.codebook_names, model.codebook_sizes)), prior=prior)
 
 
@@ -120,6 +120,8 @@ class TokenizerStage(Stage):
             self.model.attach_teacher(self.teacher.hidden_size)
         self.index = DatasetIndex.open(ctx.data.root) if self.arch.reads_cameras else None
         self.recon = reconstruction_metrics(self.model, ctx.data.root, ctx.shared_cache_dir)
+        if self.recon.prior is not None:
+            self.model.set_voxel_prior(self.recon.prior)
         self.val_means = ValidationMeans("val/loss")
         self._pictures: list[tuple] = []
 
@@ -167,7 +169,7 @@ class TokenizerStage(Stage):
                 (sem[i].to(torch.uint8).cpu().numpy(), pred[i].to(torch.uint8).cpu().numpy())
                 for i in range(min(2, len(sem)))
             ]
-        self.recon.update(pred, sem, batch["mask_camera"], out.codes, out.oracle)
+        self.recon.update(pred, sem, batch["mask_camera"], out.codes, out.oracles)
         self.val_means.update("val/loss", out.losses["loss"], sem.shape[0])
 
     def on_validation_epoch_end(self) -> None:
@@ -206,11 +208,11 @@ class TokenizerStage(Stage):
         size = request.batch_size
         with progress_bar(len(frames), f"reconstructing {len(frames)} {request.split} frames") as advance:
             for i in range(0, len(frames), size):
-                batch = frames_batch(index, frames[i : i + size], cameras=arch.reads_cameras)
+                batch = frames_batch(index, frames[i : i + size], arch.reads_cameras, pixel_truth=bool(model.oracles))
                 sem = batch["semantics"].long()
                 if arch.reads_cameras:
                     out = model(batch, index, None)
-                    recon.update(out.prediction(), sem, batch["mask_camera"], oracle=out.oracle)
+                    recon.update(out.prediction(), sem, batch["mask_camera"], oracles=out.oracles)
                 else:
                     codes = model.encode(sem)
                     recon.update(model.decode_labels(codes), sem, batch["mask_camera"], codes)

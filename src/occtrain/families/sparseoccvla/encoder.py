@@ -30,9 +30,9 @@ from occtrain.data.layout import DatasetIndex
 from occtrain.errors import ConfigError, DataError
 from occtrain.families.sparseoccvla.config import SparseOccConfig
 from occtrain.families.sparseoccvla.inputs import CameraFrames, camera_frames, ground_truth
-from occtrain.formats.occ3d import NUM_CLASSES, RANGE_MAX, RANGE_MIN
+from occtrain.formats.occ3d import FREE, GRID_SHAPE, NUM_CLASSES, RANGE_MAX, RANGE_MIN
 from occtrain.models.camera_encoder import pixel_losses
-from occtrain.models.point_sets import POINT_CLASSES, chamfer_distance, sigmoid_focal_loss, voxelize
+from occtrain.models.point_sets import POINT_CLASSES, chamfer_distance, lifted_pixels, sigmoid_focal_loss, voxelize
 from occtrain.models.projection import average_views, in_cameras, project, read_views, sample_views
 from occtrain.models.tokenizers.base import TokenizerModel, TokenizerOutput
 
@@ -393,8 +393,11 @@ class SparseOccEncoder(TokenizerModel):
     """The Sparse Occupancy Encoder, its connector and its distillation branch (see the module docstring)."""
 
     discrete = False
-    #: Evaluation reports what its point budget reaches placed on occupied voxels (``oracle``).
-    budget_oracle = True
+    #: Evaluation reports what its point budget reaches placed on occupied voxels, and what
+    #: its cameras show: every pixel's true class lifted to its true depth (where the frames
+    #: carry the cameras' class and depth maps), both over what it decodes where no point lands.
+    oracles = ("budget_oracle", "lifted_pixels")
+    unseen_labels: torch.Tensor
 
     def __init__(self, cfg: SparseOccConfig):
         super().__init__()
@@ -414,6 +417,14 @@ class SparseOccEncoder(TokenizerModel):
         self.dense = PixelHead(cfg.dim) if cfg.dense_head else None
         self.connector = Connector(cfg.dim, cfg.token_dim, cfg.position_encoding)
         self.distillation: Distillation | None = None
+        # What a voxel no decoded point covers holds (cfg.unseen): free until the stage gives
+        # the training split's prior; exported, so a loaded encoder decodes as it was scored.
+        self.register_buffer("unseen_labels", torch.full(GRID_SHAPE, FREE, dtype=torch.uint8))
+        self.register_load_state_dict_pre_hook(_without_unseen_labels)
+
+    def set_voxel_prior(self, prior: torch.Tensor) -> None:
+        if self.cfg.unseen == "prior":
+            self.unseen_labels.copy_(prior.to(self.unseen_labels))
 
     @property
     def initial_positions(self) -> torch.Tensor:
@@ -462,8 +473,9 @@ class SparseOccEncoder(TokenizerModel):
         return points.flatten(1, 2), logits.argmax(-1).flatten(1)
 
     def voxelize(self, points: torch.Tensor, classes: torch.Tensor) -> torch.Tensor:
-        """Points (B, M, 3) with classes (B, M) -> label volumes (B, X, Y, Z)."""
-        return torch.stack([voxelize(p, c, self.cfg.extent) for p, c in zip(points, classes)])
+        """Points (B, M, 3) with classes (B, M) -> label volumes (B, X, Y, Z), ``unseen_labels``
+        where no point lands."""
+        return torch.stack([voxelize(p, c, self.cfg.extent, self.unseen_labels) for p, c in zip(points, classes)])
 
     # -- training (the tokenizer stage's protocol for a camera-reading architecture)
     def forward(
@@ -499,11 +511,13 @@ class SparseOccEncoder(TokenizerModel):
             losses["distill"] = self.distill(q, pos, cams, teacher)
             loss = loss + cfg.distill_weight * losses["distill"]
         losses = {"loss": loss, **losses}
-        labels = oracle = None
+        labels, oracles = None, {}
         if not self.training:
             labels = self.voxelize(*self.decode_points(q, pos))
-            oracle = self.oracle(batch, int(batch.get("seed", 0))).to(labels.device)
-        return TokenizerOutput(None, losses, {}, None, labels, oracle)
+            oracles["budget_oracle"] = self.oracle(batch, int(batch.get("seed", 0))).to(labels.device)
+            if "cam_class" in batch and "cam_depth" in batch:
+                oracles["lifted_pixels"] = self.lifted_pixels(batch, cams).to(labels.device)
+        return TokenizerOutput(None, losses, {}, None, labels, oracles)
 
     @property
     def point_budget(self) -> int:
@@ -518,7 +532,19 @@ class SparseOccEncoder(TokenizerModel):
         points, classes, real = ground_truth(
             batch, None, self.point_budget, 0, seed, cfg.kept_classes(), cfg.movable_share
         )
-        return torch.stack([voxelize(p[r], c[r], self.cfg.extent) for p, c, r in zip(points, classes, real)])
+        return torch.stack(
+            [voxelize(p[r], c[r], self.cfg.extent, self.unseen_labels) for p, c, r in zip(points, classes, real)]
+        )
+
+    def lifted_pixels(self, batch: dict[str, Any], cams: CameraFrames) -> torch.Tensor:
+        """What the current frame's cameras can carry (B, X, Y, Z): every pixel's true class
+        (``cam_class``) at its true depth (``cam_depth``) lifted into the grid, one voxel a
+        pixel, ``unseen_labels`` where no pixel lands. A perfect reader of the pixels gets
+        this far and no further: the voxels behind what a camera sees, and those between its
+        pixels' rays far away, stay the prior."""
+        return lifted_pixels(
+            batch["cam_class"], batch["cam_depth"], cams.intrinsics[:, 0], cams.cam_to_ego[:, 0], self.unseen_labels
+        )
 
     def distill(self, q: torch.Tensor, pos: torch.Tensor, cams: CameraFrames, teacher: nn.Module) -> torch.Tensor:
         """Eq. 3 on the current frame: the teacher's features read at the queries' projections."""
@@ -557,6 +583,12 @@ class SparseOccEncoder(TokenizerModel):
 
 _MID = (torch.tensor(RANGE_MIN, dtype=torch.float32) + torch.tensor(RANGE_MAX, dtype=torch.float32)) / 2
 _HALF = (torch.tensor(RANGE_MAX, dtype=torch.float32) - torch.tensor(RANGE_MIN, dtype=torch.float32)) / 2
+
+
+def _without_unseen_labels(module: nn.Module, state: dict, prefix: str, *args: Any) -> None:
+    """Exports written before a decoded scene kept the prior where no point lands decoded free there."""
+    if prefix + "unseen_labels" not in state and prefix + "queries" in state:
+        state[prefix + "unseen_labels"] = torch.full(GRID_SHAPE, FREE, dtype=torch.uint8)
 
 
 def _metres_to_unit(module: nn.Module, state: dict, prefix: str, *args: Any) -> None:

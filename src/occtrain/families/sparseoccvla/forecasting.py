@@ -21,7 +21,6 @@ from occtrain.families.sparseoccvla.world_model import SparseOccVLAWorldModel, s
 from occtrain.formats.occ3d import FREE, FUTURE_STEPS, MOVABLE_CLASSES
 from occtrain.metrics import OccupancyMetric
 from occtrain.metrics.occupancy import OCC3D, OCCWORLD
-from occtrain.models.point_sets import voxelize
 
 #: The paper's forecast frames: a scene's first five and last seven are left out (Sec. 4.1).
 SKIP_FIRST, SKIP_LAST = 5, 7
@@ -68,7 +67,7 @@ class ForecastHead:
             valid = (torch.arange(FUTURE_STEPS) < n)[None]
             pred = torch.full_like(target, FREE)
             for t, (points, classes) in enumerate(steps[:n]):
-                pred[0, t] = voxelize(points, classes, world.voxel_extent).cpu()
+                pred[0, t] = world.voxelize(points, classes).cpu()
             current = torch.from_numpy(labels[0]["semantics"]).long()
             recon = engine.decode_scenes(rows[None])[0].cpu()
             # No moved reconstruction: the encoder reads cameras, which a moved scene has none of.

@@ -14,7 +14,6 @@ from occtrain.core.protocols import WorldEngine, family_world
 from occtrain.data.clips import Clip, Text, text_of
 from occtrain.families.sparseoccvla.tasks import FORECAST_PROMPT, context
 from occtrain.families.sparseoccvla.world_model import SparseOccVLAWorldModel
-from occtrain.models.point_sets import voxelize
 
 
 def caption(engine: WorldEngine, clip: Clip) -> str:
@@ -36,7 +35,7 @@ def forecast(engine: WorldEngine, clip: Clip) -> np.ndarray:
     rows = engine.scenes({"ann": [clip.ann]}, [{a}])[(0, a)]
     world = family_world(engine, SparseOccVLAWorldModel)
     steps = world.forecast(engine.encode_parts([*context(clip, engine.tasks), Text(FORECAST_PROMPT)], {a: rows}))
-    return np.stack([voxelize(p, c, world.voxel_extent).cpu().numpy().astype(np.uint8) for p, c in steps])
+    return np.stack([world.voxelize(p, c).cpu().numpy().astype(np.uint8) for p, c in steps])
 
 
 OPERATIONS: dict[str, Callable[..., Any]] = {

@@ -45,7 +45,7 @@ from occtrain.families.sparseoccvla.encoder import (
 )
 from occtrain.formats.occ3d import FRAME_DT, PAST_STEPS
 from occtrain.models.planning_heads import current_velocity
-from occtrain.models.point_sets import chamfer_distance, occupied_points, sigmoid_focal_loss
+from occtrain.models.point_sets import chamfer_distance, occupied_points, sigmoid_focal_loss, voxelize
 
 if TYPE_CHECKING:
     from transformers import PreTrainedModel
@@ -206,6 +206,9 @@ class SparseOccVLAWorldModel(LMWorldModel):
         self.gt_points = enc.gt_points
         self.gt_keep, self.gt_share = enc.kept_classes(), enc.movable_share
         self.voxel_extent = enc.extent
+        # The encoder's fill where no point lands (its training split's prior): a forecast's
+        # points are voxelized as a reconstruction's are. Not state: the encoder's export holds it.
+        self.register_buffer("unseen_labels", encoder.unseen_labels.clone(), persistent=False)
         self.focal_weight = enc.focal_weight
         self.connector = copy.deepcopy(encoder.connector).requires_grad_(True)  # stage 1's, trained on
         if cfg.global_queries:
@@ -340,6 +343,11 @@ class SparseOccVLAWorldModel(LMWorldModel):
             *self.forecast_inputs(batch, out.hidden_states[-1], torch.zeros(1, dtype=torch.long, device=self.device))
         )
         return [(points[0], logits[0].argmax(-1)) for points, logits in steps]
+
+    def voxelize(self, points: torch.Tensor, classes: torch.Tensor) -> torch.Tensor:
+        """One forecast frame's points (M, 3) and classes (M,) -> its label volume (X, Y, Z),
+        voxelized as the encoder's reconstructions are."""
+        return voxelize(points, classes, self.voxel_extent, self.unseen_labels)
 
     # -- export
     def export_config(self) -> dict:

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import ClassVar
 
@@ -24,8 +24,9 @@ class TokenizerOutput:
     codes: (B, h, w) token ids (None for a continuous encoder);
     labels: the reconstruction (B, 200, 200, 16) itself, when it is not the argmax of
     ``logits`` (a point-set encoder voxelizes its points);
-    oracle: in evaluation, the best reconstruction the encoder's budget allows (a point-set
-    encoder's point count placed on occupied voxels), for a model with ``budget_oracle``.
+    oracles: in evaluation, reconstructions that bound what the encoder can reach, by name
+    (``TokenizerModel.oracles``): the best its point budget allows placed on occupied voxels,
+    or what a perfect reader of its cameras' pixels lifts into the grid.
     """
 
     logits: torch.Tensor | None
@@ -33,7 +34,7 @@ class TokenizerOutput:
     stats: dict[str, torch.Tensor]
     codes: torch.Tensor | None
     labels: torch.Tensor | None = None
-    oracle: torch.Tensor | None = None
+    oracles: dict[str, torch.Tensor] = field(default_factory=dict)
 
     def prediction(self) -> torch.Tensor:
         """The reconstructed label volumes (B, 200, 200, 16)."""
@@ -51,8 +52,8 @@ class TokenizerModel(nn.Module):
 
     #: Scenes become codes of codebooks; False: continuous rows (``num_tokens`` x ``token_dim``).
     discrete: ClassVar[bool] = True
-    #: Evaluation reports its point budget's oracle beside it (``TokenizerOutput.oracle``).
-    budget_oracle: ClassVar[bool] = False
+    #: The oracles its evaluation reports beside it (``TokenizerOutput.oracles``' names).
+    oracles: ClassVar[tuple[str, ...]] = ()
     #: The export it was loaded from (``core.tokenizer_exports.load_tokenizer``), which a world-model
     #: export copies; None for one built in this process.
     export_dir: Path | None = None
@@ -60,6 +61,11 @@ class TokenizerModel(nn.Module):
     def export_state_dict(self) -> dict[str, torch.Tensor]:
         """The weights an export keeps: all of them, unless a training-only branch is left out."""
         return self.state_dict()
+
+    def set_voxel_prior(self, prior: torch.Tensor) -> None:
+        """The training split's per-voxel prior (X, Y, Z), given before training: a model
+        that decodes voxels it has no evidence for keeps it (and exports it) to fill them.
+        A dense decoder, which labels every voxel itself, ignores it."""
 
     @property
     def num_tokens(self) -> int:

@@ -661,10 +661,101 @@ def test_the_budget_oracle_places_the_last_layers_points_on_occupied_voxels():
     batch = {"semantics": sem, "meta": [{"token": "t0"}]}
     oracle = enc.oracle(batch, seed=0)
     assert torch.equal(oracle, sem.long())
-    metrics = ReconstructionMetrics({}, oracle=True)
-    metrics.update(torch.full_like(oracle, FREE), sem.long(), torch.ones_like(sem, dtype=torch.bool), oracle=oracle)
+    metrics = ReconstructionMetrics({}, oracles=("budget_oracle",))
+    mask = torch.ones_like(sem, dtype=torch.bool)
+    metrics.update(torch.full_like(oracle, FREE), sem.long(), mask, oracles={"budget_oracle": oracle})
     out = metrics.compute()
     assert out["baseline_budget_oracle_occworld_IoU"] == 100.0 and out["occworld_IoU"] == 0.0
     assert out["baseline_budget_oracle_occworld_movable_mIoU"] == 100.0
     with pytest.raises(ValueError, match="oracle"):
         metrics.update(oracle, sem.long(), torch.ones_like(sem, dtype=torch.bool))
+
+
+def test_points_voxelize_over_a_background_where_none_lands():
+    """``background``: a voxel no point covers keeps its label (the prior), one a point
+    covers takes the point's class, and the background itself is left as it was."""
+    background = torch.full(GRID_SHAPE, FREE, dtype=torch.uint8)
+    background[:, :, 0] = 11  # road under everything
+    labels = voxelize(voxel_centres(torch.tensor([[3, 4, 0], [7, 7, 5]])), torch.tensor([4, 15]), background=background)
+    assert labels[3, 4, 0] == 4 and labels[7, 7, 5] == 15
+    assert labels[0, 0, 0] == 11 and labels[0, 0, 1] == FREE
+    assert int((labels != background.long()).sum()) == 2 and background[3, 4, 0] == 11
+
+
+def test_lift_puts_every_pixel_back_where_it_projected_from():
+    """``lift`` inverts ``project``: ego points projected into a camera and lifted at their
+    camera-z depth come back to themselves; ``beyond`` moves them that far along the ray."""
+    from occtrain.models.projection import in_cameras, lift
+
+    intr, to_ego, cams = _rig()
+    h, w = 72, 128
+    # The depth a plane 12 m in front of each camera gives every pixel, lifted, then projected back.
+    depth = torch.full((1, len(cams), h, w), 12.0)
+    points = lift(depth, intr, to_ego)
+    assert points.shape == (1, len(cams), h, w, 3)
+    for v in range(len(cams)):
+        flat = points[:, v].reshape(1, -1, 3)
+        uv, inside = project(flat, intr, to_ego, (h, w))
+        assert bool(inside[0, v].all())
+        vv, uu = torch.meshgrid(torch.arange(h) + 0.5, torch.arange(w) + 0.5, indexing="ij")
+        torch.testing.assert_close(uv[0, v], torch.stack([uu, vv], -1).reshape(-1, 2), atol=2e-3, rtol=0)
+        torch.testing.assert_close(in_cameras(flat, to_ego)[0, v, :, 2], torch.full((h * w,), 12.0), atol=1e-3, rtol=0)
+    further = lift(depth, intr, to_ego, beyond=0.1)
+    torch.testing.assert_close(
+        (further - points).norm(dim=-1), torch.full((1, len(cams), h, w), 0.1), atol=1e-4, rtol=0
+    )
+
+
+def test_lifted_pixels_of_a_rendered_frame_label_the_voxels_its_cameras_see(synth_dataset):
+    """Every pixel's class lifted to its depth lands in a voxel of that class: the ceiling
+    row reads what the cameras show and nothing else, and over the prior it keeps the prior
+    where no pixel lands."""
+    from occtrain.data.frames import frames_batch
+    from occtrain.data.layout import DatasetIndex
+    from occtrain.models.point_sets import lifted_pixels
+
+    index = DatasetIndex.open(synth_dataset)
+    scene = index.splits["val"][0]
+    batch = frames_batch(index, [(scene, index.scenes[scene][3])], cameras=True, pixel_truth=True)
+    assert batch["cam_class"].shape == batch["cam_depth"].shape == (1, 6, 72, 128)
+    truth = batch["semantics"][0].long()
+    cams = batch["cam_class"], batch["cam_depth"], batch["intrinsics"], batch["cam_to_ego"]
+    lifted = lifted_pixels(*cams)[0]
+    seen = lifted != FREE
+    assert int(seen.sum()) > 1000
+    agree = float((lifted[seen] == truth[seen]).float().mean())
+    assert agree > 0.97, agree  # the rest: rays that clip a voxel's corner, the ground beyond the labels
+    background = torch.full(GRID_SHAPE, 13, dtype=torch.uint8)
+    over = lifted_pixels(*cams, background)[0]
+    assert torch.equal(over[seen], lifted[seen]) and bool((over[~seen] == 13).all())
+    without = frames_batch(index, [(scene, index.scenes[scene][3])], cameras=True)
+    assert "cam_class" not in without  # only where asked: a world model's scene cache reads no maps
+
+
+def test_the_encoder_decodes_the_prior_where_no_point_lands_and_exports_it():
+    """``unseen: prior``: the stage's per-voxel prior is what a decoded scene holds where no
+    point lands, kept in the export; ``unseen: free`` keeps the paper's free; an export from
+    before the prior was kept loads as free."""
+    from occtrain.families.sparseoccvla.config import SparseOccConfig
+    from occtrain.families.sparseoccvla.encoder import SparseOccEncoder
+
+    prior = torch.full(GRID_SHAPE, FREE, dtype=torch.uint8)
+    prior[:, :, 0] = 11
+    small = {"queries": 4, "dim": 8, "heads": 2, "points_per_layer": [2, 3], "mixing_groups": 2}
+    nowhere = torch.full((1, 1, 3), 100.0), torch.zeros(1, 1, dtype=torch.long)  # one point beyond the grid
+    enc = SparseOccEncoder(SparseOccConfig(**small))
+    assert bool((enc.voxelize(*nowhere) == FREE).all())  # until the stage gives the prior
+    enc.set_voxel_prior(prior)
+    assert torch.equal(enc.voxelize(*nowhere)[0], prior.long())
+    again = SparseOccEncoder(SparseOccConfig(**small))
+    again.load_state_dict(enc.state_dict())
+    assert torch.equal(again.voxelize(*nowhere)[0], prior.long())
+    free = SparseOccEncoder(SparseOccConfig(**small, unseen="free"))
+    free.set_voxel_prior(prior)
+    assert bool((free.voxelize(*nowhere) == FREE).all())
+    old = {k: v for k, v in enc.state_dict().items() if k != "unseen_labels"}
+    before = SparseOccEncoder(SparseOccConfig(**small))
+    before.load_state_dict(old)
+    assert bool((before.voxelize(*nowhere) == FREE).all())
+    with pytest.raises(ConfigError, match="unseen: 'zero'"):
+        SparseOccConfig(unseen="zero").validate("model.sparseocc")
