@@ -22,6 +22,7 @@ cameras do not see; one with this point budget cannot pass the oracle's.
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from pathlib import Path
 
@@ -37,6 +38,7 @@ from occtrain.formats.occ3d import CLASS_INDEX, MOVABLE_CLASSES
 from occtrain.metrics.occupancy import OccupancyMetric
 from occtrain.models.point_sets import lifted_pixels, occupied_points, voxelize
 from occtrain.progress import progress_bar
+from occtrain.version import code_version
 
 MOVABLE = {"movable": MOVABLE_CLASSES}
 
@@ -97,9 +99,23 @@ def ceilings(
     return out
 
 
+def world_name(root: Path) -> str:
+    """A synthetic world as its generator recorded it (seed, world version, scenes, cameras),
+    not by where it lies on this machine."""
+    record = root / "occtrain" / "dataset.json"
+    try:
+        made = json.loads(record.read_text())
+        return (
+            f"world v{made['format_version']}, seed {made['seed']}, {made['train_scenes']} + {made['val_scenes']} "
+            f"scenes, {made['camera_height']}x{made['camera_width']} cameras"
+        )
+    except (OSError, ValueError, KeyError, TypeError):
+        return root.name
+
+
 def table(results: dict[str, dict[str, dict[str, float]]]) -> str:
     lines = [
-        "| dataset | row | mIoU | IoU | movable-class mIoU |",
+        "| world | row | mIoU | IoU | movable-class mIoU |",
         "|---|---|---|---|---|",
     ]
     for dataset, rows in results.items():
@@ -124,7 +140,7 @@ def main(argv: list[str] | None = None) -> int:
             if not root.is_dir():
                 raise OcctrainError(f"{root}: no such dataset; give a synthetic world's root (occtrain data synth)")
         results = {
-            str(root): ceilings(
+            world_name(root): ceilings(
                 root, args.split, args.samples, args.points, args.movable_share, args.extents, args.cache_dir
             )
             for root in args.roots
@@ -134,9 +150,27 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     text = table(results)
     if args.out is not None:
-        atomic_write_text(args.out, text)
+        atomic_write_text(args.out, page(text, args))
     print(text, end="")
     return 0
+
+
+def page(text: str, args: argparse.Namespace) -> str:
+    """The table as a docs page: what each row is, and the command and code that wrote it."""
+    extents = " ".join(",".join(map(str, e)) for e in args.extents)
+    frames = "every frame" if args.samples < 0 else f"the first {args.samples} frames"
+    return (
+        "# What a camera-reading encoder can reach\n\n"
+        f"Scored in the `occworld` convention over {frames} of each world's {args.split} split, before any "
+        "training. The per-voxel prior reads nothing; the point budget's rows place "
+        f"{args.points} points on occupied voxels with their true classes ({args.movable_share:.0%} movable "
+        "first, as SparseOccVLA's ground truth is drawn), each filling a box of that many voxels; the lifted "
+        "pixels are every camera pixel's true class at its true depth, one voxel each. An encoder with this "
+        "point budget cannot pass the budget's rows; one that reads these cameras cannot pass the lifted "
+        "pixels' on the voxels they do not show.\n\n"
+        f"Written by `python tools/camera_ceiling.py <worlds> --points {args.points} --extents {extents}` "
+        f"at code {code_version()}.\n\n" + text
+    )
 
 
 if __name__ == "__main__":
