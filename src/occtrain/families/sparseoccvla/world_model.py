@@ -188,6 +188,7 @@ class SparseOccVLAWorldModel(LMWorldModel):
     trains_own_parts_with_lora = True
     #: Its forecast targets (points, classes) are per sequence, read by row.
     packs_sequences = False
+    unseen_labels: torch.Tensor
 
     def __init__(
         self, llm: PreTrainedModel, vocab: JointVocab, encoder: SparseOccEncoder, cfg: SparseOccVLAWorldConfig
