@@ -102,6 +102,7 @@ def test_every_stage_trains_and_reports_the_papers_metrics_beside_baselines(spar
             "forecast_occworld_mIoU_1s",
             "baseline_copy_forecast_occworld_mIoU_1s",
             "baseline_copy_reconstruction_forecast_occworld_mIoU_1s",
+            "baseline_true_future_reconstruction_forecast_occworld_mIoU_1s",
             "forecast_trimmed_occworld_mIoU_avg",
             "reconstruction_occworld_mIoU",
             "reconstruction_occ3d_mIoU",
@@ -152,6 +153,7 @@ def test_eval_scores_each_stage_on_the_whole_split(sparse_run, stage):
         assert (
             metrics["forecast_occworld_frames_1s"]
             == metrics["baseline_copy_reconstruction_forecast_occworld_frames_1s"]
+            == metrics["baseline_true_future_reconstruction_forecast_occworld_frames_1s"]
             == 16 - 6
         )
         # The paper's frames: the first 5 and last 7 of the 16 left out.

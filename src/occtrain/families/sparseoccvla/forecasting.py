@@ -70,9 +70,18 @@ class ForecastHead:
                 pred[0, t] = world.voxelize(points, classes).cpu()
             current = torch.from_numpy(labels[0]["semantics"]).long()
             recon = engine.decode_scenes(rows[None])[0].cpu()
-            # No moved reconstruction: the encoder reads cameras, which a moved scene has none of.
+            # The ceiling: each future frame read from its own cameras (what a perfect forecast
+            # in the encoder's points scores). No moved reconstruction, nor movers pasted into
+            # one: the encoder reads cameras, which a moved scene has none of.
+            future_recon = torch.full_like(target[0], FREE)
+            if n:
+                cached = scene_rows(engine)
+                future_recon[:n] = engine.decode_scenes(torch.stack([cached[t] for t in future[:n]])).cpu()
             prior = ev.priors.voxels() if ev.priors.data_root is not None else None
-            predictions = {"forecast": pred, **forecast_baselines(current, recon, clip.anchor, prior=prior)}
+            predictions = {
+                "forecast": pred,
+                **forecast_baselines(current, recon, clip.anchor, prior=prior, future_reconstruction=future_recon),
+            }
             selections = [""] + (
                 ["trimmed_"] if paper_frame(index.scenes[scene].index(token), len(index.scenes[scene])) else []
             )
