@@ -53,10 +53,7 @@ def _cmd_check(args: argparse.Namespace) -> int:
     return check(args.path)
 
 
-def register(sub: argparse._SubParsersAction) -> None:
-    data = sub.add_parser("data", help="synthesize, shard, show and check datasets").add_subparsers(
-        dest="action", required=True
-    )
+def _register_synth(data: argparse._SubParsersAction) -> None:
     p = data.add_parser("synth", help="write the synthetic driving world in the Occ3D layout")
     p.add_argument("--out", required=True, help="dataset directory to create")
     p.add_argument("--scenes", type=int, default=4, help="train scenes (default 4)")
@@ -73,6 +70,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--workers", type=int, default=None, help="processes writing scenes (default: one per core from 100 frames)"
     )
     p.set_defaults(func=_cmd_synth)
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    data = sub.add_parser("data", help="synthesize, shard, show and check datasets").add_subparsers(
+        dest="action", required=True
+    )
+    _register_synth(data)
 
     p = data.add_parser("shards", help="write webdataset shards from a dataset")
     p.add_argument("dataset")
