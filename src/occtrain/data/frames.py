@@ -44,8 +44,11 @@ def camera_batch(
         "intrinsics": torch.tensor(np.stack([[r.intrinsic for r in rs] for rs in records]), dtype=torch.float32),
         "cam_to_ego": torch.tensor(np.stack([[r.cam_to_ego for r in rs] for rs in records]), dtype=torch.float32),
     }
-    targets = [index.camera_targets(scene, token) for scene, token in samples] if pixel_truth else [None]
-    if all(t is not None for t in targets):  # synthetic frames: what each pixel truly shows
-        out["cam_class"] = torch.from_numpy(np.stack([t[0] for t in targets if t is not None]))
-        out["cam_depth"] = torch.from_numpy(np.stack([t[1] for t in targets if t is not None]))
+    if not pixel_truth:
+        return out
+    targets = [index.camera_targets(scene, token) for scene, token in samples]
+    maps = [t for t in targets if t is not None]
+    if len(maps) == len(targets):  # synthetic frames: what each pixel truly shows
+        out["cam_class"] = torch.from_numpy(np.stack([classes for classes, _ in maps]))
+        out["cam_depth"] = torch.from_numpy(np.stack([depth for _, depth in maps]))
     return out

@@ -93,8 +93,9 @@ class SparseOccConfig:
     #: Voxels each decoded point fills when points are voxelized to be scored (x, y, z): a
     #: few thousand points cover a scene's 10^5 occupied voxels only as small boxes. One
     #: layer high: the ground is one voxel thick, and a second layer over it is wrong
-    #: wherever the point lies on the road (4,096 points on the truth: 34.0 mIoU at 3x3x1,
-    #: 30.1 at 3x3x2, 32.6 at 5x5x1, by ``tools/camera_ceiling.py``).
+    #: wherever the point lies on the road (4,096 points on the truth over the prior, the
+    #: quickstart world's val split: 36.7 mIoU at 3x3x1, 32.0 at 3x3x2, by
+    #: ``tools/camera_ceiling.py``; docs/families/sparseoccvla-cameras.md).
     voxel_extent: list[int] = field(default_factory=lambda: [3, 3, 1])
     #: What a voxel no decoded point covers holds: ``prior``, the training split's per-voxel
     #: prior (the road below, buildings beside: a few thousand points leave most of a scene
