@@ -22,7 +22,6 @@ cameras do not see; one with this point budget cannot pass the oracle's.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -30,7 +29,8 @@ import numpy as np
 import torch
 
 from occtrain.data.frames import frames_batch
-from occtrain.data.layout import DatasetIndex
+from occtrain.data.identity import world_identity
+from occtrain.data.layout import DatasetIndex, generator_record
 from occtrain.data.voxel_prior import voxel_prior
 from occtrain.errors import OcctrainError
 from occtrain.formats.io import atomic_write_text
@@ -100,17 +100,12 @@ def ceilings(
 
 
 def world_name(root: Path) -> str:
-    """A synthetic world as its generator recorded it (seed, world version, scenes, cameras),
-    not by where it lies on this machine."""
-    record = root / "occtrain" / "dataset.json"
-    try:
-        made = json.loads(record.read_text())
-        return (
-            f"world v{made['format_version']}, seed {made['seed']}, {made['train_scenes']} + {made['val_scenes']} "
-            f"scenes, {made['camera_height']}x{made['camera_width']} cameras"
-        )
-    except (OSError, ValueError, KeyError, TypeError):
-        return root.name
+    """A world as its results pages name it (``data.identity``), not by where it lies on
+    this machine, with its cameras' size: the worlds compared here differ in nothing else."""
+    record = generator_record(root) or {}
+    size = (record.get("camera_height"), record.get("camera_width"))
+    name = world_identity(root).name
+    return f"{name}, {size[0]}x{size[1]} cameras" if all(size) else name
 
 
 def table(results: dict[str, dict[str, dict[str, float]]]) -> str:

@@ -37,6 +37,8 @@ def test_the_rows_bound_a_reader_of_the_cameras(tool, synth_dataset, tmp_path, c
     iou = {name: float(cells[1]) for name, cells in rows.items()}
     assert iou["72x128 pixels lifted, the prior elsewhere"] > iou["the per-voxel prior"]
     assert iou["72x128 pixels lifted, the prior elsewhere"] > iou["72x128 pixels lifted, free elsewhere"]
+    assert str(synth_dataset) not in out.read_text()  # a world by what it is, not where it lies
+    assert "occtrain world v" in lines[0] and "72x128 cameras" in lines[0]
     assert out.read_text().endswith(capsys.readouterr().out) and "tools/camera_ceiling.py" in out.read_text()
 
 
